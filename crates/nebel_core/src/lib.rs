@@ -4,7 +4,13 @@
 //! GPU (DESIGN.md §2). The Bevy crates only move these results to the GPU.
 //!
 //! - [`optics`]: optical modes and compositing of premultiplied RGBA (DESIGN.md §4).
+//! - [`scene`]: the scene file schema (RON), its loader and validation.
 //! - [`transfer`]: transfer functions κ (chromaticity) and ρ (density) over a scalar.
+//! - [`cell`]: tetrahedra, prisms, hexahedra, their decompositions and exact ray-cell intersection.
+//! - [`segment`]: the exact f64 ray integral of one linear segment, the reference for the tables.
 
+pub mod cell;
 pub mod optics;
+pub mod scene;
+pub mod segment;
 pub mod transfer;

@@ -1,0 +1,835 @@
+//! Scene files: a whole scene as data, in RON (DESIGN.md §1).
+//!
+//! The examples, the integration tests and the `nebel` command line all load the
+//! same files (`assets/scenes/*.ron`, `tests/scenes/*.ron`). This module is the
+//! schema, its loader and its validation; it knows nothing of Bevy, so the CPU
+//! reference renderer can read the same files.
+//!
+//! # Schema, version 1
+//!
+//! ```ron
+//! (
+//!     version: 1,
+//!     output: (width: 320, height: 240, frames: 4, frame_rate: 60.0),
+//!     camera: (
+//!         fov_degrees: 60.0,
+//!         near: 0.1,
+//!         view: Pose((position: (0.0, 2.0, 8.0), look_at: (0.0, 0.0, 0.0))),
+//!         // or a path of keyframes, times in seconds, strictly increasing:
+//!         // view: Path([(time: 0.0, position: (..), look_at: (..)), ...]),
+//!     ),
+//!     clear_color: (0.02, 0.02, 0.05),
+//!     lights: [
+//!         Directional((direction: (-0.5, -1.0, -0.3), illuminance: 10000.0)),
+//!         Point((position: (0.0, 1.0, 0.0), color: (1.0, 0.6, 0.3), intensity: 100000.0)),
+//!         Ambient((brightness: 200.0)),
+//!     ],
+//!     meshes: [
+//!         Plane((center: (0.0, 0.0, 0.0), size: (20.0, 20.0), color: (0.3, 0.5, 0.3))),
+//!         Box((center: (0.0, 0.5, 0.0), size: (1.0, 1.0, 1.0))),
+//!         Sphere((center: (2.0, 1.0, 0.0), radius: 1.0, color: (0.8, 0.2, 0.2))),
+//!     ],
+//! )
+//! ```
+//!
+//! Conventions: right-handed, +Y up, metres. Colours are sRGB components in
+//! [0, 1] (as a colour picker shows them). Every field but `version` and `camera`
+//! has a default, written next to it below. The scene grows by one list (or one
+//! optional entry) per entity kind; unknown fields are errors, so a typo never
+//! goes unnoticed.
+//!
+//! Errors name the file, the position, the field and the reason, e.g.
+//! `scenes/a.ron:4:9: field camera.fov_degrees: must be in (0, 180), got 190`.
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+/// The schema version this build reads and writes.
+pub const SCENE_VERSION: u32 = 1;
+
+/// A scene file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SceneDescription {
+    /// Schema version; must be [`SCENE_VERSION`].
+    pub version: u32,
+    /// Image size and frame count. Default: [`OutputSettings::default`].
+    #[serde(default)]
+    pub output: OutputSettings,
+    /// The camera.
+    pub camera: CameraSettings,
+    /// Background colour where nothing is drawn, sRGB. Default: `(0.0, 0.0, 0.0)`.
+    #[serde(default)]
+    pub clear_color: [f32; 3],
+    /// Lights. Default: none.
+    #[serde(default)]
+    pub lights: Vec<LightDescription>,
+    /// Plain meshes with one colour each. Default: none.
+    #[serde(default)]
+    pub meshes: Vec<MeshDescription>,
+}
+
+/// Image size and the frames to run before the image is taken.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OutputSettings {
+    /// Image width in pixels, 1 to 8192. Default: 640.
+    pub width: u32,
+    /// Image height in pixels, 1 to 8192. Default: 360.
+    pub height: u32,
+    /// Frames to run; the image shows the last. Default: 1.
+    pub frames: u32,
+    /// Simulated frames per second: frame `i` is at time `i / frame_rate`
+    /// seconds, whatever the real frame time. Default: 60.
+    pub frame_rate: f32,
+}
+
+impl Default for OutputSettings {
+    fn default() -> Self {
+        Self {
+            width: 640,
+            height: 360,
+            frames: 1,
+            frame_rate: 60.0,
+        }
+    }
+}
+
+/// The camera: a perspective projection and where it looks from.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraSettings {
+    /// Vertical field of view in degrees, in (0, 180). Default: 60.
+    #[serde(default = "default_fov_degrees")]
+    pub fov_degrees: f32,
+    /// Near plane distance in metres, > 0. Default: 0.1.
+    #[serde(default = "default_near")]
+    pub near: f32,
+    /// A fixed pose or a path of keyframes.
+    pub view: CameraView,
+}
+
+fn default_fov_degrees() -> f32 {
+    60.0
+}
+
+fn default_near() -> f32 {
+    0.1
+}
+
+/// Where the camera is.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum CameraView {
+    /// One pose for every frame.
+    Pose(CameraPose),
+    /// Keyframes with strictly increasing times; between two keyframes position
+    /// and target are interpolated linearly, before the first and after the
+    /// last they hold.
+    Path(Vec<CameraKeyframe>),
+}
+
+/// A camera position and the point it looks at (+Y is up).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraPose {
+    /// Eye position, metres.
+    pub position: [f32; 3],
+    /// Point the camera looks at, metres; must differ from `position`.
+    pub look_at: [f32; 3],
+}
+
+/// One keyframe of a camera path.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraKeyframe {
+    /// Time in seconds.
+    pub time: f32,
+    /// Eye position, metres.
+    pub position: [f32; 3],
+    /// Point the camera looks at, metres; must differ from `position`.
+    pub look_at: [f32; 3],
+}
+
+/// A light source.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum LightDescription {
+    /// Sunlight: parallel rays.
+    Directional(DirectionalLightDescription),
+    /// A point light with a range.
+    Point(PointLightDescription),
+    /// Light from everywhere, applied to every surface.
+    Ambient(AmbientLightDescription),
+}
+
+/// Sunlight.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DirectionalLightDescription {
+    /// The direction the light travels in (from the sun to the ground); non-zero.
+    pub direction: [f32; 3],
+    /// sRGB colour. Default: white.
+    #[serde(default = "white")]
+    pub color: [f32; 3],
+    /// Illuminance in lux. Default: 10 000 (overcast day).
+    #[serde(default = "default_illuminance")]
+    pub illuminance: f32,
+    /// Whether it casts shadows. Default: false.
+    #[serde(default)]
+    pub shadows: bool,
+}
+
+fn default_illuminance() -> f32 {
+    10_000.0
+}
+
+/// A point light.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PointLightDescription {
+    /// Position, metres.
+    pub position: [f32; 3],
+    /// sRGB colour. Default: white.
+    #[serde(default = "white")]
+    pub color: [f32; 3],
+    /// Luminous power in lumens. Default: 100 000.
+    #[serde(default = "default_point_intensity")]
+    pub intensity: f32,
+    /// Distance beyond which it lights nothing, metres, > 0. Default: 20.
+    #[serde(default = "default_point_range")]
+    pub range: f32,
+    /// Whether it casts shadows. Default: false.
+    #[serde(default)]
+    pub shadows: bool,
+}
+
+fn default_point_intensity() -> f32 {
+    100_000.0
+}
+
+fn default_point_range() -> f32 {
+    20.0
+}
+
+/// Ambient light.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AmbientLightDescription {
+    /// sRGB colour. Default: white.
+    #[serde(default = "white")]
+    pub color: [f32; 3],
+    /// Luminance in cd/m², as Bevy's `AmbientLight::brightness`. Default: 80.
+    #[serde(default = "default_ambient_brightness")]
+    pub brightness: f32,
+}
+
+fn default_ambient_brightness() -> f32 {
+    80.0
+}
+
+/// A plain mesh with one colour.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum MeshDescription {
+    /// A horizontal rectangle facing +Y.
+    Plane(PlaneDescription),
+    /// An axis-aligned box.
+    Box(BoxDescription),
+    /// A sphere.
+    Sphere(SphereDescription),
+}
+
+/// A horizontal rectangle facing +Y.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlaneDescription {
+    /// Centre, metres.
+    pub center: [f32; 3],
+    /// Extent along X and Z, metres, each > 0.
+    pub size: [f32; 2],
+    /// sRGB colour. Default: white.
+    #[serde(default = "white")]
+    pub color: [f32; 3],
+}
+
+/// An axis-aligned box.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BoxDescription {
+    /// Centre, metres.
+    pub center: [f32; 3],
+    /// Extent along X, Y and Z, metres, each > 0.
+    pub size: [f32; 3],
+    /// sRGB colour. Default: white.
+    #[serde(default = "white")]
+    pub color: [f32; 3],
+}
+
+/// A sphere.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SphereDescription {
+    /// Centre, metres.
+    pub center: [f32; 3],
+    /// Radius, metres, > 0.
+    pub radius: f32,
+    /// sRGB colour. Default: white.
+    #[serde(default = "white")]
+    pub color: [f32; 3],
+}
+
+fn white() -> [f32; 3] {
+    [1.0; 3]
+}
+
+/// Why a scene file could not be used. Every variant names the file.
+#[derive(Debug, Error)]
+pub enum SceneError {
+    /// The file could not be read.
+    #[error("{}: cannot read scene file: {source}", path.display())]
+    Read {
+        /// The scene file.
+        path: PathBuf,
+        /// What the operating system said.
+        source: std::io::Error,
+    },
+    /// The file is not valid RON for the schema (syntax, unknown or missing
+    /// field, wrong type).
+    #[error("{}:{line}:{column}: field {field}: {reason}", path.display())]
+    Parse {
+        /// The scene file.
+        path: PathBuf,
+        /// 1-based line of the error.
+        line: usize,
+        /// 1-based column of the error.
+        column: usize,
+        /// Dotted path of the field, `(top level)` outside any field.
+        field: String,
+        /// What is wrong.
+        reason: String,
+    },
+    /// The file parsed but a value is out of range.
+    #[error("{}: field {field}: {reason}", path.display())]
+    Invalid {
+        /// The scene file.
+        path: PathBuf,
+        /// Dotted path of the field.
+        field: String,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+impl SceneDescription {
+    /// Reads, parses and validates a scene file.
+    pub fn load(path: impl AsRef<Path>) -> Result<Self, SceneError> {
+        let path = path.as_ref();
+        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Read {
+            path: path.to_owned(),
+            source,
+        })?;
+        Self::from_ron(&text, path)
+    }
+
+    /// Parses and validates scene text; `origin` names the file in errors.
+    pub fn from_ron(text: &str, origin: &Path) -> Result<Self, SceneError> {
+        let parse_error = |field: String, error: ron::error::SpannedError| SceneError::Parse {
+            path: origin.to_owned(),
+            line: error.span.start.line,
+            column: error.span.start.col,
+            field,
+            reason: error.code.to_string(),
+        };
+        let mut deserializer = ron::Deserializer::from_str(text)
+            .map_err(|error| parse_error(String::from("(top level)"), error))?;
+        let scene: Self = serde_path_to_error::deserialize(&mut deserializer).map_err(|error| {
+            let field = match error.path().to_string() {
+                path if path == "." => String::from("(top level)"),
+                path => path,
+            };
+            let spanned = deserializer.span_error(error.into_inner());
+            parse_error(field, spanned)
+        })?;
+        deserializer.end().map_err(|code| {
+            parse_error(String::from("(top level)"), deserializer.span_error(code))
+        })?;
+        scene.validate().map_err(|invalid| SceneError::Invalid {
+            path: origin.to_owned(),
+            field: invalid.field,
+            reason: invalid.reason,
+        })?;
+        Ok(scene)
+    }
+
+    /// Writes the scene as pretty RON that [`SceneDescription::from_ron`] reads back.
+    pub fn to_ron(&self) -> String {
+        ron::ser::to_string_pretty(self, ron::ser::PrettyConfig::default())
+            .expect("a scene description always serialises")
+    }
+
+    /// The camera pose at `time` seconds (see [`CameraView::Path`]).
+    pub fn camera_pose_at(&self, time: f32) -> CameraPose {
+        match &self.camera.view {
+            CameraView::Pose(pose) => *pose,
+            CameraView::Path(keyframes) => {
+                let pose = |k: &CameraKeyframe| CameraPose {
+                    position: k.position,
+                    look_at: k.look_at,
+                };
+                let next = keyframes.partition_point(|k| k.time <= time);
+                if next == 0 {
+                    return pose(&keyframes[0]);
+                }
+                if next == keyframes.len() {
+                    return pose(&keyframes[keyframes.len() - 1]);
+                }
+                let (a, b) = (&keyframes[next - 1], &keyframes[next]);
+                let t = (time - a.time) / (b.time - a.time);
+                let lerp =
+                    |x: [f32; 3], y: [f32; 3]| std::array::from_fn(|i| x[i] + (y[i] - x[i]) * t);
+                CameraPose {
+                    position: lerp(a.position, b.position),
+                    look_at: lerp(a.look_at, b.look_at),
+                }
+            }
+        }
+    }
+
+    /// The simulated time of frame `index` in seconds.
+    pub fn frame_time(&self, index: u32) -> f32 {
+        index as f32 / self.output.frame_rate
+    }
+
+    /// Checks every value against its documented range.
+    pub fn validate(&self) -> Result<(), InvalidField> {
+        if self.version != SCENE_VERSION {
+            return Err(InvalidField::new(
+                "version",
+                format!(
+                    "this build reads version {SCENE_VERSION}, got {}",
+                    self.version
+                ),
+            ));
+        }
+        let output = &self.output;
+        in_range("output.width", output.width as f32, 1.0, 8192.0)?;
+        in_range("output.height", output.height as f32, 1.0, 8192.0)?;
+        in_range("output.frames", output.frames as f32, 1.0, 1.0e6)?;
+        positive("output.frame_rate", output.frame_rate)?;
+        let camera = &self.camera;
+        if !(camera.fov_degrees > 0.0 && camera.fov_degrees < 180.0) {
+            return Err(InvalidField::new(
+                "camera.fov_degrees",
+                format!("must be in (0, 180), got {}", camera.fov_degrees),
+            ));
+        }
+        positive("camera.near", camera.near)?;
+        match &camera.view {
+            CameraView::Pose(pose) => pose_valid("camera.view.Pose", pose.position, pose.look_at)?,
+            CameraView::Path(keyframes) => {
+                if keyframes.is_empty() {
+                    return Err(InvalidField::new(
+                        "camera.view.Path",
+                        "needs at least one keyframe",
+                    ));
+                }
+                for (index, keyframe) in keyframes.iter().enumerate() {
+                    let field = format!("camera.view.Path[{index}]");
+                    finite(&format!("{field}.time"), &[keyframe.time])?;
+                    pose_valid(&field, keyframe.position, keyframe.look_at)?;
+                    if index > 0 && keyframe.time <= keyframes[index - 1].time {
+                        return Err(InvalidField::new(
+                            format!("{field}.time"),
+                            format!(
+                                "times must increase strictly, got {} after {}",
+                                keyframe.time,
+                                keyframes[index - 1].time
+                            ),
+                        ));
+                    }
+                }
+            }
+        }
+        colour("clear_color", self.clear_color)?;
+        for (index, light) in self.lights.iter().enumerate() {
+            match light {
+                LightDescription::Directional(sun) => {
+                    let field = format!("lights[{index}].Directional");
+                    finite(&format!("{field}.direction"), &sun.direction)?;
+                    if sun.direction.iter().all(|c| *c == 0.0) {
+                        return Err(InvalidField::new(
+                            format!("{field}.direction"),
+                            "must not be zero",
+                        ));
+                    }
+                    colour(&format!("{field}.color"), sun.color)?;
+                    non_negative(&format!("{field}.illuminance"), sun.illuminance)?;
+                }
+                LightDescription::Point(point) => {
+                    let field = format!("lights[{index}].Point");
+                    finite(&format!("{field}.position"), &point.position)?;
+                    colour(&format!("{field}.color"), point.color)?;
+                    non_negative(&format!("{field}.intensity"), point.intensity)?;
+                    positive(&format!("{field}.range"), point.range)?;
+                }
+                LightDescription::Ambient(ambient) => {
+                    let field = format!("lights[{index}].Ambient");
+                    colour(&format!("{field}.color"), ambient.color)?;
+                    non_negative(&format!("{field}.brightness"), ambient.brightness)?;
+                }
+            }
+        }
+        for (index, mesh) in self.meshes.iter().enumerate() {
+            let (field, center, extents, color): (_, _, &[f32], _) = match mesh {
+                MeshDescription::Plane(plane) => ("Plane", plane.center, &plane.size, plane.color),
+                MeshDescription::Box(cuboid) => ("Box", cuboid.center, &cuboid.size, cuboid.color),
+                MeshDescription::Sphere(sphere) => (
+                    "Sphere",
+                    sphere.center,
+                    std::slice::from_ref(&sphere.radius),
+                    sphere.color,
+                ),
+            };
+            let field = format!("meshes[{index}].{field}");
+            finite(&format!("{field}.center"), &center)?;
+            let extent_name = if matches!(mesh, MeshDescription::Sphere(_)) {
+                "radius"
+            } else {
+                "size"
+            };
+            for extent in extents {
+                positive(&format!("{field}.{extent_name}"), *extent)?;
+            }
+            colour(&format!("{field}.color"), color)?;
+        }
+        Ok(())
+    }
+}
+
+/// A value outside its documented range: which field, and why.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct InvalidField {
+    /// Dotted path of the field.
+    pub field: String,
+    /// What is wrong.
+    pub reason: String,
+}
+
+impl InvalidField {
+    fn new(field: impl Into<String>, reason: impl Into<String>) -> Self {
+        Self {
+            field: field.into(),
+            reason: reason.into(),
+        }
+    }
+}
+
+fn finite(field: &str, values: &[f32]) -> Result<(), InvalidField> {
+    match values.iter().find(|v| !v.is_finite()) {
+        Some(value) => Err(InvalidField::new(
+            field,
+            format!("must be finite, got {value}"),
+        )),
+        None => Ok(()),
+    }
+}
+
+fn positive(field: &str, value: f32) -> Result<(), InvalidField> {
+    if value.is_finite() && value > 0.0 {
+        Ok(())
+    } else {
+        Err(InvalidField::new(
+            field,
+            format!("must be finite and > 0, got {value}"),
+        ))
+    }
+}
+
+fn non_negative(field: &str, value: f32) -> Result<(), InvalidField> {
+    if value.is_finite() && value >= 0.0 {
+        Ok(())
+    } else {
+        Err(InvalidField::new(
+            field,
+            format!("must be finite and >= 0, got {value}"),
+        ))
+    }
+}
+
+fn in_range(field: &str, value: f32, min: f32, max: f32) -> Result<(), InvalidField> {
+    if (min..=max).contains(&value) {
+        Ok(())
+    } else {
+        Err(InvalidField::new(
+            field,
+            format!("must be in [{min}, {max}], got {value}"),
+        ))
+    }
+}
+
+fn colour(field: &str, color: [f32; 3]) -> Result<(), InvalidField> {
+    match color.iter().find(|c| !(c.is_finite() && **c >= 0.0)) {
+        Some(value) => Err(InvalidField::new(
+            field,
+            format!("colour components must be finite and >= 0, got {value}"),
+        )),
+        None => Ok(()),
+    }
+}
+
+fn pose_valid(field: &str, position: [f32; 3], look_at: [f32; 3]) -> Result<(), InvalidField> {
+    finite(&format!("{field}.position"), &position)?;
+    finite(&format!("{field}.look_at"), &look_at)?;
+    if position == look_at {
+        return Err(InvalidField::new(
+            format!("{field}.look_at"),
+            "must differ from position (the view direction would be undefined)",
+        ));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MINIMAL: &str =
+        "(version: 1, camera: (view: Pose((position: (0.0, 1.0, 5.0), look_at: (0.0, 0.0, 0.0)))))";
+
+    fn full() -> SceneDescription {
+        SceneDescription {
+            version: 1,
+            output: OutputSettings {
+                width: 64,
+                height: 48,
+                frames: 3,
+                frame_rate: 30.0,
+            },
+            camera: CameraSettings {
+                fov_degrees: 45.0,
+                near: 0.05,
+                view: CameraView::Path(vec![
+                    CameraKeyframe {
+                        time: 0.0,
+                        position: [0.0, 1.0, 5.0],
+                        look_at: [0.0; 3],
+                    },
+                    CameraKeyframe {
+                        time: 2.0,
+                        position: [4.0, 3.0, 5.0],
+                        look_at: [0.0, 2.0, 0.0],
+                    },
+                ]),
+            },
+            clear_color: [0.1, 0.2, 0.3],
+            lights: vec![
+                LightDescription::Directional(DirectionalLightDescription {
+                    direction: [-1.0, -1.0, 0.0],
+                    color: [1.0, 0.9, 0.8],
+                    illuminance: 5000.0,
+                    shadows: true,
+                }),
+                LightDescription::Point(PointLightDescription {
+                    position: [0.0, 1.0, 0.0],
+                    color: [1.0, 0.5, 0.2],
+                    intensity: 2000.0,
+                    range: 10.0,
+                    shadows: false,
+                }),
+                LightDescription::Ambient(AmbientLightDescription {
+                    color: [0.5, 0.5, 1.0],
+                    brightness: 100.0,
+                }),
+            ],
+            meshes: vec![
+                MeshDescription::Plane(PlaneDescription {
+                    center: [0.0; 3],
+                    size: [10.0, 10.0],
+                    color: [0.2, 0.6, 0.2],
+                }),
+                MeshDescription::Box(BoxDescription {
+                    center: [0.0, 0.5, 0.0],
+                    size: [1.0, 1.0, 1.0],
+                    color: [1.0; 3],
+                }),
+                MeshDescription::Sphere(SphereDescription {
+                    center: [2.0, 1.0, 0.0],
+                    radius: 0.5,
+                    color: [0.9, 0.1, 0.1],
+                }),
+            ],
+        }
+    }
+
+    fn parse(text: &str) -> Result<SceneDescription, SceneError> {
+        SceneDescription::from_ron(text, Path::new("scenes/test.ron"))
+    }
+
+    fn message(text: &str) -> String {
+        parse(text)
+            .expect_err("scene should be refused")
+            .to_string()
+    }
+
+    #[test]
+    fn round_trip_keeps_every_field() {
+        let scene = full();
+        assert_eq!(parse(&scene.to_ron()).unwrap(), scene);
+    }
+
+    #[test]
+    fn minimal_scene_takes_documented_defaults() {
+        let scene = parse(MINIMAL).unwrap();
+        assert_eq!(scene.output, OutputSettings::default());
+        assert_eq!(scene.camera.fov_degrees, 60.0);
+        assert_eq!(scene.camera.near, 0.1);
+        assert_eq!(scene.clear_color, [0.0; 3]);
+        assert!(scene.lights.is_empty() && scene.meshes.is_empty());
+    }
+
+    #[test]
+    fn unknown_field_is_named_with_file_and_position() {
+        let text = MINIMAL.replace("version: 1,", "version: 1, fog_colour: (1.0, 1.0, 1.0),");
+        let message = message(&text);
+        assert!(message.starts_with("scenes/test.ron:1:"), "{message}");
+        assert!(message.contains("fog_colour"), "{message}");
+    }
+
+    #[test]
+    fn wrong_type_names_the_nested_field() {
+        let text = MINIMAL.replace("camera: (", "camera: (fov_degrees: \"wide\", ");
+        let message = message(&text);
+        assert!(message.contains("field camera.fov_degrees"), "{message}");
+        assert!(message.contains("scenes/test.ron:1:"), "{message}");
+    }
+
+    #[test]
+    fn missing_required_field_is_named() {
+        let message = message("(version: 1)");
+        assert!(message.contains("camera"), "{message}");
+    }
+
+    #[test]
+    fn syntax_error_gives_line_and_column() {
+        let message = message(
+            "(version: 1,\n camera: (view: Pose((position: (0.0, 1.0, 5.0) look_at: (0.0, 0.0, 0.0)))))",
+        );
+        assert!(message.starts_with("scenes/test.ron:2:"), "{message}");
+    }
+
+    #[test]
+    fn trailing_text_is_refused() {
+        let message = message(&format!("{MINIMAL} extra"));
+        assert!(message.contains("scenes/test.ron:1:"), "{message}");
+    }
+
+    #[test]
+    fn each_range_check_names_field_and_reason() {
+        let cases: &[(&str, &str, &str)] = &[
+            (
+                "version: 1",
+                "version: 2",
+                "field version: this build reads version 1, got 2",
+            ),
+            (
+                "camera: (",
+                "camera: (fov_degrees: 190.0, ",
+                "field camera.fov_degrees: must be in (0, 180), got 190",
+            ),
+            (
+                "camera: (",
+                "camera: (near: 0.0, ",
+                "field camera.near: must be finite and > 0, got 0",
+            ),
+            (
+                "look_at: (0.0, 0.0, 0.0)",
+                "look_at: (0.0, 1.0, 5.0)",
+                "field camera.view.Pose.look_at: must differ from position",
+            ),
+            (
+                "version: 1,",
+                "version: 1, output: (width: 0),",
+                "field output.width: must be in [1, 8192], got 0",
+            ),
+            (
+                "version: 1,",
+                "version: 1, output: (frame_rate: -1.0),",
+                "field output.frame_rate: must be finite and > 0, got -1",
+            ),
+            (
+                "version: 1,",
+                "version: 1, clear_color: (0.0, -1.0, 0.0),",
+                "field clear_color: colour components must be finite and >= 0, got -1",
+            ),
+            (
+                "version: 1,",
+                "version: 1, lights: [Directional((direction: (0.0, 0.0, 0.0)))],",
+                "field lights[0].Directional.direction: must not be zero",
+            ),
+            (
+                "version: 1,",
+                "version: 1, lights: [Point((position: (0.0, 0.0, 0.0), range: 0.0))],",
+                "field lights[0].Point.range: must be finite and > 0, got 0",
+            ),
+            (
+                "version: 1,",
+                "version: 1, lights: [Ambient((brightness: -2.0))],",
+                "field lights[0].Ambient.brightness: must be finite and >= 0, got -2",
+            ),
+            (
+                "version: 1,",
+                "version: 1, meshes: [Sphere((center: (0.0, 0.0, 0.0), radius: 0.0))],",
+                "field meshes[0].Sphere.radius: must be finite and > 0, got 0",
+            ),
+            (
+                "version: 1,",
+                "version: 1, meshes: [Box((center: (0.0, 0.0, 0.0), size: (1.0, inf, 1.0)))],",
+                "field meshes[0].Box.size: must be finite and > 0, got inf",
+            ),
+            (
+                "version: 1,",
+                "version: 1, meshes: [Plane((center: (NaN, 0.0, 0.0), size: (1.0, 1.0)))],",
+                "field meshes[0].Plane.center: must be finite, got NaN",
+            ),
+        ];
+        for (from, to, expected) in cases {
+            let text = MINIMAL.replace(from, to);
+            assert_ne!(text, MINIMAL, "case {expected} did not change the scene");
+            let message = message(&text);
+            let prefix = format!("scenes/test.ron: {expected}");
+            assert!(message.starts_with(&prefix), "{message}");
+        }
+    }
+
+    #[test]
+    fn path_must_increase_strictly() {
+        let text = "(version: 1, camera: (view: Path([(time: 1.0, position: (0.0, 0.0, 1.0), look_at: (0.0, 0.0, 0.0)), (time: 1.0, position: (0.0, 0.0, 2.0), look_at: (0.0, 0.0, 0.0))])))";
+        let refused = message(text);
+        assert!(
+            refused.contains("field camera.view.Path[1].time: times must increase strictly"),
+            "{refused}"
+        );
+        let empty = "(version: 1, camera: (view: Path([])))";
+        assert!(message(empty).contains("needs at least one keyframe"));
+    }
+
+    #[test]
+    fn camera_path_interpolates_and_holds() {
+        let scene = full();
+        assert_eq!(scene.camera_pose_at(-1.0).position, [0.0, 1.0, 5.0]);
+        assert_eq!(scene.camera_pose_at(1.0).position, [2.0, 2.0, 5.0]);
+        assert_eq!(scene.camera_pose_at(1.0).look_at, [0.0, 1.0, 0.0]);
+        assert_eq!(scene.camera_pose_at(9.0).position, [4.0, 3.0, 5.0]);
+        assert_eq!(scene.frame_time(3), 0.1);
+    }
+
+    #[test]
+    fn missing_file_is_named() {
+        let error = SceneDescription::load("does/not/exist.ron").unwrap_err();
+        assert!(
+            error
+                .to_string()
+                .starts_with("does/not/exist.ron: cannot read scene file")
+        );
+    }
+}
