@@ -1,12 +1,34 @@
 //! Transfer functions: chromaticity κ (linear RGB) and density ρ over a scalar
-//! `s` in [0, 1] (paper 001 §7.1, DESIGN.md §4).
+//! `s` in [0, 1] (paper 001 §7.1 and §8.4, the volume density optical model of
+//! Williams and Max; DESIGN.md §4).
 //!
 //! A transfer function is piecewise linear between control points sorted by `s`
 //! and constant beyond the first and last point. ρ is an extinction coefficient
 //! in 1/world unit; κ·ρ is the emission per unit length.
+//!
+//! # Steps
+//!
+//! Two control points may share the same `s`: that is a step. Left of the step
+//! the function interpolates towards the first of the two, at and right of the
+//! step it starts from the second (the function is right-continuous). If more
+//! than two points share one `s`, only the first and the last of them matter.
+//!
+//! # Sources
+//!
+//! - [`TransferFunction::new`]: control points, validated.
+//! - [`TransferFunction::from_png_strip`]: a 1-pixel-high PNG, one control point
+//!   per pixel (RGB = κ in sRGB, alpha = ρ / `max_density`).
+//! - [`TransferFunction::preset`]: named looks for the effects of nebel
+//!   ([`TransferPreset`]).
+//!
+//! [`TransferFunction::content_hash`] is stable across runs and platforms, so
+//! renderers rebuild their pre-integration tables only when it changes.
+
+use std::path::{Path, PathBuf};
 
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
+use thiserror::Error;
 
 /// One control point of a piecewise-linear transfer function.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -35,18 +57,378 @@ impl TransferSample {
     }
 }
 
+/// Why a transfer function could not be built.
+#[derive(Debug, Error)]
+pub enum TransferError {
+    /// No control points were given.
+    #[error("a transfer function needs at least one control point")]
+    Empty,
+    /// A control point holds a NaN or infinite value.
+    #[error("control point {index} has a non-finite value (NaN or infinity)")]
+    NonFinite {
+        /// Index of the point in the input, before sorting.
+        index: usize,
+    },
+    /// A control point's `s` lies outside [0, 1].
+    #[error("control point {index} has s = {s}, outside [0, 1]")]
+    ScalarOutOfRange {
+        /// Index of the point in the input, before sorting.
+        index: usize,
+        /// The offending scalar position.
+        s: f32,
+    },
+    /// A control point has a negative chromaticity channel.
+    #[error("control point {index} has a negative chromaticity κ = {kappa:?}")]
+    NegativeChromaticity {
+        /// Index of the point in the input, before sorting.
+        index: usize,
+        /// The offending chromaticity.
+        kappa: [f32; 3],
+    },
+    /// A control point has a negative density.
+    #[error("control point {index} has a negative density ρ = {rho}")]
+    NegativeDensity {
+        /// Index of the point in the input, before sorting.
+        index: usize,
+        /// The offending density.
+        rho: f32,
+    },
+    /// A density scale (the `max_density` of a PNG strip or a
+    /// [`TransferFunction::scale_density`] factor) is negative or not finite.
+    #[error("density scale {value} must be finite and ≥ 0")]
+    InvalidDensityScale {
+        /// The offending scale.
+        value: f32,
+    },
+    /// A PNG strip could not be opened or decoded.
+    #[error("cannot read transfer-function strip {}: {source}", path.display())]
+    Image {
+        /// The file that failed.
+        path: PathBuf,
+        /// What `image` reported.
+        source: image::ImageError,
+    },
+    /// A PNG strip is not exactly one pixel high.
+    #[error(
+        "transfer-function strip {} is {width}×{height} pixels; it must be 1 pixel high",
+        path.display()
+    )]
+    StripHeight {
+        /// The file that failed.
+        path: PathBuf,
+        /// Its width in pixels.
+        width: u32,
+        /// Its height in pixels.
+        height: u32,
+    },
+}
+
 /// A piecewise-linear transfer function (κ, ρ) over the scalar `s` in [0, 1].
 ///
 /// Build it with [`TransferFunction::new`], which validates the control points.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+/// It (de)serializes as `(points: [...])`; deserializing validates as `new` does.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "RawTransferFunction")]
 pub struct TransferFunction {
     points: Vec<ControlPoint>,
 }
 
+/// The unvalidated serialized form of a [`TransferFunction`].
+#[derive(Deserialize)]
+struct RawTransferFunction {
+    points: Vec<ControlPoint>,
+}
+
+impl TryFrom<RawTransferFunction> for TransferFunction {
+    type Error = TransferError;
+
+    fn try_from(raw: RawTransferFunction) -> Result<Self, Self::Error> {
+        TransferFunction::new(raw.points)
+    }
+}
+
+/// Named transfer functions for the effects nebel ships.
+///
+/// Every preset peaks at ρ = 1 per world unit; scale it to the scene with
+/// [`TransferFunction::scale_density`]. κ is linear RGB in [0, 1].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum TransferPreset {
+    /// The paper's non-photorealistic cloud (000 §5, 001 §11.6.2): κ is an
+    /// inverse colour ramp, white where the cloud is thin, darker bluish grey
+    /// where it is dense; ρ is zero below s = 0.05 and linear in `s` above.
+    #[default]
+    Cloud,
+    /// Ground fog: light grey-blue, ρ linear in `s` from 0 (the fog top, where
+    /// the density vanishes, DESIGN.md §6) to 1.
+    GroundFog,
+    /// Fire (emissive): dark red through orange to yellow-white as `s` rises;
+    /// nothing below s = 0.1.
+    Fire,
+    /// Aurora curtains (emissive): red-violet fringe at low `s`, green core
+    /// at high `s`.
+    Aurora,
+    /// Search-light cone (emissive): warm white, ρ linear in `s` (the
+    /// attenuated intensity).
+    SearchLight,
+    /// Smoke: dark grey, slightly lighter where thin; zero below s = 0.02.
+    Smoke,
+}
+
+impl TransferPreset {
+    /// Every preset, in declaration order.
+    pub const ALL: [TransferPreset; 6] = [
+        TransferPreset::Cloud,
+        TransferPreset::GroundFog,
+        TransferPreset::Fire,
+        TransferPreset::Aurora,
+        TransferPreset::SearchLight,
+        TransferPreset::Smoke,
+    ];
+
+    /// The preset's control points (`s`, κ, ρ).
+    fn points(self) -> Vec<ControlPoint> {
+        let p = |s, kappa, rho| ControlPoint { s, kappa, rho };
+        match self {
+            TransferPreset::Cloud => vec![
+                p(0.0, [1.0, 1.0, 1.0], 0.0),
+                p(0.05, [1.0, 1.0, 1.0], 0.0),
+                p(0.05, [1.0, 1.0, 1.0], 0.05),
+                p(0.4, [0.82, 0.84, 0.88], 0.4),
+                p(1.0, [0.38, 0.41, 0.50], 1.0),
+            ],
+            TransferPreset::GroundFog => vec![
+                p(0.0, [0.86, 0.88, 0.92], 0.0),
+                p(1.0, [0.74, 0.78, 0.85], 1.0),
+            ],
+            TransferPreset::Fire => vec![
+                p(0.0, [0.5, 0.04, 0.0], 0.0),
+                p(0.1, [0.5, 0.04, 0.0], 0.0),
+                p(0.45, [1.0, 0.35, 0.05], 0.45),
+                p(0.8, [1.0, 0.7, 0.25], 0.8),
+                p(1.0, [1.0, 0.9, 0.6], 1.0),
+            ],
+            TransferPreset::Aurora => vec![
+                p(0.0, [0.6, 0.1, 0.5], 0.0),
+                p(0.3, [0.7, 0.15, 0.45], 0.3),
+                p(0.6, [0.15, 0.9, 0.35], 0.6),
+                p(1.0, [0.3, 1.0, 0.45], 1.0),
+            ],
+            TransferPreset::SearchLight => vec![
+                p(0.0, [1.0, 0.95, 0.85], 0.0),
+                p(1.0, [1.0, 0.97, 0.9], 1.0),
+            ],
+            TransferPreset::Smoke => vec![
+                p(0.0, [0.3, 0.3, 0.31], 0.0),
+                p(0.02, [0.3, 0.3, 0.31], 0.0),
+                p(0.02, [0.3, 0.3, 0.31], 0.02),
+                p(1.0, [0.1, 0.1, 0.11], 1.0),
+            ],
+        }
+    }
+}
+
 impl TransferFunction {
+    /// Builds a transfer function from control points in any order.
+    ///
+    /// The points are sorted by `s` (stably, so two points with the same `s`
+    /// form a step in the given order, see the [module docs](self)).
+    ///
+    /// # Errors
+    ///
+    /// [`TransferError`] when `points` is empty or a point has a non-finite
+    /// value, `s` outside [0, 1], or a negative κ channel or ρ.
+    pub fn new(points: impl Into<Vec<ControlPoint>>) -> Result<Self, TransferError> {
+        let mut points = points.into();
+        if points.is_empty() {
+            return Err(TransferError::Empty);
+        }
+        for (index, p) in points.iter_mut().enumerate() {
+            if !(p.s.is_finite() && p.rho.is_finite() && p.kappa.iter().all(|k| k.is_finite())) {
+                return Err(TransferError::NonFinite { index });
+            }
+            if !(0.0..=1.0).contains(&p.s) {
+                return Err(TransferError::ScalarOutOfRange { index, s: p.s });
+            }
+            if p.kappa.iter().any(|&k| k < 0.0) {
+                return Err(TransferError::NegativeChromaticity {
+                    index,
+                    kappa: p.kappa,
+                });
+            }
+            if p.rho < 0.0 {
+                return Err(TransferError::NegativeDensity { index, rho: p.rho });
+            }
+            // −0.0 becomes +0.0 so equal functions hash equally.
+            p.s += 0.0;
+            p.rho += 0.0;
+            p.kappa = p.kappa.map(|k| k + 0.0);
+        }
+        points.sort_by(|a, b| a.s.total_cmp(&b.s));
+        Ok(Self { points })
+    }
+
+    /// A named preset, see [`TransferPreset`].
+    pub fn preset(preset: TransferPreset) -> Self {
+        Self::new(preset.points()).expect("presets are valid")
+    }
+
+    /// Loads a transfer function from a 1-pixel-high PNG strip (8 or 16 bit,
+    /// grey or RGB, with or without alpha).
+    ///
+    /// Pixel `i` of a strip `w` pixels wide becomes a control point at
+    /// `s = i / (w − 1)` (`s = 0` when `w = 1`, a constant function). Its RGB
+    /// is κ, decoded from sRGB to linear; its alpha (1 without an alpha channel)
+    /// times `max_density` is ρ in 1/world unit.
+    ///
+    /// # Errors
+    ///
+    /// [`TransferError::Image`] when the file cannot be read or decoded,
+    /// [`TransferError::StripHeight`] when it is not 1 pixel high, and
+    /// [`TransferError::InvalidDensityScale`] for a negative or non-finite
+    /// `max_density`. The file errors name the file.
+    pub fn from_png_strip(path: impl AsRef<Path>, max_density: f32) -> Result<Self, TransferError> {
+        let path = path.as_ref();
+        if !(max_density.is_finite() && max_density >= 0.0) {
+            return Err(TransferError::InvalidDensityScale { value: max_density });
+        }
+        let image_error = |source| TransferError::Image {
+            path: path.to_path_buf(),
+            source,
+        };
+        let image = image::ImageReader::open(path)
+            .map_err(|e| image_error(image::ImageError::IoError(e)))?
+            .with_guessed_format()
+            .map_err(|e| image_error(image::ImageError::IoError(e)))?
+            .decode()
+            .map_err(image_error)?;
+        let (width, height) = (image.width(), image.height());
+        if height != 1 {
+            return Err(TransferError::StripHeight {
+                path: path.to_path_buf(),
+                width,
+                height,
+            });
+        }
+        let rgba = image.to_rgba32f();
+        let last = (width.max(2) - 1) as f32;
+        let points: Vec<ControlPoint> = rgba
+            .pixels()
+            .enumerate()
+            .map(|(i, pixel)| {
+                let [r, g, b, a] = pixel.0;
+                ControlPoint {
+                    s: (i as f32 / last).min(1.0),
+                    kappa: [r, g, b].map(srgb_to_linear),
+                    rho: a.clamp(0.0, 1.0) * max_density,
+                }
+            })
+            .collect();
+        Self::new(points)
+    }
+
+    /// The same function with every ρ multiplied by `factor` (κ unchanged).
+    ///
+    /// # Errors
+    ///
+    /// [`TransferError::InvalidDensityScale`] for a negative or non-finite
+    /// factor, [`TransferError::NonFinite`] if a product overflows.
+    pub fn scale_density(&self, factor: f32) -> Result<Self, TransferError> {
+        if !(factor.is_finite() && factor >= 0.0) {
+            return Err(TransferError::InvalidDensityScale { value: factor });
+        }
+        let points: Vec<ControlPoint> = self
+            .points
+            .iter()
+            .map(|p| ControlPoint {
+                rho: p.rho * factor,
+                ..*p
+            })
+            .collect();
+        Self::new(points)
+    }
+
     /// The control points, sorted by `s`.
     pub fn points(&self) -> &[ControlPoint] {
         &self.points
+    }
+
+    /// The largest density ρ anywhere, 1/world unit (a piecewise-linear function
+    /// peaks at a control point).
+    pub fn max_density(&self) -> f32 {
+        self.points.iter().map(|p| p.rho).fold(0.0, f32::max)
+    }
+
+    /// The largest chromaticity channel anywhere (for bounds such as
+    /// `C ≤ α · max κ`).
+    pub fn max_chromaticity(&self) -> f32 {
+        self.points.iter().flat_map(|p| p.kappa).fold(0.0, f32::max)
+    }
+
+    /// Whether ρ is exactly zero for every `s` in `[s_min, s_max]` (the
+    /// zero-opacity test, paper 000 §4.1), exact for any transfer function.
+    ///
+    /// The bounds may come in either order and are clamped to [0, 1]; a NaN
+    /// bound stands for the whole range, so the answer stays conservative:
+    /// `true` only if no ρ > 0 exists in the range.
+    pub fn is_transparent(&self, s_min: f64, s_max: f64) -> bool {
+        let (lo, hi) = if s_min.is_nan() || s_max.is_nan() {
+            (0.0, 1.0)
+        } else {
+            (
+                s_min.min(s_max).clamp(0.0, 1.0),
+                s_min.max(s_max).clamp(0.0, 1.0),
+            )
+        };
+        let points = &self.points;
+        // ρ ≥ 0 is piecewise linear and right-continuous, so it vanishes on
+        // [lo, hi] iff it vanishes at `lo`, at every control point strictly
+        // inside, at `hi` and just left of `hi` (a step down exactly at `hi`).
+        let first = points.partition_point(|p| f64::from(p.s) <= lo);
+        let last = points.partition_point(|p| f64::from(p.s) < hi).max(first);
+        self.evaluate(lo).rho == 0.0
+            && self.evaluate(hi).rho == 0.0
+            && (lo == hi || self.left_limit_rho(hi) == 0.0)
+            && points[first..last].iter().all(|p| p.rho == 0.0)
+    }
+
+    /// ρ approaching `s` from below (differs from `evaluate(s).rho` only at a step).
+    fn left_limit_rho(&self, s: f64) -> f64 {
+        let points = &self.points;
+        let upper = points.partition_point(|p| f64::from(p.s) < s);
+        if upper == 0 {
+            return f64::from(points[0].rho);
+        }
+        if upper == points.len() {
+            return f64::from(points[upper - 1].rho);
+        }
+        let (a, b) = (&points[upper - 1], &points[upper]);
+        let t = (s - f64::from(a.s)) / (f64::from(b.s) - f64::from(a.s));
+        f64::from(a.rho) + (f64::from(b.rho) - f64::from(a.rho)) * t
+    }
+
+    /// A 64-bit FNV-1a hash of the control points' bit patterns: equal for equal
+    /// functions, stable across runs, builds and platforms (unlike std's
+    /// `RandomState`). Renderers keep it next to a table and rebuild when it
+    /// changes.
+    pub fn content_hash(&self) -> u64 {
+        const OFFSET: u64 = 0xcbf2_9ce4_8422_2325;
+        const PRIME: u64 = 0x0000_0100_0000_01b3;
+        let mut hash = OFFSET;
+        let mut feed = |bytes: &[u8]| {
+            for &byte in bytes {
+                hash ^= u64::from(byte);
+                hash = hash.wrapping_mul(PRIME);
+            }
+        };
+        feed(&(self.points.len() as u64).to_le_bytes());
+        for p in &self.points {
+            feed(&p.s.to_bits().to_le_bytes());
+            for k in p.kappa {
+                feed(&k.to_bits().to_le_bytes());
+            }
+            feed(&p.rho.to_bits().to_le_bytes());
+        }
+        hash
     }
 
     /// κ and ρ at `s` (clamped to [0, 1]; a NaN `s` reads as 0).
@@ -71,5 +453,14 @@ impl TransferFunction {
             kappa: sa.kappa.lerp(sb.kappa, t),
             rho: sa.rho + (sb.rho - sa.rho) * t,
         }
+    }
+}
+
+/// sRGB transfer curve to linear (IEC 61966-2-1), for values in [0, 1].
+fn srgb_to_linear(c: f32) -> f32 {
+    if c <= 0.040_45 {
+        c / 12.92
+    } else {
+        ((c + 0.055) / 1.055).powf(2.4)
     }
 }
