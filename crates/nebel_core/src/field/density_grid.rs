@@ -1,0 +1,207 @@
+//! [`DensityGrid`]: density samples on a regular 3D grid, trilinear in between.
+
+use glam::DVec3;
+
+use super::{FieldError, axis_weight, check_dims, check_finite, check_origin, check_spacing};
+
+/// Density samples in [0, 1] at the points of a regular 3D grid, trilinear
+/// between them.
+///
+/// Point `(i, j, k)` sits at `origin + (i, j, k) · spacing` and is stored at
+/// index `i + nx · (j + ny · k)`. The grid covers the box from `origin` to
+/// `origin + (dims − 1) · spacing`; it has `(nx − 1)(ny − 1)(nz − 1)` cells.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DensityGrid {
+    dims: [usize; 3],
+    spacing: DVec3,
+    origin: DVec3,
+    values: Vec<f32>,
+}
+
+impl DensityGrid {
+    /// A grid of `dims = [nx, ny, nz]` points (each ≥ 2) with `spacing` (world
+    /// units between neighbouring points, > 0) and `origin` (world position of
+    /// point (0, 0, 0)). `values` holds `nx · ny · nz` densities in [0, 1],
+    /// x fastest.
+    pub fn new(
+        dims: [usize; 3],
+        spacing: DVec3,
+        origin: DVec3,
+        values: Vec<f32>,
+    ) -> Result<Self, FieldError> {
+        Self::validated("DensityGrid::new", dims, spacing, origin, values)
+    }
+
+    /// [`DensityGrid::new`] with `name` (a file path or source) in its errors.
+    pub(super) fn validated(
+        name: &str,
+        dims: [usize; 3],
+        spacing: DVec3,
+        origin: DVec3,
+        values: Vec<f32>,
+    ) -> Result<Self, FieldError> {
+        check_dims(name, &dims, values.len())?;
+        check_spacing(name, &spacing.to_array())?;
+        check_origin(name, &origin.to_array())?;
+        check_finite(name, &values)?;
+        if let Some(index) = values.iter().position(|v| !(0.0..=1.0).contains(v)) {
+            return Err(FieldError::OutOfRange {
+                name: name.to_owned(),
+                index,
+                value: values[index],
+            });
+        }
+        Ok(Self {
+            dims,
+            spacing,
+            origin,
+            values,
+        })
+    }
+
+    /// Points per axis `[nx, ny, nz]`.
+    pub fn dims(&self) -> [usize; 3] {
+        self.dims
+    }
+
+    /// World units between neighbouring points, per axis.
+    pub fn spacing(&self) -> DVec3 {
+        self.spacing
+    }
+
+    /// World position of point (0, 0, 0), the box's minimum corner.
+    pub fn origin(&self) -> DVec3 {
+        self.origin
+    }
+
+    /// The box's maximum corner, `origin + (dims − 1) · spacing`.
+    pub fn max_corner(&self) -> DVec3 {
+        let [nx, ny, nz] = self.dims;
+        self.origin + DVec3::new((nx - 1) as f64, (ny - 1) as f64, (nz - 1) as f64) * self.spacing
+    }
+
+    /// All densities, x fastest.
+    pub fn values(&self) -> &[f32] {
+        &self.values
+    }
+
+    /// Density at point `(i, j, k)`. Panics when an index is out of range, like
+    /// slice indexing.
+    pub fn value(&self, i: usize, j: usize, k: usize) -> f32 {
+        let [nx, ny, _] = self.dims;
+        self.values[i + nx * (j + ny * k)]
+    }
+
+    /// Trilinear density at `world_position`. Positions outside the box are
+    /// clamped onto it (the border values extend outwards); a NaN coordinate
+    /// reads as the minimum corner's coordinate.
+    pub fn sample(&self, world_position: DVec3) -> f64 {
+        self.sample_grid((world_position - self.origin) / self.spacing)
+    }
+
+    /// Trilinear density at `grid_position`, in grid units (point `(i, j, k)` at
+    /// `(i, j, k)`), clamped like [`DensityGrid::sample`].
+    pub fn sample_grid(&self, grid_position: DVec3) -> f64 {
+        let (i, fx) = axis_weight(grid_position.x, self.dims[0]);
+        let (j, fy) = axis_weight(grid_position.y, self.dims[1]);
+        let (k, fz) = axis_weight(grid_position.z, self.dims[2]);
+        let corner =
+            |di: usize, dj: usize, dk: usize| f64::from(self.value(i + di, j + dj, k + dk));
+        let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
+        let face = |dk: usize| {
+            lerp(
+                lerp(corner(0, 0, dk), corner(1, 0, dk), fx),
+                lerp(corner(0, 1, dk), corner(1, 1, dk), fx),
+                fy,
+            )
+        };
+        lerp(face(0), face(1), fz)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn linear_grid() -> DensityGrid {
+        let dims = [4, 3, 5];
+        let mut values = Vec::new();
+        for k in 0..5 {
+            for j in 0..3 {
+                for i in 0..4 {
+                    values.push(0.05 * i as f32 + 0.1 * j as f32 + 0.08 * k as f32);
+                }
+            }
+        }
+        DensityGrid::new(
+            dims,
+            DVec3::new(0.5, 1.0, 2.0),
+            DVec3::new(-1.0, 0.0, 3.0),
+            values,
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn trilinear_sampling_is_exact_on_a_linear_field() {
+        let grid = linear_grid();
+        for p in [
+            DVec3::new(-1.0, 0.0, 3.0),
+            DVec3::new(-0.3, 1.7, 9.1),
+            DVec3::new(0.5, 2.0, 11.0),
+        ] {
+            let grid_position = (p - grid.origin()) / grid.spacing();
+            let expected = 0.05 * grid_position.x + 0.1 * grid_position.y + 0.08 * grid_position.z;
+            assert!((grid.sample(p) - expected).abs() < 1e-6);
+        }
+        assert_eq!(grid.max_corner(), DVec3::new(0.5, 2.0, 11.0));
+        // Outside the box: clamped; NaN: no NaN out.
+        assert_eq!(
+            grid.sample(DVec3::splat(-100.0)),
+            grid.sample(grid.origin())
+        );
+        assert!(grid.sample(DVec3::NAN).is_finite());
+    }
+
+    #[test]
+    fn bad_input_is_refused_with_a_clear_message() {
+        let ok = || vec![0.5f32; 8];
+        let err = |r: Result<DensityGrid, FieldError>| r.unwrap_err().to_string();
+        let message = err(DensityGrid::new([2, 2, 3], DVec3::ONE, DVec3::ZERO, ok()));
+        assert!(message.contains("need 12 samples, found 8"), "{message}");
+        let message = err(DensityGrid::new([1, 2, 4], DVec3::ONE, DVec3::ZERO, ok()));
+        assert!(message.contains("at least 2 samples"), "{message}");
+        let mut nan = ok();
+        nan[3] = f32::NAN;
+        let message = err(DensityGrid::new([2, 2, 2], DVec3::ONE, DVec3::ZERO, nan));
+        assert!(message.contains("sample 3 is NaN"), "{message}");
+        let mut big = ok();
+        big[5] = 1.5;
+        let message = err(DensityGrid::new([2, 2, 2], DVec3::ONE, DVec3::ZERO, big));
+        assert!(
+            message.contains("sample 5 is 1.5, outside [0, 1]"),
+            "{message}"
+        );
+        let message = err(DensityGrid::new(
+            [2, 2, 2],
+            DVec3::new(1.0, 0.0, 1.0),
+            DVec3::ZERO,
+            ok(),
+        ));
+        assert!(message.contains("spacing"), "{message}");
+        let message = err(DensityGrid::new(
+            [2, 2, 2],
+            DVec3::ONE,
+            DVec3::INFINITY,
+            ok(),
+        ));
+        assert!(message.contains("origin"), "{message}");
+        let message = err(DensityGrid::new(
+            [usize::MAX, 2, 2],
+            DVec3::ONE,
+            DVec3::ZERO,
+            ok(),
+        ));
+        assert!(message.contains("found 8"), "{message}");
+    }
+}

@@ -1,0 +1,250 @@
+//! Scalar fields: 3D density grids and 2D height fields, their loaders, seeded
+//! procedural generators and the 2^n+1 padding and resampling rules
+//! (paper 000 §2 and §6, paper 001 ch. 3 and 11; DESIGN.md §5 and §6).
+//!
+//! - [`DensityGrid`]: density samples in [0, 1] on a regular 3D grid of points,
+//!   trilinear in between (clouds, smoke, any volume).
+//! - [`HeightField`]: heights on a regular 2D grid of points over the horizontal
+//!   x–z plane (Bevy is y-up), bilinear in between (terrain, fog thickness maps).
+//! - Loaders: 8- and 16-bit grayscale PNG (height fields, fog maps, density
+//!   volumes as a stack of slice files or one tiled image) and raw little-endian
+//!   u8 / u16 / f32 with the dimensions given ([`RawSampleType`]).
+//! - Generators: fBm Perlin noise in 2D and 3D and ridged multifractal noise,
+//!   deterministic for a seed ([`ProceduralNoise`]).
+//! - The C-LOD hierarchies need (2^n+1) points per axis; other sizes are padded
+//!   or resampled ([`PadFill`], [`power_of_two_plus_one`]).
+//!
+//! Grid points are stored x fastest: index `i + nx · (j + ny · k)`. Every
+//! constructor validates its input and returns a [`FieldError`] naming the file
+//! (or the in-memory source) on wrong sizes, non-finite values, out-of-range
+//! densities and unreadable files.
+
+mod density_grid;
+mod height_field;
+mod load;
+mod procedural;
+mod resample;
+
+pub use density_grid::DensityGrid;
+pub use height_field::HeightField;
+pub use load::{Normalization, RawSampleType, TileLayout};
+pub use procedural::{NoiseKind, ProceduralNoise};
+pub use resample::{PadFill, power_of_two_plus_one};
+
+use std::path::PathBuf;
+
+/// Why a field could not be built or loaded. `name` is the file path or, for
+/// in-memory data, the constructor that received it.
+#[derive(Debug, thiserror::Error)]
+pub enum FieldError {
+    /// The file could not be read (missing, no permission, ...).
+    #[error("cannot read {}: {source}", path.display())]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The underlying I/O error.
+        source: std::io::Error,
+    },
+    /// The file is not a readable PNG.
+    #[error("cannot decode {} as PNG: {source}", path.display())]
+    Decode {
+        /// The file.
+        path: PathBuf,
+        /// The decoder's error.
+        source: image::ImageError,
+    },
+    /// The PNG is not 8- or 16-bit grayscale.
+    #[error(
+        "{}: expected an 8- or 16-bit grayscale PNG, found {found}; convert it to grayscale",
+        path.display()
+    )]
+    NotGrayscale {
+        /// The file.
+        path: PathBuf,
+        /// The colour type found, e.g. `Rgb8`.
+        found: String,
+    },
+    /// The number of samples does not match the dimensions.
+    #[error("{name}: dimensions {dims:?} need {expected} samples, found {actual}")]
+    SizeMismatch {
+        /// File or source.
+        name: String,
+        /// Samples per axis.
+        dims: Vec<usize>,
+        /// Product of `dims`.
+        expected: usize,
+        /// Samples present.
+        actual: usize,
+    },
+    /// A raw file's length does not match its dimensions and sample type.
+    #[error(
+        "{}: dimensions {dims:?} of {sample_type:?} need {expected} bytes, the file has {actual}",
+        path.display()
+    )]
+    RawSizeMismatch {
+        /// The file.
+        path: PathBuf,
+        /// Samples per axis.
+        dims: Vec<usize>,
+        /// The sample type the caller declared.
+        sample_type: RawSampleType,
+        /// Bytes the dimensions need.
+        expected: u128,
+        /// Bytes in the file.
+        actual: u64,
+    },
+    /// Two density slices differ in size.
+    #[error(
+        "{}: slice is {found:?} pixels but {} is {expected:?}; all slices must have the same size",
+        path.display(),
+        first.display()
+    )]
+    SliceSizeMismatch {
+        /// The offending slice.
+        path: PathBuf,
+        /// Its width and height.
+        found: (u32, u32),
+        /// The first slice, which sets the size.
+        first: PathBuf,
+        /// The first slice's width and height.
+        expected: (u32, u32),
+    },
+    /// A tiled image does not split into the requested tiles.
+    #[error(
+        "{}: a {width}×{height} image cannot hold {slices} slices as {columns}×{rows} equal tiles",
+        path.display()
+    )]
+    TileLayout {
+        /// The file.
+        path: PathBuf,
+        /// Image width, pixels.
+        width: u32,
+        /// Image height, pixels.
+        height: u32,
+        /// Tiles per row.
+        columns: u32,
+        /// Tiles per column.
+        rows: u32,
+        /// Slices requested.
+        slices: u32,
+    },
+    /// No slice files were given.
+    #[error("a density volume needs at least two slice files, {count} given")]
+    TooFewSlices {
+        /// Slices given.
+        count: usize,
+    },
+    /// A sample is NaN or infinite.
+    #[error("{name}: sample {index} is {value}, not a finite number")]
+    NonFinite {
+        /// File or source.
+        name: String,
+        /// Index of the sample (x fastest).
+        index: usize,
+        /// The value found.
+        value: f32,
+    },
+    /// A density sample lies outside [0, 1].
+    #[error(
+        "{name}: density sample {index} is {value}, outside [0, 1] (load with Normalization::DivideByMax to rescale)"
+    )]
+    OutOfRange {
+        /// File or source.
+        name: String,
+        /// Index of the sample (x fastest).
+        index: usize,
+        /// The value found.
+        value: f32,
+    },
+    /// Fewer than two samples along an axis.
+    #[error("{name}: dimensions {dims:?}: every axis needs at least 2 samples")]
+    TooSmall {
+        /// File or source.
+        name: String,
+        /// Samples per axis.
+        dims: Vec<usize>,
+    },
+    /// A geometric parameter (spacing, origin, vertical scale, noise setting) is
+    /// not finite or out of its range.
+    #[error("{name}: {parameter} = {value} is invalid: {requirement}")]
+    InvalidParameter {
+        /// File or source.
+        name: String,
+        /// The parameter, e.g. `spacing`.
+        parameter: &'static str,
+        /// Its value, formatted.
+        value: String,
+        /// What it must satisfy.
+        requirement: &'static str,
+    },
+}
+
+/// Checks that every sample is finite, naming the first offender.
+fn check_finite(name: &str, values: &[f32]) -> Result<(), FieldError> {
+    match values.iter().position(|v| !v.is_finite()) {
+        Some(index) => Err(FieldError::NonFinite {
+            name: name.to_owned(),
+            index,
+            value: values[index],
+        }),
+        None => Ok(()),
+    }
+}
+
+/// Checks `dims` (each ≥ 2) against `len` samples.
+fn check_dims(name: &str, dims: &[usize], len: usize) -> Result<(), FieldError> {
+    if dims.iter().any(|&n| n < 2) {
+        return Err(FieldError::TooSmall {
+            name: name.to_owned(),
+            dims: dims.to_vec(),
+        });
+    }
+    let expected = dims.iter().try_fold(1usize, |acc, &n| acc.checked_mul(n));
+    if expected != Some(len) {
+        return Err(FieldError::SizeMismatch {
+            name: name.to_owned(),
+            dims: dims.to_vec(),
+            expected: expected.unwrap_or(usize::MAX),
+            actual: len,
+        });
+    }
+    Ok(())
+}
+
+/// Checks that a spacing is finite and positive on every axis.
+fn check_spacing(name: &str, spacing: &[f64]) -> Result<(), FieldError> {
+    if spacing.iter().all(|s| s.is_finite() && *s > 0.0) {
+        Ok(())
+    } else {
+        Err(FieldError::InvalidParameter {
+            name: name.to_owned(),
+            parameter: "spacing",
+            value: format!("{spacing:?}"),
+            requirement: "finite and positive on every axis",
+        })
+    }
+}
+
+/// Checks that an origin is finite.
+fn check_origin(name: &str, origin: &[f64]) -> Result<(), FieldError> {
+    if origin.iter().all(|o| o.is_finite()) {
+        Ok(())
+    } else {
+        Err(FieldError::InvalidParameter {
+            name: name.to_owned(),
+            parameter: "origin",
+            value: format!("{origin:?}"),
+            requirement: "finite",
+        })
+    }
+}
+
+/// Linear interpolation weights of a coordinate `u` (grid units) along an axis
+/// of `n` points: the lower index (≤ n − 2) and the fraction in [0, 1]. `u` is
+/// clamped to the axis; NaN reads as 0.
+fn axis_weight(u: f64, n: usize) -> (usize, f64) {
+    let last = (n - 1) as f64;
+    let u = if u.is_nan() { 0.0 } else { u.clamp(0.0, last) };
+    let lower = (u.floor() as usize).min(n - 2);
+    (lower, u - lower as f64)
+}

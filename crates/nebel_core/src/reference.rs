@@ -1,0 +1,1074 @@
+//! The exact CPU reference renderer (DESIGN.md §4 "Accuracy is measured, not
+//! assumed", §8).
+//!
+//! For every pixel it integrates the optical model of paper 001 ch. 6-8
+//! (emission-absorption, eq. 8.1; emission only, §10.3; maximum intensity)
+//! along the ray through the pixel centre, in f64, against an optional opaque
+//! depth. Two volume sources separate two errors of the real-time renderer:
+//!
+//! - [`ReferenceVolume::Cells`]: a tetrahedral mesh with a scalar per vertex.
+//!   Every cell the ray crosses gives an exact segment ([`Tetrahedron::intersect`]:
+//!   entry, exit and barycentric scalars), whose integral is
+//!   [`exact_segment`]; segments are composited in exact front-to-back order of
+//!   their entry distance (the cells of a conforming mesh do not overlap). This
+//!   reference has no discretisation error at all, so the difference to a GPU
+//!   image of the same cells is the error of projection and pre-integration.
+//! - [`ReferenceVolume::Grid`]: a trilinear [`DensityGrid`] directly. The ray
+//!   walks the grid cells in order (a 3D DDA: all cell-plane crossings sorted
+//!   along the ray). Inside a cell the trilinear scalar along the ray is a cubic
+//!   in the distance; it is cut into equal pieces on which the cubic deviates
+//!   from its chord by at most [`ReferenceScene::scalar_tolerance`] (the
+//!   bound `h² / 8 · max |s''|`, rigorous since `s''` is linear), and each piece
+//!   is integrated exactly as a linear segment. The difference to a GPU image
+//!   is then the total error, LOD included.
+//!
+//! # Camera and depth conventions
+//!
+//! The camera follows Bevy: it looks along its local −Z with +Y up and +X
+//! right; rays start at the eye and pass through pixel centres, row 0 at the
+//! top. The near plane and the opaque depth are **view-space depths**
+//! (distance along the camera's forward axis, as a linearised depth buffer
+//! holds), not distances along the ray; a ray with direction `d` converts depth
+//! `z` to distance `t = z / (d · forward)`.
+//!
+//! # Output
+//!
+//! A [`LinearImage`] of premultiplied linear RGBA: the volume composited over
+//! [`ReferenceScene::background`] with the mode's operator
+//! ([`OpticalMode::composite`]). To put the volume over an opaque scene image,
+//! keep the background transparent and composite `C + (1 − α) · scene`.
+//! Rows are shared among all cores with `std::thread::scope`.
+
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicU32, Ordering};
+
+use glam::{DMat3, DQuat, DVec3, DVec4};
+
+use crate::cell::{CellSegment, Ray, Tetrahedron};
+use crate::field::DensityGrid;
+use crate::image_metrics::LinearImage;
+use crate::optics::{OpticalMode, PremultipliedRgba};
+use crate::segment::exact_segment;
+use crate::transfer::TransferFunction;
+
+/// Default [`ReferenceScene::scalar_tolerance`]: the largest deviation, in
+/// scalar units, of the piecewise-linear scalar from the trilinear one.
+pub const DEFAULT_SCALAR_TOLERANCE: f64 = 1e-5;
+
+/// Most pieces one grid cell is cut into along a ray, whatever the tolerance.
+const MAX_PIECES_PER_CELL: f64 = 4096.0;
+
+/// Transmittance below which a sorted ray stops (what lies behind would change
+/// the pixel by less than this times the brightest κ).
+const MIN_TRANSMITTANCE: f64 = 1e-12;
+
+/// Side of the square pixel tiles that cells are binned into.
+const TILE_SIZE: u32 = 16;
+
+/// A perspective pinhole camera (Bevy conventions, see the module docs).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ReferenceCamera {
+    /// Eye position, world units. Default origin.
+    pub position: DVec3,
+    /// Orientation; the camera looks along `rotation * −Z` with `rotation * +Y`
+    /// up. Default identity (looking along −Z).
+    pub rotation: DQuat,
+    /// Vertical field of view, radians, in (0, π). Default π/4 (Bevy's).
+    pub vertical_fov: f64,
+    /// Image width, pixels, ≥ 1. Default 256.
+    pub width: u32,
+    /// Image height, pixels, ≥ 1. Default 256.
+    pub height: u32,
+    /// View-space depth of the near plane, world units, > 0. Default 0.1 (Bevy's).
+    pub near: f64,
+}
+
+impl Default for ReferenceCamera {
+    fn default() -> Self {
+        Self {
+            position: DVec3::ZERO,
+            rotation: DQuat::IDENTITY,
+            vertical_fov: std::f64::consts::FRAC_PI_4,
+            width: 256,
+            height: 256,
+            near: 0.1,
+        }
+    }
+}
+
+impl ReferenceCamera {
+    /// Turns the camera to look at `target` with `up` as close to its up
+    /// direction as possible (like Bevy's `Transform::looking_at`). When `up` is
+    /// parallel to the view direction another perpendicular up is chosen; when
+    /// `target` equals the position the rotation is kept.
+    pub fn looking_at(mut self, target: DVec3, up: DVec3) -> Self {
+        let Some(back) = (self.position - target).try_normalize() else {
+            return self;
+        };
+        let right = up
+            .cross(back)
+            .try_normalize()
+            .unwrap_or_else(|| back.any_orthonormal_vector());
+        let up = back.cross(right);
+        self.rotation = DQuat::from_mat3(&DMat3::from_cols(right, up, back));
+        self
+    }
+
+    /// Unit view direction, `rotation * −Z`.
+    pub fn forward(&self) -> DVec3 {
+        self.rotation * DVec3::NEG_Z
+    }
+
+    /// The ray through the centre of pixel `(x, y)` (row 0 at the top) and the
+    /// factor `d · forward` that converts view-space depth to ray distance
+    /// (`t = depth / factor`).
+    pub fn pixel_ray(&self, x: u32, y: u32) -> (Ray, f64) {
+        let tan_half = (0.5 * self.vertical_fov).tan();
+        let aspect = f64::from(self.width) / f64::from(self.height);
+        let ndc_x = 2.0 * (f64::from(x) + 0.5) / f64::from(self.width) - 1.0;
+        let ndc_y = 1.0 - 2.0 * (f64::from(y) + 0.5) / f64::from(self.height);
+        let view = DVec3::new(ndc_x * tan_half * aspect, ndc_y * tan_half, -1.0);
+        let length = view.length();
+        let ray = Ray {
+            origin: self.position,
+            direction: self.rotation * (view / length),
+        };
+        (ray, 1.0 / length)
+    }
+
+    /// Pixel coordinates (fractional, pixel centres at `i + 0.5`) and view-space
+    /// depth of a world point.
+    fn project(&self, point: DVec3) -> (f64, f64, f64) {
+        let view = self.rotation.inverse() * (point - self.position);
+        let depth = -view.z;
+        let tan_half = (0.5 * self.vertical_fov).tan();
+        let aspect = f64::from(self.width) / f64::from(self.height);
+        let ndc_x = view.x / (depth * tan_half * aspect);
+        let ndc_y = view.y / (depth * tan_half);
+        (
+            0.5 * (ndc_x + 1.0) * f64::from(self.width),
+            0.5 * (1.0 - ndc_y) * f64::from(self.height),
+            depth,
+        )
+    }
+
+    fn validate(&self) -> Result<(), ReferenceError> {
+        let invalid = |field: &'static str, value: String, requirement: &'static str| {
+            Err(ReferenceError::InvalidCamera {
+                field,
+                value,
+                requirement,
+            })
+        };
+        if !self.position.is_finite() {
+            return invalid("position", format!("{}", self.position), "finite");
+        }
+        if !(self.rotation.is_finite() && (self.rotation.length() - 1.0).abs() < 1e-6) {
+            return invalid(
+                "rotation",
+                format!("{}", self.rotation),
+                "a finite unit quaternion",
+            );
+        }
+        if !(self.vertical_fov > 0.0 && self.vertical_fov < std::f64::consts::PI) {
+            return invalid(
+                "vertical_fov",
+                self.vertical_fov.to_string(),
+                "in (0, π) radians",
+            );
+        }
+        if self.width == 0 || self.height == 0 {
+            return invalid(
+                "width × height",
+                format!("{}×{}", self.width, self.height),
+                "at least 1×1",
+            );
+        }
+        if !(self.near.is_finite() && self.near > 0.0) {
+            return invalid("near", self.near.to_string(), "finite and positive");
+        }
+        Ok(())
+    }
+}
+
+/// The volume a reference image integrates through.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ReferenceVolume {
+    /// A tetrahedral mesh, scalar per vertex; the cells must not overlap
+    /// (degenerate cells are allowed and contribute nothing).
+    Cells(Vec<Tetrahedron>),
+    /// A density grid, trilinear inside its box.
+    Grid(DensityGrid),
+}
+
+/// Everything the reference renderer needs for one image.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ReferenceScene {
+    /// The view.
+    pub camera: ReferenceCamera,
+    /// What the rays integrate through.
+    pub volume: ReferenceVolume,
+    /// κ and ρ over the scalar.
+    pub transfer_function: TransferFunction,
+    /// How segments combine.
+    pub mode: OpticalMode,
+    /// Optional opaque depth: view-space depth per pixel (world units, ≥ 0,
+    /// `+∞` where nothing is opaque), `width · height` values, row-major, top row
+    /// first. Rays stop there. Default `None`.
+    pub opaque_depth: Option<Vec<f32>>,
+    /// Premultiplied linear RGBA behind the volume. Default transparent black.
+    pub background: PremultipliedRgba,
+    /// Grid volumes only: the largest deviation, in scalar units, of the
+    /// piecewise-linear scalar integrated from the trilinear scalar along the
+    /// ray, > 0. Default [`DEFAULT_SCALAR_TOLERANCE`].
+    pub scalar_tolerance: f64,
+}
+
+impl ReferenceScene {
+    /// A scene with no opaque depth, a transparent background and the default
+    /// tolerance.
+    pub fn new(
+        camera: ReferenceCamera,
+        volume: ReferenceVolume,
+        transfer_function: TransferFunction,
+        mode: OpticalMode,
+    ) -> Self {
+        Self {
+            camera,
+            volume,
+            transfer_function,
+            mode,
+            opaque_depth: None,
+            background: DVec4::ZERO,
+            scalar_tolerance: DEFAULT_SCALAR_TOLERANCE,
+        }
+    }
+
+    fn validate(&self) -> Result<(), ReferenceError> {
+        self.camera.validate()?;
+        if let ReferenceVolume::Cells(cells) = &self.volume {
+            let finite = |tet: &Tetrahedron| {
+                tet.positions.iter().all(|p| p.is_finite())
+                    && tet.scalars.iter().all(|s| s.is_finite())
+            };
+            if let Some(index) = cells.iter().position(|tet| !finite(tet)) {
+                return Err(ReferenceError::NonFiniteCell { index });
+            }
+        }
+        if let Some(depth) = &self.opaque_depth {
+            let expected = self.camera.width as usize * self.camera.height as usize;
+            if depth.len() != expected {
+                return Err(ReferenceError::DepthImageSize {
+                    width: self.camera.width,
+                    height: self.camera.height,
+                    actual: depth.len(),
+                });
+            }
+            if let Some(index) = depth.iter().position(|d| d.is_nan() || *d < 0.0) {
+                return Err(ReferenceError::InvalidDepth {
+                    x: index as u32 % self.camera.width,
+                    y: index as u32 / self.camera.width,
+                    value: depth[index],
+                });
+            }
+        }
+        let background = self.background;
+        if !(background.is_finite() && background.min_element() >= 0.0 && background.w <= 1.0) {
+            return Err(ReferenceError::InvalidBackground {
+                value: format!("{background}"),
+            });
+        }
+        if !(self.scalar_tolerance.is_finite() && self.scalar_tolerance > 0.0) {
+            return Err(ReferenceError::InvalidTolerance {
+                value: self.scalar_tolerance,
+            });
+        }
+        Ok(())
+    }
+}
+
+/// How far a render has come, passed to the progress callback after each row.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RenderProgress {
+    /// Rows finished so far.
+    pub rows_done: u32,
+    /// Rows in the image.
+    pub rows_total: u32,
+}
+
+/// Why a reference image could not be rendered.
+#[derive(Debug, thiserror::Error)]
+pub enum ReferenceError {
+    /// A camera field is out of range.
+    #[error("reference camera: {field} = {value} is invalid: it must be {requirement}")]
+    InvalidCamera {
+        /// The field, e.g. `vertical_fov`.
+        field: &'static str,
+        /// Its value, formatted.
+        value: String,
+        /// What it must satisfy.
+        requirement: &'static str,
+    },
+    /// A cell has a NaN or infinite position or scalar.
+    #[error("reference cells: cell {index} has a non-finite position or scalar")]
+    NonFiniteCell {
+        /// Index in the cell list.
+        index: usize,
+    },
+    /// The depth image does not match the camera's size.
+    #[error("opaque depth: a {width}×{height} camera needs {} depth values, found {actual}", *width as usize * *height as usize)]
+    DepthImageSize {
+        /// Camera width.
+        width: u32,
+        /// Camera height.
+        height: u32,
+        /// Values given.
+        actual: usize,
+    },
+    /// A depth value is NaN or negative.
+    #[error("opaque depth: pixel ({x}, {y}) has depth {value}; depths must be ≥ 0 (+inf for none)")]
+    InvalidDepth {
+        /// Column.
+        x: u32,
+        /// Row, from the top.
+        y: u32,
+        /// The value found.
+        value: f32,
+    },
+    /// The background is not a valid premultiplied colour.
+    #[error("background {value} is invalid: channels must be finite and ≥ 0, alpha ≤ 1")]
+    InvalidBackground {
+        /// The value, formatted.
+        value: String,
+    },
+    /// The scalar tolerance is not positive.
+    #[error("scalar_tolerance = {value} is invalid: it must be finite and positive")]
+    InvalidTolerance {
+        /// The value found.
+        value: f64,
+    },
+}
+
+/// Renders `scene` (see the module docs). `progress`, when given, is called
+/// from the worker threads after every finished row.
+pub fn render(
+    scene: &ReferenceScene,
+    progress: Option<&(dyn Fn(RenderProgress) + Sync)>,
+) -> Result<LinearImage, ReferenceError> {
+    scene.validate()?;
+    let camera = &scene.camera;
+    let (width, height) = (camera.width, camera.height);
+    let integrator = match &scene.volume {
+        ReferenceVolume::Cells(cells) => Integrator::Cells {
+            cells,
+            bins: CellBins::new(camera, cells),
+        },
+        ReferenceVolume::Grid(grid) => Integrator::Grid(grid),
+    };
+    let mut image = LinearImage::transparent(width, height);
+    let rows = Mutex::new(image.pixels.chunks_mut(width as usize).enumerate());
+    let rows_done = AtomicU32::new(0);
+    let threads = std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .min(height as usize);
+    std::thread::scope(|scope| {
+        for _ in 0..threads {
+            scope.spawn(|| {
+                let mut scratch = Scratch::default();
+                loop {
+                    let next = rows
+                        .lock()
+                        .unwrap_or_else(|poisoned| poisoned.into_inner())
+                        .next();
+                    let Some((y, row)) = next else { break };
+                    for (x, pixel) in row.iter_mut().enumerate() {
+                        let colour =
+                            render_pixel(scene, &integrator, &mut scratch, x as u32, y as u32);
+                        *pixel = colour.as_vec4().to_array();
+                    }
+                    let done = rows_done.fetch_add(1, Ordering::Relaxed) + 1;
+                    if let Some(progress) = progress {
+                        progress(RenderProgress {
+                            rows_done: done,
+                            rows_total: height,
+                        });
+                    }
+                }
+            });
+        }
+    });
+    Ok(image)
+}
+
+/// Per-thread buffers reused across pixels.
+#[derive(Default)]
+struct Scratch {
+    segments: Vec<CellSegment>,
+    crossings: Vec<f64>,
+}
+
+/// The prepared volume.
+enum Integrator<'a> {
+    Cells {
+        cells: &'a [Tetrahedron],
+        bins: CellBins,
+    },
+    Grid(&'a DensityGrid),
+}
+
+fn render_pixel(
+    scene: &ReferenceScene,
+    integrator: &Integrator<'_>,
+    scratch: &mut Scratch,
+    x: u32,
+    y: u32,
+) -> PremultipliedRgba {
+    let camera = &scene.camera;
+    let (ray, depth_to_distance) = camera.pixel_ray(x, y);
+    let t_near = camera.near / depth_to_distance;
+    let t_far = scene.opaque_depth.as_ref().map_or(f64::INFINITY, |depth| {
+        f64::from(depth[(y * camera.width + x) as usize]) / depth_to_distance
+    });
+    let volume = if t_near < t_far {
+        let mut march = March {
+            transfer_function: &scene.transfer_function,
+            mode: scene.mode,
+            colour: DVec4::ZERO,
+        };
+        match integrator {
+            Integrator::Cells { cells, bins } => march_cells(
+                &mut march,
+                cells,
+                bins.candidates(x, y),
+                &ray,
+                t_near,
+                t_far,
+                scratch,
+            ),
+            Integrator::Grid(grid) => march_grid(
+                &mut march,
+                grid,
+                scene.scalar_tolerance,
+                &ray,
+                t_near,
+                t_far,
+                scratch,
+            ),
+        }
+        march.colour
+    } else {
+        DVec4::ZERO
+    };
+    scene.mode.composite(volume, scene.background)
+}
+
+/// Front-to-back accumulation along one ray.
+struct March<'a> {
+    transfer_function: &'a TransferFunction,
+    mode: OpticalMode,
+    colour: PremultipliedRgba,
+}
+
+impl March<'_> {
+    /// Adds the linear segment `s_front → s_back` of `length` behind what is
+    /// accumulated.
+    fn add(&mut self, s_front: f64, s_back: f64, length: f64) {
+        let segment = exact_segment(self.transfer_function, self.mode, s_front, s_back, length);
+        self.colour = self.mode.composite(self.colour, segment);
+    }
+
+    /// Whether nothing behind can change the pixel any more.
+    fn is_opaque(&self) -> bool {
+        self.mode == OpticalMode::Sorted && 1.0 - self.colour.w < MIN_TRANSMITTANCE
+    }
+}
+
+fn march_cells(
+    march: &mut March<'_>,
+    cells: &[Tetrahedron],
+    candidates: &[u32],
+    ray: &Ray,
+    t_near: f64,
+    t_far: f64,
+    scratch: &mut Scratch,
+) {
+    let segments = &mut scratch.segments;
+    segments.clear();
+    segments.extend(candidates.iter().filter_map(|&index| {
+        let segment = cells[index as usize]
+            .intersect(ray)?
+            .clip_to_range(t_near, t_far)?;
+        (segment.length() > 0.0).then_some(segment)
+    }));
+    if march.mode == OpticalMode::Sorted {
+        segments.sort_unstable_by(|a, b| a.t_entry.total_cmp(&b.t_entry));
+    }
+    for segment in segments.iter() {
+        march.add(segment.s_entry, segment.s_exit, segment.length());
+        if march.is_opaque() {
+            break;
+        }
+    }
+}
+
+/// Cells binned by the screen tiles their projection may cover.
+struct CellBins {
+    tiles_x: u32,
+    bins: Vec<Vec<u32>>,
+}
+
+impl CellBins {
+    fn new(camera: &ReferenceCamera, cells: &[Tetrahedron]) -> Self {
+        let tiles_x = camera.width.div_ceil(TILE_SIZE);
+        let tiles_y = camera.height.div_ceil(TILE_SIZE);
+        let mut bins = vec![Vec::new(); (tiles_x * tiles_y) as usize];
+        for (index, cell) in cells.iter().enumerate() {
+            if cell.is_degenerate() {
+                continue;
+            }
+            let projected = cell.positions.map(|p| camera.project(p));
+            // Rays only see view depths ≥ near.
+            if projected.iter().all(|&(_, _, depth)| depth < camera.near) {
+                continue;
+            }
+            let (tx, ty) = if projected.iter().any(|&(_, _, depth)| depth < camera.near) {
+                // Crosses the near plane: the projection is unbounded.
+                ((0, tiles_x - 1), (0, tiles_y - 1))
+            } else {
+                let tile_range = |coordinates: [f64; 4], tiles: u32| {
+                    let lo = coordinates.iter().copied().fold(f64::INFINITY, f64::min) - 1.0;
+                    let hi = coordinates
+                        .iter()
+                        .copied()
+                        .fold(f64::NEG_INFINITY, f64::max)
+                        + 1.0;
+                    let limit = f64::from(tiles * TILE_SIZE);
+                    if hi < 0.0 || lo > limit {
+                        return None;
+                    }
+                    let tile =
+                        |c: f64| ((c.clamp(0.0, limit - 1.0) as u32) / TILE_SIZE).min(tiles - 1);
+                    Some((tile(lo), tile(hi)))
+                };
+                let (Some(tx), Some(ty)) = (
+                    tile_range(projected.map(|p| p.0), tiles_x),
+                    tile_range(projected.map(|p| p.1), tiles_y),
+                ) else {
+                    continue;
+                };
+                (tx, ty)
+            };
+            for tile_y in ty.0..=ty.1 {
+                for tile_x in tx.0..=tx.1 {
+                    bins[(tile_y * tiles_x + tile_x) as usize].push(index as u32);
+                }
+            }
+        }
+        Self { tiles_x, bins }
+    }
+
+    /// Cells that may cover pixel `(x, y)`.
+    fn candidates(&self, x: u32, y: u32) -> &[u32] {
+        &self.bins[((y / TILE_SIZE) * self.tiles_x + x / TILE_SIZE) as usize]
+    }
+}
+
+/// A cubic `c0 + c1 x + c2 x² + c3 x³`.
+#[derive(Clone, Copy, Default)]
+struct Cubic([f64; 4]);
+
+impl Cubic {
+    fn linear(c0: f64, c1: f64) -> Self {
+        Self([c0, c1, 0.0, 0.0])
+    }
+
+    /// `self + (other − self) · weight`; the degrees must add up to ≤ 3.
+    fn lerp(self, other: Self, weight: Self) -> Self {
+        let mut out = self.0;
+        for i in 0..4 {
+            for j in 0..4 - i {
+                out[i + j] += (other.0[i] - self.0[i]) * weight.0[j];
+            }
+        }
+        Self(out)
+    }
+
+    fn at(&self, x: f64) -> f64 {
+        let [c0, c1, c2, c3] = self.0;
+        c0 + x * (c1 + x * (c2 + x * c3))
+    }
+
+    fn second_derivative(&self, x: f64) -> f64 {
+        2.0 * self.0[2] + 6.0 * self.0[3] * x
+    }
+}
+
+fn march_grid(
+    march: &mut March<'_>,
+    grid: &DensityGrid,
+    tolerance: f64,
+    ray: &Ray,
+    t_near: f64,
+    t_far: f64,
+    scratch: &mut Scratch,
+) {
+    let dims = grid.dims();
+    // The ray in grid units: u(t) = start + t · step.
+    let start = (ray.origin - grid.origin()) / grid.spacing();
+    let step = ray.direction / grid.spacing();
+    let last = DVec3::new(
+        (dims[0] - 1) as f64,
+        (dims[1] - 1) as f64,
+        (dims[2] - 1) as f64,
+    );
+    let (mut t_enter, mut t_exit) = (t_near, t_far);
+    for axis in 0..3 {
+        if step[axis] == 0.0 {
+            if !(0.0..=last[axis]).contains(&start[axis]) {
+                return;
+            }
+            continue;
+        }
+        let a = (0.0 - start[axis]) / step[axis];
+        let b = (last[axis] - start[axis]) / step[axis];
+        t_enter = t_enter.max(a.min(b));
+        t_exit = t_exit.min(a.max(b));
+    }
+    if t_enter.is_nan() || t_exit.is_nan() || t_enter >= t_exit {
+        return;
+    }
+    // Every crossing of a cell plane inside (t_enter, t_exit), sorted.
+    let crossings = &mut scratch.crossings;
+    crossings.clear();
+    crossings.push(t_enter);
+    for axis in 0..3 {
+        if step[axis] == 0.0 {
+            continue;
+        }
+        let (u0, u1) = (
+            start[axis] + t_enter * step[axis],
+            start[axis] + t_exit * step[axis],
+        );
+        let (lo, hi) = (
+            u0.min(u1).ceil().max(0.0),
+            u0.max(u1).floor().min(last[axis]),
+        );
+        let mut plane = lo;
+        while plane <= hi {
+            let t = (plane - start[axis]) / step[axis];
+            if t > t_enter && t < t_exit {
+                crossings.push(t);
+            }
+            plane += 1.0;
+        }
+    }
+    crossings.push(t_exit);
+    crossings.sort_unstable_by(f64::total_cmp);
+
+    for window in crossings.windows(2) {
+        let (ta, tb) = (window[0], window[1]);
+        let length = tb - ta;
+        if length.is_nan() || length <= 0.0 {
+            continue;
+        }
+        let middle = start + (0.5 * (ta + tb)) * step;
+        let cell = [0, 1, 2].map(|a| (middle[a].floor().max(0.0) as usize).min(dims[a] - 2));
+        // Local coordinates along the piece, linear in x = t − ta.
+        let local = |axis: usize| {
+            let origin = start[axis] + ta * step[axis] - cell[axis] as f64;
+            Cubic::linear(origin, step[axis])
+        };
+        let (wx, wy, wz) = (local(0), local(1), local(2));
+        let corner = |dx: usize, dy: usize, dz: usize| {
+            Cubic::linear(
+                f64::from(grid.value(cell[0] + dx, cell[1] + dy, cell[2] + dz)),
+                0.0,
+            )
+        };
+        let edge = |dy: usize, dz: usize| corner(0, dy, dz).lerp(corner(1, dy, dz), wx);
+        let face = |dz: usize| edge(0, dz).lerp(edge(1, dz), wy);
+        let scalar = face(0).lerp(face(1), wz);
+
+        let curvature = scalar
+            .second_derivative(0.0)
+            .abs()
+            .max(scalar.second_derivative(length).abs());
+        let pieces = (length * (curvature / (8.0 * tolerance)).sqrt())
+            .ceil()
+            .clamp(1.0, MAX_PIECES_PER_CELL) as usize;
+        let piece_length = length / pieces as f64;
+        let mut s_front = scalar.at(0.0);
+        for piece in 1..=pieces {
+            let s_back = scalar.at(piece as f64 * piece_length);
+            march.add(s_front, s_back, piece_length);
+            if march.is_opaque() {
+                return;
+            }
+            s_front = s_back;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cell::{Hexahedron, HexahedronParity};
+    use crate::transfer::ControlPoint;
+
+    /// κ = (1, 0.5, 0.25) everywhere; ρ = 2 everywhere.
+    fn constant_tf() -> TransferFunction {
+        TransferFunction::new(vec![
+            ControlPoint {
+                s: 0.0,
+                kappa: [1.0, 0.5, 0.25],
+                rho: 2.0,
+            },
+            ControlPoint {
+                s: 1.0,
+                kappa: [1.0, 0.5, 0.25],
+                rho: 2.0,
+            },
+        ])
+        .unwrap()
+    }
+
+    /// κ and ρ varying with s.
+    fn ramp_tf() -> TransferFunction {
+        TransferFunction::new(vec![
+            ControlPoint {
+                s: 0.0,
+                kappa: [0.2, 0.4, 1.0],
+                rho: 0.0,
+            },
+            ControlPoint {
+                s: 0.4,
+                kappa: [1.0, 0.8, 0.2],
+                rho: 1.5,
+            },
+            ControlPoint {
+                s: 1.0,
+                kappa: [1.0, 0.2, 0.1],
+                rho: 4.0,
+            },
+        ])
+        .unwrap()
+    }
+
+    /// Grid over the box [−1, 1]³ with values from `field`.
+    fn grid(n: usize, field: impl Fn(DVec3) -> f64) -> DensityGrid {
+        let spacing = DVec3::splat(2.0 / (n - 1) as f64);
+        let origin = DVec3::splat(-1.0);
+        let mut values = Vec::new();
+        for k in 0..n {
+            for j in 0..n {
+                for i in 0..n {
+                    let p = origin + DVec3::new(i as f64, j as f64, k as f64) * spacing;
+                    values.push(field(p) as f32);
+                }
+            }
+        }
+        DensityGrid::new([n, n, n], spacing, origin, values).unwrap()
+    }
+
+    /// The grid's cells as tetrahedra with alternating decompositions.
+    fn tetrahedra(grid: &DensityGrid) -> Vec<Tetrahedron> {
+        let [nx, ny, nz] = grid.dims();
+        let mut cells = Vec::new();
+        for k in 0..nz - 1 {
+            for j in 0..ny - 1 {
+                for i in 0..nx - 1 {
+                    let min =
+                        grid.origin() + DVec3::new(i as f64, j as f64, k as f64) * grid.spacing();
+                    let scalars = std::array::from_fn(|v| {
+                        f64::from(grid.value(i + (v & 1), j + ((v >> 1) & 1), k + ((v >> 2) & 1)))
+                    });
+                    let hex = Hexahedron::axis_aligned(min, grid.spacing(), scalars);
+                    let parity = HexahedronParity::of_cell(i as i64, j as i64, k as i64);
+                    cells.extend(hex.tetrahedra(parity));
+                }
+            }
+        }
+        cells
+    }
+
+    /// Camera on +z looking at the origin, slightly off axis.
+    fn camera() -> ReferenceCamera {
+        ReferenceCamera {
+            position: DVec3::new(0.3, -0.2, 6.0),
+            width: 40,
+            height: 30,
+            vertical_fov: 0.5,
+            ..Default::default()
+        }
+    }
+
+    fn max_difference(a: &LinearImage, b: &LinearImage, channels: usize) -> f32 {
+        a.pixels
+            .iter()
+            .zip(&b.pixels)
+            .flat_map(|(p, q)| (0..channels).map(move |c| (p[c] - q[c]).abs()))
+            .fold(0.0, f32::max)
+    }
+
+    /// Chord of the pixel's ray through the box [−1, 1]³ when it enters the
+    /// front face z = 1 and leaves through the back face z = −1, or 0 when it
+    /// misses both; `None` when it crosses a side face (not checked).
+    fn box_chord(camera: &ReferenceCamera, x: u32, y: u32, back_depth: Option<f64>) -> Option<f64> {
+        let (ray, _) = camera.pixel_ray(x, y);
+        let at_z = |z: f64| ray.at((z - ray.origin.z) / ray.direction.z);
+        let inside = |p: DVec3| p.x.abs() <= 1.0 && p.y.abs() <= 1.0;
+        let (front, back) = (at_z(1.0), at_z(-1.0));
+        let margin = |p: DVec3| (p.x.abs() - 1.0).abs().min((p.y.abs() - 1.0).abs());
+        if margin(front) < 1e-9 || margin(back) < 1e-9 {
+            return None;
+        }
+        match (inside(front), inside(back)) {
+            (true, true) => {
+                let z_end = back_depth.map_or(-1.0, |d| camera.position.z - d);
+                Some(((1.0 - z_end) / -ray.direction.z).max(0.0))
+            }
+            (false, false)
+                if (front.x.signum() == back.x.signum() && front.x.abs() > 1.0)
+                    || (front.y.signum() == back.y.signum() && front.y.abs() > 1.0) =>
+            {
+                Some(0.0)
+            }
+            _ => None,
+        }
+    }
+
+    #[test]
+    fn uniform_box_matches_the_closed_form() {
+        let volume = ReferenceVolume::Grid(grid(5, |_| 0.5));
+        let scene = ReferenceScene::new(camera(), volume, constant_tf(), OpticalMode::Sorted);
+        let image = render(&scene, None).unwrap();
+        let mut checked = 0;
+        for y in 0..30 {
+            for x in 0..40 {
+                let Some(chord) = box_chord(&scene.camera, x, y, None) else {
+                    continue;
+                };
+                let alpha = 1.0 - (-2.0 * chord).exp();
+                let expected = [alpha, 0.5 * alpha, 0.25 * alpha, alpha];
+                let pixel = image.pixels[(y * 40 + x) as usize];
+                for c in 0..4 {
+                    assert!(
+                        (f64::from(pixel[c]) - expected[c]).abs() < 1e-6,
+                        "({x}, {y}) {pixel:?} vs {expected:?}"
+                    );
+                }
+                checked += 1;
+            }
+        }
+        assert!(checked > 600, "only {checked} pixels checked");
+    }
+
+    #[test]
+    fn opaque_depth_cuts_the_ray() {
+        let camera = camera();
+        // View depth 6 is the plane z = 0 (the camera looks straight down −z).
+        let depth = vec![6.0f32; 40 * 30];
+        let volume = ReferenceVolume::Grid(grid(3, |_| 0.5));
+        let mut scene = ReferenceScene::new(camera, volume, constant_tf(), OpticalMode::Emissive);
+        scene.opaque_depth = Some(depth);
+        let image = render(&scene, None).unwrap();
+        let mut checked = 0;
+        for y in 0..30 {
+            for x in 0..40 {
+                let Some(chord) = box_chord(&camera, x, y, Some(6.0)) else {
+                    continue;
+                };
+                // Emission only: C = κ ρ L.
+                let pixel = image.pixels[(y * 40 + x) as usize];
+                assert!(
+                    (f64::from(pixel[0]) - 2.0 * chord).abs() < 1e-5,
+                    "({x}, {y})"
+                );
+                checked += 1;
+            }
+        }
+        assert!(checked > 600);
+        // A depth before the near plane or the volume hides everything.
+        let mut blocked = scene.clone();
+        blocked.opaque_depth = Some(vec![0.05; 40 * 30]);
+        blocked.background = DVec4::new(0.0, 0.1, 0.0, 1.0);
+        let image = render(&blocked, None).unwrap();
+        assert!(image.pixels.iter().all(|p| *p == [0.0, 0.1, 0.0, 1.0]));
+    }
+
+    #[test]
+    fn cell_and_grid_paths_agree_on_a_linear_field() {
+        let field = |p: DVec3| 0.5 + 0.2 * p.x - 0.15 * p.y + 0.1 * p.z;
+        let density = grid(4, field);
+        let cells = tetrahedra(&density);
+        for mode in [OpticalMode::Sorted, OpticalMode::Emissive, OpticalMode::Mip] {
+            let camera = ReferenceCamera {
+                position: DVec3::new(2.5, 1.5, 3.5),
+                ..camera()
+            }
+            .looking_at(DVec3::ZERO, DVec3::Y);
+            let from_grid = render(
+                &ReferenceScene::new(
+                    camera,
+                    ReferenceVolume::Grid(density.clone()),
+                    ramp_tf(),
+                    mode,
+                ),
+                None,
+            )
+            .unwrap();
+            let from_cells = render(
+                &ReferenceScene::new(
+                    camera,
+                    ReferenceVolume::Cells(cells.clone()),
+                    ramp_tf(),
+                    mode,
+                ),
+                None,
+            )
+            .unwrap();
+            // MIP opacity depends on how the ray is cut into segments; compare colour.
+            let channels = if mode == OpticalMode::Mip { 3 } else { 4 };
+            let difference = max_difference(&from_grid, &from_cells, channels);
+            assert!(difference < 1e-5, "{mode:?}: {difference}");
+            assert!(
+                from_grid.pixels.iter().any(|p| p[3] > 0.1),
+                "{mode:?}: the volume is visible"
+            );
+        }
+    }
+
+    #[test]
+    fn nonlinear_grid_converges_with_the_tolerance() {
+        // A trilinear field with strong cross terms: the cubic along each ray
+        // must be resolved by subdivision.
+        let density = grid(3, |p| (0.5 + 0.5 * p.x * p.y * p.z).clamp(0.0, 1.0));
+        let render_with = |tolerance| {
+            let mut scene = ReferenceScene::new(
+                camera(),
+                ReferenceVolume::Grid(density.clone()),
+                ramp_tf(),
+                OpticalMode::Sorted,
+            );
+            scene.scalar_tolerance = tolerance;
+            render(&scene, None).unwrap()
+        };
+        let (coarse, fine, finest) = (render_with(1e-1), render_with(1e-5), render_with(1e-8));
+        assert!(max_difference(&fine, &finest, 4) < 1e-4);
+        assert!(max_difference(&coarse, &finest, 4) > max_difference(&fine, &finest, 4));
+    }
+
+    #[test]
+    fn eye_inside_the_volume_and_progress() {
+        let density = grid(5, |p| 0.3 + 0.1 * p.x);
+        let cells = tetrahedra(&density);
+        let camera = ReferenceCamera {
+            position: DVec3::new(0.1, 0.05, 0.2),
+            width: 20,
+            height: 16,
+            ..Default::default()
+        };
+        let from_grid = render(
+            &ReferenceScene::new(
+                camera,
+                ReferenceVolume::Grid(density),
+                ramp_tf(),
+                OpticalMode::Sorted,
+            ),
+            None,
+        )
+        .unwrap();
+        let rows = AtomicU32::new(0);
+        let count_rows = |p: RenderProgress| {
+            assert_eq!(p.rows_total, 16);
+            rows.fetch_add(1, Ordering::Relaxed);
+        };
+        let from_cells = render(
+            &ReferenceScene::new(
+                camera,
+                ReferenceVolume::Cells(cells),
+                ramp_tf(),
+                OpticalMode::Sorted,
+            ),
+            Some(&count_rows),
+        )
+        .unwrap();
+        assert_eq!(rows.load(Ordering::Relaxed), 16);
+        assert!(max_difference(&from_grid, &from_cells, 4) < 1e-5);
+        assert!(
+            from_grid
+                .pixels
+                .iter()
+                .all(|p| p[3] > 0.0 && p.iter().all(|c| c.is_finite()))
+        );
+    }
+
+    #[test]
+    fn bad_scenes_are_refused() {
+        let volume = || ReferenceVolume::Grid(grid(2, |_| 0.5));
+        let scene =
+            |camera| ReferenceScene::new(camera, volume(), constant_tf(), OpticalMode::Sorted);
+        let message = |scene: &ReferenceScene| render(scene, None).unwrap_err().to_string();
+        let bad_fov = ReferenceCamera {
+            vertical_fov: 0.0,
+            ..camera()
+        };
+        assert!(message(&scene(bad_fov)).contains("vertical_fov"));
+        let bad_size = ReferenceCamera {
+            width: 0,
+            ..camera()
+        };
+        assert!(message(&scene(bad_size)).contains("0×30"));
+        let bad_near = ReferenceCamera {
+            near: f64::NAN,
+            ..camera()
+        };
+        assert!(message(&scene(bad_near)).contains("near"));
+        let bad_position = ReferenceCamera {
+            position: DVec3::INFINITY,
+            ..camera()
+        };
+        assert!(message(&scene(bad_position)).contains("position"));
+
+        let mut short_depth = scene(camera());
+        short_depth.opaque_depth = Some(vec![1.0; 5]);
+        assert!(message(&short_depth).contains("needs 1200 depth values, found 5"));
+        let mut nan_depth = scene(camera());
+        let mut depth = vec![f32::INFINITY; 1200];
+        depth[41] = f32::NAN;
+        nan_depth.opaque_depth = Some(depth);
+        assert!(message(&nan_depth).contains("pixel (1, 1)"));
+        let mut tolerance = scene(camera());
+        tolerance.scalar_tolerance = 0.0;
+        assert!(message(&tolerance).contains("scalar_tolerance"));
+        let mut background = scene(camera());
+        background.background = DVec4::new(0.0, f64::NAN, 0.0, 1.0);
+        assert!(message(&background).contains("background"));
+
+        let mut cells = tetrahedra(&grid(2, |_| 0.5));
+        cells[3].scalars[1] = f64::INFINITY;
+        let bad_cells = ReferenceScene::new(
+            camera(),
+            ReferenceVolume::Cells(cells),
+            constant_tf(),
+            OpticalMode::Sorted,
+        );
+        assert!(message(&bad_cells).contains("cell 3"));
+        // Degenerate cells are fine and invisible.
+        let flat = Tetrahedron {
+            positions: [DVec3::ZERO, DVec3::X, DVec3::Y, DVec3::X + DVec3::Y],
+            scalars: [1.0; 4],
+        };
+        let image = render(
+            &ReferenceScene::new(
+                camera(),
+                ReferenceVolume::Cells(vec![flat]),
+                constant_tf(),
+                OpticalMode::Sorted,
+            ),
+            None,
+        )
+        .unwrap();
+        assert!(image.pixels.iter().all(|p| *p == [0.0; 4]));
+    }
+}
