@@ -8,6 +8,7 @@
 //! - [`transfer`]: transfer functions κ (chromaticity) and ρ (density) over a scalar.
 //! - [`cell`]: tetrahedra, prisms, hexahedra, their decompositions and exact ray-cell intersection.
 //! - [`segment`]: the exact f64 ray integral of one linear segment, the reference for the tables.
+//! - [`preintegration`]: pre-integration tables (3D colour, ρ̂, emission, MIP) and the zero-opacity test.
 //! - [`field`]: density grids and height fields, PNG/raw loaders, noise generators, 2^n+1 resampling.
 //! - [`reference`]: the exact f64 CPU reference renderer through tetrahedra or a trilinear grid.
 //! - [`image_metrics`]: linear images, sRGB PNG input/output, RMSE / max error / PSNR, difference images.
@@ -16,6 +17,7 @@ pub mod cell;
 pub mod optics;
 pub mod scene;
 pub mod segment;
+pub mod preintegration;
 pub mod transfer;
 pub mod field;
 pub mod image_metrics;

@@ -89,6 +89,20 @@ impl Piece {
         0.5 * self.width() * (self.rho0 + self.rho1)
     }
 
+    /// `∫ κρ dx` over the piece (unit segment length), exact:
+    /// `∫_0^1 (κ0 + (κ1 − κ0) t)(ρ0 + (ρ1 − ρ0) t) dt` times the width.
+    pub fn emission(&self) -> DVec3 {
+        let mean = (self.kappa0 * (2.0 * self.rho0 + self.rho1)
+            + self.kappa1 * (self.rho0 + 2.0 * self.rho1))
+            / 6.0;
+        self.width() * mean
+    }
+
+    /// `∫_0^u ρ` from the piece's front (unit segment length).
+    pub fn depth_at(&self, u: f64) -> f64 {
+        self.rho0 * u + 0.5 * (self.rho1 - self.rho0) * u * u / self.width()
+    }
+
     /// κ and ρ at local coordinate `u` ∈ [0, width].
     pub fn at(&self, u: f64) -> (DVec3, f64) {
         let t = if self.width() > 0.0 {
@@ -283,10 +297,7 @@ pub fn exact_segment(
             let mut emission = DVec3::ZERO;
             let mut depth = 0.0;
             for_each_piece(tf, s_front, s_back, |p| {
-                // ∫_0^1 (κ0 + (κ1 − κ0) t)(ρ0 + (ρ1 − ρ0) t) dt
-                let mean =
-                    (p.kappa0 * (2.0 * p.rho0 + p.rho1) + p.kappa1 * (p.rho0 + 2.0 * p.rho1)) / 6.0;
-                emission += p.width() * mean;
+                emission += p.emission();
                 depth += p.depth();
             });
             (l * emission).extend(-(-l * depth).exp_m1())
@@ -334,8 +345,7 @@ fn sorted_piece_colour(piece: &Piece, l: f64) -> DVec3 {
     let intervals = (reach / DEPTH_STEP).ceil().max(1.0) as u32;
     let integrand = |u: f64| {
         let (kappa, rho) = piece.at(u);
-        let local_depth =
-            l * (piece.rho0 * u + 0.5 * (piece.rho1 - piece.rho0) * u * u / piece.width());
+        let local_depth = l * piece.depth_at(u);
         kappa * (l * rho * (-local_depth).exp())
     };
     let mut colour = DVec3::ZERO;

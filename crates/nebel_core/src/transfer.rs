@@ -464,3 +464,192 @@ fn srgb_to_linear(c: f32) -> f32 {
         ((c + 0.055) / 1.055).powf(2.4)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn point(s: f32, kappa: [f32; 3], rho: f32) -> ControlPoint {
+        ControlPoint { s, kappa, rho }
+    }
+
+    fn temp_png(name: &str) -> PathBuf {
+        std::env::temp_dir().join(format!("nebel-transfer-{}-{name}.png", std::process::id()))
+    }
+
+    #[test]
+    fn points_are_sorted_and_steps_are_right_continuous() {
+        let tf = TransferFunction::new([
+            point(1.0, [0.0; 3], 1.0),
+            point(0.5, [0.0; 3], 0.0),
+            point(0.5, [0.0; 3], 4.0),
+            point(0.0, [1.0; 3], 0.0),
+        ])
+        .unwrap();
+        let s: Vec<f32> = tf.points().iter().map(|p| p.s).collect();
+        assert_eq!(s, [0.0, 0.5, 0.5, 1.0]);
+        assert_eq!(tf.evaluate(0.5).rho, 4.0);
+        assert_eq!(tf.evaluate(0.25).rho, 0.0);
+        assert_eq!(tf.evaluate(0.75).rho, 2.5);
+        assert_eq!(tf.max_density(), 4.0);
+        assert!(tf.is_transparent(0.1, 0.4999));
+        assert!(!tf.is_transparent(0.1, 0.5));
+    }
+
+    #[test]
+    fn every_error_has_a_clear_message() {
+        let cases: [(Vec<ControlPoint>, &str); 5] = [
+            (
+                vec![],
+                "a transfer function needs at least one control point",
+            ),
+            (
+                vec![
+                    point(0.0, [0.0; 3], 0.0),
+                    point(0.5, [f32::NAN, 0.0, 0.0], 1.0),
+                ],
+                "control point 1 has a non-finite value (NaN or infinity)",
+            ),
+            (
+                vec![point(1.5, [0.0; 3], 0.0)],
+                "control point 0 has s = 1.5, outside [0, 1]",
+            ),
+            (
+                vec![point(0.5, [0.0, -1.0, 0.0], 0.0)],
+                "control point 0 has a negative chromaticity κ = [0.0, -1.0, 0.0]",
+            ),
+            (
+                vec![point(0.5, [0.0; 3], -2.0)],
+                "control point 0 has a negative density ρ = -2",
+            ),
+        ];
+        for (points, message) in cases {
+            assert_eq!(
+                TransferFunction::new(points).unwrap_err().to_string(),
+                message
+            );
+        }
+        let tf = TransferFunction::preset(TransferPreset::Smoke);
+        assert_eq!(
+            tf.scale_density(-1.0).unwrap_err().to_string(),
+            "density scale -1 must be finite and ≥ 0"
+        );
+        assert!(matches!(
+            tf.scale_density(2.0).unwrap().scale_density(f32::MAX),
+            Err(TransferError::NonFinite { .. })
+        ));
+    }
+
+    #[test]
+    fn hash_is_stable_and_tracks_content() {
+        let a = TransferFunction::preset(TransferPreset::Cloud);
+        let b = TransferFunction::new(a.points().to_vec()).unwrap();
+        assert_eq!(a.content_hash(), b.content_hash());
+        let mut points = a.points().to_vec();
+        points[3].kappa[1] += 1e-6;
+        let c = TransferFunction::new(points).unwrap();
+        assert_ne!(a.content_hash(), c.content_hash());
+        assert_ne!(
+            a.content_hash(),
+            a.scale_density(2.0).unwrap().content_hash()
+        );
+        // −0.0 and +0.0 are the same function.
+        let zero = TransferFunction::new([point(0.0, [0.0; 3], 0.0)]).unwrap();
+        let negative = TransferFunction::new([point(-0.0, [-0.0; 3], -0.0)]).unwrap();
+        assert_eq!(zero.content_hash(), negative.content_hash());
+        // Fixed value: FNV-1a of the bit patterns, the same on every platform.
+        assert_eq!(zero.content_hash(), 0xc118_bcb0_0c9e_84e4);
+    }
+
+    #[test]
+    fn presets_are_valid_and_distinct() {
+        let hashes: std::collections::HashSet<u64> = TransferPreset::ALL
+            .iter()
+            .map(|&p| {
+                let tf = TransferFunction::preset(p);
+                assert_eq!(tf.max_density(), 1.0, "{p:?}");
+                tf.content_hash()
+            })
+            .collect();
+        assert_eq!(hashes.len(), TransferPreset::ALL.len());
+        // The cloud's inverse ramp: bright where thin, darker and bluer where dense.
+        let cloud = TransferFunction::preset(TransferPreset::Cloud);
+        let (thin, dense) = (cloud.evaluate(0.1).kappa, cloud.evaluate(1.0).kappa);
+        assert!(thin.min_element() > dense.max_element());
+        assert!(dense.z > dense.x);
+        assert!(cloud.is_transparent(0.0, 0.04));
+    }
+
+    #[test]
+    fn deserializing_validates() {
+        let tf: TransferFunction =
+            ron::from_str("(points: [(s: 1.0, kappa: (1.0, 1.0, 1.0), rho: 2.0), (s: 0.0, kappa: (0.0, 0.0, 0.0), rho: 0.0)])")
+                .unwrap();
+        assert_eq!(tf.points()[0].s, 0.0);
+        let error = ron::from_str::<TransferFunction>("(points: [])").unwrap_err();
+        assert!(
+            error.to_string().contains("at least one control point"),
+            "{error}"
+        );
+    }
+
+    #[test]
+    fn png_strip_loads_srgb_and_alpha() {
+        let path = temp_png("ok");
+        let strip = image::RgbaImage::from_fn(3, 1, |x, _| match x {
+            0 => image::Rgba([0, 0, 0, 0]),
+            1 => image::Rgba([188, 255, 10, 128]),
+            _ => image::Rgba([255, 255, 255, 255]),
+        });
+        strip.save(&path).unwrap();
+        let tf = TransferFunction::from_png_strip(&path, 2.0).unwrap();
+        std::fs::remove_file(&path).unwrap();
+        let points = tf.points();
+        assert_eq!(points.len(), 3);
+        assert_eq!(points[1].s, 0.5);
+        assert_eq!(points[2].kappa, [1.0; 3]);
+        assert_eq!(points[2].rho, 2.0);
+        // sRGB 188 → linear ≈ 0.5.
+        assert!(
+            (points[1].kappa[0] - 0.5029).abs() < 1e-3,
+            "{:?}",
+            points[1]
+        );
+        assert!((points[1].kappa[2] - srgb_to_linear(10.0 / 255.0)).abs() < 1e-7);
+        assert!((points[1].rho - 2.0 * 128.0 / 255.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn png_strip_errors_name_the_file() {
+        let path = temp_png("tall");
+        image::RgbImage::new(4, 2).save(&path).unwrap();
+        let error = TransferFunction::from_png_strip(&path, 1.0).unwrap_err();
+        std::fs::remove_file(&path).unwrap();
+        assert_eq!(
+            error.to_string(),
+            format!(
+                "transfer-function strip {} is 4×2 pixels; it must be 1 pixel high",
+                path.display()
+            )
+        );
+        let missing = temp_png("missing");
+        let error = TransferFunction::from_png_strip(&missing, 1.0).unwrap_err();
+        assert!(matches!(error, TransferError::Image { .. }));
+        assert!(
+            error.to_string().starts_with(&format!(
+                "cannot read transfer-function strip {}: ",
+                missing.display()
+            )),
+            "{error}"
+        );
+        let garbage = temp_png("garbage");
+        std::fs::write(&garbage, b"not a png").unwrap();
+        let error = TransferFunction::from_png_strip(&garbage, 1.0).unwrap_err();
+        std::fs::remove_file(&garbage).unwrap();
+        assert!(matches!(error, TransferError::Image { .. }), "{error}");
+        assert!(matches!(
+            TransferFunction::from_png_strip(&garbage, f32::NAN),
+            Err(TransferError::InvalidDensityScale { .. })
+        ));
+    }
+}
