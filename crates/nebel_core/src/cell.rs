@@ -214,20 +214,32 @@ impl Tetrahedron {
         !well_shaped
     }
 
-    /// The four face planes, face `i` opposite vertex `i`: `(normal, offset)`
-    /// with `normal · p ≤ offset` inside, and `normal · v_i − offset` (negative).
-    fn face_planes(&self) -> [(DVec3, f64, f64); 4] {
+    /// The tetrahedron with its face planes precomputed, for many ray queries;
+    /// `None` when it is degenerate ([`Tetrahedron::is_degenerate`]).
+    pub fn prepare(&self) -> Option<PreparedTetrahedron> {
+        if self.is_degenerate() {
+            return None;
+        }
         let p = self.positions;
-        std::array::from_fn(|i| {
+        let faces = std::array::from_fn(|i| {
             let a = p[(i + 1) % 4];
             let b = p[(i + 2) % 4];
             let c = p[(i + 3) % 4];
-            let mut normal = (b - a).cross(c - a);
+            // Unit outward normal: the vertex opposite lies on the inner side.
+            let mut normal = (b - a).cross(c - a).normalize();
             if normal.dot(p[i] - a) > 0.0 {
                 normal = -normal;
             }
             let offset = normal.dot(a);
-            (normal, offset, normal.dot(p[i]) - offset)
+            FacePlane {
+                normal,
+                offset,
+                vertex_height: normal.dot(p[i]) - offset,
+            }
+        });
+        Some(PreparedTetrahedron {
+            faces,
+            scalars: self.scalars,
         })
     }
 
@@ -238,45 +250,82 @@ impl Tetrahedron {
     /// the barycentric coordinates at those points (clamped into [0, 1] against
     /// rounding, so `s` stays within the vertex scalars). `None` for a miss or a
     /// degenerate tetrahedron; a zero-length segment when the ray only touches an
-    /// edge or a vertex.
+    /// edge or a vertex. For many rays, [`Tetrahedron::prepare`] once instead.
     pub fn intersect(&self, ray: &Ray) -> Option<CellSegment> {
-        if self.is_degenerate() || !ray.origin.is_finite() || !ray.direction.is_finite() {
+        self.prepare()?.intersect(ray)
+    }
+}
+
+/// One face plane of a prepared tetrahedron: unit `normal` pointing out,
+/// `normal · p ≤ offset` inside, and `vertex_height = normal · v − offset` (< 0)
+/// of the vertex opposite.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct FacePlane {
+    normal: DVec3,
+    offset: f64,
+    vertex_height: f64,
+}
+
+/// A non-degenerate [`Tetrahedron`] with its four face planes precomputed, so
+/// that each ray query costs a few dot products. Build it with
+/// [`Tetrahedron::prepare`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PreparedTetrahedron {
+    faces: [FacePlane; 4],
+    scalars: [f64; 4],
+}
+
+impl PreparedTetrahedron {
+    /// Where `ray` passes through the tetrahedron; see [`Tetrahedron::intersect`].
+    pub fn intersect(&self, ray: &Ray) -> Option<CellSegment> {
+        if !ray.origin.is_finite() || !ray.direction.is_finite() {
             return None;
         }
-        let planes = self.face_planes();
         let (mut t_entry, mut t_exit) = (f64::NEG_INFINITY, f64::INFINITY);
-        for &(normal, offset, _) in &planes {
-            // Inside: normal · p ≤ offset, i.e. −normal · p ≥ −offset.
-            let (t_min, t_max) = half_space_range(ray, -normal, -offset)?;
-            t_entry = t_entry.max(t_min);
-            t_exit = t_exit.min(t_max);
+        for face in &self.faces {
+            let along = face.normal.dot(ray.direction);
+            let height = face.normal.dot(ray.origin) - face.offset;
+            if along.abs() <= f64::EPSILON {
+                // Parallel to the face: inside or outside along the whole line.
+                if height > 0.0 {
+                    return None;
+                }
+                continue;
+            }
+            let t = -height / along;
+            if along > 0.0 {
+                t_exit = t_exit.min(t);
+            } else {
+                t_entry = t_entry.max(t);
+            }
         }
         if !t_entry.is_finite() || !t_exit.is_finite() || t_entry > t_exit {
             return None;
         }
-        let scalar_at = |t: f64| {
-            let point = ray.at(t);
-            let mut weights = [0.0; 4];
-            for (weight, &(normal, offset, vertex_height)) in weights.iter_mut().zip(&planes) {
-                *weight = ((normal.dot(point) - offset) / vertex_height).clamp(0.0, 1.0);
-            }
-            let total: f64 = weights.iter().sum();
-            if total <= 0.0 {
-                return self.scalars.iter().sum::<f64>() / 4.0;
-            }
-            weights
-                .iter()
-                .zip(self.scalars)
-                .map(|(w, s)| w * s)
-                .sum::<f64>()
-                / total
-        };
         Some(CellSegment {
             t_entry,
             t_exit,
-            s_entry: scalar_at(t_entry),
-            s_exit: scalar_at(t_exit),
+            s_entry: self.scalar_at(ray.at(t_entry)),
+            s_exit: self.scalar_at(ray.at(t_exit)),
         })
+    }
+
+    /// Barycentric scalar at a point on or in the tetrahedron, the weights
+    /// clamped into [0, 1] and renormalised against rounding.
+    fn scalar_at(&self, point: DVec3) -> f64 {
+        let weights = self.faces.map(|face| {
+            ((face.normal.dot(point) - face.offset) / face.vertex_height).clamp(0.0, 1.0)
+        });
+        let total: f64 = weights.iter().sum();
+        if total <= 0.0 {
+            return self.scalars.iter().sum::<f64>() / 4.0;
+        }
+        weights
+            .iter()
+            .zip(self.scalars)
+            .map(|(w, s)| w * s)
+            .sum::<f64>()
+            / total
     }
 }
 
@@ -746,6 +795,32 @@ mod tests {
         let right = shared_face_diagonal([1, 3, 2]);
         assert_eq!(left.len(), 1);
         assert_eq!(left, right);
+    }
+
+    #[test]
+    fn cells_100_km_from_the_origin_stay_accurate() {
+        let tet = Tetrahedron {
+            positions: [DVec3::ZERO, DVec3::X, DVec3::Y, DVec3::Z].map(|p| p * 3.0),
+            scalars: [0.1, 0.9, 0.4, 0.6],
+        };
+        let ray = Ray::new(DVec3::new(0.5, 0.7, -4.0), DVec3::new(0.1, 0.05, 1.0)).unwrap();
+        let near = tet.intersect(&ray).unwrap();
+        let offset = DVec3::new(1e5, -2e5, 1e5);
+        let far_tet = Tetrahedron {
+            positions: tet.positions.map(|p| p + offset),
+            ..tet
+        };
+        let far_ray = Ray {
+            origin: ray.origin + offset,
+            ..ray
+        };
+        let far = far_tet.intersect(&far_ray).unwrap();
+        assert!(
+            (far.t_entry - near.t_entry).abs() < 1e-9 && (far.t_exit - near.t_exit).abs() < 1e-9
+        );
+        assert!(
+            (far.s_entry - near.s_entry).abs() < 1e-9 && (far.s_exit - near.s_exit).abs() < 1e-9
+        );
     }
 
     #[test]

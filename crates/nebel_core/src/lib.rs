@@ -10,7 +10,7 @@
 //! - [`segment`]: the exact f64 ray integral of one linear segment, the reference for the tables.
 //! - [`preintegration`]: pre-integration tables (3D colour, ρ̂, emission, MIP) and the zero-opacity test.
 //! - [`field`]: density grids and height fields, PNG/raw loaders, noise generators, 2^n+1 resampling.
-//! - [`reference`]: the exact f64 CPU reference renderer through tetrahedra or a trilinear grid.
+//! - [`reference`](mod@reference): the exact f64 CPU reference renderer through tetrahedra or a trilinear grid.
 //! - [`image_metrics`]: linear images, sRGB PNG input/output, RMSE / max error / PSNR, difference images.
 
 pub mod cell;

@@ -44,7 +44,7 @@ use std::sync::atomic::{AtomicU32, Ordering};
 
 use glam::{DMat3, DQuat, DVec3, DVec4};
 
-use crate::cell::{CellSegment, Ray, Tetrahedron};
+use crate::cell::{CellSegment, PreparedTetrahedron, Ray, Tetrahedron};
 use crate::field::DensityGrid;
 use crate::image_metrics::LinearImage;
 use crate::optics::{OpticalMode, PremultipliedRgba};
@@ -63,7 +63,7 @@ const MAX_PIECES_PER_CELL: f64 = 4096.0;
 const MIN_TRANSMITTANCE: f64 = 1e-12;
 
 /// Side of the square pixel tiles that cells are binned into.
-const TILE_SIZE: u32 = 16;
+const TILE_SIZE: u32 = 8;
 
 /// A perspective pinhole camera (Bevy conventions, see the module docs).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -359,10 +359,13 @@ pub fn render(
     let camera = &scene.camera;
     let (width, height) = (camera.width, camera.height);
     let integrator = match &scene.volume {
-        ReferenceVolume::Cells(cells) => Integrator::Cells {
-            cells,
-            bins: CellBins::new(camera, cells),
-        },
+        ReferenceVolume::Cells(cells) => {
+            let (prepared, bins) = CellBins::new(camera, cells);
+            Integrator::Cells {
+                cells: prepared,
+                bins,
+            }
+        }
         ReferenceVolume::Grid(grid) => Integrator::Grid(grid),
     };
     let mut image = LinearImage::transparent(width, height);
@@ -409,8 +412,9 @@ struct Scratch {
 
 /// The prepared volume.
 enum Integrator<'a> {
+    /// The visible non-degenerate cells, prepared, and their screen bins.
     Cells {
-        cells: &'a [Tetrahedron],
+        cells: Vec<PreparedTetrahedron>,
         bins: CellBins,
     },
     Grid(&'a DensityGrid),
@@ -485,7 +489,7 @@ impl March<'_> {
 
 fn march_cells(
     march: &mut March<'_>,
-    cells: &[Tetrahedron],
+    cells: &[PreparedTetrahedron],
     candidates: &[u32],
     ray: &Ray,
     t_near: f64,
@@ -511,21 +515,24 @@ fn march_cells(
     }
 }
 
-/// Cells binned by the screen tiles their projection may cover.
+/// Prepared cells binned by the screen tiles their projection may cover.
 struct CellBins {
     tiles_x: u32,
     bins: Vec<Vec<u32>>,
 }
 
 impl CellBins {
-    fn new(camera: &ReferenceCamera, cells: &[Tetrahedron]) -> Self {
+    /// Prepares the visible, non-degenerate cells and bins them; bin entries
+    /// index the returned cells.
+    fn new(camera: &ReferenceCamera, cells: &[Tetrahedron]) -> (Vec<PreparedTetrahedron>, Self) {
         let tiles_x = camera.width.div_ceil(TILE_SIZE);
         let tiles_y = camera.height.div_ceil(TILE_SIZE);
         let mut bins = vec![Vec::new(); (tiles_x * tiles_y) as usize];
-        for (index, cell) in cells.iter().enumerate() {
-            if cell.is_degenerate() {
+        let mut prepared = Vec::with_capacity(cells.len());
+        for cell in cells {
+            let Some(prepared_cell) = cell.prepare() else {
                 continue;
-            }
+            };
             let projected = cell.positions.map(|p| camera.project(p));
             // Rays only see view depths ≥ near.
             if projected.iter().all(|&(_, _, depth)| depth < camera.near) {
@@ -558,13 +565,15 @@ impl CellBins {
                 };
                 (tx, ty)
             };
+            let index = prepared.len() as u32;
+            prepared.push(prepared_cell);
             for tile_y in ty.0..=ty.1 {
                 for tile_x in tx.0..=tx.1 {
-                    bins[(tile_y * tiles_x + tile_x) as usize].push(index as u32);
+                    bins[(tile_y * tiles_x + tile_x) as usize].push(index);
                 }
             }
         }
-        Self { tiles_x, bins }
+        (prepared, Self { tiles_x, bins })
     }
 
     /// Cells that may cover pixel `(x, y)`.
@@ -712,7 +721,6 @@ fn march_grid(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cell::{Hexahedron, HexahedronParity};
     use crate::transfer::ControlPoint;
 
     /// κ = (1, 0.5, 0.25) everywhere; ρ = 2 everywhere.
@@ -768,27 +776,6 @@ mod tests {
             }
         }
         DensityGrid::new([n, n, n], spacing, origin, values).unwrap()
-    }
-
-    /// The grid's cells as tetrahedra with alternating decompositions.
-    fn tetrahedra(grid: &DensityGrid) -> Vec<Tetrahedron> {
-        let [nx, ny, nz] = grid.dims();
-        let mut cells = Vec::new();
-        for k in 0..nz - 1 {
-            for j in 0..ny - 1 {
-                for i in 0..nx - 1 {
-                    let min =
-                        grid.origin() + DVec3::new(i as f64, j as f64, k as f64) * grid.spacing();
-                    let scalars = std::array::from_fn(|v| {
-                        f64::from(grid.value(i + (v & 1), j + ((v >> 1) & 1), k + ((v >> 2) & 1)))
-                    });
-                    let hex = Hexahedron::axis_aligned(min, grid.spacing(), scalars);
-                    let parity = HexahedronParity::of_cell(i as i64, j as i64, k as i64);
-                    cells.extend(hex.tetrahedra(parity));
-                }
-            }
-        }
-        cells
     }
 
     /// Camera on +z looking at the origin, slightly off axis.
@@ -900,7 +887,7 @@ mod tests {
     fn cell_and_grid_paths_agree_on_a_linear_field() {
         let field = |p: DVec3| 0.5 + 0.2 * p.x - 0.15 * p.y + 0.1 * p.z;
         let density = grid(4, field);
-        let cells = tetrahedra(&density);
+        let cells = density.tetrahedra();
         for mode in [OpticalMode::Sorted, OpticalMode::Emissive, OpticalMode::Mip] {
             let camera = ReferenceCamera {
                 position: DVec3::new(2.5, 1.5, 3.5),
@@ -961,7 +948,7 @@ mod tests {
     #[test]
     fn eye_inside_the_volume_and_progress() {
         let density = grid(5, |p| 0.3 + 0.1 * p.x);
-        let cells = tetrahedra(&density);
+        let cells = density.tetrahedra();
         let camera = ReferenceCamera {
             position: DVec3::new(0.1, 0.05, 0.2),
             width: 20,
@@ -1045,7 +1032,7 @@ mod tests {
         background.background = DVec4::new(0.0, f64::NAN, 0.0, 1.0);
         assert!(message(&background).contains("background"));
 
-        let mut cells = tetrahedra(&grid(2, |_| 0.5));
+        let mut cells = grid(2, |_| 0.5).tetrahedra();
         cells[3].scalars[1] = f64::INFINITY;
         let bad_cells = ReferenceScene::new(
             camera(),

@@ -2,6 +2,8 @@
 
 use glam::DVec3;
 
+use crate::cell::{Hexahedron, HexahedronParity, Tetrahedron};
+
 use super::{FieldError, axis_weight, check_dims, check_finite, check_origin, check_spacing};
 
 /// Density samples in [0, 1] at the points of a regular 3D grid, trilinear
@@ -92,6 +94,32 @@ impl DensityGrid {
         self.values[i + nx * (j + ny * k)]
     }
 
+    /// The full-resolution tetrahedral field (DESIGN.md §4, §5): every grid
+    /// cell `(i, j, k)` as a hexahedron split into five tetrahedra with parity
+    /// [`HexahedronParity::of_cell`], so the mesh conforms. Returns
+    /// `5 (nx − 1)(ny − 1)(nz − 1)` cells, cell by cell, x fastest. Inside each
+    /// tetrahedron the scalar is linear: it equals the trilinear field at the
+    /// grid points and everywhere when the field is linear.
+    pub fn tetrahedra(&self) -> Vec<Tetrahedron> {
+        let [nx, ny, nz] = self.dims;
+        let mut cells = Vec::with_capacity(5 * (nx - 1) * (ny - 1) * (nz - 1));
+        for k in 0..nz - 1 {
+            for j in 0..ny - 1 {
+                for i in 0..nx - 1 {
+                    let min = self.origin + DVec3::new(i as f64, j as f64, k as f64) * self.spacing;
+                    let scalars = std::array::from_fn(|v| {
+                        f64::from(self.value(i + (v & 1), j + ((v >> 1) & 1), k + ((v >> 2) & 1)))
+                    });
+                    let parity = HexahedronParity::of_cell(i as i64, j as i64, k as i64);
+                    cells.extend(
+                        Hexahedron::axis_aligned(min, self.spacing, scalars).tetrahedra(parity),
+                    );
+                }
+            }
+        }
+        cells
+    }
+
     /// Trilinear density at `world_position`. Positions outside the box are
     /// clamped onto it (the border values extend outwards); a NaN coordinate
     /// reads as the minimum corner's coordinate.
@@ -161,6 +189,21 @@ mod tests {
             grid.sample(grid.origin())
         );
         assert!(grid.sample(DVec3::NAN).is_finite());
+    }
+
+    #[test]
+    fn tetrahedra_fill_the_box_and_interpolate_the_linear_field() {
+        let grid = linear_grid();
+        let cells = grid.tetrahedra();
+        assert_eq!(cells.len(), 5 * 3 * 2 * 4);
+        let volume: f64 = cells.iter().map(Tetrahedron::volume).sum();
+        let extent = grid.max_corner() - grid.origin();
+        assert!((volume - extent.x * extent.y * extent.z).abs() < 1e-9);
+        for cell in &cells {
+            let centroid = cell.positions.iter().sum::<DVec3>() / 4.0;
+            let linear = cell.scalars.iter().sum::<f64>() / 4.0;
+            assert!((grid.sample(centroid) - linear).abs() < 1e-6);
+        }
     }
 
     #[test]
