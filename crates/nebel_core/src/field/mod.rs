@@ -28,7 +28,7 @@ mod resample;
 pub use density_grid::DensityGrid;
 pub use height_field::HeightField;
 pub use load::{Normalization, RawSampleType, TileLayout};
-pub use procedural::{NoiseKind, ProceduralNoise};
+pub use procedural::{NOISE_OFFSET, NoiseKind, ProceduralNoise};
 pub use resample::{PadFill, power_of_two_plus_one};
 
 use std::path::PathBuf;

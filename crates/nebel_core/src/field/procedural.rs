@@ -5,11 +5,26 @@
 //! pure function of its seed, settings and geometry: the same inputs give the
 //! same field on every run and machine. Noise output (nominally in [−1, 1]) is
 //! mapped to [0, 1] by `(v + 1) / 2` and clamped.
+//!
+//! Perlin noise is zero on its integer lattice, so a grid whose points land on
+//! that lattice in every octave (spacing 1, frequency 1, lacunarity 2) would
+//! come out flat. Every position is therefore shifted by the fixed offset
+//! [`NOISE_OFFSET`] (in noise units, before the octaves scale it), which is
+//! irrational in every component.
 
 use glam::{DVec2, DVec3};
 use noise::{Fbm, MultiFractal, NoiseFn, Perlin, RidgedMulti};
 
 use super::{DensityGrid, FieldError, HeightField};
+
+/// Shift of every sample position in noise units (first-octave cycles): the
+/// fractional parts of 1/π, the golden ratio and √2, so no grid point meets
+/// Perlin's zero lattice in any octave.
+pub const NOISE_OFFSET: [f64; 3] = [
+    0.318_309_886_183_791,
+    0.618_033_988_749_895,
+    0.414_213_562_373_095,
+];
 
 /// Which fractal sum of Perlin octaves to use.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -105,11 +120,13 @@ impl ProceduralNoise {
 }
 
 impl Generator {
-    fn unit<const N: usize>(&self, point: [f64; N]) -> f32
+    /// Unit noise at `point` (world units); `frequency` is the first octave's.
+    fn unit<const N: usize>(&self, point: [f64; N], frequency: f64) -> f32
     where
         Fbm<Perlin>: NoiseFn<f64, N>,
         RidgedMulti<Perlin>: NoiseFn<f64, N>,
     {
+        let point: [f64; N] = std::array::from_fn(|a| point[a] + NOISE_OFFSET[a] / frequency);
         let value = match self {
             Self::Fbm(noise) => noise.get(point),
             Self::Ridged(noise) => noise.get(point),
@@ -137,7 +154,7 @@ impl DensityGrid {
             for j in 0..ny {
                 for i in 0..nx {
                     let p = origin + DVec3::new(i as f64, j as f64, k as f64) * spacing;
-                    values.push(generator.unit(p.to_array()));
+                    values.push(generator.unit(p.to_array(), noise.frequency));
                 }
             }
         }
@@ -172,7 +189,10 @@ impl HeightField {
         for j in 0..nz {
             for i in 0..nx {
                 let p = origin + DVec2::new(i as f64, j as f64) * spacing;
-                heights.push((f64::from(generator.unit(p.to_array())) * vertical_scale) as f32);
+                heights.push(
+                    (f64::from(generator.unit(p.to_array(), noise.frequency)) * vertical_scale)
+                        as f32,
+                );
             }
         }
         Self::validated(name, dims, spacing, origin, heights)
@@ -229,6 +249,27 @@ mod tests {
             assert_eq!(field(7), field(7));
             assert_ne!(field(7), field(8));
             assert!(field(7).heights().iter().all(|h| (0.0..=10.0).contains(h)));
+        }
+    }
+
+    #[test]
+    fn lattice_aligned_grids_are_not_flat() {
+        let settings = ProceduralNoise::default();
+        for kind in [NoiseKind::Fbm, NoiseKind::Ridged] {
+            let noise = ProceduralNoise { kind, ..settings };
+            let grid = DensityGrid::procedural([8, 8, 8], DVec3::ONE, DVec3::ZERO, &noise).unwrap();
+            let first = grid.values()[0];
+            assert!(
+                grid.values().iter().any(|&v| (v - first).abs() > 0.01),
+                "{kind:?}"
+            );
+            let field =
+                HeightField::procedural([8, 8], DVec2::ONE, DVec2::ZERO, &noise, 1.0).unwrap();
+            let first = field.heights()[0];
+            assert!(
+                field.heights().iter().any(|&h| (h - first).abs() > 0.01),
+                "{kind:?}"
+            );
         }
     }
 
