@@ -21,9 +21,9 @@ use super::{DensityGrid, FieldError, HeightField};
 /// fractional parts of 1/π, the golden ratio and √2, so no grid point meets
 /// Perlin's zero lattice in any octave.
 pub const NOISE_OFFSET: [f64; 3] = [
-    0.318_309_886_183_791,
+    std::f64::consts::FRAC_1_PI,
     0.618_033_988_749_895,
-    0.414_213_562_373_095,
+    std::f64::consts::SQRT_2 - 1.0,
 ];
 
 /// Which fractal sum of Perlin octaves to use.
