@@ -56,13 +56,17 @@
 //! transfer functions):
 //!
 //! - At the nodes, against [`exact_segment`]: the 3D colour is within 1e-4
-//!   (absolute, with κ ≤ 1; scales with max κ); the ρ̂, emission and maximum
-//!   tables only carry f32 rounding (relative 1e-7), so exact opacity is exact
-//!   to f32.
-//! - Between nodes the error is that of linear interpolation of the transfer
-//!   function's integral at the table's resolution, which depends on how sharp
-//!   the transfer function is; `interpolation_error` measures it for a given
-//!   table (see the bench CSV for the presets).
+//!   absolute for κ ≤ 1 (it scales with max κ; measured 1e-6 to 3e-5 for the
+//!   presets, 64×64×128, `max_length` 4, optical depth up to 4); the ρ̂,
+//!   emission and maximum tables only carry f32 rounding (≤ 3e-8 measured),
+//!   so the exact-opacity pair is exact to f32.
+//! - Between nodes the error is that of linear interpolation at the table's
+//!   resolution and depends on how sharp the transfer function is: for the
+//!   presets at 64×64×128 the interpolated sorted colour is off by 2e-4
+//!   (ground fog, search light) to 1.4e-2 (cloud, whose ρ steps at its
+//!   cut-off); it halves roughly with each doubling of the table.
+//! - Build time, 64×64×128, one thread: about 22-25 ms on-CPU on the 2-core
+//!   development machine (under load; the `optics` bench reports it).
 //!
 //! # Zero-opacity test
 //!
