@@ -14,11 +14,11 @@
 //! - [`image_metrics`]: linear images, sRGB PNG input/output, RMSE / max error / PSNR, difference images.
 
 pub mod cell;
-pub mod optics;
-pub mod scene;
-pub mod segment;
-pub mod preintegration;
-pub mod transfer;
 pub mod field;
 pub mod image_metrics;
+pub mod optics;
+pub mod preintegration;
 pub mod reference;
+pub mod scene;
+pub mod segment;
+pub mod transfer;

@@ -1,0 +1,85 @@
+//! What every example does: load its scene file, open a window with a fly
+//! camera, or render headless when there is no display.
+//!
+//! `cargo run --release --example NAME [-- --headless]`: without `--headless`
+//! and with a display (`DISPLAY` or `WAYLAND_DISPLAY` set), a window opens;
+//! otherwise the scene renders to `target/nebel/NAME.png` and the path is
+//! printed.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use bevy::prelude::*;
+use nebel_core::scene::SceneDescription;
+
+use crate::NebelPlugins;
+use crate::fly_camera::{FlyCamera, FlyCameraPlugin};
+use crate::headless::render_headless;
+use crate::scene_setup::{SceneCamera, SceneSetupPlugin};
+
+/// Runs the example `name` with the scene file `assets/scenes/NAME.ron`.
+pub fn run_example(name: &str) -> ExitCode {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let scene_path = root.join("assets/scenes").join(format!("{name}.ron"));
+    let scene = match SceneDescription::load(&scene_path) {
+        Ok(scene) => scene,
+        Err(error) => {
+            eprintln!("{name}: {error}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let headless_asked = std::env::args().skip(1).any(|arg| arg == "--headless");
+    let has_display = ["DISPLAY", "WAYLAND_DISPLAY"]
+        .iter()
+        .any(|var| std::env::var_os(var).is_some_and(|v| !v.is_empty()));
+    if headless_asked || !has_display {
+        let out: PathBuf = root.join("target/nebel").join(format!("{name}.png"));
+        let why = if headless_asked {
+            "--headless"
+        } else {
+            "no display"
+        };
+        eprintln!("{name}: {why}: rendering {} headless", scene_path.display());
+        return match render_headless(&scene, &out, true) {
+            Ok(stats) => {
+                println!(
+                    "{name}: wrote {} ({} frames on {})",
+                    out.display(),
+                    stats.frames_rendered,
+                    stats.adapter.name
+                );
+                ExitCode::SUCCESS
+            }
+            Err(error) => {
+                eprintln!("{name}: {error}");
+                ExitCode::FAILURE
+            }
+        };
+    }
+    App::new()
+        .add_plugins((
+            DefaultPlugins.set(WindowPlugin {
+                primary_window: Some(Window {
+                    title: format!("nebel: {name}"),
+                    resolution: (scene.output.width, scene.output.height).into(),
+                    ..default()
+                }),
+                ..default()
+            }),
+            NebelPlugins,
+            SceneSetupPlugin {
+                scene,
+                target: None,
+            },
+            FlyCameraPlugin,
+        ))
+        .add_systems(PostStartup, attach_fly_camera)
+        .run();
+    ExitCode::SUCCESS
+}
+
+fn attach_fly_camera(mut commands: Commands, cameras: Query<Entity, With<SceneCamera>>) {
+    for camera in &cameras {
+        commands.entity(camera).insert(FlyCamera::default());
+    }
+}

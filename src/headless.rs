@@ -1,0 +1,258 @@
+//! Headless rendering: a scene file to a PNG, with no window.
+//!
+//! [`render_headless`] builds a Bevy app without winit, renders the scene's
+//! camera into an sRGB image through whatever adapter wgpu finds (lavapipe, the
+//! CPU Vulkan driver, included), steps `output.frames` frames with time advancing
+//! by exactly `1 / output.frame_rate` each, captures the last frame and writes
+//! it. Before Bevy starts, [`probe_adapter`] asks wgpu for an adapter, so a
+//! machine with none gets a one-line error ([`HeadlessError::NoAdapter`]) rather
+//! than Bevy's panic.
+//!
+//! Pipelines compile synchronously, so the first frame already shows the whole
+//! scene; the app waits for the GPU after every frame, so frame times include
+//! the GPU's work.
+
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use bevy::asset::RenderAssetUsages;
+use bevy::camera::RenderTarget;
+use bevy::log::{Level, LogPlugin};
+use bevy::prelude::*;
+use bevy::render::RenderPlugin;
+use bevy::render::pipelined_rendering::PipelinedRenderingPlugin;
+use bevy::render::render_resource::{
+    Extent3d, PollType, TextureDimension, TextureFormat, TextureUsages,
+};
+use bevy::render::renderer::{RenderAdapterInfo, RenderDevice};
+use bevy::render::settings::WgpuSettings;
+use bevy::render::view::screenshot::{Screenshot, ScreenshotCaptured};
+use bevy::time::TimeUpdateStrategy;
+use bevy::window::ExitCondition;
+use bevy::winit::WinitPlugin;
+use nebel_core::scene::SceneDescription;
+use nebel_render::{EffectCounters, NebelFrameTimings};
+use thiserror::Error;
+
+use crate::NebelPlugins;
+use crate::scene_setup::SceneSetupPlugin;
+use crate::stats::{AdapterSummary, RenderStats, TimeSummary};
+
+/// Frames to keep running after the last scene frame while the GPU read-back
+/// of the captured image completes (it takes one or two on every driver seen).
+const READBACK_FRAMES: u32 = 8;
+
+/// Print progress to stderr at most this often.
+const PROGRESS_INTERVAL: Duration = Duration::from_secs(2);
+
+/// Why a headless render failed.
+#[derive(Debug, Error)]
+pub enum HeadlessError {
+    /// wgpu found no adapter at all.
+    #[error(
+        "no graphics adapter found: install a Vulkan driver; without a GPU, the CPU driver lavapipe \
+         comes in the Debian/Ubuntu package mesa-vulkan-drivers"
+    )]
+    NoAdapter,
+    /// The frame was rendered but never came back from the GPU.
+    #[error("the rendered image did not come back from the GPU within {READBACK_FRAMES} frames")]
+    Readback,
+    /// The captured image could not be converted or written.
+    #[error("{}: cannot write image: {reason}", path.display())]
+    Write {
+        /// The output file.
+        path: PathBuf,
+        /// What went wrong.
+        reason: String,
+    },
+}
+
+/// An adapter wgpu found, and the backends to ask Bevy for so it picks it.
+#[derive(Clone, Debug)]
+pub struct ProbedAdapter {
+    /// The adapter.
+    pub adapter: AdapterSummary,
+    /// The backends it was found with.
+    pub backends: wgpu::Backends,
+}
+
+/// Asks wgpu for an adapter: the backends in `WGPU_BACKEND` if set, otherwise
+/// the primary ones (Vulkan, Metal, DX12) and, only when they have none, GL.
+/// Trying GL last keeps its EGL probing (and its warnings) off machines with
+/// a Vulkan driver.
+pub fn probe_adapter() -> Result<ProbedAdapter, HeadlessError> {
+    let candidates = match wgpu::Backends::from_env() {
+        Some(backends) => vec![backends],
+        None => vec![wgpu::Backends::PRIMARY, wgpu::Backends::SECONDARY],
+    };
+    for backends in candidates {
+        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {
+            backends,
+            ..wgpu::InstanceDescriptor::new_without_display_handle_from_env()
+        });
+        let request = instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            ..default()
+        });
+        if let Ok(adapter) = bevy::tasks::block_on(request) {
+            return Ok(ProbedAdapter {
+                adapter: summary(&adapter.get_info()),
+                backends,
+            });
+        }
+    }
+    Err(HeadlessError::NoAdapter)
+}
+
+fn summary(info: &wgpu::AdapterInfo) -> AdapterSummary {
+    AdapterSummary {
+        name: info.name.clone(),
+        backend: format!("{:?}", info.backend),
+        device_type: format!("{:?}", info.device_type),
+    }
+}
+
+/// Renders `scene` headless, writes the last frame to `out` (PNG, sRGB) and
+/// returns the statistics. With `progress`, reports on stderr every two seconds.
+pub fn render_headless(
+    scene: &SceneDescription,
+    out: &Path,
+    progress: bool,
+) -> Result<RenderStats, HeadlessError> {
+    let probed = probe_adapter()?;
+    let output = &scene.output;
+    let mut app = App::new();
+    app.add_plugins(
+        DefaultPlugins
+            .set(WindowPlugin {
+                primary_window: None,
+                exit_condition: ExitCondition::DontExit,
+                ..default()
+            })
+            .set(RenderPlugin {
+                render_creation: WgpuSettings {
+                    backends: Some(probed.backends),
+                    ..default()
+                }
+                .into(),
+                synchronous_pipeline_compilation: true,
+                ..default()
+            })
+            .set(LogPlugin {
+                level: Level::WARN,
+                filter: String::from("wgpu=error,naga=error"),
+                ..default()
+            })
+            .disable::<WinitPlugin>()
+            // Render each frame in the update that simulates it, so the
+            // captured image is exactly the last scene frame.
+            .disable::<PipelinedRenderingPlugin>(),
+    );
+    let target = render_target(&mut app, output.width, output.height);
+    app.add_plugins((
+        NebelPlugins,
+        SceneSetupPlugin {
+            scene: scene.clone(),
+            target: Some(RenderTarget::Image(target.clone().into())),
+        },
+    ))
+    .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(
+        1.0 / f64::from(output.frame_rate),
+    )));
+    app.finish();
+    app.cleanup();
+
+    let captured: Arc<Mutex<Option<Image>>> = Arc::default();
+    let mut frame_times = Vec::with_capacity(output.frames as usize);
+    let mut last_report = Instant::now();
+    for frame in 0..output.frames {
+        if frame + 1 == output.frames {
+            let slot = captured.clone();
+            app.world_mut()
+                .spawn(Screenshot::image(target.clone()))
+                .observe(move |capture: On<ScreenshotCaptured>| {
+                    *slot.lock().expect("capture slot") = Some(capture.image.clone());
+                });
+        }
+        let start = Instant::now();
+        update_and_wait(&mut app);
+        frame_times.push(start.elapsed());
+        if progress && last_report.elapsed() >= PROGRESS_INTERVAL {
+            eprintln!("nebel: frame {}/{}", frame + 1, output.frames);
+            last_report = Instant::now();
+        }
+    }
+    for _ in 0..READBACK_FRAMES {
+        if captured.lock().expect("capture slot").is_some() {
+            break;
+        }
+        update_and_wait(&mut app);
+    }
+    let image = captured
+        .lock()
+        .expect("capture slot")
+        .take()
+        .ok_or(HeadlessError::Readback)?;
+    write_png(image, out)?;
+
+    let world = app.world();
+    let adapter = summary(&world.resource::<RenderAdapterInfo>().0);
+    let nebel_frames = &world.resource::<NebelFrameTimings>().frames;
+    let scene_frames = nebel_frames.len().min(output.frames as usize);
+    Ok(RenderStats {
+        adapter,
+        frames_rendered: output.frames,
+        width: output.width,
+        height: output.height,
+        frame_wall_ms: TimeSummary::of(&frame_times),
+        nebel_systems_cpu_ms: TimeSummary::of(&nebel_frames[..scene_frames]),
+        effects: world.resource::<EffectCounters>().0.clone(),
+    })
+}
+
+fn render_target(app: &mut App, width: u32, height: u32) -> Handle<Image> {
+    let mut image = Image::new_uninit(
+        Extent3d {
+            width,
+            height,
+            depth_or_array_layers: 1,
+        },
+        TextureDimension::D2,
+        TextureFormat::Rgba8UnormSrgb,
+        RenderAssetUsages::RENDER_WORLD,
+    );
+    image.texture_descriptor.usage |= TextureUsages::RENDER_ATTACHMENT;
+    app.world_mut().resource_mut::<Assets<Image>>().add(image)
+}
+
+fn update_and_wait(app: &mut App) {
+    app.update();
+    // A lost device shows in the next frame's errors; a poll error here only
+    // means there was nothing to wait for.
+    let _ = app
+        .world()
+        .resource::<RenderDevice>()
+        .wgpu_device()
+        .poll(PollType::Wait {
+            submission_index: None,
+            timeout: None,
+        });
+}
+
+fn write_png(image: Image, out: &Path) -> Result<(), HeadlessError> {
+    let write_error = |reason: String| HeadlessError::Write {
+        path: out.to_owned(),
+        reason,
+    };
+    let pixels = image
+        .try_into_dynamic()
+        .map_err(|error| write_error(error.to_string()))?;
+    if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(|error| write_error(error.to_string()))?;
+    }
+    pixels
+        .to_rgb8()
+        .save_with_format(out, image::ImageFormat::Png)
+        .map_err(|error| write_error(error.to_string()))
+}

@@ -1,0 +1,48 @@
+//! nebel: volumetric effects for Bevy.
+//!
+//! Terrain with continuous level of detail, ground fog on that terrain, cloud
+//! volumes, emissive fire and search lights, and a fog-layer fallback, all drawn
+//! by sorted cell projection with pre-integrated transfer functions
+//! (DESIGN.md). This umbrella crate gathers the plugins in [`NebelPlugins`] and
+//! holds what the examples, the tests and the `nebel` binary share: loading a
+//! scene file into a Bevy world ([`scene_setup`]), headless rendering
+//! ([`headless`]), the fly camera of the examples ([`fly_camera`]) and the
+//! example launcher ([`example_runner`]).
+//!
+//! ```no_run
+//! use bevy::prelude::*;
+//! use nebel::prelude::*;
+//!
+//! App::new().add_plugins((DefaultPlugins, NebelPlugins)).run();
+//! ```
+
+pub mod example_runner;
+pub mod fly_camera;
+pub mod headless;
+pub mod scene_setup;
+pub mod stats;
+
+use bevy::app::{PluginGroup, PluginGroupBuilder};
+
+pub use nebel_core;
+pub use nebel_render;
+
+/// Every nebel plugin this build was compiled with.
+///
+/// Add it after Bevy's `DefaultPlugins`. Each plugin costs nothing in a scene
+/// without its components.
+pub struct NebelPlugins;
+
+impl PluginGroup for NebelPlugins {
+    fn build(self) -> PluginGroupBuilder {
+        PluginGroupBuilder::start::<Self>().add(nebel_render::NebelDiagnosticsPlugin)
+    }
+}
+
+/// `use nebel::prelude::*;` brings the plugins and the components a game spawns.
+pub mod prelude {
+    pub use crate::NebelPlugins;
+    pub use crate::fly_camera::{FlyCamera, FlyCameraPlugin};
+    pub use crate::scene_setup::{SceneCamera, SceneSetupPlugin};
+    pub use nebel_render::{EffectCounters, NebelSystems};
+}

@@ -1,0 +1,168 @@
+//! Spawns a scene file's contents into a Bevy world.
+//!
+//! [`SceneSetupPlugin`] takes a validated [`SceneDescription`] and, at startup,
+//! spawns its camera, lights and meshes. A camera with a keyframe path follows
+//! it by [`Time::elapsed_secs`] (headless runs step time by exactly
+//! `1 / output.frame_rate` per frame, so frame `i` shows the path at
+//! `i / frame_rate`). Colours in scene files are sRGB.
+//!
+//! The camera renders in HDR (nebel's volumes accumulate in float targets,
+//! DESIGN.md §4) to the window, or to the [`RenderTarget`] the caller gives.
+
+use bevy::camera::Hdr;
+use bevy::camera::RenderTarget;
+use bevy::prelude::*;
+use nebel_core::scene::{CameraView, LightDescription, MeshDescription, SceneDescription};
+use nebel_render::NebelSystems;
+
+/// Spawns a scene description at startup.
+pub struct SceneSetupPlugin {
+    /// The scene to spawn.
+    pub scene: SceneDescription,
+    /// Where the camera renders; `None` renders to the primary window.
+    pub target: Option<RenderTarget>,
+}
+
+/// The scene file the world was set up from.
+#[derive(Resource, Clone, Debug, Deref)]
+pub struct LoadedScene(pub SceneDescription);
+
+/// Where the scene camera should render, taken by the startup system.
+#[derive(Resource, Clone, Debug)]
+struct SceneRenderTarget(Option<RenderTarget>);
+
+/// Marks the camera spawned from the scene file.
+#[derive(Component, Clone, Copy, Debug, Default, Reflect)]
+#[reflect(Component, Default)]
+pub struct SceneCamera {
+    /// Whether the camera follows the scene's keyframe path. Default: false
+    /// (set when the scene has a path; a fly camera clears it).
+    pub follows_path: bool,
+}
+
+impl Plugin for SceneSetupPlugin {
+    fn build(&self, app: &mut App) {
+        app.insert_resource(LoadedScene(self.scene.clone()))
+            .insert_resource(SceneRenderTarget(self.target.clone()))
+            .add_systems(Startup, spawn_scene)
+            .add_systems(Update, follow_camera_path.in_set(NebelSystems));
+    }
+}
+
+fn srgb(color: [f32; 3]) -> Color {
+    Color::srgb(color[0], color[1], color[2])
+}
+
+fn pose_transform(position: [f32; 3], look_at: [f32; 3]) -> Transform {
+    Transform::from_translation(Vec3::from(position)).looking_at(Vec3::from(look_at), Vec3::Y)
+}
+
+fn spawn_scene(
+    mut commands: Commands,
+    scene: Res<LoadedScene>,
+    target: Res<SceneRenderTarget>,
+    mut meshes: ResMut<Assets<Mesh>>,
+    mut materials: ResMut<Assets<StandardMaterial>>,
+) {
+    let camera = &scene.camera;
+    let pose = scene.camera_pose_at(0.0);
+    let mut camera_entity = commands.spawn((
+        Camera3d::default(),
+        Camera {
+            clear_color: ClearColorConfig::Custom(srgb(scene.clear_color)),
+            ..default()
+        },
+        Hdr,
+        Projection::Perspective(PerspectiveProjection {
+            fov: camera.fov_degrees.to_radians(),
+            near: camera.near,
+            ..default()
+        }),
+        pose_transform(pose.position, pose.look_at),
+        SceneCamera {
+            follows_path: matches!(camera.view, CameraView::Path(_)),
+        },
+    ));
+    if let Some(target) = &target.0 {
+        camera_entity.insert(target.clone());
+    }
+
+    let mut ambient = GlobalAmbientLight {
+        brightness: 0.0,
+        ..default()
+    };
+    for light in &scene.lights {
+        match light {
+            LightDescription::Directional(sun) => {
+                commands.spawn((
+                    DirectionalLight {
+                        color: srgb(sun.color),
+                        illuminance: sun.illuminance,
+                        shadow_maps_enabled: sun.shadows,
+                        ..default()
+                    },
+                    Transform::default().looking_to(Vec3::from(sun.direction), Vec3::Y),
+                ));
+            }
+            LightDescription::Point(point) => {
+                commands.spawn((
+                    PointLight {
+                        color: srgb(point.color),
+                        intensity: point.intensity,
+                        range: point.range,
+                        shadow_maps_enabled: point.shadows,
+                        ..default()
+                    },
+                    Transform::from_translation(Vec3::from(point.position)),
+                ));
+            }
+            LightDescription::Ambient(light) => {
+                ambient.color = srgb(light.color);
+                ambient.brightness = light.brightness;
+            }
+        }
+    }
+    commands.insert_resource(ambient);
+
+    for mesh in &scene.meshes {
+        let (shape, center, color): (Mesh, _, _) = match mesh {
+            MeshDescription::Plane(plane) => (
+                Plane3d::new(Vec3::Y, Vec2::from(plane.size) / 2.0).into(),
+                plane.center,
+                plane.color,
+            ),
+            MeshDescription::Box(cuboid) => (
+                Cuboid::from_size(Vec3::from(cuboid.size)).into(),
+                cuboid.center,
+                cuboid.color,
+            ),
+            MeshDescription::Sphere(sphere) => (
+                Sphere::new(sphere.radius).mesh().uv(48, 24),
+                sphere.center,
+                sphere.color,
+            ),
+        };
+        commands.spawn((
+            Mesh3d(meshes.add(shape)),
+            MeshMaterial3d(materials.add(StandardMaterial {
+                base_color: srgb(color),
+                perceptual_roughness: 0.9,
+                ..default()
+            })),
+            Transform::from_translation(Vec3::from(center)),
+        ));
+    }
+}
+
+fn follow_camera_path(
+    scene: Res<LoadedScene>,
+    time: Res<Time>,
+    mut cameras: Query<(&SceneCamera, &mut Transform)>,
+) {
+    for (camera, mut transform) in &mut cameras {
+        if camera.follows_path {
+            let pose = scene.camera_pose_at(time.elapsed_secs());
+            *transform = pose_transform(pose.position, pose.look_at);
+        }
+    }
+}

@@ -1,0 +1,114 @@
+//! The statistics `nebel render --stats FILE.json` writes.
+//!
+//! ```json
+//! {
+//!   "adapter": { "name": "llvmpipe (LLVM 15.0.6, 256 bits)", "backend": "Vulkan", "device_type": "Cpu" },
+//!   "frames_rendered": 8,
+//!   "width": 320, "height": 240,
+//!   "frame_wall_ms": { "median": 41.2, "max": 380.5 },
+//!   "nebel_systems_cpu_ms": { "median": 0.01, "max": 0.02 },
+//!   "effects": { }
+//! }
+//! ```
+//!
+//! `frame_wall_ms` is the whole `App::update` plus waiting for the GPU, per
+//! frame; `nebel_systems_cpu_ms` is the [`NebelFrameTimings`] of the same
+//! frames; `effects` has one object of counters per effect present in the scene
+//! ([`EffectCounters`]), none for an absent effect.
+//!
+//! [`NebelFrameTimings`]: nebel_render::NebelFrameTimings
+//! [`EffectCounters`]: nebel_render::EffectCounters
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use serde::Serialize;
+
+/// What the renderer ran on.
+#[derive(Clone, Debug, Serialize, PartialEq, Eq)]
+pub struct AdapterSummary {
+    /// The adapter's name as the driver reports it.
+    pub name: String,
+    /// The graphics API: Vulkan, Gl, Metal, Dx12.
+    pub backend: String,
+    /// Cpu (a software driver such as lavapipe), DiscreteGpu, IntegratedGpu, ...
+    pub device_type: String,
+}
+
+/// Median and maximum of a per-frame time, milliseconds.
+#[derive(Clone, Copy, Debug, Default, Serialize, PartialEq)]
+pub struct TimeSummary {
+    /// Median over the frames, ms.
+    pub median: f64,
+    /// Maximum over the frames, ms.
+    pub max: f64,
+}
+
+impl TimeSummary {
+    /// Summarises per-frame durations; zeros for an empty list.
+    pub fn of(durations: &[Duration]) -> Self {
+        let mut millis: Vec<f64> = durations.iter().map(|d| d.as_secs_f64() * 1e3).collect();
+        millis.sort_by(f64::total_cmp);
+        let Some(&max) = millis.last() else {
+            return Self::default();
+        };
+        let middle = millis.len() / 2;
+        let median = if millis.len() % 2 == 1 {
+            millis[middle]
+        } else {
+            (millis[middle - 1] + millis[middle]) / 2.0
+        };
+        Self { median, max }
+    }
+}
+
+/// The statistics of one headless render.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct RenderStats {
+    /// What the renderer ran on.
+    pub adapter: AdapterSummary,
+    /// Frames run (the image shows the last).
+    pub frames_rendered: u32,
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// Wall time per frame, update plus GPU wait.
+    pub frame_wall_ms: TimeSummary,
+    /// Wall time per frame of the `NebelSystems` set.
+    pub nebel_systems_cpu_ms: TimeSummary,
+    /// Counters per effect present in the scene.
+    pub effects: BTreeMap<String, BTreeMap<String, f64>>,
+}
+
+impl RenderStats {
+    /// Pretty JSON.
+    pub fn to_json(&self) -> String {
+        serde_json::to_string_pretty(self).expect("render statistics always serialise")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn time_summary_of_even_odd_and_empty() {
+        let ms = |v: u64| Duration::from_millis(v);
+        assert_eq!(TimeSummary::of(&[]), TimeSummary::default());
+        assert_eq!(
+            TimeSummary::of(&[ms(3), ms(1), ms(2)]),
+            TimeSummary {
+                median: 2.0,
+                max: 3.0
+            }
+        );
+        assert_eq!(
+            TimeSummary::of(&[ms(4), ms(1), ms(2), ms(8)]),
+            TimeSummary {
+                median: 3.0,
+                max: 8.0
+            }
+        );
+    }
+}
