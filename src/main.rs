@@ -2,21 +2,43 @@
 //!
 //! ```text
 //! nebel render SCENE --out IMAGE.png [--stats STATS.json] [--frames N] [--size WxH]
+//! nebel reference SCENE --out IMAGE.png [--frames N] [--size WxH]
+//! nebel compare A.png B.png [--diff DIFF.png]
 //! ```
 //!
 //! `render` draws a scene file headless through whatever adapter wgpu finds
 //! (lavapipe included) and writes the last frame; `--stats` writes the JSON of
 //! [`nebel::stats::RenderStats`]; `--frames` and `--size` override the scene's
-//! `output`. Errors are one line on stderr and a non-zero exit status.
+//! `output`.
+//!
+//! `reference` integrates the same view exactly on the CPU
+//! ([`nebel_core::reference`], f64, adaptive, both cores): the scene's one
+//! volume over its clear colour, from the camera of the last frame. Meshes and
+//! lights are not drawn (the reference is the volume integral alone).
+//!
+//! `compare` prints RMSE, maximum absolute error and PSNR over linear RGB of
+//! two PNGs of the same size; `--diff` writes `|A − B| · 10` per channel.
+//!
+//! Errors are one line on stderr and a non-zero exit status.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
 use nebel::headless::render_headless;
-use nebel_core::scene::SceneDescription;
+use nebel_core::image_metrics::{difference_image, load_png_linear, save_png, srgb_to_linear};
+use nebel_core::reference::{ReferenceScene, ReferenceVolume, RenderProgress};
+use nebel_core::scene::{SceneDescription, VolumeField};
 
 const USAGE: &str = "usage:
-  nebel render SCENE --out IMAGE.png [--stats STATS.json] [--frames N] [--size WxH]";
+  nebel render SCENE --out IMAGE.png [--stats STATS.json] [--frames N] [--size WxH]
+  nebel reference SCENE --out IMAGE.png [--frames N] [--size WxH]
+  nebel compare A.png B.png [--diff DIFF.png]";
+
+/// Factor on the absolute error in `compare --diff` images.
+const DIFF_SCALE: f32 = 10.0;
 
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -32,6 +54,8 @@ fn main() -> ExitCode {
 fn run(args: &[String]) -> Result<(), String> {
     match args.first().map(String::as_str) {
         Some("render") => render(&args[1..]),
+        Some("reference") => reference(&args[1..]),
+        Some("compare") => compare(&args[1..]),
         Some("-h" | "--help") => {
             println!("{USAGE}");
             Ok(())
@@ -97,10 +121,10 @@ impl Arguments {
     }
 }
 
-fn render(args: &[String]) -> Result<(), String> {
-    let arguments = Arguments::parse(args, &["out", "stats", "frames", "size"])?;
+/// Loads the scene named by the one positional argument and applies
+/// `--frames` and `--size`.
+fn load_scene(arguments: &Arguments) -> Result<(PathBuf, SceneDescription), String> {
     let scene_path = PathBuf::from(&arguments.positional(1, "one scene file")?[0]);
-    let out = PathBuf::from(arguments.required("out")?);
     let mut scene = SceneDescription::load(&scene_path).map_err(|e| e.to_string())?;
     if let Some(frames) = arguments.option("frames") {
         scene.output.frames = frames
@@ -124,6 +148,13 @@ fn render(args: &[String]) -> Result<(), String> {
             invalid.reason
         )
     })?;
+    Ok((scene_path, scene))
+}
+
+fn render(args: &[String]) -> Result<(), String> {
+    let arguments = Arguments::parse(args, &["out", "stats", "frames", "size"])?;
+    let out = PathBuf::from(arguments.required("out")?);
+    let (_, scene) = load_scene(&arguments)?;
     let stats = render_headless(&scene, &out, true).map_err(|e| e.to_string())?;
     if let Some(stats_path) = arguments.option("stats") {
         std::fs::write(stats_path, stats.to_json())
@@ -137,5 +168,73 @@ fn render(args: &[String]) -> Result<(), String> {
         stats.frames_rendered,
         stats.adapter.name
     );
+    Ok(())
+}
+
+fn reference(args: &[String]) -> Result<(), String> {
+    let arguments = Arguments::parse(args, &["out", "frames", "size"])?;
+    let out = PathBuf::from(arguments.required("out")?);
+    let (scene_path, scene) = load_scene(&arguments)?;
+    let mut volumes = scene
+        .build_volumes(&scene_path)
+        .map_err(|e| e.to_string())?;
+    if volumes.len() != 1 {
+        return Err(format!(
+            "{}: the reference renders exactly one volume, the scene has {}",
+            scene_path.display(),
+            volumes.len()
+        ));
+    }
+    let volume = volumes.remove(0);
+    let field = match volume.field {
+        VolumeField::Grid(grid) => ReferenceVolume::Grid(grid),
+        VolumeField::Cells(cells) => ReferenceVolume::Cells(cells),
+    };
+    let reference_scene = ReferenceScene::new(
+        scene.reference_camera(),
+        field,
+        volume.transfer_function,
+        volume.mode,
+    );
+    let started = Instant::now();
+    let last_report = Mutex::new(Instant::now());
+    let report = |progress: RenderProgress| {
+        let mut last = last_report.lock().expect("progress clock");
+        if last.elapsed() >= Duration::from_secs(2) {
+            eprintln!(
+                "nebel: reference row {}/{}",
+                progress.rows_done, progress.rows_total
+            );
+            *last = Instant::now();
+        }
+    };
+    let image = nebel_core::reference::render(&reference_scene, Some(&report))
+        .map_err(|e| e.to_string())?;
+    let background = scene
+        .clear_color
+        .map(|c| srgb_to_linear(f64::from(c)) as f32);
+    save_png(&image, &out, background).map_err(|e| e.to_string())?;
+    eprintln!(
+        "nebel: wrote {} ({}x{}, exact CPU reference in {:.1} s)",
+        out.display(),
+        image.width,
+        image.height,
+        started.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+fn compare(args: &[String]) -> Result<(), String> {
+    let arguments = Arguments::parse(args, &["diff"])?;
+    let paths = arguments.positional(2, "two PNG files")?;
+    let load = |path: &String| load_png_linear(path).map_err(|e| e.to_string());
+    let (a, b) = (load(&paths[0])?, load(&paths[1])?);
+    let metrics = nebel_core::image_metrics::compare(&a, &b)
+        .map_err(|e| format!("{} vs {}: {e}", paths[0], paths[1]))?;
+    println!("{metrics}");
+    if let Some(diff_path) = arguments.option("diff") {
+        let diff = difference_image(&a, &b, DIFF_SCALE).map_err(|e| e.to_string())?;
+        save_png(&diff, diff_path, [0.0; 3]).map_err(|e| e.to_string())?;
+    }
     Ok(())
 }

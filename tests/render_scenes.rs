@@ -138,3 +138,91 @@ fn a_bad_scene_fails_with_the_file_and_field_named() {
     let output = nebel(&["render", bad.to_str().unwrap()]);
     assert!(String::from_utf8_lossy(&output.stderr).contains("missing `--out`"));
 }
+
+#[test]
+fn reference_and_compare_commands() {
+    let out_dir = output_dir();
+    let reference = out_dir.join("reference_box.png");
+    let output = nebel(&[
+        "reference",
+        "tests/scenes/uniform_box.ron",
+        "--out",
+        reference.to_str().unwrap(),
+        "--size",
+        "48x32",
+    ]);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let image = image::open(&reference).expect("reference PNG").to_rgb8();
+    assert_eq!(image.dimensions(), (48, 32));
+    let corner = *image.get_pixel(0, 0);
+    let centre = *image.get_pixel(24, 16);
+    assert_ne!(corner, centre, "the box must show against the background");
+
+    let same = nebel(&[
+        "compare",
+        reference.to_str().unwrap(),
+        reference.to_str().unwrap(),
+    ]);
+    assert!(same.status.success());
+    assert_eq!(
+        String::from_utf8_lossy(&same.stdout).trim(),
+        "RMSE 0.000000e0  max abs 0.000000e0  PSNR inf dB"
+    );
+
+    let other = out_dir.join("reference_box_small.png");
+    let diff = out_dir.join("diff.png");
+    assert!(
+        nebel(&[
+            "reference",
+            "tests/scenes/uniform_box.ron",
+            "--out",
+            other.to_str().unwrap(),
+            "--size",
+            "24x16"
+        ])
+        .status
+        .success()
+    );
+    let refused = nebel(&[
+        "compare",
+        reference.to_str().unwrap(),
+        other.to_str().unwrap(),
+        "--diff",
+        diff.to_str().unwrap(),
+    ]);
+    assert!(!refused.status.success());
+    let message = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        message.contains("images differ in size: the first is 48×32, the second 24×16"),
+        "{message}"
+    );
+
+    let grey = out_dir.join("grey.png");
+    image::RgbImage::from_pixel(48, 32, image::Rgb([128, 128, 128]))
+        .save(&grey)
+        .unwrap();
+    let differs = nebel(&[
+        "compare",
+        reference.to_str().unwrap(),
+        grey.to_str().unwrap(),
+        "--diff",
+        diff.to_str().unwrap(),
+    ]);
+    assert!(differs.status.success());
+    let printed = String::from_utf8_lossy(&differs.stdout);
+    assert!(
+        printed.starts_with("RMSE ") && !printed.contains("PSNR inf"),
+        "{printed}"
+    );
+    assert_eq!(
+        image::open(&diff)
+            .expect("difference PNG")
+            .to_rgb8()
+            .dimensions(),
+        (48, 32)
+    );
+}

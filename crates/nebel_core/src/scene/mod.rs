@@ -32,6 +32,8 @@
 //! )
 //! ```
 //!
+//! Volumes (`volumes: [...]`) are described in [`VolumeDescription`].
+//!
 //! Conventions: right-handed, +Y up, metres. Colours are sRGB components in
 //! [0, 1] (as a colour picker shows them). Every field but `version` and `camera`
 //! has a default, written next to it below. The scene grows by one list (or one
@@ -41,10 +43,20 @@
 //! Errors name the file, the position, the field and the reason, e.g.
 //! `scenes/a.ron:4:9: field camera.fov_degrees: must be in (0, 180), got 190`.
 
+mod volume;
+
+pub use volume::{
+    Axis, BuiltVolume, ProceduralSource, RampSource, TetrahedronDescription, TransferDescription,
+    TransferStrip, UniformSource, VolumeDescription, VolumeField, VolumeSource,
+};
+
 use std::path::{Path, PathBuf};
 
+use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
+
+use crate::reference::ReferenceCamera;
 
 /// The schema version this build reads and writes.
 pub const SCENE_VERSION: u32 = 1;
@@ -69,6 +81,10 @@ pub struct SceneDescription {
     /// Plain meshes with one colour each. Default: none.
     #[serde(default)]
     pub meshes: Vec<MeshDescription>,
+    /// Volumes (clouds, smoke, fire, search lights), see [`VolumeDescription`].
+    /// Default: none.
+    #[serde(default)]
+    pub volumes: Vec<VolumeDescription>,
 }
 
 /// Image size and the frames to run before the image is taken.
@@ -395,6 +411,21 @@ impl SceneDescription {
         }
     }
 
+    /// The camera of the last frame as the CPU reference renderer takes it.
+    pub fn reference_camera(&self) -> ReferenceCamera {
+        let pose = self.camera_pose_at(self.frame_time(self.output.frames.saturating_sub(1)));
+        let position = DVec3::from(pose.position.map(f64::from));
+        ReferenceCamera {
+            position,
+            vertical_fov: f64::from(self.camera.fov_degrees).to_radians(),
+            width: self.output.width,
+            height: self.output.height,
+            near: f64::from(self.camera.near),
+            ..ReferenceCamera::default()
+        }
+        .looking_at(DVec3::from(pose.look_at.map(f64::from)), DVec3::Y)
+    }
+
     /// The simulated time of frame `index` in seconds.
     pub fn frame_time(&self, index: u32) -> f32 {
         index as f32 / self.output.frame_rate
@@ -502,7 +533,33 @@ impl SceneDescription {
             }
             colour(&format!("{field}.color"), color)?;
         }
+        for (index, volume) in self.volumes.iter().enumerate() {
+            volume
+                .validate()
+                .map_err(|invalid| invalid.within(&format!("volumes[{index}]")))?;
+        }
         Ok(())
+    }
+
+    /// Generates or loads every volume's field and transfer function.
+    /// `scene_path` is the scene file: it names the file in errors and
+    /// resolves paths relative to it.
+    pub fn build_volumes(&self, scene_path: &Path) -> Result<Vec<BuiltVolume>, SceneError> {
+        let scene_dir = scene_path.parent().unwrap_or(Path::new("."));
+        self.volumes
+            .iter()
+            .enumerate()
+            .map(|(index, volume)| {
+                volume.build(scene_dir).map_err(|invalid| {
+                    let invalid = invalid.within(&format!("volumes[{index}]"));
+                    SceneError::Invalid {
+                        path: scene_path.to_owned(),
+                        field: invalid.field,
+                        reason: invalid.reason,
+                    }
+                })
+            })
+            .collect()
     }
 }
 
@@ -516,6 +573,14 @@ pub struct InvalidField {
 }
 
 impl InvalidField {
+    /// The same error with `prefix.` before the field's path.
+    fn within(self, prefix: &str) -> Self {
+        Self {
+            field: format!("{prefix}.{}", self.field),
+            reason: self.reason,
+        }
+    }
+
     fn new(field: impl Into<String>, reason: impl Into<String>) -> Self {
         Self {
             field: field.into(),
@@ -658,6 +723,25 @@ mod tests {
                     color: [0.9, 0.1, 0.1],
                 }),
             ],
+            volumes: vec![VolumeDescription {
+                source: VolumeSource::Procedural(ProceduralSource {
+                    dims: [9, 5, 9],
+                    kind: crate::field::NoiseKind::Ridged,
+                    seed: 4,
+                    octaves: 3,
+                    frequency: 0.5,
+                    coverage: 0.7,
+                }),
+                min: [-2.0, 0.0, -2.0],
+                max: [2.0, 1.0, 2.0],
+                transfer: TransferDescription::Points(vec![crate::transfer::ControlPoint {
+                    s: 0.5,
+                    kappa: [1.0, 0.5, 0.2],
+                    rho: 2.0,
+                }]),
+                density_scale: 0.5,
+                mode: crate::optics::OpticalMode::Mip,
+            }],
         }
     }
 
@@ -791,6 +875,31 @@ mod tests {
                 "version: 1, meshes: [Plane((center: (NaN, 0.0, 0.0), size: (1.0, 1.0)))],",
                 "field meshes[0].Plane.center: must be finite, got NaN",
             ),
+            (
+                "version: 1,",
+                "version: 1, volumes: [(source: Uniform((value: 2.0)))],",
+                "field volumes[0].source.Uniform.value: must be in [0, 1], got 2",
+            ),
+            (
+                "version: 1,",
+                "version: 1, volumes: [(source: Ramp((axis: X, from: 0.0, to: 1.0)), min: (0.0, 0.0, 0.0), max: (1.0, 0.0, 1.0))],",
+                "field volumes[0].max: must exceed min on every axis",
+            ),
+            (
+                "version: 1,",
+                "version: 1, volumes: [(source: Procedural((dims: (1, 4, 4))))],",
+                "field volumes[0].source.Procedural.dims: each must be in [2, 4097], got [1, 4, 4]",
+            ),
+            (
+                "version: 1,",
+                "version: 1, volumes: [(source: Cells([]))],",
+                "field volumes[0].source.Cells: needs at least one cell",
+            ),
+            (
+                "version: 1,",
+                "version: 1, volumes: [(source: Uniform((value: 1.0)), density_scale: -1.0)],",
+                "field volumes[0].density_scale: must be finite and >= 0, got -1",
+            ),
         ];
         for (from, to, expected) in cases {
             let text = MINIMAL.replace(from, to);
@@ -821,6 +930,36 @@ mod tests {
         assert_eq!(scene.camera_pose_at(1.0).look_at, [0.0, 1.0, 0.0]);
         assert_eq!(scene.camera_pose_at(9.0).position, [4.0, 3.0, 5.0]);
         assert_eq!(scene.frame_time(3), 0.1);
+    }
+
+    #[test]
+    fn building_a_volume_names_file_and_field() {
+        let text = MINIMAL.replace(
+            "version: 1,",
+            "version: 1, volumes: [(source: Uniform((value: 1.0)), transfer: Points([]))],",
+        );
+        let scene = parse(&text).unwrap();
+        let error = scene
+            .build_volumes(Path::new("scenes/test.ron"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.starts_with("scenes/test.ron: field volumes[0].transfer: "),
+            "{error}"
+        );
+    }
+
+    #[test]
+    fn reference_camera_uses_the_last_frame_pose() {
+        let camera = full().reference_camera();
+        // Frame 2 of 3 at 30 fps is t = 1/15 s on the path from (0, 1, 5) to (4, 3, 5) over 2 s.
+        let t = (2.0_f32 / 30.0) / 2.0;
+        let expected = DVec3::new(f64::from(4.0 * t), f64::from(1.0 + 2.0 * t), 5.0);
+        assert!((camera.position - expected).length() < 1e-6);
+        assert_eq!((camera.width, camera.height), (64, 48));
+        assert!((camera.vertical_fov - 45f64.to_radians()).abs() < 1e-7);
+        let look = DVec3::new(0.0, f64::from(2.0 * t), 0.0) - camera.position;
+        assert!((camera.forward() - look.normalize()).length() < 1e-6);
     }
 
     #[test]
