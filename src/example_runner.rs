@@ -21,8 +21,10 @@ use crate::scene_setup::{SceneCamera, SceneSetupPlugin};
 pub fn run_example(name: &str) -> ExitCode {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let scene_path = root.join("assets/scenes").join(format!("{name}.ron"));
-    let scene = match SceneDescription::load(&scene_path) {
-        Ok(scene) => scene,
+    let setup = match SceneDescription::load(&scene_path)
+        .and_then(|scene| SceneSetupPlugin::new(scene, &scene_path))
+    {
+        Ok(setup) => setup,
         Err(error) => {
             eprintln!("{name}: {error}");
             return ExitCode::FAILURE;
@@ -40,7 +42,7 @@ pub fn run_example(name: &str) -> ExitCode {
             "no display"
         };
         eprintln!("{name}: {why}: rendering {} headless", scene_path.display());
-        return match render_headless(&scene, &out, true) {
+        return match render_headless(setup, &out, true) {
             Ok(stats) => {
                 println!(
                     "{name}: wrote {} ({} frames on {})",
@@ -61,16 +63,13 @@ pub fn run_example(name: &str) -> ExitCode {
             DefaultPlugins.set(WindowPlugin {
                 primary_window: Some(Window {
                     title: format!("nebel: {name}"),
-                    resolution: (scene.output.width, scene.output.height).into(),
+                    resolution: (setup.scene.output.width, setup.scene.output.height).into(),
                     ..default()
                 }),
                 ..default()
             }),
             NebelPlugins,
-            SceneSetupPlugin {
-                scene,
-                target: None,
-            },
+            setup,
             FlyCameraPlugin,
         ))
         .add_systems(PostStartup, attach_fly_camera)

@@ -8,9 +8,10 @@
 //! machine with none gets a one-line error ([`HeadlessError::NoAdapter`]) rather
 //! than Bevy's panic.
 //!
-//! Pipelines compile synchronously, so the first frame already shows the whole
-//! scene; the app waits for the GPU after every frame, so frame times include
-//! the GPU's work.
+//! Before the scene's first frame, frames with time standing still run until
+//! every pipeline has compiled (shaders load asynchronously; pipelines compile
+//! synchronously), so even a one-frame render shows the whole scene. The app
+//! waits for the GPU after every frame, so frame times include the GPU's work.
 
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
@@ -20,19 +21,19 @@ use bevy::asset::RenderAssetUsages;
 use bevy::camera::RenderTarget;
 use bevy::log::{Level, LogPlugin};
 use bevy::prelude::*;
-use bevy::render::RenderPlugin;
 use bevy::render::pipelined_rendering::PipelinedRenderingPlugin;
+use bevy::render::render_resource::PipelineCache;
 use bevy::render::render_resource::{
     Extent3d, PollType, TextureDimension, TextureFormat, TextureUsages,
 };
 use bevy::render::renderer::{RenderAdapterInfo, RenderDevice};
 use bevy::render::settings::WgpuSettings;
 use bevy::render::view::screenshot::{Screenshot, ScreenshotCaptured};
+use bevy::render::{RenderApp, RenderPlugin};
 use bevy::time::TimeUpdateStrategy;
 use bevy::window::ExitCondition;
 use bevy::winit::WinitPlugin;
-use nebel_core::scene::SceneDescription;
-use nebel_render::{EffectCounters, NebelFrameTimings};
+use nebel_render::{CellProjectionStats, EffectCounters, NebelFrameTimings};
 use thiserror::Error;
 
 use crate::NebelPlugins;
@@ -42,6 +43,10 @@ use crate::stats::{AdapterSummary, RenderStats, TimeSummary};
 /// Frames to keep running after the last scene frame while the GPU read-back
 /// of the captured image completes (it takes one or two on every driver seen).
 const READBACK_FRAMES: u32 = 8;
+
+/// Most frames to wait, before the scene's first, for shaders to load and
+/// pipelines to compile.
+const WARM_UP_FRAMES: u32 = 30;
 
 /// Print progress to stderr at most this often.
 const PROGRESS_INTERVAL: Duration = Duration::from_secs(2);
@@ -113,15 +118,16 @@ fn summary(info: &wgpu::AdapterInfo) -> AdapterSummary {
     }
 }
 
-/// Renders `scene` headless, writes the last frame to `out` (PNG, sRGB) and
-/// returns the statistics. With `progress`, reports on stderr every two seconds.
+/// Renders the scene of `setup` headless (its `target` is replaced), writes
+/// the last frame to `out` (PNG, sRGB) and returns the statistics. With
+/// `progress`, reports on stderr every two seconds.
 pub fn render_headless(
-    scene: &SceneDescription,
+    mut setup: SceneSetupPlugin,
     out: &Path,
     progress: bool,
 ) -> Result<RenderStats, HeadlessError> {
     let probed = probe_adapter()?;
-    let output = &scene.output;
+    let output = setup.scene.output.clone();
     let mut app = App::new();
     app.add_plugins(
         DefaultPlugins
@@ -150,18 +156,25 @@ pub fn render_headless(
             .disable::<PipelinedRenderingPlugin>(),
     );
     let target = render_target(&mut app, output.width, output.height);
-    app.add_plugins((
-        NebelPlugins,
-        SceneSetupPlugin {
-            scene: scene.clone(),
-            target: Some(RenderTarget::Image(target.clone().into())),
-        },
-    ))
-    .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(
-        1.0 / f64::from(output.frame_rate),
-    )));
+    setup.target = Some(RenderTarget::Image(target.clone().into()));
+    app.add_plugins((NebelPlugins, setup))
+        .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::ZERO));
     app.finish();
     app.cleanup();
+
+    // Shaders load asynchronously: run frames with time standing still until
+    // no pipeline waits any more, so the scene's first frame is complete.
+    for warm_up in 0..WARM_UP_FRAMES {
+        update_and_wait(&mut app);
+        let cache = app.sub_app(RenderApp).world().resource::<PipelineCache>();
+        if warm_up > 0 && cache.waiting_pipelines().next().is_none() {
+            break;
+        }
+    }
+    app.insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(
+        1.0 / f64::from(output.frame_rate),
+    )));
+    let first_scene_timing = app.world().resource::<NebelFrameTimings>().frames.len();
 
     let captured: Arc<Mutex<Option<Image>>> = Arc::default();
     let mut frame_times = Vec::with_capacity(output.frames as usize);
@@ -199,16 +212,41 @@ pub fn render_headless(
     let world = app.world();
     let adapter = summary(&world.resource::<RenderAdapterInfo>().0);
     let nebel_frames = &world.resource::<NebelFrameTimings>().frames;
-    let scene_frames = nebel_frames.len().min(output.frames as usize);
+    let scene_frames =
+        first_scene_timing..(first_scene_timing + output.frames as usize).min(nebel_frames.len());
     Ok(RenderStats {
         adapter,
         frames_rendered: output.frames,
         width: output.width,
         height: output.height,
         frame_wall_ms: TimeSummary::of(&frame_times),
-        nebel_systems_cpu_ms: TimeSummary::of(&nebel_frames[..scene_frames]),
-        effects: world.resource::<EffectCounters>().0.clone(),
+        nebel_systems_cpu_ms: TimeSummary::of(&nebel_frames[scene_frames]),
+        effects: effect_counters(world),
     })
+}
+
+/// The effects' counters, plus the cell-projection render system's work when
+/// it did any.
+fn effect_counters(
+    world: &World,
+) -> std::collections::BTreeMap<String, std::collections::BTreeMap<String, f64>> {
+    let mut effects = world.resource::<EffectCounters>().0.clone();
+    let [passes, tables_built, uploads, cells_drawn] = world
+        .resource::<CellProjectionStats>()
+        .counters()
+        .snapshot();
+    if passes + tables_built + uploads > 0 {
+        let group = effects.entry(String::from("cell_projection")).or_default();
+        for (name, value) in [
+            ("passes", passes),
+            ("tables_built", tables_built),
+            ("uploads", uploads),
+            ("cells_drawn", cells_drawn),
+        ] {
+            group.insert(name.to_owned(), value as f64);
+        }
+    }
+    effects
 }
 
 fn render_target(app: &mut App, width: u32, height: u32) -> Handle<Image> {

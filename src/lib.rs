@@ -26,6 +26,8 @@ use bevy::app::{PluginGroup, PluginGroupBuilder};
 
 pub use nebel_core;
 pub use nebel_render;
+#[cfg(feature = "volume")]
+pub use nebel_volume;
 
 /// Every nebel plugin this build was compiled with.
 ///
@@ -35,7 +37,12 @@ pub struct NebelPlugins;
 
 impl PluginGroup for NebelPlugins {
     fn build(self) -> PluginGroupBuilder {
-        PluginGroupBuilder::start::<Self>().add(nebel_render::NebelDiagnosticsPlugin)
+        let group = PluginGroupBuilder::start::<Self>()
+            .add(nebel_render::NebelDiagnosticsPlugin)
+            .add(nebel_render::CellProjectionPlugin);
+        #[cfg(feature = "volume")]
+        let group = group.add(nebel_volume::VolumePlugin);
+        group
     }
 }
 
@@ -44,5 +51,7 @@ pub mod prelude {
     pub use crate::NebelPlugins;
     pub use crate::fly_camera::{FlyCamera, FlyCameraPlugin};
     pub use crate::scene_setup::{SceneCamera, SceneSetupPlugin};
-    pub use nebel_render::{EffectCounters, NebelSystems};
+    pub use nebel_render::{CellBatch, EffectCounters, NebelSystems};
+    #[cfg(feature = "volume")]
+    pub use nebel_volume::{Volume, VolumeField};
 }

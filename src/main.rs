@@ -28,6 +28,7 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use nebel::headless::render_headless;
+use nebel::scene_setup::SceneSetupPlugin;
 use nebel_core::image_metrics::{difference_image, load_png_linear, save_png, srgb_to_linear};
 use nebel_core::reference::{ReferenceScene, ReferenceVolume, RenderProgress};
 use nebel_core::scene::{SceneDescription, VolumeField};
@@ -154,8 +155,9 @@ fn load_scene(arguments: &Arguments) -> Result<(PathBuf, SceneDescription), Stri
 fn render(args: &[String]) -> Result<(), String> {
     let arguments = Arguments::parse(args, &["out", "stats", "frames", "size"])?;
     let out = PathBuf::from(arguments.required("out")?);
-    let (_, scene) = load_scene(&arguments)?;
-    let stats = render_headless(&scene, &out, true).map_err(|e| e.to_string())?;
+    let (scene_path, scene) = load_scene(&arguments)?;
+    let setup = SceneSetupPlugin::new(scene, &scene_path).map_err(|e| e.to_string())?;
+    let stats = render_headless(setup, &out, true).map_err(|e| e.to_string())?;
     if let Some(stats_path) = arguments.option("stats") {
         std::fs::write(stats_path, stats.to_json())
             .map_err(|e| format!("{stats_path}: cannot write statistics: {e}"))?;

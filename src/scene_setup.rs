@@ -11,17 +11,42 @@
 
 use bevy::camera::Hdr;
 use bevy::camera::RenderTarget;
+use bevy::core_pipeline::tonemapping::{DebandDither, Tonemapping};
 use bevy::prelude::*;
-use nebel_core::scene::{CameraView, LightDescription, MeshDescription, SceneDescription};
+use std::path::Path;
+
+use nebel_core::scene::{
+    BuiltVolume, CameraView, LightDescription, MeshDescription, SceneDescription, SceneError,
+};
 use nebel_render::NebelSystems;
 
 /// Spawns a scene description at startup.
 pub struct SceneSetupPlugin {
     /// The scene to spawn.
     pub scene: SceneDescription,
+    /// The scene's volumes, built ([`SceneSetupPlugin::new`] builds them).
+    /// Spawned as [`nebel_volume::Volume`]s when the `volume` feature is on.
+    pub volumes: Vec<BuiltVolume>,
     /// Where the camera renders; `None` renders to the primary window.
     pub target: Option<RenderTarget>,
 }
+
+impl SceneSetupPlugin {
+    /// Builds the scene's volumes (`scene_path` resolves their relative
+    /// paths and names the file in errors); renders to the primary window.
+    pub fn new(scene: SceneDescription, scene_path: &Path) -> Result<Self, SceneError> {
+        let volumes = scene.build_volumes(scene_path)?;
+        Ok(Self {
+            scene,
+            volumes,
+            target: None,
+        })
+    }
+}
+
+/// The scene's built volumes, taken by the startup system.
+#[derive(Resource, Clone, Debug)]
+struct SceneVolumes(Vec<BuiltVolume>);
 
 /// The scene file the world was set up from.
 #[derive(Resource, Clone, Debug, Deref)]
@@ -44,6 +69,7 @@ impl Plugin for SceneSetupPlugin {
     fn build(&self, app: &mut App) {
         app.insert_resource(LoadedScene(self.scene.clone()))
             .insert_resource(SceneRenderTarget(self.target.clone()))
+            .insert_resource(SceneVolumes(self.volumes.clone()))
             .add_systems(Startup, spawn_scene)
             .add_systems(Update, follow_camera_path.in_set(NebelSystems));
     }
@@ -60,6 +86,7 @@ fn pose_transform(position: [f32; 3], look_at: [f32; 3]) -> Transform {
 fn spawn_scene(
     mut commands: Commands,
     scene: Res<LoadedScene>,
+    volumes: Res<SceneVolumes>,
     target: Res<SceneRenderTarget>,
     mut meshes: ResMut<Assets<Mesh>>,
     mut materials: ResMut<Assets<StandardMaterial>>,
@@ -83,6 +110,9 @@ fn spawn_scene(
             follows_path: matches!(camera.view, CameraView::Path(_)),
         },
     ));
+    if !camera.tonemapping {
+        camera_entity.insert((Tonemapping::None, DebandDither::Disabled));
+    }
     if let Some(target) = &target.0 {
         camera_entity.insert(target.clone());
     }
@@ -151,6 +181,33 @@ fn spawn_scene(
             })),
             Transform::from_translation(Vec3::from(center)),
         ));
+    }
+    spawn_volumes(&mut commands, &volumes.0);
+}
+
+/// Spawns the scene's volumes; their fields are in world space.
+#[cfg(feature = "volume")]
+fn spawn_volumes(commands: &mut Commands, volumes: &[BuiltVolume]) {
+    use nebel_core::scene::VolumeField as SceneField;
+    use nebel_volume::{Volume, VolumeField};
+    use std::sync::Arc;
+    for volume in volumes {
+        let field = match &volume.field {
+            SceneField::Grid(grid) => VolumeField::Grid(Arc::new(grid.clone())),
+            SceneField::Cells(cells) => VolumeField::Cells(Arc::new(cells.clone())),
+        };
+        commands.spawn(Volume {
+            field,
+            transfer_function: Arc::new(volume.transfer_function.clone()),
+            mode: volume.mode,
+        });
+    }
+}
+
+#[cfg(not(feature = "volume"))]
+fn spawn_volumes(_: &mut Commands, volumes: &[BuiltVolume]) {
+    if !volumes.is_empty() {
+        warn!("nebel: the scene has volumes but this build has no `volume` feature");
     }
 }
 

@@ -37,7 +37,13 @@ fn output_dir() -> PathBuf {
     dir
 }
 
+/// Render tests run one at a time: one device.
+static DEVICE: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 fn nebel(args: &[&str]) -> std::process::Output {
+    let _device = DEVICE
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     Command::new(env!("CARGO_BIN_EXE_nebel"))
         .args(args)
         .current_dir(workspace())
@@ -225,4 +231,93 @@ fn reference_and_compare_commands() {
             .dimensions(),
         (48, 32)
     );
+}
+
+/// Largest RMSE over linear RGB allowed between `nebel render` (GPU) and
+/// `nebel reference` (exact CPU) per accuracy scene.
+/// About twice what lavapipe measured (the 8-bit output alone gives an RMSE
+/// near 1e-3).
+const ACCURACY_BOUNDS: &[(&str, f64)] = &[
+    ("box_outside", 0.003),
+    ("box_inside", 0.007),
+    ("ramp_sorted", 0.005),
+    ("wide_oblique", 0.005),
+    ("ramp_emissive", 0.002),
+    ("ramp_mip", 0.002),
+];
+
+#[test]
+fn gpu_cell_projection_matches_the_exact_reference() {
+    let out_dir = output_dir();
+    let mut report = Vec::new();
+    for (name, bound) in ACCURACY_BOUNDS {
+        let scene = format!("tests/accuracy/{name}.ron");
+        let gpu = out_dir.join(format!("{name}_gpu.png"));
+        let exact = out_dir.join(format!("{name}_reference.png"));
+        let stats = out_dir.join(format!("{name}_stats.json"));
+        let rendered = nebel(&[
+            "render",
+            &scene,
+            "--out",
+            gpu.to_str().unwrap(),
+            "--stats",
+            stats.to_str().unwrap(),
+        ]);
+        assert!(
+            rendered.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&rendered.stderr)
+        );
+        let referenced = nebel(&["reference", &scene, "--out", exact.to_str().unwrap()]);
+        assert!(
+            referenced.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&referenced.stderr)
+        );
+        let metrics = nebel_core::image_metrics::compare(
+            &nebel_core::image_metrics::load_png_linear(&gpu).unwrap(),
+            &nebel_core::image_metrics::load_png_linear(&exact).unwrap(),
+        )
+        .unwrap();
+        let stats: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&stats).unwrap()).unwrap();
+        assert!(
+            stats["effects"]["cell_projection"]["passes"]
+                .as_f64()
+                .unwrap()
+                >= 1.0,
+            "{name}: no cell-projection pass ran"
+        );
+        report.push(format!("{name}: {metrics} (bound RMSE {bound})"));
+        assert!(
+            metrics.rmse <= *bound,
+            "{name}: {metrics} exceeds RMSE {bound}\n{}",
+            report.join("\n")
+        );
+    }
+    eprintln!("{}", report.join("\n"));
+}
+
+#[test]
+fn a_scene_without_volumes_runs_no_cell_projection_work() {
+    let out_dir = output_dir();
+    let stats_path = out_dir.join("primitives_stats.json");
+    let output = nebel(&[
+        "render",
+        "tests/scenes/primitives.ron",
+        "--out",
+        out_dir.join("primitives_only.png").to_str().unwrap(),
+        "--stats",
+        stats_path.to_str().unwrap(),
+    ]);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let stats: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&stats_path).unwrap()).unwrap();
+    // The group appears as soon as a pass runs, a table is built or cells are uploaded.
+    assert!(stats["effects"].get("cell_projection").is_none(), "{stats}");
+    assert!(stats["effects"].get("volume").is_none(), "{stats}");
 }

@@ -15,6 +15,7 @@
 //!         fov_degrees: 60.0,
 //!         near: 0.1,
 //!         view: Pose((position: (0.0, 2.0, 8.0), look_at: (0.0, 0.0, 0.0))),
+//!         tonemapping: true,
 //!         // or a path of keyframes, times in seconds, strictly increasing:
 //!         // view: Path([(time: 0.0, position: (..), look_at: (..)), ...]),
 //!     ),
@@ -125,6 +126,16 @@ pub struct CameraSettings {
     pub near: f32,
     /// A fixed pose or a path of keyframes.
     pub view: CameraView,
+    /// Whether the HDR image is tonemapped (Bevy's TonyMcMapface with
+    /// debanding) before it is written. `false` writes linear HDR values,
+    /// clamped, sRGB encoded: what `nebel reference` computes, so accuracy
+    /// tests compare like with like. Default: true.
+    #[serde(default = "default_tonemapping")]
+    pub tonemapping: bool,
+}
+
+fn default_tonemapping() -> bool {
+    true
 }
 
 fn default_fov_degrees() -> f32 {
@@ -673,6 +684,7 @@ mod tests {
             camera: CameraSettings {
                 fov_degrees: 45.0,
                 near: 0.05,
+                tonemapping: false,
                 view: CameraView::Path(vec![
                     CameraKeyframe {
                         time: 0.0,

@@ -1,0 +1,665 @@
+//! The cell-projection render system: draws every [`CellBatch`] into the HDR
+//! view target after the opaque pass (DESIGN.md §3-4; paper 001 ch. 8-10,
+//! paper 000 §4).
+//!
+//! Bevy 0.19 has no render-graph nodes: the pass is [`draw_cell_batches`], a
+//! system in the [`Core3d`] schedule between the main pass and the early post
+//! process, reading the scene depth. The render world is a row of small
+//! systems, as in Bevy's volumetric fog:
+//!
+//! 1. [`init_cell_projection_pipeline`] (startup): bind group layouts and shader.
+//! 2. [`extract_cell_batches`]: drawable batches of the main world.
+//! 3. [`prepare_cell_buffers`]: one storage buffer per batch, re-uploaded only
+//!    when the batch's generation changed.
+//! 4. [`prepare_cell_tables`]: pre-integration tables, cached by transfer
+//!    function hash and segment length, built once per change on the CPU
+//!    ([`PreintegrationTable`], 64×64×128 colour, 64×64 pair table).
+//! 5. [`prepare_cell_views`]: per-view uniforms and pipelines, and the depth
+//!    texture made readable.
+//! 6. [`draw_cell_batches`]: batches back to front by the distance of their
+//!    bounds' centre; inside a batch, buffer order (the batch's exact order).
+//!
+//! Each pixel of a cell is computed exactly under perspective: the fragment
+//! shader intersects the view ray with the cell's planes, clips the segment to
+//! the near plane and to the opaque depth and looks up the tables (see
+//! `cell_projection.wgsl`). With no drawable batch, none of these systems does
+//! any work: no table is built, no buffer written, no pass begun; the
+//! [`CellProjectionStats`] counters prove it.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use bevy::asset::{embedded_asset, load_embedded_asset};
+use bevy::core_pipeline::core_3d::prepare_core_3d_depth_textures;
+use bevy::core_pipeline::schedule::{Core3d, Core3dSystems};
+use bevy::prelude::*;
+use bevy::render::render_resource::binding_types::{
+    storage_buffer_read_only_sized, texture_2d, texture_3d, texture_depth_2d,
+    texture_depth_2d_multisampled, uniform_buffer,
+};
+use bevy::render::render_resource::*;
+use bevy::render::renderer::{RenderContext, RenderDevice, RenderQueue, ViewQuery};
+use bevy::render::view::{ExtractedView, Msaa, ViewDepthTexture, ViewTarget};
+use bevy::render::{Extract, ExtractSchedule, Render, RenderApp, RenderStartup, RenderSystems};
+use bevy::shader::ShaderDefVal;
+use nebel_core::optics::OpticalMode;
+use nebel_core::preintegration::{PreintegrationConfig, PreintegrationTable};
+use nebel_core::transfer::TransferFunction;
+use nebel_lod::GpuCell;
+
+use crate::cell_batch::CellBatch;
+
+/// Samples along `s_f` and `s_b` of the GPU tables.
+const TABLE_SCALAR_SIZE: u32 = 64;
+/// Samples along `l` of the GPU colour table.
+const TABLE_LENGTH_SIZE: u32 = 128;
+
+/// Draws [`CellBatch`]es.
+#[derive(Default)]
+pub struct CellProjectionPlugin;
+
+/// Work counters of the cell-projection render system, shared by the main and
+/// the render world (an `Arc`), so tests and `nebel render --stats` can show
+/// that a scene without cells costs nothing.
+#[derive(Resource, Clone, Default, Debug)]
+pub struct CellProjectionStats(Arc<CellProjectionCounters>);
+
+/// The counters behind [`CellProjectionStats`]; each only grows.
+#[derive(Default, Debug)]
+pub struct CellProjectionCounters {
+    /// Render passes begun (one per view that had batches, per frame).
+    pub passes: AtomicU64,
+    /// Pre-integration tables built.
+    pub tables_built: AtomicU64,
+    /// Cell buffers uploaded.
+    pub uploads: AtomicU64,
+    /// Cells drawn, summed over passes.
+    pub cells_drawn: AtomicU64,
+}
+
+impl CellProjectionStats {
+    /// The counters.
+    pub fn counters(&self) -> &CellProjectionCounters {
+        &self.0
+    }
+}
+
+impl CellProjectionCounters {
+    /// Current values: passes, tables built, uploads, cells drawn.
+    pub fn snapshot(&self) -> [u64; 4] {
+        [
+            &self.passes,
+            &self.tables_built,
+            &self.uploads,
+            &self.cells_drawn,
+        ]
+        .map(|c| c.load(Ordering::Relaxed))
+    }
+}
+
+impl Plugin for CellProjectionPlugin {
+    fn build(&self, app: &mut App) {
+        embedded_asset!(app, "cell_projection.wgsl");
+        let stats = CellProjectionStats::default();
+        app.insert_resource(stats.clone());
+        let Some(render_app) = app.get_sub_app_mut(RenderApp) else {
+            return;
+        };
+        render_app
+            .insert_resource(stats)
+            .init_resource::<ExtractedCellBatches>()
+            .init_resource::<GpuCellBuffers>()
+            .init_resource::<GpuCellTables>()
+            .init_resource::<SpecializedRenderPipelines<CellProjectionPipeline>>()
+            .init_resource::<CellViewUniforms>()
+            .add_systems(RenderStartup, init_cell_projection_pipeline)
+            .add_systems(ExtractSchedule, extract_cell_batches)
+            .add_systems(
+                Render,
+                (
+                    make_depth_readable
+                        .in_set(RenderSystems::Prepare)
+                        .before(prepare_core_3d_depth_textures),
+                    (
+                        prepare_cell_buffers,
+                        prepare_cell_tables,
+                        prepare_cell_views,
+                    )
+                        .in_set(RenderSystems::PrepareResources),
+                ),
+            )
+            .add_systems(
+                Core3d,
+                draw_cell_batches
+                    .after(Core3dSystems::MainPass)
+                    .before(Core3dSystems::EarlyPostProcess),
+            );
+    }
+}
+
+/// A batch as the render world sees it.
+#[derive(Clone)]
+struct ExtractedCellBatch {
+    cells: Arc<Vec<GpuCell>>,
+    generation: u64,
+    transfer_function: Arc<TransferFunction>,
+    mode: OpticalMode,
+    table_key: TableKey,
+    centre: Vec3,
+}
+
+/// The drawable batches of this frame, keyed by main-world entity.
+#[derive(Resource, Default)]
+struct ExtractedCellBatches(Vec<(Entity, ExtractedCellBatch)>);
+
+/// Pre-integration tables are shared by batches with the same transfer
+/// function and maximum segment length.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+struct TableKey {
+    transfer_hash: u64,
+    max_length_bits: u32,
+}
+
+/// Copies the drawable batches into the render world.
+fn extract_cell_batches(
+    mut extracted: ResMut<ExtractedCellBatches>,
+    batches: Extract<Query<(Entity, &CellBatch)>>,
+) {
+    extracted.0.clear();
+    for (entity, batch) in &batches {
+        if !batch.is_drawable() {
+            continue;
+        }
+        let Some(transfer_function) = batch.transfer_function.clone() else {
+            continue;
+        };
+        extracted.0.push((
+            entity,
+            ExtractedCellBatch {
+                cells: batch.cells.clone(),
+                generation: batch.generation,
+                table_key: TableKey {
+                    transfer_hash: transfer_function.content_hash(),
+                    max_length_bits: batch.max_segment_length.to_bits(),
+                },
+                transfer_function,
+                mode: batch.mode,
+                centre: (batch.bounds_min + batch.bounds_max) / 2.0,
+            },
+        ));
+    }
+}
+
+/// The GPU copy of one batch.
+struct GpuCellBuffer {
+    generation: u64,
+    buffer: Buffer,
+    count: u32,
+}
+
+#[derive(Resource, Default)]
+struct GpuCellBuffers(HashMap<Entity, GpuCellBuffer>);
+
+/// Uploads batches whose generation changed and drops those that are gone.
+fn prepare_cell_buffers(
+    extracted: Res<ExtractedCellBatches>,
+    mut buffers: ResMut<GpuCellBuffers>,
+    device: Res<RenderDevice>,
+    stats: Res<CellProjectionStats>,
+) {
+    if extracted.0.is_empty() && buffers.0.is_empty() {
+        return;
+    }
+    buffers
+        .0
+        .retain(|entity, _| extracted.0.iter().any(|(e, _)| e == entity));
+    for (entity, batch) in &extracted.0 {
+        if buffers
+            .0
+            .get(entity)
+            .is_some_and(|gpu| gpu.generation == batch.generation)
+        {
+            continue;
+        }
+        let buffer = device.create_buffer_with_data(&BufferInitDescriptor {
+            label: Some("nebel_cell_batch"),
+            contents: bytemuck::cast_slice(batch.cells.as_slice()),
+            usage: BufferUsages::STORAGE,
+        });
+        stats.0.uploads.fetch_add(1, Ordering::Relaxed);
+        buffers.0.insert(
+            *entity,
+            GpuCellBuffer {
+                generation: batch.generation,
+                buffer,
+                count: batch.cells.len() as u32,
+            },
+        );
+    }
+}
+
+/// The GPU copy of one [`PreintegrationTable`].
+struct GpuCellTable {
+    colour: TextureView,
+    emission: TextureView,
+    maximum: TextureView,
+    parameters: Buffer,
+}
+
+#[derive(Resource, Default)]
+struct GpuCellTables(HashMap<TableKey, GpuCellTable>);
+
+/// Parameters of the tables, as the shader's `CellTables`.
+#[derive(Clone, Copy, ShaderType, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+struct CellTablesUniform {
+    max_length: f32,
+    scalar_size: u32,
+    length_size: u32,
+    padding: u32,
+}
+
+/// Builds the tables that a batch needs and nobody has built, drops unused ones.
+fn prepare_cell_tables(
+    extracted: Res<ExtractedCellBatches>,
+    mut tables: ResMut<GpuCellTables>,
+    device: Res<RenderDevice>,
+    queue: Res<RenderQueue>,
+    stats: Res<CellProjectionStats>,
+) {
+    if extracted.0.is_empty() && tables.0.is_empty() {
+        return;
+    }
+    tables
+        .0
+        .retain(|key, _| extracted.0.iter().any(|(_, b)| b.table_key == *key));
+    for (_, batch) in &extracted.0 {
+        if tables.0.contains_key(&batch.table_key) {
+            continue;
+        }
+        let config = PreintegrationConfig {
+            scalar_size: TABLE_SCALAR_SIZE,
+            length_size: TABLE_LENGTH_SIZE,
+            max_length: f32::from_bits(batch.table_key.max_length_bits),
+        };
+        let table = match PreintegrationTable::build(&batch.transfer_function, config) {
+            Ok(table) => table,
+            Err(error) => {
+                error!("nebel: cannot build the pre-integration table: {error}");
+                continue;
+            }
+        };
+        stats.0.tables_built.fetch_add(1, Ordering::Relaxed);
+        let texture = |label: &'static str,
+                       size: Extent3d,
+                       dimension: TextureDimension,
+                       data: &[[f32; 4]]| {
+            device
+                .create_texture_with_data(
+                    &queue,
+                    &TextureDescriptor {
+                        label: Some(label),
+                        size,
+                        mip_level_count: 1,
+                        sample_count: 1,
+                        dimension,
+                        format: TextureFormat::Rgba32Float,
+                        usage: TextureUsages::TEXTURE_BINDING,
+                        view_formats: &[],
+                    },
+                    TextureDataOrder::LayerMajor,
+                    bytemuck::cast_slice(data),
+                )
+                .create_view(&TextureViewDescriptor::default())
+        };
+        let pair = Extent3d {
+            width: TABLE_SCALAR_SIZE,
+            height: TABLE_SCALAR_SIZE,
+            depth_or_array_layers: 1,
+        };
+        let volume = Extent3d {
+            depth_or_array_layers: TABLE_LENGTH_SIZE,
+            ..pair
+        };
+        let parameters = CellTablesUniform {
+            max_length: config.max_length,
+            scalar_size: TABLE_SCALAR_SIZE,
+            length_size: TABLE_LENGTH_SIZE,
+            padding: 0,
+        };
+        tables.0.insert(
+            batch.table_key,
+            GpuCellTable {
+                colour: texture(
+                    "nebel_colour_table",
+                    volume,
+                    TextureDimension::D3,
+                    table.colour(),
+                ),
+                emission: texture(
+                    "nebel_emission_table",
+                    pair,
+                    TextureDimension::D2,
+                    table.emission(),
+                ),
+                maximum: texture(
+                    "nebel_maximum_table",
+                    pair,
+                    TextureDimension::D2,
+                    table.maximum(),
+                ),
+                parameters: device.create_buffer_with_data(&BufferInitDescriptor {
+                    label: Some("nebel_cell_tables"),
+                    contents: bytemuck::bytes_of(&parameters),
+                    usage: BufferUsages::UNIFORM,
+                }),
+            },
+        );
+    }
+}
+
+/// The camera data the shader needs, as its `CellView`.
+#[derive(Clone, Copy, ShaderType)]
+struct CellViewUniform {
+    clip_from_world: Mat4,
+    world_from_clip: Mat4,
+    camera_position: Vec4,
+    viewport: Vec4,
+}
+
+#[derive(Resource, Default)]
+struct CellViewUniforms(DynamicUniformBuffer<CellViewUniform>);
+
+/// Per view: where its uniform sits and its three pipelines.
+#[derive(Component)]
+struct CellProjectionView {
+    uniform_offset: u32,
+    multisampled: bool,
+    pipelines: [CachedRenderPipelineId; 3],
+}
+
+fn mode_index(mode: OpticalMode) -> usize {
+    match mode {
+        OpticalMode::Sorted => 0,
+        OpticalMode::Emissive => 1,
+        OpticalMode::Mip => 2,
+    }
+}
+
+/// Bind group layouts and shader of the cell-projection pass.
+#[derive(Resource)]
+pub struct CellProjectionPipeline {
+    view_layouts: [BindGroupLayoutDescriptor; 2],
+    batch_layout: BindGroupLayoutDescriptor,
+    shader: Handle<Shader>,
+}
+
+/// What a cell-projection pipeline depends on.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+pub struct CellProjectionPipelineKey {
+    mode: OpticalMode,
+    multisampled: bool,
+    target_format: TextureFormat,
+}
+
+/// Creates the bind group layouts and loads the shader.
+pub fn init_cell_projection_pipeline(mut commands: Commands, asset_server: Res<AssetServer>) {
+    let view_layout = |multisampled: bool| {
+        BindGroupLayoutDescriptor::new(
+            "nebel_cell_view_layout",
+            &BindGroupLayoutEntries::sequential(
+                ShaderStages::VERTEX_FRAGMENT,
+                (
+                    uniform_buffer::<CellViewUniform>(true),
+                    if multisampled {
+                        texture_depth_2d_multisampled()
+                    } else {
+                        texture_depth_2d()
+                    },
+                ),
+            ),
+        )
+    };
+    let unfilterable = TextureSampleType::Float { filterable: false };
+    commands.insert_resource(CellProjectionPipeline {
+        view_layouts: [view_layout(false), view_layout(true)],
+        batch_layout: BindGroupLayoutDescriptor::new(
+            "nebel_cell_batch_layout",
+            &BindGroupLayoutEntries::sequential(
+                ShaderStages::VERTEX_FRAGMENT,
+                (
+                    storage_buffer_read_only_sized(false, None),
+                    texture_3d(unfilterable),
+                    texture_2d(unfilterable),
+                    uniform_buffer::<CellTablesUniform>(false),
+                ),
+            ),
+        ),
+        shader: load_embedded_asset!(asset_server.as_ref(), "cell_projection.wgsl"),
+    });
+}
+
+impl SpecializedRenderPipeline for CellProjectionPipeline {
+    type Key = CellProjectionPipelineKey;
+
+    fn specialize(&self, key: Self::Key) -> RenderPipelineDescriptor {
+        let (mode_def, blend) = match key.mode {
+            OpticalMode::Sorted => ("SORTED", BlendState::PREMULTIPLIED_ALPHA_BLENDING),
+            OpticalMode::Emissive => (
+                "EMISSIVE",
+                BlendState {
+                    color: BlendComponent {
+                        src_factor: BlendFactor::One,
+                        dst_factor: BlendFactor::One,
+                        operation: BlendOperation::Add,
+                    },
+                    alpha: BlendComponent::OVER,
+                },
+            ),
+            OpticalMode::Mip => (
+                "MIP",
+                BlendState {
+                    color: BlendComponent {
+                        src_factor: BlendFactor::One,
+                        dst_factor: BlendFactor::One,
+                        operation: BlendOperation::Max,
+                    },
+                    alpha: BlendComponent::OVER,
+                },
+            ),
+        };
+        let mut shader_defs: Vec<ShaderDefVal> = vec![mode_def.into()];
+        if key.multisampled {
+            shader_defs.push("MULTISAMPLED".into());
+        }
+        RenderPipelineDescriptor {
+            label: Some("nebel_cell_projection_pipeline".into()),
+            layout: vec![
+                self.view_layouts[usize::from(key.multisampled)].clone(),
+                self.batch_layout.clone(),
+            ],
+            vertex: VertexState {
+                shader: self.shader.clone(),
+                shader_defs: shader_defs.clone(),
+                ..default()
+            },
+            fragment: Some(FragmentState {
+                shader: self.shader.clone(),
+                shader_defs,
+                targets: vec![Some(ColorTargetState {
+                    format: key.target_format,
+                    blend: Some(blend),
+                    write_mask: ColorWrites::ALL,
+                })],
+                ..default()
+            }),
+            primitive: PrimitiveState {
+                cull_mode: None,
+                ..default()
+            },
+            ..default()
+        }
+    }
+}
+
+/// Lets the pass read the scene depth, only while there is something to draw.
+fn make_depth_readable(extracted: Res<ExtractedCellBatches>, mut cameras: Query<&mut Camera3d>) {
+    if extracted.0.is_empty() {
+        return;
+    }
+    for mut camera in &mut cameras {
+        camera.depth_texture_usages.0 |= TextureUsages::TEXTURE_BINDING.bits();
+    }
+}
+
+/// Writes each view's uniform and specialises its pipelines.
+#[allow(clippy::too_many_arguments)]
+fn prepare_cell_views(
+    mut commands: Commands,
+    extracted: Res<ExtractedCellBatches>,
+    views: Query<(Entity, &ExtractedView, &Msaa)>,
+    mut uniforms: ResMut<CellViewUniforms>,
+    pipeline: Res<CellProjectionPipeline>,
+    mut pipelines: ResMut<SpecializedRenderPipelines<CellProjectionPipeline>>,
+    pipeline_cache: Res<PipelineCache>,
+    device: Res<RenderDevice>,
+    queue: Res<RenderQueue>,
+) {
+    if extracted.0.is_empty() {
+        return;
+    }
+    uniforms.0.clear();
+    for (entity, view, msaa) in &views {
+        let world_from_view = view.world_from_view.to_matrix();
+        let clip_from_world = view
+            .clip_from_world
+            .unwrap_or_else(|| view.clip_from_view * world_from_view.inverse());
+        let uniform_offset = uniforms.0.push(&CellViewUniform {
+            clip_from_world,
+            world_from_clip: clip_from_world.inverse(),
+            camera_position: view.world_from_view.translation().extend(1.0),
+            viewport: view.viewport.as_vec4(),
+        });
+        let multisampled = *msaa != Msaa::Off;
+        let pipelines =
+            [OpticalMode::Sorted, OpticalMode::Emissive, OpticalMode::Mip].map(|mode| {
+                pipelines.specialize(
+                    &pipeline_cache,
+                    &pipeline,
+                    CellProjectionPipelineKey {
+                        mode,
+                        multisampled,
+                        target_format: view.target_format,
+                    },
+                )
+            });
+        commands.entity(entity).insert(CellProjectionView {
+            uniform_offset,
+            multisampled,
+            pipelines,
+        });
+    }
+    uniforms.0.write_buffer(&device, &queue);
+}
+
+/// Draws every batch into the view's HDR target, back to front.
+#[allow(clippy::too_many_arguments)]
+fn draw_cell_batches(
+    view: ViewQuery<(
+        &ViewTarget,
+        &ViewDepthTexture,
+        &ExtractedView,
+        &CellProjectionView,
+    )>,
+    extracted: Res<ExtractedCellBatches>,
+    buffers: Res<GpuCellBuffers>,
+    tables: Res<GpuCellTables>,
+    uniforms: Res<CellViewUniforms>,
+    pipeline: Res<CellProjectionPipeline>,
+    pipeline_cache: Res<PipelineCache>,
+    stats: Res<CellProjectionStats>,
+    mut ctx: RenderContext,
+) {
+    if extracted.0.is_empty() {
+        return;
+    }
+    let (view_target, depth, extracted_view, cell_view) = view.into_inner();
+    let Some(view_binding) = uniforms.0.binding() else {
+        return;
+    };
+    let eye = extracted_view.world_from_view.translation();
+    let mut order: Vec<&(Entity, ExtractedCellBatch)> = extracted.0.iter().collect();
+    order.sort_by(|(_, a), (_, b)| {
+        b.centre
+            .distance_squared(eye)
+            .total_cmp(&a.centre.distance_squared(eye))
+    });
+
+    let view_bind_group = ctx.render_device().create_bind_group(
+        "nebel_cell_view_bind_group",
+        &pipeline_cache
+            .get_bind_group_layout(&pipeline.view_layouts[usize::from(cell_view.multisampled)]),
+        &BindGroupEntries::sequential((view_binding, depth.view())),
+    );
+    let mut draws = Vec::with_capacity(order.len());
+    for (entity, batch) in order {
+        let (Some(buffer), Some(table)) = (buffers.0.get(entity), tables.0.get(&batch.table_key))
+        else {
+            continue;
+        };
+        let Some(render_pipeline) =
+            pipeline_cache.get_render_pipeline(cell_view.pipelines[mode_index(batch.mode)])
+        else {
+            continue;
+        };
+        let pair_table = match batch.mode {
+            OpticalMode::Mip => &table.maximum,
+            OpticalMode::Sorted | OpticalMode::Emissive => &table.emission,
+        };
+        let batch_bind_group = ctx.render_device().create_bind_group(
+            "nebel_cell_batch_bind_group",
+            &pipeline_cache.get_bind_group_layout(&pipeline.batch_layout),
+            &BindGroupEntries::sequential((
+                buffer.buffer.as_entire_binding(),
+                &table.colour,
+                pair_table,
+                table.parameters.as_entire_binding(),
+            )),
+        );
+        draws.push((render_pipeline, batch_bind_group, buffer.count));
+    }
+    if draws.is_empty() {
+        return;
+    }
+
+    let mut pass = ctx
+        .command_encoder()
+        .begin_render_pass(&RenderPassDescriptor {
+            label: Some("nebel_cell_projection_pass"),
+            color_attachments: &[Some(RenderPassColorAttachment {
+                view: view_target.main_texture_view(),
+                depth_slice: None,
+                resolve_target: None,
+                ops: Operations {
+                    load: LoadOp::Load,
+                    store: StoreOp::Store,
+                },
+            })],
+            depth_stencil_attachment: None,
+            timestamp_writes: None,
+            occlusion_query_set: None,
+            multiview_mask: None,
+        });
+    stats.0.passes.fetch_add(1, Ordering::Relaxed);
+    pass.set_bind_group(0, &view_bind_group, &[cell_view.uniform_offset]);
+    for (render_pipeline, batch_bind_group, count) in &draws {
+        pass.set_pipeline(render_pipeline);
+        pass.set_bind_group(1, batch_bind_group, &[]);
+        pass.draw(0..count * 12, 0..1);
+        stats
+            .0
+            .cells_drawn
+            .fetch_add(u64::from(*count), Ordering::Relaxed);
+    }
+}

@@ -1,0 +1,202 @@
+// Cell projection with exact per-pixel ray-tetrahedron segments (DESIGN.md §3-4;
+// paper 001 ch. 8-9 and 10.3, paper 000 §4).
+//
+// Every tetrahedron is drawn as its back faces only (the faces whose plane has
+// the eye on the inner side), so each pixel it covers runs this fragment shader
+// exactly once, also when the eye is inside the cell. The fragment intersects
+// the pixel's view ray with the cell's four face planes: entry and exit
+// distance, clipped to the near plane and to the opaque scene depth, give the
+// segment length l; the cell's linear scalar at entry and exit gives s_f and
+// s_b. The segment's colour comes from the pre-integration tables:
+//
+//   SORTED:   rgb from the 3D table at (s_f, s_b, l), α = 1 − exp(−l ρ̂(s_f, s_b))
+//             (exact opacity, 001 eq. 9.2), blended "over" back to front.
+//   EMISSIVE: rgb = l · mean emission(s_f, s_b), blended additively (PCP).
+//   MIP:      rgb = max emission over [s_f, s_b], blended with max.
+//
+// All positions are taken relative to the camera so large world coordinates
+// keep their precision.
+
+struct CellView {
+    clip_from_world: mat4x4<f32>,
+    world_from_clip: mat4x4<f32>,
+    camera_position: vec4<f32>,
+    // x, y, width, height of the viewport in pixels.
+    viewport: vec4<f32>,
+}
+
+struct Cell {
+    // xyz: world position, w: scalar in [0, 1].
+    vertices: array<vec4<f32>, 4>,
+}
+
+struct CellTables {
+    // Longest segment the 3D table covers, world units.
+    max_length: f32,
+    // Samples along s_f and s_b.
+    scalar_size: u32,
+    // Samples along l.
+    length_size: u32,
+    _padding: u32,
+}
+
+@group(0) @binding(0) var<uniform> view: CellView;
+#ifdef MULTISAMPLED
+@group(0) @binding(1) var depth_texture: texture_depth_multisampled_2d;
+#else
+@group(0) @binding(1) var depth_texture: texture_depth_2d;
+#endif
+
+@group(1) @binding(0) var<storage, read> cells: array<Cell>;
+@group(1) @binding(1) var colour_table: texture_3d<f32>;
+@group(1) @binding(2) var pair_table: texture_2d<f32>;
+@group(1) @binding(3) var<uniform> tables: CellTables;
+
+// The three vertices of face f, which omits vertex f.
+const FACE_VERTICES = array<u32, 12>(1u, 2u, 3u, 0u, 3u, 2u, 0u, 1u, 3u, 0u, 2u, 1u);
+
+struct VertexOutput {
+    @builtin(position) clip_position: vec4<f32>,
+    // Position on the face relative to the camera.
+    @location(0) relative_position: vec3<f32>,
+    @location(1) @interpolate(flat) cell_index: u32,
+}
+
+fn relative_vertex(cell: Cell, index: u32) -> vec3<f32> {
+    return cell.vertices[index].xyz - view.camera_position.xyz;
+}
+
+// Outward normal of face f (not normalised), with the camera at the origin.
+fn outward_normal(cell: Cell, face: u32) -> vec3<f32> {
+    let a = relative_vertex(cell, FACE_VERTICES[face * 3u]);
+    let b = relative_vertex(cell, FACE_VERTICES[face * 3u + 1u]);
+    let c = relative_vertex(cell, FACE_VERTICES[face * 3u + 2u]);
+    let n = cross(b - a, c - a);
+    let opposite = relative_vertex(cell, face);
+    return select(n, -n, dot(n, opposite - a) > 0.0);
+}
+
+@vertex
+fn vertex(@builtin(vertex_index) vertex_index: u32) -> VertexOutput {
+    let cell_index = vertex_index / 12u;
+    let corner = vertex_index % 12u;
+    let face = corner / 3u;
+    let cell = cells[cell_index];
+    let vertex = cell.vertices[FACE_VERTICES[corner]].xyz;
+    let a = relative_vertex(cell, FACE_VERTICES[face * 3u]);
+
+    var out: VertexOutput;
+    out.cell_index = cell_index;
+    out.relative_position = vertex - view.camera_position.xyz;
+    // The eye (origin) is on the inner side of a back face: the ray leaves the
+    // cell through it. Front faces collapse to a point and draw nothing.
+    let is_back_face = dot(outward_normal(cell, face), -a) <= 0.0;
+    out.clip_position = select(vec4(2.0, 2.0, 0.5, 1.0), view.clip_from_world * vec4(vertex, 1.0), is_back_face);
+    return out;
+}
+
+// Distance along the unit ray `direction` from the camera to the point at NDC
+// (x, y, depth).
+fn ray_distance_at_depth(ndc: vec2<f32>, depth: f32) -> f32 {
+    let world = view.world_from_clip * vec4(ndc, depth, 1.0);
+    return length(world.xyz / world.w - view.camera_position.xyz);
+}
+
+// Table coordinates: node i at s = i / (n − 1); returns the lower node and the weight of the upper.
+fn table_position(x: f32, nodes: u32) -> vec2<f32> {
+    let scaled = clamp(x, 0.0, 1.0) * f32(nodes - 1u);
+    let lower = min(floor(scaled), f32(nodes - 2u));
+    return vec2(lower, scaled - lower);
+}
+
+fn pair_lookup(s_front: f32, s_back: f32) -> vec4<f32> {
+    let x = table_position(s_front, tables.scalar_size);
+    let y = table_position(s_back, tables.scalar_size);
+    let i = vec2<i32>(i32(x.x), i32(y.x));
+    let v00 = textureLoad(pair_table, i, 0);
+    let v10 = textureLoad(pair_table, i + vec2(1, 0), 0);
+    let v01 = textureLoad(pair_table, i + vec2(0, 1), 0);
+    let v11 = textureLoad(pair_table, i + vec2(1, 1), 0);
+    return mix(mix(v00, v10, x.y), mix(v01, v11, x.y), y.y);
+}
+
+fn colour_lookup(s_front: f32, s_back: f32, length: f32) -> vec4<f32> {
+    let x = table_position(s_front, tables.scalar_size);
+    let y = table_position(s_back, tables.scalar_size);
+    let z = table_position(length / tables.max_length, tables.length_size);
+    let i = vec3<i32>(i32(x.x), i32(y.x), i32(z.x));
+    var layers: array<vec4<f32>, 2>;
+    for (var dz = 0; dz < 2; dz++) {
+        let v00 = textureLoad(colour_table, i + vec3(0, 0, dz), 0);
+        let v10 = textureLoad(colour_table, i + vec3(1, 0, dz), 0);
+        let v01 = textureLoad(colour_table, i + vec3(0, 1, dz), 0);
+        let v11 = textureLoad(colour_table, i + vec3(1, 1, dz), 0);
+        layers[dz] = mix(mix(v00, v10, x.y), mix(v01, v11, x.y), y.y);
+    }
+    return mix(layers[0], layers[1], z.y);
+}
+
+@fragment
+fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
+    let cell = cells[in.cell_index];
+    let direction = normalize(in.relative_position);
+
+    // Entry and exit through the four face planes.
+    var t_entry = 0.0;
+    var t_exit = 3.0e38;
+    for (var face = 0u; face < 4u; face++) {
+        let normal = outward_normal(cell, face);
+        let denominator = dot(normal, direction);
+        let t = dot(normal, relative_vertex(cell, FACE_VERTICES[face * 3u])) / denominator;
+        if denominator < 0.0 {
+            t_entry = max(t_entry, t);
+        } else if denominator > 0.0 {
+            t_exit = min(t_exit, t);
+        }
+    }
+
+    // Clip to the near plane (the camera may stand inside the cell) and to the
+    // opaque scene: depth 0 is the cleared far plane (reversed Z).
+    let pixel = vec2<i32>(floor(in.clip_position.xy));
+    let ndc = vec2(
+        (in.clip_position.x - view.viewport.x) / view.viewport.z * 2.0 - 1.0,
+        1.0 - (in.clip_position.y - view.viewport.y) / view.viewport.w * 2.0,
+    );
+    t_entry = max(t_entry, ray_distance_at_depth(ndc, 1.0));
+    let depth = textureLoad(depth_texture, pixel, 0);
+    if depth > 0.0 {
+        t_exit = min(t_exit, ray_distance_at_depth(ndc, depth));
+    }
+    if t_exit <= t_entry {
+        discard;
+    }
+
+    // The cell's linear scalar: s(x) = s0 + g · (x − v0).
+    let v0 = relative_vertex(cell, 0u);
+    let e1 = relative_vertex(cell, 1u) - v0;
+    let e2 = relative_vertex(cell, 2u) - v0;
+    let e3 = relative_vertex(cell, 3u) - v0;
+    let determinant = dot(e1, cross(e2, e3));
+    let scale = max(max(dot(e1, e1), dot(e2, e2)), dot(e3, e3));
+    if abs(determinant) <= 1.0e-9 * scale * sqrt(scale) {
+        discard;
+    }
+    let s0 = cell.vertices[0].w;
+    let gradient = ((cell.vertices[1].w - s0) * cross(e2, e3) + (cell.vertices[2].w - s0) * cross(e3, e1)
+        + (cell.vertices[3].w - s0) * cross(e1, e2)) / determinant;
+    let s_front = clamp(s0 + dot(gradient, t_entry * direction - v0), 0.0, 1.0);
+    let s_back = clamp(s0 + dot(gradient, t_exit * direction - v0), 0.0, 1.0);
+    let length = t_exit - t_entry;
+
+#ifdef SORTED
+    let colour = colour_lookup(s_front, s_back, length).rgb;
+    let alpha = 1.0 - exp(-length * pair_lookup(s_front, s_back).a);
+    return vec4(colour, alpha);
+#endif
+#ifdef EMISSIVE
+    return vec4(length * pair_lookup(s_front, s_back).rgb, 0.0);
+#endif
+#ifdef MIP
+    return vec4(pair_lookup(s_front, s_back).rgb, 0.0);
+#endif
+}
