@@ -11,6 +11,8 @@
 //!   u8 / u16 / f32 with the dimensions given ([`RawSampleType`]).
 //! - Generators: fBm Perlin noise in 2D and 3D and ridged multifractal noise,
 //!   deterministic for a seed ([`ProceduralNoise`]).
+//! - [`effects`]: the emissive effects of paper 001 §10.4, an animated campfire
+//!   density and a search-light cone of tetrahedra.
 //! - The C-LOD hierarchies need (2^n+1) points per axis; other sizes are padded
 //!   or resampled ([`PadFill`], [`power_of_two_plus_one`]).
 //!
@@ -20,12 +22,14 @@
 //! densities and unreadable files.
 
 mod density_grid;
+pub mod effects;
 mod height_field;
 mod load;
 mod procedural;
 mod resample;
 
 pub use density_grid::DensityGrid;
+pub use effects::{campfire_density, search_light_cells};
 pub use height_field::HeightField;
 pub use load::{Normalization, RawSampleType, TileLayout};
 pub use procedural::{NOISE_OFFSET, NoiseKind, ProceduralNoise};

@@ -1,0 +1,90 @@
+//! Cost of building a full-resolution cell batch: cells per millisecond of
+//! `full_resolution_batch` for a 64³-voxel noise grid (1.31 million cells, every
+//! brick kept), eye outside and inside the grid, back-to-front against
+//! unordered, and the one-off cost of its `BrickTable`.
+//!
+//! Criterion reports the throughput in cells per second ("elem/s"):
+//! 1 Melem/s = 1 000 cells per ms.
+//!
+//! Run: `cargo bench -p nebel_lod --bench full_resolution`.
+
+use std::hint::black_box;
+
+use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
+use glam::{DAffine3, DQuat, DVec3};
+use nebel_core::field::{DensityGrid, ProceduralNoise};
+use nebel_core::transfer::{TransferFunction, TransferPreset};
+use nebel_lod::{BrickTable, CellOrder, full_resolution_batch};
+
+/// Points per axis: 64³ voxels.
+const POINTS: usize = 65;
+
+fn full_resolution(c: &mut Criterion) {
+    let noise = ProceduralNoise {
+        seed: 11,
+        frequency: 1.7,
+        ..Default::default()
+    };
+    let grid = DensityGrid::procedural(
+        [POINTS; 3],
+        DVec3::splat(1.0 / (POINTS - 1) as f64),
+        DVec3::ZERO,
+        &noise,
+    )
+    .expect("valid grid");
+    // ρ > 0 for every s > 0: no brick is transparent, every voxel is emitted.
+    let transfer = TransferFunction::preset(TransferPreset::GroundFog);
+    let world_from_grid = DAffine3::from_scale_rotation_translation(
+        DVec3::splat(8.0),
+        DQuat::from_rotation_y(0.3),
+        DVec3::new(-4.0, 0.0, -4.0),
+    );
+    let bricks = BrickTable::new(&grid, BrickTable::DEFAULT_BRICK_SIZE);
+    let cells = 5 * (POINTS - 1).pow(3);
+
+    let mut group = c.benchmark_group("full_resolution_64");
+    group.sample_size(20);
+    group.throughput(Throughput::Elements(cells as u64));
+    let eyes = [
+        ("eye_outside", DVec3::new(20.0, 12.0, 25.0)),
+        (
+            "eye_inside",
+            world_from_grid.transform_point3(DVec3::new(0.4, 0.55, 0.6)),
+        ),
+    ];
+    for (name, eye) in eyes {
+        for order in [CellOrder::BackToFront, CellOrder::Unordered] {
+            group.bench_with_input(
+                BenchmarkId::new(name, format!("{order:?}")),
+                &(eye, order),
+                |b, &(eye, order)| {
+                    b.iter(|| {
+                        let batch = full_resolution_batch(
+                            black_box(&grid),
+                            &bricks,
+                            world_from_grid,
+                            eye,
+                            None,
+                            &transfer,
+                            order,
+                        )
+                        .expect("valid input");
+                        assert_eq!(batch.len(), cells);
+                        batch
+                    })
+                },
+            );
+        }
+    }
+    group.finish();
+
+    let mut group = c.benchmark_group("brick_table_64");
+    group.throughput(Throughput::Elements((POINTS * POINTS * POINTS) as u64));
+    group.bench_function("new", |b| {
+        b.iter(|| BrickTable::new(black_box(&grid), BrickTable::DEFAULT_BRICK_SIZE))
+    });
+    group.finish();
+}
+
+criterion_group!(benches, full_resolution);
+criterion_main!(benches);

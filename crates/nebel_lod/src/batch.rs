@@ -1,0 +1,158 @@
+//! Cell batches: tetrahedra in world space in GPU layout, in draw order
+//! (DESIGN.md §3).
+//!
+//! A [`CellBatch`] is what every effect hands to the render system: its cells
+//! in the order they are drawn (back to front for the sorted
+//! emission-absorption model, any order for the emissive and MIP modes) and
+//! their world bounds, by which whole batches are ordered against each other.
+
+use glam::{DVec3, Vec3};
+use nebel_core::cell::Tetrahedron;
+
+/// One tetrahedron as the GPU reads it: four vertices, each
+/// `[x, y, z, s]` with the world position in world units (f32, relative to the
+/// world origin) and the scalar `s` in [0, 1]. 64 bytes, no padding.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct GpuCell {
+    /// The four vertices `[x, y, z, s]`, any orientation.
+    pub vertices: [[f32; 4]; 4],
+}
+
+impl GpuCell {
+    /// The tetrahedron rounded to f32. Positions are not checked; see
+    /// [`CellBatch::from_tetrahedra`] for a checked conversion.
+    pub fn from_tetrahedron(tetrahedron: &Tetrahedron) -> Self {
+        Self {
+            vertices: std::array::from_fn(|v| {
+                let p = tetrahedron.positions[v].as_vec3();
+                [p.x, p.y, p.z, tetrahedron.scalars[v] as f32]
+            }),
+        }
+    }
+
+    /// The cell back in f64, exactly the f32 values the GPU sees (for the CPU
+    /// reference and for tests).
+    pub fn to_tetrahedron(&self) -> Tetrahedron {
+        Tetrahedron {
+            positions: self
+                .vertices
+                .map(|[x, y, z, _]| DVec3::new(f64::from(x), f64::from(y), f64::from(z))),
+            scalars: self.vertices.map(|v| f64::from(v[3])),
+        }
+    }
+
+    /// World position of vertex `index` (0 to 3).
+    pub fn position(&self, index: usize) -> Vec3 {
+        let [x, y, z, _] = self.vertices[index % 4];
+        Vec3::new(x, y, z)
+    }
+}
+
+/// Tetrahedra in world space, in draw order, with their world bounds.
+///
+/// An empty batch has both bounds at the origin.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct CellBatch {
+    /// The cells in draw order.
+    pub cells: Vec<GpuCell>,
+    /// Minimum corner of the axis-aligned box around every vertex, world units.
+    pub bounds_min: Vec3,
+    /// Maximum corner of the axis-aligned box around every vertex, world units.
+    pub bounds_max: Vec3,
+}
+
+impl CellBatch {
+    /// A batch of scene-given tetrahedra, kept in their order (the caller's
+    /// draw order).
+    ///
+    /// Cells with a non-finite position or scalar, or a position beyond the f32
+    /// range, are dropped (the rest keep their order); scalars are clamped into
+    /// [0, 1], the range every pre-integration table covers.
+    pub fn from_tetrahedra(tetrahedra: &[Tetrahedron]) -> Self {
+        let cells = tetrahedra
+            .iter()
+            .filter(|t| t.scalars.iter().all(|s| s.is_finite()))
+            .map(|t| {
+                let mut cell = GpuCell::from_tetrahedron(t);
+                for vertex in &mut cell.vertices {
+                    vertex[3] = vertex[3].clamp(0.0, 1.0);
+                }
+                cell
+            })
+            .filter(|cell| cell.vertices.iter().flatten().all(|c| c.is_finite()))
+            .collect();
+        Self::with_bounds(cells)
+    }
+
+    /// The batch of `cells` with bounds computed from every vertex.
+    pub fn with_bounds(cells: Vec<GpuCell>) -> Self {
+        let mut vertices = cells.iter().flat_map(|c| (0..4).map(|v| c.position(v)));
+        let Some(first) = vertices.next() else {
+            return Self::default();
+        };
+        let (bounds_min, bounds_max) =
+            vertices.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p)));
+        Self {
+            cells,
+            bounds_min,
+            bounds_max,
+        }
+    }
+
+    /// Number of cells.
+    pub fn len(&self) -> usize {
+        self.cells.len()
+    }
+
+    /// Whether the batch has no cells.
+    pub fn is_empty(&self) -> bool {
+        self.cells.is_empty()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tetrahedron(offset: f64, scalar: f64) -> Tetrahedron {
+        Tetrahedron {
+            positions: [DVec3::ZERO, DVec3::X, DVec3::Y, DVec3::Z].map(|p| p + offset),
+            scalars: [scalar, 0.25, 0.5, 0.75],
+        }
+    }
+
+    #[test]
+    fn gpu_cell_is_64_bytes_and_round_trips() {
+        assert_eq!(std::mem::size_of::<GpuCell>(), 64);
+        let t = tetrahedron(0.5, 0.125);
+        assert_eq!(GpuCell::from_tetrahedron(&t).to_tetrahedron(), t);
+        let cell = GpuCell::from_tetrahedron(&t);
+        assert_eq!(bytemuck::bytes_of(&cell).len(), 64);
+    }
+
+    #[test]
+    fn from_tetrahedra_keeps_order_drops_non_finite_and_clamps() {
+        let mut bad = tetrahedron(0.0, 0.5);
+        bad.positions[2].y = f64::NAN;
+        let input = [
+            tetrahedron(2.0, 0.1),
+            bad,
+            tetrahedron(0.0, f64::NAN),
+            tetrahedron(-1.0, 3.0),
+            tetrahedron(1e300, 0.5),
+        ];
+        let batch = CellBatch::from_tetrahedra(&input);
+        assert_eq!(batch.len(), 2);
+        assert_eq!(batch.cells[0].vertices[0], [2.0, 2.0, 2.0, 0.1]);
+        assert_eq!(batch.cells[1].vertices[0], [-1.0, -1.0, -1.0, 1.0]);
+        assert_eq!(batch.bounds_min, Vec3::splat(-1.0));
+        assert_eq!(batch.bounds_max, Vec3::splat(3.0));
+        let empty = CellBatch::from_tetrahedra(&[]);
+        assert!(empty.is_empty());
+        assert_eq!(
+            (empty.bounds_min, empty.bounds_max),
+            (Vec3::ZERO, Vec3::ZERO)
+        );
+    }
+}

@@ -1,0 +1,21 @@
+//! nebel's level-of-detail and cell-batch builders, without Bevy (DESIGN.md §2, §3, §5).
+//!
+//! Every volumetric effect ends as a [`CellBatch`]: tetrahedra in world space
+//! with a scalar per vertex, in the order the GPU draws them. This crate builds
+//! those batches on the CPU, in plain Rust, so they are tested and benchmarked
+//! without a GPU; the Bevy crates only upload them.
+//!
+//! - [`batch`]: [`GpuCell`] (the GPU layout of one tetrahedron) and [`CellBatch`].
+//! - [`frustum`]: view frusta from planes or a view-projection matrix, and the
+//!   conservative box test used to cull bricks and nodes.
+//! - [`full_resolution`]: a density grid as five tetrahedra per voxel in exact
+//!   back-to-front order for an eye, with per-brick zero-opacity test and
+//!   frustum culling ([`BrickTable`], [`full_resolution_batch`]).
+
+pub mod batch;
+pub mod frustum;
+pub mod full_resolution;
+
+pub use batch::{CellBatch, GpuCell};
+pub use frustum::{Frustum, FrustumError};
+pub use full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch};
