@@ -171,15 +171,17 @@ pub fn render_headless(
             break;
         }
     }
-    app.insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(
-        1.0 / f64::from(output.frame_rate),
-    )));
+    let frame_duration = Duration::from_secs_f64(1.0 / f64::from(output.frame_rate));
     let first_scene_timing = app.world().resource::<NebelFrameTimings>().frames.len();
 
     let captured: Arc<Mutex<Option<Image>>> = Arc::default();
     let mut frame_times = Vec::with_capacity(output.frames as usize);
     let mut last_report = Instant::now();
     for frame in 0..output.frames {
+        // Frame 0 is at time 0, like the reference; time steps from frame 1 on.
+        if frame == 1 {
+            app.insert_resource(TimeUpdateStrategy::ManualDuration(frame_duration));
+        }
         if frame + 1 == output.frames {
             let slot = captured.clone();
             app.world_mut()

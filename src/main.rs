@@ -191,6 +191,10 @@ fn reference(args: &[String]) -> Result<(), String> {
     let field = match volume.field {
         VolumeField::Grid(grid) => ReferenceVolume::Grid(grid),
         VolumeField::Cells(cells) => ReferenceVolume::Cells(cells),
+        VolumeField::Campfire(campfire) => {
+            let last_frame = scene.frame_time(scene.output.frames - 1);
+            ReferenceVolume::Grid(campfire.grid_at(f64::from(last_frame)))
+        }
     };
     let reference_scene = ReferenceScene::new(
         scene.reference_camera(),

@@ -189,16 +189,35 @@ fn spawn_scene(
 #[cfg(feature = "volume")]
 fn spawn_volumes(commands: &mut Commands, volumes: &[BuiltVolume]) {
     use nebel_core::scene::VolumeField as SceneField;
-    use nebel_volume::{Volume, VolumeField};
+    use nebel_volume::{Campfire, Volume, VolumeField};
     use std::sync::Arc;
     for volume in volumes {
+        let transfer_function = Arc::new(volume.transfer_function.clone());
         let field = match &volume.field {
             SceneField::Grid(grid) => VolumeField::Grid(Arc::new(grid.clone())),
             SceneField::Cells(cells) => VolumeField::Cells(Arc::new(cells.clone())),
+            SceneField::Campfire(campfire) => {
+                let (scale, offset) = campfire.placement();
+                commands.spawn((
+                    Campfire {
+                        seed: campfire.seed,
+                        dims: campfire.dims,
+                    },
+                    // The campfire's animation fills the field (in the flame
+                    // box, placed by the transform) before the first batch.
+                    Volume {
+                        transfer_function,
+                        mode: volume.mode,
+                        ..default()
+                    },
+                    Transform::from_translation(offset.as_vec3()).with_scale(scale.as_vec3()),
+                ));
+                continue;
+            }
         };
         commands.spawn(Volume {
             field,
-            transfer_function: Arc::new(volume.transfer_function.clone()),
+            transfer_function,
             mode: volume.mode,
         });
     }

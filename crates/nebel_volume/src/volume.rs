@@ -37,7 +37,12 @@ pub struct VolumePlugin;
 
 impl Plugin for VolumePlugin {
     fn build(&self, app: &mut App) {
-        app.add_systems(Update, update_volume_batches.in_set(NebelSystems));
+        app.register_type::<crate::Campfire>().add_systems(
+            Update,
+            (crate::campfire::animate_campfires, update_volume_batches)
+                .chain()
+                .in_set(NebelSystems),
+        );
     }
 }
 

@@ -35,6 +35,8 @@
 //!
 //! Volumes (`volumes: [...]`) are described in [`VolumeDescription`].
 //!
+//! Optional values are written bare (`mode: Emissive`, RON's `implicit_some`).
+//!
 //! Conventions: right-handed, +Y up, metres. Colours are sRGB components in
 //! [0, 1] (as a colour picker shows them). Every field but `version` and `camera`
 //! has a default, written next to it below. The scene grows by one list (or one
@@ -47,8 +49,9 @@
 mod volume;
 
 pub use volume::{
-    Axis, BuiltVolume, ProceduralSource, RampSource, TetrahedronDescription, TransferDescription,
-    TransferStrip, UniformSource, VolumeDescription, VolumeField, VolumeSource,
+    AnimatedCampfire, Axis, BuiltVolume, CampfireSource, ProceduralSource, RampSource,
+    SearchLightSource, TetrahedronDescription, TransferDescription, TransferStrip, UniformSource,
+    VolumeDescription, VolumeField, VolumeSource,
 };
 
 use std::path::{Path, PathBuf};
@@ -367,8 +370,12 @@ impl SceneDescription {
             field,
             reason: error.code.to_string(),
         };
-        let mut deserializer = ron::Deserializer::from_str(text)
-            .map_err(|error| parse_error(String::from("(top level)"), error))?;
+        let mut deserializer = ron::Deserializer::from_str_with_options(
+            text,
+            &ron::Options::default()
+                .with_default_extension(ron::extensions::Extensions::IMPLICIT_SOME),
+        )
+        .map_err(|error| parse_error(String::from("(top level)"), error))?;
         let scene: Self = serde_path_to_error::deserialize(&mut deserializer).map_err(|error| {
             let field = match error.path().to_string() {
                 path if path == "." => String::from("(top level)"),
@@ -743,16 +750,19 @@ mod tests {
                     octaves: 3,
                     frequency: 0.5,
                     coverage: 0.7,
+                    ellipsoid: true,
                 }),
                 min: [-2.0, 0.0, -2.0],
                 max: [2.0, 1.0, 2.0],
-                transfer: TransferDescription::Points(vec![crate::transfer::ControlPoint {
-                    s: 0.5,
-                    kappa: [1.0, 0.5, 0.2],
-                    rho: 2.0,
-                }]),
+                transfer: Some(TransferDescription::Points(vec![
+                    crate::transfer::ControlPoint {
+                        s: 0.5,
+                        kappa: [1.0, 0.5, 0.2],
+                        rho: 2.0,
+                    },
+                ])),
                 density_scale: 0.5,
-                mode: crate::optics::OpticalMode::Mip,
+                mode: Some(crate::optics::OpticalMode::Mip),
             }],
         }
     }

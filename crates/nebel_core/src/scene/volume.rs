@@ -25,11 +25,15 @@
 
 use std::path::Path;
 
-use glam::DVec3;
+use glam::{DQuat, DVec3};
 use serde::{Deserialize, Serialize};
 
 use super::InvalidField;
 use crate::cell::Tetrahedron;
+use crate::field::effects::{
+    CAMPFIRE_DIMS, CAMPFIRE_MAX, CAMPFIRE_MIN, SEARCH_LIGHT_SEGMENTS, campfire_density,
+    search_light_cells,
+};
 use crate::field::{DensityGrid, FieldError, NoiseKind, ProceduralNoise};
 use crate::optics::OpticalMode;
 use crate::transfer::{ControlPoint, TransferFunction, TransferPreset};
@@ -47,15 +51,17 @@ pub struct VolumeDescription {
     /// Default `(1, 1, 1)`.
     #[serde(default = "default_max")]
     pub max: [f32; 3],
-    /// κ and ρ over the scalar. Default `Preset(Cloud)`.
+    /// κ and ρ over the scalar. Default: `Preset(Fire)` for a campfire,
+    /// `Preset(SearchLight)` for a search light, `Preset(Cloud)` otherwise.
     #[serde(default)]
-    pub transfer: TransferDescription,
+    pub transfer: Option<TransferDescription>,
     /// Factor on ρ, finite and ≥ 0. Default 1.
     #[serde(default = "default_density_scale")]
     pub density_scale: f32,
-    /// How segments combine. Default `Sorted`.
+    /// How segments combine. Default: `Emissive` for a campfire or a search
+    /// light, `Sorted` otherwise.
     #[serde(default)]
-    pub mode: OpticalMode,
+    pub mode: Option<OpticalMode>,
 }
 
 fn default_min() -> [f32; 3] {
@@ -81,6 +87,53 @@ pub enum VolumeSource {
     Procedural(ProceduralSource),
     /// Tetrahedra in world space with a scalar per vertex.
     Cells(Vec<TetrahedronDescription>),
+    /// An animated campfire (001 §10.4): the flame box
+    /// [`CAMPFIRE_MIN`]..[`CAMPFIRE_MAX`] stretched onto `min..max`, its
+    /// density changing every frame. Emissive with the `Fire` preset unless
+    /// the volume says otherwise.
+    Campfire(CampfireSource),
+    /// A search-light cone (001 §10.4), placed by its own position and
+    /// direction (the box is not used). Emissive with the `SearchLight` preset
+    /// unless the volume says otherwise.
+    SearchLight(SearchLightSource),
+}
+
+/// An animated campfire.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CampfireSource {
+    /// Noise seed. Default 0.
+    #[serde(default)]
+    pub seed: u32,
+    /// Grid points per axis, each in [2, 257]. Default `(17, 17, 17)` (16³ cells).
+    #[serde(default = "default_campfire_dims")]
+    pub dims: [usize; 3],
+}
+
+fn default_campfire_dims() -> [usize; 3] {
+    CAMPFIRE_DIMS
+}
+
+/// A search-light cone.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SearchLightSource {
+    /// The cone's apex (the lamp), metres.
+    pub position: [f32; 3],
+    /// The beam's direction; non-zero.
+    pub direction: [f32; 3],
+    /// Length of the beam, metres, > 0.
+    pub length: f32,
+    /// Half the opening angle, degrees, in (0, 85].
+    pub half_angle_degrees: f32,
+    /// Cells around × radial × along the beam, each in [1, 256] (around even).
+    /// Default `(16, 4, 32)`.
+    #[serde(default = "default_search_light_segments")]
+    pub segments: [usize; 3],
+}
+
+fn default_search_light_segments() -> [usize; 3] {
+    SEARCH_LIGHT_SEGMENTS
 }
 
 /// The same scalar everywhere.
@@ -148,6 +201,11 @@ pub struct ProceduralSource {
     /// coverage leaves more empty space. Default 1 (the noise as it is).
     #[serde(default = "default_coverage")]
     pub coverage: f32,
+    /// Multiply the noise by `max(0, 1 − r²)`, `r` the distance from the box
+    /// centre with the box scaled to the unit sphere, so the volume fades to
+    /// nothing before its box ends (an implicit ellipsoid, paper 002). Default false.
+    #[serde(default)]
+    pub ellipsoid: bool,
 }
 
 fn default_octaves() -> usize {
@@ -183,12 +241,6 @@ pub enum TransferDescription {
     Strip(TransferStrip),
 }
 
-impl Default for TransferDescription {
-    fn default() -> Self {
-        Self::Preset(TransferPreset::Cloud)
-    }
-}
-
 /// A transfer function from a PNG strip.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -217,6 +269,60 @@ pub enum VolumeField {
     Grid(DensityGrid),
     /// Tetrahedra with a scalar per vertex.
     Cells(Vec<Tetrahedron>),
+    /// A campfire whose grid changes with time, see [`AnimatedCampfire::grid_at`].
+    Campfire(AnimatedCampfire),
+}
+
+/// A campfire placed in a box: its density at any time.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AnimatedCampfire {
+    /// Noise seed.
+    pub seed: u32,
+    /// Grid points per axis.
+    pub dims: [usize; 3],
+    /// Minimum corner of the box the flame box is stretched onto, metres.
+    pub min: DVec3,
+    /// Maximum corner of that box, metres.
+    pub max: DVec3,
+}
+
+impl AnimatedCampfire {
+    /// How the flame box maps onto `min..max`: per-axis scale and offset.
+    pub fn placement(&self) -> (DVec3, DVec3) {
+        let scale = (self.max - self.min) / (CAMPFIRE_MAX - CAMPFIRE_MIN);
+        (scale, self.min - CAMPFIRE_MIN * scale)
+    }
+
+    /// The density grid at `time` seconds, in world space.
+    pub fn grid_at(&self, time: f64) -> DensityGrid {
+        let flame = campfire_density(self.dims, time, self.seed);
+        let (scale, _) = self.placement();
+        DensityGrid::new(
+            flame.dims(),
+            flame.spacing() * scale,
+            self.min,
+            flame.values().to_vec(),
+        )
+        .expect("a campfire grid scaled by a positive factor stays valid")
+    }
+}
+
+/// The cone of `light` in world space: apex at its position, opening along its direction.
+fn search_light(light: &SearchLightSource) -> Vec<Tetrahedron> {
+    let direction = DVec3::from(light.direction.map(f64::from)).normalize();
+    let rotation = DQuat::from_rotation_arc(DVec3::NEG_Z, direction);
+    let position = DVec3::from(light.position.map(f64::from));
+    search_light_cells(
+        f64::from(light.length),
+        f64::from(light.half_angle_degrees).to_radians(),
+        light.segments,
+    )
+    .into_iter()
+    .map(|cell| Tetrahedron {
+        positions: cell.positions.map(|p| position + rotation * p),
+        scalars: cell.scalars,
+    })
+    .collect()
 }
 
 fn source_error(error: FieldError) -> InvalidField {
@@ -243,12 +349,28 @@ impl VolumeDescription {
             VolumeSource::Procedural(procedural) => {
                 VolumeField::Grid(self.procedural_grid(procedural)?)
             }
+            VolumeSource::Campfire(campfire) => VolumeField::Campfire(AnimatedCampfire {
+                seed: campfire.seed,
+                dims: campfire.dims,
+                min: self.min_corner(),
+                max: self.max_corner(),
+            }),
+            VolumeSource::SearchLight(light) => VolumeField::Cells(search_light(light)),
         };
-        let transfer = match &self.transfer {
-            TransferDescription::Preset(preset) => Ok(TransferFunction::preset(*preset)),
-            TransferDescription::Points(points) => TransferFunction::new(points.clone()),
+        let (default_preset, default_mode) = match self.source {
+            VolumeSource::Campfire(_) => (TransferPreset::Fire, OpticalMode::Emissive),
+            VolumeSource::SearchLight(_) => (TransferPreset::SearchLight, OpticalMode::Emissive),
+            _ => (TransferPreset::Cloud, OpticalMode::Sorted),
+        };
+        let description = self
+            .transfer
+            .clone()
+            .unwrap_or(TransferDescription::Preset(default_preset));
+        let transfer = match description {
+            TransferDescription::Preset(preset) => Ok(TransferFunction::preset(preset)),
+            TransferDescription::Points(points) => TransferFunction::new(points),
             TransferDescription::Strip(strip) => {
-                TransferFunction::from_png_strip(scene_dir.join(&strip.path), strip.max_density)
+                TransferFunction::from_png_strip(scene_dir.join(strip.path), strip.max_density)
             }
         }
         .and_then(|tf| tf.scale_density(self.density_scale))
@@ -256,7 +378,7 @@ impl VolumeDescription {
         Ok(BuiltVolume {
             field,
             transfer_function: transfer,
-            mode: self.mode,
+            mode: self.mode.unwrap_or(default_mode),
         })
     }
 
@@ -317,10 +439,21 @@ impl VolumeDescription {
         let grid = DensityGrid::procedural(procedural.dims, spacing, self.min_corner(), &noise)
             .map_err(source_error)?;
         let coverage = procedural.coverage;
+        let [nx, ny, nz] = procedural.dims;
+        let unit = |i: usize, n: usize| 2.0 * i as f32 / (n - 1) as f32 - 1.0;
         let values = grid
             .values()
             .iter()
-            .map(|n| ((n - (1.0 - coverage)) / coverage).clamp(0.0, 1.0))
+            .enumerate()
+            .map(|(index, n)| {
+                let covered = ((n - (1.0 - coverage)) / coverage).clamp(0.0, 1.0);
+                if !procedural.ellipsoid {
+                    return covered;
+                }
+                let (i, j, k) = (index % nx, (index / nx) % ny, index / (nx * ny));
+                let r2 = unit(i, nx).powi(2) + unit(j, ny).powi(2) + unit(k, nz).powi(2);
+                covered * (1.0 - r2).max(0.0)
+            })
             .collect();
         DensityGrid::new(procedural.dims, spacing, self.min_corner(), values).map_err(source_error)
     }
@@ -390,6 +523,64 @@ impl VolumeDescription {
                 }
                 Ok(())
             }
+            VolumeSource::Campfire(campfire) => dims("source.Campfire.dims", campfire.dims)
+                .and_then(|()| {
+                    if campfire.dims.iter().all(|n| *n <= 257) {
+                        Ok(())
+                    } else {
+                        Err(InvalidField::new(
+                            "source.Campfire.dims",
+                            format!("each must be in [2, 257], got {:?}", campfire.dims),
+                        ))
+                    }
+                }),
+            VolumeSource::SearchLight(light) => {
+                let field = "source.SearchLight";
+                if light
+                    .position
+                    .iter()
+                    .chain(&light.direction)
+                    .any(|c| !c.is_finite())
+                {
+                    return Err(InvalidField::new(
+                        field,
+                        "position and direction must be finite",
+                    ));
+                }
+                if light.direction.iter().all(|c| *c == 0.0) {
+                    return Err(InvalidField::new(
+                        format!("{field}.direction"),
+                        "must not be zero",
+                    ));
+                }
+                if !(light.length.is_finite() && light.length > 0.0) {
+                    return Err(InvalidField::new(
+                        format!("{field}.length"),
+                        format!("must be finite and > 0, got {}", light.length),
+                    ));
+                }
+                if !(light.half_angle_degrees > 0.0 && light.half_angle_degrees <= 85.0) {
+                    return Err(InvalidField::new(
+                        format!("{field}.half_angle_degrees"),
+                        format!("must be in (0, 85], got {}", light.half_angle_degrees),
+                    ));
+                }
+                let [around, radial, along] = light.segments;
+                if !(around % 2 == 0
+                    && [around, radial, along]
+                        .iter()
+                        .all(|n| (1..=256).contains(n)))
+                {
+                    return Err(InvalidField::new(
+                        format!("{field}.segments"),
+                        format!(
+                            "each must be in [1, 256] and `around` even, got {:?}",
+                            light.segments
+                        ),
+                    ));
+                }
+                Ok(())
+            }
             VolumeSource::Cells(cells) => {
                 if cells.is_empty() {
                     return Err(InvalidField::new("source.Cells", "needs at least one cell"));
@@ -420,16 +611,16 @@ mod tests {
             source,
             min: [0.0; 3],
             max: [2.0, 4.0, 8.0],
-            transfer: TransferDescription::default(),
+            transfer: None,
             density_scale: 2.0,
-            mode: OpticalMode::Emissive,
+            mode: Some(OpticalMode::Emissive),
         }
     }
 
     fn grid(built: BuiltVolume) -> DensityGrid {
         match built.field {
             VolumeField::Grid(grid) => grid,
-            VolumeField::Cells(_) => panic!("expected a grid"),
+            other => panic!("expected a grid, got {other:?}"),
         }
     }
 
@@ -476,6 +667,7 @@ mod tests {
                 octaves: 3,
                 frequency: 0.4,
                 coverage,
+                ellipsoid: false,
             })
         };
         let full = grid(volume(source(1.0)).build(Path::new(".")).unwrap());
@@ -487,6 +679,28 @@ mod tests {
             half.values().iter().filter(|v| **v == 0.0).count()
                 > full.values().iter().filter(|v| **v == 0.0).count()
         );
+    }
+
+    #[test]
+    fn ellipsoid_vanishes_at_the_box_faces_and_keeps_the_centre() {
+        let source = |ellipsoid| {
+            VolumeSource::Procedural(ProceduralSource {
+                dims: [5; 3],
+                kind: NoiseKind::Fbm,
+                seed: 1,
+                octaves: 2,
+                frequency: 0.7,
+                coverage: 1.0,
+                ellipsoid,
+            })
+        };
+        let plain = grid(volume(source(false)).build(Path::new(".")).unwrap());
+        let shaped = grid(volume(source(true)).build(Path::new(".")).unwrap());
+        assert_eq!(shaped.value(2, 2, 2), plain.value(2, 2, 2));
+        for (i, j, k) in [(0, 2, 2), (4, 2, 2), (2, 0, 2), (2, 2, 4), (0, 0, 0)] {
+            assert_eq!(shaped.value(i, j, k), 0.0);
+        }
+        assert!((shaped.value(1, 2, 2) - 0.75 * plain.value(1, 2, 2)).abs() < 1e-6);
     }
 
     #[test]
@@ -506,15 +720,62 @@ mod tests {
     }
 
     #[test]
+    fn campfire_is_emissive_fire_and_fills_its_box() {
+        let mut fire = volume(VolumeSource::Campfire(CampfireSource {
+            seed: 2,
+            dims: [9, 9, 9],
+        }));
+        fire.mode = None;
+        let built = fire.build(Path::new(".")).unwrap();
+        assert_eq!(built.mode, OpticalMode::Emissive);
+        assert_eq!(
+            built.transfer_function,
+            TransferFunction::preset(TransferPreset::Fire)
+                .scale_density(2.0)
+                .unwrap()
+        );
+        let VolumeField::Campfire(campfire) = built.field else {
+            panic!("expected a campfire");
+        };
+        let early = campfire.grid_at(0.0);
+        assert_eq!(early.origin(), DVec3::ZERO);
+        assert!((early.max_corner() - DVec3::new(2.0, 4.0, 8.0)).length() < 1e-9);
+        assert_ne!(early.values(), campfire.grid_at(0.5).values());
+    }
+
+    #[test]
+    fn search_light_points_along_its_direction() {
+        let mut light = volume(VolumeSource::SearchLight(SearchLightSource {
+            position: [1.0, 2.0, 3.0],
+            direction: [1.0, 0.0, 0.0],
+            length: 10.0,
+            half_angle_degrees: 10.0,
+            segments: [8, 2, 8],
+        }));
+        light.mode = None;
+        let built = light.build(Path::new(".")).unwrap();
+        assert_eq!(built.mode, OpticalMode::Emissive);
+        let VolumeField::Cells(cells) = built.field else {
+            panic!("expected cells");
+        };
+        let far = cells
+            .iter()
+            .flat_map(|c| c.positions)
+            .map(|p| p.x)
+            .fold(f64::NEG_INFINITY, f64::max);
+        assert!((far - 11.0).abs() < 1e-9, "beam ends at x = {far}");
+    }
+
+    #[test]
     fn missing_strip_names_the_file() {
         let mut strip = volume(VolumeSource::Uniform(UniformSource {
             value: 1.0,
             dims: [2; 3],
         }));
-        strip.transfer = TransferDescription::Strip(TransferStrip {
+        strip.transfer = Some(TransferDescription::Strip(TransferStrip {
             path: String::from("ramps/none.png"),
             max_density: 1.0,
-        });
+        }));
         let error = strip.build(Path::new("scenes")).unwrap_err();
         assert_eq!(error.field, "transfer");
         assert!(
