@@ -13,8 +13,9 @@
 //!
 //! `reference` integrates the same view exactly on the CPU
 //! ([`nebel_core::reference`], f64, adaptive, both cores): the scene's one
-//! volume over its clear colour, from the camera of the last frame. Meshes and
-//! lights are not drawn (the reference is the volume integral alone).
+//! volume over its clear colour, from the camera of the last frame, cut at
+//! the scene's meshes, which it draws black (the reference shades no surface;
+//! accuracy scenes have black meshes and no lights).
 //!
 //! `compare` prints RMSE, maximum absolute error and PSNR over linear RGB of
 //! two PNGs of the same size; `--diff` writes `|A − B| · 10` per channel.
@@ -196,12 +197,10 @@ fn reference(args: &[String]) -> Result<(), String> {
             ReferenceVolume::Grid(campfire.grid_at(f64::from(last_frame)))
         }
     };
-    let reference_scene = ReferenceScene::new(
-        scene.reference_camera(),
-        field,
-        volume.transfer_function,
-        volume.mode,
-    );
+    let camera = scene.reference_camera();
+    let mut reference_scene =
+        ReferenceScene::new(camera.clone(), field, volume.transfer_function, volume.mode);
+    reference_scene.opaque_depth = scene.opaque_depth(&camera);
     let started = Instant::now();
     let last_report = Mutex::new(Instant::now());
     let report = |progress: RenderProgress| {
@@ -214,8 +213,17 @@ fn reference(args: &[String]) -> Result<(), String> {
             *last = Instant::now();
         }
     };
-    let image = nebel_core::reference::render(&reference_scene, Some(&report))
+    let mut image = nebel_core::reference::render(&reference_scene, Some(&report))
         .map_err(|e| e.to_string())?;
+    // Meshes are black (the reference shades no surface): pixels whose ray
+    // ends on one composite over black, the others over the clear colour.
+    if let Some(depth) = &reference_scene.opaque_depth {
+        for (pixel, depth) in image.pixels.iter_mut().zip(depth) {
+            if depth.is_finite() {
+                pixel[3] = 1.0;
+            }
+        }
+    }
     let background = scene
         .clear_color
         .map(|c| srgb_to_linear(f64::from(c)) as f32);

@@ -110,6 +110,12 @@ fn spawn_scene(
             follows_path: matches!(camera.view, CameraView::Path(_)),
         },
     ));
+    camera_entity.insert(match camera.msaa {
+        1 => Msaa::Off,
+        2 => Msaa::Sample2,
+        8 => Msaa::Sample8,
+        _ => Msaa::Sample4,
+    });
     if !camera.tonemapping {
         camera_entity.insert((Tonemapping::None, DebandDither::Disabled));
     }

@@ -244,6 +244,7 @@ const ACCURACY_BOUNDS: &[(&str, f64)] = &[
     ("wide_oblique", 0.005),
     ("ramp_emissive", 0.002),
     ("ramp_mip", 0.002),
+    ("opaque_inside", 0.002),
 ];
 
 #[test]
