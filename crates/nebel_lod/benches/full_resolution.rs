@@ -1,7 +1,8 @@
 //! Cost of building a full-resolution cell batch: cells per millisecond of
 //! `full_resolution_batch` for a 64³-voxel noise grid (1.31 million cells, every
 //! brick kept), eye outside and inside the grid, back-to-front against
-//! unordered, and the one-off cost of its `BrickTable`.
+//! unordered, the one-off cost of its `BrickTable`, and a campfire-sized 16³
+//! grid (20 480 cells).
 //!
 //! Criterion reports the throughput in cells per second ("elem/s"):
 //! 1 Melem/s = 1 000 cells per ms.
@@ -25,11 +26,17 @@ fn full_resolution(c: &mut Criterion) {
         frequency: 1.7,
         ..Default::default()
     };
+    for points in [POINTS, 17] {
+        bench_grid(c, &noise, points);
+    }
+}
+
+fn bench_grid(c: &mut Criterion, noise: &ProceduralNoise, points: usize) {
     let grid = DensityGrid::procedural(
-        [POINTS; 3],
-        DVec3::splat(1.0 / (POINTS - 1) as f64),
+        [points; 3],
+        DVec3::splat(1.0 / (points - 1) as f64),
         DVec3::ZERO,
-        &noise,
+        noise,
     )
     .expect("valid grid");
     // ρ > 0 for every s > 0: no brick is transparent, every voxel is emitted.
@@ -40,9 +47,9 @@ fn full_resolution(c: &mut Criterion) {
         DVec3::new(-4.0, 0.0, -4.0),
     );
     let bricks = BrickTable::new(&grid, BrickTable::DEFAULT_BRICK_SIZE);
-    let cells = 5 * (POINTS - 1).pow(3);
+    let cells = 5 * (points - 1).pow(3);
 
-    let mut group = c.benchmark_group("full_resolution_64");
+    let mut group = c.benchmark_group(format!("full_resolution_{}", points - 1));
     group.sample_size(20);
     group.throughput(Throughput::Elements(cells as u64));
     let eyes = [
@@ -78,8 +85,8 @@ fn full_resolution(c: &mut Criterion) {
     }
     group.finish();
 
-    let mut group = c.benchmark_group("brick_table_64");
-    group.throughput(Throughput::Elements((POINTS * POINTS * POINTS) as u64));
+    let mut group = c.benchmark_group(format!("brick_table_{}", points - 1));
+    group.throughput(Throughput::Elements(points.pow(3) as u64));
     group.bench_function("new", |b| {
         b.iter(|| BrickTable::new(black_box(&grid), BrickTable::DEFAULT_BRICK_SIZE))
     });

@@ -40,18 +40,34 @@
 //!   then those on the eye's side. An eye exactly on a face plane may see
 //!   either order; both are correct.
 //!
+//! The order depends on the eye only through which side of each slab plane
+//! and of each corner-tetrahedron face plane it is on. In voxel index
+//! coordinates `u` those planes are `u_a = m` and `±u_x ± u_y ± u_z = m` for
+//! integers `m`, so [`order_key`] (on which side of each plane the eye is)
+//! changes whenever the order may change: a caller rebuilds a batch only when the key, the grid, the transfer
+//! function or the frustum changed.
+//!
 //! [`CellOrder::Unordered`] emits bricks, voxels and tetrahedra in storage order
 //! (x fastest), for the emissive and MIP modes, which need no sorting.
 //!
+//! The order is exact for the f64 geometry. The batch stores f32 positions; an
+//! eye within f32 rounding of a plane (about 1e-7 times the coordinates) may
+//! see slivers of that size in the other order, which no image can show.
+//!
 //! # Cost
 //!
-//! Linear in the number of voxels of kept bricks, plus one visit per brick; no
-//! sorting. Measured with `cargo bench -p nebel_lod --bench full_resolution`
-//! (64³ grid, every brick kept, 1.31 million cells, one core): about 40 000
-//! cells per ms in back-to-front order, with the eye outside or inside the grid,
-//! and about 44 000 unordered, so a full 64³ batch takes about 30 ms and a
-//! 32³ one about 4 ms. Rebuilding when the eye moves is affordable for the
-//! small grids of the emissive effects; large grids are the octree's job.
+//! Linear in the voxels of the kept bricks plus one visit per brick; no
+//! sorting. `cargo bench -p nebel_lod --bench full_resolution` (64³ voxels,
+//! every brick kept, 1.31 million cells, 84 MB of output, one thread, on a
+//! shared two-core machine) measured 21 000 to 27 000 cells per ms for both
+//! orders, eye outside or inside (50 to 60 ms per batch), of which allocating
+//! and writing the 84 MB output alone takes 30 to 45 ms there: the builder runs
+//! close to memory speed. A campfire-sized 16³ grid (20 480 cells, output in
+//! cache) builds at 72 000 to 88 000 cells per ms, about 0.27 ms back to front
+//! and 0.23 ms unordered. [`BrickTable::new`] of 65³ points takes about
+//! 2 ms. [`order_key`] tells when an eye movement changes the order at all, so
+//! a caller rebuilds only then (or when the frustum or data changed). Large
+//! grids are the octree's job.
 
 use std::sync::LazyLock;
 
@@ -263,26 +279,16 @@ pub fn full_resolution_batch(
             grid: voxels,
         });
     }
-    // Voxel index space: point (i, j, k) at (i, j, k).
-    let world_from_index = world_from_grid
-        * DAffine3::from_translation(grid.origin())
-        * DAffine3::from_scale(grid.spacing());
-    let determinant = world_from_index.matrix3.determinant();
-    let index_from_world = world_from_index.inverse();
-    let invertible = world_from_index.is_finite()
-        && determinant != 0.0
-        && determinant.is_finite()
-        && index_from_world.is_finite();
-    if !invertible {
+    let Some((world_from_index, index_from_world)) = index_maps(grid, world_from_grid) else {
         return Err(BatchError::SingularTransform {
             determinant: world_from_grid.matrix3.determinant(),
         });
-    }
+    };
     let eye = match order {
-        CellOrder::BackToFront if !eye_world.is_finite() => {
-            return Err(BatchError::NonFiniteEye { eye: eye_world });
-        }
-        CellOrder::BackToFront => Some(index_from_world.transform_point3(eye_world)),
+        CellOrder::BackToFront => Some(
+            EyeSides::new(index_from_world.transform_point3(eye_world))
+                .ok_or(BatchError::NonFiniteEye { eye: eye_world })?,
+        ),
         CellOrder::Unordered => None,
     };
     let local_frustum = frustum.map(|f| f.in_local_frame(&world_from_index));
@@ -335,16 +341,15 @@ pub fn full_resolution_batch(
 
     // Pass 2: emit, bricks and voxels in BSP order.
     let mut cells = Vec::with_capacity(5 * kept_voxels);
-    let brick_size = bricks.brick_size as f64;
-    let (mut brick_order, mut voxel_order) = ([vec![], vec![], vec![]], [vec![], vec![], vec![]]);
-    for axis in 0..3 {
-        axis_order(
-            0,
-            bricks.bricks[axis],
-            eye.map(|e| e[axis] / brick_size),
-            &mut brick_order[axis],
-        );
-    }
+    let brick_order: [Vec<usize>; 3] = std::array::from_fn(|axis| {
+        let mut order = Vec::with_capacity(bricks.bricks[axis]);
+        let slab = eye
+            .as_ref()
+            .map(|e| e.slab[axis].div_euclid(bricks.brick_size as i64));
+        axis_order(0, bricks.bricks[axis], slab, &mut order);
+        order
+    });
+    let mut voxel_order: [Vec<usize>; 3] = Default::default();
     for &bz in &brick_order[2] {
         for &by in &brick_order[1] {
             for &bx in &brick_order[0] {
@@ -353,12 +358,13 @@ pub fn full_resolution_batch(
                 }
                 for (axis, b) in [bx, by, bz].into_iter().enumerate() {
                     let (start, end) = bricks.voxel_range(b, axis);
-                    axis_order(start, end, eye.map(|e| e[axis]), &mut voxel_order[axis]);
+                    let slab = eye.as_ref().map(|e| e.slab[axis]);
+                    axis_order(start, end, slab, &mut voxel_order[axis]);
                 }
                 for &k in &voxel_order[2] {
                     for &j in &voxel_order[1] {
                         for &i in &voxel_order[0] {
-                            emit_voxel(grid, &point, [i, j, k], eye, &mut cells);
+                            emit_voxel(grid, &point, [i, j, k], eye.as_ref(), &mut cells);
                         }
                     }
                 }
@@ -372,37 +378,107 @@ pub fn full_resolution_batch(
     })
 }
 
-/// Writes into `order` the slabs `start..end` of one axis: with an eye
-/// coordinate (in slab units, slab `s` spanning `[s, s + 1)`), from both far
-/// ends towards the eye's slab, the eye's slab last; without one, ascending.
-fn axis_order(start: usize, end: usize, eye: Option<f64>, order: &mut Vec<usize>) {
-    order.clear();
-    let Some(eye) = eye else {
-        order.extend(start..end);
-        return;
-    };
-    // The eye's slab, clamped to one slab beyond either end (finite eye).
-    let slab = eye.floor().clamp(start as f64 - 1.0, end as f64);
-    let below = (slab.max(start as f64) as usize).min(end);
-    order.extend(start..below);
-    let above = if slab < start as f64 {
-        start
-    } else {
-        (slab as usize + 1).min(end)
-    };
-    order.extend((above..end).rev());
-    if slab >= start as f64 && slab < end as f64 {
-        order.push(slab as usize);
+/// A cheap fingerprint of the back-to-front order for an eye: two eyes with the
+/// same key get the same [`CellOrder::BackToFront`] batch of `grid` under
+/// `world_from_grid` (with the same bricks, frustum and transfer function).
+///
+/// With the eye at `u` in voxel index coordinates, the key holds `⌊u_a⌋` per
+/// axis and, for each of the eight sign vectors `σ`, which integer or open
+/// interval between integers `σ · u` lies on (`2⌊v⌋` for an integer `v`,
+/// `2⌊v⌋ + 1` otherwise), each clamped to where the order stops changing.
+/// `None` when the eye is not finite or `world_from_grid` is not invertible
+/// (then [`full_resolution_batch`] fails for that order too).
+pub fn order_key(
+    grid: &DensityGrid,
+    world_from_grid: DAffine3,
+    eye_world: DVec3,
+) -> Option<[i64; 11]> {
+    let (_, index_from_world) = index_maps(grid, world_from_grid)?;
+    let eye = EyeSides::new(index_from_world.transform_point3(eye_world))?;
+    // Beyond ±limit every plane of the grid is on the same side.
+    let limit = 4 * grid.dims().iter().sum::<usize>() as i64 + 8;
+    let mut key = [0; 11];
+    for (axis, slab) in eye.slab.into_iter().enumerate() {
+        key[axis] = slab.clamp(-limit, limit);
+    }
+    for (apex, v) in eye.diagonal.into_iter().enumerate() {
+        let floor = v.floor();
+        let interval = 2.0 * floor + if v == floor { 0.0 } else { 1.0 };
+        key[3 + apex] = interval.clamp(-2.0 * limit as f64, 2.0 * limit as f64) as i64;
+    }
+    Some(key)
+}
+
+/// The maps between world space and voxel index space (point `(i, j, k)` at
+/// `(i, j, k)`): `(world_from_index, index_from_world)`, or `None` when not
+/// finite or not invertible.
+fn index_maps(grid: &DensityGrid, world_from_grid: DAffine3) -> Option<(DAffine3, DAffine3)> {
+    let world_from_index = world_from_grid
+        * DAffine3::from_translation(grid.origin())
+        * DAffine3::from_scale(grid.spacing());
+    let determinant = world_from_index.matrix3.determinant();
+    let index_from_world = world_from_index.inverse();
+    let invertible = world_from_index.is_finite()
+        && determinant != 0.0
+        && determinant.is_finite()
+        && index_from_world.is_finite();
+    invertible.then_some((world_from_index, index_from_world))
+}
+
+/// What the order depends on: the eye's slab per axis and, per cube corner
+/// (apex) `c`, `σ_c · u` with `σ_c` = +1 on the axes where `c`'s bit is 0 and
+/// −1 where it is 1. Computed once per batch, so every voxel compares the same
+/// rounded values (and [`order_key`] sees exactly what the batch sees).
+struct EyeSides {
+    /// `⌊u_a⌋` per axis, clamped to the i64 range.
+    slab: [i64; 3],
+    /// `σ_c · u` per apex `c`, summed x, y, z.
+    diagonal: [f64; 8],
+}
+
+impl EyeSides {
+    /// The sides of `u` (voxel index coordinates); `None` if not finite.
+    fn new(u: DVec3) -> Option<Self> {
+        if !u.is_finite() {
+            return None;
+        }
+        // ±2⁶² keeps the i64 arithmetic of the traversal far from overflow.
+        let bound = 2f64.powi(62);
+        let slab = u.to_array().map(|v| v.floor().clamp(-bound, bound) as i64);
+        let diagonal = std::array::from_fn(|apex| {
+            let sign = |bit: usize| if apex & bit == 0 { 1.0 } else { -1.0 };
+            sign(1) * u.x + sign(2) * u.y + sign(4) * u.z
+        });
+        Some(Self { slab, diagonal })
     }
 }
 
-/// Appends the five tetrahedra of voxel `[i, j, k]`; with an eye (voxel index
-/// space) in MPVO order, else in decomposition order.
+/// Writes into `order` the slabs `start..end` of one axis: with the eye's slab
+/// index (slab `s` spans `[s, s + 1)`), from both far ends towards the eye's
+/// slab, the eye's slab last; without one, ascending.
+fn axis_order(start: usize, end: usize, eye_slab: Option<i64>, order: &mut Vec<usize>) {
+    order.clear();
+    let Some(slab) = eye_slab else {
+        order.extend(start..end);
+        return;
+    };
+    // Slabs below the eye's ascending, those above descending, the eye's last.
+    let below = slab.clamp(start as i64, end as i64) as usize;
+    let above = slab.saturating_add(1).clamp(start as i64, end as i64) as usize;
+    order.extend(start..below);
+    order.extend((above..end).rev());
+    if below < above {
+        order.push(below);
+    }
+}
+
+/// Appends the five tetrahedra of voxel `[i, j, k]`; with an eye in MPVO
+/// order, else in decomposition order.
 fn emit_voxel(
     grid: &DensityGrid,
     point: &impl Fn(usize, usize, usize) -> Vec3,
     [i, j, k]: [usize; 3],
-    eye: Option<DVec3>,
+    eye: Option<&EyeSides>,
     cells: &mut Vec<GpuCell>,
 ) {
     let corner = |v: usize| {
@@ -420,18 +496,15 @@ fn emit_voxel(
         cells.push(cell(&decomposition.central));
         return;
     };
-    // The eye in the voxel's unit cube; corner tetrahedron with apex `a` lies on
-    // the eye's side of its shared face iff Σ |eye − a| < 1 along the axes.
-    let local = eye - DVec3::new(i as f64, j as f64, k as f64);
+    // The face a corner tetrahedron with apex `c` shares with the central one
+    // is `Σ_a |u_a − corner_a| = 1` in the voxel, i.e. `σ_c · u = m` with the
+    // integer `m = 1 − popcount(c) + σ_c · (i, j, k)`; the eye is on the apex's
+    // side (the tetrahedron in front) iff `σ_c · u < m`.
+    let (x, y, z) = (i as f64, j as f64, k as f64);
     let in_front = |apex: usize| {
-        let distance = |axis: usize, bit: usize| {
-            if apex & bit == 0 {
-                local[axis]
-            } else {
-                1.0 - local[axis]
-            }
-        };
-        distance(0, 1) + distance(1, 2) + distance(2, 4) < 1.0
+        let sign = |bit: usize| if apex & bit == 0 { 1.0 } else { -1.0 };
+        let m = 1.0 - f64::from(apex.count_ones()) + sign(1) * x + sign(2) * y + sign(4) * z;
+        eye.diagonal[apex] < m
     };
     let mut front = [false; 4];
     for (c, (t, apex)) in decomposition.corners.iter().enumerate() {
@@ -454,7 +527,8 @@ mod tests {
 
     fn order(start: usize, end: usize, eye: Option<f64>) -> Vec<usize> {
         let mut out = vec![];
-        axis_order(start, end, eye, &mut out);
+        let slab = eye.map(|e| EyeSides::new(DVec3::splat(e)).unwrap().slab[0]);
+        axis_order(start, end, slab, &mut out);
         out
     }
 
@@ -471,6 +545,7 @@ mod tests {
         assert_eq!(order(4, 8, Some(6.3)), [4, 5, 7, 6]);
         assert_eq!(order(4, 8, Some(1.0)), [7, 6, 5, 4]);
         assert_eq!(order(4, 8, Some(9.0)), [4, 5, 6, 7]);
+        assert!(EyeSides::new(DVec3::new(0.0, f64::NAN, 0.0)).is_none());
     }
 
     #[test]

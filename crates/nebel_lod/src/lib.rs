@@ -10,7 +10,8 @@
 //!   conservative box test used to cull bricks and nodes.
 //! - [`full_resolution`]: a density grid as five tetrahedra per voxel in exact
 //!   back-to-front order for an eye, with per-brick zero-opacity test and
-//!   frustum culling ([`BrickTable`], [`full_resolution_batch`]).
+//!   frustum culling ([`BrickTable`], [`full_resolution_batch`]), and
+//!   [`order_key`], which tells when a new eye position changes that order.
 
 pub mod batch;
 pub mod frustum;
@@ -18,4 +19,4 @@ pub mod full_resolution;
 
 pub use batch::{CellBatch, GpuCell};
 pub use frustum::{Frustum, FrustumError};
-pub use full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch};
+pub use full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};

@@ -231,7 +231,9 @@ proptest! {
         // the other order, which no image can show.)
         let exact = exact_cells(&b.cells, &g, world_from_grid);
         let pairs = assert_back_to_front_f64(&exact, eye, &directions, 1e-9);
-        prop_assert!(pairs > 0 || matches!(placement, EyePlacement::Anywhere(_)));
+        // An eye strictly inside sees cells in every direction.
+        let inside = matches!(placement, EyePlacement::Inside(_) | EyePlacement::VoxelCentre(_));
+        prop_assert!(pairs > 0 || !inside);
     }
 
     /// Frustum culling keeps every cell with a point inside the frustum, drops
@@ -611,4 +613,51 @@ fn bad_input_gives_clear_errors_and_never_panics() {
         1e-9,
     );
     assert!(pairs >= 6);
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 128, ..ProptestConfig::default() })]
+
+    /// Equal order keys give identical batches; the key is finite input only.
+    #[test]
+    fn equal_order_keys_give_equal_batches(
+        a in prop::array::uniform3(-2.0..5.0f64),
+        step in prop::array::uniform3(-0.3..0.3f64),
+        snap in any::<[bool; 3]>(),
+    ) {
+        let g = grid([4, 3, 5], DVec3::new(0.5, 1.0, 0.25), DVec3::new(-1.0, 0.0, 1.0), &[0.2, 0.7]);
+        let world_from_grid = DAffine3::from_rotation_x(0.5) * DAffine3::from_scale(DVec3::new(1.0, 2.0, 1.0));
+        // Eyes in voxel index coordinates, some snapped onto grid planes.
+        let a = DVec3::from(std::array::from_fn::<f64, 3, _>(|i| if snap[i] { a[i].round() } else { a[i] }));
+        let b = a + DVec3::from(step);
+        let to_world = |u: DVec3| world_from_grid.transform_point3(g.origin() + u * g.spacing());
+        let (eye_a, eye_b) = (to_world(a), to_world(b));
+        let key_a = nebel_lod::order_key(&g, world_from_grid, eye_a).unwrap();
+        let key_b = nebel_lod::order_key(&g, world_from_grid, eye_b).unwrap();
+        let transfer = linear_transfer();
+        let batch_a = batch(&g, 2, world_from_grid, eye_a, None, &transfer, CellOrder::BackToFront);
+        let batch_b = batch(&g, 2, world_from_grid, eye_b, None, &transfer, CellOrder::BackToFront);
+        if key_a == key_b {
+            prop_assert_eq!(batch_a, batch_b);
+        }
+    }
+}
+
+#[test]
+fn order_key_changes_across_diagonal_planes_and_refuses_bad_input() {
+    use nebel_lod::order_key;
+    let g = grid([4, 4, 4], DVec3::ONE, DVec3::ZERO, &[0.5]);
+    let key = |u: DVec3| order_key(&g, DAffine3::IDENTITY, u).unwrap();
+    // Same voxel, opposite sides of the corner face x + y + z = 1 (apex 0).
+    assert_ne!(key(DVec3::splat(0.3)), key(DVec3::splat(0.35)));
+    assert_eq!(key(DVec3::splat(0.35)), key(DVec3::splat(0.4)));
+    // On the plane is its own class.
+    assert_ne!(
+        key(DVec3::new(0.5, 0.25, 0.25)),
+        key(DVec3::new(0.5, 0.25, 0.2))
+    );
+    // Far away everything is on one side: the key stops changing.
+    assert_eq!(key(DVec3::splat(1e6)), key(DVec3::splat(1e300)));
+    assert!(order_key(&g, DAffine3::IDENTITY, DVec3::NAN).is_none());
+    assert!(order_key(&g, DAffine3::from_scale(DVec3::ZERO), DVec3::ONE).is_none());
 }
