@@ -14,6 +14,7 @@
 //! waits for the GPU after every frame, so frame times include the GPU's work.
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -47,6 +48,9 @@ const READBACK_FRAMES: u32 = 8;
 /// Most frames to wait, before the scene's first, for shaders to load and
 /// pipelines to compile.
 const WARM_UP_FRAMES: u32 = 30;
+
+/// Whether a render of this process has set the global logger.
+static LOGGER_SET: AtomicBool = AtomicBool::new(false);
 
 /// Print progress to stderr at most this often.
 const PROGRESS_INTERVAL: Duration = Duration::from_secs(2);
@@ -129,32 +133,37 @@ pub fn render_headless(
     let probed = probe_adapter()?;
     let output = setup.scene.output.clone();
     let mut app = App::new();
-    app.add_plugins(
-        DefaultPlugins
-            .set(WindowPlugin {
-                primary_window: None,
-                exit_condition: ExitCondition::DontExit,
+    let plugins = DefaultPlugins
+        .set(WindowPlugin {
+            primary_window: None,
+            exit_condition: ExitCondition::DontExit,
+            ..default()
+        })
+        .set(RenderPlugin {
+            render_creation: WgpuSettings {
+                backends: Some(probed.backends),
                 ..default()
-            })
-            .set(RenderPlugin {
-                render_creation: WgpuSettings {
-                    backends: Some(probed.backends),
-                    ..default()
-                }
-                .into(),
-                synchronous_pipeline_compilation: true,
-                ..default()
-            })
-            .set(LogPlugin {
-                level: Level::WARN,
-                filter: String::from("wgpu=error,naga=error"),
-                ..default()
-            })
-            .disable::<WinitPlugin>()
-            // Render each frame in the update that simulates it, so the
-            // captured image is exactly the last scene frame.
-            .disable::<PipelinedRenderingPlugin>(),
-    );
+            }
+            .into(),
+            synchronous_pipeline_compilation: true,
+            ..default()
+        })
+        .set(LogPlugin {
+            level: Level::WARN,
+            filter: String::from("wgpu=error,naga=error"),
+            ..default()
+        })
+        .disable::<WinitPlugin>()
+        // Render each frame in the update that simulates it, so the
+        // captured image is exactly the last scene frame.
+        .disable::<PipelinedRenderingPlugin>();
+    // The global logger can be set once per process: a second render in the
+    // same process (`nebel bench-fog` runs two) keeps the first one's.
+    if LOGGER_SET.swap(true, Ordering::Relaxed) {
+        app.add_plugins(plugins.disable::<LogPlugin>());
+    } else {
+        app.add_plugins(plugins);
+    }
     let target = render_target(&mut app, output.width, output.height);
     setup.target = Some(RenderTarget::Image(target.clone().into()));
     app.add_plugins((NebelPlugins, setup))

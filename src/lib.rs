@@ -15,10 +15,43 @@
 //!
 //! App::new().add_plugins((DefaultPlugins, NebelPlugins)).run();
 //! ```
+//!
+//! A cloud from a density grid and an animated campfire:
+//!
+//! ```no_run
+//! use std::sync::Arc;
+//! use bevy::{math::DVec3, prelude::*};
+//! use nebel::nebel_core::field::{DensityGrid, ProceduralNoise};
+//! use nebel::nebel_core::optics::OpticalMode;
+//! use nebel::nebel_core::transfer::{TransferFunction, TransferPreset};
+//! use nebel::prelude::*;
+//!
+//! fn spawn_cloud(mut commands: Commands) {
+//!     let grid = DensityGrid::procedural([33, 17, 33], DVec3::splat(0.25), DVec3::ZERO, &ProceduralNoise::default())
+//!         .expect("valid grid");
+//!     commands.spawn((
+//!         Volume {
+//!             field: VolumeField::Grid(Arc::new(grid)),
+//!             transfer_function: Arc::new(TransferFunction::preset(TransferPreset::Cloud)),
+//!             mode: OpticalMode::Sorted,
+//!         },
+//!         Transform::from_xyz(-4.0, 10.0, -4.0),
+//!     ));
+//!     // An animated fire: emissive, 16³ cells regenerated every frame.
+//!     commands.spawn((Campfire::default(), Transform::from_scale(Vec3::splat(2.0))));
+//! }
+//!
+//! App::new()
+//!     .add_plugins((DefaultPlugins, NebelPlugins))
+//!     .add_systems(Startup, spawn_cloud)
+//!     .run();
+//! ```
 
 pub mod example_runner;
 pub mod fly_camera;
+pub mod fog_comparison;
 pub mod headless;
+pub mod reference_image;
 pub mod scene_setup;
 pub mod stats;
 
@@ -53,5 +86,5 @@ pub mod prelude {
     pub use crate::scene_setup::{SceneCamera, SceneSetupPlugin};
     pub use nebel_render::{CellBatch, EffectCounters, NebelSystems};
     #[cfg(feature = "volume")]
-    pub use nebel_volume::{Volume, VolumeField};
+    pub use nebel_volume::{Campfire, Volume, VolumeField};
 }

@@ -4,6 +4,7 @@
 //! nebel render SCENE --out IMAGE.png [--stats STATS.json] [--frames N] [--size WxH]
 //! nebel reference SCENE --out IMAGE.png [--frames N] [--size WxH]
 //! nebel compare A.png B.png [--diff DIFF.png]
+//! nebel bench-fog SCENE --out DIR [--frames N] [--size WxH] [--steps N]
 //! ```
 //!
 //! `render` draws a scene file headless through whatever adapter wgpu finds
@@ -20,24 +21,32 @@
 //! `compare` prints RMSE, maximum absolute error and PSNR over linear RGB of
 //! two PNGs of the same size; `--diff` writes `|A − B| · 10` per channel.
 //!
+//! `bench-fog` renders the scene's grid volume with nebel and with Bevy's own
+//! `FogVolume` (`--steps` samples per ray, default 64) under the same optics
+//! ([`nebel::fog_comparison`]), scores both against the two exact references
+//! (through the trilinear grid, and through nebel's tetrahedra) and writes
+//! `DIR/fog_comparison.csv` (median and max frame time, RMSE, max error,
+//! PSNR) with the images. Tonemapping and MSAA are off.
+//!
 //! Errors are one line on stderr and a non-zero exit status.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::time::Instant;
 
-use std::sync::Mutex;
-use std::time::{Duration, Instant};
-
+use nebel::fog_comparison::{self, BevyFog};
 use nebel::headless::render_headless;
+use nebel::reference_image::{reference_image, save_reference};
 use nebel::scene_setup::SceneSetupPlugin;
-use nebel_core::image_metrics::{difference_image, load_png_linear, save_png, srgb_to_linear};
-use nebel_core::reference::{ReferenceScene, ReferenceVolume, RenderProgress};
-use nebel_core::scene::{SceneDescription, VolumeField};
+use nebel_core::image_metrics::{difference_image, load_png_linear, save_png};
+use nebel_core::optics::OpticalMode;
+use nebel_core::scene::{BuiltVolume, LightDescription, SceneDescription, VolumeField};
 
 const USAGE: &str = "usage:
   nebel render SCENE --out IMAGE.png [--stats STATS.json] [--frames N] [--size WxH]
   nebel reference SCENE --out IMAGE.png [--frames N] [--size WxH]
-  nebel compare A.png B.png [--diff DIFF.png]";
+  nebel compare A.png B.png [--diff DIFF.png]
+  nebel bench-fog SCENE --out DIR [--frames N] [--size WxH] [--steps N]";
 
 /// Factor on the absolute error in `compare --diff` images.
 const DIFF_SCALE: f32 = 10.0;
@@ -58,6 +67,7 @@ fn run(args: &[String]) -> Result<(), String> {
         Some("render") => render(&args[1..]),
         Some("reference") => reference(&args[1..]),
         Some("compare") => compare(&args[1..]),
+        Some("bench-fog") => bench_fog(&args[1..]),
         Some("-h" | "--help") => {
             println!("{USAGE}");
             Ok(())
@@ -178,56 +188,10 @@ fn reference(args: &[String]) -> Result<(), String> {
     let arguments = Arguments::parse(args, &["out", "frames", "size"])?;
     let out = PathBuf::from(arguments.required("out")?);
     let (scene_path, scene) = load_scene(&arguments)?;
-    let mut volumes = scene
-        .build_volumes(&scene_path)
-        .map_err(|e| e.to_string())?;
-    if volumes.len() != 1 {
-        return Err(format!(
-            "{}: the reference renders exactly one volume, the scene has {}",
-            scene_path.display(),
-            volumes.len()
-        ));
-    }
-    let volume = volumes.remove(0);
-    let field = match volume.field {
-        VolumeField::Grid(grid) => ReferenceVolume::Grid(grid),
-        VolumeField::Cells(cells) => ReferenceVolume::Cells(cells),
-        VolumeField::Campfire(campfire) => {
-            let last_frame = scene.frame_time(scene.output.frames - 1);
-            ReferenceVolume::Grid(campfire.grid_at(f64::from(last_frame)))
-        }
-    };
-    let camera = scene.reference_camera();
-    let mut reference_scene =
-        ReferenceScene::new(camera.clone(), field, volume.transfer_function, volume.mode);
-    reference_scene.opaque_depth = scene.opaque_depth(&camera);
+    let volume = single_volume(&scene, &scene_path)?;
     let started = Instant::now();
-    let last_report = Mutex::new(Instant::now());
-    let report = |progress: RenderProgress| {
-        let mut last = last_report.lock().expect("progress clock");
-        if last.elapsed() >= Duration::from_secs(2) {
-            eprintln!(
-                "nebel: reference row {}/{}",
-                progress.rows_done, progress.rows_total
-            );
-            *last = Instant::now();
-        }
-    };
-    let mut image = nebel_core::reference::render(&reference_scene, Some(&report))
-        .map_err(|e| e.to_string())?;
-    // Meshes are black (the reference shades no surface): pixels whose ray
-    // ends on one composite over black, the others over the clear colour.
-    if let Some(depth) = &reference_scene.opaque_depth {
-        for (pixel, depth) in image.pixels.iter_mut().zip(depth) {
-            if depth.is_finite() {
-                pixel[3] = 1.0;
-            }
-        }
-    }
-    let background = scene
-        .clear_color
-        .map(|c| srgb_to_linear(f64::from(c)) as f32);
-    save_png(&image, &out, background).map_err(|e| e.to_string())?;
+    let image = reference_image(&scene, volume, true).map_err(|e| e.to_string())?;
+    save_reference(&image, &out).map_err(|e| e.to_string())?;
     eprintln!(
         "nebel: wrote {} ({}x{}, exact CPU reference in {:.1} s)",
         out.display(),
@@ -235,6 +199,133 @@ fn reference(args: &[String]) -> Result<(), String> {
         image.height,
         started.elapsed().as_secs_f64()
     );
+    Ok(())
+}
+
+/// The scene's only volume, built.
+fn single_volume(scene: &SceneDescription, scene_path: &Path) -> Result<BuiltVolume, String> {
+    let mut volumes = scene.build_volumes(scene_path).map_err(|e| e.to_string())?;
+    if volumes.len() != 1 {
+        return Err(format!(
+            "{}: the reference renders exactly one volume, the scene has {}",
+            scene_path.display(),
+            volumes.len()
+        ));
+    }
+    Ok(volumes.remove(0))
+}
+
+/// `nebel bench-fog`: nebel against Bevy's `FogVolume` on the scene's grid
+/// volume, both scored against the exact reference ([`nebel::fog_comparison`]).
+fn bench_fog(args: &[String]) -> Result<(), String> {
+    let arguments = Arguments::parse(args, &["out", "frames", "size", "steps"])?;
+    let out_dir = PathBuf::from(arguments.required("out")?);
+    let step_count: u32 = match arguments.option("steps") {
+        Some(steps) => steps
+            .parse()
+            .map_err(|_| format!("--steps takes a whole number, got `{steps}`"))?,
+        None => 64,
+    };
+    let (scene_path, mut scene) = load_scene(&arguments)?;
+    scene.camera.tonemapping = false;
+    scene.camera.msaa = 1;
+    let volume = single_volume(&scene, &scene_path)?;
+    let grid = match volume.field {
+        VolumeField::Grid(grid) => grid,
+        VolumeField::Campfire(campfire) => {
+            campfire.grid_at(f64::from(scene.frame_time(scene.output.frames - 1)))
+        }
+        VolumeField::Cells(_) => {
+            return Err(format!(
+                "{}: bench-fog needs a grid volume",
+                scene_path.display()
+            ));
+        }
+    };
+    let suns: Vec<_> = scene
+        .lights
+        .iter()
+        .filter_map(|light| match light {
+            LightDescription::Directional(sun) => Some(sun),
+            _ => None,
+        })
+        .collect();
+    let [sun] = suns[..] else {
+        return Err(format!(
+            "{}: bench-fog needs exactly one directional light",
+            scene_path.display()
+        ));
+    };
+    let light = bevy::color::Color::srgb(sun.color[0], sun.color[1], sun.color[2]).to_linear();
+    let light = bevy::math::Vec3::new(light.red, light.green, light.blue) * sun.illuminance;
+    let fog = BevyFog {
+        scattering: 1.0,
+        density_factor: volume.transfer_function.max_density(),
+        step_count,
+    };
+    let fog_box = fog_comparison::fog_box(&grid);
+    let transfer_function = fog
+        .equivalent_transfer_function(light, fog_comparison::bounding_radius(&fog_box))
+        .map_err(|e| e.to_string())?;
+    let cells = grid.tetrahedra();
+    let equivalent = BuiltVolume {
+        field: VolumeField::Grid(grid),
+        transfer_function,
+        mode: OpticalMode::Sorted,
+    };
+    // Two references (DESIGN.md §4): through the trilinear grid (the total
+    // error) and through nebel's five tetrahedra per voxel (the error of
+    // projection and pre-integration alone).
+    let tetrahedral = BuiltVolume {
+        field: VolumeField::Cells(cells),
+        ..equivalent.clone()
+    };
+    std::fs::create_dir_all(&out_dir).map_err(|e| format!("{}: {e}", out_dir.display()))?;
+
+    let reference = reference_image(&scene, equivalent.clone(), true).map_err(|e| e.to_string())?;
+    save_reference(&reference, &out_dir.join("reference.png")).map_err(|e| e.to_string())?;
+    let tetrahedral_reference =
+        reference_image(&scene, tetrahedral, true).map_err(|e| e.to_string())?;
+    save_reference(
+        &tetrahedral_reference,
+        &out_dir.join("reference_tetrahedral.png"),
+    )
+    .map_err(|e| e.to_string())?;
+    let mut rows = vec![String::from(
+        "renderer,frame_ms_median,frame_ms_max,rmse,max_abs,psnr_db,rmse_vs_tetrahedral,max_abs_vs_tetrahedral",
+    )];
+    for (name, bevy_fog) in [("nebel", None), ("bevy_fog_volume", Some(fog))] {
+        let setup = SceneSetupPlugin {
+            scene: scene.clone(),
+            volumes: vec![equivalent.clone()],
+            target: None,
+            bevy_fog,
+        };
+        let image_path = out_dir.join(format!("{name}.png"));
+        let stats = render_headless(setup, &image_path, true).map_err(|e| e.to_string())?;
+        let image = load_png_linear(&image_path).map_err(|e| e.to_string())?;
+        let metrics =
+            nebel_core::image_metrics::compare(&image, &reference).map_err(|e| e.to_string())?;
+        let tetrahedral = nebel_core::image_metrics::compare(&image, &tetrahedral_reference)
+            .map_err(|e| e.to_string())?;
+        println!(
+            "{name}: frame {:.1} ms (median); against the trilinear reference {metrics}; against the tetrahedral reference {tetrahedral}",
+            stats.frame_wall_ms.median
+        );
+        rows.push(format!(
+            "{name},{},{},{},{},{},{},{}",
+            stats.frame_wall_ms.median,
+            stats.frame_wall_ms.max,
+            metrics.rmse,
+            metrics.max_abs,
+            metrics.psnr,
+            tetrahedral.rmse,
+            tetrahedral.max_abs
+        ));
+    }
+    let csv = out_dir.join("fog_comparison.csv");
+    std::fs::write(&csv, rows.join("\n") + "\n").map_err(|e| format!("{}: {e}", csv.display()))?;
+    eprintln!("nebel: wrote {}", csv.display());
     Ok(())
 }
 

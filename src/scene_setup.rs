@@ -20,6 +20,8 @@ use nebel_core::scene::{
 };
 use nebel_render::NebelSystems;
 
+use crate::fog_comparison::{BevyFog, BevyFogSettings, enable_bevy_fog, spawn_bevy_fog};
+
 /// Spawns a scene description at startup.
 pub struct SceneSetupPlugin {
     /// The scene to spawn.
@@ -29,6 +31,9 @@ pub struct SceneSetupPlugin {
     pub volumes: Vec<BuiltVolume>,
     /// Where the camera renders; `None` renders to the primary window.
     pub target: Option<RenderTarget>,
+    /// Draw grid volumes with Bevy's own `FogVolume` ray marcher instead of
+    /// nebel, for comparisons ([`crate::fog_comparison`]). Default: `None`.
+    pub bevy_fog: Option<BevyFog>,
 }
 
 impl SceneSetupPlugin {
@@ -40,6 +45,7 @@ impl SceneSetupPlugin {
             scene,
             volumes,
             target: None,
+            bevy_fog: None,
         })
     }
 }
@@ -71,7 +77,11 @@ impl Plugin for SceneSetupPlugin {
             .insert_resource(SceneRenderTarget(self.target.clone()))
             .insert_resource(SceneVolumes(self.volumes.clone()))
             .add_systems(Startup, spawn_scene)
+            .add_systems(PostStartup, enable_bevy_fog)
             .add_systems(Update, follow_camera_path.in_set(NebelSystems));
+        if let Some(fog) = self.bevy_fog {
+            app.insert_resource(BevyFogSettings(fog));
+        }
     }
 }
 
@@ -83,10 +93,13 @@ fn pose_transform(position: [f32; 3], look_at: [f32; 3]) -> Transform {
     Transform::from_translation(Vec3::from(position)).looking_at(Vec3::from(look_at), Vec3::Y)
 }
 
+#[allow(clippy::too_many_arguments)]
 fn spawn_scene(
     mut commands: Commands,
     scene: Res<LoadedScene>,
     volumes: Res<SceneVolumes>,
+    bevy_fog: Option<Res<BevyFogSettings>>,
+    mut images: ResMut<Assets<Image>>,
     target: Res<SceneRenderTarget>,
     mut meshes: ResMut<Assets<Mesh>>,
     mut materials: ResMut<Assets<StandardMaterial>>,
@@ -188,7 +201,21 @@ fn spawn_scene(
             Transform::from_translation(Vec3::from(center)),
         ));
     }
-    spawn_volumes(&mut commands, &volumes.0);
+    match bevy_fog {
+        Some(fog) => {
+            for volume in &volumes.0 {
+                if let nebel_core::scene::VolumeField::Grid(grid) = &volume.field {
+                    spawn_bevy_fog(
+                        &mut commands,
+                        &mut images,
+                        &std::sync::Arc::new(grid.clone()),
+                        &fog.0,
+                    );
+                }
+            }
+        }
+        None => spawn_volumes(&mut commands, &volumes.0),
+    }
 }
 
 /// Spawns the scene's volumes; their fields are in world space.

@@ -494,8 +494,12 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
                 })],
                 ..default()
             }),
+            // Cells are triangle strips wound inward: back faces are
+            // counter-clockwise, so culling "back" (clockwise) keeps them.
             primitive: PrimitiveState {
-                cull_mode: None,
+                topology: PrimitiveTopology::TriangleStrip,
+                front_face: FrontFace::Ccw,
+                cull_mode: Some(Face::Back),
                 ..default()
             },
             ..default()
@@ -656,7 +660,7 @@ fn draw_cell_batches(
     for (render_pipeline, batch_bind_group, count) in &draws {
         pass.set_pipeline(render_pipeline);
         pass.set_bind_group(1, batch_bind_group, &[]);
-        pass.draw(0..count * 12, 0..1);
+        pass.draw(0..6, 0..*count);
         stats
             .0
             .cells_drawn

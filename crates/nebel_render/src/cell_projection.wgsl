@@ -2,8 +2,9 @@
 // paper 001 ch. 8-9 and 10.3, paper 000 §4).
 //
 // Every tetrahedron is drawn as its back faces only (the faces whose plane has
-// the eye on the inner side), so each pixel it covers runs this fragment shader
-// exactly once, also when the eye is inside the cell. The fragment intersects
+// the eye on the inner side; the rasterizer culls the others), so each pixel it
+// covers runs this fragment shader exactly once, also when the eye is inside
+// the cell. The fragment intersects
 // the pixel's view ray with the cell's four face planes: entry and exit
 // distance, clipped to the near plane and to the opaque scene depth, give the
 // segment length l; the cell's linear scalar at entry and exit gives s_f and
@@ -77,21 +78,26 @@ fn outward_normal(cell: Cell, face: u32) -> vec3<f32> {
 }
 
 @vertex
-fn vertex(@builtin(vertex_index) vertex_index: u32) -> VertexOutput {
-    let cell_index = vertex_index / 12u;
-    let corner = vertex_index % 12u;
-    let face = corner / 3u;
+fn vertex(@builtin(vertex_index) vertex_index: u32, @builtin(instance_index) cell_index: u32) -> VertexOutput {
+    // One instance per cell, drawn as the triangle strip 0 1 2 3 0 1, which
+    // covers the four faces. With the cell positively oriented (v0 and v1
+    // swapped otherwise) every face winds with its normal pointing inward, so
+    // the rasterizer keeps exactly the back faces (counter-clockwise on
+    // screen) and culls the front ones; two cells sharing a face see it with
+    // opposite winding, so the choice is watertight.
     let cell = cells[cell_index];
-    let vertex = cell.vertices[FACE_VERTICES[corner]].xyz;
-    let a = relative_vertex(cell, FACE_VERTICES[face * 3u]);
+    let v0 = relative_vertex(cell, 0u);
+    let orientation = dot(relative_vertex(cell, 1u) - v0, cross(relative_vertex(cell, 2u) - v0, relative_vertex(cell, 3u) - v0));
+    var strip = array<u32, 6>(0u, 1u, 2u, 3u, 0u, 1u);
+    if orientation < 0.0 {
+        strip = array<u32, 6>(1u, 0u, 2u, 3u, 1u, 0u);
+    }
+    let vertex = cell.vertices[strip[vertex_index]].xyz;
 
     var out: VertexOutput;
     out.cell_index = cell_index;
     out.relative_position = vertex - view.camera_position.xyz;
-    // The eye (origin) is on the inner side of a back face: the ray leaves the
-    // cell through it. Front faces collapse to a point and draw nothing.
-    let is_back_face = dot(outward_normal(cell, face), -a) <= 0.0;
-    out.clip_position = select(vec4(2.0, 2.0, 0.5, 1.0), view.clip_from_world * vec4(vertex, 1.0), is_back_face);
+    out.clip_position = view.clip_from_world * vec4(vertex, 1.0);
     return out;
 }
 
