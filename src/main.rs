@@ -13,8 +13,8 @@
 //! `output`.
 //!
 //! `reference` integrates the same view exactly on the CPU
-//! ([`nebel_core::reference`], f64, adaptive, both cores): the scene's one
-//! volume over its clear colour, from the camera of the last frame, cut at
+//! ([`nebel::reference_image`], f64, adaptive, both cores): the scene's
+//! volumes over its clear colour, from the camera of the last frame, cut at
 //! the scene's meshes, which it draws black (the reference shades no surface;
 //! accuracy scenes have black meshes and no lights).
 //!
@@ -188,9 +188,11 @@ fn reference(args: &[String]) -> Result<(), String> {
     let arguments = Arguments::parse(args, &["out", "frames", "size"])?;
     let out = PathBuf::from(arguments.required("out")?);
     let (scene_path, scene) = load_scene(&arguments)?;
-    let volume = single_volume(&scene, &scene_path)?;
+    let volumes = scene
+        .build_volumes(&scene_path)
+        .map_err(|e| e.to_string())?;
     let started = Instant::now();
-    let image = reference_image(&scene, volume, true).map_err(|e| e.to_string())?;
+    let image = reference_image(&scene, volumes, true).map_err(|e| e.to_string())?;
     save_reference(&image, &out).map_err(|e| e.to_string())?;
     eprintln!(
         "nebel: wrote {} ({}x{}, exact CPU reference in {:.1} s)",
@@ -207,7 +209,7 @@ fn single_volume(scene: &SceneDescription, scene_path: &Path) -> Result<BuiltVol
     let mut volumes = scene.build_volumes(scene_path).map_err(|e| e.to_string())?;
     if volumes.len() != 1 {
         return Err(format!(
-            "{}: the reference renders exactly one volume, the scene has {}",
+            "{}: bench-fog compares exactly one volume, the scene has {}",
             scene_path.display(),
             volumes.len()
         ));
@@ -282,10 +284,11 @@ fn bench_fog(args: &[String]) -> Result<(), String> {
     };
     std::fs::create_dir_all(&out_dir).map_err(|e| format!("{}: {e}", out_dir.display()))?;
 
-    let reference = reference_image(&scene, equivalent.clone(), true).map_err(|e| e.to_string())?;
+    let reference =
+        reference_image(&scene, vec![equivalent.clone()], true).map_err(|e| e.to_string())?;
     save_reference(&reference, &out_dir.join("reference.png")).map_err(|e| e.to_string())?;
     let tetrahedral_reference =
-        reference_image(&scene, tetrahedral, true).map_err(|e| e.to_string())?;
+        reference_image(&scene, vec![tetrahedral], true).map_err(|e| e.to_string())?;
     save_reference(
         &tetrahedral_reference,
         &out_dir.join("reference_tetrahedral.png"),

@@ -245,6 +245,7 @@ const ACCURACY_BOUNDS: &[(&str, f64)] = &[
     ("ramp_emissive", 0.002),
     ("ramp_mip", 0.002),
     ("opaque_inside", 0.002),
+    ("two_volumes", 0.002),
 ];
 
 #[test]
