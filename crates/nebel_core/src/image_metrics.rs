@@ -16,7 +16,7 @@
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-use image::{ImageFormat, RgbImage};
+use image::{DynamicImage, ImageFormat, RgbImage};
 
 /// A linear-light image: `width × height` premultiplied RGBA pixels in f32,
 /// row-major, top row first. Colour channels are linear (not sRGB) and already
@@ -171,21 +171,27 @@ pub fn linear_to_srgb(linear: f64) -> f64 {
     }
 }
 
+/// Reads the file at `path` and decodes it as PNG; `read_error` and
+/// `decode_error` turn the file's path and the cause into the caller's error.
+/// Shared with the field loaders ([`crate::field`]).
+pub(crate) fn read_png<E>(
+    path: &Path,
+    read_error: impl FnOnce(PathBuf, std::io::Error) -> E,
+    decode_error: impl FnOnce(PathBuf, image::ImageError) -> E,
+) -> Result<DynamicImage, E> {
+    let bytes = std::fs::read(path).map_err(|source| read_error(path.to_owned(), source))?;
+    image::load_from_memory_with_format(&bytes, ImageFormat::Png)
+        .map_err(|source| decode_error(path.to_owned(), source))
+}
+
 /// Loads an 8- or 16-bit PNG of any channel layout as linear RGB with
 /// premultiplied alpha (opaque when the file has no alpha).
 pub fn load_png_linear(path: impl AsRef<Path>) -> Result<LinearImage, ImageMetricsError> {
-    let path = path.as_ref();
-    let bytes = std::fs::read(path).map_err(|source| ImageMetricsError::Io {
-        path: path.to_owned(),
-        source,
-    })?;
-    let image =
-        image::load_from_memory_with_format(&bytes, ImageFormat::Png).map_err(|source| {
-            ImageMetricsError::Decode {
-                path: path.to_owned(),
-                source,
-            }
-        })?;
+    let image = read_png(
+        path.as_ref(),
+        |path, source| ImageMetricsError::Io { path, source },
+        |path, source| ImageMetricsError::Decode { path, source },
+    )?;
     let (width, height) = (image.width(), image.height());
     // 8-bit values widen exactly (v · 257), so one path serves both depths.
     let pixels = image

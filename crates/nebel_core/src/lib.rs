@@ -21,4 +21,6 @@ pub mod preintegration;
 pub mod reference;
 pub mod scene;
 pub mod segment;
+#[cfg(test)]
+mod test_support;
 pub mod transfer;

@@ -697,6 +697,7 @@ impl SplitMix64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_support::arbitrary_transfer_function;
     use crate::transfer::{ControlPoint, TransferPreset};
     use proptest::prelude::*;
 
@@ -891,30 +892,10 @@ mod tests {
         }
     }
 
-    fn arbitrary_tf() -> impl Strategy<Value = TransferFunction> {
-        prop::collection::vec(
-            (
-                0.0_f32..=1.0,
-                prop::array::uniform3(0.0_f32..1.0),
-                0.0_f32..3.0,
-            ),
-            1..7,
-        )
-        .prop_map(|points| {
-            TransferFunction::new(
-                points
-                    .into_iter()
-                    .map(|(s, kappa, rho)| ControlPoint { s, kappa, rho })
-                    .collect::<Vec<_>>(),
-            )
-            .unwrap()
-        })
-    }
-
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(24))]
         #[test]
-        fn random_tables_are_within_stated_error(tf in arbitrary_tf(), max_length in 0.1_f32..4.0) {
+        fn random_tables_are_within_stated_error(tf in arbitrary_transfer_function(1..7, 1.0, 3.0), max_length in 0.1_f32..4.0) {
             let config = PreintegrationConfig { scalar_size: 12, length_size: 16, max_length };
             let table = PreintegrationTable::build(&tf, config).unwrap();
             prop_assert!(table.colour().iter().flatten().all(|v| v.is_finite() && *v >= 0.0));

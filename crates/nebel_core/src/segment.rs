@@ -423,6 +423,7 @@ fn adaptive_kronrod(f: &impl Fn(f64) -> DVec3, a: f64, b: f64, depth: u32) -> DV
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_support::arbitrary_transfer_function;
     use crate::transfer::ControlPoint;
     use proptest::prelude::*;
 
@@ -638,30 +639,10 @@ mod tests {
         assert_eq!(rho_hat(&tf, 0.5, 0.5), tf.evaluate(0.5).rho);
     }
 
-    fn arbitrary_tf() -> impl Strategy<Value = TransferFunction> {
-        prop::collection::vec(
-            (
-                0.0_f32..=1.0,
-                prop::array::uniform3(0.0_f32..2.0),
-                0.0_f32..8.0,
-            ),
-            1..8,
-        )
-        .prop_map(|points| {
-            TransferFunction::new(
-                points
-                    .into_iter()
-                    .map(|(s, kappa, rho)| ControlPoint { s, kappa, rho })
-                    .collect::<Vec<_>>(),
-            )
-            .unwrap()
-        })
-    }
-
     proptest! {
         #[test]
         fn sorted_segments_are_bounded_and_monotone(
-            tf in arbitrary_tf(),
+            tf in arbitrary_transfer_function(1..8, 2.0, 8.0),
             s_f in 0.0_f64..=1.0,
             s_b in 0.0_f64..=1.0,
             l in 0.0_f64..50.0,

@@ -16,9 +16,10 @@
 use std::path::Path;
 
 use glam::{DVec2, DVec3};
-use image::{DynamicImage, ImageFormat};
+use image::DynamicImage;
 
 use super::{DensityGrid, FieldError, HeightField};
+use crate::image_metrics::read_png;
 
 /// The sample type of a raw little-endian file.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -70,6 +71,24 @@ pub enum Normalization {
     DivideByMax,
 }
 
+impl Normalization {
+    /// Turns decoded `values` into densities as described above; `name` (the
+    /// file) is for errors.
+    fn apply(self, name: &str, values: &mut [f32]) -> Result<(), FieldError> {
+        match self {
+            Self::None => Ok(()),
+            Self::DivideByMax => {
+                super::check_finite(name, values)?;
+                let max = values.iter().copied().fold(0.0f32, f32::max);
+                if max > 0.0 {
+                    values.iter_mut().for_each(|v| *v /= max);
+                }
+                Ok(())
+            }
+        }
+    }
+}
+
 /// How a tiled PNG holds the slices of a density volume.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct TileLayout {
@@ -96,14 +115,11 @@ fn read_file(path: &Path) -> Result<Vec<u8>, FieldError> {
 }
 
 fn read_grayscale_png(path: &Path) -> Result<GrayImage, FieldError> {
-    let bytes = read_file(path)?;
-    let image =
-        image::load_from_memory_with_format(&bytes, ImageFormat::Png).map_err(|source| {
-            FieldError::Decode {
-                path: path.to_owned(),
-                source,
-            }
-        })?;
+    let image = read_png(
+        path,
+        |path, source| FieldError::Io { path, source },
+        |path, source| FieldError::Decode { path, source },
+    )?;
     let (width, height) = (image.width(), image.height());
     let values = match image {
         DynamicImage::ImageLuma8(buffer) => buffer
@@ -128,22 +144,6 @@ fn read_grayscale_png(path: &Path) -> Result<GrayImage, FieldError> {
         height,
         values,
     })
-}
-
-/// Multiplies unit values by a finite vertical scale.
-fn scaled(name: &str, values: Vec<f32>, vertical_scale: f64) -> Result<Vec<f32>, FieldError> {
-    if !vertical_scale.is_finite() {
-        return Err(FieldError::InvalidParameter {
-            name: name.to_owned(),
-            parameter: "vertical_scale",
-            value: vertical_scale.to_string(),
-            requirement: "finite",
-        });
-    }
-    Ok(values
-        .into_iter()
-        .map(|v| (f64::from(v) * vertical_scale) as f32)
-        .collect())
 }
 
 /// Reads a raw file of `dims` samples, checking its length first.
@@ -180,11 +180,9 @@ impl HeightField {
         vertical_scale: f64,
     ) -> Result<Self, FieldError> {
         let path = path.as_ref();
-        let name = path.display().to_string();
         let image = read_grayscale_png(path)?;
-        let heights = scaled(&name, image.values, vertical_scale)?;
         let dims = [image.width as usize, image.height as usize];
-        Self::validated(&name, dims, spacing, origin, heights)
+        Self::from_file_values(path, dims, image.values, vertical_scale, spacing, origin)
     }
 
     /// Loads a raw little-endian file of `dims = [nx, nz]` samples (x fastest):
@@ -199,9 +197,26 @@ impl HeightField {
         origin: DVec2,
     ) -> Result<Self, FieldError> {
         let path = path.as_ref();
-        let name = path.display().to_string();
         let values = read_raw(path, &dims, sample_type)?;
-        let heights = scaled(&name, values, vertical_scale)?;
+        Self::from_file_values(path, dims, values, vertical_scale, spacing, origin)
+    }
+
+    /// The height field of `values` read from `path`: height = value ·
+    /// `vertical_scale`, which must be finite. Errors name the file.
+    fn from_file_values(
+        path: &Path,
+        dims: [usize; 2],
+        values: Vec<f32>,
+        vertical_scale: f64,
+        spacing: DVec2,
+        origin: DVec2,
+    ) -> Result<Self, FieldError> {
+        let name = path.display().to_string();
+        super::check_vertical_scale(&name, vertical_scale)?;
+        let heights = values
+            .into_iter()
+            .map(|v| (f64::from(v) * vertical_scale) as f32)
+            .collect();
         Self::validated(&name, dims, spacing, origin, heights)
     }
 }
@@ -315,13 +330,7 @@ impl DensityGrid {
         let path = path.as_ref();
         let name = path.display().to_string();
         let mut values = read_raw(path, &dims, sample_type)?;
-        if normalization == Normalization::DivideByMax {
-            super::check_finite(&name, &values)?;
-            let max = values.iter().copied().fold(0.0f32, f32::max);
-            if max > 0.0 {
-                values.iter_mut().for_each(|v| *v /= max);
-            }
-        }
+        normalization.apply(&name, &mut values)?;
         Self::validated(&name, dims, spacing, origin, values)
     }
 }
@@ -346,6 +355,7 @@ fn stack_slices<'a>(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_support::{assert_mentions, error_message};
     use std::path::PathBuf;
 
     /// A fresh directory for one test's files.
@@ -353,6 +363,14 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("nebel-field-{}-{test}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         dir
+    }
+
+    /// Whether `actual` and `expected` agree within `tolerance`, pair by pair.
+    fn all_close(actual: &[f32], expected: &[f32], tolerance: f32) -> bool {
+        actual
+            .iter()
+            .zip(expected)
+            .all(|(a, e)| (a - e).abs() < tolerance)
     }
 
     fn save_gray8(path: &Path, width: u32, height: u32, values: &[u8]) {
@@ -370,13 +388,7 @@ mod tests {
         let field = HeightField::load_png(&path8, DVec2::ONE, DVec2::ZERO, 100.0).unwrap();
         assert_eq!(field.dims(), [3, 2]);
         let expected = [0.0, 20.0, 40.0, 60.0, 80.0, 100.0];
-        assert!(
-            field
-                .heights()
-                .iter()
-                .zip(expected)
-                .all(|(h, e)| (h - e).abs() < 1e-4)
-        );
+        assert!(all_close(field.heights(), &expected, 1e-4));
         assert_eq!(field.height(2, 1), 100.0);
 
         let path16 = dir.join("height16.png");
@@ -432,13 +444,13 @@ mod tests {
             columns: 3,
             ..layout
         };
-        let message = DensityGrid::load_png_tiled(&tiled_path, bad, DVec3::ONE, DVec3::ZERO)
-            .unwrap_err()
-            .to_string();
-        assert!(
-            message.contains("tiled.png") && message.contains("3×2 equal tiles"),
-            "{message}"
-        );
+        let message = error_message(DensityGrid::load_png_tiled(
+            &tiled_path,
+            bad,
+            DVec3::ONE,
+            DVec3::ZERO,
+        ));
+        assert_mentions(&message, &["tiled.png", "3×2 equal tiles"]);
         let too_many = TileLayout {
             slices: 5,
             ..layout
@@ -451,10 +463,11 @@ mod tests {
     #[test]
     fn png_errors_name_the_file() {
         let dir = temp_dir("png-errors");
+        let load_height_png = |path: &Path, vertical_scale| {
+            HeightField::load_png(path, DVec2::ONE, DVec2::ZERO, vertical_scale)
+        };
         let missing = dir.join("missing.png");
-        let message = HeightField::load_png(&missing, DVec2::ONE, DVec2::ZERO, 1.0)
-            .unwrap_err()
-            .to_string();
+        let message = error_message(load_height_png(&missing, 1.0));
         assert!(
             message.starts_with("cannot read") && message.contains("missing.png"),
             "{message}"
@@ -462,59 +475,30 @@ mod tests {
 
         let not_png = dir.join("text.png");
         std::fs::write(&not_png, b"not an image").unwrap();
-        let message = HeightField::load_png(&not_png, DVec2::ONE, DVec2::ZERO, 1.0)
-            .unwrap_err()
-            .to_string();
-        assert!(
-            message.contains("cannot decode") && message.contains("text.png"),
-            "{message}"
-        );
+        let message = error_message(load_height_png(&not_png, 1.0));
+        assert_mentions(&message, &["cannot decode", "text.png"]);
 
         let rgb = dir.join("rgb.png");
         image::RgbImage::new(2, 2).save(&rgb).unwrap();
-        let message = HeightField::load_png(&rgb, DVec2::ONE, DVec2::ZERO, 1.0)
-            .unwrap_err()
-            .to_string();
-        assert!(
-            message.contains("rgb.png")
-                && message.contains("grayscale")
-                && message.contains("Rgb8"),
-            "{message}"
-        );
+        let message = error_message(load_height_png(&rgb, 1.0));
+        assert_mentions(&message, &["rgb.png", "grayscale", "Rgb8"]);
 
         let small = dir.join("small.png");
         save_gray8(&small, 2, 2, &[0; 4]);
         let large = dir.join("large.png");
         save_gray8(&large, 3, 2, &[0; 6]);
-        let message = DensityGrid::load_png_slices(&[&small, &large], DVec3::ONE, DVec3::ZERO)
-            .unwrap_err()
-            .to_string();
-        assert!(
-            message.contains("large.png")
-                && message.contains("(3, 2)")
-                && message.contains("small.png"),
-            "{message}"
-        );
-        let message = DensityGrid::load_png_slices(&[&small], DVec3::ONE, DVec3::ZERO)
-            .unwrap_err()
-            .to_string();
-        assert!(message.contains("1 given"), "{message}");
-        let message = HeightField::load_png(&small, DVec2::ONE, DVec2::ZERO, f64::NAN)
-            .unwrap_err()
-            .to_string();
-        assert!(
-            message.contains("small.png") && message.contains("vertical_scale"),
-            "{message}"
-        );
+        let load_slices =
+            |paths: &[&PathBuf]| DensityGrid::load_png_slices(paths, DVec3::ONE, DVec3::ZERO);
+        let message = error_message(load_slices(&[&small, &large]));
+        assert_mentions(&message, &["large.png", "(3, 2)", "small.png"]);
+        let message = error_message(load_slices(&[&small]));
+        assert_mentions(&message, &["1 given"]);
+        let message = error_message(load_height_png(&small, f64::NAN));
+        assert_mentions(&message, &["small.png", "vertical_scale"]);
         let line = dir.join("line.png");
         save_gray8(&line, 5, 1, &[0; 5]);
-        let message = HeightField::load_png(&line, DVec2::ONE, DVec2::ZERO, 1.0)
-            .unwrap_err()
-            .to_string();
-        assert!(
-            message.contains("line.png") && message.contains("at least 2"),
-            "{message}"
-        );
+        let message = error_message(load_height_png(&line, 1.0));
+        assert_mentions(&message, &["line.png", "at least 2"]);
     }
 
     #[test]
@@ -522,24 +506,21 @@ mod tests {
         let dir = temp_dir("raw");
         let dims = [2, 2, 2];
         let expected: Vec<f32> = (0..8).map(|v| v as f32 / 7.0).collect();
+        let load_volume = |path: &Path, dims, sample_type, normalization| {
+            DensityGrid::load_raw(
+                path,
+                dims,
+                sample_type,
+                normalization,
+                DVec3::ONE,
+                DVec3::ZERO,
+            )
+        };
 
         let u8_path = dir.join("volume.u8");
         std::fs::write(&u8_path, [0u8, 36, 73, 109, 146, 182, 219, 255]).unwrap();
-        let grid = DensityGrid::load_raw(
-            &u8_path,
-            dims,
-            RawSampleType::U8,
-            Normalization::None,
-            DVec3::ONE,
-            DVec3::ZERO,
-        )
-        .unwrap();
-        assert!(
-            grid.values()
-                .iter()
-                .zip(&expected)
-                .all(|(a, b)| (a - b).abs() < 1.0 / 255.0)
-        );
+        let grid = load_volume(&u8_path, dims, RawSampleType::U8, Normalization::None).unwrap();
+        assert!(all_close(grid.values(), &expected, 1.0 / 255.0));
 
         let u16_path = dir.join("volume.u16");
         let bytes: Vec<u8> = expected
@@ -547,21 +528,8 @@ mod tests {
             .flat_map(|v| ((v * 65535.0).round() as u16).to_le_bytes())
             .collect();
         std::fs::write(&u16_path, bytes).unwrap();
-        let grid = DensityGrid::load_raw(
-            &u16_path,
-            dims,
-            RawSampleType::U16,
-            Normalization::None,
-            DVec3::ONE,
-            DVec3::ZERO,
-        )
-        .unwrap();
-        assert!(
-            grid.values()
-                .iter()
-                .zip(&expected)
-                .all(|(a, b)| (a - b).abs() < 1e-4)
-        );
+        let grid = load_volume(&u16_path, dims, RawSampleType::U16, Normalization::None).unwrap();
+        assert!(all_close(grid.values(), &expected, 1e-4));
 
         let f32_path = dir.join("volume.f32");
         let write_f32 = |values: &[f32]| {
@@ -569,68 +537,33 @@ mod tests {
             std::fs::write(&f32_path, bytes).unwrap();
         };
         write_f32(&expected);
-        let grid = DensityGrid::load_raw(
-            &f32_path,
-            dims,
-            RawSampleType::F32,
-            Normalization::None,
-            DVec3::ONE,
-            DVec3::ZERO,
-        )
-        .unwrap();
+        let load = |normalization| load_volume(&f32_path, dims, RawSampleType::F32, normalization);
+        let grid = load(Normalization::None).unwrap();
         assert_eq!(grid.values(), expected.as_slice());
 
         // Physical densities: rescaled by their maximum.
         let physical: Vec<f32> = expected.iter().map(|v| v * 40.0).collect();
         write_f32(&physical);
-        let load = |normalization| {
-            DensityGrid::load_raw(
-                &f32_path,
-                dims,
-                RawSampleType::F32,
-                normalization,
-                DVec3::ONE,
-                DVec3::ZERO,
-            )
-        };
-        let message = load(Normalization::None).unwrap_err().to_string();
-        assert!(
-            message.contains("volume.f32") && message.contains("outside [0, 1]"),
-            "{message}"
-        );
+        let message = error_message(load(Normalization::None));
+        assert_mentions(&message, &["volume.f32", "outside [0, 1]"]);
         let grid = load(Normalization::DivideByMax).unwrap();
-        assert!(
-            grid.values()
-                .iter()
-                .zip(&expected)
-                .all(|(a, b)| (a - b).abs() < 1e-6)
-        );
+        assert!(all_close(grid.values(), &expected, 1e-6));
 
         let mut with_nan = expected.clone();
         with_nan[6] = f32::NAN;
         write_f32(&with_nan);
         for normalization in [Normalization::None, Normalization::DivideByMax] {
-            let message = load(normalization).unwrap_err().to_string();
-            assert!(
-                message.contains("volume.f32") && message.contains("sample 6 is NaN"),
-                "{message}"
-            );
+            let message = error_message(load(normalization));
+            assert_mentions(&message, &["volume.f32", "sample 6 is NaN"]);
         }
 
-        let message = DensityGrid::load_raw(
+        let message = error_message(load_volume(
             &u8_path,
             [2, 2, 3],
             RawSampleType::U8,
             Normalization::None,
-            DVec3::ONE,
-            DVec3::ZERO,
-        )
-        .unwrap_err()
-        .to_string();
-        assert!(
-            message.contains("volume.u8") && message.contains("need 12 bytes, the file has 8"),
-            "{message}"
-        );
+        ));
+        assert_mentions(&message, &["volume.u8", "need 12 bytes, the file has 8"]);
 
         let height = HeightField::load_raw(
             &u16_path,

@@ -243,6 +243,20 @@ fn check_origin(name: &str, origin: &[f64]) -> Result<(), FieldError> {
     }
 }
 
+/// Checks that a height field's vertical scale is finite.
+fn check_vertical_scale(name: &str, vertical_scale: f64) -> Result<(), FieldError> {
+    if vertical_scale.is_finite() {
+        Ok(())
+    } else {
+        Err(FieldError::InvalidParameter {
+            name: name.to_owned(),
+            parameter: "vertical_scale",
+            value: vertical_scale.to_string(),
+            requirement: "finite",
+        })
+    }
+}
+
 /// Linear interpolation weights of a coordinate `u` (grid units) along an axis
 /// of `n` points: the lower index (≤ n − 2) and the fraction in [0, 1]. `u` is
 /// clamped to the axis; NaN reads as 0.

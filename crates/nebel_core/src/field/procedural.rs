@@ -178,14 +178,7 @@ impl HeightField {
         let name = "HeightField::procedural";
         let generator = noise.generator(name)?;
         super::check_dims(name, &dims, dims.iter().product())?;
-        if !vertical_scale.is_finite() {
-            return Err(FieldError::InvalidParameter {
-                name: name.to_owned(),
-                parameter: "vertical_scale",
-                value: vertical_scale.to_string(),
-                requirement: "finite",
-            });
-        }
+        super::check_vertical_scale(name, vertical_scale)?;
         let [nx, nz] = dims;
         let mut heights = Vec::with_capacity(nx * nz);
         for j in 0..nz {
@@ -204,6 +197,7 @@ impl HeightField {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_support::{assert_mentions, error_message};
 
     fn settings(kind: NoiseKind, seed: u32) -> ProceduralNoise {
         ProceduralNoise {
@@ -281,20 +275,24 @@ mod tests {
             octaves: 0,
             ..Default::default()
         };
-        let message = DensityGrid::procedural([2, 2, 2], DVec3::ONE, DVec3::ZERO, &bad)
-            .unwrap_err()
-            .to_string();
-        assert!(
-            message.contains("DensityGrid::procedural") && message.contains("octaves"),
-            "{message}"
-        );
+        let message = error_message(DensityGrid::procedural(
+            [2, 2, 2],
+            DVec3::ONE,
+            DVec3::ZERO,
+            &bad,
+        ));
+        assert_mentions(&message, &["DensityGrid::procedural", "octaves"]);
         let bad = ProceduralNoise {
             frequency: f64::NAN,
             ..Default::default()
         };
-        let message = HeightField::procedural([2, 2], DVec2::ONE, DVec2::ZERO, &bad, 1.0)
-            .unwrap_err()
-            .to_string();
-        assert!(message.contains("frequency"), "{message}");
+        let message = error_message(HeightField::procedural(
+            [2, 2],
+            DVec2::ONE,
+            DVec2::ZERO,
+            &bad,
+            1.0,
+        ));
+        assert_mentions(&message, &["frequency"]);
     }
 }

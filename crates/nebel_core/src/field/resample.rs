@@ -78,10 +78,51 @@ impl PadFill {
     }
 }
 
-/// Position in old grid units of new point `index` when `old` points are
-/// resampled to `new` over the same extent.
-fn resampled_coordinate(index: usize, old: usize, new: usize) -> f64 {
-    (index * (old - 1)) as f64 / (new - 1) as f64
+/// The points per axis of a field before and after bringing each axis to
+/// 2^n+1.
+struct Resize<const N: usize> {
+    old: [usize; N],
+    new: [usize; N],
+}
+
+impl<const N: usize> Resize<N> {
+    fn of(old: [usize; N]) -> Self {
+        Self {
+            old,
+            new: old.map(power_of_two_plus_one),
+        }
+    }
+
+    /// The samples at every new point, x fastest, from `value` at each new
+    /// index.
+    fn values(&self, mut value: impl FnMut([usize; N]) -> f32) -> Vec<f32> {
+        let count = self.new.iter().product();
+        let mut values = Vec::with_capacity(count);
+        let mut index = [0; N];
+        for _ in 0..count {
+            values.push(value(index));
+            for (i, n) in index.iter_mut().zip(self.new) {
+                *i += 1;
+                if *i < n {
+                    break;
+                }
+                *i = 0;
+            }
+        }
+        values
+    }
+
+    /// Position in old grid units of the new point `index` when resampling over
+    /// the same extent.
+    fn resampled_position(&self, index: [usize; N]) -> [f64; N] {
+        std::array::from_fn(|a| (index[a] * (self.old[a] - 1)) as f64 / (self.new[a] - 1) as f64)
+    }
+
+    /// New spacing over old spacing, per axis, when resampling over the same
+    /// extent.
+    fn resampled_spacing_ratio(&self) -> [f64; N] {
+        std::array::from_fn(|a| (self.old[a] - 1) as f64 / (self.new[a] - 1) as f64)
+    }
 }
 
 impl DensityGrid {
@@ -90,44 +131,24 @@ impl DensityGrid {
     pub fn padded_to_power_of_two_plus_one(&self, fill: PadFill) -> Result<Self, FieldError> {
         let name = "DensityGrid::padded_to_power_of_two_plus_one";
         fill.check(name, Some((0.0, 1.0)))?;
-        let old = self.dims();
-        let new = old.map(power_of_two_plus_one);
-        let mut values = Vec::with_capacity(new.iter().product());
-        for k in 0..new[2] {
-            for j in 0..new[1] {
-                for i in 0..new[0] {
-                    values.push(fill.value([i, j, k], old, |[i, j, k]| self.value(i, j, k)));
-                }
-            }
-        }
-        Self::validated(name, new, self.spacing(), self.origin(), values)
+        let resize = Resize::of(self.dims());
+        let values =
+            resize.values(|index| fill.value(index, resize.old, |[i, j, k]| self.value(i, j, k)));
+        Self::validated(name, resize.new, self.spacing(), self.origin(), values)
     }
 
     /// Resamples each axis to 2^n+1 points over the same box by trilinear
     /// interpolation (see the module docs).
     pub fn resampled_to_power_of_two_plus_one(&self) -> Result<Self, FieldError> {
-        let old = self.dims();
-        let new = old.map(power_of_two_plus_one);
-        let mut values = Vec::with_capacity(new.iter().product());
-        for k in 0..new[2] {
-            for j in 0..new[1] {
-                for i in 0..new[0] {
-                    let position = DVec3::new(
-                        resampled_coordinate(i, old[0], new[0]),
-                        resampled_coordinate(j, old[1], new[1]),
-                        resampled_coordinate(k, old[2], new[2]),
-                    );
-                    values.push((self.sample_grid(position) as f32).clamp(0.0, 1.0));
-                }
-            }
-        }
-        let spacing = self.spacing()
-            * DVec3::from_array(std::array::from_fn(|a| {
-                (old[a] - 1) as f64 / (new[a] - 1) as f64
-            }));
+        let resize = Resize::of(self.dims());
+        let values = resize.values(|index| {
+            let position = DVec3::from_array(resize.resampled_position(index));
+            (self.sample_grid(position) as f32).clamp(0.0, 1.0)
+        });
+        let spacing = self.spacing() * DVec3::from_array(resize.resampled_spacing_ratio());
         Self::validated(
             "DensityGrid::resampled_to_power_of_two_plus_one",
-            new,
+            resize.new,
             spacing,
             self.origin(),
             values,
@@ -141,39 +162,23 @@ impl HeightField {
     pub fn padded_to_power_of_two_plus_one(&self, fill: PadFill) -> Result<Self, FieldError> {
         let name = "HeightField::padded_to_power_of_two_plus_one";
         fill.check(name, None)?;
-        let old = self.dims();
-        let new = old.map(power_of_two_plus_one);
-        let mut heights = Vec::with_capacity(new.iter().product());
-        for j in 0..new[1] {
-            for i in 0..new[0] {
-                heights.push(fill.value([i, j], old, |[i, j]| self.height(i, j)));
-            }
-        }
-        Self::validated(name, new, self.spacing(), self.origin(), heights)
+        let resize = Resize::of(self.dims());
+        let heights =
+            resize.values(|index| fill.value(index, resize.old, |[i, j]| self.height(i, j)));
+        Self::validated(name, resize.new, self.spacing(), self.origin(), heights)
     }
 
     /// Resamples each axis to 2^n+1 points over the same extent by bilinear
     /// interpolation (see the module docs).
     pub fn resampled_to_power_of_two_plus_one(&self) -> Result<Self, FieldError> {
-        let old = self.dims();
-        let new = old.map(power_of_two_plus_one);
-        let mut heights = Vec::with_capacity(new.iter().product());
-        for j in 0..new[1] {
-            for i in 0..new[0] {
-                let position = DVec2::new(
-                    resampled_coordinate(i, old[0], new[0]),
-                    resampled_coordinate(j, old[1], new[1]),
-                );
-                heights.push(self.sample_grid(position) as f32);
-            }
-        }
-        let spacing = self.spacing()
-            * DVec2::from_array(std::array::from_fn(|a| {
-                (old[a] - 1) as f64 / (new[a] - 1) as f64
-            }));
+        let resize = Resize::of(self.dims());
+        let heights = resize.values(|index| {
+            self.sample_grid(DVec2::from_array(resize.resampled_position(index))) as f32
+        });
+        let spacing = self.spacing() * DVec2::from_array(resize.resampled_spacing_ratio());
         Self::validated(
             "HeightField::resampled_to_power_of_two_plus_one",
-            new,
+            resize.new,
             spacing,
             self.origin(),
             heights,

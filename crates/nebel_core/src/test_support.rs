@@ -1,0 +1,46 @@
+//! Helpers shared by the unit tests of several modules.
+
+use std::fmt::{Debug, Display};
+use std::ops::Range;
+
+use proptest::prelude::*;
+
+use crate::transfer::{ControlPoint, TransferFunction};
+
+/// Random valid transfer functions: `point_counts` control points at random
+/// `s` in [0, 1], each κ channel in [0, `kappa_below`), ρ in [0, `rho_below`).
+pub(crate) fn arbitrary_transfer_function(
+    point_counts: Range<usize>,
+    kappa_below: f32,
+    rho_below: f32,
+) -> impl Strategy<Value = TransferFunction> {
+    prop::collection::vec(
+        (
+            0.0_f32..=1.0,
+            prop::array::uniform3(0.0_f32..kappa_below),
+            0.0_f32..rho_below,
+        ),
+        point_counts,
+    )
+    .prop_map(|points| {
+        TransferFunction::new(
+            points
+                .into_iter()
+                .map(|(s, kappa, rho)| ControlPoint { s, kappa, rho })
+                .collect::<Vec<_>>(),
+        )
+        .unwrap()
+    })
+}
+
+/// The message of the error that `result` must hold.
+pub(crate) fn error_message<T: Debug, E: Display>(result: Result<T, E>) -> String {
+    result.unwrap_err().to_string()
+}
+
+/// Asserts that `message` contains every one of `parts`.
+pub(crate) fn assert_mentions(message: &str, parts: &[&str]) {
+    for part in parts {
+        assert!(message.contains(part), "{message}");
+    }
+}
