@@ -54,7 +54,7 @@ pub fn reference_image(
             }
         };
         let mut reference_scene =
-            ReferenceScene::new(camera.clone(), field, volume.transfer_function, volume.mode);
+            ReferenceScene::new(camera, field, volume.transfer_function, volume.mode);
         reference_scene.opaque_depth = opaque_depth.clone();
         let last_report = Mutex::new(Instant::now());
         let report = |rows: RenderProgress| {

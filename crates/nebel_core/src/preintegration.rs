@@ -858,10 +858,10 @@ mod tests {
         let table = PreintegrationTable::build(&tf, small()).unwrap();
         assert!(table.is_transparent(0.0, 0.049));
         assert!(table.is_transparent(0.04, 0.0));
-        // The cut-off is a step at s = 0.05_f32: ρ > 0 from there on.
-        let step = f64::from(0.05_f32);
-        assert!(table.is_transparent(0.0, step.next_down()));
-        assert!(!table.is_transparent(0.0, step));
+        // The cut-off at s = 0.05_f32: ρ = 0 up to it, > 0 just above it.
+        let cut_off = f64::from(0.05_f32);
+        assert!(table.is_transparent(0.0, cut_off));
+        assert!(!table.is_transparent(0.0, cut_off.next_up()));
         assert!(!table.is_transparent(0.3, 0.4));
         assert!(!table.is_transparent(f64::NAN, 0.01));
     }

@@ -155,7 +155,9 @@ impl TryFrom<RawTransferFunction> for TransferFunction {
 pub enum TransferPreset {
     /// The paper's non-photorealistic cloud (000 §5, 001 §11.6.2): κ is an
     /// inverse colour ramp, white where the cloud is thin, darker bluish grey
-    /// where it is dense; ρ is zero below s = 0.05 and linear in `s` above.
+    /// where it is dense; ρ is zero below the cut-off s = 0.05 and rises
+    /// linearly from 0 there to 1 at s = 1 (continuous, so the tables
+    /// interpolate it as well as any linear function).
     #[default]
     Cloud,
     /// Ground fog: light grey-blue, ρ linear in `s` from 0 (the fog top, where
@@ -192,8 +194,7 @@ impl TransferPreset {
             TransferPreset::Cloud => vec![
                 p(0.0, [1.0, 1.0, 1.0], 0.0),
                 p(0.05, [1.0, 1.0, 1.0], 0.0),
-                p(0.05, [1.0, 1.0, 1.0], 0.05),
-                p(0.4, [0.82, 0.84, 0.88], 0.4),
+                p(0.4, [0.82, 0.84, 0.88], 0.35 / 0.95),
                 p(1.0, [0.38, 0.41, 0.50], 1.0),
             ],
             TransferPreset::GroundFog => vec![
@@ -220,7 +221,6 @@ impl TransferPreset {
             TransferPreset::Smoke => vec![
                 p(0.0, [0.3, 0.3, 0.31], 0.0),
                 p(0.02, [0.3, 0.3, 0.31], 0.0),
-                p(0.02, [0.3, 0.3, 0.31], 0.02),
                 p(1.0, [0.1, 0.1, 0.11], 1.0),
             ],
         }
