@@ -48,6 +48,7 @@
 //! ```
 
 pub mod example_runner;
+pub mod flickering_light;
 pub mod fly_camera;
 pub mod fog_comparison;
 pub mod headless;
@@ -72,7 +73,8 @@ impl PluginGroup for NebelPlugins {
     fn build(self) -> PluginGroupBuilder {
         let group = PluginGroupBuilder::start::<Self>()
             .add(nebel_render::NebelDiagnosticsPlugin)
-            .add(nebel_render::CellProjectionPlugin);
+            .add(nebel_render::CellProjectionPlugin)
+            .add(flickering_light::FlickeringLightPlugin);
         #[cfg(feature = "volume")]
         let group = group.add(nebel_volume::VolumePlugin);
         group
@@ -82,6 +84,7 @@ impl PluginGroup for NebelPlugins {
 /// `use nebel::prelude::*;` brings the plugins and the components a game spawns.
 pub mod prelude {
     pub use crate::NebelPlugins;
+    pub use crate::flickering_light::{FlickeringLight, FlickeringLightPlugin};
     pub use crate::fly_camera::{FlyCamera, FlyCameraPlugin};
     pub use crate::scene_setup::{SceneCamera, SceneSetupPlugin};
     pub use nebel_render::{CellBatch, EffectCounters, NebelSystems};

@@ -20,6 +20,7 @@ use nebel_core::scene::{
 };
 use nebel_render::NebelSystems;
 
+use crate::flickering_light::FlickeringLight;
 use crate::fog_comparison::{BevyFog, BevyFogSettings, enable_bevy_fog, spawn_bevy_fog};
 
 /// Spawns a scene description at startup.
@@ -154,7 +155,7 @@ fn spawn_scene(
                 ));
             }
             LightDescription::Point(point) => {
-                commands.spawn((
+                let mut light = commands.spawn((
                     PointLight {
                         color: srgb(point.color),
                         intensity: point.intensity,
@@ -164,6 +165,12 @@ fn spawn_scene(
                     },
                     Transform::from_translation(Vec3::from(point.position)),
                 ));
+                if point.flicker > 0.0 {
+                    light.insert(FlickeringLight {
+                        base_intensity: point.intensity,
+                        amplitude: point.flicker,
+                    });
+                }
             }
             LightDescription::Ambient(light) => {
                 ambient.color = srgb(light.color);

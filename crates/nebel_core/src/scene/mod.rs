@@ -240,6 +240,10 @@ pub struct PointLightDescription {
     /// Distance beyond which it lights nothing, metres, > 0. Default: 20.
     #[serde(default = "default_point_range")]
     pub range: f32,
+    /// Relative amplitude of a firelight flicker of the intensity, in [0, 1];
+    /// 0 is steady. Default: 0.
+    #[serde(default)]
+    pub flicker: f32,
     /// Whether it casts shadows. Default: false.
     #[serde(default)]
     pub shadows: bool,
@@ -537,6 +541,12 @@ impl SceneDescription {
                     colour(&format!("{field}.color"), point.color)?;
                     non_negative(&format!("{field}.intensity"), point.intensity)?;
                     positive(&format!("{field}.range"), point.range)?;
+                    if !(0.0..=1.0).contains(&point.flicker) {
+                        return Err(InvalidField::new(
+                            format!("{field}.flicker"),
+                            format!("must be in [0, 1], got {}", point.flicker),
+                        ));
+                    }
                 }
                 LightDescription::Ambient(ambient) => {
                     let field = format!("lights[{index}].Ambient");
@@ -736,6 +746,7 @@ mod tests {
                     color: [1.0, 0.5, 0.2],
                     intensity: 2000.0,
                     range: 10.0,
+                    flicker: 0.25,
                     shadows: false,
                 }),
                 LightDescription::Ambient(AmbientLightDescription {
