@@ -12,8 +12,9 @@
 //! transform changed, and, for sorted grid volumes, when the camera moved
 //! (the order and the culling depend on the eye). Emissive and MIP volumes
 //! draw unordered and unculled, so a moving camera costs them nothing.
-//! The `volume` group of [`EffectCounters`] reports volumes, cells drawn,
-//! cells at full resolution and the last rebuild's time.
+//! A hidden volume (its [`InheritedVisibility`] false) has no batch. The
+//! `volume` group of [`EffectCounters`] reports volumes, cells drawn, cells
+//! at full resolution and the last rebuild's time.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -100,7 +101,8 @@ fn update_volume_batches(
         Entity,
         Ref<Volume>,
         Ref<GlobalTransform>,
-        &ViewVisibility,
+        &InheritedVisibility,
+        Option<&CellBatch>,
         Option<&mut VolumeBatchSource>,
     )>,
     mut counters: ResMut<EffectCounters>,
@@ -112,6 +114,11 @@ fn update_volume_batches(
     else {
         return;
     };
+    if camera.physical_target_size().is_none() {
+        // The projection is computed in the camera's first PostUpdate; a
+        // batch culled with the placeholder would never be rebuilt.
+        return;
+    }
     let eye = camera_transform.translation().as_dvec3();
     let clip_from_world =
         to_double(camera.clip_from_view() * camera_transform.to_matrix().inverse());
@@ -121,7 +128,16 @@ fn update_volume_batches(
     let started = Instant::now();
     let mut rebuilt = false;
     let (mut cells_drawn, mut cells_full) = (0_u64, 0_u64);
-    for (entity, volume, transform, _visibility, source) in &mut volumes {
+    for (entity, volume, transform, visibility, drawn, source) in &mut volumes {
+        if !visibility.get() {
+            // Hidden: nothing to build, upload or draw.
+            if source.is_some() {
+                commands
+                    .entity(entity)
+                    .remove::<(CellBatch, VolumeBatchSource)>();
+            }
+            continue;
+        }
         let ordered = volume.mode == OpticalMode::Sorted;
         let grid_full_cells = match &volume.field {
             VolumeField::Grid(grid) => {
@@ -135,6 +151,7 @@ fn update_volume_batches(
         let eye_moved = source.as_ref().is_some_and(|s| s.eye != eye);
         let grid_sorted = ordered && matches!(volume.field, VolumeField::Grid(_));
         if source.is_some() && !changed && !(grid_sorted && eye_moved) {
+            cells_drawn += drawn.map_or(0, |batch| batch.cells.len() as u64);
             continue;
         }
         rebuilt = true;
@@ -203,4 +220,138 @@ fn update_volume_batches(
     }
     counters.set("volume", "volumes", volumes.iter().len() as f64);
     counters.set("volume", "cells_full_resolution", cells_full as f64);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use bevy::camera::{ComputedCameraValues, RenderTargetInfo};
+    use bevy::math::DVec3;
+    use bevy::transform::TransformPlugin;
+    use nebel_core::transfer::TransferPreset;
+
+    fn app_with_volume(mode: OpticalMode) -> (App, Entity, Entity) {
+        let mut app = App::new();
+        app.add_plugins((MinimalPlugins, TransformPlugin, VolumePlugin))
+            .init_resource::<EffectCounters>();
+        // What Bevy's camera systems compute for a 64×64 target.
+        let camera = Camera {
+            computed: ComputedCameraValues {
+                clip_from_view: Mat4::perspective_infinite_reverse_rh(1.0, 1.0, 0.1),
+                target_info: Some(RenderTargetInfo {
+                    physical_size: UVec2::splat(64),
+                    scale_factor: 1.0,
+                }),
+                ..default()
+            },
+            ..default()
+        };
+        let camera = app
+            .world_mut()
+            .spawn((
+                Camera3d::default(),
+                camera,
+                Transform::from_xyz(5.0, 2.0, 7.0).looking_at(Vec3::ONE, Vec3::Y),
+            ))
+            .id();
+        let grid = DensityGrid::new([3, 3, 3], DVec3::ONE, DVec3::ZERO, vec![1.0; 27]).unwrap();
+        let volume = app
+            .world_mut()
+            .spawn((
+                Volume {
+                    field: VolumeField::Grid(Arc::new(grid)),
+                    transfer_function: Arc::new(TransferFunction::preset(TransferPreset::Cloud)),
+                    mode,
+                },
+                // What Bevy's visibility propagation computes for a shown entity.
+                InheritedVisibility::VISIBLE,
+            ))
+            .id();
+        // Transforms propagate in PostUpdate: the batch settles in the second frame.
+        app.update();
+        app.update();
+        (app, camera, volume)
+    }
+
+    fn generation(app: &App, volume: Entity) -> Option<u64> {
+        app.world()
+            .get::<CellBatch>(volume)
+            .map(|batch| batch.generation)
+    }
+
+    #[test]
+    fn a_camera_without_a_projection_yet_builds_nothing() {
+        let (mut app, camera, volume) = app_with_volume(OpticalMode::Sorted);
+        app.world_mut().entity_mut(volume).remove::<CellBatch>();
+        app.world_mut().get_mut::<Camera>(camera).unwrap().computed = default();
+        app.world_mut().get_mut::<Volume>(volume).unwrap().mode = OpticalMode::Sorted;
+        app.update();
+        assert!(app.world().get::<CellBatch>(volume).is_none());
+    }
+
+    #[test]
+    fn a_grid_becomes_five_cells_per_voxel_and_is_rebuilt_only_on_change() {
+        let (mut app, camera, volume) = app_with_volume(OpticalMode::Sorted);
+        let batch = app.world().get::<CellBatch>(volume).expect("a batch");
+        assert_eq!(batch.cells.len(), 5 * 8);
+        let first = batch.generation;
+
+        app.update();
+        assert_eq!(
+            generation(&app, volume),
+            Some(first),
+            "nothing moved: no rebuild"
+        );
+
+        app.world_mut()
+            .get_mut::<Transform>(camera)
+            .unwrap()
+            .translation
+            .x += 1.0;
+        app.update();
+        app.update();
+        assert!(
+            generation(&app, volume).unwrap() > first,
+            "a sorted volume follows the eye"
+        );
+
+        let moved = generation(&app, volume);
+        app.world_mut().get_mut::<Volume>(volume).unwrap().mode = OpticalMode::Sorted;
+        app.update();
+        assert!(
+            generation(&app, volume) > moved,
+            "a changed volume is rebuilt"
+        );
+    }
+
+    #[test]
+    fn an_emissive_volume_ignores_the_camera_and_a_hidden_one_has_no_batch() {
+        let (mut app, camera, volume) = app_with_volume(OpticalMode::Emissive);
+        let first = generation(&app, volume).expect("a batch");
+        app.world_mut()
+            .get_mut::<Transform>(camera)
+            .unwrap()
+            .translation
+            .x += 1.0;
+        app.update();
+        app.update();
+        assert_eq!(generation(&app, volume), Some(first));
+
+        app.world_mut()
+            .entity_mut(volume)
+            .insert(InheritedVisibility::HIDDEN);
+        app.update();
+        assert!(app.world().get::<CellBatch>(volume).is_none());
+    }
+
+    #[test]
+    fn a_transparent_grid_draws_nothing() {
+        let (mut app, _, volume) = app_with_volume(OpticalMode::Sorted);
+        let empty = DensityGrid::new([2, 2, 2], DVec3::ONE, DVec3::ZERO, vec![0.0; 8]).unwrap();
+        app.world_mut().get_mut::<Volume>(volume).unwrap().field =
+            VolumeField::Grid(Arc::new(empty));
+        app.update();
+        let batch = app.world().get::<CellBatch>(volume).unwrap();
+        assert!(batch.cells.is_empty() && !batch.is_drawable());
+    }
 }
