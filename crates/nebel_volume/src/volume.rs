@@ -273,6 +273,14 @@ mod tests {
         (app, camera, volume)
     }
 
+    /// Moves the camera a metre and runs until the move has propagated.
+    fn move_camera(app: &mut App, camera: Entity) {
+        let mut transform = app.world_mut().get_mut::<Transform>(camera).unwrap();
+        transform.translation.x += 1.0;
+        app.update();
+        app.update();
+    }
+
     fn generation(app: &App, volume: Entity) -> Option<u64> {
         app.world()
             .get::<CellBatch>(volume)
@@ -303,13 +311,7 @@ mod tests {
             "nothing moved: no rebuild"
         );
 
-        app.world_mut()
-            .get_mut::<Transform>(camera)
-            .unwrap()
-            .translation
-            .x += 1.0;
-        app.update();
-        app.update();
+        move_camera(&mut app, camera);
         assert!(
             generation(&app, volume).unwrap() > first,
             "a sorted volume follows the eye"
@@ -328,13 +330,7 @@ mod tests {
     fn an_emissive_volume_ignores_the_camera_and_a_hidden_one_has_no_batch() {
         let (mut app, camera, volume) = app_with_volume(OpticalMode::Emissive);
         let first = generation(&app, volume).expect("a batch");
-        app.world_mut()
-            .get_mut::<Transform>(camera)
-            .unwrap()
-            .translation
-            .x += 1.0;
-        app.update();
-        app.update();
+        move_camera(&mut app, camera);
         assert_eq!(generation(&app, volume), Some(first));
 
         app.world_mut()
