@@ -2,20 +2,24 @@
 //! `full_resolution_batch` for a 64³-voxel noise grid (1.31 million cells, every
 //! brick kept), eye outside and inside the grid, back-to-front against
 //! unordered, the one-off cost of its `BrickTable`, and a campfire-sized 16³
-//! grid (20 480 cells).
+//! grid (20 480 cells); and MPVO (`CellAdjacency::back_to_front`, plus the
+//! one-off `CellAdjacency::new`) on the default 16 × 4 × 32 search-light cone
+//! and on the tetrahedra of a 16³ grid.
 //!
 //! Criterion reports the throughput in cells per second ("elem/s"):
 //! 1 Melem/s = 1 000 cells per ms.
 //!
-//! Run: `cargo bench -p nebel_lod --bench full_resolution`.
+//! Run: `cargo bench -p nebel_lod --bench full_resolution` (MPVO alone: add
+//! `-- mpvo`).
 
 use std::hint::black_box;
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use glam::{DAffine3, DQuat, DVec3};
-use nebel_core::field::{DensityGrid, ProceduralNoise};
+use nebel_core::cell::Tetrahedron;
+use nebel_core::field::{DensityGrid, ProceduralNoise, search_light_cells};
 use nebel_core::transfer::{TransferFunction, TransferPreset};
-use nebel_lod::{BrickTable, CellOrder, full_resolution_batch};
+use nebel_lod::{BrickTable, CellAdjacency, CellOrder, full_resolution_batch};
 
 /// Points per axis: 64³ voxels.
 const POINTS: usize = 65;
@@ -93,5 +97,44 @@ fn bench_grid(c: &mut Criterion, noise: &ProceduralNoise, points: usize) {
     group.finish();
 }
 
-criterion_group!(benches, full_resolution);
+fn mpvo(c: &mut Criterion) {
+    let cone = search_light_cells(8.0, 0.3, [16, 4, 32]);
+    let cone_eyes = [
+        ("eye_outside", DVec3::new(6.0, 3.0, 2.0)),
+        ("eye_inside", DVec3::new(0.3, -0.2, -5.0)),
+    ];
+    // Dyadic spacing and origin: the grid's tetrahedra share vertices bit for bit.
+    let grid = DensityGrid::procedural(
+        [17; 3],
+        DVec3::splat(0.5),
+        DVec3::splat(-4.0),
+        &ProceduralNoise::default(),
+    )
+    .expect("valid grid");
+    let grid_eyes = [
+        ("eye_outside", DVec3::new(20.0, 12.0, 25.0)),
+        ("eye_inside", DVec3::new(0.3, 1.1, -0.7)),
+    ];
+    bench_mpvo(c, "mpvo_search_light_16x4x32", &cone, &cone_eyes);
+    bench_mpvo(c, "mpvo_grid_16", &grid.tetrahedra(), &grid_eyes);
+}
+
+fn bench_mpvo(c: &mut Criterion, name: &str, cells: &[Tetrahedron], eyes: &[(&str, DVec3)]) {
+    let adjacency = CellAdjacency::new(cells);
+    let mut group = c.benchmark_group(name);
+    group.throughput(Throughput::Elements(cells.len() as u64));
+    for &(eye_name, eye) in eyes {
+        group.bench_with_input(
+            BenchmarkId::new("back_to_front", eye_name),
+            &eye,
+            |b, &eye| b.iter(|| adjacency.back_to_front(black_box(cells), eye)),
+        );
+    }
+    group.bench_function("adjacency_new", |b| {
+        b.iter(|| CellAdjacency::new(black_box(cells)))
+    });
+    group.finish();
+}
+
+criterion_group!(benches, full_resolution, mpvo);
 criterion_main!(benches);

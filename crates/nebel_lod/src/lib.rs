@@ -12,11 +12,16 @@
 //!   back-to-front order for an eye, with per-brick zero-opacity test and
 //!   frustum culling ([`BrickTable`], [`full_resolution_batch`]), and
 //!   [`order_key`], which tells when a new eye position changes that order.
+//! - [`visibility`]: back-to-front order for any conforming tetrahedral mesh
+//!   (MPVO, Williams 1992): [`CellAdjacency`] once per mesh, then
+//!   [`CellAdjacency::back_to_front`] or [`sorted_batch`] per eye.
 
 pub mod batch;
 pub mod frustum;
 pub mod full_resolution;
+pub mod visibility;
 
 pub use batch::{CellBatch, GpuCell};
 pub use frustum::{Frustum, FrustumError};
 pub use full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};
+pub use visibility::{CellAdjacency, sorted_batch};
