@@ -106,14 +106,20 @@ impl DensityGrid {
         for k in 0..nz - 1 {
             for j in 0..ny - 1 {
                 for i in 0..nx - 1 {
-                    let min = self.origin + DVec3::new(i as f64, j as f64, k as f64) * self.spacing;
-                    let scalars = std::array::from_fn(|v| {
-                        f64::from(self.value(i + (v & 1), j + ((v >> 1) & 1), k + ((v >> 2) & 1)))
-                    });
+                    // Every corner from its own index, so cells that share a
+                    // point share its coordinates bit for bit.
+                    let corner = |v: usize| [i + (v & 1), j + ((v >> 1) & 1), k + ((v >> 2) & 1)];
+                    let hexahedron = Hexahedron {
+                        positions: std::array::from_fn(|v| {
+                            self.origin + DVec3::from(corner(v).map(|n| n as f64)) * self.spacing
+                        }),
+                        scalars: std::array::from_fn(|v| {
+                            let [ci, cj, ck] = corner(v);
+                            f64::from(self.value(ci, cj, ck))
+                        }),
+                    };
                     let parity = HexahedronParity::of_cell(i as i64, j as i64, k as i64);
-                    cells.extend(
-                        Hexahedron::axis_aligned(min, self.spacing, scalars).tetrahedra(parity),
-                    );
+                    cells.extend(hexahedron.tetrahedra(parity));
                 }
             }
         }
@@ -189,6 +195,27 @@ mod tests {
             grid.sample(grid.origin())
         );
         assert!(grid.sample(DVec3::NAN).is_finite());
+    }
+
+    #[test]
+    fn tetrahedra_share_grid_points_bit_for_bit() {
+        let dims = [4, 3, 5];
+        let grid = DensityGrid::new(
+            dims,
+            DVec3::new(0.25, 0.3, 0.2),
+            DVec3::new(0.1, -7.3, 1.0 / 3.0),
+            vec![0.5; 60],
+        )
+        .unwrap();
+        let mut points: Vec<[u64; 3]> = grid
+            .tetrahedra()
+            .iter()
+            .flat_map(|cell| cell.positions)
+            .map(|p| p.to_array().map(f64::to_bits))
+            .collect();
+        points.sort_unstable();
+        points.dedup();
+        assert_eq!(points.len(), dims.iter().product::<usize>());
     }
 
     #[test]
