@@ -199,12 +199,14 @@ mod tests {
 
     #[test]
     fn tetrahedra_share_grid_points_bit_for_bit() {
-        let dims = [4, 3, 5];
+        // With this origin and spacing, origin + i·s + s differs from
+        // origin + (i + 1)·s in the last bit for several i on x and y.
+        let dims = [8, 8, 8];
         let grid = DensityGrid::new(
             dims,
-            DVec3::new(0.25, 0.3, 0.2),
+            DVec3::new(0.3, 0.3, 0.2),
             DVec3::new(0.1, -7.3, 1.0 / 3.0),
-            vec![0.5; 60],
+            vec![0.5; 512],
         )
         .unwrap();
         let mut points: Vec<[u64; 3]> = grid
