@@ -246,6 +246,7 @@ const ACCURACY_BOUNDS: &[(&str, f64)] = &[
     ("ramp_mip", 0.002),
     ("opaque_inside", 0.002),
     ("two_volumes", 0.002),
+    ("search_light_sorted", 0.002),
 ];
 
 #[test]

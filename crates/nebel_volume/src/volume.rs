@@ -6,11 +6,14 @@
 //! whose scalar range is transparent under the transfer function dropped
 //! (000 §4.1), and for [`OpticalMode::Sorted`] bricks outside the view
 //! frustum dropped and the cells in exact back-to-front order for the eye
-//! (001 §8.1). A cell volume is drawn as given.
+//! (001 §8.1). A sorted cell volume (a search light switched to `Sorted`, cells
+//! from a scene file) is put in MPVO order for the eye (Williams 1992, exact
+//! for convex conforming meshes; [`nebel_lod::visibility`]); an emissive or
+//! MIP one is drawn as given.
 //!
 //! Work happens only on change: a batch is rebuilt when the volume or its
-//! transform changed, and, for sorted grid volumes, when the camera moved
-//! (the order and the culling depend on the eye). Emissive and MIP volumes
+//! transform changed, and, for sorted volumes, when the camera moved (the
+//! order and the culling depend on the eye). Emissive and MIP volumes
 //! draw unordered and unculled, so a moving camera costs them nothing.
 //! A hidden volume (its [`InheritedVisibility`] false) has no batch. The
 //! `volume` group of [`EffectCounters`] reports volumes, cells drawn, cells
@@ -26,7 +29,9 @@ use nebel_core::cell::Tetrahedron;
 use nebel_core::field::DensityGrid;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::TransferFunction;
-use nebel_lod::{BrickTable, CellBatch as LodCellBatch, CellOrder, Frustum, full_resolution_batch};
+use nebel_lod::{
+    BrickTable, CellAdjacency, CellBatch as LodCellBatch, CellOrder, Frustum, full_resolution_batch,
+};
 use nebel_render::{CellBatch, EffectCounters, NebelSystems};
 
 /// Voxels per brick edge for the zero-opacity and frustum tests.
@@ -53,7 +58,8 @@ pub enum VolumeField {
     /// A density grid in the volume's local space (its own origin and
     /// spacing), trilinear between points, drawn as five tetrahedra per voxel.
     Grid(Arc<DensityGrid>),
-    /// Tetrahedra in the volume's local space, drawn as given.
+    /// Tetrahedra in the volume's local space: a conforming mesh, put in
+    /// visibility order when the volume is sorted, drawn as given otherwise.
     Cells(Arc<Vec<Tetrahedron>>),
 }
 
@@ -86,6 +92,7 @@ impl Default for Volume {
 struct VolumeBatchSource {
     eye: DVec3,
     bricks: Option<Arc<BrickTable>>,
+    adjacency: Option<Arc<CellAdjacency>>,
     generation: u64,
 }
 
@@ -149,8 +156,7 @@ fn update_volume_batches(
         cells_full += grid_full_cells as u64;
         let changed = volume.is_changed() || transform.is_changed();
         let eye_moved = source.as_ref().is_some_and(|s| s.eye != eye);
-        let grid_sorted = ordered && matches!(volume.field, VolumeField::Grid(_));
-        if source.is_some() && !changed && !(grid_sorted && eye_moved) {
+        if source.is_some() && !changed && !(ordered && eye_moved) {
             cells_drawn += drawn.map_or(0, |batch| batch.cells.len() as u64);
             continue;
         }
@@ -158,7 +164,7 @@ fn update_volume_batches(
         let generation = source.as_ref().map_or(0, |s| s.generation + 1);
         let world_from_local = transform.affine();
         let world_from_local = DAffine3::from_mat4(to_double(Mat4::from(world_from_local)));
-        let (lod_batch, bricks) = match &volume.field {
+        let (lod_batch, bricks, adjacency) = match &volume.field {
             VolumeField::Grid(grid) => {
                 let bricks = match source.as_ref().and_then(|s| s.bricks.clone()) {
                     Some(bricks) if !volume.is_changed() => bricks,
@@ -180,7 +186,7 @@ fn update_volume_batches(
                     order,
                 );
                 match batch {
-                    Ok(batch) => (batch, Some(bricks)),
+                    Ok(batch) => (batch, Some(bricks), None),
                     Err(error) => {
                         warn_once!("nebel: volume {entity} not drawn: {error}");
                         continue;
@@ -188,14 +194,26 @@ fn update_volume_batches(
                 }
             }
             VolumeField::Cells(cells) => {
-                let world: Vec<Tetrahedron> = cells
-                    .iter()
-                    .map(|tet| Tetrahedron {
-                        positions: tet.positions.map(|p| world_from_local.transform_point3(p)),
-                        scalars: tet.scalars,
-                    })
-                    .collect();
-                (LodCellBatch::from_tetrahedra(&world), None)
+                let to_world = |tet: &Tetrahedron| Tetrahedron {
+                    positions: tet.positions.map(|p| world_from_local.transform_point3(p)),
+                    scalars: tet.scalars,
+                };
+                if ordered {
+                    let adjacency = match source.as_ref().and_then(|s| s.adjacency.clone()) {
+                        Some(adjacency) if !volume.is_changed() => adjacency,
+                        _ => Arc::new(CellAdjacency::new(cells)),
+                    };
+                    let eye_local = world_from_local.inverse().transform_point3(eye);
+                    let world: Vec<Tetrahedron> = adjacency
+                        .back_to_front(cells, eye_local)
+                        .into_iter()
+                        .map(|index| to_world(&cells[index]))
+                        .collect();
+                    (LodCellBatch::from_tetrahedra(&world), None, Some(adjacency))
+                } else {
+                    let world: Vec<Tetrahedron> = cells.iter().map(to_world).collect();
+                    (LodCellBatch::from_tetrahedra(&world), None, None)
+                }
             }
         };
         let LodCellBatch { cells, .. } = lod_batch;
@@ -210,6 +228,7 @@ fn update_volume_batches(
             VolumeBatchSource {
                 eye,
                 bricks,
+                adjacency,
                 generation,
             },
         ));
