@@ -12,18 +12,20 @@ use std::time::{Duration, Instant};
 
 use glam::{DVec3, DVec4};
 use nebel_core::image_metrics::{ImageMetricsError, LinearImage, save_png, srgb_to_linear};
+use nebel_core::optics::OpticalMode;
 use nebel_core::reference::{ReferenceError, ReferenceScene, ReferenceVolume, RenderProgress};
 use nebel_core::scene::{BuiltVolume, SceneDescription, VolumeField};
 
 /// Renders `volumes` of `scene` exactly; with `progress`, reports rows on
 /// stderr every two seconds.
 ///
-/// Each volume is integrated on its own and the results are composited the
-/// way the GPU pass blends batches: farthest centre first, each with its mode
-/// ([`OpticalMode::composite`]: "over" for sorted, sum for emissive, maximum
-/// for MIP) onto the clear colour, or onto black where the pixel's ray ends on
-/// a mesh. This is exact when the volumes do not interpenetrate along a ray,
-/// and for emissive and MIP volumes always.
+/// Each volume is integrated on its own and the results are combined the way
+/// the GPU pass does: accumulated from transparent, farthest centre first,
+/// each with its mode ([`OpticalMode::composite`]: "over" for sorted, sum for
+/// emissive, maximum for MIP, the last two with no opacity), then put over
+/// the clear colour, or over black where the pixel's ray ends on a mesh. This
+/// is exact when the volumes do not interpenetrate along a ray, and for
+/// emissive and MIP volumes always.
 pub fn reference_image(
     scene: &SceneDescription,
     volumes: Vec<BuiltVolume>,
@@ -81,12 +83,17 @@ pub fn reference_image(
             let on_mesh = opaque_depth
                 .as_ref()
                 .is_some_and(|depth| depth[index].is_finite());
-            let behind = if on_mesh { [0.0; 3] } else { background };
-            let mut pixel = DVec4::new(behind[0].into(), behind[1].into(), behind[2].into(), 1.0);
+            let behind = DVec3::from(if on_mesh { [0.0; 3] } else { background }.map(f64::from));
+            let mut accumulated = DVec4::ZERO;
             for (_, mode, image) in &layers {
-                let layer = DVec4::from(image.pixels[index].map(f64::from));
-                pixel = mode.composite(layer, pixel);
+                let mut layer = DVec4::from(image.pixels[index].map(f64::from));
+                if *mode != OpticalMode::Sorted {
+                    // Emissive and MIP light the pixel without hiding what is behind.
+                    layer.w = 0.0;
+                }
+                accumulated = mode.composite(layer, accumulated);
             }
+            let pixel = accumulated.truncate() + (1.0 - accumulated.w) * behind;
             [pixel.x as f32, pixel.y as f32, pixel.z as f32, 1.0]
         })
         .collect();

@@ -17,7 +17,17 @@
 //! 5. [`prepare_cell_views`]: per-view uniforms and pipelines, and the depth
 //!    texture made readable.
 //! 6. [`draw_cell_batches`]: batches back to front by the distance of their
-//!    bounds' centre; inside a batch, buffer order (the batch's exact order).
+//!    bounds' centre, inside a batch in buffer order (the batch's exact
+//!    order), into a per-view float accumulation target that starts
+//!    transparent; then one full-screen pass (`cell_composite.wgsl`) puts the
+//!    result over the scene: `I = C + (1 − α) scene`.
+//!
+//! The accumulation target is `Rgba32Float` where the device can blend it
+//! (`FLOAT32_BLENDABLE`; lavapipe can), `Rgba16Float` otherwise: a ray may
+//! cross hundreds of cells and every blend rounds, and the 16-bit HDR target
+//! of Bevy's views made the 64³ cloud measurably darker. Emissive and MIP
+//! cells write no opacity, so they add to the scene rather than hide it (MIP
+//! takes the maximum over the cells, then adds it).
 //!
 //! Each pixel of a cell is computed exactly under perspective: the fragment
 //! shader intersects the view ray with the cell's planes, clips the segment to
@@ -31,15 +41,18 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use bevy::asset::{embedded_asset, load_embedded_asset};
+use bevy::core_pipeline::FullscreenShader;
 use bevy::core_pipeline::core_3d::prepare_core_3d_depth_textures;
 use bevy::core_pipeline::schedule::{Core3d, Core3dSystems};
 use bevy::prelude::*;
+use bevy::render::camera::ExtractedCamera;
 use bevy::render::render_resource::binding_types::{
     storage_buffer_read_only_sized, texture_2d, texture_3d, texture_depth_2d,
     texture_depth_2d_multisampled, uniform_buffer,
 };
 use bevy::render::render_resource::*;
 use bevy::render::renderer::{RenderContext, RenderDevice, RenderQueue, ViewQuery};
+use bevy::render::texture::{CachedTexture, TextureCache};
 use bevy::render::view::{ExtractedView, Msaa, ViewDepthTexture, ViewTarget};
 use bevy::render::{Extract, ExtractSchedule, Render, RenderApp, RenderStartup, RenderSystems};
 use bevy::shader::ShaderDefVal;
@@ -101,6 +114,7 @@ impl CellProjectionCounters {
 impl Plugin for CellProjectionPlugin {
     fn build(&self, app: &mut App) {
         embedded_asset!(app, "cell_projection.wgsl");
+        embedded_asset!(app, "cell_composite.wgsl");
         let stats = CellProjectionStats::default();
         app.insert_resource(stats.clone());
         let Some(render_app) = app.get_sub_app_mut(RenderApp) else {
@@ -113,6 +127,7 @@ impl Plugin for CellProjectionPlugin {
             .init_resource::<GpuCellTables>()
             .init_resource::<SpecializedRenderPipelines<CellProjectionPipeline>>()
             .init_resource::<CellViewUniforms>()
+            .init_resource::<CellCompositePipelines>()
             .add_systems(RenderStartup, init_cell_projection_pipeline)
             .add_systems(ExtractSchedule, extract_cell_batches)
             .add_systems(
@@ -371,12 +386,15 @@ struct CellViewUniform {
 #[derive(Resource, Default)]
 struct CellViewUniforms(DynamicUniformBuffer<CellViewUniform>);
 
-/// Per view: where its uniform sits and its three pipelines.
+/// Per view: where its uniform sits, its accumulation target and its
+/// pipelines (three modes drawing into the target, one compositing it).
 #[derive(Component)]
 struct CellProjectionView {
     uniform_offset: u32,
     multisampled: bool,
+    accumulation: CachedTexture,
     pipelines: [CachedRenderPipelineId; 3],
+    composite: CachedRenderPipelineId,
 }
 
 fn mode_index(mode: OpticalMode) -> usize {
@@ -387,12 +405,16 @@ fn mode_index(mode: OpticalMode) -> usize {
     }
 }
 
-/// Bind group layouts and shader of the cell-projection pass.
+/// Bind group layouts and shaders of the cell-projection pass and of the
+/// composite pass.
 #[derive(Resource)]
 pub struct CellProjectionPipeline {
     view_layouts: [BindGroupLayoutDescriptor; 2],
     batch_layout: BindGroupLayoutDescriptor,
     shader: Handle<Shader>,
+    composite_layout: BindGroupLayoutDescriptor,
+    composite_shader: Handle<Shader>,
+    fullscreen_vertex: VertexState,
 }
 
 /// What a cell-projection pipeline depends on.
@@ -403,8 +425,12 @@ pub struct CellProjectionPipelineKey {
     target_format: TextureFormat,
 }
 
-/// Creates the bind group layouts and loads the shader.
-pub fn init_cell_projection_pipeline(mut commands: Commands, asset_server: Res<AssetServer>) {
+/// Creates the bind group layouts and loads the shaders.
+pub fn init_cell_projection_pipeline(
+    mut commands: Commands,
+    asset_server: Res<AssetServer>,
+    fullscreen_shader: Res<FullscreenShader>,
+) {
     let view_layout = |multisampled: bool| {
         BindGroupLayoutDescriptor::new(
             "nebel_cell_view_layout",
@@ -437,7 +463,37 @@ pub fn init_cell_projection_pipeline(mut commands: Commands, asset_server: Res<A
             ),
         ),
         shader: load_embedded_asset!(asset_server.as_ref(), "cell_projection.wgsl"),
+        composite_layout: BindGroupLayoutDescriptor::new(
+            "nebel_cell_composite_layout",
+            &BindGroupLayoutEntries::single(ShaderStages::FRAGMENT, texture_2d(unfilterable)),
+        ),
+        composite_shader: load_embedded_asset!(asset_server.as_ref(), "cell_composite.wgsl"),
+        fullscreen_vertex: fullscreen_shader.to_vertex_state(),
     });
+}
+
+/// The composite pass: the accumulated cells over the view's HDR target.
+#[derive(Resource, Default)]
+struct CellCompositePipelines(HashMap<TextureFormat, CachedRenderPipelineId>);
+
+impl CellProjectionPipeline {
+    fn composite_descriptor(&self, target_format: TextureFormat) -> RenderPipelineDescriptor {
+        RenderPipelineDescriptor {
+            label: Some("nebel_cell_composite_pipeline".into()),
+            layout: vec![self.composite_layout.clone()],
+            vertex: self.fullscreen_vertex.clone(),
+            fragment: Some(FragmentState {
+                shader: self.composite_shader.clone(),
+                targets: vec![Some(ColorTargetState {
+                    format: target_format,
+                    blend: Some(BlendState::PREMULTIPLIED_ALPHA_BLENDING),
+                    write_mask: ColorWrites::ALL,
+                })],
+                ..default()
+            }),
+            ..default()
+        }
+    }
 }
 
 impl SpecializedRenderPipeline for CellProjectionPipeline {
@@ -517,12 +573,26 @@ fn make_depth_readable(extracted: Res<ExtractedCellBatches>, mut cameras: Query<
     }
 }
 
-/// Writes each view's uniform and specialises its pipelines.
+/// The format cells accumulate in: 32-bit float where the device can blend
+/// it (every blend rounds; a ray crosses up to hundreds of cells), 16-bit
+/// float otherwise.
+fn accumulation_format(device: &RenderDevice) -> TextureFormat {
+    if device.features().contains(WgpuFeatures::FLOAT32_BLENDABLE) {
+        TextureFormat::Rgba32Float
+    } else {
+        TextureFormat::Rgba16Float
+    }
+}
+
+/// Writes each view's uniform, gets its accumulation target and
+/// specialises its pipelines.
 #[allow(clippy::too_many_arguments)]
 fn prepare_cell_views(
     mut commands: Commands,
     extracted: Res<ExtractedCellBatches>,
-    views: Query<(Entity, &ExtractedView, &Msaa)>,
+    views: Query<(Entity, &ExtractedView, &ExtractedCamera, &Msaa)>,
+    mut texture_cache: ResMut<TextureCache>,
+    mut composites: ResMut<CellCompositePipelines>,
     mut uniforms: ResMut<CellViewUniforms>,
     pipeline: Res<CellProjectionPipeline>,
     mut pipelines: ResMut<SpecializedRenderPipelines<CellProjectionPipeline>>,
@@ -534,7 +604,31 @@ fn prepare_cell_views(
         return;
     }
     uniforms.0.clear();
-    for (entity, view, msaa) in &views {
+    let format = accumulation_format(&device);
+    for (entity, view, camera, msaa) in &views {
+        let Some(size) = camera.physical_target_size else {
+            continue;
+        };
+        let accumulation = texture_cache.get(
+            &device,
+            TextureDescriptor {
+                label: Some("nebel_cell_accumulation"),
+                size: Extent3d {
+                    width: size.x,
+                    height: size.y,
+                    depth_or_array_layers: 1,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: TextureDimension::D2,
+                format,
+                usage: TextureUsages::RENDER_ATTACHMENT | TextureUsages::TEXTURE_BINDING,
+                view_formats: &[],
+            },
+        );
+        let composite = *composites.0.entry(view.target_format).or_insert_with(|| {
+            pipeline_cache.queue_render_pipeline(pipeline.composite_descriptor(view.target_format))
+        });
         let world_from_view = view.world_from_view.to_matrix();
         let clip_from_world = view
             .clip_from_world
@@ -554,14 +648,16 @@ fn prepare_cell_views(
                     CellProjectionPipelineKey {
                         mode,
                         multisampled,
-                        target_format: view.target_format,
+                        target_format: format,
                     },
                 )
             });
         commands.entity(entity).insert(CellProjectionView {
             uniform_offset,
             multisampled,
+            accumulation,
             pipelines,
+            composite,
         });
     }
     uniforms.0.write_buffer(&device, &queue);
@@ -633,20 +729,25 @@ fn draw_cell_batches(
         );
         draws.push((render_pipeline, batch_bind_group, buffer.count));
     }
+    let Some(composite_pipeline) = pipeline_cache.get_render_pipeline(cell_view.composite) else {
+        return;
+    };
     if draws.is_empty() {
         return;
     }
 
+    // The cells accumulate from transparent black in float, back to front...
+    let accumulation = &cell_view.accumulation.default_view;
     let mut pass = ctx
         .command_encoder()
         .begin_render_pass(&RenderPassDescriptor {
             label: Some("nebel_cell_projection_pass"),
             color_attachments: &[Some(RenderPassColorAttachment {
-                view: view_target.main_texture_view(),
+                view: accumulation,
                 depth_slice: None,
                 resolve_target: None,
                 ops: Operations {
-                    load: LoadOp::Load,
+                    load: LoadOp::Clear(default()),
                     store: StoreOp::Store,
                 },
             })],
@@ -666,4 +767,33 @@ fn draw_cell_batches(
             .cells_drawn
             .fetch_add(u64::from(*count), Ordering::Relaxed);
     }
+    drop(pass);
+
+    // ...and go over the scene in one blend.
+    let composite_bind_group = ctx.render_device().create_bind_group(
+        "nebel_cell_composite_bind_group",
+        &pipeline_cache.get_bind_group_layout(&pipeline.composite_layout),
+        &BindGroupEntries::single(accumulation),
+    );
+    let mut pass = ctx
+        .command_encoder()
+        .begin_render_pass(&RenderPassDescriptor {
+            label: Some("nebel_cell_composite_pass"),
+            color_attachments: &[Some(RenderPassColorAttachment {
+                view: view_target.main_texture_view(),
+                depth_slice: None,
+                resolve_target: None,
+                ops: Operations {
+                    load: LoadOp::Load,
+                    store: StoreOp::Store,
+                },
+            })],
+            depth_stencil_attachment: None,
+            timestamp_writes: None,
+            occlusion_query_set: None,
+            multiview_mask: None,
+        });
+    pass.set_pipeline(composite_pipeline);
+    pass.set_bind_group(0, &composite_bind_group, &[]);
+    pass.draw(0..3, 0..1);
 }
