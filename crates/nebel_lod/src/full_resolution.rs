@@ -204,9 +204,9 @@ impl BrickTable {
 }
 
 /// The five-tetrahedron pattern of one parity, as corner indices `x + 2y + 4z`.
-struct Decomposition {
+pub(crate) struct Decomposition {
     /// Corner indices of the central tetrahedron.
-    central: [usize; 4],
+    pub(crate) central: [usize; 4],
     /// Corner tetrahedra: their corner indices and their apex (the cube corner
     /// whose three neighbours form the face shared with the central one).
     corners: [([usize; 4], usize); 4],
@@ -214,8 +214,9 @@ struct Decomposition {
 
 /// nebel_core's decomposition for each parity, read off once from
 /// [`Hexahedron::tetrahedra`] of a hexahedron whose scalars are its corner
-/// indices, so the batch conforms exactly as nebel_core's meshes do.
-static DECOMPOSITIONS: LazyLock<[Decomposition; 2]> = LazyLock::new(|| {
+/// indices, so the batch conforms exactly as nebel_core's meshes do. Indexed
+/// by parity: 0 even, 1 odd. The octree's coarse interpolation reads it too.
+pub(crate) static DECOMPOSITIONS: LazyLock<[Decomposition; 2]> = LazyLock::new(|| {
     let indices =
         Hexahedron::axis_aligned(DVec3::ZERO, DVec3::ONE, std::array::from_fn(|v| v as f64));
     [HexahedronParity::Even, HexahedronParity::Odd].map(|parity| {

@@ -12,6 +12,10 @@
 //!   back-to-front order for an eye, with per-brick zero-opacity test and
 //!   frustum culling ([`BrickTable`], [`full_resolution_batch`]), and
 //!   [`order_key`], which tells when a new eye position changes that order.
+//! - [`octree`]: the view-independent volume C-LOD hierarchy of paper 000
+//!   §2-3 ([`VolumeHierarchy`]): a forest of octrees over a `2^n + 1` grid with
+//!   per-node deviation Δ propagated by `K_max`, scalar ranges and the e' slot,
+//!   four bytes per grid point.
 //! - [`visibility`]: back-to-front order for any conforming tetrahedral mesh
 //!   (MPVO, Williams 1992): [`CellAdjacency`] once per mesh, then
 //!   [`CellAdjacency::back_to_front`] or [`sorted_batch`] per eye.
@@ -19,9 +23,11 @@
 pub mod batch;
 pub mod frustum;
 pub mod full_resolution;
+pub mod octree;
 pub mod visibility;
 
 pub use batch::{CellBatch, GpuCell};
 pub use frustum::{Frustum, FrustumError};
 pub use full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};
+pub use octree::{HierarchyError, Node, VolumeHierarchy};
 pub use visibility::{CellAdjacency, sorted_batch};

@@ -1,0 +1,171 @@
+//! Building a [`VolumeHierarchy`]: quantisation, then Δ and scalar ranges level
+//! by level from the voxels up (paper 000 §2.2, §2.4; the rules are in the
+//! module docs of [`super`]).
+
+use nebel_core::field::DensityGrid;
+
+use super::{HierarchyError, VolumeHierarchy, k_max};
+use crate::full_resolution::DECOMPOSITIONS;
+
+impl VolumeHierarchy {
+    /// Builds the hierarchy of `grid` for the minimum accuracy `C`
+    /// (`min_accuracy`, > √3; the per-frame refinement must use the same `C`).
+    ///
+    /// Errors: [`HierarchyError::NotPowerOfTwoPlusOne`] unless every axis has
+    /// `2^n + 1` points, [`HierarchyError::InvalidMinAccuracy`] unless `C` is
+    /// finite and > √3. The grid's values are finite and in [0, 1] by
+    /// construction ([`DensityGrid::new`] rejects NaN), so they need no check.
+    pub fn new(grid: &DensityGrid, min_accuracy: f64) -> Result<Self, HierarchyError> {
+        let k_max = k_max(min_accuracy)?;
+        let dims = grid.dims();
+        let exponents =
+            dims.map(|n| (n >= 2 && (n - 1).is_power_of_two()).then(|| (n - 1).trailing_zeros()));
+        let [Some(ex), Some(ey), Some(ez)] = exponents else {
+            return Err(HierarchyError::NotPowerOfTwoPlusOne { dims });
+        };
+        let root_level = ex.min(ey).min(ez);
+        let points = grid.values().len();
+        let mut hierarchy = Self {
+            dims,
+            spacing: grid.spacing(),
+            origin: grid.origin(),
+            root_level,
+            root_counts: dims.map(|n| (n - 1) >> root_level),
+            min_accuracy,
+            k_max,
+            density: grid
+                .values()
+                .iter()
+                .map(|&s| (s * 255.0).round() as u8)
+                .collect(),
+            words: vec![0; points],
+            morph: vec![0; points],
+        };
+        let diagonals = face_diagonals();
+        for level in 1..=root_level {
+            hierarchy.build_level(level, &diagonals);
+        }
+        Ok(hierarchy)
+    }
+
+    /// Computes Δ (propagated from level − 1, already built) and the scalar
+    /// range of every node of `level ≥ 1`.
+    fn build_level(&mut self, level: u32, diagonals: &FaceDiagonals) {
+        let [nx, ny, _] = self.dims;
+        let size = 1usize << level;
+        let half = size / 2;
+        let counts = self.dims.map(|n| (n - 1) >> level);
+        // Flat offset of local point (a, b, c) ∈ {0, 1, 2}³ in steps of `half`.
+        let step = [half, half * nx, half * nx * ny];
+        let offset = |a: usize, b: usize, c: usize| a * step[0] + b * step[1] + c * step[2];
+        let corner_offsets: [usize; 8] =
+            std::array::from_fn(|v| offset(2 * (v & 1), 2 * ((v >> 1) & 1), 2 * ((v >> 2) & 1)));
+        let edges = edge_table();
+        // Children: their centres and the centres of their +x faces, relative
+        // to the node's origin, for level ≥ 2 (quarter = half / 2).
+        let quarter = half / 2;
+        let child_offset = |v: usize, dx: usize| {
+            let o = [v & 1, (v >> 1) & 1, (v >> 2) & 1];
+            (o[0] * half + dx) + nx * ((o[1] * half + quarter) + ny * (o[2] * half + quarter))
+        };
+        let child_centres: [usize; 8] = std::array::from_fn(|v| child_offset(v, quarter));
+        let child_ranges: [usize; 8] = std::array::from_fn(|v| child_offset(v, half));
+        let centre = offset(1, 1, 1);
+        let range_slot = offset(2, 1, 1);
+        let k_max = self.k_max;
+
+        for z in 0..counts[2] {
+            for y in 0..counts[1] {
+                for x in 0..counts[0] {
+                    let base = x * size + nx * (y * size + ny * (z * size));
+                    let d = |off: usize| i32::from(self.density[base + off]);
+                    let corners = corner_offsets.map(d);
+                    let parity = (x + y + z) & 1;
+                    // Deviations in units of 1/1020 (4 · 255), so exact.
+                    let mut deviation = 0;
+                    for &(mid, [v0, v1]) in &edges {
+                        let mid = d(offset(mid[0], mid[1], mid[2]));
+                        deviation = deviation.max(2 * (2 * mid - corners[v0] - corners[v1]).abs());
+                    }
+                    for &(mid, [v0, v1]) in &diagonals.faces[parity] {
+                        let mid = d(offset(mid[0], mid[1], mid[2]));
+                        deviation = deviation.max(2 * (2 * mid - corners[v0] - corners[v1]).abs());
+                    }
+                    let central: i32 = diagonals.central[parity].iter().map(|&v| corners[v]).sum();
+                    deviation = deviation.max((4 * d(centre) - central).abs());
+                    // 65535 / 1020 = 257 / 4, rounded up.
+                    let mut delta = ((deviation as u32 * 257).div_ceil(4)) as u16;
+
+                    let range = if level == 1 {
+                        let mut range = [u8::MAX, u8::MIN];
+                        for c in 0..3 {
+                            for b in 0..3 {
+                                for a in 0..3 {
+                                    let value = self.density[base + offset(a, b, c)];
+                                    range = [range[0].min(value), range[1].max(value)];
+                                }
+                            }
+                        }
+                        range
+                    } else {
+                        let mut range = [u8::MAX, u8::MIN];
+                        for v in 0..8 {
+                            let child = self.words[base + child_centres[v]];
+                            // Eq. 5 on the stored values, rounded up.
+                            let propagated = (k_max * f64::from(child)).ceil() as u16;
+                            delta = delta.max(propagated);
+                            let [min, max] = self.words[base + child_ranges[v]].to_le_bytes();
+                            range = [range[0].min(min), range[1].max(max)];
+                        }
+                        range
+                    };
+                    self.words[base + centre] = delta;
+                    self.words[base + range_slot] = u16::from_le_bytes(range);
+                }
+            }
+        }
+    }
+}
+
+/// Per parity (0 even, 1 odd), the coarse interpolation's corners on the faces
+/// and of the central tetrahedron, read off the full-resolution
+/// decomposition tables.
+struct FaceDiagonals {
+    /// Per face (axis `a`, side `b`): the face centre in local half-steps and
+    /// the two corners of the face diagonal (the central tetrahedron's edge on
+    /// that face).
+    faces: [[([usize; 3], [usize; 2]); 6]; 2],
+    /// The central tetrahedron's corners.
+    central: [[usize; 4]; 2],
+}
+
+/// The face diagonals of both parities.
+fn face_diagonals() -> FaceDiagonals {
+    let central = [DECOMPOSITIONS[0].central, DECOMPOSITIONS[1].central];
+    let faces = central.map(|central| {
+        std::array::from_fn(|face| {
+            let (axis, side) = (face / 2, face % 2);
+            let mut on_face = central.iter().copied().filter(|v| (v >> axis) & 1 == side);
+            let diagonal = [on_face.next(), on_face.next()]
+                .map(|v| v.expect("the central tetrahedron has one edge on every cube face"));
+            let mut mid = [1; 3];
+            mid[axis] = 2 * side;
+            (mid, diagonal)
+        })
+    });
+    FaceDiagonals { faces, central }
+}
+
+/// The twelve cube edges: midpoint in local half-steps and the two corners.
+fn edge_table() -> [([usize; 3], [usize; 2]); 12] {
+    let mut edges = [([0; 3], [0; 2]); 12];
+    let mut n = 0;
+    for axis in 0..3 {
+        for v in (0..8).filter(|v| (v >> axis) & 1 == 0) {
+            let mid = std::array::from_fn(|a| if a == axis { 1 } else { 2 * ((v >> a) & 1) });
+            edges[n] = (mid, [v, v | 1 << axis]);
+            n += 1;
+        }
+    }
+    edges
+}

@@ -1,0 +1,342 @@
+//! The view-independent half of the volumetric C-LOD (paper 000 §2.1, §2.2,
+//! §2.4 and §3; DESIGN.md §5): an octree (or a forest of octrees) over a
+//! density grid of `2^n + 1` points per axis, with per node the propagated
+//! simplification error Δ, the scalar range for the zero-opacity test, and a
+//! slot for the morph factor e'. The per-frame refinement, the morphing and
+//! the batch emission read this hierarchy; they are not part of this module.
+//!
+//! - [`Node`]: a node by level and minimum grid point, its corners, centre,
+//!   children and decomposition parity.
+//! - [`VolumeHierarchy`]: built once per grid by [`VolumeHierarchy::new`].
+//! - [`k_max`]: the propagation factor of paper 000 Eq. 4.
+//!
+//! # Forest rule
+//!
+//! Every axis needs `n_a = 2^(e_a) + 1` points (a [`HierarchyError`] names the
+//! dims otherwise; padding or resampling, e.g.
+//! `DensityGrid::padded_to_power_of_two_plus_one`, is the caller's job). With
+//! `m = min(e_x, e_y, e_z)` the roots are cubes of `2^m` voxels (`2^m + 1`
+//! points) and there are `2^(e_a − m)` of them along each axis: 513×513×65
+//! becomes 8×8×1 roots of 65³ points, 9×9×5 becomes 2×2×1 roots of 5³. Root
+//! `(r_x, r_y, r_z)` is the level-`m` node at origin `r · 2^m`; roots tile the
+//! grid exactly like the nodes of any level, so neighbouring roots share their
+//! boundary points and alternate their parity like any other neighbours.
+//!
+//! # The deviation Δ
+//!
+//! A node of level `l ≥ 1` (edge `s = 2^l` voxels) drawn unrefined is its five
+//! tetrahedra ([`Node::parity`], the same decomposition tables as the
+//! full-resolution batch), i.e. the **piecewise-linear interpolation of its 8
+//! corners over those tetrahedra** (not trilinear). At its 19 non-corner
+//! points that interpolation is (paper 000 §3):
+//! - an edge midpoint: the average of the edge's two corners (every cube edge
+//!   is a tetrahedron edge);
+//! - a face centre: the average of the two corners on the face diagonal of the
+//!   node's decomposition. Face neighbours of one level have the opposite
+//!   parity and the same diagonal on their shared face, so this is also "the
+//!   appropriate two corners of the neighbour's decomposition", and the shared
+//!   point has one coarse value;
+//! - the centre: the average of the four corners of the central tetrahedron
+//!   (the cube centre is that tetrahedron's centroid), which alternates with
+//!   the parity.
+//!
+//! The node's local deviation is the **maximum** over those 19 points of
+//! `|value − coarse value|` (paper 000 §3 prefers the maximum to the §2.2
+//! average; the average is not offered). Because the morph blends exactly
+//! these points between their own value and this coarse value, Δ is the
+//! largest change of any vertex during the node's morph. It is propagated
+//! bottom-up, level by level (paper 000 Eq. 5):
+//! `Δ := max(Δ_local, K_max · Δ_child)` over the eight children, with
+//! `K_max = C / (2C − √3/2)` for the minimum accuracy `C > √3` (Eq. 4), so a
+//! node is refined whenever one of its children would be (Eq. 2). A voxel
+//! (level 0) has no non-corner points: its Δ is 0.
+//!
+//! # Storage and quantisation
+//!
+//! Four bytes per grid point, in three flat arrays indexed like the grid
+//! (`i + nx · (j + ny · k)`), as in paper 000 §5 (1 + 2 + 1 bytes):
+//! - density, u8: `q = round(255 · s)`, value `q / 255`. Δ and the ranges are
+//!   computed from these quantised values, i.e. from exactly what the LOD
+//!   mesh will draw; [`VolumeHierarchy::quantised_grid`] gives the same
+//!   values as a [`DensityGrid`], the full-resolution reference the LOD batch
+//!   is compared with. The caller's f32 grid is not kept.
+//! - a u16 word: at a node's centre, Δ as `q / 65535` (Δ ≤ 1 always, since
+//!   `K_max < 1`). The local Δ is exact in these units (`65535 = 255 · 257`
+//!   and coarse values are multiples of 1/1020), and `K_max · Δ_child` is
+//!   rounded up, so the stored values satisfy Eq. 5 exactly and Δ is never
+//!   underestimated. At the centre of a node's +x face (`origin + (s, s/2,
+//!   s/2)`, never a node centre, owned by that node alone) the word holds the
+//!   node's scalar range, min in the low byte and max in the high byte, in
+//!   density units of 1/255: the min and max over every grid point of the
+//!   node's closed box, which bounds every value the LOD mesh or its morph can
+//!   take there.
+//! - e', u8 at a node's centre: `round(255 · e')`, written per frame by the
+//!   refinement ([`VolumeHierarchy::set_morph_factor`]), 0 after building.
+//!
+//! About 6/7 of the grid points are no node's centre; their Δ and e' slots
+//! stay unused, the price of the paper's addressing by centre point.
+//!
+//! # Cost
+//!
+//! One pass over the grid for level 1 (27 reads per level-1 node) and eight
+//! child reads per node above, one thread. `cargo bench -p nebel_lod --bench
+//! octree` measured 25 ms for a 129³ fBm field and 209 ms for the paper's
+//! 513 × 513 × 65 fBm cumulus field (about 82 million points per second),
+//! the whole build including the u8 quantisation, on the shared development
+//! machine. The build runs once per grid (and again when its data change).
+
+mod build;
+mod node;
+
+pub use node::Node;
+
+use glam::DVec3;
+use nebel_core::field::DensityGrid;
+use thiserror::Error;
+
+/// Why a [`VolumeHierarchy`] could not be built.
+#[derive(Clone, Debug, Error, PartialEq)]
+pub enum HierarchyError {
+    /// Some axis does not have `2^n + 1` points.
+    #[error(
+        "a volume hierarchy needs 2^n+1 points per axis (3, 5, 9, 17, 33, 65, ...), but the grid has {dims:?} points; pad or resample it first (DensityGrid::padded_to_power_of_two_plus_one)"
+    )]
+    NotPowerOfTwoPlusOne {
+        /// Points per axis of the grid given.
+        dims: [usize; 3],
+    },
+    /// The minimum accuracy `C` is not a finite number greater than √3.
+    #[error(
+        "the minimum accuracy C must be finite and greater than √3 ≈ 1.732 (paper 000 Eq. 4), got {value}"
+    )]
+    InvalidMinAccuracy {
+        /// The value given.
+        value: f64,
+    },
+}
+
+/// The propagation factor `K_max = C / (2C − √3/2)` of paper 000 Eq. 4 for the
+/// minimum accuracy `C` (`min_accuracy`): the largest ratio `d / (2 d_child)`
+/// of eye distances between a node and a child when the node is at the
+/// smallest distance `d = sC` at which Eq. 1 does not force refinement anyway.
+/// It lies in `(1/2, 2/3)`. Errors unless `C` is finite and `C > √3`.
+pub fn k_max(min_accuracy: f64) -> Result<f64, HierarchyError> {
+    let sqrt_3 = 3f64.sqrt();
+    if !(min_accuracy.is_finite() && min_accuracy > sqrt_3) {
+        return Err(HierarchyError::InvalidMinAccuracy {
+            value: min_accuracy,
+        });
+    }
+    Ok(min_accuracy / (2.0 * min_accuracy - sqrt_3 / 2.0))
+}
+
+/// The view-independent volume octree of a density grid: quantised densities,
+/// the propagated deviation Δ and the scalar range of every node, and the
+/// per-frame morph factor e' (see the module docs for the layout).
+#[derive(Clone, Debug, PartialEq)]
+pub struct VolumeHierarchy {
+    /// Points per axis.
+    dims: [usize; 3],
+    /// World units between neighbouring points, per axis.
+    spacing: DVec3,
+    /// World position of point (0, 0, 0).
+    origin: DVec3,
+    /// Level of the roots, `min` of the axis exponents.
+    root_level: u32,
+    /// Roots per axis.
+    root_counts: [usize; 3],
+    /// The minimum accuracy `C` Δ was propagated with.
+    min_accuracy: f64,
+    /// `K_max` of `min_accuracy`.
+    k_max: f64,
+    /// Quantised density per grid point, `round(255 · s)`.
+    density: Vec<u8>,
+    /// Per grid point: Δ (units of 1/65535) at node centres, the packed scalar
+    /// range at the centre of a node's +x face, 0 elsewhere.
+    words: Vec<u16>,
+    /// Per grid point: e' (units of 1/255) at node centres.
+    morph: Vec<u8>,
+}
+
+impl VolumeHierarchy {
+    /// Points per axis.
+    pub fn dims(&self) -> [usize; 3] {
+        self.dims
+    }
+
+    /// World units between neighbouring points, per axis (from the grid).
+    pub fn spacing(&self) -> DVec3 {
+        self.spacing
+    }
+
+    /// World position of point (0, 0, 0) (from the grid).
+    pub fn origin(&self) -> DVec3 {
+        self.origin
+    }
+
+    /// The roots' level: roots are cubes of `2^root_level` voxels.
+    pub fn root_level(&self) -> u32 {
+        self.root_level
+    }
+
+    /// Roots per axis.
+    pub fn root_counts(&self) -> [usize; 3] {
+        self.root_counts
+    }
+
+    /// The roots, x fastest.
+    pub fn roots(&self) -> impl Iterator<Item = Node> + '_ {
+        let [nx, ny, nz] = self.root_counts;
+        let size = 1 << self.root_level;
+        (0..nz).flat_map(move |z| {
+            (0..ny).flat_map(move |y| {
+                (0..nx).map(move |x| Node {
+                    level: self.root_level,
+                    origin: [x * size, y * size, z * size],
+                })
+            })
+        })
+    }
+
+    /// The minimum accuracy `C` the hierarchy was built with; the per-frame
+    /// refinement must use the same `C` in Eq. 1 for the propagation to hold.
+    pub fn min_accuracy(&self) -> f64 {
+        self.min_accuracy
+    }
+
+    /// `K_max` of [`VolumeHierarchy::min_accuracy`] ([`k_max`]).
+    pub fn k_max(&self) -> f64 {
+        self.k_max
+    }
+
+    /// The quantised density at grid point `p`, units of 1/255. Panics outside
+    /// the grid.
+    pub fn density_quantised(&self, p: [usize; 3]) -> u8 {
+        self.density[self.index(p)]
+    }
+
+    /// The quantised density at grid point `p`, in [0, 1]. Panics outside the
+    /// grid.
+    pub fn density(&self, p: [usize; 3]) -> f32 {
+        f32::from(self.density_quantised(p)) / 255.0
+    }
+
+    /// The quantised densities as a grid of the original geometry: the exact
+    /// full-resolution counterpart of what the LOD mesh draws.
+    pub fn quantised_grid(&self) -> DensityGrid {
+        let values = self.density.iter().map(|&q| f32::from(q) / 255.0).collect();
+        DensityGrid::new(self.dims, self.spacing, self.origin, values)
+            .expect("dims, spacing and origin come from a valid grid and q/255 is in [0, 1]")
+    }
+
+    /// The node's propagated Δ, units of 1/65535 (0 for a voxel). Panics when
+    /// the node is not in this hierarchy.
+    pub fn deviation_quantised(&self, node: Node) -> u16 {
+        match self.centre_index(node) {
+            Some(centre) => self.words[centre],
+            None => 0,
+        }
+    }
+
+    /// The node's propagated Δ in density units, in [0, 1] (0 for a voxel).
+    /// Never below the true maximum deviation of the node and `K_max` times
+    /// that of its descendants. Panics when the node is not in this hierarchy.
+    pub fn deviation(&self, node: Node) -> f32 {
+        f32::from(self.deviation_quantised(node)) / 65535.0
+    }
+
+    /// `[min, max]` of the quantised density over every grid point of the
+    /// node's closed box, units of 1/255. Panics when the node is not in this
+    /// hierarchy.
+    pub fn scalar_range_quantised(&self, node: Node) -> [u8; 2] {
+        if node.level == 0 {
+            self.check(node);
+            let values = (0..8).map(|v| self.density_quantised(node.corner(v)));
+            return [values.clone().min().unwrap_or(0), values.max().unwrap_or(0)];
+        }
+        let word = self.words[self.range_index(node)];
+        [(word & 0xff) as u8, (word >> 8) as u8]
+    }
+
+    /// `[min, max]` of the node's densities in [0, 1], for
+    /// `TransferFunction::is_transparent` (the zero-opacity test of paper 000
+    /// §4.1). Panics when the node is not in this hierarchy.
+    pub fn scalar_range(&self, node: Node) -> [f32; 2] {
+        self.scalar_range_quantised(node)
+            .map(|q| f32::from(q) / 255.0)
+    }
+
+    /// The node's morph factor e' in [0, 1] (paper 000 Eq. 6), as last set;
+    /// 0 for a voxel. Panics when the node is not in this hierarchy.
+    pub fn morph_factor(&self, node: Node) -> f32 {
+        match self.centre_index(node) {
+            Some(centre) => f32::from(self.morph[centre]) / 255.0,
+            None => 0.0,
+        }
+    }
+
+    /// Stores the node's morph factor, clamped to [0, 1] (NaN as 0) and rounded
+    /// to 1/255. Panics for a voxel (it has no centre to store it at; a voxel
+    /// is never refined) and when the node is not in this hierarchy.
+    pub fn set_morph_factor(&mut self, node: Node, e: f32) {
+        let centre = self
+            .centre_index(node)
+            .expect("a voxel (level 0) has no morph factor");
+        let e = if e.is_nan() { 0.0 } else { e.clamp(0.0, 1.0) };
+        self.morph[centre] = (e * 255.0).round() as u8;
+    }
+
+    /// Bytes the hierarchy keeps per grid point (density, Δ and range words,
+    /// e'): 4, the paper's 1 + 2 + 1.
+    pub fn bytes_per_point(&self) -> f64 {
+        let bytes = self.density.len() * size_of::<u8>()
+            + self.words.len() * size_of::<u16>()
+            + self.morph.len() * size_of::<u8>();
+        bytes as f64 / self.density.len() as f64
+    }
+
+    /// The flat index of grid point `p`.
+    fn index(&self, [i, j, k]: [usize; 3]) -> usize {
+        let [nx, ny, nz] = self.dims;
+        assert!(
+            i < nx && j < ny && k < nz,
+            "grid point {:?} outside {:?}",
+            [i, j, k],
+            self.dims
+        );
+        i + nx * (j + ny * k)
+    }
+
+    /// Panics unless `node` is a node of this hierarchy: level at most the
+    /// roots', origin a multiple of its size, box inside the grid.
+    fn check(&self, node: Node) {
+        let size = node.size();
+        assert!(
+            node.level <= self.root_level
+                && (0..3)
+                    .all(|a| node.origin[a].is_multiple_of(size)
+                        && node.origin[a] + size < self.dims[a]),
+            "{node:?} is not a node of a hierarchy of {:?} points with roots of level {}",
+            self.dims,
+            self.root_level
+        );
+    }
+
+    /// The flat index of the node's centre; `None` for a voxel.
+    fn centre_index(&self, node: Node) -> Option<usize> {
+        self.check(node);
+        node.centre().map(|c| self.index(c))
+    }
+
+    /// The flat index of the centre of the node's +x face, where its scalar
+    /// range is stored. Level ≥ 1.
+    fn range_index(&self, node: Node) -> usize {
+        self.check(node);
+        let (size, half) = (node.size(), node.size() / 2);
+        let [x, y, z] = node.origin;
+        self.index([x + size, y + half, z + half])
+    }
+}
+
+#[cfg(test)]
+mod tests;

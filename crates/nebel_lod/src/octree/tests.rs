@@ -1,0 +1,423 @@
+use glam::{DMat3, DVec3};
+use nebel_core::cell::Hexahedron;
+use proptest::prelude::*;
+
+use super::*;
+
+/// The minimum accuracy used by the tests: K_max = 2 / (4 − √3/2) ≈ 0.638.
+const C: f64 = 2.0;
+
+fn grid(dims: [usize; 3], value: impl Fn([usize; 3]) -> f32) -> DensityGrid {
+    let [nx, ny, nz] = dims;
+    let mut values = Vec::with_capacity(nx * ny * nz);
+    for k in 0..nz {
+        for j in 0..ny {
+            for i in 0..nx {
+                values.push(value([i, j, k]));
+            }
+        }
+    }
+    DensityGrid::new(dims, DVec3::splat(0.5), DVec3::new(1.0, -2.0, 3.0), values)
+        .expect("valid grid")
+}
+
+/// Every node of the hierarchy, voxels included, parents before children.
+fn all_nodes(hierarchy: &VolumeHierarchy) -> Vec<Node> {
+    let mut nodes: Vec<Node> = hierarchy.roots().collect();
+    let mut next = 0;
+    while next < nodes.len() {
+        if let Some(children) = nodes[next].children() {
+            nodes.extend(children);
+        }
+        next += 1;
+    }
+    nodes
+}
+
+/// Grid points of the node's closed box.
+fn box_points(node: Node) -> impl Iterator<Item = [usize; 3]> {
+    let (o, s) = (node.origin, node.size());
+    (o[2]..=o[2] + s).flat_map(move |k| {
+        (o[1]..=o[1] + s).flat_map(move |j| (o[0]..=o[0] + s).map(move |i| [i, j, k]))
+    })
+}
+
+/// The quantised density at `p` in f64, without the f32 rounding.
+fn exact_density(hierarchy: &VolumeHierarchy, p: [usize; 3]) -> f64 {
+    f64::from(hierarchy.density_quantised(p)) / 255.0
+}
+
+/// The piecewise-linear interpolation of the node's corners over its five
+/// tetrahedra (nebel_core's decomposition), at grid point `p` in its box:
+/// an independent reference for the coarse values.
+fn coarse_value(hierarchy: &VolumeHierarchy, node: Node, p: [usize; 3]) -> f64 {
+    let to_f = |q: [usize; 3]| DVec3::new(q[0] as f64, q[1] as f64, q[2] as f64);
+    let corners = std::array::from_fn(|v| exact_density(hierarchy, node.corner(v)));
+    let hex =
+        Hexahedron::axis_aligned(to_f(node.origin), DVec3::splat(node.size() as f64), corners);
+    let x = to_f(p);
+    for tet in hex.tetrahedra(node.parity()) {
+        let [p0, p1, p2, p3] = tet.positions;
+        let lambda = DMat3::from_cols(p1 - p0, p2 - p0, p3 - p0).inverse() * (x - p0);
+        let weights = [
+            1.0 - lambda.x - lambda.y - lambda.z,
+            lambda.x,
+            lambda.y,
+            lambda.z,
+        ];
+        if weights.iter().all(|&w| w >= -1e-12) {
+            return weights.iter().zip(tet.scalars).map(|(w, s)| w * s).sum();
+        }
+    }
+    unreachable!("{p:?} is in no tetrahedron of {node:?}")
+}
+
+/// The node's local deviation by the reference: max over its non-corner points.
+fn local_deviation(hierarchy: &VolumeHierarchy, node: Node) -> f64 {
+    let half = node.size() / 2;
+    box_points(node)
+        .filter(|p| {
+            let rel: [usize; 3] = std::array::from_fn(|a| p[a] - node.origin[a]);
+            rel.iter().all(|r| r % half == 0) && !rel.iter().all(|&r| r % node.size() == 0)
+        })
+        .map(|p| (exact_density(hierarchy, p) - coarse_value(hierarchy, node, p)).abs())
+        .fold(0.0, f64::max)
+}
+
+#[test]
+fn k_max_matches_equation_4_and_rejects_small_or_invalid_c() {
+    let k = k_max(C).unwrap();
+    assert!((k - 2.0 / (4.0 - 3f64.sqrt() / 2.0)).abs() < 1e-15);
+    assert!(k_max(1e9).unwrap() > 0.5 && k_max(1.7321).unwrap() < 2.0 / 3.0);
+    for c in [3f64.sqrt(), 1.0, 0.0, -3.0, f64::NAN, f64::INFINITY] {
+        assert!(
+            matches!(k_max(c), Err(HierarchyError::InvalidMinAccuracy { value }) if value.to_bits() == c.to_bits()),
+            "{c}"
+        );
+        assert!(VolumeHierarchy::new(&grid([3; 3], |_| 0.0), c).is_err());
+    }
+}
+
+#[test]
+fn sizes_other_than_power_of_two_plus_one_are_errors_naming_the_dims() {
+    for dims in [[10, 9, 9], [9, 9, 4], [2, 7, 3], [513, 513, 64]] {
+        let error = VolumeHierarchy::new(&grid(dims, |_| 0.5), C).unwrap_err();
+        assert_eq!(error, HierarchyError::NotPowerOfTwoPlusOne { dims });
+        assert!(error.to_string().contains(&format!("{dims:?}")), "{error}");
+    }
+}
+
+#[test]
+fn nan_densities_never_reach_the_hierarchy() {
+    // The grid itself refuses NaN, so `VolumeHierarchy::new` only sees finite
+    // values in [0, 1].
+    let mut values = vec![0.5; 27];
+    values[13] = f32::NAN;
+    assert!(DensityGrid::new([3; 3], DVec3::ONE, DVec3::ZERO, values).is_err());
+}
+
+#[test]
+fn forest_of_9_9_5_has_2_by_2_by_1_roots_of_5_cubed() {
+    let hierarchy = VolumeHierarchy::new(&grid([9, 9, 5], |_| 0.25), C).unwrap();
+    assert_eq!(hierarchy.root_level(), 2);
+    assert_eq!(hierarchy.root_counts(), [2, 2, 1]);
+    let origins: Vec<_> = hierarchy.roots().map(|n| (n.level, n.origin)).collect();
+    assert_eq!(
+        origins,
+        [
+            (2, [0, 0, 0]),
+            (2, [4, 0, 0]),
+            (2, [0, 4, 0]),
+            (2, [4, 4, 0])
+        ]
+    );
+    // Roots alternate like the nodes of any level.
+    let parities: Vec<_> = hierarchy.roots().map(|n| n.parity()).collect();
+    assert_ne!(parities[0], parities[1]);
+    assert_eq!(parities[0], parities[3]);
+    // 2 · 2 roots, each 1 + 8 + 64 nodes.
+    assert_eq!(all_nodes(&hierarchy).len(), 4 * 73);
+    assert_eq!(hierarchy.bytes_per_point(), 4.0);
+}
+
+#[test]
+fn forest_of_the_paper_cloud_field_has_8_by_8_by_1_roots_of_65_cubed() {
+    let dims = [513, 513, 65];
+    let grid = DensityGrid::new(dims, DVec3::ONE, DVec3::ZERO, vec![0.0; 513 * 513 * 65])
+        .expect("valid grid");
+    let hierarchy = VolumeHierarchy::new(&grid, C).unwrap();
+    assert_eq!(hierarchy.root_level(), 6);
+    assert_eq!(hierarchy.root_counts(), [8, 8, 1]);
+    assert_eq!(hierarchy.roots().count(), 64);
+    assert!(
+        hierarchy
+            .roots()
+            .all(|n| n.size() == 64 && n.origin[2] == 0)
+    );
+    assert_eq!(hierarchy.bytes_per_point(), 4.0);
+}
+
+#[test]
+fn an_axis_of_two_points_makes_every_root_a_voxel() {
+    let hierarchy =
+        VolumeHierarchy::new(&grid([3, 5, 2], |[i, j, k]| (i + j + k) as f32 / 8.0), C).unwrap();
+    assert_eq!(hierarchy.root_level(), 0);
+    assert_eq!(hierarchy.root_counts(), [2, 4, 1]);
+    for root in hierarchy.roots() {
+        assert!(root.children().is_none() && root.centre().is_none());
+        assert_eq!(hierarchy.deviation(root), 0.0);
+        assert_eq!(hierarchy.morph_factor(root), 0.0);
+    }
+}
+
+#[test]
+fn linear_fields_have_zero_deviation_at_every_node() {
+    // Values on multiples of 1/255, so the u8 quantisation keeps them linear.
+    type Field = fn([usize; 3]) -> f32;
+    let fields: [([usize; 3], Field); 2] = [
+        ([17, 9, 33], |[i, j, k]| (i + 2 * j + 3 * k) as f32 / 255.0),
+        ([17, 17, 17], |[i, j, k]| {
+            (100 + 3 * i + k - 2 * j) as f32 / 255.0
+        }),
+    ];
+    for (dims, field) in fields {
+        let hierarchy = VolumeHierarchy::new(&grid(dims, field), C).unwrap();
+        for node in all_nodes(&hierarchy) {
+            assert_eq!(hierarchy.deviation_quantised(node), 0, "{node:?}");
+            // A linear field is extreme at corners.
+            let corners: Vec<f32> = (0..8).map(|v| hierarchy.density(node.corner(v))).collect();
+            let min = corners.iter().copied().fold(1.0, f32::min);
+            let max = corners.iter().copied().fold(0.0, f32::max);
+            assert_eq!(hierarchy.scalar_range(node), [min, max], "{node:?}");
+        }
+    }
+}
+
+/// Where grid point `p` lies in `node`: 2 for a non-corner point of its
+/// 3³ sample points (edge midpoint, face centre, centre), 1 for a corner, 0
+/// otherwise.
+fn spike_role(node: Node, p: [usize; 3]) -> u16 {
+    let half = (node.size() / 2).max(1);
+    let inside = (0..3).all(|a| p[a] >= node.origin[a] && p[a] <= node.origin[a] + node.size());
+    if !inside || node.level == 0 {
+        return 0;
+    }
+    let rel: [usize; 3] = std::array::from_fn(|a| p[a] - node.origin[a]);
+    if !rel.iter().all(|r| r % half == 0) {
+        0
+    } else if rel.iter().all(|&r| r % node.size() == 0) {
+        1
+    } else {
+        2
+    }
+}
+
+#[test]
+fn a_spike_gives_its_height_at_its_finest_nodes_and_k_max_powers_above() {
+    // A spike of height h on zero: a node that has it as an edge midpoint,
+    // face centre or centre deviates by h there (its coarse value is 0); one
+    // that has it as a corner by h/2 (at the edge midpoints next to it); any
+    // other by 0. Propagation then multiplies by K_max per level.
+    let height = 200u16;
+    let k = k_max(C).unwrap();
+    // (spike point, level of its finest non-corner owners, their origins): a
+    // level-1 centre, a level-2 face centre shared by two nodes, a level-2
+    // edge midpoint shared by four.
+    let cases: [([usize; 3], u32, Vec<[usize; 3]>); 3] = [
+        ([5, 7, 3], 1, vec![[4, 6, 2]]),
+        ([4, 2, 2], 2, vec![[0, 0, 0], [4, 0, 0]]),
+        (
+            [4, 4, 2],
+            2,
+            vec![[0, 0, 0], [4, 0, 0], [0, 4, 0], [4, 4, 0]],
+        ),
+    ];
+    for (spike, owner_level, owners) in cases {
+        let field = grid([17; 3], |p| {
+            if p == spike {
+                f32::from(height) / 255.0
+            } else {
+                0.0
+            }
+        });
+        let hierarchy = VolumeHierarchy::new(&field, C).unwrap();
+        assert_eq!(hierarchy.root_level(), 4);
+        // Children come after their parents: fill the expectation bottom-up.
+        let nodes = all_nodes(&hierarchy);
+        let mut expected = std::collections::HashMap::new();
+        for &node in nodes.iter().rev() {
+            // h / 255 is 257 h / 65535 exactly.
+            let mut raw = (u32::from(spike_role(node, spike)) * 257 * u32::from(height) / 2) as u16;
+            for child in node.children().into_iter().flatten() {
+                raw = raw.max((k * f64::from(expected[&child])).ceil() as u16);
+            }
+            expected.insert(node, raw);
+            assert_eq!(
+                hierarchy.deviation_quantised(node),
+                raw,
+                "spike {spike:?}, {node:?}"
+            );
+        }
+        // The owners and their ancestors: Δ = K_max^n · h, n levels above the
+        // owners, up to the 1/65535 rounding per level.
+        for level in owner_level..=4 {
+            for owner in &owners {
+                let node = Node {
+                    level,
+                    origin: owner.map(|c| (c >> level) << level),
+                };
+                let closed_form = k.powi((level - owner_level) as i32) * f64::from(height) / 255.0;
+                let error = f64::from(hierarchy.deviation(node)) - closed_form;
+                assert!(
+                    (-1e-6..=4.0 / 65535.0).contains(&error),
+                    "spike {spike:?}, {node:?}: {error}"
+                );
+            }
+        }
+        // The face and edge spikes are corners of level-1 nodes (Δ = h/2 there).
+        let corner_of_level_1 = nodes
+            .iter()
+            .any(|n| n.level == 1 && spike_role(*n, spike) == 1);
+        assert_eq!(corner_of_level_1, owner_level == 2);
+    }
+}
+
+#[test]
+fn face_centres_have_one_coarse_value_from_either_neighbour() {
+    let field = grid([9; 3], |[i, j, k]| {
+        ((i * 7 + j * 13 + k * 29) % 17) as f32 / 16.0
+    });
+    let hierarchy = VolumeHierarchy::new(&field, C).unwrap();
+    for node in all_nodes(&hierarchy).into_iter().filter(|n| n.level >= 1) {
+        let (s, h) = (node.size(), node.size() / 2);
+        for axis in 0..3 {
+            let mut neighbour = node;
+            neighbour.origin[axis] += s;
+            if neighbour.origin[axis] + s >= 9 {
+                continue;
+            }
+            assert_ne!(node.parity(), neighbour.parity());
+            let mut face_centre = node.centre().unwrap();
+            face_centre[axis] += h;
+            let ours = coarse_value(&hierarchy, node, face_centre);
+            let theirs = coarse_value(&hierarchy, neighbour, face_centre);
+            assert!((ours - theirs).abs() < 1e-12, "{node:?} axis {axis}");
+        }
+    }
+}
+
+#[test]
+fn morph_factor_is_stored_at_the_centre_clamped_and_rounded() {
+    let mut hierarchy = VolumeHierarchy::new(&grid([5; 3], |_| 0.5), C).unwrap();
+    let root = hierarchy.roots().next().unwrap();
+    let child = root.children().unwrap()[5];
+    assert_eq!(hierarchy.morph_factor(root), 0.0);
+    hierarchy.set_morph_factor(root, 0.5);
+    hierarchy.set_morph_factor(child, 7.0);
+    assert_eq!(hierarchy.morph_factor(root), 128.0 / 255.0);
+    assert_eq!(hierarchy.morph_factor(child), 1.0);
+    hierarchy.set_morph_factor(child, f32::NAN);
+    assert_eq!(hierarchy.morph_factor(child), 0.0);
+    hierarchy.set_morph_factor(child, -1.0);
+    assert_eq!(hierarchy.morph_factor(child), 0.0);
+    // Δ and the ranges are untouched.
+    assert_eq!(hierarchy.deviation(root), 0.0);
+    assert_eq!(hierarchy.scalar_range(root), [128.0 / 255.0; 2]);
+}
+
+#[test]
+#[should_panic(expected = "no morph factor")]
+fn a_voxel_has_no_morph_factor_to_set() {
+    let mut hierarchy = VolumeHierarchy::new(&grid([3; 3], |_| 0.5), C).unwrap();
+    let voxel = hierarchy.roots().next().unwrap().children().unwrap()[0];
+    hierarchy.set_morph_factor(voxel, 0.5);
+}
+
+#[test]
+#[should_panic(expected = "is not a node")]
+fn nodes_outside_the_hierarchy_panic() {
+    let hierarchy = VolumeHierarchy::new(&grid([5; 3], |_| 0.5), C).unwrap();
+    hierarchy.deviation(Node {
+        level: 1,
+        origin: [1, 0, 0],
+    });
+}
+
+#[test]
+fn quantised_grid_holds_what_the_hierarchy_draws() {
+    let field = grid([5, 9, 3], |[i, j, k]| {
+        ((i + 3 * j + 5 * k) as f32 * 0.037) % 1.0
+    });
+    let hierarchy = VolumeHierarchy::new(&field, C).unwrap();
+    let quantised = hierarchy.quantised_grid();
+    assert_eq!(quantised.dims(), field.dims());
+    assert_eq!(quantised.spacing(), field.spacing());
+    assert_eq!(quantised.origin(), field.origin());
+    for (&q, &v) in quantised.values().iter().zip(field.values()) {
+        assert!((q - v).abs() <= 0.5 / 255.0 + 1e-7);
+    }
+    for (index, &q) in quantised.values().iter().enumerate() {
+        let p = [index % 5, (index / 5) % 9, index / 45];
+        assert_eq!(q, hierarchy.density(p));
+    }
+}
+
+/// Grids of 2^a + 1 × 2^b + 1 × 2^c + 1 points (a, b, c ≤ 3) with random
+/// densities.
+fn random_grid() -> impl Strategy<Value = DensityGrid> {
+    [0u32..=3, 0u32..=3, 0u32..=3].prop_flat_map(|exponents| {
+        let dims = exponents.map(|e| (1usize << e) + 1);
+        let points = dims.iter().product::<usize>();
+        // Mostly smooth-ish small values with occasional spikes.
+        proptest::collection::vec(prop_oneof![3 => 0u8..=40, 1 => any::<u8>()], points).prop_map(
+            move |values| {
+                DensityGrid::new(
+                    dims,
+                    DVec3::ONE,
+                    DVec3::ZERO,
+                    values.into_iter().map(|v| f32::from(v) / 255.0).collect(),
+                )
+                .expect("valid grid")
+            },
+        )
+    })
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+
+    #[test]
+    fn deviation_is_the_local_maximum_propagated_by_k_max(
+        field in random_grid(),
+        min_accuracy in 1.75f64..20.0,
+    ) {
+        let hierarchy = VolumeHierarchy::new(&field, min_accuracy).unwrap();
+        let k = hierarchy.k_max();
+        for node in all_nodes(&hierarchy).into_iter().filter(|n| n.level >= 1) {
+            let parent = f64::from(hierarchy.deviation_quantised(node));
+            let mut bound = local_deviation(&hierarchy, node);
+            for child in node.children().unwrap() {
+                let child = f64::from(hierarchy.deviation_quantised(child));
+                // Eq. 5 holds exactly on the stored values.
+                prop_assert!(parent >= k * child, "{node:?}: {parent} < {k} · {child}");
+                bound = bound.max(k * child / 65535.0);
+            }
+            // Δ is that maximum, rounded up to 1/65535.
+            let excess = parent / 65535.0 - bound;
+            prop_assert!(
+                (-1e-9..=1.0 / 65535.0 + 1e-9).contains(&excess),
+                "{node:?}: Δ {} against {bound}", parent / 65535.0
+            );
+        }
+    }
+
+    #[test]
+    fn scalar_ranges_are_the_extremes_of_the_covered_points(field in random_grid()) {
+        let hierarchy = VolumeHierarchy::new(&field, C).unwrap();
+        for node in all_nodes(&hierarchy) {
+            let values: Vec<u8> = box_points(node).map(|p| hierarchy.density_quantised(p)).collect();
+            let expected = [*values.iter().min().unwrap(), *values.iter().max().unwrap()];
+            prop_assert_eq!(hierarchy.scalar_range_quantised(node), expected, "{:?}", node);
+        }
+    }
+}
