@@ -5,32 +5,44 @@
 //!
 //! Criterion reports the throughput in grid points per second ("elem/s").
 //!
+//! `octree_refine`: one per-frame refinement (`refine`, no morphing, no
+//! emission) of the 513 × 513 × 65 field under the paper's cloud transfer
+//! function for c in {1, 4, 16, 64}, eye outside (above a corner, about one
+//! field width away, looking at the field) and inside (in the middle of the
+//! slab). The leaf counts are printed once per case.
+//!
 //! Run: `cargo bench -p nebel_lod --bench octree`.
 
 use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use glam::DVec3;
+use glam::{DAffine3, DVec3};
 use nebel_core::field::{DensityGrid, ProceduralNoise};
+use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::VolumeHierarchy;
+use nebel_lod::octree::{RefinementSettings, refine};
 
 /// Minimum accuracy C of the benches (K_max ≈ 0.638).
 const MIN_ACCURACY: f64 = 2.0;
 
-fn octree_build(c: &mut Criterion) {
+/// The benches' fBm field: one world unit per grid point, the first octave
+/// spans 128 points, six octaves down to 4 points, like the paper's cumulus
+/// field.
+fn fbm_grid(dims: [usize; 3]) -> DensityGrid {
     let noise = ProceduralNoise {
         seed: 5,
         octaves: 6,
         frequency: 1.0 / 128.0,
         ..Default::default()
     };
+    DensityGrid::procedural(dims, DVec3::ONE, DVec3::ZERO, &noise).expect("valid grid")
+}
+
+fn octree_build(c: &mut Criterion) {
     let mut group = c.benchmark_group("octree_build");
     group.sample_size(10);
     for dims in [[129, 129, 129], [513, 513, 65]] {
-        // One world unit per grid point: the first octave spans 128 points,
-        // six octaves down to 4 points, like the paper's cumulus field.
-        let grid =
-            DensityGrid::procedural(dims, DVec3::ONE, DVec3::ZERO, &noise).expect("valid grid");
+        let grid = fbm_grid(dims);
         group.throughput(Throughput::Elements(grid.values().len() as u64));
         let name = format!("{}x{}x{}", dims[0], dims[1], dims[2]);
         group.bench_function(name, |b| {
@@ -40,5 +52,44 @@ fn octree_build(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, octree_build);
+fn octree_refine(c: &mut Criterion) {
+    let hierarchy =
+        VolumeHierarchy::new(&fbm_grid([513, 513, 65]), MIN_ACCURACY).expect("2^n+1 grid");
+    let transfer = TransferFunction::preset(TransferPreset::Cloud);
+    let eyes = [
+        ("outside", DVec3::new(-256.0, -256.0, 512.0)),
+        ("inside", DVec3::new(256.0, 256.0, 32.0)),
+    ];
+    let mut group = c.benchmark_group("octree_refine");
+    group.sample_size(20);
+    for (place, eye) in eyes {
+        for accuracy in [1.0, 4.0, 16.0, 64.0] {
+            let settings = RefinementSettings { accuracy };
+            let run = || {
+                refine(
+                    black_box(&hierarchy),
+                    DAffine3::IDENTITY,
+                    eye,
+                    None,
+                    &transfer,
+                    &settings,
+                )
+                .expect("valid settings")
+            };
+            let stats = run().stats;
+            println!(
+                "octree_refine {place} c={accuracy}: {} leaves ({} tetrahedra, {} voxels), {} nodes visited, {} culled transparent",
+                stats.leaves,
+                5 * stats.leaves,
+                stats.full_resolution_leaves,
+                stats.nodes_visited,
+                stats.culled_transparent
+            );
+            group.bench_function(format!("{place}/c={accuracy}"), |b| b.iter(run));
+        }
+    }
+    group.finish();
+}
+
+criterion_group!(benches, octree_build, octree_refine);
 criterion_main!(benches);

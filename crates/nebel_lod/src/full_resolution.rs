@@ -457,7 +457,7 @@ impl EyeSides {
 /// Writes into `order` the slabs `start..end` of one axis: with the eye's slab
 /// index (slab `s` spans `[s, s + 1)`), from both far ends towards the eye's
 /// slab, the eye's slab last; without one, ascending.
-fn axis_order(start: usize, end: usize, eye_slab: Option<i64>, order: &mut Vec<usize>) {
+pub(crate) fn axis_order(start: usize, end: usize, eye_slab: Option<i64>, order: &mut Vec<usize>) {
     order.clear();
     let Some(slab) = eye_slab else {
         order.extend(start..end);

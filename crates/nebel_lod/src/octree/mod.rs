@@ -2,8 +2,9 @@
 //! §2.4 and §3; DESIGN.md §5): an octree (or a forest of octrees) over a
 //! density grid of `2^n + 1` points per axis, with per node the propagated
 //! simplification error Δ, the scalar range for the zero-opacity test, and a
-//! slot for the morph factor e'. The per-frame refinement, the morphing and
-//! the batch emission read this hierarchy; they are not part of this module.
+//! slot for the morph factor e'. The per-frame refinement ([`refine()`], in
+//! [`mod@refine`]) reads it; the morphing and the batch emission are still to
+//! come.
 //!
 //! - [`Node`]: a node by level and minimum grid point, its corners, centre,
 //!   children and decomposition parity.
@@ -71,7 +72,7 @@
 //!   node's closed box, which bounds every value the LOD mesh or its morph can
 //!   take there.
 //! - e', u8 at a node's centre: `round(255 · e')`, written per frame by the
-//!   refinement ([`VolumeHierarchy::set_morph_factor`]), 0 after building.
+//!   caller from the refinement's e' ([`VolumeHierarchy::set_morph_factor`]), 0 after building.
 //!
 //! About 6/7 of the grid points are no node's centre; their Δ and e' slots
 //! stay unused, the price of the paper's addressing by centre point.
@@ -87,8 +88,12 @@
 
 mod build;
 mod node;
+pub mod refine;
 
 pub use node::Node;
+pub use refine::{
+    NodeMorph, Refinement, RefinementError, RefinementSettings, RefinementStats, refine,
+};
 
 use glam::DVec3;
 use nebel_core::field::DensityGrid;
