@@ -11,6 +11,12 @@
 //! field width away, looking at the field) and inside (in the middle of the
 //! slab). The leaf counts are printed once per case.
 //!
+//! `octree_emit`: the emission of one refinement as a morphed, back-to-front
+//! cell batch (`lod_batch`, refinement done beforehand) of the same field,
+//! eye inside, for c in {16, 64}. Criterion's "elem/s" is cells per second
+//! (divide by 1000 for cells per ms); the cell counts are printed once per
+//! case.
+//!
 //! Run: `cargo bench -p nebel_lod --bench octree`.
 
 use std::hint::black_box;
@@ -20,7 +26,7 @@ use glam::{DAffine3, DVec3};
 use nebel_core::field::{DensityGrid, ProceduralNoise};
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::VolumeHierarchy;
-use nebel_lod::octree::{RefinementSettings, refine};
+use nebel_lod::octree::{RefinementSettings, lod_batch, refine};
 
 /// Minimum accuracy C of the benches (K_max ≈ 0.638).
 const MIN_ACCURACY: f64 = 2.0;
@@ -91,5 +97,43 @@ fn octree_refine(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, octree_build, octree_refine);
+fn octree_emit(c: &mut Criterion) {
+    let hierarchy =
+        VolumeHierarchy::new(&fbm_grid([513, 513, 65]), MIN_ACCURACY).expect("2^n+1 grid");
+    let transfer = TransferFunction::preset(TransferPreset::Cloud);
+    let eye = DVec3::new(256.0, 256.0, 32.0);
+    let mut group = c.benchmark_group("octree_emit");
+    group.sample_size(20);
+    for accuracy in [16.0, 64.0] {
+        let refinement = refine(
+            &hierarchy,
+            DAffine3::IDENTITY,
+            eye,
+            None,
+            &transfer,
+            &RefinementSettings { accuracy },
+        )
+        .expect("valid settings");
+        let run = || {
+            lod_batch(
+                black_box(&hierarchy),
+                black_box(&refinement),
+                DAffine3::IDENTITY,
+                eye,
+            )
+            .expect("valid transform and eye")
+        };
+        let cells = run().len();
+        println!(
+            "octree_emit inside c={accuracy}: {cells} cells from {} leaves, {} refined nodes",
+            refinement.leaves.len(),
+            refinement.refined.len()
+        );
+        group.throughput(Throughput::Elements(cells as u64));
+        group.bench_function(format!("inside/c={accuracy}"), |b| b.iter(run));
+    }
+    group.finish();
+}
+
+criterion_group!(benches, octree_build, octree_refine, octree_emit);
 criterion_main!(benches);

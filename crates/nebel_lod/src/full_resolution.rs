@@ -209,7 +209,7 @@ pub(crate) struct Decomposition {
     pub(crate) central: [usize; 4],
     /// Corner tetrahedra: their corner indices and their apex (the cube corner
     /// whose three neighbours form the face shared with the central one).
-    corners: [([usize; 4], usize); 4],
+    pub(crate) corners: [([usize; 4], usize); 4],
 }
 
 /// nebel_core's decomposition for each parity, read off once from

@@ -3,8 +3,8 @@
 //! density grid of `2^n + 1` points per axis, with per node the propagated
 //! simplification error Δ, the scalar range for the zero-opacity test, and a
 //! slot for the morph factor e'. The per-frame refinement ([`refine()`], in
-//! [`mod@refine`]) reads it; the morphing and the batch emission are still to
-//! come.
+//! [`mod@refine`]) reads it, and [`lod_batch`] (in [`mod@emit`]) turns a
+//! refinement into a morphed, back-to-front [`crate::CellBatch`].
 //!
 //! - [`Node`]: a node by level and minimum grid point, its corners, centre,
 //!   children and decomposition parity.
@@ -87,9 +87,11 @@
 //! machine. The build runs once per grid (and again when its data change).
 
 mod build;
+pub mod emit;
 mod node;
 pub mod refine;
 
+pub use emit::lod_batch;
 pub use node::Node;
 pub use refine::{
     NodeMorph, Refinement, RefinementError, RefinementSettings, RefinementStats, refine,
