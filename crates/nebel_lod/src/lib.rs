@@ -12,10 +12,13 @@
 //!   back-to-front order for an eye, with per-brick zero-opacity test and
 //!   frustum culling ([`BrickTable`], [`full_resolution_batch`]), and
 //!   [`order_key`], which tells when a new eye position changes that order.
-//! - [`octree`]: the view-independent volume C-LOD hierarchy of paper 000
-//!   §2-3 ([`VolumeHierarchy`]): a forest of octrees over a `2^n + 1` grid with
-//!   per-node deviation Δ propagated by `K_max`, scalar ranges and the e' slot,
-//!   four bytes per grid point.
+//! - [`octree`]: the volume C-LOD of paper 000 §2-3: the view-independent
+//!   hierarchy ([`VolumeHierarchy`], a forest of octrees over a `2^n + 1` grid
+//!   with per-node deviation Δ propagated by `K_max` and scalar ranges, four
+//!   bytes per grid point), the per-frame refinement ([`octree::refine`]:
+//!   leaves back to front with their morph factors e') and the morphed,
+//!   conforming cell batch ([`octree::lod_batch`]). Lighting and the Bevy
+//!   wiring follow (issue 5).
 //! - [`visibility`]: back-to-front order for any conforming tetrahedral mesh
 //!   (MPVO, Williams 1992): [`CellAdjacency`] once per mesh, then
 //!   [`CellAdjacency::back_to_front`] or [`sorted_batch`] per eye.
