@@ -15,7 +15,7 @@
 //! - [`octree`]: the volume C-LOD of paper 000 §2-3: the view-independent
 //!   hierarchy ([`VolumeHierarchy`], a forest of octrees over a `2^n + 1` grid
 //!   with per-node deviation Δ propagated by `K_max` and scalar ranges, four
-//!   bytes per grid point), the per-frame refinement ([`octree::refine`]:
+//!   bytes per grid point), the per-frame refinement ([`fn@octree::refine`]:
 //!   leaves back to front with their morph factors e') and the morphed,
 //!   conforming cell batch ([`octree::lod_batch`]). Lighting and the Bevy
 //!   wiring follow (issue 5).
