@@ -274,6 +274,7 @@ fn bench_fog(args: &[String]) -> Result<(), String> {
         field: VolumeField::Grid(grid),
         transfer_function,
         mode: OpticalMode::Sorted,
+        lod: None,
     };
     // Two references (DESIGN.md §4): through the trilinear grid (the total
     // error) and through nebel's five tetrahedra per voxel (the error of

@@ -229,7 +229,7 @@ fn spawn_scene(
 #[cfg(feature = "volume")]
 fn spawn_volumes(commands: &mut Commands, volumes: &[BuiltVolume]) {
     use nebel_core::scene::VolumeField as SceneField;
-    use nebel_volume::{Campfire, Volume, VolumeField};
+    use nebel_volume::{Campfire, Volume, VolumeField, VolumeLod};
     use std::sync::Arc;
     for volume in volumes {
         let transfer_function = Arc::new(volume.transfer_function.clone());
@@ -255,11 +255,17 @@ fn spawn_volumes(commands: &mut Commands, volumes: &[BuiltVolume]) {
                 continue;
             }
         };
-        commands.spawn(Volume {
+        let mut entity = commands.spawn(Volume {
             field,
             transfer_function,
             mode: volume.mode,
         });
+        if let Some(lod) = volume.lod {
+            entity.insert(VolumeLod {
+                accuracy: lod.accuracy,
+                min_accuracy: lod.min_accuracy,
+            });
+        }
     }
 }
 

@@ -8,9 +8,11 @@
 //! changing the render system.
 
 mod campfire;
+mod lod;
 mod volume;
 
 pub use campfire::Campfire;
+pub use lod::VolumeLod;
 pub use volume::{Volume, VolumeField, VolumePlugin};
 
 pub use nebel_render::CellBatch;

@@ -15,6 +15,9 @@
 //! transform changed, and, for sorted volumes, when the camera moved (the
 //! order and the culling depend on the eye). Emissive and MIP volumes
 //! draw unordered and unculled, so a moving camera costs them nothing.
+//! With [`VolumeLod`] a grid volume's batch comes from the octree C-LOD
+//! instead (see [`crate::VolumeLod`]), rebuilt whenever the eye moves.
+//!
 //! A hidden volume (its [`InheritedVisibility`] false) has no batch. The
 //! `volume` group of [`EffectCounters`] reports volumes, cells drawn, cells
 //! at full resolution and the last rebuild's time.
@@ -27,11 +30,15 @@ use bevy::math::{DAffine3, DMat4, DVec3};
 use bevy::prelude::*;
 use nebel_core::cell::Tetrahedron;
 use nebel_core::field::DensityGrid;
+use nebel_core::field::PadFill;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::TransferFunction;
+use nebel_lod::octree::{RefinementSettings, VolumeHierarchy, lod_batch, refine};
 use nebel_lod::{
     BrickTable, CellAdjacency, CellBatch as LodCellBatch, CellOrder, Frustum, full_resolution_batch,
 };
+
+use crate::VolumeLod;
 use nebel_render::{CellBatch, EffectCounters, NebelSystems};
 
 /// Voxels per brick edge for the zero-opacity and frustum tests.
@@ -43,12 +50,14 @@ pub struct VolumePlugin;
 
 impl Plugin for VolumePlugin {
     fn build(&self, app: &mut App) {
-        app.register_type::<crate::Campfire>().add_systems(
-            Update,
-            (crate::campfire::animate_campfires, update_volume_batches)
-                .chain()
-                .in_set(NebelSystems),
-        );
+        app.register_type::<crate::Campfire>()
+            .register_type::<crate::VolumeLod>()
+            .add_systems(
+                Update,
+                (crate::campfire::animate_campfires, update_volume_batches)
+                    .chain()
+                    .in_set(NebelSystems),
+            );
     }
 }
 
@@ -91,6 +100,7 @@ impl Default for Volume {
 #[derive(Component, Clone, Debug)]
 struct VolumeBatchSource {
     eye: DVec3,
+    hierarchy: Option<Arc<VolumeHierarchy>>,
     bricks: Option<Arc<BrickTable>>,
     adjacency: Option<Arc<CellAdjacency>>,
     generation: u64,
@@ -98,6 +108,14 @@ struct VolumeBatchSource {
 
 fn to_double(matrix: Mat4) -> DMat4 {
     DMat4::from_cols_array(&matrix.to_cols_array().map(f64::from))
+}
+
+/// The octree of `grid`, padded with zero density to `2^n + 1` points per side.
+fn build_hierarchy(grid: &DensityGrid, lod: &VolumeLod) -> Result<VolumeHierarchy, String> {
+    let padded = grid
+        .padded_to_power_of_two_plus_one(PadFill::Value(0.0))
+        .map_err(|error| error.to_string())?;
+    VolumeHierarchy::new(&padded, lod.min_accuracy).map_err(|error| error.to_string())
 }
 
 #[allow(clippy::type_complexity)]
@@ -108,6 +126,7 @@ fn update_volume_batches(
         Entity,
         Ref<Volume>,
         Ref<GlobalTransform>,
+        Option<Ref<VolumeLod>>,
         &InheritedVisibility,
         Option<&CellBatch>,
         Option<&mut VolumeBatchSource>,
@@ -135,7 +154,7 @@ fn update_volume_batches(
     let started = Instant::now();
     let mut rebuilt = false;
     let (mut cells_drawn, mut cells_full) = (0_u64, 0_u64);
-    for (entity, volume, transform, visibility, drawn, source) in &mut volumes {
+    for (entity, volume, transform, lod, visibility, drawn, source) in &mut volumes {
         if !visibility.get() {
             // Hidden: nothing to build, upload or draw.
             if source.is_some() {
@@ -154,9 +173,12 @@ fn update_volume_batches(
             VolumeField::Cells(cells) => cells.len(),
         };
         cells_full += grid_full_cells as u64;
-        let changed = volume.is_changed() || transform.is_changed();
+        let lod_changed = lod.as_ref().is_some_and(|lod| lod.is_changed());
+        let changed = volume.is_changed() || transform.is_changed() || lod_changed;
+        // The order, the culling and the level of detail depend on the eye.
+        let view_dependent = ordered || lod.is_some();
         let eye_moved = source.as_ref().is_some_and(|s| s.eye != eye);
-        if source.is_some() && !changed && !(ordered && eye_moved) {
+        if source.is_some() && !changed && !(view_dependent && eye_moved) {
             cells_drawn += drawn.map_or(0, |batch| batch.cells.len() as u64);
             continue;
         }
@@ -164,7 +186,39 @@ fn update_volume_batches(
         let generation = source.as_ref().map_or(0, |s| s.generation + 1);
         let world_from_local = transform.affine();
         let world_from_local = DAffine3::from_mat4(to_double(Mat4::from(world_from_local)));
-        let (lod_batch, bricks, adjacency) = match &volume.field {
+        let (lod_batch, bricks, adjacency, hierarchy) = match &volume.field {
+            VolumeField::Grid(grid) if let Some(lod) = lod.as_deref() => {
+                let cached = source.as_ref().and_then(|s| s.hierarchy.clone());
+                let hierarchy = match cached {
+                    Some(hierarchy) if !volume.is_changed() && !lod_changed => hierarchy,
+                    _ => match build_hierarchy(grid, lod) {
+                        Ok(hierarchy) => Arc::new(hierarchy),
+                        Err(error) => {
+                            warn_once!("nebel: volume {entity} not drawn: {error}");
+                            continue;
+                        }
+                    },
+                };
+                let settings = RefinementSettings {
+                    accuracy: lod.accuracy,
+                };
+                let batch = refine(
+                    &hierarchy,
+                    world_from_local,
+                    eye,
+                    frustum.as_ref(),
+                    &volume.transfer_function,
+                    &settings,
+                )
+                .and_then(|refinement| lod_batch(&hierarchy, &refinement, world_from_local, eye));
+                match batch {
+                    Ok(batch) => (batch, None, None, Some(hierarchy)),
+                    Err(error) => {
+                        warn_once!("nebel: volume {entity} not drawn: {error}");
+                        continue;
+                    }
+                }
+            }
             VolumeField::Grid(grid) => {
                 let bricks = match source.as_ref().and_then(|s| s.bricks.clone()) {
                     Some(bricks) if !volume.is_changed() => bricks,
@@ -186,7 +240,7 @@ fn update_volume_batches(
                     order,
                 );
                 match batch {
-                    Ok(batch) => (batch, Some(bricks), None),
+                    Ok(batch) => (batch, Some(bricks), None, None),
                     Err(error) => {
                         warn_once!("nebel: volume {entity} not drawn: {error}");
                         continue;
@@ -209,10 +263,15 @@ fn update_volume_batches(
                         .into_iter()
                         .map(|index| to_world(&cells[index]))
                         .collect();
-                    (LodCellBatch::from_tetrahedra(&world), None, Some(adjacency))
+                    (
+                        LodCellBatch::from_tetrahedra(&world),
+                        None,
+                        Some(adjacency),
+                        None,
+                    )
                 } else {
                     let world: Vec<Tetrahedron> = cells.iter().map(to_world).collect();
-                    (LodCellBatch::from_tetrahedra(&world), None, None)
+                    (LodCellBatch::from_tetrahedra(&world), None, None, None)
                 }
             }
         };
@@ -227,6 +286,7 @@ fn update_volume_batches(
             ),
             VolumeBatchSource {
                 eye,
+                hierarchy,
                 bricks,
                 adjacency,
                 generation,
@@ -357,6 +417,42 @@ mod tests {
             .insert(InheritedVisibility::HIDDEN);
         app.update();
         assert!(app.world().get::<CellBatch>(volume).is_none());
+    }
+
+    #[test]
+    fn a_lod_volume_draws_fewer_cells_from_afar_and_follows_the_eye() {
+        let (mut app, camera, volume) = app_with_volume(OpticalMode::Emissive);
+        let noise = nebel_core::field::ProceduralNoise {
+            octaves: 3,
+            ..default()
+        };
+        let grid = DensityGrid::procedural([17, 17, 17], DVec3::splat(0.125), DVec3::ZERO, &noise)
+            .unwrap();
+        app.world_mut().get_mut::<Volume>(volume).unwrap().field =
+            VolumeField::Grid(Arc::new(grid));
+        app.world_mut().entity_mut(volume).insert(VolumeLod {
+            accuracy: 0.0,
+            min_accuracy: 2.0,
+        });
+        app.update();
+        let coarse = app.world().get::<CellBatch>(volume).unwrap().cells.len();
+        assert!(coarse > 0 && coarse < 5 * 16 * 16 * 16, "{coarse} cells");
+
+        // An emissive volume at full resolution ignores the eye; with LOD it follows it.
+        let before = generation(&app, volume);
+        move_camera(&mut app, camera);
+        assert!(generation(&app, volume) > before);
+
+        app.world_mut()
+            .get_mut::<VolumeLod>(volume)
+            .unwrap()
+            .accuracy = f64::INFINITY;
+        app.update();
+        let fine = app.world().get::<CellBatch>(volume).unwrap().cells.len();
+        assert!(
+            fine > coarse,
+            "{fine} cells at c = ∞ against {coarse} at c = 0"
+        );
     }
 
     #[test]

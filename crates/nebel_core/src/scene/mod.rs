@@ -792,6 +792,10 @@ mod tests {
                 ])),
                 density_scale: 0.5,
                 mode: Some(crate::optics::OpticalMode::Mip),
+                lod: Some(LodDescription {
+                    accuracy: 8.0,
+                    min_accuracy: 3.0,
+                }),
             }],
         }
     }
@@ -945,6 +949,11 @@ mod tests {
                 "version: 1,",
                 "version: 1, volumes: [(source: Cells([]))],",
                 "field volumes[0].source.Cells: needs at least one cell",
+            ),
+            (
+                "version: 1,",
+                "version: 1, volumes: [(source: Uniform((value: 1.0)), lod: (min_accuracy: 1.5))],",
+                "field volumes[0].lod.min_accuracy: must be finite and > √3, got 1.5",
             ),
             (
                 "version: 1,",

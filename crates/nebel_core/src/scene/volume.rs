@@ -62,6 +62,30 @@ pub struct VolumeDescription {
     /// light, `Sorted` otherwise.
     #[serde(default)]
     pub mode: Option<OpticalMode>,
+    /// Draw a grid source through the octree level of detail (paper 000)
+    /// instead of at full resolution. Default: none (full resolution).
+    #[serde(default)]
+    pub lod: Option<LodDescription>,
+}
+
+/// Level-of-detail settings of a grid volume.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LodDescription {
+    /// Global accuracy `c`, ≥ 0: higher draws more cells. Default 16.
+    #[serde(default = "default_lod_accuracy")]
+    pub accuracy: f64,
+    /// Minimum accuracy `C`, > √3. Default 4.
+    #[serde(default = "default_lod_min_accuracy")]
+    pub min_accuracy: f64,
+}
+
+fn default_lod_accuracy() -> f64 {
+    16.0
+}
+
+fn default_lod_min_accuracy() -> f64 {
+    4.0
 }
 
 fn default_min() -> [f32; 3] {
@@ -260,6 +284,8 @@ pub struct BuiltVolume {
     pub transfer_function: TransferFunction,
     /// How segments combine.
     pub mode: OpticalMode,
+    /// Level-of-detail settings; `None` draws at full resolution.
+    pub lod: Option<LodDescription>,
 }
 
 /// A volume's scalar field.
@@ -379,6 +405,7 @@ impl VolumeDescription {
             field,
             transfer_function: transfer,
             mode: self.mode.unwrap_or(default_mode),
+            lod: self.lod,
         })
     }
 
@@ -476,6 +503,20 @@ impl VolumeDescription {
                     self.min, self.max
                 ),
             ));
+        }
+        if let Some(lod) = &self.lod {
+            if !(lod.accuracy >= 0.0) {
+                return Err(InvalidField::new(
+                    "lod.accuracy",
+                    format!("must be >= 0, got {}", lod.accuracy),
+                ));
+            }
+            if !(lod.min_accuracy.is_finite() && lod.min_accuracy > 3f64.sqrt()) {
+                return Err(InvalidField::new(
+                    "lod.min_accuracy",
+                    format!("must be finite and > √3, got {}", lod.min_accuracy),
+                ));
+            }
         }
         if !(self.density_scale.is_finite() && self.density_scale >= 0.0) {
             return Err(InvalidField::new(
@@ -614,6 +655,7 @@ mod tests {
             transfer: None,
             density_scale: 2.0,
             mode: Some(OpticalMode::Emissive),
+            lod: None,
         }
     }
 
