@@ -51,9 +51,9 @@ mod opaque;
 mod volume;
 
 pub use volume::{
-    AnimatedCampfire, Axis, BuiltVolume, CampfireSource, ProceduralSource, RampSource,
-    SearchLightSource, TetrahedronDescription, TransferDescription, TransferStrip, UniformSource,
-    VolumeDescription, VolumeField, VolumeSource,
+    AnimatedCampfire, Axis, BuiltVolume, CampfireSource, LodDescription, ProceduralSource,
+    RampSource, SearchLightSource, TetrahedronDescription, TransferDescription, TransferStrip,
+    UniformSource, VolumeDescription, VolumeField, VolumeSource,
 };
 
 use std::path::{Path, PathBuf};

@@ -505,7 +505,7 @@ impl VolumeDescription {
             ));
         }
         if let Some(lod) = &self.lod {
-            if !(lod.accuracy >= 0.0) {
+            if lod.accuracy.is_nan() || lod.accuracy < 0.0 {
                 return Err(InvalidField::new(
                     "lod.accuracy",
                     format!("must be >= 0, got {}", lod.accuracy),
