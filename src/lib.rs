@@ -52,6 +52,7 @@ pub mod flickering_light;
 pub mod fly_camera;
 pub mod fog_comparison;
 pub mod headless;
+pub mod lod_sweep;
 pub mod reference_image;
 pub mod scene_setup;
 pub mod stats;

@@ -5,6 +5,7 @@
 //! nebel reference SCENE --out IMAGE.png [--frames N] [--size WxH]
 //! nebel compare A.png B.png [--diff DIFF.png]
 //! nebel bench-fog SCENE --out DIR [--frames N] [--size WxH] [--steps N]
+//! nebel bench-lod SCENE --out DIR [--accuracies C1,C2,...] [--frames N] [--size WxH]
 //! ```
 //!
 //! `render` draws a scene file headless through whatever adapter wgpu finds
@@ -28,6 +29,11 @@
 //! `DIR/fog_comparison.csv` (median and max frame time, RMSE, max error,
 //! PSNR) with the images. Tonemapping and MSAA are off.
 //!
+//! `bench-lod` sweeps the octree accuracy `c` of the scene's grid volume
+//! (default `0,4,16,64,256`) plus full resolution and writes
+//! `DIR/lod_sweep.csv` and a plot of frame time against error
+//! ([`nebel::lod_sweep`]).
+//!
 //! Errors are one line on stderr and a non-zero exit status.
 
 use std::path::{Path, PathBuf};
@@ -36,6 +42,7 @@ use std::time::Instant;
 
 use nebel::fog_comparison::{self, BevyFog};
 use nebel::headless::render_headless;
+use nebel::lod_sweep::run_lod_sweep;
 use nebel::reference_image::{reference_image, save_reference};
 use nebel::scene_setup::SceneSetupPlugin;
 use nebel_core::image_metrics::{difference_image, load_png_linear, save_png};
@@ -46,7 +53,8 @@ const USAGE: &str = "usage:
   nebel render SCENE --out IMAGE.png [--stats STATS.json] [--frames N] [--size WxH]
   nebel reference SCENE --out IMAGE.png [--frames N] [--size WxH]
   nebel compare A.png B.png [--diff DIFF.png]
-  nebel bench-fog SCENE --out DIR [--frames N] [--size WxH] [--steps N]";
+  nebel bench-fog SCENE --out DIR [--frames N] [--size WxH] [--steps N]
+  nebel bench-lod SCENE --out DIR [--accuracies C1,C2,...] [--frames N] [--size WxH]";
 
 /// Factor on the absolute error in `compare --diff` images.
 const DIFF_SCALE: f32 = 10.0;
@@ -68,6 +76,7 @@ fn run(args: &[String]) -> Result<(), String> {
         Some("reference") => reference(&args[1..]),
         Some("compare") => compare(&args[1..]),
         Some("bench-fog") => bench_fog(&args[1..]),
+        Some("bench-lod") => bench_lod(&args[1..]),
         Some("-h" | "--help") => {
             println!("{USAGE}");
             Ok(())
@@ -330,6 +339,35 @@ fn bench_fog(args: &[String]) -> Result<(), String> {
     let csv = out_dir.join("fog_comparison.csv");
     std::fs::write(&csv, rows.join("\n") + "\n").map_err(|e| format!("{}: {e}", csv.display()))?;
     eprintln!("nebel: wrote {}", csv.display());
+    Ok(())
+}
+
+fn bench_lod(args: &[String]) -> Result<(), String> {
+    let arguments = Arguments::parse(args, &["out", "frames", "size", "accuracies"])?;
+    let out_dir = PathBuf::from(arguments.required("out")?);
+    let accuracies: Vec<f64> = match arguments.option("accuracies") {
+        Some(list) => list
+            .split(',')
+            .map(|c| {
+                c.trim()
+                    .parse()
+                    .map_err(|_| format!("--accuracies takes numbers, got `{c}`"))
+            })
+            .collect::<Result<_, _>>()?,
+        None => vec![0.0, 4.0, 16.0, 64.0, 256.0],
+    };
+    let (scene_path, scene) = load_scene(&arguments)?;
+    let points = run_lod_sweep(&scene_path, scene, &accuracies, &out_dir)?;
+    for point in &points {
+        let c = point
+            .accuracy
+            .map_or(String::from("full resolution"), |c| format!("c = {c}"));
+        println!(
+            "{c}: {} cells, frame {:.1} ms, RMSE {:.3e}, max abs {:.3e}",
+            point.cells_drawn, point.frame_ms, point.rmse, point.max_abs
+        );
+    }
+    eprintln!("nebel: wrote {}", out_dir.join("lod_sweep.csv").display());
     Ok(())
 }
 
