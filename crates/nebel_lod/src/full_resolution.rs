@@ -280,7 +280,9 @@ pub fn full_resolution_batch(
             grid: voxels,
         });
     }
-    let Some((world_from_index, index_from_world)) = index_maps(grid, world_from_grid) else {
+    let Some((world_from_index, index_from_world)) =
+        index_maps(grid.origin(), grid.spacing(), world_from_grid)
+    else {
         return Err(BatchError::SingularTransform {
             determinant: world_from_grid.matrix3.determinant(),
         });
@@ -394,7 +396,7 @@ pub fn order_key(
     world_from_grid: DAffine3,
     eye_world: DVec3,
 ) -> Option<[i64; 11]> {
-    let (_, index_from_world) = index_maps(grid, world_from_grid)?;
+    let (_, index_from_world) = index_maps(grid.origin(), grid.spacing(), world_from_grid)?;
     let eye = EyeSides::new(index_from_world.transform_point3(eye_world))?;
     // Beyond ±limit every plane of the grid is on the same side.
     let limit = 4 * grid.dims().iter().sum::<usize>() as i64 + 8;
@@ -410,13 +412,17 @@ pub fn order_key(
     Some(key)
 }
 
-/// The maps between world space and voxel index space (point `(i, j, k)` at
-/// `(i, j, k)`): `(world_from_index, index_from_world)`, or `None` when not
-/// finite or not invertible.
-fn index_maps(grid: &DensityGrid, world_from_grid: DAffine3) -> Option<(DAffine3, DAffine3)> {
-    let world_from_index = world_from_grid
-        * DAffine3::from_translation(grid.origin())
-        * DAffine3::from_scale(grid.spacing());
+/// The maps between world space and the index space of a grid with `origin`
+/// and `spacing` (point `(i, j, k)` at `(i, j, k)`):
+/// `(world_from_index, index_from_world)`, or `None` when not finite or not
+/// invertible. The octree's refinement and emission use the same maps.
+pub(crate) fn index_maps(
+    origin: DVec3,
+    spacing: DVec3,
+    world_from_grid: DAffine3,
+) -> Option<(DAffine3, DAffine3)> {
+    let world_from_index =
+        world_from_grid * DAffine3::from_translation(origin) * DAffine3::from_scale(spacing);
     let determinant = world_from_index.matrix3.determinant();
     let index_from_world = world_from_index.inverse();
     let invertible = world_from_index.is_finite()
@@ -430,16 +436,16 @@ fn index_maps(grid: &DensityGrid, world_from_grid: DAffine3) -> Option<(DAffine3
 /// (apex) `c`, `σ_c · u` with `σ_c` = +1 on the axes where `c`'s bit is 0 and
 /// −1 where it is 1. Computed once per batch, so every voxel compares the same
 /// rounded values (and [`order_key`] sees exactly what the batch sees).
-struct EyeSides {
+pub(crate) struct EyeSides {
     /// `⌊u_a⌋` per axis, clamped to the i64 range.
-    slab: [i64; 3],
+    pub(crate) slab: [i64; 3],
     /// `σ_c · u` per apex `c`, summed x, y, z.
-    diagonal: [f64; 8],
+    pub(crate) diagonal: [f64; 8],
 }
 
 impl EyeSides {
     /// The sides of `u` (voxel index coordinates); `None` if not finite.
-    fn new(u: DVec3) -> Option<Self> {
+    pub(crate) fn new(u: DVec3) -> Option<Self> {
         if !u.is_finite() {
             return None;
         }

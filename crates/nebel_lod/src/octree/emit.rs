@@ -99,9 +99,10 @@ use std::hash::{BuildHasherDefault, Hasher};
 use glam::{DAffine3, DVec3};
 use nebel_core::cell::HexahedronParity;
 
+use super::refine::index_frame;
 use super::{Node, Refinement, RefinementError, VolumeHierarchy};
 use crate::batch::{CellBatch, GpuCell};
-use crate::full_resolution::DECOMPOSITIONS;
+use crate::full_resolution::{DECOMPOSITIONS, EyeSides};
 
 /// Builds the world-space batch of `refinement` (from [`super::refine()`] of
 /// `hierarchy`, or built by hand) with morphed scalars, in back-to-front order
@@ -121,27 +122,11 @@ pub fn lod_batch(
     world_from_grid: DAffine3,
     eye_world: DVec3,
 ) -> Result<CellBatch, RefinementError> {
-    let world_from_index = world_from_grid
-        * DAffine3::from_translation(hierarchy.origin())
-        * DAffine3::from_scale(hierarchy.spacing());
-    let determinant = world_from_index.matrix3.determinant();
-    let index_from_world = world_from_index.inverse();
-    if !(world_from_index.is_finite()
-        && determinant != 0.0
-        && determinant.is_finite()
-        && index_from_world.is_finite())
-    {
-        return Err(RefinementError::SingularTransform { determinant });
-    }
-    let eye = index_from_world.transform_point3(eye_world);
-    if !(eye_world.is_finite() && eye.is_finite()) {
-        return Err(RefinementError::NonFiniteEye { eye: eye_world });
-    }
-    // σ_c · eye per apex c, summed x, y, z as in the full-resolution batch.
-    let diagonal: [f64; 8] = std::array::from_fn(|apex| {
-        let sign = |bit: usize| if apex & bit == 0 { 1.0 } else { -1.0 };
-        sign(1) * eye.x + sign(2) * eye.y + sign(4) * eye.z
-    });
+    let (world_from_index, eye) = index_frame(hierarchy, world_from_grid, eye_world)?;
+    // σ_c · eye per apex c, the same values the full-resolution batch compares.
+    let diagonal = EyeSides::new(eye)
+        .ok_or(RefinementError::NonFiniteEye { eye: eye_world })?
+        .diagonal;
 
     let mut morpher = Morpher::new(hierarchy, refinement);
     let mut cells = Vec::with_capacity(5 * refinement.leaves.len());

@@ -77,7 +77,7 @@ use thiserror::Error;
 
 use super::{Node, VolumeHierarchy};
 use crate::frustum::Frustum;
-use crate::full_resolution::axis_order;
+use crate::full_resolution::{axis_order, index_maps};
 
 /// The user's controls of the refinement.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -180,6 +180,27 @@ pub struct Refinement {
     pub stats: RefinementStats,
 }
 
+/// The map from the hierarchy's index space (point `(i, j, k)` at
+/// `(i, j, k)`) to world space, and the eye in index space; refinement and
+/// emission share it.
+pub(crate) fn index_frame(
+    hierarchy: &VolumeHierarchy,
+    world_from_grid: DAffine3,
+    eye_world: DVec3,
+) -> Result<(DAffine3, DVec3), RefinementError> {
+    let (world_from_index, index_from_world) =
+        index_maps(hierarchy.origin(), hierarchy.spacing(), world_from_grid).ok_or(
+            RefinementError::SingularTransform {
+                determinant: world_from_grid.matrix3.determinant(),
+            },
+        )?;
+    let eye_index = index_from_world.transform_point3(eye_world);
+    if !(eye_world.is_finite() && eye_index.is_finite()) {
+        return Err(RefinementError::NonFiniteEye { eye: eye_world });
+    }
+    Ok((world_from_index, eye_index))
+}
+
 /// Refines `hierarchy` for one frame (see the module docs).
 ///
 /// - `world_from_grid`: maps the grid's own coordinates (point `(i, j, k)` at
@@ -200,22 +221,7 @@ pub fn refine(
     settings: &RefinementSettings,
 ) -> Result<Refinement, RefinementError> {
     settings.validate()?;
-    let world_from_index = world_from_grid
-        * DAffine3::from_translation(hierarchy.origin())
-        * DAffine3::from_scale(hierarchy.spacing());
-    let determinant = world_from_index.matrix3.determinant();
-    let index_from_world = world_from_index.inverse();
-    if !(world_from_index.is_finite()
-        && determinant != 0.0
-        && determinant.is_finite()
-        && index_from_world.is_finite())
-    {
-        return Err(RefinementError::SingularTransform { determinant });
-    }
-    let eye_index = index_from_world.transform_point3(eye_world);
-    if !(eye_world.is_finite() && eye_index.is_finite()) {
-        return Err(RefinementError::NonFiniteEye { eye: eye_world });
-    }
+    let (world_from_index, eye_index) = index_frame(hierarchy, world_from_grid, eye_world)?;
     let m = world_from_index.matrix3;
     let mut traversal = Traversal {
         hierarchy,
