@@ -12,8 +12,8 @@
 //! MIP one is drawn as given.
 //!
 //! Work happens only on change: a batch is rebuilt when the volume or its
-//! transform changed, and, for sorted volumes, when the camera moved (the
-//! order and the culling depend on the eye). Emissive and MIP volumes
+//! transform changed, and, for sorted volumes, when the camera moved or
+//! turned (the order depends on the eye, the culling on the whole view). Emissive and MIP volumes
 //! draw unordered and unculled, so a moving camera costs them nothing.
 //! With [`VolumeLod`] a grid volume's batch comes from the octree C-LOD
 //! instead (see [`crate::VolumeLod`]), rebuilt whenever the eye moves.
@@ -100,6 +100,8 @@ impl Default for Volume {
 #[derive(Component, Clone, Debug)]
 struct VolumeBatchSource {
     eye: DVec3,
+    /// The view-projection the frustum was culled with.
+    clip_from_world: DMat4,
     hierarchy: Option<Arc<VolumeHierarchy>>,
     bricks: Option<Arc<BrickTable>>,
     adjacency: Option<Arc<CellAdjacency>>,
@@ -177,8 +179,11 @@ fn update_volume_batches(
         let changed = volume.is_changed() || transform.is_changed() || lod_changed;
         // The order, the culling and the level of detail depend on the eye.
         let view_dependent = ordered || lod.is_some();
-        let eye_moved = source.as_ref().is_some_and(|s| s.eye != eye);
-        if source.is_some() && !changed && !(view_dependent && eye_moved) {
+        // A camera turning in place changes the frustum but not the eye.
+        let view_moved = source
+            .as_ref()
+            .is_some_and(|s| s.eye != eye || s.clip_from_world != clip_from_world);
+        if source.is_some() && !changed && !(view_dependent && view_moved) {
             cells_drawn += drawn.map_or(0, |batch| batch.cells.len() as u64);
             continue;
         }
@@ -286,6 +291,7 @@ fn update_volume_batches(
             ),
             VolumeBatchSource {
                 eye,
+                clip_from_world,
                 hierarchy,
                 bricks,
                 adjacency,
@@ -360,6 +366,14 @@ mod tests {
         app.update();
     }
 
+    /// Turns the camera in place and runs until the turn has propagated.
+    fn turn_camera(app: &mut App, camera: Entity) {
+        let mut transform = app.world_mut().get_mut::<Transform>(camera).unwrap();
+        transform.rotate_y(0.05);
+        app.update();
+        app.update();
+    }
+
     fn generation(app: &App, volume: Entity) -> Option<u64> {
         app.world()
             .get::<CellBatch>(volume)
@@ -394,6 +408,13 @@ mod tests {
         assert!(
             generation(&app, volume).unwrap() > first,
             "a sorted volume follows the eye"
+        );
+
+        let moved = generation(&app, volume);
+        turn_camera(&mut app, camera);
+        assert!(
+            generation(&app, volume) > moved,
+            "the frustum changes when the camera turns in place"
         );
 
         let moved = generation(&app, volume);
