@@ -52,10 +52,25 @@ impl GpuCell {
 /// Tetrahedra in world space, in draw order, with their world bounds.
 ///
 /// An empty batch has both bounds at the origin.
+///
+/// # Segment-length modulation (paper 000 §5.1, Eq. 9)
+///
+/// A lit cloud carries two scalars per vertex: the one in
+/// [`GpuCell::vertices`] indexes the transfer function (its pre-integration
+/// tables), and the **modulator** `m ∈ [0, 1]` scales the length of every ray
+/// segment before the lookup: `l' = l · (m_f + m_b) / 2`, the mean of the
+/// linear modulator over the segment (exact for a linear `m`). With the light
+/// γ as scalar and the density `f / f_max` as modulator this is the paper's
+/// `l' = l · f / f_max`; the non-physical variant (§5.2) swaps the two.
+/// `modulators` is empty for an unmodulated batch, otherwise it has one entry
+/// per cell, the modulator at the cell's four vertices in vertex order.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct CellBatch {
     /// The cells in draw order.
     pub cells: Vec<GpuCell>,
+    /// Per cell, the segment-length modulator at its four vertices, in
+    /// [0, 1]; empty when the batch is not modulated (see the type docs).
+    pub modulators: Vec<[f32; 4]>,
     /// Minimum corner of the axis-aligned box around every vertex, world units.
     pub bounds_min: Vec3,
     /// Maximum corner of the axis-aligned box around every vertex, world units.
@@ -95,9 +110,15 @@ impl CellBatch {
             vertices.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p)));
         Self {
             cells,
+            modulators: Vec::new(),
             bounds_min,
             bounds_max,
         }
+    }
+
+    /// Whether the cells carry segment-length modulators.
+    pub fn is_modulated(&self) -> bool {
+        !self.modulators.is_empty()
     }
 
     /// Number of cells.

@@ -376,6 +376,7 @@ pub fn full_resolution_batch(
     }
     Ok(CellBatch {
         cells,
+        modulators: Vec::new(),
         bounds_min,
         bounds_max,
     })

@@ -16,6 +16,39 @@ impl VolumeHierarchy {
     /// finite and > √3. The grid's values are finite and in [0, 1] by
     /// construction ([`DensityGrid::new`] rejects NaN), so they need no check.
     pub fn new(grid: &DensityGrid, min_accuracy: f64) -> Result<Self, HierarchyError> {
+        Self::build(grid, None, min_accuracy)
+    }
+
+    /// Builds the hierarchy of a lit cloud (paper 000 §5): the density `grid`
+    /// and its light field γ (`light`, sampled at the same points, e.g. from
+    /// `nebel_core::field::light_field`). Both are quantised to u8 and Δ is the
+    /// maximum deviation of **either** field, so the mesh is refined where the
+    /// density or the light varies (§5.1: "driven by the maximum deviation of
+    /// both scalar fields"); the scalar ranges stay those of the density (the
+    /// zero-opacity test is on the opacity). Five bytes per grid point.
+    ///
+    /// Errors: as [`VolumeHierarchy::new`], and
+    /// [`HierarchyError::LightDimsMismatch`] when the two grids differ in
+    /// points per axis.
+    pub fn with_light(
+        grid: &DensityGrid,
+        light: &DensityGrid,
+        min_accuracy: f64,
+    ) -> Result<Self, HierarchyError> {
+        if light.dims() != grid.dims() {
+            return Err(HierarchyError::LightDimsMismatch {
+                density: grid.dims(),
+                light: light.dims(),
+            });
+        }
+        Self::build(grid, Some(light), min_accuracy)
+    }
+
+    fn build(
+        grid: &DensityGrid,
+        light: Option<&DensityGrid>,
+        min_accuracy: f64,
+    ) -> Result<Self, HierarchyError> {
         let k_max = k_max(min_accuracy)?;
         let dims = grid.dims();
         let exponents =
@@ -33,11 +66,8 @@ impl VolumeHierarchy {
             root_counts: dims.map(|n| (n - 1) >> root_level),
             min_accuracy,
             k_max,
-            density: grid
-                .values()
-                .iter()
-                .map(|&s| (s * 255.0).round() as u8)
-                .collect(),
+            density: quantise(grid),
+            light: light.map(quantise).unwrap_or_default(),
             words: vec![0; points],
             morph: vec![0; points],
         };
@@ -78,21 +108,25 @@ impl VolumeHierarchy {
             for y in 0..counts[1] {
                 for x in 0..counts[0] {
                     let base = x * size + nx * (y * size + ny * (z * size));
-                    let d = |off: usize| i32::from(self.density[base + off]);
-                    let corners = corner_offsets.map(d);
                     let parity = (x + y + z) & 1;
                     // Deviations in units of 1/1020 (4 · 255), so exact.
-                    let mut deviation = 0;
-                    for &(mid, [v0, v1]) in &edges {
-                        let mid = d(offset(mid[0], mid[1], mid[2]));
-                        deviation = deviation.max(2 * (2 * mid - corners[v0] - corners[v1]).abs());
+                    let local_deviation = |field: &[u8]| {
+                        let d = |off: usize| i32::from(field[base + off]);
+                        let corners = corner_offsets.map(d);
+                        let mut deviation = 0;
+                        for &(mid, [v0, v1]) in edges.iter().chain(&diagonals.faces[parity]) {
+                            let mid = d(offset(mid[0], mid[1], mid[2]));
+                            deviation =
+                                deviation.max(2 * (2 * mid - corners[v0] - corners[v1]).abs());
+                        }
+                        let central: i32 =
+                            diagonals.central[parity].iter().map(|&v| corners[v]).sum();
+                        deviation.max((4 * d(centre) - central).abs())
+                    };
+                    let mut deviation = local_deviation(&self.density);
+                    if !self.light.is_empty() {
+                        deviation = deviation.max(local_deviation(&self.light));
                     }
-                    for &(mid, [v0, v1]) in &diagonals.faces[parity] {
-                        let mid = d(offset(mid[0], mid[1], mid[2]));
-                        deviation = deviation.max(2 * (2 * mid - corners[v0] - corners[v1]).abs());
-                    }
-                    let central: i32 = diagonals.central[parity].iter().map(|&v| corners[v]).sum();
-                    deviation = deviation.max((4 * d(centre) - central).abs());
                     // 65535 / 1020 = 257 / 4, rounded up.
                     let mut delta = ((deviation as u32 * 257).div_ceil(4)) as u16;
 
@@ -125,6 +159,14 @@ impl VolumeHierarchy {
             }
         }
     }
+}
+
+/// The field quantised to u8, `round(255 · s)`.
+fn quantise(grid: &DensityGrid) -> Vec<u8> {
+    grid.values()
+        .iter()
+        .map(|&s| (s * 255.0).round() as u8)
+        .collect()
 }
 
 /// Per parity (0 even, 1 odd), the coarse interpolation's corners on the faces

@@ -96,7 +96,7 @@
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
 
-use glam::{DAffine3, DVec3};
+use glam::{DAffine3, DVec3, Vec2};
 use nebel_core::cell::HexahedronParity;
 
 use super::refine::index_frame;
@@ -122,6 +122,48 @@ pub fn lod_batch(
     world_from_grid: DAffine3,
     eye_world: DVec3,
 ) -> Result<CellBatch, RefinementError> {
+    lod_batch_with(
+        hierarchy,
+        refinement,
+        world_from_grid,
+        eye_world,
+        CellScalars::Density,
+    )
+}
+
+/// Which of a lit cloud's two fields the cells carry as their scalar and
+/// which as the segment-length modulator ([`CellBatch`] type docs; paper 000
+/// §5). Both fields are morphed by the same rule with the same weights.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum CellScalars {
+    /// The density alone, no modulator (an unlit volume). The default.
+    #[default]
+    Density,
+    /// Paper 000 §5.1: the light γ indexes the transfer function (colour
+    /// `κ(γ)`, constant `ρ = ρ_max`) and the density `f` modulates the segment
+    /// length, `l' = l · f / f_max` with `f_max = 1` (Eq. 9).
+    LightModulatedByDensity,
+    /// Paper 000 §5.2 (non-physical lighting): the density indexes the
+    /// transfer function (`κ(f)` an inverse colour ramp, `ρ(f)` linear above
+    /// a cut-off) and γ modulates the segment length, so the lit side is
+    /// opaque and the far side translucent.
+    DensityModulatedByLight,
+}
+
+/// [`lod_batch`] with a choice of scalar and modulator for a lit hierarchy
+/// ([`VolumeHierarchy::with_light`]). Errors as [`lod_batch`], and
+/// [`RefinementError::MissingLightField`] when `scalars` needs the light field
+/// and the hierarchy has none.
+pub fn lod_batch_with(
+    hierarchy: &VolumeHierarchy,
+    refinement: &Refinement,
+    world_from_grid: DAffine3,
+    eye_world: DVec3,
+    scalars: CellScalars,
+) -> Result<CellBatch, RefinementError> {
+    if scalars != CellScalars::Density && !hierarchy.has_light() {
+        return Err(RefinementError::MissingLightField);
+    }
     let (world_from_index, eye) = index_frame(hierarchy, world_from_grid, eye_world)?;
     // σ_c · eye per apex c, the same values the full-resolution batch compares.
     let diagonal = EyeSides::new(eye)
@@ -130,17 +172,32 @@ pub fn lod_batch(
 
     let mut morpher = Morpher::new(hierarchy, refinement);
     let mut cells = Vec::with_capacity(5 * refinement.leaves.len());
+    let modulated = scalars != CellScalars::Density;
+    let mut modulators = Vec::with_capacity(if modulated { cells.capacity() } else { 0 });
     for leaf in &refinement.leaves {
         let node = leaf.node;
+        let mut corner_modulators = [0.0f32; 8];
         let vertices: [[f32; 4]; 8] = std::array::from_fn(|v| {
             let p = node.corner(v);
             let position = world_from_index
                 .transform_point3(DVec3::from(p.map(|c| c as f64)))
                 .as_vec3();
-            [position.x, position.y, position.z, morpher.value(p)]
+            let [density, light] = morpher.value(p).to_array();
+            let (scalar, modulator) = match scalars {
+                CellScalars::Density => (density, 0.0),
+                CellScalars::LightModulatedByDensity => (light, density),
+                CellScalars::DensityModulatedByLight => (density, light),
+            };
+            corner_modulators[v] = modulator;
+            [position.x, position.y, position.z, scalar]
         });
-        let cell = |t: &[usize; 4]| GpuCell {
-            vertices: t.map(|v| vertices[v]),
+        let mut cell = |t: &[usize; 4]| {
+            if modulated {
+                modulators.push(t.map(|v| corner_modulators[v]));
+            }
+            GpuCell {
+                vertices: t.map(|v| vertices[v]),
+            }
         };
         let decomposition = &DECOMPOSITIONS[parity_index(node)];
         // The face a corner tetrahedron with apex `c` shares with the central
@@ -169,7 +226,9 @@ pub fn lod_batch(
             }
         }
     }
-    Ok(CellBatch::with_bounds(cells))
+    let mut batch = CellBatch::with_bounds(cells);
+    batch.modulators = modulators;
+    Ok(batch)
 }
 
 /// The index into [`DECOMPOSITIONS`] of the node's parity.
@@ -211,8 +270,9 @@ struct Morpher<'a> {
     hierarchy: &'a VolumeHierarchy,
     /// `e'` of every refined node, keyed by the flat index of its centre.
     morph: IndexMap<f32>,
-    /// The morphed value of every point evaluated so far, by flat index.
-    values: IndexMap<f32>,
+    /// The morphed (density, light) of every point evaluated so far, by flat
+    /// index.
+    values: IndexMap<Vec2>,
 }
 
 impl<'a> Morpher<'a> {
@@ -265,8 +325,15 @@ impl<'a> Morpher<'a> {
         node
     }
 
-    /// The morphed value of grid point `p` (module docs).
-    fn value(&mut self, p: [usize; 3]) -> f32 {
+    /// The own (quantised) density and light of grid point `p`; light 0
+    /// without a light field.
+    fn own(&self, p: [usize; 3]) -> Vec2 {
+        let h = self.hierarchy;
+        Vec2::new(h.density(p), h.light(p).unwrap_or(0.0))
+    }
+
+    /// The morphed density and light of grid point `p` (module docs).
+    fn value(&mut self, p: [usize; 3]) -> Vec2 {
         let h = self.hierarchy;
         let root_level = h.root_level();
         let m = p
@@ -275,7 +342,7 @@ impl<'a> Morpher<'a> {
             .min()
             .unwrap_or(root_level);
         if m >= root_level {
-            return h.density(p);
+            return self.own(p);
         }
         let index = h.index(p);
         if let Some(&v) = self.values.get(&index) {
@@ -317,7 +384,7 @@ impl<'a> Morpher<'a> {
                 }
             }
         }
-        let own = h.density(p);
+        let own = self.own(p);
         let value = if w >= 1.0 {
             own
         } else {
@@ -327,7 +394,7 @@ impl<'a> Morpher<'a> {
             // leaf drawn there: it takes that leaf's diagonal.
             let reference = unrefined.map_or(node, |n| self.leaf_above(n));
             let coarse = self.coarse(node, reference, p, odd, half);
-            (w * own + (1.0 - w) * coarse).clamp(0.0, 1.0)
+            (w * own + (1.0 - w) * coarse).clamp(Vec2::ZERO, Vec2::ONE)
         };
         self.values.insert(index, value);
         value
@@ -344,7 +411,7 @@ impl<'a> Morpher<'a> {
         p: [usize; 3],
         odd: [bool; 3],
         half: usize,
-    ) -> f32 {
+    ) -> Vec2 {
         match odd.iter().filter(|&&o| o).count() {
             1 => {
                 let axis = odd.iter().position(|&o| o).unwrap_or(0);
@@ -377,7 +444,7 @@ impl<'a> Morpher<'a> {
             }
             _ => {
                 let central = DECOMPOSITIONS[parity_index(node)].central;
-                let mut sum = 0.0;
+                let mut sum = Vec2::ZERO;
                 for v in central {
                     sum += self.value(node.corner(v));
                 }
@@ -397,7 +464,7 @@ mod tests {
 
     use super::*;
     use crate::full_resolution::{BrickTable, CellOrder, full_resolution_batch};
-    use crate::octree::{NodeMorph, RefinementSettings, refine};
+    use crate::octree::{HierarchyError, NodeMorph, RefinementSettings, refine};
 
     /// ρ > 0 for every s > 0: nothing of a field in (0, 1] is culled.
     fn fog() -> TransferFunction {
@@ -742,6 +809,78 @@ mod tests {
         ));
         let empty = lod_batch(&h, &Refinement::default(), world_from_grid(), DVec3::ZERO).unwrap();
         assert!(empty.is_empty());
+    }
+
+    #[test]
+    fn a_lit_batch_morphs_both_fields_with_one_rule() {
+        let dims = [17, 9, 9];
+        let density = field(dims, 5);
+        let light = field(dims, 6);
+        let lit = VolumeHierarchy::with_light(&density, &light, 2.0).unwrap();
+        let unlit = VolumeHierarchy::new(&density, 2.0).unwrap();
+        let eye = eye_at_index(&lit, DVec3::new(3.3, 4.1, 2.7));
+        // Δ covers the light too: the lit refinement is at least as fine.
+        let r = refined(&lit, eye, 8.0);
+        assert!(r.leaves.len() >= refined(&unlit, eye, 8.0).leaves.len());
+        assert!((lit.bytes_per_point() - 5.0).abs() < 1e-12);
+
+        let plain =
+            lod_batch_with(&unlit, &r, world_from_grid(), eye, CellScalars::Density).unwrap();
+        assert!(!plain.is_modulated());
+        let by_density = lod_batch_with(
+            &lit,
+            &r,
+            world_from_grid(),
+            eye,
+            CellScalars::LightModulatedByDensity,
+        )
+        .unwrap();
+        let by_light = lod_batch_with(
+            &lit,
+            &r,
+            world_from_grid(),
+            eye,
+            CellScalars::DensityModulatedByLight,
+        )
+        .unwrap();
+        assert_eq!(by_density.modulators.len(), by_density.len());
+        // The density morphs exactly as in the unlit batch, whichever role it
+        // plays; the light morphs as the density would if it were the field.
+        let light_only = VolumeHierarchy::new(&light, 2.0).unwrap();
+        let light_plain = lod_batch(&light_only, &r, world_from_grid(), eye).unwrap();
+        for i in 0..plain.len() {
+            for v in 0..4 {
+                assert_eq!(by_light.cells[i].vertices[v], plain.cells[i].vertices[v]);
+                assert_eq!(by_density.modulators[i][v], plain.cells[i].vertices[v][3]);
+                assert_eq!(
+                    by_light.modulators[i][v],
+                    light_plain.cells[i].vertices[v][3]
+                );
+                assert_eq!(
+                    by_density.cells[i].vertices[v],
+                    light_plain.cells[i].vertices[v]
+                );
+            }
+        }
+        assert_one_value_per_point(&by_density);
+
+        assert_eq!(
+            lod_batch_with(
+                &unlit,
+                &r,
+                world_from_grid(),
+                eye,
+                CellScalars::LightModulatedByDensity
+            ),
+            Err(RefinementError::MissingLightField)
+        );
+        assert_eq!(
+            VolumeHierarchy::with_light(&density, &field([9, 9, 9], 1), 2.0),
+            Err(HierarchyError::LightDimsMismatch {
+                density: dims,
+                light: [9, 9, 9]
+            })
+        );
     }
 
     proptest! {

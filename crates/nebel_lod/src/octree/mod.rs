@@ -74,6 +74,10 @@
 //! - e', u8 at a node's centre: `round(255 · e')`, written per frame by the
 //!   caller from the refinement's e' ([`VolumeHierarchy::set_morph_factor`]), 0 after building.
 //!
+//! - light γ, u8, only for a lit cloud ([`VolumeHierarchy::with_light`]):
+//!   quantised like the density; Δ is then the maximum of the deviations of
+//!   both fields (paper 000 §5.1), five bytes per grid point in all.
+//!
 //! About 6/7 of the grid points are no node's centre; their Δ and e' slots
 //! stay unused, the price of the paper's addressing by centre point.
 //!
@@ -91,7 +95,7 @@ pub mod emit;
 mod node;
 pub mod refine;
 
-pub use emit::lod_batch;
+pub use emit::{CellScalars, lod_batch, lod_batch_with};
 pub use node::Node;
 pub use refine::{
     NodeMorph, Refinement, RefinementError, RefinementSettings, RefinementStats, refine,
@@ -111,6 +115,16 @@ pub enum HierarchyError {
     NotPowerOfTwoPlusOne {
         /// Points per axis of the grid given.
         dims: [usize; 3],
+    },
+    /// A light field does not have the density grid's points per axis.
+    #[error(
+        "the light field has {light:?} points but the density grid {density:?}; sample both at the same points"
+    )]
+    LightDimsMismatch {
+        /// Points per axis of the density grid.
+        density: [usize; 3],
+        /// Points per axis of the light field.
+        light: [usize; 3],
     },
     /// The minimum accuracy `C` is not a finite number greater than √3.
     #[error(
@@ -158,6 +172,9 @@ pub struct VolumeHierarchy {
     k_max: f64,
     /// Quantised density per grid point, `round(255 · s)`.
     density: Vec<u8>,
+    /// Quantised light γ per grid point, `round(255 · γ)`; empty without a
+    /// light field.
+    light: Vec<u8>,
     /// Per grid point: Δ (units of 1/65535) at node centres, the packed scalar
     /// range at the centre of a node's +x face, 0 elsewhere.
     words: Vec<u16>,
@@ -228,6 +245,29 @@ impl VolumeHierarchy {
         f32::from(self.density_quantised(p)) / 255.0
     }
 
+    /// Whether the hierarchy was built with a light field
+    /// ([`VolumeHierarchy::with_light`]).
+    pub fn has_light(&self) -> bool {
+        !self.light.is_empty()
+    }
+
+    /// The quantised light γ at grid point `p`, in [0, 1]; `None` without a
+    /// light field. Panics outside the grid.
+    pub fn light(&self, p: [usize; 3]) -> Option<f32> {
+        let index = self.index(p);
+        self.light.get(index).map(|&q| f32::from(q) / 255.0)
+    }
+
+    /// The quantised light field as a grid of the original geometry; `None`
+    /// without one.
+    pub fn quantised_light(&self) -> Option<DensityGrid> {
+        self.has_light().then(|| {
+            let values = self.light.iter().map(|&q| f32::from(q) / 255.0).collect();
+            DensityGrid::new(self.dims, self.spacing, self.origin, values)
+                .expect("dims, spacing and origin come from a valid grid and q/255 is in [0, 1]")
+        })
+    }
+
     /// The quantised densities as a grid of the original geometry: the exact
     /// full-resolution counterpart of what the LOD mesh draws.
     pub fn quantised_grid(&self) -> DensityGrid {
@@ -294,9 +334,11 @@ impl VolumeHierarchy {
     }
 
     /// Bytes the hierarchy keeps per grid point (density, Δ and range words,
-    /// e'): 4, the paper's 1 + 2 + 1.
+    /// e', and the light when there is one): 4, the paper's 1 + 2 + 1, or 5
+    /// with a light field.
     pub fn bytes_per_point(&self) -> f64 {
         let bytes = self.density.len() * size_of::<u8>()
+            + self.light.len() * size_of::<u8>()
             + self.words.len() * size_of::<u16>()
             + self.morph.len() * size_of::<u8>();
         bytes as f64 / self.density.len() as f64

@@ -122,6 +122,11 @@ impl Default for RefinementSettings {
 /// Why [`refine`] could not run.
 #[derive(Clone, Debug, Error, PartialEq)]
 pub enum RefinementError {
+    /// A lit batch was asked of a hierarchy built without a light field.
+    #[error(
+        "the cells were asked to carry the light field, but the hierarchy has none (build it with VolumeHierarchy::with_light)"
+    )]
+    MissingLightField,
     /// The global accuracy `c` is NaN or negative.
     #[error("the global accuracy c must be a number ≥ 0 (paper 000 Eq. 1), got {value}")]
     InvalidAccuracy {
