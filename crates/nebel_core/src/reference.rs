@@ -201,6 +201,24 @@ pub enum ReferenceVolume {
     Grid(DensityGrid),
 }
 
+/// A second field that scales the length of every ray segment before its
+/// integral: `l' = l · m̄`, `m̄` the mean of the modulator `m` over the piece
+/// (paper 000 §5.1 Eq. 9, `l' = l · f / f_max`, the lit-cloud model of
+/// `nebel_lod::CellBatch`). Cells: the mean of the linear modulator over the
+/// segment, exactly what the GPU computes. Grid: the trilinear modulator is
+/// integrated along with the scalar, piece by piece (the pieces are refined
+/// to the same tolerance for both fields), so the image converges to the
+/// continuous model `∫ κ(s) ρ(s) m e^{−∫ ρ(s) m}`.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Modulation {
+    /// For [`ReferenceVolume::Cells`]: per cell, the modulator at its four
+    /// vertices, one entry per cell.
+    Cells(Vec<[f64; 4]>),
+    /// For [`ReferenceVolume::Grid`]: a grid with the volume grid's points
+    /// (its own spacing and origin are ignored).
+    Grid(DensityGrid),
+}
+
 /// Everything the reference renderer needs for one image.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ReferenceScene {
@@ -212,6 +230,8 @@ pub struct ReferenceScene {
     pub transfer_function: TransferFunction,
     /// How segments combine.
     pub mode: OpticalMode,
+    /// Optional segment-length modulator (lit clouds). Default `None`.
+    pub modulation: Option<Modulation>,
     /// Optional opaque depth: view-space depth per pixel (world units, ≥ 0,
     /// `+∞` where nothing is opaque), `width · height` values, row-major, top row
     /// first. Rays stop there. Default `None`.
@@ -238,6 +258,7 @@ impl ReferenceScene {
             volume,
             transfer_function,
             mode,
+            modulation: None,
             opaque_depth: None,
             background: DVec4::ZERO,
             scalar_tolerance: DEFAULT_SCALAR_TOLERANCE,
@@ -253,6 +274,42 @@ impl ReferenceScene {
             };
             if let Some(index) = cells.iter().position(|tet| !finite(tet)) {
                 return Err(ReferenceError::NonFiniteCell { index });
+            }
+        }
+        match (&self.volume, &self.modulation) {
+            (_, None) => {}
+            (ReferenceVolume::Cells(cells), Some(Modulation::Cells(modulators))) => {
+                if modulators.len() != cells.len() {
+                    return Err(ReferenceError::ModulationMismatch {
+                        reason: format!(
+                            "{} modulators for {} cells",
+                            modulators.len(),
+                            cells.len()
+                        ),
+                    });
+                }
+                if let Some(index) = modulators
+                    .iter()
+                    .position(|m| !m.iter().all(|v| v.is_finite()))
+                {
+                    return Err(ReferenceError::NonFiniteCell { index });
+                }
+            }
+            (ReferenceVolume::Grid(grid), Some(Modulation::Grid(modulator))) => {
+                if grid.dims() != modulator.dims() {
+                    return Err(ReferenceError::ModulationMismatch {
+                        reason: format!(
+                            "a modulator grid of {:?} points for a volume of {:?}",
+                            modulator.dims(),
+                            grid.dims()
+                        ),
+                    });
+                }
+            }
+            _ => {
+                return Err(ReferenceError::ModulationMismatch {
+                    reason: "cells need per-cell modulators and a grid a modulator grid".into(),
+                });
             }
         }
         if let Some(depth) = &self.opaque_depth {
@@ -309,6 +366,12 @@ pub enum ReferenceError {
         /// What it must satisfy.
         requirement: &'static str,
     },
+    /// A modulator does not fit the volume (wrong count, dims or kind).
+    #[error("reference modulation: {reason}")]
+    ModulationMismatch {
+        /// What does not fit.
+        reason: String,
+    },
     /// A cell has a NaN or infinite position or scalar.
     #[error("reference cells: cell {index} has a non-finite position or scalar")]
     NonFiniteCell {
@@ -360,13 +423,23 @@ pub fn render(
     let (width, height) = (camera.width, camera.height);
     let integrator = match &scene.volume {
         ReferenceVolume::Cells(cells) => {
-            let (prepared, bins) = CellBins::new(camera, cells);
+            let modulators = match &scene.modulation {
+                Some(Modulation::Cells(modulators)) => Some(modulators.as_slice()),
+                _ => None,
+            };
+            let (prepared, bins) = CellBins::new(camera, cells, modulators);
             Integrator::Cells {
                 cells: prepared,
                 bins,
             }
         }
-        ReferenceVolume::Grid(grid) => Integrator::Grid(grid),
+        ReferenceVolume::Grid(grid) => Integrator::Grid {
+            grid,
+            modulator: match &scene.modulation {
+                Some(Modulation::Grid(modulator)) => Some(modulator),
+                _ => None,
+            },
+        },
     };
     let mut image = LinearImage::transparent(width, height);
     let rows = Mutex::new(image.pixels.chunks_mut(width as usize).enumerate());
@@ -406,18 +479,23 @@ pub fn render(
 /// Per-thread buffers reused across pixels.
 #[derive(Default)]
 struct Scratch {
-    segments: Vec<CellSegment>,
+    /// A segment and the mean modulator over it (1 when unmodulated).
+    segments: Vec<(CellSegment, f64)>,
     crossings: Vec<f64>,
 }
 
 /// The prepared volume.
 enum Integrator<'a> {
-    /// The visible non-degenerate cells, prepared, and their screen bins.
+    /// The visible non-degenerate cells, prepared (with their modulator as a
+    /// second prepared cell of the same geometry), and their screen bins.
     Cells {
-        cells: Vec<PreparedTetrahedron>,
+        cells: Vec<(PreparedTetrahedron, Option<PreparedTetrahedron>)>,
         bins: CellBins,
     },
-    Grid(&'a DensityGrid),
+    Grid {
+        grid: &'a DensityGrid,
+        modulator: Option<&'a DensityGrid>,
+    },
 }
 
 fn render_pixel(
@@ -449,9 +527,10 @@ fn render_pixel(
                 t_far,
                 scratch,
             ),
-            Integrator::Grid(grid) => march_grid(
+            Integrator::Grid { grid, modulator } => march_grid(
                 &mut march,
                 grid,
+                *modulator,
                 scene.scalar_tolerance,
                 &ray,
                 t_near,
@@ -489,7 +568,7 @@ impl March<'_> {
 
 fn march_cells(
     march: &mut March<'_>,
-    cells: &[PreparedTetrahedron],
+    cells: &[(PreparedTetrahedron, Option<PreparedTetrahedron>)],
     candidates: &[u32],
     ray: &Ray,
     t_near: f64,
@@ -499,16 +578,22 @@ fn march_cells(
     let segments = &mut scratch.segments;
     segments.clear();
     segments.extend(candidates.iter().filter_map(|&index| {
-        let segment = cells[index as usize]
-            .intersect(ray)?
-            .clip_to_range(t_near, t_far)?;
-        (segment.length() > 0.0).then_some(segment)
+        let (cell, modulator) = &cells[index as usize];
+        let segment = cell.intersect(ray)?.clip_to_range(t_near, t_far)?;
+        let mean = match modulator {
+            Some(modulator) => {
+                let m = modulator.intersect(ray)?.clip_to_range(t_near, t_far)?;
+                0.5 * (m.s_entry + m.s_exit)
+            }
+            None => 1.0,
+        };
+        (segment.length() > 0.0).then_some((segment, mean))
     }));
     if march.mode == OpticalMode::Sorted {
-        segments.sort_unstable_by(|a, b| a.t_entry.total_cmp(&b.t_entry));
+        segments.sort_unstable_by(|a, b| a.0.t_entry.total_cmp(&b.0.t_entry));
     }
-    for segment in segments.iter() {
-        march.add(segment.s_entry, segment.s_exit, segment.length());
+    for (segment, mean) in segments.iter() {
+        march.add(segment.s_entry, segment.s_exit, segment.length() * mean);
         if march.is_opaque() {
             break;
         }
@@ -524,15 +609,29 @@ struct CellBins {
 impl CellBins {
     /// Prepares the visible, non-degenerate cells and bins them; bin entries
     /// index the returned cells.
-    fn new(camera: &ReferenceCamera, cells: &[Tetrahedron]) -> (Vec<PreparedTetrahedron>, Self) {
+    fn new(
+        camera: &ReferenceCamera,
+        cells: &[Tetrahedron],
+        modulators: Option<&[[f64; 4]]>,
+    ) -> (
+        Vec<(PreparedTetrahedron, Option<PreparedTetrahedron>)>,
+        Self,
+    ) {
         let tiles_x = camera.width.div_ceil(TILE_SIZE);
         let tiles_y = camera.height.div_ceil(TILE_SIZE);
         let mut bins = vec![Vec::new(); (tiles_x * tiles_y) as usize];
         let mut prepared = Vec::with_capacity(cells.len());
-        for cell in cells {
+        for (index, cell) in cells.iter().enumerate() {
             let Some(prepared_cell) = cell.prepare() else {
                 continue;
             };
+            let modulator = modulators.and_then(|m| {
+                Tetrahedron {
+                    positions: cell.positions,
+                    scalars: m[index],
+                }
+                .prepare()
+            });
             let projected = cell.positions.map(|p| camera.project(p));
             // Rays only see view depths ≥ near.
             if projected.iter().all(|&(_, _, depth)| depth < camera.near) {
@@ -566,7 +665,7 @@ impl CellBins {
                 (tx, ty)
             };
             let index = prepared.len() as u32;
-            prepared.push(prepared_cell);
+            prepared.push((prepared_cell, modulator));
             for tile_y in ty.0..=ty.1 {
                 for tile_x in tx.0..=tx.1 {
                     bins[(tile_y * tiles_x + tile_x) as usize].push(index);
@@ -615,6 +714,7 @@ impl Cubic {
 fn march_grid(
     march: &mut March<'_>,
     grid: &DensityGrid,
+    modulator: Option<&DensityGrid>,
     tolerance: f64,
     ray: &Ray,
     t_near: f64,
@@ -688,32 +788,46 @@ fn march_grid(
             Cubic::linear(origin, step[axis])
         };
         let (wx, wy, wz) = (local(0), local(1), local(2));
-        let corner = |dx: usize, dy: usize, dz: usize| {
-            Cubic::linear(
-                f64::from(grid.value(cell[0] + dx, cell[1] + dy, cell[2] + dz)),
-                0.0,
-            )
+        let trilinear = |field: &DensityGrid| {
+            let corner = |dx: usize, dy: usize, dz: usize| {
+                Cubic::linear(
+                    f64::from(field.value(cell[0] + dx, cell[1] + dy, cell[2] + dz)),
+                    0.0,
+                )
+            };
+            let edge = |dy: usize, dz: usize| corner(0, dy, dz).lerp(corner(1, dy, dz), wx);
+            let face = |dz: usize| edge(0, dz).lerp(edge(1, dz), wy);
+            face(0).lerp(face(1), wz)
         };
-        let edge = |dy: usize, dz: usize| corner(0, dy, dz).lerp(corner(1, dy, dz), wx);
-        let face = |dz: usize| edge(0, dz).lerp(edge(1, dz), wy);
-        let scalar = face(0).lerp(face(1), wz);
-
-        let curvature = scalar
-            .second_derivative(0.0)
-            .abs()
-            .max(scalar.second_derivative(length).abs());
+        let scalar = trilinear(grid);
+        let modulation = modulator.map(trilinear);
+        let bend = |cubic: &Cubic| {
+            cubic
+                .second_derivative(0.0)
+                .abs()
+                .max(cubic.second_derivative(length).abs())
+        };
+        let curvature = bend(&scalar).max(modulation.as_ref().map_or(0.0, bend));
+        // A modulated piece uses one mean modulator: split until the
+        // modulator changes by at most the tolerance along a piece.
+        let modulator_pieces = modulation
+            .as_ref()
+            .map_or(0.0, |m| (m.at(length) - m.at(0.0)).abs() / tolerance);
         let pieces = (length * (curvature / (8.0 * tolerance)).sqrt())
+            .max(modulator_pieces)
             .ceil()
             .clamp(1.0, MAX_PIECES_PER_CELL) as usize;
         let piece_length = length / pieces as f64;
-        let mut s_front = scalar.at(0.0);
+        let modulator_at = |x: f64| modulation.as_ref().map_or(1.0, |m| m.at(x));
+        let (mut s_front, mut m_front) = (scalar.at(0.0), modulator_at(0.0));
         for piece in 1..=pieces {
-            let s_back = scalar.at(piece as f64 * piece_length);
-            march.add(s_front, s_back, piece_length);
+            let x = piece as f64 * piece_length;
+            let (s_back, m_back) = (scalar.at(x), modulator_at(x));
+            march.add(s_front, s_back, piece_length * 0.5 * (m_front + m_back));
             if march.is_opaque() {
                 return;
             }
-            s_front = s_back;
+            (s_front, m_front) = (s_back, m_back);
         }
     }
 }
@@ -923,6 +1037,112 @@ mod tests {
                 "{mode:?}: the volume is visible"
             );
         }
+    }
+
+    #[test]
+    fn a_constant_modulator_scales_the_optical_density() {
+        // ∫_0^{l m} κ ρ e^{−∫ρ} = ∫_0^l κ (ρ m) e^{−∫ρ m}: a constant m is a
+        // density scale, for the cell and the grid path alike.
+        let density = grid(4, |p: DVec3| 0.5 + 0.3 * (2.0 * p.x).sin() * p.y.cos());
+        let cells = density.tetrahedra();
+        let camera = ReferenceCamera {
+            position: DVec3::new(2.5, 1.5, 3.5),
+            ..camera()
+        }
+        .looking_at(DVec3::ZERO, DVec3::Y);
+        let half = grid(4, |_| 0.5);
+        let scaled = ramp_tf().scale_density(0.5).unwrap();
+        for (volume, modulation) in [
+            (
+                ReferenceVolume::Cells(cells.clone()),
+                Modulation::Cells(vec![[0.5; 4]; cells.len()]),
+            ),
+            (
+                ReferenceVolume::Grid(density.clone()),
+                Modulation::Grid(half.clone()),
+            ),
+        ] {
+            let mut modulated =
+                ReferenceScene::new(camera, volume.clone(), ramp_tf(), OpticalMode::Sorted);
+            modulated.modulation = Some(modulation);
+            let expected = ReferenceScene::new(camera, volume, scaled.clone(), OpticalMode::Sorted);
+            let (a, b) = (
+                render(&modulated, None).unwrap(),
+                render(&expected, None).unwrap(),
+            );
+            assert!(max_difference(&a, &b, 4) < 1e-6);
+            assert!(a.pixels.iter().any(|p| p[3] > 0.1));
+        }
+    }
+
+    #[test]
+    fn cell_and_grid_modulation_agree_on_linear_fields() {
+        let density = grid(4, |p: DVec3| 0.5 + 0.2 * p.x - 0.15 * p.y + 0.1 * p.z);
+        let modulator = grid(4, |p: DVec3| 0.5 - 0.2 * p.x + 0.25 * p.z);
+        let cells = density.tetrahedra();
+        let modulators = modulator.tetrahedra().iter().map(|t| t.scalars).collect();
+        let camera = ReferenceCamera {
+            position: DVec3::new(-2.0, 2.5, 3.0),
+            ..camera()
+        }
+        .looking_at(DVec3::ZERO, DVec3::Y);
+        let mut from_grid = ReferenceScene::new(
+            camera,
+            ReferenceVolume::Grid(density),
+            ramp_tf(),
+            OpticalMode::Sorted,
+        );
+        from_grid.modulation = Some(Modulation::Grid(modulator));
+        let mut from_cells = ReferenceScene::new(
+            camera,
+            ReferenceVolume::Cells(cells),
+            ramp_tf(),
+            OpticalMode::Sorted,
+        );
+        from_cells.modulation = Some(Modulation::Cells(modulators));
+        let (a, b) = (
+            render(&from_grid, None).unwrap(),
+            render(&from_cells, None).unwrap(),
+        );
+        let unmodulated = render(
+            &ReferenceScene {
+                modulation: None,
+                ..from_cells.clone()
+            },
+            None,
+        )
+        .unwrap();
+        // The grid path splits rays until the modulator is nearly constant per
+        // piece (the continuous model); a cell uses one mean over its whole
+        // segment (the GPU's model), which converges to it as cells shrink.
+        let finer = |n: usize| {
+            let density = grid(n, |p: DVec3| 0.5 + 0.2 * p.x - 0.15 * p.y + 0.1 * p.z);
+            let modulator = grid(n, |p: DVec3| 0.5 - 0.2 * p.x + 0.25 * p.z);
+            let mut scene = ReferenceScene::new(
+                camera,
+                ReferenceVolume::Cells(density.tetrahedra()),
+                ramp_tf(),
+                OpticalMode::Sorted,
+            );
+            scene.modulation = Some(Modulation::Cells(
+                modulator.tetrahedra().iter().map(|t| t.scalars).collect(),
+            ));
+            render(&scene, None).unwrap()
+        };
+        let (coarse_error, fine_error) =
+            (max_difference(&a, &b, 4), max_difference(&a, &finer(13), 4));
+        assert!(coarse_error < 1e-2, "{coarse_error}");
+        assert!(
+            fine_error < 0.4 * coarse_error,
+            "{fine_error} vs {coarse_error}"
+        );
+        assert!(max_difference(&a, &unmodulated, 4) > 2e-2);
+
+        from_cells.modulation = Some(Modulation::Cells(vec![[1.0; 4]]));
+        assert!(matches!(
+            render(&from_cells, None),
+            Err(ReferenceError::ModulationMismatch { .. })
+        ));
     }
 
     #[test]
