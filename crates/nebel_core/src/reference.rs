@@ -433,13 +433,13 @@ pub fn render(
                 bins,
             }
         }
-        ReferenceVolume::Grid(grid) => Integrator::Grid {
+        ReferenceVolume::Grid(grid) => Integrator::Grid(GridFields {
             grid,
             modulator: match &scene.modulation {
                 Some(Modulation::Grid(modulator)) => Some(modulator),
                 _ => None,
             },
-        },
+        }),
     };
     let mut image = LinearImage::transparent(width, height);
     let rows = Mutex::new(image.pixels.chunks_mut(width as usize).enumerate());
@@ -492,10 +492,7 @@ enum Integrator<'a> {
         cells: Vec<(PreparedTetrahedron, Option<PreparedTetrahedron>)>,
         bins: CellBins,
     },
-    Grid {
-        grid: &'a DensityGrid,
-        modulator: Option<&'a DensityGrid>,
-    },
+    Grid(GridFields<'a>),
 }
 
 fn render_pixel(
@@ -527,10 +524,9 @@ fn render_pixel(
                 t_far,
                 scratch,
             ),
-            Integrator::Grid { grid, modulator } => march_grid(
+            Integrator::Grid(fields) => march_grid(
                 &mut march,
-                grid,
-                *modulator,
+                fields,
                 scene.scalar_tolerance,
                 &ray,
                 t_near,
@@ -711,10 +707,15 @@ impl Cubic {
     }
 }
 
+/// A grid volume and its optional modulator grid of the same points.
+struct GridFields<'a> {
+    grid: &'a DensityGrid,
+    modulator: Option<&'a DensityGrid>,
+}
+
 fn march_grid(
     march: &mut March<'_>,
-    grid: &DensityGrid,
-    modulator: Option<&DensityGrid>,
+    &GridFields { grid, modulator }: &GridFields<'_>,
     tolerance: f64,
     ray: &Ray,
     t_near: f64,
