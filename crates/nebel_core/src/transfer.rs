@@ -174,17 +174,24 @@ pub enum TransferPreset {
     SearchLight,
     /// Smoke: dark grey, slightly lighter where thin; zero below s = 0.02.
     Smoke,
+    /// A lit cloud's colour over its light intensity γ (paper 000 §5.1): κ
+    /// rises from a dark blue-grey in the shade (γ = 0) through grey to a warm
+    /// white in full sun (γ = 1); ρ is the constant 1 (`ρ_max`, scaled by the
+    /// volume's density scale), since the density enters as the segment
+    /// length `l' = l · f` (Eq. 9), not through this function.
+    CloudLight,
 }
 
 impl TransferPreset {
     /// Every preset, in declaration order.
-    pub const ALL: [TransferPreset; 6] = [
+    pub const ALL: [TransferPreset; 7] = [
         TransferPreset::Cloud,
         TransferPreset::GroundFog,
         TransferPreset::Fire,
         TransferPreset::Aurora,
         TransferPreset::SearchLight,
         TransferPreset::Smoke,
+        TransferPreset::CloudLight,
     ];
 
     /// The preset's control points (`s`, κ, ρ).
@@ -222,6 +229,11 @@ impl TransferPreset {
                 p(0.0, [0.3, 0.3, 0.31], 0.0),
                 p(0.02, [0.3, 0.3, 0.31], 0.0),
                 p(1.0, [0.1, 0.1, 0.11], 1.0),
+            ],
+            TransferPreset::CloudLight => vec![
+                p(0.0, [0.22, 0.25, 0.33], 1.0),
+                p(0.5, [0.62, 0.65, 0.72], 1.0),
+                p(1.0, [1.0, 0.98, 0.94], 1.0),
             ],
         }
     }

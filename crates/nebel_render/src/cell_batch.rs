@@ -27,6 +27,14 @@ pub struct CellBatch {
     pub transfer_function: Option<Arc<TransferFunction>>,
     /// How the cells' segments combine. Default: [`OpticalMode::Sorted`].
     pub mode: OpticalMode,
+    /// Per cell, the segment-length modulator `m ∈ [0, 1]` at its four
+    /// vertices: every ray segment is integrated over `l' = l · (m_f + m_b)/2`
+    /// instead of `l` (paper 000 §5.1, Eq. 9; the lit clouds of
+    /// `nebel_volume`, see `nebel_lod::CellBatch`). `None` draws unmodulated
+    /// segments; a list whose length differs from `cells` is refused by the
+    /// render system (the batch is not drawn and an error is logged).
+    /// Default: `None`.
+    pub modulators: Option<Arc<Vec<[f32; 4]>>>,
     /// The longest segment a ray can have in one cell, world units (the
     /// longest cell diameter); the pre-integration table covers 0 to this
     /// length. Default: 0 (computed by [`CellBatch::new`]).
@@ -63,10 +71,18 @@ impl CellBatch {
             generation,
             transfer_function: Some(transfer_function),
             mode,
+            modulators: None,
             max_segment_length,
             bounds_min,
             bounds_max,
         }
+    }
+
+    /// The batch with per-cell segment-length modulators (see
+    /// [`CellBatch::modulators`]); an empty list leaves it unmodulated.
+    pub fn with_modulators(mut self, modulators: Vec<[f32; 4]>) -> Self {
+        self.modulators = (!modulators.is_empty()).then(|| Arc::new(modulators));
+        self
     }
 
     /// Whether the render system has anything to draw for this batch.

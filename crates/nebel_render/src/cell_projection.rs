@@ -157,6 +157,7 @@ impl Plugin for CellProjectionPlugin {
 #[derive(Clone)]
 struct ExtractedCellBatch {
     cells: Arc<Vec<GpuCell>>,
+    modulators: Option<Arc<Vec<[f32; 4]>>>,
     generation: u64,
     transfer_function: Arc<TransferFunction>,
     mode: OpticalMode,
@@ -189,10 +190,21 @@ fn extract_cell_batches(
         let Some(transfer_function) = batch.transfer_function.clone() else {
             continue;
         };
+        if let Some(modulators) = &batch.modulators
+            && modulators.len() != batch.cells.len()
+        {
+            error_once!(
+                "nebel: a CellBatch has {} modulators for {} cells; it is not drawn",
+                modulators.len(),
+                batch.cells.len()
+            );
+            continue;
+        }
         extracted.0.push((
             entity,
             ExtractedCellBatch {
                 cells: batch.cells.clone(),
+                modulators: batch.modulators.clone(),
                 generation: batch.generation,
                 table_key: TableKey {
                     transfer_hash: transfer_function.content_hash(),
@@ -210,6 +222,10 @@ fn extract_cell_batches(
 struct GpuCellBuffer {
     generation: u64,
     buffer: Buffer,
+    /// The per-cell modulators, or one zero entry for an unmodulated batch
+    /// (the binding must exist; the unmodulated pipeline never reads it).
+    modulators: Buffer,
+    modulated: bool,
     count: u32,
 }
 
@@ -242,12 +258,25 @@ fn prepare_cell_buffers(
             contents: bytemuck::cast_slice(batch.cells.as_slice()),
             usage: BufferUsages::STORAGE,
         });
+        let unmodulated = [[0.0f32; 4]];
+        let modulators = device.create_buffer_with_data(&BufferInitDescriptor {
+            label: Some("nebel_cell_modulators"),
+            contents: bytemuck::cast_slice(
+                batch
+                    .modulators
+                    .as_deref()
+                    .map_or(&unmodulated[..], Vec::as_slice),
+            ),
+            usage: BufferUsages::STORAGE,
+        });
         stats.0.uploads.fetch_add(1, Ordering::Relaxed);
         buffers.0.insert(
             *entity,
             GpuCellBuffer {
                 generation: batch.generation,
                 buffer,
+                modulators,
+                modulated: batch.modulators.is_some(),
                 count: batch.cells.len() as u32,
             },
         );
@@ -393,7 +422,9 @@ struct CellProjectionView {
     uniform_offset: u32,
     multisampled: bool,
     accumulation: CachedTexture,
-    pipelines: [CachedRenderPipelineId; 3],
+    /// Per optical mode, the unmodulated and the modulated pipeline, where a
+    /// batch of this frame needs it.
+    pipelines: [[Option<CachedRenderPipelineId>; 2]; 3],
     composite: CachedRenderPipelineId,
 }
 
@@ -421,6 +452,7 @@ pub struct CellProjectionPipeline {
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
 pub struct CellProjectionPipelineKey {
     mode: OpticalMode,
+    modulated: bool,
     multisampled: bool,
     target_format: TextureFormat,
 }
@@ -459,6 +491,7 @@ pub fn init_cell_projection_pipeline(
                     texture_3d(unfilterable),
                     texture_2d(unfilterable),
                     uniform_buffer::<CellTablesUniform>(false),
+                    storage_buffer_read_only_sized(false, None),
                 ),
             ),
         ),
@@ -528,6 +561,9 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
         let mut shader_defs: Vec<ShaderDefVal> = vec![mode_def.into()];
         if key.multisampled {
             shader_defs.push("MULTISAMPLED".into());
+        }
+        if key.modulated {
+            shader_defs.push("MODULATED".into());
         }
         RenderPipelineDescriptor {
             label: Some("nebel_cell_projection_pipeline".into()),
@@ -640,23 +676,26 @@ fn prepare_cell_views(
             viewport: view.viewport.as_vec4(),
         });
         let multisampled = *msaa != Msaa::Off;
-        let pipelines =
-            [OpticalMode::Sorted, OpticalMode::Emissive, OpticalMode::Mip].map(|mode| {
-                pipelines.specialize(
-                    &pipeline_cache,
-                    &pipeline,
-                    CellProjectionPipelineKey {
-                        mode,
-                        multisampled,
-                        target_format: format,
-                    },
-                )
-            });
+        // Only the variants some batch of this frame needs.
+        let mut variants = [[None; 2]; 3];
+        for (_, batch) in &extracted.0 {
+            let modulated = batch.modulators.is_some();
+            variants[mode_index(batch.mode)][usize::from(modulated)] = Some(pipelines.specialize(
+                &pipeline_cache,
+                &pipeline,
+                CellProjectionPipelineKey {
+                    mode: batch.mode,
+                    modulated,
+                    multisampled,
+                    target_format: format,
+                },
+            ));
+        }
         commands.entity(entity).insert(CellProjectionView {
             uniform_offset,
             multisampled,
             accumulation,
-            pipelines,
+            pipelines: variants,
             composite,
         });
     }
@@ -708,9 +747,9 @@ fn draw_cell_batches(
         else {
             continue;
         };
-        let Some(render_pipeline) =
-            pipeline_cache.get_render_pipeline(cell_view.pipelines[mode_index(batch.mode)])
-        else {
+        let Some(render_pipeline) = cell_view.pipelines[mode_index(batch.mode)]
+            [usize::from(buffer.modulated)]
+        .and_then(|id| pipeline_cache.get_render_pipeline(id)) else {
             continue;
         };
         let pair_table = match batch.mode {
@@ -725,6 +764,7 @@ fn draw_cell_batches(
                 &table.colour,
                 pair_table,
                 table.parameters.as_entire_binding(),
+                buffer.modulators.as_entire_binding(),
             )),
         );
         draws.push((render_pipeline, batch_bind_group, buffer.count));

@@ -15,6 +15,9 @@
 //   EMISSIVE: rgb = l · mean emission(s_f, s_b), blended additively (PCP).
 //   MIP:      rgb = max emission over [s_f, s_b], blended with max.
 //
+// MODULATED (lit clouds, paper 000 §5.1 Eq. 9): a second linear field m per
+// cell scales the segment length before the lookups, l' = l (m_f + m_b) / 2.
+//
 // All positions are taken relative to the camera so large world coordinates
 // keep their precision.
 
@@ -52,6 +55,9 @@ struct CellTables {
 @group(1) @binding(1) var colour_table: texture_3d<f32>;
 @group(1) @binding(2) var pair_table: texture_2d<f32>;
 @group(1) @binding(3) var<uniform> tables: CellTables;
+// Per cell, the segment-length modulator at its four vertices (read only by
+// the MODULATED variant).
+@group(1) @binding(4) var<storage, read> modulators: array<vec4<f32>>;
 
 // The three vertices of face f, which omits vertex f.
 const FACE_VERTICES = array<u32, 12>(1u, 2u, 3u, 0u, 3u, 2u, 0u, 1u, 3u, 0u, 2u, 1u);
@@ -192,7 +198,15 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
         + (cell.vertices[3].w - s0) * cross(e1, e2)) / determinant;
     let s_front = clamp(s0 + dot(gradient, t_entry * direction - v0), 0.0, 1.0);
     let s_back = clamp(s0 + dot(gradient, t_exit * direction - v0), 0.0, 1.0);
-    let length = t_exit - t_entry;
+    var length = t_exit - t_entry;
+#ifdef MODULATED
+    let m = modulators[in.cell_index];
+    let m_gradient = ((m.y - m.x) * cross(e2, e3) + (m.z - m.x) * cross(e3, e1)
+        + (m.w - m.x) * cross(e1, e2)) / determinant;
+    let m_front = clamp(m.x + dot(m_gradient, t_entry * direction - v0), 0.0, 1.0);
+    let m_back = clamp(m.x + dot(m_gradient, t_exit * direction - v0), 0.0, 1.0);
+    length *= 0.5 * (m_front + m_back);
+#endif
 
 #ifdef SORTED
     let colour = colour_lookup(s_front, s_back, length).rgb;

@@ -8,10 +8,12 @@
 //! changing the render system.
 
 mod campfire;
+mod lighting;
 mod lod;
 mod volume;
 
 pub use campfire::Campfire;
+pub use lighting::{CloudLightModel, VolumeLighting};
 pub use lod::VolumeLod;
 pub use volume::{Volume, VolumeField, VolumePlugin};
 

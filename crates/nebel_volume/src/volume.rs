@@ -22,7 +22,7 @@
 //! `volume` group of [`EffectCounters`] reports volumes, cells drawn, cells
 //! at full resolution and the last rebuild's time.
 
-use std::sync::Arc;
+use std::sync::{Arc, LazyLock};
 use std::time::Instant;
 
 use bevy::camera::Camera3d;
@@ -30,15 +30,16 @@ use bevy::math::{DAffine3, DMat4, DVec3};
 use bevy::prelude::*;
 use nebel_core::cell::Tetrahedron;
 use nebel_core::field::DensityGrid;
-use nebel_core::field::PadFill;
+use nebel_core::field::{PadFill, light_field};
 use nebel_core::optics::OpticalMode;
-use nebel_core::transfer::TransferFunction;
-use nebel_lod::octree::{RefinementSettings, VolumeHierarchy, lod_batch, refine};
+use nebel_core::transfer::{ControlPoint, TransferFunction};
+use nebel_lod::octree::{CellScalars, RefinementSettings, VolumeHierarchy, lod_batch_with, refine};
 use nebel_lod::{
     BrickTable, CellAdjacency, CellBatch as LodCellBatch, CellOrder, Frustum, full_resolution_batch,
 };
 
-use crate::VolumeLod;
+use crate::lighting::sun_in_local_frame;
+use crate::{VolumeLighting, VolumeLod};
 use nebel_render::{CellBatch, EffectCounters, NebelSystems};
 
 /// Voxels per brick edge for the zero-opacity and frustum tests.
@@ -52,6 +53,7 @@ impl Plugin for VolumePlugin {
     fn build(&self, app: &mut App) {
         app.register_type::<crate::Campfire>()
             .register_type::<crate::VolumeLod>()
+            .register_type::<crate::VolumeLighting>()
             .add_systems(
                 Update,
                 (crate::campfire::animate_campfires, update_volume_batches)
@@ -103,6 +105,9 @@ struct VolumeBatchSource {
     /// The view-projection the frustum was culled with.
     clip_from_world: DMat4,
     hierarchy: Option<Arc<VolumeHierarchy>>,
+    /// The direction toward the sun, volume frame, the light field was
+    /// computed for (lit volumes only).
+    sun: Option<Vec3>,
     bricks: Option<Arc<BrickTable>>,
     adjacency: Option<Arc<CellAdjacency>>,
     generation: u64,
@@ -112,23 +117,49 @@ fn to_double(matrix: Mat4) -> DMat4 {
     DMat4::from_cols_array(&matrix.to_cols_array().map(f64::from))
 }
 
-/// The octree of `grid`, padded with zero density to `2^n + 1` points per side.
-fn build_hierarchy(grid: &DensityGrid, lod: &VolumeLod) -> Result<VolumeHierarchy, String> {
+/// The octree of `grid`, padded with zero density to `2^n + 1` points per
+/// side, with the light field for `lighting` when the volume is lit.
+fn build_hierarchy(
+    grid: &DensityGrid,
+    lod: &VolumeLod,
+    lighting: Option<(&VolumeLighting, Vec3)>,
+) -> Result<VolumeHierarchy, String> {
     let padded = grid
         .padded_to_power_of_two_plus_one(PadFill::Value(0.0))
         .map_err(|error| error.to_string())?;
-    VolumeHierarchy::new(&padded, lod.min_accuracy).map_err(|error| error.to_string())
+    match lighting {
+        Some((lighting, sun)) => {
+            let light = light_field(&padded, &lighting.light_field_settings(sun))
+                .map_err(|error| error.to_string())?;
+            VolumeHierarchy::with_light(&padded, &light, lod.min_accuracy)
+        }
+        None => VolumeHierarchy::new(&padded, lod.min_accuracy),
+    }
+    .map_err(|error| error.to_string())
 }
+
+/// The zero-opacity test of a volume whose density is the opacity itself
+/// (`ρ = f`, the lit model of paper 000 §5.1): only density 0 is empty.
+static DENSITY_AS_OPACITY: LazyLock<TransferFunction> = LazyLock::new(|| {
+    let point = |s: f32| ControlPoint {
+        s,
+        kappa: [0.0; 3],
+        rho: s,
+    };
+    TransferFunction::new([point(0.0), point(1.0)]).expect("two ordered control points")
+});
 
 #[allow(clippy::type_complexity)]
 fn update_volume_batches(
     mut commands: Commands,
     cameras: Query<(&Camera, &GlobalTransform), With<Camera3d>>,
+    suns: Query<&GlobalTransform, With<DirectionalLight>>,
     mut volumes: Query<(
         Entity,
         Ref<Volume>,
         Ref<GlobalTransform>,
         Option<Ref<VolumeLod>>,
+        Option<Ref<VolumeLighting>>,
         &InheritedVisibility,
         Option<&CellBatch>,
         Option<&mut VolumeBatchSource>,
@@ -152,11 +183,12 @@ fn update_volume_batches(
         to_double(camera.clip_from_view() * camera_transform.to_matrix().inverse());
     // A degenerate projection culls nothing rather than everything.
     let frustum = Frustum::from_view_projection(clip_from_world).ok();
+    let sun_world = suns.iter().next().map(|sun| sun.back().as_vec3());
 
     let started = Instant::now();
     let mut rebuilt = false;
     let (mut cells_drawn, mut cells_full) = (0_u64, 0_u64);
-    for (entity, volume, transform, lod, visibility, drawn, source) in &mut volumes {
+    for (entity, volume, transform, lod, lighting, visibility, drawn, source) in &mut volumes {
         if !visibility.get() {
             // Hidden: nothing to build, upload or draw.
             if source.is_some() {
@@ -175,8 +207,16 @@ fn update_volume_batches(
             VolumeField::Cells(cells) => cells.len(),
         };
         cells_full += grid_full_cells as u64;
-        let lod_changed = lod.as_ref().is_some_and(|lod| lod.is_changed());
-        let changed = volume.is_changed() || transform.is_changed() || lod_changed;
+        let lod_changed = lod.as_ref().is_some_and(|lod| lod.is_changed())
+            || lighting
+                .as_ref()
+                .is_some_and(|lighting| lighting.is_changed());
+        // A lit volume's light field depends on the sun in its own frame.
+        let sun = lighting
+            .as_ref()
+            .map(|_| sun_in_local_frame(sun_world, &transform.affine()));
+        let sun_moved = source.as_ref().is_some_and(|s| s.sun != sun);
+        let changed = volume.is_changed() || transform.is_changed() || lod_changed || sun_moved;
         // The order, the culling and the level of detail depend on the eye.
         let view_dependent = ordered || lod.is_some();
         // A camera turning in place changes the frustum but not the eye.
@@ -194,9 +234,12 @@ fn update_volume_batches(
         let (lod_batch, bricks, adjacency, hierarchy) = match &volume.field {
             VolumeField::Grid(grid) if let Some(lod) = lod.as_deref() => {
                 let cached = source.as_ref().and_then(|s| s.hierarchy.clone());
+                let lit = lighting.as_deref().zip(sun);
                 let hierarchy = match cached {
-                    Some(hierarchy) if !volume.is_changed() && !lod_changed => hierarchy,
-                    _ => match build_hierarchy(grid, lod) {
+                    Some(hierarchy) if !volume.is_changed() && !lod_changed && !sun_moved => {
+                        hierarchy
+                    }
+                    _ => match build_hierarchy(grid, lod, lit) {
                         Ok(hierarchy) => Arc::new(hierarchy),
                         Err(error) => {
                             warn_once!("nebel: volume {entity} not drawn: {error}");
@@ -207,15 +250,25 @@ fn update_volume_batches(
                 let settings = RefinementSettings {
                     accuracy: lod.accuracy,
                 };
+                let scalars = lit.map_or(CellScalars::Density, |(lighting, _)| {
+                    lighting.model.cell_scalars()
+                });
+                // The zero-opacity test is on the field that sets the opacity.
+                let opacity = match scalars {
+                    CellScalars::LightModulatedByDensity => &*DENSITY_AS_OPACITY,
+                    _ => &*volume.transfer_function,
+                };
                 let batch = refine(
                     &hierarchy,
                     world_from_local,
                     eye,
                     frustum.as_ref(),
-                    &volume.transfer_function,
+                    opacity,
                     &settings,
                 )
-                .and_then(|refinement| lod_batch(&hierarchy, &refinement, world_from_local, eye));
+                .and_then(|refinement| {
+                    lod_batch_with(&hierarchy, &refinement, world_from_local, eye, scalars)
+                });
                 match batch {
                     Ok(batch) => (batch, None, None, Some(hierarchy)),
                     Err(error) => {
@@ -280,7 +333,9 @@ fn update_volume_batches(
                 }
             }
         };
-        let LodCellBatch { cells, .. } = lod_batch;
+        let LodCellBatch {
+            cells, modulators, ..
+        } = lod_batch;
         cells_drawn += cells.len() as u64;
         commands.entity(entity).insert((
             CellBatch::new(
@@ -288,11 +343,13 @@ fn update_volume_batches(
                 volume.transfer_function.clone(),
                 volume.mode,
                 generation,
-            ),
+            )
+            .with_modulators(modulators),
             VolumeBatchSource {
                 eye,
                 clip_from_world,
                 hierarchy,
+                sun,
                 bricks,
                 adjacency,
                 generation,
@@ -474,6 +531,58 @@ mod tests {
             fine > coarse,
             "{fine} cells at c = ∞ against {coarse} at c = 0"
         );
+    }
+
+    #[test]
+    fn a_lit_volume_carries_its_density_as_modulator_and_follows_the_sun() {
+        let (mut app, _, volume) = app_with_volume(OpticalMode::Sorted);
+        let noise = nebel_core::field::ProceduralNoise {
+            octaves: 3,
+            ..default()
+        };
+        let grid =
+            DensityGrid::procedural([9, 9, 9], DVec3::splat(0.25), DVec3::ZERO, &noise).unwrap();
+        app.world_mut().get_mut::<Volume>(volume).unwrap().field =
+            VolumeField::Grid(Arc::new(grid));
+        app.world_mut().entity_mut(volume).insert(VolumeLighting {
+            shadow_extinction: 2.0,
+            ..default()
+        });
+        app.update();
+        let batch = app.world().get::<CellBatch>(volume).unwrap().clone();
+        let modulators = batch.modulators.clone().expect("a lit batch is modulated");
+        assert_eq!(modulators.len(), batch.cells.len());
+        // Isotropic model: the scalar is γ ≥ ambient, the modulator the density.
+        assert!(
+            batch
+                .cells
+                .iter()
+                .flat_map(|c| c.vertices)
+                .all(|v| v[3] >= 0.3 - 1.0 / 255.0)
+        );
+        let lit_first = batch.generation;
+        app.update();
+        assert_eq!(generation(&app, volume), Some(lit_first), "nothing moved");
+
+        // A sun appears (straight up before): the light field is recomputed.
+        app.world_mut().spawn((
+            DirectionalLight::default(),
+            Transform::default().looking_to(Vec3::new(1.0, -0.2, 0.0), Vec3::Y),
+        ));
+        app.update();
+        app.update();
+        let relit = app.world().get::<CellBatch>(volume).unwrap();
+        assert!(relit.generation > lit_first);
+        assert_ne!(relit.cells, batch.cells, "the light changed with the sun");
+
+        app.world_mut()
+            .entity_mut(volume)
+            .get_mut::<VolumeLighting>()
+            .unwrap()
+            .model = crate::CloudLightModel::NonPhysical;
+        app.update();
+        let swapped = app.world().get::<CellBatch>(volume).unwrap();
+        assert!(swapped.modulators.is_some());
     }
 
     #[test]

@@ -1,0 +1,136 @@
+//! Lit clouds: a light field γ per grid point and a segment length modulated
+//! by a second field (paper 000 §5; DESIGN.md §4 "Cloud lighting").
+//!
+//! Add [`VolumeLighting`] to a grid [`Volume`](crate::Volume) (it requires
+//! [`VolumeLod`](crate::VolumeLod): lit volumes are always drawn through the
+//! octree, which carries both fields). The volume system then
+//!
+//! 1. computes γ at every grid point with `nebel_core::field::light_field`:
+//!    `γ = ambient + diffuse · T_sun · lambert`, the "standard ambient and
+//!    diffuse lighting" of §5.2 on the density gradient, optionally shadowed
+//!    by the transmittance toward the sun (paper 003), with the sun taken
+//!    from the first [`DirectionalLight`] (straight up in the volume's frame
+//!    when there is none), and again whenever the sun, the volume or its
+//!    rotation changes;
+//! 2. builds the hierarchy over both fields (`VolumeHierarchy::with_light`), so
+//!    refinement follows the larger deviation of density and light (§5.1);
+//! 3. emits cells that carry one field as the transfer function's scalar
+//!    and the other as a segment-length modulator, per
+//!    [`CloudLightModel`].
+//!
+//! The render system draws the modulator exactly per pixel (the mean of the
+//! linear modulator over each segment), so the model costs one extra storage
+//! read per fragment and one byte per grid point.
+
+use bevy::math::Affine3A;
+use bevy::prelude::*;
+use nebel_core::field::CloudLighting;
+use nebel_lod::octree::CellScalars;
+
+/// Which field gives the colour and which the opacity (paper 000 §5).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
+pub enum CloudLightModel {
+    /// §5.1: the transfer function is over the light γ (colour `κ(γ)`, use
+    /// `TransferPreset::CloudLight`, constant ρ = `ρ_max`), and the density
+    /// `f` scales the segment length, `l' = l · f / f_max` (Eq. 9), so the
+    /// opacity follows the density exactly and the colour the light. The
+    /// default.
+    #[default]
+    Isotropic,
+    /// §5.2 (non-physical): the transfer function is over the density (the
+    /// paper's inverse colour ramp and linear ρ above a cut-off,
+    /// `TransferPreset::Cloud`), and γ scales the segment length: the sunny
+    /// side is opaque and bright, the far side translucent.
+    NonPhysical,
+}
+
+impl CloudLightModel {
+    /// The cells' scalar and modulator for this model.
+    pub fn cell_scalars(self) -> CellScalars {
+        match self {
+            Self::Isotropic => CellScalars::LightModulatedByDensity,
+            Self::NonPhysical => CellScalars::DensityModulatedByLight,
+        }
+    }
+}
+
+/// Lights a grid [`Volume`](crate::Volume) with ambient and diffuse sunlight
+/// (see the module docs).
+#[derive(Component, Clone, Copy, Debug, PartialEq, Reflect)]
+#[reflect(Component, Default)]
+#[require(crate::VolumeLod)]
+pub struct VolumeLighting {
+    /// Light every point receives, as a fraction of full light, in [0, 1].
+    /// Default 0.3.
+    pub ambient: f32,
+    /// Strength of the sunlight (Lambert on the density gradient, times the
+    /// shadow transmittance), as a fraction of full light, in [0, 1]; `γ` is
+    /// clamped to 1. Default 0.7.
+    pub diffuse: f32,
+    /// Optical density per world unit of the volume's local frame at density
+    /// 1, for the transmittance toward the sun (paper 003's shadow volume),
+    /// ≥ 0; 0 casts no shadow. Default 0.
+    pub shadow_extinction: f32,
+    /// Which field gives the colour and which the opacity. Default
+    /// [`CloudLightModel::Isotropic`].
+    pub model: CloudLightModel,
+}
+
+impl Default for VolumeLighting {
+    fn default() -> Self {
+        Self {
+            ambient: 0.3,
+            diffuse: 0.7,
+            shadow_extinction: 0.0,
+            model: CloudLightModel::Isotropic,
+        }
+    }
+}
+
+impl VolumeLighting {
+    /// The light-field settings for a sun in direction `sun_local` (toward the
+    /// sun, in the volume's local frame).
+    pub fn light_field_settings(&self, sun_local: Vec3) -> CloudLighting {
+        CloudLighting {
+            ambient: self.ambient,
+            diffuse: self.diffuse,
+            sun_direction: sun_local.as_dvec3(),
+            shadow_extinction: self.shadow_extinction,
+        }
+    }
+}
+
+/// The direction toward the sun in a volume's local frame: the first
+/// directional light's `+Z` (it shines along `−Z`), mapped by the inverse of
+/// the volume's linear part; `+Y` when there is no directional light or the
+/// map is singular.
+pub(crate) fn sun_in_local_frame(sun_world: Option<Vec3>, world_from_local: &Affine3A) -> Vec3 {
+    let Some(sun) = sun_world else {
+        return Vec3::Y;
+    };
+    let linear = Mat3::from(world_from_local.matrix3);
+    if linear.determinant().abs() <= f32::EPSILON {
+        return Vec3::Y;
+    }
+    (linear.inverse() * sun).try_normalize().unwrap_or(Vec3::Y)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_sun_is_mapped_into_the_volume_frame() {
+        let turned = Affine3A::from_rotation_y(std::f32::consts::FRAC_PI_2);
+        let sun = sun_in_local_frame(Some(Vec3::X), &turned);
+        assert!(sun.distance(Vec3::Z) < 1e-6, "{sun}");
+        let stretched = Affine3A::from_scale(Vec3::new(4.0, 1.0, 1.0));
+        let sun = sun_in_local_frame(Some(Vec3::new(1.0, 1.0, 0.0).normalize()), &stretched);
+        assert!(sun.distance(Vec3::new(0.25, 1.0, 0.0).normalize()) < 1e-6);
+        assert_eq!(sun_in_local_frame(None, &turned), Vec3::Y);
+        assert_eq!(
+            sun_in_local_frame(Some(Vec3::X), &Affine3A::from_scale(Vec3::ZERO)),
+            Vec3::Y
+        );
+    }
+}
