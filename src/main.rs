@@ -246,6 +246,9 @@ fn bench_fog(args: &[String]) -> Result<(), String> {
         VolumeField::Campfire(campfire) => {
             campfire.grid_at(f64::from(scene.frame_time(scene.output.frames - 1)))
         }
+        VolumeField::Cloud(cloud) => cloud
+            .grid_at(f64::from(scene.frame_time(scene.output.frames - 1)))
+            .map_err(|e| e.to_string())?,
         VolumeField::Cells(_) => {
             return Err(format!(
                 "{}: bench-fog needs a grid volume",
@@ -284,6 +287,7 @@ fn bench_fog(args: &[String]) -> Result<(), String> {
         transfer_function,
         mode: OpticalMode::Sorted,
         lod: None,
+        lighting: None,
     };
     // Two references (DESIGN.md §4): through the trilinear grid (the total
     // error) and through nebel's five tetrahedra per voxel (the error of

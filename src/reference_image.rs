@@ -11,13 +11,24 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use glam::{DVec3, DVec4};
+use nebel_core::field::{CloudLighting, DensityGrid, PadFill, light_field};
 use nebel_core::image_metrics::{ImageMetricsError, LinearImage, save_png, srgb_to_linear};
 use nebel_core::optics::OpticalMode;
-use nebel_core::reference::{ReferenceError, ReferenceScene, ReferenceVolume, RenderProgress};
-use nebel_core::scene::{BuiltVolume, SceneDescription, VolumeField};
+use nebel_core::reference::{
+    Modulation, ReferenceError, ReferenceScene, ReferenceVolume, RenderProgress,
+};
+use nebel_core::scene::{
+    BuiltVolume, LightModel, LightingDescription, SceneDescription, VolumeField,
+};
 
 /// Renders `volumes` of `scene` exactly; with `progress`, reports rows on
 /// stderr every two seconds.
+///
+/// A lit volume (paper 000 §5) is integrated as the GPU draws it: its grid
+/// padded with zero density to `2^n + 1` points, the light field computed on
+/// that grid for the scene's sun, and one field as the scalar, the other as
+/// the segment-length modulator ([`Modulation::Grid`]), but continuous and in
+/// f32 where the GPU draws the octree's 8-bit, level-of-detail cells.
 ///
 /// Each volume is integrated on its own and the results are combined the way
 /// the GPU pass does: accumulated from transparent, farthest centre first,
@@ -34,6 +45,7 @@ pub fn reference_image(
     let camera = scene.reference_camera();
     let opaque_depth = scene.opaque_depth(&camera);
     let mut layers = Vec::with_capacity(volumes.len());
+    let last_frame = f64::from(scene.frame_time(scene.output.frames.saturating_sub(1)));
     for volume in volumes {
         let (field, centre) = match volume.field {
             VolumeField::Grid(grid) => {
@@ -47,16 +59,24 @@ pub fn reference_image(
                 (ReferenceVolume::Cells(cells), (min + max) / 2.0)
             }
             VolumeField::Campfire(campfire) => {
-                let last_frame = scene.frame_time(scene.output.frames - 1);
                 let centre = (campfire.min + campfire.max) / 2.0;
-                (
-                    ReferenceVolume::Grid(campfire.grid_at(f64::from(last_frame))),
-                    centre,
-                )
+                (ReferenceVolume::Grid(campfire.grid_at(last_frame)), centre)
             }
+            VolumeField::Cloud(cloud) => {
+                let grid = cloud.grid_at(last_frame).map_err(invalid)?;
+                ((ReferenceVolume::Grid(grid)), (cloud.min + cloud.max) / 2.0)
+            }
+        };
+        let (field, modulation) = match (field, volume.lighting) {
+            (ReferenceVolume::Grid(grid), Some(lighting)) => {
+                let sun = scene.sun_direction().unwrap_or(DVec3::Y);
+                lit_fields(&grid, &lighting, sun)?
+            }
+            (field, _) => (field, None),
         };
         let mut reference_scene =
             ReferenceScene::new(camera, field, volume.transfer_function, volume.mode);
+        reference_scene.modulation = modulation;
         reference_scene.opaque_depth = opaque_depth.clone();
         let last_report = Mutex::new(Instant::now());
         let report = |rows: RenderProgress| {
@@ -101,6 +121,34 @@ pub fn reference_image(
         width: camera.width,
         height: camera.height,
         pixels,
+    })
+}
+
+fn invalid(error: impl ToString) -> ReferenceError {
+    ReferenceError::InvalidVolume {
+        reason: error.to_string(),
+    }
+}
+
+/// The scalar volume and modulator of a lit grid (see [`reference_image`]).
+fn lit_fields(
+    grid: &DensityGrid,
+    lighting: &LightingDescription,
+    sun: DVec3,
+) -> Result<(ReferenceVolume, Option<Modulation>), ReferenceError> {
+    let padded = grid
+        .padded_to_power_of_two_plus_one(PadFill::Value(0.0))
+        .map_err(invalid)?;
+    let settings = CloudLighting {
+        ambient: lighting.ambient,
+        diffuse: lighting.diffuse,
+        sun_direction: sun,
+        shadow_extinction: lighting.shadow_extinction,
+    };
+    let light = light_field(&padded, &settings).map_err(invalid)?;
+    Ok(match lighting.model {
+        LightModel::Isotropic => (ReferenceVolume::Grid(light), Some(Modulation::Grid(padded))),
+        LightModel::NonPhysical => (ReferenceVolume::Grid(padded), Some(Modulation::Grid(light))),
     })
 }
 

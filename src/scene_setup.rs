@@ -228,13 +228,17 @@ fn spawn_scene(
 /// Spawns the scene's volumes; their fields are in world space.
 #[cfg(feature = "volume")]
 fn spawn_volumes(commands: &mut Commands, volumes: &[BuiltVolume]) {
+    use nebel_core::scene::LightModel;
     use nebel_core::scene::VolumeField as SceneField;
-    use nebel_volume::{Campfire, Volume, VolumeField, VolumeLod};
+    use nebel_volume::{
+        Campfire, CloudLightModel, CloudVolume, Volume, VolumeField, VolumeLighting, VolumeLod,
+    };
     use std::sync::Arc;
     for volume in volumes {
         let transfer_function = Arc::new(volume.transfer_function.clone());
         let field = match &volume.field {
             SceneField::Grid(grid) => VolumeField::Grid(Arc::new(grid.clone())),
+            SceneField::Cloud(_) => VolumeField::Cells(Arc::default()),
             SceneField::Cells(cells) => VolumeField::Cells(Arc::new(cells.clone())),
             SceneField::Campfire(campfire) => {
                 let (scale, offset) = campfire.placement();
@@ -255,15 +259,49 @@ fn spawn_volumes(commands: &mut Commands, volumes: &[BuiltVolume]) {
                 continue;
             }
         };
-        let mut entity = commands.spawn(Volume {
-            field,
-            transfer_function,
-            mode: volume.mode,
-        });
+        let mut entity = match &volume.field {
+            SceneField::Cloud(cloud) => {
+                // The cloud's generator fills the field, at every frame's
+                // time while the wind blows.
+                let mut entity = commands.spawn((
+                    CloudVolume {
+                        dims: UVec3::from_array(cloud.dims.map(|n| n as u32)),
+                        min: cloud.min.as_vec3(),
+                        max: cloud.max.as_vec3(),
+                        noise: cloud.noise,
+                    },
+                    Volume {
+                        transfer_function,
+                        mode: volume.mode,
+                        ..default()
+                    },
+                ));
+                if volume.lighting.is_none() {
+                    entity.remove::<VolumeLighting>();
+                }
+                entity
+            }
+            _ => commands.spawn(Volume {
+                field,
+                transfer_function,
+                mode: volume.mode,
+            }),
+        };
         if let Some(lod) = volume.lod {
             entity.insert(VolumeLod {
                 accuracy: lod.accuracy,
                 min_accuracy: lod.min_accuracy,
+            });
+        }
+        if let Some(lighting) = volume.lighting {
+            entity.insert(VolumeLighting {
+                ambient: lighting.ambient,
+                diffuse: lighting.diffuse,
+                shadow_extinction: lighting.shadow_extinction,
+                model: match lighting.model {
+                    LightModel::Isotropic => CloudLightModel::Isotropic,
+                    LightModel::NonPhysical => CloudLightModel::NonPhysical,
+                },
             });
         }
     }

@@ -247,6 +247,8 @@ const ACCURACY_BOUNDS: &[(&str, f64)] = &[
     ("opaque_inside", 0.002),
     ("two_volumes", 0.002),
     ("search_light_sorted", 0.002),
+    ("lit_cloud", 0.007),
+    ("lit_cloud_nonphysical", 0.006),
 ];
 
 #[test]

@@ -366,6 +366,12 @@ pub enum ReferenceError {
         /// What it must satisfy.
         requirement: &'static str,
     },
+    /// A volume could not be prepared (its generator or light field failed).
+    #[error("reference volume: {reason}")]
+    InvalidVolume {
+        /// What failed.
+        reason: String,
+    },
     /// A modulator does not fit the volume (wrong count, dims or kind).
     #[error("reference modulation: {reason}")]
     ModulationMismatch {

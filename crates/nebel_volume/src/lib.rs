@@ -2,17 +2,20 @@
 //! grids or cells, drawn by the cell-projection render system
 //! (DESIGN.md §3, §5; paper 000 §4, paper 001 ch. 10).
 //!
-//! Spawn a [`Volume`] (or a [`Campfire`], which animates one); [`VolumePlugin`]
-//! turns it into a [`CellBatch`] on the same entity. Today the batch is the full-resolution grid (five tetrahedra
-//! per voxel, alternating); the octree C-LOD replaces that source without
-//! changing the render system.
+//! Spawn a [`Volume`] (or a [`Campfire`] or a [`CloudVolume`], which fill and
+//! animate one); [`VolumePlugin`] turns it into a [`CellBatch`] on the same
+//! entity: the full-resolution grid (five tetrahedra per voxel, alternating),
+//! or with [`VolumeLod`] the octree C-LOD of paper 000, lit as a cloud with
+//! [`VolumeLighting`]. The render system is the same for all of them.
 
 mod campfire;
+mod cloud;
 mod lighting;
 mod lod;
 mod volume;
 
 pub use campfire::Campfire;
+pub use cloud::CloudVolume;
 pub use lighting::{CloudLightModel, VolumeLighting};
 pub use lod::VolumeLod;
 pub use volume::{Volume, VolumeField, VolumePlugin};

@@ -52,11 +52,16 @@ pub struct VolumePlugin;
 impl Plugin for VolumePlugin {
     fn build(&self, app: &mut App) {
         app.register_type::<crate::Campfire>()
+            .register_type::<crate::CloudVolume>()
             .register_type::<crate::VolumeLod>()
             .register_type::<crate::VolumeLighting>()
             .add_systems(
                 Update,
-                (crate::campfire::animate_campfires, update_volume_batches)
+                (
+                    crate::campfire::animate_campfires,
+                    crate::cloud::generate_clouds,
+                    update_volume_batches,
+                )
                     .chain()
                     .in_set(NebelSystems),
             );

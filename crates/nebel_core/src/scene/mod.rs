@@ -51,9 +51,10 @@ mod opaque;
 mod volume;
 
 pub use volume::{
-    AnimatedCampfire, Axis, BuiltVolume, CampfireSource, LodDescription, ProceduralSource,
-    RampSource, SearchLightSource, TetrahedronDescription, TransferDescription, TransferStrip,
-    UniformSource, VolumeDescription, VolumeField, VolumeSource,
+    AnimatedCampfire, AnimatedCloud, Axis, BuiltVolume, CampfireSource, CloudSource, LightModel,
+    LightingDescription, LodDescription, ProceduralSource, RampSource, SearchLightSource,
+    TetrahedronDescription, TransferDescription, TransferStrip, UniformSource, VolumeDescription,
+    VolumeField, VolumeSource,
 };
 
 use std::path::{Path, PathBuf};
@@ -459,6 +460,18 @@ impl SceneDescription {
         .looking_at(DVec3::from(pose.look_at.map(f64::from)), DVec3::Y)
     }
 
+    /// The direction toward the sun: against the travel direction of the
+    /// first directional light, normalised; `None` without one. Lit volumes
+    /// use it (straight up when `None`), as the Bevy side does.
+    pub fn sun_direction(&self) -> Option<DVec3> {
+        self.lights.iter().find_map(|light| match light {
+            LightDescription::Directional(sun) => {
+                (-DVec3::from(sun.direction.map(f64::from))).try_normalize()
+            }
+            _ => None,
+        })
+    }
+
     /// The simulated time of frame `index` in seconds.
     pub fn frame_time(&self, index: u32) -> f32 {
         index as f32 / self.output.frame_rate
@@ -795,6 +808,12 @@ mod tests {
                 lod: Some(LodDescription {
                     accuracy: 8.0,
                     min_accuracy: 3.0,
+                }),
+                lighting: Some(LightingDescription {
+                    ambient: 0.2,
+                    diffuse: 0.6,
+                    shadow_extinction: 0.5,
+                    model: LightModel::NonPhysical,
                 }),
             }],
         }

@@ -13,12 +13,27 @@
 //!                                          // or Strip((path: "ramps/fire.png", max_density: 2.0))
 //!         density_scale: 1.0,              // multiplies ρ; default 1
 //!         mode: Sorted,                    // Sorted, Emissive or Mip; default Sorted
+//!         lod: (accuracy: 16.0, min_accuracy: 4.0), // octree C-LOD; default none (full resolution)
+//!         lighting: (ambient: 0.3, diffuse: 0.7, shadow_extinction: 0.0, model: Isotropic),
+//!                                          // lit cloud (paper 000 §5); default none
+//!     ),
+//!     (
+//!         // Procedural cumulus after paper 002, drifting with the wind.
+//!         source: Cloud((dims: (65, 17, 65), seed: 3, coverage: 0.5, octaves: 5,
+//!                        wavelength: 40.0, wind: (2.0, 0.0, 0.0), detail_wind: 1.5)),
+//!         min: (-32.0, 10.0, -32.0), max: (32.0, 26.0, 32.0),
+//!         lighting: (shadow_extinction: 0.2),
 //!     ),
 //! ]
 //! ```
 //!
 //! Grid sources sample the box `min..max` at `dims` points per axis (corners
-//! included), trilinear in between. `Cells` gives tetrahedra in world space
+//! included), trilinear in between. A volume with `lighting` is drawn through
+//! the octree (with `lod`, or the default `c = 16, C = 4`); its light field
+//! uses the first directional light of the scene as the sun (straight up when
+//! there is none) and its transfer function defaults to `Preset(CloudLight)`
+//! for the `Isotropic` model (colour over light, opacity from the density)
+//! and `Preset(Cloud)` for `NonPhysical`. `Cells` gives tetrahedra in world space
 //! and ignores the box. A transfer-function strip path is relative to the scene
 //! file. Building a volume ([`VolumeDescription::build`]) generates or loads its
 //! data; a scene file's validation checks only what is cheap.
@@ -34,7 +49,7 @@ use crate::field::effects::{
     CAMPFIRE_DIMS, CAMPFIRE_MAX, CAMPFIRE_MIN, SEARCH_LIGHT_SEGMENTS, campfire_density,
     search_light_cells,
 };
-use crate::field::{DensityGrid, FieldError, NoiseKind, ProceduralNoise};
+use crate::field::{CloudNoise, DensityGrid, FieldError, NoiseKind, ProceduralNoise};
 use crate::optics::OpticalMode;
 use crate::transfer::{ControlPoint, TransferFunction, TransferPreset};
 
@@ -66,6 +81,103 @@ pub struct VolumeDescription {
     /// instead of at full resolution. Default: none (full resolution).
     #[serde(default)]
     pub lod: Option<LodDescription>,
+    /// Light a grid volume as a cloud (paper 000 §5). Default: none (unlit).
+    #[serde(default)]
+    pub lighting: Option<LightingDescription>,
+}
+
+/// Which field of a lit cloud gives the colour and which the opacity (paper
+/// 000 §5).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum LightModel {
+    /// §5.1: colour from the light γ (transfer function over γ), opacity from
+    /// the density, `l' = l · f`. The default.
+    #[default]
+    Isotropic,
+    /// §5.2: colour and opacity from the density (transfer function over the
+    /// density), segment length scaled by γ.
+    NonPhysical,
+}
+
+/// Lighting of a grid volume: `γ = ambient + diffuse · T_sun · lambert` per
+/// grid point (`nebel_core::field::light_field`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LightingDescription {
+    /// Ambient light, in [0, 1]. Default 0.3.
+    #[serde(default = "default_ambient")]
+    pub ambient: f32,
+    /// Sunlight strength, in [0, 1]. Default 0.7.
+    #[serde(default = "default_diffuse")]
+    pub diffuse: f32,
+    /// Optical density per metre at density 1 of the shadow toward the sun,
+    /// ≥ 0; 0 casts none. Default 0.
+    #[serde(default)]
+    pub shadow_extinction: f32,
+    /// Which field gives colour and which opacity. Default `Isotropic`.
+    #[serde(default)]
+    pub model: LightModel,
+}
+
+fn default_ambient() -> f32 {
+    0.3
+}
+
+fn default_diffuse() -> f32 {
+    0.7
+}
+
+/// Procedural cumulus clouds with the artist controls of paper 002
+/// (`nebel_core::field::CloudNoise`; defaults as there).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CloudSource {
+    /// Grid points per axis, each ≥ 2.
+    pub dims: [usize; 3],
+    /// Seed. Default 0.
+    #[serde(default)]
+    pub seed: u32,
+    /// Fraction of the box covered by cloud, in [0, 1]. Default 0.5.
+    #[serde(default)]
+    pub coverage: Option<f32>,
+    /// Detail octaves, 1 to 16. Default 5.
+    #[serde(default)]
+    pub octaves: Option<usize>,
+    /// Wavelength of the first octave, metres (the size of the clouds).
+    /// Default 2000.
+    #[serde(default)]
+    pub wavelength: Option<f64>,
+    /// Drift of the first octave, metres per second. Default zero (static).
+    #[serde(default)]
+    pub wind: [f64; 3],
+    /// Each finer octave drifts this much faster than the previous. Default
+    /// 1.5.
+    #[serde(default)]
+    pub detail_wind: Option<f64>,
+    /// Height fraction over which the base fades in. Default 0.15.
+    #[serde(default)]
+    pub base_fade: Option<f32>,
+    /// Height fraction over which the tops round off. Default 0.5.
+    #[serde(default)]
+    pub top_fade: Option<f32>,
+}
+
+impl CloudSource {
+    /// The generator settings, defaults filled in.
+    pub fn noise(&self) -> CloudNoise {
+        let defaults = CloudNoise::default();
+        CloudNoise {
+            seed: self.seed,
+            coverage: self.coverage.unwrap_or(defaults.coverage),
+            octaves: self.octaves.unwrap_or(defaults.octaves),
+            wavelength: self.wavelength.unwrap_or(defaults.wavelength),
+            wind: DVec3::from(self.wind),
+            detail_wind: self.detail_wind.unwrap_or(defaults.detail_wind),
+            base_fade: self.base_fade.unwrap_or(defaults.base_fade),
+            top_fade: self.top_fade.unwrap_or(defaults.top_fade),
+            ..defaults
+        }
+    }
 }
 
 /// Level-of-detail settings of a grid volume.
@@ -116,6 +228,9 @@ pub enum VolumeSource {
     /// density changing every frame. Emissive with the `Fire` preset unless
     /// the volume says otherwise.
     Campfire(CampfireSource),
+    /// Procedural cumulus clouds after paper 002 (coverage, detail octaves,
+    /// wind), sampled over the box.
+    Cloud(CloudSource),
     /// A search-light cone (001 §10.4), placed by its own position and
     /// direction (the box is not used). Emissive with the `SearchLight` preset
     /// unless the volume says otherwise.
@@ -284,8 +399,11 @@ pub struct BuiltVolume {
     pub transfer_function: TransferFunction,
     /// How segments combine.
     pub mode: OpticalMode,
-    /// Level-of-detail settings; `None` draws at full resolution.
+    /// Level-of-detail settings; `None` draws at full resolution (unless the
+    /// volume is lit, which always uses the octree).
     pub lod: Option<LodDescription>,
+    /// Cloud lighting; `None` for an unlit volume.
+    pub lighting: Option<LightingDescription>,
 }
 
 /// A volume's scalar field.
@@ -297,6 +415,30 @@ pub enum VolumeField {
     Cells(Vec<Tetrahedron>),
     /// A campfire whose grid changes with time, see [`AnimatedCampfire::grid_at`].
     Campfire(AnimatedCampfire),
+    /// Procedural clouds drifting with the wind, see [`AnimatedCloud::grid_at`].
+    Cloud(AnimatedCloud),
+}
+
+/// Procedural clouds over a box: their density at any time.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AnimatedCloud {
+    /// The generator settings.
+    pub noise: CloudNoise,
+    /// Grid points per axis.
+    pub dims: [usize; 3],
+    /// Minimum corner of the box, metres.
+    pub min: DVec3,
+    /// Maximum corner of the box, metres.
+    pub max: DVec3,
+}
+
+impl AnimatedCloud {
+    /// The density grid at `time` seconds, in world space. Errors name the
+    /// generator setting that is out of range.
+    pub fn grid_at(&self, time: f64) -> Result<DensityGrid, FieldError> {
+        let spacing = (self.max - self.min) / (DVec3::from(self.dims.map(|n| n as f64)) - 1.0);
+        DensityGrid::cloud(self.dims, spacing, self.min, &self.noise, time)
+    }
 }
 
 /// A campfire placed in a box: its density at any time.
@@ -382,10 +524,25 @@ impl VolumeDescription {
                 max: self.max_corner(),
             }),
             VolumeSource::SearchLight(light) => VolumeField::Cells(search_light(light)),
+            VolumeSource::Cloud(cloud) => {
+                let animated = AnimatedCloud {
+                    noise: cloud.noise(),
+                    dims: cloud.dims,
+                    min: self.min_corner(),
+                    max: self.max_corner(),
+                };
+                // Checks every generator setting now, not at the first frame.
+                animated.grid_at(0.0).map_err(source_error)?;
+                VolumeField::Cloud(animated)
+            }
         };
+        let lit_colour = self
+            .lighting
+            .is_some_and(|lighting| lighting.model == LightModel::Isotropic);
         let (default_preset, default_mode) = match self.source {
             VolumeSource::Campfire(_) => (TransferPreset::Fire, OpticalMode::Emissive),
             VolumeSource::SearchLight(_) => (TransferPreset::SearchLight, OpticalMode::Emissive),
+            _ if lit_colour => (TransferPreset::CloudLight, OpticalMode::Sorted),
             _ => (TransferPreset::Cloud, OpticalMode::Sorted),
         };
         let description = self
@@ -406,6 +563,7 @@ impl VolumeDescription {
             transfer_function: transfer,
             mode: self.mode.unwrap_or(default_mode),
             lod: self.lod,
+            lighting: self.lighting,
         })
     }
 
@@ -518,6 +676,37 @@ impl VolumeDescription {
                 ));
             }
         }
+        if let Some(lighting) = &self.lighting {
+            for (field, value) in [
+                ("lighting.ambient", lighting.ambient),
+                ("lighting.diffuse", lighting.diffuse),
+            ] {
+                if !(0.0..=1.0).contains(&value) {
+                    return Err(InvalidField::new(
+                        field,
+                        format!("must be in [0, 1], got {value}"),
+                    ));
+                }
+            }
+            if !(lighting.shadow_extinction.is_finite() && lighting.shadow_extinction >= 0.0) {
+                return Err(InvalidField::new(
+                    "lighting.shadow_extinction",
+                    format!(
+                        "must be finite and >= 0, got {}",
+                        lighting.shadow_extinction
+                    ),
+                ));
+            }
+            if matches!(
+                self.source,
+                VolumeSource::Cells(_) | VolumeSource::Campfire(_) | VolumeSource::SearchLight(_)
+            ) {
+                return Err(InvalidField::new(
+                    "lighting",
+                    "only grid sources (Uniform, Ramp, Procedural, Cloud) can be lit",
+                ));
+            }
+        }
         if !(self.density_scale.is_finite() && self.density_scale >= 0.0) {
             return Err(InvalidField::new(
                 "density_scale",
@@ -564,6 +753,7 @@ impl VolumeDescription {
                 }
                 Ok(())
             }
+            VolumeSource::Cloud(cloud) => dims("source.Cloud.dims", cloud.dims),
             VolumeSource::Campfire(campfire) => dims("source.Campfire.dims", campfire.dims)
                 .and_then(|()| {
                     if campfire.dims.iter().all(|n| *n <= 257) {
@@ -656,7 +846,69 @@ mod tests {
             density_scale: 2.0,
             mode: Some(OpticalMode::Emissive),
             lod: None,
+            lighting: None,
         }
+    }
+
+    #[test]
+    fn a_lit_cloud_defaults_to_the_light_preset_and_checks_its_settings() {
+        let source = VolumeSource::Cloud(CloudSource {
+            dims: [9, 5, 9],
+            seed: 2,
+            coverage: Some(0.6),
+            octaves: Some(3),
+            wavelength: Some(4.0),
+            wind: [1.0, 0.0, 0.5],
+            detail_wind: None,
+            base_fade: None,
+            top_fade: None,
+        });
+        let mut lit = VolumeDescription {
+            mode: None,
+            density_scale: 1.0,
+            lighting: Some(LightingDescription {
+                ambient: 0.3,
+                diffuse: 0.7,
+                shadow_extinction: 0.0,
+                model: LightModel::Isotropic,
+            }),
+            ..volume(source)
+        };
+        lit.validate().unwrap();
+        let built = lit.build(Path::new(".")).unwrap();
+        assert_eq!(
+            built.transfer_function,
+            TransferFunction::preset(TransferPreset::CloudLight)
+        );
+        let VolumeField::Cloud(cloud) = built.field else {
+            panic!("a cloud source is an animated cloud");
+        };
+        // The wind moves the field.
+        let (now, later) = (cloud.grid_at(0.0).unwrap(), cloud.grid_at(3.0).unwrap());
+        assert_eq!(now.dims(), [9, 5, 9]);
+        assert_ne!(now.values(), later.values());
+
+        if let Some(lighting) = &mut lit.lighting {
+            lighting.model = LightModel::NonPhysical;
+        }
+        assert_eq!(
+            lit.build(Path::new(".")).unwrap().transfer_function,
+            TransferFunction::preset(TransferPreset::Cloud)
+        );
+        if let Some(lighting) = &mut lit.lighting {
+            lighting.ambient = 1.5;
+        }
+        assert_eq!(lit.validate().unwrap_err().field, "lighting.ambient");
+        let cells = VolumeDescription {
+            lighting: Some(LightingDescription {
+                ambient: 0.3,
+                diffuse: 0.7,
+                shadow_extinction: 0.0,
+                model: LightModel::Isotropic,
+            }),
+            ..volume(VolumeSource::Cells(Vec::new()))
+        };
+        assert_eq!(cells.validate().unwrap_err().field, "lighting");
     }
 
     fn grid(built: BuiltVolume) -> DensityGrid {
