@@ -21,16 +21,20 @@
 //! (or the in-memory source) on wrong sizes, non-finite values, out-of-range
 //! densities and unreadable files.
 
+mod cloud;
 mod density_grid;
 pub mod effects;
 mod height_field;
+mod light;
 mod load;
 mod procedural;
 mod resample;
 
+pub use cloud::CloudNoise;
 pub use density_grid::DensityGrid;
 pub use effects::{campfire_density, search_light_cells};
 pub use height_field::HeightField;
+pub use light::{CloudLighting, light_field, light_field_with_threads};
 pub use load::{Normalization, RawSampleType, TileLayout};
 pub use procedural::{NOISE_OFFSET, NoiseKind, ProceduralNoise};
 pub use resample::{PadFill, power_of_two_plus_one};
