@@ -19,6 +19,13 @@
 //!   leaves back to front with their morph factors e') and the morphed,
 //!   conforming cell batch ([`octree::lod_batch`]). Lighting and the Bevy
 //!   wiring follow (issue 5).
+//! - [`quadtree`]: the terrain C-LOD of paper 001 §3.5.3 (Röttger's
+//!   quadtree, libMini's semantics): [`TerrainHierarchy`] over a `2^k + 1`
+//!   square height field with per-node roughness d2 propagated to the parent
+//!   and the parent's neighbours (1/3 byte per grid point besides the
+//!   heights), and [`TerrainHierarchy::update`], one pass per frame that
+//!   refines, geomorphs and writes crack-free triangle fans ([`TerrainMesh`])
+//!   back to front, front to back or unordered, with frustum culling.
 //! - [`visibility`]: back-to-front order for any conforming tetrahedral mesh
 //!   (MPVO, Williams 1992): [`CellAdjacency`] once per mesh, then
 //!   [`CellAdjacency::back_to_front`] or [`sorted_batch`] per eye.
@@ -27,10 +34,12 @@ pub mod batch;
 pub mod frustum;
 pub mod full_resolution;
 pub mod octree;
+pub mod quadtree;
 pub mod visibility;
 
 pub use batch::{CellBatch, GpuCell};
 pub use frustum::{Frustum, FrustumError};
 pub use full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};
 pub use octree::{HierarchyError, Node, VolumeHierarchy};
+pub use quadtree::{LodSettings, TerrainError, TerrainHierarchy, TerrainMesh, TriangleOrder};
 pub use visibility::{CellAdjacency, sorted_batch};
