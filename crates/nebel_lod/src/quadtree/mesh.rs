@@ -405,7 +405,7 @@ impl Frame<'_> {
         let f = self.criterion(0, 0, 0);
         if f < 1.0 {
             let t = self.morph_weight(f);
-            self.node(0, 0, 0, &corners, t, mask);
+            self.node(0, 0, 0, &corners, t, [f32::NAN; 4], mask);
             return;
         }
         if mask != 0 {
@@ -497,7 +497,21 @@ impl Frame<'_> {
 
     /// Draws refined node `(a, b)` of `level` with morphed `corners` (NE, NW,
     /// SW, SE) and morph weight `t`, culling against the planes in `mask`.
-    fn node(&mut self, level: usize, a: u32, b: u32, corners: &[Vtx; 4], t: f32, mut mask: u32) {
+    ///
+    /// `known[e]` is the criterion of the neighbour across edge `e` (E, N, W,
+    /// S) when the caller has it (a sibling's, computed by the parent), else
+    /// NaN.
+    #[allow(clippy::too_many_arguments)]
+    fn node(
+        &mut self,
+        level: usize,
+        a: u32,
+        b: u32,
+        corners: &[Vtx; 4],
+        t: f32,
+        known: [f32; 4],
+        mut mask: u32,
+    ) {
         let lv = self.level[level];
         let (ci, cj) = (lv.half + a * lv.cells, lv.half + b * lv.cells);
         let half = lv.half;
@@ -551,7 +565,11 @@ impl Frame<'_> {
         ];
         for (e, neighbour) in neighbours.into_iter().enumerate() {
             if let Some((na, nb)) = neighbour {
-                let f = self.criterion(level, na, nb);
+                let f = if known[e].is_nan() {
+                    self.criterion(level, na, nb)
+                } else {
+                    known[e]
+                };
                 if f < 1.0 {
                     edge_weight[e] = t.min(self.morph_weight(f));
                 } else {
@@ -700,8 +718,25 @@ impl Frame<'_> {
                 _ => [r[0], c, r[6], r[7]],
             };
             let (qa, qb) = children.ab[q];
-            let t = self.morph_weight(children.f[q]);
-            self.node(children.level + 1, qa, qb, &corners, t, children.mask);
+            let f = &children.f;
+            let t = self.morph_weight(f[q]);
+            // Siblings: Q0 (NE) has Q1 to the W and Q3 to the S, and so on.
+            let nan = f32::NAN;
+            let known = match q {
+                0 => [nan, nan, f[1], f[3]],
+                1 => [f[0], nan, nan, f[2]],
+                2 => [f[3], f[1], nan, nan],
+                _ => [nan, f[0], f[2], nan],
+            };
+            self.node(
+                children.level + 1,
+                qa,
+                qb,
+                &corners,
+                t,
+                known,
+                children.mask,
+            );
         } else {
             let end = (s + usize::from(span)) & 7;
             self.triangle(verts, [CENTRE, end, s]);

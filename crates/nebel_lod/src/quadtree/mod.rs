@@ -163,9 +163,10 @@ use thiserror::Error;
 #[cfg(doc)]
 use nebel_core::field::HeightField;
 
-/// Default global accuracy `c`: a left-out detail subtends at most about
-/// `1/(2c)` = 1/200 radian (about 5 pixels on a 1080-pixel, 60° view).
-pub const DEFAULT_ACCURACY: f32 = 100.0;
+/// Default global accuracy `c`: with the default `C` a left-out detail
+/// subtends at most `1/(2c (1 − 1/(2C)))` = 2.2 mrad (about two pixels on a
+/// 1080-pixel, 60° view); geomorphing hides the changes.
+pub const DEFAULT_ACCURACY: f32 = 300.0;
 
 /// Default minimum resolution `C`: a node of size `d` is refined within
 /// `C·d` of the eye whatever its roughness.
