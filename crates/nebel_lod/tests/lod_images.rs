@@ -464,7 +464,6 @@ fn error_against_full_resolution_falls_as_c_grows() {
 /// drawn leaf forces w = 0) makes both 0 and keeps the crack checks here
 /// passing.
 #[test]
-#[ignore = "known bug: pruned (transparent) neighbours force w = 0 on shared points"]
 fn infinite_accuracy_with_soft_cloud_edges_matches_full_resolution() {
     let grid = cloud_grid([33; 3], 1.0, 3, Edge::Soft);
     let transfer = cloud_transfer(0.25);

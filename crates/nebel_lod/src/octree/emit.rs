@@ -20,8 +20,10 @@
 //!   - `w` is the minimum `e'` over **all** level-`L` nodes that share `p`
 //!     (up to four for an edge midpoint, two for a face centre, one for a
 //!     centre; Eq. 7), taking `e'` from [`Refinement::refined`] and `e' = 0`
-//!     for a node that is not in that list (a leaf, a node below a leaf, or a
-//!     pruned one). Stored `e'` outside [0, 1] is clamped, NaN read as 0;
+//!     for a node that is not in that list but is drawn (a leaf or a node
+//!     below a leaf). A sharer under a node the refinement pruned (frustum or
+//!     zero-opacity test) draws no cell and does not constrain `p`. Stored
+//!     `e'` outside [0, 1] is clamped, NaN read as 0;
 //!   - `coarse(p)` averages the **morphed** values `v` of two or four
 //!     coarser points: for an edge midpoint, the edge's two ends; for the
 //!     centre, the four corners of the birth node's central tetrahedron; for
@@ -270,6 +272,8 @@ struct Morpher<'a> {
     hierarchy: &'a VolumeHierarchy,
     /// `e'` of every refined node, keyed by the flat index of its centre.
     morph: IndexMap<f32>,
+    /// Drawn leaves above level 0, by centre index.
+    drawn: IndexMap<()>,
     /// The morphed (density, light) of every point evaluated so far, by flat
     /// index.
     values: IndexMap<Vec2>,
@@ -292,9 +296,15 @@ impl<'a> Morpher<'a> {
             };
             morph.insert(hierarchy.index(centre), e);
         }
+        let drawn = refinement
+            .leaves
+            .iter()
+            .filter_map(|l| l.node.centre().map(|c| (hierarchy.index(c), ())))
+            .collect();
         Self {
             hierarchy,
             morph,
+            drawn,
             values: IndexMap::with_capacity_and_hasher(
                 16 * refinement.leaves.len(),
                 Default::default(),
@@ -377,8 +387,16 @@ impl<'a> Morpher<'a> {
                     match self.morph_factor(node) {
                         Some(e) => w = w.min(e),
                         None => {
-                            w = 0.0;
-                            unrefined.get_or_insert(node);
+                            // Only a sharer under a drawn leaf constrains p;
+                            // one under a pruned (culled) node draws nothing.
+                            let leaf = self.leaf_above(node);
+                            let drawn = leaf
+                                .centre()
+                                .is_some_and(|c| self.drawn.contains_key(&h.index(c)));
+                            if drawn {
+                                w = 0.0;
+                                unrefined.get_or_insert(node);
+                            }
                         }
                     }
                 }
