@@ -46,6 +46,28 @@
 //!     .add_systems(Startup, spawn_cloud)
 //!     .run();
 //! ```
+//!
+//! A lit cloud layer drawn through the octree C-LOD, drifting with the wind:
+//!
+//! ```no_run
+//! use bevy::{math::DVec3, prelude::*};
+//! use nebel::nebel_core::field::CloudNoise;
+//! use nebel::prelude::*;
+//!
+//! fn spawn_clouds(mut commands: Commands) {
+//!     commands.spawn((
+//!         CloudVolume {
+//!             dims: UVec3::new(129, 17, 129),
+//!             min: Vec3::new(-2560.0, 600.0, -2560.0),
+//!             max: Vec3::new(2560.0, 1240.0, 2560.0),
+//!             noise: CloudNoise { coverage: 0.45, octaves: 5, wavelength: 1800.0,
+//!                                 wind: DVec3::new(8.0, 0.0, 0.0), ..default() },
+//!         },
+//!         VolumeLod { accuracy: 16.0, min_accuracy: 4.0 },
+//!         VolumeLighting { shadow_extinction: 0.008, ..default() },
+//!     ));
+//! }
+//! ```
 
 pub mod example_runner;
 pub mod flickering_light;
@@ -90,5 +112,7 @@ pub mod prelude {
     pub use crate::scene_setup::{SceneCamera, SceneSetupPlugin};
     pub use nebel_render::{CellBatch, EffectCounters, NebelSystems};
     #[cfg(feature = "volume")]
-    pub use nebel_volume::{Campfire, Volume, VolumeField};
+    pub use nebel_volume::{
+        Campfire, CloudLightModel, CloudVolume, Volume, VolumeField, VolumeLighting, VolumeLod,
+    };
 }

@@ -4,9 +4,13 @@
 //!
 //! For each `c` the scene's one grid volume is rendered with
 //! `lod: (accuracy: c)` (the scene's `min_accuracy`, default 4) and once at
-//! full resolution, with tonemapping and MSAA off; every image is scored
-//! against the exact reference of the full trilinear field. The result is a
-//! CSV (`c, cells drawn, frame median ms, RMSE, max abs, PSNR`) and a PNG plot
+//! full resolution (a lit volume, which is always drawn through the octree,
+//! with `c = ∞`, which draws exactly the full-resolution cells), with
+//! tonemapping and MSAA off; every image is scored against the
+//! full-resolution image and against the exact reference of the full
+//! trilinear field. The result is a CSV (`c, cells drawn, frame median ms,
+//! RMSE against full resolution, RMSE, max abs, PSNR` against the reference)
+//! and a PNG plot
 //! of frame time (x, linear from 0) against RMSE (y, log10), one dot per `c`
 //! joined in order, the full-resolution point in red. The plot has no text:
 //! the CSV beside it has the numbers.
@@ -30,6 +34,8 @@ pub struct SweepPoint {
     pub cells_drawn: f64,
     /// Median wall time per frame, ms.
     pub frame_ms: f64,
+    /// RMSE over linear RGB against the full-resolution image.
+    pub rmse_full: f64,
     /// RMSE over linear RGB against the exact reference.
     pub rmse: f64,
     /// Largest absolute error over linear RGB.
@@ -58,20 +64,29 @@ pub fn run_lod_sweep(
     std::fs::create_dir_all(out_dir).map_err(|e| format!("{}: {e}", out_dir.display()))?;
     let min_accuracy = scene.volumes[0].lod.map_or(4.0, |lod| lod.min_accuracy);
 
+    let lit = scene.volumes[0].lighting.is_some();
+    let full_lod = lit.then_some(LodDescription {
+        accuracy: f64::INFINITY,
+        min_accuracy,
+    });
     let mut full = scene.clone();
-    full.volumes[0].lod = None;
+    full.volumes[0].lod = full_lod;
     let reference_volumes = full.build_volumes(scene_path).map_err(|e| e.to_string())?;
     let reference = reference_image(&full, reference_volumes, true).map_err(|e| e.to_string())?;
     save_reference(&reference, &out_dir.join("reference.png")).map_err(|e| e.to_string())?;
 
     let mut points = Vec::with_capacity(accuracies.len() + 1);
+    let mut images = Vec::with_capacity(accuracies.len() + 1);
     let runs = accuracies.iter().map(|c| Some(*c)).chain([None]);
     for accuracy in runs {
         let mut variant = scene.clone();
-        variant.volumes[0].lod = accuracy.map(|accuracy| LodDescription {
-            accuracy,
-            min_accuracy,
-        });
+        variant.volumes[0].lod = match accuracy {
+            Some(accuracy) => Some(LodDescription {
+                accuracy,
+                min_accuracy,
+            }),
+            None => full_lod,
+        };
         let name = accuracy.map_or(String::from("full_resolution"), |c| format!("c_{c}"));
         let image_path = out_dir.join(format!("{name}.png"));
         let setup = SceneSetupPlugin::new(variant, scene_path).map_err(|e| e.to_string())?;
@@ -89,20 +104,33 @@ pub fn run_lod_sweep(
             accuracy,
             cells_drawn,
             frame_ms: stats.frame_wall_ms.median,
+            rmse_full: 0.0,
             rmse: metrics.rmse,
             max_abs: metrics.max_abs,
             psnr: metrics.psnr,
         });
+        images.push(image);
     }
 
-    let mut csv = String::from("c,cells_drawn,frame_ms_median,rmse,max_abs,psnr_db\n");
+    // The full-resolution image is the last one.
+    if let Some(full_image) = images.last() {
+        for (point, image) in points.iter_mut().zip(&images) {
+            point.rmse_full = compare(image, full_image).map_err(|e| e.to_string())?.rmse;
+        }
+    }
+    let mut csv = String::from("c,cells_drawn,frame_ms_median,rmse_vs_full,rmse,max_abs,psnr_db\n");
     for point in &points {
         let c = point
             .accuracy
             .map_or(String::from("full"), |c| c.to_string());
         csv.push_str(&format!(
-            "{c},{},{},{},{},{}\n",
-            point.cells_drawn, point.frame_ms, point.rmse, point.max_abs, point.psnr
+            "{c},{},{},{},{},{},{}\n",
+            point.cells_drawn,
+            point.frame_ms,
+            point.rmse_full,
+            point.rmse,
+            point.max_abs,
+            point.psnr
         ));
     }
     let csv_path = out_dir.join("lod_sweep.csv");
@@ -209,6 +237,7 @@ mod tests {
             accuracy,
             cells_drawn: 0.0,
             frame_ms,
+            rmse_full: rmse,
             rmse,
             max_abs: rmse,
             psnr: 0.0,

@@ -208,7 +208,8 @@ pub enum ReferenceVolume {
 /// segment, exactly what the GPU computes. Grid: the trilinear modulator is
 /// integrated along with the scalar, piece by piece (the pieces are refined
 /// to the same tolerance for both fields), so the image converges to the
-/// continuous model `∫ κ(s) ρ(s) m e^{−∫ ρ(s) m}`.
+/// continuous model `∫ κ(s) ρ(s) m e^{−∫ ρ(s) m}` (the modulator's pieces
+/// are refined to 100 × [`ReferenceScene::scalar_tolerance`]).
 #[derive(Clone, Debug, PartialEq)]
 pub enum Modulation {
     /// For [`ReferenceVolume::Cells`]: per cell, the modulator at its four
@@ -816,10 +817,12 @@ fn march_grid(
         };
         let curvature = bend(&scalar).max(modulation.as_ref().map_or(0.0, bend));
         // A modulated piece uses one mean modulator: split until the
-        // modulator changes by at most the tolerance along a piece.
-        let modulator_pieces = modulation
-            .as_ref()
-            .map_or(0.0, |m| (m.at(length) - m.at(0.0)).abs() / tolerance);
+        // modulator changes by at most 100 × the tolerance along a piece (the
+        // mean is exact for the optical depth of a linear modulator; what is
+        // left is second order in that change).
+        let modulator_pieces = modulation.as_ref().map_or(0.0, |m| {
+            (m.at(length) - m.at(0.0)).abs() / (100.0 * tolerance)
+        });
         let pieces = (length * (curvature / (8.0 * tolerance)).sqrt())
             .max(modulator_pieces)
             .ceil()

@@ -153,13 +153,28 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     let cell = cells[in.cell_index];
     let direction = normalize(in.relative_position);
 
-    // Entry and exit through the four face planes.
+    // Entry and exit through the four face planes. When the eye lies on a
+    // face's plane (up to the f32 rounding of camera-relative positions,
+    // which grows with the distance from the world origin and the cell's
+    // size), the plane meets every ray at t = 0: a pixel whose ray grazes
+    // that plane would otherwise divide two rounding errors and be lost to
+    // both cells on either side (a one-pixel crack through the eye).
+    let v0 = relative_vertex(cell, 0u);
+    let e1 = relative_vertex(cell, 1u) - v0;
+    let e2 = relative_vertex(cell, 2u) - v0;
+    let e3 = relative_vertex(cell, 3u) - v0;
+    let scale = max(max(dot(e1, e1), dot(e2, e2)), dot(e3, e3));
+    let on_plane = 1.0e-6 * (length(view.camera_position.xyz) + length(v0) + sqrt(scale));
     var t_entry = 0.0;
     var t_exit = 3.0e38;
     for (var face = 0u; face < 4u; face++) {
         let normal = outward_normal(cell, face);
         let denominator = dot(normal, direction);
-        let t = dot(normal, relative_vertex(cell, FACE_VERTICES[face * 3u])) / denominator;
+        var height = dot(normal, relative_vertex(cell, FACE_VERTICES[face * 3u]));
+        if abs(height) <= on_plane * length(normal) {
+            height = 0.0;
+        }
+        let t = height / denominator;
         if denominator < 0.0 {
             t_entry = max(t_entry, t);
         } else if denominator > 0.0 {
@@ -184,12 +199,7 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     }
 
     // The cell's linear scalar: s(x) = s0 + g · (x − v0).
-    let v0 = relative_vertex(cell, 0u);
-    let e1 = relative_vertex(cell, 1u) - v0;
-    let e2 = relative_vertex(cell, 2u) - v0;
-    let e3 = relative_vertex(cell, 3u) - v0;
     let determinant = dot(e1, cross(e2, e3));
-    let scale = max(max(dot(e1, e1), dot(e2, e2)), dot(e3, e3));
     if abs(determinant) <= 1.0e-9 * scale * sqrt(scale) {
         discard;
     }
