@@ -181,6 +181,11 @@ pub fn render_headless(
         }
     }
     let frame_duration = Duration::from_secs_f64(1.0 / f64::from(output.frame_rate));
+    // Virtual time clamps each step to `max_delta` (250 ms by default): a
+    // scene at fewer than 4 frames per second would fall behind its path.
+    let mut virtual_time = app.world_mut().resource_mut::<Time<Virtual>>();
+    let max_delta = virtual_time.max_delta().max(frame_duration);
+    virtual_time.set_max_delta(max_delta);
     let first_scene_timing = app.world().resource::<NebelFrameTimings>().frames.len();
 
     let captured: Arc<Mutex<Option<Image>>> = Arc::default();

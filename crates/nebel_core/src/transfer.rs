@@ -175,8 +175,9 @@ pub enum TransferPreset {
     /// Smoke: dark grey, slightly lighter where thin; zero below s = 0.02.
     Smoke,
     /// A lit cloud's colour over its light intensity γ (paper 000 §5.1): κ
-    /// rises from a dark blue-grey in the shade (γ = 0) through grey to a warm
-    /// white in full sun (γ = 1); ρ is the constant 1 (`ρ_max`, scaled by the
+    /// rises from a dark blue-grey in the shade (γ = 0) through light grey to
+    /// a warm white of 1.7 in full sun (γ = 1; above 1 so that sunlit cloud
+    /// stays white through the camera's tonemapping); ρ is the constant 1 (`ρ_max`, scaled by the
     /// volume's density scale), since the density enters as the segment
     /// length `l' = l · f` (Eq. 9), not through this function.
     CloudLight,
@@ -231,9 +232,9 @@ impl TransferPreset {
                 p(1.0, [0.1, 0.1, 0.11], 1.0),
             ],
             TransferPreset::CloudLight => vec![
-                p(0.0, [0.22, 0.25, 0.33], 1.0),
-                p(0.5, [0.62, 0.65, 0.72], 1.0),
-                p(1.0, [1.0, 0.98, 0.94], 1.0),
+                p(0.0, [0.3, 0.33, 0.42], 1.0),
+                p(0.5, [0.85, 0.87, 0.92], 1.0),
+                p(1.0, [1.7, 1.66, 1.6], 1.0),
             ],
         }
     }

@@ -1,12 +1,17 @@
 //! Frame timings and per-effect counters of nebel's systems.
 //!
 //! Every per-frame nebel system in the main world joins the [`NebelSystems`]
-//! set in [`Update`]. [`NebelDiagnosticsPlugin`] brackets that set with two
-//! marker systems and records, each frame, the wall time from the first marker
-//! to the second in [`NebelFrameTimings`]. With Bevy's multi-threaded executor
-//! an unrelated system may run beside the set, so the figure is an upper bound
-//! of nebel's own CPU time; with no nebel system it is the cost of the two
-//! markers alone (microseconds).
+//! set, in [`Update`] (systems that move or animate: camera paths, fire,
+//! clouds) or in [`PostUpdate`] (systems that build view-dependent batches:
+//! they must see this frame's propagated transforms, camera projections and
+//! visibility, so the set runs there after [`TransformSystems::Propagate`],
+//! [`CameraUpdateSystems`] and [`VisibilitySystems::VisibilityPropagate`]).
+//! [`NebelDiagnosticsPlugin`] brackets the set with two marker systems in
+//! each schedule and records, each frame, the summed wall time between them
+//! in [`NebelFrameTimings`]. With Bevy's multi-threaded executor an unrelated
+//! system may run beside the set, so the figure is an upper bound of nebel's
+//! own CPU time; with no nebel system it is the cost of the markers alone
+//! (microseconds).
 //!
 //! [`EffectCounters`] holds one group of named counters per effect (cells drawn,
 //! update time, ...). Effects write their group each frame; `nebel render
@@ -15,9 +20,13 @@
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
+use bevy::camera::CameraUpdateSystems;
+use bevy::camera::visibility::VisibilitySystems;
 use bevy::prelude::*;
+use bevy::transform::TransformSystems;
 
-/// The set every per-frame nebel system in [`Update`] belongs to.
+/// The set every per-frame nebel system belongs to, in [`Update`] or
+/// [`PostUpdate`] (see the module docs).
 #[derive(SystemSet, Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct NebelSystems;
 
@@ -32,6 +41,9 @@ pub struct NebelFrameTimings {
     pub capacity: usize,
     #[reflect(ignore)]
     frame_start: Option<Instant>,
+    /// Time spent in the set so far this frame (the [`Update`] part).
+    #[reflect(ignore)]
+    frame_so_far: Duration,
 }
 
 impl NebelFrameTimings {
@@ -73,8 +85,22 @@ impl Plugin for NebelDiagnosticsPlugin {
     fn build(&self, app: &mut App) {
         app.init_resource::<NebelFrameTimings>()
             .init_resource::<EffectCounters>()
+            .configure_sets(
+                PostUpdate,
+                NebelSystems
+                    .after(TransformSystems::Propagate)
+                    .after(CameraUpdateSystems)
+                    .after(VisibilitySystems::VisibilityPropagate),
+            )
             .add_systems(
                 Update,
+                (
+                    start_frame_timing.before(NebelSystems),
+                    pause_frame_timing.after(NebelSystems),
+                ),
+            )
+            .add_systems(
+                PostUpdate,
                 (
                     start_frame_timing.before(NebelSystems),
                     end_frame_timing.after(NebelSystems),
@@ -87,11 +113,19 @@ fn start_frame_timing(mut timings: ResMut<NebelFrameTimings>) {
     timings.frame_start = Some(Instant::now());
 }
 
+/// Ends the [`Update`] part of the frame's measurement.
+fn pause_frame_timing(mut timings: ResMut<NebelFrameTimings>) {
+    if let Some(start) = timings.frame_start.take() {
+        timings.frame_so_far += start.elapsed();
+    }
+}
+
 fn end_frame_timing(mut timings: ResMut<NebelFrameTimings>) {
     let Some(start) = timings.frame_start.take() else {
         return;
     };
-    timings.frames.push(start.elapsed());
+    let frame = std::mem::take(&mut timings.frame_so_far) + start.elapsed();
+    timings.frames.push(frame);
     let capacity = timings.capacity;
     if capacity > 0 && timings.frames.len() > capacity {
         let excess = timings.frames.len() - capacity;

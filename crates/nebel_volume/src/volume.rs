@@ -11,6 +11,12 @@
 //! for convex conforming meshes; [`nebel_lod::visibility`]); an emissive or
 //! MIP one is drawn as given.
 //!
+//! The batch system runs in `PostUpdate`, after transform propagation, the
+//! camera's projection update and visibility propagation, so a batch is built
+//! for the eye of the frame it is drawn in (a batch one frame behind a moving
+//! camera is ordered and refined for the wrong eye). The systems that change
+//! volumes (campfire, clouds) run in `Update`.
+//!
 //! Work happens only on change: a batch is rebuilt when the volume or its
 //! transform changed, and, for sorted volumes, when the camera moved or
 //! turned (the order depends on the eye, the culling on the whole view). Emissive and MIP volumes
@@ -25,9 +31,11 @@
 use std::sync::{Arc, LazyLock};
 use std::time::Instant;
 
-use bevy::camera::Camera3d;
+use bevy::camera::visibility::VisibilitySystems;
+use bevy::camera::{Camera3d, CameraUpdateSystems};
 use bevy::math::{DAffine3, DMat4, DVec3};
 use bevy::prelude::*;
+use bevy::transform::TransformSystems;
 use nebel_core::cell::Tetrahedron;
 use nebel_core::field::DensityGrid;
 use nebel_core::field::{PadFill, light_field};
@@ -60,10 +68,18 @@ impl Plugin for VolumePlugin {
                 (
                     crate::campfire::animate_campfires,
                     crate::cloud::generate_clouds,
-                    update_volume_batches,
                 )
-                    .chain()
                     .in_set(NebelSystems),
+            )
+            // The batches follow this frame's camera: after its transform,
+            // projection and the volumes' visibility are up to date.
+            .add_systems(
+                PostUpdate,
+                update_volume_batches
+                    .in_set(NebelSystems)
+                    .after(TransformSystems::Propagate)
+                    .after(CameraUpdateSystems)
+                    .after(VisibilitySystems::VisibilityPropagate),
             );
     }
 }
@@ -588,6 +604,20 @@ mod tests {
         app.update();
         let swapped = app.world().get::<CellBatch>(volume).unwrap();
         assert!(swapped.modulators.is_some());
+    }
+
+    #[test]
+    fn a_batch_follows_the_camera_in_the_same_frame() {
+        let (mut app, camera, volume) = app_with_volume(OpticalMode::Sorted);
+        let before = generation(&app, volume);
+        let mut transform = app.world_mut().get_mut::<Transform>(camera).unwrap();
+        transform.translation.x += 1.0;
+        let moved_to = transform.translation.as_dvec3();
+        // One frame: the batch is rebuilt for the eye that frame is drawn from.
+        app.update();
+        assert!(generation(&app, volume) > before);
+        let source = app.world().get::<VolumeBatchSource>(volume).unwrap();
+        assert_eq!(source.eye, moved_to);
     }
 
     #[test]
