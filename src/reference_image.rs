@@ -144,6 +144,7 @@ fn lit_fields(
         diffuse: lighting.diffuse,
         sun_direction: sun,
         shadow_extinction: lighting.shadow_extinction,
+        lambert: true,
     };
     let light = light_field(&padded, &settings).map_err(invalid)?;
     Ok(match lighting.model {

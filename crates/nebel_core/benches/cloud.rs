@@ -31,6 +31,7 @@ fn noise() -> CloudNoise {
 fn shadowed() -> CloudLighting {
     CloudLighting {
         shadow_extinction: 0.01,
+        lambert: true,
         ..Default::default()
     }
 }

@@ -53,6 +53,7 @@ fn main() {
         diffuse: 0.7,
         sun_direction: DVec3::new(0.45, 0.6, 0.3),
         shadow_extinction: 0.008,
+        lambert: true,
     };
     let started = Instant::now();
     let light = light_field(&grid, &lighting).expect("valid lighting");

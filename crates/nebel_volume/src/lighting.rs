@@ -96,6 +96,7 @@ impl VolumeLighting {
             diffuse: self.diffuse,
             sun_direction: sun_local.as_dvec3(),
             shadow_extinction: self.shadow_extinction,
+            lambert: true,
         }
     }
 }

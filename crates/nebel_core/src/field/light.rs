@@ -82,6 +82,12 @@ pub struct CloudLighting {
     /// Extinction of the light toward the sun: optical depth per world unit at
     /// density 1, ≥ 0. 0 (the default) casts no shadow.
     pub shadow_extinction: f32,
+    /// Whether the sun's light is shaded by the density gradient (the Lambert
+    /// term above). `false` leaves `γ = ambient + diffuse · T_sun`: with
+    /// `ambient = 0, diffuse = 1` the plain transmittance toward the sun, the
+    /// light of single scattering (paper 003), where the phase function at
+    /// the eye, not the gradient, orients the light. Default `true`.
+    pub lambert: bool,
 }
 
 impl Default for CloudLighting {
@@ -91,6 +97,7 @@ impl Default for CloudLighting {
             diffuse: 0.7,
             sun_direction: DVec3::new(0.4, 1.0, 0.3).normalize(),
             shadow_extinction: 0.0,
+            lambert: true,
         }
     }
 }
@@ -182,7 +189,11 @@ pub fn light_field_with_threads(
             let k = first_slice + dk;
             for (j, row) in slice.chunks_mut(nx).enumerate() {
                 for (i, value) in row.iter_mut().enumerate() {
-                    let lambert = lambert(grid, [i, j, k], sun, g0);
+                    let lambert = if lighting.lambert {
+                        lambert(grid, [i, j, k], sun, g0)
+                    } else {
+                        1.0
+                    };
                     *value = if shadow {
                         lambert as f32
                     } else {
@@ -396,6 +407,7 @@ mod tests {
             diffuse: 0.8,
             sun_direction: sun,
             shadow_extinction: sigma,
+            lambert: true,
         };
         let light = light_field(&grid, &lighting).unwrap();
         let sun = sun.normalize();
@@ -455,6 +467,7 @@ mod tests {
             diffuse: 0.8,
             sun_direction: DVec3::new(0.0, 3.0, 0.0),
             shadow_extinction: 0.4,
+            lambert: true,
         };
         let light = light_field(&grid, &lighting).unwrap();
         let top = grid.max_corner().y;
@@ -501,6 +514,7 @@ mod tests {
             diffuse: 0.9,
             sun_direction: DVec3::NEG_Y,
             shadow_extinction: 0.25,
+            lambert: true,
         };
         let light = light_field(&grid, &lighting).unwrap();
         for j in 0..dims[1] {
@@ -556,7 +570,23 @@ mod tests {
                 diffuse: 0.8,
                 sun_direction: sun,
                 shadow_extinction: 0.0,
+                lambert: true,
             };
+            let unshaded = light_field(
+                &grid,
+                &CloudLighting {
+                    lambert: false,
+                    ..lighting
+                },
+            )
+            .unwrap();
+            assert!(
+                unshaded
+                    .values()
+                    .iter()
+                    .all(|&g| (f64::from(g) - 0.9).abs() < 1e-6),
+                "without the Lambert term the sun lights every point fully"
+            );
             let light = light_field(&grid, &lighting).unwrap();
             let expected = 0.1 + 0.8 * lambert;
             assert!(
