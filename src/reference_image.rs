@@ -13,9 +13,9 @@ use std::time::{Duration, Instant};
 use glam::{DVec3, DVec4};
 use nebel_core::field::{CloudLighting, DensityGrid, PadFill, light_field};
 use nebel_core::image_metrics::{ImageMetricsError, LinearImage, save_png, srgb_to_linear};
-use nebel_core::optics::OpticalMode;
+use nebel_core::optics::{OpticalMode, henyey_greenstein};
 use nebel_core::reference::{
-    Modulation, ReferenceError, ReferenceScene, ReferenceVolume, RenderProgress,
+    Modulation, ReferenceCamera, ReferenceError, ReferenceScene, ReferenceVolume, RenderProgress,
 };
 use nebel_core::scene::{
     BuiltVolume, LightModel, LightingDescription, SceneDescription, VolumeField,
@@ -67,11 +67,9 @@ pub fn reference_image(
                 ((ReferenceVolume::Grid(grid)), (cloud.min + cloud.max) / 2.0)
             }
         };
+        let sun = scene.sun_direction().unwrap_or(DVec3::Y);
         let (field, modulation) = match (field, volume.lighting) {
-            (ReferenceVolume::Grid(grid), Some(lighting)) => {
-                let sun = scene.sun_direction().unwrap_or(DVec3::Y);
-                lit_fields(&grid, &lighting, sun)?
-            }
+            (ReferenceVolume::Grid(grid), Some(lighting)) => lit_fields(&grid, &lighting, sun)?,
             (field, _) => (field, None),
         };
         let mut reference_scene =
@@ -91,7 +89,12 @@ pub fn reference_image(
                 *last = Instant::now();
             }
         };
-        let image = nebel_core::reference::render(&reference_scene, Some(&report))?;
+        let mut image = nebel_core::reference::render(&reference_scene, Some(&report))?;
+        if let Some(lighting) = volume.lighting
+            && volume.mode == OpticalMode::Sorted
+        {
+            scatter(&mut image, &camera, &lighting, sun);
+        }
         layers.push((camera.position.distance(centre), volume.mode, image));
     }
     layers.sort_by(|a, b| b.0.total_cmp(&a.0));
@@ -139,18 +142,48 @@ fn lit_fields(
     let padded = grid
         .padded_to_power_of_two_plus_one(PadFill::Value(0.0))
         .map_err(invalid)?;
+    let scattering = matches!(lighting.model, LightModel::Scattering { .. });
     let settings = CloudLighting {
-        ambient: lighting.ambient,
-        diffuse: lighting.diffuse,
+        ambient: if scattering { 0.0 } else { lighting.ambient },
+        diffuse: if scattering { 1.0 } else { lighting.diffuse },
         sun_direction: sun,
         shadow_extinction: lighting.shadow_extinction,
-        lambert: true,
+        lambert: !scattering,
     };
     let light = light_field(&padded, &settings).map_err(invalid)?;
     Ok(match lighting.model {
-        LightModel::Isotropic => (ReferenceVolume::Grid(light), Some(Modulation::Grid(padded))),
+        LightModel::Isotropic | LightModel::Scattering { .. } => {
+            (ReferenceVolume::Grid(light), Some(Modulation::Grid(padded)))
+        }
         LightModel::NonPhysical => (ReferenceVolume::Grid(padded), Some(Modulation::Grid(light))),
     })
+}
+
+/// Single scattering (paper 003) of a layer integrated over the
+/// transmittance toward the sun: each pixel's premultiplied colour `C` and
+/// opacity `α` become `ambient · α + sun · 4π p_HG(θ) · C`, θ between the
+/// pixel's ray and the sunlight, as the GPU's `SCATTERING` variant computes.
+/// Other models are left as they are.
+fn scatter(
+    image: &mut LinearImage,
+    camera: &ReferenceCamera,
+    lighting: &LightingDescription,
+    sun: DVec3,
+) {
+    let LightModel::Scattering { asymmetry } = lighting.model else {
+        return;
+    };
+    let width = image.width;
+    for (index, pixel) in image.pixels.iter_mut().enumerate() {
+        let (x, y) = (index as u32 % width, index as u32 / width);
+        let (ray, _) = camera.pixel_ray(x, y);
+        let phase = henyey_greenstein(f64::from(asymmetry), ray.direction.dot(sun));
+        let sunlight = f64::from(lighting.diffuse) * phase;
+        let ambient = f64::from(lighting.ambient) * f64::from(pixel[3]);
+        for channel in &mut pixel[..3] {
+            *channel = (ambient + sunlight * f64::from(*channel)) as f32;
+        }
+    }
 }
 
 /// The scene's clear colour, linear.

@@ -301,6 +301,9 @@ fn spawn_volumes(commands: &mut Commands, volumes: &[BuiltVolume]) {
                 model: match lighting.model {
                     LightModel::Isotropic => CloudLightModel::Isotropic,
                     LightModel::NonPhysical => CloudLightModel::NonPhysical,
+                    LightModel::Scattering { asymmetry } => {
+                        CloudLightModel::Scattering { asymmetry }
+                    }
                 },
             });
         }

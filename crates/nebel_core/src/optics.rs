@@ -47,6 +47,21 @@ impl OpticalMode {
     }
 }
 
+/// The Henyey-Greenstein phase function times 4π (paper 003): `(1 − g²) /
+/// (1 + g² − 2g cos θ)^{3/2}` for the asymmetry `g` (clamped to ±0.99) and
+/// the cosine `cos θ` between the light's travel direction and the scattered
+/// direction. 1 for `g = 0`; its mean over the sphere is 1 for every `g`, so
+/// it scales a light's colour without changing its total. NaN input gives 1
+/// (isotropic).
+pub fn henyey_greenstein(asymmetry: f64, cos_theta: f64) -> f64 {
+    if asymmetry.is_nan() || cos_theta.is_nan() {
+        return 1.0;
+    }
+    let g = asymmetry.clamp(-0.99, 0.99);
+    let cos_theta = cos_theta.clamp(-1.0, 1.0);
+    (1.0 - g * g) / (1.0 + g * g - 2.0 * g * cos_theta).powf(1.5)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -73,5 +88,22 @@ mod tests {
             OpticalMode::Sorted.composite(a, b),
             OpticalMode::Sorted.composite(b, a)
         );
+    }
+
+    #[test]
+    fn henyey_greenstein_is_normalised_and_forward_peaked() {
+        for g in [-0.8, 0.0, 0.3, 0.85] {
+            // The mean over the sphere: a midpoint rule in cos θ.
+            let n = 100_000;
+            let mean = (0..n)
+                .map(|i| henyey_greenstein(g, -1.0 + (2.0 * i as f64 + 1.0) / n as f64))
+                .sum::<f64>()
+                / n as f64;
+            assert!((mean - 1.0).abs() < 1e-4, "g = {g}: {mean}");
+        }
+        assert_eq!(henyey_greenstein(0.0, 0.3), 1.0);
+        assert!(henyey_greenstein(0.7, 1.0) > 20.0 * henyey_greenstein(0.7, -1.0));
+        assert_eq!(henyey_greenstein(f64::NAN, 0.5), 1.0);
+        assert!(henyey_greenstein(1.0, 1.0).is_finite());
     }
 }

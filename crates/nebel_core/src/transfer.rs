@@ -181,11 +181,15 @@ pub enum TransferPreset {
     /// volume's density scale), since the density enters as the segment
     /// length `l' = l · f` (Eq. 9), not through this function.
     CloudLight,
+    /// Sunlight scattered by a cloud, over its transmittance toward the sun
+    /// (the single-scattering model, paper 003): κ rises linearly from black
+    /// (in full shadow) to white (in full sun), ρ is the constant 1.
+    Transmittance,
 }
 
 impl TransferPreset {
     /// Every preset, in declaration order.
-    pub const ALL: [TransferPreset; 7] = [
+    pub const ALL: [TransferPreset; 8] = [
         TransferPreset::Cloud,
         TransferPreset::GroundFog,
         TransferPreset::Fire,
@@ -193,6 +197,7 @@ impl TransferPreset {
         TransferPreset::SearchLight,
         TransferPreset::Smoke,
         TransferPreset::CloudLight,
+        TransferPreset::Transmittance,
     ];
 
     /// The preset's control points (`s`, κ, ρ).
@@ -236,6 +241,9 @@ impl TransferPreset {
                 p(0.5, [0.85, 0.87, 0.92], 1.0),
                 p(1.0, [1.7, 1.66, 1.6], 1.0),
             ],
+            TransferPreset::Transmittance => {
+                vec![p(0.0, [0.0, 0.0, 0.0], 1.0), p(1.0, [1.0, 1.0, 1.0], 1.0)]
+            }
         }
     }
 }

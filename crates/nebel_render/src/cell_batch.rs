@@ -10,9 +10,65 @@
 use std::sync::Arc;
 
 use bevy::prelude::*;
-use nebel_core::optics::OpticalMode;
+use nebel_core::optics::{OpticalMode, henyey_greenstein};
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::GpuCell;
+
+/// The sun and sky of a scattering batch ([`CellBatch::scattering`]).
+#[derive(Clone, Copy, Debug, PartialEq, Reflect)]
+pub struct CellScattering {
+    /// Unit direction toward the sun, world space. Default `+Y`.
+    pub sun_direction: Vec3,
+    /// Sunlight that reaches the volume, linear RGB in the transfer
+    /// function's colour units (times the normalised phase `4π p_HG`, 1 for
+    /// isotropic scattering). Default white (1, 1, 1).
+    pub sun_colour: Vec3,
+    /// Sky light scattered toward the eye by every unit of opacity, linear
+    /// RGB, isotropic and unshadowed. Default (0.3, 0.33, 0.4).
+    pub ambient_colour: Vec3,
+    /// Henyey-Greenstein asymmetry `g`, in (−1, 1): > 0 scatters forward, so
+    /// a cloud between the eye and the sun gets a bright rim. Clamped to
+    /// ±0.99 by the render system. Default 0.6.
+    pub asymmetry: f32,
+}
+
+impl Default for CellScattering {
+    fn default() -> Self {
+        Self {
+            sun_direction: Vec3::Y,
+            sun_colour: Vec3::ONE,
+            ambient_colour: Vec3::new(0.3, 0.33, 0.4),
+            asymmetry: 0.6,
+        }
+    }
+}
+
+impl CellScattering {
+    /// The normalised Henyey-Greenstein phase `4π p_HG(θ)` for the unit view
+    /// ray `direction` (from the eye outward): `(1 − g²) / (1 + g² − 2g
+    /// cos θ)^{3/2}` with `cos θ = direction · sun_direction` (light from the
+    /// sun travels along `−sun_direction` and reaches the eye along
+    /// `−direction`). 1 for `g = 0`; it integrates to 4π over the sphere.
+    pub fn phase(&self, direction: Vec3) -> f32 {
+        henyey_greenstein(
+            f64::from(self.asymmetry),
+            f64::from(direction.dot(self.sun_direction)),
+        ) as f32
+    }
+
+    /// The uniform the shader reads: sun direction and `g`, sun colour,
+    /// ambient colour.
+    pub(crate) fn uniform(&self) -> [[f32; 4]; 3] {
+        [
+            self.sun_direction
+                .normalize_or(Vec3::Y)
+                .extend(self.asymmetry.clamp(-0.99, 0.99))
+                .to_array(),
+            self.sun_colour.extend(0.0).to_array(),
+            self.ambient_colour.extend(0.0).to_array(),
+        ]
+    }
+}
 
 /// Cells in world space with one transfer function and one optical mode.
 #[derive(Component, Clone, Debug, Default)]
@@ -35,6 +91,14 @@ pub struct CellBatch {
     /// render system (the batch is not drawn and an error is logged).
     /// Default: `None`.
     pub modulators: Option<Arc<Vec<[f32; 4]>>>,
+    /// Single scattering of the sun (paper 003; only for
+    /// [`OpticalMode::Sorted`]): the transfer function's colour is read as
+    /// the light scattered from the sun at each point (its transmittance
+    /// toward the sun, times an albedo), and every segment's colour becomes
+    /// `ambient · α + sun · 4π p_HG(θ) · C`, with θ between the view ray and
+    /// the sunlight. `None` draws the transfer function's colour as it is.
+    /// Default: `None`.
+    pub scattering: Option<CellScattering>,
     /// The longest segment a ray can have in one cell, world units (the
     /// longest cell diameter); the pre-integration table covers 0 to this
     /// length. Default: 0 (computed by [`CellBatch::new`]).
@@ -72,6 +136,7 @@ impl CellBatch {
             transfer_function: Some(transfer_function),
             mode,
             modulators: None,
+            scattering: None,
             max_segment_length,
             bounds_min,
             bounds_max,
@@ -93,5 +158,21 @@ impl CellBatch {
                 .transfer_function
                 .as_ref()
                 .is_some_and(|tf| !tf.is_transparent(0.0, 1.0))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_phase_peaks_toward_the_sun_and_the_uniform_clamps_g() {
+        let scattering = CellScattering {
+            sun_direction: Vec3::Z,
+            asymmetry: 1.5,
+            ..default()
+        };
+        assert!(scattering.phase(Vec3::Z) > 100.0 * scattering.phase(Vec3::NEG_Z));
+        assert_eq!(scattering.uniform()[0], [0.0, 0.0, 1.0, 0.99]);
     }
 }

@@ -37,6 +37,7 @@
 //! [`CellProjectionStats`] counters prove it.
 
 use std::collections::HashMap;
+use std::num::NonZeroU64;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -48,7 +49,7 @@ use bevy::prelude::*;
 use bevy::render::camera::ExtractedCamera;
 use bevy::render::render_resource::binding_types::{
     storage_buffer_read_only_sized, texture_2d, texture_3d, texture_depth_2d,
-    texture_depth_2d_multisampled, uniform_buffer,
+    texture_depth_2d_multisampled, uniform_buffer, uniform_buffer_sized,
 };
 use bevy::render::render_resource::*;
 use bevy::render::renderer::{RenderContext, RenderDevice, RenderQueue, ViewQuery};
@@ -61,7 +62,7 @@ use nebel_core::preintegration::{PreintegrationConfig, PreintegrationTable};
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::GpuCell;
 
-use crate::cell_batch::CellBatch;
+use crate::cell_batch::{CellBatch, CellScattering};
 
 /// Samples along `s_f` and `s_b` of the GPU tables.
 const TABLE_SCALAR_SIZE: u32 = 64;
@@ -158,6 +159,7 @@ impl Plugin for CellProjectionPlugin {
 struct ExtractedCellBatch {
     cells: Arc<Vec<GpuCell>>,
     modulators: Option<Arc<Vec<[f32; 4]>>>,
+    scattering: Option<CellScattering>,
     generation: u64,
     transfer_function: Arc<TransferFunction>,
     mode: OpticalMode,
@@ -205,6 +207,9 @@ fn extract_cell_batches(
             ExtractedCellBatch {
                 cells: batch.cells.clone(),
                 modulators: batch.modulators.clone(),
+                scattering: batch
+                    .scattering
+                    .filter(|_| batch.mode == OpticalMode::Sorted),
                 generation: batch.generation,
                 table_key: TableKey {
                     transfer_hash: transfer_function.content_hash(),
@@ -226,6 +231,9 @@ struct GpuCellBuffer {
     /// (the binding must exist; the unmodulated pipeline never reads it).
     modulators: Buffer,
     modulated: bool,
+    /// The [`CellScattering`] uniform (zeros when the batch has none).
+    scattering: Buffer,
+    scattered: bool,
     count: u32,
 }
 
@@ -269,6 +277,15 @@ fn prepare_cell_buffers(
             ),
             usage: BufferUsages::STORAGE,
         });
+        let scattering = device.create_buffer_with_data(&BufferInitDescriptor {
+            label: Some("nebel_cell_scattering"),
+            contents: bytemuck::cast_slice(
+                &batch
+                    .scattering
+                    .map_or([[0.0f32; 4]; 3], |scattering| scattering.uniform()),
+            ),
+            usage: BufferUsages::UNIFORM,
+        });
         stats.0.uploads.fetch_add(1, Ordering::Relaxed);
         buffers.0.insert(
             *entity,
@@ -277,6 +294,8 @@ fn prepare_cell_buffers(
                 buffer,
                 modulators,
                 modulated: batch.modulators.is_some(),
+                scattering,
+                scattered: batch.scattering.is_some(),
                 count: batch.cells.len() as u32,
             },
         );
@@ -422,10 +441,16 @@ struct CellProjectionView {
     uniform_offset: u32,
     multisampled: bool,
     accumulation: CachedTexture,
-    /// Per optical mode, the unmodulated and the modulated pipeline, where a
-    /// batch of this frame needs it.
-    pipelines: [[Option<CachedRenderPipelineId>; 2]; 3],
+    /// Per optical mode, the pipeline of each variant ([`variant_index`]),
+    /// where a batch of this frame needs it.
+    pipelines: [[Option<CachedRenderPipelineId>; 4]; 3],
     composite: CachedRenderPipelineId,
+}
+
+/// The index of a pipeline variant: modulated segment lengths and single
+/// scattering, each on or off.
+fn variant_index(modulated: bool, scattering: bool) -> usize {
+    usize::from(modulated) | usize::from(scattering) << 1
 }
 
 fn mode_index(mode: OpticalMode) -> usize {
@@ -453,6 +478,7 @@ pub struct CellProjectionPipeline {
 pub struct CellProjectionPipelineKey {
     mode: OpticalMode,
     modulated: bool,
+    scattering: bool,
     multisampled: bool,
     target_format: TextureFormat,
 }
@@ -492,6 +518,7 @@ pub fn init_cell_projection_pipeline(
                     texture_2d(unfilterable),
                     uniform_buffer::<CellTablesUniform>(false),
                     storage_buffer_read_only_sized(false, None),
+                    uniform_buffer_sized(false, NonZeroU64::new(48)),
                 ),
             ),
         ),
@@ -564,6 +591,9 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
         }
         if key.modulated {
             shader_defs.push("MODULATED".into());
+        }
+        if key.scattering {
+            shader_defs.push("SCATTERING".into());
         }
         RenderPipelineDescriptor {
             label: Some("nebel_cell_projection_pipeline".into()),
@@ -677,19 +707,21 @@ fn prepare_cell_views(
         });
         let multisampled = *msaa != Msaa::Off;
         // Only the variants some batch of this frame needs.
-        let mut variants = [[None; 2]; 3];
+        let mut variants = [[None; 4]; 3];
         for (_, batch) in &extracted.0 {
-            let modulated = batch.modulators.is_some();
-            variants[mode_index(batch.mode)][usize::from(modulated)] = Some(pipelines.specialize(
-                &pipeline_cache,
-                &pipeline,
-                CellProjectionPipelineKey {
-                    mode: batch.mode,
-                    modulated,
-                    multisampled,
-                    target_format: format,
-                },
-            ));
+            let (modulated, scattering) = (batch.modulators.is_some(), batch.scattering.is_some());
+            variants[mode_index(batch.mode)][variant_index(modulated, scattering)] =
+                Some(pipelines.specialize(
+                    &pipeline_cache,
+                    &pipeline,
+                    CellProjectionPipelineKey {
+                        mode: batch.mode,
+                        modulated,
+                        scattering,
+                        multisampled,
+                        target_format: format,
+                    },
+                ));
         }
         commands.entity(entity).insert(CellProjectionView {
             uniform_offset,
@@ -748,7 +780,7 @@ fn draw_cell_batches(
             continue;
         };
         let Some(render_pipeline) = cell_view.pipelines[mode_index(batch.mode)]
-            [usize::from(buffer.modulated)]
+            [variant_index(buffer.modulated, buffer.scattered)]
         .and_then(|id| pipeline_cache.get_render_pipeline(id)) else {
             continue;
         };
@@ -765,6 +797,7 @@ fn draw_cell_batches(
                 pair_table,
                 table.parameters.as_entire_binding(),
                 buffer.modulators.as_entire_binding(),
+                buffer.scattering.as_entire_binding(),
             )),
         );
         draws.push((render_pipeline, batch_bind_group, buffer.count));

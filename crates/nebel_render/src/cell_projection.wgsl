@@ -18,6 +18,12 @@
 // MODULATED (lit clouds, paper 000 §5.1 Eq. 9): a second linear field m per
 // cell scales the segment length before the lookups, l' = l (m_f + m_b) / 2.
 //
+// SCATTERING (single scattering of the sun, paper 003; sorted only): the
+// table's colour C is the sunlight scattered along the segment (its
+// transfer function is over the transmittance toward the sun), and the
+// segment's colour is ambient · α + sun · 4π p_HG(θ) · C, θ between the view
+// ray and the sunlight, constant along the ray.
+//
 // All positions are taken relative to the camera so large world coordinates
 // keep their precision.
 
@@ -58,6 +64,15 @@ struct CellTables {
 // Per cell, the segment-length modulator at its four vertices (read only by
 // the MODULATED variant).
 @group(1) @binding(4) var<storage, read> modulators: array<vec4<f32>>;
+
+// The sun and sky of single scattering (read only by the SCATTERING variant).
+struct CellScattering {
+    // xyz: unit direction toward the sun; w: Henyey-Greenstein asymmetry g.
+    sun: vec4<f32>,
+    sun_colour: vec4<f32>,
+    ambient_colour: vec4<f32>,
+}
+@group(1) @binding(5) var<uniform> scattering: CellScattering;
 
 // The three vertices of face f, which omits vertex f.
 const FACE_VERTICES = array<u32, 12>(1u, 2u, 3u, 0u, 3u, 2u, 0u, 1u, 3u, 0u, 2u, 1u);
@@ -221,7 +236,14 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
 #ifdef SORTED
     let colour = colour_lookup(s_front, s_back, length).rgb;
     let alpha = 1.0 - exp(-length * pair_lookup(s_front, s_back).a);
+#ifdef SCATTERING
+    let g = scattering.sun.w;
+    let cos_theta = dot(direction, scattering.sun.xyz);
+    let phase = (1.0 - g * g) / pow(1.0 + g * g - 2.0 * g * cos_theta, 1.5);
+    return vec4(scattering.ambient_colour.rgb * alpha + scattering.sun_colour.rgb * phase * colour, alpha);
+#else
     return vec4(colour, alpha);
+#endif
 #endif
 #ifdef EMISSIVE
     return vec4(length * pair_lookup(s_front, s_back).rgb, 0.0);

@@ -13,6 +13,6 @@ pub mod cell_batch;
 pub mod cell_projection;
 pub mod diagnostics;
 
-pub use cell_batch::CellBatch;
+pub use cell_batch::{CellBatch, CellScattering};
 pub use cell_projection::{CellProjectionPlugin, CellProjectionStats};
 pub use diagnostics::{EffectCounters, NebelDiagnosticsPlugin, NebelFrameTimings, NebelSystems};

@@ -26,9 +26,10 @@ use bevy::math::Affine3A;
 use bevy::prelude::*;
 use nebel_core::field::CloudLighting;
 use nebel_lod::octree::CellScalars;
+use nebel_render::CellScattering;
 
 /// Which field gives the colour and which the opacity (paper 000 §5).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Reflect)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Reflect)]
 pub enum CloudLightModel {
     /// §5.1: the transfer function is over the light γ (colour `κ(γ)`, use
     /// `TransferPreset::CloudLight`, constant ρ = `ρ_max`), and the density
@@ -42,13 +43,26 @@ pub enum CloudLightModel {
     /// `TransferPreset::Cloud`), and γ scales the segment length: the sunny
     /// side is opaque and bright, the far side translucent.
     NonPhysical,
+    /// Single scattering of the sun (paper 003, beyond paper 000): γ is the
+    /// plain transmittance toward the sun (no Lambert term; `ambient` and
+    /// `diffuse` become the sky's and the sun's strength), the transfer
+    /// function is over γ (use `TransferPreset::Transmittance`, or scale its
+    /// κ by an albedo colour), the density scales the segment length as in
+    /// `Isotropic`, and every pixel weighs the sunlit part by the
+    /// Henyey-Greenstein phase of its view ray: a cloud between the eye and
+    /// the sun gets a bright rim (`nebel_render::CellScattering`).
+    Scattering {
+        /// Henyey-Greenstein asymmetry `g` in (−1, 1); > 0 scatters forward.
+        /// Clouds: about 0.6 to 0.85.
+        asymmetry: f32,
+    },
 }
 
 impl CloudLightModel {
     /// The cells' scalar and modulator for this model.
     pub fn cell_scalars(self) -> CellScalars {
         match self {
-            Self::Isotropic => CellScalars::LightModulatedByDensity,
+            Self::Isotropic | Self::Scattering { .. } => CellScalars::LightModulatedByDensity,
             Self::NonPhysical => CellScalars::DensityModulatedByLight,
         }
     }
@@ -60,12 +74,13 @@ impl CloudLightModel {
 #[reflect(Component, Default)]
 #[require(crate::VolumeLod)]
 pub struct VolumeLighting {
-    /// Light every point receives, as a fraction of full light, in [0, 1].
-    /// Default 0.3.
+    /// Light every point receives, as a fraction of full light, in [0, 1]
+    /// (the sky's strength for [`CloudLightModel::Scattering`]). Default 0.3.
     pub ambient: f32,
     /// Strength of the sunlight (Lambert on the density gradient, times the
     /// shadow transmittance), as a fraction of full light, in [0, 1]; `γ` is
-    /// clamped to 1. Default 0.7.
+    /// clamped to 1 (the sun's strength for [`CloudLightModel::Scattering`]).
+    /// Default 0.7.
     pub diffuse: f32,
     /// Optical density per world unit of the volume's local frame at density
     /// 1, for the transmittance toward the sun (paper 003's shadow volume),
@@ -89,14 +104,31 @@ impl Default for VolumeLighting {
 
 impl VolumeLighting {
     /// The light-field settings for a sun in direction `sun_local` (toward the
-    /// sun, in the volume's local frame).
+    /// sun, in the volume's local frame): ambient and Lambert-shaded diffuse
+    /// light, or for [`CloudLightModel::Scattering`] the transmittance alone.
     pub fn light_field_settings(&self, sun_local: Vec3) -> CloudLighting {
+        let scattering = matches!(self.model, CloudLightModel::Scattering { .. });
         CloudLighting {
-            ambient: self.ambient,
-            diffuse: self.diffuse,
+            ambient: if scattering { 0.0 } else { self.ambient },
+            diffuse: if scattering { 1.0 } else { self.diffuse },
             sun_direction: sun_local.as_dvec3(),
             shadow_extinction: self.shadow_extinction,
-            lambert: true,
+            lambert: !scattering,
+        }
+    }
+
+    /// The render system's sun and sky for [`CloudLightModel::Scattering`]
+    /// (`sun_world`: toward the sun, world space); `None` for the other
+    /// models. Sun and sky are white of strength `diffuse` and `ambient`.
+    pub fn cell_scattering(&self, sun_world: Vec3) -> Option<CellScattering> {
+        match self.model {
+            CloudLightModel::Scattering { asymmetry } => Some(CellScattering {
+                sun_direction: sun_world.normalize_or(Vec3::Y),
+                sun_colour: Vec3::splat(self.diffuse),
+                ambient_colour: Vec3::splat(self.ambient),
+                asymmetry,
+            }),
+            _ => None,
         }
     }
 }

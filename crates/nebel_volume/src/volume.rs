@@ -358,14 +358,18 @@ fn update_volume_batches(
             cells, modulators, ..
         } = lod_batch;
         cells_drawn += cells.len() as u64;
+        let mut batch = CellBatch::new(
+            cells,
+            volume.transfer_function.clone(),
+            volume.mode,
+            generation,
+        )
+        .with_modulators(modulators);
+        batch.scattering = lighting
+            .as_deref()
+            .and_then(|lighting| lighting.cell_scattering(sun_world.unwrap_or(Vec3::Y)));
         commands.entity(entity).insert((
-            CellBatch::new(
-                cells,
-                volume.transfer_function.clone(),
-                volume.mode,
-                generation,
-            )
-            .with_modulators(modulators),
+            batch,
             VolumeBatchSource {
                 eye,
                 clip_from_world,
@@ -604,6 +608,32 @@ mod tests {
         app.update();
         let swapped = app.world().get::<CellBatch>(volume).unwrap();
         assert!(swapped.modulators.is_some());
+        assert!(swapped.scattering.is_none());
+
+        // Single scattering: γ is the transmittance (≤ 1, no ambient floor),
+        // and the batch carries the sun for the per-pixel phase.
+        app.world_mut()
+            .entity_mut(volume)
+            .get_mut::<VolumeLighting>()
+            .unwrap()
+            .model = crate::CloudLightModel::Scattering { asymmetry: 0.7 };
+        app.update();
+        let scattered = app.world().get::<CellBatch>(volume).unwrap();
+        let scattering = scattered.scattering.expect("a scattering batch");
+        assert_eq!(scattering.asymmetry, 0.7);
+        let sun = Transform::default()
+            .looking_to(Vec3::new(1.0, -0.2, 0.0), Vec3::Y)
+            .back()
+            .as_vec3();
+        assert!(scattering.sun_direction.distance(sun) < 1e-6);
+        assert!(
+            scattered
+                .cells
+                .iter()
+                .flat_map(|c| c.vertices)
+                .any(|v| v[3] < 0.3),
+            "the transmittance has no ambient floor"
+        );
     }
 
     #[test]

@@ -87,8 +87,8 @@ pub struct VolumeDescription {
 }
 
 /// Which field of a lit cloud gives the colour and which the opacity (paper
-/// 000 §5).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+/// 000 §5), or single scattering (paper 003).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub enum LightModel {
     /// §5.1: colour from the light γ (transfer function over γ), opacity from
     /// the density, `l' = l · f`. The default.
@@ -97,6 +97,15 @@ pub enum LightModel {
     /// §5.2: colour and opacity from the density (transfer function over the
     /// density), segment length scaled by γ.
     NonPhysical,
+    /// Single scattering of the sun (paper 003): γ is the transmittance
+    /// toward the sun, colour over γ (default `Preset(Transmittance)`),
+    /// opacity from the density, and each pixel weighs the sunlight by the
+    /// Henyey-Greenstein phase of its ray; `ambient` and `diffuse` are the
+    /// sky's and the sun's strength. `Scattering(asymmetry: 0.7)`.
+    Scattering {
+        /// Henyey-Greenstein `g`, in (−1, 1).
+        asymmetry: f32,
+    },
 }
 
 /// Lighting of a grid volume: `γ = ambient + diffuse · T_sun · lambert` per
@@ -536,13 +545,16 @@ impl VolumeDescription {
                 VolumeField::Cloud(animated)
             }
         };
-        let lit_colour = self
-            .lighting
-            .is_some_and(|lighting| lighting.model == LightModel::Isotropic);
-        let (default_preset, default_mode) = match self.source {
-            VolumeSource::Campfire(_) => (TransferPreset::Fire, OpticalMode::Emissive),
-            VolumeSource::SearchLight(_) => (TransferPreset::SearchLight, OpticalMode::Emissive),
-            _ if lit_colour => (TransferPreset::CloudLight, OpticalMode::Sorted),
+        let light_model = self.lighting.map(|lighting| lighting.model);
+        let (default_preset, default_mode) = match (&self.source, light_model) {
+            (VolumeSource::Campfire(_), _) => (TransferPreset::Fire, OpticalMode::Emissive),
+            (VolumeSource::SearchLight(_), _) => {
+                (TransferPreset::SearchLight, OpticalMode::Emissive)
+            }
+            (_, Some(LightModel::Isotropic)) => (TransferPreset::CloudLight, OpticalMode::Sorted),
+            (_, Some(LightModel::Scattering { .. })) => {
+                (TransferPreset::Transmittance, OpticalMode::Sorted)
+            }
             _ => (TransferPreset::Cloud, OpticalMode::Sorted),
         };
         let description = self
@@ -687,6 +699,14 @@ impl VolumeDescription {
                         format!("must be in [0, 1], got {value}"),
                     ));
                 }
+            }
+            if let LightModel::Scattering { asymmetry } = lighting.model
+                && !(asymmetry > -1.0 && asymmetry < 1.0)
+            {
+                return Err(InvalidField::new(
+                    "lighting.model.Scattering.asymmetry",
+                    format!("must be in (-1, 1), got {asymmetry}"),
+                ));
             }
             if !(lighting.shadow_extinction.is_finite() && lighting.shadow_extinction >= 0.0) {
                 return Err(InvalidField::new(
@@ -896,6 +916,21 @@ mod tests {
             TransferFunction::preset(TransferPreset::Cloud)
         );
         if let Some(lighting) = &mut lit.lighting {
+            lighting.model = LightModel::Scattering { asymmetry: 0.7 };
+        }
+        assert_eq!(
+            lit.build(Path::new(".")).unwrap().transfer_function,
+            TransferFunction::preset(TransferPreset::Transmittance)
+        );
+        if let Some(lighting) = &mut lit.lighting {
+            lighting.model = LightModel::Scattering { asymmetry: 1.0 };
+        }
+        assert_eq!(
+            lit.validate().unwrap_err().field,
+            "lighting.model.Scattering.asymmetry"
+        );
+        if let Some(lighting) = &mut lit.lighting {
+            lighting.model = LightModel::Isotropic;
             lighting.ambient = 1.5;
         }
         assert_eq!(lit.validate().unwrap_err().field, "lighting.ambient");
