@@ -10,7 +10,9 @@
 //!   volumes as a stack of slice files or one tiled image) and raw little-endian
 //!   u8 / u16 / f32 with the dimensions given ([`RawSampleType`]).
 //! - Generators: fBm Perlin noise in 2D and 3D and ridged multifractal noise,
-//!   deterministic for a seed ([`ProceduralNoise`]).
+//!   deterministic for a seed ([`ProceduralNoise`]); terrain heights rescaled
+//!   to [0, 1] and shaped by an exponent ([`TerrainNoise`],
+//!   [`HeightField::terrain`]).
 //! - [`effects`]: the emissive effects of paper 001 §10.4, an animated campfire
 //!   density and a search-light cone of tetrahedra.
 //! - The C-LOD hierarchies need (2^n+1) points per axis; other sizes are padded
@@ -29,6 +31,7 @@ mod light;
 mod load;
 mod procedural;
 mod resample;
+mod terrain;
 
 pub use cloud::CloudNoise;
 pub use density_grid::DensityGrid;
@@ -38,6 +41,7 @@ pub use light::{CloudLighting, light_field, light_field_with_threads};
 pub use load::{Normalization, RawSampleType, TileLayout};
 pub use procedural::{NOISE_OFFSET, NoiseKind, ProceduralNoise};
 pub use resample::{PadFill, power_of_two_plus_one};
+pub use terrain::TerrainNoise;
 
 use std::path::PathBuf;
 

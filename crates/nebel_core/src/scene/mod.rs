@@ -34,7 +34,8 @@
 //! )
 //! ```
 //!
-//! Volumes (`volumes: [...]`) are described in [`VolumeDescription`].
+//! Volumes (`volumes: [...]`) are described in [`VolumeDescription`], the
+//! terrain (`terrain: (...)`, at most one) in [`TerrainDescription`].
 //!
 //! Optional values are written bare (`mode: Emissive`, RON's `implicit_some`).
 //!
@@ -48,7 +49,13 @@
 //! `scenes/a.ron:4:9: field camera.fov_degrees: must be in (0, 180), got 190`.
 
 mod opaque;
+mod terrain;
 mod volume;
+
+pub use terrain::{
+    MAX_TERRAIN_SIDE, PngTerrainSource, ProceduralTerrainSource, TerrainDescription,
+    TerrainHeightSource,
+};
 
 pub use volume::{
     AnimatedCampfire, AnimatedCloud, Axis, BuiltVolume, CampfireSource, CloudSource, LightModel,
@@ -92,6 +99,10 @@ pub struct SceneDescription {
     /// Default: none.
     #[serde(default)]
     pub volumes: Vec<VolumeDescription>,
+    /// A terrain drawn through the quadtree C-LOD, see
+    /// [`TerrainDescription`]. Default: none.
+    #[serde(default)]
+    pub terrain: Option<TerrainDescription>,
 }
 
 /// Image size and the frames to run before the image is taken.
@@ -596,7 +607,37 @@ impl SceneDescription {
                 .validate()
                 .map_err(|invalid| invalid.within(&format!("volumes[{index}]")))?;
         }
+        if let Some(terrain) = &self.terrain {
+            terrain
+                .validate()
+                .map_err(|invalid| invalid.within("terrain"))?;
+        }
         Ok(())
+    }
+
+    /// Generates or loads the terrain's unit heights
+    /// ([`TerrainDescription::unit_heights`]); `None` without a terrain.
+    /// `scene_path` is the scene file: it names the file in errors and
+    /// resolves the PNG's relative path.
+    pub fn build_terrain(
+        &self,
+        scene_path: &Path,
+    ) -> Result<Option<crate::field::HeightField>, SceneError> {
+        let Some(terrain) = &self.terrain else {
+            return Ok(None);
+        };
+        let scene_dir = scene_path.parent().unwrap_or(Path::new("."));
+        terrain
+            .unit_heights(scene_dir)
+            .map(Some)
+            .map_err(|invalid| {
+                let invalid = invalid.within("terrain");
+                SceneError::Invalid {
+                    path: scene_path.to_owned(),
+                    field: invalid.field,
+                    reason: invalid.reason,
+                }
+            })
     }
 
     /// Generates or loads every volume's field and transfer function.
@@ -816,6 +857,25 @@ mod tests {
                     model: LightModel::NonPhysical,
                 }),
             }],
+            terrain: Some(TerrainDescription {
+                source: TerrainHeightSource::Procedural(ProceduralTerrainSource {
+                    dims: 65,
+                    kind: crate::field::NoiseKind::Ridged,
+                    seed: 3,
+                    octaves: 5,
+                    wavelength: 300.0,
+                    persistence: 0.45,
+                    exponent: 1.5,
+                }),
+                center: [10.0, -2.0, 5.0],
+                spacing: 4.0,
+                vertical_scale: 50.0,
+                accuracy: 100.0,
+                min_accuracy: 3.0,
+                morph: false,
+                debug_lod_colours: true,
+                debug_edges: true,
+            }),
         }
     }
 
