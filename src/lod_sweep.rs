@@ -18,7 +18,7 @@
 use std::path::Path;
 
 use image::{Rgb, RgbImage};
-use nebel_core::image_metrics::compare;
+use nebel_core::image_metrics::{ImageErrorMetrics, compare};
 use nebel_core::scene::{LodDescription, SceneDescription};
 
 use crate::headless::render_headless;
@@ -44,12 +44,30 @@ pub struct SweepPoint {
     pub psnr: f64,
 }
 
+impl SweepPoint {
+    /// The error the plot shows: the RMSE against the exact reference, or
+    /// against the full-resolution (comparison) image when there is none.
+    pub fn error(&self) -> f64 {
+        if self.rmse.is_nan() {
+            self.rmse_full
+        } else {
+            self.rmse
+        }
+    }
+}
+
 /// Runs the sweep and writes `DIR/lod_sweep.csv`, `DIR/lod_sweep.png` and the
 /// images. `scene` must have exactly one volume, with a grid source.
+///
+/// `comparison_accuracy`: for a volume too large to draw at full resolution
+/// (the paper's 513 × 65 × 513 field), the image every `c` is scored against
+/// is drawn at this `c` instead, and the exact reference is skipped (its
+/// columns are NaN); the plot then shows the RMSE against that image.
 pub fn run_lod_sweep(
     scene_path: &Path,
     mut scene: SceneDescription,
     accuracies: &[f64],
+    comparison_accuracy: Option<f64>,
     out_dir: &Path,
 ) -> Result<Vec<SweepPoint>, String> {
     if scene.volumes.len() != 1 {
@@ -69,11 +87,25 @@ pub fn run_lod_sweep(
         accuracy: f64::INFINITY,
         min_accuracy,
     });
-    let mut full = scene.clone();
-    full.volumes[0].lod = full_lod;
-    let reference_volumes = full.build_volumes(scene_path).map_err(|e| e.to_string())?;
-    let reference = reference_image(&full, reference_volumes, true).map_err(|e| e.to_string())?;
-    save_reference(&reference, &out_dir.join("reference.png")).map_err(|e| e.to_string())?;
+    let comparison_lod = match comparison_accuracy {
+        Some(accuracy) => Some(LodDescription {
+            accuracy,
+            min_accuracy,
+        }),
+        None => full_lod,
+    };
+    let reference = match comparison_accuracy {
+        Some(_) => None,
+        None => {
+            let mut full = scene.clone();
+            full.volumes[0].lod = full_lod;
+            let volumes = full.build_volumes(scene_path).map_err(|e| e.to_string())?;
+            let reference = reference_image(&full, volumes, true).map_err(|e| e.to_string())?;
+            save_reference(&reference, &out_dir.join("reference.png"))
+                .map_err(|e| e.to_string())?;
+            Some(reference)
+        }
+    };
 
     let mut points = Vec::with_capacity(accuracies.len() + 1);
     let mut images = Vec::with_capacity(accuracies.len() + 1);
@@ -85,15 +117,26 @@ pub fn run_lod_sweep(
                 accuracy,
                 min_accuracy,
             }),
-            None => full_lod,
+            None => comparison_lod,
         };
-        let name = accuracy.map_or(String::from("full_resolution"), |c| format!("c_{c}"));
+        let name = match (accuracy, comparison_accuracy) {
+            (Some(c), _) => format!("c_{c}"),
+            (None, Some(c)) => format!("comparison_c_{c}"),
+            (None, None) => String::from("full_resolution"),
+        };
         let image_path = out_dir.join(format!("{name}.png"));
         let setup = SceneSetupPlugin::new(variant, scene_path).map_err(|e| e.to_string())?;
         let stats = render_headless(setup, &image_path, true).map_err(|e| e.to_string())?;
         let image =
             nebel_core::image_metrics::load_png_linear(&image_path).map_err(|e| e.to_string())?;
-        let metrics = compare(&image, &reference).map_err(|e| e.to_string())?;
+        let metrics = match &reference {
+            Some(reference) => compare(&image, reference).map_err(|e| e.to_string())?,
+            None => ImageErrorMetrics {
+                rmse: f64::NAN,
+                max_abs: f64::NAN,
+                psnr: f64::NAN,
+            },
+        };
         let cells_drawn = stats
             .effects
             .get("volume")
@@ -112,7 +155,7 @@ pub fn run_lod_sweep(
         images.push(image);
     }
 
-    // The full-resolution image is the last one.
+    // The full-resolution (or comparison) image is the last one.
     if let Some(full_image) = images.last() {
         for (point, image) in points.iter_mut().zip(&images) {
             point.rmse_full = compare(image, full_image).map_err(|e| e.to_string())?.rmse;
@@ -120,9 +163,11 @@ pub fn run_lod_sweep(
     }
     let mut csv = String::from("c,cells_drawn,frame_ms_median,rmse_vs_full,rmse,max_abs,psnr_db\n");
     for point in &points {
-        let c = point
-            .accuracy
-            .map_or(String::from("full"), |c| c.to_string());
+        let c = match (point.accuracy, comparison_accuracy) {
+            (Some(c), _) => c.to_string(),
+            (None, Some(c)) => format!("comparison {c}"),
+            (None, None) => String::from("full"),
+        };
         csv.push_str(&format!(
             "{c},{},{},{},{},{},{}\n",
             point.cells_drawn,
@@ -160,12 +205,12 @@ pub fn plot(points: &[SweepPoint]) -> RgbImage {
 
     let finite: Vec<&SweepPoint> = points
         .iter()
-        .filter(|p| p.frame_ms.is_finite() && p.rmse > 0.0)
+        .filter(|p| p.frame_ms.is_finite() && p.error() > 0.0)
         .collect();
     let Some(max_ms) = finite.iter().map(|p| p.frame_ms).reduce(f64::max) else {
         return image;
     };
-    let logs: Vec<f64> = finite.iter().map(|p| p.rmse.log10()).collect();
+    let logs: Vec<f64> = finite.iter().map(|p| p.error().log10()).collect();
     let (low, high) = logs
         .iter()
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
@@ -174,7 +219,7 @@ pub fn plot(points: &[SweepPoint]) -> RgbImage {
     let span = (high - low).max(1e-9);
     let position = |point: &SweepPoint| {
         let x = left + (right - left) * point.frame_ms / max_ms.max(1e-9);
-        let y = bottom - (bottom - top) * (point.rmse.log10() - low) / span;
+        let y = bottom - (bottom - top) * (point.error().log10() - low) / span;
         (x, y)
     };
     let swept: Vec<(f64, f64)> = finite
