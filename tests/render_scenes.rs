@@ -247,7 +247,7 @@ const ACCURACY_BOUNDS: &[(&str, f64)] = &[
     ("opaque_inside", 0.002),
     ("two_volumes", 0.002),
     ("search_light_sorted", 0.002),
-    ("lit_cloud", 0.007),
+    ("lit_cloud", 0.009),
     ("lit_cloud_nonphysical", 0.006),
     ("lit_cloud_scattering", 0.008),
 ];
