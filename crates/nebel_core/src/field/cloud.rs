@@ -210,13 +210,8 @@ fn smoothstep(edge0: f64, edge1: f64, x: f64) -> f64 {
 impl CloudNoise {
     /// Validates every setting and `time`, and builds the octaves.
     fn octaves(&self, name: &str, time: f64) -> Result<Vec<Octave>, FieldError> {
-        let invalid = |parameter: &'static str, value: String, requirement: &'static str| {
-            FieldError::InvalidParameter {
-                name: name.to_owned(),
-                parameter,
-                value,
-                requirement,
-            }
+        let invalid = |parameter, value: String, requirement| {
+            FieldError::invalid_parameter(name, parameter, value, requirement)
         };
         for (parameter, value) in [
             ("coverage", self.coverage),

@@ -105,13 +105,8 @@ impl Default for CloudLighting {
 impl CloudLighting {
     /// Validates the settings; returns the unit sun direction.
     fn unit_sun(&self, name: &str) -> Result<DVec3, FieldError> {
-        let invalid = |parameter: &'static str, value: String, requirement: &'static str| {
-            FieldError::InvalidParameter {
-                name: name.to_owned(),
-                parameter,
-                value,
-                requirement,
-            }
+        let invalid = |parameter, value: String, requirement| {
+            FieldError::invalid_parameter(name, parameter, value, requirement)
         };
         for (parameter, value) in [("ambient", self.ambient), ("diffuse", self.diffuse)] {
             if !(0.0..=1.0).contains(&value) {

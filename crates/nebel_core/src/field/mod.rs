@@ -191,6 +191,23 @@ pub enum FieldError {
     },
 }
 
+impl FieldError {
+    /// A [`FieldError::InvalidParameter`] of the source or generator `name`.
+    pub(crate) fn invalid_parameter(
+        name: &str,
+        parameter: &'static str,
+        value: String,
+        requirement: &'static str,
+    ) -> Self {
+        Self::InvalidParameter {
+            name: name.to_owned(),
+            parameter,
+            value,
+            requirement,
+        }
+    }
+}
+
 /// Checks that every sample is finite, naming the first offender.
 fn check_finite(name: &str, values: &[f32]) -> Result<(), FieldError> {
     match values.iter().position(|v| !v.is_finite()) {

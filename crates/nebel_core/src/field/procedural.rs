@@ -78,13 +78,8 @@ enum Generator {
 
 impl ProceduralNoise {
     fn generator(&self, name: &str) -> Result<Generator, FieldError> {
-        let invalid = |parameter: &'static str, value: String, requirement: &'static str| {
-            FieldError::InvalidParameter {
-                name: name.to_owned(),
-                parameter,
-                value,
-                requirement,
-            }
+        let invalid = |parameter, value: String, requirement| {
+            FieldError::invalid_parameter(name, parameter, value, requirement)
         };
         if !(1..=32).contains(&self.octaves) {
             return Err(invalid(
