@@ -68,6 +68,43 @@
 //!     ));
 //! }
 //! ```
+//!
+//! A terrain from a 16-bit grayscale height map (`assets/valley.png`, black
+//! 0 m, white 400 m, a grid point every 10 m) drawn through the quadtree
+//! C-LOD with geomorphing, or a procedural one:
+//!
+//! ```no_run
+//! use bevy::prelude::*;
+//! use nebel::prelude::*;
+//!
+//! fn spawn_terrain(mut commands: Commands, assets: Res<AssetServer>) {
+//!     commands.spawn(Terrain {
+//!         source: TerrainSource::Heights(assets.load::<TerrainHeights>("valley.png")),
+//!         spacing: 10.0,
+//!         vertical_scale: 400.0,
+//!         accuracy: 300.0,   // c: larger draws more triangles
+//!         min_accuracy: 2.0, // C
+//!         ..default()
+//!     });
+//!     // 513 × 513 points of fBm noise with wide valleys, 7 km east of the origin.
+//!     commands.spawn((
+//!         Terrain {
+//!             source: TerrainSource::Procedural {
+//!                 size: 513,
+//!                 noise: TerrainNoise { seed: 7, exponent: 1.8, ..default() },
+//!             },
+//!             debug: TerrainDebug { lod_colours: true, ..default() },
+//!             ..default()
+//!         },
+//!         Transform::from_xyz(7000.0, 0.0, 0.0),
+//!     ));
+//! }
+//!
+//! App::new()
+//!     .add_plugins((DefaultPlugins, NebelPlugins))
+//!     .add_systems(Startup, spawn_terrain)
+//!     .run();
+//! ```
 
 pub mod example_runner;
 pub mod flickering_light;
@@ -83,6 +120,8 @@ use bevy::app::{PluginGroup, PluginGroupBuilder};
 
 pub use nebel_core;
 pub use nebel_render;
+#[cfg(feature = "terrain")]
+pub use nebel_terrain;
 #[cfg(feature = "volume")]
 pub use nebel_volume;
 
@@ -100,6 +139,8 @@ impl PluginGroup for NebelPlugins {
             .add(flickering_light::FlickeringLightPlugin);
         #[cfg(feature = "volume")]
         let group = group.add(nebel_volume::VolumePlugin);
+        #[cfg(feature = "terrain")]
+        let group = group.add(nebel_terrain::TerrainPlugin);
         group
     }
 }
@@ -111,6 +152,11 @@ pub mod prelude {
     pub use crate::fly_camera::{FlyCamera, FlyCameraPlugin};
     pub use crate::scene_setup::{SceneCamera, SceneSetupPlugin};
     pub use nebel_render::{CellBatch, EffectCounters, NebelSystems};
+    #[cfg(feature = "terrain")]
+    pub use nebel_terrain::{
+        Terrain, TerrainDebug, TerrainHeights, TerrainLodStats, TerrainNoise, TerrainPlugin,
+        TerrainSource, TerrainStatus,
+    };
     #[cfg(feature = "volume")]
     pub use nebel_volume::{
         Campfire, CloudLightModel, CloudVolume, Volume, VolumeField, VolumeLighting, VolumeLod,

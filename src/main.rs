@@ -317,6 +317,9 @@ fn bench_fog(args: &[String]) -> Result<(), String> {
         let setup = SceneSetupPlugin {
             scene: scene.clone(),
             volumes: vec![equivalent.clone()],
+            terrain: scene
+                .build_terrain(&scene_path)
+                .map_err(|e| e.to_string())?,
             target: None,
             bevy_fog,
         };

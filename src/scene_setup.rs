@@ -1,7 +1,10 @@
 //! Spawns a scene file's contents into a Bevy world.
 //!
 //! [`SceneSetupPlugin`] takes a validated [`SceneDescription`] and, at startup,
-//! spawns its camera, lights and meshes. A camera with a keyframe path follows
+//! spawns its camera, lights, meshes, volumes and terrain (a
+//! `nebel_terrain::Terrain` whose heights, generated or loaded from the PNG
+//! relative to the scene file when the plugin is made, become a
+//! `TerrainHeights` asset; the entity sits at the terrain's `center`). A camera with a keyframe path follows
 //! it by [`Time::elapsed_secs`] (headless runs step time by exactly
 //! `1 / output.frame_rate` per frame, so frame `i` shows the path at
 //! `i / frame_rate`). Colours in scene files are sRGB.
@@ -15,6 +18,7 @@ use bevy::core_pipeline::tonemapping::{DebandDither, Tonemapping};
 use bevy::prelude::*;
 use std::path::Path;
 
+use nebel_core::field::HeightField;
 use nebel_core::scene::{
     BuiltVolume, CameraView, LightDescription, MeshDescription, SceneDescription, SceneError,
 };
@@ -30,6 +34,10 @@ pub struct SceneSetupPlugin {
     /// The scene's volumes, built ([`SceneSetupPlugin::new`] builds them).
     /// Spawned as [`nebel_volume::Volume`]s when the `volume` feature is on.
     pub volumes: Vec<BuiltVolume>,
+    /// The scene terrain's unit heights ([`SceneSetupPlugin::new`] builds
+    /// them); spawned as a `nebel_terrain::Terrain` when the `terrain`
+    /// feature is on.
+    pub terrain: Option<HeightField>,
     /// Where the camera renders; `None` renders to the primary window.
     pub target: Option<RenderTarget>,
     /// Draw grid volumes with Bevy's own `FogVolume` ray marcher instead of
@@ -42,9 +50,11 @@ impl SceneSetupPlugin {
     /// paths and names the file in errors); renders to the primary window.
     pub fn new(scene: SceneDescription, scene_path: &Path) -> Result<Self, SceneError> {
         let volumes = scene.build_volumes(scene_path)?;
+        let terrain = scene.build_terrain(scene_path)?;
         Ok(Self {
             scene,
             volumes,
+            terrain,
             target: None,
             bevy_fog: None,
         })
@@ -54,6 +64,10 @@ impl SceneSetupPlugin {
 /// The scene's built volumes, taken by the startup system.
 #[derive(Resource, Clone, Debug)]
 struct SceneVolumes(Vec<BuiltVolume>);
+
+/// The scene's terrain heights, taken by the startup system.
+#[derive(Resource, Clone, Debug)]
+struct SceneTerrain(Option<HeightField>);
 
 /// The scene file the world was set up from.
 #[derive(Resource, Clone, Debug, Deref)]
@@ -77,7 +91,8 @@ impl Plugin for SceneSetupPlugin {
         app.insert_resource(LoadedScene(self.scene.clone()))
             .insert_resource(SceneRenderTarget(self.target.clone()))
             .insert_resource(SceneVolumes(self.volumes.clone()))
-            .add_systems(Startup, spawn_scene)
+            .insert_resource(SceneTerrain(self.terrain.clone()))
+            .add_systems(Startup, (spawn_scene, spawn_terrain))
             .add_systems(PostStartup, enable_bevy_fog)
             .add_systems(Update, follow_camera_path.in_set(NebelSystems));
         if let Some(fog) = self.bevy_fog {
@@ -314,6 +329,48 @@ fn spawn_volumes(commands: &mut Commands, volumes: &[BuiltVolume]) {
 fn spawn_volumes(_: &mut Commands, volumes: &[BuiltVolume]) {
     if !volumes.is_empty() {
         warn!("nebel: the scene has volumes but this build has no `volume` feature");
+    }
+}
+
+/// Spawns the scene's terrain: its heights as an asset, the entity at its
+/// centre.
+#[cfg(feature = "terrain")]
+fn spawn_terrain(
+    mut commands: Commands,
+    scene: Res<LoadedScene>,
+    terrain: Res<SceneTerrain>,
+    heights: Option<ResMut<Assets<nebel_terrain::TerrainHeights>>>,
+) {
+    use nebel_terrain::{Terrain, TerrainDebug, TerrainHeights, TerrainSource};
+    let (Some(description), Some(unit)) = (&scene.terrain, &terrain.0) else {
+        return;
+    };
+    let Some(mut heights) = heights else {
+        warn!("nebel: the scene has a terrain but the app has no TerrainPlugin");
+        return;
+    };
+    commands.spawn((
+        Terrain {
+            source: TerrainSource::Heights(heights.add(TerrainHeights::from_field(unit))),
+            spacing: description.spacing,
+            vertical_scale: description.vertical_scale,
+            accuracy: description.accuracy,
+            min_accuracy: description.min_accuracy,
+            morph: description.morph,
+            debug: TerrainDebug {
+                lod_colours: description.debug_lod_colours,
+                edges: description.debug_edges,
+            },
+            ..default()
+        },
+        Transform::from_translation(Vec3::from(description.center)),
+    ));
+}
+
+#[cfg(not(feature = "terrain"))]
+fn spawn_terrain(scene: Res<LoadedScene>, _: Res<SceneTerrain>) {
+    if scene.terrain.is_some() {
+        warn!("nebel: the scene has a terrain but this build has no `terrain` feature");
     }
 }
 

@@ -1,0 +1,140 @@
+//! Height maps as Bevy assets: [`TerrainHeights`] and its PNG loader.
+//!
+//! A [`TerrainHeights`] holds *unit* heights on a grid: the terrain's
+//! `vertical_scale` multiplies them and its `spacing` places the points, so
+//! one map serves terrains of any size. Load an 8- or 16-bit grayscale PNG
+//! with `asset_server.load::<TerrainHeights>("heights.png")` (black = 0,
+//! white = 1; image columns run along +x, rows, top row first, along +z,
+//! like `nebel_core::field::HeightField::load_png`), or build one in memory
+//! with [`TerrainHeights::from_field`] and add it to
+//! `Assets<TerrainHeights>`.
+//!
+//! [`TerrainHeightsLoader`] registers no file extension, so it never takes a
+//! PNG that is loaded as an `Image`: Bevy picks it by the asset type asked
+//! for. Use 16-bit maps for terrain; 8 bits give 256 height steps, visible
+//! as terraces on gentle slopes.
+
+use bevy::asset::io::Reader;
+use bevy::asset::{AssetLoader, LoadContext};
+use bevy::prelude::*;
+use nebel_core::field::HeightField;
+use thiserror::Error;
+
+/// Unit heights on a regular grid, x fastest (see the module docs).
+#[derive(Asset, TypePath, Clone, Debug, PartialEq)]
+pub struct TerrainHeights {
+    /// Grid points along x (image columns) and z (image rows).
+    pub dims: UVec2,
+    /// `dims.x · dims.y` unit heights, point `(i, j)` at `i + dims.x · j`;
+    /// usually in [0, 1], any finite value works (the terrain plugin refuses
+    /// NaN and infinities, naming the point).
+    pub values: Vec<f32>,
+}
+
+impl TerrainHeights {
+    /// The heights of `field` (its spacing and origin are not kept).
+    pub fn from_field(field: &HeightField) -> Self {
+        let [nx, nz] = field.dims();
+        Self {
+            dims: UVec2::new(nx as u32, nz as u32),
+            values: field.heights().to_vec(),
+        }
+    }
+
+    /// Decodes an 8- or 16-bit grayscale PNG: value / 255 or / 65535.
+    pub fn from_png_bytes(bytes: &[u8]) -> Result<Self, TerrainHeightsError> {
+        let image = image::load_from_memory_with_format(bytes, image::ImageFormat::Png)?;
+        let dims = UVec2::new(image.width(), image.height());
+        let values = match image {
+            image::DynamicImage::ImageLuma8(buffer) => buffer
+                .into_raw()
+                .into_iter()
+                .map(|v| f32::from(v) / 255.0)
+                .collect(),
+            image::DynamicImage::ImageLuma16(buffer) => buffer
+                .into_raw()
+                .into_iter()
+                .map(|v| f32::from(v) / 65535.0)
+                .collect(),
+            other => {
+                return Err(TerrainHeightsError::NotGrayscale {
+                    found: format!("{:?}", other.color()),
+                });
+            }
+        };
+        Ok(Self { dims, values })
+    }
+}
+
+/// Why a height map could not be loaded.
+#[derive(Debug, Error)]
+pub enum TerrainHeightsError {
+    /// The file could not be read.
+    #[error("cannot read the height map: {0}")]
+    Io(#[from] std::io::Error),
+    /// The bytes are not a PNG.
+    #[error("cannot decode the height map as PNG: {0}")]
+    Decode(#[from] image::ImageError),
+    /// The PNG has colour channels or alpha.
+    #[error("expected an 8- or 16-bit grayscale PNG, found {found}; convert it to grayscale")]
+    NotGrayscale {
+        /// The colour type found, e.g. `Rgb8`.
+        found: String,
+    },
+}
+
+/// Loads [`TerrainHeights`] from grayscale PNGs (see the module docs).
+#[derive(Clone, Copy, Debug, Default, TypePath)]
+pub struct TerrainHeightsLoader;
+
+impl AssetLoader for TerrainHeightsLoader {
+    type Asset = TerrainHeights;
+    type Settings = ();
+    type Error = TerrainHeightsError;
+
+    async fn load(
+        &self,
+        reader: &mut dyn Reader,
+        _settings: &(),
+        _load_context: &mut LoadContext<'_>,
+    ) -> Result<TerrainHeights, TerrainHeightsError> {
+        let mut bytes = Vec::new();
+        reader.read_to_end(&mut bytes).await?;
+        TerrainHeights::from_png_bytes(&bytes)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn png(image: image::DynamicImage) -> Vec<u8> {
+        let mut bytes = std::io::Cursor::new(Vec::new());
+        image.write_to(&mut bytes, image::ImageFormat::Png).unwrap();
+        bytes.into_inner()
+    }
+
+    #[test]
+    fn decodes_8_and_16_bit_grayscale_and_refuses_colour() {
+        let sixteen = image::ImageBuffer::<image::Luma<u16>, _>::from_raw(
+            3,
+            2,
+            vec![0, 65535, 32768, 1, 2, 3],
+        )
+        .unwrap();
+        let heights = TerrainHeights::from_png_bytes(&png(sixteen.into())).unwrap();
+        assert_eq!(heights.dims, UVec2::new(3, 2));
+        assert_eq!(heights.values[1], 1.0);
+        assert!((heights.values[2] - 32768.0 / 65535.0).abs() < 1e-7);
+
+        let eight = image::GrayImage::from_raw(2, 2, vec![0, 255, 51, 0]).unwrap();
+        let heights = TerrainHeights::from_png_bytes(&png(eight.into())).unwrap();
+        assert_eq!(heights.values, vec![0.0, 1.0, 0.2, 0.0]);
+
+        let colour = image::RgbImage::from_raw(1, 1, vec![1, 2, 3]).unwrap();
+        let error = TerrainHeights::from_png_bytes(&png(colour.into())).unwrap_err();
+        assert!(error.to_string().contains("found Rgb8"), "{error}");
+        let error = TerrainHeights::from_png_bytes(b"not a png").unwrap_err();
+        assert!(error.to_string().contains("cannot decode"), "{error}");
+    }
+}

@@ -1,0 +1,54 @@
+//! nebel's terrain plugin: height fields drawn through Röttger's quadtree
+//! C-LOD with geomorphing (paper 001 §3.5.3, Eq. 3.2; DESIGN.md §6; the
+//! algorithm is [`nebel_lod::quadtree`]).
+//!
+//! Spawn a [`Terrain`]; [`TerrainPlugin`] gives the entity a Bevy [`Mesh`]
+//! (`Mesh3d`) and a material:
+//!
+//! - the heights come from a 16-bit grayscale PNG through the `AssetServer`
+//!   ([`TerrainHeights`], [`TerrainHeightsLoader`]) or from a procedural
+//!   generator ([`TerrainSource::Procedural`]), times the vertical scale, on
+//!   a grid `spacing` apart centred on the entity ([`terrain`]);
+//! - the quadtree refines where `f = l² / (d² · max(c · d2, C)²) < 1` for the
+//!   camera's eye, morphs every new vertex in from the coarse mesh (heights
+//!   and normals) and culls by the view frustum; the mesh's positions are
+//!   relative to the entity, whose `Transform` places the terrain, so a
+//!   terrain 100 km from the world origin keeps its precision;
+//! - the mesh is rebuilt only when the eye moved or turned enough or the
+//!   terrain changed, into the same buffers ([`update`]);
+//! - the default material shades by height and slope (grass, rock, snow) in
+//!   vertex colours; debug views colour the quadtree levels or darken the
+//!   triangle edges ([`TerrainDebug`], [`shading`]).
+//!
+//! [`TerrainStatus`] tells whether the terrain is loading, drawn or failed
+//! (and why), [`TerrainLodStats`] its triangles and timings; the `terrain`
+//! group of `EffectCounters` sums them for `nebel render --stats`.
+//!
+//! ```no_run
+//! use bevy::prelude::*;
+//! use nebel_terrain::{Terrain, TerrainHeights, TerrainPlugin, TerrainSource};
+//!
+//! fn spawn_terrain(mut commands: Commands, assets: Res<AssetServer>) {
+//!     commands.spawn(Terrain {
+//!         source: TerrainSource::Heights(assets.load::<TerrainHeights>("valley.png")),
+//!         spacing: 10.0,         // metres between grid points
+//!         vertical_scale: 400.0, // metres of a white pixel
+//!         ..default()
+//!     });
+//! }
+//! # let _ = spawn_terrain;
+//! ```
+//!
+//! [`Mesh`]: bevy::prelude::Mesh
+
+pub mod heights;
+pub mod shading;
+pub mod terrain;
+pub mod update;
+
+pub use heights::{TerrainHeights, TerrainHeightsError, TerrainHeightsLoader};
+pub use terrain::{
+    Terrain, TerrainDebug, TerrainLodStats, TerrainPlugin, TerrainSource, TerrainStatus,
+};
+
+pub use nebel_core::field::TerrainNoise;

@@ -1,0 +1,917 @@
+//! The terrain's per-frame system: build the quadtree when the heights or
+//! settings change, refine it for the camera when the view changed enough,
+//! and copy the result into the entity's Bevy mesh.
+//!
+//! # When the mesh is rebuilt
+//!
+//! The mesh is refined for the eye of the first active 3D camera, in the
+//! terrain's local frame, in [`PostUpdate`] after transform propagation and
+//! the camera's projection update, so it matches the frame being drawn. It
+//! is rebuilt when
+//!
+//! - the quadtree was (re)built, or the [`Terrain`] changed (accuracy,
+//!   morphing, material, debug view);
+//! - the eye moved more than `δ = update_distance · spacing` (local units)
+//!   since the last rebuild;
+//! - the camera turned by more than `α = view_margin_degrees`;
+//! - the camera's projection (field of view, aspect, near plane) or the
+//!   terrain's transform changed.
+//!
+//! A still camera costs nothing. Why `δ` is small enough: in the morph
+//! zone (`1/4 < f < 1`) a node of size `d` has `l ≤ d·M` (`M = max(c·d2,
+//! C)`), so moving the eye by `δ` changes `f = l²/(d²M²)` by at most
+//! `2δ/(dM)` and the morph weight `t = (1 − f)/(3/4)` by at most `8δ/(3dM)`;
+//! the blend of the node's new vertices, `t · (h − (a + b)/2)` with
+//! `|h − (a + b)/2| ≤ d2 · d/2`, moves by at most `4δ·d2/(3M) ≤ 4δ/(3c)`
+//! (their coarse endpoints, when their own nodes morph too, add terms of the
+//! same kind one level up). With the defaults (`δ` = 2.5 m at 10 m spacing,
+//! `c` = 300) that is 1.1 cm per level, and the level of detail is the one
+//! of an eye at most `δ` away. The unit test of a flight toward a 129²
+//! terrain (`c` = 40, 8.5 m per rebuild) measures surface steps of at most
+//! 0.5 m with morphing against 18 m without.
+//!
+//! Frustum culling uses the camera's four side planes widened so that the
+//! culled mesh stays valid until the next rebuild: each plane is turned
+//! outward by `α` about the eye (any rotation by less than `α` moves every
+//! view direction by less than `α`) and pushed out by `δ` (any move by less
+//! than `δ` shifts every plane by less than `δ`). The near plane is dropped
+//! (the side planes already bound the view to a cone in front of the eye).
+//! An orthographic camera culls nothing.
+//!
+//! # Failures
+//!
+//! Unusable input (a height map that failed to load, too small or too
+//! large, NaN or infinite heights, a bad spacing, vertical scale, `c` or
+//! `C`) sets [`TerrainStatus::Failed`] with the reason, logs it once as an
+//! error and leaves the entity without a mesh; nothing panics. Changing the
+//! terrain or its height asset tries again.
+//!
+//! # Diagnostics
+//!
+//! The `terrain` group of [`EffectCounters`]: `terrains`, `triangles` and
+//! `vertices` (of the level of detail, all terrains), `updates` (mesh
+//! rebuilds so far), `update_ms` (the last frame that rebuilt a mesh:
+//! refinement, morphing, triangle output and the copy into the Bevy mesh;
+//! `update_ms_mean` and `update_ms_max` over every frame that rebuilt one;
+//! `refine_ms`, the part of the last that `TerrainHierarchy::update` took),
+//! `build_ms` (the last quadtree build), `points` (grid points of all
+//! quadtrees) and `bytes_per_point`. Per terrain the same figures are in
+//! [`TerrainLodStats`]. A world without a terrain has no `terrain` group.
+
+use std::borrow::Cow;
+use std::sync::Arc;
+use std::time::Instant;
+
+use bevy::asset::LoadState;
+use bevy::camera::primitives::Aabb;
+use bevy::camera::visibility::NoAutoAabb;
+use bevy::math::{DAffine3, DMat4, DVec3};
+use bevy::prelude::*;
+use nebel_lod::quadtree::{LodSettings, TriangleOrder};
+use nebel_lod::{Frustum, TerrainMesh};
+use nebel_render::EffectCounters;
+
+use crate::heights::TerrainHeights;
+use crate::shading::{Colouring, Palette, default_material, empty_mesh, write_mesh};
+use crate::terrain::{
+    BuildKey, SharedHierarchy, Terrain, TerrainLodStats, TerrainSource, TerrainStatus, UnitHeights,
+};
+
+/// The view a mesh was refined for.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct View {
+    /// The eye in the terrain's local frame.
+    eye: DVec3,
+    /// The camera's orientation in the world.
+    rotation: Quat,
+    /// The camera's projection.
+    clip_from_view: Mat4,
+    /// Where the terrain was.
+    world_from_local: DAffine3,
+}
+
+/// A terrain's quadtree, its reusable LOD buffers and its mesh.
+#[derive(Component, Default)]
+pub(crate) struct TerrainLod {
+    /// What the quadtree (or the failure) was built from.
+    key: Option<BuildKey>,
+    hierarchy: Option<SharedHierarchy>,
+    /// The LOD output, reused every rebuild.
+    lod: TerrainMesh,
+    mesh: Option<Handle<Mesh>>,
+    view: Option<View>,
+}
+
+fn to_double(matrix: Mat4) -> DMat4 {
+    DMat4::from_cols_array(&matrix.to_cols_array().map(f64::from))
+}
+
+fn affine(transform: &GlobalTransform) -> DAffine3 {
+    DAffine3::from_mat4(to_double(transform.to_matrix()))
+}
+
+/// The culling frustum in the terrain's local frame (see the module docs);
+/// `None` culls nothing.
+fn culling_frustum(
+    clip_from_view: Mat4,
+    camera: &GlobalTransform,
+    world_from_local: &DAffine3,
+    margin: f64,
+    angle: f64,
+) -> Option<Frustum> {
+    if clip_from_view.row(3).z == 0.0 {
+        // Orthographic: the side planes are parallel to the view.
+        return None;
+    }
+    let world_from_view = affine(camera);
+    let clip_from_world = to_double(clip_from_view) * DMat4::from(world_from_view.inverse());
+    let exact = Frustum::from_view_projection(clip_from_world).ok()?;
+    let eye = world_from_view.translation;
+    let forward = world_from_view.matrix3 * DVec3::NEG_Z;
+    let (sin, cos) = angle.sin_cos();
+    let widened = exact.planes().iter().take(4).map(|plane| {
+        let normal = plane.truncate();
+        let offset = normal.dot(eye) + plane.w;
+        let along = (forward - forward.dot(normal) * normal).normalize_or_zero();
+        let turned = (cos * normal + sin * along).normalize_or(normal);
+        (turned, -turned.dot(eye) + offset + margin)
+    });
+    let frustum = Frustum::from_planes(widened).ok()?;
+    Some(frustum.in_local_frame(world_from_local))
+}
+
+/// Records a failure: status, one log line per new reason, no mesh.
+fn fail(
+    commands: &mut Commands,
+    entity: Entity,
+    status: &mut TerrainStatus,
+    state: &mut TerrainLod,
+    reason: String,
+) {
+    if *status != TerrainStatus::Failed(reason.clone()) {
+        error!("nebel: terrain {entity} not drawn: {reason}");
+        *status = TerrainStatus::Failed(reason);
+    }
+    state.hierarchy = None;
+    state.view = None;
+    if state.mesh.take().is_some() {
+        commands
+            .entity(entity)
+            .remove::<(Mesh3d, MeshMaterial3d<StandardMaterial>, Aabb, NoAutoAabb)>();
+    }
+}
+
+#[allow(clippy::too_many_arguments, clippy::type_complexity)]
+pub(crate) fn update_terrains(
+    mut commands: Commands,
+    cameras: Query<(&Camera, &GlobalTransform), With<Camera3d>>,
+    mut terrains: Query<(
+        Entity,
+        Ref<Terrain>,
+        &GlobalTransform,
+        &InheritedVisibility,
+        &mut TerrainStatus,
+        &mut TerrainLodStats,
+        &mut TerrainLod,
+    )>,
+    heights: Res<Assets<TerrainHeights>>,
+    mut height_events: MessageReader<AssetEvent<TerrainHeights>>,
+    asset_server: Res<AssetServer>,
+    mut meshes: ResMut<Assets<Mesh>>,
+    mut materials: ResMut<Assets<StandardMaterial>>,
+    mut default_handle: Local<Option<Handle<StandardMaterial>>>,
+    palette: Local<Palette>,
+    mut update_times: Local<(u64, f64, f64)>,
+    mut counters: ResMut<EffectCounters>,
+) {
+    if terrains.is_empty() {
+        return;
+    }
+    let modified: Vec<AssetId<TerrainHeights>> = height_events
+        .read()
+        .filter_map(|event| match event {
+            AssetEvent::Modified { id } => Some(*id),
+            _ => None,
+        })
+        .collect();
+    let camera = cameras
+        .iter()
+        .find(|(camera, _)| camera.is_active)
+        // The projection is computed in the camera's first PostUpdate; a
+        // mesh culled with the placeholder would be wrong.
+        .filter(|(camera, _)| camera.physical_target_size().is_some());
+
+    let mut frame_update_ms = None;
+    let mut frame_refine_ms = None;
+    let mut frame_build_ms = None;
+    for (entity, terrain, transform, visibility, mut status, mut stats, mut state) in &mut terrains
+    {
+        let state = &mut *state;
+        let key = BuildKey::of(&terrain);
+        let asset_modified = matches!(&terrain.source,
+            TerrainSource::Heights(handle) if modified.contains(&handle.id()));
+        if state.key.as_ref() != Some(&key) || asset_modified {
+            let unit = match &terrain.source {
+                TerrainSource::Heights(handle) => match heights.get(handle) {
+                    Some(asset) => Ok(UnitHeights {
+                        dims: [asset.dims.x as usize, asset.dims.y as usize],
+                        values: Cow::Borrowed(&asset.values),
+                    }),
+                    None => match asset_server.get_load_state(handle.id()) {
+                        Some(LoadState::Failed(error)) => Err(format!(
+                            "cannot load the height map {}: {error}",
+                            handle
+                                .path()
+                                .map_or_else(|| String::from("(no path)"), ToString::to_string)
+                        )),
+                        _ => {
+                            // Still loading: try again next frame.
+                            *status = TerrainStatus::Pending;
+                            continue;
+                        }
+                    },
+                },
+                TerrainSource::Procedural { .. } => {
+                    terrain.generate().expect("a procedural source generates")
+                }
+            };
+            state.key = Some(key);
+            let started = Instant::now();
+            match unit.and_then(|unit| terrain.build_hierarchy(&unit)) {
+                Ok(hierarchy) => {
+                    let build_ms = started.elapsed().as_secs_f32() * 1e3;
+                    *stats = TerrainLodStats {
+                        points_per_side: hierarchy.size() as u32,
+                        bytes_per_point: hierarchy.bytes_per_point() as f32,
+                        build_ms,
+                        updates: stats.updates,
+                        ..default()
+                    };
+                    frame_build_ms = Some(build_ms);
+                    state.hierarchy = Some(Arc::new(hierarchy));
+                    state.view = None;
+                    if state.mesh.is_some() {
+                        // A new extent: new bounds.
+                        let aabb = bounds(state.hierarchy.as_ref().expect("just built"));
+                        commands.entity(entity).insert(aabb);
+                    }
+                    *status = TerrainStatus::Ready;
+                }
+                Err(reason) => {
+                    fail(&mut commands, entity, &mut status, state, reason);
+                    continue;
+                }
+            }
+        }
+        let Some(hierarchy) = state.hierarchy.clone() else {
+            continue;
+        };
+        if !visibility.get() {
+            continue;
+        }
+        let Some((camera, camera_transform)) = camera else {
+            continue;
+        };
+
+        let world_from_local = affine(transform);
+        let eye_world = camera_transform.translation().as_dvec3();
+        let view = View {
+            eye: world_from_local.inverse().transform_point3(eye_world),
+            rotation: camera_transform.rotation(),
+            clip_from_view: camera.clip_from_view(),
+            world_from_local,
+        };
+        let delta = f64::from(terrain.update_distance.max(0.0) * terrain.spacing);
+        let alpha = terrain.view_margin_degrees.clamp(0.0, 45.0).to_radians();
+        let unchanged = state.view.is_some_and(|last| {
+            last.clip_from_view == view.clip_from_view
+                && last.world_from_local == view.world_from_local
+                && last.eye.distance(view.eye) <= delta
+                && last.rotation.angle_between(view.rotation) <= alpha
+        });
+        if unchanged && !terrain.is_changed() {
+            continue;
+        }
+
+        let started = Instant::now();
+        let scale = world_from_local
+            .matrix3
+            .to_cols_array_2d()
+            .iter()
+            .map(|column| DVec3::from(*column).length())
+            .fold(0.0, f64::max);
+        let frustum = culling_frustum(
+            view.clip_from_view,
+            camera_transform,
+            &world_from_local,
+            delta * scale,
+            f64::from(alpha),
+        );
+        let settings = LodSettings {
+            accuracy: terrain.accuracy,
+            morph: terrain.morph,
+            normals: true,
+            grid_points: terrain.debug.lod_colours,
+            // Opaque: nearest first lets the depth test reject more.
+            order: TriangleOrder::FrontToBack,
+        };
+        let refine_started = Instant::now();
+        let lod_result = hierarchy.update(view.eye, frustum.as_ref(), &settings, &mut state.lod);
+        let refine_ms = refine_started.elapsed().as_secs_f32() * 1e3;
+        let lod_stats = match lod_result {
+            Ok(lod_stats) => lod_stats,
+            Err(error) => {
+                // The quadtree stays; a new setting or view may fix it.
+                let reason = error.to_string();
+                fail(&mut commands, entity, &mut status, state, reason);
+                state.hierarchy = Some(hierarchy);
+                continue;
+            }
+        };
+        *status = TerrainStatus::Ready;
+        let default_material = default_handle
+            .get_or_insert_with(|| materials.add(default_material()))
+            .clone();
+        let material = terrain.material.clone().unwrap_or(default_material);
+        let handle = match &state.mesh {
+            Some(handle) => {
+                if terrain.is_changed() {
+                    commands
+                        .entity(entity)
+                        .insert(MeshMaterial3d(material.clone()));
+                }
+                handle.clone()
+            }
+            None => {
+                let handle = meshes.add(empty_mesh());
+                commands.entity(entity).insert((
+                    Mesh3d(handle.clone()),
+                    MeshMaterial3d(material.clone()),
+                    bounds(&hierarchy),
+                    NoAutoAabb,
+                ));
+                state.mesh = Some(handle.clone());
+                handle
+            }
+        };
+        let [low, high] = hierarchy.height_range();
+        let colouring = Colouring {
+            palette: terrain
+                .material
+                .is_none()
+                .then_some((&*palette, [low, high])),
+            debug: terrain.debug,
+            levels: hierarchy.levels(),
+        };
+        if let Some(mut mesh) = meshes.get_mut(&handle) {
+            write_mesh(
+                &mut mesh,
+                &state.lod,
+                hierarchy.origin().as_vec3(),
+                &colouring,
+            );
+        }
+        let update_ms = started.elapsed().as_secs_f32() * 1e3;
+        state.view = Some(view);
+        stats.updates += 1;
+        stats.update_ms = update_ms;
+        stats.refine_ms = refine_ms;
+        stats.triangles = lod_stats.triangles as u32;
+        stats.vertices = lod_stats.vertices as u32;
+        stats.deepest_level = lod_stats.deepest_level;
+        stats.culled_nodes = lod_stats.culled as u32;
+        *frame_update_ms.get_or_insert(0.0) += update_ms;
+        *frame_refine_ms.get_or_insert(0.0) += refine_ms;
+    }
+
+    let (mut triangles, mut vertices, mut updates, mut points, mut bytes) = (0, 0, 0, 0.0, 0.0);
+    for (_, _, _, _, _, stats, _) in &terrains {
+        triangles += u64::from(stats.triangles);
+        vertices += u64::from(stats.vertices);
+        updates += stats.updates;
+        let n = f64::from(stats.points_per_side).powi(2);
+        points += n;
+        bytes += n * f64::from(stats.bytes_per_point);
+    }
+    counters.set("terrain", "terrains", terrains.iter().len() as f64);
+    counters.set("terrain", "triangles", triangles as f64);
+    counters.set("terrain", "vertices", vertices as f64);
+    counters.set("terrain", "updates", updates as f64);
+    counters.set("terrain", "points", points);
+    if points > 0.0 {
+        counters.set("terrain", "bytes_per_point", bytes / points);
+    }
+    if let Some(ms) = frame_update_ms {
+        let ms = f64::from(ms);
+        let (count, sum, max) = &mut *update_times;
+        *count += 1;
+        *sum += ms;
+        *max = max.max(ms);
+        counters.set("terrain", "update_ms", ms);
+        counters.set("terrain", "update_ms_mean", *sum / *count as f64);
+        counters.set("terrain", "update_ms_max", *max);
+    }
+    if let Some(ms) = frame_refine_ms {
+        counters.set("terrain", "refine_ms", f64::from(ms));
+    }
+    if let Some(ms) = frame_build_ms {
+        counters.set("terrain", "build_ms", f64::from(ms));
+    }
+}
+
+/// The bounds of every mesh the quadtree can produce, in the entity's frame:
+/// the grid's square and the height range (morphed heights stay inside it).
+fn bounds(hierarchy: &SharedHierarchy) -> Aabb {
+    let origin = hierarchy.origin().as_vec3();
+    let spacing = hierarchy.field().spacing().as_vec2();
+    let extent = (hierarchy.size() - 1) as f32 * spacing;
+    let [low, high] = hierarchy.height_range();
+    Aabb::from_min_max(
+        Vec3::new(origin.x, low, origin.z),
+        Vec3::new(origin.x + extent.x, high, origin.z + extent.y),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{TerrainDebug, TerrainPlugin};
+    use bevy::asset::AssetPlugin;
+    use bevy::camera::{ComputedCameraValues, RenderTargetInfo};
+    use bevy::mesh::VertexAttributeValues;
+    use bevy::transform::TransformPlugin;
+    use nebel_core::field::TerrainNoise;
+    use std::path::PathBuf;
+
+    /// A folder of its own per test for the asset server's files.
+    fn asset_dir(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("nebel-terrain-{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
+    /// An app with the terrain plugin, assets read from `dir`, and a camera
+    /// (what Bevy's camera systems compute for a 64 × 64 target) at `eye`
+    /// looking at the origin.
+    fn app(dir: &std::path::Path, eye: Vec3) -> (App, Entity) {
+        app_looking_at(dir, eye, Vec3::ZERO)
+    }
+
+    fn app_looking_at(dir: &std::path::Path, eye: Vec3, target: Vec3) -> (App, Entity) {
+        let mut app = App::new();
+        app.add_plugins((
+            MinimalPlugins,
+            TransformPlugin,
+            AssetPlugin {
+                file_path: dir.to_string_lossy().into_owned(),
+                watch_for_changes_override: Some(false),
+                ..default()
+            },
+        ))
+        .init_asset::<Mesh>()
+        .init_asset::<StandardMaterial>()
+        .init_resource::<EffectCounters>()
+        .add_plugins(TerrainPlugin);
+        let camera = Camera {
+            computed: ComputedCameraValues {
+                clip_from_view: Mat4::perspective_infinite_reverse_rh(1.0, 1.0, 0.1),
+                target_info: Some(RenderTargetInfo {
+                    physical_size: UVec2::splat(64),
+                    scale_factor: 1.0,
+                }),
+                ..default()
+            },
+            ..default()
+        };
+        let camera = app
+            .world_mut()
+            .spawn((
+                Camera3d::default(),
+                camera,
+                Transform::from_translation(eye).looking_at(target, Vec3::Y),
+            ))
+            .id();
+        (app, camera)
+    }
+
+    fn procedural(size: u32) -> Terrain {
+        Terrain {
+            source: TerrainSource::Procedural {
+                size,
+                noise: TerrainNoise {
+                    wavelength: 200.0,
+                    ..default()
+                },
+            },
+            spacing: 10.0,
+            vertical_scale: 100.0,
+            ..default()
+        }
+    }
+
+    fn spawn(app: &mut App, terrain: Terrain, transform: Transform) -> Entity {
+        // What Bevy's visibility propagation computes for a shown entity.
+        app.world_mut()
+            .spawn((terrain, transform, InheritedVisibility::VISIBLE))
+            .id()
+    }
+
+    fn stats(app: &App, terrain: Entity) -> TerrainLodStats {
+        *app.world().get::<TerrainLodStats>(terrain).unwrap()
+    }
+
+    fn status(app: &App, terrain: Entity) -> TerrainStatus {
+        app.world().get::<TerrainStatus>(terrain).unwrap().clone()
+    }
+
+    fn positions(app: &App, terrain: Entity) -> Vec<[f32; 3]> {
+        let handle = &app.world().get::<Mesh3d>(terrain).expect("a mesh").0;
+        let mesh = app.world().resource::<Assets<Mesh>>().get(handle).unwrap();
+        match mesh.attribute(Mesh::ATTRIBUTE_POSITION) {
+            Some(VertexAttributeValues::Float32x3(p)) => p.clone(),
+            _ => panic!("positions"),
+        }
+    }
+
+    fn move_camera(app: &mut App, camera: Entity, by: Vec3) {
+        app.world_mut()
+            .get_mut::<Transform>(camera)
+            .unwrap()
+            .translation += by;
+        app.update();
+    }
+
+    /// Runs frames until the terrain leaves `Pending` (asset loads are
+    /// asynchronous).
+    fn settle(app: &mut App, terrain: Entity) -> TerrainStatus {
+        for _ in 0..1000 {
+            app.update();
+            let status = status(app, terrain);
+            if status != TerrainStatus::Pending {
+                return status;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(2));
+        }
+        panic!("the terrain stayed pending");
+    }
+
+    #[test]
+    fn a_mesh_appears_and_is_rebuilt_only_when_the_view_changed_enough() {
+        let (mut app, camera) = app(&asset_dir("rebuild"), Vec3::new(0.0, 200.0, 300.0));
+        let coarse = Terrain {
+            accuracy: 5.0,
+            ..procedural(33)
+        };
+        let terrain = spawn(&mut app, coarse, Transform::default());
+        app.update();
+        assert_eq!(status(&app, terrain), TerrainStatus::Ready);
+        let first = stats(&app, terrain);
+        assert_eq!(first.updates, 1);
+        assert_eq!(first.points_per_side, 33);
+        assert!(first.triangles > 0 && first.vertices > 0, "{first:?}");
+        assert_eq!(positions(&app, terrain).len(), first.vertices as usize);
+        let counters = &app.world().resource::<EffectCounters>().0["terrain"];
+        assert_eq!(counters["triangles"], f64::from(first.triangles));
+        assert_eq!(counters["terrains"], 1.0);
+        assert!(counters["update_ms"] >= 0.0 && counters["build_ms"] >= 0.0);
+
+        app.update();
+        assert_eq!(stats(&app, terrain).updates, 1, "nothing moved");
+        // δ = 0.25 · 10 m: 2 m is not enough, 2 + 1 m is.
+        move_camera(&mut app, camera, Vec3::new(2.0, 0.0, 0.0));
+        assert_eq!(stats(&app, terrain).updates, 1, "moved 2 m < δ");
+        move_camera(&mut app, camera, Vec3::new(0.0, 0.0, -2.0));
+        assert_eq!(stats(&app, terrain).updates, 2, "moved 2.8 m > δ");
+
+        // Turning: 1° stays within the 3° margin, 4° does not.
+        let turn = |app: &mut App, degrees: f32| {
+            app.world_mut()
+                .get_mut::<Transform>(camera)
+                .unwrap()
+                .rotate_y(degrees.to_radians());
+            app.update();
+        };
+        turn(&mut app, 1.0);
+        assert_eq!(stats(&app, terrain).updates, 2);
+        turn(&mut app, 3.0);
+        assert_eq!(stats(&app, terrain).updates, 3);
+
+        // A setting: rebuilt; a finer c draws more triangles.
+        let before = stats(&app, terrain).triangles;
+        app.world_mut()
+            .get_mut::<Terrain>(terrain)
+            .unwrap()
+            .accuracy = 3000.0;
+        app.update();
+        let after = stats(&app, terrain);
+        assert_eq!(after.updates, 4);
+        assert!(after.triangles > before, "{} <= {before}", after.triangles);
+    }
+
+    #[test]
+    fn the_mesh_is_the_lod_of_the_eye_in_the_terrains_frame_100_km_out() {
+        let far = Vec3::new(100_000.0, 50.0, -100_000.0);
+        let eye = Vec3::new(40.0, 1500.0, 60.0);
+        let (mut app, _) = app_looking_at(&asset_dir("frame"), far + eye, far);
+        let terrain = spawn(&mut app, procedural(65), Transform::from_translation(far));
+        app.update();
+        let stats = stats(&app, terrain);
+        assert_eq!(stats.culled_nodes, 0, "the whole terrain is in view");
+        let mesh = positions(&app, terrain);
+
+        let source = procedural(65);
+        let unit = source.generate().unwrap().unwrap();
+        let hierarchy = source.build_hierarchy(&unit).unwrap();
+        let mut expected = TerrainMesh::new();
+        let eye = eye.as_dvec3();
+        let settings = LodSettings {
+            order: TriangleOrder::FrontToBack,
+            ..default()
+        };
+        hierarchy
+            .update(eye, None, &settings, &mut expected)
+            .unwrap();
+        assert_eq!(mesh.len(), expected.positions.len());
+        let origin = hierarchy.origin().as_vec3();
+        assert_eq!(
+            origin,
+            Vec3::new(-320.0, 0.0, -320.0),
+            "centred on the entity"
+        );
+        for (got, want) in mesh.iter().zip(&expected.positions) {
+            let want = Vec3::from(*want) + origin;
+            assert!(
+                Vec3::from(*got).distance(want) < 1e-3,
+                "{got:?} != {want:?}"
+            );
+        }
+    }
+
+    fn indices(app: &App, terrain: Entity) -> Vec<u32> {
+        let handle = &app.world().get::<Mesh3d>(terrain).expect("a mesh").0;
+        let mesh = app.world().resource::<Assets<Mesh>>().get(handle).unwrap();
+        mesh.indices().unwrap().iter().map(|i| i as u32).collect()
+    }
+
+    /// The height of the drawn surface at every grid point (spacing 10)
+    /// the mesh covers, by barycentric interpolation in its triangles.
+    fn surface(app: &App, terrain: Entity) -> std::collections::HashMap<[i32; 2], f32> {
+        let positions = positions(app, terrain);
+        let mut heights = std::collections::HashMap::new();
+        for triangle in indices(app, terrain).chunks_exact(3) {
+            let [a, b, c] = [0, 1, 2].map(|k| Vec3::from(positions[triangle[k] as usize]));
+            let lo = a.min(b).min(c) / 10.0;
+            let hi = a.max(b).max(c) / 10.0;
+            for i in lo.x.round() as i32..=hi.x.round() as i32 {
+                for j in lo.z.round() as i32..=hi.z.round() as i32 {
+                    let p = Vec2::new(i as f32, j as f32) * 10.0;
+                    let (a2, b2, c2) = (a.xz(), b.xz(), c.xz());
+                    let area = (b2 - a2).perp_dot(c2 - a2);
+                    let wa = (b2 - p).perp_dot(c2 - p) / area;
+                    let wb = (c2 - p).perp_dot(a2 - p) / area;
+                    let wc = 1.0 - wa - wb;
+                    if wa >= -1e-4 && wb >= -1e-4 && wc >= -1e-4 {
+                        heights.insert([i, j], wa * a.y + wb * b.y + wc * c.y);
+                    }
+                }
+            }
+        }
+        heights
+    }
+
+    /// The largest change of the drawn surface at a grid point between
+    /// consecutive meshes along a flight toward the terrain.
+    fn largest_step(morph: bool) -> f32 {
+        let (mut app, camera) = app(&asset_dir("morph"), Vec3::new(-900.0, 400.0, 0.0));
+        let terrain = spawn(
+            &mut app,
+            Terrain {
+                morph,
+                accuracy: 40.0,
+                view_margin_degrees: 45.0,
+                ..procedural(129)
+            },
+            Transform::default(),
+        );
+        app.update();
+        let mut last = surface(&app, terrain);
+        let mut largest = 0.0f32;
+        for _ in 0..60 {
+            move_camera(&mut app, camera, Vec3::new(8.0, -3.0, 0.0));
+            let now = surface(&app, terrain);
+            for (point, h) in &now {
+                if let Some(before) = last.get(point) {
+                    largest = largest.max((h - before).abs());
+                }
+            }
+            last = now;
+        }
+        assert_eq!(stats(&app, terrain).updates, 61);
+        largest
+    }
+
+    #[test]
+    fn morphing_keeps_the_drawn_heights_continuous_along_a_flight() {
+        let morphed = largest_step(true);
+        let popping = largest_step(false);
+        eprintln!("largest step {morphed} m with morphing, {popping} m without");
+        assert!(
+            morphed * 4.0 < popping,
+            "largest step {morphed} m with morphing, {popping} m without"
+        );
+    }
+
+    fn heights_asset(app: &mut App, dims: UVec2, values: Vec<f32>) -> Handle<TerrainHeights> {
+        app.world_mut()
+            .resource_mut::<Assets<TerrainHeights>>()
+            .add(TerrainHeights { dims, values })
+    }
+
+    fn from_asset(handle: Handle<TerrainHeights>) -> Terrain {
+        Terrain {
+            source: TerrainSource::Heights(handle),
+            ..procedural(2)
+        }
+    }
+
+    fn assert_failed(app: &App, terrain: Entity, needles: &[&str]) {
+        let TerrainStatus::Failed(reason) = status(app, terrain) else {
+            panic!("expected a failure, got {:?}", status(app, terrain));
+        };
+        for needle in needles {
+            assert!(reason.contains(needle), "{reason:?} lacks {needle:?}");
+        }
+        assert!(app.world().get::<Mesh3d>(terrain).is_none(), "no mesh");
+        assert_eq!(stats(app, terrain).updates, 0);
+    }
+
+    #[test]
+    fn bad_heights_fail_with_the_reason_and_no_mesh_and_recover_when_fixed() {
+        let (mut app, _) = app(&asset_dir("bad"), Vec3::new(0.0, 100.0, 100.0));
+        let mut values = vec![0.5; 25];
+        values[1 + 5 * 2] = f32::NAN;
+        let nan = heights_asset(&mut app, UVec2::new(5, 5), values);
+        let terrain = spawn(&mut app, from_asset(nan.clone()), Transform::default());
+        for _ in 0..3 {
+            app.update();
+        }
+        assert_failed(&app, terrain, &["grid point (1, 2)", "NaN", "finite"]);
+
+        // Fixing the asset in place rebuilds the terrain.
+        app.world_mut()
+            .resource_mut::<Assets<TerrainHeights>>()
+            .get_mut(&nan)
+            .unwrap()
+            .values[11] = 0.25;
+        app.update();
+        assert_eq!(status(&app, terrain), TerrainStatus::Ready);
+        assert!(app.world().get::<Mesh3d>(terrain).is_some());
+
+        let thin = heights_asset(&mut app, UVec2::new(1, 5), vec![0.0; 5]);
+        let terrain = spawn(&mut app, from_asset(thin), Transform::default());
+        app.update();
+        assert_failed(&app, terrain, &["1 × 5 points", "at least 2 × 2"]);
+
+        let short = heights_asset(&mut app, UVec2::new(3, 3), vec![0.0; 8]);
+        let terrain = spawn(&mut app, from_asset(short), Transform::default());
+        app.update();
+        assert_failed(&app, terrain, &["3 × 3 points but holds 8 values"]);
+
+        let terrain = spawn(
+            &mut app,
+            Terrain {
+                min_accuracy: 1.0,
+                ..procedural(9)
+            },
+            Transform::default(),
+        );
+        app.update();
+        assert_failed(&app, terrain, &["min_resolution C = 1"]);
+        let terrain = spawn(
+            &mut app,
+            Terrain {
+                spacing: -1.0,
+                ..procedural(9)
+            },
+            Transform::default(),
+        );
+        app.update();
+        assert_failed(&app, terrain, &["spacing = -1"]);
+    }
+
+    #[test]
+    fn height_maps_load_through_the_asset_server_or_fail_with_the_file_named() {
+        let dir = asset_dir("load");
+        let values: Vec<u16> = (0..15).map(|v| v * 4000).collect();
+        image::ImageBuffer::<image::Luma<u16>, _>::from_raw(5, 3, values)
+            .unwrap()
+            .save(dir.join("hills.png"))
+            .unwrap();
+        image::RgbImage::from_raw(2, 2, vec![9; 12])
+            .unwrap()
+            .save(dir.join("photo.png"))
+            .unwrap();
+        let (mut app, _) = app(&dir, Vec3::new(0.0, 100.0, 100.0));
+        let load = |app: &mut App, path: &str| {
+            let handle = app
+                .world()
+                .resource::<AssetServer>()
+                .load::<TerrainHeights>(path.to_owned());
+            spawn(app, from_asset(handle), Transform::default())
+        };
+
+        let hills = load(&mut app, "hills.png");
+        assert_eq!(settle(&mut app, hills), TerrainStatus::Ready);
+        // 5 × 3 points, padded to 5 × 5 at the high z end.
+        assert_eq!(stats(&app, hills).points_per_side, 5);
+        assert!(!positions(&app, hills).is_empty());
+
+        let missing = load(&mut app, "missing.png");
+        settle(&mut app, missing);
+        assert_failed(&app, missing, &["cannot load the height map missing.png"]);
+
+        let photo = load(&mut app, "photo.png");
+        settle(&mut app, photo);
+        assert_failed(&app, photo, &["photo.png", "grayscale"]);
+
+        // The failures are stable: no retry, the status stays.
+        for _ in 0..3 {
+            app.update();
+        }
+        assert_failed(&app, missing, &["missing.png"]);
+    }
+
+    #[test]
+    fn debug_views_and_a_custom_material() {
+        let (mut app, _) = app(&asset_dir("debug"), Vec3::new(0.0, 200.0, 300.0));
+        let material = app
+            .world_mut()
+            .resource_mut::<Assets<StandardMaterial>>()
+            .add(StandardMaterial::default());
+        let terrain = spawn(
+            &mut app,
+            Terrain {
+                material: Some(material.clone()),
+                accuracy: 5.0,
+                ..procedural(33)
+            },
+            Transform::default(),
+        );
+        app.update();
+        let mesh_of = |app: &App| {
+            let handle = &app.world().get::<Mesh3d>(terrain).unwrap().0;
+            app.world()
+                .resource::<Assets<Mesh>>()
+                .get(handle)
+                .unwrap()
+                .clone()
+        };
+        assert_eq!(
+            app.world()
+                .get::<MeshMaterial3d<StandardMaterial>>(terrain)
+                .unwrap()
+                .0,
+            material
+        );
+        assert!(mesh_of(&app).attribute(Mesh::ATTRIBUTE_COLOR).is_none());
+        let vertices = stats(&app, terrain).vertices as usize;
+
+        app.world_mut().get_mut::<Terrain>(terrain).unwrap().debug = TerrainDebug {
+            lod_colours: true,
+            edges: false,
+        };
+        app.update();
+        let Some(VertexAttributeValues::Float32x4(colours)) =
+            mesh_of(&app).attribute(Mesh::ATTRIBUTE_COLOR).cloned()
+        else {
+            panic!("level colours");
+        };
+        let distinct: std::collections::HashSet<_> =
+            colours.iter().map(|c| c.map(f32::to_bits)).collect();
+        assert!(distinct.len() >= 2, "several levels: {}", distinct.len());
+
+        app.world_mut()
+            .get_mut::<Terrain>(terrain)
+            .unwrap()
+            .debug
+            .edges = true;
+        app.update();
+        let triangles = stats(&app, terrain).triangles as usize;
+        assert_eq!(mesh_of(&app).count_vertices(), 6 * triangles);
+        assert!(vertices < 6 * triangles);
+    }
+
+    #[test]
+    fn a_world_without_terrain_has_no_terrain_counters() {
+        let (mut app, _) = app(&asset_dir("none"), Vec3::ONE);
+        for _ in 0..3 {
+            app.update();
+        }
+        assert!(
+            !app.world()
+                .resource::<EffectCounters>()
+                .0
+                .contains_key("terrain")
+        );
+    }
+}
