@@ -113,6 +113,20 @@ fn every_scene_renders_a_non_uniform_image_with_sane_stats() {
         }
         assert!(stats["frame_wall_ms"]["median"].as_f64().unwrap() > 0.0);
         assert!(stats["effects"].is_object());
+        // A terrain reports its level of detail; a scene without one has no
+        // terrain work and no group.
+        let has_terrain = nebel::nebel_core::scene::SceneDescription::load(scene)
+            .expect("scene file")
+            .terrain
+            .is_some();
+        let terrain = &stats["effects"]["terrain"];
+        if has_terrain {
+            let triangles = terrain["triangles"].as_f64().unwrap_or(0.0);
+            assert!(triangles > 0.0, "{}: {terrain}", scene.display());
+            assert!(terrain["update_ms"].as_f64().is_some_and(f64::is_finite));
+        } else {
+            assert!(terrain.is_null(), "{}: {terrain}", scene.display());
+        }
     }
 }
 
@@ -326,4 +340,5 @@ fn a_scene_without_volumes_runs_no_cell_projection_work() {
     // The group appears as soon as a pass runs, a table is built or cells are uploaded.
     assert!(stats["effects"].get("cell_projection").is_none(), "{stats}");
     assert!(stats["effects"].get("volume").is_none(), "{stats}");
+    assert!(stats["effects"].get("terrain").is_none(), "{stats}");
 }
