@@ -45,7 +45,7 @@ use std::time::Instant;
 use nebel::fog_comparison::{self, BevyFog};
 use nebel::headless::render_headless;
 use nebel::lod_sweep::run_lod_sweep;
-use nebel::reference_image::{reference_image, save_reference};
+use nebel::reference_image::{reference_image, reference_image_with_terrain, save_reference};
 use nebel::scene_setup::SceneSetupPlugin;
 use nebel_core::image_metrics::{difference_image, load_png_linear, save_png};
 use nebel_core::optics::OpticalMode;
@@ -202,8 +202,17 @@ fn reference(args: &[String]) -> Result<(), String> {
     let volumes = scene
         .build_volumes(&scene_path)
         .map_err(|e| e.to_string())?;
+    let unit_heights = scene
+        .build_terrain(&scene_path)
+        .map_err(|e| e.to_string())?;
+    let terrain = scene
+        .terrain
+        .as_ref()
+        .zip(unit_heights.as_ref())
+        .map(|(terrain, unit)| terrain.world_heights(unit));
     let started = Instant::now();
-    let image = reference_image(&scene, volumes, true).map_err(|e| e.to_string())?;
+    let image = reference_image_with_terrain(&scene, volumes, terrain.as_ref(), true)
+        .map_err(|e| e.to_string())?;
     save_reference(&image, &out).map_err(|e| e.to_string())?;
     eprintln!(
         "nebel: wrote {} ({}x{}, exact CPU reference in {:.1} s)",

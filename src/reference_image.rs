@@ -2,16 +2,19 @@
 //!
 //! Every volume integrated by [`nebel_core::reference::render`] from the
 //! camera of the scene's last frame (an animated campfire at that frame's
-//! time), cut at the scene's meshes. The reference shades no surface: a pixel
-//! whose ray ends on a mesh composites over black, the others over the clear
-//! colour, so accuracy scenes use black meshes and no lights.
+//! time), cut at the scene's meshes and, with
+//! [`reference_image_with_terrain`], at its terrain (the full-resolution
+//! bilinear surface, `nebel_core::scene` `opaque` module). The reference
+//! shades no surface: a pixel whose ray ends on a mesh or the terrain
+//! composites over black, the others over the clear colour, so accuracy
+//! scenes use black meshes and no lights.
 
 use std::path::Path;
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use glam::{DVec3, DVec4};
-use nebel_core::field::{CloudLighting, DensityGrid, PadFill, light_field};
+use nebel_core::field::{CloudLighting, DensityGrid, HeightField, PadFill, light_field};
 use nebel_core::image_metrics::{ImageMetricsError, LinearImage, save_png, srgb_to_linear};
 use nebel_core::optics::{OpticalMode, henyey_greenstein};
 use nebel_core::reference::{
@@ -42,8 +45,20 @@ pub fn reference_image(
     volumes: Vec<BuiltVolume>,
     progress: bool,
 ) -> Result<LinearImage, ReferenceError> {
+    reference_image_with_terrain(scene, volumes, None, progress)
+}
+
+/// [`reference_image`] cut at `terrain` too: the scene terrain's heights in
+/// world space (`TerrainDescription::world_heights`), drawn black like the
+/// meshes. `None` ignores the terrain.
+pub fn reference_image_with_terrain(
+    scene: &SceneDescription,
+    volumes: Vec<BuiltVolume>,
+    terrain: Option<&HeightField>,
+    progress: bool,
+) -> Result<LinearImage, ReferenceError> {
     let camera = scene.reference_camera();
-    let opaque_depth = scene.opaque_depth(&camera);
+    let opaque_depth = scene.opaque_depth_with_terrain(&camera, terrain);
     let mut layers = Vec::with_capacity(volumes.len());
     let last_frame = f64::from(scene.frame_time(scene.output.frames.saturating_sub(1)));
     for volume in volumes {

@@ -1,4 +1,5 @@
-//! Opaque depth of a scene's plain meshes for the CPU reference renderer.
+//! Opaque depth of a scene's plain meshes and terrain for the CPU reference
+//! renderer.
 //!
 //! The reference integrates the volume only up to the first opaque surface
 //! on each pixel's ray, like the GPU pass that reads the depth buffer. This
@@ -7,20 +8,42 @@
 //! where the ray hits nothing), the layout
 //! [`ReferenceScene::opaque_depth`](crate::reference::ReferenceScene::opaque_depth)
 //! takes.
+//!
+//! A terrain, given as its height field in world space
+//! ([`TerrainDescription::world_heights`](super::TerrainDescription::world_heights)),
+//! is the full-resolution bilinear surface over its grid: the ray is clipped
+//! to the grid's box, marched in steps of half the smaller spacing and the
+//! first crossing bisected to 1e-9 of the step. The GPU draws the quadtree's
+//! level of detail instead (triangles, morphed), which lies within the
+//! accuracy `c` implies; a feature thinner than half a spacing along the ray
+//! may be stepped over.
 
-use glam::DVec3;
+use glam::{DVec2, DVec3};
 
 use super::{MeshDescription, SceneDescription};
 use crate::cell::Ray;
+use crate::field::HeightField;
 use crate::reference::ReferenceCamera;
 
 impl SceneDescription {
     /// View-space depth of the nearest mesh per pixel of `camera`, row-major,
     /// top row first; `+∞` where no mesh is hit. `None` without meshes.
     pub fn opaque_depth(&self, camera: &ReferenceCamera) -> Option<Vec<f32>> {
-        if self.meshes.is_empty() {
+        self.opaque_depth_with_terrain(camera, None)
+    }
+
+    /// [`SceneDescription::opaque_depth`] of the meshes and the terrain
+    /// `terrain` (heights in world space, see the module docs). `None`
+    /// without meshes and terrain.
+    pub fn opaque_depth_with_terrain(
+        &self,
+        camera: &ReferenceCamera,
+        terrain: Option<&HeightField>,
+    ) -> Option<Vec<f32>> {
+        if self.meshes.is_empty() && terrain.is_none() {
             return None;
         }
+        let terrain = terrain.map(TerrainSurface::new);
         let mut depth = Vec::with_capacity(camera.width as usize * camera.height as usize);
         for y in 0..camera.height {
             for x in 0..camera.width {
@@ -29,12 +52,93 @@ impl SceneDescription {
                     .meshes
                     .iter()
                     .filter_map(|mesh| mesh_hit(mesh, &ray))
+                    .chain(terrain.as_ref().and_then(|surface| surface.hit(&ray)))
                     .fold(f64::INFINITY, f64::min);
                 depth.push((nearest * depth_to_distance) as f32);
             }
         }
         Some(depth)
     }
+}
+
+/// A terrain's height field and the box around it.
+struct TerrainSurface<'a> {
+    field: &'a HeightField,
+    min: DVec3,
+    max: DVec3,
+}
+
+impl<'a> TerrainSurface<'a> {
+    fn new(field: &'a HeightField) -> Self {
+        let [nx, nz] = field.dims();
+        let spacing = field.spacing();
+        let origin = field.origin();
+        let (low, high) = field
+            .heights()
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &h| {
+                (lo.min(f64::from(h)), hi.max(f64::from(h)))
+            });
+        Self {
+            field,
+            min: DVec3::new(origin.x, low, origin.y),
+            max: DVec3::new(
+                origin.x + (nx - 1) as f64 * spacing.x,
+                high,
+                origin.y + (nz - 1) as f64 * spacing.y,
+            ),
+        }
+    }
+
+    fn hit(&self, ray: &Ray) -> Option<f64> {
+        terrain_hit(self.field, self.min, self.max, ray)
+    }
+}
+
+/// Distance along `ray` (unit direction) to where it first passes from above
+/// the bilinear surface of `field` (inside the box `min..max`) to below it,
+/// within its grid (see the module docs).
+fn terrain_hit(field: &HeightField, min: DVec3, max: DVec3, ray: &Ray) -> Option<f64> {
+    // The ray's stretch inside the grid's box.
+    let inverse = ray.direction.recip();
+    let a = (min - ray.origin) * inverse;
+    let b = (max - ray.origin) * inverse;
+    let near = a.min(b).max_element().max(0.0);
+    let far = a.max(b).min_element();
+    // NaN (a ray parallel to a face, on it) counts as a miss.
+    if near.partial_cmp(&far).is_none_or(|order| order.is_gt()) {
+        return None;
+    }
+    let above = |t: f64| {
+        let p = ray.origin + t * ray.direction;
+        p.y - field.sample(DVec2::new(p.x, p.z))
+    };
+    let step = 0.5 * field.spacing().min_element();
+    // The surface is seen from above only (its back is culled on the GPU):
+    // the hit is the first crossing from above to below.
+    let mut t0 = near;
+    let mut was_above = above(t0) > 0.0;
+    while t0 < far {
+        let t1 = (t0 + step).min(far);
+        let f1 = above(t1);
+        if f1 > 0.0 {
+            was_above = true;
+        } else if was_above {
+            // Bisect the crossing in [t0, t1].
+            let (mut lo, mut hi) = (t0, t1);
+            while hi - lo > 1e-9 * step {
+                let mid = 0.5 * (lo + hi);
+                if above(mid) > 0.0 {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            return Some(hi);
+        }
+        t0 = t1;
+    }
+    None
 }
 
 fn vector(v: [f32; 3]) -> DVec3 {
@@ -89,6 +193,48 @@ mod tests {
 
     fn ray(origin: [f64; 3], direction: [f64; 3]) -> Ray {
         Ray::new(DVec3::from(origin), DVec3::from(direction)).unwrap()
+    }
+
+    #[test]
+    fn a_ray_meets_the_terrain_surface_or_misses_its_grid() {
+        // A ramp h = 1 + 0.5 x over x, z in [0, 4], 5 × 5 points 1 apart.
+        let heights = (0..25).map(|i| 1.0 + 0.5 * (i % 5) as f32).collect();
+        let field = HeightField::new([5, 5], DVec2::ONE, DVec2::ZERO, heights).unwrap();
+        let down = ray([2.0, 10.0, 2.0], [0.0, -1.0, 0.0]);
+        let t = TerrainSurface::new(&field).hit(&down).unwrap();
+        assert!((t - 8.0).abs() < 1e-7, "{t}");
+        // Level from the left at y = 2.5: meets the ramp at x = 3.
+        let level = ray([-5.0, 2.5, 1.5], [1.0, 0.0, 0.0]);
+        let t = TerrainSurface::new(&field).hit(&level).unwrap();
+        assert!((t - 8.0).abs() < 1e-7, "{t}");
+        // Above the highest point, outside the grid, or pointing away: no hit.
+        assert_eq!(
+            TerrainSurface::new(&field).hit(&ray([-5.0, 3.5, 1.5], [1.0, 0.0, 0.0])),
+            None
+        );
+        assert_eq!(
+            TerrainSurface::new(&field).hit(&ray([9.0, 10.0, 2.0], [0.0, -1.0, 0.0])),
+            None
+        );
+        assert_eq!(
+            TerrainSurface::new(&field).hit(&ray([2.0, 10.0, 2.0], [0.0, 1.0, 0.0])),
+            None
+        );
+        // Below the surface the ray sees its back (culled on the GPU too)
+        // until it comes out above: then it meets the front.
+        assert_eq!(
+            TerrainSurface::new(&field).hit(&ray([2.0, 1.5, 2.0], [1.0, 0.0, 0.0])),
+            None
+        );
+        assert_eq!(
+            TerrainSurface::new(&field).hit(&ray([2.0, 0.5, 2.0], [1.0, 0.0, 0.0])),
+            None
+        );
+        let up_and_over = ray([-1.0, 0.5, 2.0], [3.0, 1.0, 0.0]);
+        assert_eq!(TerrainSurface::new(&field).hit(&up_and_over), None);
+        let out_and_back =
+            Ray::new(DVec3::new(1.0, 1.2, 2.0), DVec3::new(-1.0, 0.05, 0.0)).unwrap();
+        assert_eq!(TerrainSurface::new(&field).hit(&out_and_back), None);
     }
 
     #[test]
