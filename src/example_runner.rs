@@ -77,8 +77,22 @@ pub fn run_example(name: &str) -> ExitCode {
     ExitCode::SUCCESS
 }
 
-fn attach_fly_camera(mut commands: Commands, cameras: Query<Entity, With<SceneCamera>>) {
+/// Gives the scene camera a fly camera whose speed suits the scene: a
+/// twentieth of the distance to the point the scene looks at per second (at
+/// least the default 10 m/s), so a kilometre-sized terrain is crossed in
+/// seconds and a campfire is not.
+fn attach_fly_camera(
+    mut commands: Commands,
+    scene: Res<crate::scene_setup::LoadedScene>,
+    cameras: Query<Entity, With<SceneCamera>>,
+) {
+    let pose = scene.camera_pose_at(0.0);
+    let distance = Vec3::from(pose.position).distance(Vec3::from(pose.look_at));
+    let defaults = FlyCamera::default();
     for camera in &cameras {
-        commands.entity(camera).insert(FlyCamera::default());
+        commands.entity(camera).insert(FlyCamera {
+            speed: defaults.speed.max(distance / 20.0),
+            ..defaults
+        });
     }
 }
