@@ -368,8 +368,8 @@ fn spawn_terrain(
 }
 
 #[cfg(not(feature = "terrain"))]
-fn spawn_terrain(scene: Res<LoadedScene>, _: Res<SceneTerrain>) {
-    if scene.terrain.is_some() {
+fn spawn_terrain(scene: Res<LoadedScene>, terrain: Res<SceneTerrain>) {
+    if scene.terrain.is_some() || terrain.0.is_some() {
         warn!("nebel: the scene has a terrain but this build has no `terrain` feature");
     }
 }
