@@ -17,8 +17,10 @@
 //!   with per-node deviation Δ propagated by `K_max` and scalar ranges, four
 //!   bytes per grid point), the per-frame refinement ([`fn@octree::refine`]:
 //!   leaves back to front with their morph factors e') and the morphed,
-//!   conforming cell batch ([`octree::lod_batch`]). Lighting and the Bevy
-//!   wiring follow (issue 5).
+//!   conforming cell batch ([`octree::lod_batch`]); a lit cloud's hierarchy
+//!   also holds its light field, refines on the larger deviation of density
+//!   and light, and emits one as the scalar and the other as the
+//!   segment-length modulator ([`octree::lod_batch_with`], paper 000 §5).
 //! - [`quadtree`]: the terrain C-LOD of paper 001 §3.5.3 (Röttger's
 //!   quadtree, libMini's semantics): [`TerrainHierarchy`] over a `2^k + 1`
 //!   square height field with per-node roughness d2 propagated to the parent
