@@ -48,7 +48,7 @@ use std::time::{Duration, Instant};
 
 use criterion::{Criterion, criterion_group};
 use glam::{DMat4, DVec2, DVec3};
-use nebel_core::field::HeightField;
+use nebel_core::field::{HeightField, ValueNoise};
 use nebel_lod::Frustum;
 use nebel_lod::quadtree::{
     DEFAULT_ACCURACY, DEFAULT_MIN_RESOLUTION, LodSettings, TerrainHierarchy, TerrainMesh,
@@ -67,52 +67,17 @@ const PEER: [(usize, u32, usize, f64); 3] = [
     (4097, 1, 114_996, 9.8),
 ];
 
-/// Hash of a lattice point and octave to [0, 1).
-fn lattice(x: i64, z: i64, seed: u64) -> f64 {
-    let mut h = (x as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15)
-        ^ (z as u64).wrapping_mul(0xc2b2_ae3d_27d4_eb4f)
-        ^ seed.wrapping_mul(0x1656_67b1_9e37_79f9);
-    h ^= h >> 29;
-    h = h.wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    h ^= h >> 32;
-    (h >> 11) as f64 / (1u64 << 53) as f64
-}
-
-/// Value noise with smoothstep interpolation, in [0, 1).
-fn value_noise(x: f64, z: f64, seed: u64) -> f64 {
-    let (x0, z0) = (x.floor(), z.floor());
-    let (fx, fz) = (x - x0, z - z0);
-    let (sx, sz) = (fx * fx * (3.0 - 2.0 * fx), fz * fz * (3.0 - 2.0 * fz));
-    let (i, j) = (x0 as i64, z0 as i64);
-    let a = lattice(i, j, seed) + (lattice(i + 1, j, seed) - lattice(i, j, seed)) * sx;
-    let b = lattice(i, j + 1, seed) + (lattice(i + 1, j + 1, seed) - lattice(i, j + 1, seed)) * sx;
-    a + (b - a) * sz
-}
-
 /// The peer scenario's height field of `n × n` points (see the module docs).
 fn peer_field(n: usize) -> HeightField {
     let half_width = (n - 1) as f64 * SPACING / 2.0;
-    let origin = DVec2::splat(-half_width);
-    let mut raw = Vec::with_capacity(n * n);
-    for j in 0..n {
-        for i in 0..n {
-            let (x, z) = (origin.x + i as f64 * SPACING, origin.y + j as f64 * SPACING);
-            let mut sum = 0.0;
-            for octave in 0..8u32 {
-                let wavelength = 5120.0 / f64::from(1u32 << octave);
-                sum += 0.5f64.powi(octave as i32)
-                    * value_noise(x / wavelength, z / wavelength, u64::from(octave) + 1);
-            }
-            raw.push(sum);
-        }
-    }
-    let lo = raw.iter().copied().fold(f64::INFINITY, f64::min);
-    let hi = raw.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    let heights = raw
-        .iter()
-        .map(|v| ((v - lo) / (hi - lo) * 1000.0) as f32)
-        .collect();
-    HeightField::new([n, n], DVec2::splat(SPACING), origin, heights).expect("valid field")
+    HeightField::value_noise(
+        [n, n],
+        DVec2::splat(SPACING),
+        DVec2::splat(-half_width),
+        &ValueNoise::default(),
+        1000.0,
+    )
+    .expect("valid field")
 }
 
 /// The eye of frame `frame` and its frustum.

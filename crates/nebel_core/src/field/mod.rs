@@ -32,6 +32,7 @@ mod load;
 mod procedural;
 mod resample;
 mod terrain;
+mod value_noise;
 
 pub use cloud::CloudNoise;
 pub use density_grid::DensityGrid;
@@ -42,6 +43,7 @@ pub use load::{Normalization, RawSampleType, TileLayout};
 pub use procedural::{NOISE_OFFSET, NoiseKind, ProceduralNoise};
 pub use resample::{PadFill, power_of_two_plus_one};
 pub use terrain::TerrainNoise;
+pub use value_noise::ValueNoise;
 
 use std::path::PathBuf;
 

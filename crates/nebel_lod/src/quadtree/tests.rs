@@ -5,7 +5,7 @@
 use std::collections::{HashMap, HashSet};
 
 use glam::{DMat4, DVec2, DVec3};
-use nebel_core::field::HeightField;
+use nebel_core::field::{HeightField, ValueNoise};
 use proptest::prelude::*;
 
 use super::*;
@@ -28,28 +28,6 @@ impl Rng {
     }
 }
 
-/// Hash of a lattice point to [0, 1).
-fn lattice(x: i64, z: i64, seed: u64) -> f64 {
-    let mut h = (x as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15)
-        ^ (z as u64).wrapping_mul(0xc2b2_ae3d_27d4_eb4f)
-        ^ seed.wrapping_mul(0x1656_67b1_9e37_79f9);
-    h ^= h >> 29;
-    h = h.wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    h ^= h >> 32;
-    (h >> 11) as f64 / (1u64 << 53) as f64
-}
-
-/// Value noise with smoothstep interpolation, in [0, 1).
-fn value_noise(x: f64, z: f64, seed: u64) -> f64 {
-    let (x0, z0) = (x.floor(), z.floor());
-    let (fx, fz) = (x - x0, z - z0);
-    let (sx, sz) = (fx * fx * (3.0 - 2.0 * fx), fz * fz * (3.0 - 2.0 * fz));
-    let (i, j) = (x0 as i64, z0 as i64);
-    let a = lattice(i, j, seed) + (lattice(i + 1, j, seed) - lattice(i, j, seed)) * sx;
-    let b = lattice(i, j + 1, seed) + (lattice(i + 1, j + 1, seed) - lattice(i, j + 1, seed)) * sx;
-    a + (b - a) * sz
-}
-
 /// An fBm height field of `n × n` points, `spacing` apart, `octaves` of value
 /// noise from wavelength `wavelength` halving, gain 0.5, rescaled to
 /// 0..`relief`, origin at `origin`.
@@ -61,25 +39,13 @@ fn fbm_field(
     relief: f64,
     origin: DVec2,
 ) -> HeightField {
-    let mut raw = Vec::with_capacity(n * n);
-    for j in 0..n {
-        for i in 0..n {
-            let (x, z) = (i as f64 * spacing, j as f64 * spacing);
-            let mut sum = 0.0;
-            for o in 0..octaves {
-                let w = wavelength / f64::from(1u32 << o);
-                sum += 0.5f64.powi(o as i32) * value_noise(x / w, z / w, u64::from(o) + 7);
-            }
-            raw.push(sum);
-        }
-    }
-    let lo = raw.iter().cloned().fold(f64::INFINITY, f64::min);
-    let hi = raw.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
-    let heights = raw
-        .iter()
-        .map(|v| ((v - lo) / (hi - lo) * relief) as f32)
-        .collect();
-    HeightField::new([n, n], DVec2::splat(spacing), origin, heights).unwrap()
+    let noise = ValueNoise {
+        seed: 7,
+        octaves,
+        wavelength,
+        gain: 0.5,
+    };
+    HeightField::value_noise([n, n], DVec2::splat(spacing), origin, &noise, relief).unwrap()
 }
 
 /// Random heights: a smooth bump plus noise of amplitude `noise`.
