@@ -7,5 +7,5 @@
 //! `target/nebel/campfire.png`.
 
 fn main() -> std::process::ExitCode {
-    nebel::example_runner::run_example("campfire")
+    nebel_tools::example_runner::run_example("campfire")
 }

@@ -8,5 +8,5 @@
 //! `target/nebel/valley_fog.png`.
 
 fn main() -> std::process::ExitCode {
-    nebel::example_runner::run_example("valley_fog")
+    nebel_tools::example_runner::run_example("valley_fog")
 }

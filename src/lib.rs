@@ -1,13 +1,13 @@
 //! nebel: volumetric effects for Bevy.
 //!
-//! Terrain with continuous level of detail, ground fog on that terrain, cloud
-//! volumes, emissive fire and search lights, and a fog-layer fallback, all drawn
-//! by sorted cell projection with pre-integrated transfer functions
-//! (DESIGN.md). This umbrella crate gathers the plugins in [`NebelPlugins`] and
-//! holds what the examples, the tests and the `nebel` binary share: loading a
-//! scene file into a Bevy world ([`scene_setup`]), headless rendering
-//! ([`headless`]), the fly camera of the examples ([`fly_camera`]) and the
-//! example launcher ([`example_runner`]).
+//! Terrain with continuous level of detail (Röttger's quadtree C-LOD), cloud
+//! volumes refined by a view-dependent octree and lit by a light field, and
+//! emissive fire and search lights, drawn by cell projection with
+//! pre-integrated transfer functions, exact per pixel (Röttger and Ertl,
+//! "A Volumetric Cloud Rendering Method", 2003; Röttger, "Volumetric
+//! Natural Phenomena", 2004). This umbrella crate is the plugin group
+//! [`NebelPlugins`], the [`prelude`] and the re-exported crates; each effect is
+//! a cargo feature.
 //!
 //! ```no_run
 //! use bevy::prelude::*;
@@ -106,16 +106,6 @@
 //!     .run();
 //! ```
 
-pub mod example_runner;
-pub mod flickering_light;
-pub mod fly_camera;
-pub mod fog_comparison;
-pub mod headless;
-pub mod lod_sweep;
-pub mod reference_image;
-pub mod scene_setup;
-pub mod stats;
-
 use bevy::app::{PluginGroup, PluginGroupBuilder};
 
 pub use nebel_core;
@@ -135,10 +125,11 @@ impl PluginGroup for NebelPlugins {
     fn build(self) -> PluginGroupBuilder {
         let group = PluginGroupBuilder::start::<Self>()
             .add(nebel_render::NebelDiagnosticsPlugin)
-            .add(nebel_render::CellProjectionPlugin)
-            .add(flickering_light::FlickeringLightPlugin);
+            .add(nebel_render::CellProjectionPlugin);
         #[cfg(feature = "volume")]
-        let group = group.add(nebel_volume::VolumePlugin);
+        let group = group
+            .add(nebel_volume::VolumePlugin)
+            .add(nebel_volume::FlickeringLightPlugin);
         #[cfg(feature = "terrain")]
         let group = group.add(nebel_terrain::TerrainPlugin);
         group
@@ -148,9 +139,6 @@ impl PluginGroup for NebelPlugins {
 /// `use nebel::prelude::*;` brings the plugins and the components a game spawns.
 pub mod prelude {
     pub use crate::NebelPlugins;
-    pub use crate::flickering_light::{FlickeringLight, FlickeringLightPlugin};
-    pub use crate::fly_camera::{FlyCamera, FlyCameraPlugin};
-    pub use crate::scene_setup::{SceneCamera, SceneSetupPlugin};
     pub use nebel_render::{CellBatch, EffectCounters, NebelSystems};
     #[cfg(feature = "terrain")]
     pub use nebel_terrain::{
@@ -159,6 +147,7 @@ pub mod prelude {
     };
     #[cfg(feature = "volume")]
     pub use nebel_volume::{
-        Campfire, CloudLightModel, CloudVolume, Volume, VolumeField, VolumeLighting, VolumeLod,
+        Campfire, CloudLightModel, CloudVolume, FlickeringLight, FlickeringLightPlugin, Volume,
+        VolumeField, VolumeLighting, VolumeLod,
     };
 }

@@ -1,25 +1,20 @@
-//! nebel's optics, fields and exact CPU reference integrator, without Bevy.
+//! nebel's optics, transfer functions, pre-integration, cells and fields,
+//! without Bevy.
 //!
 //! Everything here is plain Rust so it builds in a minute and is tested without a
 //! GPU (DESIGN.md §2). The Bevy crates only move these results to the GPU.
 //!
 //! - [`optics`]: optical modes and compositing of premultiplied RGBA (DESIGN.md §4).
-//! - [`scene`]: the scene file schema (RON), its loader and validation.
 //! - [`transfer`]: transfer functions κ (chromaticity) and ρ (density) over a scalar.
 //! - [`cell`]: tetrahedra, prisms, hexahedra, their decompositions and exact ray-cell intersection.
 //! - [`segment`]: the exact f64 ray integral of one linear segment, the reference for the tables.
 //! - [`preintegration`]: pre-integration tables (3D colour, ρ̂, emission, MIP) and the zero-opacity test.
 //! - [`field`]: density grids and height fields, PNG/raw loaders, noise generators, 2^n+1 resampling.
-//! - [`reference`](mod@reference): the exact f64 CPU reference renderer through tetrahedra or a trilinear grid.
-//! - [`image_metrics`]: linear images, sRGB PNG input/output, RMSE / max error / PSNR, difference images.
 
 pub mod cell;
 pub mod field;
-pub mod image_metrics;
 pub mod optics;
 pub mod preintegration;
-pub mod reference;
-pub mod scene;
 pub mod segment;
 #[cfg(test)]
 mod test_support;

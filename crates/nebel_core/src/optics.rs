@@ -11,10 +11,10 @@
 //!   channel, commutative.
 
 use glam::DVec4;
-use serde::{Deserialize, Serialize};
 
 /// How the segments of a ray combine into a pixel.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub enum OpticalMode {
     /// Emission-absorption, back to front, premultiplied "over". Clouds, fog, smoke.
     #[default]

@@ -75,14 +75,13 @@ use glam::{DAffine3, DVec3, Vec3};
 use nebel_core::cell::{Hexahedron, HexahedronParity};
 use nebel_core::field::DensityGrid;
 use nebel_core::transfer::TransferFunction;
-use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::batch::{CellBatch, GpuCell};
 use crate::frustum::Frustum;
 
 /// The order in which a batch's cells are emitted.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub enum CellOrder {
     /// Exact back-to-front visibility order for the eye (the sorted
     /// emission-absorption model, "over" blending). The default.

@@ -24,15 +24,15 @@ use std::collections::HashMap;
 use glam::{DAffine3, DMat4, DVec3};
 use nebel_core::cell::Tetrahedron;
 use nebel_core::field::{DensityGrid, FieldError, PadFill, ProceduralNoise};
-use nebel_core::image_metrics::{LinearImage, compare};
 use nebel_core::optics::OpticalMode;
-use nebel_core::reference::{ReferenceCamera, ReferenceScene, ReferenceVolume, render};
 use nebel_core::transfer::{ControlPoint, TransferFunction, TransferPreset};
 use nebel_lod::octree::{Refinement, RefinementSettings, lod_batch, refine};
 use nebel_lod::{
     BrickTable, CellBatch, CellOrder, Frustum, HierarchyError, Node, VolumeHierarchy,
     full_resolution_batch,
 };
+use nebel_reference::image_metrics::{LinearImage, compare};
+use nebel_reference::{ReferenceCamera, ReferenceScene, ReferenceVolume, render};
 use proptest::prelude::*;
 
 /// Minimum accuracy C of every hierarchy here (K_max ≈ 0.64).

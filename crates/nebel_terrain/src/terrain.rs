@@ -25,9 +25,10 @@ use std::sync::Arc;
 
 use bevy::prelude::*;
 use nebel_core::field::{HeightField, TerrainNoise};
-use nebel_core::scene::MAX_TERRAIN_SIDE;
 use nebel_lod::TerrainHierarchy;
-use nebel_lod::quadtree::{DEFAULT_ACCURACY, DEFAULT_MIN_RESOLUTION, pad_to_power_of_two_plus_one};
+use nebel_lod::quadtree::{
+    DEFAULT_ACCURACY, DEFAULT_MIN_RESOLUTION, MAX_TERRAIN_SIDE, pad_to_power_of_two_plus_one,
+};
 use nebel_render::NebelSystems;
 
 use crate::heights::{TerrainHeights, TerrainHeightsLoader};

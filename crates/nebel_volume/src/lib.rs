@@ -10,12 +10,14 @@
 
 mod campfire;
 mod cloud;
+mod flickering_light;
 mod lighting;
 mod lod;
 mod volume;
 
 pub use campfire::Campfire;
 pub use cloud::CloudVolume;
+pub use flickering_light::{FlickeringLight, FlickeringLightPlugin};
 pub use lighting::{CloudLightModel, VolumeLighting};
 pub use lod::VolumeLod;
 pub use volume::{Volume, VolumeField, VolumePlugin};

@@ -13,13 +13,12 @@
 //! - Raw files hold samples without header, x fastest, little-endian
 //!   ([`RawSampleType`]).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use glam::{DVec2, DVec3};
 use image::DynamicImage;
 
 use super::{DensityGrid, FieldError, HeightField};
-use crate::image_metrics::read_png;
 
 /// The sample type of a raw little-endian file.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -101,6 +100,18 @@ pub struct TileLayout {
 }
 
 /// A decoded grayscale PNG with values in [0, 1], row-major, top row first.
+/// Reads the file at `path` and decodes it as PNG; `read_error` and
+/// `decode_error` turn the file's path and the cause into the caller's error.
+pub fn read_png<E>(
+    path: &Path,
+    read_error: impl FnOnce(PathBuf, std::io::Error) -> E,
+    decode_error: impl FnOnce(PathBuf, image::ImageError) -> E,
+) -> Result<DynamicImage, E> {
+    let bytes = std::fs::read(path).map_err(|source| read_error(path.to_owned(), source))?;
+    image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
+        .map_err(|source| decode_error(path.to_owned(), source))
+}
+
 struct GrayImage {
     width: u32,
     height: u32,

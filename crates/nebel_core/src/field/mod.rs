@@ -39,7 +39,7 @@ pub use density_grid::DensityGrid;
 pub use effects::{campfire_density, search_light_cells};
 pub use height_field::HeightField;
 pub use light::{CloudLighting, light_field, light_field_with_threads};
-pub use load::{Normalization, RawSampleType, TileLayout};
+pub use load::{Normalization, RawSampleType, TileLayout, read_png};
 pub use procedural::{NOISE_OFFSET, NoiseKind, ProceduralNoise};
 pub use resample::{PadFill, power_of_two_plus_one};
 pub use terrain::TerrainNoise;

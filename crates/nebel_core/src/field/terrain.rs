@@ -18,7 +18,8 @@ use super::{FieldError, HeightField, NoiseKind, ProceduralNoise};
 
 /// Settings of [`HeightField::terrain`]: seeded fractal noise for terrain
 /// heights.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct TerrainNoise {
     /// Fractal kind: [`NoiseKind::Fbm`] for rolling hills,
     /// [`NoiseKind::Ridged`] for mountain crests. Default `Fbm`.

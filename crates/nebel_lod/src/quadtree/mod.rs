@@ -186,6 +186,10 @@ use nebel_core::field::HeightField;
 /// 1080-pixel, 60° view); geomorphing hides the changes.
 pub const DEFAULT_ACCURACY: f32 = 300.0;
 
+/// The largest terrain side in grid points (after padding): 8193² points
+/// take about 290 MB with the quadtree.
+pub const MAX_TERRAIN_SIDE: usize = 8193;
+
 /// Default minimum resolution `C`: a node of size `d` is refined within
 /// `C·d` of the eye whatever its roughness.
 pub const DEFAULT_MIN_RESOLUTION: f32 = 2.0;

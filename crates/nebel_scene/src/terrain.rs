@@ -38,11 +38,8 @@ use glam::DVec2;
 use serde::{Deserialize, Serialize};
 
 use super::InvalidField;
-use crate::field::{HeightField, NoiseKind, TerrainNoise};
-
-/// The largest terrain side in grid points (after padding): 8193² points
-/// take about 290 MB with the quadtree.
-pub const MAX_TERRAIN_SIDE: usize = 8193;
+use nebel_core::field::{HeightField, NoiseKind, TerrainNoise};
+use nebel_lod::quadtree::MAX_TERRAIN_SIDE;
 
 /// A scene's terrain.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -308,7 +305,7 @@ impl TerrainDescription {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::scene::SceneDescription;
+    use crate::SceneDescription;
 
     const SCENE: &str = "(version: 1, camera: (view: Pose((position: (0.0, 500.0, 900.0), look_at: (0.0, 0.0, 0.0)))), terrain: TERRAIN)";
 

@@ -19,13 +19,13 @@ use bevy::prelude::*;
 use std::path::Path;
 
 use nebel_core::field::HeightField;
-use nebel_core::scene::{
+use nebel_render::NebelSystems;
+use nebel_scene::{
     BuiltVolume, CameraView, LightDescription, MeshDescription, SceneDescription, SceneError,
 };
-use nebel_render::NebelSystems;
 
-use crate::flickering_light::FlickeringLight;
 use crate::fog_comparison::{BevyFog, BevyFogSettings, enable_bevy_fog, spawn_bevy_fog};
+use nebel_volume::FlickeringLight;
 
 /// Spawns a scene description at startup.
 pub struct SceneSetupPlugin {
@@ -226,7 +226,7 @@ fn spawn_scene(
     match bevy_fog {
         Some(fog) => {
             for volume in &volumes.0 {
-                if let nebel_core::scene::VolumeField::Grid(grid) = &volume.field {
+                if let nebel_scene::VolumeField::Grid(grid) = &volume.field {
                     spawn_bevy_fog(
                         &mut commands,
                         &mut images,
@@ -241,10 +241,9 @@ fn spawn_scene(
 }
 
 /// Spawns the scene's volumes; their fields are in world space.
-#[cfg(feature = "volume")]
 fn spawn_volumes(commands: &mut Commands, volumes: &[BuiltVolume]) {
-    use nebel_core::scene::LightModel;
-    use nebel_core::scene::VolumeField as SceneField;
+    use nebel_scene::LightModel;
+    use nebel_scene::VolumeField as SceneField;
     use nebel_volume::{
         Campfire, CloudLightModel, CloudVolume, Volume, VolumeField, VolumeLighting, VolumeLod,
     };
@@ -325,16 +324,8 @@ fn spawn_volumes(commands: &mut Commands, volumes: &[BuiltVolume]) {
     }
 }
 
-#[cfg(not(feature = "volume"))]
-fn spawn_volumes(_: &mut Commands, volumes: &[BuiltVolume]) {
-    if !volumes.is_empty() {
-        warn!("nebel: the scene has volumes but this build has no `volume` feature");
-    }
-}
-
 /// Spawns the scene's terrain: its heights as an asset, the entity at its
 /// centre.
-#[cfg(feature = "terrain")]
 fn spawn_terrain(
     mut commands: Commands,
     scene: Res<LoadedScene>,
@@ -365,13 +356,6 @@ fn spawn_terrain(
         },
         Transform::from_translation(Vec3::from(description.center)),
     ));
-}
-
-#[cfg(not(feature = "terrain"))]
-fn spawn_terrain(scene: Res<LoadedScene>, terrain: Res<SceneTerrain>) {
-    if scene.terrain.is_some() || terrain.0.is_some() {
-        warn!("nebel: the scene has a terrain but this build has no `terrain` feature");
-    }
 }
 
 fn follow_camera_path(

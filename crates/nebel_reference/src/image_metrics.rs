@@ -3,7 +3,7 @@
 //! §8).
 //!
 //! - [`LinearImage`]: premultiplied linear RGBA in f32, what the reference
-//!   renderer ([`crate::reference`]) produces.
+//!   renderer ([`crate::render`]) produces.
 //! - [`load_png_linear`]: an 8- or 16-bit PNG (gray, gray-alpha, RGB, RGBA),
 //!   decoded from sRGB with the exact IEC 61966-2-1 curve, alpha premultiplied.
 //! - [`save_png`]: composite over an opaque background colour, encode to sRGB,
@@ -16,7 +16,7 @@
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-use image::{DynamicImage, ImageFormat, RgbImage};
+use image::{ImageFormat, RgbImage};
 
 /// A linear-light image: `width × height` premultiplied RGBA pixels in f32,
 /// row-major, top row first. Colour channels are linear (not sRGB) and already
@@ -171,23 +171,10 @@ pub fn linear_to_srgb(linear: f64) -> f64 {
     }
 }
 
-/// Reads the file at `path` and decodes it as PNG; `read_error` and
-/// `decode_error` turn the file's path and the cause into the caller's error.
-/// Shared with the field loaders ([`crate::field`]).
-pub(crate) fn read_png<E>(
-    path: &Path,
-    read_error: impl FnOnce(PathBuf, std::io::Error) -> E,
-    decode_error: impl FnOnce(PathBuf, image::ImageError) -> E,
-) -> Result<DynamicImage, E> {
-    let bytes = std::fs::read(path).map_err(|source| read_error(path.to_owned(), source))?;
-    image::load_from_memory_with_format(&bytes, ImageFormat::Png)
-        .map_err(|source| decode_error(path.to_owned(), source))
-}
-
 /// Loads an 8- or 16-bit PNG of any channel layout as linear RGB with
 /// premultiplied alpha (opaque when the file has no alpha).
 pub fn load_png_linear(path: impl AsRef<Path>) -> Result<LinearImage, ImageMetricsError> {
-    let image = read_png(
+    let image = nebel_core::field::read_png(
         path.as_ref(),
         |path, source| ImageMetricsError::Io { path, source },
         |path, source| ImageMetricsError::Decode { path, source },

@@ -12,8 +12,9 @@ use std::process::Command;
 const RENDER_SIZE: &str = "96x64";
 const RENDER_FRAMES: u32 = 3;
 
-fn workspace() -> &'static Path {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
+/// The workspace root, where the scene folders are.
+fn workspace() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
 }
 
 fn scene_files() -> Vec<PathBuf> {
@@ -115,7 +116,7 @@ fn every_scene_renders_a_non_uniform_image_with_sane_stats() {
         assert!(stats["effects"].is_object());
         // A terrain reports its level of detail; a scene without one has no
         // terrain work and no group.
-        let has_terrain = nebel::nebel_core::scene::SceneDescription::load(scene)
+        let has_terrain = nebel_scene::SceneDescription::load(scene)
             .expect("scene file")
             .terrain
             .is_some();
@@ -294,9 +295,9 @@ fn gpu_cell_projection_matches_the_exact_reference() {
             "{name}: {}",
             String::from_utf8_lossy(&referenced.stderr)
         );
-        let metrics = nebel_core::image_metrics::compare(
-            &nebel_core::image_metrics::load_png_linear(&gpu).unwrap(),
-            &nebel_core::image_metrics::load_png_linear(&exact).unwrap(),
+        let metrics = nebel_reference::image_metrics::compare(
+            &nebel_reference::image_metrics::load_png_linear(&gpu).unwrap(),
+            &nebel_reference::image_metrics::load_png_linear(&exact).unwrap(),
         )
         .unwrap();
         let stats: serde_json::Value =

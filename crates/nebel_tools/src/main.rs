@@ -10,11 +10,11 @@
 //!
 //! `render` draws a scene file headless through whatever adapter wgpu finds
 //! (lavapipe included) and writes the last frame; `--stats` writes the JSON of
-//! [`nebel::stats::RenderStats`]; `--frames` and `--size` override the scene's
+//! [`nebel_tools::stats::RenderStats`]; `--frames` and `--size` override the scene's
 //! `output`.
 //!
 //! `reference` integrates the same view exactly on the CPU
-//! ([`nebel::reference_image`], f64, adaptive, both cores): the scene's
+//! ([`nebel_tools::reference_image`], f64, adaptive, both cores): the scene's
 //! volumes over its clear colour, from the camera of the last frame, cut at
 //! the scene's meshes, which it draws black (the reference shades no surface;
 //! accuracy scenes have black meshes and no lights).
@@ -24,7 +24,7 @@
 //!
 //! `bench-fog` renders the scene's grid volume with nebel and with Bevy's own
 //! `FogVolume` (`--steps` samples per ray, default 64) under the same optics
-//! ([`nebel::fog_comparison`]), scores both against the two exact references
+//! ([`nebel_tools::fog_comparison`]), scores both against the two exact references
 //! (through the trilinear grid, and through nebel's tetrahedra) and writes
 //! `DIR/fog_comparison.csv` (median and max frame time, RMSE, max error,
 //! PSNR) with the images. Tonemapping and MSAA are off.
@@ -34,7 +34,7 @@
 //! `--comparison-accuracy C`, the image at `c = C` for a volume too large to
 //! draw at full resolution, without the exact reference) and writes
 //! `DIR/lod_sweep.csv` and a plot of frame time against error
-//! ([`nebel::lod_sweep`]).
+//! ([`nebel_tools::lod_sweep`]).
 //!
 //! Errors are one line on stderr and a non-zero exit status.
 
@@ -42,14 +42,14 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
-use nebel::fog_comparison::{self, BevyFog};
-use nebel::headless::render_headless;
-use nebel::lod_sweep::run_lod_sweep;
-use nebel::reference_image::{reference_image, reference_image_with_terrain, save_reference};
-use nebel::scene_setup::SceneSetupPlugin;
-use nebel_core::image_metrics::{difference_image, load_png_linear, save_png};
 use nebel_core::optics::OpticalMode;
-use nebel_core::scene::{BuiltVolume, LightDescription, SceneDescription, VolumeField};
+use nebel_reference::image_metrics::{difference_image, load_png_linear, save_png};
+use nebel_scene::reference::{reference_image, reference_image_with_terrain, save_reference};
+use nebel_scene::{BuiltVolume, LightDescription, SceneDescription, VolumeField};
+use nebel_tools::fog_comparison::{self, BevyFog};
+use nebel_tools::headless::render_headless;
+use nebel_tools::lod_sweep::run_lod_sweep;
+use nebel_tools::scene_setup::SceneSetupPlugin;
 
 const USAGE: &str = "usage:
   nebel render SCENE --out IMAGE.png [--stats STATS.json] [--frames N] [--size WxH]
@@ -238,7 +238,7 @@ fn single_volume(scene: &SceneDescription, scene_path: &Path) -> Result<BuiltVol
 }
 
 /// `nebel bench-fog`: nebel against Bevy's `FogVolume` on the scene's grid
-/// volume, both scored against the exact reference ([`nebel::fog_comparison`]).
+/// volume, both scored against the exact reference ([`nebel_tools::fog_comparison`]).
 fn bench_fog(args: &[String]) -> Result<(), String> {
     let arguments = Arguments::parse(args, &["out", "frames", "size", "steps"])?;
     let out_dir = PathBuf::from(arguments.required("out")?);
@@ -335,9 +335,9 @@ fn bench_fog(args: &[String]) -> Result<(), String> {
         let image_path = out_dir.join(format!("{name}.png"));
         let stats = render_headless(setup, &image_path, true).map_err(|e| e.to_string())?;
         let image = load_png_linear(&image_path).map_err(|e| e.to_string())?;
-        let metrics =
-            nebel_core::image_metrics::compare(&image, &reference).map_err(|e| e.to_string())?;
-        let tetrahedral = nebel_core::image_metrics::compare(&image, &tetrahedral_reference)
+        let metrics = nebel_reference::image_metrics::compare(&image, &reference)
+            .map_err(|e| e.to_string())?;
+        let tetrahedral = nebel_reference::image_metrics::compare(&image, &tetrahedral_reference)
             .map_err(|e| e.to_string())?;
         println!(
             "{name}: frame {:.1} ms (median); against the trilinear reference {metrics}; against the tetrahedral reference {tetrahedral}",
@@ -410,7 +410,7 @@ fn compare(args: &[String]) -> Result<(), String> {
     let paths = arguments.positional(2, "two PNG files")?;
     let load = |path: &String| load_png_linear(path).map_err(|e| e.to_string());
     let (a, b) = (load(&paths[0])?, load(&paths[1])?);
-    let metrics = nebel_core::image_metrics::compare(&a, &b)
+    let metrics = nebel_reference::image_metrics::compare(&a, &b)
         .map_err(|e| format!("{} vs {}: {e}", paths[0], paths[1]))?;
     println!("{metrics}");
     if let Some(diff_path) = arguments.option("diff") {

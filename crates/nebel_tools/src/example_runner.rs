@@ -10,16 +10,16 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use bevy::prelude::*;
-use nebel_core::scene::SceneDescription;
+use nebel_scene::SceneDescription;
 
-use crate::NebelPlugins;
 use crate::fly_camera::{FlyCamera, FlyCameraPlugin};
 use crate::headless::render_headless;
 use crate::scene_setup::{SceneCamera, SceneSetupPlugin};
+use nebel::NebelPlugins;
 
 /// Runs the example `name` with the scene file `assets/scenes/NAME.ron`.
 pub fn run_example(name: &str) -> ExitCode {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let scene_path = root.join("assets/scenes").join(format!("{name}.ron"));
     let setup = match SceneDescription::load(&scene_path)
         .and_then(|scene| SceneSetupPlugin::new(scene, &scene_path))

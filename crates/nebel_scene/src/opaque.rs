@@ -21,9 +21,9 @@
 use glam::{DVec2, DVec3};
 
 use super::{MeshDescription, SceneDescription};
-use crate::cell::Ray;
-use crate::field::HeightField;
-use crate::reference::ReferenceCamera;
+use nebel_core::cell::Ray;
+use nebel_core::field::HeightField;
+use nebel_reference::ReferenceCamera;
 
 impl SceneDescription {
     /// View-space depth of the nearest mesh per pixel of `camera`, row-major,
@@ -189,7 +189,7 @@ fn mesh_hit(mesh: &MeshDescription, ray: &Ray) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::scene::{BoxDescription, PlaneDescription, SphereDescription};
+    use crate::{BoxDescription, PlaneDescription, SphereDescription};
 
     fn ray(origin: [f64; 3], direction: [f64; 3]) -> Ray {
         Ray::new(DVec3::from(origin), DVec3::from(direction)).unwrap()

@@ -18,12 +18,12 @@
 use std::path::Path;
 
 use image::{Rgb, RgbImage};
-use nebel_core::image_metrics::{ImageErrorMetrics, compare};
-use nebel_core::scene::{LodDescription, SceneDescription};
+use nebel_reference::image_metrics::{ImageErrorMetrics, compare};
+use nebel_scene::{LodDescription, SceneDescription};
 
 use crate::headless::render_headless;
-use crate::reference_image::{reference_image, save_reference};
 use crate::scene_setup::SceneSetupPlugin;
+use nebel_scene::reference::{reference_image, save_reference};
 
 /// One point of the sweep.
 #[derive(Clone, Debug, PartialEq)]
@@ -127,8 +127,8 @@ pub fn run_lod_sweep(
         let image_path = out_dir.join(format!("{name}.png"));
         let setup = SceneSetupPlugin::new(variant, scene_path).map_err(|e| e.to_string())?;
         let stats = render_headless(setup, &image_path, true).map_err(|e| e.to_string())?;
-        let image =
-            nebel_core::image_metrics::load_png_linear(&image_path).map_err(|e| e.to_string())?;
+        let image = nebel_reference::image_metrics::load_png_linear(&image_path)
+            .map_err(|e| e.to_string())?;
         let metrics = match &reference {
             Some(reference) => compare(&image, reference).map_err(|e| e.to_string())?,
             None => ImageErrorMetrics {

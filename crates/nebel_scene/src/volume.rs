@@ -44,14 +44,14 @@ use glam::{DQuat, DVec3};
 use serde::{Deserialize, Serialize};
 
 use super::InvalidField;
-use crate::cell::Tetrahedron;
-use crate::field::effects::{
+use nebel_core::cell::Tetrahedron;
+use nebel_core::field::effects::{
     CAMPFIRE_DIMS, CAMPFIRE_MAX, CAMPFIRE_MIN, SEARCH_LIGHT_SEGMENTS, campfire_density,
     search_light_cells,
 };
-use crate::field::{CloudNoise, DensityGrid, FieldError, NoiseKind, ProceduralNoise};
-use crate::optics::OpticalMode;
-use crate::transfer::{ControlPoint, TransferFunction, TransferPreset};
+use nebel_core::field::{CloudNoise, DensityGrid, FieldError, NoiseKind, ProceduralNoise};
+use nebel_core::optics::OpticalMode;
+use nebel_core::transfer::{ControlPoint, TransferFunction, TransferPreset};
 
 /// One volume of a scene.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -856,6 +856,19 @@ impl VolumeDescription {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_transfer_function_is_validated_when_deserialized() {
+        let tf: TransferFunction =
+            ron::from_str("(points: [(s: 1.0, kappa: (1.0, 1.0, 1.0), rho: 2.0), (s: 0.0, kappa: (0.0, 0.0, 0.0), rho: 0.0)])")
+                .unwrap();
+        assert_eq!(tf.points()[0].s, 0.0);
+        let error = ron::from_str::<TransferFunction>("(points: [])").unwrap_err();
+        assert!(
+            error.to_string().contains("at least one control point"),
+            "{error}"
+        );
+    }
 
     fn volume(source: VolumeSource) -> VolumeDescription {
         VolumeDescription {

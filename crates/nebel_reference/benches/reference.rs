@@ -5,7 +5,7 @@
 //! throughput in pixels per second; the cost per pixel is its inverse. Each
 //! image uses every core (the renderer splits rows with `std::thread::scope`).
 //!
-//! Run: `cargo bench -p nebel_core --bench reference`.
+//! Run: `cargo bench -p nebel_reference --bench reference`.
 
 use std::hint::black_box;
 
@@ -13,8 +13,8 @@ use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_m
 use glam::DVec3;
 use nebel_core::field::{DensityGrid, ProceduralNoise};
 use nebel_core::optics::OpticalMode;
-use nebel_core::reference::{ReferenceCamera, ReferenceScene, ReferenceVolume, render};
 use nebel_core::transfer::{TransferFunction, TransferPreset};
+use nebel_reference::{ReferenceCamera, ReferenceScene, ReferenceVolume, render};
 
 /// Image side, pixels.
 const SIDE: u32 = 32;

@@ -44,12 +44,12 @@ use std::sync::atomic::{AtomicU32, Ordering};
 
 use glam::{DMat3, DQuat, DVec3, DVec4};
 
-use crate::cell::{CellSegment, PreparedTetrahedron, Ray, Tetrahedron};
-use crate::field::DensityGrid;
 use crate::image_metrics::LinearImage;
-use crate::optics::{OpticalMode, PremultipliedRgba};
-use crate::segment::exact_segment;
-use crate::transfer::TransferFunction;
+use nebel_core::cell::{CellSegment, PreparedTetrahedron, Ray, Tetrahedron};
+use nebel_core::field::DensityGrid;
+use nebel_core::optics::{OpticalMode, PremultipliedRgba};
+use nebel_core::segment::exact_segment;
+use nebel_core::transfer::TransferFunction;
 
 /// Default [`ReferenceScene::scalar_tolerance`]: the largest deviation, in
 /// scalar units, of the piecewise-linear scalar from the trilinear one.
@@ -845,7 +845,7 @@ fn march_grid(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::transfer::ControlPoint;
+    use nebel_core::transfer::ControlPoint;
 
     /// κ = (1, 0.5, 0.25) everywhere; ρ = 2 everywhere.
     fn constant_tf() -> TransferFunction {

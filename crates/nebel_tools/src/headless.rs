@@ -37,9 +37,9 @@ use bevy::winit::WinitPlugin;
 use nebel_render::{CellProjectionStats, EffectCounters, NebelFrameTimings};
 use thiserror::Error;
 
-use crate::NebelPlugins;
 use crate::scene_setup::SceneSetupPlugin;
 use crate::stats::{AdapterSummary, RenderStats, TimeSummary};
+use nebel::NebelPlugins;
 
 /// Frames to keep running after the last scene frame while the GPU read-back
 /// of the captured image completes (it takes one or two on every driver seen).

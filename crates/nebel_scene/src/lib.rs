@@ -1,9 +1,11 @@
-//! Scene files: a whole scene as data, in RON (DESIGN.md §1).
+//! nebel's scene files: a whole scene as data, in RON, without Bevy.
 //!
-//! The examples, the integration tests and the `nebel` command line all load the
-//! same files (`assets/scenes/*.ron`, `tests/scenes/*.ron`). This module is the
-//! schema, its loader and its validation; it knows nothing of Bevy, so the CPU
-//! reference renderer can read the same files.
+//! The integration tests and the `nebel` command line load the same files
+//! (`assets/scenes/*.ron`, `tests/scenes/*.ron`). This crate is the schema, its
+//! loader and its validation, builds the fields a scene describes
+//! ([`SceneDescription::build_volumes`], [`SceneDescription::build_terrain`]),
+//! and renders a scene's exact reference image ([`reference`]); it knows
+//! nothing of Bevy, so the CPU reference renderer reads the same files.
 //!
 //! # Schema, version 1
 //!
@@ -49,12 +51,12 @@
 //! `scenes/a.ron:4:9: field camera.fov_degrees: must be in (0, 180), got 190`.
 
 mod opaque;
+pub mod reference;
 mod terrain;
 mod volume;
 
 pub use terrain::{
-    MAX_TERRAIN_SIDE, PngTerrainSource, ProceduralTerrainSource, TerrainDescription,
-    TerrainHeightSource,
+    PngTerrainSource, ProceduralTerrainSource, TerrainDescription, TerrainHeightSource,
 };
 
 pub use volume::{
@@ -70,7 +72,7 @@ use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use crate::reference::ReferenceCamera;
+use nebel_reference::ReferenceCamera;
 
 /// The schema version this build reads and writes.
 pub const SCENE_VERSION: u32 = 1;
@@ -622,7 +624,7 @@ impl SceneDescription {
     pub fn build_terrain(
         &self,
         scene_path: &Path,
-    ) -> Result<Option<crate::field::HeightField>, SceneError> {
+    ) -> Result<Option<nebel_core::field::HeightField>, SceneError> {
         let Some(terrain) = &self.terrain else {
             return Ok(None);
         };
@@ -828,7 +830,7 @@ mod tests {
             volumes: vec![VolumeDescription {
                 source: VolumeSource::Procedural(ProceduralSource {
                     dims: [9, 5, 9],
-                    kind: crate::field::NoiseKind::Ridged,
+                    kind: nebel_core::field::NoiseKind::Ridged,
                     seed: 4,
                     octaves: 3,
                     frequency: 0.5,
@@ -838,14 +840,14 @@ mod tests {
                 min: [-2.0, 0.0, -2.0],
                 max: [2.0, 1.0, 2.0],
                 transfer: Some(TransferDescription::Points(vec![
-                    crate::transfer::ControlPoint {
+                    nebel_core::transfer::ControlPoint {
                         s: 0.5,
                         kappa: [1.0, 0.5, 0.2],
                         rho: 2.0,
                     },
                 ])),
                 density_scale: 0.5,
-                mode: Some(crate::optics::OpticalMode::Mip),
+                mode: Some(nebel_core::optics::OpticalMode::Mip),
                 lod: Some(LodDescription {
                     accuracy: 8.0,
                     min_accuracy: 3.0,
@@ -860,7 +862,7 @@ mod tests {
             terrain: Some(TerrainDescription {
                 source: TerrainHeightSource::Procedural(ProceduralTerrainSource {
                     dims: 65,
-                    kind: crate::field::NoiseKind::Ridged,
+                    kind: nebel_core::field::NoiseKind::Ridged,
                     seed: 3,
                     octaves: 5,
                     wavelength: 300.0,

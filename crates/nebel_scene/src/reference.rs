@@ -1,6 +1,6 @@
 //! The exact CPU reference of a scene, as `nebel reference` writes it.
 //!
-//! Every volume integrated by [`nebel_core::reference::render`] from the
+//! Every volume integrated by [`nebel_reference::render`] from the
 //! camera of the scene's last frame (an animated campfire at that frame's
 //! time), cut at the scene's meshes and, with
 //! [`reference_image_with_terrain`], at its terrain (the full-resolution
@@ -13,15 +13,13 @@ use std::path::Path;
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
+use crate::{BuiltVolume, LightModel, LightingDescription, SceneDescription, VolumeField};
 use glam::{DVec3, DVec4};
 use nebel_core::field::{CloudLighting, DensityGrid, HeightField, PadFill, light_field};
-use nebel_core::image_metrics::{ImageMetricsError, LinearImage, save_png, srgb_to_linear};
 use nebel_core::optics::{OpticalMode, henyey_greenstein};
-use nebel_core::reference::{
+use nebel_reference::image_metrics::{ImageMetricsError, LinearImage, save_png, srgb_to_linear};
+use nebel_reference::{
     Modulation, ReferenceCamera, ReferenceError, ReferenceScene, ReferenceVolume, RenderProgress,
-};
-use nebel_core::scene::{
-    BuiltVolume, LightModel, LightingDescription, SceneDescription, VolumeField,
 };
 
 /// Renders `volumes` of `scene` exactly; with `progress`, reports rows on
@@ -104,7 +102,7 @@ pub fn reference_image_with_terrain(
                 *last = Instant::now();
             }
         };
-        let mut image = nebel_core::reference::render(&reference_scene, Some(&report))?;
+        let mut image = nebel_reference::render(&reference_scene, Some(&report))?;
         if let Some(lighting) = volume.lighting
             && volume.mode == OpticalMode::Sorted
         {
@@ -210,7 +208,7 @@ fn background(scene: &SceneDescription) -> [f32; 3] {
 
 /// Writes a reference image as an 8-bit sRGB PNG.
 pub fn save_reference(
-    image: &nebel_core::image_metrics::LinearImage,
+    image: &nebel_reference::image_metrics::LinearImage,
     out: &Path,
 ) -> Result<(), ImageMetricsError> {
     save_png(image, out, [0.0; 3])

@@ -1,0 +1,18 @@
+//! nebel's exact CPU reference renderer and image error metrics, without Bevy.
+//!
+//! Accuracy is measured, not assumed: the GPU images of nebel are scored
+//! against an exact integral of the same optical model.
+//!
+//! - [`render`] and [`ReferenceScene`] (module `integrator`): the f64 CPU
+//!   reference renderer through a tetrahedral mesh or a trilinear grid, with
+//!   an optional segment-length modulator and opaque depth.
+//! - [`image_metrics`]: linear images, sRGB PNG input and output, RMSE,
+//!   maximum absolute error and PSNR, difference images.
+
+pub mod image_metrics;
+mod integrator;
+
+pub use integrator::{
+    DEFAULT_SCALAR_TOLERANCE, Modulation, ReferenceCamera, ReferenceError, ReferenceScene,
+    ReferenceVolume, RenderProgress, render,
+};

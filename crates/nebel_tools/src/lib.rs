@@ -1,0 +1,19 @@
+//! nebel's tools: what the `nebel` command line, the examples and the
+//! integration tests share, and nothing a game needs.
+//!
+//! - [`scene_setup`]: a scene file's contents spawned into a Bevy world.
+//! - [`headless`]: a scene rendered to a PNG with no window, through whatever
+//!   adapter wgpu finds (the CPU driver lavapipe included), and its
+//!   statistics ([`stats`]).
+//! - [`example_runner`]: what every example does: a window with a fly camera
+//!   ([`fly_camera`]), or a headless render when there is no display.
+//! - [`fog_comparison`] and [`lod_sweep`]: the `bench-fog` and `bench-lod`
+//!   commands.
+
+pub mod example_runner;
+pub mod fly_camera;
+pub mod fog_comparison;
+pub mod headless;
+pub mod lod_sweep;
+pub mod scene_setup;
+pub mod stats;
