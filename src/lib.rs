@@ -139,11 +139,11 @@ impl PluginGroup for NebelPlugins {
 /// `use nebel::prelude::*;` brings the plugins and the components a game spawns.
 pub mod prelude {
     pub use crate::NebelPlugins;
-    pub use nebel_render::{CellBatch, EffectCounters, NebelSystems};
+    pub use nebel_render::{CellBatch, HeavyBuilds, LodCamera, NebelSystems};
     #[cfg(feature = "terrain")]
     pub use nebel_terrain::{
-        Terrain, TerrainDebug, TerrainHeights, TerrainLodStats, TerrainNoise, TerrainPlugin,
-        TerrainSource, TerrainStatus,
+        Terrain, TerrainBuildError, TerrainDebug, TerrainHeights, TerrainLodStats, TerrainNoise,
+        TerrainPlugin, TerrainSource, TerrainStatus,
     };
     #[cfg(feature = "volume")]
     pub use nebel_volume::{

@@ -15,6 +15,7 @@ use glam::DVec4;
 /// How the segments of a ray combine into a pixel.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "bevy_reflect", derive(bevy_reflect::Reflect))]
 pub enum OpticalMode {
     /// Emission-absorption, back to front, premultiplied "over". Clouds, fog, smoke.
     #[default]

@@ -32,6 +32,7 @@ use thiserror::Error;
 /// One control point of a piecewise-linear transfer function.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "bevy_reflect", derive(bevy_reflect::Reflect))]
 pub struct ControlPoint {
     /// Scalar position in [0, 1].
     pub s: f32,
@@ -133,6 +134,7 @@ pub enum TransferError {
     derive(serde::Serialize, serde::Deserialize),
     serde(try_from = "RawTransferFunction")
 )]
+#[cfg_attr(feature = "bevy_reflect", derive(bevy_reflect::Reflect))]
 pub struct TransferFunction {
     points: Vec<ControlPoint>,
 }
@@ -159,6 +161,7 @@ impl TryFrom<RawTransferFunction> for TransferFunction {
 /// [`TransferFunction::scale_density`]. κ is linear RGB in [0, 1].
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "bevy_reflect", derive(bevy_reflect::Reflect))]
 pub enum TransferPreset {
     /// The paper's non-photorealistic cloud (000 §5, 001 §11.6.2): κ is an
     /// inverse colour ramp, white where the cloud is thin, darker bluish grey

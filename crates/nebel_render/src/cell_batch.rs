@@ -1,21 +1,22 @@
-//! The common currency of every volumetric effect: a batch of cells to draw
-//! (DESIGN.md §3).
+//! The common currency of every volumetric effect: a batch of cells to draw.
 //!
-//! An effect plugin (volumes, ground fog, ...) spawns an entity with a
-//! [`CellBatch`] and rewrites it when the view or its data changes; the
-//! cell-projection render system ([`crate::cell_projection`]) uploads it and
-//! draws it. A batch is drawn only while it has cells and a transfer function
-//! that is not transparent everywhere.
+//! An effect plugin (volumes, ...) gives an entity a [`CellBatch`] and
+//! rewrites it when the view or its data changes; the cell-projection render
+//! system ([`crate::cell_projection`]) uploads it again when Bevy's change
+//! detection says it changed, and draws it. A batch is drawn only while it has
+//! cells and a transfer function that is not transparent everywhere.
 
 use std::sync::Arc;
 
 use bevy::prelude::*;
+use bevy::render::render_resource::ShaderType;
 use nebel_core::optics::{OpticalMode, henyey_greenstein};
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::GpuCell;
 
 /// The sun and sky of a scattering batch ([`CellBatch::scattering`]).
 #[derive(Clone, Copy, Debug, PartialEq, Reflect)]
+#[reflect(Default, Clone)]
 pub struct CellScattering {
     /// Unit direction toward the sun, world space. Default `+Y`.
     pub sun_direction: Vec3,
@@ -56,30 +57,46 @@ impl CellScattering {
         ) as f32
     }
 
-    /// The uniform the shader reads: sun direction and `g`, sun colour,
-    /// ambient colour.
-    pub(crate) fn uniform(&self) -> [[f32; 4]; 3] {
-        [
-            self.sun_direction
+    /// The uniform the shader reads: the unit sun direction with `g` clamped
+    /// to ±0.99, the sun colour, the ambient colour.
+    pub(crate) fn uniform(&self) -> CellScatteringUniform {
+        CellScatteringUniform {
+            sun: self
+                .sun_direction
                 .normalize_or(Vec3::Y)
-                .extend(self.asymmetry.clamp(-0.99, 0.99))
-                .to_array(),
-            self.sun_colour.extend(0.0).to_array(),
-            self.ambient_colour.extend(0.0).to_array(),
-        ]
+                .extend(self.asymmetry.clamp(-0.99, 0.99)),
+            sun_colour: self.sun_colour.extend(0.0),
+            ambient_colour: self.ambient_colour.extend(0.0),
+        }
     }
 }
 
+/// [`CellScattering`] as the shader's `CellScattering` uniform.
+#[derive(Clone, Copy, Debug, Default, PartialEq, ShaderType)]
+pub(crate) struct CellScatteringUniform {
+    /// xyz: unit direction toward the sun; w: the asymmetry `g`.
+    pub sun: Vec4,
+    /// The sun colour; w unused.
+    pub sun_colour: Vec4,
+    /// The ambient colour; w unused.
+    pub ambient_colour: Vec4,
+}
+
 /// Cells in world space with one transfer function and one optical mode.
-#[derive(Component, Clone, Debug, Default)]
+///
+/// The render system uploads the cells again whenever the component changed
+/// (Bevy's change detection: any mutable access counts), so write it only
+/// when the cells did change.
+#[derive(Component, Clone, Debug, Default, Reflect)]
+#[reflect(Component, Default, Clone)]
 pub struct CellBatch {
     /// Tetrahedra in world space, scalar in `w`, in draw order: back to front
-    /// for [`OpticalMode::Sorted`], any order for the other modes.
+    /// for [`OpticalMode::Sorted`], any order for the other modes. Default:
+    /// none.
+    #[reflect(ignore)]
     pub cells: Arc<Vec<GpuCell>>,
-    /// Increase it whenever `cells` changes: the GPU copy is replaced only
-    /// when the generation differs from the uploaded one. Default: 0.
-    pub generation: u64,
     /// κ and ρ over the scalar; `None` draws nothing. Default: `None`.
+    #[reflect(ignore)]
     pub transfer_function: Option<Arc<TransferFunction>>,
     /// How the cells' segments combine. Default: [`OpticalMode::Sorted`].
     pub mode: OpticalMode,
@@ -90,6 +107,7 @@ pub struct CellBatch {
     /// segments; a list whose length differs from `cells` is refused by the
     /// render system (the batch is not drawn and an error is logged).
     /// Default: `None`.
+    #[reflect(ignore)]
     pub modulators: Option<Arc<Vec<[f32; 4]>>>,
     /// Single scattering of the sun (paper 003; only for
     /// [`OpticalMode::Sorted`]): the transfer function's colour is read as
@@ -103,9 +121,11 @@ pub struct CellBatch {
     /// longest cell diameter); the pre-integration table covers 0 to this
     /// length. Default: 0 (computed by [`CellBatch::new`]).
     pub max_segment_length: f32,
-    /// Minimum corner of the cells' world bounds.
+    /// Minimum corner of the cells' world bounds, world units. Default: the
+    /// origin.
     pub bounds_min: Vec3,
-    /// Maximum corner of the cells' world bounds.
+    /// Maximum corner of the cells' world bounds, world units. Default: the
+    /// origin.
     pub bounds_max: Vec3,
 }
 
@@ -115,7 +135,6 @@ impl CellBatch {
         cells: Vec<GpuCell>,
         transfer_function: Arc<TransferFunction>,
         mode: OpticalMode,
-        generation: u64,
     ) -> Self {
         let mut bounds_min = Vec3::splat(f32::INFINITY);
         let mut bounds_max = Vec3::splat(f32::NEG_INFINITY);
@@ -132,7 +151,6 @@ impl CellBatch {
         }
         Self {
             cells: Arc::new(cells),
-            generation,
             transfer_function: Some(transfer_function),
             mode,
             modulators: None,
@@ -173,6 +191,6 @@ mod tests {
             ..default()
         };
         assert!(scattering.phase(Vec3::Z) > 100.0 * scattering.phase(Vec3::NEG_Z));
-        assert_eq!(scattering.uniform()[0], [0.0, 0.0, 1.0, 0.99]);
+        assert_eq!(scattering.uniform().sun, Vec4::new(0.0, 0.0, 1.0, 0.99));
     }
 }

@@ -4,15 +4,20 @@
 //! share on the Bevy side:
 //!
 //! - [`cell_batch`]: the [`CellBatch`] component, the cells an effect wants drawn.
-//! - [`cell_projection`]: the render system that draws them, exact per pixel.
+//! - [`cell_projection`]: the render feature that draws them, exact per pixel.
+//! - [`builds`]: heavy builds on the task pool ([`HeavyBuilds`]).
+//! - [`camera`]: the camera that drives the level of detail ([`LodCamera`]).
 //! - [`diagnostics`]: the [`NebelSystems`] set that every per-frame nebel system
-//!   joins, the CPU time that set takes each frame, and the per-effect counters
-//!   that `nebel render --stats` reports.
+//!   joins and the CPU time that set takes each frame.
 
+pub mod builds;
+pub mod camera;
 pub mod cell_batch;
 pub mod cell_projection;
 pub mod diagnostics;
 
+pub use builds::{HeavyBuild, HeavyBuilds};
+pub use camera::{LodCamera, LodCameras, LodView};
 pub use cell_batch::{CellBatch, CellScattering};
 pub use cell_projection::{CellProjectionPlugin, CellProjectionStats};
-pub use diagnostics::{EffectCounters, NebelDiagnosticsPlugin, NebelFrameTimings, NebelSystems};
+pub use diagnostics::{NebelDiagnosticsPlugin, NebelSystems};

@@ -14,6 +14,8 @@
 //! for. Use 16-bit maps for terrain; 8 bits give 256 height steps, visible
 //! as terraces on gentle slopes.
 
+use std::sync::Arc;
+
 use bevy::asset::io::Reader;
 use bevy::asset::{AssetLoader, LoadContext};
 use bevy::prelude::*;
@@ -27,8 +29,10 @@ pub struct TerrainHeights {
     pub dims: UVec2,
     /// `dims.x · dims.y` unit heights, point `(i, j)` at `i + dims.x · j`;
     /// usually in [0, 1], any finite value works (the terrain plugin refuses
-    /// NaN and infinities, naming the point).
-    pub values: Vec<f32>,
+    /// NaN and infinities, naming the point). Shared, so the background
+    /// build of the quadtree reads them without a copy; change them with
+    /// `Arc::make_mut`.
+    pub values: Arc<Vec<f32>>,
 }
 
 impl TerrainHeights {
@@ -37,7 +41,7 @@ impl TerrainHeights {
         let [nx, nz] = field.dims();
         Self {
             dims: UVec2::new(nx as u32, nz as u32),
-            values: field.heights().to_vec(),
+            values: Arc::new(field.heights().to_vec()),
         }
     }
 
@@ -62,7 +66,10 @@ impl TerrainHeights {
                 });
             }
         };
-        Ok(Self { dims, values })
+        Ok(Self {
+            dims,
+            values: Arc::new(values),
+        })
     }
 }
 
@@ -129,7 +136,7 @@ mod tests {
 
         let eight = image::GrayImage::from_raw(2, 2, vec![0, 255, 51, 0]).unwrap();
         let heights = TerrainHeights::from_png_bytes(&png(eight.into())).unwrap();
-        assert_eq!(heights.values, vec![0.0, 1.0, 0.2, 0.0]);
+        assert_eq!(*heights.values, vec![0.0, 1.0, 0.2, 0.0]);
 
         let colour = image::RgbImage::from_raw(1, 1, vec![1, 2, 3]).unwrap();
         let error = TerrainHeights::from_png_bytes(&png(colour.into())).unwrap_err();

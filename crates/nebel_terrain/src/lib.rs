@@ -14,6 +14,8 @@
 //!   and normals) and culls by the view frustum; the mesh's positions are
 //!   relative to the entity, whose `Transform` places the terrain, so a
 //!   terrain 100 km from the world origin keeps its precision;
+//! - the quadtree is built on Bevy's task pool and appears when ready
+//!   ([`build`]);
 //! - the mesh is rebuilt only when the eye moved or turned enough or the
 //!   terrain changed, into the same buffers ([`update`]);
 //! - the default material shades by height and slope (grass, rock, snow) in
@@ -21,8 +23,8 @@
 //!   triangle edges ([`TerrainDebug`], [`shading`]).
 //!
 //! [`TerrainStatus`] tells whether the terrain is loading, drawn or failed
-//! (and why), [`TerrainLodStats`] its triangles and timings; the `terrain`
-//! group of `EffectCounters` sums them for `nebel render --stats`.
+//! (and why: [`TerrainBuildError`]), [`TerrainLodStats`] its triangles and
+//! timings; the `nebel/terrain/*` diagnostics of [`TerrainPlugin`] sum them.
 //!
 //! ```no_run
 //! use bevy::prelude::*;
@@ -41,11 +43,14 @@
 //!
 //! [`Mesh`]: bevy::prelude::Mesh
 
+pub mod build;
+pub mod error;
 pub mod heights;
 pub mod shading;
 pub mod terrain;
 pub mod update;
 
+pub use error::TerrainBuildError;
 pub use heights::{TerrainHeights, TerrainHeightsError, TerrainHeightsLoader};
 pub use terrain::{
     Terrain, TerrainDebug, TerrainLodStats, TerrainPlugin, TerrainSource, TerrainStatus,

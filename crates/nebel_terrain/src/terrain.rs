@@ -15,45 +15,78 @@
 //!
 //! Building the quadtree ([`nebel_lod::TerrainHierarchy`]) happens when the
 //! terrain appears, when its source or one of `spacing`, `vertical_scale`
-//! and `min_accuracy` changes, and when its height asset is modified. It runs
-//! on the main thread in the frame it is needed (about 4 ms for 513², 16 ms
-//! for 1025², 65 ms for 2049² plus the generator's time), so the first frame
-//! already shows the terrain. What happens every frame is in
+//! and `min_accuracy` changes, and when its height asset is modified
+//! ([`crate::build`]). It takes about 4 ms for 513², 65 ms for 2049² and a
+//! quarter of a second for 4097², plus the generator's time, so it runs on
+//! Bevy's `AsyncComputeTaskPool` and the terrain appears (or changes) in the
+//! first frame after it is done ([`HeavyBuilds`](nebel_render::HeavyBuilds)
+//! can make the frame wait instead). What happens every frame is in
 //! [`crate::update`].
 
-use std::sync::Arc;
-
+use bevy::diagnostic::{Diagnostic, DiagnosticPath, RegisterDiagnostic};
 use bevy::prelude::*;
-use nebel_core::field::{HeightField, TerrainNoise};
-use nebel_lod::TerrainHierarchy;
-use nebel_lod::quadtree::{
-    DEFAULT_ACCURACY, DEFAULT_MIN_RESOLUTION, MAX_TERRAIN_SIDE, pad_to_power_of_two_plus_one,
-};
-use nebel_render::NebelSystems;
+use nebel_core::field::TerrainNoise;
+use nebel_lod::quadtree::{DEFAULT_ACCURACY, DEFAULT_MIN_RESOLUTION};
+use nebel_render::{HeavyBuilds, LodCamera, NebelSystems};
 
+use crate::build::{TerrainLod, finish_terrain_builds, start_terrain_builds};
+use crate::error::TerrainBuildError;
 use crate::heights::{TerrainHeights, TerrainHeightsLoader};
-use crate::update::TerrainLod;
+use crate::update::{measure_terrains, update_terrain_meshes};
 
 /// Adds [`Terrain`], the [`TerrainHeights`] asset and its PNG loader, and the
-/// terrain's system (in [`PostUpdate`], see [`crate::update`]).
+/// terrain's systems (in [`PostUpdate`], see [`crate::build`] and
+/// [`crate::update`]) and diagnostics.
 ///
 /// Needs Bevy's `AssetPlugin` before it (part of `DefaultPlugins`); the
 /// terrain's mesh and material live in `Assets<Mesh>` and
 /// `Assets<StandardMaterial>` (Bevy's `PbrPlugin`). A world without a
-/// [`Terrain`] runs no terrain work: the system returns at once.
+/// [`Terrain`] runs no terrain work: every system returns at once.
 #[derive(Default)]
 pub struct TerrainPlugin;
+
+impl TerrainPlugin {
+    /// Terrains in the world.
+    pub const TERRAINS: DiagnosticPath = DiagnosticPath::const_new("nebel/terrain/terrains");
+    /// Triangles of the level of detail, all terrains.
+    pub const TRIANGLES: DiagnosticPath = DiagnosticPath::const_new("nebel/terrain/triangles");
+    /// Vertices of the level of detail, all terrains.
+    pub const VERTICES: DiagnosticPath = DiagnosticPath::const_new("nebel/terrain/vertices");
+    /// Mesh rebuilds so far, all terrains.
+    pub const UPDATES: DiagnosticPath = DiagnosticPath::const_new("nebel/terrain/updates");
+    /// Time of the mesh rebuilds of a frame that rebuilt one (refinement,
+    /// morphing, triangle output and the copy into the Bevy mesh), ms.
+    pub const UPDATE_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/terrain/update_ms");
+    /// The part of it the quadtree's refinement and triangle output took, ms.
+    pub const REFINE_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/terrain/refine_ms");
+    /// Time of the last quadtree build (on the task pool), ms.
+    pub const BUILD_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/terrain/build_ms");
+    /// Grid points of all quadtrees.
+    pub const POINTS: DiagnosticPath = DiagnosticPath::const_new("nebel/terrain/points");
+    /// Bytes the quadtrees hold per grid point.
+    pub const BYTES_PER_POINT: DiagnosticPath =
+        DiagnosticPath::const_new("nebel/terrain/bytes_per_point");
+}
 
 impl Plugin for TerrainPlugin {
     fn build(&self, app: &mut App) {
         app.init_asset::<TerrainHeights>()
             .register_asset_loader(TerrainHeightsLoader)
+            .init_resource::<HeavyBuilds>()
             .register_type::<Terrain>()
             .register_type::<TerrainStatus>()
             .register_type::<TerrainLodStats>()
+            .register_type::<LodCamera>()
+            .register_type::<HeavyBuilds>()
             .add_systems(
                 PostUpdate,
-                crate::update::update_terrains
+                (
+                    start_terrain_builds,
+                    finish_terrain_builds,
+                    update_terrain_meshes,
+                    measure_terrains,
+                )
+                    .chain()
                     .in_set(NebelSystems)
                     // This frame's camera: after its transform and projection.
                     .after(TransformSystems::Propagate)
@@ -61,6 +94,19 @@ impl Plugin for TerrainPlugin {
                     .after(bevy::camera::visibility::VisibilitySystems::VisibilityPropagate)
                     .before(bevy::camera::visibility::VisibilitySystems::CheckVisibility),
             );
+        for (path, suffix) in [
+            (Self::TERRAINS, ""),
+            (Self::TRIANGLES, ""),
+            (Self::VERTICES, ""),
+            (Self::UPDATES, ""),
+            (Self::UPDATE_MS, " ms"),
+            (Self::REFINE_MS, " ms"),
+            (Self::BUILD_MS, " ms"),
+            (Self::POINTS, ""),
+            (Self::BYTES_PER_POINT, " B"),
+        ] {
+            app.register_diagnostic(Diagnostic::new(path).with_suffix(suffix));
+        }
     }
 }
 
@@ -76,7 +122,6 @@ pub enum TerrainSource {
         size: u32,
         /// Noise kind, seed, octaves, first wavelength (local units),
         /// persistence and the valley exponent; see [`TerrainNoise`].
-        #[reflect(ignore)]
         noise: TerrainNoise,
     },
 }
@@ -85,6 +130,7 @@ pub enum TerrainSource {
 /// material's height and slope colours; both work with a custom material
 /// too (its base colour multiplies them).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Reflect)]
+#[reflect(Default, Clone)]
 pub struct TerrainDebug {
     /// Colour each triangle by its quadtree level (a hue per level, coarse
     /// to fine). Default false.
@@ -159,17 +205,19 @@ impl Default for Terrain {
 
 /// What became of a [`Terrain`]'s heights: read it to show a loading screen
 /// or an error.
-#[derive(Component, Clone, Debug, Default, PartialEq, Eq, Reflect)]
-#[reflect(Component, Default)]
+#[derive(Component, Clone, Debug, Default, PartialEq, Reflect)]
+#[reflect(Component, Default, Clone)]
 pub enum TerrainStatus {
-    /// Waiting for the height asset (or for the first frame with a camera).
+    /// Waiting for the height asset or for the quadtree's build on the task
+    /// pool (the previous quadtree, if any, is drawn meanwhile).
     #[default]
     Pending,
-    /// The quadtree is built; the entity has its mesh.
+    /// The quadtree is built; the entity has its mesh once a camera sees it.
     Ready,
-    /// The heights or settings are unusable: the reason. Logged once, the
-    /// entity has no mesh; changing the terrain or its asset tries again.
-    Failed(String),
+    /// The heights or settings are unusable: why. Logged once per entity;
+    /// the entity has no mesh and nothing is rebuilt until the terrain or
+    /// its asset changes.
+    Failed(TerrainBuildError),
 }
 
 /// Statistics of a [`Terrain`]'s level of detail, updated by the plugin.
@@ -199,121 +247,3 @@ pub struct TerrainLodStats {
     /// Nodes skipped with their subtree by frustum culling.
     pub culled_nodes: u32,
 }
-
-/// The settings a quadtree is built from; the quadtree is rebuilt when they
-/// change.
-#[derive(Clone, Debug, PartialEq)]
-pub(crate) struct BuildKey {
-    pub source: TerrainSource,
-    pub spacing: f32,
-    pub vertical_scale: f32,
-    pub min_accuracy: f32,
-}
-
-impl BuildKey {
-    pub fn of(terrain: &Terrain) -> Self {
-        Self {
-            source: terrain.source.clone(),
-            spacing: terrain.spacing,
-            vertical_scale: terrain.vertical_scale,
-            min_accuracy: terrain.min_accuracy,
-        }
-    }
-}
-
-/// Unit heights as the sources give them: points per axis and values.
-pub(crate) struct UnitHeights<'a> {
-    pub dims: [usize; 2],
-    pub values: std::borrow::Cow<'a, [f32]>,
-}
-
-impl Terrain {
-    /// The unit heights of a procedural source, or `None` for an asset.
-    pub(crate) fn generate(&self) -> Option<Result<UnitHeights<'static>, String>> {
-        let TerrainSource::Procedural { size, noise } = &self.source else {
-            return None;
-        };
-        let size = *size as usize;
-        if !(2..=MAX_TERRAIN_SIDE).contains(&size) {
-            return Some(Err(format!(
-                "a procedural terrain of {size} points per side: it must have 2 to {MAX_TERRAIN_SIDE}"
-            )));
-        }
-        if !(self.spacing.is_finite() && self.spacing > 0.0) {
-            return Some(Err(spacing_error(self.spacing)));
-        }
-        Some(
-            HeightField::terrain([size; 2], f64::from(self.spacing), noise)
-                .map(|field| UnitHeights {
-                    dims: [size; 2],
-                    values: field.heights().to_vec().into(),
-                })
-                .map_err(|error| error.to_string()),
-        )
-    }
-
-    /// Checks the settings, scales `unit` and builds the quadtree (see the
-    /// module docs). The error is a sentence naming the setting or the grid
-    /// point at fault.
-    pub(crate) fn build_hierarchy(&self, unit: &UnitHeights) -> Result<TerrainHierarchy, String> {
-        if !(self.spacing.is_finite() && self.spacing > 0.0) {
-            return Err(spacing_error(self.spacing));
-        }
-        if !self.vertical_scale.is_finite() {
-            return Err(format!(
-                "vertical_scale = {} is invalid: it must be finite",
-                self.vertical_scale
-            ));
-        }
-        if !(self.accuracy.is_finite() && self.accuracy > 0.0) {
-            return Err(format!(
-                "accuracy c = {} is invalid: it must be finite and positive",
-                self.accuracy
-            ));
-        }
-        let [nx, nz] = unit.dims;
-        if nx < 2 || nz < 2 {
-            return Err(format!(
-                "the height map has {nx} × {nz} points; a terrain needs at least 2 × 2"
-            ));
-        }
-        if nx.max(nz) > MAX_TERRAIN_SIDE {
-            return Err(format!(
-                "the height map has {nx} × {nz} points; the largest terrain side is {MAX_TERRAIN_SIDE}"
-            ));
-        }
-        if unit.values.len() != nx * nz {
-            return Err(format!(
-                "the height map is {nx} × {nz} points but holds {} values",
-                unit.values.len()
-            ));
-        }
-        let scale = self.vertical_scale;
-        let mut heights = Vec::with_capacity(nx * nz);
-        for (index, &value) in unit.values.iter().enumerate() {
-            let height = value * scale;
-            if !height.is_finite() {
-                return Err(format!(
-                    "height at grid point ({}, {}) is {} ({value} × vertical_scale {scale}); every height must be finite",
-                    index % nx,
-                    index / nx,
-                    height
-                ));
-            }
-            heights.push(height);
-        }
-        let spacing = f64::from(self.spacing);
-        let half = bevy::math::DVec2::new((nx - 1) as f64, (nz - 1) as f64) * spacing / 2.0;
-        let field = HeightField::new([nx, nz], bevy::math::DVec2::splat(spacing), -half, heights)
-            .map_err(|error| error.to_string())?;
-        let padded = pad_to_power_of_two_plus_one(&field).map_err(|error| error.to_string())?;
-        TerrainHierarchy::new(padded, self.min_accuracy).map_err(|error| error.to_string())
-    }
-}
-
-fn spacing_error(spacing: f32) -> String {
-    format!("spacing = {spacing} is invalid: it must be finite and positive")
-}
-
-/// A built quadtree, shared cheaply.
-pub(crate) type SharedHierarchy = Arc<TerrainHierarchy>;

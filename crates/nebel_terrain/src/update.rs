@@ -1,11 +1,12 @@
-//! The terrain's per-frame system: build the quadtree when the heights or
-//! settings change, refine it for the camera when the view changed enough,
-//! and copy the result into the entity's Bevy mesh.
+//! The terrain's per-frame systems: refine the quadtree for the camera when
+//! the view changed enough, copy the result into the entity's Bevy mesh, and
+//! measure (the quadtree itself is built in [`crate::build`]).
 //!
 //! # When the mesh is rebuilt
 //!
-//! The mesh is refined for the eye of the first active 3D camera, in the
-//! terrain's local frame, in [`PostUpdate`] after transform propagation and
+//! The mesh is refined for the eye of the camera that drives the level of
+//! detail ([`nebel_render::LodCamera`], or the first active 3D camera), in
+//! the terrain's local frame, in [`PostUpdate`] after transform propagation and
 //! the camera's projection update, so it matches the frame being drawn. It
 //! is rebuilt when
 //!
@@ -42,44 +43,42 @@
 //!
 //! Unusable input (a height map that failed to load, too small or too
 //! large, NaN or infinite heights, a bad spacing, vertical scale, `c` or
-//! `C`) sets [`TerrainStatus::Failed`] with the reason, logs it once as an
-//! error and leaves the entity without a mesh; nothing panics. Changing the
-//! terrain or its height asset tries again.
+//! `C`) sets [`TerrainStatus::Failed`] with the reason
+//! ([`TerrainBuildError`](crate::TerrainBuildError)), logs it once per entity
+//! as an error and leaves the entity without a mesh; nothing panics.
+//! Changing the terrain or its height asset tries again.
 //!
 //! # Diagnostics
 //!
-//! The `terrain` group of [`EffectCounters`]: `terrains`, `triangles` and
-//! `vertices` (of the level of detail, all terrains), `updates` (mesh
-//! rebuilds so far), `update_ms` (the last frame that rebuilt a mesh:
-//! refinement, morphing, triangle output and the copy into the Bevy mesh;
-//! `update_ms_mean` and `update_ms_max` over every frame that rebuilt one;
-//! `refine_ms`, the part of the last that `TerrainHierarchy::update` took),
-//! `build_ms` (the last quadtree build), `points` (grid points of all
+//! The `nebel/terrain/*` diagnostics of [`TerrainPlugin`](crate::TerrainPlugin):
+//! `terrains`, `triangles` and `vertices` (of the level of detail, all
+//! terrains), `updates` (mesh rebuilds so far), `update_ms` (each frame that
+//! rebuilt a mesh: refinement, morphing, triangle output and the copy into
+//! the Bevy mesh), `refine_ms` (the part of it `TerrainHierarchy::update`
+//! took), `build_ms` (each quadtree build), `points` (grid points of all
 //! quadtrees) and `bytes_per_point`. Per terrain the same figures are in
-//! [`TerrainLodStats`]. A world without a terrain has no `terrain` group.
+//! [`TerrainLodStats`]. A world without a terrain measures none of them.
 
-use std::borrow::Cow;
-use std::sync::Arc;
 use std::time::Instant;
 
-use bevy::asset::LoadState;
 use bevy::camera::primitives::Aabb;
 use bevy::camera::visibility::NoAutoAabb;
+use bevy::diagnostic::Diagnostics;
+use bevy::ecs::system::SystemParam;
 use bevy::math::{DAffine3, DMat4, DVec3};
 use bevy::prelude::*;
+use nebel_lod::Frustum;
 use nebel_lod::quadtree::{LodSettings, TriangleOrder};
-use nebel_lod::{Frustum, TerrainMesh};
-use nebel_render::EffectCounters;
+use nebel_render::camera::to_double;
+use nebel_render::{LodCameras, LodView};
 
-use crate::heights::TerrainHeights;
+use crate::build::{TerrainLod, bounds};
 use crate::shading::{Colouring, Palette, default_material, empty_mesh, write_mesh};
-use crate::terrain::{
-    BuildKey, SharedHierarchy, Terrain, TerrainLodStats, TerrainSource, TerrainStatus, UnitHeights,
-};
+use crate::terrain::{Terrain, TerrainLodStats, TerrainPlugin, TerrainStatus};
 
 /// The view a mesh was refined for.
 #[derive(Clone, Copy, Debug, PartialEq)]
-struct View {
+pub(crate) struct MeshView {
     /// The eye in the terrain's local frame.
     eye: DVec3,
     /// The camera's orientation in the world.
@@ -90,22 +89,6 @@ struct View {
     world_from_local: DAffine3,
 }
 
-/// A terrain's quadtree, its reusable LOD buffers and its mesh.
-#[derive(Component, Default)]
-pub(crate) struct TerrainLod {
-    /// What the quadtree (or the failure) was built from.
-    key: Option<BuildKey>,
-    hierarchy: Option<SharedHierarchy>,
-    /// The LOD output, reused every rebuild.
-    lod: TerrainMesh,
-    mesh: Option<Handle<Mesh>>,
-    view: Option<View>,
-}
-
-fn to_double(matrix: Mat4) -> DMat4 {
-    DMat4::from_cols_array(&matrix.to_cols_array().map(f64::from))
-}
-
 fn affine(transform: &GlobalTransform) -> DAffine3 {
     DAffine3::from_mat4(to_double(transform.to_matrix()))
 }
@@ -113,18 +96,17 @@ fn affine(transform: &GlobalTransform) -> DAffine3 {
 /// The culling frustum in the terrain's local frame (see the module docs);
 /// `None` culls nothing.
 fn culling_frustum(
-    clip_from_view: Mat4,
-    camera: &GlobalTransform,
+    view: &LodView,
     world_from_local: &DAffine3,
     margin: f64,
     angle: f64,
 ) -> Option<Frustum> {
-    if clip_from_view.row(3).z == 0.0 {
+    if view.clip_from_view.row(3).z == 0.0 {
         // Orthographic: the side planes are parallel to the view.
         return None;
     }
-    let world_from_view = affine(camera);
-    let clip_from_world = to_double(clip_from_view) * DMat4::from(world_from_view.inverse());
+    let world_from_view = affine(&view.world_from_view);
+    let clip_from_world = to_double(view.clip_from_view) * DMat4::from(world_from_view.inverse());
     let exact = Frustum::from_view_projection(clip_from_world).ok()?;
     let eye = world_from_view.translation;
     let forward = world_from_view.matrix3 * DVec3::NEG_Z;
@@ -140,31 +122,31 @@ fn culling_frustum(
     Some(frustum.in_local_frame(world_from_local))
 }
 
-/// Records a failure: status, one log line per new reason, no mesh.
-fn fail(
-    commands: &mut Commands,
-    entity: Entity,
-    status: &mut TerrainStatus,
-    state: &mut TerrainLod,
-    reason: String,
-) {
-    if *status != TerrainStatus::Failed(reason.clone()) {
-        error!("nebel: terrain {entity} not drawn: {reason}");
-        *status = TerrainStatus::Failed(reason);
-    }
-    state.hierarchy = None;
-    state.view = None;
-    if state.mesh.take().is_some() {
-        commands
-            .entity(entity)
-            .remove::<(Mesh3d, MeshMaterial3d<StandardMaterial>, Aabb, NoAutoAabb)>();
+/// The meshes and materials the terrain systems write.
+#[derive(SystemParam)]
+pub(crate) struct TerrainAssets<'w, 's> {
+    meshes: ResMut<'w, Assets<Mesh>>,
+    materials: ResMut<'w, Assets<StandardMaterial>>,
+    default_material: Local<'s, Option<Handle<StandardMaterial>>>,
+    palette: Local<'s, Palette>,
+}
+
+impl TerrainAssets<'_, '_> {
+    /// The default terrain material, made on first use.
+    fn default_material(&mut self) -> Handle<StandardMaterial> {
+        let materials = &mut self.materials;
+        self.default_material
+            .get_or_insert_with(|| materials.add(default_material()))
+            .clone()
     }
 }
 
-#[allow(clippy::too_many_arguments, clippy::type_complexity)]
-pub(crate) fn update_terrains(
+/// Refines every visible terrain with a quadtree for the camera when the
+/// view changed enough, and writes its mesh (see the module docs).
+#[allow(clippy::type_complexity)]
+pub(crate) fn update_terrain_meshes(
     mut commands: Commands,
-    cameras: Query<(&Camera, &GlobalTransform), With<Camera3d>>,
+    cameras: LodCameras,
     mut terrains: Query<(
         Entity,
         Ref<Terrain>,
@@ -174,111 +156,30 @@ pub(crate) fn update_terrains(
         &mut TerrainLodStats,
         &mut TerrainLod,
     )>,
-    heights: Res<Assets<TerrainHeights>>,
-    mut height_events: MessageReader<AssetEvent<TerrainHeights>>,
-    asset_server: Res<AssetServer>,
-    mut meshes: ResMut<Assets<Mesh>>,
-    mut materials: ResMut<Assets<StandardMaterial>>,
-    mut default_handle: Local<Option<Handle<StandardMaterial>>>,
-    palette: Local<Palette>,
-    mut update_times: Local<(u64, f64, f64)>,
-    mut counters: ResMut<EffectCounters>,
+    mut assets: TerrainAssets,
+    mut diagnostics: Diagnostics,
 ) {
     if terrains.is_empty() {
         return;
     }
-    let modified: Vec<AssetId<TerrainHeights>> = height_events
-        .read()
-        .filter_map(|event| match event {
-            AssetEvent::Modified { id } => Some(*id),
-            _ => None,
-        })
-        .collect();
-    let camera = cameras
-        .iter()
-        .find(|(camera, _)| camera.is_active)
-        // The projection is computed in the camera's first PostUpdate; a
-        // mesh culled with the placeholder would be wrong.
-        .filter(|(camera, _)| camera.physical_target_size().is_some());
-
-    let mut frame_update_ms = None;
-    let mut frame_refine_ms = None;
-    let mut frame_build_ms = None;
+    let Some(camera) = cameras.view() else {
+        return;
+    };
+    let (mut frame_update_ms, mut frame_refine_ms) = (None, None);
     for (entity, terrain, transform, visibility, mut status, mut stats, mut state) in &mut terrains
     {
         let state = &mut *state;
-        let key = BuildKey::of(&terrain);
-        let asset_modified = matches!(&terrain.source,
-            TerrainSource::Heights(handle) if modified.contains(&handle.id()));
-        if state.key.as_ref() != Some(&key) || asset_modified {
-            let unit = match &terrain.source {
-                TerrainSource::Heights(handle) => match heights.get(handle) {
-                    Some(asset) => Ok(UnitHeights {
-                        dims: [asset.dims.x as usize, asset.dims.y as usize],
-                        values: Cow::Borrowed(&asset.values),
-                    }),
-                    None => match asset_server.get_load_state(handle.id()) {
-                        Some(LoadState::Failed(error)) => Err(format!(
-                            "cannot load the height map {}: {error}",
-                            handle
-                                .path()
-                                .map_or_else(|| String::from("(no path)"), ToString::to_string)
-                        )),
-                        _ => {
-                            // Still loading: try again next frame.
-                            *status = TerrainStatus::Pending;
-                            continue;
-                        }
-                    },
-                },
-                TerrainSource::Procedural { .. } => {
-                    terrain.generate().expect("a procedural source generates")
-                }
-            };
-            state.key = Some(key);
-            let started = Instant::now();
-            match unit.and_then(|unit| terrain.build_hierarchy(&unit)) {
-                Ok(hierarchy) => {
-                    let build_ms = started.elapsed().as_secs_f32() * 1e3;
-                    *stats = TerrainLodStats {
-                        points_per_side: hierarchy.size() as u32,
-                        bytes_per_point: hierarchy.bytes_per_point() as f32,
-                        build_ms,
-                        updates: stats.updates,
-                        ..default()
-                    };
-                    frame_build_ms = Some(build_ms);
-                    state.hierarchy = Some(Arc::new(hierarchy));
-                    state.view = None;
-                    if state.mesh.is_some() {
-                        // A new extent: new bounds.
-                        let aabb = bounds(state.hierarchy.as_ref().expect("just built"));
-                        commands.entity(entity).insert(aabb);
-                    }
-                    *status = TerrainStatus::Ready;
-                }
-                Err(reason) => {
-                    fail(&mut commands, entity, &mut status, state, reason);
-                    continue;
-                }
-            }
-        }
         let Some(hierarchy) = state.hierarchy.clone() else {
             continue;
         };
         if !visibility.get() {
             continue;
         }
-        let Some((camera, camera_transform)) = camera else {
-            continue;
-        };
-
         let world_from_local = affine(transform);
-        let eye_world = camera_transform.translation().as_dvec3();
-        let view = View {
-            eye: world_from_local.inverse().transform_point3(eye_world),
-            rotation: camera_transform.rotation(),
-            clip_from_view: camera.clip_from_view(),
+        let view = MeshView {
+            eye: world_from_local.inverse().transform_point3(camera.eye),
+            rotation: camera.rotation,
+            clip_from_view: camera.clip_from_view,
             world_from_local,
         };
         let delta = f64::from(terrain.update_distance.max(0.0) * terrain.spacing);
@@ -300,13 +201,7 @@ pub(crate) fn update_terrains(
             .iter()
             .map(|column| DVec3::from(*column).length())
             .fold(0.0, f64::max);
-        let frustum = culling_frustum(
-            view.clip_from_view,
-            camera_transform,
-            &world_from_local,
-            delta * scale,
-            f64::from(alpha),
-        );
+        let frustum = culling_frustum(&camera, &world_from_local, delta * scale, f64::from(alpha));
         let settings = LodSettings {
             accuracy: terrain.accuracy,
             morph: terrain.morph,
@@ -322,17 +217,28 @@ pub(crate) fn update_terrains(
             Ok(lod_stats) => lod_stats,
             Err(error) => {
                 // The quadtree stays; a new setting or view may fix it.
-                let reason = error.to_string();
-                fail(&mut commands, entity, &mut status, state, reason);
-                state.hierarchy = Some(hierarchy);
+                let error = crate::TerrainBuildError::from(error);
+                if *status != TerrainStatus::Failed(error.clone()) {
+                    error!("nebel: terrain {entity} not drawn: {error}");
+                    *status = TerrainStatus::Failed(error);
+                }
+                state.view = None;
+                if state.mesh.take().is_some() {
+                    commands.entity(entity).remove::<(
+                        Mesh3d,
+                        MeshMaterial3d<StandardMaterial>,
+                        Aabb,
+                        NoAutoAabb,
+                    )>();
+                }
                 continue;
             }
         };
         *status = TerrainStatus::Ready;
-        let default_material = default_handle
-            .get_or_insert_with(|| materials.add(default_material()))
-            .clone();
-        let material = terrain.material.clone().unwrap_or(default_material);
+        let material = terrain
+            .material
+            .clone()
+            .unwrap_or_else(|| assets.default_material());
         let handle = match &state.mesh {
             Some(handle) => {
                 if terrain.is_changed() {
@@ -343,7 +249,7 @@ pub(crate) fn update_terrains(
                 handle.clone()
             }
             None => {
-                let handle = meshes.add(empty_mesh());
+                let handle = assets.meshes.add(empty_mesh());
                 commands.entity(entity).insert((
                     Mesh3d(handle.clone()),
                     MeshMaterial3d(material.clone()),
@@ -359,11 +265,11 @@ pub(crate) fn update_terrains(
             palette: terrain
                 .material
                 .is_none()
-                .then_some((&*palette, [low, high])),
+                .then_some((&*assets.palette, [low, high])),
             debug: terrain.debug,
             levels: hierarchy.levels(),
         };
-        if let Some(mut mesh) = meshes.get_mut(&handle) {
+        if let Some(mut mesh) = assets.meshes.get_mut(&handle) {
             write_mesh(
                 &mut mesh,
                 &state.lod,
@@ -380,12 +286,25 @@ pub(crate) fn update_terrains(
         stats.vertices = lod_stats.vertices as u32;
         stats.deepest_level = lod_stats.deepest_level;
         stats.culled_nodes = lod_stats.culled as u32;
-        *frame_update_ms.get_or_insert(0.0) += update_ms;
-        *frame_refine_ms.get_or_insert(0.0) += refine_ms;
+        *frame_update_ms.get_or_insert(0.0) += f64::from(update_ms);
+        *frame_refine_ms.get_or_insert(0.0) += f64::from(refine_ms);
     }
+    if let Some(ms) = frame_update_ms {
+        diagnostics.add_measurement(&TerrainPlugin::UPDATE_MS, || ms);
+    }
+    if let Some(ms) = frame_refine_ms {
+        diagnostics.add_measurement(&TerrainPlugin::REFINE_MS, || ms);
+    }
+}
 
+/// Measures the terrains' totals (see the module docs); nothing in a world
+/// without a terrain.
+pub(crate) fn measure_terrains(terrains: Query<&TerrainLodStats>, mut diagnostics: Diagnostics) {
+    if terrains.is_empty() {
+        return;
+    }
     let (mut triangles, mut vertices, mut updates, mut points, mut bytes) = (0, 0, 0, 0.0, 0.0);
-    for (_, _, _, _, _, stats, _) in &terrains {
+    for stats in &terrains {
         triangles += u64::from(stats.triangles);
         vertices += u64::from(stats.vertices);
         updates += stats.updates;
@@ -393,54 +312,31 @@ pub(crate) fn update_terrains(
         points += n;
         bytes += n * f64::from(stats.bytes_per_point);
     }
-    counters.set("terrain", "terrains", terrains.iter().len() as f64);
-    counters.set("terrain", "triangles", triangles as f64);
-    counters.set("terrain", "vertices", vertices as f64);
-    counters.set("terrain", "updates", updates as f64);
-    counters.set("terrain", "points", points);
+    let terrain_count = terrains.iter().len() as f64;
+    diagnostics.add_measurement(&TerrainPlugin::TERRAINS, || terrain_count);
+    diagnostics.add_measurement(&TerrainPlugin::TRIANGLES, || triangles as f64);
+    diagnostics.add_measurement(&TerrainPlugin::VERTICES, || vertices as f64);
+    diagnostics.add_measurement(&TerrainPlugin::UPDATES, || updates as f64);
+    diagnostics.add_measurement(&TerrainPlugin::POINTS, || points);
     if points > 0.0 {
-        counters.set("terrain", "bytes_per_point", bytes / points);
+        diagnostics.add_measurement(&TerrainPlugin::BYTES_PER_POINT, || bytes / points);
     }
-    if let Some(ms) = frame_update_ms {
-        let ms = f64::from(ms);
-        let (count, sum, max) = &mut *update_times;
-        *count += 1;
-        *sum += ms;
-        *max = max.max(ms);
-        counters.set("terrain", "update_ms", ms);
-        counters.set("terrain", "update_ms_mean", *sum / *count as f64);
-        counters.set("terrain", "update_ms_max", *max);
-    }
-    if let Some(ms) = frame_refine_ms {
-        counters.set("terrain", "refine_ms", f64::from(ms));
-    }
-    if let Some(ms) = frame_build_ms {
-        counters.set("terrain", "build_ms", f64::from(ms));
-    }
-}
-
-/// The bounds of every mesh the quadtree can produce, in the entity's frame:
-/// the grid's square and the height range (morphed heights stay inside it).
-fn bounds(hierarchy: &SharedHierarchy) -> Aabb {
-    let origin = hierarchy.origin().as_vec3();
-    let spacing = hierarchy.field().spacing().as_vec2();
-    let extent = (hierarchy.size() - 1) as f32 * spacing;
-    let [low, high] = hierarchy.height_range();
-    Aabb::from_min_max(
-        Vec3::new(origin.x, low, origin.z),
-        Vec3::new(origin.x + extent.x, high, origin.z + extent.y),
-    )
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::build::BuildInput;
     use crate::{TerrainDebug, TerrainPlugin};
+    use crate::{TerrainHeights, TerrainSource};
     use bevy::asset::AssetPlugin;
     use bevy::camera::{ComputedCameraValues, RenderTargetInfo};
+    use bevy::diagnostic::DiagnosticsStore;
     use bevy::mesh::VertexAttributeValues;
     use bevy::transform::TransformPlugin;
     use nebel_core::field::TerrainNoise;
+    use nebel_lod::TerrainMesh;
+    use nebel_render::HeavyBuilds;
     use std::path::PathBuf;
 
     /// A folder of its own per test for the asset server's files.
@@ -470,8 +366,10 @@ mod tests {
         ))
         .init_asset::<Mesh>()
         .init_asset::<StandardMaterial>()
-        .init_resource::<EffectCounters>()
-        .add_plugins(TerrainPlugin);
+        .add_plugins(TerrainPlugin)
+        // Every build lands in the frame that starts it, so the tests count
+        // frames; `a_background_build_appears_when_ready` covers the default.
+        .insert_resource(HeavyBuilds::Blocking);
         let camera = Camera {
             computed: ComputedCameraValues {
                 clip_from_view: Mat4::perspective_infinite_reverse_rh(1.0, 1.0, 0.1),
@@ -570,10 +468,19 @@ mod tests {
         assert_eq!(first.points_per_side, 33);
         assert!(first.triangles > 0 && first.vertices > 0, "{first:?}");
         assert_eq!(positions(&app, terrain).len(), first.vertices as usize);
-        let counters = &app.world().resource::<EffectCounters>().0["terrain"];
-        assert_eq!(counters["triangles"], f64::from(first.triangles));
-        assert_eq!(counters["terrains"], 1.0);
-        assert!(counters["update_ms"] >= 0.0 && counters["build_ms"] >= 0.0);
+        let measured = |path| {
+            app.world()
+                .resource::<DiagnosticsStore>()
+                .get_measurement(&path)
+                .map(|m| m.value)
+        };
+        assert_eq!(
+            measured(TerrainPlugin::TRIANGLES),
+            Some(f64::from(first.triangles))
+        );
+        assert_eq!(measured(TerrainPlugin::TERRAINS), Some(1.0));
+        assert!(measured(TerrainPlugin::UPDATE_MS).unwrap() >= 0.0);
+        assert!(measured(TerrainPlugin::BUILD_MS).unwrap() >= 0.0);
 
         app.update();
         assert_eq!(stats(&app, terrain).updates, 1, "nothing moved");
@@ -619,9 +526,9 @@ mod tests {
         assert_eq!(stats.culled_nodes, 0, "the whole terrain is in view");
         let mesh = positions(&app, terrain);
 
-        let source = procedural(65);
-        let unit = source.generate().unwrap().unwrap();
-        let hierarchy = source.build_hierarchy(&unit).unwrap();
+        let hierarchy = crate::build::build_quadtree(BuildInput::of(&procedural(65)))
+            .unwrap()
+            .hierarchy;
         let mut expected = TerrainMesh::new();
         let eye = eye.as_dvec3();
         let settings = LodSettings {
@@ -724,7 +631,10 @@ mod tests {
     fn heights_asset(app: &mut App, dims: UVec2, values: Vec<f32>) -> Handle<TerrainHeights> {
         app.world_mut()
             .resource_mut::<Assets<TerrainHeights>>()
-            .add(TerrainHeights { dims, values })
+            .add(TerrainHeights {
+                dims,
+                values: std::sync::Arc::new(values),
+            })
     }
 
     fn from_asset(handle: Handle<TerrainHeights>) -> Terrain {
@@ -735,9 +645,10 @@ mod tests {
     }
 
     fn assert_failed(app: &App, terrain: Entity, needles: &[&str]) {
-        let TerrainStatus::Failed(reason) = status(app, terrain) else {
+        let TerrainStatus::Failed(error) = status(app, terrain) else {
             panic!("expected a failure, got {:?}", status(app, terrain));
         };
+        let reason = error.to_string();
         for needle in needles {
             assert!(reason.contains(needle), "{reason:?} lacks {needle:?}");
         }
@@ -761,8 +672,8 @@ mod tests {
         app.world_mut()
             .resource_mut::<Assets<TerrainHeights>>()
             .get_mut(&nan)
-            .unwrap()
-            .values[11] = 0.25;
+            .map(|mut heights| std::sync::Arc::make_mut(&mut heights.values)[11] = 0.25)
+            .unwrap();
         app.update();
         assert_eq!(status(&app, terrain), TerrainStatus::Ready);
         assert!(app.world().get::<Mesh3d>(terrain).is_some());
@@ -902,16 +813,47 @@ mod tests {
     }
 
     #[test]
-    fn a_world_without_terrain_has_no_terrain_counters() {
+    fn a_world_without_terrain_measures_nothing() {
         let (mut app, _) = app(&asset_dir("none"), Vec3::ONE);
         for _ in 0..3 {
             app.update();
         }
-        assert!(
-            !app.world()
-                .resource::<EffectCounters>()
-                .0
-                .contains_key("terrain")
-        );
+        let store = app.world().resource::<DiagnosticsStore>();
+        let terrain: Vec<_> = store
+            .iter()
+            .filter(|d| d.path().as_str().starts_with("nebel/terrain/"))
+            .collect();
+        assert!(!terrain.is_empty(), "the plugin registers its diagnostics");
+        assert!(terrain.iter().all(|d| d.measurement().is_none()));
+    }
+
+    #[test]
+    fn a_background_build_appears_when_ready_and_the_old_terrain_stays_meanwhile() {
+        let (mut app, _) = app(&asset_dir("background"), Vec3::new(0.0, 300.0, 300.0));
+        app.insert_resource(HeavyBuilds::Background);
+        let terrain = spawn(&mut app, procedural(65), Transform::default());
+        let settle = |app: &mut App, until: &dyn Fn(&App) -> bool| {
+            for _ in 0..2000 {
+                app.update();
+                if until(app) {
+                    return;
+                }
+                std::thread::sleep(std::time::Duration::from_millis(1));
+            }
+            panic!("the build never finished");
+        };
+        assert_eq!(status(&app, terrain), TerrainStatus::Pending);
+        settle(&mut app, &|app| {
+            app.world().get::<Mesh3d>(terrain).is_some()
+        });
+        assert_eq!(status(&app, terrain), TerrainStatus::Ready);
+        assert_eq!(stats(&app, terrain).points_per_side, 65);
+
+        // A larger terrain: the 65² mesh stays until the 257² quadtree is done.
+        app.world_mut().get_mut::<Terrain>(terrain).unwrap().source = procedural(257).source;
+        app.update();
+        assert!(app.world().get::<Mesh3d>(terrain).is_some(), "still drawn");
+        settle(&mut app, &|app| stats(app, terrain).points_per_side == 257);
+        assert_eq!(status(&app, terrain), TerrainStatus::Ready);
     }
 }

@@ -13,6 +13,7 @@
 //! synchronously), so even a one-frame render shows the whole scene. The app
 //! waits for the GPU after every frame, so frame times include the GPU's work.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -20,6 +21,7 @@ use std::time::{Duration, Instant};
 
 use bevy::asset::RenderAssetUsages;
 use bevy::camera::RenderTarget;
+use bevy::diagnostic::DiagnosticsStore;
 use bevy::log::{Level, LogPlugin};
 use bevy::prelude::*;
 use bevy::render::pipelined_rendering::PipelinedRenderingPlugin;
@@ -34,7 +36,7 @@ use bevy::render::{RenderApp, RenderPlugin};
 use bevy::time::TimeUpdateStrategy;
 use bevy::window::ExitCondition;
 use bevy::winit::WinitPlugin;
-use nebel_render::{CellProjectionStats, EffectCounters, NebelFrameTimings};
+use nebel_render::{HeavyBuilds, NebelDiagnosticsPlugin};
 use thiserror::Error;
 
 use crate::scene_setup::SceneSetupPlugin;
@@ -167,7 +169,9 @@ pub fn render_headless(
     let target = render_target(&mut app, output.width, output.height);
     setup.target = Some(RenderTarget::Image(target.clone().into()));
     app.add_plugins((NebelPlugins, setup))
-        .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::ZERO));
+        .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::ZERO))
+        // Each frame shows the scene at its own time: wait for the builds.
+        .insert_resource(HeavyBuilds::Blocking);
     app.finish();
     app.cleanup();
 
@@ -186,10 +190,10 @@ pub fn render_headless(
     let mut virtual_time = app.world_mut().resource_mut::<Time<Virtual>>();
     let max_delta = virtual_time.max_delta().max(frame_duration);
     virtual_time.set_max_delta(max_delta);
-    let first_scene_timing = app.world().resource::<NebelFrameTimings>().frames.len();
 
     let captured: Arc<Mutex<Option<Image>>> = Arc::default();
     let mut frame_times = Vec::with_capacity(output.frames as usize);
+    let mut nebel_times = Vec::with_capacity(output.frames as usize);
     let mut last_report = Instant::now();
     for frame in 0..output.frames {
         // Frame 0 is at time 0, like the reference; time steps from frame 1 on.
@@ -207,6 +211,13 @@ pub fn render_headless(
         let start = Instant::now();
         update_and_wait(&mut app);
         frame_times.push(start.elapsed());
+        if let Some(ms) = app
+            .world()
+            .resource::<DiagnosticsStore>()
+            .get_measurement(&NebelDiagnosticsPlugin::SYSTEMS_MS)
+        {
+            nebel_times.push(Duration::from_secs_f64(ms.value / 1e3));
+        }
         if progress && last_report.elapsed() >= PROGRESS_INTERVAL {
             eprintln!("nebel: frame {}/{}", frame + 1, output.frames);
             last_report = Instant::now();
@@ -227,39 +238,46 @@ pub fn render_headless(
 
     let world = app.world();
     let adapter = summary(&world.resource::<RenderAdapterInfo>().0);
-    let nebel_frames = &world.resource::<NebelFrameTimings>().frames;
-    let scene_frames =
-        first_scene_timing..(first_scene_timing + output.frames as usize).min(nebel_frames.len());
     Ok(RenderStats {
         adapter,
         frames_rendered: output.frames,
         width: output.width,
         height: output.height,
         frame_wall_ms: TimeSummary::of(&frame_times),
-        nebel_systems_cpu_ms: TimeSummary::of(&nebel_frames[scene_frames]),
-        effects: effect_counters(world),
+        nebel_systems_cpu_ms: TimeSummary::of(&nebel_times),
+        effects: effect_counters(world.resource::<DiagnosticsStore>()),
     })
 }
 
-/// The effects' counters, plus the cell-projection render system's work when
-/// it did any.
-fn effect_counters(
-    world: &World,
-) -> std::collections::BTreeMap<String, std::collections::BTreeMap<String, f64>> {
-    let mut effects = world.resource::<EffectCounters>().0.clone();
-    let [passes, tables_built, uploads, cells_drawn] = world
-        .resource::<CellProjectionStats>()
-        .counters()
-        .snapshot();
-    if passes + tables_built + uploads > 0 {
-        let group = effects.entry(String::from("cell_projection")).or_default();
-        for (name, value) in [
-            ("passes", passes),
-            ("tables_built", tables_built),
-            ("uploads", uploads),
-            ("cells_drawn", cells_drawn),
-        ] {
-            group.insert(name.to_owned(), value as f64);
+/// The effects' diagnostics (`nebel/<effect>/<counter>`) that measured
+/// anything, by effect: the latest value of each, and for timings (`_ms`)
+/// also the mean and maximum over the diagnostic's history (`_ms_mean`,
+/// `_ms_max`).
+fn effect_counters(store: &DiagnosticsStore) -> BTreeMap<String, BTreeMap<String, f64>> {
+    let mut effects: BTreeMap<String, BTreeMap<String, f64>> = BTreeMap::new();
+    for diagnostic in store.iter() {
+        let mut components = diagnostic.path().components();
+        let (Some("nebel"), Some(effect), Some(counter), None) = (
+            components.next(),
+            components.next(),
+            components.next(),
+            components.next(),
+        ) else {
+            continue;
+        };
+        let Some(value) = diagnostic.value() else {
+            continue;
+        };
+        let group = effects.entry(effect.to_owned()).or_default();
+        group.insert(counter.to_owned(), value);
+        if counter.ends_with("_ms") {
+            let values = || diagnostic.values().copied();
+            let max = values().fold(f64::NEG_INFINITY, f64::max);
+            group.insert(
+                format!("{counter}_mean"),
+                diagnostic.average().unwrap_or(value),
+            );
+            group.insert(format!("{counter}_max"), max);
         }
     }
     effects

@@ -48,7 +48,8 @@ use nebel_lod::{
 
 use crate::lighting::sun_in_local_frame;
 use crate::{VolumeLighting, VolumeLod};
-use nebel_render::{CellBatch, EffectCounters, NebelSystems};
+use bevy::diagnostic::{Diagnostic, DiagnosticPath, Diagnostics, RegisterDiagnostic};
+use nebel_render::{CellBatch, NebelSystems};
 
 /// Voxels per brick edge for the zero-opacity and frustum tests.
 const BRICK_SIZE: usize = 4;
@@ -57,8 +58,28 @@ const BRICK_SIZE: usize = 4;
 #[derive(Default)]
 pub struct VolumePlugin;
 
+impl VolumePlugin {
+    /// Volumes in the world.
+    pub const VOLUMES: DiagnosticPath = DiagnosticPath::const_new("nebel/volume/volumes");
+    /// Cells of all volume batches.
+    pub const CELLS_DRAWN: DiagnosticPath = DiagnosticPath::const_new("nebel/volume/cells_drawn");
+    /// Cells all volumes would have at full resolution.
+    pub const CELLS_FULL_RESOLUTION: DiagnosticPath =
+        DiagnosticPath::const_new("nebel/volume/cells_full_resolution");
+    /// Time of the batch rebuilds of a frame that rebuilt one, ms.
+    pub const UPDATE_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/volume/update_ms");
+}
+
 impl Plugin for VolumePlugin {
     fn build(&self, app: &mut App) {
+        for (path, suffix) in [
+            (Self::VOLUMES, ""),
+            (Self::CELLS_DRAWN, ""),
+            (Self::CELLS_FULL_RESOLUTION, ""),
+            (Self::UPDATE_MS, " ms"),
+        ] {
+            app.register_diagnostic(Diagnostic::new(path).with_suffix(suffix));
+        }
         app.register_type::<crate::Campfire>()
             .register_type::<crate::CloudVolume>()
             .register_type::<crate::VolumeLod>()
@@ -131,7 +152,6 @@ struct VolumeBatchSource {
     sun: Option<Vec3>,
     bricks: Option<Arc<BrickTable>>,
     adjacency: Option<Arc<CellAdjacency>>,
-    generation: u64,
 }
 
 fn to_double(matrix: Mat4) -> DMat4 {
@@ -185,7 +205,7 @@ fn update_volume_batches(
         Option<&CellBatch>,
         Option<&mut VolumeBatchSource>,
     )>,
-    mut counters: ResMut<EffectCounters>,
+    mut diagnostics: Diagnostics,
 ) {
     if volumes.is_empty() {
         return;
@@ -249,7 +269,6 @@ fn update_volume_batches(
             continue;
         }
         rebuilt = true;
-        let generation = source.as_ref().map_or(0, |s| s.generation + 1);
         let world_from_local = transform.affine();
         let world_from_local = DAffine3::from_mat4(to_double(Mat4::from(world_from_local)));
         let (lod_batch, bricks, adjacency, hierarchy) = match &volume.field {
@@ -358,13 +377,8 @@ fn update_volume_batches(
             cells, modulators, ..
         } = lod_batch;
         cells_drawn += cells.len() as u64;
-        let mut batch = CellBatch::new(
-            cells,
-            volume.transfer_function.clone(),
-            volume.mode,
-            generation,
-        )
-        .with_modulators(modulators);
+        let mut batch = CellBatch::new(cells, volume.transfer_function.clone(), volume.mode)
+            .with_modulators(modulators);
         batch.scattering = lighting
             .as_deref()
             .and_then(|lighting| lighting.cell_scattering(sun_world.unwrap_or(Vec3::Y)));
@@ -377,16 +391,17 @@ fn update_volume_batches(
                 sun,
                 bricks,
                 adjacency,
-                generation,
             },
         ));
     }
     if rebuilt {
-        counters.set("volume", "update_ms", started.elapsed().as_secs_f64() * 1e3);
-        counters.set("volume", "cells_drawn", cells_drawn as f64);
+        let ms = started.elapsed().as_secs_f64() * 1e3;
+        diagnostics.add_measurement(&VolumePlugin::UPDATE_MS, || ms);
     }
-    counters.set("volume", "volumes", volumes.iter().len() as f64);
-    counters.set("volume", "cells_full_resolution", cells_full as f64);
+    let count = volumes.iter().len() as f64;
+    diagnostics.add_measurement(&VolumePlugin::CELLS_DRAWN, || cells_drawn as f64);
+    diagnostics.add_measurement(&VolumePlugin::VOLUMES, || count);
+    diagnostics.add_measurement(&VolumePlugin::CELLS_FULL_RESOLUTION, || cells_full as f64);
 }
 
 #[cfg(test)]
@@ -399,8 +414,7 @@ mod tests {
 
     fn app_with_volume(mode: OpticalMode) -> (App, Entity, Entity) {
         let mut app = App::new();
-        app.add_plugins((MinimalPlugins, TransformPlugin, VolumePlugin))
-            .init_resource::<EffectCounters>();
+        app.add_plugins((MinimalPlugins, TransformPlugin, VolumePlugin));
         // What Bevy's camera systems compute for a 64×64 target.
         let camera = Camera {
             computed: ComputedCameraValues {
@@ -456,10 +470,12 @@ mod tests {
         app.update();
     }
 
-    fn generation(app: &App, volume: Entity) -> Option<u64> {
+    /// The change tick of the batch's last change.
+    fn generation(app: &App, volume: Entity) -> Option<u32> {
         app.world()
-            .get::<CellBatch>(volume)
-            .map(|batch| batch.generation)
+            .entity(volume)
+            .get_ref::<CellBatch>()
+            .map(|batch| batch.last_changed().get())
     }
 
     #[test]
@@ -477,7 +493,7 @@ mod tests {
         let (mut app, camera, volume) = app_with_volume(OpticalMode::Sorted);
         let batch = app.world().get::<CellBatch>(volume).expect("a batch");
         assert_eq!(batch.cells.len(), 5 * 8);
-        let first = batch.generation;
+        let first = generation(&app, volume).unwrap();
 
         app.update();
         assert_eq!(
@@ -585,7 +601,7 @@ mod tests {
                 .flat_map(|c| c.vertices)
                 .all(|v| v[3] >= 0.3 - 1.0 / 255.0)
         );
-        let lit_first = batch.generation;
+        let lit_first = generation(&app, volume).unwrap();
         app.update();
         assert_eq!(generation(&app, volume), Some(lit_first), "nothing moved");
 
@@ -597,7 +613,7 @@ mod tests {
         app.update();
         app.update();
         let relit = app.world().get::<CellBatch>(volume).unwrap();
-        assert!(relit.generation > lit_first);
+        assert!(generation(&app, volume).unwrap() > lit_first);
         assert_ne!(relit.cells, batch.cells, "the light changed with the sun");
 
         app.world_mut()

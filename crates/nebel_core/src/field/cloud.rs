@@ -97,6 +97,7 @@ const MAX_OCTAVES: usize = 16;
 /// About a fraction `coverage` of the points away from the base and top is
 /// cloud.
 #[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "bevy_reflect", derive(bevy_reflect::Reflect))]
 pub struct CloudNoise {
     /// Seed; octave `i` uses `seed + i` (wrapping). Equal seeds give equal
     /// fields. Default 0.

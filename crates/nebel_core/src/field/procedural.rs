@@ -29,6 +29,7 @@ pub const NOISE_OFFSET: [f64; 3] = [
 /// Which fractal sum of Perlin octaves to use.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "bevy_reflect", derive(bevy_reflect::Reflect))]
 pub enum NoiseKind {
     /// Fractal Brownian motion: a sum of octaves with geometrically falling
     /// amplitude. Soft, rolling shapes (cloud density, hills). The default.

@@ -20,6 +20,7 @@ use super::{FieldError, HeightField, NoiseKind, ProceduralNoise};
 /// heights.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "bevy_reflect", derive(bevy_reflect::Reflect))]
 pub struct TerrainNoise {
     /// Fractal kind: [`NoiseKind::Fbm`] for rolling hills,
     /// [`NoiseKind::Ridged`] for mountain crests. Default `Fbm`.

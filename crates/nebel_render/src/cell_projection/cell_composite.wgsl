@@ -1,4 +1,4 @@
-// Composites the accumulated cells of a view over the scene (DESIGN.md §4):
+// Composites the accumulated cells of a view over the scene:
 // the cells were blended into a float accumulation target that started
 // transparent, so the premultiplied result C, α goes over the scene in one
 // step, I = C + (1 − α) scene, with the hardware blender

@@ -1,5 +1,7 @@
-// Cell projection with exact per-pixel ray-tetrahedron segments (DESIGN.md §3-4;
-// paper 001 ch. 8-9 and 10.3, paper 000 §4).
+// Cell projection with exact per-pixel ray-tetrahedron segments (Röttger,
+// "Volumetric Methods for the Real-Time Display of Natural Gaseous Phenomena",
+// 2004, ch. 8-9 and 10.3; Röttger and Ertl, "Fast Volumetric Display of
+// Natural Gaseous Phenomena", 2003, §4).
 //
 // Every tetrahedron is drawn as its back faces only (the faces whose plane has
 // the eye on the inner side; the rasterizer culls the others), so each pixel it
@@ -47,7 +49,6 @@ struct CellTables {
     scalar_size: u32,
     // Samples along l.
     length_size: u32,
-    _padding: u32,
 }
 
 @group(0) @binding(0) var<uniform> view: CellView;

@@ -1,0 +1,189 @@
+//! The cell-projection render feature: draws every [`CellBatch`] into the HDR
+//! view target after the opaque pass, exact per pixel (Röttger, "Volumetric
+//! Methods for the Real-Time Display of Natural Gaseous Phenomena", 2004,
+//! ch. 8-10; Röttger and Ertl, "Fast Volumetric Display of Natural Gaseous
+//! Phenomena", 2003, §4).
+//!
+//! Bevy 0.19 has no render-graph nodes: the pass is a system in the [`Core3d`]
+//! schedule between the main pass and the early post process, reading the
+//! scene depth. The render world is a row of small systems, as in Bevy's
+//! volumetric fog, split by concern:
+//!
+//! - [`resources`]: extraction of the drawable batches, their GPU buffers
+//!   (uploaded again only when the batch component changed), the
+//!   pre-integration tables (cached by transfer function hash and segment
+//!   length, built once per change on the CPU: 64×64×128 colour, 64×64 pair
+//!   table), per-view uniforms and accumulation targets;
+//! - [`pipeline`]: bind group layouts, shaders and the pipeline variants
+//!   (optical mode, modulated segment lengths, single scattering, MSAA);
+//! - [`node`]: the draw system: batches back to front by the distance of
+//!   their bounds' centre, inside a batch in buffer order (the batch's exact
+//!   order), into a per-view float accumulation target that starts
+//!   transparent; then one full-screen pass (`cell_composite.wgsl`) puts the
+//!   result over the scene: `I = C + (1 − α) scene`.
+//!
+//! The accumulation target is `Rgba32Float` where the device can blend it
+//! (`FLOAT32_BLENDABLE`; lavapipe can), `Rgba16Float` otherwise: a ray may
+//! cross hundreds of cells and every blend rounds, and the 16-bit HDR target
+//! of Bevy's views made a 64³ cloud measurably darker. Emissive and MIP
+//! cells write no opacity, so they add to the scene rather than hide it (MIP
+//! takes the maximum over the cells, then adds it).
+//!
+//! Each pixel of a cell is computed exactly under perspective: the fragment
+//! shader intersects the view ray with the cell's planes, clips the segment to
+//! the near plane and to the opaque depth and looks up the tables (see
+//! `cell_projection.wgsl`). With no drawable batch, none of these systems does
+//! any work: no table is built, no buffer written, no pass begun; the
+//! [`CellProjectionStats`] counters and the `nebel/cell_projection/*`
+//! diagnostics prove it.
+
+pub mod node;
+pub mod pipeline;
+pub mod resources;
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use bevy::asset::embedded_asset;
+use bevy::core_pipeline::core_3d::prepare_core_3d_depth_textures;
+use bevy::core_pipeline::schedule::{Core3d, Core3dSystems};
+use bevy::diagnostic::{Diagnostic, DiagnosticPath, Diagnostics, RegisterDiagnostic};
+use bevy::prelude::*;
+use bevy::render::render_resource::SpecializedRenderPipelines;
+use bevy::render::{
+    ExtractSchedule, GpuResourceAppExt, Render, RenderApp, RenderStartup, RenderSystems,
+};
+
+use crate::cell_batch::CellBatch;
+use pipeline::{CellCompositePipelines, CellProjectionPipeline, init_cell_projection_pipeline};
+use resources::{
+    CellViewUniforms, ExtractedCellBatches, GpuCellBuffers, GpuCellTables, extract_cell_batches,
+    make_depth_readable, prepare_cell_buffers, prepare_cell_tables, prepare_cell_views,
+};
+
+/// Draws [`CellBatch`]es (see the module docs).
+#[derive(Default)]
+pub struct CellProjectionPlugin;
+
+impl CellProjectionPlugin {
+    /// Render passes begun so far (one per view with batches, per frame).
+    pub const PASSES: DiagnosticPath = DiagnosticPath::const_new("nebel/cell_projection/passes");
+    /// Pre-integration tables built so far.
+    pub const TABLES_BUILT: DiagnosticPath =
+        DiagnosticPath::const_new("nebel/cell_projection/tables_built");
+    /// Cell buffers uploaded so far.
+    pub const UPLOADS: DiagnosticPath = DiagnosticPath::const_new("nebel/cell_projection/uploads");
+    /// Cells drawn so far, summed over passes.
+    pub const CELLS_DRAWN: DiagnosticPath =
+        DiagnosticPath::const_new("nebel/cell_projection/cells_drawn");
+}
+
+/// Work counters of the cell-projection render system, shared by the main and
+/// the render world (an `Arc`): the render world counts, the main world
+/// publishes the totals as the [`CellProjectionPlugin`] diagnostics once any
+/// work was done.
+#[derive(Resource, Clone, Default, Debug)]
+pub struct CellProjectionStats(Arc<CellProjectionCounters>);
+
+/// The counters behind [`CellProjectionStats`]; each only grows.
+#[derive(Default, Debug)]
+pub struct CellProjectionCounters {
+    /// Render passes begun (one per view that had batches, per frame).
+    pub passes: AtomicU64,
+    /// Pre-integration tables built.
+    pub tables_built: AtomicU64,
+    /// Cell buffers uploaded.
+    pub uploads: AtomicU64,
+    /// Cells drawn, summed over passes.
+    pub cells_drawn: AtomicU64,
+}
+
+impl CellProjectionStats {
+    /// The counters.
+    pub fn counters(&self) -> &CellProjectionCounters {
+        &self.0
+    }
+}
+
+impl CellProjectionCounters {
+    /// Current values: passes, tables built, uploads, cells drawn.
+    pub fn snapshot(&self) -> [u64; 4] {
+        [
+            &self.passes,
+            &self.tables_built,
+            &self.uploads,
+            &self.cells_drawn,
+        ]
+        .map(|c| c.load(Ordering::Relaxed))
+    }
+}
+
+impl Plugin for CellProjectionPlugin {
+    fn build(&self, app: &mut App) {
+        embedded_asset!(app, "cell_projection.wgsl");
+        embedded_asset!(app, "cell_composite.wgsl");
+        let stats = CellProjectionStats::default();
+        app.insert_resource(stats.clone())
+            .register_type::<CellBatch>()
+            .register_type::<crate::CellScattering>()
+            .add_systems(Last, publish_counters);
+        for path in [
+            Self::PASSES,
+            Self::TABLES_BUILT,
+            Self::UPLOADS,
+            Self::CELLS_DRAWN,
+        ] {
+            app.register_diagnostic(Diagnostic::new(path));
+        }
+        let Some(render_app) = app.get_sub_app_mut(RenderApp) else {
+            return;
+        };
+        render_app
+            .insert_resource(stats)
+            .init_resource::<ExtractedCellBatches>()
+            .init_gpu_resource::<GpuCellBuffers>()
+            .init_gpu_resource::<GpuCellTables>()
+            .init_gpu_resource::<SpecializedRenderPipelines<CellProjectionPipeline>>()
+            .init_gpu_resource::<CellViewUniforms>()
+            .init_gpu_resource::<CellCompositePipelines>()
+            .add_systems(RenderStartup, init_cell_projection_pipeline)
+            .add_systems(ExtractSchedule, extract_cell_batches)
+            .add_systems(
+                Render,
+                (
+                    make_depth_readable
+                        .in_set(RenderSystems::Prepare)
+                        .before(prepare_core_3d_depth_textures),
+                    (
+                        prepare_cell_buffers,
+                        prepare_cell_tables,
+                        prepare_cell_views,
+                    )
+                        .in_set(RenderSystems::PrepareResources),
+                ),
+            )
+            .add_systems(
+                Core3d,
+                node::draw_cell_batches
+                    .after(Core3dSystems::MainPass)
+                    .before(Core3dSystems::EarlyPostProcess),
+            );
+    }
+}
+
+/// Publishes the render world's totals as diagnostics, from the first frame
+/// that did any cell-projection work on.
+fn publish_counters(stats: Res<CellProjectionStats>, mut diagnostics: Diagnostics) {
+    let [passes, tables_built, uploads, cells_drawn] = stats.counters().snapshot();
+    if passes + tables_built + uploads == 0 {
+        return;
+    }
+    for (path, value) in [
+        (CellProjectionPlugin::PASSES, passes),
+        (CellProjectionPlugin::TABLES_BUILT, tables_built),
+        (CellProjectionPlugin::UPLOADS, uploads),
+        (CellProjectionPlugin::CELLS_DRAWN, cells_drawn),
+    ] {
+        diagnostics.add_measurement(&path, || value as f64);
+    }
+}

@@ -1,0 +1,431 @@
+//! The render world's data of the cell projection and the systems that keep
+//! it: the extracted batches, their GPU buffers, the pre-integration tables
+//! and the per-view uniforms and accumulation targets.
+
+use std::collections::{HashMap, HashSet};
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+
+use bevy::prelude::*;
+use bevy::render::Extract;
+use bevy::render::camera::ExtractedCamera;
+use bevy::render::render_resource::*;
+use bevy::render::renderer::{RenderDevice, RenderQueue};
+use bevy::render::texture::{CachedTexture, TextureCache};
+use bevy::render::view::{ExtractedView, Msaa};
+use nebel_core::optics::OpticalMode;
+use nebel_core::preintegration::{PreintegrationConfig, PreintegrationTable};
+use nebel_core::transfer::TransferFunction;
+use nebel_lod::GpuCell;
+
+use super::CellProjectionStats;
+use super::pipeline::{
+    CellCompositePipelines, CellProjectionPipeline, CellProjectionPipelineKey, accumulation_format,
+    mode_index, variant_index,
+};
+use crate::cell_batch::{CellBatch, CellScattering, CellScatteringUniform};
+
+/// Samples along `s_f` and `s_b` of the GPU tables.
+const TABLE_SCALAR_SIZE: u32 = 64;
+/// Samples along `l` of the GPU colour table.
+const TABLE_LENGTH_SIZE: u32 = 128;
+
+/// A batch as the render world sees it.
+#[derive(Clone)]
+pub struct ExtractedCellBatch {
+    cells: Arc<Vec<GpuCell>>,
+    modulators: Option<Arc<Vec<[f32; 4]>>>,
+    pub(super) scattering: Option<CellScattering>,
+    /// The main-world component changed since the last extraction: upload
+    /// the cells again.
+    changed: bool,
+    transfer_function: Arc<TransferFunction>,
+    pub(super) mode: OpticalMode,
+    pub(super) table_key: TableKey,
+    pub(super) centre: Vec3,
+}
+
+impl ExtractedCellBatch {
+    /// Whether the batch carries segment-length modulators.
+    pub(super) fn is_modulated(&self) -> bool {
+        self.modulators.is_some()
+    }
+}
+
+/// The drawable batches of this frame, keyed by main-world entity.
+#[derive(Resource, Default)]
+pub struct ExtractedCellBatches(pub(super) Vec<(Entity, ExtractedCellBatch)>);
+
+/// Pre-integration tables are shared by batches with the same transfer
+/// function and maximum segment length.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+pub struct TableKey {
+    transfer_hash: u64,
+    max_length_bits: u32,
+}
+
+/// Copies the drawable batches into the render world. A batch whose
+/// modulators do not match its cells is not drawn; the error is logged once
+/// per entity.
+pub fn extract_cell_batches(
+    mut extracted: ResMut<ExtractedCellBatches>,
+    batches: Extract<Query<(Entity, Ref<CellBatch>)>>,
+    mut refused: Local<HashSet<Entity>>,
+) {
+    extracted.0.clear();
+    for (entity, batch) in &batches {
+        if !batch.is_drawable() {
+            continue;
+        }
+        let Some(transfer_function) = batch.transfer_function.clone() else {
+            continue;
+        };
+        if let Some(modulators) = &batch.modulators
+            && modulators.len() != batch.cells.len()
+        {
+            if refused.insert(entity) {
+                error!(
+                    "nebel: the CellBatch of {entity} has {} modulators for {} cells; it is not drawn",
+                    modulators.len(),
+                    batch.cells.len()
+                );
+            }
+            continue;
+        }
+        refused.remove(&entity);
+        extracted.0.push((
+            entity,
+            ExtractedCellBatch {
+                cells: batch.cells.clone(),
+                modulators: batch.modulators.clone(),
+                scattering: batch
+                    .scattering
+                    .filter(|_| batch.mode == OpticalMode::Sorted),
+                changed: batch.is_changed(),
+                table_key: TableKey {
+                    transfer_hash: transfer_function.content_hash(),
+                    max_length_bits: batch.max_segment_length.to_bits(),
+                },
+                transfer_function,
+                mode: batch.mode,
+                centre: (batch.bounds_min + batch.bounds_max) / 2.0,
+            },
+        ));
+    }
+}
+
+/// The GPU copy of one batch.
+pub struct GpuCellBuffer {
+    pub(super) buffer: Buffer,
+    /// The per-cell modulators, or one zero entry for an unmodulated batch
+    /// (the binding must exist; the unmodulated pipeline never reads it).
+    pub(super) modulators: Buffer,
+    pub(super) modulated: bool,
+    /// The [`CellScattering`] uniform (zeros when the batch has none).
+    pub(super) scattering: UniformBuffer<CellScatteringUniform>,
+    pub(super) scattered: bool,
+    pub(super) count: u32,
+}
+
+/// The GPU copies of this frame's batches, by main-world entity.
+#[derive(Resource, Default)]
+pub struct GpuCellBuffers(pub(super) HashMap<Entity, GpuCellBuffer>);
+
+/// Uploads batches that are new or changed and drops those that are gone.
+pub fn prepare_cell_buffers(
+    extracted: Res<ExtractedCellBatches>,
+    mut buffers: ResMut<GpuCellBuffers>,
+    device: Res<RenderDevice>,
+    queue: Res<RenderQueue>,
+    stats: Res<CellProjectionStats>,
+) {
+    if extracted.0.is_empty() && buffers.0.is_empty() {
+        return;
+    }
+    buffers
+        .0
+        .retain(|entity, _| extracted.0.iter().any(|(e, _)| e == entity));
+    for (entity, batch) in &extracted.0 {
+        if !batch.changed && buffers.0.contains_key(entity) {
+            continue;
+        }
+        let buffer = device.create_buffer_with_data(&BufferInitDescriptor {
+            label: Some("nebel_cell_batch"),
+            contents: bytemuck::cast_slice(batch.cells.as_slice()),
+            usage: BufferUsages::STORAGE,
+        });
+        let unmodulated = [[0.0f32; 4]];
+        let modulators = device.create_buffer_with_data(&BufferInitDescriptor {
+            label: Some("nebel_cell_modulators"),
+            contents: bytemuck::cast_slice(
+                batch
+                    .modulators
+                    .as_deref()
+                    .map_or(&unmodulated[..], Vec::as_slice),
+            ),
+            usage: BufferUsages::STORAGE,
+        });
+        let mut scattering = UniformBuffer::from(
+            batch
+                .scattering
+                .map_or_else(CellScatteringUniform::default, |s| s.uniform()),
+        );
+        scattering.set_label(Some("nebel_cell_scattering"));
+        scattering.write_buffer(&device, &queue);
+        stats.0.uploads.fetch_add(1, Ordering::Relaxed);
+        buffers.0.insert(
+            *entity,
+            GpuCellBuffer {
+                buffer,
+                modulators,
+                modulated: batch.modulators.is_some(),
+                scattering,
+                scattered: batch.scattering.is_some(),
+                count: batch.cells.len() as u32,
+            },
+        );
+    }
+}
+
+/// The GPU copy of one [`PreintegrationTable`].
+pub struct GpuCellTable {
+    pub(super) colour: TextureView,
+    pub(super) emission: TextureView,
+    pub(super) maximum: TextureView,
+    pub(super) parameters: UniformBuffer<CellTablesUniform>,
+}
+
+/// The pre-integration tables this frame's batches use.
+#[derive(Resource, Default)]
+pub struct GpuCellTables(pub(super) HashMap<TableKey, GpuCellTable>);
+
+/// Parameters of the tables, as the shader's `CellTables`.
+#[derive(Clone, Copy, Default, ShaderType)]
+pub struct CellTablesUniform {
+    max_length: f32,
+    scalar_size: u32,
+    length_size: u32,
+}
+
+/// Builds the tables that a batch needs and nobody has built, drops unused
+/// ones.
+pub fn prepare_cell_tables(
+    extracted: Res<ExtractedCellBatches>,
+    mut tables: ResMut<GpuCellTables>,
+    device: Res<RenderDevice>,
+    queue: Res<RenderQueue>,
+    stats: Res<CellProjectionStats>,
+    mut failed: Local<HashSet<TableKey>>,
+) {
+    if extracted.0.is_empty() && tables.0.is_empty() {
+        return;
+    }
+    tables
+        .0
+        .retain(|key, _| extracted.0.iter().any(|(_, b)| b.table_key == *key));
+    for (_, batch) in &extracted.0 {
+        if tables.0.contains_key(&batch.table_key) || failed.contains(&batch.table_key) {
+            continue;
+        }
+        let config = PreintegrationConfig {
+            scalar_size: TABLE_SCALAR_SIZE,
+            length_size: TABLE_LENGTH_SIZE,
+            max_length: f32::from_bits(batch.table_key.max_length_bits),
+        };
+        let table = match PreintegrationTable::build(&batch.transfer_function, config) {
+            Ok(table) => table,
+            Err(error) => {
+                // Logged once per table: the same inputs fail the same way.
+                error!("nebel: cannot build the pre-integration table: {error}");
+                failed.insert(batch.table_key);
+                continue;
+            }
+        };
+        stats.0.tables_built.fetch_add(1, Ordering::Relaxed);
+        let texture = |label: &'static str,
+                       size: Extent3d,
+                       dimension: TextureDimension,
+                       data: &[[f32; 4]]| {
+            device
+                .create_texture_with_data(
+                    &queue,
+                    &TextureDescriptor {
+                        label: Some(label),
+                        size,
+                        mip_level_count: 1,
+                        sample_count: 1,
+                        dimension,
+                        format: TextureFormat::Rgba32Float,
+                        usage: TextureUsages::TEXTURE_BINDING,
+                        view_formats: &[],
+                    },
+                    TextureDataOrder::LayerMajor,
+                    bytemuck::cast_slice(data),
+                )
+                .create_view(&TextureViewDescriptor::default())
+        };
+        let pair = Extent3d {
+            width: TABLE_SCALAR_SIZE,
+            height: TABLE_SCALAR_SIZE,
+            depth_or_array_layers: 1,
+        };
+        let volume = Extent3d {
+            depth_or_array_layers: TABLE_LENGTH_SIZE,
+            ..pair
+        };
+        let mut parameters = UniformBuffer::from(CellTablesUniform {
+            max_length: config.max_length,
+            scalar_size: TABLE_SCALAR_SIZE,
+            length_size: TABLE_LENGTH_SIZE,
+        });
+        parameters.set_label(Some("nebel_cell_tables"));
+        parameters.write_buffer(&device, &queue);
+        tables.0.insert(
+            batch.table_key,
+            GpuCellTable {
+                colour: texture(
+                    "nebel_colour_table",
+                    volume,
+                    TextureDimension::D3,
+                    table.colour(),
+                ),
+                emission: texture(
+                    "nebel_emission_table",
+                    pair,
+                    TextureDimension::D2,
+                    table.emission(),
+                ),
+                maximum: texture(
+                    "nebel_maximum_table",
+                    pair,
+                    TextureDimension::D2,
+                    table.maximum(),
+                ),
+                parameters,
+            },
+        );
+    }
+}
+
+/// The camera data the shader needs, as its `CellView`.
+#[derive(Clone, Copy, ShaderType)]
+pub struct CellViewUniform {
+    clip_from_world: Mat4,
+    world_from_clip: Mat4,
+    camera_position: Vec4,
+    viewport: Vec4,
+}
+
+/// Every view's [`CellViewUniform`] of this frame.
+#[derive(Resource, Default)]
+pub struct CellViewUniforms(pub(super) DynamicUniformBuffer<CellViewUniform>);
+
+/// Per view: where its uniform sits, its accumulation target and its
+/// pipelines (three modes drawing into the target, one compositing it).
+#[derive(Component)]
+pub struct CellProjectionView {
+    pub(super) uniform_offset: u32,
+    pub(super) multisampled: bool,
+    pub(super) accumulation: CachedTexture,
+    /// Per optical mode, the pipeline of each variant ([`variant_index`]),
+    /// where a batch of this frame needs it.
+    pub(super) pipelines: [[Option<CachedRenderPipelineId>; 4]; 3],
+    pub(super) composite: CachedRenderPipelineId,
+}
+
+/// Lets the pass read the scene depth, only while there is something to draw.
+pub fn make_depth_readable(
+    extracted: Res<ExtractedCellBatches>,
+    mut cameras: Query<&mut Camera3d>,
+) {
+    if extracted.0.is_empty() {
+        return;
+    }
+    for mut camera in &mut cameras {
+        camera.depth_texture_usages.0 |= TextureUsages::TEXTURE_BINDING.bits();
+    }
+}
+
+/// Writes each view's uniform, gets its accumulation target and
+/// specialises its pipelines.
+#[allow(clippy::too_many_arguments)]
+pub fn prepare_cell_views(
+    mut commands: Commands,
+    extracted: Res<ExtractedCellBatches>,
+    views: Query<(Entity, &ExtractedView, &ExtractedCamera, &Msaa)>,
+    mut texture_cache: ResMut<TextureCache>,
+    mut composites: ResMut<CellCompositePipelines>,
+    mut uniforms: ResMut<CellViewUniforms>,
+    pipeline: Res<CellProjectionPipeline>,
+    mut pipelines: ResMut<SpecializedRenderPipelines<CellProjectionPipeline>>,
+    pipeline_cache: Res<PipelineCache>,
+    device: Res<RenderDevice>,
+    queue: Res<RenderQueue>,
+) {
+    if extracted.0.is_empty() {
+        return;
+    }
+    uniforms.0.clear();
+    let format = accumulation_format(&device);
+    for (entity, view, camera, msaa) in &views {
+        let Some(size) = camera.physical_target_size else {
+            continue;
+        };
+        let accumulation = texture_cache.get(
+            &device,
+            TextureDescriptor {
+                label: Some("nebel_cell_accumulation"),
+                size: Extent3d {
+                    width: size.x,
+                    height: size.y,
+                    depth_or_array_layers: 1,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: TextureDimension::D2,
+                format,
+                usage: TextureUsages::RENDER_ATTACHMENT | TextureUsages::TEXTURE_BINDING,
+                view_formats: &[],
+            },
+        );
+        let composite = *composites.0.entry(view.target_format).or_insert_with(|| {
+            pipeline_cache.queue_render_pipeline(pipeline.composite_descriptor(view.target_format))
+        });
+        let world_from_view = view.world_from_view.to_matrix();
+        let clip_from_world = view
+            .clip_from_world
+            .unwrap_or_else(|| view.clip_from_view * world_from_view.inverse());
+        let uniform_offset = uniforms.0.push(&CellViewUniform {
+            clip_from_world,
+            world_from_clip: clip_from_world.inverse(),
+            camera_position: view.world_from_view.translation().extend(1.0),
+            viewport: view.viewport.as_vec4(),
+        });
+        let multisampled = *msaa != Msaa::Off;
+        // Only the variants some batch of this frame needs.
+        let mut variants = [[None; 4]; 3];
+        for (_, batch) in &extracted.0 {
+            let (modulated, scattering) = (batch.is_modulated(), batch.scattering.is_some());
+            variants[mode_index(batch.mode)][variant_index(modulated, scattering)] =
+                Some(pipelines.specialize(
+                    &pipeline_cache,
+                    &pipeline,
+                    CellProjectionPipelineKey {
+                        mode: batch.mode,
+                        modulated,
+                        scattering,
+                        multisampled,
+                        target_format: format,
+                    },
+                ));
+        }
+        commands.entity(entity).insert(CellProjectionView {
+            uniform_offset,
+            multisampled,
+            accumulation,
+            pipelines: variants,
+            composite,
+        });
+    }
+    uniforms.0.write_buffer(&device, &queue);
+}

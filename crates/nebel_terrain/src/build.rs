@@ -1,0 +1,340 @@
+//! Building a terrain's quadtree in the background.
+//!
+//! [`start_terrain_builds`] notices a new terrain, a changed source or one of
+//! `spacing`, `vertical_scale`, `min_accuracy`, and a modified height asset;
+//! it takes the unit heights (the asset's shared values, or a procedural
+//! source's settings) and starts [`build_quadtree`] on the task pool.
+//! [`finish_terrain_builds`] takes the result when it is ready (at once under
+//! `HeavyBuilds::Blocking`): the new quadtree replaces the old one, which was
+//! drawn meanwhile, or the failure is recorded in [`TerrainStatus::Failed`],
+//! logged once and the mesh removed. A failed terrain is not built again
+//! until its settings or its asset change.
+//!
+//! The build checks the settings, scales the unit heights (every height must
+//! be finite), centres the grid on the entity, pads it to `2^k + 1` points
+//! per side and computes the quadtree's roughness ([`TerrainHierarchy::new`]).
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use bevy::asset::LoadState;
+use bevy::camera::primitives::Aabb;
+use bevy::camera::visibility::NoAutoAabb;
+use bevy::diagnostic::Diagnostics;
+use bevy::math::DVec2;
+use bevy::prelude::*;
+use nebel_core::field::{HeightField, TerrainNoise};
+use nebel_lod::quadtree::{MAX_TERRAIN_SIDE, pad_to_power_of_two_plus_one};
+use nebel_lod::{TerrainHierarchy, TerrainMesh};
+use nebel_render::{HeavyBuild, HeavyBuilds};
+
+use crate::error::TerrainBuildError;
+use crate::heights::TerrainHeights;
+use crate::terrain::{Terrain, TerrainLodStats, TerrainPlugin, TerrainSource, TerrainStatus};
+use crate::update::MeshView;
+
+/// The settings a quadtree is built from; the quadtree is rebuilt when they
+/// change.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct BuildKey {
+    source: TerrainSource,
+    spacing: f32,
+    vertical_scale: f32,
+    min_accuracy: f32,
+}
+
+impl BuildKey {
+    fn of(terrain: &Terrain) -> Self {
+        Self {
+            source: terrain.source.clone(),
+            spacing: terrain.spacing,
+            vertical_scale: terrain.vertical_scale,
+            min_accuracy: terrain.min_accuracy,
+        }
+    }
+}
+
+/// Where a build takes its unit heights from.
+enum UnitHeights {
+    /// A height asset's values, shared.
+    Asset {
+        dims: [usize; 2],
+        values: Arc<Vec<f32>>,
+    },
+    /// A procedural source, generated on the task pool.
+    Procedural { size: u32, noise: TerrainNoise },
+}
+
+/// Everything [`build_quadtree`] needs, owned, so it runs on another thread.
+pub(crate) struct BuildInput {
+    heights: UnitHeights,
+    spacing: f32,
+    vertical_scale: f32,
+    accuracy: f32,
+    min_accuracy: f32,
+}
+
+#[cfg(test)]
+impl BuildInput {
+    /// The input of a procedural terrain.
+    pub fn of(terrain: &Terrain) -> Self {
+        let TerrainSource::Procedural { size, noise } = terrain.source.clone() else {
+            panic!("a procedural terrain");
+        };
+        Self {
+            heights: UnitHeights::Procedural { size, noise },
+            spacing: terrain.spacing,
+            vertical_scale: terrain.vertical_scale,
+            accuracy: terrain.accuracy,
+            min_accuracy: terrain.min_accuracy,
+        }
+    }
+}
+
+/// A finished build: the quadtree and how long it took.
+pub(crate) struct BuiltQuadtree {
+    pub hierarchy: Arc<TerrainHierarchy>,
+    build_ms: f32,
+}
+
+/// Checks the settings, scales the unit heights and builds the quadtree (see
+/// the module docs).
+pub(crate) fn build_quadtree(input: BuildInput) -> Result<BuiltQuadtree, TerrainBuildError> {
+    let started = Instant::now();
+    let BuildInput {
+        heights,
+        spacing,
+        vertical_scale,
+        accuracy,
+        min_accuracy,
+    } = input;
+    if !(spacing.is_finite() && spacing > 0.0) {
+        return Err(TerrainBuildError::InvalidSpacing(spacing));
+    }
+    if !vertical_scale.is_finite() {
+        return Err(TerrainBuildError::InvalidVerticalScale(vertical_scale));
+    }
+    if !(accuracy.is_finite() && accuracy > 0.0) {
+        return Err(TerrainBuildError::InvalidAccuracy(accuracy));
+    }
+    let (dims, values) = match heights {
+        UnitHeights::Asset { dims, values } => (dims, values),
+        UnitHeights::Procedural { size, noise } => {
+            let side = size as usize;
+            if !(2..=MAX_TERRAIN_SIDE).contains(&side) {
+                return Err(TerrainBuildError::ProceduralSize { size });
+            }
+            let field = HeightField::terrain([side; 2], f64::from(spacing), &noise)?;
+            ([side; 2], Arc::new(field.heights().to_vec()))
+        }
+    };
+    let [nx, nz] = dims;
+    if nx < 2 || nz < 2 {
+        return Err(TerrainBuildError::TooSmall { nx, nz });
+    }
+    if nx.max(nz) > MAX_TERRAIN_SIDE {
+        return Err(TerrainBuildError::TooLarge { nx, nz });
+    }
+    if values.len() != nx * nz {
+        return Err(TerrainBuildError::ValueCount {
+            nx,
+            nz,
+            count: values.len(),
+        });
+    }
+    let mut scaled = Vec::with_capacity(nx * nz);
+    for (index, &unit) in values.iter().enumerate() {
+        let height = unit * vertical_scale;
+        if !height.is_finite() {
+            return Err(TerrainBuildError::NonFiniteHeight {
+                i: index % nx,
+                j: index / nx,
+                height,
+                unit,
+                scale: vertical_scale,
+            });
+        }
+        scaled.push(height);
+    }
+    let spacing = f64::from(spacing);
+    let half = DVec2::new((nx - 1) as f64, (nz - 1) as f64) * spacing / 2.0;
+    let field = HeightField::new([nx, nz], DVec2::splat(spacing), -half, scaled)?;
+    let padded = pad_to_power_of_two_plus_one(&field)?;
+    let hierarchy = TerrainHierarchy::new(padded, min_accuracy)?;
+    Ok(BuiltQuadtree {
+        hierarchy: Arc::new(hierarchy),
+        build_ms: started.elapsed().as_secs_f32() * 1e3,
+    })
+}
+
+/// A terrain's quadtree, the build in flight, its reusable LOD buffers and
+/// its mesh.
+#[derive(Component, Default)]
+pub(crate) struct TerrainLod {
+    /// What the quadtree (or the failure, or the build in flight) is for.
+    key: Option<BuildKey>,
+    build: Option<HeavyBuild<Result<BuiltQuadtree, TerrainBuildError>>>,
+    pub hierarchy: Option<Arc<TerrainHierarchy>>,
+    /// The LOD output, reused every rebuild.
+    pub lod: TerrainMesh,
+    pub mesh: Option<Handle<Mesh>>,
+    /// The view the mesh was refined for.
+    pub view: Option<MeshView>,
+}
+
+/// The unit heights of `terrain`'s source, `Ok(None)` while its asset
+/// loads.
+fn unit_heights(
+    terrain: &Terrain,
+    heights: &Assets<TerrainHeights>,
+    asset_server: &AssetServer,
+) -> Result<Option<UnitHeights>, TerrainBuildError> {
+    match &terrain.source {
+        TerrainSource::Procedural { size, noise } => Ok(Some(UnitHeights::Procedural {
+            size: *size,
+            noise: *noise,
+        })),
+        TerrainSource::Heights(handle) => match heights.get(handle) {
+            Some(asset) => Ok(Some(UnitHeights::Asset {
+                dims: [asset.dims.x as usize, asset.dims.y as usize],
+                values: asset.values.clone(),
+            })),
+            None => match asset_server.get_load_state(handle.id()) {
+                Some(LoadState::Failed(error)) => Err(TerrainBuildError::HeightsNotLoaded {
+                    path: handle
+                        .path()
+                        .map_or_else(|| String::from("(no path)"), ToString::to_string),
+                    error,
+                }),
+                _ => Ok(None),
+            },
+        },
+    }
+}
+
+/// Records a failure: the status, one log line per entity and new reason,
+/// no mesh.
+fn fail(
+    commands: &mut Commands,
+    entity: Entity,
+    status: &mut TerrainStatus,
+    state: &mut TerrainLod,
+    error: TerrainBuildError,
+) {
+    if *status != TerrainStatus::Failed(error.clone()) {
+        error!("nebel: terrain {entity} not drawn: {error}");
+        *status = TerrainStatus::Failed(error);
+    }
+    state.hierarchy = None;
+    state.view = None;
+    if state.mesh.take().is_some() {
+        commands
+            .entity(entity)
+            .remove::<(Mesh3d, MeshMaterial3d<StandardMaterial>, Aabb, NoAutoAabb)>();
+    }
+}
+
+/// Starts a quadtree build for every terrain whose heights or build settings
+/// changed (see the module docs).
+pub(crate) fn start_terrain_builds(
+    mut commands: Commands,
+    mut terrains: Query<(Entity, &Terrain, &mut TerrainStatus, &mut TerrainLod)>,
+    heights: Res<Assets<TerrainHeights>>,
+    mut height_events: MessageReader<AssetEvent<TerrainHeights>>,
+    asset_server: Res<AssetServer>,
+) {
+    let modified: Vec<AssetId<TerrainHeights>> = height_events
+        .read()
+        .filter_map(|event| match event {
+            AssetEvent::Modified { id } => Some(*id),
+            _ => None,
+        })
+        .collect();
+    for (entity, terrain, mut status, mut state) in &mut terrains {
+        let key = BuildKey::of(terrain);
+        let asset_modified = matches!(&terrain.source,
+            TerrainSource::Heights(handle) if modified.contains(&handle.id()));
+        if state.key.as_ref() == Some(&key) && !asset_modified {
+            continue;
+        }
+        match unit_heights(terrain, &heights, &asset_server) {
+            // Still loading: ask again next frame.
+            Ok(None) => *status = TerrainStatus::Pending,
+            Ok(Some(unit)) => {
+                let input = BuildInput {
+                    heights: unit,
+                    spacing: terrain.spacing,
+                    vertical_scale: terrain.vertical_scale,
+                    accuracy: terrain.accuracy,
+                    min_accuracy: terrain.min_accuracy,
+                };
+                state.key = Some(key);
+                state.build = Some(HeavyBuild::spawn(move || build_quadtree(input)));
+                if state.hierarchy.is_none() {
+                    *status = TerrainStatus::Pending;
+                }
+            }
+            Err(error) => {
+                state.key = Some(key);
+                state.build = None;
+                fail(&mut commands, entity, &mut status, &mut state, error);
+            }
+        }
+    }
+}
+
+/// Takes the finished builds (see the module docs).
+pub(crate) fn finish_terrain_builds(
+    mut commands: Commands,
+    mode: Res<HeavyBuilds>,
+    mut diagnostics: Diagnostics,
+    mut terrains: Query<(
+        Entity,
+        &mut TerrainStatus,
+        &mut TerrainLodStats,
+        &mut TerrainLod,
+    )>,
+) {
+    for (entity, mut status, mut stats, mut state) in &mut terrains {
+        let Some(result) = state.build.as_mut().and_then(|build| build.poll(*mode)) else {
+            continue;
+        };
+        state.build = None;
+        match result {
+            Ok(BuiltQuadtree {
+                hierarchy,
+                build_ms,
+            }) => {
+                diagnostics.add_measurement(&TerrainPlugin::BUILD_MS, || f64::from(build_ms));
+                *stats = TerrainLodStats {
+                    points_per_side: hierarchy.size() as u32,
+                    bytes_per_point: hierarchy.bytes_per_point() as f32,
+                    build_ms,
+                    updates: stats.updates,
+                    ..default()
+                };
+                if state.mesh.is_some() {
+                    // A new extent: new bounds.
+                    commands.entity(entity).insert(bounds(&hierarchy));
+                }
+                state.hierarchy = Some(hierarchy);
+                state.view = None;
+                *status = TerrainStatus::Ready;
+            }
+            Err(error) => fail(&mut commands, entity, &mut status, &mut state, error),
+        }
+    }
+}
+
+/// The bounds of every mesh the quadtree can produce, in the entity's frame:
+/// the grid's square and the height range (morphed heights stay inside it).
+pub(crate) fn bounds(hierarchy: &TerrainHierarchy) -> Aabb {
+    let origin = hierarchy.origin().as_vec3();
+    let spacing = hierarchy.field().spacing().as_vec2();
+    let extent = (hierarchy.size() - 1) as f32 * spacing;
+    let [low, high] = hierarchy.height_range();
+    Aabb::from_min_max(
+        Vec3::new(origin.x, low, origin.z),
+        Vec3::new(origin.x + extent.x, high, origin.z + extent.y),
+    )
+}
