@@ -28,6 +28,9 @@
 //!   heights), and [`TerrainHierarchy::update`], one pass per frame that
 //!   refines, geomorphs and writes crack-free triangle fans ([`TerrainMesh`])
 //!   back to front, front to back or unordered, with frustum culling.
+//! - [`view`]: [`View`], what every builder reads of the camera for one
+//!   volume and frame: the volume's placement, the eye, the frustum and the
+//!   viewport (an empty viewport sees nothing).
 //! - [`visibility`]: back-to-front order for any conforming tetrahedral mesh
 //!   (MPVO, Williams 1992): [`CellAdjacency`] once per mesh, then
 //!   [`CellAdjacency::back_to_front`] or [`sorted_batch`] per eye.
@@ -37,6 +40,7 @@ pub mod frustum;
 pub mod full_resolution;
 pub mod octree;
 pub mod quadtree;
+pub mod view;
 pub mod visibility;
 
 pub use batch::{CellBatch, GpuCell};
@@ -44,4 +48,5 @@ pub use frustum::{Frustum, FrustumError};
 pub use full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};
 pub use octree::{HierarchyError, Node, VolumeHierarchy};
 pub use quadtree::{LodSettings, TerrainError, TerrainHierarchy, TerrainMesh, TriangleOrder};
+pub use view::View;
 pub use visibility::{CellAdjacency, sorted_batch};
