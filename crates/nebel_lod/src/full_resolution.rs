@@ -51,7 +51,7 @@
 //! integers `m`, so [`order_key`] (on which side of each plane the eye is)
 //! changes whenever the order may change: a caller rebuilds a batch only when
 //! the key, the grid, `world_from_local`, the transfer function, the frustum
-//! or the viewport changed.
+//! or the viewport changed ([`VolumeBatcher`](crate::VolumeBatcher) does).
 //!
 //! [`CellOrder::Unordered`] emits bricks, voxels and tetrahedra in storage order
 //! (x fastest), for the emissive and MIP modes, which need no sorting.

@@ -34,6 +34,11 @@
 //! - [`visibility`]: back-to-front order for any conforming tetrahedral mesh
 //!   (MPVO, Williams 1992): [`CellAdjacency`] once per mesh, then
 //!   [`CellAdjacency::back_to_front`] or [`sorted_batch`] per eye.
+//! - [`volume_batcher`]: [`VolumeBatcher`], one volume's batch frame after
+//!   frame: a grid at full resolution or through the octree (lit or not) or
+//!   a cell mesh, built once ([`VolumeBatcher::new`]) and rebuilt by
+//!   [`VolumeBatcher::update`] only when the view or the inputs change the
+//!   batch.
 
 pub mod batch;
 pub mod frustum;
@@ -42,6 +47,7 @@ pub mod octree;
 pub mod quadtree;
 pub mod view;
 pub mod visibility;
+pub mod volume_batcher;
 
 pub use batch::{CellBatch, GpuCell};
 pub use frustum::{Frustum, FrustumError};
@@ -50,3 +56,7 @@ pub use octree::{HierarchyError, Node, VolumeHierarchy};
 pub use quadtree::{LodSettings, TerrainError, TerrainHierarchy, TerrainMesh, TriangleOrder};
 pub use view::View;
 pub use visibility::{CellAdjacency, sorted_batch};
+pub use volume_batcher::{
+    BatchLighting, BatchSettings, FrameInputs, OctreeSettings, VolumeBatchError, VolumeBatcher,
+    VolumeSource,
+};

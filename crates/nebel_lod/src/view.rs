@@ -8,8 +8,9 @@
 //! [`full_resolution_batch`](crate::full_resolution_batch) and
 //! [`order_key`](crate::order_key), the octree's
 //! [`refine`](fn@crate::octree::refine) and
-//! [`lod_batch`](crate::octree::lod_batch) and
-//! [`sorted_batch`](crate::sorted_batch).
+//! [`lod_batch`](crate::octree::lod_batch), [`sorted_batch`](crate::sorted_batch),
+//! and [`VolumeBatcher`](crate::VolumeBatcher), which compares consecutive
+//! views to rebuild only when the batch would change.
 //!
 //! # Viewport
 //!
