@@ -20,11 +20,11 @@
 
 use std::time::Instant;
 
-use glam::{DAffine3, DMat4, DVec3};
+use glam::{DAffine3, DMat4, DVec3, UVec2};
 use nebel_core::field::{CloudLighting, CloudNoise, DensityGrid, light_field};
 use nebel_core::transfer::{ControlPoint, TransferFunction};
 use nebel_lod::octree::{CellScalars, RefinementSettings, lod_batch_with, refine};
-use nebel_lod::{Frustum, VolumeHierarchy};
+use nebel_lod::{Frustum, View, VolumeHierarchy};
 
 const DIMS: [usize; 3] = [513, 65, 513];
 const FRAMES: usize = 40;
@@ -91,23 +91,18 @@ fn main() {
         for frame in 0..FRAMES {
             let t = frame as f64 / (FRAMES - 1) as f64;
             let eye = start.lerp(end, t);
-            let view = DMat4::look_at_rh(eye, look_start.lerp(look_end, t), DVec3::Y);
-            let frustum = Frustum::from_view_projection(projection * view).expect("a view");
+            let camera = DMat4::look_at_rh(eye, look_start.lerp(look_end, t), DVec3::Y);
+            let frustum = Frustum::from_view_projection(projection * camera).expect("a view");
+            // A 1920 × 1200 target, the projection's aspect ratio of 1.6.
+            let view =
+                View::new(DAffine3::IDENTITY, eye, UVec2::new(1920, 1200)).with_frustum(frustum);
             let started = Instant::now();
-            let refinement = refine(
-                &hierarchy,
-                DAffine3::IDENTITY,
-                eye,
-                Some(&frustum),
-                &opacity,
-                &settings,
-            )
-            .expect("valid settings");
+            let refinement =
+                refine(&hierarchy, &view, &opacity, &settings).expect("valid settings");
             let batch = lod_batch_with(
                 &hierarchy,
                 &refinement,
-                DAffine3::IDENTITY,
-                eye,
+                &view,
                 CellScalars::LightModulatedByDensity,
             )
             .expect("valid eye");

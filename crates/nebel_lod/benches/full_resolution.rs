@@ -15,14 +15,17 @@
 use std::hint::black_box;
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
-use glam::{DAffine3, DQuat, DVec3};
+use glam::{DAffine3, DQuat, DVec3, UVec2};
 use nebel_core::cell::Tetrahedron;
 use nebel_core::field::{DensityGrid, ProceduralNoise, search_light_cells};
 use nebel_core::transfer::{TransferFunction, TransferPreset};
-use nebel_lod::{BrickTable, CellAdjacency, CellOrder, full_resolution_batch};
+use nebel_lod::{BrickTable, CellAdjacency, CellOrder, View, full_resolution_batch};
 
 /// Points per axis: 64³ voxels.
 const POINTS: usize = 65;
+
+/// The views' render target, pixels (read only for being non-empty).
+const VIEWPORT: UVec2 = UVec2::new(1920, 1080);
 
 fn full_resolution(c: &mut Criterion) {
     let noise = ProceduralNoise {
@@ -73,9 +76,7 @@ fn bench_grid(c: &mut Criterion, noise: &ProceduralNoise, points: usize) {
                         let batch = full_resolution_batch(
                             black_box(&grid),
                             &bricks,
-                            world_from_grid,
-                            eye,
-                            None,
+                            &View::new(world_from_grid, eye, VIEWPORT),
                             &transfer,
                             order,
                         )

@@ -22,14 +22,17 @@
 use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use glam::{DAffine3, DVec3};
+use glam::{DAffine3, DVec3, UVec2};
 use nebel_core::field::{DensityGrid, ProceduralNoise};
 use nebel_core::transfer::{TransferFunction, TransferPreset};
-use nebel_lod::VolumeHierarchy;
 use nebel_lod::octree::{RefinementSettings, lod_batch, refine};
+use nebel_lod::{View, VolumeHierarchy};
 
 /// Minimum accuracy C of the benches (K_max ≈ 0.638).
 const MIN_ACCURACY: f64 = 2.0;
+
+/// The views' render target, pixels (read only for being non-empty).
+const VIEWPORT: UVec2 = UVec2::new(1920, 1080);
 
 /// The benches' fBm field: one world unit per grid point, the first octave
 /// spans 128 points, six octaves down to 4 points, like the paper's cumulus
@@ -69,18 +72,11 @@ fn octree_refine(c: &mut Criterion) {
     let mut group = c.benchmark_group("octree_refine");
     group.sample_size(20);
     for (place, eye) in eyes {
+        let view = View::new(DAffine3::IDENTITY, eye, VIEWPORT);
         for accuracy in [1.0, 4.0, 16.0, 64.0] {
             let settings = RefinementSettings { accuracy };
             let run = || {
-                refine(
-                    black_box(&hierarchy),
-                    DAffine3::IDENTITY,
-                    eye,
-                    None,
-                    &transfer,
-                    &settings,
-                )
-                .expect("valid settings")
+                refine(black_box(&hierarchy), &view, &transfer, &settings).expect("valid settings")
             };
             let stats = run().stats;
             println!(
@@ -101,27 +97,20 @@ fn octree_emit(c: &mut Criterion) {
     let hierarchy =
         VolumeHierarchy::new(&fbm_grid([513, 513, 65]), MIN_ACCURACY).expect("2^n+1 grid");
     let transfer = TransferFunction::preset(TransferPreset::Cloud);
-    let eye = DVec3::new(256.0, 256.0, 32.0);
+    let view = View::new(DAffine3::IDENTITY, DVec3::new(256.0, 256.0, 32.0), VIEWPORT);
     let mut group = c.benchmark_group("octree_emit");
     group.sample_size(20);
     for accuracy in [16.0, 64.0] {
         let refinement = refine(
             &hierarchy,
-            DAffine3::IDENTITY,
-            eye,
-            None,
+            &view,
             &transfer,
             &RefinementSettings { accuracy },
         )
         .expect("valid settings");
         let run = || {
-            lod_batch(
-                black_box(&hierarchy),
-                black_box(&refinement),
-                DAffine3::IDENTITY,
-                eye,
-            )
-            .expect("valid transform and eye")
+            lod_batch(black_box(&hierarchy), black_box(&refinement), &view)
+                .expect("valid transform and eye")
         };
         let cells = run().len();
         println!(

@@ -16,8 +16,12 @@
 //! - its scalar range has zero opacity, [`TransferFunction::is_transparent`]
 //!   (the zero-opacity test of paper 000 §4.1, exact for any transfer
 //!   function: a brick with any ρ > 0 in its range stays), or
-//! - its box misses the view frustum ([`Frustum::intersects_aabb`] in the grid's
-//!   own frame, conservative).
+//! - its box misses the view frustum
+//!   ([`Frustum::intersects_aabb`](crate::Frustum::intersects_aabb) in the
+//!   grid's own frame, conservative).
+//!
+//! A view whose viewport has no pixels ([`View::viewport_is_empty`]) keeps no
+//! brick: the batch is empty.
 //!
 //! # Visibility order
 //!
@@ -25,13 +29,14 @@
 //! emitted before it, for the given eye, also when the eye is inside the grid,
 //! inside a voxel or exactly on a grid plane:
 //! - Across bricks and voxels: a BSP-style nested traversal of the axis-aligned
-//!   grid in its own frame (the eye is pulled back through `world_from_grid`;
-//!   sidedness is invariant under affine maps, mirrors included). Along each
-//!   axis the slabs are visited from both far ends towards the eye's slab, the
-//!   eye's slab last; z outermost, x innermost. Each slab boundary is a plane
-//!   that separates everything visited earlier on the eye's far side from what
-//!   follows, so the nesting is a valid BSP order. Bricks are visited this way,
-//!   then the voxels inside each brick, which is again a BSP order.
+//!   grid in its own frame (the eye is pulled back through the view's
+//!   `world_from_local`; sidedness is invariant under affine maps, mirrors
+//!   included). Along each axis the slabs are visited from both far ends
+//!   towards the eye's slab, the eye's slab last; z outermost, x innermost.
+//!   Each slab boundary is a plane that separates everything visited earlier
+//!   on the eye's far side from what follows, so the nesting is a valid BSP
+//!   order. Bricks are visited this way, then the voxels inside each brick,
+//!   which is again a BSP order.
 //! - Inside a voxel, the MPVO rule (Williams, "Visibility ordering meshed
 //!   polyhedra", 1992) on its five tetrahedra: each corner tetrahedron shares
 //!   one face with the central tetrahedron and touches the other corner
@@ -44,8 +49,9 @@
 //! and of each corner-tetrahedron face plane it is on. In voxel index
 //! coordinates `u` those planes are `u_a = m` and `±u_x ± u_y ± u_z = m` for
 //! integers `m`, so [`order_key`] (on which side of each plane the eye is)
-//! changes whenever the order may change: a caller rebuilds a batch only when the key, the grid, the transfer
-//! function or the frustum changed.
+//! changes whenever the order may change: a caller rebuilds a batch only when
+//! the key, the grid, `world_from_local`, the transfer function, the frustum
+//! or the viewport changed ([`VolumeBatcher`](crate::VolumeBatcher) does).
 //!
 //! [`CellOrder::Unordered`] emits bricks, voxels and tetrahedra in storage order
 //! (x fastest), for the emissive and MIP modes, which need no sorting.
@@ -78,7 +84,7 @@ use nebel_core::transfer::TransferFunction;
 use thiserror::Error;
 
 use crate::batch::{CellBatch, GpuCell};
-use crate::frustum::Frustum;
+use crate::view::View;
 
 /// The order in which a batch's cells are emitted.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -105,8 +111,8 @@ pub enum BatchError {
         /// Voxels per axis of the grid given.
         grid: [usize; 3],
     },
-    /// `world_from_grid` is not finite or not invertible.
-    #[error("world_from_grid must be finite and invertible (determinant {determinant})")]
+    /// The view's `world_from_local` is not finite or not invertible.
+    #[error("world_from_local must be finite and invertible (determinant {determinant})")]
     SingularTransform {
         /// Determinant of its linear part.
         determinant: f64,
@@ -250,12 +256,10 @@ pub(crate) static DECOMPOSITIONS: LazyLock<[Decomposition; 2]> = LazyLock::new(|
 /// world space, pruned and ordered as described in the module docs.
 ///
 /// - `bricks`: the grid's [`BrickTable`] (any brick size).
-/// - `world_from_grid`: maps the grid's own coordinates (point `(i, j, k)` at
-///   `origin + (i, j, k) · spacing`) to world space; any finite invertible
-///   affine map (rotation, non-uniform scale, shear, mirror).
-/// - `eye_world`: the eye, world units; only read for
-///   [`CellOrder::BackToFront`].
-/// - `frustum`: world-space view frustum; `None` culls nothing.
+/// - `view`: its `world_from_local` maps the grid's own coordinates (point
+///   `(i, j, k)` at `origin + (i, j, k) · spacing`) to world space; the eye is
+///   only read for [`CellOrder::BackToFront`]; the frustum culls bricks; an
+///   empty viewport gives an empty batch (after the checks below).
 /// - `transfer`: the transfer function of the zero-opacity test.
 /// - `order`: see [`CellOrder`].
 ///
@@ -266,9 +270,7 @@ pub(crate) static DECOMPOSITIONS: LazyLock<[Decomposition; 2]> = LazyLock::new(|
 pub fn full_resolution_batch(
     grid: &DensityGrid,
     bricks: &BrickTable,
-    world_from_grid: DAffine3,
-    eye_world: DVec3,
-    frustum: Option<&Frustum>,
+    view: &View,
     transfer: &TransferFunction,
     order: CellOrder,
 ) -> Result<CellBatch, BatchError> {
@@ -280,20 +282,26 @@ pub fn full_resolution_batch(
         });
     }
     let Some((world_from_index, index_from_world)) =
-        index_maps(grid.origin(), grid.spacing(), world_from_grid)
+        index_maps(grid.origin(), grid.spacing(), view.world_from_local)
     else {
         return Err(BatchError::SingularTransform {
-            determinant: world_from_grid.matrix3.determinant(),
+            determinant: view.world_from_local.matrix3.determinant(),
         });
     };
     let eye = match order {
         CellOrder::BackToFront => Some(
-            EyeSides::new(index_from_world.transform_point3(eye_world))
-                .ok_or(BatchError::NonFiniteEye { eye: eye_world })?,
+            EyeSides::new(index_from_world.transform_point3(view.eye))
+                .ok_or(BatchError::NonFiniteEye { eye: view.eye })?,
         ),
         CellOrder::Unordered => None,
     };
-    let local_frustum = frustum.map(|f| f.in_local_frame(&world_from_index));
+    if view.viewport_is_empty() {
+        return Ok(CellBatch::default());
+    }
+    let local_frustum = view
+        .frustum
+        .as_ref()
+        .map(|f| f.in_local_frame(&world_from_index));
     let point = |i: usize, j: usize, k: usize| {
         world_from_index
             .transform_point3(DVec3::new(i as f64, j as f64, k as f64))
@@ -381,23 +389,21 @@ pub fn full_resolution_batch(
     })
 }
 
-/// A cheap fingerprint of the back-to-front order for an eye: two eyes with the
-/// same key get the same [`CellOrder::BackToFront`] batch of `grid` under
-/// `world_from_grid` (with the same bricks, frustum and transfer function).
+/// A cheap fingerprint of the back-to-front order for the view's eye: two
+/// views with the same `world_from_local` (the grid's coordinates to world,
+/// as for [`full_resolution_batch`]) and the same key get the same
+/// [`CellOrder::BackToFront`] batch of `grid` (with the same bricks, frustum,
+/// viewport and transfer function). The frustum and viewport are not read.
 ///
 /// With the eye at `u` in voxel index coordinates, the key holds `⌊u_a⌋` per
 /// axis and, for each of the eight sign vectors `σ`, which integer or open
 /// interval between integers `σ · u` lies on (`2⌊v⌋` for an integer `v`,
 /// `2⌊v⌋ + 1` otherwise), each clamped to where the order stops changing.
-/// `None` when the eye is not finite or `world_from_grid` is not invertible
+/// `None` when the eye is not finite or `world_from_local` is not invertible
 /// (then [`full_resolution_batch`] fails for that order too).
-pub fn order_key(
-    grid: &DensityGrid,
-    world_from_grid: DAffine3,
-    eye_world: DVec3,
-) -> Option<[i64; 11]> {
-    let (_, index_from_world) = index_maps(grid.origin(), grid.spacing(), world_from_grid)?;
-    let eye = EyeSides::new(index_from_world.transform_point3(eye_world))?;
+pub fn order_key(grid: &DensityGrid, view: &View) -> Option<[i64; 11]> {
+    let (_, index_from_world) = index_maps(grid.origin(), grid.spacing(), view.world_from_local)?;
+    let eye = EyeSides::new(index_from_world.transform_point3(view.eye))?;
     // Beyond ±limit every plane of the grid is on the same side.
     let limit = 4 * grid.dims().iter().sum::<usize>() as i64 + 8;
     let mut key = [0; 11];
@@ -413,7 +419,8 @@ pub fn order_key(
 }
 
 /// The maps between world space and the index space of a grid with `origin`
-/// and `spacing` (point `(i, j, k)` at `(i, j, k)`):
+/// and `spacing` (point `(i, j, k)` at `(i, j, k)`) placed by
+/// `world_from_grid` (the view's `world_from_local`):
 /// `(world_from_index, index_from_world)`, or `None` when not finite or not
 /// invertible. The octree's refinement and emission use the same maps.
 pub(crate) fn index_maps(

@@ -28,20 +28,35 @@
 //!   heights), and [`TerrainHierarchy::update`], one pass per frame that
 //!   refines, geomorphs and writes crack-free triangle fans ([`TerrainMesh`])
 //!   back to front, front to back or unordered, with frustum culling.
+//! - [`view`]: [`View`], what every builder reads of the camera for one
+//!   volume and frame: the volume's placement, the eye, the frustum and the
+//!   viewport (an empty viewport sees nothing).
 //! - [`visibility`]: back-to-front order for any conforming tetrahedral mesh
 //!   (MPVO, Williams 1992): [`CellAdjacency`] once per mesh, then
 //!   [`CellAdjacency::back_to_front`] or [`sorted_batch`] per eye.
+//! - [`volume_batcher`]: [`VolumeBatcher`], one volume's batch frame after
+//!   frame: a grid at full resolution or through the octree (lit or not) or
+//!   a cell mesh, built once ([`VolumeBatcher::new`]) and rebuilt by
+//!   [`VolumeBatcher::update`] only when the view or the inputs change the
+//!   batch.
 
 pub mod batch;
 pub mod frustum;
 pub mod full_resolution;
 pub mod octree;
 pub mod quadtree;
+pub mod view;
 pub mod visibility;
+pub mod volume_batcher;
 
 pub use batch::{CellBatch, GpuCell};
 pub use frustum::{Frustum, FrustumError};
 pub use full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};
 pub use octree::{HierarchyError, Node, VolumeHierarchy};
 pub use quadtree::{LodSettings, TerrainError, TerrainHierarchy, TerrainMesh, TriangleOrder};
+pub use view::View;
 pub use visibility::{CellAdjacency, sorted_batch};
+pub use volume_batcher::{
+    BatchLighting, BatchSettings, FrameInputs, OctreeSettings, VolumeBatchError, VolumeBatcher,
+    VolumeSource,
+};

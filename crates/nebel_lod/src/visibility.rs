@@ -56,7 +56,10 @@
 //!
 //! Sidedness is invariant under affine maps, so build the adjacency once in
 //! the mesh's own frame (where shared vertices are bit-identical) and pass the
-//! eye in that frame; the cells may then move with their entity. Shared
+//! eye in that frame; the cells may then move with their entity.
+//! [`sorted_batch`] does this for a [`View`]: it pulls the eye back through
+//! the view's `world_from_local`, orders the cells in their own frame and
+//! emits them in world space. Shared
 //! vertices must be computed identically for their faces to match: a mesh
 //! whose cells compute the same corner with different rounding (for example
 //! `origin + i·h + h` against `origin + (i + 1)·h` for a non-dyadic `h`) gets
@@ -80,6 +83,8 @@ use glam::DVec3;
 use nebel_core::cell::{Plane, Tetrahedron};
 
 use crate::batch::CellBatch;
+use crate::full_resolution::BatchError;
+use crate::view::View;
 
 /// Marks a face slot without a neighbour (a boundary face, or a face of a
 /// degenerate cell).
@@ -278,21 +283,43 @@ impl CellAdjacency {
     }
 }
 
-/// `cells` reordered back to front for `eye` with
-/// [`CellAdjacency::back_to_front`] (`adjacency` built from `cells`), as a
+/// `cells` (in the mesh's own frame, `adjacency` built from them) reordered
+/// back to front for the view's eye with [`CellAdjacency::back_to_front`] in
+/// that frame, moved to world space by the view's `world_from_local`, as a
 /// batch ([`CellBatch::from_tetrahedra`], which drops non-finite cells and
-/// clamps scalars).
+/// clamps scalars). The frustum is not read; an empty viewport gives an empty
+/// batch (after the checks below).
+///
+/// Errors: [`BatchError::SingularTransform`] unless `world_from_local` is
+/// finite and invertible, [`BatchError::NonFiniteEye`] when the eye (or its
+/// image in the mesh's frame) is not finite.
 ///
 /// # Panics
 ///
 /// When `adjacency` was built for a different number of cells.
-pub fn sorted_batch(cells: &[Tetrahedron], adjacency: &CellAdjacency, eye: DVec3) -> CellBatch {
+pub fn sorted_batch(
+    cells: &[Tetrahedron],
+    adjacency: &CellAdjacency,
+    view: &View,
+) -> Result<CellBatch, BatchError> {
+    let local_from_world = view
+        .local_from_world()
+        .ok_or(BatchError::SingularTransform {
+            determinant: view.world_from_local.matrix3.determinant(),
+        })?;
+    let eye = local_from_world.transform_point3(view.eye);
+    if !(view.eye.is_finite() && eye.is_finite()) {
+        return Err(BatchError::NonFiniteEye { eye: view.eye });
+    }
+    if view.viewport_is_empty() {
+        return Ok(CellBatch::default());
+    }
     let sorted: Vec<Tetrahedron> = adjacency
         .back_to_front(cells, eye)
         .into_iter()
-        .map(|cell| cells[cell])
+        .map(|cell| view.to_world(&cells[cell]))
         .collect();
-    CellBatch::from_tetrahedra(&sorted)
+    Ok(CellBatch::from_tetrahedra(&sorted))
 }
 
 /// The bit pattern of a position, `-0.0` read as `0.0`.

@@ -4,12 +4,12 @@
 
 use std::collections::HashMap;
 
-use glam::{DAffine3, DMat3, DMat4, DQuat, DVec3, Vec3};
+use glam::{DAffine3, DMat3, DMat4, DQuat, DVec3, UVec2, Vec3};
 use nebel_core::cell::{Ray, Tetrahedron};
 use nebel_core::field::DensityGrid;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::{
-    BatchError, BrickTable, CellBatch, CellOrder, Frustum, GpuCell, full_resolution_batch,
+    BatchError, BrickTable, CellBatch, CellOrder, Frustum, GpuCell, View, full_resolution_batch,
 };
 use proptest::prelude::*;
 
@@ -24,6 +24,15 @@ fn grid(dims: [usize; 3], spacing: DVec3, origin: DVec3, values: &[f32]) -> Dens
     DensityGrid::new(dims, spacing, origin, values).unwrap()
 }
 
+/// The view of a grid placed by `world_from_grid` from `eye`, culled by
+/// `frustum`, on a 640 × 480 viewport.
+fn view(world_from_grid: DAffine3, eye: DVec3, frustum: Option<&Frustum>) -> View {
+    View {
+        frustum: frustum.cloned(),
+        ..View::new(world_from_grid, eye, UVec2::new(640, 480))
+    }
+}
+
 fn batch(
     grid: &DensityGrid,
     brick_size: usize,
@@ -34,16 +43,8 @@ fn batch(
     order: CellOrder,
 ) -> CellBatch {
     let bricks = BrickTable::new(grid, brick_size);
-    full_resolution_batch(
-        grid,
-        &bricks,
-        world_from_grid,
-        eye,
-        frustum,
-        transfer,
-        order,
-    )
-    .unwrap()
+    let view = view(world_from_grid, eye, frustum);
+    full_resolution_batch(grid, &bricks, &view, transfer, order).unwrap()
 }
 
 fn voxel_count(grid: &DensityGrid) -> usize {
@@ -547,7 +548,7 @@ fn bad_input_gives_clear_errors_and_never_panics() {
     assert_eq!(bricks.scalar_range([2, 2, 2]), Some([0.5, 0.5]));
     assert_eq!(bricks.scalar_range([3, 0, 0]), None);
     let build = |eye: DVec3, world: DAffine3, order| {
-        full_resolution_batch(&g, &bricks, world, eye, None, &transfer, order)
+        full_resolution_batch(&g, &bricks, &view(world, eye, None), &transfer, order)
     };
 
     let err = build(DVec3::NAN, DAffine3::IDENTITY, CellOrder::BackToFront).unwrap_err();
@@ -571,9 +572,7 @@ fn bad_input_gives_clear_errors_and_never_panics() {
     let err = full_resolution_batch(
         &other,
         &bricks,
-        DAffine3::IDENTITY,
-        DVec3::ONE,
-        None,
+        &view(DAffine3::IDENTITY, DVec3::ONE, None),
         &transfer,
         CellOrder::BackToFront,
     )
@@ -586,6 +585,30 @@ fn bad_input_gives_clear_errors_and_never_panics() {
         }
     );
     assert!(err.to_string().contains("BrickTable::new"));
+
+    // An empty viewport sees nothing, but the view is still checked.
+    for viewport in [UVec2::new(0, 480), UVec2::new(640, 0), UVec2::ZERO] {
+        let hidden = View {
+            viewport,
+            ..view(DAffine3::IDENTITY, DVec3::ONE, None)
+        };
+        for order in [CellOrder::BackToFront, CellOrder::Unordered] {
+            let b = full_resolution_batch(&g, &bricks, &hidden, &transfer, order).unwrap();
+            assert_eq!(b, CellBatch::default());
+        }
+        let nan_eye = View {
+            eye: DVec3::NAN,
+            ..hidden.clone()
+        };
+        let err = full_resolution_batch(&g, &bricks, &nan_eye, &transfer, CellOrder::BackToFront);
+        assert!(matches!(err, Err(BatchError::NonFiniteEye { .. })));
+        let singular = View {
+            world_from_local: DAffine3::ZERO,
+            ..hidden
+        };
+        let err = full_resolution_batch(&g, &bricks, &singular, &transfer, CellOrder::Unordered);
+        assert!(matches!(err, Err(BatchError::SingularTransform { .. })));
+    }
 
     // Far eyes and 100 km coordinates: finite output in the right order.
     for eye in [
@@ -632,8 +655,8 @@ proptest! {
         let b = a + DVec3::from(step);
         let to_world = |u: DVec3| world_from_grid.transform_point3(g.origin() + u * g.spacing());
         let (eye_a, eye_b) = (to_world(a), to_world(b));
-        let key_a = nebel_lod::order_key(&g, world_from_grid, eye_a).unwrap();
-        let key_b = nebel_lod::order_key(&g, world_from_grid, eye_b).unwrap();
+        let key_a = nebel_lod::order_key(&g, &view(world_from_grid, eye_a, None)).unwrap();
+        let key_b = nebel_lod::order_key(&g, &view(world_from_grid, eye_b, None)).unwrap();
         let transfer = linear_transfer();
         let batch_a = batch(&g, 2, world_from_grid, eye_a, None, &transfer, CellOrder::BackToFront);
         let batch_b = batch(&g, 2, world_from_grid, eye_b, None, &transfer, CellOrder::BackToFront);
@@ -647,7 +670,7 @@ proptest! {
 fn order_key_changes_across_diagonal_planes_and_refuses_bad_input() {
     use nebel_lod::order_key;
     let g = grid([4, 4, 4], DVec3::ONE, DVec3::ZERO, &[0.5]);
-    let key = |u: DVec3| order_key(&g, DAffine3::IDENTITY, u).unwrap();
+    let key = |u: DVec3| order_key(&g, &view(DAffine3::IDENTITY, u, None)).unwrap();
     // Same voxel, opposite sides of the corner face x + y + z = 1 (apex 0).
     assert_ne!(key(DVec3::splat(0.3)), key(DVec3::splat(0.35)));
     assert_eq!(key(DVec3::splat(0.35)), key(DVec3::splat(0.4)));
@@ -658,6 +681,7 @@ fn order_key_changes_across_diagonal_planes_and_refuses_bad_input() {
     );
     // Far away everything is on one side: the key stops changing.
     assert_eq!(key(DVec3::splat(1e6)), key(DVec3::splat(1e300)));
-    assert!(order_key(&g, DAffine3::IDENTITY, DVec3::NAN).is_none());
-    assert!(order_key(&g, DAffine3::from_scale(DVec3::ZERO), DVec3::ONE).is_none());
+    assert!(order_key(&g, &view(DAffine3::IDENTITY, DVec3::NAN, None)).is_none());
+    let singular = view(DAffine3::from_scale(DVec3::ZERO), DVec3::ONE, None);
+    assert!(order_key(&g, &singular).is_none());
 }

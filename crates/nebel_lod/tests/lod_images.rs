@@ -21,14 +21,14 @@
 
 use std::collections::HashMap;
 
-use glam::{DAffine3, DMat4, DVec3};
+use glam::{DAffine3, DMat4, DVec3, UVec2};
 use nebel_core::cell::Tetrahedron;
 use nebel_core::field::{DensityGrid, FieldError, PadFill, ProceduralNoise};
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{ControlPoint, TransferFunction, TransferPreset};
 use nebel_lod::octree::{Refinement, RefinementSettings, lod_batch, refine};
 use nebel_lod::{
-    BrickTable, CellBatch, CellOrder, Frustum, HierarchyError, Node, VolumeHierarchy,
+    BrickTable, CellBatch, CellOrder, Frustum, HierarchyError, Node, View, VolumeHierarchy,
     full_resolution_batch,
 };
 use nebel_reference::image_metrics::{LinearImage, compare};
@@ -156,7 +156,16 @@ fn camera(
     .looking_at(target, DVec3::Y)
 }
 
-/// Refines `h` for `eye` (identity `world_from_grid`, no frustum) at accuracy
+/// The view of a grid in world coordinates (identity `world_from_local`) from
+/// `eye`, culled by `frustum`, on a 640 × 480 viewport.
+fn view(eye: DVec3, frustum: Option<&Frustum>) -> View {
+    View {
+        frustum: frustum.cloned(),
+        ..View::new(DAffine3::IDENTITY, eye, UVec2::new(640, 480))
+    }
+}
+
+/// Refines `h` for `eye` (identity `world_from_local`, no frustum) at accuracy
 /// `c` and emits the batch. With `morph == false` every refined node gets
 /// e' = 1 before emission: morphing off, each node shows its own values the
 /// moment it is refined.
@@ -169,9 +178,7 @@ fn lod(
 ) -> (Refinement, CellBatch) {
     let mut r = refine(
         h,
-        DAffine3::IDENTITY,
-        eye,
-        None,
+        &view(eye, None),
         transfer,
         &RefinementSettings { accuracy: c },
     )
@@ -181,7 +188,7 @@ fn lod(
             node.morph = 1.0;
         }
     }
-    let batch = lod_batch(h, &r, DAffine3::IDENTITY, eye).expect("LOD batch");
+    let batch = lod_batch(h, &r, &view(eye, None)).expect("LOD batch");
     (r, batch)
 }
 
@@ -191,9 +198,7 @@ fn full(grid: &DensityGrid, transfer: &TransferFunction, eye: DVec3) -> CellBatc
     full_resolution_batch(
         grid,
         &BrickTable::new(grid, 1),
-        DAffine3::IDENTITY,
-        eye,
-        None,
+        &view(eye, None),
         transfer,
         CellOrder::BackToFront,
     )
@@ -992,14 +997,12 @@ proptest! {
         let frustum = use_frustum.then_some(&frustum);
         let r = refine(
             &h,
-            DAffine3::IDENTITY,
-            eye,
-            frustum,
+            &view(eye, frustum),
             &transfer,
             &RefinementSettings { accuracy: c },
         )
         .unwrap();
-        let batch = lod_batch(&h, &r, DAffine3::IDENTITY, eye).unwrap();
+        let batch = lod_batch(&h, &r, &view(eye, frustum)).unwrap();
         prop_assert_eq!(batch.len(), 5 * r.leaves.len());
         assert_morph_factors(&r);
 

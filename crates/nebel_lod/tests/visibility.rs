@@ -3,10 +3,10 @@
 //! cone), in any input order, eye inside or outside; adjacency against brute
 //! force and face counts; permutations; bad input.
 
-use glam::{DVec3, Vec3};
+use glam::{DAffine3, DQuat, DVec3, UVec2, Vec3};
 use nebel_core::cell::{Ray, Tetrahedron};
 use nebel_core::field::{DensityGrid, search_light_cells};
-use nebel_lod::{CellAdjacency, CellBatch, sorted_batch};
+use nebel_lod::{BatchError, CellAdjacency, CellBatch, View, sorted_batch};
 use proptest::prelude::*;
 
 /// Search-light cone length and half angle used throughout.
@@ -240,8 +240,13 @@ fn a_face_of_three_cells_and_degenerate_cells_constrain_nothing() {
     assert_eq!(adjacency.back_to_front(&cells, -DVec3::Z * 5.0), [0, 1, 2]);
 }
 
+/// A view of cells in world coordinates from `eye`, on a 640 × 480 viewport.
+fn view(eye: DVec3) -> View {
+    View::new(DAffine3::IDENTITY, eye, UVec2::new(640, 480))
+}
+
 #[test]
-fn non_finite_eyes_and_empty_meshes_keep_the_input_order() {
+fn non_finite_eyes_keep_the_input_order_and_sorted_batch_refuses_them() {
     let cells = search_light_cells(CONE_LENGTH, CONE_HALF_ANGLE, [8, 2, 4]);
     let adjacency = CellAdjacency::new(&cells);
     let identity: Vec<usize> = (0..cells.len()).collect();
@@ -251,15 +256,35 @@ fn non_finite_eyes_and_empty_meshes_keep_the_input_order() {
         DVec3::new(0.0, f64::NEG_INFINITY, 0.0),
     ] {
         assert_eq!(adjacency.back_to_front(&cells, eye), identity);
-        assert_eq!(
-            sorted_batch(&cells, &adjacency, eye),
-            CellBatch::from_tetrahedra(&cells)
-        );
+        let err = sorted_batch(&cells, &adjacency, &view(eye)).unwrap_err();
+        assert!(matches!(err, BatchError::NonFiniteEye { .. }), "{err}");
+    }
+    // A finite eye that a huge transform pulls back to infinity.
+    let huge = View {
+        world_from_local: DAffine3::from_scale(DVec3::new(1e-300, 1.0, 1.0)),
+        ..view(DVec3::new(1e300, 0.0, 0.0))
+    };
+    let err = sorted_batch(&cells, &adjacency, &huge).unwrap_err();
+    assert!(matches!(err, BatchError::NonFiniteEye { .. }), "{err}");
+    for singular in [
+        DAffine3::from_scale(DVec3::new(1.0, 1.0, 0.0)),
+        DAffine3::from_translation(DVec3::new(0.0, f64::NAN, 0.0)),
+    ] {
+        let view = View {
+            world_from_local: singular,
+            ..view(DVec3::ONE)
+        };
+        let err = sorted_batch(&cells, &adjacency, &view).unwrap_err();
+        assert!(matches!(err, BatchError::SingularTransform { .. }), "{err}");
     }
     let empty = CellAdjacency::new(&[]);
     assert!(empty.is_empty());
     assert_eq!(empty.back_to_front(&[], DVec3::ONE), Vec::<usize>::new());
-    assert!(sorted_batch(&[], &empty, DVec3::ONE).is_empty());
+    assert!(
+        sorted_batch(&[], &empty, &view(DVec3::ONE))
+            .unwrap()
+            .is_empty()
+    );
 }
 
 #[test]
@@ -276,13 +301,53 @@ fn sorted_batch_is_the_reordered_mesh() {
     let adjacency = CellAdjacency::new(&cells);
     let eye = DVec3::new(3.0, -1.0, 2.0);
     let order = adjacency.back_to_front(&cells, eye);
-    let batch = sorted_batch(&cells, &adjacency, eye);
+    let batch = sorted_batch(&cells, &adjacency, &view(eye)).unwrap();
     let reordered: Vec<Tetrahedron> = order.iter().map(|&c| cells[c]).collect();
     assert_eq!(batch, CellBatch::from_tetrahedra(&reordered));
     assert_eq!(batch.len(), cells.len());
     assert_eq!(batch.bounds_max.z, 0.0);
     assert!((batch.bounds_min.z - (-CONE_LENGTH as f32)).abs() < 1e-5);
     assert!(batch.bounds_min.cmplt(Vec3::ZERO).all());
+
+    // A moved, mirrored and stretched mesh: ordered in its own frame, drawn
+    // in the world, back to front along rays from the world eye.
+    let world_from_local = DAffine3::from_scale_rotation_translation(
+        DVec3::new(-2.0, 0.5, 1.5),
+        DQuat::from_rotation_y(0.8),
+        DVec3::new(10.0, -4.0, 3.0),
+    );
+    let moved = View {
+        world_from_local,
+        ..view(world_from_local.transform_point3(eye))
+    };
+    let batch = sorted_batch(&cells, &adjacency, &moved).unwrap();
+    let in_world: Vec<Tetrahedron> = order
+        .iter()
+        .map(|&c| Tetrahedron {
+            positions: cells[c]
+                .positions
+                .map(|p| world_from_local.transform_point3(p)),
+            scalars: cells[c].scalars,
+        })
+        .collect();
+    assert_eq!(batch, CellBatch::from_tetrahedra(&in_world));
+    let drawn: Vec<Tetrahedron> = batch.cells.iter().map(|c| c.to_tetrahedron()).collect();
+    let targets: Vec<DVec3> = [0.2, 0.5, 0.9]
+        .map(|f| world_from_local.transform_point3(cone_point(DVec3::new(f, f, 0.5), 0.8)))
+        .to_vec();
+    let identity: Vec<usize> = (0..drawn.len()).collect();
+    assert!(assert_back_to_front(&drawn, &identity, moved.eye, &targets, 1e-6) > 0);
+
+    // An empty viewport sees nothing.
+    let hidden = View {
+        viewport: UVec2::new(0, 480),
+        ..moved
+    };
+    assert!(
+        sorted_batch(&cells, &adjacency, &hidden)
+            .unwrap()
+            .is_empty()
+    );
 }
 
 /// The bench meshes (search-light cone 16 × 4 × 32, 16³ grid), eyes outside

@@ -81,8 +81,9 @@
 //! the central one, then the rest; the face planes are scaled to the leaf's
 //! size and compared with the eye in grid index coordinates. For a voxel
 //! leaf this is bit for bit the full-resolution batch's in-voxel order.
-//! Positions are `world_from_grid` of the grid point (grid origin and spacing
-//! applied), rounded to f32 once per point, so shared points coincide.
+//! Positions are the view's `world_from_local` of the grid point (grid origin
+//! and spacing applied), rounded to f32 once per point, so shared points
+//! coincide. A view whose viewport has no pixels gets an empty batch.
 //!
 //! # Cost
 //!
@@ -98,22 +99,25 @@
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
 
-use glam::{DAffine3, DVec3, Vec2};
+use glam::{DVec3, Vec2};
 use nebel_core::cell::HexahedronParity;
 
 use super::refine::index_frame;
 use super::{Node, Refinement, RefinementError, VolumeHierarchy};
 use crate::batch::{CellBatch, GpuCell};
 use crate::full_resolution::{DECOMPOSITIONS, EyeSides};
+use crate::view::View;
 
 /// Builds the world-space batch of `refinement` (from [`super::refine()`] of
 /// `hierarchy`, or built by hand) with morphed scalars, in back-to-front order
-/// for `eye_world` (see the module docs for the morph rule and the order).
+/// for the view's eye (see the module docs for the morph rule and the order).
 ///
-/// - `world_from_grid`: maps the grid's own coordinates (point `(i, j, k)` at
-///   `origin + (i, j, k) · spacing`) to world space, as for [`super::refine()`];
-///   pass the same map and eye as to the refinement.
-/// - `eye_world`: the eye, world units, for the order inside each leaf.
+/// `view`: its `world_from_local` maps the grid's own coordinates (point
+/// `(i, j, k)` at `origin + (i, j, k) · spacing`) to world space, as for
+/// [`super::refine()`]; pass the view the refinement was made for. The eye
+/// orders the cells inside each leaf; the frustum is not read (the
+/// refinement culled); an empty viewport gives an empty batch (after the
+/// checks below).
 ///
 /// Errors: [`RefinementError::SingularTransform`] and
 /// [`RefinementError::NonFiniteEye`], as [`super::refine()`]. Panics when a
@@ -121,16 +125,9 @@ use crate::full_resolution::{DECOMPOSITIONS, EyeSides};
 pub fn lod_batch(
     hierarchy: &VolumeHierarchy,
     refinement: &Refinement,
-    world_from_grid: DAffine3,
-    eye_world: DVec3,
+    view: &View,
 ) -> Result<CellBatch, RefinementError> {
-    lod_batch_with(
-        hierarchy,
-        refinement,
-        world_from_grid,
-        eye_world,
-        CellScalars::Density,
-    )
+    lod_batch_with(hierarchy, refinement, view, CellScalars::Density)
 }
 
 /// Which of a lit cloud's two fields the cells carry as their scalar and
@@ -159,18 +156,20 @@ pub enum CellScalars {
 pub fn lod_batch_with(
     hierarchy: &VolumeHierarchy,
     refinement: &Refinement,
-    world_from_grid: DAffine3,
-    eye_world: DVec3,
+    view: &View,
     scalars: CellScalars,
 ) -> Result<CellBatch, RefinementError> {
     if scalars != CellScalars::Density && !hierarchy.has_light() {
         return Err(RefinementError::MissingLightField);
     }
-    let (world_from_index, eye) = index_frame(hierarchy, world_from_grid, eye_world)?;
+    let (world_from_index, eye) = index_frame(hierarchy, view)?;
     // σ_c · eye per apex c, the same values the full-resolution batch compares.
     let diagonal = EyeSides::new(eye)
-        .ok_or(RefinementError::NonFiniteEye { eye: eye_world })?
+        .ok_or(RefinementError::NonFiniteEye { eye: view.eye })?
         .diagonal;
+    if view.viewport_is_empty() {
+        return Ok(CellBatch::default());
+    }
 
     let mut morpher = Morpher::new(hierarchy, refinement);
     let mut cells = Vec::with_capacity(5 * refinement.leaves.len());
@@ -474,7 +473,7 @@ impl<'a> Morpher<'a> {
 
 #[cfg(test)]
 mod tests {
-    use glam::DQuat;
+    use glam::{DAffine3, DQuat};
     use nebel_core::cell::{Hexahedron, Tetrahedron};
     use nebel_core::field::DensityGrid;
     use nebel_core::transfer::{TransferFunction, TransferPreset};
@@ -515,6 +514,12 @@ mod tests {
         )
     }
 
+    /// The view of a grid placed by `world_from_grid` from `eye` (world
+    /// units), without culling, on a 640 × 480 viewport.
+    fn view(world_from_grid: DAffine3, eye: DVec3) -> View {
+        View::new(world_from_grid, eye, glam::UVec2::new(640, 480))
+    }
+
     /// The eye in world space for a point in grid index coordinates.
     fn eye_at_index(h: &VolumeHierarchy, index: DVec3) -> DVec3 {
         world_from_grid().transform_point3(h.origin() + index * h.spacing())
@@ -523,9 +528,7 @@ mod tests {
     fn refined(h: &VolumeHierarchy, eye: DVec3, accuracy: f64) -> Refinement {
         refine(
             h,
-            world_from_grid(),
-            eye,
-            None,
+            &view(world_from_grid(), eye),
             &fog(),
             &RefinementSettings { accuracy },
         )
@@ -640,13 +643,11 @@ mod tests {
             let r = refined(&h, eye, f64::INFINITY);
             assert!(r.leaves.iter().all(|l| l.node.level == 0));
             assert!(r.refined.iter().all(|n| n.morph == 1.0));
-            let lod = lod_batch(&h, &r, world_from_grid(), eye).unwrap();
+            let lod = lod_batch(&h, &r, &view(world_from_grid(), eye)).unwrap();
             let full = full_resolution_batch(
                 &grid,
                 &bricks,
-                world_from_grid(),
-                eye,
-                None,
+                &view(world_from_grid(), eye),
                 &fog(),
                 CellOrder::BackToFront,
             )
@@ -729,7 +730,7 @@ mod tests {
         };
         // The root just refined (e' = 0), its children leaves.
         let r = by_hand(&h, &mut |n| n == root, &mut |_| 0.0);
-        let batch = lod_batch(&h, &r, DAffine3::IDENTITY, DVec3::splat(-5.0)).unwrap();
+        let batch = lod_batch(&h, &r, &view(DAffine3::IDENTITY, DVec3::splat(-5.0))).unwrap();
         assert_eq!(assert_reproduces(&h, &batch, root), 40);
         // The root fully morphed (e' = 1), one child just refined: the
         // child's region shows the child's field, whose corners are the
@@ -737,14 +738,19 @@ mod tests {
         let r = by_hand(&h, &mut |n| n == root || n == child, &mut |n| {
             if n == root { 1.0 } else { 0.0 }
         });
-        let batch = lod_batch(&h, &r, DAffine3::IDENTITY, DVec3::new(3.0, 7.0, 20.0)).unwrap();
+        let batch = lod_batch(
+            &h,
+            &r,
+            &view(DAffine3::IDENTITY, DVec3::new(3.0, 7.0, 20.0)),
+        )
+        .unwrap();
         assert_eq!(assert_reproduces(&h, &batch, child), 40);
         // Morphing halfway moves the child's new points halfway to their own
         // values.
         let half = by_hand(&h, &mut |n| n == root || n == child, &mut |n| {
             if n == root { 1.0 } else { 0.5 }
         });
-        let batch_half = lod_batch(&h, &half, DAffine3::IDENTITY, DVec3::ZERO).unwrap();
+        let batch_half = lod_batch(&h, &half, &view(DAffine3::IDENTITY, DVec3::ZERO)).unwrap();
         let centre = [6.0f32, 2.0, 6.0];
         let at_centre = |b: &CellBatch| {
             b.cells
@@ -792,7 +798,7 @@ mod tests {
                 })
             });
             assert!(far_apart, "seed {seed}");
-            let batch = lod_batch(&h, &r, identity, DVec3::new(3.0, -2.0, 7.0)).unwrap();
+            let batch = lod_batch(&h, &r, &view(identity, DVec3::new(3.0, -2.0, 7.0))).unwrap();
             assert_one_value_per_point(&batch);
             let cells: Vec<Tetrahedron> = batch.cells.iter().map(|c| c.to_tetrahedron()).collect();
             let mut t_vertices = 0;
@@ -818,15 +824,38 @@ mod tests {
         let h = hierarchy([5, 5, 5], 1);
         let r = refined(&h, DVec3::splat(10.0), 4.0);
         assert!(matches!(
-            lod_batch(&h, &r, DAffine3::ZERO, DVec3::ZERO),
+            lod_batch(&h, &r, &view(DAffine3::ZERO, DVec3::ZERO)),
             Err(RefinementError::SingularTransform { .. })
         ));
         assert!(matches!(
-            lod_batch(&h, &r, world_from_grid(), DVec3::new(f64::NAN, 0.0, 0.0)),
+            lod_batch(
+                &h,
+                &r,
+                &view(world_from_grid(), DVec3::new(f64::NAN, 0.0, 0.0))
+            ),
             Err(RefinementError::NonFiniteEye { .. })
         ));
-        let empty = lod_batch(&h, &Refinement::default(), world_from_grid(), DVec3::ZERO).unwrap();
+        let empty = lod_batch(
+            &h,
+            &Refinement::default(),
+            &view(world_from_grid(), DVec3::ZERO),
+        )
+        .unwrap();
         assert!(empty.is_empty());
+        // An empty viewport is checked like any view, then sees nothing.
+        let mut hidden = view(world_from_grid(), DVec3::splat(10.0));
+        hidden.viewport.x = 0;
+        assert!(lod_batch(&h, &r, &hidden).unwrap().is_empty());
+        assert!(
+            !lod_batch(&h, &r, &view(world_from_grid(), DVec3::splat(10.0)))
+                .unwrap()
+                .is_empty()
+        );
+        hidden.eye.z = f64::NAN;
+        assert!(matches!(
+            lod_batch(&h, &r, &hidden),
+            Err(RefinementError::NonFiniteEye { .. })
+        ));
     }
 
     #[test]
@@ -842,22 +871,25 @@ mod tests {
         assert!(r.leaves.len() >= refined(&unlit, eye, 8.0).leaves.len());
         assert!((lit.bytes_per_point() - 5.0).abs() < 1e-12);
 
-        let plain =
-            lod_batch_with(&unlit, &r, world_from_grid(), eye, CellScalars::Density).unwrap();
+        let plain = lod_batch_with(
+            &unlit,
+            &r,
+            &view(world_from_grid(), eye),
+            CellScalars::Density,
+        )
+        .unwrap();
         assert!(!plain.is_modulated());
         let by_density = lod_batch_with(
             &lit,
             &r,
-            world_from_grid(),
-            eye,
+            &view(world_from_grid(), eye),
             CellScalars::LightModulatedByDensity,
         )
         .unwrap();
         let by_light = lod_batch_with(
             &lit,
             &r,
-            world_from_grid(),
-            eye,
+            &view(world_from_grid(), eye),
             CellScalars::DensityModulatedByLight,
         )
         .unwrap();
@@ -865,7 +897,7 @@ mod tests {
         // The density morphs exactly as in the unlit batch, whichever role it
         // plays; the light morphs as the density would if it were the field.
         let light_only = VolumeHierarchy::new(&light, 2.0).unwrap();
-        let light_plain = lod_batch(&light_only, &r, world_from_grid(), eye).unwrap();
+        let light_plain = lod_batch(&light_only, &r, &view(world_from_grid(), eye)).unwrap();
         for i in 0..plain.len() {
             for v in 0..4 {
                 assert_eq!(by_light.cells[i].vertices[v], plain.cells[i].vertices[v]);
@@ -886,8 +918,7 @@ mod tests {
             lod_batch_with(
                 &unlit,
                 &r,
-                world_from_grid(),
-                eye,
+                &view(world_from_grid(), eye),
                 CellScalars::LightModulatedByDensity
             ),
             Err(RefinementError::MissingLightField)
@@ -913,7 +944,7 @@ mod tests {
             let h = hierarchy([33, 17, 9], seed);
             let eye = eye_at_index(&h, DVec3::new(eye.0, eye.1, eye.2));
             let r = refined(&h, eye, accuracy);
-            let batch = lod_batch(&h, &r, world_from_grid(), eye).unwrap();
+            let batch = lod_batch(&h, &r, &view(world_from_grid(), eye)).unwrap();
             prop_assert_eq!(batch.len(), 5 * r.leaves.len());
             assert_one_value_per_point(&batch);
             let volume: f64 = batch.cells.iter().map(|c| c.to_tetrahedron().volume()).sum();

@@ -22,9 +22,9 @@
 //!   in the paper. An eye exactly at a centre (`d = 0`) gives `e = ∞`: the node
 //!   is refined and `e' = 1`; no NaN arises.
 //! - `s` is the node's **longest** edge in world units (`2^level` times the
-//!   longest image of a voxel edge under `world_from_grid` and the grid
-//!   spacing), so anisotropic spacing or scaling refines rather too much
-//!   than too little. For the usual cubic voxels it is the edge length.
+//!   longest image of a voxel edge under the view's `world_from_local` and
+//!   the grid spacing), so anisotropic spacing or scaling refines rather too
+//!   much than too little. For the usual cubic voxels it is the edge length.
 //! - Voxels (level 0) are always leaves; their `e` may exceed 1 and their
 //!   `e'` is reported as computed.
 //! - Whole subtrees are pruned: a node whose box misses the view frustum
@@ -36,6 +36,8 @@
 //!   Both tests can only become more aggressive for a smaller box, so a node
 //!   pruned here would also have every one of its voxels pruned by the
 //!   full-resolution batch with one-voxel bricks.
+//! - A view whose viewport has no pixels ([`View::viewport_is_empty`]) gets
+//!   no leaf: the refinement is empty.
 //!
 //! # Order
 //!
@@ -49,7 +51,7 @@
 //! slabs per axis, split at the node centre). Each split is a plane that
 //! separates what was visited before from what follows with the eye on the
 //! later side, so the nesting is a BSP order of all leaves. The eye is pulled
-//! back into the grid's index frame through `world_from_grid` (sidedness is
+//! back into the grid's index frame through `world_from_local` (sidedness is
 //! invariant under affine maps, mirrors included) and compared with the
 //! integer split planes exactly.
 //!
@@ -78,6 +80,7 @@ use thiserror::Error;
 use super::{Node, VolumeHierarchy};
 use crate::frustum::Frustum;
 use crate::full_resolution::{axis_order, index_maps};
+use crate::view::View;
 
 /// The user's controls of the refinement.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -133,9 +136,9 @@ pub enum RefinementError {
         /// The value given.
         value: f64,
     },
-    /// `world_from_grid` (with the grid's origin and spacing) is not finite or
-    /// not invertible.
-    #[error("world_from_grid must be finite and invertible (determinant {determinant})")]
+    /// The view's `world_from_local` (with the grid's origin and spacing) is
+    /// not finite or not invertible.
+    #[error("world_from_local must be finite and invertible (determinant {determinant})")]
     SingularTransform {
         /// Determinant of the linear part of the grid-index-to-world map.
         determinant: f64,
@@ -186,54 +189,59 @@ pub struct Refinement {
 }
 
 /// The map from the hierarchy's index space (point `(i, j, k)` at
-/// `(i, j, k)`) to world space, and the eye in index space; refinement and
-/// emission share it.
+/// `(i, j, k)`) to world space, and the eye in index space, for `view`;
+/// refinement and emission share it.
 pub(crate) fn index_frame(
     hierarchy: &VolumeHierarchy,
-    world_from_grid: DAffine3,
-    eye_world: DVec3,
+    view: &View,
 ) -> Result<(DAffine3, DVec3), RefinementError> {
-    let (world_from_index, index_from_world) =
-        index_maps(hierarchy.origin(), hierarchy.spacing(), world_from_grid).ok_or(
-            RefinementError::SingularTransform {
-                determinant: world_from_grid.matrix3.determinant(),
-            },
-        )?;
-    let eye_index = index_from_world.transform_point3(eye_world);
-    if !(eye_world.is_finite() && eye_index.is_finite()) {
-        return Err(RefinementError::NonFiniteEye { eye: eye_world });
+    let (world_from_index, index_from_world) = index_maps(
+        hierarchy.origin(),
+        hierarchy.spacing(),
+        view.world_from_local,
+    )
+    .ok_or(RefinementError::SingularTransform {
+        determinant: view.world_from_local.matrix3.determinant(),
+    })?;
+    let eye_index = index_from_world.transform_point3(view.eye);
+    if !(view.eye.is_finite() && eye_index.is_finite()) {
+        return Err(RefinementError::NonFiniteEye { eye: view.eye });
     }
     Ok((world_from_index, eye_index))
 }
 
 /// Refines `hierarchy` for one frame (see the module docs).
 ///
-/// - `world_from_grid`: maps the grid's own coordinates (point `(i, j, k)` at
-///   `origin + (i, j, k) · spacing`) to world space; any finite invertible
-///   affine map, as for [`crate::full_resolution_batch`].
-/// - `eye_world`: the eye, world units.
-/// - `frustum`: world-space view frustum; `None` culls nothing.
+/// - `view`: its `world_from_local` maps the grid's own coordinates (point
+///   `(i, j, k)` at `origin + (i, j, k) · spacing`) to world space, as for
+///   [`crate::full_resolution_batch`]; the eye sets distances and order; the
+///   frustum prunes nodes; an empty viewport gives an empty refinement
+///   (after the checks below).
 /// - `transfer`: the transfer function of the zero-opacity test.
 /// - `settings`: the global accuracy `c`.
 ///
 /// Errors: [`RefinementError`].
 pub fn refine(
     hierarchy: &VolumeHierarchy,
-    world_from_grid: DAffine3,
-    eye_world: DVec3,
-    frustum: Option<&Frustum>,
+    view: &View,
     transfer: &TransferFunction,
     settings: &RefinementSettings,
 ) -> Result<Refinement, RefinementError> {
     settings.validate()?;
-    let (world_from_index, eye_index) = index_frame(hierarchy, world_from_grid, eye_world)?;
+    let (world_from_index, eye_index) = index_frame(hierarchy, view)?;
+    if view.viewport_is_empty() {
+        return Ok(Refinement::default());
+    }
     let m = world_from_index.matrix3;
     let mut traversal = Traversal {
         hierarchy,
         world_from_index,
-        eye_world,
+        eye_world: view.eye,
         eye_index,
-        frustum: frustum.map(|f| f.in_local_frame(&world_from_index)),
+        frustum: view
+            .frustum
+            .as_ref()
+            .map(|f| f.in_local_frame(&world_from_index)),
         transfer,
         accuracy: settings.accuracy,
         voxel_edge: m
@@ -431,6 +439,15 @@ mod tests {
         )
     }
 
+    /// The view of the grid placed by [`world_from_grid`] from `eye` (world
+    /// units), culled by `frustum`, on a 640 × 480 viewport.
+    fn view(eye: DVec3, frustum: Option<&Frustum>) -> View {
+        View {
+            frustum: frustum.cloned(),
+            ..View::new(world_from_grid(), eye, glam::UVec2::new(640, 480))
+        }
+    }
+
     /// The eye in world space for a point in grid index coordinates.
     fn eye_at_index(h: &VolumeHierarchy, index: DVec3) -> DVec3 {
         world_from_grid().transform_point3(h.origin() + index * h.spacing())
@@ -443,15 +460,7 @@ mod tests {
         transfer: &TransferFunction,
         accuracy: f64,
     ) -> Refinement {
-        refine(
-            h,
-            world_from_grid(),
-            eye,
-            frustum,
-            transfer,
-            &settings(accuracy),
-        )
-        .unwrap()
+        refine(h, &view(eye, frustum), transfer, &settings(accuracy)).unwrap()
     }
 
     /// Boxes `[min, max]` of the leaves in grid index coordinates.
@@ -547,25 +556,30 @@ mod tests {
         let h = hierarchy([5, 5, 5], 1, 2.0);
         let eye = DVec3::ZERO;
         let t = fog();
-        let r = refine(&h, world_from_grid(), eye, None, &t, &settings(f64::NAN));
+        let r = refine(&h, &view(eye, None), &t, &settings(f64::NAN));
         assert!(matches!(r, Err(RefinementError::InvalidAccuracy { .. })));
-        let r = refine(
-            &h,
-            DAffine3::from_scale(DVec3::new(1.0, 0.0, 1.0)),
-            eye,
-            None,
-            &t,
-            &settings(1.0),
-        );
+        let singular = View {
+            world_from_local: DAffine3::from_scale(DVec3::new(1.0, 0.0, 1.0)),
+            ..view(eye, None)
+        };
+        let r = refine(&h, &singular, &t, &settings(1.0));
         assert!(matches!(r, Err(RefinementError::SingularTransform { .. })));
         let r = refine(
             &h,
-            world_from_grid(),
-            DVec3::new(0.0, f64::NAN, 0.0),
-            None,
+            &view(DVec3::new(0.0, f64::NAN, 0.0), None),
             &t,
             &settings(1.0),
         );
+        assert!(matches!(r, Err(RefinementError::NonFiniteEye { .. })));
+        // An empty viewport is checked like any view, then sees nothing.
+        let mut hidden = view(eye, None);
+        hidden.viewport.y = 0;
+        assert_eq!(
+            refine(&h, &hidden, &t, &settings(1e9)),
+            Ok(Refinement::default())
+        );
+        hidden.eye.x = f64::INFINITY;
+        let r = refine(&h, &hidden, &t, &settings(1.0));
         assert!(matches!(r, Err(RefinementError::NonFiniteEye { .. })));
     }
 
@@ -577,9 +591,9 @@ mod tests {
         let transfer = TransferFunction::preset(TransferPreset::Cloud);
         let eye = eye_at_index(&h, DVec3::new(-6.0, 30.0, 4.0));
         let target = eye_at_index(&h, DVec3::new(8.0, 8.0, 4.0));
-        let view = DMat4::look_at_rh(eye, target, DVec3::Y);
+        let camera = DMat4::look_at_rh(eye, target, DVec3::Y);
         let frustum = Frustum::from_view_projection(
-            DMat4::perspective_infinite_reverse_rh(0.5, 1.2, 0.1) * view,
+            DMat4::perspective_infinite_reverse_rh(0.5, 1.2, 0.1) * camera,
         )
         .unwrap();
         for frustum in [None, Some(&frustum)] {
@@ -587,9 +601,7 @@ mod tests {
             let full = full_resolution_batch(
                 &grid,
                 &bricks,
-                world_from_grid(),
-                eye,
-                frustum,
+                &view(eye, frustum),
                 &transfer,
                 CellOrder::BackToFront,
             )

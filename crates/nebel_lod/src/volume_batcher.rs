@@ -1,0 +1,555 @@
+//! One volume's cell batch, frame after frame: the view-independent work once,
+//! and a rebuild only when the view or the inputs change what the batch would
+//! be.
+//!
+//! A [`VolumeBatcher`] owns a volume's source (a density grid or a cell mesh),
+//! everything built from it once, and its current [`CellBatch`]. A renderer
+//! keeps one per volume, calls [`VolumeBatcher::update`] every frame with the
+//! frame's [`View`] and [`FrameInputs`], and uploads the batch when `update`
+//! says it changed. It builds no new batch kind: it picks one of the crate's
+//! builders and decides when to run it.
+//!
+//! # Kinds
+//!
+//! - A grid at full resolution ([`BatchSettings::octree`] `None`): a
+//!   [`BrickTable`] of 4³-voxel bricks once, then
+//!   [`full_resolution_batch`] (paper 001 §8.1, paper 000 §4.1). Back to
+//!   front it is culled by the view frustum; unordered (the emissive and MIP
+//!   modes) it is not culled, so that it never needs a rebuild when the camera
+//!   moves.
+//! - A grid through the octree C-LOD of paper 000 ([`BatchSettings::octree`]
+//!   set): the grid padded at its high ends with zero density to `2^n + 1`
+//!   points per axis ([`PadFill::Value`]`(0.0)`: empty under any transfer
+//!   function with `ρ(0) = 0`), for a lit cloud its light field ([`light_field`], paper 000 §5) and the
+//!   [`VolumeHierarchy`] once, then [`refine`](fn@crate::octree::refine) and
+//!   [`lod_batch_with`]. Always back to front (the refinement's order), with
+//!   frustum culling, whatever [`BatchSettings::order`] says. The zero-opacity
+//!   test reads the volume's transfer function, except for
+//!   [`CellScalars::LightModulatedByDensity`], whose transfer function is over
+//!   the light and whose opacity is the density itself (`ρ = f`, paper 000
+//!   Eq. 9): there only density 0 is empty.
+//! - A cell mesh in back-to-front order: its [`CellAdjacency`] once, then
+//!   [`sorted_batch`] (MPVO, Williams 1992). Not culled.
+//! - A cell mesh unordered: the cells moved to world space as given. Not
+//!   culled.
+//!
+//! [`BatchSettings::lighting`] needs the octree (the light field is drawn
+//! through the hierarchy, which refines on both fields); without it
+//! [`VolumeBatcher::new`] fails with
+//! [`VolumeBatchError::LightingWithoutOctree`] rather than guess a minimum
+//! accuracy.
+//!
+//! # When the batch is rebuilt
+//!
+//! [`VolumeBatcher::update`] compares the view and inputs with those of the
+//! last successful build. It rebuilds
+//! - on the first update, and for every kind when `world_from_local` changed,
+//!   when the transfer function's content changed
+//!   ([`TransferFunction::content_hash`]; also for the kinds whose cells do
+//!   not read it, so that a rebuild always means "pair the batch with the
+//!   current inputs"), or when the viewport became empty or non-empty;
+//! - a grid at full resolution back to front when its [`order_key`] changed
+//!   (an eye move inside one key gives the identical batch) or the frustum
+//!   changed;
+//! - a grid through the octree when the eye moved at all (the level of detail
+//!   depends on the distance), the frustum changed or the accuracy `c`
+//!   changed;
+//! - a sorted cell mesh when the eye moved;
+//!
+//! and keeps the batch otherwise: an unordered grid or cell mesh ignores the
+//! eye and the frustum, and only the octree reads the accuracy. While the
+//! viewport stays empty nothing is rebuilt (the batch is empty and stays so);
+//! its size is not read otherwise.
+//!
+//! A failed update changes nothing: the previous batch stays (an empty one
+//! before the first success), and the next update compares with the last
+//! successful build again, so a bad frame is retried and a good one after it
+//! rebuilds only if it differs from the last good one.
+//!
+//! # Threads
+//!
+//! [`VolumeBatcher::new`] does all the view-independent work (padding, light
+//! field, hierarchy, brick table, adjacency: milliseconds to a second for
+//! large grids) and the batcher is `Send + Sync`, so it can be built on a
+//! worker thread and handed over.
+//!
+//! # Example
+//!
+//! ```
+//! use std::sync::Arc;
+//!
+//! use glam::{DAffine3, DVec3, UVec2};
+//! use nebel_core::field::DensityGrid;
+//! use nebel_core::transfer::{TransferFunction, TransferPreset};
+//! use nebel_lod::{BatchSettings, FrameInputs, OctreeSettings, View, VolumeBatcher, VolumeSource};
+//!
+//! // 6 × 5 × 7 points: padded to 9 × 5 × 9 for the octree.
+//! let grid = DensityGrid::new([6, 5, 7], DVec3::ONE, DVec3::ZERO, vec![0.5; 6 * 5 * 7])?;
+//! let settings = BatchSettings {
+//!     octree: Some(OctreeSettings::default()),
+//!     ..BatchSettings::default()
+//! };
+//! let mut batcher = VolumeBatcher::new(VolumeSource::Grid(Arc::new(grid)), &settings)?;
+//! let transfer = TransferFunction::preset(TransferPreset::Cloud);
+//! let inputs = FrameInputs { transfer: &transfer, accuracy: 16.0 };
+//! let view = View::new(DAffine3::IDENTITY, DVec3::new(3.0, 2.0, -20.0), UVec2::new(1280, 720));
+//! assert!(batcher.update(&view, &inputs)?); // the first frame builds
+//! assert!(!batcher.update(&view, &inputs)?); // the same view keeps it
+//! assert!(!batcher.batch().is_empty());
+//! assert_eq!(batcher.full_resolution_cells(), 5 * 5 * 4 * 6);
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+
+use std::sync::{Arc, LazyLock};
+
+use nebel_core::cell::Tetrahedron;
+use nebel_core::field::{CloudLighting, DensityGrid, FieldError, PadFill, light_field};
+use nebel_core::transfer::{ControlPoint, TransferFunction};
+use thiserror::Error;
+
+use crate::batch::CellBatch;
+use crate::full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};
+use crate::octree::{
+    CellScalars, HierarchyError, RefinementError, RefinementSettings, VolumeHierarchy, k_max,
+    lod_batch_with, refine,
+};
+use crate::view::View;
+use crate::visibility::{CellAdjacency, sorted_batch};
+
+/// Where a volume's scalar comes from, in the volume's local frame (the frame
+/// [`View::world_from_local`] places).
+#[derive(Clone, Debug)]
+pub enum VolumeSource {
+    /// A density grid: point `(i, j, k)` at `origin + (i, j, k) · spacing`,
+    /// five tetrahedra per voxel.
+    Grid(Arc<DensityGrid>),
+    /// Tetrahedra, a conforming mesh for back-to-front order (see
+    /// [`crate::visibility`]).
+    Cells(Arc<Vec<Tetrahedron>>),
+}
+
+/// How a volume is batched: the settings whose change needs a new
+/// [`VolumeBatcher`] (the per-frame ones are [`FrameInputs`]). The default
+/// draws at full resolution, back to front, unlit.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct BatchSettings {
+    /// Back to front (the sorted emission-absorption model) or unordered (the
+    /// emissive and MIP modes). The octree is always back to front. Default
+    /// [`CellOrder::BackToFront`].
+    pub order: CellOrder,
+    /// Draw a grid through the octree C-LOD; `None` (the default) draws it at
+    /// full resolution. Only for [`VolumeSource::Grid`].
+    pub octree: Option<OctreeSettings>,
+    /// Light the cloud (paper 000 §5); needs `octree`. Default `None`.
+    pub lighting: Option<BatchLighting>,
+}
+
+/// The view-independent settings of the octree C-LOD.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OctreeSettings {
+    /// The minimum accuracy `C` of paper 000 Eq. 1, finite and > √3: how many
+    /// node sizes away a node must be before it may stay coarse; it also sets
+    /// the deviation propagation `K_max = C / (2C − √3/2)` the hierarchy is
+    /// built with. Default [`OctreeSettings::DEFAULT_MIN_ACCURACY`].
+    pub min_accuracy: f64,
+}
+
+impl OctreeSettings {
+    /// The default minimum accuracy `C`, 4 (`K_max ≈ 0.56`).
+    pub const DEFAULT_MIN_ACCURACY: f64 = 4.0;
+}
+
+impl Default for OctreeSettings {
+    fn default() -> Self {
+        Self {
+            min_accuracy: Self::DEFAULT_MIN_ACCURACY,
+        }
+    }
+}
+
+/// A lit cloud: its light field and which field the cells carry as scalar and
+/// which as segment-length modulator (paper 000 §5).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BatchLighting {
+    /// The light field's settings ([`light_field`]), sun direction in the
+    /// volume's local frame.
+    pub light: CloudLighting,
+    /// [`CellScalars::LightModulatedByDensity`] (§5.1) or
+    /// [`CellScalars::DensityModulatedByLight`] (§5.2);
+    /// [`CellScalars::Density`] would not draw the light and is refused.
+    pub scalars: CellScalars,
+}
+
+/// What a volume's batch reads per frame besides the view.
+#[derive(Clone, Copy, Debug)]
+pub struct FrameInputs<'a> {
+    /// The volume's transfer function: the zero-opacity test's (except for
+    /// [`CellScalars::LightModulatedByDensity`], see the module docs).
+    pub transfer: &'a TransferFunction,
+    /// The octree's global accuracy `c` of paper 000 Eq. 1
+    /// ([`RefinementSettings::accuracy`]), ≥ 0; ignored without the octree.
+    pub accuracy: f64,
+}
+
+/// Why a [`VolumeBatcher`] could not be built or updated.
+#[derive(Clone, Debug, Error)]
+pub enum VolumeBatchError {
+    /// Padding the grid or computing its light field failed (shared, since a
+    /// [`FieldError`] cannot be cloned). Two are equal when their messages
+    /// are.
+    #[error(transparent)]
+    Field(Arc<FieldError>),
+    /// The octree's hierarchy could not be built.
+    #[error(transparent)]
+    Hierarchy(#[from] HierarchyError),
+    /// The octree could not be refined or emitted for the view and inputs.
+    #[error(transparent)]
+    Refinement(#[from] RefinementError),
+    /// A full-resolution or cell-mesh batch could not be built for the view.
+    #[error(transparent)]
+    Batch(#[from] BatchError),
+    /// [`BatchSettings::lighting`] without [`BatchSettings::octree`].
+    #[error(
+        "lighting needs the octree (BatchSettings::octree): the light field is drawn through the volume hierarchy"
+    )]
+    LightingWithoutOctree,
+    /// [`BatchSettings::octree`] with a cell mesh.
+    #[error("the octree needs a density grid (VolumeSource::Grid), not a cell mesh")]
+    OctreeWithoutGrid,
+    /// [`BatchLighting::scalars`] is [`CellScalars::Density`].
+    #[error(
+        "lighting needs cell scalars that carry the light (CellScalars::LightModulatedByDensity or CellScalars::DensityModulatedByLight), not CellScalars::Density"
+    )]
+    UnlitScalars,
+}
+
+impl From<FieldError> for VolumeBatchError {
+    fn from(error: FieldError) -> Self {
+        Self::Field(Arc::new(error))
+    }
+}
+
+impl PartialEq for VolumeBatchError {
+    fn eq(&self, other: &Self) -> bool {
+        match (self, other) {
+            (Self::Field(a), Self::Field(b)) => Arc::ptr_eq(a, b) || a.to_string() == b.to_string(),
+            (Self::Hierarchy(a), Self::Hierarchy(b)) => a == b,
+            (Self::Refinement(a), Self::Refinement(b)) => a == b,
+            (Self::Batch(a), Self::Batch(b)) => a == b,
+            (Self::LightingWithoutOctree, Self::LightingWithoutOctree)
+            | (Self::OctreeWithoutGrid, Self::OctreeWithoutGrid)
+            | (Self::UnlitScalars, Self::UnlitScalars) => true,
+            _ => false,
+        }
+    }
+}
+
+/// The zero-opacity test of a volume whose density is the opacity itself
+/// (`ρ = f`, the lit model of paper 000 §5.1): only density 0 is empty.
+static DENSITY_AS_OPACITY: LazyLock<TransferFunction> = LazyLock::new(|| {
+    let point = |s: f32| ControlPoint {
+        s,
+        kappa: [0.0; 3],
+        rho: s,
+    };
+    TransferFunction::new([point(0.0), point(1.0)]).expect("two ordered control points")
+});
+
+/// What was built once, per kind (module docs).
+#[derive(Debug)]
+enum Kind {
+    /// A grid at full resolution.
+    FullResolution {
+        /// The grid.
+        grid: Arc<DensityGrid>,
+        /// Its bricks' scalar ranges.
+        bricks: BrickTable,
+        /// Back to front (culled) or unordered (not culled).
+        order: CellOrder,
+    },
+    /// A grid through the octree; the grid itself is not kept.
+    Octree {
+        /// The padded grid's hierarchy, with the light field when lit.
+        hierarchy: VolumeHierarchy,
+        /// The cells' scalar and modulator.
+        scalars: CellScalars,
+    },
+    /// A cell mesh in back-to-front order.
+    SortedCells {
+        /// The cells, local frame.
+        cells: Arc<Vec<Tetrahedron>>,
+        /// Their shared faces.
+        adjacency: CellAdjacency,
+    },
+    /// A cell mesh drawn as given.
+    UnorderedCells {
+        /// The cells, local frame.
+        cells: Arc<Vec<Tetrahedron>>,
+    },
+}
+
+/// What the current batch was built from.
+#[derive(Debug)]
+struct BuiltFor {
+    /// The view.
+    view: View,
+    /// [`TransferFunction::content_hash`] of the transfer function.
+    transfer: u64,
+    /// The accuracy `c`.
+    accuracy: f64,
+    /// The view's [`order_key`] for a grid at full resolution back to front,
+    /// `None` for the other kinds.
+    order_key: Option<[i64; 11]>,
+}
+
+/// A volume's per-frame batching (module docs): built once per source and
+/// settings, updated every frame.
+#[derive(Debug)]
+pub struct VolumeBatcher {
+    /// What was built once.
+    kind: Kind,
+    /// The settings it was built with.
+    settings: BatchSettings,
+    /// Cells of the source at full resolution.
+    full_resolution_cells: usize,
+    /// The current batch.
+    batch: CellBatch,
+    /// What `batch` was built from; `None` before the first successful
+    /// update.
+    built: Option<BuiltFor>,
+}
+
+impl VolumeBatcher {
+    /// Does the view-independent work for `source` drawn with `settings`
+    /// (module docs: padding, light field and hierarchy for the octree, the
+    /// brick table of a grid at full resolution, the adjacency of a sorted
+    /// cell mesh). The batch is empty until the first
+    /// [`VolumeBatcher::update`].
+    ///
+    /// Errors: [`VolumeBatchError::LightingWithoutOctree`],
+    /// [`VolumeBatchError::OctreeWithoutGrid`] and
+    /// [`VolumeBatchError::UnlitScalars`] for contradictory settings,
+    /// [`VolumeBatchError::Hierarchy`] for a minimum accuracy `C` that is not
+    /// finite and > √3 (checked before any heavy work),
+    /// [`VolumeBatchError::Field`] for invalid light-field settings.
+    pub fn new(source: VolumeSource, settings: &BatchSettings) -> Result<Self, VolumeBatchError> {
+        if let Some(lighting) = settings.lighting {
+            if settings.octree.is_none() {
+                return Err(VolumeBatchError::LightingWithoutOctree);
+            }
+            if lighting.scalars == CellScalars::Density {
+                return Err(VolumeBatchError::UnlitScalars);
+            }
+        }
+        let full_resolution_cells = match &source {
+            VolumeSource::Grid(grid) => 5 * grid.dims().map(|n| n - 1).iter().product::<usize>(),
+            VolumeSource::Cells(cells) => cells.len(),
+        };
+        let kind = match (source, settings.octree) {
+            (VolumeSource::Grid(grid), None) => Kind::FullResolution {
+                bricks: BrickTable::new(&grid, BrickTable::DEFAULT_BRICK_SIZE),
+                grid,
+                order: settings.order,
+            },
+            (VolumeSource::Grid(grid), Some(octree)) => {
+                k_max(octree.min_accuracy)?;
+                let padded = grid.padded_to_power_of_two_plus_one(PadFill::Value(0.0))?;
+                match settings.lighting {
+                    Some(lighting) => Kind::Octree {
+                        hierarchy: VolumeHierarchy::with_light(
+                            &padded,
+                            &light_field(&padded, &lighting.light)?,
+                            octree.min_accuracy,
+                        )?,
+                        scalars: lighting.scalars,
+                    },
+                    None => Kind::Octree {
+                        hierarchy: VolumeHierarchy::new(&padded, octree.min_accuracy)?,
+                        scalars: CellScalars::Density,
+                    },
+                }
+            }
+            (VolumeSource::Cells(_), Some(_)) => return Err(VolumeBatchError::OctreeWithoutGrid),
+            (VolumeSource::Cells(cells), None) => match settings.order {
+                CellOrder::BackToFront => Kind::SortedCells {
+                    adjacency: CellAdjacency::new(&cells),
+                    cells,
+                },
+                CellOrder::Unordered => Kind::UnorderedCells { cells },
+            },
+        };
+        Ok(Self {
+            kind,
+            settings: *settings,
+            full_resolution_cells,
+            batch: CellBatch::default(),
+            built: None,
+        })
+    }
+
+    /// Brings the batch up to date for `view` and `inputs`: rebuilds it when
+    /// they differ from the last successful build in something the batch
+    /// depends on (module docs), and returns whether it did, i.e. whether
+    /// [`VolumeBatcher::batch`] is to be uploaded again.
+    ///
+    /// Errors (the batch and what it was built from then stay as they were):
+    /// - [`VolumeBatchError::Batch`] for a grid at full resolution or a cell
+    ///   mesh: [`BatchError::SingularTransform`] unless `world_from_local` is
+    ///   finite and invertible, [`BatchError::NonFiniteEye`] for a
+    ///   back-to-front batch and a NaN or infinite eye;
+    /// - [`VolumeBatchError::Refinement`] for the octree: the same two, and
+    ///   [`RefinementError::InvalidAccuracy`] for an accuracy `c` that is NaN
+    ///   or negative.
+    pub fn update(&mut self, view: &View, inputs: &FrameInputs) -> Result<bool, VolumeBatchError> {
+        let transfer = inputs.transfer.content_hash();
+        let order_key = match &self.kind {
+            Kind::FullResolution {
+                grid,
+                order: CellOrder::BackToFront,
+                ..
+            } => order_key(grid, view),
+            _ => None,
+        };
+        if let Some(built) = &self.built
+            && !self.needs_rebuild(built, view, inputs, transfer, order_key)
+        {
+            return Ok(false);
+        }
+        self.batch = self.build(view, inputs)?;
+        self.built = Some(BuiltFor {
+            view: view.clone(),
+            transfer,
+            accuracy: inputs.accuracy,
+            order_key,
+        });
+        Ok(true)
+    }
+
+    /// The current batch: world space, in draw order, modulated for a lit
+    /// cloud. Empty before the first successful [`VolumeBatcher::update`].
+    pub fn batch(&self) -> &CellBatch {
+        &self.batch
+    }
+
+    /// The source's cells at full resolution (five per voxel of the grid as
+    /// given, before any padding; the mesh's cell count), for counters that
+    /// compare the drawn cells with them.
+    pub fn full_resolution_cells(&self) -> usize {
+        self.full_resolution_cells
+    }
+
+    /// The settings the batcher was built with; a caller whose settings
+    /// differ builds a new batcher.
+    pub fn settings(&self) -> &BatchSettings {
+        &self.settings
+    }
+
+    /// What the batch's cells carry: [`BatchLighting::scalars`] for a lit
+    /// cloud, [`CellScalars::Density`] otherwise (the cells' scalar is then
+    /// the source's, and the batch has no modulators).
+    pub fn scalars(&self) -> CellScalars {
+        match self.kind {
+            Kind::Octree { scalars, .. } => scalars,
+            _ => CellScalars::Density,
+        }
+    }
+
+    /// Whether the batch depends on the eye or the frustum (back-to-front
+    /// batches and the octree), so a moving camera may rebuild it; an
+    /// unordered grid or cell mesh is only rebuilt for a new transform, a new
+    /// transfer function or a viewport that became empty or non-empty.
+    pub fn is_view_dependent(&self) -> bool {
+        match self.kind {
+            Kind::FullResolution { order, .. } => order == CellOrder::BackToFront,
+            Kind::Octree { .. } | Kind::SortedCells { .. } => true,
+            Kind::UnorderedCells { .. } => false,
+        }
+    }
+
+    /// Whether a batch built for `built` may differ from one for `view` and
+    /// `inputs` (with the transfer function's content hash `transfer` and, for
+    /// a sorted full-resolution grid, the view's `order_key`).
+    fn needs_rebuild(
+        &self,
+        built: &BuiltFor,
+        view: &View,
+        inputs: &FrameInputs,
+        transfer: u64,
+        order_key: Option<[i64; 11]>,
+    ) -> bool {
+        let (was_empty, is_empty) = (built.view.viewport_is_empty(), view.viewport_is_empty());
+        if was_empty && is_empty {
+            return false;
+        }
+        if was_empty != is_empty
+            || built.view.world_from_local != view.world_from_local
+            || built.transfer != transfer
+        {
+            return true;
+        }
+        let eye_moved = built.view.eye != view.eye;
+        let frustum_changed = built.view.frustum != view.frustum;
+        match self.kind {
+            Kind::FullResolution { order, .. } => match order {
+                CellOrder::BackToFront => built.order_key != order_key || frustum_changed,
+                CellOrder::Unordered => false,
+            },
+            Kind::Octree { .. } => {
+                eye_moved || frustum_changed || built.accuracy != inputs.accuracy
+            }
+            Kind::SortedCells { .. } => eye_moved,
+            Kind::UnorderedCells { .. } => false,
+        }
+    }
+
+    /// The batch for `view` and `inputs`, built from scratch.
+    fn build(&self, view: &View, inputs: &FrameInputs) -> Result<CellBatch, VolumeBatchError> {
+        let batch = match &self.kind {
+            Kind::FullResolution {
+                grid,
+                bricks,
+                order,
+            } => match order {
+                CellOrder::BackToFront => {
+                    full_resolution_batch(grid, bricks, view, inputs.transfer, *order)?
+                }
+                CellOrder::Unordered => {
+                    let unculled = View::new(view.world_from_local, view.eye, view.viewport);
+                    full_resolution_batch(grid, bricks, &unculled, inputs.transfer, *order)?
+                }
+            },
+            Kind::Octree { hierarchy, scalars } => {
+                // The zero-opacity test is on the field that sets the opacity.
+                let opacity = match scalars {
+                    CellScalars::LightModulatedByDensity => &*DENSITY_AS_OPACITY,
+                    CellScalars::Density | CellScalars::DensityModulatedByLight => inputs.transfer,
+                };
+                let settings = RefinementSettings {
+                    accuracy: inputs.accuracy,
+                };
+                let refinement = refine(hierarchy, view, opacity, &settings)?;
+                lod_batch_with(hierarchy, &refinement, view, *scalars)?
+            }
+            Kind::SortedCells { cells, adjacency } => sorted_batch(cells, adjacency, view)?,
+            Kind::UnorderedCells { cells } => unordered_batch(cells, view)?,
+        };
+        Ok(batch)
+    }
+}
+
+/// `cells` (local frame) moved to world space by the view's
+/// `world_from_local`, in their order ([`CellBatch::from_tetrahedra`]); empty
+/// for an empty viewport. Errors: [`BatchError::SingularTransform`] unless
+/// `world_from_local` is finite and invertible.
+fn unordered_batch(cells: &[Tetrahedron], view: &View) -> Result<CellBatch, BatchError> {
+    if view.local_from_world().is_none() {
+        return Err(BatchError::SingularTransform {
+            determinant: view.world_from_local.matrix3.determinant(),
+        });
+    }
+    if view.viewport_is_empty() {
+        return Ok(CellBatch::default());
+    }
+    let world: Vec<Tetrahedron> = cells.iter().map(|t| view.to_world(t)).collect();
+    Ok(CellBatch::from_tetrahedra(&world))
+}

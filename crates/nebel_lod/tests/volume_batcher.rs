@@ -1,0 +1,713 @@
+//! Properties of `VolumeBatcher`: every source kind builds exactly what the
+//! crate's builders build for the same view, the batch is rebuilt exactly when
+//! the view or the inputs change it (and kept otherwise), an empty viewport
+//! sees nothing, lit clouds carry modulators, and bad input gives typed errors.
+
+use std::sync::Arc;
+
+use glam::{DAffine3, DMat4, DQuat, DVec3, UVec2};
+use nebel_core::cell::Tetrahedron;
+use nebel_core::field::{CloudLighting, DensityGrid, PadFill, light_field, search_light_cells};
+use nebel_core::transfer::{ControlPoint, TransferFunction, TransferPreset};
+use nebel_lod::octree::{CellScalars, RefinementError, RefinementSettings, lod_batch_with, refine};
+use nebel_lod::{
+    BatchError, BatchLighting, BatchSettings, BrickTable, CellAdjacency, CellBatch, CellOrder,
+    FrameInputs, Frustum, HierarchyError, OctreeSettings, View, VolumeBatchError, VolumeBatcher,
+    VolumeHierarchy, VolumeSource, full_resolution_batch, order_key, sorted_batch,
+};
+
+/// The render target of every view here, pixels.
+const VIEWPORT: UVec2 = UVec2::new(640, 480);
+
+/// The accuracy `c` of every frame here unless a test changes it.
+const ACCURACY: f64 = 16.0;
+
+/// A rough field in [0.05, 0.95] with an empty (density 0) column at low x
+/// and y, spacing (0.5, 0.25, 0.5), origin off zero.
+fn field(dims: [usize; 3], seed: u64) -> DensityGrid {
+    let [nx, ny, nz] = dims;
+    let mut state = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
+    let mut values = Vec::with_capacity(nx * ny * nz);
+    for _ in 0..nz {
+        for j in 0..ny {
+            for i in 0..nx {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                let noise = (state >> 40) as f32 / (1u64 << 24) as f32;
+                let empty = i < nx / 3 && j < ny / 3;
+                values.push(if empty { 0.0 } else { 0.05 + 0.9 * noise });
+            }
+        }
+    }
+    DensityGrid::new(
+        dims,
+        DVec3::new(0.5, 0.25, 0.5),
+        DVec3::new(-2.0, 1.0, 0.5),
+        values,
+    )
+    .expect("valid grid")
+}
+
+/// The test grid: 9 × 7 × 6 points, padded to 9 × 9 × 9 for the octree.
+fn grid() -> DensityGrid {
+    field([9, 7, 6], 3)
+}
+
+/// The volume's placement: stretched, turned and moved.
+fn world_from_local() -> DAffine3 {
+    DAffine3::from_scale_rotation_translation(
+        DVec3::new(1.5, 1.0, 2.0),
+        DQuat::from_euler(glam::EulerRot::XYZ, 0.3, -0.7, 0.2),
+        DVec3::new(1.0, 2.0, -3.0),
+    )
+}
+
+/// The world position of the point `u` in the test grid's index coordinates.
+fn eye_at(u: DVec3) -> DVec3 {
+    let g = grid();
+    world_from_local().transform_point3(g.origin() + u * g.spacing())
+}
+
+/// The view from `eye` (world units) of the volume placed by
+/// [`world_from_local`], without culling.
+fn view(eye: DVec3) -> View {
+    View::new(world_from_local(), eye, VIEWPORT)
+}
+
+/// A narrow frustum from `eye` towards the point `target` (index
+/// coordinates of the test grid), which sees part of the grid.
+fn frustum(eye: DVec3, target: DVec3) -> Frustum {
+    let camera = DMat4::look_at_rh(eye, eye_at(target), DVec3::Y);
+    Frustum::from_view_projection(DMat4::perspective_infinite_reverse_rh(0.4, 1.0, 0.1) * camera)
+        .expect("a valid projection")
+}
+
+fn cloud() -> TransferFunction {
+    TransferFunction::preset(TransferPreset::Cloud)
+}
+
+/// ρ = 0 everywhere.
+fn clear() -> TransferFunction {
+    TransferFunction::new([ControlPoint {
+        s: 0.5,
+        kappa: [1.0; 3],
+        rho: 0.0,
+    }])
+    .expect("one control point")
+}
+
+/// The zero-opacity test of a lit cloud whose density is its opacity.
+fn density_as_opacity() -> TransferFunction {
+    let point = |s: f32| ControlPoint {
+        s,
+        kappa: [0.0; 3],
+        rho: s,
+    };
+    TransferFunction::new([point(0.0), point(1.0)]).expect("two control points")
+}
+
+fn inputs(transfer: &TransferFunction) -> FrameInputs<'_> {
+    FrameInputs {
+        transfer,
+        accuracy: ACCURACY,
+    }
+}
+
+/// A conforming cell mesh with scalars, in its own frame.
+fn cells() -> Arc<Vec<Tetrahedron>> {
+    let mut cells = search_light_cells(6.0, 0.35, [8, 2, 4]);
+    for (index, cell) in cells.iter_mut().enumerate() {
+        cell.scalars = [0.2, 0.4, 0.6, 0.8].map(|s| (s + index as f64 * 0.01).fract());
+    }
+    Arc::new(cells)
+}
+
+fn grid_source() -> VolumeSource {
+    VolumeSource::Grid(Arc::new(grid()))
+}
+
+fn settings(order: CellOrder, octree: bool) -> BatchSettings {
+    BatchSettings {
+        order,
+        octree: octree.then(OctreeSettings::default),
+        lighting: None,
+    }
+}
+
+fn lit(scalars: CellScalars) -> BatchSettings {
+    BatchSettings {
+        lighting: Some(BatchLighting {
+            light: CloudLighting {
+                shadow_extinction: 0.5,
+                ..CloudLighting::default()
+            },
+            scalars,
+        }),
+        ..settings(CellOrder::BackToFront, true)
+    }
+}
+
+/// Every kind of batcher, named: grids at full resolution and through the
+/// octree, cell meshes, back to front and unordered.
+fn every_kind() -> Vec<(&'static str, VolumeBatcher)> {
+    let new = |source, settings| VolumeBatcher::new(source, &settings).expect("valid settings");
+    vec![
+        (
+            "sorted grid",
+            new(grid_source(), settings(CellOrder::BackToFront, false)),
+        ),
+        (
+            "unordered grid",
+            new(grid_source(), settings(CellOrder::Unordered, false)),
+        ),
+        (
+            "octree",
+            new(grid_source(), settings(CellOrder::BackToFront, true)),
+        ),
+        (
+            "lit octree",
+            new(grid_source(), lit(CellScalars::LightModulatedByDensity)),
+        ),
+        (
+            "sorted cells",
+            new(
+                VolumeSource::Cells(cells()),
+                settings(CellOrder::BackToFront, false),
+            ),
+        ),
+        (
+            "unordered cells",
+            new(
+                VolumeSource::Cells(cells()),
+                settings(CellOrder::Unordered, false),
+            ),
+        ),
+    ]
+}
+
+/// The octree batch of the padded test grid for `view`, built by hand.
+fn octree_batch(
+    lighting: Option<&BatchLighting>,
+    view: &View,
+    transfer: &TransferFunction,
+) -> CellBatch {
+    let padded = grid()
+        .padded_to_power_of_two_plus_one(PadFill::Value(0.0))
+        .unwrap();
+    let c = OctreeSettings::DEFAULT_MIN_ACCURACY;
+    let (hierarchy, scalars) = match lighting {
+        Some(lighting) => {
+            let light = light_field(&padded, &lighting.light).unwrap();
+            let hierarchy = VolumeHierarchy::with_light(&padded, &light, c).unwrap();
+            (hierarchy, lighting.scalars)
+        }
+        None => (
+            VolumeHierarchy::new(&padded, c).unwrap(),
+            CellScalars::Density,
+        ),
+    };
+    let opacity = match scalars {
+        CellScalars::LightModulatedByDensity => density_as_opacity(),
+        _ => transfer.clone(),
+    };
+    let settings = RefinementSettings { accuracy: ACCURACY };
+    let refinement = refine(&hierarchy, view, &opacity, &settings).unwrap();
+    lod_batch_with(&hierarchy, &refinement, view, scalars).unwrap()
+}
+
+#[test]
+fn every_source_builds_what_its_builder_builds() {
+    let grid = grid();
+    let bricks = BrickTable::new(&grid, BrickTable::DEFAULT_BRICK_SIZE);
+    let transfer = cloud();
+    let eye = eye_at(DVec3::new(-6.0, 3.3, 2.6));
+    let culled = view(eye).with_frustum(frustum(eye, DVec3::new(1.0, 1.0, 1.0)));
+    let unculled = view(eye);
+
+    // Full resolution, back to front: culled by the frustum.
+    let mut sorted = VolumeBatcher::new(grid_source(), &BatchSettings::default()).unwrap();
+    assert!(sorted.update(&culled, &inputs(&transfer)).unwrap());
+    let expected =
+        full_resolution_batch(&grid, &bricks, &culled, &transfer, CellOrder::BackToFront);
+    assert_eq!(sorted.batch(), &expected.unwrap());
+    let all = full_resolution_batch(&grid, &bricks, &unculled, &transfer, CellOrder::BackToFront);
+    let all = all.unwrap();
+    assert!(!sorted.batch().is_empty() && sorted.batch().len() < all.len());
+    assert_eq!(sorted.full_resolution_cells(), 5 * 8 * 6 * 5);
+    assert!(sorted.is_view_dependent());
+    assert_eq!(sorted.scalars(), CellScalars::Density);
+
+    // Full resolution, unordered: not culled.
+    let mut unordered =
+        VolumeBatcher::new(grid_source(), &settings(CellOrder::Unordered, false)).unwrap();
+    assert!(unordered.update(&culled, &inputs(&transfer)).unwrap());
+    let expected =
+        full_resolution_batch(&grid, &bricks, &unculled, &transfer, CellOrder::Unordered);
+    assert_eq!(unordered.batch(), &expected.unwrap());
+    assert_eq!(unordered.batch().len(), all.len());
+
+    // The octree, on the grid padded with zero density.
+    let mut octree =
+        VolumeBatcher::new(grid_source(), &settings(CellOrder::BackToFront, true)).unwrap();
+    assert!(octree.update(&culled, &inputs(&transfer)).unwrap());
+    assert_eq!(octree.batch(), &octree_batch(None, &culled, &transfer));
+    assert!(!octree.batch().is_empty() && !octree.batch().is_modulated());
+    assert_eq!(octree.full_resolution_cells(), 5 * 8 * 6 * 5);
+    // Its Unordered setting changes nothing: the octree is back to front.
+    let mut octree_unordered =
+        VolumeBatcher::new(grid_source(), &settings(CellOrder::Unordered, true)).unwrap();
+    octree_unordered
+        .update(&culled, &inputs(&transfer))
+        .unwrap();
+    assert_eq!(octree_unordered.batch(), octree.batch());
+    assert!(octree_unordered.is_view_dependent());
+
+    // Cell meshes, in their own frame placed by world_from_local.
+    let cells = cells();
+    let mut sorted_cells = VolumeBatcher::new(
+        VolumeSource::Cells(cells.clone()),
+        &settings(CellOrder::BackToFront, false),
+    )
+    .unwrap();
+    assert!(sorted_cells.update(&culled, &inputs(&transfer)).unwrap());
+    let expected = sorted_batch(&cells, &CellAdjacency::new(&cells), &culled).unwrap();
+    assert_eq!(sorted_cells.batch(), &expected);
+    assert_eq!(sorted_cells.batch().len(), cells.len());
+    assert_eq!(sorted_cells.full_resolution_cells(), cells.len());
+    let mut unordered_cells = VolumeBatcher::new(
+        VolumeSource::Cells(cells.clone()),
+        &settings(CellOrder::Unordered, false),
+    )
+    .unwrap();
+    assert!(unordered_cells.update(&culled, &inputs(&transfer)).unwrap());
+    let in_world: Vec<Tetrahedron> = cells
+        .iter()
+        .map(|t| Tetrahedron {
+            positions: t.positions.map(|p| world_from_local().transform_point3(p)),
+            scalars: t.scalars,
+        })
+        .collect();
+    assert_eq!(
+        unordered_cells.batch(),
+        &CellBatch::from_tetrahedra(&in_world)
+    );
+    assert_ne!(unordered_cells.batch(), sorted_cells.batch());
+}
+
+#[test]
+fn lit_clouds_carry_modulators_and_pick_the_opacity_field() {
+    let eye = eye_at(DVec3::new(4.2, 11.0, 3.1));
+    let v = view(eye).with_frustum(frustum(eye, DVec3::new(4.0, 3.0, 2.5)));
+    let transfer = cloud();
+    for scalars in [
+        CellScalars::LightModulatedByDensity,
+        CellScalars::DensityModulatedByLight,
+    ] {
+        let settings = lit(scalars);
+        let mut batcher = VolumeBatcher::new(grid_source(), &settings).unwrap();
+        assert_eq!(batcher.scalars(), scalars);
+        assert_eq!(batcher.settings(), &settings);
+        assert!(batcher.update(&v, &inputs(&transfer)).unwrap());
+        let batch = batcher.batch();
+        assert!(!batch.is_empty());
+        assert_eq!(batch.modulators.len(), batch.len());
+        assert!(
+            batch
+                .modulators
+                .iter()
+                .flatten()
+                .all(|m| (0.0..=1.0).contains(m))
+        );
+        let lighting = settings.lighting.as_ref();
+        assert_eq!(batch, &octree_batch(lighting, &v, &transfer));
+
+        // The volume's transfer function is over the light for §5.1, so it
+        // does not cull: a transparent one still draws the cloud there.
+        let mut batcher = VolumeBatcher::new(grid_source(), &settings).unwrap();
+        batcher.update(&v, &inputs(&clear())).unwrap();
+        let light_over_density = scalars == CellScalars::LightModulatedByDensity;
+        assert_eq!(
+            !batcher.batch().is_empty(),
+            light_over_density,
+            "{scalars:?}"
+        );
+    }
+}
+
+#[test]
+fn a_transparent_volume_gives_an_empty_batch() {
+    let zeros = DensityGrid::new([5, 6, 7], DVec3::ONE, DVec3::ZERO, vec![0.0; 5 * 6 * 7]).unwrap();
+    let v = view(eye_at(DVec3::splat(-3.0)));
+    for settings in [
+        settings(CellOrder::BackToFront, false),
+        settings(CellOrder::Unordered, false),
+        settings(CellOrder::BackToFront, true),
+        lit(CellScalars::LightModulatedByDensity),
+    ] {
+        let mut batcher =
+            VolumeBatcher::new(VolumeSource::Grid(Arc::new(zeros.clone())), &settings).unwrap();
+        assert!(batcher.update(&v, &inputs(&cloud())).unwrap());
+        assert!(batcher.batch().is_empty(), "{settings:?}");
+        // A transparent transfer function empties any grid but the lit one
+        // whose opacity is the density.
+        let mut batcher = VolumeBatcher::new(grid_source(), &settings).unwrap();
+        assert!(batcher.update(&v, &inputs(&clear())).unwrap());
+        assert_eq!(
+            batcher.batch().is_empty(),
+            settings.lighting.is_none(),
+            "{settings:?}"
+        );
+    }
+}
+
+#[test]
+fn a_sorted_grid_is_rebuilt_when_its_order_key_or_frustum_changes() {
+    let grid = grid();
+    let bricks = BrickTable::new(&grid, BrickTable::DEFAULT_BRICK_SIZE);
+    let transfer = cloud();
+    let fresh = |v: &View| {
+        full_resolution_batch(&grid, &bricks, v, &transfer, CellOrder::BackToFront).unwrap()
+    };
+    let mut batcher = VolumeBatcher::new(grid_source(), &BatchSettings::default()).unwrap();
+    let u = DVec3::new(3.3, 2.45, 1.7);
+    let v0 = view(eye_at(u));
+    assert!(batcher.update(&v0, &inputs(&transfer)).unwrap());
+    assert!(!batcher.update(&v0, &inputs(&transfer)).unwrap());
+
+    // A move that stays on the same side of every plane: the same batch.
+    let v1 = view(eye_at(u + DVec3::new(0.01, -0.01, 0.005)));
+    assert_ne!(v0.eye, v1.eye);
+    assert_eq!(order_key(&grid, &v0), order_key(&grid, &v1));
+    assert!(!batcher.update(&v1, &inputs(&transfer)).unwrap());
+    assert_eq!(batcher.batch(), &fresh(&v1));
+
+    // Across a voxel's corner face (x + y + z = 8 in index units).
+    let v2 = view(eye_at(u + DVec3::new(0.3, 0.3, 0.3)));
+    assert_ne!(order_key(&grid, &v1), order_key(&grid, &v2));
+    assert!(batcher.update(&v2, &inputs(&transfer)).unwrap());
+    assert_eq!(batcher.batch(), &fresh(&v2));
+    assert_ne!(batcher.batch(), &fresh(&v1));
+
+    // Far away every plane is on one side: moving farther keeps the batch.
+    let far = view(eye_at(DVec3::new(-1e4, 3.0, 2.0)));
+    assert!(batcher.update(&far, &inputs(&transfer)).unwrap());
+    let farther = view(eye_at(DVec3::new(-1e6, 3.5, 2.5)));
+    assert!(!batcher.update(&farther, &inputs(&transfer)).unwrap());
+
+    // The frustum culls bricks: a new one rebuilds, the same one does not.
+    let culled = v2
+        .clone()
+        .with_frustum(frustum(v2.eye, DVec3::new(8.0, 6.0, 5.0)));
+    assert!(batcher.update(&culled, &inputs(&transfer)).unwrap());
+    assert_eq!(batcher.batch(), &fresh(&culled));
+    assert!(!batcher.update(&culled, &inputs(&transfer)).unwrap());
+    assert!(batcher.update(&v2, &inputs(&transfer)).unwrap());
+    assert_eq!(batcher.batch(), &fresh(&v2));
+}
+
+#[test]
+fn the_octree_is_rebuilt_on_every_eye_move() {
+    let transfer = cloud();
+    let mut batcher =
+        VolumeBatcher::new(grid_source(), &settings(CellOrder::BackToFront, true)).unwrap();
+    let v0 = view(eye_at(DVec3::new(3.3, 2.45, 1.7)));
+    assert!(batcher.update(&v0, &inputs(&transfer)).unwrap());
+    assert!(!batcher.update(&v0, &inputs(&transfer)).unwrap());
+    let nudged = View {
+        eye: v0.eye + DVec3::new(1e-9, 0.0, 0.0),
+        ..v0.clone()
+    };
+    assert!(batcher.update(&nudged, &inputs(&transfer)).unwrap());
+    assert!(!batcher.update(&nudged, &inputs(&transfer)).unwrap());
+    let culled = nudged
+        .clone()
+        .with_frustum(frustum(nudged.eye, DVec3::new(8.0, 6.0, 5.0)));
+    assert!(batcher.update(&culled, &inputs(&transfer)).unwrap());
+    assert!(!batcher.update(&culled, &inputs(&transfer)).unwrap());
+    assert_eq!(batcher.batch(), &octree_batch(None, &culled, &transfer));
+
+    // The accuracy c sets the level of detail.
+    let finer = FrameInputs {
+        accuracy: 64.0,
+        ..inputs(&transfer)
+    };
+    assert!(batcher.update(&culled, &finer).unwrap());
+    assert!(!batcher.update(&culled, &finer).unwrap());
+    assert!(batcher.update(&culled, &inputs(&transfer)).unwrap());
+    assert!(batcher.is_view_dependent());
+}
+
+#[test]
+fn unordered_batches_ignore_the_eye_and_the_frustum() {
+    let transfer = cloud();
+    for source in [grid_source(), VolumeSource::Cells(cells())] {
+        let mut batcher =
+            VolumeBatcher::new(source, &settings(CellOrder::Unordered, false)).unwrap();
+        assert!(!batcher.is_view_dependent());
+        let v0 = view(eye_at(DVec3::new(-5.0, 2.0, 1.0)));
+        assert!(batcher.update(&v0, &inputs(&transfer)).unwrap());
+        let first = batcher.batch().clone();
+        for eye in [DVec3::new(40.0, -3.0, 7.0), DVec3::ZERO, DVec3::NAN] {
+            let moved = View { eye, ..v0.clone() }.with_frustum(frustum(
+                DVec3::new(40.0, -3.0, 7.0),
+                DVec3::new(8.0, 6.0, 5.0),
+            ));
+            assert!(!batcher.update(&moved, &inputs(&transfer)).unwrap());
+        }
+        // Without the octree the accuracy is not read.
+        let other_accuracy = FrameInputs {
+            accuracy: f64::NAN,
+            ..inputs(&transfer)
+        };
+        assert!(!batcher.update(&v0, &other_accuracy).unwrap());
+        assert_eq!(batcher.batch(), &first);
+    }
+}
+
+#[test]
+fn sorted_cells_are_rebuilt_when_the_eye_moves() {
+    let cells = cells();
+    let adjacency = CellAdjacency::new(&cells);
+    let transfer = cloud();
+    let mut batcher = VolumeBatcher::new(
+        VolumeSource::Cells(cells.clone()),
+        &settings(CellOrder::BackToFront, false),
+    )
+    .unwrap();
+    assert!(batcher.is_view_dependent());
+    let v0 = view(DVec3::new(3.0, -1.0, 2.0));
+    assert!(batcher.update(&v0, &inputs(&transfer)).unwrap());
+    // Cells are not culled: a frustum changes nothing.
+    let culled = v0.clone().with_frustum(frustum(v0.eye, DVec3::ZERO));
+    assert!(!batcher.update(&culled, &inputs(&transfer)).unwrap());
+    let moved = view(DVec3::new(-4.0, 2.0, -1.0));
+    assert!(batcher.update(&moved, &inputs(&transfer)).unwrap());
+    assert_eq!(
+        batcher.batch(),
+        &sorted_batch(&cells, &adjacency, &moved).unwrap()
+    );
+    assert!(!batcher.update(&moved, &inputs(&transfer)).unwrap());
+}
+
+#[test]
+fn every_kind_is_rebuilt_for_a_new_placement_or_transfer_function() {
+    let transfer = cloud();
+    let v0 = view(eye_at(DVec3::new(-5.0, 2.0, 1.0)));
+    for (name, mut batcher) in every_kind() {
+        assert!(batcher.update(&v0, &inputs(&transfer)).unwrap(), "{name}");
+        // Another instance with the same content is the same function.
+        let same = cloud();
+        assert!(!batcher.update(&v0, &inputs(&same)).unwrap(), "{name}");
+        let fog = TransferFunction::preset(TransferPreset::GroundFog);
+        assert!(batcher.update(&v0, &inputs(&fog)).unwrap(), "{name}");
+        assert!(!batcher.update(&v0, &inputs(&fog)).unwrap(), "{name}");
+
+        // The volume moved, the eye stayed.
+        let before = batcher.batch().clone();
+        let moved = View {
+            world_from_local: DAffine3::from_translation(DVec3::new(0.5, 0.0, -0.25))
+                * world_from_local(),
+            ..v0.clone()
+        };
+        assert!(batcher.update(&moved, &inputs(&fog)).unwrap(), "{name}");
+        assert_ne!(batcher.batch(), &before, "{name}");
+        assert!(!batcher.update(&moved, &inputs(&fog)).unwrap(), "{name}");
+
+        // Only the octree reads the accuracy.
+        let finer = FrameInputs {
+            accuracy: 64.0,
+            ..inputs(&fog)
+        };
+        let octree = batcher.settings().octree.is_some();
+        assert_eq!(batcher.update(&moved, &finer).unwrap(), octree, "{name}");
+    }
+}
+
+#[test]
+fn an_empty_viewport_gives_an_empty_batch() {
+    let transfer = cloud();
+    let v0 = view(eye_at(DVec3::new(-5.0, 2.0, 1.0)));
+    let hidden = View {
+        viewport: UVec2::new(640, 0),
+        ..v0.clone()
+    };
+    for (name, mut batcher) in every_kind() {
+        assert!(
+            batcher.update(&hidden, &inputs(&transfer)).unwrap(),
+            "{name}"
+        );
+        assert_eq!(batcher.batch(), &CellBatch::default(), "{name}");
+        // Hidden it stays empty, whatever moves.
+        let elsewhere = View {
+            eye: DVec3::new(9.0, 9.0, 9.0),
+            viewport: UVec2::new(0, 480),
+            world_from_local: DAffine3::from_translation(DVec3::X) * world_from_local(),
+            ..hidden.clone()
+        };
+        assert!(
+            !batcher.update(&elsewhere, &inputs(&transfer)).unwrap(),
+            "{name}"
+        );
+        assert!(batcher.batch().is_empty(), "{name}");
+        // Shown again it draws, hidden again it empties.
+        assert!(batcher.update(&v0, &inputs(&transfer)).unwrap(), "{name}");
+        assert!(!batcher.batch().is_empty(), "{name}");
+        assert!(
+            batcher.update(&hidden, &inputs(&transfer)).unwrap(),
+            "{name}"
+        );
+        assert!(batcher.batch().is_empty(), "{name}");
+    }
+}
+
+#[test]
+fn bad_views_and_inputs_give_typed_errors_and_keep_the_last_batch() {
+    let transfer = cloud();
+    let v0 = view(eye_at(DVec3::new(-5.0, 2.0, 1.0)));
+    let nan_eye = View {
+        eye: DVec3::new(0.0, f64::NAN, 0.0),
+        ..v0.clone()
+    };
+    let singular = View {
+        world_from_local: DAffine3::from_scale(DVec3::new(1.0, 0.0, 1.0)),
+        ..v0.clone()
+    };
+    for (name, mut batcher) in every_kind() {
+        assert!(batcher.update(&v0, &inputs(&transfer)).unwrap(), "{name}");
+        let good = batcher.batch().clone();
+        let octree = batcher.settings().octree.is_some();
+        let ordered = batcher.is_view_dependent();
+
+        let result = batcher.update(&nan_eye, &inputs(&transfer));
+        match result {
+            Err(VolumeBatchError::Batch(BatchError::NonFiniteEye { .. })) => {
+                assert!(ordered && !octree, "{name}")
+            }
+            Err(VolumeBatchError::Refinement(RefinementError::NonFiniteEye { .. })) => {
+                assert!(octree, "{name}")
+            }
+            Ok(changed) => assert!(!ordered && !changed, "{name}"),
+            Err(other) => panic!("{name}: {other}"),
+        }
+
+        let error = batcher.update(&singular, &inputs(&transfer)).unwrap_err();
+        let expected_kind = match &error {
+            VolumeBatchError::Batch(BatchError::SingularTransform { .. }) => !octree,
+            VolumeBatchError::Refinement(RefinementError::SingularTransform { .. }) => octree,
+            _ => false,
+        };
+        assert!(expected_kind, "{name}: {error}");
+        assert!(error.to_string().contains("world_from_local"), "{error}");
+
+        // The errors left the batch and what it was built for alone.
+        assert_eq!(batcher.batch(), &good, "{name}");
+        assert!(!batcher.update(&v0, &inputs(&transfer)).unwrap(), "{name}");
+
+        if octree {
+            for accuracy in [f64::NAN, -1.0] {
+                let bad = FrameInputs {
+                    accuracy,
+                    ..inputs(&transfer)
+                };
+                let error = batcher.update(&v0, &bad).unwrap_err();
+                assert!(
+                    matches!(
+                        error,
+                        VolumeBatchError::Refinement(RefinementError::InvalidAccuracy { .. })
+                    ),
+                    "{name}: {error}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn bad_settings_give_typed_errors() {
+    let new = |source, settings: BatchSettings| VolumeBatcher::new(source, &settings).err();
+    for min_accuracy in [3f64.sqrt(), 1.0, f64::NAN, f64::INFINITY] {
+        let settings = BatchSettings {
+            octree: Some(OctreeSettings { min_accuracy }),
+            ..BatchSettings::default()
+        };
+        let error = new(grid_source(), settings).unwrap();
+        assert!(
+            matches!(
+                error,
+                VolumeBatchError::Hierarchy(HierarchyError::InvalidMinAccuracy { .. })
+            ),
+            "{error}"
+        );
+    }
+    let lit_without_octree = BatchSettings {
+        octree: None,
+        ..lit(CellScalars::LightModulatedByDensity)
+    };
+    assert_eq!(
+        new(grid_source(), lit_without_octree),
+        Some(VolumeBatchError::LightingWithoutOctree)
+    );
+    assert_eq!(
+        new(grid_source(), lit(CellScalars::Density)),
+        Some(VolumeBatchError::UnlitScalars)
+    );
+    assert_eq!(
+        new(
+            VolumeSource::Cells(cells()),
+            settings(CellOrder::BackToFront, true)
+        ),
+        Some(VolumeBatchError::OctreeWithoutGrid)
+    );
+
+    // Invalid light-field settings: a shared FieldError, equal by message.
+    let mut bright = lit(CellScalars::DensityModulatedByLight);
+    if let Some(lighting) = &mut bright.lighting {
+        lighting.light.ambient = 2.0;
+    }
+    let error = new(grid_source(), bright).unwrap();
+    assert!(matches!(error, VolumeBatchError::Field(_)), "{error}");
+    assert!(error.to_string().contains("ambient"), "{error}");
+    let again = new(grid_source(), bright).unwrap();
+    assert_eq!(error.clone(), again);
+    assert_ne!(error, VolumeBatchError::UnlitScalars);
+}
+
+#[test]
+fn grids_of_any_size_go_through_the_octree() {
+    let transfer = cloud();
+    for dims in [[2, 2, 2], [6, 5, 7], [17, 3, 4]] {
+        let grid = field(dims, 9);
+        let voxels: usize = dims.iter().map(|n| n - 1).product();
+        let mut batcher = VolumeBatcher::new(
+            VolumeSource::Grid(Arc::new(grid)),
+            &settings(CellOrder::BackToFront, true),
+        )
+        .unwrap();
+        assert_eq!(batcher.full_resolution_cells(), 5 * voxels);
+        assert!(
+            batcher
+                .update(&view(DVec3::new(-9.0, 4.0, 3.0)), &inputs(&transfer))
+                .unwrap()
+        );
+        assert!(!batcher.batch().is_empty(), "{dims:?}");
+    }
+}
+
+#[test]
+fn a_batcher_built_on_a_worker_thread_is_handed_over() {
+    fn send_and_sync<T: Send + Sync>() {}
+    send_and_sync::<VolumeBatcher>();
+    send_and_sync::<VolumeBatchError>();
+    let worker = std::thread::spawn(|| {
+        VolumeBatcher::new(grid_source(), &lit(CellScalars::LightModulatedByDensity))
+    });
+    let mut batcher = worker.join().expect("the worker ran").unwrap();
+    let transfer = cloud();
+    assert!(
+        batcher
+            .update(&view(eye_at(DVec3::splat(-4.0))), &inputs(&transfer))
+            .unwrap()
+    );
+    assert!(batcher.batch().is_modulated());
+}
