@@ -10,7 +10,9 @@
 //! - [`segment`]: the exact f64 ray integral of one linear segment, the reference for the tables.
 //! - [`preintegration`]: pre-integration tables (3D colour, ρ̂, emission, MIP) and the zero-opacity test.
 //! - [`field`]: density grids and height fields, PNG/raw loaders, noise generators, 2^n+1 resampling.
+//! - [`budget`]: the memory budget every allocation sized by input is checked against first.
 
+pub mod budget;
 pub mod cell;
 pub mod field;
 pub mod optics;

@@ -79,11 +79,13 @@ use std::num::NonZeroUsize;
 use glam::{DVec3, DVec4};
 use thiserror::Error;
 
+use crate::budget::{BudgetError, Dims, check_bytes};
 use crate::optics::{OpticalMode, PremultipliedRgba};
 use crate::segment::{Piece, exact_segment, for_each_piece, piece_max_emission};
 use crate::transfer::TransferFunction;
 
-/// Largest table side accepted (a 1024³ RGBA f32 table is 16 GiB).
+/// Largest table side accepted (a 1024³ RGBA f32 table is 16 GiB, beyond the
+/// memory budget: the sizes must also pass [`PreintegrationConfig::check_budget`]).
 pub const MAX_TABLE_SIDE: u32 = 1024;
 
 /// Optical depth at which a quadrature interval stops being refined: what lies
@@ -127,6 +129,26 @@ pub struct PreintegrationConfig {
     pub max_length: f32,
 }
 
+impl PreintegrationConfig {
+    /// The bytes the tables of this size take while they are built, checked
+    /// against the memory budget: the 3D colour table (16 bytes per sample)
+    /// and the three 2D tables (36 bytes per `(s_f, s_b)` pair), twice, since
+    /// the rows are built first and then copied into place. The default size
+    /// takes about 16 MiB. Errors name the `pre-integration table of n × n × m
+    /// samples`.
+    pub fn check_budget(&self) -> Result<u64, BudgetError> {
+        let (n, m) = (self.scalar_size as usize, self.length_size as usize);
+        let pairs = (n as u128) * (n as u128);
+        let colour = size_of::<[f32; 4]>() as u128;
+        let pair_bytes = (size_of::<f32>() + 2 * size_of::<[f32; 4]>()) as u128;
+        let table = pairs * (colour * m as u128 + pair_bytes);
+        check_bytes(
+            || format!("pre-integration table of {} samples", Dims(&[n, n, m])),
+            2 * table,
+        )
+    }
+}
+
 impl Default for PreintegrationConfig {
     fn default() -> Self {
         Self {
@@ -156,6 +178,10 @@ pub enum PreintegrationError {
         /// The requested maximum length.
         max_length: f32,
     },
+    /// The tables of this size would exceed the memory budget; nothing was
+    /// allocated.
+    #[error(transparent)]
+    OverBudget(#[from] BudgetError),
 }
 
 /// Largest absolute errors of a table against [`exact_segment`], per table.
@@ -197,7 +223,8 @@ impl PreintegrationTable {
     ///
     /// # Errors
     ///
-    /// [`PreintegrationError`] for an invalid `config`.
+    /// [`PreintegrationError`] for an invalid `config`, or one whose tables
+    /// exceed the memory budget ([`PreintegrationConfig::check_budget`]).
     pub fn build(
         tf: &TransferFunction,
         config: PreintegrationConfig,
@@ -210,7 +237,8 @@ impl PreintegrationTable {
     ///
     /// # Errors
     ///
-    /// [`PreintegrationError`] for an invalid `config`.
+    /// [`PreintegrationError`] for an invalid `config`, or one whose tables
+    /// exceed the memory budget ([`PreintegrationConfig::check_budget`]).
     pub fn build_with_threads(
         tf: &TransferFunction,
         config: PreintegrationConfig,
@@ -231,6 +259,7 @@ impl PreintegrationTable {
                 max_length: config.max_length,
             });
         }
+        config.check_budget()?;
         let n = config.scalar_size as usize;
         let m = config.length_size as usize;
         let pairs = n * n;
@@ -913,5 +942,32 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn tables_beyond_the_memory_budget_are_refused_before_allocating() {
+        let config = PreintegrationConfig {
+            scalar_size: MAX_TABLE_SIDE,
+            length_size: MAX_TABLE_SIDE,
+            max_length: 1.0,
+        };
+        let tf = TransferFunction::preset(TransferPreset::Cloud);
+        let error = PreintegrationTable::build(&tf, config).unwrap_err();
+        let message = error.to_string();
+        assert!(
+            message.starts_with(
+                "pre-integration table of 1024 × 1024 × 1024 samples needs 34,435,235,840 bytes"
+            ),
+            "{message}"
+        );
+        assert!(matches!(error, PreintegrationError::OverBudget(_)));
+        // The default size: the four tables, twice.
+        let default = PreintegrationConfig::default();
+        let table = PreintegrationTable::build(&tf, default).unwrap();
+        let held = size_of_val(table.colour())
+            + size_of_val(table.rho_hat())
+            + size_of_val(table.emission())
+            + size_of_val(table.maximum());
+        assert_eq!(default.check_budget(), Ok(2 * held as u64));
     }
 }

@@ -29,6 +29,8 @@ use std::path::{Path, PathBuf};
 use glam::DVec3;
 use thiserror::Error;
 
+use crate::budget::{BudgetError, check_allocation};
+
 /// One control point of a piecewise-linear transfer function.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
@@ -108,6 +110,15 @@ pub enum TransferError {
         path: PathBuf,
         /// What `image` reported.
         source: image::ImageError,
+    },
+    /// A PNG strip's control points would exceed the memory budget; its
+    /// pixels were not decoded.
+    #[error("transfer-function strip {}: {source}", path.display())]
+    OverBudget {
+        /// The file that failed.
+        path: PathBuf,
+        /// What was to be built, its bytes and the budget.
+        source: BudgetError,
     },
     /// A PNG strip is not exactly one pixel high.
     #[error(
@@ -314,7 +325,9 @@ impl TransferFunction {
     /// # Errors
     ///
     /// [`TransferError::Image`] when the file cannot be read or decoded,
-    /// [`TransferError::StripHeight`] when it is not 1 pixel high, and
+    /// [`TransferError::StripHeight`] when it is not 1 pixel high,
+    /// [`TransferError::OverBudget`] when its control points exceed the
+    /// memory budget (36 bytes per pixel), checked from the header, and
     /// [`TransferError::InvalidDensityScale`] for a negative or non-finite
     /// `max_density`. The file errors name the file.
     pub fn from_png_strip(path: impl AsRef<Path>, max_density: f32) -> Result<Self, TransferError> {
@@ -326,13 +339,14 @@ impl TransferFunction {
             path: path.to_path_buf(),
             source,
         };
-        let image = image::ImageReader::open(path)
-            .map_err(|e| image_error(image::ImageError::IoError(e)))?
-            .with_guessed_format()
-            .map_err(|e| image_error(image::ImageError::IoError(e)))?
-            .decode()
-            .map_err(image_error)?;
-        let (width, height) = (image.width(), image.height());
+        let reader = || {
+            image::ImageReader::open(path)
+                .map_err(|e| image_error(image::ImageError::IoError(e)))?
+                .with_guessed_format()
+                .map_err(|e| image_error(image::ImageError::IoError(e)))
+        };
+        // The header first: the height and the memory budget before decoding.
+        let (width, height) = reader()?.into_dimensions().map_err(image_error)?;
         if height != 1 {
             return Err(TransferError::StripHeight {
                 path: path.to_path_buf(),
@@ -340,6 +354,17 @@ impl TransferFunction {
                 height,
             });
         }
+        // The pixels as RGBA f32, then a control point per pixel.
+        check_allocation(
+            || format!("a transfer function of {width} control points"),
+            &[width as usize],
+            (size_of::<[f32; 4]>() + size_of::<ControlPoint>()) as u64,
+        )
+        .map_err(|source| TransferError::OverBudget {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let image = reader()?.decode().map_err(image_error)?;
         let rgba = image.to_rgba32f();
         let last = (width.max(2) - 1) as f32;
         let points: Vec<ControlPoint> = rgba
@@ -635,6 +660,20 @@ mod tests {
         );
         assert!((points[1].kappa[2] - srgb_to_linear(10.0 / 255.0)).abs() < 1e-7);
         assert!((points[1].rho - 2.0 * 128.0 / 255.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn a_png_strip_beyond_the_memory_budget_is_refused_from_its_header() {
+        let path = temp_png("wide");
+        crate::test_support::write_png_header(&path, 200_000_000, 1);
+        let error = TransferFunction::from_png_strip(&path, 1.0).unwrap_err();
+        std::fs::remove_file(&path).unwrap();
+        assert!(matches!(error, TransferError::OverBudget { .. }));
+        let message = error.to_string();
+        assert!(
+            message.contains("wide.png: a transfer function of 200000000 control points needs 7,200,000,000 bytes"),
+            "{message}"
+        );
     }
 
     #[test]

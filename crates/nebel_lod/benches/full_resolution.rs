@@ -99,7 +99,7 @@ fn bench_grid(c: &mut Criterion, noise: &ProceduralNoise, points: usize) {
 }
 
 fn mpvo(c: &mut Criterion) {
-    let cone = search_light_cells(8.0, 0.3, [16, 4, 32]);
+    let cone = search_light_cells(8.0, 0.3, [16, 4, 32]).expect("the cone fits the memory budget");
     let cone_eyes = [
         ("eye_outside", DVec3::new(6.0, 3.0, 2.0)),
         ("eye_inside", DVec3::new(0.3, -0.2, -5.0)),

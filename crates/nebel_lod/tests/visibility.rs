@@ -165,7 +165,7 @@ fn adjacency_matches_brute_force() {
     );
     let meshes = [
         grid.tetrahedra(),
-        search_light_cells(CONE_LENGTH, CONE_HALF_ANGLE, [6, 3, 4]),
+        search_light_cells(CONE_LENGTH, CONE_HALF_ANGLE, [6, 3, 4]).unwrap(),
     ];
     for cells in meshes {
         let adjacency = CellAdjacency::new(&cells);
@@ -247,7 +247,7 @@ fn view(eye: DVec3) -> View {
 
 #[test]
 fn non_finite_eyes_keep_the_input_order_and_sorted_batch_refuses_them() {
-    let cells = search_light_cells(CONE_LENGTH, CONE_HALF_ANGLE, [8, 2, 4]);
+    let cells = search_light_cells(CONE_LENGTH, CONE_HALF_ANGLE, [8, 2, 4]).unwrap();
     let adjacency = CellAdjacency::new(&cells);
     let identity: Vec<usize> = (0..cells.len()).collect();
     for eye in [
@@ -290,14 +290,14 @@ fn non_finite_eyes_keep_the_input_order_and_sorted_batch_refuses_them() {
 #[test]
 #[should_panic(expected = "built for")]
 fn back_to_front_refuses_another_mesh() {
-    let cells = search_light_cells(CONE_LENGTH, CONE_HALF_ANGLE, [4, 1, 2]);
+    let cells = search_light_cells(CONE_LENGTH, CONE_HALF_ANGLE, [4, 1, 2]).unwrap();
     let adjacency = CellAdjacency::new(&cells);
     adjacency.back_to_front(&cells[1..], DVec3::ONE);
 }
 
 #[test]
 fn sorted_batch_is_the_reordered_mesh() {
-    let cells = search_light_cells(CONE_LENGTH, CONE_HALF_ANGLE, [8, 2, 4]);
+    let cells = search_light_cells(CONE_LENGTH, CONE_HALF_ANGLE, [8, 2, 4]).unwrap();
     let adjacency = CellAdjacency::new(&cells);
     let eye = DVec3::new(3.0, -1.0, 2.0);
     let order = adjacency.back_to_front(&cells, eye);
@@ -362,7 +362,7 @@ fn full_size_meshes_are_ordered_along_rays() {
             })
             .collect()
     };
-    let cone = search_light_cells(CONE_LENGTH, CONE_HALF_ANGLE, [16, 4, 32]);
+    let cone = search_light_cells(CONE_LENGTH, CONE_HALF_ANGLE, [16, 4, 32]).unwrap();
     let cone_targets = targets(&|f| cone_point(f, 0.99));
     let cone_eyes = [
         DVec3::new(3.0, 2.0, 1.5),
@@ -464,7 +464,7 @@ proptest! {
             CONE_LENGTH,
             CONE_HALF_ANGLE,
             [segments.0, segments.1, segments.2],
-        );
+        ).unwrap();
         let cells = match shuffle {
             Some(seed) => shuffled(&cells, seed),
             None => cells,

@@ -17,6 +17,7 @@ use std::fmt;
 use std::path::{Path, PathBuf};
 
 use image::{ImageFormat, RgbImage};
+use nebel_core::budget::{BudgetError, Dims, check_allocation};
 
 /// A linear-light image: `width × height` premultiplied RGBA pixels in f32,
 /// row-major, top row first. Colour channels are linear (not sRGB) and already
@@ -31,8 +32,25 @@ pub struct LinearImage {
     pub pixels: Vec<[f32; 4]>,
 }
 
+/// Bytes per pixel of a [`LinearImage`] (RGBA f32).
+const PIXEL_BYTES: u64 = size_of::<[f32; 4]>() as u64;
+
 impl LinearImage {
-    /// A fully transparent black image.
+    /// The bytes of the pixels of a `width × height` image (16 per pixel),
+    /// checked against the memory budget without allocating them: what the
+    /// reference renderer checks before it allocates its image. Errors name
+    /// a `linear image of width × height pixels`.
+    pub fn check_budget(width: u32, height: u32) -> Result<u64, BudgetError> {
+        let dims = [width as usize, height as usize];
+        check_allocation(
+            || format!("linear image of {} pixels", Dims(&dims)),
+            &dims,
+            PIXEL_BYTES,
+        )
+    }
+
+    /// A fully transparent black image; for a size from input, check
+    /// [`LinearImage::check_budget`] first.
     pub fn transparent(width: u32, height: u32) -> Self {
         Self {
             width,
@@ -106,6 +124,15 @@ pub enum ImageMetricsError {
         /// The decoder's error.
         source: image::ImageError,
     },
+    /// The decoded image would exceed the memory budget; its pixels were not
+    /// decoded.
+    #[error("{}: {source}", path.display())]
+    OverBudget {
+        /// The file.
+        path: PathBuf,
+        /// What was to be built, its bytes and the budget.
+        source: BudgetError,
+    },
     /// The PNG could not be written.
     #[error("cannot write {}: {source}", path.display())]
     Encode {
@@ -172,12 +199,34 @@ pub fn linear_to_srgb(linear: f64) -> f64 {
 }
 
 /// Loads an 8- or 16-bit PNG of any channel layout as linear RGB with
-/// premultiplied alpha (opaque when the file has no alpha).
+/// premultiplied alpha (opaque when the file has no alpha). The image and its
+/// 16-bit RGBA copy (24 bytes per pixel together) are checked against the
+/// memory budget from the file's header, before it is decoded
+/// ([`ImageMetricsError::OverBudget`]).
 pub fn load_png_linear(path: impl AsRef<Path>) -> Result<LinearImage, ImageMetricsError> {
+    let path = path.as_ref();
     let image = nebel_core::field::read_png(
-        path.as_ref(),
+        path,
         |path, source| ImageMetricsError::Io { path, source },
         |path, source| ImageMetricsError::Decode { path, source },
+        |width, height| {
+            let dims = [width as usize, height as usize];
+            check_allocation(
+                || {
+                    format!(
+                        "linear image of {} pixels with its 16-bit copy",
+                        Dims(&dims)
+                    )
+                },
+                &dims,
+                PIXEL_BYTES + size_of::<[u16; 4]>() as u64,
+            )
+            .map(drop)
+            .map_err(|source| ImageMetricsError::OverBudget {
+                path: path.to_owned(),
+                source,
+            })
+        },
     )?;
     let (width, height) = (image.width(), image.height());
     // 8-bit values widen exactly (v · 257), so one path serves both depths.
@@ -463,6 +512,57 @@ mod tests {
         assert!(
             message.contains("cannot write") && message.contains("out.png"),
             "{message}"
+        );
+    }
+
+    /// A PNG whose header declares `width × height` 8-bit grayscale pixels
+    /// and no pixel data: its size can be read, its pixels not decoded.
+    fn png_header(path: &Path, width: u32, height: u32) {
+        fn crc32(bytes: &[u8]) -> u32 {
+            let mut crc = !0u32;
+            for &byte in bytes {
+                crc ^= u32::from(byte);
+                for _ in 0..8 {
+                    crc = (crc >> 1) ^ (0xedb8_8320 & (crc & 1).wrapping_neg());
+                }
+            }
+            !crc
+        }
+        let mut png = vec![0x89, b'P', b'N', b'G', 0x0d, 0x0a, 0x1a, 0x0a];
+        let mut chunk = |kind: &[u8; 4], data: &[u8]| {
+            png.extend_from_slice(&(data.len() as u32).to_be_bytes());
+            let start = png.len();
+            png.extend_from_slice(kind);
+            png.extend_from_slice(data);
+            let crc = crc32(&png[start..]);
+            png.extend_from_slice(&crc.to_be_bytes());
+        };
+        let header = [width.to_be_bytes(), height.to_be_bytes()].concat();
+        chunk(b"IHDR", &[header.as_slice(), &[8, 0, 0, 0, 0]].concat());
+        chunk(b"IDAT", &[]);
+        chunk(b"IEND", &[]);
+        std::fs::write(path, png).unwrap();
+    }
+
+    #[test]
+    fn a_png_beyond_the_memory_budget_is_refused_from_its_header() {
+        let path = temp_path("huge.png");
+        png_header(&path, 20_000, 10_000);
+        let error = load_png_linear(&path).unwrap_err();
+        assert!(
+            matches!(error, ImageMetricsError::OverBudget { .. }),
+            "{error}"
+        );
+        let message = error.to_string();
+        assert!(
+            message.contains(
+                "huge.png: linear image of 20000 × 10000 pixels with its 16-bit copy needs 4,800,000,000 bytes"
+            ),
+            "{message}"
+        );
+        assert_eq!(
+            LinearImage::check_budget(16_384, 16_384),
+            Ok(16_384 * 16_384 * 16)
         );
     }
 }

@@ -45,6 +45,7 @@ use std::sync::atomic::{AtomicU32, Ordering};
 use glam::{DMat3, DQuat, DVec3, DVec4};
 
 use crate::image_metrics::LinearImage;
+use nebel_core::budget::BudgetError;
 use nebel_core::cell::{CellSegment, PreparedTetrahedron, Ray, Tetrahedron};
 use nebel_core::field::DensityGrid;
 use nebel_core::optics::{OpticalMode, PremultipliedRgba};
@@ -417,10 +418,17 @@ pub enum ReferenceError {
         /// The value found.
         value: f64,
     },
+    /// The image (or another buffer of the camera's size) would exceed the
+    /// memory budget; nothing was allocated.
+    #[error(transparent)]
+    OverBudget(#[from] BudgetError),
 }
 
 /// Renders `scene` (see the module docs). `progress`, when given, is called
-/// from the worker threads after every finished row.
+/// from the worker threads after every finished row. Errors: a
+/// [`ReferenceError`] for an invalid scene, [`ReferenceError::OverBudget`]
+/// when the image exceeds the memory budget
+/// ([`LinearImage::check_budget`]), before anything is allocated.
 pub fn render(
     scene: &ReferenceScene,
     progress: Option<&(dyn Fn(RenderProgress) + Sync)>,
@@ -428,6 +436,7 @@ pub fn render(
     scene.validate()?;
     let camera = &scene.camera;
     let (width, height) = (camera.width, camera.height);
+    LinearImage::check_budget(width, height)?;
     let integrator = match &scene.volume {
         ReferenceVolume::Cells(cells) => {
             let modulators = match &scene.modulation {
@@ -1287,5 +1296,27 @@ mod tests {
         )
         .unwrap();
         assert!(image.pixels.iter().all(|p| *p == [0.0; 4]));
+    }
+
+    #[test]
+    fn an_image_beyond_the_memory_budget_is_refused_before_allocating() {
+        let scene = ReferenceScene::new(
+            ReferenceCamera {
+                width: 100_000,
+                height: 100_000,
+                ..camera()
+            },
+            ReferenceVolume::Grid(grid(2, |_| 0.5)),
+            constant_tf(),
+            OpticalMode::Sorted,
+        );
+        let error = render(&scene, None).unwrap_err();
+        assert!(matches!(error, ReferenceError::OverBudget(_)), "{error}");
+        assert!(
+            error.to_string().starts_with(
+                "linear image of 100000 × 100000 pixels needs 160,000,000,000 bytes (149 GiB)"
+            ),
+            "{error}"
+        );
     }
 }

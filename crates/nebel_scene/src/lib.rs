@@ -72,7 +72,9 @@ use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+use nebel_core::budget::{BudgetError, Dims, check_allocation, check_bytes};
 use nebel_reference::ReferenceCamera;
+use nebel_reference::image_metrics::LinearImage;
 
 /// The schema version this build reads and writes.
 pub const SCENE_VERSION: u32 = 1;
@@ -367,7 +369,16 @@ pub enum SceneError {
         /// What is wrong.
         reason: String,
     },
-    /// The file parsed but a value is out of range.
+    /// The file is larger than the memory budget; it was not read.
+    #[error("{}: {source}", path.display())]
+    OverBudget {
+        /// The scene file.
+        path: PathBuf,
+        /// The file's size and the budget.
+        source: BudgetError,
+    },
+    /// The file parsed but a value is out of range, or what it describes
+    /// would exceed the memory budget.
     #[error("{}: field {field}: {reason}", path.display())]
     Invalid {
         /// The scene file.
@@ -380,13 +391,22 @@ pub enum SceneError {
 }
 
 impl SceneDescription {
-    /// Reads, parses and validates a scene file.
+    /// Reads, parses and validates a scene file. A file larger than the
+    /// memory budget is refused before it is read.
     pub fn load(path: impl AsRef<Path>) -> Result<Self, SceneError> {
         let path = path.as_ref();
-        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Read {
+        let read_error = |source| SceneError::Read {
             path: path.to_owned(),
             source,
+        };
+        let length = std::fs::metadata(path).map_err(read_error)?.len();
+        check_bytes(|| String::from("the scene file"), u128::from(length)).map_err(|source| {
+            SceneError::OverBudget {
+                path: path.to_owned(),
+                source,
+            }
         })?;
+        let text = std::fs::read_to_string(path).map_err(read_error)?;
         Self::from_ron(&text, path)
     }
 
@@ -490,7 +510,10 @@ impl SceneDescription {
         index as f32 / self.output.frame_rate
     }
 
-    /// Checks every value against its documented range.
+    /// Checks every value against its documented range, and that what the
+    /// scene describes fits the memory budget (`nebel_core::budget`): every
+    /// volume's structures, the terrain's, the reference image and its
+    /// opaque depth.
     pub fn validate(&self) -> Result<(), InvalidField> {
         if self.version != SCENE_VERSION {
             return Err(InvalidField::new(
@@ -506,6 +529,8 @@ impl SceneDescription {
         in_range("output.height", output.height as f32, 1.0, 8192.0)?;
         in_range("output.frames", output.frames as f32, 1.0, 1.0e6)?;
         positive("output.frame_rate", output.frame_rate)?;
+        check_output_budget(output.width, output.height)
+            .map_err(|error| InvalidField::new("output", error.to_string()))?;
         let camera = &self.camera;
         if !(camera.fov_degrees > 0.0 && camera.fov_degrees < 180.0) {
             return Err(InvalidField::new(
@@ -688,6 +713,25 @@ impl InvalidField {
             reason: reason.into(),
         }
     }
+}
+
+/// Checks the reference image of `width × height` pixels and its opaque
+/// depth against the memory budget.
+fn check_output_budget(width: u32, height: u32) -> Result<(), BudgetError> {
+    LinearImage::check_budget(width, height)?;
+    check_opaque_depth_budget(width, height)
+}
+
+/// Checks the opaque depth of a `width × height` reference camera (one f32
+/// per pixel) against the memory budget.
+fn check_opaque_depth_budget(width: u32, height: u32) -> Result<(), BudgetError> {
+    let dims = [width as usize, height as usize];
+    check_allocation(
+        || format!("opaque depth of {} pixels", Dims(&dims)),
+        &dims,
+        size_of::<f32>() as u64,
+    )
+    .map(drop)
 }
 
 fn finite(field: &str, values: &[f32]) -> Result<(), InvalidField> {
@@ -1110,6 +1154,111 @@ mod tests {
             error
                 .to_string()
                 .starts_with("does/not/exist.ron: cannot read scene file")
+        );
+    }
+
+    #[test]
+    fn a_volume_beyond_the_memory_budget_is_refused_when_loaded() {
+        let text = MINIMAL.replace(
+            "version: 1,",
+            "version: 1, volumes: [(source: Procedural((dims: (4097, 4097, 4097))))],",
+        );
+        let error = parse(&text).expect_err("a 256 GiB volume must be refused");
+        let SceneError::Invalid { field, reason, .. } = &error else {
+            panic!("expected an invalid field, got {error}");
+        };
+        assert_eq!(field, "volumes[0].source.Procedural.dims");
+        assert_eq!(
+            reason,
+            "density grid of 4097 × 4097 × 4097 points needs 275,079,282,692 bytes (256.2 GiB), \
+             more than the memory budget of 4,294,967,296 bytes (4 GiB)"
+        );
+        assert!(
+            error
+                .to_string()
+                .starts_with("scenes/test.ron: field volumes[0].source.Procedural.dims: "),
+            "{error}"
+        );
+    }
+
+    #[test]
+    fn every_sized_volume_source_is_checked_against_the_memory_budget() {
+        let cases: &[(&str, &str, &str)] = &[
+            (
+                "(source: Uniform((value: 1.0, dims: (2049, 2049, 2049))))",
+                "volumes[0].source.Uniform.dims",
+                "density grid of 2049 × 2049 × 2049 points needs 34,410,094,596 bytes",
+            ),
+            // The grid fits; its batch at full resolution does not.
+            (
+                "(source: Ramp((axis: X, from: 0.0, to: 1.0, dims: (300, 300, 300))))",
+                "volumes[0].source.Ramp.dims",
+                "full-resolution batch of 299 × 299 × 299 voxels (5 tetrahedra each) needs 8,553,887,680 bytes",
+            ),
+            // Drawn through the octree instead, the grid padded to 1025³ does not.
+            (
+                "(source: Cloud((dims: (600, 600, 600))), lod: (accuracy: 16.0))",
+                "volumes[0].source.Cloud.dims",
+                "padded to 2^n+1 points per axis for the octree, the density grid of 1025 × 1025 × 1025 points needs 4,307,562,500 bytes",
+            ),
+            (
+                "(source: Procedural((dims: (600, 600, 600))), lighting: (ambient: 0.3))",
+                "volumes[0].source.Procedural.dims",
+                "padded to 2^n+1 points per axis for the octree, the density grid of 1025 × 1025 × 1025 points",
+            ),
+            (
+                "(source: Campfire((dims: (257, 257, 257))))",
+                "volumes[0].source.Campfire.dims",
+                "full-resolution batch of 256 × 256 × 256 voxels (5 tetrahedra each) needs 5,368,709,120 bytes",
+            ),
+            (
+                "(source: SearchLight((position: (0.0, 0.0, 0.0), direction: (0.0, -1.0, 0.0), length: 5.0, half_angle_degrees: 20.0, segments: (256, 256, 256))))",
+                "volumes[0].source.SearchLight.segments",
+                "search-light cone of 256 × 256 × 256 segments (5 tetrahedra each) needs 10,737,418,240 bytes",
+            ),
+        ];
+        for (volume, expected_field, expected_reason) in cases {
+            let text = MINIMAL.replace("version: 1,", &format!("version: 1, volumes: [{volume}],"));
+            match parse(&text) {
+                Err(SceneError::Invalid { field, reason, .. }) => {
+                    assert_eq!(&field, expected_field, "{volume}");
+                    assert!(reason.starts_with(expected_reason), "{reason}");
+                    assert!(
+                        reason.contains("memory budget of 4,294,967,296 bytes"),
+                        "{reason}"
+                    );
+                }
+                other => panic!("{volume}: expected a budget error, got {other:?}"),
+            }
+        }
+        // Within the budget: the same sources at sizes that fit.
+        for volume in [
+            "(source: Ramp((axis: X, from: 0.0, to: 1.0, dims: (200, 200, 200))))",
+            "(source: Cloud((dims: (513, 65, 513))), lod: (accuracy: 16.0), lighting: (ambient: 0.3))",
+            "(source: Campfire((dims: (129, 129, 129))))",
+        ] {
+            let text = MINIMAL.replace("version: 1,", &format!("version: 1, volumes: [{volume}],"));
+            parse(&text).unwrap_or_else(|error| panic!("{volume}: {error}"));
+        }
+    }
+
+    #[test]
+    fn a_scene_file_beyond_the_memory_budget_is_not_read() {
+        let path =
+            std::env::temp_dir().join(format!("nebel-scene-huge-{}.ron", std::process::id()));
+        // Sparse: 5 GiB long, no data written.
+        std::fs::File::create(&path)
+            .unwrap()
+            .set_len(5 << 30)
+            .unwrap();
+        let error = SceneDescription::load(&path).unwrap_err();
+        std::fs::remove_file(&path).unwrap();
+        assert!(matches!(error, SceneError::OverBudget { .. }), "{error}");
+        assert!(
+            error.to_string().contains(
+                "the scene file needs 5,368,709,120 bytes (5 GiB), more than the memory budget"
+            ),
+            "{error}"
         );
     }
 }

@@ -20,15 +20,18 @@
 
 use glam::{DVec2, DVec3};
 
-use super::{MeshDescription, SceneDescription};
+use super::{MeshDescription, SceneDescription, check_opaque_depth_budget};
+use nebel_core::budget::BudgetError;
 use nebel_core::cell::Ray;
 use nebel_core::field::HeightField;
 use nebel_reference::ReferenceCamera;
 
 impl SceneDescription {
     /// View-space depth of the nearest mesh per pixel of `camera`, row-major,
-    /// top row first; `+∞` where no mesh is hit. `None` without meshes.
-    pub fn opaque_depth(&self, camera: &ReferenceCamera) -> Option<Vec<f32>> {
+    /// top row first; `+∞` where no mesh is hit. `None` without meshes. A
+    /// [`BudgetError`] when the depths (4 bytes per pixel) exceed the memory
+    /// budget, before they are allocated.
+    pub fn opaque_depth(&self, camera: &ReferenceCamera) -> Result<Option<Vec<f32>>, BudgetError> {
         self.opaque_depth_with_terrain(camera, None)
     }
 
@@ -39,10 +42,11 @@ impl SceneDescription {
         &self,
         camera: &ReferenceCamera,
         terrain: Option<&HeightField>,
-    ) -> Option<Vec<f32>> {
+    ) -> Result<Option<Vec<f32>>, BudgetError> {
         if self.meshes.is_empty() && terrain.is_none() {
-            return None;
+            return Ok(None);
         }
+        check_opaque_depth_budget(camera.width, camera.height)?;
         let terrain = terrain.map(TerrainSurface::new);
         let mut depth = Vec::with_capacity(camera.width as usize * camera.height as usize);
         for y in 0..camera.height {
@@ -57,7 +61,7 @@ impl SceneDescription {
                 depth.push((nearest * depth_to_distance) as f32);
             }
         }
-        Some(depth)
+        Ok(Some(depth))
     }
 }
 

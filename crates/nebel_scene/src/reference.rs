@@ -38,6 +38,10 @@ use nebel_reference::{
 /// the clear colour, or over black where the pixel's ray ends on a mesh. This
 /// is exact when the volumes do not interpenetrate along a ray, and for
 /// emissive and MIP volumes always.
+///
+/// Errors: [`ReferenceError::OverBudget`] when the image or the opaque depth
+/// exceeds the memory budget, before it is allocated, and the errors of
+/// [`nebel_reference::render`].
 pub fn reference_image(
     scene: &SceneDescription,
     volumes: Vec<BuiltVolume>,
@@ -56,7 +60,8 @@ pub fn reference_image_with_terrain(
     progress: bool,
 ) -> Result<LinearImage, ReferenceError> {
     let camera = scene.reference_camera();
-    let opaque_depth = scene.opaque_depth_with_terrain(&camera, terrain);
+    LinearImage::check_budget(camera.width, camera.height)?;
+    let opaque_depth = scene.opaque_depth_with_terrain(&camera, terrain)?;
     let mut layers = Vec::with_capacity(volumes.len());
     let last_frame = f64::from(scene.frame_time(scene.output.frames.saturating_sub(1)));
     for volume in volumes {

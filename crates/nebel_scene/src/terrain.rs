@@ -28,7 +28,9 @@
 //! height field whose sides are not `2^k + 1` points (or not square) is
 //! padded by the terrain plugin at its high x and z ends, replicating the
 //! edge (`nebel_lod::quadtree::pad_to_power_of_two_plus_one`); the centre is
-//! the centre of the field as given. Validation checks the settings; building
+//! the centre of the field as given. Validation checks the settings (and that
+//! the procedural heights, padded heights and quadtree fit the memory
+//! budget of `nebel_core::budget`); building
 //! ([`TerrainDescription::unit_heights`]) generates or loads the heights and
 //! reports a missing or unreadable PNG naming `terrain.source.Png.path`.
 
@@ -38,7 +40,8 @@ use glam::DVec2;
 use serde::{Deserialize, Serialize};
 
 use super::InvalidField;
-use nebel_core::field::{HeightField, NoiseKind, TerrainNoise};
+use nebel_core::field::{HeightField, NoiseKind, TerrainNoise, power_of_two_plus_one};
+use nebel_lod::TerrainHierarchy;
 use nebel_lod::quadtree::MAX_TERRAIN_SIDE;
 
 /// A scene's terrain.
@@ -270,6 +273,14 @@ impl TerrainDescription {
                         ),
                     ));
                 }
+                // The heights, the square they are padded to, the quadtree.
+                let side = power_of_two_plus_one(procedural.dims).max(3);
+                HeightField::check_budget([procedural.dims; 2])
+                    .and_then(|_| HeightField::check_budget([side; 2]))
+                    .and_then(|_| TerrainHierarchy::check_budget(side))
+                    .map_err(|error| {
+                        InvalidField::new(format!("{field}.dims"), error.to_string())
+                    })?;
                 if !(1..=32).contains(&procedural.octaves) {
                     return Err(InvalidField::new(
                         format!("{field}.octaves"),

@@ -37,6 +37,14 @@
 //! and ignores the box. A transfer-function strip path is relative to the scene
 //! file. Building a volume ([`VolumeDescription::build`]) generates or loads its
 //! data; a scene file's validation checks only what is cheap.
+//!
+//! That includes the memory budget (`nebel_core::budget`): validation refuses,
+//! naming the field that sizes it, a volume any of whose structures would
+//! exceed it: the density grid of `dims`; for a volume drawn through the
+//! octree (with `lod` or `lighting`) the grid padded to `2^n + 1` points per
+//! axis (and its light field, of the same size) and the octree over it; for
+//! one drawn at full resolution the batch of five tetrahedra per voxel; a
+//! search light's cells; a `Cells` list.
 
 use std::path::Path;
 
@@ -44,14 +52,18 @@ use glam::{DQuat, DVec3};
 use serde::{Deserialize, Serialize};
 
 use super::InvalidField;
+use nebel_core::budget::{BudgetError, Dims, check_allocation};
 use nebel_core::cell::Tetrahedron;
 use nebel_core::field::effects::{
     CAMPFIRE_DIMS, CAMPFIRE_MAX, CAMPFIRE_MIN, SEARCH_LIGHT_SEGMENTS, campfire_density,
-    search_light_cells,
+    check_search_light_budget, search_light_cells,
 };
-use nebel_core::field::{CloudNoise, DensityGrid, FieldError, NoiseKind, ProceduralNoise};
+use nebel_core::field::{
+    CloudNoise, DensityGrid, FieldError, NoiseKind, ProceduralNoise, power_of_two_plus_one,
+};
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{ControlPoint, TransferFunction, TransferPreset};
+use nebel_lod::{GpuCell, VolumeHierarchy};
 
 /// One volume of a scene.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -253,7 +265,9 @@ pub struct CampfireSource {
     /// Noise seed. Default 0.
     #[serde(default)]
     pub seed: u32,
-    /// Grid points per axis, each in [2, 257]. Default `(17, 17, 17)` (16³ cells).
+    /// Grid points per axis, each in [2, 257] (at full resolution 238³ at
+    /// most fits the memory budget, see the module docs). Default
+    /// `(17, 17, 17)` (16³ cells).
     #[serde(default = "default_campfire_dims")]
     pub dims: [usize; 3],
 }
@@ -484,22 +498,32 @@ impl AnimatedCampfire {
     }
 }
 
-/// The cone of `light` in world space: apex at its position, opening along its direction.
-fn search_light(light: &SearchLightSource) -> Vec<Tetrahedron> {
+/// The cone of `light` in world space: apex at its position, opening along
+/// its direction. Errors name the segments when the cells exceed the memory
+/// budget.
+fn search_light(light: &SearchLightSource) -> Result<Vec<Tetrahedron>, InvalidField> {
     let direction = DVec3::from(light.direction.map(f64::from)).normalize();
     let rotation = DQuat::from_rotation_arc(DVec3::NEG_Z, direction);
     let position = DVec3::from(light.position.map(f64::from));
-    search_light_cells(
+    let cells = search_light_cells(
         f64::from(light.length),
         f64::from(light.half_angle_degrees).to_radians(),
         light.segments,
     )
-    .into_iter()
-    .map(|cell| Tetrahedron {
-        positions: cell.positions.map(|p| position + rotation * p),
-        scalars: cell.scalars,
-    })
-    .collect()
+    .map_err(over_budget("source.SearchLight.segments"))?;
+    Ok(cells
+        .into_iter()
+        .map(|cell| Tetrahedron {
+            positions: cell.positions.map(|p| position + rotation * p),
+            scalars: cell.scalars,
+        })
+        .collect())
+}
+
+/// Turns a [`BudgetError`] into an [`InvalidField`] naming `field`, the
+/// field that sizes what was to be built.
+fn over_budget(field: &str) -> impl FnOnce(BudgetError) -> InvalidField + '_ {
+    move |error| InvalidField::new(field, error.to_string())
 }
 
 fn source_error(error: FieldError) -> InvalidField {
@@ -532,7 +556,7 @@ impl VolumeDescription {
                 min: self.min_corner(),
                 max: self.max_corner(),
             }),
-            VolumeSource::SearchLight(light) => VolumeField::Cells(search_light(light)),
+            VolumeSource::SearchLight(light) => VolumeField::Cells(search_light(light)?),
             VolumeSource::Cloud(cloud) => {
                 let animated = AnimatedCloud {
                     noise: cloud.noise(),
@@ -593,6 +617,7 @@ impl VolumeDescription {
     }
 
     fn uniform_grid(&self, uniform: &UniformSource) -> Result<DensityGrid, InvalidField> {
+        DensityGrid::check_budget(uniform.dims).map_err(over_budget("source.Uniform.dims"))?;
         let count = uniform.dims.iter().product();
         DensityGrid::new(
             uniform.dims,
@@ -604,6 +629,7 @@ impl VolumeDescription {
     }
 
     fn ramp_grid(&self, ramp: &RampSource) -> Result<DensityGrid, InvalidField> {
+        DensityGrid::check_budget(ramp.dims).map_err(over_budget("source.Ramp.dims"))?;
         let [nx, ny, nz] = ramp.dims;
         let axis = ramp.axis as usize;
         let mut values = Vec::with_capacity(nx * ny * nz);
@@ -849,7 +875,61 @@ impl VolumeDescription {
                 }
                 Ok(())
             }
+        }?;
+        self.check_budget()
+    }
+
+    /// Checks that every structure built for the volume fits the memory
+    /// budget (see the module docs); errors name the field that sizes it.
+    fn check_budget(&self) -> Result<(), InvalidField> {
+        let (field, dims) = match &self.source {
+            VolumeSource::Uniform(uniform) => ("source.Uniform.dims", uniform.dims),
+            VolumeSource::Ramp(ramp) => ("source.Ramp.dims", ramp.dims),
+            VolumeSource::Procedural(procedural) => ("source.Procedural.dims", procedural.dims),
+            VolumeSource::Cloud(cloud) => ("source.Cloud.dims", cloud.dims),
+            VolumeSource::Campfire(campfire) => ("source.Campfire.dims", campfire.dims),
+            VolumeSource::SearchLight(light) => {
+                return check_search_light_budget(light.segments)
+                    .map(drop)
+                    .map_err(over_budget("source.SearchLight.segments"));
+            }
+            VolumeSource::Cells(cells) => {
+                return check_allocation(
+                    || format!("cell list of {} tetrahedra", cells.len()),
+                    &[cells.len()],
+                    size_of::<Tetrahedron>() as u64,
+                )
+                .map(drop)
+                .map_err(over_budget("source.Cells"));
+            }
+        };
+        DensityGrid::check_budget(dims).map_err(over_budget(field))?;
+        if self.lod.is_some() || self.lighting.is_some() {
+            // The octree's grid, its light field and the octree itself.
+            let padded = dims.map(power_of_two_plus_one);
+            let padded_error = |error: BudgetError| {
+                InvalidField::new(
+                    field,
+                    format!("padded to 2^n+1 points per axis for the octree, the {error}"),
+                )
+            };
+            DensityGrid::check_budget(padded).map_err(padded_error)?;
+            VolumeHierarchy::check_budget(padded, self.lighting.is_some()).map_err(padded_error)?;
+        } else {
+            let voxels = dims.map(|n| n - 1);
+            check_allocation(
+                || {
+                    format!(
+                        "full-resolution batch of {} voxels (5 tetrahedra each)",
+                        Dims(&voxels)
+                    )
+                },
+                &[5, voxels[0], voxels[1], voxels[2]],
+                size_of::<GpuCell>() as u64,
+            )
+            .map_err(over_budget(field))?;
         }
+        Ok(())
     }
 }
 
@@ -1122,6 +1202,61 @@ mod tests {
         assert_eq!(error.field, "transfer");
         assert!(
             error.reason.contains("scenes/ramps/none.png"),
+            "{}",
+            error.reason
+        );
+    }
+
+    #[test]
+    fn building_checks_the_memory_budget_too() {
+        for (source, field) in [
+            (
+                VolumeSource::Uniform(UniformSource {
+                    value: 0.5,
+                    dims: [4097; 3],
+                }),
+                "source.Uniform.dims",
+            ),
+            (
+                VolumeSource::Ramp(RampSource {
+                    axis: Axis::X,
+                    from: 0.0,
+                    to: 1.0,
+                    dims: [4097; 3],
+                }),
+                "source.Ramp.dims",
+            ),
+            (
+                VolumeSource::SearchLight(SearchLightSource {
+                    position: [0.0; 3],
+                    direction: [0.0, 0.0, -1.0],
+                    length: 1.0,
+                    half_angle_degrees: 10.0,
+                    segments: [256; 3],
+                }),
+                "source.SearchLight.segments",
+            ),
+        ] {
+            let error = volume(source).build(Path::new(".")).unwrap_err();
+            assert_eq!(error.field, field);
+            assert!(error.reason.contains("memory budget"), "{}", error.reason);
+        }
+        let error = volume(VolumeSource::Procedural(ProceduralSource {
+            dims: [4097; 3],
+            kind: NoiseKind::Fbm,
+            seed: 0,
+            octaves: 1,
+            frequency: 1.0,
+            coverage: 1.0,
+            ellipsoid: false,
+        }))
+        .build(Path::new("."))
+        .unwrap_err();
+        assert_eq!(error.field, "source");
+        assert!(
+            error.reason.contains(
+                "DensityGrid::procedural: density grid of 4097 × 4097 × 4097 points needs"
+            ),
             "{}",
             error.reason
         );

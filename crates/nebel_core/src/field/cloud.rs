@@ -65,7 +65,10 @@ use std::num::NonZeroUsize;
 use glam::DVec3;
 use noise::{NoiseFn, Perlin};
 
-use super::{DensityGrid, FieldError, NOISE_OFFSET, check_dims, check_origin, check_spacing};
+use super::{
+    DENSITY_GRID, DensityGrid, FieldError, NOISE_OFFSET, SAMPLE_BYTES, budgeted_points,
+    check_origin, check_spacing,
+};
 
 /// Standard deviation of 3D `noise::Perlin` output (measured, see the module
 /// documentation).
@@ -310,7 +313,8 @@ impl DensityGrid {
     ///
     /// [`FieldError::InvalidParameter`] naming the offending setting (or
     /// `spacing`, `origin`, `time`), [`FieldError::TooSmall`] for an axis with
-    /// fewer than 2 points.
+    /// fewer than 2 points, [`FieldError::OverBudget`] when the grid (4 bytes
+    /// per point) exceeds the memory budget, before anything is allocated.
     pub fn cloud(
         dims: [usize; 3],
         spacing: DVec3,
@@ -337,8 +341,7 @@ impl DensityGrid {
         threads: usize,
     ) -> Result<Self, FieldError> {
         let name = "DensityGrid::cloud";
-        let len = dims.iter().try_fold(1usize, |acc, &n| acc.checked_mul(n));
-        check_dims(name, &dims, len.unwrap_or(0))?;
+        let points = budgeted_points(name, DENSITY_GRID, &dims, SAMPLE_BYTES)?;
         check_spacing(name, &spacing.to_array())?;
         check_origin(name, &origin.to_array())?;
         let octaves = noise.octaves(name, time)?;
@@ -346,7 +349,7 @@ impl DensityGrid {
         let layers: Vec<Layer> = (0..ny)
             .map(|j| Layer::new(noise, j as f64 / (ny - 1) as f64))
             .collect();
-        let mut values = vec![0.0f32; nx * ny * nz];
+        let mut values = vec![0.0f32; points];
         let fill = |first_slice: usize, chunk: &mut [f32]| {
             for (dk, slice) in chunk.chunks_mut(nx * ny).enumerate() {
                 let z = origin.z + (first_slice + dk) as f64 * spacing.z;
@@ -705,5 +708,23 @@ mod tests {
             0.0,
         ));
         assert_mentions(&message, &["at least 2 samples"]);
+    }
+
+    #[test]
+    fn clouds_beyond_the_memory_budget_are_refused_before_allocating() {
+        let message = error_message(DensityGrid::cloud(
+            [4097, 4097, 4097],
+            DVec3::ONE,
+            DVec3::ZERO,
+            &small(),
+            0.0,
+        ));
+        assert_mentions(
+            &message,
+            &[
+                "DensityGrid::cloud: density grid of 4097 × 4097 × 4097 points",
+                "needs 275,079,282,692 bytes",
+            ],
+        );
     }
 }

@@ -2,9 +2,13 @@
 
 use glam::DVec3;
 
+use crate::budget::BudgetError;
 use crate::cell::{Hexahedron, HexahedronParity, Tetrahedron};
 
-use super::{FieldError, axis_weight, check_dims, check_finite, check_origin, check_spacing};
+use super::{
+    DENSITY_GRID, FieldError, SAMPLE_BYTES, axis_weight, check_dims, check_finite, check_origin,
+    check_points, check_spacing,
+};
 
 /// Density samples in [0, 1] at the points of a regular 3D grid, trilinear
 /// between them.
@@ -32,6 +36,15 @@ impl DensityGrid {
         values: Vec<f32>,
     ) -> Result<Self, FieldError> {
         Self::validated("DensityGrid::new", dims, spacing, origin, values)
+    }
+
+    /// The bytes of the samples of a grid of `dims` points (4 per point),
+    /// checked against the memory budget: the check every constructor that
+    /// builds a grid makes before it allocates, here without building one
+    /// (e.g. to validate a description). Errors name a `density grid of
+    /// nx × ny × nz points`.
+    pub fn check_budget(dims: [usize; 3]) -> Result<u64, BudgetError> {
+        check_points(DENSITY_GRID, &dims, SAMPLE_BYTES)
     }
 
     /// [`DensityGrid::new`] with `name` (a file path or source) in its errors.

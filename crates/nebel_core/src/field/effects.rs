@@ -46,7 +46,8 @@
 use glam::DVec3;
 use noise::{Fbm, MultiFractal, NoiseFn, Perlin};
 
-use super::{DensityGrid, NOISE_OFFSET};
+use super::{DensityGrid, NOISE_OFFSET, SAMPLE_BYTES};
+use crate::budget::{BudgetError, Dims, MEMORY_BUDGET_BYTES, check_allocation};
 use crate::cell::{Hexahedron, HexahedronParity, Tetrahedron};
 
 /// Minimum corner of the campfire's box, world units.
@@ -57,6 +58,10 @@ pub const CAMPFIRE_MAX: DVec3 = DVec3::new(0.5, 1.5, 0.5);
 pub const CAMPFIRE_DIMS: [usize; 3] = [17, 17, 17];
 /// Largest campfire grid edge, points; larger requests are clamped.
 pub const CAMPFIRE_MAX_DIM: usize = 257;
+
+// The largest campfire grid (68 MB) lies far within the memory budget, so
+// [`campfire_density`] needs no budget check.
+const _: () = assert!((CAMPFIRE_MAX_DIM as u64).pow(3) * SAMPLE_BYTES <= MEMORY_BUDGET_BYTES);
 
 /// Default search-light segments `[around, radial, along]` (paper 001,
 /// Table 10.4).
@@ -151,17 +156,22 @@ fn flame(h: f64, r: f64, n: f64) -> f32 {
 /// non-positive length or half angle gives no cells. The cells tile the
 /// polygonal cone (an `around`-gon pyramid) exactly; they come in no
 /// particular visibility order (the emissive and MIP modes need none).
+///
+/// # Errors
+///
+/// A [`BudgetError`] when the cells of these segments exceed the memory
+/// budget ([`check_search_light_budget`]), before they are allocated.
 pub fn search_light_cells(
     length: f64,
     half_angle_radians: f64,
     segments: [usize; 3],
-) -> Vec<Tetrahedron> {
+) -> Result<Vec<Tetrahedron>, BudgetError> {
+    check_search_light_budget(segments)?;
     if !(length.is_finite() && length > 0.0 && half_angle_radians > 0.0) {
-        return Vec::new();
+        return Ok(Vec::new());
     }
     let radius = length * half_angle_radians.min(SEARCH_LIGHT_MAX_HALF_ANGLE).tan();
-    let [around, radial, along] = segments.map(|n| n.clamp(1, SEARCH_LIGHT_MAX_SEGMENTS));
-    let around = around.max(4).next_multiple_of(2);
+    let [around, radial, along] = search_light_segments(segments);
     let attenuation_distance = length / 3.0;
 
     // Vertex (a, r, t): slice a along the beam, ring r, sector boundary t.
@@ -204,7 +214,33 @@ pub fn search_light_cells(
             }
         }
     }
-    cells
+    Ok(cells)
+}
+
+/// The bytes of the cells [`search_light_cells`] builds for `segments` (five
+/// tetrahedra per segment of the clamped `[around, radial, along]`, 128 bytes
+/// each), checked against the memory budget without building them. Errors
+/// name a `search-light cone of around × radial × along segments`.
+pub fn check_search_light_budget(segments: [usize; 3]) -> Result<u64, BudgetError> {
+    let segments = search_light_segments(segments);
+    check_allocation(
+        || {
+            format!(
+                "search-light cone of {} segments (5 tetrahedra each)",
+                Dims(&segments)
+            )
+        },
+        &[5, segments[0], segments[1], segments[2]],
+        size_of::<Tetrahedron>() as u64,
+    )
+}
+
+/// `[around, radial, along]` as [`search_light_cells`] uses them: clamped to
+/// 1..=[`SEARCH_LIGHT_MAX_SEGMENTS`], `around` rounded up to an even number
+/// ≥ 4.
+fn search_light_segments(segments: [usize; 3]) -> [usize; 3] {
+    let [around, radial, along] = segments.map(|n| n.clamp(1, SEARCH_LIGHT_MAX_SEGMENTS));
+    [around.max(4).next_multiple_of(2), radial, along]
 }
 
 #[cfg(test)]
@@ -274,7 +310,7 @@ mod tests {
     fn search_light_fills_the_polygonal_cone_with_bounded_intensity() {
         for (segments, around) in [(SEARCH_LIGHT_SEGMENTS, 16), ([3, 1, 1], 4), ([7, 2, 5], 8)] {
             let (length, half_angle) = (10.0, 0.3);
-            let cells = search_light_cells(length, half_angle, segments);
+            let cells = search_light_cells(length, half_angle, segments).unwrap();
             let volume: f64 = cells.iter().map(Tetrahedron::volume).sum();
             let exact = polygonal_cone_volume(length, half_angle, around);
             assert!(
@@ -290,7 +326,7 @@ mod tests {
                 assert!(cell.positions.iter().all(|p| p.z <= 0.0 && p.z >= -length));
             }
         }
-        let cells = search_light_cells(10.0, 0.3, SEARCH_LIGHT_SEGMENTS);
+        let cells = search_light_cells(10.0, 0.3, SEARCH_LIGHT_SEGMENTS).unwrap();
         // Apex 1, axis at the far end 0.1, surface 0.
         let scalar_at = |target: DVec3| {
             cells
@@ -308,7 +344,7 @@ mod tests {
     #[test]
     fn search_light_cells_conform() {
         let (length, half_angle) = (4.0, 0.4);
-        let cells = search_light_cells(length, half_angle, [6, 3, 5]);
+        let cells = search_light_cells(length, half_angle, [6, 3, 5]).unwrap();
         // Every triangle shared by at most two cells; the triangles used once
         // make up exactly the cone's surface, so no face is split differently
         // by its two cells (a mismatch would add inner boundary area).
@@ -362,11 +398,37 @@ mod tests {
             (1.0, f64::NAN),
             (f64::INFINITY, 0.2),
         ] {
-            assert!(search_light_cells(length, angle, SEARCH_LIGHT_SEGMENTS).is_empty());
+            assert!(
+                search_light_cells(length, angle, SEARCH_LIGHT_SEGMENTS)
+                    .unwrap()
+                    .is_empty()
+            );
         }
-        let wide = search_light_cells(1.0, 10.0, [0, 0, 0]);
+        let wide = search_light_cells(1.0, 10.0, [0, 0, 0]).unwrap();
         let volume: f64 = wide.iter().map(Tetrahedron::volume).sum();
         let exact = polygonal_cone_volume(1.0, SEARCH_LIGHT_MAX_HALF_ANGLE, 4);
         assert!((volume - exact).abs() < 1e-9 * exact);
+    }
+
+    #[test]
+    fn search_light_cells_are_checked_against_the_memory_budget() {
+        let message = search_light_cells(10.0, 0.3, [256; 3])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.starts_with(
+                "search-light cone of 256 × 256 × 256 segments (5 tetrahedra each) needs 10,737,418,240 bytes (10 GiB)"
+            ),
+            "{message}"
+        );
+        // The figure is what the cells take, for the clamped segments.
+        let cells = search_light_cells(10.0, 0.3, [7, 2, 5]).unwrap();
+        let bytes = check_search_light_budget([7, 2, 5]).unwrap();
+        assert_eq!(bytes, 5 * 8 * 2 * 5 * size_of::<Tetrahedron>() as u64);
+        assert!(cells.len() * size_of::<Tetrahedron>() <= bytes as usize);
+        assert_eq!(
+            check_search_light_budget([usize::MAX; 3]),
+            check_search_light_budget([SEARCH_LIGHT_MAX_SEGMENTS; 3])
+        );
     }
 }

@@ -2,7 +2,12 @@
 
 use glam::DVec2;
 
-use super::{FieldError, axis_weight, check_dims, check_finite, check_origin, check_spacing};
+use crate::budget::BudgetError;
+
+use super::{
+    FieldError, HEIGHT_FIELD, SAMPLE_BYTES, axis_weight, check_dims, check_finite, check_origin,
+    check_points, check_spacing,
+};
 
 /// Heights (world units, any finite value) at the points of a regular grid over
 /// the horizontal x–z plane, bilinear between them. Terrain and fog thickness
@@ -31,6 +36,15 @@ impl HeightField {
         heights: Vec<f32>,
     ) -> Result<Self, FieldError> {
         Self::validated("HeightField::new", dims, spacing, origin, heights)
+    }
+
+    /// The bytes of the heights of a field of `dims` points (4 per point),
+    /// checked against the memory budget: the check the generators, loaders
+    /// and resamplers of height fields make before they allocate
+    /// ([`HeightField::value_noise`] adds its f64 sums), here without
+    /// building one. Errors name a `height field of nx × nz points`.
+    pub fn check_budget(dims: [usize; 2]) -> Result<u64, BudgetError> {
+        check_points(HEIGHT_FIELD, &dims, SAMPLE_BYTES)
     }
 
     /// [`HeightField::new`] with `name` (a file path or source) in its errors.
@@ -71,6 +85,11 @@ impl HeightField {
     /// All heights, x fastest.
     pub fn heights(&self) -> &[f32] {
         &self.heights
+    }
+
+    /// The heights, x fastest, without copying them.
+    pub(super) fn into_heights(self) -> Vec<f32> {
+        self.heights
     }
 
     /// Height at point `(i, j)`. Panics when an index is out of range, like

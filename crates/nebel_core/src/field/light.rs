@@ -58,7 +58,7 @@ use std::num::NonZeroUsize;
 
 use glam::DVec3;
 
-use super::{DensityGrid, FieldError};
+use super::{DensityGrid, FieldError, SAMPLE_BYTES, check_points};
 
 /// Density change per voxel at which the Lambert weight `w` is one half.
 const GRADIENT_SOFTNESS: f64 = 0.05;
@@ -145,7 +145,9 @@ impl CloudLighting {
 /// # Errors
 ///
 /// [`FieldError::InvalidParameter`] naming `ambient`, `diffuse`,
-/// `sun_direction` or `shadow_extinction`.
+/// `sun_direction` or `shadow_extinction`; [`FieldError::OverBudget`] when
+/// the light field (4 bytes per point, like the grid) exceeds the memory
+/// budget, before it is allocated.
 pub fn light_field(
     grid: &DensityGrid,
     lighting: &CloudLighting,
@@ -167,6 +169,8 @@ pub fn light_field_with_threads(
 ) -> Result<DensityGrid, FieldError> {
     let name = "light_field";
     let sun = lighting.unit_sun(name)?;
+    check_points("light field", &grid.dims(), SAMPLE_BYTES)
+        .map_err(FieldError::over_budget(name))?;
     let ambient = f64::from(lighting.ambient);
     let diffuse = f64::from(lighting.diffuse);
     let sigma = f64::from(lighting.shadow_extinction);

@@ -12,13 +12,25 @@
 //!   top view, like a height field.
 //! - Raw files hold samples without header, x fastest, little-endian
 //!   ([`RawSampleType`]).
+//!
+//! Sizes are checked against the memory budget before anything sized by the
+//! file is allocated ([`FieldError::OverBudget`]): a raw file's dimensions
+//! and length before it is read, a PNG's width and height from its header
+//! before it is decoded (the decoder itself stays within the `image` crate's
+//! default limit of 512 MiB of decoded pixels), a stack of slices as the
+//! whole grid before the first slice is decoded.
 
+use std::fs::File;
+use std::io::{BufReader, Read};
 use std::path::{Path, PathBuf};
 
 use glam::{DVec2, DVec3};
-use image::DynamicImage;
+use image::{DynamicImage, ImageFormat, ImageReader};
 
-use super::{DensityGrid, FieldError, HeightField};
+use super::{
+    DENSITY_GRID, DensityGrid, FieldError, HEIGHT_FIELD, HeightField, SAMPLE_BYTES, budgeted_points,
+};
+use crate::budget::{Dims, check_allocation};
 
 /// The sample type of a raw little-endian file.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -99,37 +111,59 @@ pub struct TileLayout {
     pub slices: u32,
 }
 
-/// A decoded grayscale PNG with values in [0, 1], row-major, top row first.
-/// Reads the file at `path` and decodes it as PNG; `read_error` and
+/// Reads the PNG at `path`: its header first, whose width and height go to
+/// `check_size` (a memory-budget check; nothing is decoded when it fails),
+/// then the whole file, decoded as it is read. `read_error` and
 /// `decode_error` turn the file's path and the cause into the caller's error.
 pub fn read_png<E>(
     path: &Path,
-    read_error: impl FnOnce(PathBuf, std::io::Error) -> E,
-    decode_error: impl FnOnce(PathBuf, image::ImageError) -> E,
+    read_error: impl Fn(PathBuf, std::io::Error) -> E,
+    decode_error: impl Fn(PathBuf, image::ImageError) -> E,
+    check_size: impl FnOnce(u32, u32) -> Result<(), E>,
 ) -> Result<DynamicImage, E> {
-    let bytes = std::fs::read(path).map_err(|source| read_error(path.to_owned(), source))?;
-    image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
+    let reader = || {
+        let file = File::open(path).map_err(|source| read_error(path.to_owned(), source))?;
+        Ok(ImageReader::with_format(
+            BufReader::new(file),
+            ImageFormat::Png,
+        ))
+    };
+    let (width, height) = reader()?
+        .into_dimensions()
+        .map_err(|source| decode_error(path.to_owned(), source))?;
+    check_size(width, height)?;
+    reader()?
+        .decode()
         .map_err(|source| decode_error(path.to_owned(), source))
 }
 
+/// A decoded grayscale PNG with values in [0, 1], row-major, top row first.
 struct GrayImage {
     width: u32,
     height: u32,
     values: Vec<f32>,
 }
 
-fn read_file(path: &Path) -> Result<Vec<u8>, FieldError> {
-    std::fs::read(path).map_err(|source| FieldError::Io {
-        path: path.to_owned(),
-        source,
-    })
+impl GrayImage {
+    /// The values of image row `y`.
+    fn row(&self, y: usize) -> &[f32] {
+        let width = self.width as usize;
+        &self.values[y * width..(y + 1) * width]
+    }
 }
 
-fn read_grayscale_png(path: &Path) -> Result<GrayImage, FieldError> {
+/// Reads a grayscale PNG; `check_size` sees its width and height before it
+/// is decoded and must cover the budget of its f32 values (4 bytes per
+/// pixel).
+fn read_grayscale_png(
+    path: &Path,
+    check_size: impl FnOnce(u32, u32) -> Result<(), FieldError>,
+) -> Result<GrayImage, FieldError> {
     let image = read_png(
         path,
         |path, source| FieldError::Io { path, source },
         |path, source| FieldError::Decode { path, source },
+        check_size,
     )?;
     let (width, height) = (image.width(), image.height());
     let values = match image {
@@ -157,24 +191,42 @@ fn read_grayscale_png(path: &Path) -> Result<GrayImage, FieldError> {
     })
 }
 
-/// Reads a raw file of `dims` samples, checking its length first.
+/// Reads a raw file of `dims` samples for a `kind` (e.g. `density grid`):
+/// checks the f32 values against the memory budget, then the file's length,
+/// before reading it.
 fn read_raw(
     path: &Path,
+    kind: &str,
     dims: &[usize],
     sample_type: RawSampleType,
 ) -> Result<Vec<f32>, FieldError> {
-    let bytes = read_file(path)?;
+    let name = path.display().to_string();
+    budgeted_points(&name, kind, dims, SAMPLE_BYTES)?;
+    let io = |source| FieldError::Io {
+        path: path.to_owned(),
+        source,
+    };
+    let file = File::open(path).map_err(io)?;
+    let length = file.metadata().map_err(io)?.len();
     let expected = dims
         .iter()
         .fold(sample_type.bytes() as u128, |acc, &n| acc * n as u128);
-    if expected != bytes.len() as u128 {
-        return Err(FieldError::RawSizeMismatch {
-            path: path.to_owned(),
-            dims: dims.to_vec(),
-            sample_type,
-            expected,
-            actual: bytes.len() as u64,
-        });
+    let size_mismatch = |actual| FieldError::RawSizeMismatch {
+        path: path.to_owned(),
+        dims: dims.to_vec(),
+        sample_type,
+        expected,
+        actual,
+    };
+    if u128::from(length) != expected {
+        return Err(size_mismatch(length));
+    }
+    // The length is at most 4 bytes per sample, within the budget checked.
+    let mut bytes = Vec::with_capacity(length as usize);
+    file.take(length).read_to_end(&mut bytes).map_err(io)?;
+    if bytes.len() as u64 != length {
+        // The file shrank while it was read.
+        return Err(size_mismatch(bytes.len() as u64));
     }
     Ok(sample_type.decode(&bytes))
 }
@@ -191,7 +243,15 @@ impl HeightField {
         vertical_scale: f64,
     ) -> Result<Self, FieldError> {
         let path = path.as_ref();
-        let image = read_grayscale_png(path)?;
+        let image = read_grayscale_png(path, |width, height| {
+            budgeted_points(
+                &path.display().to_string(),
+                HEIGHT_FIELD,
+                &[width as usize, height as usize],
+                SAMPLE_BYTES,
+            )
+            .map(drop)
+        })?;
         let dims = [image.width as usize, image.height as usize];
         Self::from_file_values(path, dims, image.values, vertical_scale, spacing, origin)
     }
@@ -208,7 +268,7 @@ impl HeightField {
         origin: DVec2,
     ) -> Result<Self, FieldError> {
         let path = path.as_ref();
-        let values = read_raw(path, &dims, sample_type)?;
+        let values = read_raw(path, HEIGHT_FIELD, &dims, sample_type)?;
         Self::from_file_values(path, dims, values, vertical_scale, spacing, origin)
     }
 
@@ -248,32 +308,34 @@ impl DensityGrid {
             return Err(FieldError::TooFewSlices { count: paths.len() });
         }
         let first_path = first_path.as_ref();
-        let first = read_grayscale_png(first_path)?;
+        let name = first_path.display().to_string();
+        let count = paths.len();
+        // The whole grid is checked from the first slice's header.
+        let first = read_grayscale_png(first_path, |width, height| {
+            let dims = [width as usize, count, height as usize];
+            budgeted_points(&name, DENSITY_GRID, &dims, SAMPLE_BYTES).map(drop)
+        })?;
         let (width, height) = (first.width, first.height);
-        let mut slices = vec![first.values];
-        for path in &paths[1..] {
+        let dims = [width as usize, count, height as usize];
+        let mut values = vec![0.0; dims.iter().product()];
+        place_slice(&mut values, dims, 0, |z| first.row(z));
+        for (index, path) in paths.iter().enumerate().skip(1) {
             let path = path.as_ref();
-            let slice = read_grayscale_png(path)?;
-            if (slice.width, slice.height) != (width, height) {
-                return Err(FieldError::SliceSizeMismatch {
-                    path: path.to_owned(),
-                    found: (slice.width, slice.height),
-                    first: first_path.to_owned(),
-                    expected: (width, height),
-                });
-            }
-            slices.push(slice.values);
+            let slice = read_grayscale_png(path, |found_width, found_height| {
+                if (found_width, found_height) == (width, height) {
+                    Ok(())
+                } else {
+                    Err(FieldError::SliceSizeMismatch {
+                        path: path.to_owned(),
+                        found: (found_width, found_height),
+                        first: first_path.to_owned(),
+                        expected: (width, height),
+                    })
+                }
+            })?;
+            place_slice(&mut values, dims, index, |z| slice.row(z));
         }
-        let tiles = slices.iter().map(|s| s.as_slice());
-        let values = stack_slices(width as usize, height as usize, tiles);
-        let dims = [width as usize, paths.len(), height as usize];
-        Self::validated(
-            &first_path.display().to_string(),
-            dims,
-            spacing,
-            origin,
-            values,
-        )
+        Self::validated(&name, dims, spacing, origin, values)
     }
 
     /// Loads a density volume from one 8- or 16-bit grayscale PNG holding its
@@ -285,7 +347,18 @@ impl DensityGrid {
         origin: DVec3,
     ) -> Result<Self, FieldError> {
         let path = path.as_ref();
-        let image = read_grayscale_png(path)?;
+        let name = path.display().to_string();
+        // The grid holds at most the image's pixels, so this covers it too.
+        let image = read_grayscale_png(path, |width, height| {
+            let dims = [width as usize, height as usize];
+            check_allocation(
+                || format!("image of {} pixels as f32 samples", Dims(&dims)),
+                &dims,
+                SAMPLE_BYTES,
+            )
+            .map(drop)
+            .map_err(FieldError::over_budget(&name))
+        })?;
         let TileLayout {
             columns,
             rows,
@@ -312,19 +385,16 @@ impl DensityGrid {
             (image.height / rows) as usize,
         );
         let image_width = image.width as usize;
-        let mut tiles = Vec::with_capacity(slices as usize);
+        let dims = [tile_width, slices as usize, tile_height];
+        let mut values = vec![0.0; dims.iter().product()];
         for slice in 0..slices {
             let (column, row) = ((slice % columns) as usize, (slice / columns) as usize);
-            let mut tile = Vec::with_capacity(tile_width * tile_height);
-            for y in 0..tile_height {
-                let start = (row * tile_height + y) * image_width + column * tile_width;
-                tile.extend_from_slice(&image.values[start..start + tile_width]);
-            }
-            tiles.push(tile);
+            place_slice(&mut values, dims, slice as usize, |z| {
+                let start = (row * tile_height + z) * image_width + column * tile_width;
+                &image.values[start..start + tile_width]
+            });
         }
-        let values = stack_slices(tile_width, tile_height, tiles.iter().map(|t| t.as_slice()));
-        let dims = [tile_width, slices as usize, tile_height];
-        Self::validated(&path.display().to_string(), dims, spacing, origin, values)
+        Self::validated(&name, dims, spacing, origin, values)
     }
 
     /// Loads a raw little-endian density volume of `dims = [nx, ny, nz]` samples,
@@ -340,33 +410,32 @@ impl DensityGrid {
     ) -> Result<Self, FieldError> {
         let path = path.as_ref();
         let name = path.display().to_string();
-        let mut values = read_raw(path, &dims, sample_type)?;
+        let mut values = read_raw(path, DENSITY_GRID, &dims, sample_type)?;
         normalization.apply(&name, &mut values)?;
         Self::validated(&name, dims, spacing, origin, values)
     }
 }
 
-/// Interleaves horizontal slices (each `width × depth`, row = z) into the grid
-/// order x fastest, then y (slice), then z (row).
-fn stack_slices<'a>(
-    width: usize,
-    depth: usize,
-    slices: impl ExactSizeIterator<Item = &'a [f32]> + Clone,
-) -> Vec<f32> {
-    let count = slices.len();
-    let mut values = Vec::with_capacity(width * depth * count);
-    for row in 0..depth {
-        for slice in slices.clone() {
-            values.extend_from_slice(&slice[row * width..(row + 1) * width]);
-        }
+/// Writes horizontal slice `slice` (grid index y) into the `values` of a
+/// grid of `dims = [width, slices, depth]` points in the grid order (x
+/// fastest, then y, then z): `row(z)` gives the slice's `width` values of
+/// row z.
+fn place_slice<'a>(
+    values: &mut [f32],
+    dims: [usize; 3],
+    slice: usize,
+    row: impl Fn(usize) -> &'a [f32],
+) {
+    let [width, slices, _] = dims;
+    for (z, layer) in values.chunks_exact_mut(width * slices).enumerate() {
+        layer[slice * width..(slice + 1) * width].copy_from_slice(row(z));
     }
-    values
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::test_support::{assert_mentions, error_message};
+    use crate::test_support::{assert_mentions, error_message, write_png_header};
     use std::path::PathBuf;
 
     /// A fresh directory for one test's files.
@@ -586,5 +655,99 @@ mod tests {
         )
         .unwrap();
         assert!((height.height(3, 1) - 7.0).abs() < 1e-5);
+    }
+
+    #[test]
+    fn sizes_beyond_the_budget_are_refused_before_anything_is_read() {
+        let dir = temp_dir("budget");
+        // A raw file of 8 bytes declared as 4097³ samples: refused from the
+        // dimensions, before its length or contents are looked at.
+        let tiny = dir.join("tiny.u8");
+        std::fs::write(&tiny, [0u8; 8]).unwrap();
+        let message = error_message(DensityGrid::load_raw(
+            &tiny,
+            [4097; 3],
+            RawSampleType::U8,
+            Normalization::None,
+            DVec3::ONE,
+            DVec3::ZERO,
+        ));
+        assert_mentions(
+            &message,
+            &[
+                "tiny.u8",
+                "density grid of 4097 × 4097 × 4097 points needs 275,079,282,692 bytes",
+                "memory budget of 4,294,967,296 bytes",
+            ],
+        );
+        let message = error_message(HeightField::load_raw(
+            &tiny,
+            [100_000, 100_000],
+            RawSampleType::F32,
+            1.0,
+            DVec2::ONE,
+            DVec2::ZERO,
+        ));
+        assert_mentions(
+            &message,
+            &[
+                "tiny.u8",
+                "height field of 100000 × 100000 points needs 40,000,000,000 bytes",
+            ],
+        );
+
+        // PNG headers declaring huge images: refused before decoding.
+        let huge = dir.join("huge.png");
+        write_png_header(&huge, 70_000, 70_000);
+        let message = error_message(HeightField::load_png(&huge, DVec2::ONE, DVec2::ZERO, 1.0));
+        assert_mentions(
+            &message,
+            &[
+                "huge.png",
+                "height field of 70000 × 70000 points needs 19,600,000,000 bytes",
+            ],
+        );
+        let layout = TileLayout {
+            columns: 2,
+            rows: 2,
+            slices: 4,
+        };
+        let message = error_message(DensityGrid::load_png_tiled(
+            &huge,
+            layout,
+            DVec3::ONE,
+            DVec3::ZERO,
+        ));
+        assert_mentions(
+            &message,
+            &[
+                "huge.png",
+                "image of 70000 × 70000 pixels as f32 samples needs",
+            ],
+        );
+        // Slices of 40000² pixels: each within the budget, three of them not.
+        let slice = dir.join("slice.png");
+        write_png_header(&slice, 40_000, 40_000);
+        let message = error_message(DensityGrid::load_png_slices(
+            &[&slice, &slice, &slice],
+            DVec3::ONE,
+            DVec3::ZERO,
+        ));
+        assert_mentions(
+            &message,
+            &[
+                "slice.png",
+                "density grid of 40000 × 3 × 40000 points needs 19,200,000,000 bytes",
+            ],
+        );
+        // A later slice of another size is refused from its header too.
+        let small = dir.join("small.png");
+        save_gray8(&small, 2, 2, &[0; 4]);
+        let message = error_message(DensityGrid::load_png_slices(
+            &[&small, &slice],
+            DVec3::ONE,
+            DVec3::ZERO,
+        ));
+        assert_mentions(&message, &["slice.png", "(40000, 40000)", "small.png"]);
     }
 }

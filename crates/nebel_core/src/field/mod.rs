@@ -21,7 +21,10 @@
 //! Grid points are stored x fastest: index `i + nx · (j + ny · k)`. Every
 //! constructor validates its input and returns a [`FieldError`] naming the file
 //! (or the in-memory source) on wrong sizes, non-finite values, out-of-range
-//! densities and unreadable files.
+//! densities and unreadable files. Every constructor that allocates samples
+//! checks their size against the memory budget first
+//! ([`crate::budget`], [`FieldError::OverBudget`]; [`DensityGrid::check_budget`]
+//! and [`HeightField::check_budget`] give the same check without building).
 
 mod cloud;
 mod density_grid;
@@ -46,6 +49,8 @@ pub use terrain::TerrainNoise;
 pub use value_noise::ValueNoise;
 
 use std::path::PathBuf;
+
+use crate::budget::{BudgetError, Dims, check_allocation};
 
 /// Why a field could not be built or loaded. `name` is the file path or, for
 /// in-memory data, the constructor that received it.
@@ -178,6 +183,15 @@ pub enum FieldError {
         /// Samples per axis.
         dims: Vec<usize>,
     },
+    /// The samples to be built would exceed the memory budget; nothing was
+    /// allocated.
+    #[error("{name}: {source}")]
+    OverBudget {
+        /// File or source.
+        name: String,
+        /// What was to be built, its bytes and the budget.
+        source: BudgetError,
+    },
     /// A geometric parameter (spacing, origin, vertical scale, noise setting) is
     /// not finite or out of its range.
     #[error("{name}: {parameter} = {value} is invalid: {requirement}")]
@@ -208,6 +222,54 @@ impl FieldError {
             requirement,
         }
     }
+
+    /// Turns a [`BudgetError`] into a [`FieldError::OverBudget`] of the
+    /// source or generator `name`.
+    fn over_budget(name: &str) -> impl FnOnce(BudgetError) -> Self + '_ {
+        move |source| Self::OverBudget {
+            name: name.to_owned(),
+            source,
+        }
+    }
+}
+
+/// Bytes per f32 sample of a grid or field.
+const SAMPLE_BYTES: u64 = size_of::<f32>() as u64;
+
+/// What a budget error calls a [`DensityGrid`].
+const DENSITY_GRID: &str = "density grid";
+
+/// What a budget error calls a [`HeightField`].
+const HEIGHT_FIELD: &str = "height field";
+
+/// The bytes of a field of `dims` points at `bytes_per_point`, checked
+/// against the memory budget; `kind` (e.g. `density grid`) names it.
+fn check_points(kind: &str, dims: &[usize], bytes_per_point: u64) -> Result<u64, BudgetError> {
+    check_allocation(
+        || format!("{kind} of {} points", Dims(dims)),
+        dims,
+        bytes_per_point,
+    )
+}
+
+/// The points of a field of `dims` (each ≥ 2) that `name` builds as `kind`
+/// at `bytes_per_point`, checked against the memory budget before anything
+/// is allocated.
+fn budgeted_points(
+    name: &str,
+    kind: &str,
+    dims: &[usize],
+    bytes_per_point: u64,
+) -> Result<usize, FieldError> {
+    if dims.iter().any(|&n| n < 2) {
+        return Err(FieldError::TooSmall {
+            name: name.to_owned(),
+            dims: dims.to_vec(),
+        });
+    }
+    check_points(kind, dims, bytes_per_point).map_err(FieldError::over_budget(name))?;
+    // Within the budget, so the product fits in usize.
+    Ok(dims.iter().product())
 }
 
 /// Checks that every sample is finite, naming the first offender.

@@ -15,7 +15,9 @@
 use glam::{DVec2, DVec3};
 use noise::{Fbm, MultiFractal, NoiseFn, Perlin, RidgedMulti};
 
-use super::{DensityGrid, FieldError, HeightField};
+use super::{
+    DENSITY_GRID, DensityGrid, FieldError, HEIGHT_FIELD, HeightField, SAMPLE_BYTES, budgeted_points,
+};
 
 /// Shift of every sample position in noise units (first-octave cycles): the
 /// fractional parts of 1/π, the golden ratio and √2, so no grid point meets
@@ -136,6 +138,11 @@ impl Generator {
 impl DensityGrid {
     /// A density grid of `dims` points (geometry as in [`DensityGrid::new`])
     /// filled with 3D `noise` at each point's world position, mapped to [0, 1].
+    ///
+    /// Errors: [`FieldError::InvalidParameter`] naming a noise setting,
+    /// [`FieldError::TooSmall`], [`FieldError::OverBudget`] when the grid (4
+    /// bytes per point) exceeds the memory budget, before anything is
+    /// allocated, and the errors of [`DensityGrid::new`] for the geometry.
     pub fn procedural(
         dims: [usize; 3],
         spacing: DVec3,
@@ -144,9 +151,9 @@ impl DensityGrid {
     ) -> Result<Self, FieldError> {
         let name = "DensityGrid::procedural";
         let generator = noise.generator(name)?;
-        super::check_dims(name, &dims, dims.iter().product())?;
+        let points = budgeted_points(name, DENSITY_GRID, &dims, SAMPLE_BYTES)?;
         let [nx, ny, nz] = dims;
-        let mut values = Vec::with_capacity(nx * ny * nz);
+        let mut values = Vec::with_capacity(points);
         for k in 0..nz {
             for j in 0..ny {
                 for i in 0..nx {
@@ -163,6 +170,9 @@ impl HeightField {
     /// A height field of `dims` points (geometry as in [`HeightField::new`])
     /// with height `vertical_scale · unit noise` (world units), from 2D `noise`
     /// at each point's world (x, z).
+    ///
+    /// Errors: as [`DensityGrid::procedural`], and
+    /// [`FieldError::InvalidParameter`] naming `vertical_scale`.
     pub fn procedural(
         dims: [usize; 2],
         spacing: DVec2,
@@ -172,10 +182,10 @@ impl HeightField {
     ) -> Result<Self, FieldError> {
         let name = "HeightField::procedural";
         let generator = noise.generator(name)?;
-        super::check_dims(name, &dims, dims.iter().product())?;
+        let points = budgeted_points(name, HEIGHT_FIELD, &dims, SAMPLE_BYTES)?;
         super::check_vertical_scale(name, vertical_scale)?;
         let [nx, nz] = dims;
-        let mut heights = Vec::with_capacity(nx * nz);
+        let mut heights = Vec::with_capacity(points);
         for j in 0..nz {
             for i in 0..nx {
                 let p = origin + DVec2::new(i as f64, j as f64) * spacing;
@@ -289,5 +299,54 @@ mod tests {
             1.0,
         ));
         assert_mentions(&message, &["frequency"]);
+    }
+
+    #[test]
+    fn grids_beyond_the_memory_budget_are_refused_before_allocating() {
+        let noise = ProceduralNoise::default();
+        let message = error_message(DensityGrid::procedural(
+            [4097; 3],
+            DVec3::ONE,
+            DVec3::ZERO,
+            &noise,
+        ));
+        assert_mentions(
+            &message,
+            &[
+                "DensityGrid::procedural: density grid of 4097 × 4097 × 4097 points",
+                "needs 275,079,282,692 bytes (256.2 GiB)",
+                "memory budget of 4,294,967,296 bytes (4 GiB)",
+            ],
+        );
+        // A product that overflows usize is refused, not wrapped.
+        let message = error_message(DensityGrid::procedural(
+            [usize::MAX, usize::MAX, 2],
+            DVec3::ONE,
+            DVec3::ZERO,
+            &noise,
+        ));
+        assert_mentions(&message, &["DensityGrid::procedural", "memory budget"]);
+        let message = error_message(HeightField::procedural(
+            [100_000, 100_000],
+            DVec2::ONE,
+            DVec2::ZERO,
+            &noise,
+            1.0,
+        ));
+        assert_mentions(
+            &message,
+            &[
+                "HeightField::procedural: height field of 100000 × 100000 points",
+                "needs 40,000,000,000 bytes",
+            ],
+        );
+        // Too few points stays its own error.
+        let message = error_message(DensityGrid::procedural(
+            [1, 4097, 4097],
+            DVec3::ONE,
+            DVec3::ZERO,
+            &noise,
+        ));
+        assert_mentions(&message, &["at least 2 samples"]);
     }
 }

@@ -18,10 +18,16 @@
 //!   next size, but the field between old samples is smoothed; a field that is
 //!   linear per axis is reproduced exactly, and a grid already of size 2^n+1 is
 //!   returned unchanged.
+//!
+//! Both check the new field (up to twice the points per axis, so up to eight
+//! times a 3D grid's memory) against the memory budget before allocating it
+//! ([`FieldError::OverBudget`]).
 
 use glam::{DVec2, DVec3};
 
-use super::{DensityGrid, FieldError, HeightField};
+use super::{
+    DENSITY_GRID, DensityGrid, FieldError, HEIGHT_FIELD, HeightField, SAMPLE_BYTES, budgeted_points,
+};
 
 /// The smallest `2^k + 1 ≥ n` (2 for `n ≤ 2`): 3 → 3, 4 → 5, 65 → 65, 100 → 129.
 /// Sizes beyond `2^(bits − 1) + 1`, larger than any allocatable grid, return `n`.
@@ -86,11 +92,13 @@ struct Resize<const N: usize> {
 }
 
 impl<const N: usize> Resize<N> {
-    fn of(old: [usize; N]) -> Self {
-        Self {
-            old,
-            new: old.map(power_of_two_plus_one),
-        }
+    /// The sizes of a field of `old` points brought to 2^n+1, checked against
+    /// the memory budget for the new field (`kind`, 4 bytes per point) before
+    /// it is allocated; `name` is for errors.
+    fn of(name: &str, kind: &str, old: [usize; N]) -> Result<Self, FieldError> {
+        let new = old.map(power_of_two_plus_one);
+        budgeted_points(name, kind, &new, SAMPLE_BYTES)?;
+        Ok(Self { old, new })
     }
 
     /// The samples at every new point, x fastest, from `value` at each new
@@ -131,7 +139,7 @@ impl DensityGrid {
     pub fn padded_to_power_of_two_plus_one(&self, fill: PadFill) -> Result<Self, FieldError> {
         let name = "DensityGrid::padded_to_power_of_two_plus_one";
         fill.check(name, Some((0.0, 1.0)))?;
-        let resize = Resize::of(self.dims());
+        let resize = Resize::of(name, DENSITY_GRID, self.dims())?;
         let values =
             resize.values(|index| fill.value(index, resize.old, |[i, j, k]| self.value(i, j, k)));
         Self::validated(name, resize.new, self.spacing(), self.origin(), values)
@@ -140,19 +148,14 @@ impl DensityGrid {
     /// Resamples each axis to 2^n+1 points over the same box by trilinear
     /// interpolation (see the module docs).
     pub fn resampled_to_power_of_two_plus_one(&self) -> Result<Self, FieldError> {
-        let resize = Resize::of(self.dims());
+        let name = "DensityGrid::resampled_to_power_of_two_plus_one";
+        let resize = Resize::of(name, DENSITY_GRID, self.dims())?;
         let values = resize.values(|index| {
             let position = DVec3::from_array(resize.resampled_position(index));
             (self.sample_grid(position) as f32).clamp(0.0, 1.0)
         });
         let spacing = self.spacing() * DVec3::from_array(resize.resampled_spacing_ratio());
-        Self::validated(
-            "DensityGrid::resampled_to_power_of_two_plus_one",
-            resize.new,
-            spacing,
-            self.origin(),
-            values,
-        )
+        Self::validated(name, resize.new, spacing, self.origin(), values)
     }
 }
 
@@ -162,7 +165,7 @@ impl HeightField {
     pub fn padded_to_power_of_two_plus_one(&self, fill: PadFill) -> Result<Self, FieldError> {
         let name = "HeightField::padded_to_power_of_two_plus_one";
         fill.check(name, None)?;
-        let resize = Resize::of(self.dims());
+        let resize = Resize::of(name, HEIGHT_FIELD, self.dims())?;
         let heights =
             resize.values(|index| fill.value(index, resize.old, |[i, j]| self.height(i, j)));
         Self::validated(name, resize.new, self.spacing(), self.origin(), heights)
@@ -171,18 +174,13 @@ impl HeightField {
     /// Resamples each axis to 2^n+1 points over the same extent by bilinear
     /// interpolation (see the module docs).
     pub fn resampled_to_power_of_two_plus_one(&self) -> Result<Self, FieldError> {
-        let resize = Resize::of(self.dims());
+        let name = "HeightField::resampled_to_power_of_two_plus_one";
+        let resize = Resize::of(name, HEIGHT_FIELD, self.dims())?;
         let heights = resize.values(|index| {
             self.sample_grid(DVec2::from_array(resize.resampled_position(index))) as f32
         });
         let spacing = self.spacing() * DVec2::from_array(resize.resampled_spacing_ratio());
-        Self::validated(
-            "HeightField::resampled_to_power_of_two_plus_one",
-            resize.new,
-            spacing,
-            self.origin(),
-            heights,
-        )
+        Self::validated(name, resize.new, spacing, self.origin(), heights)
     }
 }
 
@@ -310,5 +308,57 @@ mod tests {
                 .padded_to_power_of_two_plus_one(PadFill::Value(f32::NAN))
                 .is_err()
         );
+    }
+
+    /// A grid of zeros: calloc'd pages, so even a large one costs no memory
+    /// until written.
+    fn zeros(dims: [usize; 3]) -> DensityGrid {
+        let count = dims.iter().product();
+        DensityGrid::new(dims, DVec3::ONE, DVec3::ZERO, vec![0.0; count]).unwrap()
+    }
+
+    #[test]
+    fn new_sizes_beyond_the_memory_budget_are_refused_before_allocating() {
+        // 514³ points (543 MB) become 1025³ (4.3 GB) either way.
+        let grid = zeros([514; 3]);
+        let message = grid
+            .padded_to_power_of_two_plus_one(PadFill::Value(0.0))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.starts_with(
+                "DensityGrid::padded_to_power_of_two_plus_one: density grid of 1025 × 1025 × 1025 points needs 4,307,562,500 bytes"
+            ),
+            "{message}"
+        );
+        let message = grid
+            .resampled_to_power_of_two_plus_one()
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.starts_with(
+                "DensityGrid::resampled_to_power_of_two_plus_one: density grid of 1025 × 1025 × 1025 points"
+            ),
+            "{message}"
+        );
+        // 16386² heights (1.1 GB) become 32769² (4.3 GB).
+        let side = 16_386;
+        let field =
+            HeightField::new([side; 2], DVec2::ONE, DVec2::ZERO, vec![0.0; side * side]).unwrap();
+        for message in [
+            field
+                .padded_to_power_of_two_plus_one(PadFill::ReplicateEdge)
+                .unwrap_err()
+                .to_string(),
+            field
+                .resampled_to_power_of_two_plus_one()
+                .unwrap_err()
+                .to_string(),
+        ] {
+            assert!(
+                message.contains("height field of 32769 × 32769 points needs 4,295,229,444 bytes"),
+                "{message}"
+            );
+        }
     }
 }

@@ -14,7 +14,10 @@
 
 use glam::DVec2;
 
-use super::{FieldError, HeightField, NoiseKind, ProceduralNoise};
+use super::{
+    FieldError, HEIGHT_FIELD, HeightField, NoiseKind, ProceduralNoise, SAMPLE_BYTES,
+    budgeted_points,
+};
 
 /// Settings of [`HeightField::terrain`]: seeded fractal noise for terrain
 /// heights.
@@ -58,6 +61,11 @@ impl HeightField {
     /// world units apart (finite, > 0), origin (0, 0): [`TerrainNoise`] at
     /// each point, rescaled to [0, 1] and raised to the exponent (see the
     /// module docs). A field whose noise is constant comes out all 0.
+    ///
+    /// Errors: [`FieldError::InvalidParameter`] naming a setting,
+    /// [`FieldError::TooSmall`], and [`FieldError::OverBudget`] when the
+    /// field (4 bytes per point) exceeds the memory budget, before anything
+    /// is allocated.
     pub fn terrain(
         dims: [usize; 2],
         spacing: f64,
@@ -86,6 +94,7 @@ impl HeightField {
             lacunarity: 2.0,
             persistence: noise.persistence,
         };
+        budgeted_points(name, HEIGHT_FIELD, &dims, SAMPLE_BYTES)?;
         let raw = Self::procedural(dims, DVec2::splat(spacing), DVec2::ZERO, &settings, 1.0)?;
         let (low, high) = raw
             .heights()
@@ -94,19 +103,18 @@ impl HeightField {
                 (lo.min(h), hi.max(h))
             });
         let range = high - low;
-        let heights = raw
-            .heights()
-            .iter()
-            .map(|&h| {
-                if range > 0.0 {
-                    let unit = f64::from(((h - low) / range).clamp(0.0, 1.0));
-                    unit.powf(noise.exponent) as f32
-                } else {
-                    0.0
-                }
-            })
-            .collect();
-        Self::validated(name, dims, raw.spacing(), DVec2::ZERO, heights)
+        let spacing = raw.spacing();
+        // Rescaled in place: the noise's heights become the terrain's.
+        let mut heights = raw.into_heights();
+        for h in &mut heights {
+            *h = if range > 0.0 {
+                let unit = f64::from(((*h - low) / range).clamp(0.0, 1.0));
+                unit.powf(noise.exponent) as f32
+            } else {
+                0.0
+            };
+        }
+        Self::validated(name, dims, spacing, DVec2::ZERO, heights)
     }
 }
 
@@ -171,5 +179,18 @@ mod tests {
         });
         assert!(message.contains("octaves"), "{message}");
         assert!(HeightField::terrain([1, 9], 1.0, &TerrainNoise::default()).is_err());
+    }
+
+    #[test]
+    fn terrains_beyond_the_memory_budget_are_refused_before_allocating() {
+        let message = HeightField::terrain([65_537; 2], 1.0, &TerrainNoise::default())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.contains(
+                "HeightField::terrain: height field of 65537 × 65537 points needs 17,180,393,476 bytes"
+            ),
+            "{message}"
+        );
     }
 }

@@ -11,7 +11,7 @@
 
 use glam::DVec2;
 
-use super::{FieldError, HeightField, check_dims, check_vertical_scale};
+use super::{FieldError, HeightField, SAMPLE_BYTES, budgeted_points, check_vertical_scale};
 
 /// Settings of [`HeightField::value_noise`].
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -66,8 +66,10 @@ impl HeightField {
     /// of value-noise fBm (module docs), rescaled to `0..relief` world units.
     ///
     /// Errors: [`FieldError::InvalidParameter`] naming `octaves`,
-    /// `wavelength`, `gain` or `vertical_scale` (the relief, finite), and the
-    /// errors of [`HeightField::new`] for the geometry.
+    /// `wavelength`, `gain` or `vertical_scale` (the relief, finite),
+    /// [`FieldError::OverBudget`] when the f64 sums and f32 heights (12 bytes
+    /// per point) exceed the memory budget, before anything is allocated,
+    /// and the errors of [`HeightField::new`] for the geometry.
     pub fn value_noise(
         dims: [usize; 2],
         spacing: DVec2,
@@ -92,8 +94,13 @@ impl HeightField {
             }
         }
         check_vertical_scale(name, relief)?;
-        let len = dims[0].checked_mul(dims[1]).unwrap_or(0);
-        check_dims(name, &dims, len)?;
+        // The f64 sums and the f32 heights are held together.
+        let len = budgeted_points(
+            name,
+            "value-noise height field",
+            &dims,
+            size_of::<f64>() as u64 + SAMPLE_BYTES,
+        )?;
         let [nx, nz] = dims;
         let mut sums = Vec::with_capacity(len);
         for j in 0..nz {
@@ -210,5 +217,24 @@ mod tests {
             ));
             assert_mentions(&message, &["HeightField::value_noise", parameter]);
         }
+    }
+
+    #[test]
+    fn the_budget_counts_the_sums_with_the_heights() {
+        // 4 · 10⁸ points: 1.6 GB of heights alone, 4.8 GB with the f64 sums.
+        let message = error_message(HeightField::value_noise(
+            [20_000, 20_000],
+            DVec2::ONE,
+            DVec2::ZERO,
+            &ValueNoise::default(),
+            1.0,
+        ));
+        assert_mentions(
+            &message,
+            &[
+                "HeightField::value_noise",
+                "value-noise height field of 20000 × 20000 points needs 4,800,000,000 bytes",
+            ],
+        );
     }
 }

@@ -13,8 +13,11 @@ impl VolumeHierarchy {
     ///
     /// Errors: [`HierarchyError::NotPowerOfTwoPlusOne`] unless every axis has
     /// `2^n + 1` points, [`HierarchyError::InvalidMinAccuracy`] unless `C` is
-    /// finite and > √3. The grid's values are finite and in [0, 1] by
-    /// construction ([`DensityGrid::new`] rejects NaN), so they need no check.
+    /// finite and > √3, [`HierarchyError::OverBudget`] when the hierarchy
+    /// (4 bytes per point, [`VolumeHierarchy::check_budget`]) exceeds the
+    /// memory budget, before anything is allocated. The grid's values are
+    /// finite and in [0, 1] by construction ([`DensityGrid::new`] rejects
+    /// NaN), so they need no check.
     pub fn new(grid: &DensityGrid, min_accuracy: f64) -> Result<Self, HierarchyError> {
         Self::build(grid, None, min_accuracy)
     }
@@ -25,7 +28,8 @@ impl VolumeHierarchy {
     /// maximum deviation of **either** field, so the mesh is refined where the
     /// density or the light varies (§5.1: "driven by the maximum deviation of
     /// both scalar fields"); the scalar ranges stay those of the density (the
-    /// zero-opacity test is on the opacity). Five bytes per grid point.
+    /// zero-opacity test is on the opacity). Five bytes per grid point, checked
+    /// against the memory budget like [`VolumeHierarchy::new`].
     ///
     /// Errors: as [`VolumeHierarchy::new`], and
     /// [`HierarchyError::LightDimsMismatch`] when the two grids differ in
@@ -56,6 +60,7 @@ impl VolumeHierarchy {
         let [Some(ex), Some(ey), Some(ez)] = exponents else {
             return Err(HierarchyError::NotPowerOfTwoPlusOne { dims });
         };
+        Self::check_budget(dims, light.is_some())?;
         let root_level = ex.min(ey).min(ez);
         let points = grid.values().len();
         let mut hierarchy = Self {

@@ -81,6 +81,10 @@
 //! About 6/7 of the grid points are no node's centre; their Δ and e' slots
 //! stay unused, the price of the paper's addressing by centre point.
 //!
+//! Building checks these bytes against the memory budget of
+//! `nebel_core::budget` before anything is allocated
+//! ([`VolumeHierarchy::check_budget`], [`HierarchyError::OverBudget`]).
+//!
 //! # Cost
 //!
 //! One pass over the grid for level 1 (27 reads per level-1 node) and eight
@@ -102,6 +106,7 @@ pub use refine::{
 };
 
 use glam::DVec3;
+use nebel_core::budget::{BudgetError, Dims, check_allocation};
 use nebel_core::field::DensityGrid;
 use thiserror::Error;
 
@@ -134,7 +139,17 @@ pub enum HierarchyError {
         /// The value given.
         value: f64,
     },
+    /// The hierarchy would exceed the memory budget; nothing was allocated.
+    #[error(transparent)]
+    OverBudget(#[from] BudgetError),
 }
+
+/// Bytes a [`VolumeHierarchy`] keeps per grid point without a light field:
+/// the quantised density (u8), the Δ or range word (u16) and e' (u8).
+const BYTES_PER_POINT: u64 = (2 * size_of::<u8>() + size_of::<u16>()) as u64;
+
+/// Bytes per grid point the light field adds (u8).
+const LIGHT_BYTES_PER_POINT: u64 = size_of::<u8>() as u64;
 
 /// The propagation factor `K_max = C / (2C − √3/2)` of paper 000 Eq. 4 for the
 /// minimum accuracy `C` (`min_accuracy`): the largest ratio `d / (2 d_child)`
@@ -183,6 +198,28 @@ pub struct VolumeHierarchy {
 }
 
 impl VolumeHierarchy {
+    /// The bytes the hierarchy of a grid of `dims` points keeps (4 per point,
+    /// 5 `with_light`; see the module docs), checked against the memory
+    /// budget: the check [`VolumeHierarchy::new`] and
+    /// [`VolumeHierarchy::with_light`] make before they allocate, here
+    /// without building one (e.g. for a padded size, to validate a
+    /// description). Errors name a `volume octree of nx × ny × nz points`.
+    pub fn check_budget(dims: [usize; 3], with_light: bool) -> Result<u64, BudgetError> {
+        let (bytes_per_point, light) = if with_light {
+            (
+                BYTES_PER_POINT + LIGHT_BYTES_PER_POINT,
+                " with a light field",
+            )
+        } else {
+            (BYTES_PER_POINT, "")
+        };
+        check_allocation(
+            || format!("volume octree of {} points{light}", Dims(&dims)),
+            &dims,
+            bytes_per_point,
+        )
+    }
+
     /// Points per axis.
     pub fn dims(&self) -> [usize; 3] {
         self.dims

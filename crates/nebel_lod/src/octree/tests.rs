@@ -85,6 +85,49 @@ fn local_deviation(hierarchy: &VolumeHierarchy, node: Node) -> f64 {
 }
 
 #[test]
+fn the_budget_figure_is_what_a_hierarchy_keeps() {
+    let density = grid([9, 5, 17], |[i, j, k]| ((i + j + k) % 3) as f32 / 2.0);
+    let points = (9 * 5 * 17) as f64;
+    let plain = VolumeHierarchy::new(&density, C).unwrap();
+    let lit = VolumeHierarchy::with_light(&density, &density, C).unwrap();
+    for (hierarchy, with_light) in [(plain, false), (lit, true)] {
+        let bytes = VolumeHierarchy::check_budget(hierarchy.dims(), with_light).unwrap();
+        assert_eq!(bytes as f64, hierarchy.bytes_per_point() * points);
+    }
+    let message = VolumeHierarchy::check_budget([4097; 3], true)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        message.starts_with(
+            "volume octree of 4097 × 4097 × 4097 points with a light field needs 343,849,103,365 bytes (320.2 GiB), more than the memory budget"
+        ),
+        "{message}"
+    );
+}
+
+#[test]
+fn a_hierarchy_beyond_the_memory_budget_is_refused_before_allocating() {
+    // 1025³ points: 4.3 GB of zeros that were never written (calloc'd pages
+    // cost no memory), more than the budget at 4 bytes per point.
+    let dims = [1025; 3];
+    let zeros = DensityGrid::new(
+        dims,
+        DVec3::ONE,
+        DVec3::ZERO,
+        vec![0.0; dims.iter().product()],
+    )
+    .unwrap();
+    let error = VolumeHierarchy::new(&zeros, C).unwrap_err();
+    assert!(matches!(error, HierarchyError::OverBudget(_)), "{error}");
+    assert!(
+        error
+            .to_string()
+            .starts_with("volume octree of 1025 × 1025 × 1025 points needs 4,307,562,500 bytes"),
+        "{error}"
+    );
+}
+
+#[test]
 fn k_max_matches_equation_4_and_rejects_small_or_invalid_c() {
     let k = k_max(C).unwrap();
     assert!((k - 2.0 / (4.0 - 3f64.sqrt() / 2.0)).abs() < 1e-15);

@@ -2,6 +2,7 @@
 //! per node and a height bound per level) and the padding helper.
 
 use glam::{DVec2, DVec3};
+use nebel_core::budget::{BudgetError, Dims, check_bytes};
 use nebel_core::field::HeightField;
 
 use super::{
@@ -52,7 +53,11 @@ impl TerrainHierarchy {
     /// `k ≥ 1`) for the minimum resolution `min_resolution` (`C`, finite and
     /// at least [`MIN_RESOLUTION_LOWER_BOUND`]; see
     /// [`super::DEFAULT_MIN_RESOLUTION`]). The field is kept; its spacing and
-    /// origin place the mesh.
+    /// origin place the mesh. Errors: [`TerrainError::InvalidParameter`] for
+    /// `C`, [`TerrainError::NotPowerOfTwoPlusOne`], and
+    /// [`TerrainError::OverBudget`] when building would exceed the memory
+    /// budget ([`TerrainHierarchy::check_budget`]), before anything is
+    /// allocated.
     pub fn new(field: HeightField, min_resolution: f32) -> Result<Self, TerrainError> {
         if !(min_resolution.is_finite() && min_resolution >= MIN_RESOLUTION_LOWER_BOUND) {
             return Err(TerrainError::InvalidParameter {
@@ -69,6 +74,7 @@ impl TerrainHierarchy {
                 padded: padded_side(nx.max(nz)),
             });
         }
+        Self::check_budget(nx)?;
         let nodes = level_offset(levels);
         let mut hierarchy = Self {
             size: nx,
@@ -84,6 +90,27 @@ impl TerrainHierarchy {
         let shape = hierarchy.shape();
         propagate(&mut hierarchy.d2, &shape, hierarchy.field.heights(), 1.0);
         Ok(hierarchy)
+    }
+
+    /// The bytes [`TerrainHierarchy::new`] allocates for a field of `side ×
+    /// side` points (`2^k + 1`; another side counts as the next such one)
+    /// besides the heights it keeps: one d2 code per node and, while the
+    /// height bounds are merged, the height ranges of the two finest levels
+    /// (8 bytes per node; see the module docs), checked against the memory
+    /// budget without building anything. Errors name a `terrain quadtree of
+    /// side × side points`.
+    pub fn check_budget(side: usize) -> Result<u64, BudgetError> {
+        // k with 2^(k−1) + 1 < side ≤ 2^k + 1.
+        let levels = usize::BITS - (side.max(3) - 2).leading_zeros();
+        let nodes = |level: u32| 1u128.checked_shl(2 * level).unwrap_or(u128::MAX);
+        let codes = (nodes(levels) - 1) / 3;
+        let finest_two =
+            nodes(levels - 1).saturating_add(if levels >= 2 { nodes(levels - 2) } else { 0 });
+        let ranges = finest_two.saturating_mul(size_of::<[f32; 2]>() as u128);
+        check_bytes(
+            || format!("terrain quadtree of {} points", Dims(&[side, side])),
+            codes.saturating_add(ranges),
+        )
     }
 
     /// [`TerrainHierarchy::new`] from raw heights: `size × size` heights, x
@@ -407,13 +434,16 @@ fn padded_side(n: usize) -> usize {
 /// 3) that holds it, at its high ends (`i ≥ nx` and `j ≥ nz`), replicating the
 /// nearest original height (the terrain continues flat). Spacing, origin and
 /// every original height are kept; a field that already fits is returned as
-/// it is. The mesh then covers the padded square.
+/// it is. The mesh then covers the padded square. Errors:
+/// [`TerrainError::OverBudget`] when the padded heights exceed the memory
+/// budget, before they are allocated.
 pub fn pad_to_power_of_two_plus_one(field: &HeightField) -> Result<HeightField, TerrainError> {
     let [nx, nz] = field.dims();
     let side = padded_side(nx.max(nz));
     if [nx, nz] == [side, side] {
         return Ok(field.clone());
     }
+    HeightField::check_budget([side, side])?;
     let mut heights = Vec::with_capacity(side * side);
     for j in 0..side {
         for i in 0..side {

@@ -152,6 +152,12 @@
 //! refinement state of a neighbour is recomputed from its `d2` when a midpoint
 //! needs it, so there is nothing to clear and nothing stale.
 //!
+//! Building needs, for a while, the height ranges of the two finest levels
+//! (8 bytes per node, about 2.5 bytes per grid point) besides the codes;
+//! [`TerrainHierarchy::check_budget`] checks both against the memory budget
+//! of `nebel_core::budget` before anything is allocated, and
+//! [`pad_to_power_of_two_plus_one`] checks the padded heights.
+//!
 //! # Cost
 //!
 //! Building: one pass per level (nine height reads per node for the local
@@ -175,6 +181,7 @@ pub use hierarchy::{TerrainHierarchy, pad_to_power_of_two_plus_one};
 pub use mesh::{LodSettings, LodStats, TerrainMesh, TriangleOrder};
 
 use glam::DVec3;
+use nebel_core::budget::BudgetError;
 use nebel_core::field::FieldError;
 use thiserror::Error;
 
@@ -269,6 +276,10 @@ pub enum TerrainError {
     /// The height field could not be built (spacing, origin or size invalid).
     #[error(transparent)]
     Field(#[from] FieldError),
+    /// The hierarchy or the padded height field would exceed the memory
+    /// budget; nothing was allocated.
+    #[error(transparent)]
+    OverBudget(#[from] BudgetError),
 }
 
 #[cfg(test)]

@@ -913,3 +913,36 @@ fn the_mesh_is_reused_without_allocating() {
     assert_eq!(mesh.normals.len(), mesh.positions.len());
     assert!(mesh.grid_points.is_empty());
 }
+
+#[test]
+fn terrains_beyond_the_memory_budget_are_refused_before_allocating() {
+    // A 2 × 40000 strip pads to a 65537² square: 17 GB of heights.
+    let strip = HeightField::new([2, 40_000], DVec2::ONE, DVec2::ZERO, vec![0.0; 80_000]).unwrap();
+    let error = pad_to_power_of_two_plus_one(&strip).unwrap_err();
+    assert!(matches!(error, TerrainError::OverBudget(_)), "{error}");
+    assert!(
+        error
+            .to_string()
+            .starts_with("height field of 65537 × 65537 points needs 17,180,393,476 bytes"),
+        "{error}"
+    );
+    let message = TerrainHierarchy::check_budget(65_537)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        message.starts_with("terrain quadtree of 65537 × 65537 points needs 12,169,074,005 bytes"),
+        "{message}"
+    );
+    // The figure: the codes a hierarchy keeps and the ranges of its two
+    // finest levels (256 and 64 nodes for 33², 8 bytes each).
+    let hierarchy =
+        TerrainHierarchy::new(random_field(33, 3, 1.0), DEFAULT_MIN_RESOLUTION).unwrap();
+    assert_eq!(hierarchy.d2.len(), 341);
+    assert_eq!(TerrainHierarchy::check_budget(33), Ok(341 + 8 * (256 + 64)));
+    // Another side counts as the next 2^k + 1.
+    assert_eq!(
+        TerrainHierarchy::check_budget(20),
+        TerrainHierarchy::check_budget(33)
+    );
+    assert!(TerrainHierarchy::check_budget(usize::MAX).is_err());
+}
