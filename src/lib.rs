@@ -26,12 +26,12 @@
 //! use nebel::nebel_core::transfer::{TransferFunction, TransferPreset};
 //! use nebel::prelude::*;
 //!
-//! fn spawn_cloud(mut commands: Commands) {
+//! fn spawn_cloud(mut commands: Commands, mut grids: ResMut<Assets<VolumeGrid>>) {
 //!     let grid = DensityGrid::procedural([33, 17, 33], DVec3::splat(0.25), DVec3::ZERO, &ProceduralNoise::default())
 //!         .expect("valid grid");
 //!     commands.spawn((
 //!         Volume {
-//!             field: VolumeField::Grid(Arc::new(grid)),
+//!             field: VolumeField::Grid(grids.add(VolumeGrid::from(grid))),
 //!             transfer_function: Arc::new(TransferFunction::preset(TransferPreset::Cloud)),
 //!             mode: OpticalMode::Sorted,
 //!         },
@@ -148,6 +148,6 @@ pub mod prelude {
     #[cfg(feature = "volume")]
     pub use nebel_volume::{
         Campfire, CloudLightModel, CloudVolume, FlickeringLight, FlickeringLightPlugin, Volume,
-        VolumeField, VolumeLighting, VolumeLod,
+        VolumeError, VolumeField, VolumeGrid, VolumeLighting, VolumeLod, VolumeStatus,
     };
 }

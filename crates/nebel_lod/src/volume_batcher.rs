@@ -102,12 +102,13 @@
 
 use std::sync::{Arc, LazyLock};
 
+use nebel_core::budget::{BudgetError, Dims, check_allocation};
 use nebel_core::cell::Tetrahedron;
 use nebel_core::field::{CloudLighting, DensityGrid, FieldError, PadFill, light_field};
 use nebel_core::transfer::{ControlPoint, TransferFunction};
 use thiserror::Error;
 
-use crate::batch::CellBatch;
+use crate::batch::{CellBatch, GpuCell};
 use crate::full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};
 use crate::octree::{
     CellScalars, HierarchyError, RefinementError, RefinementSettings, VolumeHierarchy, k_max,
@@ -216,6 +217,10 @@ pub enum VolumeBatchError {
     /// [`BatchSettings::octree`] with a cell mesh.
     #[error("the octree needs a density grid (VolumeSource::Grid), not a cell mesh")]
     OctreeWithoutGrid,
+    /// The full-resolution batch of the grid would exceed the memory budget
+    /// (`nebel_core::budget`); draw it through the octree instead.
+    #[error("{0}; draw the grid through the octree (BatchSettings::octree)")]
+    OverBudget(#[from] BudgetError),
     /// [`BatchLighting::scalars`] is [`CellScalars::Density`].
     #[error(
         "lighting needs cell scalars that carry the light (CellScalars::LightModulatedByDensity or CellScalars::DensityModulatedByLight), not CellScalars::Density"
@@ -236,6 +241,7 @@ impl PartialEq for VolumeBatchError {
             (Self::Hierarchy(a), Self::Hierarchy(b)) => a == b,
             (Self::Refinement(a), Self::Refinement(b)) => a == b,
             (Self::Batch(a), Self::Batch(b)) => a == b,
+            (Self::OverBudget(a), Self::OverBudget(b)) => a == b,
             (Self::LightingWithoutOctree, Self::LightingWithoutOctree)
             | (Self::OctreeWithoutGrid, Self::OctreeWithoutGrid)
             | (Self::UnlitScalars, Self::UnlitScalars) => true,
@@ -313,7 +319,7 @@ pub struct VolumeBatcher {
     /// Cells of the source at full resolution.
     full_resolution_cells: usize,
     /// The current batch.
-    batch: CellBatch,
+    batch: Arc<CellBatch>,
     /// What `batch` was built from; `None` before the first successful
     /// update.
     built: Option<BuiltFor>,
@@ -346,11 +352,20 @@ impl VolumeBatcher {
             VolumeSource::Cells(cells) => cells.len(),
         };
         let kind = match (source, settings.octree) {
-            (VolumeSource::Grid(grid), None) => Kind::FullResolution {
-                bricks: BrickTable::new(&grid, BrickTable::DEFAULT_BRICK_SIZE),
-                grid,
-                order: settings.order,
-            },
+            (VolumeSource::Grid(grid), None) => {
+                // The batch of a grid whose every brick is kept.
+                let voxels = grid.dims().map(|n| n - 1);
+                check_allocation(
+                    || format!("full-resolution batch of {} voxels", Dims(&voxels)),
+                    &[voxels[0], voxels[1], voxels[2], 5],
+                    std::mem::size_of::<GpuCell>() as u64,
+                )?;
+                Kind::FullResolution {
+                    bricks: BrickTable::new(&grid, BrickTable::DEFAULT_BRICK_SIZE),
+                    grid,
+                    order: settings.order,
+                }
+            }
             (VolumeSource::Grid(grid), Some(octree)) => {
                 k_max(octree.min_accuracy)?;
                 let padded = grid.padded_to_power_of_two_plus_one(PadFill::Value(0.0))?;
@@ -382,7 +397,7 @@ impl VolumeBatcher {
             kind,
             settings: *settings,
             full_resolution_cells,
-            batch: CellBatch::default(),
+            batch: Arc::default(),
             built: None,
         })
     }
@@ -415,7 +430,7 @@ impl VolumeBatcher {
         {
             return Ok(false);
         }
-        self.batch = self.build(view, inputs)?;
+        self.batch = Arc::new(self.build(view, inputs)?);
         self.built = Some(BuiltFor {
             view: view.clone(),
             transfer,
@@ -427,7 +442,9 @@ impl VolumeBatcher {
 
     /// The current batch: world space, in draw order, modulated for a lit
     /// cloud. Empty before the first successful [`VolumeBatcher::update`].
-    pub fn batch(&self) -> &CellBatch {
+    /// Shared: a renderer keeps it without copying the cells, and a rebuild
+    /// makes a new one.
+    pub fn batch(&self) -> &Arc<CellBatch> {
         &self.batch
     }
 

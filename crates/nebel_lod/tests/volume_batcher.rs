@@ -116,7 +116,7 @@ fn inputs(transfer: &TransferFunction) -> FrameInputs<'_> {
 
 /// A conforming cell mesh with scalars, in its own frame.
 fn cells() -> Arc<Vec<Tetrahedron>> {
-    let mut cells = search_light_cells(6.0, 0.35, [8, 2, 4]);
+    let mut cells = search_light_cells(6.0, 0.35, [8, 2, 4]).unwrap();
     for (index, cell) in cells.iter_mut().enumerate() {
         cell.scalars = [0.2, 0.4, 0.6, 0.8].map(|s| (s + index as f64 * 0.01).fract());
     }
@@ -230,7 +230,7 @@ fn every_source_builds_what_its_builder_builds() {
     assert!(sorted.update(&culled, &inputs(&transfer)).unwrap());
     let expected =
         full_resolution_batch(&grid, &bricks, &culled, &transfer, CellOrder::BackToFront);
-    assert_eq!(sorted.batch(), &expected.unwrap());
+    assert_eq!(sorted.batch().as_ref(), &expected.unwrap());
     let all = full_resolution_batch(&grid, &bricks, &unculled, &transfer, CellOrder::BackToFront);
     let all = all.unwrap();
     assert!(!sorted.batch().is_empty() && sorted.batch().len() < all.len());
@@ -244,14 +244,17 @@ fn every_source_builds_what_its_builder_builds() {
     assert!(unordered.update(&culled, &inputs(&transfer)).unwrap());
     let expected =
         full_resolution_batch(&grid, &bricks, &unculled, &transfer, CellOrder::Unordered);
-    assert_eq!(unordered.batch(), &expected.unwrap());
+    assert_eq!(unordered.batch().as_ref(), &expected.unwrap());
     assert_eq!(unordered.batch().len(), all.len());
 
     // The octree, on the grid padded with zero density.
     let mut octree =
         VolumeBatcher::new(grid_source(), &settings(CellOrder::BackToFront, true)).unwrap();
     assert!(octree.update(&culled, &inputs(&transfer)).unwrap());
-    assert_eq!(octree.batch(), &octree_batch(None, &culled, &transfer));
+    assert_eq!(
+        octree.batch().as_ref(),
+        &octree_batch(None, &culled, &transfer)
+    );
     assert!(!octree.batch().is_empty() && !octree.batch().is_modulated());
     assert_eq!(octree.full_resolution_cells(), 5 * 8 * 6 * 5);
     // Its Unordered setting changes nothing: the octree is back to front.
@@ -272,7 +275,7 @@ fn every_source_builds_what_its_builder_builds() {
     .unwrap();
     assert!(sorted_cells.update(&culled, &inputs(&transfer)).unwrap());
     let expected = sorted_batch(&cells, &CellAdjacency::new(&cells), &culled).unwrap();
-    assert_eq!(sorted_cells.batch(), &expected);
+    assert_eq!(sorted_cells.batch().as_ref(), &expected);
     assert_eq!(sorted_cells.batch().len(), cells.len());
     assert_eq!(sorted_cells.full_resolution_cells(), cells.len());
     let mut unordered_cells = VolumeBatcher::new(
@@ -289,7 +292,7 @@ fn every_source_builds_what_its_builder_builds() {
         })
         .collect();
     assert_eq!(
-        unordered_cells.batch(),
+        unordered_cells.batch().as_ref(),
         &CellBatch::from_tetrahedra(&in_world)
     );
     assert_ne!(unordered_cells.batch(), sorted_cells.batch());
@@ -320,7 +323,7 @@ fn lit_clouds_carry_modulators_and_pick_the_opacity_field() {
                 .all(|m| (0.0..=1.0).contains(m))
         );
         let lighting = settings.lighting.as_ref();
-        assert_eq!(batch, &octree_batch(lighting, &v, &transfer));
+        assert_eq!(batch.as_ref(), &octree_batch(lighting, &v, &transfer));
 
         // The volume's transfer function is over the light for §5.1, so it
         // does not cull: a transparent one still draws the cloud there.
@@ -380,14 +383,14 @@ fn a_sorted_grid_is_rebuilt_when_its_order_key_or_frustum_changes() {
     assert_ne!(v0.eye, v1.eye);
     assert_eq!(order_key(&grid, &v0), order_key(&grid, &v1));
     assert!(!batcher.update(&v1, &inputs(&transfer)).unwrap());
-    assert_eq!(batcher.batch(), &fresh(&v1));
+    assert_eq!(batcher.batch().as_ref(), &fresh(&v1));
 
     // Across a voxel's corner face (x + y + z = 8 in index units).
     let v2 = view(eye_at(u + DVec3::new(0.3, 0.3, 0.3)));
     assert_ne!(order_key(&grid, &v1), order_key(&grid, &v2));
     assert!(batcher.update(&v2, &inputs(&transfer)).unwrap());
-    assert_eq!(batcher.batch(), &fresh(&v2));
-    assert_ne!(batcher.batch(), &fresh(&v1));
+    assert_eq!(batcher.batch().as_ref(), &fresh(&v2));
+    assert_ne!(batcher.batch().as_ref(), &fresh(&v1));
 
     // Far away every plane is on one side: moving farther keeps the batch.
     let far = view(eye_at(DVec3::new(-1e4, 3.0, 2.0)));
@@ -400,10 +403,10 @@ fn a_sorted_grid_is_rebuilt_when_its_order_key_or_frustum_changes() {
         .clone()
         .with_frustum(frustum(v2.eye, DVec3::new(8.0, 6.0, 5.0)));
     assert!(batcher.update(&culled, &inputs(&transfer)).unwrap());
-    assert_eq!(batcher.batch(), &fresh(&culled));
+    assert_eq!(batcher.batch().as_ref(), &fresh(&culled));
     assert!(!batcher.update(&culled, &inputs(&transfer)).unwrap());
     assert!(batcher.update(&v2, &inputs(&transfer)).unwrap());
-    assert_eq!(batcher.batch(), &fresh(&v2));
+    assert_eq!(batcher.batch().as_ref(), &fresh(&v2));
 }
 
 #[test]
@@ -425,7 +428,10 @@ fn the_octree_is_rebuilt_on_every_eye_move() {
         .with_frustum(frustum(nudged.eye, DVec3::new(8.0, 6.0, 5.0)));
     assert!(batcher.update(&culled, &inputs(&transfer)).unwrap());
     assert!(!batcher.update(&culled, &inputs(&transfer)).unwrap());
-    assert_eq!(batcher.batch(), &octree_batch(None, &culled, &transfer));
+    assert_eq!(
+        batcher.batch().as_ref(),
+        &octree_batch(None, &culled, &transfer)
+    );
 
     // The accuracy c sets the level of detail.
     let finer = FrameInputs {
@@ -484,7 +490,7 @@ fn sorted_cells_are_rebuilt_when_the_eye_moves() {
     let moved = view(DVec3::new(-4.0, 2.0, -1.0));
     assert!(batcher.update(&moved, &inputs(&transfer)).unwrap());
     assert_eq!(
-        batcher.batch(),
+        batcher.batch().as_ref(),
         &sorted_batch(&cells, &adjacency, &moved).unwrap()
     );
     assert!(!batcher.update(&moved, &inputs(&transfer)).unwrap());
@@ -537,7 +543,7 @@ fn an_empty_viewport_gives_an_empty_batch() {
             batcher.update(&hidden, &inputs(&transfer)).unwrap(),
             "{name}"
         );
-        assert_eq!(batcher.batch(), &CellBatch::default(), "{name}");
+        assert_eq!(batcher.batch().as_ref(), &CellBatch::default(), "{name}");
         // Hidden it stays empty, whatever moves.
         let elsewhere = View {
             eye: DVec3::new(9.0, 9.0, 9.0),
@@ -710,4 +716,31 @@ fn a_batcher_built_on_a_worker_thread_is_handed_over() {
             .unwrap()
     );
     assert!(batcher.batch().is_modulated());
+}
+
+#[test]
+fn a_full_resolution_batch_beyond_the_memory_budget_is_refused_before_it_is_built() {
+    // 1025 × 1025 × 513 points: the grid is a zero page mapping, its batch
+    // would be 1024 · 1024 · 512 · 5 cells of 64 bytes = 172 GB.
+    let dims = [1025, 1025, 513];
+    let grid = DensityGrid::new(
+        dims,
+        DVec3::ONE,
+        DVec3::ZERO,
+        vec![0.0; dims.iter().product()],
+    )
+    .unwrap();
+    let error = VolumeBatcher::new(
+        VolumeSource::Grid(Arc::new(grid)),
+        &BatchSettings::default(),
+    )
+    .unwrap_err();
+    assert!(matches!(error, VolumeBatchError::OverBudget(_)), "{error}");
+    let message = error.to_string();
+    assert!(
+        message.contains("full-resolution batch of 1024 × 1024 × 512 voxels")
+            && message.contains("memory budget")
+            && message.contains("octree"),
+        "{message}"
+    );
 }

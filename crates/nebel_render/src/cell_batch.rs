@@ -12,7 +12,7 @@ use bevy::prelude::*;
 use bevy::render::render_resource::ShaderType;
 use nebel_core::optics::{OpticalMode, henyey_greenstein};
 use nebel_core::transfer::TransferFunction;
-use nebel_lod::GpuCell;
+use nebel_lod::CellBatch as LodCellBatch;
 
 /// The sun and sky of a scattering batch ([`CellBatch::scattering`]).
 #[derive(Clone, Copy, Debug, PartialEq, Reflect)]
@@ -90,82 +90,59 @@ pub(crate) struct CellScatteringUniform {
 #[derive(Component, Clone, Debug, Default, Reflect)]
 #[reflect(Component, Default, Clone)]
 pub struct CellBatch {
-    /// Tetrahedra in world space, scalar in `w`, in draw order: back to front
-    /// for [`OpticalMode::Sorted`], any order for the other modes. Default:
-    /// none.
+    /// Tetrahedra in world space, scalar in `w`, in draw order (back to front
+    /// for [`OpticalMode::Sorted`], any order for the other modes), with
+    /// their world bounds and, for a lit cloud, per cell the segment-length
+    /// modulator `m ∈ [0, 1]` at its four vertices: every ray segment is then
+    /// integrated over `l' = l · (m_f + m_b)/2` instead of `l` (Röttger and
+    /// Ertl 2003, §5.1, Eq. 9; see [`nebel_lod::CellBatch`]). A modulator list
+    /// whose length is neither 0 nor the cell count is refused by the render
+    /// system (the batch is not drawn and an error is logged). Shared with
+    /// whatever built it (`nebel_lod::VolumeBatcher`). Default: no cells.
     #[reflect(ignore)]
-    pub cells: Arc<Vec<GpuCell>>,
+    pub cells: Arc<LodCellBatch>,
     /// κ and ρ over the scalar; `None` draws nothing. Default: `None`.
     #[reflect(ignore)]
     pub transfer_function: Option<Arc<TransferFunction>>,
     /// How the cells' segments combine. Default: [`OpticalMode::Sorted`].
     pub mode: OpticalMode,
-    /// Per cell, the segment-length modulator `m ∈ [0, 1]` at its four
-    /// vertices: every ray segment is integrated over `l' = l · (m_f + m_b)/2`
-    /// instead of `l` (paper 000 §5.1, Eq. 9; the lit clouds of
-    /// `nebel_volume`, see `nebel_lod::CellBatch`). `None` draws unmodulated
-    /// segments; a list whose length differs from `cells` is refused by the
-    /// render system (the batch is not drawn and an error is logged).
-    /// Default: `None`.
-    #[reflect(ignore)]
-    pub modulators: Option<Arc<Vec<[f32; 4]>>>,
-    /// Single scattering of the sun (paper 003; only for
-    /// [`OpticalMode::Sorted`]): the transfer function's colour is read as
-    /// the light scattered from the sun at each point (its transmittance
-    /// toward the sun, times an albedo), and every segment's colour becomes
-    /// `ambient · α + sun · 4π p_HG(θ) · C`, with θ between the view ray and
-    /// the sunlight. `None` draws the transfer function's colour as it is.
-    /// Default: `None`.
+    /// Single scattering of the sun (Nes, "Physically Plausible Weather
+    /// Visualization", 2008; only for [`OpticalMode::Sorted`]): the transfer
+    /// function's colour is read as the light scattered from the sun at each
+    /// point (its transmittance toward the sun, times an albedo), and every
+    /// segment's colour becomes `ambient · α + sun · 4π p_HG(θ) · C`, with θ
+    /// between the view ray and the sunlight. `None` draws the transfer
+    /// function's colour as it is. Default: `None`.
     pub scattering: Option<CellScattering>,
     /// The longest segment a ray can have in one cell, world units (the
     /// longest cell diameter); the pre-integration table covers 0 to this
     /// length. Default: 0 (computed by [`CellBatch::new`]).
     pub max_segment_length: f32,
-    /// Minimum corner of the cells' world bounds, world units. Default: the
-    /// origin.
-    pub bounds_min: Vec3,
-    /// Maximum corner of the cells' world bounds, world units. Default: the
-    /// origin.
-    pub bounds_max: Vec3,
 }
 
 impl CellBatch {
-    /// A batch of `cells` with its bounds and longest segment computed.
+    /// A batch of `cells` with its longest segment computed.
     pub fn new(
-        cells: Vec<GpuCell>,
+        cells: Arc<LodCellBatch>,
         transfer_function: Arc<TransferFunction>,
         mode: OpticalMode,
     ) -> Self {
-        let mut bounds_min = Vec3::splat(f32::INFINITY);
-        let mut bounds_max = Vec3::splat(f32::NEG_INFINITY);
         let mut max_segment_length = 0.0_f32;
-        for cell in &cells {
+        for cell in &cells.cells {
             let vertices = cell.vertices.map(|v| Vec3::new(v[0], v[1], v[2]));
             for (index, vertex) in vertices.iter().enumerate() {
-                bounds_min = bounds_min.min(*vertex);
-                bounds_max = bounds_max.max(*vertex);
                 for other in &vertices[index + 1..] {
                     max_segment_length = max_segment_length.max(vertex.distance(*other));
                 }
             }
         }
         Self {
-            cells: Arc::new(cells),
+            cells,
             transfer_function: Some(transfer_function),
             mode,
-            modulators: None,
             scattering: None,
             max_segment_length,
-            bounds_min,
-            bounds_max,
         }
-    }
-
-    /// The batch with per-cell segment-length modulators (see
-    /// [`CellBatch::modulators`]); an empty list leaves it unmodulated.
-    pub fn with_modulators(mut self, modulators: Vec<[f32; 4]>) -> Self {
-        self.modulators = (!modulators.is_empty()).then(|| Arc::new(modulators));
-        self
     }
 
     /// Whether the render system has anything to draw for this batch.

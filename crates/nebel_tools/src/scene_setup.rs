@@ -23,6 +23,7 @@ use nebel_render::NebelSystems;
 use nebel_scene::{
     BuiltVolume, CameraView, LightDescription, MeshDescription, SceneDescription, SceneError,
 };
+use nebel_volume::VolumeGrid;
 
 use crate::fog_comparison::{BevyFog, BevyFogSettings, enable_bevy_fog, spawn_bevy_fog};
 use nebel_volume::FlickeringLight;
@@ -119,6 +120,7 @@ fn spawn_scene(
     target: Res<SceneRenderTarget>,
     mut meshes: ResMut<Assets<Mesh>>,
     mut materials: ResMut<Assets<StandardMaterial>>,
+    mut grids: ResMut<Assets<VolumeGrid>>,
 ) {
     let camera = &scene.camera;
     let pose = scene.camera_pose_at(0.0);
@@ -236,12 +238,12 @@ fn spawn_scene(
                 }
             }
         }
-        None => spawn_volumes(&mut commands, &volumes.0),
+        None => spawn_volumes(&mut commands, &mut grids, &volumes.0),
     }
 }
 
 /// Spawns the scene's volumes; their fields are in world space.
-fn spawn_volumes(commands: &mut Commands, volumes: &[BuiltVolume]) {
+fn spawn_volumes(commands: &mut Commands, grids: &mut Assets<VolumeGrid>, volumes: &[BuiltVolume]) {
     use nebel_scene::LightModel;
     use nebel_scene::VolumeField as SceneField;
     use nebel_volume::{
@@ -251,7 +253,7 @@ fn spawn_volumes(commands: &mut Commands, volumes: &[BuiltVolume]) {
     for volume in volumes {
         let transfer_function = Arc::new(volume.transfer_function.clone());
         let field = match &volume.field {
-            SceneField::Grid(grid) => VolumeField::Grid(Arc::new(grid.clone())),
+            SceneField::Grid(grid) => VolumeField::Grid(grids.add(VolumeGrid::from(grid.clone()))),
             SceneField::Cloud(_) => VolumeField::Cells(Arc::default()),
             SceneField::Cells(cells) => VolumeField::Cells(Arc::new(cells.clone())),
             SceneField::Campfire(campfire) => {

@@ -8,18 +8,25 @@
 //! or with [`VolumeLod`] the octree C-LOD of paper 000, lit as a cloud with
 //! [`VolumeLighting`]. The render system is the same for all of them.
 
+pub mod batching;
 mod campfire;
 mod cloud;
 mod flickering_light;
+pub mod grid;
+pub mod grid_loader;
 mod lighting;
 mod lod;
+mod status;
 mod volume;
 
 pub use campfire::Campfire;
 pub use cloud::CloudVolume;
 pub use flickering_light::{FlickeringLight, FlickeringLightPlugin};
+pub use grid::VolumeGrid;
+pub use grid_loader::{VolumeGridLoadError, VolumeGridLoader, VolumeGridSettings};
 pub use lighting::{CloudLightModel, VolumeLighting};
 pub use lod::VolumeLod;
+pub use status::{VolumeError, VolumeStatus};
 pub use volume::{Volume, VolumeField, VolumePlugin};
 
 pub use nebel_render::CellBatch;

@@ -30,6 +30,7 @@ use nebel_render::CellScattering;
 
 /// Which field gives the colour and which the opacity (paper 000 §5).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Reflect)]
+#[reflect(Default, Clone)]
 pub enum CloudLightModel {
     /// §5.1: the transfer function is over the light γ (colour `κ(γ)`, use
     /// `TransferPreset::CloudLight`, constant ρ = `ρ_max`), and the density
@@ -71,7 +72,7 @@ impl CloudLightModel {
 /// Lights a grid [`Volume`](crate::Volume) with ambient and diffuse sunlight
 /// (see the module docs).
 #[derive(Component, Clone, Copy, Debug, PartialEq, Reflect)]
-#[reflect(Component, Default)]
+#[reflect(Component, Default, Clone)]
 #[require(crate::VolumeLod)]
 pub struct VolumeLighting {
     /// Light every point receives, as a fraction of full light, in [0, 1]

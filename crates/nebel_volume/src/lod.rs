@@ -14,11 +14,12 @@
 //! [`CellBatch`](nebel_render::CellBatch) holds.
 
 use bevy::prelude::*;
+use nebel_lod::OctreeSettings;
 use nebel_lod::octree::RefinementSettings;
 
 /// Draws a grid [`Volume`](crate::Volume) through the octree C-LOD.
 #[derive(Component, Clone, Copy, Debug, PartialEq, Reflect)]
-#[reflect(Component, Default)]
+#[reflect(Component, Default, Clone)]
 pub struct VolumeLod {
     /// Global accuracy `c` (paper 000 Eq. 1), 1/density units, ≥ 0: higher
     /// draws more cells. Default 16.
@@ -33,7 +34,7 @@ impl Default for VolumeLod {
     fn default() -> Self {
         Self {
             accuracy: RefinementSettings::DEFAULT_ACCURACY,
-            min_accuracy: 4.0,
+            min_accuracy: OctreeSettings::DEFAULT_MIN_ACCURACY,
         }
     }
 }

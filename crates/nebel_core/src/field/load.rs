@@ -34,6 +34,7 @@ use crate::budget::{Dims, check_allocation};
 
 /// The sample type of a raw little-endian file.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub enum RawSampleType {
     /// One unsigned byte per sample; `v / 255` gives [0, 1]. The default.
     #[default]
@@ -73,6 +74,7 @@ impl RawSampleType {
 
 /// How raw density samples become densities in [0, 1].
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub enum Normalization {
     /// Keep the decoded values; they must lie in [0, 1]. The default.
     #[default]
@@ -414,6 +416,36 @@ impl DensityGrid {
         normalization.apply(&name, &mut values)?;
         Self::validated(&name, dims, spacing, origin, values)
     }
+
+    /// [`DensityGrid::load_raw`] of bytes already read (an asset loader's):
+    /// `name` names them in errors. The grid is checked against the memory
+    /// budget and the byte count against `dims` before anything is decoded.
+    pub fn from_raw_bytes(
+        name: &str,
+        bytes: &[u8],
+        dims: [usize; 3],
+        sample_type: RawSampleType,
+        normalization: Normalization,
+        spacing: DVec3,
+        origin: DVec3,
+    ) -> Result<Self, FieldError> {
+        budgeted_points(name, DENSITY_GRID, &dims, SAMPLE_BYTES)?;
+        let expected = dims
+            .iter()
+            .fold(sample_type.bytes() as u128, |acc, &n| acc * n as u128);
+        if expected != bytes.len() as u128 {
+            return Err(FieldError::RawSizeMismatch {
+                path: PathBuf::from(name),
+                dims: dims.to_vec(),
+                sample_type,
+                expected,
+                actual: bytes.len() as u64,
+            });
+        }
+        let mut values = sample_type.decode(bytes);
+        normalization.apply(name, &mut values)?;
+        Self::validated(name, dims, spacing, origin, values)
+    }
 }
 
 /// Writes horizontal slice `slice` (grid index y) into the `values` of a
@@ -579,6 +611,43 @@ mod tests {
         save_gray8(&line, 5, 1, &[0; 5]);
         let message = error_message(load_height_png(&line, 1.0));
         assert_mentions(&message, &["line.png", "at least 2"]);
+    }
+
+    #[test]
+    fn raw_bytes_decode_like_raw_files_and_are_checked_before_decoding() {
+        let bytes = [0u8, 36, 73, 109, 146, 182, 219, 255];
+        let grid = DensityGrid::from_raw_bytes(
+            "cloud.raw",
+            &bytes,
+            [2, 2, 2],
+            RawSampleType::U8,
+            Normalization::None,
+            DVec3::ONE,
+            DVec3::ZERO,
+        )
+        .unwrap();
+        assert_eq!(grid.values()[7], 1.0);
+        assert!((grid.values()[1] - 36.0 / 255.0).abs() < 1e-7);
+        let short = DensityGrid::from_raw_bytes(
+            "cloud.raw",
+            &bytes[..7],
+            [2, 2, 2],
+            RawSampleType::U8,
+            Normalization::None,
+            DVec3::ONE,
+            DVec3::ZERO,
+        );
+        assert_mentions(&error_message(short), &["cloud.raw", "8", "7"]);
+        let huge = DensityGrid::from_raw_bytes(
+            "huge.raw",
+            &bytes,
+            [4097, 4097, 4097],
+            RawSampleType::U8,
+            Normalization::None,
+            DVec3::ONE,
+            DVec3::ZERO,
+        );
+        assert_mentions(&error_message(huge), &["huge.raw", "memory budget"]);
     }
 
     #[test]

@@ -16,7 +16,7 @@ use bevy::render::view::{ExtractedView, Msaa};
 use nebel_core::optics::OpticalMode;
 use nebel_core::preintegration::{PreintegrationConfig, PreintegrationTable};
 use nebel_core::transfer::TransferFunction;
-use nebel_lod::GpuCell;
+use nebel_lod::CellBatch as LodCellBatch;
 
 use super::CellProjectionStats;
 use super::pipeline::{
@@ -33,8 +33,7 @@ const TABLE_LENGTH_SIZE: u32 = 128;
 /// A batch as the render world sees it.
 #[derive(Clone)]
 pub struct ExtractedCellBatch {
-    cells: Arc<Vec<GpuCell>>,
-    modulators: Option<Arc<Vec<[f32; 4]>>>,
+    cells: Arc<LodCellBatch>,
     pub(super) scattering: Option<CellScattering>,
     /// The main-world component changed since the last extraction: upload
     /// the cells again.
@@ -48,7 +47,7 @@ pub struct ExtractedCellBatch {
 impl ExtractedCellBatch {
     /// Whether the batch carries segment-length modulators.
     pub(super) fn is_modulated(&self) -> bool {
-        self.modulators.is_some()
+        self.cells.is_modulated()
     }
 }
 
@@ -80,14 +79,13 @@ pub fn extract_cell_batches(
         let Some(transfer_function) = batch.transfer_function.clone() else {
             continue;
         };
-        if let Some(modulators) = &batch.modulators
-            && modulators.len() != batch.cells.len()
-        {
+        let cells = &batch.cells;
+        if cells.is_modulated() && cells.modulators.len() != cells.len() {
             if refused.insert(entity) {
                 error!(
                     "nebel: the CellBatch of {entity} has {} modulators for {} cells; it is not drawn",
-                    modulators.len(),
-                    batch.cells.len()
+                    cells.modulators.len(),
+                    cells.len()
                 );
             }
             continue;
@@ -97,7 +95,6 @@ pub fn extract_cell_batches(
             entity,
             ExtractedCellBatch {
                 cells: batch.cells.clone(),
-                modulators: batch.modulators.clone(),
                 scattering: batch
                     .scattering
                     .filter(|_| batch.mode == OpticalMode::Sorted),
@@ -108,7 +105,7 @@ pub fn extract_cell_batches(
                 },
                 transfer_function,
                 mode: batch.mode,
-                centre: (batch.bounds_min + batch.bounds_max) / 2.0,
+                centre: (batch.cells.bounds_min + batch.cells.bounds_max) / 2.0,
             },
         ));
     }
@@ -151,18 +148,17 @@ pub fn prepare_cell_buffers(
         }
         let buffer = device.create_buffer_with_data(&BufferInitDescriptor {
             label: Some("nebel_cell_batch"),
-            contents: bytemuck::cast_slice(batch.cells.as_slice()),
+            contents: bytemuck::cast_slice(batch.cells.cells.as_slice()),
             usage: BufferUsages::STORAGE,
         });
         let unmodulated = [[0.0f32; 4]];
         let modulators = device.create_buffer_with_data(&BufferInitDescriptor {
             label: Some("nebel_cell_modulators"),
-            contents: bytemuck::cast_slice(
-                batch
-                    .modulators
-                    .as_deref()
-                    .map_or(&unmodulated[..], Vec::as_slice),
-            ),
+            contents: bytemuck::cast_slice(if batch.is_modulated() {
+                batch.cells.modulators.as_slice()
+            } else {
+                &unmodulated[..]
+            }),
             usage: BufferUsages::STORAGE,
         });
         let mut scattering = UniformBuffer::from(
@@ -178,7 +174,7 @@ pub fn prepare_cell_buffers(
             GpuCellBuffer {
                 buffer,
                 modulators,
-                modulated: batch.modulators.is_some(),
+                modulated: batch.is_modulated(),
                 scattering,
                 scattered: batch.scattering.is_some(),
                 count: batch.cells.len() as u32,

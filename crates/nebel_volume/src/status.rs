@@ -1,0 +1,74 @@
+//! What became of a volume: [`VolumeStatus`] and [`VolumeError`].
+
+use std::sync::Arc;
+
+use bevy::asset::AssetLoadError;
+use bevy::prelude::*;
+use nebel_core::field::FieldError;
+use nebel_lod::VolumeBatchError;
+use thiserror::Error;
+
+/// Whether a [`Volume`](crate::Volume) is drawn, still being built, or
+/// failed (and why). Read it to show a loading screen or an error.
+#[derive(Component, Clone, Debug, Default, PartialEq, Reflect)]
+#[reflect(Component, Default, Clone)]
+pub enum VolumeStatus {
+    /// Waiting for the grid asset, the generator or the background build of
+    /// the batcher (the previous batch, if any, is drawn meanwhile).
+    #[default]
+    Pending,
+    /// Built; the entity has its [`CellBatch`](nebel_render::CellBatch)
+    /// while it is visible.
+    Ready,
+    /// The volume's data or settings are unusable: why. Logged once per
+    /// entity and failure; nothing is rebuilt until the volume, its settings
+    /// or its grid change (a generator that fails keeps its last good grid
+    /// drawn).
+    Failed(VolumeError),
+}
+
+/// Why a volume is not drawn (or not updated). Every message names what is
+/// at fault.
+#[derive(Clone, Debug, Error, Reflect)]
+#[reflect(opaque, Clone, Debug, PartialEq)]
+pub enum VolumeError {
+    /// The grid asset failed to load.
+    #[error("cannot load the density grid {path}: {error}")]
+    GridNotLoaded {
+        /// The asset path, or `(no path)` for an asset added in memory.
+        path: String,
+        /// The asset server's error.
+        error: Arc<AssetLoadError>,
+    },
+    /// A generator (a cloud's noise) refused its settings.
+    #[error("cannot generate the grid: {0}")]
+    Generation(Arc<FieldError>),
+    /// The batch could not be built (padding, light field, hierarchy) or
+    /// updated for the view.
+    #[error(transparent)]
+    Batch(#[from] VolumeBatchError),
+}
+
+impl From<FieldError> for VolumeError {
+    fn from(error: FieldError) -> Self {
+        Self::Generation(Arc::new(error))
+    }
+}
+
+/// Two failures are the same when they say the same.
+impl PartialEq for VolumeError {
+    fn eq(&self, other: &Self) -> bool {
+        self.to_string() == other.to_string()
+    }
+}
+
+impl VolumeStatus {
+    /// Sets the status to `Failed(error)` and logs it, once per new failure
+    /// of this entity.
+    pub(crate) fn fail(&mut self, entity: Entity, error: VolumeError) {
+        if *self != VolumeStatus::Failed(error.clone()) {
+            error!("nebel: volume {entity}: {error}");
+            *self = VolumeStatus::Failed(error);
+        }
+    }
+}
