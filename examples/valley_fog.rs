@@ -1,12 +1,85 @@
-//! Valley fog: a terrain with fog lying in its valleys. The terrain is a
-//! procedural 513 × 513 height field drawn through the quadtree C-LOD with
-//! geomorphing (`nebel_terrain`); the ground fog follows with its issue.
+//! Valley fog: a procedural terrain of 513 × 513 points 10 m apart with
+//! 700 m of relief, drawn through the quadtree C-LOD with geomorphing
+//! ([`Terrain`]), under a low sun. The fog that lies in its valleys is not
+//! built yet; the scene is its stage.
 //!
-//! `cargo run --release --example valley_fog` opens a window with a fly camera
-//! (WASD, Q/E, Shift, right mouse button to look); with no display, or with
-//! `-- --headless`, it renders `assets/scenes/valley_fog.ron` to
-//! `target/nebel/valley_fog.png`.
+//! `cargo run --release --example valley_fog` opens a window with a fly
+//! camera (WASD, Q/E, Shift, right mouse button to look); with no display, or
+//! with `-- --headless`, it renders to `target/nebel/valley_fog.png`.
 
-fn main() -> std::process::ExitCode {
-    nebel_tools::example_runner::run_example("valley_fog")
+use std::process::ExitCode;
+
+use bevy::camera::Hdr;
+use bevy::prelude::*;
+use nebel::prelude::*;
+use nebel_tools::example_runner::Example;
+use nebel_tools::nebel_scene::OutputSettings;
+
+fn main() -> ExitCode {
+    Example {
+        name: "valley_fog",
+        output: OutputSettings {
+            width: 640,
+            height: 360,
+            frames: 4,
+            frame_rate: 60.0,
+        },
+        fly_speed: 150.0,
+    }
+    .run(|app| {
+        app.insert_resource(GlobalAmbientLight {
+            color: Color::srgb(0.6, 0.7, 0.9),
+            brightness: 1500.0,
+            ..default()
+        })
+        .add_systems(Startup, spawn_valley);
+    })
+}
+
+fn spawn_valley(mut commands: Commands) {
+    commands.spawn((
+        Camera3d::default(),
+        Camera {
+            clear_color: ClearColorConfig::Custom(Color::srgb(0.55, 0.65, 0.8)),
+            ..default()
+        },
+        Hdr,
+        Projection::Perspective(PerspectiveProjection {
+            fov: 55f32.to_radians(),
+            near: 1.0,
+            ..default()
+        }),
+        Transform::from_xyz(2400.0, 950.0, 2400.0)
+            .looking_at(Vec3::new(-300.0, 0.0, -300.0), Vec3::Y),
+        // The level of detail follows this camera.
+        LodCamera,
+    ));
+    commands.spawn((
+        DirectionalLight {
+            color: Color::srgb(1.0, 0.9, 0.75),
+            illuminance: 9000.0,
+            ..default()
+        },
+        Transform::default().looking_to(Vec3::new(-0.3, -0.45, -1.0), Vec3::Y),
+    ));
+    // 513 × 513 points of fBm noise (8 octaves from 2.2 km), the exponent
+    // 2.2 widening the valley floors; c = 300 keeps a left-out detail under
+    // about two pixels.
+    commands.spawn(Terrain {
+        source: TerrainSource::Procedural {
+            size: 513,
+            noise: TerrainNoise {
+                seed: 4,
+                octaves: 8,
+                wavelength: 2200.0,
+                exponent: 2.2,
+                ..default()
+            },
+        },
+        spacing: 10.0,
+        vertical_scale: 700.0,
+        accuracy: 300.0,
+        min_accuracy: 2.0,
+        ..default()
+    });
 }

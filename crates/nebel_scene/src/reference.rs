@@ -10,8 +10,6 @@
 //! scenes use black meshes and no lights.
 
 use std::path::Path;
-use std::sync::Mutex;
-use std::time::{Duration, Instant};
 
 use crate::{BuiltVolume, LightModel, LightingDescription, SceneDescription, VolumeField};
 use glam::{DVec3, DVec4};
@@ -22,8 +20,21 @@ use nebel_reference::{
     Modulation, ReferenceCamera, ReferenceError, ReferenceScene, ReferenceVolume, RenderProgress,
 };
 
-/// Renders `volumes` of `scene` exactly; with `progress`, reports rows on
-/// stderr every two seconds.
+/// How far a reference image is: which volume, and its rows.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ReferenceProgress {
+    /// The volume being integrated, from 0.
+    pub volume: usize,
+    /// Volumes in the image.
+    pub volumes: usize,
+    /// Rows of this volume finished so far.
+    pub rows_done: u32,
+    /// Rows of the image.
+    pub rows_total: u32,
+}
+
+/// Renders `volumes` of `scene` exactly; `progress`, when given, is called
+/// as rows finish (from the worker threads).
 ///
 /// A lit volume (paper 000 §5) is integrated as the GPU draws it: its grid
 /// padded with zero density to `2^n + 1` points, the light field computed on
@@ -45,7 +56,7 @@ use nebel_reference::{
 pub fn reference_image(
     scene: &SceneDescription,
     volumes: Vec<BuiltVolume>,
-    progress: bool,
+    progress: Option<&(dyn Fn(ReferenceProgress) + Sync)>,
 ) -> Result<LinearImage, ReferenceError> {
     reference_image_with_terrain(scene, volumes, None, progress)
 }
@@ -57,14 +68,15 @@ pub fn reference_image_with_terrain(
     scene: &SceneDescription,
     volumes: Vec<BuiltVolume>,
     terrain: Option<&HeightField>,
-    progress: bool,
+    progress: Option<&(dyn Fn(ReferenceProgress) + Sync)>,
 ) -> Result<LinearImage, ReferenceError> {
     let camera = scene.reference_camera();
     LinearImage::check_budget(camera.width, camera.height)?;
     let opaque_depth = scene.opaque_depth_with_terrain(&camera, terrain)?;
     let mut layers = Vec::with_capacity(volumes.len());
+    let volume_count = volumes.len();
     let last_frame = f64::from(scene.frame_time(scene.output.frames.saturating_sub(1)));
-    for volume in volumes {
+    for (index, volume) in volumes.into_iter().enumerate() {
         let (field, centre) = match volume.field {
             VolumeField::Grid(grid) => {
                 let centre = (grid.origin() + grid.max_corner()) / 2.0;
@@ -94,17 +106,14 @@ pub fn reference_image_with_terrain(
             ReferenceScene::new(camera, field, volume.transfer_function, volume.mode);
         reference_scene.modulation = modulation;
         reference_scene.opaque_depth = opaque_depth.clone();
-        let last_report = Mutex::new(Instant::now());
         let report = |rows: RenderProgress| {
-            let mut last = last_report
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner);
-            if progress && last.elapsed() >= Duration::from_secs(2) {
-                eprintln!(
-                    "nebel: reference row {}/{}",
-                    rows.rows_done, rows.rows_total
-                );
-                *last = Instant::now();
+            if let Some(progress) = progress {
+                progress(ReferenceProgress {
+                    volume: index,
+                    volumes: volume_count,
+                    rows_done: rows.rows_done,
+                    rows_total: rows.rows_total,
+                });
             }
         };
         let mut image = nebel_reference::render(&reference_scene, Some(&report))?;

@@ -1,51 +1,92 @@
-//! What every example does: load its scene file, open a window with a fly
-//! camera, or render headless when there is no display.
+//! What every example does besides building its scene: open a window with a
+//! fly camera, or render headless when there is no display.
 //!
 //! `cargo run --release --example NAME [-- --headless]`: without `--headless`
-//! and with a display (`DISPLAY` or `WAYLAND_DISPLAY` set), a window opens;
-//! otherwise the scene renders to `target/nebel/NAME.png` and the path is
-//! printed.
+//! and with a display (`DISPLAY` or `WAYLAND_DISPLAY` set), a window opens
+//! and every 3D camera the example spawns gets a [`FlyCamera`]; otherwise the
+//! example's frames render to `target/nebel/NAME.png` ([`render_headless`])
+//! and the path is printed.
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use bevy::prelude::*;
-use nebel_scene::SceneDescription;
+use nebel::NebelPlugins;
+use nebel_scene::OutputSettings;
 
 use crate::fly_camera::{FlyCamera, FlyCameraPlugin};
-use crate::headless::render_headless;
-use crate::scene_setup::{SceneCamera, SceneSetupPlugin};
-use nebel::NebelPlugins;
+use crate::headless::{HeadlessOptions, render_headless};
 
-/// Runs the example `name` with the scene file `assets/scenes/NAME.ron`.
-pub fn run_example(name: &str) -> ExitCode {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-    let scene_path = root.join("assets/scenes").join(format!("{name}.ron"));
-    let setup = match SceneDescription::load(&scene_path)
-        .and_then(|scene| SceneSetupPlugin::new(scene, &scene_path))
-    {
-        Ok(setup) => setup,
-        Err(error) => {
-            eprintln!("{name}: {error}");
-            return ExitCode::FAILURE;
+/// An example's name, its headless output and its fly camera's speed.
+#[derive(Clone, Debug)]
+pub struct Example {
+    /// The example's name: the window title and `target/nebel/NAME.png`.
+    pub name: &'static str,
+    /// Window size; image size, frames and frame rate of a headless run.
+    pub output: OutputSettings,
+    /// Fly camera speed, metres per second.
+    pub fly_speed: f32,
+}
+
+impl Example {
+    /// Runs the example: `add_scene` adds its systems (its scene) to the
+    /// app, which already has Bevy's and nebel's plugins.
+    pub fn run(self, add_scene: impl FnOnce(&mut App)) -> ExitCode {
+        let headless_asked = std::env::args().skip(1).any(|arg| arg == "--headless");
+        let has_display = ["DISPLAY", "WAYLAND_DISPLAY"]
+            .iter()
+            .any(|var| std::env::var_os(var).is_some_and(|v| !v.is_empty()));
+        if headless_asked || !has_display {
+            return self.run_headless(headless_asked, add_scene);
         }
-    };
-    let headless_asked = std::env::args().skip(1).any(|arg| arg == "--headless");
-    let has_display = ["DISPLAY", "WAYLAND_DISPLAY"]
-        .iter()
-        .any(|var| std::env::var_os(var).is_some_and(|v| !v.is_empty()));
-    if headless_asked || !has_display {
-        let out: PathBuf = root.join("target/nebel").join(format!("{name}.png"));
-        let why = if headless_asked {
-            "--headless"
-        } else {
-            "no display"
+        let mut app = App::new();
+        app.add_plugins((
+            DefaultPlugins.set(WindowPlugin {
+                primary_window: Some(Window {
+                    title: format!("nebel: {}", self.name),
+                    resolution: (self.output.width, self.output.height).into(),
+                    ..default()
+                }),
+                ..default()
+            }),
+            NebelPlugins,
+            FlyCameraPlugin,
+        ));
+        add_scene(&mut app);
+        let speed = self.fly_speed;
+        app.add_systems(
+            Update,
+            move |mut commands: Commands, cameras: Query<Entity, Added<Camera3d>>| {
+                for camera in &cameras {
+                    commands
+                        .entity(camera)
+                        .insert(FlyCamera { speed, ..default() });
+                }
+            },
+        );
+        match app.run() {
+            AppExit::Success => ExitCode::SUCCESS,
+            AppExit::Error(_) => ExitCode::FAILURE,
+        }
+    }
+
+    fn run_headless(self, asked: bool, add_scene: impl FnOnce(&mut App)) -> ExitCode {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .ancestors()
+            .nth(2)
+            .expect("the tools crate lies two folders below the workspace root");
+        let out: PathBuf = root.join("target/nebel").join(format!("{}.png", self.name));
+        let why = if asked { "--headless" } else { "no display" };
+        eprintln!("{}: {why}: rendering headless", self.name);
+        let options = HeadlessOptions {
+            progress: true,
+            ..HeadlessOptions::default()
         };
-        eprintln!("{name}: {why}: rendering {} headless", scene_path.display());
-        return match render_headless(setup, &out, true) {
+        match render_headless(&self.output, options, &out, add_scene) {
             Ok(stats) => {
                 println!(
-                    "{name}: wrote {} ({} frames on {})",
+                    "{}: wrote {} ({} frames on {})",
+                    self.name,
                     out.display(),
                     stats.frames_rendered,
                     stats.adapter.name
@@ -53,46 +94,9 @@ pub fn run_example(name: &str) -> ExitCode {
                 ExitCode::SUCCESS
             }
             Err(error) => {
-                eprintln!("{name}: {error}");
+                eprintln!("{}: {error}", self.name);
                 ExitCode::FAILURE
             }
-        };
-    }
-    App::new()
-        .add_plugins((
-            DefaultPlugins.set(WindowPlugin {
-                primary_window: Some(Window {
-                    title: format!("nebel: {name}"),
-                    resolution: (setup.scene.output.width, setup.scene.output.height).into(),
-                    ..default()
-                }),
-                ..default()
-            }),
-            NebelPlugins,
-            setup,
-            FlyCameraPlugin,
-        ))
-        .add_systems(PostStartup, attach_fly_camera)
-        .run();
-    ExitCode::SUCCESS
-}
-
-/// Gives the scene camera a fly camera whose speed suits the scene: a
-/// twentieth of the distance to the point the scene looks at per second (at
-/// least the default 10 m/s), so a kilometre-sized terrain is crossed in
-/// seconds and a campfire is not.
-fn attach_fly_camera(
-    mut commands: Commands,
-    scene: Res<crate::scene_setup::LoadedScene>,
-    cameras: Query<Entity, With<SceneCamera>>,
-) {
-    let pose = scene.camera_pose_at(0.0);
-    let distance = Vec3::from(pose.position).distance(Vec3::from(pose.look_at));
-    let defaults = FlyCamera::default();
-    for camera in &cameras {
-        commands.entity(camera).insert(FlyCamera {
-            speed: defaults.speed.max(distance / 20.0),
-            ..defaults
-        });
+        }
     }
 }

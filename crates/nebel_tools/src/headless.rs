@@ -1,17 +1,24 @@
-//! Headless rendering: a scene file to a PNG, with no window.
+//! Headless rendering: a scene to a PNG, with no window.
 //!
-//! [`render_headless`] builds a Bevy app without winit, renders the scene's
-//! camera into an sRGB image through whatever adapter wgpu finds (lavapipe, the
-//! CPU Vulkan driver, included), steps `output.frames` frames with time advancing
-//! by exactly `1 / output.frame_rate` each, captures the last frame and writes
+//! [`render_headless`] builds a Bevy app without winit, lets the caller add
+//! the scene (a [`SceneSetupPlugin`](crate::scene_setup::SceneSetupPlugin) of
+//! a scene file, or an example's own systems), renders every camera into an
+//! sRGB image through whatever adapter wgpu finds (lavapipe, the CPU Vulkan
+//! driver, included), steps `output.frames` frames with time advancing by
+//! exactly `1 / output.frame_rate` each, captures the last frame and writes
 //! it. Before Bevy starts, [`probe_adapter`] asks wgpu for an adapter, so a
-//! machine with none gets a one-line error ([`HeadlessError::NoAdapter`]) rather
-//! than Bevy's panic.
+//! machine with none gets a one-line error ([`HeadlessError::NoAdapter`])
+//! rather than Bevy's panic.
 //!
 //! Before the scene's first frame, frames with time standing still run until
 //! every pipeline has compiled (shaders load asynchronously; pipelines compile
 //! synchronously), so even a one-frame render shows the whole scene. The app
 //! waits for the GPU after every frame, so frame times include the GPU's work.
+//! Heavy builds (terrain quadtrees, cloud grids, light fields, octrees) make
+//! their frame wait (`HeavyBuilds::Blocking`), so every frame shows the scene
+//! at its own time, as the exact reference does; with
+//! [`HeadlessOptions::background_builds`] they run in the background as in a
+//! game, and the statistics show what a game's frames cost.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -39,9 +46,10 @@ use bevy::winit::WinitPlugin;
 use nebel_render::{HeavyBuilds, NebelDiagnosticsPlugin};
 use thiserror::Error;
 
-use crate::scene_setup::SceneSetupPlugin;
 use crate::stats::{AdapterSummary, RenderStats, TimeSummary};
+use indicatif::{ProgressBar, ProgressStyle};
 use nebel::NebelPlugins;
+use nebel_scene::OutputSettings;
 
 /// Frames to keep running after the last scene frame while the GPU read-back
 /// of the captured image completes (it takes one or two on every driver seen).
@@ -54,8 +62,21 @@ const WARM_UP_FRAMES: u32 = 30;
 /// Whether a render of this process has set the global logger.
 static LOGGER_SET: AtomicBool = AtomicBool::new(false);
 
-/// Print progress to stderr at most this often.
-const PROGRESS_INTERVAL: Duration = Duration::from_secs(2);
+/// How a headless render runs.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct HeadlessOptions {
+    /// A progress bar of the frames on stderr (drawn only on a terminal).
+    /// Default false.
+    pub progress: bool,
+    /// Heavy builds in the background, as in a game (`HeavyBuilds::Background`):
+    /// no frame waits for them, so a frame may show an older build. Default
+    /// false: every frame waits for its builds.
+    pub background_builds: bool,
+}
+
+/// The image every camera renders into.
+#[derive(Resource, Clone)]
+struct HeadlessTarget(Handle<Image>);
 
 /// Why a headless render failed.
 #[derive(Debug, Error)]
@@ -124,16 +145,16 @@ fn summary(info: &wgpu::AdapterInfo) -> AdapterSummary {
     }
 }
 
-/// Renders the scene of `setup` headless (its `target` is replaced), writes
-/// the last frame to `out` (PNG, sRGB) and returns the statistics. With
-/// `progress`, reports on stderr every two seconds.
+/// Renders the scene that `add_scene` adds to the app headless with the
+/// size, frame count and frame rate of `output`, writes the last frame to
+/// `out` (PNG, sRGB) and returns the statistics (see the module docs).
 pub fn render_headless(
-    mut setup: SceneSetupPlugin,
+    output: &OutputSettings,
+    options: HeadlessOptions,
     out: &Path,
-    progress: bool,
+    add_scene: impl FnOnce(&mut App),
 ) -> Result<RenderStats, HeadlessError> {
     let probed = probe_adapter()?;
-    let output = setup.scene.output.clone();
     let mut app = App::new();
     let plugins = DefaultPlugins
         .set(WindowPlugin {
@@ -167,18 +188,26 @@ pub fn render_headless(
         app.add_plugins(plugins);
     }
     let target = render_target(&mut app, output.width, output.height);
-    setup.target = Some(RenderTarget::Image(target.clone().into()));
-    app.add_plugins((NebelPlugins, setup))
+    app.add_plugins(NebelPlugins)
+        .insert_resource(HeadlessTarget(target.clone()))
         .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::ZERO))
-        // Each frame shows the scene at its own time: wait for the builds.
-        .insert_resource(HeavyBuilds::Blocking);
+        .insert_resource(if options.background_builds {
+            HeavyBuilds::Background
+        } else {
+            HeavyBuilds::Blocking
+        })
+        .add_systems(First, render_to_image);
+    add_scene(&mut app);
     app.finish();
     app.cleanup();
 
     // Shaders load asynchronously: run frames with time standing still until
     // no pipeline waits any more, so the scene's first frame is complete.
+    let mut warm_up_times = Vec::new();
     for warm_up in 0..WARM_UP_FRAMES {
+        let start = Instant::now();
         update_and_wait(&mut app);
+        warm_up_times.push(start.elapsed());
         let cache = app.sub_app(RenderApp).world().resource::<PipelineCache>();
         if warm_up > 0 && cache.waiting_pipelines().next().is_none() {
             break;
@@ -194,7 +223,15 @@ pub fn render_headless(
     let captured: Arc<Mutex<Option<Image>>> = Arc::default();
     let mut frame_times = Vec::with_capacity(output.frames as usize);
     let mut nebel_times = Vec::with_capacity(output.frames as usize);
-    let mut last_report = Instant::now();
+    let bar = if options.progress {
+        ProgressBar::new(u64::from(output.frames))
+    } else {
+        ProgressBar::hidden()
+    };
+    bar.set_style(
+        ProgressStyle::with_template("nebel: frame {pos}/{len} {wide_bar} {elapsed} (ETA {eta})")
+            .expect("a valid template"),
+    );
     for frame in 0..output.frames {
         // Frame 0 is at time 0, like the reference; time steps from frame 1 on.
         if frame == 1 {
@@ -218,11 +255,9 @@ pub fn render_headless(
         {
             nebel_times.push(Duration::from_secs_f64(ms.value / 1e3));
         }
-        if progress && last_report.elapsed() >= PROGRESS_INTERVAL {
-            eprintln!("nebel: frame {}/{}", frame + 1, output.frames);
-            last_report = Instant::now();
-        }
+        bar.inc(1);
     }
+    bar.finish_and_clear();
     for _ in 0..READBACK_FRAMES {
         if captured.lock().expect("capture slot").is_some() {
             break;
@@ -244,6 +279,8 @@ pub fn render_headless(
         width: output.width,
         height: output.height,
         frame_wall_ms: TimeSummary::of(&frame_times),
+        warm_up_frames: warm_up_times.len() as u32,
+        warm_up_frame_wall_ms: TimeSummary::of(&warm_up_times),
         nebel_systems_cpu_ms: TimeSummary::of(&nebel_times),
         effects: effect_counters(world.resource::<DiagnosticsStore>()),
     })
@@ -281,6 +318,19 @@ fn effect_counters(store: &DiagnosticsStore) -> BTreeMap<String, BTreeMap<String
         }
     }
     effects
+}
+
+/// Points every new camera at the headless image.
+fn render_to_image(
+    mut commands: Commands,
+    target: Res<HeadlessTarget>,
+    cameras: Query<Entity, Added<Camera>>,
+) {
+    for camera in &cameras {
+        commands
+            .entity(camera)
+            .insert(RenderTarget::Image(target.0.clone().into()));
+    }
 }
 
 fn render_target(app: &mut App, width: u32, height: u32) -> Handle<Image> {

@@ -8,12 +8,16 @@
 //! - [`example_runner`]: what every example does: a window with a fly camera
 //!   ([`fly_camera`]), or a headless render when there is no display.
 //! - [`fog_comparison`] and [`lod_sweep`]: the `bench-fog` and `bench-lod`
-//!   commands.
+//!   commands; [`error`]: why a command failed; [`progress`]: progress bars.
 
+pub mod error;
 pub mod example_runner;
 pub mod fly_camera;
 pub mod fog_comparison;
 pub mod headless;
 pub mod lod_sweep;
+pub mod progress;
 pub mod scene_setup;
 pub mod stats;
+
+pub use nebel_scene;

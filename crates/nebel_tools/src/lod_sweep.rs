@@ -1,6 +1,6 @@
 //! `nebel bench-lod`: run time against image error of a grid volume drawn
-//! through the octree C-LOD, along a sweep of the accuracy `c` (DESIGN.md §8,
-//! paper 000 §3).
+//! through the octree C-LOD, along a sweep of the accuracy `c` (Röttger and
+//! Ertl, "Fast Volumetric Display of Natural Gaseous Phenomena", 2003, §3).
 //!
 //! For each `c` the scene's one grid volume is rendered with
 //! `lod: (accuracy: c)` (the scene's `min_accuracy`, default 4) and once at
@@ -10,20 +10,24 @@
 //! full-resolution image and against the exact reference of the full
 //! trilinear field. The result is a CSV (`c, cells drawn, frame median ms,
 //! RMSE against full resolution, RMSE, max abs, PSNR` against the reference)
-//! and a PNG plot
-//! of frame time (x, linear from 0) against RMSE (y, log10), one dot per `c`
-//! joined in order, the full-resolution point in red. The plot has no text:
-//! the CSV beside it has the numbers.
+//! and an SVG plot of the median frame time (x, ms, from 0) against the RMSE
+//! (y, logarithmic), with axes, ticks, labels and a legend: one labelled dot
+//! per `c` joined in sweep order, the full-resolution (or comparison) point
+//! in red. SVG needs no font files: the labels are SVG text.
 
 use std::path::Path;
 
-use image::{Rgb, RgbImage};
+use nebel_lod::OctreeSettings;
 use nebel_reference::image_metrics::{ImageErrorMetrics, compare};
-use nebel_scene::{LodDescription, SceneDescription};
-
-use crate::headless::render_headless;
-use crate::scene_setup::SceneSetupPlugin;
 use nebel_scene::reference::{reference_image, save_reference};
+use nebel_scene::{LodDescription, SceneDescription};
+use plotters::coord::combinators::IntoLogRange;
+use plotters::prelude::*;
+
+use crate::error::CommandError;
+use crate::headless::HeadlessOptions;
+use crate::progress::reference_bar;
+use crate::scene_setup::SceneSetupPlugin;
 
 /// One point of the sweep.
 #[derive(Clone, Debug, PartialEq)]
@@ -56,7 +60,7 @@ impl SweepPoint {
     }
 }
 
-/// Runs the sweep and writes `DIR/lod_sweep.csv`, `DIR/lod_sweep.png` and the
+/// Runs the sweep and writes `DIR/lod_sweep.csv`, `DIR/lod_sweep.svg` and the
 /// images. `scene` must have exactly one volume, with a grid source.
 ///
 /// `comparison_accuracy`: for a volume too large to draw at full resolution
@@ -69,18 +73,22 @@ pub fn run_lod_sweep(
     accuracies: &[f64],
     comparison_accuracy: Option<f64>,
     out_dir: &Path,
-) -> Result<Vec<SweepPoint>, String> {
+) -> Result<Vec<SweepPoint>, CommandError> {
     if scene.volumes.len() != 1 {
-        return Err(format!(
-            "{}: bench-lod sweeps exactly one volume, the scene has {}",
-            scene_path.display(),
-            scene.volumes.len()
-        ));
+        return Err(CommandError::Unsuitable {
+            path: scene_path.to_owned(),
+            reason: format!(
+                "bench-lod sweeps exactly one volume, the scene has {}",
+                scene.volumes.len()
+            ),
+        });
     }
     scene.camera.tonemapping = false;
     scene.camera.msaa = 1;
-    std::fs::create_dir_all(out_dir).map_err(|e| format!("{}: {e}", out_dir.display()))?;
-    let min_accuracy = scene.volumes[0].lod.map_or(4.0, |lod| lod.min_accuracy);
+    std::fs::create_dir_all(out_dir).map_err(CommandError::write(out_dir))?;
+    let min_accuracy = scene.volumes[0]
+        .lod
+        .map_or(OctreeSettings::DEFAULT_MIN_ACCURACY, |lod| lod.min_accuracy);
 
     let lit = scene.volumes[0].lighting.is_some();
     let full_lod = lit.then_some(LodDescription {
@@ -99,10 +107,11 @@ pub fn run_lod_sweep(
         None => {
             let mut full = scene.clone();
             full.volumes[0].lod = full_lod;
-            let volumes = full.build_volumes(scene_path).map_err(|e| e.to_string())?;
-            let reference = reference_image(&full, volumes, true).map_err(|e| e.to_string())?;
-            save_reference(&reference, &out_dir.join("reference.png"))
-                .map_err(|e| e.to_string())?;
+            let volumes = full.build_volumes(scene_path)?;
+            let (bar, report) = reference_bar(true);
+            let reference = reference_image(&full, volumes, Some(&report))?;
+            bar.finish_and_clear();
+            save_reference(&reference, &out_dir.join("reference.png"))?;
             Some(reference)
         }
     };
@@ -125,12 +134,15 @@ pub fn run_lod_sweep(
             (None, None) => String::from("full_resolution"),
         };
         let image_path = out_dir.join(format!("{name}.png"));
-        let setup = SceneSetupPlugin::new(variant, scene_path).map_err(|e| e.to_string())?;
-        let stats = render_headless(setup, &image_path, true).map_err(|e| e.to_string())?;
-        let image = nebel_reference::image_metrics::load_png_linear(&image_path)
-            .map_err(|e| e.to_string())?;
+        let setup = SceneSetupPlugin::new(variant, scene_path)?;
+        let options = HeadlessOptions {
+            progress: true,
+            ..HeadlessOptions::default()
+        };
+        let stats = setup.render_headless(options, &image_path)?;
+        let image = nebel_reference::image_metrics::load_png_linear(&image_path)?;
         let metrics = match &reference {
-            Some(reference) => compare(&image, reference).map_err(|e| e.to_string())?,
+            Some(reference) => compare(&image, reference)?,
             None => ImageErrorMetrics {
                 rmse: f64::NAN,
                 max_abs: f64::NAN,
@@ -158,7 +170,7 @@ pub fn run_lod_sweep(
     // The full-resolution (or comparison) image is the last one.
     if let Some(full_image) = images.last() {
         for (point, image) in points.iter_mut().zip(&images) {
-            point.rmse_full = compare(image, full_image).map_err(|e| e.to_string())?.rmse;
+            point.rmse_full = compare(image, full_image)?.rmse;
         }
     }
     let mut csv = String::from("c,cells_drawn,frame_ms_median,rmse_vs_full,rmse,max_abs,psnr_db\n");
@@ -179,98 +191,106 @@ pub fn run_lod_sweep(
         ));
     }
     let csv_path = out_dir.join("lod_sweep.csv");
-    std::fs::write(&csv_path, csv).map_err(|e| format!("{}: {e}", csv_path.display()))?;
-    let plot_path = out_dir.join("lod_sweep.png");
-    plot(&points)
-        .save(&plot_path)
-        .map_err(|e| format!("{}: {e}", plot_path.display()))?;
+    std::fs::write(&csv_path, csv).map_err(CommandError::write(&csv_path))?;
+    let plot_path = out_dir.join("lod_sweep.svg");
+    let svg = plot(&points, comparison_accuracy).map_err(|reason| CommandError::Plot {
+        path: plot_path.clone(),
+        reason,
+    })?;
+    std::fs::write(&plot_path, svg).map_err(CommandError::write(&plot_path))?;
     Ok(points)
 }
 
-const PLOT_WIDTH: u32 = 480;
-const PLOT_HEIGHT: u32 = 320;
-const PLOT_MARGIN: u32 = 24;
+/// Plot size, SVG pixels.
+const PLOT_SIZE: (u32, u32) = (640, 420);
 
-/// Frame time (x) against log10 RMSE (y): grey axes, black dots joined in
-/// sweep order, the full-resolution dot red.
-pub fn plot(points: &[SweepPoint]) -> RgbImage {
-    let mut image = RgbImage::from_pixel(PLOT_WIDTH, PLOT_HEIGHT, Rgb([255, 255, 255]));
-    let left = PLOT_MARGIN as f64;
-    let right = f64::from(PLOT_WIDTH - PLOT_MARGIN);
-    let top = PLOT_MARGIN as f64;
-    let bottom = f64::from(PLOT_HEIGHT - PLOT_MARGIN);
-    let grey = Rgb([160, 160, 160]);
-    line(&mut image, (left, bottom), (right, bottom), grey);
-    line(&mut image, (left, bottom), (left, top), grey);
-
-    let finite: Vec<&SweepPoint> = points
+/// The SVG plot of the sweep (see the module docs); `comparison_accuracy`
+/// names the last point when it is not full resolution.
+pub fn plot(points: &[SweepPoint], comparison_accuracy: Option<f64>) -> Result<String, String> {
+    let shown: Vec<&SweepPoint> = points
         .iter()
-        .filter(|p| p.frame_ms.is_finite() && p.error() > 0.0)
+        .filter(|p| p.frame_ms.is_finite() && p.error().is_finite() && p.error() > 0.0)
         .collect();
-    let Some(max_ms) = finite.iter().map(|p| p.frame_ms).reduce(f64::max) else {
-        return image;
-    };
-    let logs: Vec<f64> = finite.iter().map(|p| p.error().log10()).collect();
-    let (low, high) = logs
+    let max_ms = shown.iter().map(|p| p.frame_ms).fold(1.0, f64::max) * 1.1;
+    let (low, high) = shown
         .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
-            (lo.min(*v), hi.max(*v))
+        .map(|p| p.error())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), e| {
+            (lo.min(e), hi.max(e))
         });
-    let span = (high - low).max(1e-9);
-    let position = |point: &SweepPoint| {
-        let x = left + (right - left) * point.frame_ms / max_ms.max(1e-9);
-        let y = bottom - (bottom - top) * (point.error().log10() - low) / span;
-        (x, y)
+    let (low, high) = if low <= high {
+        (low / 2.0, high * 2.0)
+    } else {
+        (1e-4, 1.0)
     };
-    let swept: Vec<(f64, f64)> = finite
-        .iter()
-        .filter(|p| p.accuracy.is_some())
-        .map(|p| position(p))
-        .collect();
-    for pair in swept.windows(2) {
-        line(&mut image, pair[0], pair[1], Rgb([0, 0, 0]));
+    let error_label = if points.iter().any(|p| p.rmse.is_finite()) {
+        "RMSE against the exact reference (linear RGB)"
+    } else {
+        "RMSE against the comparison image (linear RGB)"
+    };
+    let full_label = match comparison_accuracy {
+        Some(c) => format!("comparison, c = {c}"),
+        None => String::from("full resolution"),
+    };
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, PLOT_SIZE).into_drawing_area();
+        let error = |e: DrawingAreaErrorKind<_>| e.to_string();
+        root.fill(&WHITE).map_err(error)?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption("Frame time against image error along c", ("sans-serif", 18))
+            .margin(16)
+            .x_label_area_size(40)
+            .y_label_area_size(64)
+            .build_cartesian_2d(0.0..max_ms, (low..high).log_scale())
+            .map_err(error)?;
+        chart
+            .configure_mesh()
+            .x_desc("median frame time (ms)")
+            .y_desc(error_label)
+            .y_label_formatter(&|v| format!("{v:.0e}"))
+            .draw()
+            .map_err(error)?;
+        let swept: Vec<(f64, f64)> = shown
+            .iter()
+            .filter(|p| p.accuracy.is_some())
+            .map(|p| (p.frame_ms, p.error()))
+            .collect();
+        chart
+            .draw_series(LineSeries::new(swept.iter().copied(), &BLACK))
+            .map_err(error)?
+            .label("octree C-LOD, one dot per c")
+            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK));
+        chart
+            .draw_series(shown.iter().filter_map(|p| {
+                let c = p.accuracy?;
+                Some(
+                    EmptyElement::at((p.frame_ms, p.error()))
+                        + Circle::new((0, 0), 4, BLACK.filled())
+                        + Text::new(format!("c = {c}"), (6, -14), ("sans-serif", 12)),
+                )
+            }))
+            .map_err(error)?;
+        chart
+            .draw_series(
+                shown
+                    .iter()
+                    .filter(|p| p.accuracy.is_none())
+                    .map(|p| Circle::new((p.frame_ms, p.error()), 5, RED.filled())),
+            )
+            .map_err(error)?
+            .label(full_label)
+            .legend(|(x, y)| Circle::new((x + 10, y), 5, RED.filled()));
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .background_style(WHITE.mix(0.9))
+            .border_style(BLACK)
+            .draw()
+            .map_err(error)?;
+        root.present().map_err(error)?;
     }
-    for point in &finite {
-        let colour = if point.accuracy.is_some() {
-            Rgb([0, 0, 0])
-        } else {
-            Rgb([220, 30, 30])
-        };
-        dot(&mut image, position(point), colour);
-    }
-    image
-}
-
-fn dot(image: &mut RgbImage, (x, y): (f64, f64), colour: Rgb<u8>) {
-    for dy in -2..=2 {
-        for dx in -2..=2 {
-            put(image, x + f64::from(dx), y + f64::from(dy), colour);
-        }
-    }
-}
-
-fn line(image: &mut RgbImage, from: (f64, f64), to: (f64, f64), colour: Rgb<u8>) {
-    let steps = (to.0 - from.0)
-        .abs()
-        .max((to.1 - from.1).abs())
-        .ceil()
-        .max(1.0) as u32;
-    for step in 0..=steps {
-        let t = f64::from(step) / f64::from(steps);
-        put(
-            image,
-            from.0 + (to.0 - from.0) * t,
-            from.1 + (to.1 - from.1) * t,
-            colour,
-        );
-    }
-}
-
-fn put(image: &mut RgbImage, x: f64, y: f64, colour: Rgb<u8>) {
-    let (x, y) = (x.round(), y.round());
-    if x >= 0.0 && y >= 0.0 && x < f64::from(image.width()) && y < f64::from(image.height()) {
-        image.put_pixel(x as u32, y as u32, colour);
-    }
+    Ok(svg)
 }
 
 #[cfg(test)]
@@ -290,26 +310,50 @@ mod tests {
     }
 
     #[test]
-    fn plot_puts_fast_coarse_points_left_and_high() {
+    fn the_plot_has_axes_labels_a_legend_and_a_dot_per_point() {
         let points = [
             point(Some(1.0), 10.0, 1e-1),
             point(Some(64.0), 50.0, 1e-2),
             point(None, 100.0, 1e-3),
         ];
-        let image = plot(&points);
-        let black = Rgb([0, 0, 0]);
-        let red = Rgb([220, 30, 30]);
-        // The coarsest point: x = 24 + 432·0.1, y = the top margin.
-        assert_eq!(*image.get_pixel(24 + 43, 24), black);
-        // Full resolution: the right edge, the bottom axis, red.
-        assert_eq!(*image.get_pixel(480 - 24 - 1, 320 - 24 - 1), red);
-        assert_eq!(*image.get_pixel(470, 10), Rgb([255, 255, 255]));
+        let svg = plot(&points, None).unwrap();
+        for text in [
+            "median frame time (ms)",
+            "RMSE against the exact reference",
+            "c = 64",
+            "full resolution",
+            "octree C-LOD, one dot per c",
+        ] {
+            assert!(svg.contains(text), "the plot lacks {text:?}");
+        }
+        // Two black dots, the red one and the legend's red dot.
+        assert_eq!(svg.matches("<circle").count(), 4, "{svg}");
+        // The sweep's dots are left of the full-resolution one, the slower.
+        let circles: Vec<(f64, String)> = svg
+            .split("<circle")
+            .skip(1)
+            .map(|circle| {
+                let attribute = |name: &str| {
+                    let start = circle.find(&format!("{name}=\"")).unwrap() + name.len() + 2;
+                    circle[start..].split('"').next().unwrap().to_owned()
+                };
+                (attribute("cx").parse().unwrap(), attribute("fill"))
+            })
+            .collect();
+        let rightmost = |fill: &str| {
+            circles
+                .iter()
+                .filter(|(_, f)| f == fill)
+                .map(|(x, _)| *x)
+                .fold(f64::NEG_INFINITY, f64::max)
+        };
+        assert!(rightmost("#000000") < rightmost("#FF0000"), "{circles:?}");
     }
 
     #[test]
-    fn plot_of_nothing_is_blank_axes() {
-        let image = plot(&[]);
-        assert_eq!(*image.get_pixel(100, 100), Rgb([255, 255, 255]));
-        assert_eq!(*image.get_pixel(24, 200), Rgb([160, 160, 160]));
+    fn a_sweep_without_finite_errors_still_plots_empty_axes() {
+        let svg = plot(&[point(None, f64::NAN, f64::NAN)], Some(128.0)).unwrap();
+        assert!(svg.contains("median frame time (ms)"));
+        assert!(svg.contains("comparison, c = 128"));
     }
 }

@@ -1,188 +1,197 @@
-//! The `nebel` command line.
-//!
-//! ```text
-//! nebel render SCENE --out IMAGE.png [--stats STATS.json] [--frames N] [--size WxH]
-//! nebel reference SCENE --out IMAGE.png [--frames N] [--size WxH]
-//! nebel compare A.png B.png [--diff DIFF.png]
-//! nebel bench-fog SCENE --out DIR [--frames N] [--size WxH] [--steps N]
-//! nebel bench-lod SCENE --out DIR [--accuracies C1,C2,...] [--comparison-accuracy C] [--frames N] [--size WxH]
-//! ```
-//!
-//! `render` draws a scene file headless through whatever adapter wgpu finds
-//! (lavapipe included) and writes the last frame; `--stats` writes the JSON of
-//! [`nebel_tools::stats::RenderStats`]; `--frames` and `--size` override the scene's
-//! `output`.
-//!
-//! `reference` integrates the same view exactly on the CPU
-//! ([`nebel_tools::reference_image`], f64, adaptive, both cores): the scene's
-//! volumes over its clear colour, from the camera of the last frame, cut at
-//! the scene's meshes, which it draws black (the reference shades no surface;
-//! accuracy scenes have black meshes and no lights).
-//!
-//! `compare` prints RMSE, maximum absolute error and PSNR over linear RGB of
-//! two PNGs of the same size; `--diff` writes `|A − B| · 10` per channel.
-//!
-//! `bench-fog` renders the scene's grid volume with nebel and with Bevy's own
-//! `FogVolume` (`--steps` samples per ray, default 64) under the same optics
-//! ([`nebel_tools::fog_comparison`]), scores both against the two exact references
-//! (through the trilinear grid, and through nebel's tetrahedra) and writes
-//! `DIR/fog_comparison.csv` (median and max frame time, RMSE, max error,
-//! PSNR) with the images. Tonemapping and MSAA are off.
-//!
-//! `bench-lod` sweeps the octree accuracy `c` of the scene's grid volume
-//! (default `0,4,16,64,256`) plus full resolution (or, with
-//! `--comparison-accuracy C`, the image at `c = C` for a volume too large to
-//! draw at full resolution, without the exact reference) and writes
-//! `DIR/lod_sweep.csv` and a plot of frame time against error
-//! ([`nebel_tools::lod_sweep`]).
-//!
-//! Errors are one line on stderr and a non-zero exit status.
+//! The `nebel` command line: render scene files headless, integrate them
+//! exactly on the CPU, compare images, and benchmark against Bevy's fog and
+//! along the octree's accuracy. `nebel --help` and `nebel COMMAND --help`
+//! describe every command and option; errors are one line on stderr and
+//! exit status 1.
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
+use clap::{Args, Parser, Subcommand};
 use nebel_core::optics::OpticalMode;
 use nebel_reference::image_metrics::{difference_image, load_png_linear, save_png};
 use nebel_scene::reference::{reference_image, reference_image_with_terrain, save_reference};
-use nebel_scene::{BuiltVolume, LightDescription, SceneDescription, VolumeField};
+use nebel_scene::{BuiltVolume, LightDescription, SceneDescription, SceneError, VolumeField};
+use nebel_tools::error::CommandError;
 use nebel_tools::fog_comparison::{self, BevyFog};
-use nebel_tools::headless::render_headless;
+use nebel_tools::headless::HeadlessOptions;
 use nebel_tools::lod_sweep::run_lod_sweep;
+use nebel_tools::progress::reference_bar;
 use nebel_tools::scene_setup::SceneSetupPlugin;
-
-const USAGE: &str = "usage:
-  nebel render SCENE --out IMAGE.png [--stats STATS.json] [--frames N] [--size WxH]
-  nebel reference SCENE --out IMAGE.png [--frames N] [--size WxH]
-  nebel compare A.png B.png [--diff DIFF.png]
-  nebel bench-fog SCENE --out DIR [--frames N] [--size WxH] [--steps N]
-  nebel bench-lod SCENE --out DIR [--accuracies C1,C2,...] [--comparison-accuracy C] [--frames N] [--size WxH]";
 
 /// Factor on the absolute error in `compare --diff` images.
 const DIFF_SCALE: f32 = 10.0;
 
+/// nebel's tools: headless rendering, the exact CPU reference, image
+/// comparison and benchmarks of scene files.
+#[derive(Parser)]
+#[command(name = "nebel", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render a scene headless (through whatever adapter wgpu finds, the CPU
+    /// driver lavapipe included) and write its last frame.
+    Render {
+        #[command(flatten)]
+        scene: SceneArgs,
+        /// The PNG to write (sRGB).
+        #[arg(long)]
+        out: PathBuf,
+        /// Also write the statistics as JSON: adapter, frame times, nebel's
+        /// CPU time per frame, and the diagnostics of each effect present.
+        #[arg(long)]
+        stats: Option<PathBuf>,
+        /// Run heavy builds (terrain quadtrees, cloud grids, light fields,
+        /// octrees) in the background as a game does, instead of making each
+        /// frame wait for them; the statistics then show a game's frame
+        /// times.
+        #[arg(long)]
+        background_builds: bool,
+    },
+    /// Integrate the scene's volumes exactly on the CPU (f64, adaptive, all
+    /// cores) from the camera of the last frame, cut at its meshes and
+    /// terrain, which are drawn black.
+    Reference {
+        #[command(flatten)]
+        scene: SceneArgs,
+        /// The PNG to write (sRGB).
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Print RMSE, maximum absolute error and PSNR over linear RGB of two
+    /// PNGs of the same size.
+    Compare {
+        /// The first image.
+        a: PathBuf,
+        /// The second image.
+        b: PathBuf,
+        /// Also write |A − B| · 10 per channel as a PNG.
+        #[arg(long)]
+        diff: Option<PathBuf>,
+    },
+    /// Render the scene's one grid volume with nebel and with Bevy's
+    /// `FogVolume` under the same optics, score both against the exact
+    /// reference, write DIR/fog_comparison.csv and the images.
+    BenchFog {
+        #[command(flatten)]
+        scene: SceneArgs,
+        /// The folder to write into.
+        #[arg(long)]
+        out: PathBuf,
+        /// Samples per ray of Bevy's fog.
+        #[arg(long, default_value_t = 64)]
+        steps: u32,
+    },
+    /// Sweep the octree accuracy c of the scene's one grid volume, score
+    /// each image against full resolution and the exact reference, write
+    /// DIR/lod_sweep.csv and a plot of frame time against error
+    /// (DIR/lod_sweep.svg).
+    BenchLod {
+        #[command(flatten)]
+        scene: SceneArgs,
+        /// The folder to write into.
+        #[arg(long)]
+        out: PathBuf,
+        /// The accuracies c to sweep, comma-separated.
+        #[arg(long, value_delimiter = ',', default_values_t = [0.0, 4.0, 16.0, 64.0, 256.0])]
+        accuracies: Vec<f64>,
+        /// Score against the image at this c instead of full resolution, for
+        /// a volume too large to draw at full resolution (the exact
+        /// reference is skipped).
+        #[arg(long)]
+        comparison_accuracy: Option<f64>,
+    },
+}
+
+/// A scene file and the output settings a command may override.
+#[derive(Args)]
+struct SceneArgs {
+    /// The scene file (RON).
+    scene: PathBuf,
+    /// Frames to run instead of the scene's `output.frames`.
+    #[arg(long)]
+    frames: Option<u32>,
+    /// Image size instead of the scene's, as WIDTHxHEIGHT.
+    #[arg(long, value_parser = parse_size)]
+    size: Option<(u32, u32)>,
+}
+
+fn parse_size(size: &str) -> Result<(u32, u32), String> {
+    size.split_once('x')
+        .and_then(|(w, h)| Some((w.parse().ok()?, h.parse().ok()?)))
+        .ok_or_else(|| format!("takes WIDTHxHEIGHT, got `{size}`"))
+}
+
+impl SceneArgs {
+    /// Loads the scene and applies `--frames` and `--size`.
+    fn load(&self) -> Result<SceneDescription, CommandError> {
+        let mut scene = SceneDescription::load(&self.scene)?;
+        if let Some(frames) = self.frames {
+            scene.output.frames = frames;
+        }
+        if let Some((width, height)) = self.size {
+            scene.output.width = width;
+            scene.output.height = height;
+        }
+        scene.validate().map_err(|invalid| SceneError::Invalid {
+            path: self.scene.clone(),
+            field: format!("{} (with --frames/--size)", invalid.field),
+            reason: invalid.reason,
+        })?;
+        Ok(scene)
+    }
+}
+
 fn main() -> ExitCode {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    match run(&args) {
+    let cli = Cli::parse();
+    match run(cli.command) {
         Ok(()) => ExitCode::SUCCESS,
-        Err(message) => {
-            eprintln!("nebel: {message}");
+        Err(error) => {
+            eprintln!("nebel: {error}");
             ExitCode::FAILURE
         }
     }
 }
 
-fn run(args: &[String]) -> Result<(), String> {
-    match args.first().map(String::as_str) {
-        Some("render") => render(&args[1..]),
-        Some("reference") => reference(&args[1..]),
-        Some("compare") => compare(&args[1..]),
-        Some("bench-fog") => bench_fog(&args[1..]),
-        Some("bench-lod") => bench_lod(&args[1..]),
-        Some("-h" | "--help") => {
-            println!("{USAGE}");
-            Ok(())
-        }
-        Some(other) => Err(format!("unknown command `{other}`\n{USAGE}")),
-        None => Err(format!("no command given\n{USAGE}")),
+fn run(command: Command) -> Result<(), CommandError> {
+    match command {
+        Command::Render {
+            scene,
+            out,
+            stats,
+            background_builds,
+        } => render(&scene, &out, stats.as_deref(), background_builds),
+        Command::Reference { scene, out } => reference(&scene, &out),
+        Command::Compare { a, b, diff } => compare(&a, &b, diff.as_deref()),
+        Command::BenchFog { scene, out, steps } => bench_fog(&scene, &out, steps),
+        Command::BenchLod {
+            scene,
+            out,
+            accuracies,
+            comparison_accuracy,
+        } => bench_lod(&scene, &out, &accuracies, comparison_accuracy),
     }
 }
 
-/// Positional arguments and `--name value` options of one command.
-struct Arguments {
-    positional: Vec<String>,
-    options: Vec<(String, String)>,
-}
-
-impl Arguments {
-    /// Splits `args`; every option takes a value and must be in `known`.
-    fn parse(args: &[String], known: &[&str]) -> Result<Self, String> {
-        let mut positional = Vec::new();
-        let mut options = Vec::new();
-        let mut iter = args.iter();
-        while let Some(arg) = iter.next() {
-            if let Some(name) = arg.strip_prefix("--") {
-                if !known.contains(&name) {
-                    return Err(format!("unknown option `{arg}`\n{USAGE}"));
-                }
-                let value = iter
-                    .next()
-                    .ok_or_else(|| format!("option `{arg}` needs a value"))?;
-                options.push((name.to_owned(), value.clone()));
-            } else {
-                positional.push(arg.clone());
-            }
-        }
-        Ok(Self {
-            positional,
-            options,
-        })
-    }
-
-    fn option(&self, name: &str) -> Option<&str> {
-        self.options
-            .iter()
-            .rev()
-            .find(|(n, _)| n == name)
-            .map(|(_, v)| v.as_str())
-    }
-
-    fn required(&self, name: &str) -> Result<&str, String> {
-        self.option(name)
-            .ok_or_else(|| format!("missing `--{name}`\n{USAGE}"))
-    }
-
-    fn positional(&self, count: usize, what: &str) -> Result<&[String], String> {
-        if self.positional.len() == count {
-            Ok(&self.positional)
-        } else {
-            Err(format!(
-                "expected {what}, got {} argument(s)\n{USAGE}",
-                self.positional.len()
-            ))
-        }
-    }
-}
-
-/// Loads the scene named by the one positional argument and applies
-/// `--frames` and `--size`.
-fn load_scene(arguments: &Arguments) -> Result<(PathBuf, SceneDescription), String> {
-    let scene_path = PathBuf::from(&arguments.positional(1, "one scene file")?[0]);
-    let mut scene = SceneDescription::load(&scene_path).map_err(|e| e.to_string())?;
-    if let Some(frames) = arguments.option("frames") {
-        scene.output.frames = frames
-            .parse()
-            .map_err(|_| format!("--frames takes a whole number, got `{frames}`"))?;
-    }
-    if let Some(size) = arguments.option("size") {
-        let parsed = size
-            .split_once('x')
-            .and_then(|(w, h)| Some((w.parse().ok()?, h.parse().ok()?)));
-        let (width, height) =
-            parsed.ok_or_else(|| format!("--size takes WIDTHxHEIGHT, got `{size}`"))?;
-        scene.output.width = width;
-        scene.output.height = height;
-    }
-    scene.validate().map_err(|invalid| {
-        format!(
-            "{} with --frames/--size: field {}: {}",
-            scene_path.display(),
-            invalid.field,
-            invalid.reason
-        )
-    })?;
-    Ok((scene_path, scene))
-}
-
-fn render(args: &[String]) -> Result<(), String> {
-    let arguments = Arguments::parse(args, &["out", "stats", "frames", "size"])?;
-    let out = PathBuf::from(arguments.required("out")?);
-    let (scene_path, scene) = load_scene(&arguments)?;
-    let setup = SceneSetupPlugin::new(scene, &scene_path).map_err(|e| e.to_string())?;
-    let stats = render_headless(setup, &out, true).map_err(|e| e.to_string())?;
-    if let Some(stats_path) = arguments.option("stats") {
-        std::fs::write(stats_path, stats.to_json())
-            .map_err(|e| format!("{stats_path}: cannot write statistics: {e}"))?;
+fn render(
+    args: &SceneArgs,
+    out: &Path,
+    stats_path: Option<&Path>,
+    background_builds: bool,
+) -> Result<(), CommandError> {
+    let setup = SceneSetupPlugin::new(args.load()?, &args.scene)?;
+    let options = HeadlessOptions {
+        progress: true,
+        background_builds,
+    };
+    let stats = setup.render_headless(options, out)?;
+    if let Some(stats_path) = stats_path {
+        std::fs::write(stats_path, stats.to_json()).map_err(CommandError::write(stats_path))?;
     }
     eprintln!(
         "nebel: wrote {} ({}x{}, {} frames on {})",
@@ -195,25 +204,20 @@ fn render(args: &[String]) -> Result<(), String> {
     Ok(())
 }
 
-fn reference(args: &[String]) -> Result<(), String> {
-    let arguments = Arguments::parse(args, &["out", "frames", "size"])?;
-    let out = PathBuf::from(arguments.required("out")?);
-    let (scene_path, scene) = load_scene(&arguments)?;
-    let volumes = scene
-        .build_volumes(&scene_path)
-        .map_err(|e| e.to_string())?;
-    let unit_heights = scene
-        .build_terrain(&scene_path)
-        .map_err(|e| e.to_string())?;
+fn reference(args: &SceneArgs, out: &Path) -> Result<(), CommandError> {
+    let scene = args.load()?;
+    let volumes = scene.build_volumes(&args.scene)?;
+    let unit_heights = scene.build_terrain(&args.scene)?;
     let terrain = scene
         .terrain
         .as_ref()
         .zip(unit_heights.as_ref())
         .map(|(terrain, unit)| terrain.world_heights(unit));
     let started = Instant::now();
-    let image = reference_image_with_terrain(&scene, volumes, terrain.as_ref(), true)
-        .map_err(|e| e.to_string())?;
-    save_reference(&image, &out).map_err(|e| e.to_string())?;
+    let (bar, report) = reference_bar(true);
+    let image = reference_image_with_terrain(&scene, volumes, terrain.as_ref(), Some(&report))?;
+    bar.finish_and_clear();
+    save_reference(&image, out)?;
     eprintln!(
         "nebel: wrote {} ({}x{}, exact CPU reference in {:.1} s)",
         out.display(),
@@ -224,47 +228,51 @@ fn reference(args: &[String]) -> Result<(), String> {
     Ok(())
 }
 
+fn compare(a: &Path, b: &Path, diff: Option<&Path>) -> Result<(), CommandError> {
+    let (first, second) = (load_png_linear(a)?, load_png_linear(b)?);
+    let metrics = nebel_reference::image_metrics::compare(&first, &second)?;
+    println!("{metrics}");
+    if let Some(diff_path) = diff {
+        let diff = difference_image(&first, &second, DIFF_SCALE)?;
+        save_png(&diff, diff_path, [0.0; 3])?;
+    }
+    Ok(())
+}
+
 /// The scene's only volume, built.
-fn single_volume(scene: &SceneDescription, scene_path: &Path) -> Result<BuiltVolume, String> {
-    let mut volumes = scene.build_volumes(scene_path).map_err(|e| e.to_string())?;
+fn single_volume(scene: &SceneDescription, scene_path: &Path) -> Result<BuiltVolume, CommandError> {
+    let mut volumes = scene.build_volumes(scene_path)?;
     if volumes.len() != 1 {
-        return Err(format!(
-            "{}: bench-fog compares exactly one volume, the scene has {}",
-            scene_path.display(),
-            volumes.len()
-        ));
+        return Err(CommandError::Unsuitable {
+            path: scene_path.to_owned(),
+            reason: format!(
+                "bench-fog compares exactly one volume, the scene has {}",
+                volumes.len()
+            ),
+        });
     }
     Ok(volumes.remove(0))
 }
 
 /// `nebel bench-fog`: nebel against Bevy's `FogVolume` on the scene's grid
-/// volume, both scored against the exact reference ([`nebel_tools::fog_comparison`]).
-fn bench_fog(args: &[String]) -> Result<(), String> {
-    let arguments = Arguments::parse(args, &["out", "frames", "size", "steps"])?;
-    let out_dir = PathBuf::from(arguments.required("out")?);
-    let step_count: u32 = match arguments.option("steps") {
-        Some(steps) => steps
-            .parse()
-            .map_err(|_| format!("--steps takes a whole number, got `{steps}`"))?,
-        None => 64,
-    };
-    let (scene_path, mut scene) = load_scene(&arguments)?;
+/// volume, both scored against the exact reference
+/// ([`nebel_tools::fog_comparison`]).
+fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), CommandError> {
+    let scene_path = &args.scene;
+    let mut scene = args.load()?;
     scene.camera.tonemapping = false;
     scene.camera.msaa = 1;
-    let volume = single_volume(&scene, &scene_path)?;
+    let volume = single_volume(&scene, scene_path)?;
+    let last_frame = f64::from(scene.frame_time(scene.output.frames - 1));
     let grid = match volume.field {
         VolumeField::Grid(grid) => grid,
-        VolumeField::Campfire(campfire) => {
-            campfire.grid_at(f64::from(scene.frame_time(scene.output.frames - 1)))
-        }
-        VolumeField::Cloud(cloud) => cloud
-            .grid_at(f64::from(scene.frame_time(scene.output.frames - 1)))
-            .map_err(|e| e.to_string())?,
+        VolumeField::Campfire(campfire) => campfire.grid_at(last_frame),
+        VolumeField::Cloud(cloud) => cloud.grid_at(last_frame)?,
         VolumeField::Cells(_) => {
-            return Err(format!(
-                "{}: bench-fog needs a grid volume",
-                scene_path.display()
-            ));
+            return Err(CommandError::Unsuitable {
+                path: scene_path.clone(),
+                reason: String::from("bench-fog needs a grid volume"),
+            });
         }
     };
     let suns: Vec<_> = scene
@@ -276,10 +284,10 @@ fn bench_fog(args: &[String]) -> Result<(), String> {
         })
         .collect();
     let [sun] = suns[..] else {
-        return Err(format!(
-            "{}: bench-fog needs exactly one directional light",
-            scene_path.display()
-        ));
+        return Err(CommandError::Unsuitable {
+            path: scene_path.clone(),
+            reason: String::from("bench-fog needs exactly one directional light"),
+        });
     };
     let light = bevy::color::Color::srgb(sun.color[0], sun.color[1], sun.color[2]).to_linear();
     let light = bevy::math::Vec3::new(light.red, light.green, light.blue) * sun.illuminance;
@@ -289,9 +297,8 @@ fn bench_fog(args: &[String]) -> Result<(), String> {
         step_count,
     };
     let fog_box = fog_comparison::fog_box(&grid);
-    let transfer_function = fog
-        .equivalent_transfer_function(light, fog_comparison::bounding_radius(&fog_box))
-        .map_err(|e| e.to_string())?;
+    let transfer_function =
+        fog.equivalent_transfer_function(light, fog_comparison::bounding_radius(&fog_box))?;
     let cells = grid.tetrahedra();
     let equivalent = BuiltVolume {
         field: VolumeField::Grid(grid),
@@ -300,25 +307,24 @@ fn bench_fog(args: &[String]) -> Result<(), String> {
         lod: None,
         lighting: None,
     };
-    // Two references (DESIGN.md §4): through the trilinear grid (the total
-    // error) and through nebel's five tetrahedra per voxel (the error of
-    // projection and pre-integration alone).
+    // Two references: through the trilinear grid (the total error) and
+    // through nebel's five tetrahedra per voxel (the error of projection and
+    // pre-integration alone).
     let tetrahedral = BuiltVolume {
         field: VolumeField::Cells(cells),
         ..equivalent.clone()
     };
-    std::fs::create_dir_all(&out_dir).map_err(|e| format!("{}: {e}", out_dir.display()))?;
+    std::fs::create_dir_all(out_dir).map_err(CommandError::write(out_dir))?;
 
-    let reference =
-        reference_image(&scene, vec![equivalent.clone()], true).map_err(|e| e.to_string())?;
-    save_reference(&reference, &out_dir.join("reference.png")).map_err(|e| e.to_string())?;
-    let tetrahedral_reference =
-        reference_image(&scene, vec![tetrahedral], true).map_err(|e| e.to_string())?;
+    let (bar, report) = reference_bar(true);
+    let reference = reference_image(&scene, vec![equivalent.clone()], Some(&report))?;
+    save_reference(&reference, &out_dir.join("reference.png"))?;
+    let tetrahedral_reference = reference_image(&scene, vec![tetrahedral], Some(&report))?;
+    bar.finish_and_clear();
     save_reference(
         &tetrahedral_reference,
         &out_dir.join("reference_tetrahedral.png"),
-    )
-    .map_err(|e| e.to_string())?;
+    )?;
     let mut rows = vec![String::from(
         "renderer,frame_ms_median,frame_ms_max,rmse,max_abs,psnr_db,rmse_vs_tetrahedral,max_abs_vs_tetrahedral",
     )];
@@ -326,19 +332,18 @@ fn bench_fog(args: &[String]) -> Result<(), String> {
         let setup = SceneSetupPlugin {
             scene: scene.clone(),
             volumes: vec![equivalent.clone()],
-            terrain: scene
-                .build_terrain(&scene_path)
-                .map_err(|e| e.to_string())?,
-            target: None,
+            terrain: scene.build_terrain(scene_path)?,
             bevy_fog,
         };
         let image_path = out_dir.join(format!("{name}.png"));
-        let stats = render_headless(setup, &image_path, true).map_err(|e| e.to_string())?;
-        let image = load_png_linear(&image_path).map_err(|e| e.to_string())?;
-        let metrics = nebel_reference::image_metrics::compare(&image, &reference)
-            .map_err(|e| e.to_string())?;
-        let tetrahedral = nebel_reference::image_metrics::compare(&image, &tetrahedral_reference)
-            .map_err(|e| e.to_string())?;
+        let options = HeadlessOptions {
+            progress: true,
+            ..HeadlessOptions::default()
+        };
+        let stats = setup.render_headless(options, &image_path)?;
+        let image = load_png_linear(&image_path)?;
+        let metrics = nebel_reference::image_metrics::compare(&image, &reference)?;
+        let tetrahedral = nebel_reference::image_metrics::compare(&image, &tetrahedral_reference)?;
         println!(
             "{name}: frame {:.1} ms (median); against the trilinear reference {metrics}; against the tetrahedral reference {tetrahedral}",
             stats.frame_wall_ms.median
@@ -355,43 +360,19 @@ fn bench_fog(args: &[String]) -> Result<(), String> {
         ));
     }
     let csv = out_dir.join("fog_comparison.csv");
-    std::fs::write(&csv, rows.join("\n") + "\n").map_err(|e| format!("{}: {e}", csv.display()))?;
+    std::fs::write(&csv, rows.join("\n") + "\n").map_err(CommandError::write(&csv))?;
     eprintln!("nebel: wrote {}", csv.display());
     Ok(())
 }
 
-fn bench_lod(args: &[String]) -> Result<(), String> {
-    let arguments = Arguments::parse(
-        args,
-        &["out", "frames", "size", "accuracies", "comparison-accuracy"],
-    )?;
-    let out_dir = PathBuf::from(arguments.required("out")?);
-    let accuracies: Vec<f64> = match arguments.option("accuracies") {
-        Some(list) => list
-            .split(',')
-            .map(|c| {
-                c.trim()
-                    .parse()
-                    .map_err(|_| format!("--accuracies takes numbers, got `{c}`"))
-            })
-            .collect::<Result<_, _>>()?,
-        None => vec![0.0, 4.0, 16.0, 64.0, 256.0],
-    };
-    let (scene_path, scene) = load_scene(&arguments)?;
-    let comparison_accuracy = match arguments.option("comparison-accuracy") {
-        Some(c) => Some(
-            c.parse::<f64>()
-                .map_err(|_| format!("--comparison-accuracy takes a number, got `{c}`"))?,
-        ),
-        None => None,
-    };
-    let points = run_lod_sweep(
-        &scene_path,
-        scene,
-        &accuracies,
-        comparison_accuracy,
-        &out_dir,
-    )?;
+fn bench_lod(
+    args: &SceneArgs,
+    out_dir: &Path,
+    accuracies: &[f64],
+    comparison_accuracy: Option<f64>,
+) -> Result<(), CommandError> {
+    let scene = args.load()?;
+    let points = run_lod_sweep(&args.scene, scene, accuracies, comparison_accuracy, out_dir)?;
     for point in &points {
         let c = point
             .accuracy
@@ -402,20 +383,5 @@ fn bench_lod(args: &[String]) -> Result<(), String> {
         );
     }
     eprintln!("nebel: wrote {}", out_dir.join("lod_sweep.csv").display());
-    Ok(())
-}
-
-fn compare(args: &[String]) -> Result<(), String> {
-    let arguments = Arguments::parse(args, &["diff"])?;
-    let paths = arguments.positional(2, "two PNG files")?;
-    let load = |path: &String| load_png_linear(path).map_err(|e| e.to_string());
-    let (a, b) = (load(&paths[0])?, load(&paths[1])?);
-    let metrics = nebel_reference::image_metrics::compare(&a, &b)
-        .map_err(|e| format!("{} vs {}: {e}", paths[0], paths[1]))?;
-    println!("{metrics}");
-    if let Some(diff_path) = arguments.option("diff") {
-        let diff = difference_image(&a, &b, DIFF_SCALE).map_err(|e| e.to_string())?;
-        save_png(&diff, diff_path, [0.0; 3]).map_err(|e| e.to_string())?;
-    }
     Ok(())
 }

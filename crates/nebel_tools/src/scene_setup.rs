@@ -9,17 +9,19 @@
 //! `1 / output.frame_rate` per frame, so frame `i` shows the path at
 //! `i / frame_rate`). Colours in scene files are sRGB.
 //!
-//! The camera renders in HDR (nebel's volumes accumulate in float targets,
-//! DESIGN.md §4) to the window, or to the [`RenderTarget`] the caller gives.
+//! The camera renders in HDR (nebel's volumes accumulate in float targets)
+//! to the window, or headless to an image ([`crate::headless`]).
 
 use bevy::camera::Hdr;
-use bevy::camera::RenderTarget;
 use bevy::core_pipeline::tonemapping::{DebandDither, Tonemapping};
 use bevy::prelude::*;
 use std::path::Path;
 
 use nebel_core::field::HeightField;
 use nebel_render::NebelSystems;
+
+use crate::headless::{HeadlessError, HeadlessOptions, render_headless};
+use crate::stats::RenderStats;
 use nebel_scene::{
     BuiltVolume, CameraView, LightDescription, MeshDescription, SceneDescription, SceneError,
 };
@@ -39,14 +41,25 @@ pub struct SceneSetupPlugin {
     /// them); spawned as a `nebel_terrain::Terrain` when the `terrain`
     /// feature is on.
     pub terrain: Option<HeightField>,
-    /// Where the camera renders; `None` renders to the primary window.
-    pub target: Option<RenderTarget>,
     /// Draw grid volumes with Bevy's own `FogVolume` ray marcher instead of
     /// nebel, for comparisons ([`crate::fog_comparison`]). Default: `None`.
     pub bevy_fog: Option<BevyFog>,
 }
 
 impl SceneSetupPlugin {
+    /// Renders this scene headless (see [`render_headless`]) with the
+    /// scene's output settings.
+    pub fn render_headless(
+        self,
+        options: HeadlessOptions,
+        out: &Path,
+    ) -> Result<RenderStats, HeadlessError> {
+        let output = self.scene.output.clone();
+        render_headless(&output, options, out, |app| {
+            app.add_plugins(self);
+        })
+    }
+
     /// Builds the scene's volumes (`scene_path` resolves their relative
     /// paths and names the file in errors); renders to the primary window.
     pub fn new(scene: SceneDescription, scene_path: &Path) -> Result<Self, SceneError> {
@@ -56,7 +69,6 @@ impl SceneSetupPlugin {
             scene,
             volumes,
             terrain,
-            target: None,
             bevy_fog: None,
         })
     }
@@ -74,10 +86,6 @@ struct SceneTerrain(Option<HeightField>);
 #[derive(Resource, Clone, Debug, Deref)]
 pub struct LoadedScene(pub SceneDescription);
 
-/// Where the scene camera should render, taken by the startup system.
-#[derive(Resource, Clone, Debug)]
-struct SceneRenderTarget(Option<RenderTarget>);
-
 /// Marks the camera spawned from the scene file.
 #[derive(Component, Clone, Copy, Debug, Default, Reflect)]
 #[reflect(Component, Default)]
@@ -90,7 +98,6 @@ pub struct SceneCamera {
 impl Plugin for SceneSetupPlugin {
     fn build(&self, app: &mut App) {
         app.insert_resource(LoadedScene(self.scene.clone()))
-            .insert_resource(SceneRenderTarget(self.target.clone()))
             .insert_resource(SceneVolumes(self.volumes.clone()))
             .insert_resource(SceneTerrain(self.terrain.clone()))
             .add_systems(Startup, (spawn_scene, spawn_terrain))
@@ -117,7 +124,6 @@ fn spawn_scene(
     volumes: Res<SceneVolumes>,
     bevy_fog: Option<Res<BevyFogSettings>>,
     mut images: ResMut<Assets<Image>>,
-    target: Res<SceneRenderTarget>,
     mut meshes: ResMut<Assets<Mesh>>,
     mut materials: ResMut<Assets<StandardMaterial>>,
     mut grids: ResMut<Assets<VolumeGrid>>,
@@ -149,9 +155,6 @@ fn spawn_scene(
     });
     if !camera.tonemapping {
         camera_entity.insert((Tonemapping::None, DebandDither::Disabled));
-    }
-    if let Some(target) = &target.0 {
-        camera_entity.insert(target.clone());
     }
 
     let mut ambient = GlobalAmbientLight {

@@ -6,18 +6,20 @@
 //!   "frames_rendered": 8,
 //!   "width": 320, "height": 240,
 //!   "frame_wall_ms": { "median": 41.2, "max": 380.5 },
+//!   "warm_up_frames": 2,
+//!   "warm_up_frame_wall_ms": { "median": 700.1, "max": 1210.4 },
 //!   "nebel_systems_cpu_ms": { "median": 0.01, "max": 0.02 },
 //!   "effects": { }
 //! }
 //! ```
 //!
 //! `frame_wall_ms` is the whole `App::update` plus waiting for the GPU, per
-//! frame; `nebel_systems_cpu_ms` is the [`NebelFrameTimings`] of the same
-//! frames; `effects` has one object of counters per effect present in the scene
-//! ([`EffectCounters`]), none for an absent effect.
-//!
-//! [`NebelFrameTimings`]: nebel_render::NebelFrameTimings
-//! [`EffectCounters`]: nebel_render::EffectCounters
+//! scene frame; `warm_up_frame_wall_ms` the same for the frames before the
+//! first, until every pipeline compiled; `nebel_systems_cpu_ms` is the
+//! diagnostic `nebel/systems_ms` of the scene frames; `effects` has one
+//! object per effect present in the scene with the latest value of each of
+//! its `nebel/<effect>/<counter>` diagnostics (and `_mean` and `_max` over the
+//! history of each timing), none for an absent effect.
 
 use std::collections::BTreeMap;
 use std::time::Duration;
@@ -75,6 +77,12 @@ pub struct RenderStats {
     pub height: u32,
     /// Wall time per frame, update plus GPU wait.
     pub frame_wall_ms: TimeSummary,
+    /// Frames run before the first scene frame, with time standing still,
+    /// until every pipeline compiled.
+    pub warm_up_frames: u32,
+    /// Wall time per warm-up frame (the first one includes the scene's
+    /// setup and, with builds that wait, its first builds).
+    pub warm_up_frame_wall_ms: TimeSummary,
     /// Wall time per frame of the `NebelSystems` set.
     pub nebel_systems_cpu_ms: TimeSummary,
     /// Counters per effect present in the scene.

@@ -157,7 +157,61 @@ fn a_bad_scene_fails_with_the_file_and_field_named() {
     );
 
     let output = nebel(&["render", bad.to_str().unwrap()]);
-    assert!(String::from_utf8_lossy(&output.stderr).contains("missing `--out`"));
+    assert_eq!(output.status.code(), Some(2), "a usage error");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("required") && stderr.contains("--out"),
+        "{stderr}"
+    );
+
+    // A volume whose grid alone would take 256 GiB: one line, exit status 1,
+    // before anything is allocated.
+    let huge = out_dir.join("huge.ron");
+    std::fs::write(
+        &huge,
+        "(version: 1, camera: (view: Pose((position: (0.0, 0.0, 9.0), look_at: (0.0, 0.0, 0.0)))), \
+         volumes: [(source: Procedural((dims: (4097, 4097, 4097))))])",
+    )
+    .unwrap();
+    let output = nebel(&["render", huge.to_str().unwrap(), "--out", "x.png"]);
+    assert_eq!(output.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("huge.ron")
+            && stderr.contains("volumes[0].source.Procedural.dims")
+            && stderr.contains("275,079,282,692 bytes")
+            && stderr.contains("memory budget"),
+        "{stderr}"
+    );
+    assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+}
+
+#[test]
+fn the_command_line_has_help_per_command_and_a_version() {
+    let output = nebel(&["--help"]);
+    assert!(output.status.success());
+    let help = String::from_utf8_lossy(&output.stdout);
+    for command in ["render", "reference", "compare", "bench-fog", "bench-lod"] {
+        assert!(help.contains(command), "{help}");
+    }
+    let output = nebel(&["render", "--help"]);
+    assert!(output.status.success());
+    let help = String::from_utf8_lossy(&output.stdout);
+    for option in [
+        "--out",
+        "--stats",
+        "--frames",
+        "--size",
+        "--background-builds",
+    ] {
+        assert!(help.contains(option), "{help}");
+    }
+    let output = nebel(&["--version"]);
+    assert!(output.status.success());
+    assert!(
+        String::from_utf8_lossy(&output.stdout).contains(env!("CARGO_PKG_VERSION")),
+        "the version"
+    );
 }
 
 #[test]
