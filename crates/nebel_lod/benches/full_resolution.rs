@@ -83,7 +83,7 @@ fn bench_grid(c: &mut Criterion, noise: &ProceduralNoise, points: usize) {
                         .expect("valid input");
                         assert_eq!(batch.len(), cells);
                         batch
-                    })
+                    });
                 },
             );
         }
@@ -93,7 +93,7 @@ fn bench_grid(c: &mut Criterion, noise: &ProceduralNoise, points: usize) {
     let mut group = c.benchmark_group(format!("brick_table_{}", points - 1));
     group.throughput(Throughput::Elements(points.pow(3) as u64));
     group.bench_function("new", |b| {
-        b.iter(|| BrickTable::new(black_box(&grid), BrickTable::DEFAULT_BRICK_SIZE))
+        b.iter(|| BrickTable::new(black_box(&grid), BrickTable::DEFAULT_BRICK_SIZE));
     });
     group.finish();
 }
@@ -132,7 +132,7 @@ fn bench_mpvo(c: &mut Criterion, name: &str, cells: &[Tetrahedron], eyes: &[(&st
         );
     }
     group.bench_function("adjacency_new", |b| {
-        b.iter(|| CellAdjacency::new(black_box(cells)))
+        b.iter(|| CellAdjacency::new(black_box(cells)));
     });
     group.finish();
 }

@@ -1,5 +1,5 @@
 //! Cost of building the volume C-LOD hierarchy (`VolumeHierarchy::new`: u8
-//! quantisation, Δ with K_max propagation and the scalar ranges of every node)
+//! quantisation, Δ with `K_max` propagation and the scalar ranges of every node)
 //! for a 129³ fBm field and for the paper's 513 × 513 × 65 cumulus-like fBm
 //! field (a forest of 8 × 8 × 1 roots of 65³ points, 17.1 million points).
 //!
@@ -28,7 +28,7 @@ use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::octree::{RefinementSettings, lod_batch, refine};
 use nebel_lod::{View, VolumeHierarchy};
 
-/// Minimum accuracy C of the benches (K_max ≈ 0.638).
+/// Minimum accuracy C of the benches (`K_max` ≈ 0.638).
 const MIN_ACCURACY: f64 = 2.0;
 
 /// The views' render target, pixels (read only for being non-empty).
@@ -55,7 +55,7 @@ fn octree_build(c: &mut Criterion) {
         group.throughput(Throughput::Elements(grid.values().len() as u64));
         let name = format!("{}x{}x{}", dims[0], dims[1], dims[2]);
         group.bench_function(name, |b| {
-            b.iter(|| VolumeHierarchy::new(black_box(&grid), MIN_ACCURACY).expect("2^n+1 grid"))
+            b.iter(|| VolumeHierarchy::new(black_box(&grid), MIN_ACCURACY).expect("2^n+1 grid"));
         });
     }
     group.finish();

@@ -222,7 +222,6 @@ fn cpu(ms: Option<f64>) -> String {
 }
 
 /// One CSV row of the peer table.
-#[allow(clippy::too_many_arguments)]
 fn peer_row(
     csv: &mut String,
     n: usize,
@@ -391,7 +390,7 @@ fn update_and_build(c: &mut Criterion) {
     group.bench_function("2049", |b| {
         b.iter(|| {
             TerrainHierarchy::new(black_box(field.clone()), DEFAULT_MIN_RESOLUTION).expect("2^k+1")
-        })
+        });
     });
     group.finish();
     let hierarchy = TerrainHierarchy::new(field, DEFAULT_MIN_RESOLUTION).expect("2^k+1");
@@ -409,7 +408,7 @@ fn update_and_build(c: &mut Criterion) {
                 hierarchy
                     .update(black_box(*eye), Some(frustum), &settings, &mut mesh)
                     .expect("valid view")
-            })
+            });
         });
     }
     group.finish();

@@ -145,7 +145,7 @@ mod tests {
 
     #[test]
     fn gpu_cell_is_64_bytes_and_round_trips() {
-        assert_eq!(std::mem::size_of::<GpuCell>(), 64);
+        assert_eq!(size_of::<GpuCell>(), 64);
         let t = tetrahedron(0.5, 0.125);
         assert_eq!(GpuCell::from_tetrahedron(&t).to_tetrahedron(), t);
         let cell = GpuCell::from_tetrahedron(&t);

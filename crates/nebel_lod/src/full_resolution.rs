@@ -217,9 +217,9 @@ pub(crate) struct Decomposition {
     pub(crate) corners: [([usize; 4], usize); 4],
 }
 
-/// nebel_core's decomposition for each parity, read off once from
+/// `nebel_core`'s decomposition for each parity, read off once from
 /// [`Hexahedron::tetrahedra`] of a hexahedron whose scalars are its corner
-/// indices, so the batch conforms exactly as nebel_core's meshes do. Indexed
+/// indices, so the batch conforms exactly as `nebel_core`'s meshes do. Indexed
 /// by parity: 0 even, 1 odd. The octree's coarse interpolation reads it too.
 pub(crate) static DECOMPOSITIONS: LazyLock<[Decomposition; 2]> = LazyLock::new(|| {
     let indices =

@@ -358,7 +358,7 @@ impl VolumeBatcher {
                 check_allocation(
                     || format!("full-resolution batch of {} voxels", Dims(&voxels)),
                     &[voxels[0], voxels[1], voxels[2], 5],
-                    std::mem::size_of::<GpuCell>() as u64,
+                    size_of::<GpuCell>() as u64,
                 )?;
                 Kind::FullResolution {
                     bricks: BrickTable::new(&grid, BrickTable::DEFAULT_BRICK_SIZE),

@@ -623,7 +623,7 @@ fn bad_input_gives_clear_errors_and_never_panics() {
                 .iter()
                 .flat_map(|c| c.vertices)
                 .flatten()
-                .all(|v| v.is_finite())
+                .all(f32::is_finite)
         );
     }
     let far = DAffine3::from_translation(DVec3::new(1e5, 0.0, -1e5));

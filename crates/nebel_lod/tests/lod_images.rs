@@ -35,7 +35,7 @@ use nebel_reference::image_metrics::{LinearImage, compare};
 use nebel_reference::{ReferenceCamera, ReferenceScene, ReferenceVolume, render};
 use proptest::prelude::*;
 
-/// Minimum accuracy C of every hierarchy here (K_max ≈ 0.64).
+/// Minimum accuracy C of every hierarchy here (`K_max` ≈ 0.64).
 const C_MIN: f64 = 2.0;
 
 /// The accuracies of the error sweep.
@@ -207,7 +207,11 @@ fn full(grid: &DensityGrid, transfer: &TransferFunction, eye: DVec3) -> CellBatc
 
 /// The exact reference image of `batch` (sorted emission-absorption).
 fn image(batch: &CellBatch, transfer: &TransferFunction, camera: ReferenceCamera) -> LinearImage {
-    let cells = batch.cells.iter().map(|c| c.to_tetrahedron()).collect();
+    let cells = batch
+        .cells
+        .iter()
+        .map(nebel_lod::GpuCell::to_tetrahedron)
+        .collect();
     let scene = ReferenceScene::new(
         camera,
         ReferenceVolume::Cells(cells),

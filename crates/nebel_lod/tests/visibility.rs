@@ -331,7 +331,11 @@ fn sorted_batch_is_the_reordered_mesh() {
         })
         .collect();
     assert_eq!(batch, CellBatch::from_tetrahedra(&in_world));
-    let drawn: Vec<Tetrahedron> = batch.cells.iter().map(|c| c.to_tetrahedron()).collect();
+    let drawn: Vec<Tetrahedron> = batch
+        .cells
+        .iter()
+        .map(nebel_lod::GpuCell::to_tetrahedron)
+        .collect();
     let targets: Vec<DVec3> = [0.2, 0.5, 0.9]
         .map(|f| world_from_local.transform_point3(cone_point(DVec3::new(f, f, 0.5), 0.8)))
         .to_vec();

@@ -588,10 +588,10 @@ fn bad_views_and_inputs_give_typed_errors_and_keep_the_last_batch() {
         let result = batcher.update(&nan_eye, &inputs(&transfer));
         match result {
             Err(VolumeBatchError::Batch(BatchError::NonFiniteEye { .. })) => {
-                assert!(ordered && !octree, "{name}")
+                assert!(ordered && !octree, "{name}");
             }
             Err(VolumeBatchError::Refinement(RefinementError::NonFiniteEye { .. })) => {
-                assert!(octree, "{name}")
+                assert!(octree, "{name}");
             }
             Ok(changed) => assert!(!ordered && !changed, "{name}"),
             Err(other) => panic!("{name}: {other}"),

@@ -461,7 +461,7 @@ pub fn render(
     let rows = Mutex::new(image.pixels.chunks_mut(width as usize).enumerate());
     let rows_done = AtomicU32::new(0);
     let threads = std::thread::available_parallelism()
-        .map_or(1, |n| n.get())
+        .map_or(1, std::num::NonZero::get)
         .min(height as usize);
     std::thread::scope(|scope| {
         for _ in 0..threads {
@@ -470,7 +470,7 @@ pub fn render(
                 loop {
                     let next = rows
                         .lock()
-                        .unwrap_or_else(|poisoned| poisoned.into_inner())
+                        .unwrap_or_else(std::sync::PoisonError::into_inner)
                         .next();
                     let Some((y, row)) = next else { break };
                     for (x, pixel) in row.iter_mut().enumerate() {

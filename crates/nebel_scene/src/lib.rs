@@ -4,7 +4,7 @@
 //! (`assets/scenes/*.ron`, `tests/scenes/*.ron`). This crate is the schema, its
 //! loader and its validation, builds the fields a scene describes
 //! ([`SceneDescription::build_volumes`], [`SceneDescription::build_terrain`]),
-//! and renders a scene's exact reference image ([`reference`]); it knows
+//! and renders a scene's exact reference image ([`mod@reference`]); it knows
 //! nothing of Bevy, so the CPU reference renderer reads the same files.
 //!
 //! # Schema, version 1
@@ -147,7 +147,7 @@ pub struct CameraSettings {
     pub near: f32,
     /// A fixed pose or a path of keyframes.
     pub view: CameraView,
-    /// Whether the HDR image is tonemapped (Bevy's TonyMcMapface with
+    /// Whether the HDR image is tonemapped (Bevy's `TonyMcMapface` with
     /// debanding) before it is written. `false` writes linear HDR values,
     /// clamped, sRGB encoded: what `nebel reference` computes, so accuracy
     /// tests compare like with like. Default: true.

@@ -110,7 +110,7 @@ fn terrain_hit(field: &HeightField, min: DVec3, max: DVec3, ray: &Ray) -> Option
     let near = a.min(b).max_element().max(0.0);
     let far = a.max(b).min_element();
     // NaN (a ray parallel to a face, on it) counts as a miss.
-    if near.partial_cmp(&far).is_none_or(|order| order.is_gt()) {
+    if near.partial_cmp(&far).is_none_or(std::cmp::Ordering::is_gt) {
         return None;
     }
     let above = |t: f64| {

@@ -221,9 +221,6 @@ fn background(scene: &SceneDescription) -> [f32; 3] {
 }
 
 /// Writes a reference image as an 8-bit sRGB PNG.
-pub fn save_reference(
-    image: &nebel_reference::image_metrics::LinearImage,
-    out: &Path,
-) -> Result<(), ImageMetricsError> {
+pub fn save_reference(image: &LinearImage, out: &Path) -> Result<(), ImageMetricsError> {
     save_png(image, out, [0.0; 3])
 }

@@ -1,10 +1,10 @@
 //! Building a terrain's quadtree in the background.
 //!
-//! [`start_terrain_builds`] notices a new terrain, a changed source or one of
+//! `start_terrain_builds` notices a new terrain, a changed source or one of
 //! `spacing`, `vertical_scale`, `min_accuracy`, and a modified height asset;
 //! it takes the unit heights (the asset's shared values, or a procedural
-//! source's settings) and starts [`build_quadtree`] on the task pool.
-//! [`finish_terrain_builds`] takes the result when it is ready (at once under
+//! source's settings) and starts `build_quadtree` on the task pool.
+//! `finish_terrain_builds` takes the result when it is ready (at once under
 //! `HeavyBuilds::Blocking`): the new quadtree replaces the old one, which was
 //! drawn meanwhile, or the failure is recorded in [`TerrainStatus::Failed`],
 //! logged once and the mesh removed. A failed terrain is not built again
@@ -65,7 +65,7 @@ enum UnitHeights {
     Procedural { size: u32, noise: TerrainNoise },
 }
 
-/// Everything [`build_quadtree`] needs, owned, so it runs on another thread.
+/// Everything `build_quadtree` needs, owned, so it runs on another thread.
 pub(crate) struct BuildInput {
     heights: UnitHeights,
     spacing: f32,

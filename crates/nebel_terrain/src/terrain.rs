@@ -19,7 +19,7 @@
 //! ([`crate::build`]). It takes about 4 ms for 513², 65 ms for 2049² and a
 //! quarter of a second for 4097², plus the generator's time, so it runs on
 //! Bevy's `AsyncComputeTaskPool` and the terrain appears (or changes) in the
-//! first frame after it is done ([`HeavyBuilds`](nebel_render::HeavyBuilds)
+//! first frame after it is done ([`HeavyBuilds`]
 //! can make the frame wait instead). What happens every frame is in
 //! [`crate::update`].
 

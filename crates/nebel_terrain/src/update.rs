@@ -50,7 +50,7 @@
 //!
 //! # Diagnostics
 //!
-//! The `nebel/terrain/*` diagnostics of [`TerrainPlugin`](crate::TerrainPlugin):
+//! The `nebel/terrain/*` diagnostics of [`TerrainPlugin`]:
 //! `terrains`, `triangles` and `vertices` (of the level of detail, all
 //! terrains), `updates` (mesh rebuilds so far), `update_ms` (each frame that
 //! rebuilt a mesh: refinement, morphing, triangle output and the copy into
@@ -143,7 +143,6 @@ impl TerrainAssets<'_, '_> {
 
 /// Refines every visible terrain with a quadtree for the camera when the
 /// view changed enough, and writes its mesh (see the module docs).
-#[allow(clippy::type_complexity)]
 pub(crate) fn update_terrain_meshes(
     mut commands: Commands,
     cameras: LodCameras,

@@ -36,7 +36,7 @@ pub struct FlyCameraPlugin;
 
 impl Plugin for FlyCameraPlugin {
     fn build(&self, app: &mut App) {
-        app.add_systems(Update, fly);
+        app.register_type::<FlyCamera>().add_systems(Update, fly);
     }
 }
 

@@ -23,7 +23,7 @@
 //!
 //! written with [`EQUIVALENT_POINTS`] control points (the linear pieces of κ
 //! deviate from the exponential by at most `(σDR / 128)² / 8`, relative). One
-//! exact reference ([`nebel_core::reference`]) then scores both renderers.
+//! exact reference ([`nebel_reference::render`]) then scores both renderers.
 //!
 //! The density texture holds the grid's points at texel centres, so the fog
 //! box is the grid's box grown by half a voxel on every side; the scenes used
@@ -98,7 +98,7 @@ pub fn bounding_radius(fog_box: &Transform) -> f32 {
     (fog_box.scale / 2.0).length()
 }
 
-/// The grid as Bevy's density texture: a 3D R16Float image, x fastest.
+/// The grid as Bevy's density texture: a 3D `R16Float` image, x fastest.
 fn density_texture(grid: &DensityGrid) -> Image {
     let [nx, ny, nz] = grid.dims();
     let data = grid

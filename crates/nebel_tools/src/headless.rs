@@ -51,9 +51,11 @@ use indicatif::{ProgressBar, ProgressStyle};
 use nebel::NebelPlugins;
 use nebel_scene::OutputSettings;
 
-/// Frames to keep running after the last scene frame while the GPU read-back
-/// of the captured image completes (it takes one or two on every driver seen).
-const READBACK_FRAMES: u32 = 8;
+/// How long to keep running frames after the last scene frame while the GPU
+/// read-back of the captured image completes (one or two frames with builds
+/// that wait; with background builds the CPU driver shares its cores with
+/// them and has taken longer).
+const READBACK_TIMEOUT: Duration = Duration::from_secs(20);
 
 /// Most frames to wait, before the scene's first, for shaders to load and
 /// pipelines to compile.
@@ -88,7 +90,10 @@ pub enum HeadlessError {
     )]
     NoAdapter,
     /// The frame was rendered but never came back from the GPU.
-    #[error("the rendered image did not come back from the GPU within {READBACK_FRAMES} frames")]
+    #[error(
+        "the rendered image did not come back from the GPU within {} s",
+        READBACK_TIMEOUT.as_secs()
+    )]
     Readback,
     /// The captured image could not be converted or written.
     #[error("{}: cannot write image: {reason}", path.display())]
@@ -258,10 +263,9 @@ pub fn render_headless(
         bar.inc(1);
     }
     bar.finish_and_clear();
-    for _ in 0..READBACK_FRAMES {
-        if captured.lock().expect("capture slot").is_some() {
-            break;
-        }
+    let readback = Instant::now();
+    while captured.lock().expect("capture slot").is_none() && readback.elapsed() < READBACK_TIMEOUT
+    {
         update_and_wait(&mut app);
     }
     let image = captured

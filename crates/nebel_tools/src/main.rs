@@ -76,7 +76,7 @@ enum Command {
     },
     /// Render the scene's one grid volume with nebel and with Bevy's
     /// `FogVolume` under the same optics, score both against the exact
-    /// reference, write DIR/fog_comparison.csv and the images.
+    /// reference, write `DIR/fog_comparison.csv` and the images.
     BenchFog {
         #[command(flatten)]
         scene: SceneArgs,
@@ -89,8 +89,8 @@ enum Command {
     },
     /// Sweep the octree accuracy c of the scene's one grid volume, score
     /// each image against full resolution and the exact reference, write
-    /// DIR/lod_sweep.csv and a plot of frame time against error
-    /// (DIR/lod_sweep.svg).
+    /// `DIR/lod_sweep.csv` and a plot of frame time against error
+    /// (`DIR/lod_sweep.svg`).
     BenchLod {
         #[command(flatten)]
         scene: SceneArgs,
@@ -116,7 +116,7 @@ struct SceneArgs {
     /// Frames to run instead of the scene's `output.frames`.
     #[arg(long)]
     frames: Option<u32>,
-    /// Image size instead of the scene's, as WIDTHxHEIGHT.
+    /// Image size instead of the scene's, as `WIDTHxHEIGHT`.
     #[arg(long, value_parser = parse_size)]
     size: Option<(u32, u32)>,
 }

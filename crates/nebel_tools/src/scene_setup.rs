@@ -83,7 +83,8 @@ struct SceneVolumes(Vec<BuiltVolume>);
 struct SceneTerrain(Option<HeightField>);
 
 /// The scene file the world was set up from.
-#[derive(Resource, Clone, Debug, Deref)]
+#[derive(Resource, Clone, Debug, Deref, Reflect)]
+#[reflect(opaque, Resource, Debug, Clone)]
 pub struct LoadedScene(pub SceneDescription);
 
 /// Marks the camera spawned from the scene file.
@@ -98,6 +99,8 @@ pub struct SceneCamera {
 impl Plugin for SceneSetupPlugin {
     fn build(&self, app: &mut App) {
         app.insert_resource(LoadedScene(self.scene.clone()))
+            .register_type::<LoadedScene>()
+            .register_type::<SceneCamera>()
             .insert_resource(SceneVolumes(self.volumes.clone()))
             .insert_resource(SceneTerrain(self.terrain.clone()))
             .add_systems(Startup, (spawn_scene, spawn_terrain))
@@ -117,7 +120,6 @@ fn pose_transform(position: [f32; 3], look_at: [f32; 3]) -> Transform {
     Transform::from_translation(Vec3::from(position)).looking_at(Vec3::from(look_at), Vec3::Y)
 }
 
-#[allow(clippy::too_many_arguments)]
 fn spawn_scene(
     mut commands: Commands,
     scene: Res<LoadedScene>,

@@ -33,7 +33,7 @@ pub struct AdapterSummary {
     pub name: String,
     /// The graphics API: Vulkan, Gl, Metal, Dx12.
     pub backend: String,
-    /// Cpu (a software driver such as lavapipe), DiscreteGpu, IntegratedGpu, ...
+    /// Cpu (a software driver such as lavapipe), `DiscreteGpu`, `IntegratedGpu`, ...
     pub device_type: String,
 }
 

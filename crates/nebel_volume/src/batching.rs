@@ -3,23 +3,23 @@
 //! itself (full resolution with bricks, the octree C-LOD, or a cell mesh in
 //! visibility order) and decides when the view changes the batch.
 //!
-//! 1. [`start_volume_builds`]: the source (the grid asset's shared grid or
+//! 1. `start_volume_builds`: the source (the grid asset's shared grid or
 //!    the cells) and the [`BatchSettings`] (order from the optical mode, the
 //!    octree's `C` from [`VolumeLod`], the light field from
 //!    [`VolumeLighting`] and the sun in the volume's frame) are compared with
 //!    what the batcher was built from; a difference starts a new
 //!    [`VolumeBatcher`] on the task pool (padding, light field, hierarchy:
 //!    up to a second for the 513 × 65 × 513 layer).
-//! 2. [`finish_volume_builds`]: a finished batcher replaces the old one,
+//! 2. `finish_volume_builds`: a finished batcher replaces the old one,
 //!    which drew meanwhile; a failure is kept in [`VolumeStatus::Failed`],
 //!    logged once for the entity, and not retried until the inputs change.
-//! 3. [`update_volume_batches`]: each visible volume's batcher is updated for
+//! 3. `update_volume_batches`: each visible volume's batcher is updated for
 //!    the view of the LOD camera ([`LodCameras`]) and the frame's inputs (the
 //!    transfer function, the accuracy `c`); the entity's `CellBatch` is
 //!    written only when the batch changed, so the render world uploads only
 //!    then. A hidden volume (its [`InheritedVisibility`] false) has no batch
 //!    and builds nothing.
-//! 4. [`measure_volumes`]: the `nebel/volume/*` diagnostics.
+//! 4. `measure_volumes`: the `nebel/volume/*` diagnostics.
 //!
 //! They run in `PostUpdate`, after transform propagation, the camera's
 //! projection update and visibility propagation, so a batch is built for the
@@ -132,7 +132,6 @@ fn batch_settings(
 
 /// Starts a batcher build for every visible volume whose source or settings
 /// changed (see the module docs).
-#[allow(clippy::type_complexity)]
 pub(crate) fn start_volume_builds(
     mut volumes: Query<(
         Entity,
@@ -217,7 +216,6 @@ fn world_from_local(transform: &GlobalTransform) -> DAffine3 {
 
 /// Updates every visible volume's batch for this frame's view and writes it
 /// when it changed (see the module docs).
-#[allow(clippy::type_complexity)]
 pub(crate) fn update_volume_batches(
     mut commands: Commands,
     cameras: LodCameras,

@@ -662,8 +662,10 @@ mod tests {
             // so compare voxel by voxel: each run of five cells with its
             // in-voxel order, as a multiset of voxels.
             let voxels = |b: &CellBatch| {
-                let mut v: Vec<Vec<[u32; 16]>> =
-                    bits(&b.cells).chunks(5).map(|c| c.to_vec()).collect();
+                let mut v: Vec<Vec<[u32; 16]>> = bits(&b.cells)
+                    .chunks(5)
+                    .map(<[[u32; 16]]>::to_vec)
+                    .collect();
                 v.sort();
                 v
             };
@@ -800,7 +802,7 @@ mod tests {
             assert!(far_apart, "seed {seed}");
             let batch = lod_batch(&h, &r, &view(identity, DVec3::new(3.0, -2.0, 7.0))).unwrap();
             assert_one_value_per_point(&batch);
-            let cells: Vec<Tetrahedron> = batch.cells.iter().map(|c| c.to_tetrahedron()).collect();
+            let cells: Vec<Tetrahedron> = batch.cells.iter().map(GpuCell::to_tetrahedron).collect();
             let mut t_vertices = 0;
             for cell in &cells {
                 for (&p, &s) in cell.positions.iter().zip(&cell.scalars) {

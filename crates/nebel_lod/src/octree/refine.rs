@@ -389,7 +389,7 @@ mod tests {
     use super::*;
     use crate::full_resolution::{BrickTable, CellOrder, full_resolution_batch};
 
-    /// The smallest minimum accuracy the tests use (K_max close to 1).
+    /// The smallest minimum accuracy the tests use (`K_max` close to 1).
     const C_MIN: f64 = 1.75;
 
     /// ρ > 0 for every s > 0.

@@ -4,7 +4,7 @@ use proptest::prelude::*;
 
 use super::*;
 
-/// The minimum accuracy used by the tests: K_max = 2 / (4 − √3/2) ≈ 0.638.
+/// The minimum accuracy used by the tests: `K_max` = 2 / (4 − √3/2) ≈ 0.638.
 const C: f64 = 2.0;
 
 fn grid(dims: [usize; 3], value: impl Fn([usize; 3]) -> f32) -> DensityGrid {
@@ -48,7 +48,7 @@ fn exact_density(hierarchy: &VolumeHierarchy, p: [usize; 3]) -> f64 {
 }
 
 /// The piecewise-linear interpolation of the node's corners over its five
-/// tetrahedra (nebel_core's decomposition), at grid point `p` in its box:
+/// tetrahedra (`nebel_core`'s decomposition), at grid point `p` in its box:
 /// an independent reference for the coarse values.
 fn coarse_value(hierarchy: &VolumeHierarchy, node: Node, p: [usize; 3]) -> f64 {
     let to_f = |q: [usize; 3]| DVec3::new(q[0] as f64, q[1] as f64, q[2] as f64);

@@ -501,7 +501,6 @@ impl Frame<'_> {
     /// `known[e]` is the criterion of the neighbour across edge `e` (E, N, W,
     /// S) when the caller has it (a sibling's, computed by the parent), else
     /// NaN.
-    #[allow(clippy::too_many_arguments)]
     fn node(
         &mut self,
         level: usize,

@@ -9,14 +9,14 @@
 //! scene depth. The render world is a row of small systems, as in Bevy's
 //! volumetric fog, split by concern:
 //!
-//! - [`resources`]: extraction of the drawable batches, their GPU buffers
+//! - `resources`: extraction of the drawable batches, their GPU buffers
 //!   (uploaded again only when the batch component changed), the
 //!   pre-integration tables (cached by transfer function hash and segment
 //!   length, built once per change on the CPU: 64×64×128 colour, 64×64 pair
 //!   table), per-view uniforms and accumulation targets;
-//! - [`pipeline`]: bind group layouts, shaders and the pipeline variants
+//! - `pipeline`: bind group layouts, shaders and the pipeline variants
 //!   (optical mode, modulated segment lengths, single scattering, MSAA);
-//! - [`node`]: the draw system: batches back to front by the distance of
+//! - `node`: the draw system: batches back to front by the distance of
 //!   their bounds' centre, inside a batch in buffer order (the batch's exact
 //!   order), into a per-view float accumulation target that starts
 //!   transparent; then one full-screen pass (`cell_composite.wgsl`) puts the
@@ -37,9 +37,9 @@
 //! [`CellProjectionStats`] counters and the `nebel/cell_projection/*`
 //! diagnostics prove it.
 
-pub mod node;
-pub mod pipeline;
-pub mod resources;
+mod node;
+mod pipeline;
+mod resources;
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -82,7 +82,8 @@ impl CellProjectionPlugin {
 /// the render world (an `Arc`): the render world counts, the main world
 /// publishes the totals as the [`CellProjectionPlugin`] diagnostics once any
 /// work was done.
-#[derive(Resource, Clone, Default, Debug)]
+#[derive(Resource, Clone, Default, Debug, Reflect)]
+#[reflect(opaque, Resource, Default, Debug, Clone)]
 pub struct CellProjectionStats(Arc<CellProjectionCounters>);
 
 /// The counters behind [`CellProjectionStats`]; each only grows.
@@ -125,6 +126,7 @@ impl Plugin for CellProjectionPlugin {
         let stats = CellProjectionStats::default();
         app.insert_resource(stats.clone())
             .register_type::<CellBatch>()
+            .register_type::<CellProjectionStats>()
             .register_type::<crate::CellScattering>()
             .add_systems(Last, publish_counters);
         for path in [

@@ -18,7 +18,6 @@ use super::resources::{
 };
 
 /// Draws every batch into the view's HDR target, back to front.
-#[allow(clippy::too_many_arguments)]
 pub fn draw_cell_batches(
     view: ViewQuery<(
         &ViewTarget,

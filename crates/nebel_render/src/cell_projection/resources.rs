@@ -72,6 +72,8 @@ pub fn extract_cell_batches(
     mut refused: Local<HashSet<Entity>>,
 ) {
     extracted.0.clear();
+    // Forget entities that are gone, so the set stays as small as the world.
+    refused.retain(|entity| batches.contains(*entity));
     for (entity, batch) in &batches {
         if !batch.is_drawable() {
             continue;
@@ -219,6 +221,7 @@ pub fn prepare_cell_tables(
     tables
         .0
         .retain(|key, _| extracted.0.iter().any(|(_, b)| b.table_key == *key));
+    failed.retain(|key| extracted.0.iter().any(|(_, b)| b.table_key == *key));
     for (_, batch) in &extracted.0 {
         if tables.0.contains_key(&batch.table_key) || failed.contains(&batch.table_key) {
             continue;
@@ -344,7 +347,6 @@ pub fn make_depth_readable(
 
 /// Writes each view's uniform, gets its accumulation target and
 /// specialises its pipelines.
-#[allow(clippy::too_many_arguments)]
 pub fn prepare_cell_views(
     mut commands: Commands,
     extracted: Res<ExtractedCellBatches>,
