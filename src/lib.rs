@@ -3,11 +3,10 @@
 //! Terrain with continuous level of detail (Röttger's quadtree C-LOD), cloud
 //! volumes refined by a view-dependent octree and lit by a light field, and
 //! emissive fire and search lights, drawn by cell projection with
-//! pre-integrated transfer functions, exact per pixel (Röttger and Ertl,
-//! "A Volumetric Cloud Rendering Method", 2003; Röttger, "Volumetric
-//! Natural Phenomena", 2004). This umbrella crate is the plugin group
-//! [`NebelPlugins`], the [`prelude`] and the re-exported crates; each effect is
-//! a cargo feature.
+//! pre-integrated transfer functions, exact per pixel. This umbrella crate is
+//! the plugin group [`NebelPlugins`], the [`prelude`] and the re-exported
+//! crates; each effect is a cargo feature (`volume`, `terrain`, both
+//! default).
 //!
 //! ```no_run
 //! use bevy::prelude::*;
@@ -16,99 +15,22 @@
 //! App::new().add_plugins((DefaultPlugins, NebelPlugins)).run();
 //! ```
 //!
-//! A cloud from a density grid and an animated campfire:
+//! The README shows how to add each effect to a game; its Rust snippets are
+//! compiled as doctests of this crate.
 //!
-//! ```no_run
-//! use std::sync::Arc;
-//! use bevy::{math::DVec3, prelude::*};
-//! use nebel::nebel_core::field::{DensityGrid, ProceduralNoise};
-//! use nebel::nebel_core::optics::OpticalMode;
-//! use nebel::nebel_core::transfer::{TransferFunction, TransferPreset};
-//! use nebel::prelude::*;
+//! # References
 //!
-//! fn spawn_cloud(mut commands: Commands, mut grids: ResMut<Assets<VolumeGrid>>) {
-//!     let grid = DensityGrid::procedural([33, 17, 33], DVec3::splat(0.25), DVec3::ZERO, &ProceduralNoise::default())
-//!         .expect("valid grid");
-//!     commands.spawn((
-//!         Volume {
-//!             field: VolumeField::Grid(grids.add(VolumeGrid::from(grid))),
-//!             transfer_function: Arc::new(TransferFunction::preset(TransferPreset::Cloud)),
-//!             mode: OpticalMode::Sorted,
-//!         },
-//!         Transform::from_xyz(-4.0, 10.0, -4.0),
-//!     ));
-//!     // An animated fire: emissive, 16³ cells regenerated every frame.
-//!     commands.spawn((Campfire::default(), Transform::from_scale(Vec3::splat(2.0))));
-//! }
-//!
-//! App::new()
-//!     .add_plugins((DefaultPlugins, NebelPlugins))
-//!     .add_systems(Startup, spawn_cloud)
-//!     .run();
-//! ```
-//!
-//! A lit cloud layer drawn through the octree C-LOD, drifting with the wind:
-//!
-//! ```no_run
-//! use bevy::{math::DVec3, prelude::*};
-//! use nebel::nebel_core::field::CloudNoise;
-//! use nebel::prelude::*;
-//!
-//! fn spawn_clouds(mut commands: Commands) {
-//!     commands.spawn((
-//!         CloudVolume {
-//!             dims: UVec3::new(129, 17, 129),
-//!             min: Vec3::new(-2560.0, 600.0, -2560.0),
-//!             max: Vec3::new(2560.0, 1240.0, 2560.0),
-//!             noise: CloudNoise { coverage: 0.45, octaves: 5, wavelength: 1800.0,
-//!                                 wind: DVec3::new(8.0, 0.0, 0.0), ..default() },
-//!         },
-//!         VolumeLod { accuracy: 16.0, min_accuracy: 4.0 },
-//!         VolumeLighting { shadow_extinction: 0.008, ..default() },
-//!     ));
-//! }
-//! ```
-//!
-//! A terrain from a 16-bit grayscale height map (`assets/valley.png`, black
-//! 0 m, white 400 m, a grid point every 10 m) drawn through the quadtree
-//! C-LOD with geomorphing, or a procedural one:
-//!
-//! ```no_run
-//! use bevy::prelude::*;
-//! use nebel::prelude::*;
-//!
-//! fn spawn_terrain(mut commands: Commands, assets: Res<AssetServer>) {
-//!     commands.spawn(Terrain {
-//!         source: TerrainSource::Heights(assets.load::<TerrainHeights>("valley.png")),
-//!         spacing: 10.0,
-//!         vertical_scale: 400.0,
-//!         accuracy: 300.0,   // c: larger draws more triangles
-//!         min_accuracy: 2.0, // C
-//!         ..default()
-//!     });
-//!     // 513 × 513 points of fBm noise with wide valleys, 7 km east of the origin.
-//!     commands.spawn((
-//!         Terrain {
-//!             source: TerrainSource::Procedural {
-//!                 size: 513,
-//!                 noise: TerrainNoise { seed: 7, exponent: 1.8, ..default() },
-//!             },
-//!             debug: TerrainDebug { lod_colours: true, ..default() },
-//!             ..default()
-//!         },
-//!         Transform::from_xyz(7000.0, 0.0, 0.0),
-//!     ));
-//! }
-//!
-//! App::new()
-//!     .add_plugins((DefaultPlugins, NebelPlugins))
-//!     .add_systems(Startup, spawn_terrain)
-//!     .run();
-//! ```
+//! - Röttger and Ertl 2003: Stefan Röttger and Thomas Ertl, "Fast Volumetric
+//!   Display of Natural Gaseous Phenomena", Computer Graphics International,
+//!   2003.
+//! - Röttger 2004: Stefan Röttger, "Volumetric Methods for the Real-Time
+//!   Display of Natural Gaseous Phenomena", doctoral thesis, University of
+//!   Stuttgart, 2004.
 
 use bevy::app::{PluginGroup, PluginGroupBuilder};
 
 pub use nebel_core;
+pub use nebel_lod;
 pub use nebel_render;
 #[cfg(feature = "terrain")]
 pub use nebel_terrain;
@@ -151,3 +73,8 @@ pub mod prelude {
         VolumeError, VolumeField, VolumeGrid, VolumeLighting, VolumeLod, VolumeStatus,
     };
 }
+
+/// The README's Rust snippets, compiled as doctests so they stay true.
+#[doc = include_str!("../README.md")]
+#[cfg(all(doctest, feature = "volume", feature = "terrain"))]
+pub struct ReadmeDoctests;

@@ -1,4 +1,4 @@
-//! Procedural cumulus clouds and their light field (paper 000 §5, paper 002):
+//! Procedural cumulus clouds and their light field (Röttger and Ertl 2003 §5, Schpok et al. 2003):
 //! generation time of the paper's 513 × 513 × 65 field (here 513 × 65 × 513,
 //! grid axis y up: 17.1 million points, default 5 octaves) and of its light
 //! intensity γ with and without the shadow sweep, on one thread and on every

@@ -1,9 +1,9 @@
 //! Convex cells with a scalar per vertex, their decomposition into tetrahedra and
-//! exact ray-cell intersection (paper 000 §2-3 and §6, paper 001 ch. 7 and 11;
-//! DESIGN.md §3 and §5).
+//! exact ray-cell intersection (Röttger and Ertl 2003 §2-3 and §6, Röttger
+//! 2004 ch. 7 and 11).
 //!
 //! Every volumetric effect ends as cells: [`Tetrahedron`]s for the sorted
-//! emission-absorption model, [`Prism`]s (ground fog, aurora curtains) and
+//! emission-absorption model, [`Prism`]s (cells between two height fields) and
 //! [`Hexahedron`]s (voxels, octree leaves) for the emissive model. Inside a
 //! tetrahedron the scalar is the barycentric (linear) interpolation of its four
 //! vertex scalars, which is what pre-integration assumes: along any ray the
@@ -17,14 +17,14 @@
 //!   a grid cell uses follows the parity `(i + j + k) mod 2` of its integer
 //!   position ([`HexahedronParity::of_cell`]). Every face diagonal of one
 //!   decomposition then coincides with the face diagonal its neighbour uses on the
-//!   shared face, so the tetrahedral mesh conforms (paper 000 §3, Figure 1).
+//!   shared face, so the tetrahedral mesh conforms (Röttger and Ertl 2003 §3, Figure 1).
 //! - A prism splits into three tetrahedra ([`Prism::tetrahedra`]). Each
 //!   quadrilateral side face is cut by the diagonal that runs from the bottom
 //!   vertex with the smaller global id to the top vertex with the larger one.
 //!   Two prisms sharing a side face share its two ids and therefore its
 //!   diagonal, for any numbering (Dompierre et al., "How to subdivide pyramids,
 //!   prisms and hexahedra into tetrahedra", 1999). Over a terrain grid the id is
-//!   the grid point index, which gives the alternating pattern of paper 000 §6.
+//!   the grid point index, which gives the alternating pattern of Röttger and Ertl 2003 §6.
 //!
 //! # Ray-cell intersection
 //!
@@ -355,7 +355,7 @@ fn intersect_pieces(pieces: &[Tetrahedron], ray: &Ray) -> Option<CellSegment> {
 }
 
 /// A triangular prism: a bottom triangle `0, 1, 2` and a top triangle `3, 4, 5`,
-/// vertex `i + 3` above vertex `i` (ground fog over a terrain triangle, paper 000 §6).
+/// vertex `i + 3` above vertex `i` (ground fog over a terrain triangle, Röttger and Ertl 2003 §6).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Prism {
     /// Vertex positions, world units: bottom `0..3`, top `3..6`.

@@ -2,15 +2,29 @@
 //! without Bevy.
 //!
 //! Everything here is plain Rust so it builds in a minute and is tested without a
-//! GPU (DESIGN.md §2). The Bevy crates only move these results to the GPU.
+//! GPU. The Bevy crates only move these results to the GPU.
 //!
-//! - [`optics`]: optical modes and compositing of premultiplied RGBA (DESIGN.md §4).
+//! - [`optics`]: optical modes and compositing of premultiplied RGBA.
 //! - [`transfer`]: transfer functions κ (chromaticity) and ρ (density) over a scalar.
 //! - [`cell`]: tetrahedra, prisms, hexahedra, their decompositions and exact ray-cell intersection.
 //! - [`segment`]: the exact f64 ray integral of one linear segment, the reference for the tables.
 //! - [`preintegration`]: pre-integration tables (3D colour, ρ̂, emission, MIP) and the zero-opacity test.
 //! - [`field`]: density grids and height fields, PNG/raw loaders, noise generators, 2^n+1 resampling.
 //! - [`budget`]: the memory budget every allocation sized by input is checked against first.
+//!
+//! # References
+//!
+//! Papers are cited by author and year:
+//!
+//! - Röttger and Ertl 2003: Stefan Röttger and Thomas Ertl, "Fast Volumetric Display of
+//!   Natural Gaseous Phenomena", Computer Graphics International, 2003.
+//! - Röttger 2004: Stefan Röttger, "Volumetric Methods for the Real-Time Display of
+//!   Natural Gaseous Phenomena", doctoral thesis, University of Stuttgart, 2004.
+//! - Schpok et al. 2003: Joshua Schpok, Joseph Simons, David S. Ebert and Charles
+//!   Hansen, "A Real-Time Cloud Modeling, Rendering, and Animation System",
+//!   Symposium on Computer Animation, 2003.
+//! - Nes 2008: Gisle Nes, "Physically Plausible Weather Visualization", master's thesis,
+//!   University of Bergen, 2008.
 
 pub mod budget;
 pub mod cell;

@@ -1,11 +1,11 @@
-//! Optical models and compositing (paper 001 ch. 6-9, 000 §4; DESIGN.md §4).
+//! Optical models and compositing (Röttger 2004 ch. 6-9, Röttger and Ertl 2003 §4).
 //!
 //! A ray segment through one cell contributes a premultiplied colour `C` and an
 //! opacity `α`. How segments combine depends on the [`OpticalMode`]:
 //!
 //! - [`OpticalMode::Sorted`]: emission-absorption, composited back to front with
-//!   the premultiplied "over" operator `I' = C + (1 − α) I` (001 eq. 6.x).
-//! - [`OpticalMode::Emissive`]: emission only (PCP, 001 §10.3): `I' = C + I`,
+//!   the premultiplied "over" operator `I' = C + (1 − α) I` (Röttger 2004 eq. 6.x).
+//! - [`OpticalMode::Emissive`]: emission only (PCP, Röttger 2004 §10.3): `I' = C + I`,
 //!   commutative, so cells need no sorting.
 //! - [`OpticalMode::Mip`]: maximum intensity projection: `I' = max(C, I)` per
 //!   channel, commutative.
@@ -48,7 +48,7 @@ impl OpticalMode {
     }
 }
 
-/// The Henyey-Greenstein phase function times 4π (paper 003): `(1 − g²) /
+/// The Henyey-Greenstein phase function times 4π (Nes 2008): `(1 − g²) /
 /// (1 + g² − 2g cos θ)^{3/2}` for the asymmetry `g` (clamped to ±0.99) and
 /// the cosine `cos θ` between the light's travel direction and the scattered
 /// direction. 1 for `g = 0`; its mean over the sphere is 1 for every `g`, so

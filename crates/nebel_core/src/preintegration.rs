@@ -1,16 +1,16 @@
-//! Pre-integration tables for cell projection (paper 001 ch. 8-9, 000 §4;
-//! DESIGN.md §4): the ray integral of a linear segment looked up instead of
+//! Pre-integration tables for cell projection (Röttger 2004 ch. 8-9,
+//! Röttger and Ertl 2003 §4): the ray integral of a linear segment looked up instead of
 //! integrated, for every optical mode, plus the zero-opacity test.
 //!
 //! A [`PreintegrationTable`] holds, for one [`TransferFunction`]:
 //!
-//! - **colour** (3D, 001 §8.4 eq. 8.1): premultiplied RGB and α of the sorted
+//! - **colour** (3D, Röttger 2004 §8.4 eq. 8.1): premultiplied RGB and α of the sorted
 //!   (emission-absorption) segment over `(s_f, s_b, l)`, default 64×64×128,
 //!   `l` from 0 to [`PreintegrationConfig::max_length`].
-//! - **ρ̂** (2D, 001 §9.1.1 eq. 9.1): the exact mean density over `(s_f, s_b)`.
+//! - **ρ̂** (2D, Röttger 2004 §9.1.1 eq. 9.1): the exact mean density over `(s_f, s_b)`.
 //!   With it opacity is exact in `l`: `α = 1 − exp(−l ρ̂)` (eq. 9.2). Sorted
 //!   rendering takes RGB from the 3D table and α from this pair.
-//! - **emission** (2D, 001 §10.3, PCP): RGB = `∫_0^1 E(s(x)) dx` with `E = κρ`,
+//! - **emission** (2D, Röttger 2004 §10.3, PCP): RGB = `∫_0^1 E(s(x)) dx` with `E = κρ`,
 //!   so the emissive segment is `C = l · RGB`; A repeats ρ̂ so one fetch gives
 //!   the emissive α = `1 − exp(−l A)` too.
 //! - **maximum** (2D, MIP): RGB = the per-channel maximum of `E` between `s_f`
@@ -843,7 +843,7 @@ mod tests {
 
     #[test]
     fn narrow_peak_table_is_a_heaviside_isosurface() {
-        // 001 §8.13: a thin, dense peak at s = 0.5 between grid nodes of a
+        // Röttger 2004 §8.13: a thin, dense peak at s = 0.5 between grid nodes of a
         // 17-node table (nodes at multiples of 1/16).
         let point = |s, rho| ControlPoint {
             s,

@@ -1,15 +1,15 @@
 //! The exact ray integral of one linear segment, in f64: the reference that the
 //! pre-integration tables ([`crate::preintegration`]) and the GPU are tested
-//! against (paper 001 eq. 8.1 and §9.1; DESIGN.md §4).
+//! against (Röttger 2004 eq. 8.1 and §9.1).
 //!
 //! A ray crosses a cell over a length `l`; the scalar varies linearly from
 //! `s_f` (front, entry) to `s_b` (back, exit). With `x = t / l` in [0, 1] and
 //! `s(x) = s_f + x (s_b − s_f)`:
 //!
-//! - [`OpticalMode::Sorted`] (emission-absorption, 001 eq. 8.1):
+//! - [`OpticalMode::Sorted`] (emission-absorption, Röttger 2004 eq. 8.1):
 //!   `C = l ∫_0^1 κ(s(x)) ρ(s(x)) exp(−l ∫_0^x ρ(s(u)) du) dx`,
-//!   `α = 1 − exp(−l ρ̂)` with `ρ̂ = ∫_0^1 ρ(s(x)) dx` (001 eq. 9.1).
-//! - [`OpticalMode::Emissive`] (PCP, 001 §10.3): `C = l ∫_0^1 E(s(x)) dx` with
+//!   `α = 1 − exp(−l ρ̂)` with `ρ̂ = ∫_0^1 ρ(s(x)) dx` (Röttger 2004 eq. 9.1).
+//! - [`OpticalMode::Emissive`] (PCP, Röttger 2004 §10.3): `C = l ∫_0^1 E(s(x)) dx` with
 //!   `E = κρ`, no absorption. α is defined as `1 − exp(−l ρ̂)` as well: it does
 //!   not attenuate anything in this mode, it only records coverage for the
 //!   "sum" compositing of [`OpticalMode::composite`].
@@ -253,7 +253,7 @@ pub(crate) fn for_each_piece(
 }
 
 /// The exact mean density `ρ̂ = ∫_0^1 ρ(s_f + x (s_b − s_f)) dx` in 1/world
-/// unit (paper 001 eq. 9.1), in closed form: `α = 1 − exp(−l ρ̂)`.
+/// unit (Röttger 2004 eq. 9.1), in closed form: `α = 1 − exp(−l ρ̂)`.
 ///
 /// Scalars are sanitized as in [`exact_segment`]; ρ̂ is symmetric in its two
 /// arguments.
@@ -589,7 +589,7 @@ mod tests {
 
     #[test]
     fn narrow_peak_is_a_heaviside_isosurface() {
-        // 001 §8.13: ρ = C δ(s − 0.5) with a large C; κ is red at the peak.
+        // Röttger 2004 §8.13: ρ = C δ(s − 0.5) with a large C; κ is red at the peak.
         let (eps, peak) = (1e-5_f32, 1e7_f32);
         let tf = TransferFunction::new([
             point(0.0, [0.0, 0.0, 1.0], 0.0),

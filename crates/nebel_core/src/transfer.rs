@@ -1,6 +1,6 @@
 //! Transfer functions: chromaticity κ (linear RGB) and density ρ over a scalar
-//! `s` in [0, 1] (paper 001 §7.1 and §8.4, the volume density optical model of
-//! Williams and Max; DESIGN.md §4).
+//! `s` in [0, 1] (Röttger 2004 §7.1 and §8.4, the volume density optical model of
+//! Williams and Max).
 //!
 //! A transfer function is piecewise linear between control points sorted by `s`
 //! and constant beyond the first and last point. ρ is an extinction coefficient
@@ -174,7 +174,7 @@ impl TryFrom<RawTransferFunction> for TransferFunction {
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 #[cfg_attr(feature = "bevy_reflect", derive(bevy_reflect::Reflect))]
 pub enum TransferPreset {
-    /// The paper's non-photorealistic cloud (000 §5, 001 §11.6.2): κ is an
+    /// The paper's non-photorealistic cloud (Röttger and Ertl 2003 §5, Röttger 2004 §11.6.2): κ is an
     /// inverse colour ramp, white where the cloud is thin, darker bluish grey
     /// where it is dense; ρ is zero below the cut-off s = 0.05 and rises
     /// linearly from 0 there to 1 at s = 1 (continuous, so the tables
@@ -182,7 +182,7 @@ pub enum TransferPreset {
     #[default]
     Cloud,
     /// Ground fog: light grey-blue, ρ linear in `s` from 0 (the fog top, where
-    /// the density vanishes, DESIGN.md §6) to 1.
+    /// the density vanishes) to 1.
     GroundFog,
     /// Fire (emissive): dark red through orange to yellow-white as `s` rises;
     /// nothing below s = 0.1.
@@ -195,7 +195,7 @@ pub enum TransferPreset {
     SearchLight,
     /// Smoke: dark grey, slightly lighter where thin; zero below s = 0.02.
     Smoke,
-    /// A lit cloud's colour over its light intensity γ (paper 000 §5.1): κ
+    /// A lit cloud's colour over its light intensity γ (Röttger and Ertl 2003 §5.1): κ
     /// rises from a dark blue-grey in the shade (γ = 0) through light grey to
     /// a warm white of 1.7 in full sun (γ = 1; above 1 so that sunlit cloud
     /// stays white through the camera's tonemapping); ρ is the constant 1 (`ρ_max`, scaled by the
@@ -203,7 +203,7 @@ pub enum TransferPreset {
     /// length `l' = l · f` (Eq. 9), not through this function.
     CloudLight,
     /// Sunlight scattered by a cloud, over its transmittance toward the sun
-    /// (the single-scattering model, paper 003): κ rises linearly from black
+    /// (the single-scattering model, Nes 2008): κ rises linearly from black
     /// (in full shadow) to white (in full sun), ρ is the constant 1.
     Transmittance,
 }
@@ -421,7 +421,7 @@ impl TransferFunction {
     }
 
     /// Whether ρ is exactly zero for every `s` in `[s_min, s_max]` (the
-    /// zero-opacity test, paper 000 §4.1), exact for any transfer function.
+    /// zero-opacity test, Röttger and Ertl 2003 §4.1), exact for any transfer function.
     ///
     /// The bounds may come in either order and are clamped to [0, 1]; a NaN
     /// bound stands for the whole range, so the answer stays conservative:

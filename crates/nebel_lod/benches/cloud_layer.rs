@@ -1,4 +1,4 @@
-//! The paper's cloud layer (paper 000 §5, thesis ch. 11): a lit 513 × 513 × 65
+//! The paper's cloud layer (Röttger and Ertl 2003 §5, thesis ch. 11): a lit 513 × 513 × 65
 //! procedural cumulus field (83.9 million tetrahedra at full resolution), the
 //! one of `assets/scenes/cloud_flythrough.ron`, refined and emitted along that
 //! scene's flight into the layer for a sweep of the accuracy `c`.

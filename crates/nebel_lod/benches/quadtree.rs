@@ -2,7 +2,7 @@
 //! (refinement, geomorphing and triangle output in one pass) of 1025², 2049²
 //! and 4097² height fields, against the author's C++ libMini 8.8.6.
 //!
-//! # The peer scenario (the issue's, so the figures compare with libMini)
+//! # The peer scenario (libMini's published one, so the figures compare)
 //!
 //! Height field: 10 m spacing, fBm of hashed value noise (8 octaves,
 //! wavelengths 5120 m down to 40 m, gain 0.5, smoothstep interpolation,
@@ -12,8 +12,8 @@
 //! fixed), looking along +x, 60° vertical field of view, aspect 4/3 (a
 //! frustum from `perspective_infinite_reverse_rh` × `look_to_rh`, near plane
 //! 1 m), moving (+10, 0, +5) m per frame; 5 warm-up frames, then the median
-//! of 50 frames. One thread. libMini's figures (measured by the issue's
-//! author on this kind of machine, single core):
+//! of 50 frames. One thread. libMini's figures (measured on a two-core
+//! machine like the development machine, single core):
 //!
 //! | field | libMini C | triangles | ms per frame |
 //! |---|---|---|---|

@@ -1,5 +1,4 @@
-//! Cell batches: tetrahedra in world space in GPU layout, in draw order
-//! (DESIGN.md §3).
+//! Cell batches: tetrahedra in world space in GPU layout, in draw order.
 //!
 //! A [`CellBatch`] is what every effect hands to the render system: its cells
 //! in the order they are drawn (back to front for the sorted
@@ -53,7 +52,7 @@ impl GpuCell {
 ///
 /// An empty batch has both bounds at the origin.
 ///
-/// # Segment-length modulation (paper 000 §5.1, Eq. 9)
+/// # Segment-length modulation (Röttger and Ertl 2003 §5.1, Eq. 9)
 ///
 /// A lit cloud carries two scalars per vertex: the one in
 /// [`GpuCell::vertices`] indexes the transfer function (its pre-integration

@@ -1,5 +1,5 @@
-//! View frusta and the conservative box test of frustum culling (paper 000 §3,
-//! DESIGN.md §5: "frustum culling and the zero-opacity test prune nodes").
+//! View frusta and the conservative box test of frustum culling (Röttger and
+//! Ertl 2003 §3: frustum culling and the zero-opacity test prune nodes).
 //!
 //! A [`Frustum`] is an intersection of half-spaces `normal · p + d ≥ 0`
 //! (Bevy's `HalfSpace` convention: the inside is the positive side), normals of

@@ -1,6 +1,6 @@
 //! A density grid at full resolution as a batch of tetrahedra in exact
-//! visibility order (paper 001 §8.1 visibility sorting, paper 000 §3 and §4.1;
-//! DESIGN.md §3, §5).
+//! visibility order (Röttger 2004 §8.1 visibility sorting, Röttger and Ertl
+//! 2003 §3 and §4.1).
 //!
 //! Every voxel becomes five tetrahedra with the alternating decomposition of
 //! [`Hexahedron::tetrahedra`] (parity `(i + j + k) mod 2`), so neighbouring
@@ -14,7 +14,7 @@
 //! axis may be thinner). A [`BrickTable`] holds each brick's scalar range,
 //! computed once per grid. A brick is skipped when
 //! - its scalar range has zero opacity, [`TransferFunction::is_transparent`]
-//!   (the zero-opacity test of paper 000 §4.1, exact for any transfer
+//!   (the zero-opacity test of Röttger and Ertl 2003 §4.1, exact for any transfer
 //!   function: a brick with any ρ > 0 in its range stays), or
 //! - its box misses the view frustum
 //!   ([`Frustum::intersects_aabb`](crate::Frustum::intersects_aabb) in the

@@ -1,4 +1,4 @@
-//! nebel's level-of-detail and cell-batch builders, without Bevy (DESIGN.md §2, §3, §5).
+//! nebel's level-of-detail and cell-batch builders, without Bevy.
 //!
 //! Every volumetric effect ends as a [`CellBatch`]: tetrahedra in world space
 //! with a scalar per vertex, in the order the GPU draws them. This crate builds
@@ -12,7 +12,7 @@
 //!   back-to-front order for an eye, with per-brick zero-opacity test and
 //!   frustum culling ([`BrickTable`], [`full_resolution_batch`]), and
 //!   [`order_key`], which tells when a new eye position changes that order.
-//! - [`octree`]: the volume C-LOD of paper 000 §2-3: the view-independent
+//! - [`octree`]: the volume C-LOD of Röttger and Ertl 2003 §2-3: the view-independent
 //!   hierarchy ([`VolumeHierarchy`], a forest of octrees over a `2^n + 1` grid
 //!   with per-node deviation Δ propagated by `K_max` and scalar ranges, four
 //!   bytes per grid point), the per-frame refinement ([`fn@octree::refine`]:
@@ -20,8 +20,8 @@
 //!   conforming cell batch ([`octree::lod_batch`]); a lit cloud's hierarchy
 //!   also holds its light field, refines on the larger deviation of density
 //!   and light, and emits one as the scalar and the other as the
-//!   segment-length modulator ([`octree::lod_batch_with`], paper 000 §5).
-//! - [`quadtree`]: the terrain C-LOD of paper 001 §3.5.3 (Röttger's
+//!   segment-length modulator ([`octree::lod_batch_with`], Röttger and Ertl 2003 §5).
+//! - [`quadtree`]: the terrain C-LOD of Röttger 2004 §3.5.3 (Röttger's
 //!   quadtree, libMini's semantics): [`TerrainHierarchy`] over a `2^k + 1`
 //!   square height field with per-node roughness d2 propagated to the parent
 //!   and the parent's neighbours (1/3 byte per grid point besides the
@@ -39,6 +39,17 @@
 //!   a cell mesh, built once ([`VolumeBatcher::new`]) and rebuilt by
 //!   [`VolumeBatcher::update`] only when the view or the inputs change the
 //!   batch.
+//!
+//! # References
+//!
+//! Papers are cited by author and year:
+//!
+//! - Röttger and Ertl 2003: Stefan Röttger and Thomas Ertl, "Fast Volumetric Display of
+//!   Natural Gaseous Phenomena", Computer Graphics International, 2003.
+//! - Röttger 2004: Stefan Röttger, "Volumetric Methods for the Real-Time Display of
+//!   Natural Gaseous Phenomena", doctoral thesis, University of Stuttgart, 2004.
+//! - Williams 1992: Peter L. Williams, "Visibility Ordering Meshed Polyhedra", ACM
+//!   Transactions on Graphics 11(2), 1992.
 
 pub mod batch;
 pub mod frustum;

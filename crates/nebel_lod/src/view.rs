@@ -18,7 +18,7 @@
 //! view with no pixels (zero width or height: a minimised window, a
 //! collapsed split screen) sees nothing: every builder still checks the view
 //! (transform and eye) and then returns an empty batch, or an empty
-//! refinement. The refinement criteria of today are distance-based (paper 000
+//! refinement. The refinement criteria of today are distance-based (Röttger and Ertl 2003
 //! Eq. 1) and do not read the size; criteria in pixels (projected error)
 //! will.
 

@@ -1,7 +1,7 @@
 //! Back-to-front visibility order for arbitrary conforming tetrahedral meshes:
 //! MPVO, the Meshed Polyhedra Visibility Ordering of Williams ("Visibility
 //! ordering meshed polyhedra", ACM Transactions on Graphics 11(2), 1992;
-//! paper 001 §8.1 visibility sorting; DESIGN.md §3).
+//! Röttger 2004 §8.1 visibility sorting).
 //!
 //! The GPU draws a batch's cells in buffer order with premultiplied "over"
 //! blending, so a sorted (emission-absorption) batch must list every cell

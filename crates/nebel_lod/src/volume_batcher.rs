@@ -13,20 +13,20 @@
 //!
 //! - A grid at full resolution ([`BatchSettings::octree`] `None`): a
 //!   [`BrickTable`] of 4³-voxel bricks once, then
-//!   [`full_resolution_batch`] (paper 001 §8.1, paper 000 §4.1). Back to
+//!   [`full_resolution_batch`] (Röttger 2004 §8.1, Röttger and Ertl 2003 §4.1). Back to
 //!   front it is culled by the view frustum; unordered (the emissive and MIP
 //!   modes) it is not culled, so that it never needs a rebuild when the camera
 //!   moves.
-//! - A grid through the octree C-LOD of paper 000 ([`BatchSettings::octree`]
+//! - A grid through the octree C-LOD of Röttger and Ertl 2003 ([`BatchSettings::octree`]
 //!   set): the grid padded at its high ends with zero density to `2^n + 1`
 //!   points per axis ([`PadFill::Value`]`(0.0)`: empty under any transfer
-//!   function with `ρ(0) = 0`), for a lit cloud its light field ([`light_field`], paper 000 §5) and the
+//!   function with `ρ(0) = 0`), for a lit cloud its light field ([`light_field`], Röttger and Ertl 2003 §5) and the
 //!   [`VolumeHierarchy`] once, then [`refine`](fn@crate::octree::refine) and
 //!   [`lod_batch_with`]. Always back to front (the refinement's order), with
 //!   frustum culling, whatever [`BatchSettings::order`] says. The zero-opacity
 //!   test reads the volume's transfer function, except for
 //!   [`CellScalars::LightModulatedByDensity`], whose transfer function is over
-//!   the light and whose opacity is the density itself (`ρ = f`, paper 000
+//!   the light and whose opacity is the density itself (`ρ = f`, Röttger and Ertl 2003
 //!   Eq. 9): there only density 0 is empty.
 //! - A cell mesh in back-to-front order: its [`CellAdjacency`] once, then
 //!   [`sorted_batch`] (MPVO, Williams 1992). Not culled.
@@ -141,14 +141,14 @@ pub struct BatchSettings {
     /// Draw a grid through the octree C-LOD; `None` (the default) draws it at
     /// full resolution. Only for [`VolumeSource::Grid`].
     pub octree: Option<OctreeSettings>,
-    /// Light the cloud (paper 000 §5); needs `octree`. Default `None`.
+    /// Light the cloud (Röttger and Ertl 2003 §5); needs `octree`. Default `None`.
     pub lighting: Option<BatchLighting>,
 }
 
 /// The view-independent settings of the octree C-LOD.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct OctreeSettings {
-    /// The minimum accuracy `C` of paper 000 Eq. 1, finite and > √3: how many
+    /// The minimum accuracy `C` of Röttger and Ertl 2003 Eq. 1, finite and > √3: how many
     /// node sizes away a node must be before it may stay coarse; it also sets
     /// the deviation propagation `K_max = C / (2C − √3/2)` the hierarchy is
     /// built with. Default [`OctreeSettings::DEFAULT_MIN_ACCURACY`].
@@ -169,7 +169,7 @@ impl Default for OctreeSettings {
 }
 
 /// A lit cloud: its light field and which field the cells carry as scalar and
-/// which as segment-length modulator (paper 000 §5).
+/// which as segment-length modulator (Röttger and Ertl 2003 §5).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct BatchLighting {
     /// The light field's settings ([`light_field`]), sun direction in the
@@ -187,7 +187,7 @@ pub struct FrameInputs<'a> {
     /// The volume's transfer function: the zero-opacity test's (except for
     /// [`CellScalars::LightModulatedByDensity`], see the module docs).
     pub transfer: &'a TransferFunction,
-    /// The octree's global accuracy `c` of paper 000 Eq. 1
+    /// The octree's global accuracy `c` of Röttger and Ertl 2003 Eq. 1
     /// ([`RefinementSettings::accuracy`]), ≥ 0; ignored without the octree.
     pub accuracy: f64,
 }
@@ -251,7 +251,7 @@ impl PartialEq for VolumeBatchError {
 }
 
 /// The zero-opacity test of a volume whose density is the opacity itself
-/// (`ρ = f`, the lit model of paper 000 §5.1): only density 0 is empty.
+/// (`ρ = f`, the lit model of Röttger and Ertl 2003 §5.1): only density 0 is empty.
 static DENSITY_AS_OPACITY: LazyLock<TransferFunction> = LazyLock::new(|| {
     let point = |s: f32| ControlPoint {
         s,

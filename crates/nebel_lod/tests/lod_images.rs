@@ -1,6 +1,6 @@
-//! Issue 5 at the algorithm level, measured in images: the volume C-LOD octree
-//! (`VolumeHierarchy`, `refine`, `lod_batch`; paper 000 §2-3, DESIGN.md §5)
-//! rendered by the exact CPU cell reference (`nebel_core::reference`) and
+//! The volume C-LOD at the algorithm level, measured in images: the octree
+//! (`VolumeHierarchy`, `refine`, `lod_batch`; Röttger and Ertl 2003 §2-3)
+//! rendered by the exact CPU cell reference (`nebel_reference::render`) and
 //! compared with the full-resolution batch of the same quantised grid.
 //!
 //! - Error against full resolution falls as the accuracy `c` grows, and is
@@ -115,7 +115,7 @@ fn grid_of(dims: [usize; 3], value: impl Fn([usize; 3]) -> f32) -> DensityGrid {
     DensityGrid::new(dims, DVec3::ONE, DVec3::ZERO, values).expect("valid grid")
 }
 
-/// The paper's cloud (000 §5.2), ρ scaled to `rho` per world unit at s = 1.
+/// The paper's cloud (Röttger and Ertl 2003 §5.2), ρ scaled to `rho` per world unit at s = 1.
 fn cloud_transfer(rho: f32) -> TransferFunction {
     TransferFunction::preset(TransferPreset::Cloud)
         .scale_density(rho)
@@ -945,7 +945,7 @@ fn non_cubic_forest() {
 // 4. Random eyes
 // ---------------------------------------------------------------------------
 
-/// The error metric of paper 000 Eq. 1 recomputed in f64 for a node of `h`
+/// The error metric of Röttger and Ertl 2003 Eq. 1 recomputed in f64 for a node of `h`
 /// (index space = world space, so the voxel edge is 1).
 fn error_metric(h: &VolumeHierarchy, node: Node, eye: DVec3, c: f64) -> f64 {
     let (lo, hi) = node_box(node);

@@ -1,4 +1,4 @@
-//! Reference renderer cost per pixel (DESIGN.md §8): a small trilinear grid
+//! Reference renderer cost per pixel: a small trilinear grid
 //! (17³ points of fBm noise, 3 scalar tolerances) and a small cell list (the
 //! 8³ cells of a 9³ grid as 2560 tetrahedra), both over the box [−1, 1]³ seen
 //! from outside so every pixel's ray crosses the volume. Criterion reports

@@ -1,6 +1,4 @@
-//! Linear-light images, PNG input and output, and the error between two images
-//! (DESIGN.md §4 "Report RMSE, max absolute error and PSNR over linear RGB",
-//! §8).
+//! Linear-light images, PNG input and output, and the error between two images.
 //!
 //! - [`LinearImage`]: premultiplied linear RGBA in f32, what the reference
 //!   renderer ([`crate::render`]) produces.

@@ -1,7 +1,6 @@
-//! The exact CPU reference renderer (DESIGN.md §4 "Accuracy is measured, not
-//! assumed", §8).
+//! The exact CPU reference renderer.
 //!
-//! For every pixel it integrates the optical model of paper 001 ch. 6-8
+//! For every pixel it integrates the optical model of Röttger 2004 ch. 6-8
 //! (emission-absorption, eq. 8.1; emission only, §10.3; maximum intensity)
 //! along the ray through the pixel centre, in f64, against an optional opaque
 //! depth. Two volume sources separate two errors of the real-time renderer:
@@ -204,7 +203,7 @@ pub enum ReferenceVolume {
 
 /// A second field that scales the length of every ray segment before its
 /// integral: `l' = l · m̄`, `m̄` the mean of the modulator `m` over the piece
-/// (paper 000 §5.1 Eq. 9, `l' = l · f / f_max`, the lit-cloud model of
+/// (Röttger and Ertl 2003 §5.1 Eq. 9, `l' = l · f / f_max`, the lit-cloud model of
 /// `nebel_lod::CellBatch`). Cells: the mean of the linear modulator over the
 /// segment, exactly what the GPU computes. Grid: the trilinear modulator is
 /// integrated along with the scalar, piece by piece (the pieces are refined

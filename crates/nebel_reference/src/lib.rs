@@ -8,6 +8,15 @@
 //!   an optional segment-length modulator and opaque depth.
 //! - [`image_metrics`]: linear images, sRGB PNG input and output, RMSE,
 //!   maximum absolute error and PSNR, difference images.
+//!
+//! # References
+//!
+//! Papers are cited by author and year:
+//!
+//! - Röttger and Ertl 2003: Stefan Röttger and Thomas Ertl, "Fast Volumetric Display of
+//!   Natural Gaseous Phenomena", Computer Graphics International, 2003.
+//! - Röttger 2004: Stefan Röttger, "Volumetric Methods for the Real-Time Display of
+//!   Natural Gaseous Phenomena", doctoral thesis, University of Stuttgart, 2004.
 
 pub mod image_metrics;
 mod integrator;

@@ -49,6 +49,20 @@
 //!
 //! Errors name the file, the position, the field and the reason, e.g.
 //! `scenes/a.ron:4:9: field camera.fov_degrees: must be in (0, 180), got 190`.
+//!
+//! # References
+//!
+//! Papers are cited by author and year:
+//!
+//! - Röttger and Ertl 2003: Stefan Röttger and Thomas Ertl, "Fast Volumetric Display of
+//!   Natural Gaseous Phenomena", Computer Graphics International, 2003.
+//! - Röttger 2004: Stefan Röttger, "Volumetric Methods for the Real-Time Display of
+//!   Natural Gaseous Phenomena", doctoral thesis, University of Stuttgart, 2004.
+//! - Schpok et al. 2003: Joshua Schpok, Joseph Simons, David S. Ebert and Charles
+//!   Hansen, "A Real-Time Cloud Modeling, Rendering, and Animation System",
+//!   Symposium on Computer Animation, 2003.
+//! - Nes 2008: Gisle Nes, "Physically Plausible Weather Visualization", master's thesis,
+//!   University of Bergen, 2008.
 
 mod opaque;
 pub mod reference;

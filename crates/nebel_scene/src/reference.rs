@@ -36,7 +36,7 @@ pub struct ReferenceProgress {
 /// Renders `volumes` of `scene` exactly; `progress`, when given, is called
 /// as rows finish (from the worker threads).
 ///
-/// A lit volume (paper 000 §5) is integrated as the GPU draws it: its grid
+/// A lit volume (Röttger and Ertl 2003 §5) is integrated as the GPU draws it: its grid
 /// padded with zero density to `2^n + 1` points, the light field computed on
 /// that grid for the scene's sun, and one field as the scalar, the other as
 /// the segment-length modulator ([`Modulation::Grid`]), but continuous and in
@@ -186,7 +186,7 @@ fn lit_fields(
     })
 }
 
-/// Single scattering (paper 003) of a layer integrated over the
+/// Single scattering (Nes 2008) of a layer integrated over the
 /// transmittance toward the sun: each pixel's premultiplied colour `C` and
 /// opacity `α` become `ambient · α + sun · 4π p_HG(θ) · C`, θ between the
 /// pixel's ray and the sunlight, as the GPU's `SCATTERING` variant computes.

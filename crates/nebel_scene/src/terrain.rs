@@ -1,6 +1,5 @@
 //! The terrain of a scene file: where its heights come from, how large it
-//! is and how finely the quadtree C-LOD draws it (paper 001 §3.5.3;
-//! DESIGN.md §6).
+//! is and how finely the quadtree C-LOD draws it (Röttger 2004 §3.5.3).
 //!
 //! ```ron
 //! terrain: (
@@ -40,9 +39,12 @@ use glam::DVec2;
 use serde::{Deserialize, Serialize};
 
 use super::InvalidField;
-use nebel_core::field::{HeightField, NoiseKind, TerrainNoise, power_of_two_plus_one};
+use nebel_core::field::{
+    DEFAULT_TERRAIN_SPACING, DEFAULT_TERRAIN_VERTICAL_SCALE, HeightField, NoiseKind, TerrainNoise,
+    power_of_two_plus_one,
+};
 use nebel_lod::TerrainHierarchy;
-use nebel_lod::quadtree::MAX_TERRAIN_SIDE;
+use nebel_lod::quadtree::{DEFAULT_ACCURACY, DEFAULT_MIN_RESOLUTION, MAX_TERRAIN_SIDE};
 
 /// A scene's terrain.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -83,19 +85,19 @@ pub struct TerrainDescription {
 }
 
 fn default_spacing() -> f32 {
-    10.0
+    DEFAULT_TERRAIN_SPACING
 }
 
 fn default_vertical_scale() -> f32 {
-    400.0
+    DEFAULT_TERRAIN_VERTICAL_SCALE
 }
 
 fn default_accuracy() -> f32 {
-    300.0
+    DEFAULT_ACCURACY
 }
 
 fn default_min_accuracy() -> f32 {
-    2.0
+    DEFAULT_MIN_RESOLUTION
 }
 
 fn default_morph() -> bool {
@@ -139,19 +141,19 @@ pub struct ProceduralTerrainSource {
 }
 
 fn default_octaves() -> usize {
-    6
+    TerrainNoise::default().octaves
 }
 
 fn default_wavelength() -> f64 {
-    2000.0
+    TerrainNoise::default().wavelength
 }
 
 fn default_persistence() -> f64 {
-    0.5
+    TerrainNoise::default().persistence
 }
 
 fn default_exponent() -> f64 {
-    1.0
+    TerrainNoise::default().exponent
 }
 
 impl ProceduralTerrainSource {

@@ -1,5 +1,5 @@
 //! Volumes in scene files: where the scalar field comes from, its box, its
-//! transfer function and its optical mode (DESIGN.md §3-4).
+//! transfer function and its optical mode.
 //!
 //! ```ron
 //! volumes: [
@@ -15,10 +15,10 @@
 //!         mode: Sorted,                    // Sorted, Emissive or Mip; default Sorted
 //!         lod: (accuracy: 16.0, min_accuracy: 4.0), // octree C-LOD; default none (full resolution)
 //!         lighting: (ambient: 0.3, diffuse: 0.7, shadow_extinction: 0.0, model: Isotropic),
-//!                                          // lit cloud (paper 000 §5); default none
+//!                                          // lit cloud (Röttger and Ertl 2003 §5); default none
 //!     ),
 //!     (
-//!         // Procedural cumulus after paper 002, drifting with the wind.
+//!         // Procedural cumulus after Schpok et al. 2003, drifting with the wind.
 //!         source: Cloud((dims: (65, 17, 65), seed: 3, coverage: 0.5, octaves: 5,
 //!                        wavelength: 40.0, wind: (2.0, 0.0, 0.0), detail_wind: 1.5)),
 //!         min: (-32.0, 10.0, -32.0), max: (32.0, 26.0, 32.0),
@@ -59,11 +59,13 @@ use nebel_core::field::effects::{
     check_search_light_budget, search_light_cells,
 };
 use nebel_core::field::{
-    CloudNoise, DensityGrid, FieldError, NoiseKind, ProceduralNoise, power_of_two_plus_one,
+    CloudLighting, CloudNoise, DensityGrid, FieldError, NoiseKind, ProceduralNoise,
+    power_of_two_plus_one,
 };
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{ControlPoint, TransferFunction, TransferPreset};
-use nebel_lod::{GpuCell, VolumeHierarchy};
+use nebel_lod::octree::RefinementSettings;
+use nebel_lod::{GpuCell, OctreeSettings, VolumeHierarchy};
 
 /// One volume of a scene.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -89,17 +91,17 @@ pub struct VolumeDescription {
     /// light, `Sorted` otherwise.
     #[serde(default)]
     pub mode: Option<OpticalMode>,
-    /// Draw a grid source through the octree level of detail (paper 000)
+    /// Draw a grid source through the octree level of detail (Röttger and Ertl 2003)
     /// instead of at full resolution. Default: none (full resolution).
     #[serde(default)]
     pub lod: Option<LodDescription>,
-    /// Light a grid volume as a cloud (paper 000 §5). Default: none (unlit).
+    /// Light a grid volume as a cloud (Röttger and Ertl 2003 §5). Default: none (unlit).
     #[serde(default)]
     pub lighting: Option<LightingDescription>,
 }
 
 /// Which field of a lit cloud gives the colour and which the opacity (paper
-/// 000 §5), or single scattering (paper 003).
+/// Röttger and Ertl 2003 §5), or single scattering (Nes 2008).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub enum LightModel {
     /// §5.1: colour from the light γ (transfer function over γ), opacity from
@@ -109,7 +111,7 @@ pub enum LightModel {
     /// §5.2: colour and opacity from the density (transfer function over the
     /// density), segment length scaled by γ.
     NonPhysical,
-    /// Single scattering of the sun (paper 003): γ is the transmittance
+    /// Single scattering of the sun (Nes 2008): γ is the transmittance
     /// toward the sun, colour over γ (default `Preset(Transmittance)`),
     /// opacity from the density, and each pixel weighs the sunlight by the
     /// Henyey-Greenstein phase of its ray; `ambient` and `diffuse` are the
@@ -141,14 +143,14 @@ pub struct LightingDescription {
 }
 
 fn default_ambient() -> f32 {
-    0.3
+    CloudLighting::DEFAULT_AMBIENT
 }
 
 fn default_diffuse() -> f32 {
-    0.7
+    CloudLighting::DEFAULT_DIFFUSE
 }
 
-/// Procedural cumulus clouds with the artist controls of paper 002
+/// Procedural cumulus clouds with the artist controls of Schpok et al. 2003
 /// (`nebel_core::field::CloudNoise`; defaults as there).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -214,11 +216,11 @@ pub struct LodDescription {
 }
 
 fn default_lod_accuracy() -> f64 {
-    16.0
+    RefinementSettings::DEFAULT_ACCURACY
 }
 
 fn default_lod_min_accuracy() -> f64 {
-    4.0
+    OctreeSettings::DEFAULT_MIN_ACCURACY
 }
 
 fn default_min() -> [f32; 3] {
@@ -244,15 +246,15 @@ pub enum VolumeSource {
     Procedural(ProceduralSource),
     /// Tetrahedra in world space with a scalar per vertex.
     Cells(Vec<TetrahedronDescription>),
-    /// An animated campfire (001 §10.4): the flame box
+    /// An animated campfire (Röttger 2004 §10.4): the flame box
     /// [`CAMPFIRE_MIN`]..[`CAMPFIRE_MAX`] stretched onto `min..max`, its
     /// density changing every frame. Emissive with the `Fire` preset unless
     /// the volume says otherwise.
     Campfire(CampfireSource),
-    /// Procedural cumulus clouds after paper 002 (coverage, detail octaves,
+    /// Procedural cumulus clouds after Schpok et al. 2003 (coverage, detail octaves,
     /// wind), sampled over the box.
     Cloud(CloudSource),
-    /// A search-light cone (001 §10.4), placed by its own position and
+    /// A search-light cone (Röttger 2004 §10.4), placed by its own position and
     /// direction (the box is not used). Emissive with the `SearchLight` preset
     /// unless the volume says otherwise.
     SearchLight(SearchLightSource),
@@ -365,7 +367,7 @@ pub struct ProceduralSource {
     pub coverage: f32,
     /// Multiply the noise by `max(0, 1 − r²)`, `r` the distance from the box
     /// centre with the box scaled to the unit sphere, so the volume fades to
-    /// nothing before its box ends (an implicit ellipsoid, paper 002). Default false.
+    /// nothing before its box ends (an implicit ellipsoid, Schpok et al. 2003). Default false.
     #[serde(default)]
     pub ellipsoid: bool,
 }

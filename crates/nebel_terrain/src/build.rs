@@ -1,14 +1,16 @@
 //! Building a terrain's quadtree in the background.
 //!
-//! `start_terrain_builds` notices a new terrain, a changed source or one of
-//! `spacing`, `vertical_scale`, `min_accuracy`, and a modified height asset;
-//! it takes the unit heights (the asset's shared values, or a procedural
-//! source's settings) and starts `build_quadtree` on the task pool.
-//! `finish_terrain_builds` takes the result when it is ready (at once under
-//! `HeavyBuilds::Blocking`): the new quadtree replaces the old one, which was
-//! drawn meanwhile, or the failure is recorded in [`TerrainStatus::Failed`],
-//! logged once and the mesh removed. A failed terrain is not built again
-//! until its settings or its asset change.
+//! `build_terrains` notices a new terrain, a changed source or one of
+//! `spacing`, `vertical_scale`, `min_accuracy` (compared bit for bit, so a
+//! NaN setting is not rebuilt every frame), and a height asset that was
+//! added, loaded or modified; it takes the unit heights (the asset's shared
+//! values, or a procedural source's settings) and starts `build_quadtree` on
+//! the task pool. One build runs per terrain at a time; settings that change
+//! meanwhile are built next. It takes the result when it is ready (at once
+//! under `HeavyBuilds::Blocking`): the new quadtree replaces the old one,
+//! which was drawn meanwhile, or the failure is recorded in
+//! [`TerrainStatus::Failed`], logged once and the mesh removed. A failed
+//! terrain is not built again until its settings or its asset change.
 //!
 //! The build checks the settings, scales the unit heights (every height must
 //! be finite), centres the grid on the entity, pads it to `2^k + 1` points
@@ -24,32 +26,47 @@ use bevy::diagnostic::Diagnostics;
 use bevy::math::DVec2;
 use bevy::prelude::*;
 use nebel_core::field::{HeightField, TerrainNoise};
+use nebel_lod::TerrainHierarchy;
+use nebel_lod::quadtree::TerrainRefiner;
 use nebel_lod::quadtree::{MAX_TERRAIN_SIDE, pad_to_power_of_two_plus_one};
-use nebel_lod::{TerrainHierarchy, TerrainMesh};
 use nebel_render::{HeavyBuild, HeavyBuilds};
 
 use crate::error::TerrainBuildError;
 use crate::heights::TerrainHeights;
 use crate::terrain::{Terrain, TerrainLodStats, TerrainPlugin, TerrainSource, TerrainStatus};
-use crate::update::MeshView;
 
-/// The settings a quadtree is built from; the quadtree is rebuilt when they
-/// change.
-#[derive(Clone, Debug, PartialEq)]
+/// The settings a quadtree is built from, bit for bit: the quadtree is
+/// rebuilt when they change.
+#[derive(Clone, Debug, PartialEq, Eq)]
 pub(crate) struct BuildKey {
-    source: TerrainSource,
-    spacing: f32,
-    vertical_scale: f32,
-    min_accuracy: f32,
+    /// The height asset, or the procedural source's settings.
+    source: Result<AssetId<TerrainHeights>, Vec<u64>>,
+    /// `spacing`, `vertical_scale`, `min_accuracy`.
+    settings: [u32; 3],
 }
 
 impl BuildKey {
     fn of(terrain: &Terrain) -> Self {
+        let source = match &terrain.source {
+            TerrainSource::Heights(handle) => Ok(handle.id()),
+            TerrainSource::Procedural { size, noise } => Err(vec![
+                u64::from(*size),
+                noise.kind as u64,
+                u64::from(noise.seed),
+                noise.octaves as u64,
+                noise.wavelength.to_bits(),
+                noise.persistence.to_bits(),
+                noise.exponent.to_bits(),
+            ]),
+        };
         Self {
-            source: terrain.source.clone(),
-            spacing: terrain.spacing,
-            vertical_scale: terrain.vertical_scale,
-            min_accuracy: terrain.min_accuracy,
+            source,
+            settings: [
+                terrain.spacing,
+                terrain.vertical_scale,
+                terrain.min_accuracy,
+            ]
+            .map(f32::to_bits),
         }
     }
 }
@@ -70,7 +87,6 @@ pub(crate) struct BuildInput {
     heights: UnitHeights,
     spacing: f32,
     vertical_scale: f32,
-    accuracy: f32,
     min_accuracy: f32,
 }
 
@@ -85,7 +101,6 @@ impl BuildInput {
             heights: UnitHeights::Procedural { size, noise },
             spacing: terrain.spacing,
             vertical_scale: terrain.vertical_scale,
-            accuracy: terrain.accuracy,
             min_accuracy: terrain.min_accuracy,
         }
     }
@@ -105,7 +120,6 @@ pub(crate) fn build_quadtree(input: BuildInput) -> Result<BuiltQuadtree, Terrain
         heights,
         spacing,
         vertical_scale,
-        accuracy,
         min_accuracy,
     } = input;
     if !(spacing.is_finite() && spacing > 0.0) {
@@ -113,9 +127,6 @@ pub(crate) fn build_quadtree(input: BuildInput) -> Result<BuiltQuadtree, Terrain
     }
     if !vertical_scale.is_finite() {
         return Err(TerrainBuildError::InvalidVerticalScale(vertical_scale));
-    }
-    if !(accuracy.is_finite() && accuracy > 0.0) {
-        return Err(TerrainBuildError::InvalidAccuracy(accuracy));
     }
     let (dims, values) = match heights {
         UnitHeights::Asset { dims, values } => (dims, values),
@@ -167,19 +178,21 @@ pub(crate) fn build_quadtree(input: BuildInput) -> Result<BuiltQuadtree, Terrain
     })
 }
 
-/// A terrain's quadtree, the build in flight, its reusable LOD buffers and
-/// its mesh.
+/// A terrain's quadtree, the build in flight, its level of detail and its
+/// mesh.
 #[derive(Component, Default)]
 pub(crate) struct TerrainLod {
-    /// What the quadtree (or the failure, or the build in flight) is for.
+    /// What the quadtree (or the failure) was built from.
     key: Option<BuildKey>,
-    build: Option<HeavyBuild<Result<BuiltQuadtree, TerrainBuildError>>>,
+    /// The build in flight and what it builds from.
+    build: Option<(
+        BuildKey,
+        HeavyBuild<Result<BuiltQuadtree, TerrainBuildError>>,
+    )>,
     pub hierarchy: Option<Arc<TerrainHierarchy>>,
-    /// The LOD output, reused every rebuild.
-    pub lod: TerrainMesh,
+    /// The level of detail, its mesh buffers reused every refinement.
+    pub refiner: TerrainRefiner,
     pub mesh: Option<Handle<Mesh>>,
-    /// The view the mesh was refined for.
-    pub view: Option<MeshView>,
 }
 
 /// The unit heights of `terrain`'s source, `Ok(None)` while its asset
@@ -226,7 +239,7 @@ fn fail(
         *status = TerrainStatus::Failed(error);
     }
     state.hierarchy = None;
-    state.view = None;
+    state.refiner = TerrainRefiner::new();
     if state.mesh.take().is_some() {
         commands
             .entity(entity)
@@ -234,94 +247,119 @@ fn fail(
     }
 }
 
-/// Starts a quadtree build for every terrain whose heights or build settings
-/// changed (see the module docs).
-pub(crate) fn start_terrain_builds(
+/// Takes finished quadtree builds and starts new ones for every terrain whose
+/// heights or build settings changed (see the module docs).
+pub(crate) fn build_terrains(
     mut commands: Commands,
-    mut terrains: Query<(Entity, &Terrain, &mut TerrainStatus, &mut TerrainLod)>,
+    mut terrains: Query<(
+        Entity,
+        &Terrain,
+        &mut TerrainStatus,
+        &mut TerrainLodStats,
+        &mut TerrainLod,
+    )>,
     heights: Res<Assets<TerrainHeights>>,
     mut height_events: MessageReader<AssetEvent<TerrainHeights>>,
     asset_server: Res<AssetServer>,
+    mode: Res<HeavyBuilds>,
+    mut diagnostics: Diagnostics,
 ) {
-    let modified: Vec<AssetId<TerrainHeights>> = height_events
+    let changed: Vec<AssetId<TerrainHeights>> = height_events
         .read()
         .filter_map(|event| match event {
-            AssetEvent::Modified { id } => Some(*id),
-            _ => None,
+            AssetEvent::Added { id }
+            | AssetEvent::Modified { id }
+            | AssetEvent::LoadedWithDependencies { id } => Some(*id),
+            AssetEvent::Removed { .. } | AssetEvent::Unused { .. } => None,
         })
         .collect();
-    for (entity, terrain, mut status, mut state) in &mut terrains {
+    for (entity, terrain, mut status, mut stats, mut state) in &mut terrains {
+        let mut built = Built {
+            commands: &mut commands,
+            entity,
+            status: &mut status,
+            stats: &mut stats,
+            diagnostics: &mut diagnostics,
+        };
+        built.take(&mut state, *mode);
+        if state.build.is_some() {
+            continue;
+        }
         let key = BuildKey::of(terrain);
-        let asset_modified = matches!(&terrain.source,
-            TerrainSource::Heights(handle) if modified.contains(&handle.id()));
-        if state.key.as_ref() == Some(&key) && !asset_modified {
+        let asset_changed = matches!(&terrain.source,
+            TerrainSource::Heights(handle) if changed.contains(&handle.id()));
+        if state.key.as_ref() == Some(&key) && !asset_changed {
             continue;
         }
         match unit_heights(terrain, &heights, &asset_server) {
             // Still loading: ask again next frame.
-            Ok(None) => *status = TerrainStatus::Pending,
+            Ok(None) => *built.status = TerrainStatus::Pending,
             Ok(Some(unit)) => {
                 let input = BuildInput {
                     heights: unit,
                     spacing: terrain.spacing,
                     vertical_scale: terrain.vertical_scale,
-                    accuracy: terrain.accuracy,
                     min_accuracy: terrain.min_accuracy,
                 };
-                state.key = Some(key);
-                state.build = Some(HeavyBuild::spawn(move || build_quadtree(input)));
+                state.build = Some((key, HeavyBuild::spawn(move || build_quadtree(input))));
                 if state.hierarchy.is_none() {
-                    *status = TerrainStatus::Pending;
+                    *built.status = TerrainStatus::Pending;
                 }
+                built.take(&mut state, *mode);
             }
             Err(error) => {
                 state.key = Some(key);
-                state.build = None;
-                fail(&mut commands, entity, &mut status, &mut state, error);
+                fail(built.commands, entity, built.status, &mut state, error);
             }
         }
     }
 }
 
-/// Takes the finished builds (see the module docs).
-pub(crate) fn finish_terrain_builds(
-    mut commands: Commands,
-    mode: Res<HeavyBuilds>,
-    mut diagnostics: Diagnostics,
-    mut terrains: Query<(
-        Entity,
-        &mut TerrainStatus,
-        &mut TerrainLodStats,
-        &mut TerrainLod,
-    )>,
-) {
-    for (entity, mut status, mut stats, mut state) in &mut terrains {
-        let Some(result) = state.build.as_mut().and_then(|build| build.poll(*mode)) else {
-            continue;
+/// Where a finished build goes: the terrain's entity, status, statistics and
+/// the diagnostics.
+struct Built<'a, 'c, 'cs, 'd, 'ds> {
+    commands: &'a mut Commands<'c, 'cs>,
+    entity: Entity,
+    status: &'a mut TerrainStatus,
+    stats: &'a mut TerrainLodStats,
+    diagnostics: &'a mut Diagnostics<'d, 'ds>,
+}
+
+impl Built<'_, '_, '_, '_, '_> {
+    /// Puts the build in flight in place if it is done (waiting for it under
+    /// `HeavyBuilds::Blocking`): the quadtree, or the failure.
+    fn take(&mut self, state: &mut TerrainLod, mode: HeavyBuilds) {
+        let Some((key, build)) = state.build.as_mut() else {
+            return;
         };
+        let Some(result) = build.poll(mode) else {
+            return;
+        };
+        state.key = Some(key.clone());
         state.build = None;
         match result {
             Ok(BuiltQuadtree {
                 hierarchy,
                 build_ms,
             }) => {
-                diagnostics.add_measurement(&TerrainPlugin::BUILD_MS, || f64::from(build_ms));
-                *stats = TerrainLodStats {
+                self.diagnostics
+                    .add_measurement(&TerrainPlugin::BUILD_MS, || f64::from(build_ms));
+                *self.stats = TerrainLodStats {
                     points_per_side: hierarchy.size() as u32,
                     bytes_per_point: hierarchy.bytes_per_point() as f32,
                     build_ms,
-                    updates: stats.updates,
+                    updates: self.stats.updates,
                     ..default()
                 };
                 if state.mesh.is_some() {
                     // A new extent: new bounds.
-                    commands.entity(entity).insert(bounds(&hierarchy));
+                    self.commands.entity(self.entity).insert(bounds(&hierarchy));
                 }
                 state.hierarchy = Some(hierarchy);
-                state.view = None;
-                *status = TerrainStatus::Ready;
+                state.refiner = TerrainRefiner::new();
+                *self.status = TerrainStatus::Ready;
             }
-            Err(error) => fail(&mut commands, entity, &mut status, &mut state, error),
+            Err(error) => fail(self.commands, self.entity, self.status, state, error),
         }
     }
 }

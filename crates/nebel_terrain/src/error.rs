@@ -34,9 +34,6 @@ pub enum TerrainBuildError {
     /// `vertical_scale` is not finite.
     #[error("vertical_scale = {0} is invalid: it must be finite")]
     InvalidVerticalScale(f32),
-    /// `accuracy` is not finite and positive.
-    #[error("accuracy c = {0} is invalid: it must be finite and positive")]
-    InvalidAccuracy(f32),
     /// The height map has fewer than 2 points along a side.
     #[error("the height map has {nx} × {nz} points; a terrain needs at least 2 × 2")]
     TooSmall {

@@ -19,6 +19,8 @@ use std::sync::Arc;
 use bevy::asset::io::Reader;
 use bevy::asset::{AssetLoader, LoadContext};
 use bevy::prelude::*;
+use bevy::tasks::futures_lite::AsyncReadExt;
+use nebel_core::budget::{BudgetError, MEMORY_BUDGET_BYTES};
 use nebel_core::field::HeightField;
 use thiserror::Error;
 
@@ -45,9 +47,16 @@ impl TerrainHeights {
         }
     }
 
-    /// Decodes an 8- or 16-bit grayscale PNG: value / 255 or / 65535.
+    /// Decodes an 8- or 16-bit grayscale PNG: value / 255 or / 65535. The
+    /// heights are checked against the memory budget from the PNG's header,
+    /// before the image is decoded.
     pub fn from_png_bytes(bytes: &[u8]) -> Result<Self, TerrainHeightsError> {
-        let image = image::load_from_memory_with_format(bytes, image::ImageFormat::Png)?;
+        let reader = || {
+            image::ImageReader::with_format(std::io::Cursor::new(bytes), image::ImageFormat::Png)
+        };
+        let (width, height) = reader().into_dimensions()?;
+        HeightField::check_budget([width as usize, height as usize])?;
+        let image = reader().decode()?;
         let dims = UVec2::new(image.width(), image.height());
         let values = match image {
             image::DynamicImage::ImageLuma8(buffer) => buffer
@@ -82,6 +91,9 @@ pub enum TerrainHeightsError {
     /// The bytes are not a PNG.
     #[error("cannot decode the height map as PNG: {0}")]
     Decode(#[from] image::ImageError),
+    /// The heights would exceed the memory budget.
+    #[error(transparent)]
+    OverBudget(#[from] BudgetError),
     /// The PNG has colour channels or alpha.
     #[error("expected an 8- or 16-bit grayscale PNG, found {found}; convert it to grayscale")]
     NotGrayscale {
@@ -105,8 +117,19 @@ impl AssetLoader for TerrainHeightsLoader {
         _settings: &(),
         _load_context: &mut LoadContext<'_>,
     ) -> Result<TerrainHeights, TerrainHeightsError> {
+        // A compressed PNG larger than the budget cannot decode within it.
         let mut bytes = Vec::new();
-        reader.read_to_end(&mut bytes).await?;
+        reader
+            .take(MEMORY_BUDGET_BYTES + 1)
+            .read_to_end(&mut bytes)
+            .await?;
+        if bytes.len() as u64 > MEMORY_BUDGET_BYTES {
+            return Err(TerrainHeightsError::OverBudget(BudgetError {
+                what: String::from("height map file"),
+                bytes: bytes.len() as u128,
+                limit: MEMORY_BUDGET_BYTES,
+            }));
+        }
         TerrainHeights::from_png_bytes(&bytes)
     }
 }
@@ -143,5 +166,23 @@ mod tests {
         assert!(error.to_string().contains("found Rgb8"), "{error}");
         let error = TerrainHeights::from_png_bytes(b"not a png").unwrap_err();
         assert!(error.to_string().contains("cannot decode"), "{error}");
+
+        // A header of 100 000 × 100 000 pixels: refused before decoding.
+        let mut huge = png(image::GrayImage::from_raw(1, 1, vec![0]).unwrap().into());
+        huge[16..20].copy_from_slice(&100_000u32.to_be_bytes());
+        huge[20..24].copy_from_slice(&100_000u32.to_be_bytes());
+        // The header chunk's CRC-32 over its type and data (bytes 12..29).
+        let crc = !huge[12..29].iter().fold(!0u32, |crc, &byte| {
+            (0..8).fold(crc ^ u32::from(byte), |c, _| {
+                (c >> 1) ^ (0xedb8_8320 & (c & 1).wrapping_neg())
+            })
+        });
+        huge[29..33].copy_from_slice(&crc.to_be_bytes());
+        let error = TerrainHeights::from_png_bytes(&huge).unwrap_err();
+        assert!(
+            matches!(error, TerrainHeightsError::OverBudget(_)),
+            "{error}"
+        );
+        assert!(error.to_string().contains("memory budget"), "{error}");
     }
 }

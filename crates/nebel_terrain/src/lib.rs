@@ -1,6 +1,6 @@
 //! nebel's terrain plugin: height fields drawn through Röttger's quadtree
-//! C-LOD with geomorphing (paper 001 §3.5.3, Eq. 3.2; DESIGN.md §6; the
-//! algorithm is [`nebel_lod::quadtree`]).
+//! C-LOD with geomorphing (Röttger 2004 §3.5.3, Eq. 3.2; the algorithm is
+//! [`nebel_lod::quadtree`]).
 //!
 //! Spawn a [`Terrain`]; [`TerrainPlugin`] gives the entity a Bevy [`Mesh`]
 //! (`Mesh3d`) and a material:
@@ -42,6 +42,13 @@
 //! ```
 //!
 //! [`Mesh`]: bevy::prelude::Mesh
+//!
+//! # References
+//!
+//! Papers are cited by author and year:
+//!
+//! - Röttger 2004: Stefan Röttger, "Volumetric Methods for the Real-Time Display of
+//!   Natural Gaseous Phenomena", doctoral thesis, University of Stuttgart, 2004.
 
 pub mod build;
 pub mod error;

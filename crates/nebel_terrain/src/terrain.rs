@@ -25,11 +25,11 @@
 
 use bevy::diagnostic::{Diagnostic, DiagnosticPath, RegisterDiagnostic};
 use bevy::prelude::*;
-use nebel_core::field::TerrainNoise;
+use nebel_core::field::{DEFAULT_TERRAIN_SPACING, DEFAULT_TERRAIN_VERTICAL_SCALE, TerrainNoise};
 use nebel_lod::quadtree::{DEFAULT_ACCURACY, DEFAULT_MIN_RESOLUTION};
 use nebel_render::{HeavyBuilds, LodCamera, NebelSystems};
 
-use crate::build::{TerrainLod, finish_terrain_builds, start_terrain_builds};
+use crate::build::{TerrainLod, build_terrains};
 use crate::error::TerrainBuildError;
 use crate::heights::{TerrainHeights, TerrainHeightsLoader};
 use crate::update::{measure_terrains, update_terrain_meshes};
@@ -80,12 +80,7 @@ impl Plugin for TerrainPlugin {
             .register_type::<HeavyBuilds>()
             .add_systems(
                 PostUpdate,
-                (
-                    start_terrain_builds,
-                    finish_terrain_builds,
-                    update_terrain_meshes,
-                    measure_terrains,
-                )
+                (build_terrains, update_terrain_meshes, measure_terrains)
                     .chain()
                     .in_set(NebelSystems)
                     // This frame's camera: after its transform and projection.
@@ -112,6 +107,7 @@ impl Plugin for TerrainPlugin {
 
 /// Where a terrain's unit heights come from.
 #[derive(Clone, Debug, PartialEq, Reflect)]
+#[reflect(Clone)]
 pub enum TerrainSource {
     /// A height map asset, e.g. `asset_server.load::<TerrainHeights>("h.png")`.
     Heights(Handle<TerrainHeights>),
@@ -144,7 +140,7 @@ pub struct TerrainDebug {
 /// A height-field terrain drawn through Röttger's quadtree C-LOD with
 /// geomorphing (see the crate docs).
 #[derive(Component, Clone, Debug, PartialEq, Reflect)]
-#[reflect(Component, Default)]
+#[reflect(Component, Default, Clone)]
 #[require(Transform, Visibility, TerrainStatus, TerrainLodStats, TerrainLod)]
 pub struct Terrain {
     /// The unit heights. Default: 257 × 257 points of
@@ -190,8 +186,8 @@ impl Default for Terrain {
                 size: 257,
                 noise: TerrainNoise::default(),
             },
-            spacing: 10.0,
-            vertical_scale: 400.0,
+            spacing: DEFAULT_TERRAIN_SPACING,
+            vertical_scale: DEFAULT_TERRAIN_VERTICAL_SCALE,
             accuracy: DEFAULT_ACCURACY,
             min_accuracy: DEFAULT_MIN_RESOLUTION,
             morph: true,
@@ -222,7 +218,7 @@ pub enum TerrainStatus {
 
 /// Statistics of a [`Terrain`]'s level of detail, updated by the plugin.
 #[derive(Component, Clone, Copy, Debug, Default, PartialEq, Reflect)]
-#[reflect(Component, Default)]
+#[reflect(Component, Default, Clone)]
 pub struct TerrainLodStats {
     /// Grid points per side of the quadtree (after padding).
     pub points_per_side: u32,

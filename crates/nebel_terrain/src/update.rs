@@ -5,39 +5,19 @@
 //! # When the mesh is rebuilt
 //!
 //! The mesh is refined for the eye of the camera that drives the level of
-//! detail ([`nebel_render::LodCamera`], or the first active 3D camera), in
-//! the terrain's local frame, in [`PostUpdate`] after transform propagation and
-//! the camera's projection update, so it matches the frame being drawn. It
-//! is rebuilt when
-//!
-//! - the quadtree was (re)built, or the [`Terrain`] changed (accuracy,
-//!   morphing, material, debug view);
-//! - the eye moved more than `δ = update_distance · spacing` (local units)
-//!   since the last rebuild;
-//! - the camera turned by more than `α = view_margin_degrees`;
-//! - the camera's projection (field of view, aspect, near plane) or the
-//!   terrain's transform changed.
-//!
-//! A still camera costs nothing. Why `δ` is small enough: in the morph
-//! zone (`1/4 < f < 1`) a node of size `d` has `l ≤ d·M` (`M = max(c·d2,
-//! C)`), so moving the eye by `δ` changes `f = l²/(d²M²)` by at most
-//! `2δ/(dM)` and the morph weight `t = (1 − f)/(3/4)` by at most `8δ/(3dM)`;
-//! the blend of the node's new vertices, `t · (h − (a + b)/2)` with
-//! `|h − (a + b)/2| ≤ d2 · d/2`, moves by at most `4δ·d2/(3M) ≤ 4δ/(3c)`
-//! (their coarse endpoints, when their own nodes morph too, add terms of the
-//! same kind one level up). With the defaults (`δ` = 2.5 m at 10 m spacing,
-//! `c` = 300) that is 1.1 cm per level, and the level of detail is the one
-//! of an eye at most `δ` away. The unit test of a flight toward a 129²
-//! terrain (`c` = 40, 8.5 m per rebuild) measures surface steps of at most
-//! 0.5 m with morphing against 18 m without.
-//!
-//! Frustum culling uses the camera's four side planes widened so that the
-//! culled mesh stays valid until the next rebuild: each plane is turned
-//! outward by `α` about the eye (any rotation by less than `α` moves every
-//! view direction by less than `α`) and pushed out by `δ` (any move by less
-//! than `δ` shifts every plane by less than `δ`). The near plane is dropped
-//! (the side planes already bound the view to a cone in front of the eye).
-//! An orthographic camera culls nothing.
+//! detail ([`nebel_render::LodCamera`], or the active 3D camera of lowest
+//! order), in the terrain's local frame, in [`PostUpdate`] after transform
+//! propagation and the camera's projection update, so it matches the frame
+//! being drawn, by [`nebel_lod::quadtree::TerrainRefiner`] (no Bevy): it
+//! refines again only when the terrain changed (accuracy, morphing, material,
+//! debug view, a new quadtree) or the view changed enough (the eye moved more
+//! than `δ = update_distance · spacing`, the camera turned by more than
+//! `view_margin_degrees`, the projection or the terrain's transform
+//! changed), and culls with a frustum widened by both so the mesh stays valid
+//! in between; its docs give the bound this keeps. A still camera costs
+//! nothing. The unit test of a flight toward a 129² terrain (`c` = 40,
+//! 8.5 m per rebuild) measures surface steps of at most 0.5 m with morphing
+//! against 18 m without.
 //!
 //! # Failures
 //!
@@ -65,61 +45,18 @@ use bevy::camera::primitives::Aabb;
 use bevy::camera::visibility::NoAutoAabb;
 use bevy::diagnostic::Diagnostics;
 use bevy::ecs::system::SystemParam;
-use bevy::math::{DAffine3, DMat4, DVec3};
+use bevy::math::DAffine3;
 use bevy::prelude::*;
-use nebel_lod::Frustum;
-use nebel_lod::quadtree::{LodSettings, TriangleOrder};
+use nebel_lod::quadtree::{LodSettings, RefinerSettings, TerrainView, TriangleOrder};
+use nebel_render::LodCameras;
 use nebel_render::camera::to_double;
-use nebel_render::{LodCameras, LodView};
 
 use crate::build::{TerrainLod, bounds};
 use crate::shading::{Colouring, Palette, default_material, empty_mesh, write_mesh};
 use crate::terrain::{Terrain, TerrainLodStats, TerrainPlugin, TerrainStatus};
 
-/// The view a mesh was refined for.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub(crate) struct MeshView {
-    /// The eye in the terrain's local frame.
-    eye: DVec3,
-    /// The camera's orientation in the world.
-    rotation: Quat,
-    /// The camera's projection.
-    clip_from_view: Mat4,
-    /// Where the terrain was.
-    world_from_local: DAffine3,
-}
-
 fn affine(transform: &GlobalTransform) -> DAffine3 {
     DAffine3::from_mat4(to_double(transform.to_matrix()))
-}
-
-/// The culling frustum in the terrain's local frame (see the module docs);
-/// `None` culls nothing.
-fn culling_frustum(
-    view: &LodView,
-    world_from_local: &DAffine3,
-    margin: f64,
-    angle: f64,
-) -> Option<Frustum> {
-    if view.clip_from_view.row(3).z == 0.0 {
-        // Orthographic: the side planes are parallel to the view.
-        return None;
-    }
-    let world_from_view = affine(&view.world_from_view);
-    let clip_from_world = to_double(view.clip_from_view) * DMat4::from(world_from_view.inverse());
-    let exact = Frustum::from_view_projection(clip_from_world).ok()?;
-    let eye = world_from_view.translation;
-    let forward = world_from_view.matrix3 * DVec3::NEG_Z;
-    let (sin, cos) = angle.sin_cos();
-    let widened = exact.planes().iter().take(4).map(|plane| {
-        let normal = plane.truncate();
-        let offset = normal.dot(eye) + plane.w;
-        let along = (forward - forward.dot(normal) * normal).normalize_or_zero();
-        let turned = (cos * normal + sin * along).normalize_or(normal);
-        (turned, -turned.dot(eye) + offset + margin)
-    });
-    let frustum = Frustum::from_planes(widened).ok()?;
-    Some(frustum.in_local_frame(world_from_local))
 }
 
 /// The meshes and materials the terrain systems write.
@@ -141,8 +78,24 @@ impl TerrainAssets<'_, '_> {
     }
 }
 
-/// Refines every visible terrain with a quadtree for the camera when the
-/// view changed enough, and writes its mesh (see the module docs).
+/// The refinement settings of `terrain`.
+fn refiner_settings(terrain: &Terrain) -> RefinerSettings {
+    RefinerSettings {
+        lod: LodSettings {
+            accuracy: terrain.accuracy,
+            morph: terrain.morph,
+            normals: true,
+            grid_points: terrain.debug.lod_colours,
+            // Opaque: nearest first lets the depth test reject more.
+            order: TriangleOrder::FrontToBack,
+        },
+        update_distance: f64::from(terrain.update_distance * terrain.spacing),
+        view_margin: f64::from(terrain.view_margin_degrees).to_radians(),
+    }
+}
+
+/// Refines every visible terrain with a quadtree for the LOD camera when
+/// the view changed enough, and writes its mesh (see the module docs).
 pub(crate) fn update_terrain_meshes(
     mut commands: Commands,
     cameras: LodCameras,
@@ -158,9 +111,6 @@ pub(crate) fn update_terrain_meshes(
     mut assets: TerrainAssets,
     mut diagnostics: Diagnostics,
 ) {
-    if terrains.is_empty() {
-        return;
-    }
     let Some(camera) = cameras.view() else {
         return;
     };
@@ -174,46 +124,22 @@ pub(crate) fn update_terrain_meshes(
         if !visibility.get() {
             continue;
         }
-        let world_from_local = affine(transform);
-        let view = MeshView {
-            eye: world_from_local.inverse().transform_point3(camera.eye),
-            rotation: camera.rotation,
-            clip_from_view: camera.clip_from_view,
-            world_from_local,
+        let view = TerrainView {
+            world_from_view: affine(&camera.world_from_view),
+            clip_from_view: to_double(camera.clip_from_view),
+            world_from_terrain: affine(transform),
         };
-        let delta = f64::from(terrain.update_distance.max(0.0) * terrain.spacing);
-        let alpha = terrain.view_margin_degrees.clamp(0.0, 45.0).to_radians();
-        let unchanged = state.view.is_some_and(|last| {
-            last.clip_from_view == view.clip_from_view
-                && last.world_from_local == view.world_from_local
-                && last.eye.distance(view.eye) <= delta
-                && last.rotation.angle_between(view.rotation) <= alpha
-        });
-        if unchanged && !terrain.is_changed() {
-            continue;
-        }
-
         let started = Instant::now();
-        let scale = world_from_local
-            .matrix3
-            .to_cols_array_2d()
-            .iter()
-            .map(|column| DVec3::from(*column).length())
-            .fold(0.0, f64::max);
-        let frustum = culling_frustum(&camera, &world_from_local, delta * scale, f64::from(alpha));
-        let settings = LodSettings {
-            accuracy: terrain.accuracy,
-            morph: terrain.morph,
-            normals: true,
-            grid_points: terrain.debug.lod_colours,
-            // Opaque: nearest first lets the depth test reject more.
-            order: TriangleOrder::FrontToBack,
-        };
-        let refine_started = Instant::now();
-        let lod_result = hierarchy.update(view.eye, frustum.as_ref(), &settings, &mut state.lod);
-        let refine_ms = refine_started.elapsed().as_secs_f32() * 1e3;
-        let lod_stats = match lod_result {
-            Ok(lod_stats) => lod_stats,
+        let refined = state.refiner.update(
+            &hierarchy,
+            &view,
+            &refiner_settings(&terrain),
+            terrain.is_changed(),
+        );
+        let refine_ms = started.elapsed().as_secs_f64() * 1e3;
+        let lod_stats = match refined {
+            Ok(Some(lod_stats)) => lod_stats,
+            Ok(None) => continue,
             Err(error) => {
                 // The quadtree stays; a new setting or view may fix it.
                 let error = crate::TerrainBuildError::from(error);
@@ -221,7 +147,6 @@ pub(crate) fn update_terrain_meshes(
                     error!("nebel: terrain {entity} not drawn: {error}");
                     *status = TerrainStatus::Failed(error);
                 }
-                state.view = None;
                 if state.mesh.take().is_some() {
                     commands.entity(entity).remove::<(
                         Mesh3d,
@@ -251,7 +176,7 @@ pub(crate) fn update_terrain_meshes(
                 let handle = assets.meshes.add(empty_mesh());
                 commands.entity(entity).insert((
                     Mesh3d(handle.clone()),
-                    MeshMaterial3d(material.clone()),
+                    MeshMaterial3d(material),
                     bounds(&hierarchy),
                     NoAutoAabb,
                 ));
@@ -259,34 +184,31 @@ pub(crate) fn update_terrain_meshes(
                 handle
             }
         };
-        let [low, high] = hierarchy.height_range();
         let colouring = Colouring {
             palette: terrain
                 .material
                 .is_none()
-                .then_some((&*assets.palette, [low, high])),
+                .then_some((&*assets.palette, hierarchy.height_range())),
             debug: terrain.debug,
             levels: hierarchy.levels(),
         };
         if let Some(mut mesh) = assets.meshes.get_mut(&handle) {
-            write_mesh(
-                &mut mesh,
-                &state.lod,
-                hierarchy.origin().as_vec3(),
-                &colouring,
-            );
+            let origin = hierarchy.origin().as_vec3();
+            write_mesh(&mut mesh, state.refiner.mesh(), origin, &colouring);
         }
-        let update_ms = started.elapsed().as_secs_f32() * 1e3;
-        state.view = Some(view);
-        stats.updates += 1;
-        stats.update_ms = update_ms;
-        stats.refine_ms = refine_ms;
-        stats.triangles = lod_stats.triangles as u32;
-        stats.vertices = lod_stats.vertices as u32;
-        stats.deepest_level = lod_stats.deepest_level;
-        stats.culled_nodes = lod_stats.culled as u32;
-        *frame_update_ms.get_or_insert(0.0) += f64::from(update_ms);
-        *frame_refine_ms.get_or_insert(0.0) += f64::from(refine_ms);
+        let update_ms = started.elapsed().as_secs_f64() * 1e3;
+        *stats = TerrainLodStats {
+            updates: stats.updates + 1,
+            update_ms: update_ms as f32,
+            refine_ms: refine_ms as f32,
+            triangles: lod_stats.triangles as u32,
+            vertices: lod_stats.vertices as u32,
+            deepest_level: lod_stats.deepest_level,
+            culled_nodes: lod_stats.culled as u32,
+            ..*stats
+        };
+        *frame_update_ms.get_or_insert(0.0) += update_ms;
+        *frame_refine_ms.get_or_insert(0.0) += refine_ms;
     }
     if let Some(ms) = frame_update_ms {
         diagnostics.add_measurement(&TerrainPlugin::UPDATE_MS, || ms);

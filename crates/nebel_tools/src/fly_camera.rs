@@ -10,7 +10,7 @@ use crate::scene_setup::SceneCamera;
 
 /// Makes a camera fly under keyboard and mouse control.
 #[derive(Component, Clone, Copy, Debug, Reflect)]
-#[reflect(Component, Default)]
+#[reflect(Component, Default, Clone)]
 pub struct FlyCamera {
     /// Speed in metres per second. Default: 10.
     pub speed: f32,

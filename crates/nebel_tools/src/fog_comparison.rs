@@ -1,5 +1,4 @@
-//! nebel against Bevy's own `FogVolume` ray marcher on the same density grid
-//! (DESIGN.md §8).
+//! nebel against Bevy's own `FogVolume` ray marcher on the same density grid.
 //!
 //! Bevy 0.19's fog (`bevy_pbr` `volumetric_fog.wgsl`), lit by one directional
 //! light with `VolumetricLight`, with white fog colour and light tint,

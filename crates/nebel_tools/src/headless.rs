@@ -2,8 +2,9 @@
 //!
 //! [`render_headless`] builds a Bevy app without winit, lets the caller add
 //! the scene (a [`SceneSetupPlugin`](crate::scene_setup::SceneSetupPlugin) of
-//! a scene file, or an example's own systems), renders every camera into an
-//! sRGB image through whatever adapter wgpu finds (lavapipe, the CPU Vulkan
+//! a scene file, or an example's own systems), points every camera at one
+//! sRGB image (a scene renders with one camera; several would overwrite each
+//! other) through whatever adapter wgpu finds (lavapipe, the CPU Vulkan
 //! driver, included), steps `output.frames` frames with time advancing by
 //! exactly `1 / output.frame_rate` each, captures the last frame and writes
 //! it. Before Bevy starts, [`probe_adapter`] asks wgpu for an adapter, so a
@@ -47,7 +48,6 @@ use nebel_render::{HeavyBuilds, NebelDiagnosticsPlugin};
 use thiserror::Error;
 
 use crate::stats::{AdapterSummary, RenderStats, TimeSummary};
-use indicatif::{ProgressBar, ProgressStyle};
 use nebel::NebelPlugins;
 use nebel_scene::OutputSettings;
 
@@ -228,15 +228,7 @@ pub fn render_headless(
     let captured: Arc<Mutex<Option<Image>>> = Arc::default();
     let mut frame_times = Vec::with_capacity(output.frames as usize);
     let mut nebel_times = Vec::with_capacity(output.frames as usize);
-    let bar = if options.progress {
-        ProgressBar::new(u64::from(output.frames))
-    } else {
-        ProgressBar::hidden()
-    };
-    bar.set_style(
-        ProgressStyle::with_template("nebel: frame {pos}/{len} {wide_bar} {elapsed} (ETA {eta})")
-            .expect("a valid template"),
-    );
+    let bar = crate::progress::bar(options.progress, "frame", u64::from(output.frames));
     for frame in 0..output.frames {
         // Frame 0 is at time 0, like the reference; time steps from frame 1 on.
         if frame == 1 {

@@ -12,8 +12,9 @@
 //! RMSE against full resolution, RMSE, max abs, PSNR` against the reference)
 //! and an SVG plot of the median frame time (x, ms, from 0) against the RMSE
 //! (y, logarithmic), with axes, ticks, labels and a legend: one labelled dot
-//! per `c` joined in sweep order, the full-resolution (or comparison) point
-//! in red. SVG needs no font files: the labels are SVG text.
+//! per `c` joined in sweep order, the full-resolution point in red (the
+//! comparison image of `--comparison-accuracy` scores 0 against itself and
+//! has no dot). SVG needs no font files: the labels are SVG text.
 
 use std::path::Path;
 
@@ -271,16 +272,18 @@ pub fn plot(points: &[SweepPoint], comparison_accuracy: Option<f64>) -> Result<S
                 )
             }))
             .map_err(error)?;
-        chart
-            .draw_series(
-                shown
-                    .iter()
-                    .filter(|p| p.accuracy.is_none())
-                    .map(|p| Circle::new((p.frame_ms, p.error()), 5, RED.filled())),
-            )
-            .map_err(error)?
-            .label(full_label)
-            .legend(|(x, y)| Circle::new((x + 10, y), 5, RED.filled()));
+        // The comparison image scores 0 against itself: no dot on a log axis.
+        let full: Vec<&&SweepPoint> = shown.iter().filter(|p| p.accuracy.is_none()).collect();
+        if !full.is_empty() {
+            chart
+                .draw_series(
+                    full.iter()
+                        .map(|p| Circle::new((p.frame_ms, p.error()), 5, RED.filled())),
+                )
+                .map_err(error)?
+                .label(full_label)
+                .legend(|(x, y)| Circle::new((x + 10, y), 5, RED.filled()));
+        }
         chart
             .configure_series_labels()
             .position(SeriesLabelPosition::UpperRight)
@@ -354,6 +357,9 @@ mod tests {
     fn a_sweep_without_finite_errors_still_plots_empty_axes() {
         let svg = plot(&[point(None, f64::NAN, f64::NAN)], Some(128.0)).unwrap();
         assert!(svg.contains("median frame time (ms)"));
-        assert!(svg.contains("comparison, c = 128"));
+        assert!(
+            !svg.contains("comparison, c = 128"),
+            "no dot, no legend entry"
+        );
     }
 }

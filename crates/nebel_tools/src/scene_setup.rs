@@ -34,12 +34,11 @@ use nebel_volume::FlickeringLight;
 pub struct SceneSetupPlugin {
     /// The scene to spawn.
     pub scene: SceneDescription,
-    /// The scene's volumes, built ([`SceneSetupPlugin::new`] builds them).
-    /// Spawned as [`nebel_volume::Volume`]s when the `volume` feature is on.
+    /// The scene's volumes, built ([`SceneSetupPlugin::new`] builds them),
+    /// spawned as [`nebel_volume::Volume`]s.
     pub volumes: Vec<BuiltVolume>,
     /// The scene terrain's unit heights ([`SceneSetupPlugin::new`] builds
-    /// them); spawned as a `nebel_terrain::Terrain` when the `terrain`
-    /// feature is on.
+    /// them), spawned as a `nebel_terrain::Terrain`.
     pub terrain: Option<HeightField>,
     /// Draw grid volumes with Bevy's own `FogVolume` ray marcher instead of
     /// nebel, for comparisons ([`crate::fog_comparison`]). Default: `None`.
@@ -89,7 +88,7 @@ pub struct LoadedScene(pub SceneDescription);
 
 /// Marks the camera spawned from the scene file.
 #[derive(Component, Clone, Copy, Debug, Default, Reflect)]
-#[reflect(Component, Default)]
+#[reflect(Component, Default, Clone)]
 pub struct SceneCamera {
     /// Whether the camera follows the scene's keyframe path. Default: false
     /// (set when the scene has a path; a fly camera clears it).
@@ -259,7 +258,8 @@ fn spawn_volumes(commands: &mut Commands, grids: &mut Assets<VolumeGrid>, volume
         let transfer_function = Arc::new(volume.transfer_function.clone());
         let field = match &volume.field {
             SceneField::Grid(grid) => VolumeField::Grid(grids.add(VolumeGrid::from(grid.clone()))),
-            SceneField::Cloud(_) => VolumeField::Cells(Arc::default()),
+            // The cloud's generator fills its field.
+            SceneField::Cloud(_) => VolumeField::default(),
             SceneField::Cells(cells) => VolumeField::Cells(Arc::new(cells.clone())),
             SceneField::Campfire(campfire) => {
                 let (scale, offset) = campfire.placement();

@@ -3,29 +3,34 @@
 //! itself (full resolution with bricks, the octree C-LOD, or a cell mesh in
 //! visibility order) and decides when the view changes the batch.
 //!
-//! 1. `start_volume_builds`: the source (the grid asset's shared grid or
-//!    the cells) and the [`BatchSettings`] (order from the optical mode, the
+//! 1. `build_batchers`: the source (the grid asset's shared grid or the
+//!    cells) and the [`BatchSettings`] (order from the optical mode, the
 //!    octree's `C` from [`VolumeLod`], the light field from
 //!    [`VolumeLighting`] and the sun in the volume's frame) are compared with
 //!    what the batcher was built from; a difference starts a new
 //!    [`VolumeBatcher`] on the task pool (padding, light field, hierarchy:
-//!    up to a second for the 513 × 65 × 513 layer).
-//! 2. `finish_volume_builds`: a finished batcher replaces the old one,
-//!    which drew meanwhile; a failure is kept in [`VolumeStatus::Failed`],
-//!    logged once for the entity, and not retried until the inputs change.
-//! 3. `update_volume_batches`: each visible volume's batcher is updated for
-//!    the view of the LOD camera ([`LodCameras`]) and the frame's inputs (the
-//!    transfer function, the accuracy `c`); the entity's `CellBatch` is
-//!    written only when the batch changed, so the render world uploads only
-//!    then. A hidden volume (its [`InheritedVisibility`] false) has no batch
-//!    and builds nothing.
+//!    up to a second for the 513 × 65 × 513 layer). One build runs per volume
+//!    at a time: inputs that change while it runs (a fire's grid every
+//!    frame, a moving sun) are built next, from their latest state, so every
+//!    build lands. A finished batcher replaces the old one, which drew
+//!    meanwhile.
+//! 2. `update_batches`: each visible volume's batcher is updated for the view
+//!    of the LOD camera ([`LodCameras`]) and the frame's inputs (the transfer
+//!    function, the accuracy `c`); the entity's `CellBatch` is written only
+//!    when the batch, the optical mode or the scattering changed, so the
+//!    render world uploads only then.
+//! 3. `report_status` derives [`VolumeStatus`] from the stages' failures (the
+//!    generator's, the grid asset's, the build's, the last update's, in that
+//!    order) and logs a failure once per entity when it appears; a failed
+//!    build is not retried until its inputs change.
 //! 4. `measure_volumes`: the `nebel/volume/*` diagnostics.
 //!
-//! They run in `PostUpdate`, after transform propagation, the camera's
-//! projection update and visibility propagation, so a batch is built for the
-//! eye of the frame it is drawn in (a batch one frame behind a moving camera
-//! is ordered and refined for the wrong eye). The systems that change volumes
-//! (campfire, clouds) run in `Update`.
+//! A hidden volume (its [`InheritedVisibility`] false) has no batch and
+//! builds nothing. The systems run in `PostUpdate`, after transform
+//! propagation, the camera's projection update and visibility propagation, so
+//! a batch is built for the eye of the frame it is drawn in (a batch one frame
+//! behind a moving camera is ordered and refined for the wrong eye). The
+//! systems that change volumes (campfire, clouds) run in `Update`.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -41,6 +46,7 @@ use nebel_lod::{
 use nebel_render::camera::to_double;
 use nebel_render::{CellBatch, HeavyBuild, HeavyBuilds, LodCameras};
 
+use crate::cloud::CloudGeneration;
 use crate::grid::VolumeGrid;
 use crate::lighting::sun_in_local_frame;
 use crate::status::{VolumeError, VolumeStatus};
@@ -50,22 +56,66 @@ use crate::{VolumeLighting, VolumeLod};
 /// A finished background build: the batcher and how long it took.
 type BuiltBatcher = Result<(VolumeBatcher, f64), VolumeBatchError>;
 
-/// What a volume's batcher was built from: its source (by identity) and
-/// settings.
-#[derive(Clone, Debug, PartialEq)]
+/// What a batcher is built from: its source (the shared grid or cells,
+/// compared by identity) and settings (compared bit for bit, so a NaN
+/// setting equals itself and is not rebuilt every frame).
+#[derive(Clone, Debug)]
 struct BuildKey {
-    /// The address of the shared grid or cell list.
-    source: usize,
+    source: VolumeSource,
     settings: BatchSettings,
 }
 
-/// A volume's batcher and the build in flight (internal).
+impl BuildKey {
+    fn same_as(&self, other: &Self) -> bool {
+        let source = match (&self.source, &other.source) {
+            (VolumeSource::Grid(a), VolumeSource::Grid(b)) => Arc::ptr_eq(a, b),
+            (VolumeSource::Cells(a), VolumeSource::Cells(b)) => Arc::ptr_eq(a, b),
+            _ => false,
+        };
+        source && settings_bits(&self.settings) == settings_bits(&other.settings)
+    }
+}
+
+/// The bits of every value of `settings`.
+fn settings_bits(settings: &BatchSettings) -> Vec<u64> {
+    let mut bits = vec![u64::from(settings.order == CellOrder::BackToFront)];
+    if let Some(octree) = settings.octree {
+        bits.push(octree.min_accuracy.to_bits());
+    }
+    if let Some(lighting) = settings.lighting {
+        let light = lighting.light;
+        bits.extend([
+            u64::from(light.ambient.to_bits()),
+            u64::from(light.diffuse.to_bits()),
+            u64::from(light.shadow_extinction.to_bits()),
+            u64::from(light.lambert),
+            lighting.scalars as u64,
+        ]);
+        bits.extend(light.sun_direction.to_array().map(f64::to_bits));
+    }
+    bits
+}
+
+/// A volume's batcher, the build in flight and the failures of its stages
+/// (internal).
 #[derive(Component, Default)]
 pub(crate) struct VolumeBatching {
-    /// What the batcher (or the failure, or the build in flight) is for.
-    key: Option<BuildKey>,
-    build: Option<HeavyBuild<BuiltBatcher>>,
+    /// What the batcher was built from.
+    built: Option<BuildKey>,
+    /// The build in flight and what it builds from.
+    build: Option<(BuildKey, HeavyBuild<BuiltBatcher>)>,
+    /// What the last failed build was built from: not retried until the
+    /// inputs differ.
+    failed: Option<BuildKey>,
     batcher: Option<VolumeBatcher>,
+    /// The grid asset is loading.
+    loading: bool,
+    /// Why the grid asset is unusable.
+    source_failure: Option<VolumeError>,
+    /// Why the last build failed.
+    build_failure: Option<VolumeError>,
+    /// Why the last update failed.
+    update_failure: Option<VolumeError>,
 }
 
 #[cfg(test)]
@@ -99,13 +149,6 @@ fn source(
     }
 }
 
-fn source_address(source: &VolumeSource) -> usize {
-    match source {
-        VolumeSource::Grid(grid) => Arc::as_ptr(grid) as usize,
-        VolumeSource::Cells(cells) => Arc::as_ptr(cells) as usize,
-    }
-}
-
 /// The view-independent settings of a volume's batch.
 fn batch_settings(
     volume: &Volume,
@@ -130,81 +173,88 @@ fn batch_settings(
     }
 }
 
-/// Starts a batcher build for every visible volume whose source or settings
-/// changed (see the module docs).
-pub(crate) fn start_volume_builds(
+/// Takes finished batcher builds and starts new ones (see the module docs).
+pub(crate) fn build_batchers(
     mut volumes: Query<(
-        Entity,
         &Volume,
         &GlobalTransform,
         Option<&VolumeLod>,
         Option<&VolumeLighting>,
         &InheritedVisibility,
-        &mut VolumeStatus,
         &mut VolumeBatching,
     )>,
     suns: Query<&GlobalTransform, With<DirectionalLight>>,
     grids: Res<Assets<VolumeGrid>>,
     asset_server: Res<AssetServer>,
+    mode: Res<HeavyBuilds>,
+    mut diagnostics: Diagnostics,
 ) {
     let sun_world = suns.iter().next().map(|sun| sun.back().as_vec3());
-    for (entity, volume, transform, lod, lighting, visibility, mut status, mut batching) in
-        &mut volumes
-    {
-        if !visibility.get() {
+    for (volume, transform, lod, lighting, visibility, mut batching) in &mut volumes {
+        let batching = &mut *batching;
+        // A build started last frame may be done (always under Blocking).
+        finish_build(batching, *mode, &mut diagnostics);
+        if !visibility.get() || batching.build.is_some() {
             continue;
         }
         let source = match source(volume, &grids, &asset_server) {
-            Ok(Some(source)) => source,
-            Ok(None) => continue,
+            Ok(source) => {
+                batching.source_failure = None;
+                source
+            }
             Err(error) => {
-                status.fail(entity, error);
-                continue;
+                batching.source_failure = Some(error);
+                None
             }
         };
+        batching.loading = source.is_none() && batching.source_failure.is_none();
+        let Some(source) = source else {
+            continue;
+        };
         let key = BuildKey {
-            source: source_address(&source),
+            source,
             settings: batch_settings(volume, lod, lighting, sun_world, transform),
         };
-        if batching.key.as_ref() == Some(&key) {
+        let unchanged = |last: &Option<BuildKey>| last.as_ref().is_some_and(|k| k.same_as(&key));
+        if unchanged(&batching.built) || unchanged(&batching.failed) {
             continue;
         }
-        let settings = key.settings;
-        batching.key = Some(key);
-        batching.build = Some(HeavyBuild::spawn(move || {
+        let (source, settings) = (key.source.clone(), key.settings);
+        let build = HeavyBuild::spawn(move || {
             let started = Instant::now();
             VolumeBatcher::new(source, &settings)
                 .map(|batcher| (batcher, started.elapsed().as_secs_f64() * 1e3))
-        }));
-        if batching.batcher.is_none() {
-            *status = VolumeStatus::Pending;
-        }
+        });
+        batching.build = Some((key, build));
+        finish_build(batching, *mode, &mut diagnostics);
     }
 }
 
-/// Takes the finished batcher builds (see the module docs).
-pub(crate) fn finish_volume_builds(
-    mut commands: Commands,
-    mode: Res<HeavyBuilds>,
-    mut volumes: Query<(Entity, &mut VolumeStatus, &mut VolumeBatching)>,
-    mut diagnostics: Diagnostics,
-) {
-    for (entity, mut status, mut batching) in &mut volumes {
-        let Some(result) = batching.build.as_mut().and_then(|build| build.poll(*mode)) else {
-            continue;
-        };
-        batching.build = None;
-        match result {
-            Ok((batcher, build_ms)) => {
-                diagnostics.add_measurement(&VolumePlugin::BUILD_MS, || build_ms);
-                batching.batcher = Some(batcher);
-                *status = VolumeStatus::Ready;
-            }
-            Err(error) => {
-                batching.batcher = None;
-                commands.entity(entity).remove::<CellBatch>();
-                status.fail(entity, error.into());
-            }
+/// Takes the build in flight if it is done (waiting for it under
+/// [`HeavyBuilds::Blocking`]).
+fn finish_build(batching: &mut VolumeBatching, mode: HeavyBuilds, diagnostics: &mut Diagnostics) {
+    let Some((key, build)) = batching.build.as_mut() else {
+        return;
+    };
+    let Some(result) = build.poll(mode) else {
+        return;
+    };
+    let key = key.clone();
+    batching.build = None;
+    match result {
+        Ok((batcher, build_ms)) => {
+            diagnostics.add_measurement(&VolumePlugin::BUILD_MS, || build_ms);
+            batching.batcher = Some(batcher);
+            batching.built = Some(key);
+            batching.failed = None;
+            batching.build_failure = None;
+            batching.update_failure = None;
+        }
+        Err(error) => {
+            batching.batcher = None;
+            batching.built = None;
+            batching.failed = Some(key);
+            batching.build_failure = Some(error.into());
         }
     }
 }
@@ -216,7 +266,7 @@ fn world_from_local(transform: &GlobalTransform) -> DAffine3 {
 
 /// Updates every visible volume's batch for this frame's view and writes it
 /// when it changed (see the module docs).
-pub(crate) fn update_volume_batches(
+pub(crate) fn update_batches(
     mut commands: Commands,
     cameras: LodCameras,
     mut volumes: Query<(
@@ -226,32 +276,30 @@ pub(crate) fn update_volume_batches(
         Option<&VolumeLod>,
         Option<&VolumeLighting>,
         &InheritedVisibility,
-        Has<CellBatch>,
-        &mut VolumeStatus,
+        Option<&CellBatch>,
         &mut VolumeBatching,
     )>,
     suns: Query<&GlobalTransform, With<DirectionalLight>>,
     mut diagnostics: Diagnostics,
 ) {
-    let Some(camera) = cameras.view() else {
-        return;
-    };
+    let camera = cameras.view();
     // A degenerate projection culls nothing rather than everything.
-    let frustum = Frustum::from_view_projection(camera.clip_from_world).ok();
+    let frustum =
+        camera.and_then(|camera| Frustum::from_view_projection(camera.clip_from_world).ok());
     let sun_world = suns.iter().next().map(|sun| sun.back().as_vec3());
     let started = Instant::now();
     let mut rebuilt = false;
-    for (entity, volume, transform, lod, lighting, visibility, drawn, mut status, mut batching) in
-        &mut volumes
+    for (entity, volume, transform, lod, lighting, visibility, drawn, mut batching) in &mut volumes
     {
-        if !visibility.get() {
-            if drawn {
-                // Hidden: nothing to upload or draw.
+        if !visibility.get() || batching.batcher.is_none() {
+            if drawn.is_some() {
+                // Hidden or failed: nothing to upload or draw.
                 commands.entity(entity).remove::<CellBatch>();
             }
             continue;
         }
-        let Some(batcher) = batching.batcher.as_mut() else {
+        let batching = &mut *batching;
+        let (Some(camera), Some(batcher)) = (camera, batching.batcher.as_mut()) else {
             continue;
         };
         let mut view = View::new(world_from_local(transform), camera.eye, camera.viewport);
@@ -260,28 +308,69 @@ pub(crate) fn update_volume_batches(
             transfer: &volume.transfer_function,
             accuracy: lod.map_or(0.0, |lod| lod.accuracy),
         };
+        let scattering =
+            lighting.and_then(|lighting| lighting.cell_scattering(sun_world.unwrap_or(Vec3::Y)));
         match batcher.update(&view, &inputs) {
-            Ok(false) if drawn => {}
-            Ok(_) => {
-                rebuilt = true;
-                let mut batch = CellBatch::new(
-                    batcher.batch().clone(),
-                    volume.transfer_function.clone(),
-                    volume.mode,
-                );
-                batch.scattering = lighting
-                    .and_then(|lighting| lighting.cell_scattering(sun_world.unwrap_or(Vec3::Y)));
-                commands.entity(entity).insert(batch);
-                if matches!(*status, VolumeStatus::Failed(_)) {
-                    *status = VolumeStatus::Ready;
+            Ok(changed) => {
+                batching.update_failure = None;
+                let current = drawn.is_some_and(|batch| {
+                    batch.mode == volume.mode
+                        && batch.scattering == scattering
+                        && batch
+                            .transfer_function
+                            .as_ref()
+                            .is_some_and(|tf| Arc::ptr_eq(tf, &volume.transfer_function))
+                });
+                if changed || !current {
+                    rebuilt = true;
+                    let mut batch = CellBatch::new(
+                        batcher.batch().clone(),
+                        volume.transfer_function.clone(),
+                        volume.mode,
+                    );
+                    batch.scattering = scattering;
+                    commands.entity(entity).insert(batch);
                 }
             }
-            Err(error) => status.fail(entity, error.into()),
+            Err(error) => batching.update_failure = Some(error.into()),
         }
     }
     if rebuilt {
         let ms = started.elapsed().as_secs_f64() * 1e3;
         diagnostics.add_measurement(&VolumePlugin::UPDATE_MS, || ms);
+    }
+}
+
+/// Derives every volume's [`VolumeStatus`] from its stages and logs a new
+/// failure once (see the module docs).
+pub(crate) fn report_status(
+    mut volumes: Query<(
+        Entity,
+        &VolumeBatching,
+        Option<&CloudGeneration>,
+        &mut VolumeStatus,
+    )>,
+) {
+    for (entity, batching, generation, mut status) in &mut volumes {
+        let failure = generation
+            .and_then(CloudGeneration::failure)
+            .or(batching.source_failure.as_ref())
+            .or(batching.build_failure.as_ref())
+            .or(batching.update_failure.as_ref());
+        let pending = batching.batcher.is_none()
+            || batching.loading
+            || generation.is_some_and(|generation| !generation.has_grid());
+        let derived = match failure {
+            Some(error) => VolumeStatus::Failed(error.clone()),
+            None if pending => VolumeStatus::Pending,
+            None => VolumeStatus::Ready,
+        };
+        if *status != derived {
+            if let VolumeStatus::Failed(error) = &derived {
+                error!("nebel: volume {entity}: {error}");
+            }
+            *status = derived;
+        }
     }
 }
 

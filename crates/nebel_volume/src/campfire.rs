@@ -50,14 +50,17 @@ fn campfire_volume() -> Volume {
     }
 }
 
-/// Regenerates every campfire's grid for the current time, in its grid
-/// asset (added on the first frame).
+/// Regenerates every visible campfire's grid for the current time, in its
+/// grid asset (added on the first frame).
 pub(crate) fn animate_campfires(
     time: Res<Time>,
-    mut fires: Query<(&Campfire, &mut Volume)>,
+    mut fires: Query<(&Campfire, &InheritedVisibility, &mut Volume)>,
     mut grids: ResMut<Assets<VolumeGrid>>,
 ) {
-    for (campfire, mut volume) in &mut fires {
+    for (campfire, visibility, mut volume) in &mut fires {
+        if !visibility.get() {
+            continue;
+        }
         let grid = campfire_density(campfire.dims, time.elapsed_secs_f64(), campfire.seed);
         match &volume.field {
             VolumeField::Grid(handle) if let Some(mut asset) = grids.get_mut(handle) => {

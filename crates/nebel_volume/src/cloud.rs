@@ -28,7 +28,7 @@ use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_render::{HeavyBuild, HeavyBuilds};
 
 use crate::grid::VolumeGrid;
-use crate::status::VolumeStatus;
+use crate::status::VolumeError;
 use crate::{Volume, VolumeField, VolumeLighting, VolumeLod, VolumePlugin};
 
 /// A procedural cumulus cloud layer over a box of the entity's local frame.
@@ -83,7 +83,7 @@ impl CloudVolume {
     }
 }
 
-/// A cloud's generation in flight (internal).
+/// A cloud's generation in flight and its last failure (internal).
 #[derive(Component, Default)]
 pub(crate) struct CloudGeneration {
     build: Option<HeavyBuild<Result<(DensityGrid, f64), FieldError>>>,
@@ -91,28 +91,46 @@ pub(crate) struct CloudGeneration {
     stale: bool,
     /// A generation has been started.
     started: bool,
+    /// A generation succeeded: the volume has a cloud grid.
+    generated: bool,
+    /// Why the last generation failed; the wind does not retry it, a change
+    /// of the settings does.
+    failure: Option<VolumeError>,
 }
 
-/// Starts a cloud's generation when its settings changed, when it has none
-/// yet, or while the wind blows (one at a time), and writes the finished
-/// grids into the volume's grid asset.
+impl CloudGeneration {
+    /// Why the last generation failed.
+    pub(crate) fn failure(&self) -> Option<&VolumeError> {
+        self.failure.as_ref()
+    }
+
+    /// Whether the volume has a cloud grid yet.
+    pub(crate) fn has_grid(&self) -> bool {
+        self.generated
+    }
+}
+
+/// Starts a visible cloud's generation when its settings changed, when it
+/// has none yet, or while the wind blows (one at a time, and not again after
+/// a failure until the settings change), and writes the finished grids into
+/// the volume's grid asset.
 pub(crate) fn generate_clouds(
     time: Res<Time>,
     mode: Res<HeavyBuilds>,
     mut clouds: Query<(
-        Entity,
         Ref<CloudVolume>,
+        &InheritedVisibility,
         &mut Volume,
-        &mut VolumeStatus,
         &mut CloudGeneration,
     )>,
     mut grids: ResMut<Assets<VolumeGrid>>,
     mut diagnostics: Diagnostics,
 ) {
-    for (entity, cloud, mut volume, mut status, mut generation) in &mut clouds {
+    for (cloud, visibility, mut volume, mut generation) in &mut clouds {
         generation.stale |= cloud.is_changed();
-        let windy = cloud.noise.wind != DVec3::ZERO;
-        if generation.build.is_none() && (generation.stale || windy || !generation.started) {
+        let windy = cloud.noise.wind != DVec3::ZERO && generation.failure.is_none();
+        let wanted = generation.stale || windy || !generation.started;
+        if visibility.get() && generation.build.is_none() && wanted {
             let (cloud, at) = (CloudVolume::clone(&cloud), time.elapsed_secs_f64());
             generation.build = Some(HeavyBuild::spawn(move || {
                 let started = Instant::now();
@@ -134,6 +152,8 @@ pub(crate) fn generate_clouds(
         match result {
             Ok((grid, generation_ms)) => {
                 diagnostics.add_measurement(&VolumePlugin::GENERATION_MS, || generation_ms);
+                generation.generated = true;
+                generation.failure = None;
                 match &volume.field {
                     VolumeField::Grid(handle) if let Some(mut asset) = grids.get_mut(handle) => {
                         *asset = grid.into();
@@ -141,7 +161,7 @@ pub(crate) fn generate_clouds(
                     _ => volume.field = VolumeField::Grid(grids.add(VolumeGrid::from(grid))),
                 }
             }
-            Err(error) => status.fail(entity, error.into()),
+            Err(error) => generation.failure = Some(error.into()),
         }
     }
 }
@@ -179,7 +199,10 @@ mod tests {
             dims: UVec3::new(9, 5, 9),
             ..default()
         };
-        let entity = app.world_mut().spawn(cloud).id();
+        let entity = app
+            .world_mut()
+            .spawn((cloud, InheritedVisibility::VISIBLE))
+            .id();
         assert!(app.world().get::<VolumeLighting>(entity).is_some());
         app.update();
         let still = grid(&app, entity);
@@ -213,9 +236,23 @@ mod tests {
             [9, 5, 9],
             "a bad size keeps the last grid"
         );
-        let VolumeStatus::Failed(error) = app.world().get::<VolumeStatus>(entity).unwrap() else {
-            panic!("a bad size fails");
-        };
+        let generation = app.world().get::<CloudGeneration>(entity).unwrap();
+        let error = generation.failure().expect("a bad size fails");
         assert!(error.to_string().contains("cannot generate"), "{error}");
+        assert!(generation.build.is_none(), "the wind does not retry it");
+        app.update();
+        let generation = app.world().get::<CloudGeneration>(entity).unwrap();
+        assert!(generation.build.is_none() && generation.failure().is_some());
+        // Fixed settings generate again.
+        app.world_mut().get_mut::<CloudVolume>(entity).unwrap().dims = UVec3::new(9, 5, 11);
+        app.update();
+        assert_eq!(grid(&app, entity).dims(), [9, 5, 11]);
+        assert!(
+            app.world()
+                .get::<CloudGeneration>(entity)
+                .unwrap()
+                .failure()
+                .is_none()
+        );
     }
 }

@@ -12,7 +12,7 @@ use bevy::prelude::*;
 
 /// Makes a [`PointLight`] flicker around `base_intensity`.
 #[derive(Component, Clone, Copy, Debug, Reflect)]
-#[reflect(Component, Default)]
+#[reflect(Component, Default, Clone)]
 #[require(PointLight)]
 pub struct FlickeringLight {
     /// The mean luminous power, lumens. Default 100 000.

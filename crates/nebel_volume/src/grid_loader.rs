@@ -22,12 +22,15 @@
 //! ```
 //!
 //! The loader takes files ending in `.raw`. The grid is checked against the
-//! memory budget and the file length against the size before anything is
-//! decoded; a wrong size is an error naming the file.
+//! memory budget before the file is read, at most the expected number of
+//! bytes (and one more) is read, and a wrong length is an error naming the
+//! file; nothing is decoded before both checks.
 
 use bevy::asset::io::Reader;
 use bevy::asset::{AssetLoader, LoadContext};
 use bevy::prelude::*;
+use bevy::tasks::futures_lite::AsyncReadExt;
+use nebel_core::budget::BudgetError;
 use nebel_core::field::{DensityGrid, FieldError, Normalization, RawSampleType};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
@@ -70,10 +73,17 @@ pub enum VolumeGridLoadError {
     /// The file could not be read.
     #[error("cannot read the density grid: {0}")]
     Io(#[from] std::io::Error),
-    /// The bytes do not make a grid of the settings' size, or the grid is
-    /// over the memory budget.
+    /// The bytes do not make a grid of the settings' size.
     #[error(transparent)]
     Field(#[from] FieldError),
+    /// The grid of the settings' size would exceed the memory budget.
+    #[error("{path}: {error}")]
+    OverBudget {
+        /// The asset path.
+        path: String,
+        /// The budget's refusal.
+        error: BudgetError,
+    },
 }
 
 /// Loads [`VolumeGrid`]s from `.raw` files (see the module docs).
@@ -91,13 +101,24 @@ impl AssetLoader for VolumeGridLoader {
         settings: &VolumeGridSettings,
         load_context: &mut LoadContext<'_>,
     ) -> Result<VolumeGrid, VolumeGridLoadError> {
-        let mut bytes = Vec::new();
-        reader.read_to_end(&mut bytes).await?;
         let name = load_context.path().to_string();
+        let dims = settings.dims.to_array().map(|n| n as usize);
+        DensityGrid::check_budget(dims).map_err(|error| VolumeGridLoadError::OverBudget {
+            path: name.clone(),
+            error,
+        })?;
+        // Within the budget: the samples are at most 4 bytes each, like the
+        // grid's f32 values. One byte more shows a file that is too long.
+        let expected = dims.iter().product::<usize>() * settings.sample_type.bytes();
+        let mut bytes = Vec::new();
+        reader
+            .take(expected as u64 + 1)
+            .read_to_end(&mut bytes)
+            .await?;
         let grid = DensityGrid::from_raw_bytes(
             &name,
             &bytes,
-            settings.dims.to_array().map(|n| n as usize),
+            dims,
             settings.sample_type,
             settings.normalization,
             settings.spacing.as_dvec3(),

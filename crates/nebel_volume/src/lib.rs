@@ -1,23 +1,33 @@
 //! nebel's volume plugin: clouds, smoke, fire and search lights as density
-//! grids or cells, drawn by the cell-projection render system
-//! (DESIGN.md §3, §5; paper 000 §4, paper 001 ch. 10).
+//! grids or cells, drawn by the cell-projection render system.
 //!
 //! Spawn a [`Volume`] (or a [`Campfire`] or a [`CloudVolume`], which fill and
 //! animate one); [`VolumePlugin`] turns it into a [`CellBatch`] on the same
 //! entity: the full-resolution grid (five tetrahedra per voxel, alternating),
-//! or with [`VolumeLod`] the octree C-LOD of paper 000, lit as a cloud with
+//! or with [`VolumeLod`] the octree C-LOD of Röttger and Ertl 2003, lit as a cloud with
 //! [`VolumeLighting`]. The render system is the same for all of them.
+//!
+//! # References
+//!
+//! Papers are cited by author and year:
+//!
+//! - Röttger and Ertl 2003: Stefan Röttger and Thomas Ertl, "Fast Volumetric Display of
+//!   Natural Gaseous Phenomena", Computer Graphics International, 2003.
+//! - Nes 2008: Gisle Nes, "Physically Plausible Weather Visualization", master's thesis,
+//!   University of Bergen, 2008.
+//! - Williams 1992: Peter L. Williams, "Visibility Ordering Meshed Polyhedra", ACM
+//!   Transactions on Graphics 11(2), 1992.
 
 pub mod batching;
-mod campfire;
-mod cloud;
-mod flickering_light;
+pub mod campfire;
+pub mod cloud;
+pub mod flickering_light;
 pub mod grid;
 pub mod grid_loader;
-mod lighting;
-mod lod;
-mod status;
-mod volume;
+pub mod lighting;
+pub mod lod;
+pub mod status;
+pub mod volume;
 
 pub use campfire::Campfire;
 pub use cloud::CloudVolume;

@@ -1,5 +1,5 @@
 //! Lit clouds: a light field γ per grid point and a segment length modulated
-//! by a second field (paper 000 §5; DESIGN.md §4 "Cloud lighting").
+//! by a second field (Röttger and Ertl 2003 §5).
 //!
 //! Add [`VolumeLighting`] to a grid [`Volume`](crate::Volume) (it requires
 //! [`VolumeLod`](crate::VolumeLod): lit volumes are always drawn through the
@@ -8,7 +8,7 @@
 //! 1. computes γ at every grid point with `nebel_core::field::light_field`:
 //!    `γ = ambient + diffuse · T_sun · lambert`, the "standard ambient and
 //!    diffuse lighting" of §5.2 on the density gradient, optionally shadowed
-//!    by the transmittance toward the sun (paper 003), with the sun taken
+//!    by the transmittance toward the sun (Nes 2008), with the sun taken
 //!    from the first [`DirectionalLight`] (straight up in the volume's frame
 //!    when there is none), and again whenever the sun, the volume or its
 //!    rotation changes;
@@ -28,7 +28,7 @@ use nebel_core::field::CloudLighting;
 use nebel_lod::octree::CellScalars;
 use nebel_render::CellScattering;
 
-/// Which field gives the colour and which the opacity (paper 000 §5).
+/// Which field gives the colour and which the opacity (Röttger and Ertl 2003 §5).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Reflect)]
 #[reflect(Default, Clone)]
 pub enum CloudLightModel {
@@ -44,7 +44,7 @@ pub enum CloudLightModel {
     /// `TransferPreset::Cloud`), and γ scales the segment length: the sunny
     /// side is opaque and bright, the far side translucent.
     NonPhysical,
-    /// Single scattering of the sun (paper 003, beyond paper 000): γ is the
+    /// Single scattering of the sun (Nes 2008, beyond Röttger and Ertl 2003): γ is the
     /// plain transmittance toward the sun (no Lambert term; `ambient` and
     /// `diffuse` become the sky's and the sun's strength), the transfer
     /// function is over γ (use `TransferPreset::Transmittance`, or scale its
@@ -84,7 +84,7 @@ pub struct VolumeLighting {
     /// Default 0.7.
     pub diffuse: f32,
     /// Optical density per world unit of the volume's local frame at density
-    /// 1, for the transmittance toward the sun (paper 003's shadow volume),
+    /// 1, for the transmittance toward the sun (Nes 2008's shadow volume),
     /// ≥ 0; 0 casts no shadow. Default 0.
     pub shadow_extinction: f32,
     /// Which field gives the colour and which the opacity. Default
@@ -95,8 +95,8 @@ pub struct VolumeLighting {
 impl Default for VolumeLighting {
     fn default() -> Self {
         Self {
-            ambient: 0.3,
-            diffuse: 0.7,
+            ambient: CloudLighting::DEFAULT_AMBIENT,
+            diffuse: CloudLighting::DEFAULT_DIFFUSE,
             shadow_extinction: 0.0,
             model: CloudLightModel::Isotropic,
         }

@@ -1,9 +1,9 @@
 //! View-dependent level of detail for grid volumes: the volumetric C-LOD of
-//! paper 000 §2-3 (DESIGN.md §5).
+//! Röttger and Ertl 2003 §2-3.
 //!
 //! Add [`VolumeLod`] to a [`Volume`](crate::Volume) with a grid field and its
 //! batch comes from the octree instead of the full-resolution grid: the
-//! hierarchy ([`VolumeHierarchy`], built once per grid, 4 bytes per point) is
+//! hierarchy ([`nebel_lod::VolumeHierarchy`], built once per grid, 4 bytes per point) is
 //! refined every time the eye moves with `e = s · C · max(c · Δ, 1) / d`, and
 //! the leaves become morphed, conforming tetrahedra in back-to-front order
 //! ([`nebel_lod::octree::lod_batch`]). A grid whose sides are not `2^n + 1`
@@ -21,10 +21,10 @@ use nebel_lod::octree::RefinementSettings;
 #[derive(Component, Clone, Copy, Debug, PartialEq, Reflect)]
 #[reflect(Component, Default, Clone)]
 pub struct VolumeLod {
-    /// Global accuracy `c` (paper 000 Eq. 1), 1/density units, ≥ 0: higher
+    /// Global accuracy `c` (Röttger and Ertl 2003 Eq. 1), 1/density units, ≥ 0: higher
     /// draws more cells. Default 16.
     pub accuracy: f64,
-    /// Minimum accuracy `C` (paper 000 Eq. 1), > √3: how many node sizes away
+    /// Minimum accuracy `C` (Röttger and Ertl 2003 Eq. 1), > √3: how many node sizes away
     /// a node must be before it may stay coarse; it also sets the deviation
     /// propagation `K_max = C / (2C − √3/2)`. Default 4.
     pub min_accuracy: f64,

@@ -61,14 +61,3 @@ impl PartialEq for VolumeError {
         self.to_string() == other.to_string()
     }
 }
-
-impl VolumeStatus {
-    /// Sets the status to `Failed(error)` and logs it, once per new failure
-    /// of this entity.
-    pub(crate) fn fail(&mut self, entity: Entity, error: VolumeError) {
-        if *self != VolumeStatus::Failed(error.clone()) {
-            error!("nebel: volume {entity}: {error}");
-            *self = VolumeStatus::Failed(error);
-        }
-    }
-}

@@ -17,7 +17,7 @@
 //! Work happens only on change: the view-independent part (bricks, octree,
 //! light field, adjacency) when the field, the mode or the LOD and lighting
 //! settings change (on the task pool, see
-//! [`HeavyBuilds`](nebel_render::HeavyBuilds)), the batch when the view
+//! [`nebel_render::HeavyBuilds`]), the batch when the view
 //! changes what it would be. Emissive and MIP grids draw unordered and
 //! unculled, so a moving camera costs them nothing. A hidden volume (its
 //! [`InheritedVisibility`] false) has no batch. [`VolumeStatus`] tells
@@ -36,8 +36,7 @@ use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_render::{HeavyBuilds, LodCamera, NebelSystems};
 
 use crate::batching::{
-    VolumeBatching, finish_volume_builds, measure_volumes, start_volume_builds,
-    update_volume_batches,
+    VolumeBatching, build_batchers, measure_volumes, report_status, update_batches,
 };
 use crate::grid::VolumeGrid;
 use crate::status::VolumeStatus;
@@ -103,9 +102,9 @@ impl Plugin for VolumePlugin {
             .add_systems(
                 PostUpdate,
                 (
-                    start_volume_builds,
-                    finish_volume_builds,
-                    update_volume_batches,
+                    build_batchers,
+                    update_batches,
+                    report_status,
                     measure_volumes,
                 )
                     .chain()
@@ -251,7 +250,7 @@ mod tests {
     }
 
     /// The change tick of the batch's last change.
-    fn generation(app: &App, volume: Entity) -> Option<u32> {
+    fn last_changed(app: &App, volume: Entity) -> Option<u32> {
         app.world()
             .entity(volume)
             .get_ref::<CellBatch>()
@@ -277,11 +276,11 @@ mod tests {
         assert_eq!(status(&app, volume), VolumeStatus::Ready);
         let batch = app.world().get::<CellBatch>(volume).expect("a batch");
         assert_eq!(batch.cells.len(), 5 * 8);
-        let first = generation(&app, volume).unwrap();
+        let first = last_changed(&app, volume).unwrap();
 
         app.update();
         assert_eq!(
-            generation(&app, volume),
+            last_changed(&app, volume),
             Some(first),
             "nothing moved: no rebuild"
         );
@@ -292,25 +291,25 @@ mod tests {
         app.update();
         app.update();
         assert!(
-            generation(&app, volume).unwrap() > first,
+            last_changed(&app, volume).unwrap() > first,
             "a sorted volume follows the eye"
         );
 
-        let moved = generation(&app, volume);
+        let moved = last_changed(&app, volume);
         turn_camera(&mut app, camera);
         assert!(
-            generation(&app, volume) > moved,
+            last_changed(&app, volume) > moved,
             "the frustum changes when the camera turns in place"
         );
 
-        let moved = generation(&app, volume);
+        let moved = last_changed(&app, volume);
         app.world_mut()
             .get_mut::<Volume>(volume)
             .unwrap()
             .transfer_function = Arc::new(TransferFunction::preset(TransferPreset::Smoke));
         app.update();
         assert!(
-            generation(&app, volume) > moved,
+            last_changed(&app, volume) > moved,
             "a changed volume is rebuilt"
         );
         let measured = |path| {
@@ -327,9 +326,9 @@ mod tests {
     #[test]
     fn an_emissive_volume_ignores_the_camera_and_a_hidden_one_has_no_batch() {
         let (mut app, camera, volume) = app_with_volume(OpticalMode::Emissive);
-        let first = generation(&app, volume).expect("a batch");
+        let first = last_changed(&app, volume).expect("a batch");
         move_camera(&mut app, camera);
-        assert_eq!(generation(&app, volume), Some(first));
+        assert_eq!(last_changed(&app, volume), Some(first));
 
         app.world_mut()
             .entity_mut(volume)
@@ -366,9 +365,9 @@ mod tests {
         assert!(coarse > 0 && coarse < 5 * 16 * 16 * 16, "{coarse} cells");
 
         // An emissive volume at full resolution ignores the eye; with LOD it follows it.
-        let before = generation(&app, volume);
+        let before = last_changed(&app, volume);
         move_camera(&mut app, camera);
-        assert!(generation(&app, volume) > before);
+        assert!(last_changed(&app, volume) > before);
 
         app.world_mut()
             .get_mut::<VolumeLod>(volume)
@@ -410,9 +409,9 @@ mod tests {
                 .flat_map(|c| c.vertices)
                 .all(|v| v[3] >= 0.3 - 1.0 / 255.0)
         );
-        let lit_first = generation(&app, volume).unwrap();
+        let lit_first = last_changed(&app, volume).unwrap();
         app.update();
-        assert_eq!(generation(&app, volume), Some(lit_first), "nothing moved");
+        assert_eq!(last_changed(&app, volume), Some(lit_first), "nothing moved");
 
         // A sun appears (straight up before): the light field is recomputed.
         app.world_mut().spawn((
@@ -422,7 +421,7 @@ mod tests {
         app.update();
         app.update();
         let relit = app.world().get::<CellBatch>(volume).unwrap();
-        assert!(generation(&app, volume).unwrap() > lit_first);
+        assert!(last_changed(&app, volume).unwrap() > lit_first);
         assert_ne!(relit.cells, batch.cells, "the light changed with the sun");
 
         app.world_mut()
@@ -469,12 +468,12 @@ mod tests {
             .entity_mut(volume)
             .insert(VolumeLod::default());
         app.update();
-        let before = generation(&app, volume);
+        let before = last_changed(&app, volume);
         let mut transform = app.world_mut().get_mut::<Transform>(camera).unwrap();
         transform.translation.x += 1.0;
         // One frame: the batch is rebuilt for the eye that frame is drawn from.
         app.update();
-        assert!(generation(&app, volume) > before);
+        assert!(last_changed(&app, volume) > before);
     }
 
     #[test]
@@ -510,6 +509,56 @@ mod tests {
             .get_mut::<VolumeLod>(volume)
             .unwrap()
             .min_accuracy = 4.0;
+        app.update();
+        assert_eq!(status(&app, volume), VolumeStatus::Ready);
+        assert!(app.world().get::<CellBatch>(volume).is_some());
+    }
+
+    #[test]
+    fn a_campfire_appears_under_background_builds_although_its_grid_changes_every_frame() {
+        let (mut app, _, volume) = app_with_volume(OpticalMode::Emissive);
+        app.insert_resource(HeavyBuilds::Background);
+        app.world_mut().despawn(volume);
+        let fire = app
+            .world_mut()
+            .spawn((crate::Campfire::default(), InheritedVisibility::VISIBLE))
+            .id();
+        for _ in 0..2000 {
+            app.update();
+            if app
+                .world()
+                .get::<CellBatch>(fire)
+                .is_some_and(|batch| !batch.cells.is_empty())
+            {
+                assert_eq!(status(&app, fire), VolumeStatus::Ready);
+                return;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        panic!("the fire never appeared: its builds were dropped");
+    }
+
+    #[test]
+    fn a_new_mode_or_scattering_reaches_the_batch_without_a_rebuild_of_the_cells() {
+        let (mut app, _, volume) = app_with_volume(OpticalMode::Emissive);
+        app.world_mut().get_mut::<Volume>(volume).unwrap().mode = OpticalMode::Mip;
+        app.update();
+        let batch = app.world().get::<CellBatch>(volume).unwrap();
+        assert_eq!(batch.mode, OpticalMode::Mip);
+    }
+
+    #[test]
+    fn an_update_failure_clears_when_its_input_is_restored() {
+        let (mut app, _, volume) = app_with_volume(OpticalMode::Sorted);
+        // A flat volume: its transform cannot be inverted.
+        app.world_mut()
+            .entity_mut(volume)
+            .insert(Transform::from_scale(Vec3::new(1.0, 0.0, 1.0)));
+        app.update();
+        assert!(matches!(status(&app, volume), VolumeStatus::Failed(_)));
+        app.world_mut()
+            .entity_mut(volume)
+            .insert(Transform::IDENTITY);
         app.update();
         assert_eq!(status(&app, volume), VolumeStatus::Ready);
         assert!(app.world().get::<CellBatch>(volume).is_some());

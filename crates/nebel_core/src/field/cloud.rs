@@ -1,9 +1,9 @@
-//! Procedural cumulus clouds with artist controls, after paper 002 (§3.2 noise
+//! Procedural cumulus clouds with artist controls, after Schpok et al. 2003 (§3.2 noise
 //! octaves that "subtract" detail from the cloud volume, §4.1 eq. 3 octave
 //! transforms that grow exponentially with the octave, §5.2 media controls:
 //! cloud size as the first octave's scale, detail as the lacunarity, §5.3
-//! per-octave wind and altitude tiers) for the cumulus density `f` of paper 000
-//! §5 and §7 (DESIGN.md §4–5).
+//! per-octave wind and altitude tiers) for the cumulus density `f` of Röttger and Ertl 2003
+//! §5 and §7.
 //!
 //! [`DensityGrid::cloud`] evaluates, at each grid point's world position `p`
 //! and time `t`:
@@ -11,7 +11,7 @@
 //! 1. **Octaves.** `octaves` separate [`noise::Perlin`] fields, octave `i`
 //!    (from 0) with seed `seed + i` (wrapping), frequency
 //!    `φ_i = lacunarity^i / wavelength` cycles per world unit and amplitude
-//!    `a_i = persistence^i`. Each octave drifts with its own wind (paper 002
+//!    `a_i = persistence^i`. Each octave drifts with its own wind (Schpok et al. 2003
 //!    §5.3; eq. 3 with the translation only): it is sampled at
 //!    `x_i = φ_i · (p − wind · t · detail_wind^i) + NOISE_OFFSET`, so the whole
 //!    cloud moves with `wind` and finer octaves move `detail_wind` times faster
@@ -31,9 +31,9 @@
 //!    `d = clamp((u − (1 − c)) / c, 0, 1)`, and `d = 0` where `c = 0`. About a
 //!    fraction `c` of the points lie above the threshold `1 − c` (coverage 0:
 //!    empty; 1: everything but measure zero is non-zero); inside a cloud the
-//!    density rises from 0 at its edge to 1 at the noise maximum (paper 002
+//!    density rises from 0 at its edge to 1 at the noise maximum (Schpok et al. 2003
 //!    Table 2 "cumulus" filter: noise as a density cut-off).
-//! 4. **Vertical profile** (paper 002 altitude tiers), in the height fraction
+//! 4. **Vertical profile** (Schpok et al. 2003 altitude tiers), in the height fraction
 //!    `h = j / (ny − 1)` of the grid box (grid axis y is up, as in Bevy):
 //!    - base: the density is multiplied by `b(h) = smoothstep(0, base_fade, h)`
 //!      (1 when `base_fade = 0`), which fades every column in at the same
@@ -56,7 +56,7 @@
 //! on a 2-core machine whose second core was busy with other builds, load
 //! average 4.6; `cargo bench -p nebel_core --bench cloud`).
 //!
-//! Not here: paper 002's implicit ellipsoids that shape individual clouds and
+//! Not here: Schpok et al. 2003's implicit ellipsoids that shape individual clouds and
 //! its per-octave rotation ("torque"); the coverage threshold plays the
 //! ellipsoids' role for a whole cloudscape.
 
@@ -82,7 +82,7 @@ const LOGISTIC_SLOPE: f64 = 1.702;
 const MAX_OCTAVES: usize = 16;
 
 /// Settings of the procedural cumulus density of [`DensityGrid::cloud`]
-/// (paper 002's artist controls).
+/// (Schpok et al. 2003's artist controls).
 ///
 /// At world position `p`, time `t` and height fraction `h = j / (ny − 1)` of
 /// the grid box (grid axis y is up):
@@ -111,9 +111,9 @@ pub struct CloudNoise {
     /// Number of detail octaves, 1 to 16. Default 5.
     pub octaves: usize,
     /// Wavelength of the first octave, world units, > 0: the size of the
-    /// clouds (paper 002 §5.2 "cloud size"). Default 2000.
+    /// clouds (Schpok et al. 2003 §5.2 "cloud size"). Default 2000.
     pub wavelength: f64,
-    /// Frequency ratio between successive octaves, > 0 (paper 002 §5.2
+    /// Frequency ratio between successive octaves, > 0 (Schpok et al. 2003 §5.2
     /// "detail"). Default 2.
     pub lacunarity: f64,
     /// Amplitude ratio between successive octaves, > 0. Default 0.5.
@@ -122,7 +122,7 @@ pub struct CloudNoise {
     /// frame), finite. Default zero.
     pub wind: DVec3,
     /// Factor by which each octave drifts faster than the previous one, > 0:
-    /// octave `i` moves with `wind · detail_wind^i` (paper 002 §4.1 eq. 3,
+    /// octave `i` moves with `wind · detail_wind^i` (Schpok et al. 2003 §4.1 eq. 3,
     /// §5.3). Above 1 the fine detail streams past the cloud; below 1 it lags
     /// behind. Default 1.5.
     pub detail_wind: f64,

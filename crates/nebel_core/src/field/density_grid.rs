@@ -107,7 +107,7 @@ impl DensityGrid {
         self.values[i + nx * (j + ny * k)]
     }
 
-    /// The full-resolution tetrahedral field (DESIGN.md §4, §5): every grid
+    /// The full-resolution tetrahedral field: every grid
     /// cell `(i, j, k)` as a hexahedron split into five tetrahedra with parity
     /// [`HexahedronParity::of_cell`], so the mesh conforms. Returns
     /// `5 (nx − 1)(ny − 1)(nz − 1)` cells, cell by cell, x fastest. Inside each

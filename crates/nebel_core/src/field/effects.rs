@@ -1,6 +1,6 @@
-//! Emissive effects of paper 001 §10.4 (Figure 10.3): a campfire from animated
-//! 3D Perlin noise and a search light cone with quadratic attenuation
-//! (DESIGN.md §3: fire and search lights use the emissive model by default).
+//! Emissive effects of Röttger 2004 §10.4 (Figure 10.3): a campfire from animated
+//! 3D Perlin noise and a search light cone with quadratic attenuation; both
+//! are drawn with the emissive model by default.
 //!
 //! # Campfire
 //!
@@ -54,7 +54,7 @@ use crate::cell::{Hexahedron, HexahedronParity, Tetrahedron};
 pub const CAMPFIRE_MIN: DVec3 = DVec3::new(-0.5, 0.0, -0.5);
 /// Maximum corner of the campfire's box, world units.
 pub const CAMPFIRE_MAX: DVec3 = DVec3::new(0.5, 1.5, 0.5);
-/// Default campfire grid: 17³ points, 16³ cells (paper 001, Table 10.4).
+/// Default campfire grid: 17³ points, 16³ cells (Röttger 2004, Table 10.4).
 pub const CAMPFIRE_DIMS: [usize; 3] = [17, 17, 17];
 /// Largest campfire grid edge, points; larger requests are clamped.
 pub const CAMPFIRE_MAX_DIM: usize = 257;
@@ -63,7 +63,7 @@ pub const CAMPFIRE_MAX_DIM: usize = 257;
 // [`campfire_density`] needs no budget check.
 const _: () = assert!((CAMPFIRE_MAX_DIM as u64).pow(3) * SAMPLE_BYTES <= MEMORY_BUDGET_BYTES);
 
-/// Default search-light segments `[around, radial, along]` (paper 001,
+/// Default search-light segments `[around, radial, along]` (Röttger 2004,
 /// Table 10.4).
 pub const SEARCH_LIGHT_SEGMENTS: [usize; 3] = [16, 4, 32];
 /// Largest segment count on any search-light axis; larger requests are clamped.

@@ -11,7 +11,7 @@ use super::{
 
 /// Heights (world units, any finite value) at the points of a regular grid over
 /// the horizontal x–z plane, bilinear between them. Terrain and fog thickness
-/// maps (paper 000 §6).
+/// maps (Röttger and Ertl 2003 §6).
 ///
 /// Point `(i, j)` sits at horizontal position `origin + (i, j) · spacing`, that
 /// is world `x = origin.x + i · spacing.x` and `z = origin.y + j · spacing.y`,

@@ -1,9 +1,9 @@
-//! The precomputed isotropic light intensity γ(x, y, z) of paper 000 §5 (the
+//! The precomputed isotropic light intensity γ(x, y, z) of Röttger and Ertl 2003 §5 (the
 //! second scalar field of a cloud beside its density f: §5.1 eq. 9 lets κ(γ)
 //! colour each segment while f sets its effective length), from "standard
 //! ambient and diffuse lighting" (§5.2), optionally darkened by the
-//! transmittance toward the sun (paper 003 §2.2.6, eq. 2.13: self-shadowing
-//! through an attenuation volume swept from the light, §3.4). DESIGN.md §4.
+//! transmittance toward the sun (Nes 2008 §2.2.6, eq. 2.13: self-shadowing
+//! through an attenuation volume swept from the light, §3.4).
 //!
 //! At every grid point p, with L the unit vector toward the sun:
 //!
@@ -85,7 +85,7 @@ pub struct CloudLighting {
     /// Whether the sun's light is shaded by the density gradient (the Lambert
     /// term above). `false` leaves `γ = ambient + diffuse · T_sun`: with
     /// `ambient = 0, diffuse = 1` the plain transmittance toward the sun, the
-    /// light of single scattering (paper 003), where the phase function at
+    /// light of single scattering (Nes 2008), where the phase function at
     /// the eye, not the gradient, orients the light. Default `true`.
     pub lambert: bool,
 }
@@ -93,8 +93,8 @@ pub struct CloudLighting {
 impl Default for CloudLighting {
     fn default() -> Self {
         Self {
-            ambient: 0.3,
-            diffuse: 0.7,
+            ambient: Self::DEFAULT_AMBIENT,
+            diffuse: Self::DEFAULT_DIFFUSE,
             sun_direction: DVec3::new(0.4, 1.0, 0.3).normalize(),
             shadow_extinction: 0.0,
             lambert: true,
@@ -103,6 +103,13 @@ impl Default for CloudLighting {
 }
 
 impl CloudLighting {
+    /// The default ambient light, 0.3: the shadowed side of a cloud keeps
+    /// about a third of full light.
+    pub const DEFAULT_AMBIENT: f32 = 0.3;
+    /// The default weight of the sun's diffuse light, 0.7 (with the ambient
+    /// part, a sunlit point reaches full light).
+    pub const DEFAULT_DIFFUSE: f32 = 0.7;
+
     /// Validates the settings; returns the unit sun direction.
     fn unit_sun(&self, name: &str) -> Result<DVec3, FieldError> {
         let invalid = |parameter, value: String, requirement| {
@@ -136,7 +143,7 @@ impl CloudLighting {
     }
 }
 
-/// The light intensity γ of paper 000 §5 at every point of `grid` (same
+/// The light intensity γ of Röttger and Ertl 2003 §5 at every point of `grid` (same
 /// dimensions, spacing and origin), in [0, 1]; formulas in the module
 /// documentation of `field::light`, in short
 /// `γ = clamp(ambient + diffuse · T_sun · lambert, 0, 1)`. Uses every

@@ -1,7 +1,7 @@
 //! Loaders for [`DensityGrid`] and [`HeightField`]: 8- and 16-bit grayscale PNG
 //! and raw little-endian samples.
 //!
-//! Conventions (DESIGN.md §5, §6; Bevy is y-up):
+//! Conventions:
 //!
 //! - A grayscale PNG maps its pixel values to [0, 1] (`v / 255` or `v / 65535`);
 //!   image columns run along world x, rows (top row first) along world z.

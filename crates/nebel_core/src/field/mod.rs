@@ -1,6 +1,6 @@
 //! Scalar fields: 3D density grids and 2D height fields, their loaders, seeded
 //! procedural generators and the 2^n+1 padding and resampling rules
-//! (paper 000 §2 and §6, paper 001 ch. 3 and 11; DESIGN.md §5 and §6).
+//! (Röttger and Ertl 2003 §2 and §6, Röttger 2004 ch. 3 and 11).
 //!
 //! - [`DensityGrid`]: density samples in [0, 1] on a regular 3D grid of points,
 //!   trilinear in between (clouds, smoke, any volume).
@@ -13,7 +13,7 @@
 //!   deterministic for a seed ([`ProceduralNoise`]); terrain heights rescaled
 //!   to [0, 1] and shaped by an exponent ([`TerrainNoise`],
 //!   [`HeightField::terrain`]).
-//! - [`effects`]: the emissive effects of paper 001 §10.4, an animated campfire
+//! - [`effects`]: the emissive effects of Röttger 2004 §10.4, an animated campfire
 //!   density and a search-light cone of tetrahedra.
 //! - The C-LOD hierarchies need (2^n+1) points per axis; other sizes are padded
 //!   or resampled ([`PadFill`], [`power_of_two_plus_one`]).
@@ -45,7 +45,7 @@ pub use light::{CloudLighting, light_field, light_field_with_threads};
 pub use load::{Normalization, RawSampleType, TileLayout, read_png};
 pub use procedural::{NOISE_OFFSET, NoiseKind, ProceduralNoise};
 pub use resample::{PadFill, power_of_two_plus_one};
-pub use terrain::TerrainNoise;
+pub use terrain::{DEFAULT_TERRAIN_SPACING, DEFAULT_TERRAIN_VERTICAL_SCALE, TerrainNoise};
 pub use value_noise::ValueNoise;
 
 use std::path::PathBuf;

@@ -1,5 +1,5 @@
 //! Bringing a field to 2^n+1 points per axis, as the C-LOD quadtree and octree
-//! need (DESIGN.md §5: "other sizes are padded or resampled"). Each axis is
+//! need: other sizes are padded or resampled. Each axis is
 //! handled on its own, so a 513×513×65 cloud stays as it is and becomes a
 //! forest of octrees.
 //!

@@ -1,13 +1,13 @@
 //! Procedural terrain heights: fractal Perlin noise rescaled to exactly
 //! [0, 1] and shaped by an exponent, the unit height field a terrain
-//! multiplies by its vertical scale (paper 001 §3.5; DESIGN.md §6).
+//! multiplies by its vertical scale (Röttger 2004 §3.5).
 //!
 //! The noise is [`ProceduralNoise`] (fBm or ridged multifractal, first-octave
 //! frequency `1 / wavelength`, lacunarity 2) sampled at each grid point's
 //! position `(i · spacing, j · spacing)`. Its output never spans its nominal
 //! range, so the field is rescaled to its own minimum and maximum (the
-//! lowest point becomes 0, the highest 1, like the peer scenario of issue 6,
-//! "rescaled to 0..1000 m"): a terrain's vertical scale is then exactly its
+//! lowest point becomes 0, the highest 1, like the libMini peer scenario of
+//! the quadtree benchmark, "rescaled to 0..1000 m"): a terrain's vertical scale is then exactly its
 //! relief. Last, every unit height `u` becomes `u^exponent`: an exponent above
 //! 1 widens and flattens the valleys and sharpens the peaks (valleys for
 //! ground fog to lie in), 1 keeps the noise as it is.
@@ -19,11 +19,17 @@ use super::{
     budgeted_points,
 };
 
+/// The default distance between neighbouring terrain grid points, metres.
+pub const DEFAULT_TERRAIN_SPACING: f32 = 10.0;
+
+/// The default height of a unit height (a white pixel), metres.
+pub const DEFAULT_TERRAIN_VERTICAL_SCALE: f32 = 400.0;
+
 /// Settings of [`HeightField::terrain`]: seeded fractal noise for terrain
 /// heights.
 #[derive(Clone, Copy, Debug, PartialEq)]
-#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 #[cfg_attr(feature = "bevy_reflect", derive(bevy_reflect::Reflect))]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct TerrainNoise {
     /// Fractal kind: [`NoiseKind::Fbm`] for rolling hills,
     /// [`NoiseKind::Ridged`] for mountain crests. Default `Fbm`.

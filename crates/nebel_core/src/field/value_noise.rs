@@ -1,5 +1,5 @@
 //! Height fields of hashed value noise in fractal sums: the terrain of the
-//! libMini peer scenario of issue 6 (DESIGN.md §6), shared by the terrain
+//! libMini peer scenario (`nebel_lod`'s quadtree benchmark), shared by the terrain
 //! benchmark and the quadtree's tests so both measure the same surface.
 //!
 //! Octave `o` (from 0) has wavelength `wavelength / 2^o`, amplitude `gain^o`

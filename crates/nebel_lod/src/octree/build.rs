@@ -1,5 +1,5 @@
 //! Building a [`VolumeHierarchy`]: quantisation, then Δ and scalar ranges level
-//! by level from the voxels up (paper 000 §2.2, §2.4; the rules are in the
+//! by level from the voxels up (Röttger and Ertl 2003 §2.2, §2.4; the rules are in the
 //! module docs of [`super`]).
 
 use nebel_core::field::DensityGrid;
@@ -22,7 +22,7 @@ impl VolumeHierarchy {
         Self::build(grid, None, min_accuracy)
     }
 
-    /// Builds the hierarchy of a lit cloud (paper 000 §5): the density `grid`
+    /// Builds the hierarchy of a lit cloud (Röttger and Ertl 2003 §5): the density `grid`
     /// and its light field γ (`light`, sampled at the same points, e.g. from
     /// `nebel_core::field::light_field`). Both are quantised to u8 and Δ is the
     /// maximum deviation of **either** field, so the mesh is refined where the

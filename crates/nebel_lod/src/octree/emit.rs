@@ -1,9 +1,9 @@
 //! The per-frame emission of a [`Refinement`] as a [`CellBatch`]: five
-//! tetrahedra per leaf with morphed scalars (paper 000 §3, volumetric
-//! morphing; §2.1 for the decomposition; DESIGN.md §5), in exact back-to-front
+//! tetrahedra per leaf with morphed scalars (Röttger and Ertl 2003 §3, volumetric
+//! morphing; §2.1 for the decomposition), in exact back-to-front
 //! order.
 //!
-//! # Morph rule (paper 000 §3, Eq. 7 and Eq. 8)
+//! # Morph rule (Röttger and Ertl 2003 §3, Eq. 7 and Eq. 8)
 //!
 //! Every grid point `p` has a **birth level** `L`: the smallest level at which
 //! `p` is a non-corner point of the nodes that contain it. With `m` the
@@ -131,18 +131,18 @@ pub fn lod_batch(
 }
 
 /// Which of a lit cloud's two fields the cells carry as their scalar and
-/// which as the segment-length modulator ([`CellBatch`] type docs; paper 000
+/// which as the segment-length modulator ([`CellBatch`] type docs; Röttger and Ertl 2003
 /// §5). Both fields are morphed by the same rule with the same weights.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum CellScalars {
     /// The density alone, no modulator (an unlit volume). The default.
     #[default]
     Density,
-    /// Paper 000 §5.1: the light γ indexes the transfer function (colour
+    /// Paper Röttger and Ertl 2003 §5.1: the light γ indexes the transfer function (colour
     /// `κ(γ)`, constant `ρ = ρ_max`) and the density `f` modulates the segment
     /// length, `l' = l · f / f_max` with `f_max = 1` (Eq. 9).
     LightModulatedByDensity,
-    /// Paper 000 §5.2 (non-physical lighting): the density indexes the
+    /// Paper Röttger and Ertl 2003 §5.2 (non-physical lighting): the density indexes the
     /// transfer function (`κ(f)` an inverse colour ramp, `ρ(f)` linear above
     /// a cut-off) and γ modulates the segment length, so the lit side is
     /// opaque and the far side translucent.

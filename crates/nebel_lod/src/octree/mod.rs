@@ -1,5 +1,5 @@
-//! The view-independent half of the volumetric C-LOD (paper 000 §2.1, §2.2,
-//! §2.4 and §3; DESIGN.md §5): an octree (or a forest of octrees) over a
+//! The view-independent half of the volumetric C-LOD (Röttger and Ertl 2003 §2.1, §2.2,
+//! §2.4 and §3): an octree (or a forest of octrees) over a
 //! density grid of `2^n + 1` points per axis, with per node the propagated
 //! simplification error Δ, the scalar range for the zero-opacity test, and a
 //! slot for the morph factor e'. The per-frame refinement ([`refine()`], in
@@ -9,7 +9,7 @@
 //! - [`Node`]: a node by level and minimum grid point, its corners, centre,
 //!   children and decomposition parity.
 //! - [`VolumeHierarchy`]: built once per grid by [`VolumeHierarchy::new`].
-//! - [`k_max`]: the propagation factor of paper 000 Eq. 4.
+//! - [`k_max`]: the propagation factor of Röttger and Ertl 2003 Eq. 4.
 //!
 //! # Forest rule
 //!
@@ -29,7 +29,7 @@
 //! tetrahedra ([`Node::parity`], the same decomposition tables as the
 //! full-resolution batch), i.e. the **piecewise-linear interpolation of its 8
 //! corners over those tetrahedra** (not trilinear). At its 19 non-corner
-//! points that interpolation is (paper 000 §3):
+//! points that interpolation is (Röttger and Ertl 2003 §3):
 //! - an edge midpoint: the average of the edge's two corners (every cube edge
 //!   is a tetrahedron edge);
 //! - a face centre: the average of the two corners on the face diagonal of the
@@ -42,11 +42,11 @@
 //!   the parity.
 //!
 //! The node's local deviation is the **maximum** over those 19 points of
-//! `|value − coarse value|` (paper 000 §3 prefers the maximum to the §2.2
+//! `|value − coarse value|` (Röttger and Ertl 2003 §3 prefers the maximum to the §2.2
 //! average; the average is not offered). Because the morph blends exactly
 //! these points between their own value and this coarse value, Δ is the
 //! largest change of any vertex during the node's morph. It is propagated
-//! bottom-up, level by level (paper 000 Eq. 5):
+//! bottom-up, level by level (Röttger and Ertl 2003 Eq. 5):
 //! `Δ := max(Δ_local, K_max · Δ_child)` over the eight children, with
 //! `K_max = C / (2C − √3/2)` for the minimum accuracy `C > √3` (Eq. 4), so a
 //! node is refined whenever one of its children would be (Eq. 2). A voxel
@@ -55,7 +55,7 @@
 //! # Storage and quantisation
 //!
 //! Four bytes per grid point, in three flat arrays indexed like the grid
-//! (`i + nx · (j + ny · k)`), as in paper 000 §5 (1 + 2 + 1 bytes):
+//! (`i + nx · (j + ny · k)`), as in Röttger and Ertl 2003 §5 (1 + 2 + 1 bytes):
 //! - density, u8: `q = round(255 · s)`, value `q / 255`. Δ and the ranges are
 //!   computed from these quantised values, i.e. from exactly what the LOD
 //!   mesh will draw; [`VolumeHierarchy::quantised_grid`] gives the same
@@ -76,7 +76,7 @@
 //!
 //! - light γ, u8, only for a lit cloud ([`VolumeHierarchy::with_light`]):
 //!   quantised like the density; Δ is then the maximum of the deviations of
-//!   both fields (paper 000 §5.1), five bytes per grid point in all.
+//!   both fields (Röttger and Ertl 2003 §5.1), five bytes per grid point in all.
 //!
 //! About 6/7 of the grid points are no node's centre; their Δ and e' slots
 //! stay unused, the price of the paper's addressing by centre point.
@@ -133,7 +133,7 @@ pub enum HierarchyError {
     },
     /// The minimum accuracy `C` is not a finite number greater than √3.
     #[error(
-        "the minimum accuracy C must be finite and greater than √3 ≈ 1.732 (paper 000 Eq. 4), got {value}"
+        "the minimum accuracy C must be finite and greater than √3 ≈ 1.732 (Röttger and Ertl 2003 Eq. 4), got {value}"
     )]
     InvalidMinAccuracy {
         /// The value given.
@@ -151,7 +151,7 @@ const BYTES_PER_POINT: u64 = (2 * size_of::<u8>() + size_of::<u16>()) as u64;
 /// Bytes per grid point the light field adds (u8).
 const LIGHT_BYTES_PER_POINT: u64 = size_of::<u8>() as u64;
 
-/// The propagation factor `K_max = C / (2C − √3/2)` of paper 000 Eq. 4 for the
+/// The propagation factor `K_max = C / (2C − √3/2)` of Röttger and Ertl 2003 Eq. 4 for the
 /// minimum accuracy `C` (`min_accuracy`): the largest ratio `d / (2 d_child)`
 /// of eye distances between a node and a child when the node is at the
 /// smallest distance `d = sC` at which Eq. 1 does not force refinement anyway.
@@ -343,14 +343,14 @@ impl VolumeHierarchy {
     }
 
     /// `[min, max]` of the node's densities in [0, 1], for
-    /// `TransferFunction::is_transparent` (the zero-opacity test of paper 000
+    /// `TransferFunction::is_transparent` (the zero-opacity test of Röttger and Ertl 2003
     /// §4.1). Panics when the node is not in this hierarchy.
     pub fn scalar_range(&self, node: Node) -> [f32; 2] {
         self.scalar_range_quantised(node)
             .map(|q| f32::from(q) / 255.0)
     }
 
-    /// The node's morph factor e' in [0, 1] (paper 000 Eq. 6), as last set;
+    /// The node's morph factor e' in [0, 1] (Röttger and Ertl 2003 Eq. 6), as last set;
     /// 0 for a voxel. Panics when the node is not in this hierarchy.
     pub fn morph_factor(&self, node: Node) -> f32 {
         match self.centre_index(node) {

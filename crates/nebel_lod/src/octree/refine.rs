@@ -1,9 +1,9 @@
-//! The per-frame, view-dependent refinement of a [`VolumeHierarchy`] (paper 000
-//! §2.2 and §3, §4 for the culling; DESIGN.md §5): one top-down traversal of
+//! The per-frame, view-dependent refinement of a [`VolumeHierarchy`] (Röttger and Ertl 2003
+//! §2.2 and §3, §4 for the culling): one top-down traversal of
 //! every root that decides which nodes are drawn as leaves, in exact
 //! back-to-front order for the eye, with the error metric of each node.
 //!
-//! # Error metric (paper 000 Eq. 1 and Eq. 6)
+//! # Error metric (Röttger and Ertl 2003 Eq. 1 and Eq. 6)
 //!
 //! A node of edge `s` (world units) whose centre is at distance `d` from the
 //! eye is refined while
@@ -59,7 +59,7 @@
 //!
 //! [`refine`] only reads the hierarchy. It returns the leaves in drawing
 //! order, every refined node with its `e'` (parents before children), which
-//! is what the morphing of the non-corner vertices reads (paper 000 §3: the
+//! is what the morphing of the non-corner vertices reads (Röttger and Ertl 2003 §3: the
 //! minimum `e'` of the refined nodes sharing a vertex, 0 for an unrefined
 //! one), and counters ([`RefinementStats`]).
 //!
@@ -85,7 +85,7 @@ use crate::view::View;
 /// The user's controls of the refinement.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RefinementSettings {
-    /// The global accuracy `c` of paper 000 Eq. 1, in units of 1/density
+    /// The global accuracy `c` of Röttger and Ertl 2003 Eq. 1, in units of 1/density
     /// (`c · Δ` is dimensionless, Δ in density units of [0, 1]): a node whose
     /// deviation Δ exceeds `1/c` is refined `c · Δ` times farther away than
     /// the minimum accuracy alone would refine it. Higher values give a finer
@@ -131,7 +131,9 @@ pub enum RefinementError {
     )]
     MissingLightField,
     /// The global accuracy `c` is NaN or negative.
-    #[error("the global accuracy c must be a number ≥ 0 (paper 000 Eq. 1), got {value}")]
+    #[error(
+        "the global accuracy c must be a number ≥ 0 (Röttger and Ertl 2003 Eq. 1), got {value}"
+    )]
     InvalidAccuracy {
         /// The value given.
         value: f64,
@@ -151,7 +153,7 @@ pub enum RefinementError {
     },
 }
 
-/// A node with its morph factor `e' = clamp(e − 1, 0, 1)` (paper 000 Eq. 6).
+/// A node with its morph factor `e' = clamp(e − 1, 0, 1)` (Röttger and Ertl 2003 Eq. 6).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct NodeMorph {
     /// The node.
@@ -360,7 +362,7 @@ impl Traversal<'_> {
         }
     }
 
-    /// The error metric `e` of paper 000 Eq. 1 for `node` with its centre at
+    /// The error metric `e` of Röttger and Ertl 2003 Eq. 1 for `node` with its centre at
     /// `centre` (grid index coordinates); `∞` when the eye is at the centre.
     fn error(&self, node: Node, centre: DVec3) -> f64 {
         let s = self.voxel_edge * node.size() as f64;

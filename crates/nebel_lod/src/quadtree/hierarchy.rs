@@ -141,7 +141,8 @@ impl TerrainHierarchy {
     /// `field`'s values (same points as the terrain; spacing and origin are
     /// ignored, the terrain's node sizes apply) enters every node's d2 as a
     /// maximum, then propagates like the terrain's own (see the module docs).
-    /// The fog thickness map of a later issue plugs in here.
+    /// A fog thickness map, say, so the mesh also refines where the fog's
+    /// top varies.
     pub fn with_extra_roughness(
         mut self,
         field: &HeightField,

@@ -1,5 +1,5 @@
-//! Terrain C-LOD: Röttger's quadtree with geomorphing (paper 001 §3.5.3,
-//! Eq. 3.2 and Fig. 3.9; DESIGN.md §6; the author's libMini is the reference
+//! Terrain C-LOD: Röttger's quadtree with geomorphing (Röttger 2004 §3.5.3,
+//! Eq. 3.2 and Fig. 3.9; the author's libMini is the reference
 //! implementation). Pure Rust, no Bevy: [`TerrainHierarchy`] is built once per
 //! height field, [`TerrainHierarchy::update`] turns it into a morphed,
 //! crack-free triangle mesh for an eye every frame.
@@ -27,8 +27,8 @@
 //! (checkerboard parity, as libMini): that diagonal joins the node's corner at
 //! its parent's centre to the opposite corner, so it is an edge of the
 //! parent's triangle fan and `(a + b)/2` is what the coarser mesh shows at the
-//! centre. Extra sources ([`TerrainHierarchy::with_extra_roughness`], the fog
-//! thickness map of a later issue) enter as `weight · d2_local(source)`; the
+//! centre. Extra sources ([`TerrainHierarchy::with_extra_roughness`], a fog
+//! thickness map, say) enter as `weight · d2_local(source)`; the
 //! node keeps the maximum over all sources, then propagation runs unchanged.
 //!
 //! # Propagation (the one-level rule)
@@ -176,9 +176,11 @@
 
 mod hierarchy;
 mod mesh;
+mod refiner;
 
 pub use hierarchy::{TerrainHierarchy, pad_to_power_of_two_plus_one};
 pub use mesh::{LodSettings, LodStats, TerrainMesh, TriangleOrder};
+pub use refiner::{RefinerSettings, TerrainRefiner, TerrainView};
 
 use glam::DVec3;
 use nebel_core::budget::BudgetError;

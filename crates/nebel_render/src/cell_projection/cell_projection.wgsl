@@ -13,14 +13,14 @@
 // s_b. The segment's colour comes from the pre-integration tables:
 //
 //   SORTED:   rgb from the 3D table at (s_f, s_b, l), α = 1 − exp(−l ρ̂(s_f, s_b))
-//             (exact opacity, 001 eq. 9.2), blended "over" back to front.
+//             (exact opacity, Röttger 2004 eq. 9.2), blended "over" back to front.
 //   EMISSIVE: rgb = l · mean emission(s_f, s_b), blended additively (PCP).
 //   MIP:      rgb = max emission over [s_f, s_b], blended with max.
 //
-// MODULATED (lit clouds, paper 000 §5.1 Eq. 9): a second linear field m per
+// MODULATED (lit clouds, Röttger and Ertl 2003 §5.1 Eq. 9): a second linear field m per
 // cell scales the segment length before the lookups, l' = l (m_f + m_b) / 2.
 //
-// SCATTERING (single scattering of the sun, paper 003; sorted only): the
+// SCATTERING (single scattering of the sun, Nes 2008; sorted only): the
 // table's colour C is the sunlight scattered along the segment (its
 // transfer function is over the transmittance toward the sun), and the
 // segment's colour is ambient · α + sun · 4π p_HG(θ) · C, θ between the view

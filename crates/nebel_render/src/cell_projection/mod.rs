@@ -127,6 +127,9 @@ impl Plugin for CellProjectionPlugin {
         app.insert_resource(stats.clone())
             .register_type::<CellBatch>()
             .register_type::<CellProjectionStats>()
+            .register_type::<crate::LodCamera>()
+            .register_type::<crate::HeavyBuilds>()
+            .init_resource::<crate::HeavyBuilds>()
             .register_type::<crate::CellScattering>()
             .add_systems(Last, publish_counters);
         for path in [

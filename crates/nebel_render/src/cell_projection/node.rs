@@ -57,7 +57,8 @@ pub fn draw_cell_batches(
     );
     let mut draws = Vec::with_capacity(order.len());
     for (entity, batch) in order {
-        let (Some(buffer), Some(table)) = (buffers.0.get(entity), tables.0.get(&batch.table_key))
+        let (Some(buffer), Some(table)) =
+            (buffers.0.get(entity), tables.tables.get(&batch.table_key))
         else {
             continue;
         };

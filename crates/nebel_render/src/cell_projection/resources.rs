@@ -193,9 +193,19 @@ pub struct GpuCellTable {
     pub(super) parameters: UniformBuffer<CellTablesUniform>,
 }
 
-/// The pre-integration tables this frame's batches use.
+/// Unused tables kept for a batch that may need them again (an octree whose
+/// coarsest drawn level, and so its longest segment, goes back and forth),
+/// most recently used first. Each colour table is 8 MiB.
+const SPARE_TABLES: usize = 2;
+
+/// The pre-integration tables this frame's batches use, and up to
+/// [`SPARE_TABLES`] recently used ones; none while no batch is drawn.
 #[derive(Resource, Default)]
-pub struct GpuCellTables(pub(super) HashMap<TableKey, GpuCellTable>);
+pub struct GpuCellTables {
+    pub(super) tables: HashMap<TableKey, GpuCellTable>,
+    /// The keys of the tables, most recently used first.
+    recent: Vec<TableKey>,
+}
 
 /// Parameters of the tables, as the shader's `CellTables`.
 #[derive(Clone, Copy, Default, ShaderType)]
@@ -205,8 +215,8 @@ pub struct CellTablesUniform {
     length_size: u32,
 }
 
-/// Builds the tables that a batch needs and nobody has built, drops unused
-/// ones.
+/// Builds the tables that a batch needs and nobody has built, keeps a few
+/// unused ones (see [`SPARE_TABLES`]).
 pub fn prepare_cell_tables(
     extracted: Res<ExtractedCellBatches>,
     mut tables: ResMut<GpuCellTables>,
@@ -215,15 +225,21 @@ pub fn prepare_cell_tables(
     stats: Res<CellProjectionStats>,
     mut failed: Local<HashSet<TableKey>>,
 ) {
-    if extracted.0.is_empty() && tables.0.is_empty() {
+    if extracted.0.is_empty() && tables.tables.is_empty() {
         return;
     }
-    tables
-        .0
-        .retain(|key, _| extracted.0.iter().any(|(_, b)| b.table_key == *key));
-    failed.retain(|key| extracted.0.iter().any(|(_, b)| b.table_key == *key));
+    let used = |key: &TableKey| extracted.0.iter().any(|(_, b)| b.table_key == *key);
+    failed.retain(used);
+    // This frame's keys first, then the others by recency, up to the spares.
+    let GpuCellTables { tables, recent } = &mut *tables;
+    recent.sort_by_key(|key| !used(key));
+    let kept = recent.iter().filter(|key| used(key)).count() + SPARE_TABLES;
+    let keep = if extracted.0.is_empty() { 0 } else { kept };
+    for key in recent.drain(keep.min(recent.len())..) {
+        tables.remove(&key);
+    }
     for (_, batch) in &extracted.0 {
-        if tables.0.contains_key(&batch.table_key) || failed.contains(&batch.table_key) {
+        if tables.contains_key(&batch.table_key) || failed.contains(&batch.table_key) {
             continue;
         }
         let config = PreintegrationConfig {
@@ -279,7 +295,8 @@ pub fn prepare_cell_tables(
         });
         parameters.set_label(Some("nebel_cell_tables"));
         parameters.write_buffer(&device, &queue);
-        tables.0.insert(
+        recent.insert(0, batch.table_key);
+        tables.insert(
             batch.table_key,
             GpuCellTable {
                 colour: texture(

@@ -1,0 +1,316 @@
+//! One terrain's level of detail frame after frame: [`TerrainRefiner`]
+//! refines a [`TerrainHierarchy`] for a camera only when the view changed
+//! enough, and culls with a frustum widened so that the mesh stays valid
+//! until the next refinement.
+//!
+//! # When the mesh is refined again
+//!
+//! [`TerrainRefiner::update`] refines (into the same [`TerrainMesh`]) on the
+//! first call, when asked to (`settings_changed`: the terrain's settings or
+//! quadtree changed), and when
+//!
+//! - the eye moved more than `update_distance` (terrain units) since the
+//!   last refinement;
+//! - the camera turned by more than `view_margin` (radians);
+//! - the camera's projection or the terrain's placement changed.
+//!
+//! A still camera costs nothing. Why `δ = update_distance` is small enough:
+//! in the morph zone (`1/4 < f < 1`) a node of size `d` has `l ≤ d·M`
+//! (`M = max(c·d2, C)`), so moving the eye by `δ` changes `f = l²/(d²M²)` by
+//! at most `2δ/(dM)` and the morph weight `t = (1 − f)/(3/4)` by at most
+//! `8δ/(3dM)`; the blend of the node's new vertices, `t · (h − (a + b)/2)`
+//! with `|h − (a + b)/2| ≤ d2 · d/2`, moves by at most `4δ·d2/(3M) ≤ 4δ/(3c)`
+//! (their coarse endpoints, when their own nodes morph too, add terms of the
+//! same kind one level up). With 10 m spacing, `δ` = 2.5 m and `c` = 300 that
+//! is 1.1 cm per level, and the level of detail is the one of an eye at most
+//! `δ` away.
+//!
+//! # Culling
+//!
+//! The frustum is the camera's four side planes widened so that the culled
+//! mesh stays valid until the next refinement: each plane is turned outward
+//! by `view_margin` about the eye (any rotation by less than that moves every
+//! view direction by less than that) and pushed out by `update_distance`
+//! (any move by less than that shifts every plane by less than that). The
+//! near plane is dropped (the side planes already bound the view to a cone in
+//! front of the eye). An orthographic camera culls nothing.
+
+use glam::{DAffine3, DMat4, DQuat, DVec3};
+
+use super::{LodSettings, LodStats, TerrainError, TerrainHierarchy, TerrainMesh};
+use crate::frustum::Frustum;
+
+/// A camera seen from one terrain.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TerrainView {
+    /// The camera's world transform (its eye and orientation).
+    pub world_from_view: DAffine3,
+    /// The camera's projection: view space to clip space.
+    pub clip_from_view: DMat4,
+    /// Where the terrain is: its frame (the hierarchy's) to world space.
+    pub world_from_terrain: DAffine3,
+}
+
+impl TerrainView {
+    /// The eye in the terrain's frame.
+    pub fn eye(&self) -> DVec3 {
+        self.world_from_terrain
+            .inverse()
+            .transform_point3(self.world_from_view.translation)
+    }
+
+    /// The camera's orientation in the world.
+    fn rotation(&self) -> DQuat {
+        DQuat::from_mat3(&self.world_from_view.matrix3)
+    }
+}
+
+/// How far the view may change before the mesh is refined again (see the
+/// module docs), and the refinement's settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RefinerSettings {
+    /// The refinement's settings.
+    pub lod: LodSettings,
+    /// How far the eye may move, terrain units, before the mesh is refined
+    /// again; the culling frustum is pushed out by as much (scaled to world
+    /// units). Negative counts as 0.
+    pub update_distance: f64,
+    /// How far the camera may turn, radians, before the mesh is refined
+    /// again; the culling frustum is turned out by as much. Clamped to
+    /// [0, π/4].
+    pub view_margin: f64,
+}
+
+/// One terrain's level of detail frame after frame (see the module docs).
+#[derive(Clone, Debug, Default)]
+pub struct TerrainRefiner {
+    mesh: TerrainMesh,
+    /// The view the mesh was refined for.
+    refined_for: Option<TerrainView>,
+    stats: LodStats,
+}
+
+impl TerrainRefiner {
+    /// A refiner with an empty mesh.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Refines `hierarchy` for `view` if the view changed enough since the
+    /// last refinement or `settings_changed` (see the module docs); returns
+    /// the refinement's counters, or `None` when the mesh stays as it is.
+    /// After an error the next call refines again.
+    pub fn update(
+        &mut self,
+        hierarchy: &TerrainHierarchy,
+        view: &TerrainView,
+        settings: &RefinerSettings,
+        settings_changed: bool,
+    ) -> Result<Option<LodStats>, TerrainError> {
+        let distance = settings.update_distance.max(0.0);
+        let margin = settings.view_margin.clamp(0.0, std::f64::consts::FRAC_PI_4);
+        let unchanged = self.refined_for.is_some_and(|last| {
+            last.clip_from_view == view.clip_from_view
+                && last.world_from_terrain == view.world_from_terrain
+                && last.eye().distance(view.eye()) <= distance
+                && last.rotation().angle_between(view.rotation()) <= margin
+        });
+        if unchanged && !settings_changed {
+            return Ok(None);
+        }
+        self.refined_for = None;
+        let scale = view
+            .world_from_terrain
+            .matrix3
+            .to_cols_array_2d()
+            .iter()
+            .map(|column| DVec3::from(*column).length())
+            .fold(0.0, f64::max);
+        let frustum = culling_frustum(view, distance * scale, margin);
+        self.stats =
+            hierarchy.update(view.eye(), frustum.as_ref(), &settings.lod, &mut self.mesh)?;
+        self.refined_for = Some(*view);
+        Ok(Some(self.stats))
+    }
+
+    /// The mesh of the last refinement, in the hierarchy's frame.
+    pub fn mesh(&self) -> &TerrainMesh {
+        &self.mesh
+    }
+
+    /// The counters of the last refinement.
+    pub fn stats(&self) -> LodStats {
+        self.stats
+    }
+}
+
+/// The widened culling frustum in the terrain's frame (see the module docs);
+/// `None` culls nothing.
+fn culling_frustum(view: &TerrainView, margin: f64, angle: f64) -> Option<Frustum> {
+    if view.clip_from_view.row(3).z == 0.0 {
+        // Orthographic: the side planes are parallel to the view.
+        return None;
+    }
+    let clip_from_world = view.clip_from_view * DMat4::from(view.world_from_view.inverse());
+    let exact = Frustum::from_view_projection(clip_from_world).ok()?;
+    let eye = view.world_from_view.translation;
+    let forward = view.world_from_view.matrix3 * DVec3::NEG_Z;
+    let (sin, cos) = angle.sin_cos();
+    let widened = exact.planes().iter().take(4).map(|plane| {
+        let normal = plane.truncate();
+        let offset = normal.dot(eye) + plane.w;
+        let along = (forward - forward.dot(normal) * normal).normalize_or_zero();
+        let turned = (cos * normal + sin * along).normalize_or(normal);
+        (turned, -turned.dot(eye) + offset + margin)
+    });
+    let frustum = Frustum::from_planes(widened).ok()?;
+    Some(frustum.in_local_frame(&view.world_from_terrain))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::quadtree::TriangleOrder;
+    use glam::DVec2;
+    use nebel_core::field::{HeightField, ValueNoise};
+
+    fn hierarchy() -> TerrainHierarchy {
+        let noise = ValueNoise {
+            seed: 7,
+            ..ValueNoise::default()
+        };
+        let field =
+            HeightField::value_noise([65, 65], DVec2::splat(10.0), DVec2::ZERO, &noise, 200.0)
+                .unwrap();
+        TerrainHierarchy::new(field, 2.0).unwrap()
+    }
+
+    fn view(eye: DVec3, yaw: f64) -> TerrainView {
+        let rotation = DQuat::from_rotation_y(yaw) * DQuat::from_rotation_x(-0.5);
+        TerrainView {
+            world_from_view: DAffine3::from_rotation_translation(rotation, eye),
+            clip_from_view: DMat4::perspective_infinite_reverse_rh(1.0, 1.0, 0.1),
+            world_from_terrain: DAffine3::IDENTITY,
+        }
+    }
+
+    fn settings() -> RefinerSettings {
+        RefinerSettings {
+            lod: LodSettings {
+                accuracy: 40.0,
+                order: TriangleOrder::FrontToBack,
+                ..LodSettings::default()
+            },
+            update_distance: 2.5,
+            view_margin: 3f64.to_radians(),
+        }
+    }
+
+    #[test]
+    fn it_refines_only_when_the_view_changed_enough() {
+        let hierarchy = hierarchy();
+        let mut refiner = TerrainRefiner::new();
+        let start = DVec3::new(320.0, 400.0, 900.0);
+        let first = refiner.update(&hierarchy, &view(start, 0.0), &settings(), false);
+        assert!(first.unwrap().is_some_and(|stats| stats.triangles > 0));
+        let mut expected = TerrainMesh::new();
+        let eye = start;
+        let frustum = culling_frustum(&view(start, 0.0), 2.5, 3f64.to_radians());
+        hierarchy
+            .update(eye, frustum.as_ref(), &settings().lod, &mut expected)
+            .unwrap();
+        assert_eq!(refiner.mesh().positions, expected.positions, "the mesh");
+
+        let moved = |x: f64, yaw: f64| view(start + DVec3::new(x, 0.0, 0.0), yaw);
+        let update = |refiner: &mut TerrainRefiner, view: TerrainView, changed: bool| {
+            refiner
+                .update(&hierarchy, &view, &settings(), changed)
+                .unwrap()
+                .is_some()
+        };
+        assert!(!update(&mut refiner, moved(2.0, 0.0), false), "2 m < δ");
+        assert!(update(&mut refiner, moved(3.0, 0.0), false), "3 m > δ");
+        assert!(
+            !update(&mut refiner, moved(3.0, 2f64.to_radians()), false),
+            "2° < 3°"
+        );
+        assert!(
+            update(&mut refiner, moved(3.0, 4f64.to_radians()), false),
+            "4° > 3°"
+        );
+        assert!(
+            update(&mut refiner, moved(3.0, 4f64.to_radians()), true),
+            "settings"
+        );
+        let mut placed = moved(3.0, 4f64.to_radians());
+        placed.world_from_terrain = DAffine3::from_translation(DVec3::X);
+        assert!(update(&mut refiner, placed, false), "the terrain moved");
+    }
+
+    #[test]
+    fn the_widened_frustum_keeps_every_node_seen_from_any_view_within_the_margins() {
+        // Culled from one view, refined from another within δ and α: every
+        // triangle the exact frustum of the second view would draw is kept.
+        let hierarchy = hierarchy();
+        let start = DVec3::new(-200.0, 300.0, 320.0);
+        let (delta, alpha) = (2.5, 3f64.to_radians());
+        let widened = culling_frustum(&view(start, -1.2), delta, alpha).unwrap();
+        let origin = hierarchy.origin();
+        for (dx, dyaw) in [
+            (2.4, 0.0),
+            (-1.7, 2.9f64.to_radians()),
+            (0.0, -2.9f64.to_radians()),
+        ] {
+            let other = view(start + DVec3::new(dx, 0.0, 0.0), -1.2 + dyaw);
+            let exact = culling_frustum(&other, 0.0, 0.0).unwrap();
+            let mut culled = TerrainMesh::new();
+            let mut seen = TerrainMesh::new();
+            let lod = settings().lod;
+            hierarchy
+                .update(start, Some(&widened), &lod, &mut culled)
+                .unwrap();
+            hierarchy
+                .update(start, Some(&exact), &lod, &mut seen)
+                .unwrap();
+            let kept: std::collections::HashSet<[u32; 3]> = culled
+                .positions
+                .iter()
+                .map(|p| p.map(f32::to_bits))
+                .collect();
+            // Every vertex inside the other view's frustum is kept (its
+            // node's box meets the widened frustum).
+            let inside = seen
+                .positions
+                .iter()
+                .filter(|p| exact.contains_point(origin + DVec3::from(p.map(f64::from))));
+            let mut count = 0;
+            for position in inside {
+                count += 1;
+                assert!(
+                    kept.contains(&position.map(f32::to_bits)),
+                    "a seen vertex was culled"
+                );
+            }
+            assert!(count > 0, "the view sees the terrain");
+        }
+    }
+
+    #[test]
+    fn an_orthographic_camera_culls_nothing_and_bad_accuracy_is_an_error() {
+        let hierarchy = hierarchy();
+        let mut orthographic = view(DVec3::new(0.0, 500.0, 0.0), 0.0);
+        orthographic.clip_from_view = DMat4::orthographic_rh(-10.0, 10.0, -10.0, 10.0, 0.1, 100.0);
+        assert!(culling_frustum(&orthographic, 1.0, 0.1).is_none());
+        let mut refiner = TerrainRefiner::new();
+        let mut bad = settings();
+        bad.lod.accuracy = f32::NAN;
+        assert!(
+            refiner
+                .update(&hierarchy, &orthographic, &bad, false)
+                .is_err()
+        );
+        // After an error the next call refines.
+        let ok = refiner.update(&hierarchy, &orthographic, &settings(), false);
+        assert!(ok.unwrap().is_some());
+    }
+}
