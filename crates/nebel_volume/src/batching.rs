@@ -181,6 +181,7 @@ pub(crate) fn build_batchers(
         Option<&VolumeLod>,
         Option<&VolumeLighting>,
         &InheritedVisibility,
+        Option<&CloudGeneration>,
         &mut VolumeBatching,
     )>,
     suns: Query<&GlobalTransform, With<DirectionalLight>>,
@@ -190,11 +191,13 @@ pub(crate) fn build_batchers(
     mut diagnostics: Diagnostics,
 ) {
     let sun_world = suns.iter().next().map(|sun| sun.back().as_vec3());
-    for (volume, transform, lod, lighting, visibility, mut batching) in &mut volumes {
+    for (volume, transform, lod, lighting, visibility, generation, mut batching) in &mut volumes {
         let batching = &mut *batching;
         // A build started last frame may be done (always under Blocking).
         finish_build(batching, *mode, &mut diagnostics);
-        if !visibility.get() || batching.build.is_some() {
+        // A cloud's field is its generator's to fill first.
+        let awaiting_grid = generation.is_some_and(|generation| !generation.has_grid());
+        if !visibility.get() || batching.build.is_some() || awaiting_grid {
             continue;
         }
         let source = match source(volume, &grids, &asset_server) {
