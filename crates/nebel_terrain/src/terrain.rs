@@ -16,11 +16,11 @@
 //! Building the quadtree ([`nebel_lod::TerrainHierarchy`]) happens when the
 //! terrain appears, when its source or one of `spacing`, `vertical_scale`
 //! and `min_accuracy` changes, and when its height asset is modified
-//! ([`crate::build`]). It takes about 4 ms for 513², 65 ms for 2049² and a
-//! quarter of a second for 4097², plus the generator's time, so it runs on
-//! Bevy's `AsyncComputeTaskPool` and the terrain appears (or changes) in the
-//! first frame after it is done ([`HeavyBuilds`]
-//! can make the frame wait instead). What happens every frame is in
+//! ([`crate::build`]). It takes about 5 ms for 513², 65 ms for 2049² and a
+//! quarter of a second for 4097², plus the generator's time (a procedural
+//! 4097² measured 0.3 to 0.5 s in all), so it runs on Bevy's
+//! `AsyncComputeTaskPool` and the terrain appears (or changes) in the first
+//! frame after it is done ([`HeavyBuilds`] can make the frame wait instead). What happens every frame is in
 //! [`crate::update`].
 
 use bevy::diagnostic::{Diagnostic, DiagnosticPath, RegisterDiagnostic};
@@ -165,7 +165,8 @@ pub struct Terrain {
     pub morph: bool,
     /// How far the eye may move, in grid spacings, before the mesh is
     /// rebuilt; also the margin the culling frustum is widened by. Default
-    /// 0.25 (see [`crate::update`] for the bound this keeps).
+    /// 0.25 (see [`nebel_lod::quadtree::TerrainRefiner`] for the bound this
+    /// keeps).
     pub update_distance: f32,
     /// How far the camera may turn, degrees, before the mesh is rebuilt; the
     /// culling frustum is widened by this angle. Default 3.
