@@ -115,7 +115,8 @@ mod tests {
         let store = app.world().resource::<DiagnosticsStore>();
         let diagnostic = store.get(&NebelDiagnosticsPlugin::SYSTEMS_MS).unwrap();
         assert_eq!(diagnostic.history_len(), frames);
-        assert!(diagnostic.values().all(|ms| (0.0..1e3).contains(ms)));
+        // A duration: finite and not negative (its size is the benches' business).
+        assert!(diagnostic.values().all(|ms| ms.is_finite() && *ms >= 0.0));
         assert!(diagnostic.get_max_history_length() < 1000, "bounded");
     }
 }

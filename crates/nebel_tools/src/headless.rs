@@ -51,11 +51,13 @@ use crate::stats::{AdapterSummary, RenderStats, TimeSummary};
 use nebel::NebelPlugins;
 use nebel_scene::OutputSettings;
 
-/// How long to keep running frames after the last scene frame while the GPU
-/// read-back of the captured image completes (one or two frames with builds
-/// that wait; with background builds the CPU driver shares its cores with
-/// them and has taken longer).
-const READBACK_TIMEOUT: Duration = Duration::from_secs(20);
+/// Frames to keep running after the last scene frame while the read-back of
+/// the captured image completes (it takes one or two on every driver seen).
+/// Bevy finishes the read-back on the `AsyncComputeTaskPool`, where
+/// background builds may be queued ahead of it, so the read-back frames wait
+/// for their builds (`HeavyBuilds::Blocking`): the pool is free for it
+/// within a frame, whatever the builds cost.
+const READBACK_FRAMES: u32 = 8;
 
 /// Most frames to wait, before the scene's first, for shaders to load and
 /// pipelines to compile.
@@ -90,10 +92,7 @@ pub enum HeadlessError {
     )]
     NoAdapter,
     /// The frame was rendered but never came back from the GPU.
-    #[error(
-        "the rendered image did not come back from the GPU within {} s",
-        READBACK_TIMEOUT.as_secs()
-    )]
+    #[error("the rendered image did not come back from the GPU within {READBACK_FRAMES} frames")]
     Readback,
     /// The captured image could not be converted or written.
     #[error("{}: cannot write image: {reason}", path.display())]
@@ -255,9 +254,12 @@ pub fn render_headless(
         bar.inc(1);
     }
     bar.finish_and_clear();
-    let readback = Instant::now();
-    while captured.lock().expect("capture slot").is_none() && readback.elapsed() < READBACK_TIMEOUT
-    {
+    // The image is taken: drain the builds so the read-back gets the pool.
+    app.insert_resource(HeavyBuilds::Blocking);
+    for _ in 0..READBACK_FRAMES {
+        if captured.lock().expect("capture slot").is_some() {
+            break;
+        }
         update_and_wait(&mut app);
     }
     let image = captured
