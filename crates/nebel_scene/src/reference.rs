@@ -169,13 +169,17 @@ fn lit_fields(
     let padded = grid
         .padded_to_power_of_two_plus_one(PadFill::Value(0.0))
         .map_err(invalid)?;
-    let scattering = matches!(lighting.model, LightModel::Scattering { .. });
-    let settings = CloudLighting {
-        ambient: if scattering { 0.0 } else { lighting.ambient },
-        diffuse: if scattering { 1.0 } else { lighting.diffuse },
-        sun_direction: sun,
-        shadow_extinction: lighting.shadow_extinction,
-        lambert: !scattering,
+    let settings = match lighting.model {
+        LightModel::Scattering { .. } => {
+            CloudLighting::transmittance(sun, lighting.shadow_extinction)
+        }
+        LightModel::Isotropic | LightModel::NonPhysical => CloudLighting {
+            ambient: lighting.ambient,
+            diffuse: lighting.diffuse,
+            sun_direction: sun,
+            shadow_extinction: lighting.shadow_extinction,
+            lambert: true,
+        },
     };
     let light = light_field(&padded, &settings).map_err(invalid)?;
     Ok(match lighting.model {

@@ -40,7 +40,7 @@ use crate::terrain::{Terrain, TerrainLodStats, TerrainPlugin, TerrainSource, Ter
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub(crate) struct BuildKey {
     /// The height asset, or the procedural source's settings.
-    source: Result<AssetId<TerrainHeights>, Vec<u64>>,
+    source: Result<AssetId<TerrainHeights>, [u64; 7]>,
     /// `spacing`, `vertical_scale`, `min_accuracy`.
     settings: [u32; 3],
 }
@@ -49,7 +49,7 @@ impl BuildKey {
     fn of(terrain: &Terrain) -> Self {
         let source = match &terrain.source {
             TerrainSource::Heights(handle) => Ok(handle.id()),
-            TerrainSource::Procedural { size, noise } => Err(vec![
+            TerrainSource::Procedural { size, noise } => Err([
                 u64::from(*size),
                 noise.kind as u64,
                 u64::from(noise.seed),
@@ -274,14 +274,17 @@ pub(crate) fn build_terrains(
         })
         .collect();
     for (entity, terrain, mut status, mut stats, mut state) in &mut terrains {
-        let mut built = Built {
-            commands: &mut commands,
-            entity,
-            status: &mut status,
-            stats: &mut stats,
-            diagnostics: &mut diagnostics,
+        let state = &mut *state;
+        let mut land = |state: &mut TerrainLod, status: &mut TerrainStatus| {
+            let result = poll_build(state, *mode);
+            let built = result.and_then(|result| {
+                put_in_place(&mut commands, entity, status, &mut stats, state, result)
+            });
+            if let Some(build_ms) = built {
+                diagnostics.add_measurement(&TerrainPlugin::BUILD_MS, || f64::from(build_ms));
+            }
         };
-        built.take(&mut state, *mode);
+        land(state, &mut status);
         if state.build.is_some() {
             continue;
         }
@@ -293,7 +296,7 @@ pub(crate) fn build_terrains(
         }
         match unit_heights(terrain, &heights, &asset_server) {
             // Still loading: ask again next frame.
-            Ok(None) => *built.status = TerrainStatus::Pending,
+            Ok(None) => *status = TerrainStatus::Pending,
             Ok(Some(unit)) => {
                 let input = BuildInput {
                     heights: unit,
@@ -303,63 +306,65 @@ pub(crate) fn build_terrains(
                 };
                 state.build = Some((key, HeavyBuild::spawn(move || build_quadtree(input))));
                 if state.hierarchy.is_none() {
-                    *built.status = TerrainStatus::Pending;
+                    *status = TerrainStatus::Pending;
                 }
-                built.take(&mut state, *mode);
+                land(state, &mut status);
             }
             Err(error) => {
                 state.key = Some(key);
-                fail(built.commands, entity, built.status, &mut state, error);
+                fail(&mut commands, entity, &mut status, state, error);
             }
         }
     }
 }
 
-/// Where a finished build goes: the terrain's entity, status, statistics and
-/// the diagnostics.
-struct Built<'a, 'c, 'cs, 'd, 'ds> {
-    commands: &'a mut Commands<'c, 'cs>,
-    entity: Entity,
-    status: &'a mut TerrainStatus,
-    stats: &'a mut TerrainLodStats,
-    diagnostics: &'a mut Diagnostics<'d, 'ds>,
+/// The result of the build in flight if it is done (waiting for it under
+/// `HeavyBuilds::Blocking`); its key becomes the terrain's.
+fn poll_build(
+    state: &mut TerrainLod,
+    mode: HeavyBuilds,
+) -> Option<Result<BuiltQuadtree, TerrainBuildError>> {
+    let (key, build) = state.build.as_mut()?;
+    let result = build.poll(mode)?;
+    state.key = Some(key.clone());
+    state.build = None;
+    Some(result)
 }
 
-impl Built<'_, '_, '_, '_, '_> {
-    /// Puts the build in flight in place if it is done (waiting for it under
-    /// `HeavyBuilds::Blocking`): the quadtree, or the failure.
-    fn take(&mut self, state: &mut TerrainLod, mode: HeavyBuilds) {
-        let Some((key, build)) = state.build.as_mut() else {
-            return;
-        };
-        let Some(result) = build.poll(mode) else {
-            return;
-        };
-        state.key = Some(key.clone());
-        state.build = None;
-        match result {
-            Ok(BuiltQuadtree {
-                hierarchy,
+/// Puts a finished build in place: the quadtree (returning how long its
+/// build took, ms), or the failure.
+fn put_in_place(
+    commands: &mut Commands,
+    entity: Entity,
+    status: &mut TerrainStatus,
+    stats: &mut TerrainLodStats,
+    state: &mut TerrainLod,
+    result: Result<BuiltQuadtree, TerrainBuildError>,
+) -> Option<f32> {
+    match result {
+        Ok(BuiltQuadtree {
+            hierarchy,
+            build_ms,
+        }) => {
+            *stats = TerrainLodStats {
+                points_per_side: hierarchy.size() as u32,
+                bytes_per_point: hierarchy.bytes_per_point() as f32,
                 build_ms,
-            }) => {
-                self.diagnostics
-                    .add_measurement(&TerrainPlugin::BUILD_MS, || f64::from(build_ms));
-                *self.stats = TerrainLodStats {
-                    points_per_side: hierarchy.size() as u32,
-                    bytes_per_point: hierarchy.bytes_per_point() as f32,
-                    build_ms,
-                    updates: self.stats.updates,
-                    ..default()
-                };
-                if state.mesh.is_some() {
-                    // A new extent: new bounds.
-                    self.commands.entity(self.entity).insert(bounds(&hierarchy));
-                }
-                state.hierarchy = Some(hierarchy);
-                state.refiner = TerrainRefiner::new();
-                *self.status = TerrainStatus::Ready;
+                updates: stats.updates,
+                ..default()
+            };
+            if state.mesh.is_some() {
+                // A new extent: new bounds.
+                commands.entity(entity).insert(bounds(&hierarchy));
             }
-            Err(error) => fail(self.commands, self.entity, self.status, state, error),
+            state.hierarchy = Some(hierarchy);
+            state.refiner = TerrainRefiner::new();
+            *status = TerrainStatus::Ready;
+            Some(build_ms)
+        }
+        Err(error) => {
+            fail(commands, entity, status, state, error);
+            None
         }
     }
 }

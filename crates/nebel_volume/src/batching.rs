@@ -76,22 +76,22 @@ impl BuildKey {
     }
 }
 
-/// The bits of every value of `settings`.
-fn settings_bits(settings: &BatchSettings) -> Vec<u64> {
-    let mut bits = vec![u64::from(settings.order == CellOrder::BackToFront)];
-    if let Some(octree) = settings.octree {
-        bits.push(octree.min_accuracy.to_bits());
-    }
-    if let Some(lighting) = settings.lighting {
-        let light = lighting.light;
-        bits.extend([
-            u64::from(light.ambient.to_bits()),
-            u64::from(light.diffuse.to_bits()),
-            u64::from(light.shadow_extinction.to_bits()),
-            u64::from(light.lambert),
-            lighting.scalars as u64,
-        ]);
-        bits.extend(light.sun_direction.to_array().map(f64::to_bits));
+/// The bits of every value of `settings` (0 for the parts it lacks, with a
+/// flag for each part).
+fn settings_bits(settings: &BatchSettings) -> [u64; 12] {
+    let octree = settings.octree.map(|octree| octree.min_accuracy.to_bits());
+    let mut bits = [0; 12];
+    bits[0] = u64::from(settings.order == CellOrder::BackToFront);
+    bits[1] = u64::from(octree.is_some());
+    bits[2] = octree.unwrap_or(0);
+    if let Some(BatchLighting { light, scalars }) = settings.lighting {
+        bits[3] = 1;
+        bits[4] = u64::from(light.ambient.to_bits());
+        bits[5] = u64::from(light.diffuse.to_bits());
+        bits[6] = u64::from(light.shadow_extinction.to_bits());
+        bits[7] = u64::from(light.lambert);
+        bits[8] = scalars as u64;
+        bits[9..].copy_from_slice(&light.sun_direction.to_array().map(f64::to_bits));
     }
     bits
 }

@@ -108,13 +108,18 @@ impl VolumeLighting {
     /// sun, in the volume's local frame): ambient and Lambert-shaded diffuse
     /// light, or for [`CloudLightModel::Scattering`] the transmittance alone.
     pub fn light_field_settings(&self, sun_local: Vec3) -> CloudLighting {
-        let scattering = matches!(self.model, CloudLightModel::Scattering { .. });
-        CloudLighting {
-            ambient: if scattering { 0.0 } else { self.ambient },
-            diffuse: if scattering { 1.0 } else { self.diffuse },
-            sun_direction: sun_local.as_dvec3(),
-            shadow_extinction: self.shadow_extinction,
-            lambert: !scattering,
+        let sun = sun_local.as_dvec3();
+        match self.model {
+            CloudLightModel::Scattering { .. } => {
+                CloudLighting::transmittance(sun, self.shadow_extinction)
+            }
+            CloudLightModel::Isotropic | CloudLightModel::NonPhysical => CloudLighting {
+                ambient: self.ambient,
+                diffuse: self.diffuse,
+                sun_direction: sun,
+                shadow_extinction: self.shadow_extinction,
+                lambert: true,
+            },
         }
     }
 

@@ -110,6 +110,20 @@ impl CloudLighting {
     /// part, a sunlit point reaches full light).
     pub const DEFAULT_DIFFUSE: f32 = 0.7;
 
+    /// The light field of single scattering (Nes 2008): the plain
+    /// transmittance toward the sun in the direction `sun_direction`, with no
+    /// ambient part and no Lambert term; the renderer weighs the sun's and
+    /// the sky's light per pixel instead.
+    pub fn transmittance(sun_direction: DVec3, shadow_extinction: f32) -> Self {
+        Self {
+            ambient: 0.0,
+            diffuse: 1.0,
+            sun_direction,
+            shadow_extinction,
+            lambert: false,
+        }
+    }
+
     /// Validates the settings; returns the unit sun direction.
     fn unit_sun(&self, name: &str) -> Result<DVec3, FieldError> {
         let invalid = |parameter, value: String, requirement| {

@@ -210,27 +210,37 @@ fn read_raw(
     };
     let file = File::open(path).map_err(io)?;
     let length = file.metadata().map_err(io)?.len();
-    let expected = dims
-        .iter()
-        .fold(sample_type.bytes() as u128, |acc, &n| acc * n as u128);
-    let size_mismatch = |actual| FieldError::RawSizeMismatch {
-        path: path.to_owned(),
-        dims: dims.to_vec(),
-        sample_type,
-        expected,
-        actual,
-    };
-    if u128::from(length) != expected {
-        return Err(size_mismatch(length));
-    }
+    check_raw_length(path, dims, sample_type, length)?;
     // The length is at most 4 bytes per sample, within the budget checked.
     let mut bytes = Vec::with_capacity(length as usize);
     file.take(length).read_to_end(&mut bytes).map_err(io)?;
-    if bytes.len() as u64 != length {
-        // The file shrank while it was read.
-        return Err(size_mismatch(bytes.len() as u64));
-    }
+    // The file may have shrunk while it was read.
+    check_raw_length(path, dims, sample_type, bytes.len() as u64)?;
     Ok(sample_type.decode(&bytes))
+}
+
+/// Refuses `actual` bytes unless they are exactly `dims` samples of
+/// `sample_type`; `path` names them in the error.
+fn check_raw_length(
+    path: &Path,
+    dims: &[usize],
+    sample_type: RawSampleType,
+    actual: u64,
+) -> Result<(), FieldError> {
+    let expected = dims
+        .iter()
+        .fold(sample_type.bytes() as u128, |acc, &n| acc * n as u128);
+    if expected == u128::from(actual) {
+        Ok(())
+    } else {
+        Err(FieldError::RawSizeMismatch {
+            path: path.to_owned(),
+            dims: dims.to_vec(),
+            sample_type,
+            expected,
+            actual,
+        })
+    }
 }
 
 impl HeightField {
@@ -430,18 +440,7 @@ impl DensityGrid {
         origin: DVec3,
     ) -> Result<Self, FieldError> {
         budgeted_points(name, DENSITY_GRID, &dims, SAMPLE_BYTES)?;
-        let expected = dims
-            .iter()
-            .fold(sample_type.bytes() as u128, |acc, &n| acc * n as u128);
-        if expected != bytes.len() as u128 {
-            return Err(FieldError::RawSizeMismatch {
-                path: PathBuf::from(name),
-                dims: dims.to_vec(),
-                sample_type,
-                expected,
-                actual: bytes.len() as u64,
-            });
-        }
+        check_raw_length(Path::new(name), &dims, sample_type, bytes.len() as u64)?;
         let mut values = sample_type.decode(bytes);
         normalization.apply(name, &mut values)?;
         Self::validated(name, dims, spacing, origin, values)

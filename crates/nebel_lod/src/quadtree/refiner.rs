@@ -87,7 +87,6 @@ pub struct TerrainRefiner {
     mesh: TerrainMesh,
     /// The view the mesh was refined for.
     refined_for: Option<TerrainView>,
-    stats: LodStats,
 }
 
 impl TerrainRefiner {
@@ -127,20 +126,15 @@ impl TerrainRefiner {
             .map(|column| DVec3::from(*column).length())
             .fold(0.0, f64::max);
         let frustum = culling_frustum(view, distance * scale, margin);
-        self.stats =
+        let stats =
             hierarchy.update(view.eye(), frustum.as_ref(), &settings.lod, &mut self.mesh)?;
         self.refined_for = Some(*view);
-        Ok(Some(self.stats))
+        Ok(Some(stats))
     }
 
     /// The mesh of the last refinement, in the hierarchy's frame.
     pub fn mesh(&self) -> &TerrainMesh {
         &self.mesh
-    }
-
-    /// The counters of the last refinement.
-    pub fn stats(&self) -> LodStats {
-        self.stats
     }
 }
 
