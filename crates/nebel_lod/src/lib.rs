@@ -12,6 +12,10 @@
 //!   back-to-front order for an eye, with per-brick zero-opacity test and
 //!   frustum culling ([`BrickTable`], [`full_resolution_batch`]), and
 //!   [`order_key`], which tells when a new eye position changes that order.
+//! - [`ground_fog`]: ground fog as vertical prisms on the terrain's level of
+//!   detail (Röttger and Ertl 2003 §6): [`fog_prisms`] turns a terrain mesh
+//!   refined with the fog's thickness into conforming tetrahedra, back to
+//!   front for any eye or unordered, with a vertical [`FogProfile`].
 //! - [`octree`]: the volume C-LOD of Röttger and Ertl 2003 §2-3: the view-independent
 //!   hierarchy ([`VolumeHierarchy`], a forest of octrees over a `2^n + 1` grid
 //!   with per-node deviation Δ propagated by `K_max` and scalar ranges, four
@@ -54,6 +58,7 @@
 pub mod batch;
 pub mod frustum;
 pub mod full_resolution;
+pub mod ground_fog;
 pub mod octree;
 pub mod quadtree;
 pub mod view;
@@ -63,8 +68,11 @@ pub mod volume_batcher;
 pub use batch::{CellBatch, GpuCell};
 pub use frustum::{Frustum, FrustumError};
 pub use full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};
+pub use ground_fog::{FogProfile, PrismError, PrismInput, PrismStats, fog_prisms};
 pub use octree::{HierarchyError, Node, VolumeHierarchy};
-pub use quadtree::{LodSettings, TerrainError, TerrainHierarchy, TerrainMesh, TriangleOrder};
+pub use quadtree::{
+    LodSettings, TerrainError, TerrainHierarchy, TerrainLayer, TerrainMesh, TriangleOrder,
+};
 pub use view::View;
 pub use visibility::{CellAdjacency, sorted_batch};
 pub use volume_batcher::{

@@ -5,7 +5,7 @@
 use glam::DVec3;
 
 use super::hierarchy::{TerrainHierarchy, level_offset};
-use super::{DEFAULT_ACCURACY, TerrainError};
+use super::{DEFAULT_ACCURACY, TerrainError, TerrainLayer};
 use crate::frustum::Frustum;
 
 /// In which order the triangles come out (see the module docs).
@@ -70,6 +70,9 @@ pub struct TerrainMesh {
     /// Grid index `(i, j)` per vertex when [`LodSettings::grid_points`], else
     /// empty.
     pub grid_points: Vec<[u32; 2]>,
+    /// The morphed value of the [`TerrainLayer`] per vertex when the update
+    /// was given one (the fog's thickness above the ground, say), else empty.
+    pub layer: Vec<f32>,
     /// Three vertex indices per triangle.
     pub indices: Vec<u32>,
 }
@@ -90,6 +93,7 @@ impl TerrainMesh {
         self.positions.clear();
         self.normals.clear();
         self.grid_points.clear();
+        self.layer.clear();
         self.indices.clear();
     }
 }
@@ -114,24 +118,27 @@ pub struct LodStats {
     pub one_level_repairs: usize,
 }
 
-/// A vertex value: morphed height and morphed height gradient (∂h/∂x, ∂h/∂z).
+/// A vertex value: morphed height, morphed height gradient (∂h/∂x, ∂h/∂z)
+/// and morphed layer value (0 without a layer).
 #[derive(Clone, Copy, Debug, Default)]
 struct Vtx {
     h: f32,
     g: [f32; 2],
+    layer: f32,
 }
 
 /// `w · own + (1 − w) · (a + b)/2`, the same expression wherever a vertex is
 /// computed, so a vertex shared by fans gets one value bit for bit.
 #[inline(always)]
-fn blend(w: f32, h: f32, g: [f32; 2], a: &Vtx, b: &Vtx) -> Vtx {
+fn blend(w: f32, own: &Vtx, a: &Vtx, b: &Vtx) -> Vtx {
     let v = 1.0 - w;
     Vtx {
-        h: w * h + v * ((a.h + b.h) * 0.5),
+        h: w * own.h + v * ((a.h + b.h) * 0.5),
         g: [
-            w * g[0] + v * ((a.g[0] + b.g[0]) * 0.5),
-            w * g[1] + v * ((a.g[1] + b.g[1]) * 0.5),
+            w * own.g[0] + v * ((a.g[0] + b.g[0]) * 0.5),
+            w * own.g[1] + v * ((a.g[1] + b.g[1]) * 0.5),
         ],
+        layer: w * own.layer + v * ((a.layer + b.layer) * 0.5),
     }
 }
 
@@ -140,8 +147,6 @@ fn blend(w: f32, h: f32, g: [f32; 2], a: &Vtx, b: &Vtx) -> Vtx {
 /// S), odd slots corners.
 const RING_I: [i32; 8] = [1, 1, 0, -1, -1, -1, 0, 1];
 const RING_J: [i32; 8] = [0, 1, 1, 1, 0, -1, -1, -1];
-/// Back-to-front sector order: offsets from the eye's sector, farthest first.
-const BACK_TO_FRONT: [usize; 8] = [4, 3, 5, 2, 6, 1, 7, 0];
 /// The vertex slot of a node's centre (slots 0 to 7 are the ring).
 const CENTRE: usize = 8;
 
@@ -163,6 +168,10 @@ struct Level {
 /// Everything one update reads and writes.
 struct Frame<'a> {
     heights: &'a [f32],
+    /// The layer's values per grid point, empty without a layer.
+    layer: &'a [f32],
+    /// The layer's largest value, added to the top of every culling box.
+    layer_margin: f32,
     n: usize,
     levels: usize,
     d2: &'a [u8],
@@ -217,6 +226,32 @@ impl TerrainHierarchy {
         settings: &LodSettings,
         mesh: &mut TerrainMesh,
     ) -> Result<LodStats, TerrainError> {
+        self.update_with_layer(eye, frustum, settings, None, mesh)
+    }
+
+    /// [`TerrainHierarchy::update`] that also morphs `layer`, a value per grid
+    /// point, with the terrain's weights (every vertex's value is blended from
+    /// its coarse endpoints exactly like its height, so it never pops either)
+    /// into [`TerrainMesh::layer`], and culls each node on a box raised by the
+    /// layer's largest value (a layer of thickness above the ground, like
+    /// ground fog, stays inside it). Errors besides `update`'s: a layer of
+    /// another size than the terrain ([`TerrainError::DimsMismatch`]).
+    pub fn update_with_layer(
+        &self,
+        eye: DVec3,
+        frustum: Option<&Frustum>,
+        settings: &LodSettings,
+        layer: Option<&TerrainLayer>,
+        mesh: &mut TerrainMesh,
+    ) -> Result<LodStats, TerrainError> {
+        if let Some(layer) = layer
+            && layer.side() != self.size
+        {
+            return Err(TerrainError::DimsMismatch {
+                terrain: self.field.dims(),
+                extra: [layer.side(); 2],
+            });
+        }
         if !eye.is_finite() {
             return Err(TerrainError::NonFiniteEye { eye });
         }
@@ -277,6 +312,8 @@ impl TerrainHierarchy {
         let sz = spacing.y as f32;
         let mut frame = Frame {
             heights: self.field.heights(),
+            layer: layer.map_or(&[], TerrainLayer::values),
+            layer_margin: layer.map_or(0.0, TerrainLayer::max),
             n: self.size,
             levels: self.levels as usize,
             d2: &self.d2,
@@ -331,6 +368,11 @@ impl Frame<'_> {
         Vtx {
             h: self.height(i, j),
             g: self.gradient(i, j),
+            layer: if self.layer.is_empty() {
+                0.0
+            } else {
+                self.layer[i as usize + self.n * j as usize]
+            },
         }
     }
 
@@ -410,7 +452,7 @@ impl Frame<'_> {
         }
         if mask != 0 {
             let lo = corners.iter().fold(f32::INFINITY, |m, c| m.min(c.h));
-            let hi = corners.iter().fold(f32::NEG_INFINITY, |m, c| m.max(c.h));
+            let hi = corners.iter().fold(f32::NEG_INFINITY, |m, c| m.max(c.h)) + self.layer_margin;
             let x1 = last as f32 * self.spacing[0];
             let z1 = last as f32 * self.spacing[1];
             if self.cull(mask, [0.0, lo, 0.0], [x1, hi, z1]).is_none() {
@@ -482,6 +524,9 @@ impl Frame<'_> {
         if self.grid {
             self.mesh.grid_points.push([i, j]);
         }
+        if !self.layer.is_empty() {
+            self.mesh.layer.push(v.layer);
+        }
         verts.index[slot] = index;
         index
     }
@@ -522,6 +567,7 @@ impl Frame<'_> {
                 lo = lo.min(c.h);
                 hi = hi.max(c.h);
             }
+            hi += self.layer_margin;
             let x0 = (ci - half) as f32 * self.spacing[0];
             let x1 = (ci + half) as f32 * self.spacing[0];
             let z0 = (cj - half) as f32 * self.spacing[1];
@@ -543,7 +589,7 @@ impl Frame<'_> {
         } else {
             (&corners[1], &corners[3])
         };
-        let centre = blend(t, centre_height, self.gradient(ci, cj), da, db);
+        let centre = blend(t, &self.true_vertex(ci, cj), da, db);
 
         // The ring: corners as given, edge midpoints morphed with the minimum
         // weight of the two nodes sharing the edge, present only when the
@@ -612,7 +658,7 @@ impl Frame<'_> {
                 let i = (ci as i32 + RING_I[slot] * half as i32) as u32;
                 let j = (cj as i32 + RING_J[slot] * half as i32) as u32;
                 let own = self.true_vertex(i, j);
-                ring[slot] = blend(edge_weight[e], own.h, own.g, &p, &q);
+                ring[slot] = blend(edge_weight[e], &own, &p, &q);
             }
         }
 
@@ -677,24 +723,40 @@ impl Frame<'_> {
                     (false, false) => 4 + usize::from(az >= ax),
                     (true, false) => 6 + usize::from(ax >= az),
                 };
-                let mut seen = [0u8; 8];
-                for r in 0..8 {
-                    let step = if order == TriangleOrder::BackToFront {
-                        BACK_TO_FRONT[r]
-                    } else {
-                        BACK_TO_FRONT[7 - r]
-                    };
-                    let k = (eye_sector + step) & 7;
-                    let s = usize::from(start[k]);
-                    seen[s] += 1;
-                    // Back to front: an item goes when its last (nearest)
-                    // sector is reached; front to back: at its first.
-                    let due = if order == TriangleOrder::BackToFront {
-                        seen[s] == span[s]
-                    } else {
-                        seen[s] == 1
-                    };
-                    if due {
+                // Wedges around the centre: the one holding the direction
+                // away from the eye is farthest, the one holding the eye's
+                // direction nearest, and the wedges between them form two
+                // chains (counter-clockwise and clockwise), each ordered from
+                // the far one to the near one by the side of their shared ray
+                // the eye is on. The chains are independent (no ray from the
+                // eye crosses the line through the eye and the centre twice).
+                let back = (eye_sector + 4) & 7;
+                let front = usize::from(start[eye_sector]);
+                let mut sequence = [usize::MAX; 8];
+                let mut count = 0;
+                let mut add = |item: usize, sequence: &mut [usize; 8]| {
+                    if !sequence[..count].contains(&item) {
+                        sequence[count] = item;
+                        count += 1;
+                    }
+                };
+                add(usize::from(start[back]), &mut sequence);
+                for depth in 1..4 {
+                    for k in [(back + depth) & 7, (back + 8 - depth) & 7] {
+                        let item = usize::from(start[k]);
+                        if item != front {
+                            add(item, &mut sequence);
+                        }
+                    }
+                }
+                add(front, &mut sequence);
+                let items = &sequence[..count];
+                if order == TriangleOrder::BackToFront {
+                    for &s in items {
+                        self.item(&mut verts, s, span[s], &children);
+                    }
+                } else {
+                    for &s in items.iter().rev() {
                         self.item(&mut verts, s, span[s], &children);
                     }
                 }

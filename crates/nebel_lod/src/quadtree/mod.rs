@@ -128,12 +128,18 @@
 //! a fully refined region shows the true normals of the height field.
 //!
 //! Order ([`TriangleOrder`]): back to front, front to back or unordered. In a
-//! node, the children and fan triangles are wedges around the centre; they are
-//! visited by the angle between their wedge and the direction from the centre
-//! to the eye (projected on the ground), which is a visibility order of the
-//! wedges and, for the children, the order "by the side of each split line the
-//! eye is on". Nested, this orders the whole mesh for the eye's ground
-//! projection, the order vertical fog prisms over the triangles need.
+//! node, the children and fan triangles are wedges around the centre (a
+//! child or a triangle over a skipped midpoint spans two of the eight 45°
+//! sectors). Back to front, the wedge holding the direction from the eye
+//! through the centre (projected on the ground) comes first, the wedge
+//! holding the eye's direction last, and the wedges between them in two
+//! chains, counter-clockwise and clockwise, each from the far end to the near
+//! one: two wedges sharing a ray are ordered by the side of that ray's line
+//! the eye is on, which is the order "by the side of each split line the eye
+//! is on" for the children, and no ray from the eye crosses from one chain to
+//! the other. Front to back is the reverse. Nested, this orders the whole
+//! mesh for the eye's ground projection, the order vertical fog prisms over
+//! the triangles need.
 //!
 //! Frustum culling: a node is skipped with its subtree when its box misses the
 //! frustum. The box is exact horizontally; vertically it spans the node's true
@@ -175,10 +181,12 @@
 //! bytes per grid point (libMini: 5.0 with f32 heights).
 
 mod hierarchy;
+mod layer;
 mod mesh;
 mod refiner;
 
 pub use hierarchy::{TerrainHierarchy, pad_to_power_of_two_plus_one};
+pub use layer::TerrainLayer;
 pub use mesh::{LodSettings, LodStats, TerrainMesh, TriangleOrder};
 pub use refiner::{RefinerSettings, TerrainRefiner, TerrainView};
 
@@ -268,6 +276,33 @@ pub enum TerrainError {
         terrain: [usize; 2],
         /// Points per axis of the extra field.
         extra: [usize; 2],
+    },
+    /// A [`TerrainLayer`]'s values are not one per grid point.
+    #[error("a terrain layer of {side}×{side} points needs {} values, but it has {len}", side * side)]
+    LayerLength {
+        /// Points per side of the terrain.
+        side: usize,
+        /// The number of values given.
+        len: usize,
+    },
+    /// A map to resample into a [`TerrainLayer`] is empty or its values do
+    /// not fill its size.
+    #[error(
+        "a layer map of {dims:?} points needs that many values (at least one), but it has {len}"
+    )]
+    LayerMapSize {
+        /// Points per axis `[width, height]` of the map.
+        dims: [usize; 2],
+        /// The number of values given.
+        len: usize,
+    },
+    /// A layer value is NaN or infinite.
+    #[error("layer value {index} is {value}; every value must be finite")]
+    NonFiniteLayer {
+        /// Flat index of the value.
+        index: usize,
+        /// The value found.
+        value: f32,
     },
     /// The eye position is NaN or infinite.
     #[error("the eye position {eye} is not finite")]

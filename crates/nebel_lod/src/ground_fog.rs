@@ -1,0 +1,325 @@
+//! Ground fog as vertical prisms on the terrain's level of detail (Röttger and
+//! Ertl 2003 §6; Röttger 2004 §10.4): every triangle the quadtree draws
+//! carries a prism from the morphed ground up to the morphed fog top, split
+//! into tetrahedra for the cell projection.
+//!
+//! # Input
+//!
+//! A [`TerrainMesh`] refined with the fog's thickness as its
+//! [`TerrainLayer`](crate::quadtree::TerrainLayer)
+//! ([`TerrainHierarchy::update_with_layer`](crate::quadtree::TerrainHierarchy::update_with_layer)),
+//! with [`TerrainMesh::grid_points`]: the ground of each vertex is its morphed
+//! height, the fog top its morphed height plus its morphed thickness. Both are
+//! blended with the terrain's own weights, so the fog top never pops. The
+//! thickness's roughness enters the quadtree's d2 with a weight
+//! ([`TerrainHierarchy::add_extra_roughness`](crate::quadtree::TerrainHierarchy::add_extra_roughness)),
+//! so the mesh also refines where the fog's top varies.
+//!
+//! # Cells
+//!
+//! A [`FogProfile`] cuts every prism at relative heights `0 = r_0 < … < r_L
+//! = 1` into `L` stacked prisms; level `k` of a vertex sits at `ground + r_k ·
+//! thickness` with the scalar `s_k` of the profile; inside, the scalar is
+//! linear in each tetrahedron, so it is the profile exactly on every level
+//! and, where the thickness is constant, everywhere (the paper's fog, dense
+//! at the ground and clear at its top, is the default `[(0, 1), (1, 0)]`). Each stacked prism splits into three tetrahedra by
+//! `nebel_core::cell::Prism::tetrahedra`'s rule: every vertical side face is cut by the
+//! diagonal from the bottom of its vertex with the smaller grid id to the top
+//! of the one with the larger id (the id is `i + 2^32 · j`), so neighbouring
+//! prisms share their face diagonals and the mesh conforms, with no cracks
+//! for any refinement. Sorted by id `a < b < c` the pieces are `(a, b, c,
+//! c')`, `(a, b, b', c')`, `(a, a', b', c')`; a piece whose top vertex
+//! `c'`, `b'` or `a'` has zero thickness has no volume and is dropped, so a
+//! prism of zero thickness everywhere gives no cell and one of partly zero
+//! thickness keeps exactly the pieces that cover its volume.
+//!
+//! # Order
+//!
+//! [`CellOrder::BackToFront`] is an exact visibility order for any eye (above
+//! the fog, inside it, below its top on steep ground, below the ground):
+//! vertical prisms over a planar triangulation are ordered by the 2D order of
+//! their base triangles seen from the eye's ground projection, which is the
+//! quadtree's back-to-front triangle order (a front-to-back mesh is read
+//! backwards), because every ray's ground projection crosses the columns in
+//! that order. Inside a column the cells form a chain, each sharing a face
+//! with the next (the three pieces of a stacked prism, then the next stacked
+//! prism through their common triangle); the eye's side of each shared face
+//! orders each pair, and the chain is drawn in an order consistent with every
+//! pair (Williams 1992's rule on a path, with the dropped pieces skipped: two
+//! kept cells around dropped ones share the face the dropped ones collapsed
+//! to). [`CellOrder::Unordered`] writes the same cells in mesh order, for the
+//! emissive and MIP modes.
+//!
+//! # Output
+//!
+//! [`GpuCell`]s in world space: each vertex mapped by `world_from_mesh`, the
+//! terrain's placement composed with the hierarchy's origin. Positions are
+//! computed in f64 and rounded once, and a vertex shared by cells gets the
+//! same value in each. Frustum culling is the quadtree's, on node boxes raised
+//! by the largest thickness, so nothing of the fog inside the frustum is
+//! culled.
+
+use glam::{DAffine3, DVec3};
+use thiserror::Error;
+
+use crate::batch::GpuCell;
+use crate::full_resolution::CellOrder;
+use crate::quadtree::{TerrainMesh, TriangleOrder};
+
+/// The fog's scalar over relative height inside its layer: piecewise linear
+/// through `points` `(r, s)`, `r` from 0 (the ground) to 1 (the fog top)
+/// strictly increasing, `s` in [0, 1] (the transfer function's input).
+#[derive(Clone, Debug, PartialEq)]
+pub struct FogProfile {
+    points: Vec<[f32; 2]>,
+}
+
+impl Default for FogProfile {
+    /// The paper's fog: the full density at the ground, zero at the top.
+    fn default() -> Self {
+        Self {
+            points: vec![[0.0, 1.0], [1.0, 0.0]],
+        }
+    }
+}
+
+impl FogProfile {
+    /// The profile through `points` `(relative height, scalar)`: at least two,
+    /// the first at 0 and the last at 1, strictly increasing, scalars in
+    /// [0, 1], all finite.
+    pub fn new(points: Vec<[f32; 2]>) -> Result<Self, PrismError> {
+        let valid = points.len() >= 2
+            && points.first().is_some_and(|p| p[0] == 0.0)
+            && points.last().is_some_and(|p| p[0] == 1.0)
+            && points.windows(2).all(|w| w[0][0] < w[1][0])
+            && points
+                .iter()
+                .all(|p| p[0].is_finite() && (0.0..=1.0).contains(&p[1]));
+        if valid {
+            Ok(Self { points })
+        } else {
+            Err(PrismError::InvalidProfile { points })
+        }
+    }
+
+    /// A fog of the same density from the ground to its top (`s = 1`).
+    pub fn uniform() -> Self {
+        Self {
+            points: vec![[0.0, 1.0], [1.0, 1.0]],
+        }
+    }
+
+    /// The points `(relative height, scalar)`.
+    pub fn points(&self) -> &[[f32; 2]] {
+        &self.points
+    }
+
+    /// Stacked prisms per terrain triangle.
+    pub fn layers(&self) -> usize {
+        self.points.len() - 1
+    }
+}
+
+/// Why no prisms could be built.
+#[derive(Clone, Debug, Error, PartialEq)]
+pub enum PrismError {
+    /// The mesh was refined without the fog's thickness or grid points.
+    #[error(
+        "the terrain mesh has no fog thickness or no grid points per vertex: refine it with update_with_layer and grid_points"
+    )]
+    MissingLayer,
+    /// A sorted batch was asked of an unordered mesh.
+    #[error("sorted fog needs a back-to-front or front-to-back terrain mesh, not an unordered one")]
+    UnorderedMesh,
+    /// The profile is not a valid piecewise-linear function on [0, 1].
+    #[error(
+        "fog profile {points:?} is invalid: it needs at least two (height, scalar) points from height 0 to height 1, strictly increasing, scalars in [0, 1]"
+    )]
+    InvalidProfile {
+        /// The points given.
+        points: Vec<[f32; 2]>,
+    },
+}
+
+/// Counters of one [`fog_prisms`] call.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct PrismStats {
+    /// Terrain triangles with fog above at least one vertex (each a column of
+    /// [`FogProfile::layers`] prisms).
+    pub prisms: usize,
+    /// Tetrahedra written.
+    pub tetrahedra: usize,
+}
+
+/// What [`fog_prisms`] needs besides the mesh.
+#[derive(Clone, Copy, Debug)]
+pub struct PrismInput<'a> {
+    /// The mesh frame (the hierarchy's, relative to its origin) to world
+    /// space.
+    pub world_from_mesh: DAffine3,
+    /// The eye in the mesh frame (read by the sorted order only).
+    pub eye: DVec3,
+    /// The order in which the mesh's triangles come.
+    pub mesh_order: TriangleOrder,
+    /// The order of the cells written.
+    pub order: CellOrder,
+    /// The scalar over relative height.
+    pub profile: &'a FogProfile,
+}
+
+/// The vertices of one column: level `k` of corner `v` at `3k + v`, corners
+/// sorted by grid id.
+struct Column {
+    positions: Vec<DVec3>,
+    scalars: Vec<f32>,
+    /// Kept cells, as indices into `positions`, in chain order.
+    cells: Vec<[usize; 4]>,
+    /// The chain order of the kept cells, back to front.
+    order: Vec<usize>,
+    stack: Vec<usize>,
+}
+
+/// Writes the fog prisms of `mesh` into `out` (cleared first) in the order
+/// asked for (see the [module docs](self)).
+pub fn fog_prisms(
+    mesh: &TerrainMesh,
+    input: &PrismInput,
+    out: &mut Vec<GpuCell>,
+) -> Result<PrismStats, PrismError> {
+    out.clear();
+    let vertices = mesh.positions.len();
+    if mesh.layer.len() != vertices || mesh.grid_points.len() != vertices {
+        return Err(PrismError::MissingLayer);
+    }
+    let sorted = input.order == CellOrder::BackToFront;
+    if sorted && input.mesh_order == TriangleOrder::Unordered {
+        return Err(PrismError::UnorderedMesh);
+    }
+    let levels = input.profile.points();
+    let mut column = Column {
+        positions: Vec::with_capacity(3 * levels.len()),
+        scalars: Vec::with_capacity(3 * levels.len()),
+        cells: Vec::with_capacity(3 * levels.len()),
+        order: Vec::with_capacity(3 * levels.len()),
+        stack: Vec::with_capacity(3 * levels.len()),
+    };
+    let mut stats = PrismStats::default();
+    let triangles = mesh.indices.chunks_exact(3);
+    let reversed = sorted && input.mesh_order == TriangleOrder::FrontToBack;
+    let mut emit = |triangle: &[u32]| {
+        let mut corners = [triangle[0], triangle[1], triangle[2]].map(|v| v as usize);
+        let id = |v: usize| {
+            let [i, j] = mesh.grid_points[v];
+            u64::from(i) | (u64::from(j) << 32)
+        };
+        corners.sort_by_key(|&v| id(v));
+        let thickness = corners.map(|v| f64::from(mesh.layer[v]));
+        if thickness.iter().all(|t| *t <= 0.0) {
+            return;
+        }
+        column.build(mesh, corners, thickness, levels);
+        if sorted {
+            column.sort(input.eye);
+        } else {
+            column.order.clear();
+            column.order.extend(0..column.cells.len());
+        }
+        stats.prisms += 1;
+        stats.tetrahedra += column.cells.len();
+        for &cell in &column.order {
+            let indices = column.cells[cell];
+            out.push(GpuCell {
+                vertices: indices.map(|p| {
+                    let world = input
+                        .world_from_mesh
+                        .transform_point3(column.positions[p])
+                        .as_vec3();
+                    [world.x, world.y, world.z, column.scalars[p]]
+                }),
+            });
+        }
+    };
+    if reversed {
+        triangles.rev().for_each(&mut emit);
+    } else {
+        triangles.for_each(&mut emit);
+    }
+    Ok(stats)
+}
+
+impl Column {
+    /// The column's vertices and kept cells, in chain order.
+    fn build(
+        &mut self,
+        mesh: &TerrainMesh,
+        corners: [usize; 3],
+        thickness: [f64; 3],
+        levels: &[[f32; 2]],
+    ) {
+        self.positions.clear();
+        self.scalars.clear();
+        self.cells.clear();
+        for &[r, s] in levels {
+            for (v, t) in corners.iter().zip(thickness) {
+                let [x, y, z] = mesh.positions[*v].map(f64::from);
+                self.positions
+                    .push(DVec3::new(x, y + f64::from(r) * t.max(0.0), z));
+                self.scalars.push(s);
+            }
+        }
+        let [a, b, c] = [0, 1, 2];
+        let flat = thickness.map(|t| t <= 0.0);
+        for layer in 0..levels.len() - 1 {
+            let (bottom, top) = (3 * layer, 3 * layer + 3);
+            // Prism::tetrahedra's pieces, each dropped when its collapsing
+            // vertical edge has zero thickness.
+            let pieces = [
+                (c, [bottom + a, bottom + b, bottom + c, top + c]),
+                (b, [bottom + a, bottom + b, top + b, top + c]),
+                (a, [bottom + a, top + a, top + b, top + c]),
+            ];
+            for (edge, cell) in pieces {
+                if !flat[edge] {
+                    self.cells.push(cell);
+                }
+            }
+        }
+    }
+
+    /// Orders the kept cells back to front for `eye` by the shared faces of
+    /// consecutive cells (see the module docs).
+    fn sort(&mut self, eye: DVec3) {
+        self.order.clear();
+        self.stack.clear();
+        let count = self.cells.len();
+        for k in 0..count {
+            self.stack.push(k);
+            if k + 1 == count || !self.in_front_of_next(k, eye) {
+                // Cell k is drawn before k + 1: the run waiting on it goes
+                // first, nearest to k last.
+                while let Some(cell) = self.stack.pop() {
+                    self.order.push(cell);
+                }
+            }
+        }
+    }
+
+    /// Whether cell `k` lies between the eye and cell `k + 1` (the eye is on
+    /// `k`'s side of their shared face), so `k` is drawn after it.
+    fn in_front_of_next(&self, k: usize, eye: DVec3) -> bool {
+        let (own, next) = (self.cells[k], self.cells[k + 1]);
+        let at = |p: usize| self.positions[p];
+        let shared = |p: usize| next.iter().any(|&q| at(q) == at(p));
+        let Some(apex) = own.iter().copied().find(|&p| !shared(p)) else {
+            return false;
+        };
+        let mut face = [DVec3::ZERO; 3];
+        for (slot, p) in face.iter_mut().zip(own.iter().filter(|&&p| p != apex)) {
+            *slot = at(*p);
+        }
+        let normal = (face[1] - face[0]).cross(face[2] - face[0]);
+        let apex_side = normal.dot(at(apex) - face[0]);
+        let eye_side = normal.dot(eye - face[0]);
+        apex_side * eye_side > 0.0
+    }
+}

@@ -1,0 +1,548 @@
+//! Ground fog prisms on the terrain's level of detail: conforming, exactly the
+//! fog's volume, back to front for every eye, continuous along a flight, and
+//! bad input as errors.
+
+use std::collections::{HashMap, HashSet};
+
+use glam::{DAffine3, DVec2, DVec3};
+use nebel_core::cell::{Ray, Tetrahedron};
+use nebel_core::field::{HeightField, ValueNoise};
+use nebel_lod::quadtree::TerrainLayer;
+use nebel_lod::{
+    CellOrder, FogProfile, GpuCell, LodSettings, PrismError, PrismInput, PrismStats, TerrainError,
+    TerrainHierarchy, TerrainMesh, TriangleOrder, fog_prisms,
+};
+
+const SPACING: f64 = 10.0;
+
+/// An fBm terrain of `n²` points, 0..300 m, and valley fog filling it up to
+/// 120 m (zero thickness on the ridges), plus a noisy top.
+fn valley(n: usize) -> (TerrainHierarchy, TerrainLayer) {
+    let noise = ValueNoise {
+        seed: 3,
+        octaves: 5,
+        wavelength: 320.0,
+        gain: 0.5,
+    };
+    let field = HeightField::value_noise(
+        [n, n],
+        DVec2::splat(SPACING),
+        DVec2::new(-50.0, 20.0),
+        &noise,
+        300.0,
+    )
+    .unwrap();
+    let thickness: Vec<f32> = field
+        .heights()
+        .iter()
+        .enumerate()
+        .map(|(p, h)| {
+            let wobble = 6.0 * ((p % n) as f32 * 0.7).sin() * ((p / n) as f32 * 0.45).cos();
+            120.0 + wobble - h
+        })
+        .collect();
+    let layer = TerrainLayer::new(n, thickness).unwrap();
+    let fog_top =
+        HeightField::new([n, n], DVec2::ONE, DVec2::ZERO, layer.values().to_vec()).unwrap();
+    let hierarchy = TerrainHierarchy::new(field, 2.0)
+        .unwrap()
+        .with_extra_roughness(&fog_top, 1.0)
+        .unwrap();
+    (hierarchy, layer)
+}
+
+fn refine(
+    hierarchy: &TerrainHierarchy,
+    layer: &TerrainLayer,
+    eye: DVec3,
+    order: TriangleOrder,
+    morph: bool,
+) -> TerrainMesh {
+    let settings = LodSettings {
+        accuracy: 40.0,
+        morph,
+        normals: false,
+        grid_points: true,
+        order,
+    };
+    let mut mesh = TerrainMesh::new();
+    hierarchy
+        .update_with_layer(eye, None, &settings, Some(layer), &mut mesh)
+        .unwrap();
+    mesh
+}
+
+fn prisms(
+    hierarchy: &TerrainHierarchy,
+    mesh: &TerrainMesh,
+    eye: DVec3,
+    mesh_order: TriangleOrder,
+    order: CellOrder,
+    profile: &FogProfile,
+) -> (Vec<GpuCell>, PrismStats) {
+    let mut cells = Vec::new();
+    let input = PrismInput {
+        world_from_mesh: DAffine3::from_translation(hierarchy.origin()),
+        eye: eye - hierarchy.origin(),
+        mesh_order,
+        order,
+        profile,
+    };
+    let stats = fog_prisms(mesh, &input, &mut cells).unwrap();
+    (cells, stats)
+}
+
+/// Eyes above the fog, inside it, exactly on its top, below the ground and
+/// under the top on a steep slope, in world space.
+fn eyes(hierarchy: &TerrainHierarchy, layer: &TerrainLayer) -> Vec<(&'static str, DVec3)> {
+    let n = hierarchy.size();
+    let origin = hierarchy.origin();
+    let at = |i: usize, j: usize, above_ground: f64| {
+        let h = f64::from(hierarchy.field().height(i, j));
+        origin + DVec3::new(i as f64 * SPACING, h + above_ground, j as f64 * SPACING)
+    };
+    // The deepest fog and the steepest fogged point.
+    let deepest = (0..n * n)
+        .max_by(|a, b| layer.values()[*a].total_cmp(&layer.values()[*b]))
+        .unwrap();
+    let (di, dj) = (deepest % n, deepest / n);
+    let thickness = f64::from(layer.values()[deepest]);
+    let steep = (1..n - 1)
+        .flat_map(|j| (1..n - 1).map(move |i| (i, j)))
+        .filter(|&(i, j)| layer.values()[i + n * j] > 5.0)
+        .max_by(|&(a, b), &(c, d)| {
+            let slope = |i: usize, j: usize| {
+                let h = |i, j| hierarchy.field().height(i, j);
+                (h(i + 1, j) - h(i - 1, j)).abs() + (h(i, j + 1) - h(i, j - 1)).abs()
+            };
+            slope(a, b).total_cmp(&slope(c, d))
+        })
+        .unwrap();
+    vec![
+        ("above the fog", origin + DVec3::new(-120.0, 600.0, 90.0)),
+        (
+            "inside the fog",
+            at(di, dj, 0.5 * thickness) + DVec3::new(3.3, 0.0, 1.7),
+        ),
+        ("on the fog top", at(di, dj, thickness)),
+        ("below the ground", at(di, dj, -15.0)),
+        ("under the top on a steep slope", at(steep.0, steep.1, 2.0)),
+        ("far and low", origin + DVec3::new(1500.0, 60.0, -700.0)),
+    ]
+}
+
+fn key(p: [f32; 4]) -> [u32; 3] {
+    [p[0].to_bits(), p[1].to_bits(), p[2].to_bits()]
+}
+
+#[test]
+fn prisms_conform_and_hold_exactly_the_fogs_volume() {
+    let (hierarchy, layer) = valley(65);
+    let extent = 64.0 * SPACING;
+    let origin = hierarchy.origin();
+    for (name, eye) in eyes(&hierarchy, &layer) {
+        let mesh = refine(&hierarchy, &layer, eye, TriangleOrder::BackToFront, true);
+        let profile = FogProfile::default();
+        let (cells, stats) = prisms(
+            &hierarchy,
+            &mesh,
+            eye,
+            TriangleOrder::BackToFront,
+            CellOrder::BackToFront,
+            &profile,
+        );
+        assert_eq!(stats.tetrahedra, cells.len());
+        assert!(
+            stats.prisms > 100 && stats.prisms < mesh.triangle_count(),
+            "{name}: {stats:?}"
+        );
+        // Ground and top positions of every mesh vertex.
+        let mut ground = HashSet::new();
+        let mut top = HashSet::new();
+        for (p, t) in mesh.positions.iter().zip(&mesh.layer) {
+            let world = |dy: f32| {
+                let w = (origin
+                    + DVec3::new(
+                        f64::from(p[0]),
+                        f64::from(p[1]) + f64::from(dy),
+                        f64::from(p[2]),
+                    ))
+                .as_vec3();
+                key([w.x, w.y, w.z, 0.0])
+            };
+            ground.insert(world(0.0));
+            top.insert(world(*t));
+        }
+        // Every face is shared by two cells, or lies on the ground, on the
+        // fog's top or on the terrain's outer boundary.
+        let mut faces: HashMap<[[u32; 3]; 3], usize> = HashMap::new();
+        for cell in &cells {
+            for skip in 0..4 {
+                let mut face: Vec<[u32; 3]> = (0..4)
+                    .filter(|&v| v != skip)
+                    .map(|v| key(cell.vertices[v]))
+                    .collect();
+                face.sort();
+                face.dedup();
+                if face.len() == 3 {
+                    *faces.entry([face[0], face[1], face[2]]).or_default() += 1;
+                }
+            }
+        }
+        let on_boundary = |face: &[[u32; 3]; 3]| {
+            let xs = face.map(|p| f64::from(f32::from_bits(p[0])) - origin.x);
+            let zs = face.map(|p| f64::from(f32::from_bits(p[2])) - origin.z);
+            let all = |v: [f64; 3], target: f64| v.iter().all(|x| (x - target).abs() < 1e-3);
+            all(xs, 0.0) || all(xs, extent) || all(zs, 0.0) || all(zs, extent)
+        };
+        for (face, count) in &faces {
+            assert!(*count <= 2, "{name}: a face shared by {count} cells");
+            if *count == 1 {
+                let lies_on = |set: &HashSet<[u32; 3]>| face.iter().all(|p| set.contains(p));
+                assert!(
+                    lies_on(&ground) || lies_on(&top) || on_boundary(face),
+                    "{name}: a crack at {face:?}"
+                );
+            }
+        }
+        // The cells fill each prism exactly: Σ volume = Σ area · mean thickness.
+        let volume: f64 = cells.iter().map(|c| c.to_tetrahedron().volume()).sum();
+        let expected: f64 = mesh
+            .indices
+            .chunks_exact(3)
+            .map(|t| {
+                let p = |k: usize| {
+                    let [x, _, z] = mesh.positions[t[k] as usize];
+                    DVec2::new(f64::from(x), f64::from(z))
+                };
+                let area = 0.5 * (p(1) - p(0)).perp_dot(p(2) - p(0)).abs();
+                let mean = t
+                    .iter()
+                    .map(|&v| f64::from(mesh.layer[v as usize]))
+                    .sum::<f64>()
+                    / 3.0;
+                area * mean
+            })
+            .sum();
+        assert!(
+            (volume - expected).abs() <= 1e-4 * expected,
+            "{name}: {volume} m³ against {expected} m³"
+        );
+    }
+}
+
+/// Sorts the cells hit by `ray` by entry and checks that a nearer cell is
+/// always drawn after a farther one; returns the cells hit.
+fn check_ray_order(cells: &[Tetrahedron], ray: &Ray, what: &str) -> usize {
+    let mut hits: Vec<(f64, f64, usize)> = cells
+        .iter()
+        .enumerate()
+        .filter_map(|(index, cell)| {
+            // The line's part in front of the eye.
+            let segment = cell.intersect(ray)?;
+            let entry = segment.t_entry.max(0.0);
+            (segment.t_exit - entry > 1e-4).then_some((entry, segment.t_exit, index))
+        })
+        .collect();
+    hits.sort_by(|a, b| a.0.total_cmp(&b.0));
+    for pair in hits.windows(2) {
+        let (near, far) = (pair[0], pair[1]);
+        // Segments of one ray through a conforming mesh do not overlap.
+        assert!(
+            near.1 <= far.0 + 1e-3,
+            "{what}: overlapping cells {near:?} {far:?}"
+        );
+        assert!(
+            near.2 > far.2,
+            "{what}: cell {} at {:.3} m is drawn before cell {} at {:.3} m behind it",
+            near.2,
+            near.0,
+            far.2,
+            far.0
+        );
+    }
+    hits.len()
+}
+
+#[test]
+fn back_to_front_is_a_visibility_order_for_every_eye_by_ray_tests() {
+    let (hierarchy, layer) = valley(33);
+    let mut rng = 0x5eed_u64;
+    let mut random = || {
+        rng = rng
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (rng >> 11) as f64 / (1u64 << 53) as f64
+    };
+    // A profile of three layers: chains of nine cells per column.
+    let profile = FogProfile::new(vec![[0.0, 1.0], [0.3, 0.8], [0.7, 0.3], [1.0, 0.0]]).unwrap();
+    for mesh_order in [TriangleOrder::BackToFront, TriangleOrder::FrontToBack] {
+        for (name, eye) in eyes(&hierarchy, &layer) {
+            let mesh = refine(&hierarchy, &layer, eye, mesh_order, true);
+            let (cells, stats) = prisms(
+                &hierarchy,
+                &mesh,
+                eye,
+                mesh_order,
+                CellOrder::BackToFront,
+                &profile,
+            );
+            assert!(stats.tetrahedra > 0);
+            let cells: Vec<Tetrahedron> = cells.iter().map(GpuCell::to_tetrahedron).collect();
+            let mut hit = 0;
+            for _ in 0..150 {
+                // Toward a random point of the fogged region.
+                let target = hierarchy.origin()
+                    + DVec3::new(random() * 320.0, 40.0 + random() * 100.0, random() * 320.0);
+                let ray = Ray::new(eye, target - eye).unwrap();
+                hit += check_ray_order(&cells, &ray, &format!("{name}, {mesh_order:?}"));
+            }
+            assert!(hit > 150, "{name}: the rays hit only {hit} cells");
+        }
+    }
+}
+
+#[test]
+fn zero_thickness_gives_no_cells_and_partly_zero_prisms_stay_exact() {
+    let (hierarchy, _) = valley(33);
+    let n = hierarchy.size();
+    let eye = hierarchy.origin() + DVec3::new(100.0, 500.0, 100.0);
+    let zero = TerrainLayer::new(n, vec![0.0; n * n]).unwrap();
+    assert!(zero.is_zero());
+    let mesh = refine(&hierarchy, &zero, eye, TriangleOrder::BackToFront, true);
+    for order in [CellOrder::BackToFront, CellOrder::Unordered] {
+        let (cells, stats) = prisms(
+            &hierarchy,
+            &mesh,
+            eye,
+            TriangleOrder::BackToFront,
+            order,
+            &FogProfile::default(),
+        );
+        assert!(cells.is_empty());
+        assert_eq!(stats, PrismStats::default());
+    }
+    // One fogged grid point: only the triangles around it have prisms, each
+    // one piece per layer (the two pieces whose top vertex has no
+    // thickness are dropped), and their volume is area · t/3.
+    let mut values = vec![0.0; n * n];
+    let centre = n / 2 + n * (n / 2);
+    values[centre] = 9.0;
+    let spike = TerrainLayer::new(n, values).unwrap();
+    let settings = LodSettings {
+        accuracy: 1e6,
+        grid_points: true,
+        normals: false,
+        ..LodSettings::default()
+    };
+    let mut mesh = TerrainMesh::new();
+    hierarchy
+        .update_with_layer(eye, None, &settings, Some(&spike), &mut mesh)
+        .unwrap();
+    let (cells, stats) = prisms(
+        &hierarchy,
+        &mesh,
+        eye,
+        TriangleOrder::BackToFront,
+        CellOrder::BackToFront,
+        &FogProfile::default(),
+    );
+    assert_eq!(
+        stats.prisms, 8,
+        "the full grid has eight triangles around a point"
+    );
+    assert_eq!(cells.len(), 8);
+    let volume: f64 = cells.iter().map(|c| c.to_tetrahedron().volume()).sum();
+    let expected = 8.0 * 0.5 * SPACING * SPACING * 9.0 / 3.0;
+    assert!(
+        (volume - expected).abs() < 1e-3 * expected,
+        "{volume} vs {expected}"
+    );
+}
+
+#[test]
+fn the_scalar_follows_the_profile_exactly_where_the_thickness_is_constant() {
+    let noise = ValueNoise {
+        seed: 9,
+        octaves: 3,
+        wavelength: 80.0,
+        gain: 0.5,
+    };
+    let n = 17;
+    let field =
+        HeightField::value_noise([n, n], DVec2::splat(SPACING), DVec2::ZERO, &noise, 40.0).unwrap();
+    let hierarchy = TerrainHierarchy::new(field, 2.0).unwrap();
+    let layer = TerrainLayer::new(n, vec![12.0; n * n]).unwrap();
+    let profile = FogProfile::new(vec![[0.0, 0.2], [0.25, 1.0], [1.0, 0.0]]).unwrap();
+    let eye = DVec3::new(30.0, 200.0, 40.0);
+    let mesh = refine(&hierarchy, &layer, eye, TriangleOrder::BackToFront, false);
+    let (cells, _) = prisms(
+        &hierarchy,
+        &mesh,
+        eye,
+        TriangleOrder::BackToFront,
+        CellOrder::BackToFront,
+        &profile,
+    );
+    let cells: Vec<Tetrahedron> = cells.iter().map(GpuCell::to_tetrahedron).collect();
+    let expected = |r: f64| {
+        if r <= 0.25 {
+            0.2 + 0.8 * r / 0.25
+        } else {
+            1.0 - (r - 0.25) / 0.75
+        }
+    };
+    for (x, z) in [(33.3, 71.7), (101.2, 12.9), (140.1, 150.6)] {
+        let ray = Ray::new(DVec3::new(x, 500.0, z), DVec3::NEG_Y).unwrap();
+        let mut segments: Vec<_> = cells
+            .iter()
+            .filter_map(|c| c.intersect(&ray))
+            .filter(|s| s.length() > 1e-6)
+            .collect();
+        segments.sort_by(|a, b| a.t_entry.total_cmp(&b.t_entry));
+        let top = 500.0 - segments[0].t_entry;
+        let bottom = 500.0 - segments.last().unwrap().t_exit;
+        assert!(((top - bottom) - 12.0).abs() < 1e-3, "{top} {bottom}");
+        for segment in &segments {
+            for (t, s) in [
+                (segment.t_entry, segment.s_entry),
+                (segment.t_exit, segment.s_exit),
+            ] {
+                let r = (500.0 - t - bottom) / 12.0;
+                assert!(
+                    (s - expected(r)).abs() < 1e-4,
+                    "at r = {r}: {s} vs {}",
+                    expected(r)
+                );
+            }
+        }
+    }
+}
+
+/// The fog top at every grid point: the mesh's top surface interpolated over
+/// its triangles.
+fn fog_top(n: usize, mesh: &TerrainMesh) -> Vec<f64> {
+    let mut out = vec![f64::NAN; n * n];
+    for t in mesh.indices.chunks_exact(3) {
+        let g = [0, 1, 2].map(|k| mesh.grid_points[t[k] as usize].map(i64::from));
+        let h = [0, 1, 2].map(|k| {
+            let v = t[k] as usize;
+            f64::from(mesh.positions[v][1]) + f64::from(mesh.layer[v])
+        });
+        let total =
+            (g[1][0] - g[0][0]) * (g[2][1] - g[0][1]) - (g[1][1] - g[0][1]) * (g[2][0] - g[0][0]);
+        let lo = |a: usize| g.iter().map(|p| p[a]).min().unwrap();
+        let hi = |a: usize| g.iter().map(|p| p[a]).max().unwrap();
+        for j in lo(1)..=hi(1) {
+            for i in lo(0)..=hi(0) {
+                let w = [0, 1, 2].map(|k| {
+                    let (a, b) = (g[(k + 1) % 3], g[(k + 2) % 3]);
+                    (b[0] - a[0]) * (j - a[1]) - (b[1] - a[1]) * (i - a[0])
+                });
+                if w.iter().all(|&w| w * total.signum() >= 0) {
+                    out[i as usize + n * j as usize] =
+                        (0..3).map(|k| w[k] as f64 / total as f64 * h[k]).sum();
+                }
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn the_fog_top_morphs_continuously_along_a_flight() {
+    let (hierarchy, layer) = valley(129);
+    let n = hierarchy.size();
+    let largest_jump = |morph: bool| {
+        let mut previous: Option<Vec<f64>> = None;
+        let mut largest = 0.0_f64;
+        for frame in 0..300 {
+            let s = frame as f64 * 2.0;
+            let eye = hierarchy.origin() + DVec3::new(100.0 + s, 250.0 - 0.2 * s, 200.0 + 0.5 * s);
+            let mesh = refine(&hierarchy, &layer, eye, TriangleOrder::BackToFront, morph);
+            let now = fog_top(n, &mesh);
+            assert!(
+                now.iter().all(|h| h.is_finite()),
+                "the mesh covers the grid"
+            );
+            if let Some(before) = &previous {
+                for (h, b) in now.iter().zip(before) {
+                    largest = largest.max((h - b).abs());
+                }
+            }
+            previous = Some(now);
+        }
+        largest
+    };
+    let (morph, pop) = (largest_jump(true), largest_jump(false));
+    println!("largest fog-top jump per 2 m frame: {morph:.3} m with morphing, {pop:.3} m without");
+    assert!(morph < 0.2, "{morph}");
+    assert!(pop > 5.0 * morph, "{pop} vs {morph}");
+}
+
+#[test]
+fn bad_input_is_an_error() {
+    let (hierarchy, layer) = valley(33);
+    let eye = DVec3::new(0.0, 400.0, 0.0);
+    let mut mesh = TerrainMesh::new();
+    let settings = LodSettings {
+        grid_points: true,
+        ..LodSettings::default()
+    };
+    // A layer of another size.
+    let other = TerrainLayer::new(17, vec![1.0; 17 * 17]).unwrap();
+    let error = hierarchy
+        .update_with_layer(eye, None, &settings, Some(&other), &mut mesh)
+        .unwrap_err();
+    assert!(
+        matches!(error, TerrainError::DimsMismatch { .. }),
+        "{error}"
+    );
+    // A mesh without the layer or without grid points.
+    hierarchy.update(eye, None, &settings, &mut mesh).unwrap();
+    let profile = FogProfile::default();
+    let input = PrismInput {
+        world_from_mesh: DAffine3::IDENTITY,
+        eye,
+        mesh_order: TriangleOrder::BackToFront,
+        order: CellOrder::BackToFront,
+        profile: &profile,
+    };
+    let mut cells = Vec::new();
+    assert_eq!(
+        fog_prisms(&mesh, &input, &mut cells),
+        Err(PrismError::MissingLayer)
+    );
+    // Sorted fog from an unordered mesh.
+    let unordered = LodSettings {
+        order: TriangleOrder::Unordered,
+        ..settings
+    };
+    hierarchy
+        .update_with_layer(eye, None, &unordered, Some(&layer), &mut mesh)
+        .unwrap();
+    let input = PrismInput {
+        mesh_order: TriangleOrder::Unordered,
+        ..input
+    };
+    assert_eq!(
+        fog_prisms(&mesh, &input, &mut cells),
+        Err(PrismError::UnorderedMesh)
+    );
+    let unsorted = PrismInput {
+        order: CellOrder::Unordered,
+        ..input
+    };
+    assert!(fog_prisms(&mesh, &unsorted, &mut cells).unwrap().tetrahedra > 0);
+    // Profiles that are not functions on [0, 1].
+    for points in [
+        vec![[0.0, 1.0]],
+        vec![[0.1, 1.0], [1.0, 0.0]],
+        vec![[0.0, 1.0], [0.5, 0.5], [0.5, 0.2], [1.0, 0.0]],
+        vec![[0.0, 1.5], [1.0, 0.0]],
+        vec![[0.0, f32::NAN], [1.0, 0.0]],
+    ] {
+        let error = FogProfile::new(points).unwrap_err();
+        assert!(error.to_string().contains("fog profile"), "{error}");
+    }
+}
