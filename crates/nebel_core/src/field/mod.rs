@@ -13,6 +13,8 @@
 //!   deterministic for a seed ([`ProceduralNoise`]); terrain heights rescaled
 //!   to [0, 1] and shaped by an exponent ([`TerrainNoise`],
 //!   [`HeightField::terrain`]).
+//! - Ground fog thickness maps from noise patches ([`FogNoise`]) or valleys
+//!   filled up to an altitude with a noisy edge ([`ValleyFog`]).
 //! - [`effects`]: the emissive effects of Röttger 2004 §10.4, an animated campfire
 //!   density and a search-light cone of tetrahedra.
 //! - The C-LOD hierarchies need (2^n+1) points per axis; other sizes are padded
@@ -29,6 +31,7 @@
 mod cloud;
 mod density_grid;
 pub mod effects;
+mod fog;
 mod height_field;
 mod light;
 mod load;
@@ -40,6 +43,7 @@ mod value_noise;
 pub use cloud::CloudNoise;
 pub use density_grid::DensityGrid;
 pub use effects::{campfire_density, search_light_cells};
+pub use fog::{FogNoise, ValleyFog};
 pub use height_field::HeightField;
 pub use light::{CloudLighting, light_field, light_field_with_threads};
 pub use load::{Normalization, RawSampleType, TileLayout, read_png};
