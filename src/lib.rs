@@ -1,12 +1,13 @@
 //! nebel: volumetric effects for Bevy.
 //!
-//! Terrain with continuous level of detail (Röttger's quadtree C-LOD), cloud
+//! Terrain with continuous level of detail (Röttger's quadtree C-LOD), ground
+//! fog lying in its valleys as prisms on that level of detail, cloud
 //! volumes refined by a view-dependent octree and lit by a light field, and
 //! emissive fire and search lights, drawn by cell projection with
 //! pre-integrated transfer functions, exact per pixel. This umbrella crate is
 //! the plugin group [`NebelPlugins`], the [`prelude`] and the re-exported
-//! crates; each effect is a cargo feature (`volume`, `terrain`, both
-//! default).
+//! crates; each effect is a cargo feature (`volume`, `terrain`, `fog`, all
+//! default; `fog` needs `terrain`).
 //!
 //! ```no_run
 //! use bevy::prelude::*;
@@ -32,6 +33,8 @@ use bevy::app::{PluginGroup, PluginGroupBuilder};
 pub use nebel_core;
 pub use nebel_lod;
 pub use nebel_render;
+#[cfg(feature = "fog")]
+pub use nebel_fog;
 #[cfg(feature = "terrain")]
 pub use nebel_terrain;
 #[cfg(feature = "volume")]
@@ -54,6 +57,8 @@ impl PluginGroup for NebelPlugins {
             .add(nebel_volume::FlickeringLightPlugin);
         #[cfg(feature = "terrain")]
         let group = group.add(nebel_terrain::TerrainPlugin);
+        #[cfg(feature = "fog")]
+        let group = group.add(nebel_fog::GroundFogPlugin);
         group
     }
 }
@@ -67,6 +72,11 @@ pub mod prelude {
         Terrain, TerrainBuildError, TerrainDebug, TerrainHeights, TerrainLodStats, TerrainNoise,
         TerrainPlugin, TerrainSource, TerrainStatus,
     };
+    #[cfg(feature = "fog")]
+    pub use nebel_fog::{
+        FogNoise, FogThickness, GroundFog, GroundFogDebug, GroundFogError, GroundFogPlugin,
+        GroundFogStats, GroundFogStatus, ValleyFog,
+    };
     #[cfg(feature = "volume")]
     pub use nebel_volume::{
         Campfire, CloudLightModel, CloudVolume, FlickeringLight, FlickeringLightPlugin, Volume,
@@ -76,5 +86,5 @@ pub mod prelude {
 
 /// The README's Rust snippets, compiled as doctests so they stay true.
 #[doc = include_str!("../README.md")]
-#[cfg(all(doctest, feature = "volume", feature = "terrain"))]
+#[cfg(all(doctest, feature = "volume", feature = "terrain", feature = "fog"))]
 pub struct ReadmeDoctests;

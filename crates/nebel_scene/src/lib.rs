@@ -64,11 +64,13 @@
 //! - Nes 2008: Gisle Nes, "Physically Plausible Weather Visualization", master's thesis,
 //!   University of Bergen, 2008.
 
+mod ground_fog;
 mod opaque;
 pub mod reference;
 mod terrain;
 mod volume;
 
+pub use ground_fog::{FogMapSource, FogThicknessDescription, GroundFogDescription};
 pub use terrain::{
     PngTerrainSource, ProceduralTerrainSource, TerrainDescription, TerrainHeightSource,
 };
@@ -935,6 +937,7 @@ mod tests {
                 morph: false,
                 debug_lod_colours: true,
                 debug_edges: true,
+                fog: None,
             }),
         }
     }

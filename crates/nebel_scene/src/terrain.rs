@@ -19,6 +19,7 @@
 //!     morph: true,               // geomorphing; default true
 //!     debug_lod_colours: false,  // colour each quadtree level; default false
 //!     debug_edges: false,        // darken triangle edges; default false
+//!     fog: (thickness: Valley((altitude: 60.0))), // ground fog; default none (see GroundFogDescription)
 //! )
 //! ```
 //!
@@ -38,7 +39,7 @@ use std::path::Path;
 use glam::DVec2;
 use serde::{Deserialize, Serialize};
 
-use super::InvalidField;
+use super::{GroundFogDescription, InvalidField};
 use nebel_core::field::{
     DEFAULT_TERRAIN_SPACING, DEFAULT_TERRAIN_VERTICAL_SCALE, HeightField, NoiseKind, TerrainNoise,
     power_of_two_plus_one,
@@ -82,6 +83,10 @@ pub struct TerrainDescription {
     /// false.
     #[serde(default)]
     pub debug_edges: bool,
+    /// Ground fog lying on the terrain, see [`GroundFogDescription`].
+    /// Default: none.
+    #[serde(default)]
+    pub fog: Option<GroundFogDescription>,
 }
 
 fn default_spacing() -> f32 {
@@ -310,6 +315,9 @@ impl TerrainDescription {
                     ));
                 }
             }
+        }
+        if let Some(fog) = &self.fog {
+            fog.validate().map_err(|invalid| invalid.within("fog"))?;
         }
         Ok(())
     }

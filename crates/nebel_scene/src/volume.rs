@@ -63,7 +63,7 @@ use nebel_core::field::{
     power_of_two_plus_one,
 };
 use nebel_core::optics::OpticalMode;
-use nebel_core::transfer::{ControlPoint, TransferFunction, TransferPreset};
+use nebel_core::transfer::{ControlPoint, TransferError, TransferFunction, TransferPreset};
 use nebel_lod::octree::RefinementSettings;
 use nebel_lod::{GpuCell, OctreeSettings, VolumeHierarchy};
 
@@ -405,6 +405,20 @@ pub enum TransferDescription {
     Strip(TransferStrip),
 }
 
+impl TransferDescription {
+    /// The transfer function: the preset, the points, or the strip loaded
+    /// from its path relative to `scene_dir`.
+    pub fn build(&self, scene_dir: &Path) -> Result<TransferFunction, TransferError> {
+        match self {
+            Self::Preset(preset) => Ok(TransferFunction::preset(*preset)),
+            Self::Points(points) => TransferFunction::new(points.clone()),
+            Self::Strip(strip) => {
+                TransferFunction::from_png_strip(scene_dir.join(&strip.path), strip.max_density)
+            }
+        }
+    }
+}
+
 /// A transfer function from a PNG strip.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -587,14 +601,9 @@ impl VolumeDescription {
             .transfer
             .clone()
             .unwrap_or(TransferDescription::Preset(default_preset));
-        let transfer = match description {
-            TransferDescription::Preset(preset) => Ok(TransferFunction::preset(preset)),
-            TransferDescription::Points(points) => TransferFunction::new(points),
-            TransferDescription::Strip(strip) => {
-                TransferFunction::from_png_strip(scene_dir.join(strip.path), strip.max_density)
-            }
-        }
-        .and_then(|tf| tf.scale_density(self.density_scale))
+        let transfer = description
+            .build(scene_dir)
+            .and_then(|tf| tf.scale_density(self.density_scale))
         .map_err(|error| InvalidField::new("transfer", error.to_string()))?;
         Ok(BuiltVolume {
             field,

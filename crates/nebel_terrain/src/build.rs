@@ -26,7 +26,7 @@ use bevy::diagnostic::Diagnostics;
 use bevy::math::DVec2;
 use bevy::prelude::*;
 use nebel_core::field::{HeightField, TerrainNoise};
-use nebel_lod::TerrainHierarchy;
+use nebel_lod::{TerrainHierarchy, TerrainMesh};
 use nebel_lod::quadtree::TerrainRefiner;
 use nebel_lod::quadtree::{MAX_TERRAIN_SIDE, pad_to_power_of_two_plus_one};
 use nebel_render::{HeavyBuild, HeavyBuilds};
@@ -179,9 +179,10 @@ pub(crate) fn build_quadtree(input: BuildInput) -> Result<BuiltQuadtree, Terrain
 }
 
 /// A terrain's quadtree, the build in flight, its level of detail and its
-/// mesh.
+/// mesh, kept by the terrain's systems; effects on the terrain's entity read
+/// the quadtree and the level of detail's mesh.
 #[derive(Component, Default)]
-pub(crate) struct TerrainLod {
+pub struct TerrainLod {
     /// What the quadtree (or the failure) was built from.
     key: Option<BuildKey>,
     /// The build in flight and what it builds from.
@@ -189,10 +190,28 @@ pub(crate) struct TerrainLod {
         BuildKey,
         HeavyBuild<Result<BuiltQuadtree, TerrainBuildError>>,
     )>,
-    pub hierarchy: Option<Arc<TerrainHierarchy>>,
+    pub(crate) hierarchy: Option<Arc<TerrainHierarchy>>,
     /// The level of detail, its mesh buffers reused every refinement.
-    pub refiner: TerrainRefiner,
-    pub mesh: Option<Handle<Mesh>>,
+    pub(crate) refiner: TerrainRefiner,
+    pub(crate) mesh: Option<Handle<Mesh>>,
+    /// The layered quadtree the last refinement used, if any.
+    pub(crate) layered: Option<Arc<TerrainHierarchy>>,
+}
+
+impl TerrainLod {
+    /// The terrain's own quadtree, once built (its field holds the padded,
+    /// scaled heights in the entity's frame).
+    pub fn quadtree(&self) -> Option<&Arc<TerrainHierarchy>> {
+        self.hierarchy.as_ref()
+    }
+
+    /// The mesh of the last refinement, in the quadtree's frame (relative
+    /// to its origin), front to back, with grid points per vertex and, when
+    /// the terrain carries a [`TerrainLayerLod`](crate::TerrainLayerLod),
+    /// the layer's morphed values.
+    pub fn mesh(&self) -> &TerrainMesh {
+        self.refiner.mesh()
+    }
 }
 
 /// The unit heights of `terrain`'s source, `Ok(None)` while its asset
@@ -359,6 +378,7 @@ fn put_in_place(
             }
             state.hierarchy = Some(hierarchy);
             state.refiner = TerrainRefiner::new();
+            state.layered = None;
             *status = TerrainStatus::Ready;
             Some(build_ms)
         }

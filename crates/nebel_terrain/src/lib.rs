@@ -22,6 +22,10 @@
 //!   vertex colours; debug views colour the quadtree levels or darken the
 //!   triangle edges ([`TerrainDebug`], [`shading`]).
 //!
+//! - an effect on the terrain's entity can give the level of detail a layer
+//!   to carry ([`TerrainLayerLod`], [`layer`]): the ground fog's thickness,
+//!   morphed with the heights, refined by its roughness too.
+//!
 //! [`TerrainStatus`] tells whether the terrain is loading, drawn or failed
 //! (and why: [`TerrainBuildError`]), [`TerrainLodStats`] its triangles and
 //! timings; the `nebel/terrain/*` diagnostics of [`TerrainPlugin`] sum them.
@@ -53,14 +57,18 @@
 pub mod build;
 pub mod error;
 pub mod heights;
+pub mod layer;
 pub mod shading;
 pub mod terrain;
 pub mod update;
 
 pub use error::TerrainBuildError;
+pub use build::TerrainLod;
 pub use heights::{TerrainHeights, TerrainHeightsError, TerrainHeightsLoader};
+pub use layer::{LayeredQuadtree, TerrainLayerLod};
 pub use terrain::{
     Terrain, TerrainDebug, TerrainLodStats, TerrainPlugin, TerrainSource, TerrainStatus,
+    TerrainSystems,
 };
 
 pub use nebel_core::field::TerrainNoise;

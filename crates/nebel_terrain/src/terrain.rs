@@ -32,6 +32,7 @@ use nebel_render::{HeavyBuilds, LodCamera, NebelSystems};
 use crate::build::{TerrainLod, build_terrains};
 use crate::error::TerrainBuildError;
 use crate::heights::{TerrainHeights, TerrainHeightsLoader};
+use crate::layer::TerrainLayerLod;
 use crate::update::{measure_terrains, update_terrain_meshes};
 
 /// Adds [`Terrain`], the [`TerrainHeights`] asset and its PNG loader, and the
@@ -78,9 +79,14 @@ impl Plugin for TerrainPlugin {
             .register_type::<TerrainLodStats>()
             .register_type::<LodCamera>()
             .register_type::<HeavyBuilds>()
+            .register_type::<TerrainLayerLod>()
             .add_systems(
                 PostUpdate,
-                (build_terrains, update_terrain_meshes, measure_terrains)
+                (
+                    build_terrains.in_set(TerrainSystems::Build),
+                    update_terrain_meshes.in_set(TerrainSystems::Refine),
+                    measure_terrains,
+                )
                     .chain()
                     .in_set(NebelSystems)
                     // This frame's camera: after its transform and projection.
@@ -103,6 +109,16 @@ impl Plugin for TerrainPlugin {
             app.register_diagnostic(Diagnostic::new(path).with_suffix(suffix));
         }
     }
+}
+
+/// The terrain's systems in [`PostUpdate`], for effects that read or extend
+/// its level of detail.
+#[derive(SystemSet, Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum TerrainSystems {
+    /// Quadtree builds start and land.
+    Build,
+    /// The level of detail is refined for the camera and the mesh written.
+    Refine,
 }
 
 /// Where a terrain's unit heights come from.

@@ -39,6 +39,7 @@
 //! quadtrees) and `bytes_per_point`. Per terrain the same figures are in
 //! [`TerrainLodStats`]. A world without a terrain measures none of them.
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use bevy::camera::primitives::Aabb;
@@ -52,6 +53,7 @@ use nebel_render::LodCameras;
 use nebel_render::camera::to_double;
 
 use crate::build::{TerrainLod, bounds};
+use crate::layer::TerrainLayerLod;
 use crate::shading::{Colouring, Palette, default_material, empty_mesh, write_mesh};
 use crate::terrain::{Terrain, TerrainLodStats, TerrainPlugin, TerrainStatus};
 
@@ -78,18 +80,24 @@ impl TerrainAssets<'_, '_> {
     }
 }
 
-/// The refinement settings of `terrain`.
-fn refiner_settings(terrain: &Terrain) -> RefinerSettings {
+/// The refinement settings of `terrain`, carrying a layer or not.
+fn refiner_settings(terrain: &Terrain, layer: Option<&TerrainLayerLod>) -> RefinerSettings {
+    let every_move = layer.is_some_and(|layer| layer.refine_on_every_move);
     RefinerSettings {
         lod: LodSettings {
             accuracy: terrain.accuracy,
             morph: terrain.morph,
             normals: true,
-            grid_points: terrain.debug.lod_colours,
+            // The layer's cells need each vertex's grid point.
+            grid_points: terrain.debug.lod_colours || layer.is_some(),
             // Opaque: nearest first lets the depth test reject more.
             order: TriangleOrder::FrontToBack,
         },
-        update_distance: f64::from(terrain.update_distance * terrain.spacing),
+        update_distance: if every_move {
+            0.0
+        } else {
+            f64::from(terrain.update_distance * terrain.spacing)
+        },
         view_margin: f64::from(terrain.view_margin_degrees).to_radians(),
     }
 }
@@ -107,6 +115,7 @@ pub(crate) fn update_terrain_meshes(
         &mut TerrainStatus,
         &mut TerrainLodStats,
         &mut TerrainLod,
+        Option<Ref<TerrainLayerLod>>,
     )>,
     mut assets: TerrainAssets,
     mut diagnostics: Diagnostics,
@@ -115,12 +124,25 @@ pub(crate) fn update_terrain_meshes(
         return;
     };
     let (mut frame_update_ms, mut frame_refine_ms) = (None, None);
-    for (entity, terrain, transform, visibility, mut status, mut stats, mut state) in &mut terrains
+    for (entity, terrain, transform, visibility, mut status, mut stats, mut state, layer) in
+        &mut terrains
     {
         let state = &mut *state;
-        let Some(hierarchy) = state.hierarchy.clone() else {
+        let Some(own) = state.hierarchy.clone() else {
             continue;
         };
+        // A layer derived from this quadtree replaces it (see crate::layer).
+        let layered = layer.as_ref().and_then(|layer| {
+            layer
+                .quadtree
+                .as_ref()
+                .filter(|layered| Arc::ptr_eq(&layered.base, &own))
+        });
+        let hierarchy = layered.map_or_else(|| own.clone(), |layered| layered.hierarchy.clone());
+        let layer_changed = layered.map(|layered| &layered.hierarchy) != state.layered.as_ref();
+        if layer_changed {
+            state.layered = layered.map(|layered| layered.hierarchy.clone());
+        }
         if !visibility.get() {
             continue;
         }
@@ -132,9 +154,10 @@ pub(crate) fn update_terrain_meshes(
         let started = Instant::now();
         let refined = state.refiner.update(
             &hierarchy,
+            layered.map(|layered| &*layered.layer),
             &view,
-            &refiner_settings(&terrain),
-            terrain.is_changed(),
+            &refiner_settings(&terrain, layered.and(layer.as_deref())),
+            terrain.is_changed() || layer_changed || layer.as_ref().is_some_and(Ref::is_changed),
         );
         let refine_ms = started.elapsed().as_secs_f64() * 1e3;
         let lod_stats = match refined {

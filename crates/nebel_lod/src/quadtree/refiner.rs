@@ -37,7 +37,7 @@
 
 use glam::{DAffine3, DMat4, DQuat, DVec3};
 
-use super::{LodSettings, LodStats, TerrainError, TerrainHierarchy, TerrainMesh};
+use super::{LodSettings, LodStats, TerrainError, TerrainHierarchy, TerrainLayer, TerrainMesh};
 use crate::frustum::Frustum;
 
 /// A camera seen from one terrain.
@@ -96,12 +96,15 @@ impl TerrainRefiner {
     }
 
     /// Refines `hierarchy` for `view` if the view changed enough since the
-    /// last refinement or `settings_changed` (see the module docs); returns
-    /// the refinement's counters, or `None` when the mesh stays as it is.
-    /// After an error the next call refines again.
+    /// last refinement or `settings_changed` (see the module docs), carrying
+    /// `layer` into the mesh when given
+    /// ([`TerrainHierarchy::update_with_layer`]); returns the refinement's
+    /// counters, or `None` when the mesh stays as it is. After an error the
+    /// next call refines again.
     pub fn update(
         &mut self,
         hierarchy: &TerrainHierarchy,
+        layer: Option<&TerrainLayer>,
         view: &TerrainView,
         settings: &RefinerSettings,
         settings_changed: bool,
@@ -126,8 +129,13 @@ impl TerrainRefiner {
             .map(|column| DVec3::from(*column).length())
             .fold(0.0, f64::max);
         let frustum = culling_frustum(view, distance * scale, margin);
-        let stats =
-            hierarchy.update(view.eye(), frustum.as_ref(), &settings.lod, &mut self.mesh)?;
+        let stats = hierarchy.update_with_layer(
+            view.eye(),
+            frustum.as_ref(),
+            &settings.lod,
+            layer,
+            &mut self.mesh,
+        )?;
         self.refined_for = Some(*view);
         Ok(Some(stats))
     }
@@ -205,7 +213,7 @@ mod tests {
         let hierarchy = hierarchy();
         let mut refiner = TerrainRefiner::new();
         let start = DVec3::new(320.0, 400.0, 900.0);
-        let first = refiner.update(&hierarchy, &view(start, 0.0), &settings(), false);
+        let first = refiner.update(&hierarchy, None, &view(start, 0.0), &settings(), false);
         assert!(first.unwrap().is_some_and(|stats| stats.triangles > 0));
         let mut expected = TerrainMesh::new();
         let eye = start;
@@ -218,7 +226,7 @@ mod tests {
         let moved = |x: f64, yaw: f64| view(start + DVec3::new(x, 0.0, 0.0), yaw);
         let update = |refiner: &mut TerrainRefiner, view: TerrainView, changed: bool| {
             refiner
-                .update(&hierarchy, &view, &settings(), changed)
+                .update(&hierarchy, None, &view, &settings(), changed)
                 .unwrap()
                 .is_some()
         };
@@ -300,11 +308,11 @@ mod tests {
         bad.lod.accuracy = f32::NAN;
         assert!(
             refiner
-                .update(&hierarchy, &orthographic, &bad, false)
+                .update(&hierarchy, None, &orthographic, &bad, false)
                 .is_err()
         );
         // After an error the next call refines.
-        let ok = refiner.update(&hierarchy, &orthographic, &settings(), false);
+        let ok = refiner.update(&hierarchy, None, &orthographic, &settings(), false);
         assert!(ok.unwrap().is_some());
     }
 }

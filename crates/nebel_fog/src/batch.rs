@@ -1,0 +1,270 @@
+//! The fog's cells frame after frame: after the terrain's refinement, the
+//! prisms over the triangles it drew (`nebel_lod::fog_prisms`), in world
+//! space, back to front for the eye in the sorted mode, as the entity's
+//! [`CellBatch`]; and the debug wireframe.
+//!
+//! The cells are rebuilt when the terrain's mesh was rebuilt (for a sorted
+//! fog the terrain refines whenever the eye moves, see
+//! [`TerrainLayerLod::refine_on_every_move`]) or the fog's drawing settings
+//! (density, transfer function, mode, profile, debug view) or its placement
+//! changed; otherwise nothing runs. A fog with no layer (no thickness
+//! anywhere), no density, a transparent transfer function, or that is
+//! hidden has no `CellBatch`, so the cell projection runs no pass for it.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use bevy::asset::RenderAssetUsages;
+use bevy::diagnostic::Diagnostics;
+use bevy::math::DAffine3;
+use bevy::mesh::PrimitiveTopology;
+use bevy::prelude::*;
+use nebel_core::transfer::TransferFunction;
+use nebel_lod::{
+    CellBatch as LodCellBatch, CellOrder, FogProfile, GpuCell, PrismInput, TriangleOrder,
+    fog_prisms,
+};
+use nebel_core::optics::OpticalMode;
+use nebel_render::camera::to_double;
+use nebel_render::{CellBatch, LodCameras};
+use nebel_terrain::{TerrainLayerLod, TerrainLod, TerrainLodStats};
+
+use crate::error::GroundFogError;
+use crate::ground_fog::{GroundFog, GroundFogPlugin, GroundFogStats, GroundFogStatus, fail};
+
+/// What the fog's batch was built from.
+#[derive(Clone, Debug, PartialEq)]
+struct BatchKey {
+    /// The terrain's mesh rebuilds.
+    terrain_updates: u64,
+    /// The layered quadtree (by identity).
+    quadtree: usize,
+    /// The drawing settings as written (`Debug`).
+    settings: String,
+    transform: GlobalTransform,
+}
+
+/// The fog's batch state: what it was built from, the density-scaled
+/// transfer function and the wireframe entity.
+#[derive(Component, Default)]
+pub struct GroundFogBatch {
+    key: Option<BatchKey>,
+    transfer: Option<(u64, u32, Arc<TransferFunction>)>,
+    wireframe: Option<(Entity, Handle<Mesh>)>,
+}
+
+/// The fog's transfer function with ρ times `density`, cached per input.
+fn scaled_transfer(
+    state: &mut GroundFogBatch,
+    fog: &GroundFog,
+) -> Result<Arc<TransferFunction>, GroundFogError> {
+    let key = (
+        fog.transfer_function.content_hash(),
+        fog.density.to_bits(),
+    );
+    if let Some((hash, density, transfer)) = &state.transfer
+        && (*hash, *density) == key
+    {
+        return Ok(transfer.clone());
+    }
+    let scaled = Arc::new(fog.transfer_function.scale_density(fog.density)?);
+    state.transfer = Some((key.0, key.1, scaled.clone()));
+    Ok(scaled)
+}
+
+/// The lines of every cell's six edges, world space.
+fn wireframe_mesh(cells: &[GpuCell]) -> Mesh {
+    let mut positions = Vec::with_capacity(cells.len() * 12);
+    for cell in cells {
+        for (a, b) in [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)] {
+            positions.push(cell.position(a).to_array());
+            positions.push(cell.position(b).to_array());
+        }
+    }
+    Mesh::new(PrimitiveTopology::LineList, RenderAssetUsages::default())
+        .with_inserted_attribute(Mesh::ATTRIBUTE_POSITION, positions)
+}
+
+/// Removes the fog's batch and wireframe.
+fn clear(commands: &mut Commands, entity: Entity, state: &mut GroundFogBatch, has_batch: bool) {
+    if has_batch {
+        commands.entity(entity).remove::<CellBatch>();
+    }
+    if let Some((wireframe, _)) = state.wireframe.take() {
+        commands.entity(wireframe).despawn();
+    }
+    state.key = None;
+}
+
+/// Writes every visible fog's cells after the terrain's refinement (see the
+/// module docs).
+pub(crate) fn update_fog_batches(
+    mut commands: Commands,
+    cameras: LodCameras,
+    mut fogs: Query<(
+        Entity,
+        &GroundFog,
+        &TerrainLod,
+        &TerrainLodStats,
+        Option<&TerrainLayerLod>,
+        &GlobalTransform,
+        &InheritedVisibility,
+        Has<CellBatch>,
+        &mut GroundFogBatch,
+        &mut GroundFogStatus,
+        &mut GroundFogStats,
+    )>,
+    mut meshes: ResMut<Assets<Mesh>>,
+    mut materials: ResMut<Assets<StandardMaterial>>,
+    mut diagnostics: Diagnostics,
+) {
+    let Some(camera) = cameras.view() else {
+        return;
+    };
+    let mut frame_ms = None;
+    for (entity, fog, lod, terrain_stats, layer, transform, visibility, has_batch, mut state, mut status, mut stats) in
+        &mut fogs
+    {
+        let state = &mut *state;
+        let layered = layer
+            .and_then(|layer| layer.quadtree.as_ref())
+            .filter(|layered| lod.quadtree().is_some_and(|own| Arc::ptr_eq(own, &layered.base)));
+        let mesh = lod.mesh();
+        let drawable = layered.is_some()
+            && visibility.get()
+            && fog.density > 0.0
+            && !fog.transfer_function.is_transparent(0.0, 1.0)
+            && !mesh.layer.is_empty();
+        let (Some(layered), true) = (layered, drawable) else {
+            if has_batch || state.wireframe.is_some() {
+                clear(&mut commands, entity, state, has_batch);
+            }
+            if layered.is_none() && *status == GroundFogStatus::Ready {
+                *stats = GroundFogStats {
+                    prisms: 0,
+                    tetrahedra: 0,
+                    ..*stats
+                };
+            }
+            continue;
+        };
+        let key = BatchKey {
+            terrain_updates: terrain_stats.updates,
+            quadtree: Arc::as_ptr(&layered.hierarchy) as usize,
+            settings: format!(
+                "{:?} {:?} {:?} {:?} {}",
+                fog.mode,
+                fog.profile,
+                fog.density,
+                fog.debug,
+                fog.transfer_function.content_hash()
+            ),
+            transform: *transform,
+        };
+        if state.key.as_ref() == Some(&key) {
+            continue;
+        }
+        state.key = Some(key);
+        let started = Instant::now();
+        let built = FogProfile::new(fog.profile.clone())
+            .map_err(GroundFogError::from)
+            .and_then(|profile| {
+                let transfer = scaled_transfer(state, fog)?;
+                let world_from_terrain = DAffine3::from_mat4(to_double(transform.to_matrix()));
+                let origin = layered.hierarchy.origin();
+                let input = PrismInput {
+                    world_from_mesh: world_from_terrain * DAffine3::from_translation(origin),
+                    eye: world_from_terrain.inverse().transform_point3(camera.eye) - origin,
+                    mesh_order: TriangleOrder::FrontToBack,
+                    order: if fog.mode == OpticalMode::Sorted {
+                        CellOrder::BackToFront
+                    } else {
+                        CellOrder::Unordered
+                    },
+                    profile: &profile,
+                };
+                let mut cells = Vec::new();
+                let counts = fog_prisms(mesh, &input, &mut cells)?;
+                Ok((cells, counts, transfer))
+            });
+        let (cells, counts, transfer) = match built {
+            Ok(built) => built,
+            Err(error) => {
+                clear(&mut commands, entity, state, has_batch);
+                fail(entity, &mut status, error);
+                continue;
+            }
+        };
+        if let GroundFogStatus::Failed(_) = *status {
+            *status = GroundFogStatus::Ready;
+        }
+        if fog.debug.wireframe {
+            let lines = wireframe_mesh(&cells);
+            match &state.wireframe {
+                Some((_, handle)) => {
+                    if let Some(mut mesh) = meshes.get_mut(handle) {
+                        *mesh = lines;
+                    }
+                }
+                None => {
+                    let handle = meshes.add(lines);
+                    let material = materials.add(StandardMaterial {
+                        base_color: Color::srgb(0.55, 0.85, 1.0),
+                        unlit: true,
+                        ..default()
+                    });
+                    let wireframe = commands
+                        .spawn((Mesh3d(handle.clone()), MeshMaterial3d(material), Transform::IDENTITY))
+                        .id();
+                    state.wireframe = Some((wireframe, handle));
+                }
+            }
+        } else if let Some((wireframe, _)) = state.wireframe.take() {
+            commands.entity(wireframe).despawn();
+        }
+        if cells.is_empty() {
+            if has_batch {
+                commands.entity(entity).remove::<CellBatch>();
+            }
+        } else {
+            commands.entity(entity).insert(CellBatch::new(
+                Arc::new(LodCellBatch::with_bounds(cells)),
+                transfer,
+                fog.mode,
+            ));
+        }
+        let update_ms = started.elapsed().as_secs_f32() * 1e3;
+        *stats = GroundFogStats {
+            prisms: counts.prisms as u32,
+            tetrahedra: counts.tetrahedra as u32,
+            updates: stats.updates + 1,
+            update_ms,
+            ..*stats
+        };
+        *frame_ms.get_or_insert(0.0) += f64::from(update_ms);
+    }
+    if let Some(ms) = frame_ms {
+        diagnostics.add_measurement(&GroundFogPlugin::UPDATE_MS, || ms);
+    }
+}
+
+/// Measures the fogs' totals; nothing in a world without a fog.
+pub(crate) fn measure_fogs(
+    fogs: Query<(&GroundFogStats, Has<CellBatch>), With<GroundFog>>,
+    mut diagnostics: Diagnostics,
+) {
+    if fogs.is_empty() {
+        return;
+    }
+    let (mut drawn, mut prisms, mut tetrahedra) = (0.0, 0.0, 0.0);
+    for (stats, has_batch) in &fogs {
+        if has_batch {
+            drawn += 1.0;
+            prisms += f64::from(stats.prisms);
+            tetrahedra += f64::from(stats.tetrahedra);
+        }
+    }
+    diagnostics.add_measurement(&GroundFogPlugin::FOGS, || drawn);
+    diagnostics.add_measurement(&GroundFogPlugin::PRISMS, || prisms);
+    diagnostics.add_measurement(&GroundFogPlugin::TETRAHEDRA, || tetrahedra);
+}

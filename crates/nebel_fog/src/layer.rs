@@ -1,0 +1,264 @@
+//! Building a ground fog's layer on the task pool: its thickness per grid
+//! point of the terrain's quadtree and the quadtree with the thickness's
+//! roughness added to d2 (Röttger and Ertl 2003 §6: the fog's thickness
+//! enters the refinement with a weight).
+//!
+//! `build_fog_layers` notices a new fog, a new terrain quadtree, a changed
+//! thickness source or `roughness_weight` (compared bit for bit), and a fog
+//! map that was added, loaded or modified, and starts the build on Bevy's
+//! `AsyncComputeTaskPool` (one at a time per fog; at once under
+//! `HeavyBuilds::Blocking`). Its result goes to the terrain as a
+//! [`TerrainLayerLod`], which the terrain's refinement then carries; a fog of
+//! no thickness anywhere gives none (the terrain refines alone, and nothing
+//! of the fog runs per frame).
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use bevy::asset::LoadState;
+use bevy::diagnostic::Diagnostics;
+use bevy::math::DVec2;
+use bevy::prelude::*;
+use nebel_core::field::{FogNoise, HeightField, ValleyFog};
+use nebel_core::optics::OpticalMode;
+use nebel_lod::TerrainHierarchy;
+use nebel_lod::quadtree::TerrainLayer;
+use nebel_render::{HeavyBuild, HeavyBuilds};
+use nebel_terrain::{LayeredQuadtree, TerrainHeights, TerrainLayerLod, TerrainLod};
+
+use crate::error::GroundFogError;
+use crate::ground_fog::{
+    FogThickness, GroundFog, GroundFogPlugin, GroundFogStats, GroundFogStatus, fail,
+};
+
+/// What a layer is built from, bit for bit.
+#[derive(Clone, Debug, PartialEq)]
+struct LayerKey {
+    /// The terrain's quadtree (by identity).
+    quadtree: usize,
+    /// The thickness source as written (`Debug`), so a NaN setting compares
+    /// equal to itself and is not rebuilt every frame.
+    thickness: String,
+    roughness_weight: u32,
+}
+
+/// Where a build takes the thickness from, owned.
+enum ThicknessInput {
+    Map {
+        dims: [usize; 2],
+        values: Arc<Vec<f32>>,
+        scale: f32,
+    },
+    Noise(FogNoise),
+    Valley(ValleyFog),
+}
+
+/// A finished layer: `None` for a fog of no thickness anywhere.
+struct BuiltLayer {
+    quadtree: Option<LayeredQuadtree>,
+    max_thickness: f32,
+    build_ms: f32,
+}
+
+/// A ground fog's layer and the build in flight.
+#[derive(Component, Default)]
+pub struct GroundFogLayer {
+    key: Option<LayerKey>,
+    build: Option<(LayerKey, HeavyBuild<Result<BuiltLayer, GroundFogError>>)>,
+}
+
+/// The thickness of `input` on `base`'s grid, and `base` with its roughness.
+fn build_layer(
+    base: Arc<TerrainHierarchy>,
+    input: ThicknessInput,
+    roughness_weight: f32,
+) -> Result<BuiltLayer, GroundFogError> {
+    let started = Instant::now();
+    if !(roughness_weight.is_finite() && roughness_weight >= 0.0) {
+        return Err(GroundFogError::InvalidSetting {
+            setting: "roughness_weight",
+            value: roughness_weight,
+            requirement: "finite and ≥ 0",
+        });
+    }
+    let side = base.size();
+    let spacing = base.field().spacing().x;
+    let layer = match input {
+        ThicknessInput::Map {
+            dims,
+            values,
+            scale,
+        } => {
+            if !(scale.is_finite() && scale >= 0.0) {
+                return Err(GroundFogError::InvalidSetting {
+                    setting: "thickness.Map.scale",
+                    value: scale,
+                    requirement: "finite and ≥ 0",
+                });
+            }
+            let metres: Vec<f32> = values.iter().map(|v| v * scale).collect();
+            TerrainLayer::resample(&metres, dims, side)?
+        }
+        ThicknessInput::Noise(noise) => TerrainLayer::new(side, noise.thickness(side, spacing)?)?,
+        ThicknessInput::Valley(valley) => TerrainLayer::new(side, valley.thickness(base.field())?)?,
+    };
+    let max_thickness = layer.max();
+    let quadtree = if layer.is_zero() {
+        None
+    } else {
+        let thickness = HeightField::new(
+            [side; 2],
+            DVec2::ONE,
+            DVec2::ZERO,
+            layer.values().to_vec(),
+        )?;
+        let hierarchy = (*base)
+            .clone()
+            .with_extra_roughness(&thickness, roughness_weight)?;
+        Some(LayeredQuadtree {
+            base,
+            hierarchy: Arc::new(hierarchy),
+            layer: Arc::new(layer),
+        })
+    };
+    Ok(BuiltLayer {
+        quadtree,
+        max_thickness,
+        build_ms: started.elapsed().as_secs_f32() * 1e3,
+    })
+}
+
+/// The thickness input of `fog`, `Ok(None)` while its map loads.
+fn thickness_input(
+    fog: &GroundFog,
+    maps: &Assets<TerrainHeights>,
+    asset_server: &AssetServer,
+) -> Result<Option<ThicknessInput>, GroundFogError> {
+    Ok(Some(match &fog.thickness {
+        FogThickness::Noise(noise) => ThicknessInput::Noise(*noise),
+        FogThickness::Valley(valley) => ThicknessInput::Valley(*valley),
+        FogThickness::Map { map, scale } => match maps.get(map) {
+            Some(asset) => ThicknessInput::Map {
+                dims: [asset.dims.x as usize, asset.dims.y as usize],
+                values: asset.values.clone(),
+                scale: *scale,
+            },
+            None => {
+                return match asset_server.get_load_state(map.id()) {
+                    Some(LoadState::Failed(error)) => Err(GroundFogError::MapNotLoaded {
+                        path: map
+                            .path()
+                            .map_or_else(|| String::from("(no path)"), ToString::to_string),
+                        error,
+                    }),
+                    _ => Ok(None),
+                };
+            }
+        },
+    }))
+}
+
+/// Takes finished layer builds and starts new ones (see the module docs).
+pub(crate) fn build_fog_layers(
+    mut commands: Commands,
+    mut fogs: Query<(
+        Entity,
+        &GroundFog,
+        Option<&TerrainLod>,
+        Option<&mut TerrainLayerLod>,
+        &mut GroundFogLayer,
+        &mut GroundFogStatus,
+        &mut GroundFogStats,
+    )>,
+    maps: Res<Assets<TerrainHeights>>,
+    mut map_events: MessageReader<AssetEvent<TerrainHeights>>,
+    asset_server: Res<AssetServer>,
+    mode: Res<HeavyBuilds>,
+    mut diagnostics: Diagnostics,
+) {
+    let changed: Vec<AssetId<TerrainHeights>> = map_events
+        .read()
+        .filter_map(|event| match event {
+            AssetEvent::Added { id }
+            | AssetEvent::Modified { id }
+            | AssetEvent::LoadedWithDependencies { id } => Some(*id),
+            AssetEvent::Removed { .. } | AssetEvent::Unused { .. } => None,
+        })
+        .collect();
+    for (entity, fog, lod, layer_lod, mut state, mut status, mut stats) in &mut fogs {
+        let Some(lod) = lod else {
+            fail(entity, &mut status, GroundFogError::NoTerrain);
+            continue;
+        };
+        let every_move = fog.mode == OpticalMode::Sorted;
+        if let Some(mut layer_lod) = layer_lod
+            && layer_lod.refine_on_every_move != every_move
+        {
+            layer_lod.refine_on_every_move = every_move;
+        }
+        let state = &mut *state;
+        let mut land = |state: &mut GroundFogLayer, status: &mut GroundFogStatus| {
+            let Some((key, build)) = state.build.as_mut() else {
+                return;
+            };
+            let Some(result) = build.poll(*mode) else {
+                return;
+            };
+            state.key = Some(key.clone());
+            state.build = None;
+            match result {
+                Ok(built) => {
+                    stats.build_ms = built.build_ms;
+                    stats.max_thickness = built.max_thickness;
+                    diagnostics.add_measurement(&GroundFogPlugin::BUILD_MS, || {
+                        f64::from(built.build_ms)
+                    });
+                    commands.entity(entity).insert(TerrainLayerLod {
+                        quadtree: built.quadtree,
+                        refine_on_every_move: every_move,
+                    });
+                    *status = GroundFogStatus::Ready;
+                }
+                Err(error) => {
+                    commands.entity(entity).remove::<TerrainLayerLod>();
+                    fail(entity, status, error);
+                }
+            }
+        };
+        land(state, &mut status);
+        if state.build.is_some() {
+            continue;
+        }
+        let Some(base) = lod.quadtree() else {
+            // The terrain is loading, or failed (its status says why).
+            *status = GroundFogStatus::Pending;
+            continue;
+        };
+        let key = LayerKey {
+            quadtree: Arc::as_ptr(base) as usize,
+            thickness: format!("{:?}", fog.thickness),
+            roughness_weight: fog.roughness_weight.to_bits(),
+        };
+        let map_changed = matches!(&fog.thickness,
+            FogThickness::Map { map, .. } if changed.contains(&map.id()));
+        if state.key.as_ref() == Some(&key) && !map_changed {
+            continue;
+        }
+        match thickness_input(fog, &maps, &asset_server) {
+            Ok(None) => *status = GroundFogStatus::Pending,
+            Ok(Some(input)) => {
+                let (base, weight) = (base.clone(), fog.roughness_weight);
+                state.build = Some((
+                    key,
+                    HeavyBuild::spawn(move || build_layer(base, input, weight)),
+                ));
+                land(state, &mut status);
+            }
+            Err(error) => {
+                state.key = Some(key);
+                commands.entity(entity).remove::<TerrainLayerLod>();
+                fail(entity, &mut status, error);
+            }
+        }
+    }
+}

@@ -1,0 +1,307 @@
+//! A terrain's ground fog in a scene file (Röttger and Ertl 2003 §6): its
+//! thickness above the ground, density, transfer function, mode and vertical
+//! profile, and the exact cells the reference integrates.
+//!
+//! ```ron
+//! terrain: (
+//!     source: Procedural((dims: 257)),
+//!     fog: (
+//!         thickness: Valley((altitude: 60.0, edge: 8.0)), // fill the valleys to 60 m ± 8 m
+//!         // or Noise((thickness: 40.0, coverage: 0.5)): noise patches, up to 40 m thick
+//!         // or Png((path: "fog.png", scale: 50.0)): a grayscale map, white = 50 m
+//!         density: 0.03,            // extinction at the ground, 1/m; default 0.03
+//!         transfer: Preset(GroundFog), // default GroundFog
+//!         mode: Sorted,             // or Emissive, Mip; default Sorted
+//!         profile: [(0.0, 1.0), (1.0, 0.0)], // scalar over relative height; default this
+//!         roughness_weight: 1.0,    // the thickness's weight in the quadtree's d2; default 1
+//!         debug_wireframe: false,   // draw the cells' edges; default false
+//!     ),
+//! )
+//! ```
+//!
+//! Heights and altitudes are in the terrain's frame (its `center` at 0), as
+//! the plugin's `GroundFog` reads them. The reference draws the fog as the
+//! cells the plugin draws for the reference camera
+//! ([`TerrainDescription::fog_volume`]): the same quadtree, refinement and
+//! prisms (`nebel_lod::fog_prisms`), without culling.
+
+use std::path::Path;
+
+use glam::{DAffine3, DVec2, DVec3};
+use serde::{Deserialize, Serialize};
+
+use nebel_core::field::{FogNoise, HeightField, ValleyFog};
+use nebel_core::optics::OpticalMode;
+use nebel_core::transfer::{TransferFunction, TransferPreset};
+use nebel_lod::quadtree::{TerrainLayer, pad_to_power_of_two_plus_one};
+use nebel_lod::{
+    CellOrder, FogProfile, GpuCell, LodSettings, PrismInput, TerrainHierarchy, TerrainMesh,
+    TriangleOrder, fog_prisms,
+};
+
+use super::{BuiltVolume, InvalidField, TerrainDescription, TransferDescription, VolumeField};
+
+/// A terrain's ground fog.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GroundFogDescription {
+    /// The thickness above the ground.
+    pub thickness: FogThicknessDescription,
+    /// Multiplies the transfer function's ρ, finite and ≥ 0 (the extinction
+    /// at the ground, 1/m, with the default transfer function). Default 0.03.
+    #[serde(default = "default_density")]
+    pub density: f32,
+    /// κ and ρ over the scalar. Default `Preset(GroundFog)`.
+    #[serde(default)]
+    pub transfer: Option<TransferDescription>,
+    /// How segments combine. Default `Sorted`.
+    #[serde(default)]
+    pub mode: OpticalMode,
+    /// `(relative height, scalar)` points from 0 to 1, strictly increasing,
+    /// scalars in [0, 1]. Default `[(0, 1), (1, 0)]`.
+    #[serde(default = "default_profile")]
+    pub profile: Vec<[f32; 2]>,
+    /// The thickness's roughness weight in the quadtree's d2, finite and
+    /// ≥ 0. Default 1.
+    #[serde(default = "default_roughness_weight")]
+    pub roughness_weight: f32,
+    /// Debug view: draw every cell's edges. Default false.
+    #[serde(default)]
+    pub debug_wireframe: bool,
+}
+
+fn default_density() -> f32 {
+    0.03
+}
+
+fn default_profile() -> Vec<[f32; 2]> {
+    FogProfile::default().points().to_vec()
+}
+
+fn default_roughness_weight() -> f32 {
+    1.0
+}
+
+/// Where a ground fog's thickness comes from.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum FogThicknessDescription {
+    /// The valleys filled up to an altitude with a noisy edge.
+    Valley(ValleyFog),
+    /// Seeded noise patches.
+    Noise(FogNoise),
+    /// A grayscale PNG (black 0, white 1) times `scale` metres, covering the
+    /// terrain's grid from corner to corner.
+    Png(FogMapSource),
+}
+
+/// A fog map file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FogMapSource {
+    /// The PNG, relative to the scene file.
+    pub path: String,
+    /// Metres of a white pixel, finite and ≥ 0.
+    pub scale: f32,
+}
+
+impl GroundFogDescription {
+    /// Checks every setting against its documented range (the noise's own
+    /// settings are checked when the thickness is built).
+    pub(super) fn validate(&self) -> Result<(), InvalidField> {
+        let checks: [(&str, f32, bool, &str); 2] = [
+            ("density", self.density, self.density >= 0.0, ">= 0"),
+            (
+                "roughness_weight",
+                self.roughness_weight,
+                self.roughness_weight >= 0.0,
+                ">= 0",
+            ),
+        ];
+        for (field, value, ok, requirement) in checks {
+            if !(value.is_finite() && ok) {
+                return Err(InvalidField::new(
+                    field,
+                    format!("must be finite and {requirement}, got {value}"),
+                ));
+            }
+        }
+        FogProfile::new(self.profile.clone())
+            .map_err(|error| InvalidField::new("profile", error.to_string()))?;
+        match &self.thickness {
+            FogThicknessDescription::Png(map) => {
+                if map.path.trim().is_empty() {
+                    return Err(InvalidField::new(
+                        "thickness.Png.path",
+                        "must name a PNG file (relative to the scene file)",
+                    ));
+                }
+                if !(map.scale.is_finite() && map.scale >= 0.0) {
+                    return Err(InvalidField::new(
+                        "thickness.Png.scale",
+                        format!("must be finite and >= 0, got {}", map.scale),
+                    ));
+                }
+            }
+            FogThicknessDescription::Valley(valley) => {
+                if !valley.altitude.is_finite() || !(valley.edge.is_finite() && valley.edge >= 0.0) {
+                    return Err(InvalidField::new(
+                        "thickness.Valley",
+                        format!(
+                            "altitude must be finite and edge finite and >= 0, got {} and {}",
+                            valley.altitude, valley.edge
+                        ),
+                    ));
+                }
+            }
+            FogThicknessDescription::Noise(noise) => {
+                if !(noise.thickness.is_finite() && noise.thickness >= 0.0)
+                    || !(noise.coverage > 0.0 && noise.coverage <= 1.0)
+                {
+                    return Err(InvalidField::new(
+                        "thickness.Noise",
+                        format!(
+                            "thickness must be finite and >= 0 and coverage in (0, 1], got {} and {}",
+                            noise.thickness, noise.coverage
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The transfer function with ρ times `density`; `scene_dir` resolves a
+    /// strip's path.
+    pub fn transfer_function(&self, scene_dir: &Path) -> Result<TransferFunction, InvalidField> {
+        self.transfer
+            .clone()
+            .unwrap_or(TransferDescription::Preset(TransferPreset::GroundFog))
+            .build(scene_dir)
+            .and_then(|tf| tf.scale_density(self.density))
+            .map_err(|error| InvalidField::new("transfer", error.to_string()))
+    }
+
+    /// The thickness at every point of `local` (the terrain's padded heights
+    /// in its own frame); `scene_dir` resolves the map's path.
+    pub fn thickness(
+        &self,
+        local: &HeightField,
+        scene_dir: &Path,
+    ) -> Result<TerrainLayer, InvalidField> {
+        let side = local.dims()[0];
+        let layer = match &self.thickness {
+            FogThicknessDescription::Valley(valley) => valley
+                .thickness(local)
+                .map_err(|error| InvalidField::new("thickness.Valley", error.to_string()))
+                .and_then(|values| layer(side, values, "thickness.Valley")),
+            FogThicknessDescription::Noise(noise) => noise
+                .thickness(side, local.spacing().x)
+                .map_err(|error| InvalidField::new("thickness.Noise", error.to_string()))
+                .and_then(|values| layer(side, values, "thickness.Noise")),
+            FogThicknessDescription::Png(map) => {
+                let field = "thickness.Png.path";
+                let unit = HeightField::load_png(
+                    scene_dir.join(&map.path),
+                    DVec2::ONE,
+                    DVec2::ZERO,
+                    1.0,
+                )
+                .map_err(|error| InvalidField::new(field, error.to_string()))?;
+                let metres: Vec<f32> = unit.heights().iter().map(|u| u * map.scale).collect();
+                TerrainLayer::resample(&metres, unit.dims(), side)
+                    .map_err(|error| InvalidField::new(field, error.to_string()))
+            }
+        }?;
+        Ok(layer)
+    }
+}
+
+fn layer(side: usize, values: Vec<f32>, field: &str) -> Result<TerrainLayer, InvalidField> {
+    TerrainLayer::new(side, values).map_err(|error| InvalidField::new(field, error.to_string()))
+}
+
+impl TerrainDescription {
+    /// The terrain's heights as the terrain plugin builds them: in its own
+    /// frame (`center` at the origin), `vertical_scale · unit`, centred, and
+    /// padded to `2^k + 1` points per side.
+    pub fn local_heights(&self, unit: &HeightField) -> Result<HeightField, InvalidField> {
+        let [nx, nz] = unit.dims();
+        let spacing = unit.spacing();
+        let half = DVec2::new((nx - 1) as f64, (nz - 1) as f64) * spacing / 2.0;
+        let heights = unit
+            .heights()
+            .iter()
+            .map(|u| u * self.vertical_scale)
+            .collect();
+        HeightField::new(unit.dims(), spacing, -half, heights)
+            .map_err(|error| InvalidField::new("source", error.to_string()))
+            .and_then(|field| {
+                pad_to_power_of_two_plus_one(&field)
+                    .map_err(|error| InvalidField::new("source", error.to_string()))
+            })
+    }
+
+    /// The ground fog's cells for an eye at `eye` (world space), as the
+    /// plugin draws them with the same quadtree, layer and refinement
+    /// (without culling), ready for the reference; `None` without a fog or
+    /// for a fog with no cells. `unit` are the terrain's unit heights,
+    /// `scene_dir` resolves the fog map. Errors name the field (relative to
+    /// `terrain`).
+    pub fn fog_volume(
+        &self,
+        unit: &HeightField,
+        scene_dir: &Path,
+        eye: DVec3,
+    ) -> Result<Option<BuiltVolume>, InvalidField> {
+        let Some(fog) = &self.fog else {
+            return Ok(None);
+        };
+        let within = |invalid: InvalidField| invalid.within("fog");
+        let local = self.local_heights(unit)?;
+        let layer = fog.thickness(&local, scene_dir).map_err(within)?;
+        if layer.is_zero() || fog.density == 0.0 {
+            return Ok(None);
+        }
+        let side = local.dims()[0];
+        let quadtree = |error: nebel_lod::TerrainError| InvalidField::new("source", error.to_string());
+        let roughness = HeightField::new([side; 2], DVec2::ONE, DVec2::ZERO, layer.values().to_vec())
+            .map_err(|error| InvalidField::new("fog.thickness", error.to_string()))?;
+        let hierarchy = TerrainHierarchy::new(local, self.min_accuracy)
+            .and_then(|hierarchy| hierarchy.with_extra_roughness(&roughness, fog.roughness_weight))
+            .map_err(quadtree)?;
+        let center = DVec3::from(self.center.map(f64::from));
+        let settings = LodSettings {
+            accuracy: self.accuracy,
+            morph: self.morph,
+            normals: false,
+            grid_points: true,
+            order: TriangleOrder::BackToFront,
+        };
+        let mut mesh = TerrainMesh::new();
+        hierarchy
+            .update_with_layer(eye - center, None, &settings, Some(&layer), &mut mesh)
+            .map_err(quadtree)?;
+        let profile = FogProfile::new(fog.profile.clone())
+            .map_err(|error| InvalidField::new("fog.profile", error.to_string()))?;
+        let input = PrismInput {
+            world_from_mesh: DAffine3::from_translation(center + hierarchy.origin()),
+            eye: eye - center - hierarchy.origin(),
+            mesh_order: TriangleOrder::BackToFront,
+            order: CellOrder::BackToFront,
+            profile: &profile,
+        };
+        let mut cells = Vec::new();
+        fog_prisms(&mesh, &input, &mut cells)
+            .map_err(|error| InvalidField::new("fog", error.to_string()))?;
+        if cells.is_empty() {
+            return Ok(None);
+        }
+        Ok(Some(BuiltVolume {
+            field: VolumeField::Cells(cells.iter().map(GpuCell::to_tetrahedron).collect()),
+            transfer_function: fog.transfer_function(scene_dir).map_err(within)?,
+            mode: fog.mode,
+            lod: None,
+            lighting: None,
+        }))
+    }
+}
