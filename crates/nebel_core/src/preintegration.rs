@@ -284,7 +284,7 @@ fn exp_neg(x: f64) -> f64 {
     const ROUND: f64 = 6_755_399_441_055_744.0;
     const LN2_HI: f64 = 0.693_147_180_369_123_8;
     const LN2_LO: f64 = 1.908_214_929_270_587_7e-10;
-    let x = x.max(0.0).min(700.0);
+    let x = if x > 0.0 { x.min(700.0) } else { 0.0 };
     let shifted = x * std::f64::consts::LOG2_E + ROUND;
     let n = shifted - ROUND;
     let exponent = (shifted.to_bits() as i64).wrapping_sub(ROUND.to_bits() as i64);
