@@ -6,7 +6,8 @@
 //! thread count: build time (fastest wall time of several builds, and the
 //! calling thread's on-CPU time when Linux reports it, which a busy machine
 //! does not inflate) and the largest errors against the f64 integral, at the
-//! table nodes and at random interpolated lookups.
+//! table nodes and at random interpolated lookups (optical depths log-uniform
+//! in [`LOOKUP_DEPTHS`]).
 //!
 //! Run: `cargo bench -p nebel_core --bench optics`.
 
@@ -21,21 +22,20 @@ use nebel_core::preintegration::{PreintegrationConfig, PreintegrationTable};
 use nebel_core::segment::exact_segment;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 
-/// Table sizes swept: (scalar side, length side).
-const SIZES: [(u32, u32); 4] = [(16, 32), (32, 64), (64, 128), (128, 256)];
+/// Table sizes swept: (scalar side, depth side).
+const SIZES: [(u32, u32); 5] = [(16, 32), (32, 64), (64, 64), (64, 128), (128, 256)];
 
-/// Longest segment of the benchmark tables, world units (with the presets'
-/// peak ρ = 1 the densest segment has optical depth 4).
-const MAX_LENGTH: f32 = 4.0;
+/// Optical depths of the interpolated lookups (log-uniform): every length a
+/// segment can have, from nearly transparent to opaque.
+const LOOKUP_DEPTHS: std::ops::RangeInclusive<f64> = 1e-3..=1e3;
 
 /// Samples for each error measurement.
 const ERROR_SAMPLES: usize = 4000;
 
-fn config(scalar_size: u32, length_size: u32) -> PreintegrationConfig {
+fn config(scalar_size: u32, depth_size: u32) -> PreintegrationConfig {
     PreintegrationConfig {
         scalar_size,
-        length_size,
-        max_length: MAX_LENGTH,
+        depth_size,
     }
 }
 
@@ -70,9 +70,9 @@ fn time_build(
 
 fn write_csv() {
     let mut csv = String::from(
-        "transfer,scalar_size,length_size,max_length,threads,build_ms_fastest,build_ms_cpu,\
-         node_colour,node_opacity,node_emission,node_maximum,\
-         lookup_colour,lookup_opacity,lookup_emission,lookup_maximum\n",
+        "transfer,scalar_size,depth_size,threads,build_ms_fastest,build_ms_cpu,\
+         node_colour,node_chromaticity,node_opacity,node_emission,node_maximum,\
+         lookup_colour,lookup_chromaticity,lookup_opacity,lookup_emission,lookup_maximum\n",
     );
     let mut rows: Vec<(TransferPreset, (u32, u32), usize)> = SIZES
         .iter()
@@ -92,17 +92,19 @@ fn write_csv() {
         let (fastest, cpu) = time_build(&tf, config, threads, runs);
         let table = PreintegrationTable::build(&tf, config).unwrap();
         let node = table.node_error(ERROR_SAMPLES);
-        let lookup = table.interpolation_error(ERROR_SAMPLES);
+        let lookup = table.interpolation_error(ERROR_SAMPLES, LOOKUP_DEPTHS);
         let cpu = cpu.map_or(String::new(), |c| format!("{:.3}", c.as_secs_f64() * 1e3));
         writeln!(
             csv,
-            "{preset:?},{n},{m},{MAX_LENGTH},{threads},{:.3},{cpu},{:.3e},{:.3e},{:.3e},{:.3e},{:.3e},{:.3e},{:.3e},{:.3e}",
+            "{preset:?},{n},{m},{threads},{:.3},{cpu},{:.3e},{:.3e},{:.3e},{:.3e},{:.3e},{:.3e},{:.3e},{:.3e},{:.3e},{:.3e}",
             fastest.as_secs_f64() * 1e3,
             node.colour,
+            node.chromaticity,
             node.opacity,
             node.emission,
             node.maximum,
             lookup.colour,
+            lookup.chromaticity,
             lookup.opacity,
             lookup.emission,
             lookup.maximum,

@@ -4,69 +4,110 @@
 //!
 //! A [`PreintegrationTable`] holds, for one [`TransferFunction`]:
 //!
-//! - **colour** (3D, Röttger 2004 §8.4 eq. 8.1): premultiplied RGB and α of the sorted
-//!   (emission-absorption) segment over `(s_f, s_b, l)`, default 64×64×128,
-//!   `l` from 0 to [`PreintegrationConfig::max_length`].
+//! - **colour** (3D, Röttger 2004 §8.4 eq. 8.1): the mean chromaticity
+//!   `K = C / α` of the sorted (emission-absorption) segment over
+//!   `(s_f, s_b, u)`, default 64×64×128, with `u = τ / (1 + τ)` ∈ [0, 1] and
+//!   `τ = l ρ̂` the segment's optical depth (below). The table does not depend
+//!   on any length: one table serves every cell shape, size and batch.
 //! - **ρ̂** (2D, Röttger 2004 §9.1.1 eq. 9.1): the exact mean density over `(s_f, s_b)`.
 //!   With it opacity is exact in `l`: `α = 1 − exp(−l ρ̂)` (eq. 9.2). Sorted
-//!   rendering takes RGB from the 3D table and α from this pair.
+//!   rendering takes α from this pair and RGB = `α · K(s_f, s_b, u)`.
 //! - **emission** (2D, Röttger 2004 §10.3, PCP): RGB = `∫_0^1 E(s(x)) dx` with `E = κρ`,
 //!   so the emissive segment is `C = l · RGB`; A repeats ρ̂ so one fetch gives
-//!   the emissive α = `1 − exp(−l A)` too.
+//!   the emissive α = `1 − exp(−l A)` too, and the sorted `τ = l A`.
 //! - **maximum** (2D, MIP): RGB = the per-channel maximum of `E` between `s_f`
 //!   and `s_b`, A = the largest ρ there (MIP α = `1 − exp(−l A)`).
 //!
 //! Every value is the f64 integral of [`crate::segment`] rounded to f32, except
 //! the 3D colour, which is integrated by quadrature (below).
 //!
+//! # Why an optical-depth axis
+//!
+//! For fixed `(s_f, s_b)` the sorted colour of a segment of length `l` is
+//! `C = τ ∫_0^1 (E(x) / ρ̂) exp(−τ R̃(x)) dx` with `R̃(x) = ∫_0^x ρ / ρ̂` ∈ [0, 1]:
+//! it depends on `l` only through `τ = l ρ̂`, and so does `α = 1 − e^{−τ}`.
+//! `K = C / α` is a weighted mean of κ along the segment (weights
+//! `ρ e^{−τ R̃}`). Where κ is constant along the segment (any uniform slab,
+//! whatever its shape, size, viewing angle, `MODULATED` scaling or batch) `K = κ`
+//! at every `τ`, so the looked-up colour `α K` is exact. Where κ varies, `K`
+//! goes from the density-weighted mean `∫ κρ / ∫ ρ` at `τ → 0` (linearly in
+//! `τ`) to the colour at the front at `τ → ∞` (like `1/τ`, that is linearly in
+//! `1 − u`): the `u` axis resolves both ends and covers every length with no
+//! largest one.
+//!
 //! # Layout and sampling
 //!
 //! Tables are flat vectors ready for GPU textures, `x` fastest: the 3D table is
 //! indexed `(k · n + j) · n + i` and the 2D ones `j · n + i`, with `x = s_f`,
-//! `y = s_b`, `z = l`, `n` = [`PreintegrationConfig::scalar_size`] and `m` =
-//! [`PreintegrationConfig::length_size`]. Samples sit at the endpoints,
+//! `y = s_b`, `z = u`, `n` = [`PreintegrationConfig::scalar_size`] and `m` =
+//! [`PreintegrationConfig::depth_size`]. Samples sit at the endpoints,
 //! inclusive: node `i` holds `s = i / (n − 1)` and node `k` holds
-//! `l = k · max_length / (m − 1)`, so `s = 0` and `s = 1` are sampled exactly
-//! and `k = 0` is the exact `l = 0` (all zero). Node `i` is the centre of texel
-//! `i`, so a shader with linear filtering samples scalar `s` at the texture
-//! coordinate `(s · (n − 1) + 0.5) / n` and length `l` at
-//! `(l / max_length · (m − 1) + 0.5) / m` (clamped to the edge beyond
-//! `max_length`: choose it as the longest segment drawn).
+//! `u_k = k / (m − 1)`, that is `τ_k = u_k / (1 − u_k) = k / (m − 1 − k)`
+//! ([`PreintegrationTable::depth_at`]): node 0 is `τ → 0` and node `m − 1`
+//! the limit `τ → ∞`. Node `i` is the centre of texel `i`, so a shader with
+//! linear filtering samples scalar `s` at the texture coordinate
+//! `(s · (n − 1) + 0.5) / n` and depth `τ` at `(u · (m − 1) + 0.5) / m` with
+//! `u = 1 − 1 / (1 + τ)` (which is 1 for `τ = ∞`).
 //! [`PreintegrationTable::segment`] emulates exactly that lookup on the CPU.
+//!
+//! Per texel, RGB is `K` and A is the node's exact α, `1 − e^{−τ_k}` (0 at
+//! node 0, 1 at node `m − 1`), so RGB · A is the node's premultiplied colour;
+//! the lookup reads only RGB and takes α from ρ̂. Node 0 holds the
+//! density-weighted mean `emission / ρ̂`, node `m − 1` κ at the front-most
+//! point of the segment where ρ > 0 (the start of its first piece of positive
+//! depth). A transparent pair (`ρ̂ = 0`, α = 0 at every length) holds the
+//! unweighted mean of κ along the segment at every node, so interpolating
+//! toward a transparent neighbour does not pull the colour toward black.
 //!
 //! # How the 3D table is built
 //!
-//! For fixed `(s_f, s_b)` the colour is a Laplace-type integral in `l`:
-//! `C(l) = l ∫_0^1 E(x) exp(−l R(x)) dx`, `R(x) = ∫_0^x ρ`. The integral over
-//! `x` is done once per pair with 3-point Gauss–Legendre nodes `x_q` on pieces
-//! split at the transfer function's control points (so the integrand is smooth
-//! per piece) and further split so each holds an optical depth of at most 2
-//! at every length for which it is still visible (depth ≤ 11 from the front).
-//! Then every length column follows from `exp(−l_k R) = z^k`, `z = exp(−Δl R)`:
-//! `C(l_k) = l_k Σ_q w_q E_q z_q^k`, one multiply and three multiply-adds per
-//! node and length, nodes dropped once `l_k R_q > 36`. α in the 3D table is
-//! the exact `1 − exp(−l ρ̂)`. Pairs are independent and split across threads
-//! (`std::thread::scope`).
+//! For each pair the integral over `x` is done by 4-point Gauss–Legendre
+//! quadrature in `x` on pieces split at the transfer function's control points
+//! (so the integrand is smooth per piece) and further split so that each
+//! interval holds an optical depth of at most 1.5 at every `τ` for which it is
+//! still visible (depth ≤ 11 from the front); nodes with `τ R̃ > 36` are
+//! dropped. `K(τ_k) = Σ_q w_q κ_q ρ_q e^{−τ_k R̃_q} / Σ_q w_q ρ_q e^{−τ_k R̃_q}`,
+//! the ratio of the colour and opacity quadratures on the same nodes, so `K`
+//! stays within the range of κ on the segment and is exactly κ where κ is
+//! constant. The `τ` nodes are taken in bands `(2^{b−1}, 2^b]` (the last
+//! ends at the largest finite node, `τ_{m−2} = m − 2`), each with quadrature
+//! nodes split for its largest `τ`: small depths, most of the `u` axis, need
+//! few nodes. The exponentials are evaluated directly (`u` is not uniform in
+//! `τ`), with quadrature nodes sorted by depth so each sum stops at the first
+//! dropped node. `s_f = s_b` is the closed form `K = κ`. Pairs are
+//! independent and split across threads (`std::thread::scope`).
 //!
 //! # Accuracy (measured)
 //!
 //! Measured by [`PreintegrationTable::node_error`] and
 //! [`PreintegrationTable::interpolation_error`] (the `optics` bench writes both
-//! to `target/nebel/preintegration.csv`; the tests assert them for random
-//! transfer functions):
+//! to `target/nebel/preintegration.csv`, lookups over `τ` from 1e-3 to 1e3;
+//! the tests assert them for random transfer functions):
 //!
-//! - At the nodes, against [`exact_segment`]: the 3D colour is within 1e-4
-//!   absolute for κ ≤ 1 (it scales with max κ; measured 1e-6 to 3e-5 for the
-//!   presets, 64×64×128, `max_length` 4, optical depth up to 4); the ρ̂,
-//!   emission and maximum tables only carry f32 rounding (≤ 3e-8 measured),
-//!   so the exact-opacity pair is exact to f32.
+//! - Where κ is constant along the segment (uniform media, also with varying
+//!   ρ) the lookup is exact to f32 rounding at every length (the tests check
+//!   1e-6 for `l` from 1e-4 to 1e4 and ρ from 1e-3 to 1e3); `τ = ∞` gives the
+//!   front colour and `τ → 0` zero.
+//! - At the nodes, against [`exact_segment`]: the premultiplied colour
+//!   `K · α` is within 1e-4 absolute for κ ≤ 1 (measured 5e-7 to 6e-6 for the
+//!   presets, 64×64×128); the ρ̂, emission and maximum tables only carry f32
+//!   rounding (≤ 6e-8 measured), so the exact-opacity pair is exact to f32.
 //! - Between nodes the error is that of linear interpolation at the table's
-//!   resolution and depends on how sharp the transfer function is: for the
-//!   presets at 64×64×128 the interpolated sorted colour is off by 2e-4
-//!   (ground fog, search light) to 1.4e-2 (cloud, whose ρ steps at its
-//!   cut-off); it halves roughly with each doubling of the table.
-//! - Build time, 64×64×128, one thread: about 22-25 ms on-CPU on the 2-core
-//!   development machine (under load; the `optics` bench reports it).
+//!   resolution and depends on how sharp the transfer function is. The 3D
+//!   table's own error (`K` at the exact τ against the exact `C / α`, τ
+//!   log-uniform from 1e-3 to 1e3, 64×64×128): 2.3e-5 (transmittance) to
+//!   5.6e-3 (aurora), 8.8e-3 (cloud, whose ρ steps at its cut-off) and 2.2e-2
+//!   (fire; 2.4e-2 at τ from 100 to 1000, 1.7e-3 from 1e-3 to 0.1); random
+//!   transfer functions (κ < 1, ρ < 3, up to six control points) up to 0.2
+//!   where κ steps between table nodes (the tests bound 0.25). At 64×64×64
+//!   the cloud is at 1.2e-2. The premultiplied colour
+//!   adds the error of the bilinear ρ̂ in α, which grows with τ where ρ̂ is
+//!   not bilinear in `(s_f, s_b)` (near the cloud's cut-off the interpolated
+//!   ρ̂ of a nearly transparent pair can be many times the exact one).
+//! - Build time, one thread, on the 2-core development machine (the `optics`
+//!   bench): 64×64×128 about 89 ms (92 ms on-CPU; 43 ms on two threads),
+//!   64×64×64 47 ms, 128×128×256 0.7 s. A table is built once per transfer
+//!   function: it no longer depends on the batch.
 //!
 //! # Zero-opacity test
 //!
@@ -75,13 +116,16 @@
 //! conservative for any transfer function.
 
 use std::num::NonZeroUsize;
+use std::ops::RangeInclusive;
 
 use glam::{DVec3, DVec4};
 use thiserror::Error;
 
 use crate::budget::{BudgetError, Dims, check_bytes};
 use crate::optics::{OpticalMode, PremultipliedRgba};
-use crate::segment::{Piece, exact_segment, for_each_piece, piece_max_emission};
+use crate::segment::{
+    MAX_SEGMENT_LENGTH, Piece, exact_segment, for_each_piece, piece_max_emission,
+};
 use crate::transfer::TransferFunction;
 
 /// Largest table side accepted (a 1024³ RGBA f32 table is 16 GiB, beyond the
@@ -122,11 +166,9 @@ const GAUSS_WEIGHTS: [f64; 4] = [
 pub struct PreintegrationConfig {
     /// Samples along `s_f` and along `s_b`, 2..=[`MAX_TABLE_SIDE`]. Default 64.
     pub scalar_size: u32,
-    /// Samples along `l`, 2..=[`MAX_TABLE_SIDE`]. Default 128.
-    pub length_size: u32,
-    /// The longest segment the 3D table covers, world units, finite and > 0.
-    /// Default 1. Longer segments read the colour at this length.
-    pub max_length: f32,
+    /// Samples along the optical-depth axis `u = τ / (1 + τ)`,
+    /// 2..=[`MAX_TABLE_SIDE`]. Default 128.
+    pub depth_size: u32,
 }
 
 impl PreintegrationConfig {
@@ -137,7 +179,7 @@ impl PreintegrationConfig {
     /// takes about 16 MiB. Errors name the `pre-integration table of n × n × m
     /// samples`.
     pub fn check_budget(&self) -> Result<u64, BudgetError> {
-        let (n, m) = (self.scalar_size as usize, self.length_size as usize);
+        let (n, m) = (self.scalar_size as usize, self.depth_size as usize);
         let pairs = (n as u128) * (n as u128);
         let colour = size_of::<[f32; 4]>() as u128;
         let pair_bytes = (size_of::<f32>() + 2 * size_of::<[f32; 4]>()) as u128;
@@ -153,8 +195,7 @@ impl Default for PreintegrationConfig {
     fn default() -> Self {
         Self {
             scalar_size: 64,
-            length_size: 128,
-            max_length: 1.0,
+            depth_size: 128,
         }
     }
 }
@@ -164,19 +205,13 @@ impl Default for PreintegrationConfig {
 pub enum PreintegrationError {
     /// A table side is below 2 or above [`MAX_TABLE_SIDE`].
     #[error(
-        "pre-integration table size {scalar_size}×{scalar_size}×{length_size} is invalid: each side must be in 2..={MAX_TABLE_SIDE}"
+        "pre-integration table size {scalar_size}×{scalar_size}×{depth_size} is invalid: each side must be in 2..={MAX_TABLE_SIDE}"
     )]
     InvalidSize {
         /// The requested samples along `s_f` and `s_b`.
         scalar_size: u32,
-        /// The requested samples along `l`.
-        length_size: u32,
-    },
-    /// The maximum length is not finite or not positive.
-    #[error("pre-integration maximum segment length {max_length} must be finite and > 0")]
-    InvalidMaxLength {
-        /// The requested maximum length.
-        max_length: f32,
+        /// The requested samples along the optical-depth axis.
+        depth_size: u32,
     },
     /// The tables of this size would exceed the memory budget; nothing was
     /// allocated.
@@ -187,8 +222,13 @@ pub enum PreintegrationError {
 /// Largest absolute errors of a table against [`exact_segment`], per table.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct TableAccuracy {
-    /// 3D table, premultiplied RGB and α of the sorted mode.
+    /// Sorted mode: premultiplied RGB and α (at the nodes, the 3D table's
+    /// `K · α` and α).
     pub colour: f64,
+    /// Sorted mode: the 3D table's mean chromaticity `K` (RGB) against the
+    /// exact `C / α`, at the exact optical depth: the 3D table's own error,
+    /// without that of the interpolated ρ̂. Pairs with α = 0 are skipped.
+    pub chromaticity: f64,
     /// α of the exact-opacity pair (ρ̂ table and `1 − exp(−l ρ̂)`).
     pub opacity: f64,
     /// Emission table RGB, `∫_0^1 E dx` (emission per world unit).
@@ -211,11 +251,67 @@ pub struct PreintegrationTable {
 
 /// Everything computed for one row `s_b = j / (n − 1)` of pairs.
 struct Row {
-    /// The row's 3D colour, `k · n + i` (contiguous runs per length node).
+    /// The row's 3D colour, `k · n + i` (contiguous runs per depth node).
     colour: Vec<[f32; 4]>,
     rho_hat: Vec<f32>,
     emission: Vec<[f32; 4]>,
     maximum: Vec<[f32; 4]>,
+}
+
+/// The optical depth of node `k` of `m` along `u`: `k / (m − 1 − k)`, +∞ for
+/// the last.
+fn node_depth(k: usize, m: usize) -> f64 {
+    let last = m - 1;
+    if k >= last {
+        f64::INFINITY
+    } else {
+        k as f64 / (last - k) as f64
+    }
+}
+
+/// The node coordinate along `u` of optical depth `τ` ≥ 0 (+∞ included).
+fn depth_coordinate(tau: f64, m: usize) -> f64 {
+    let u = 1.0 - 1.0 / (1.0 + tau);
+    u.clamp(0.0, 1.0) * (m - 1) as f64
+}
+
+/// `e^{−x}` for `x ≥ 0` (larger arguments are clamped to 700, NaN reads as
+/// 0), to about 1e-15 relative: `2^{−n} e^{−r}` with `|r| ≤ ln 2 / 2` and a
+/// degree-12 Taylor polynomial. Branch-free, so the quadrature sums vectorize
+/// (`f64::exp` is a library call per value).
+fn exp_neg(x: f64) -> f64 {
+    // 1.5 · 2^52: adding it rounds to an integer kept in the low mantissa bits.
+    const ROUND: f64 = 6_755_399_441_055_744.0;
+    const LN2_HI: f64 = 0.693_147_180_369_123_8;
+    const LN2_LO: f64 = 1.908_214_929_270_587_7e-10;
+    let x = if x > 0.0 { x.min(700.0) } else { 0.0 };
+    let shifted = x * std::f64::consts::LOG2_E + ROUND;
+    let n = shifted - ROUND;
+    let exponent = (shifted.to_bits() as i64).wrapping_sub(ROUND.to_bits() as i64);
+    let r = (x - n * LN2_HI) - n * LN2_LO;
+    // e^{−r} = Σ (−r)^i / i!, Horner.
+    const COEFFICIENTS: [f64; 13] = [
+        1.0 / 479_001_600.0,
+        1.0 / 39_916_800.0,
+        1.0 / 3_628_800.0,
+        1.0 / 362_880.0,
+        1.0 / 40_320.0,
+        1.0 / 5_040.0,
+        1.0 / 720.0,
+        1.0 / 120.0,
+        1.0 / 24.0,
+        1.0 / 6.0,
+        0.5,
+        1.0,
+        1.0,
+    ];
+    let t = -r;
+    let mut p = COEFFICIENTS[0];
+    for c in &COEFFICIENTS[1..] {
+        p = p * t + c;
+    }
+    let scale = f64::from_bits(((1023 - exponent) as u64) << 52);
+    p * scale
 }
 
 impl PreintegrationTable {
@@ -244,24 +340,19 @@ impl PreintegrationTable {
         config: PreintegrationConfig,
         threads: usize,
     ) -> Result<Self, PreintegrationError> {
-        let sides = [config.scalar_size, config.length_size];
+        let sides = [config.scalar_size, config.depth_size];
         if sides
             .iter()
             .any(|side| !(2..=MAX_TABLE_SIDE).contains(side))
         {
             return Err(PreintegrationError::InvalidSize {
                 scalar_size: config.scalar_size,
-                length_size: config.length_size,
-            });
-        }
-        if !(config.max_length.is_finite() && config.max_length > 0.0) {
-            return Err(PreintegrationError::InvalidMaxLength {
-                max_length: config.max_length,
+                depth_size: config.depth_size,
             });
         }
         config.check_budget()?;
         let n = config.scalar_size as usize;
-        let m = config.length_size as usize;
+        let m = config.depth_size as usize;
         let pairs = n * n;
         let threads = threads.clamp(1, n);
         let builder = ColumnBuilder::new(tf, config);
@@ -322,7 +413,9 @@ impl PreintegrationTable {
         self.transfer.content_hash()
     }
 
-    /// The 3D table, premultiplied RGB and α, index `(k · n + j) · n + i`.
+    /// The 3D table, index `(k · n + j) · n + i`: RGB the mean chromaticity
+    /// `K`, A the node's α `1 − e^{−τ_k}` (0 for a transparent pair); see the
+    /// [module docs](self).
     pub fn colour(&self) -> &[[f32; 4]] {
         &self.colour
     }
@@ -347,9 +440,10 @@ impl PreintegrationTable {
         f64::from(i) / f64::from(self.config.scalar_size - 1)
     }
 
-    /// The length of node `k` along `l`: `k · max_length / (m − 1)`.
-    pub fn length_at(&self, k: u32) -> f64 {
-        f64::from(k) * f64::from(self.config.max_length) / f64::from(self.config.length_size - 1)
+    /// The optical depth of node `k` along `u`: `τ_k = k / (m − 1 − k)`, +∞
+    /// for `k ≥ m − 1`.
+    pub fn depth_at(&self, k: u32) -> f64 {
+        node_depth(k as usize, self.config.depth_size as usize)
     }
 
     /// Whether ρ is exactly zero on `[s_min, s_max]` (the zero-opacity test;
@@ -360,11 +454,12 @@ impl PreintegrationTable {
     }
 
     /// The segment as the GPU computes it from these tables with linear
-    /// filtering: sorted RGB from the 3D table with α from the exact-opacity
-    /// pair, emissive `l ·` emission table, MIP maximum table; α is always
-    /// `1 − exp(−l A)` with A from the 2D table. Inputs are clamped as in
-    /// [`exact_segment`]; `l` beyond `max_length` reads the colour at
-    /// `max_length`.
+    /// filtering: sorted `τ = l ρ̂` and α = `1 − e^{−τ}` from the
+    /// exact-opacity pair and RGB = `α · K` from the 3D table at
+    /// `u = 1 − 1 / (1 + τ)`; emissive `l ·` emission table; MIP maximum
+    /// table; α is always `1 − exp(−l A)` with A from the 2D table. Inputs are
+    /// clamped as in [`exact_segment`] (NaN and negative lengths give zero,
+    /// +∞ reads as the longest length).
     pub fn segment(
         &self,
         mode: OpticalMode,
@@ -386,9 +481,10 @@ impl PreintegrationTable {
                 let rho_hat = self
                     .bilinear(x, y, |p| DVec4::splat(f64::from(self.rho_hat[p])))
                     .x;
-                let z = (l / f64::from(self.config.max_length)).min(1.0)
-                    * f64::from(self.config.length_size - 1);
-                self.trilinear(x, y, z).truncate().extend(opacity(rho_hat))
+                let tau = l * rho_hat;
+                let alpha = -(-tau).exp_m1();
+                let z = depth_coordinate(tau, self.config.depth_size as usize);
+                (alpha * self.trilinear(x, y, z).truncate()).extend(alpha)
             }
             OpticalMode::Emissive => {
                 let e = self.bilinear(x, y, |p| DVec4::from(self.emission[p].map(f64::from)));
@@ -402,22 +498,37 @@ impl PreintegrationTable {
     }
 
     /// Largest errors at `count` table nodes chosen pseudo-randomly (fixed
-    /// seed), against [`exact_segment`] at the node's exact `(s_f, s_b, l)`:
-    /// the build error, without interpolation.
+    /// seed), against [`exact_segment`] at the node's exact `(s_f, s_b)` and
+    /// length `l = τ_k / ρ̂` (the limit node at `τ = 1e12`; a transparent pair
+    /// at `l = 1`): the build error, without interpolation.
     pub fn node_error(&self, count: usize) -> TableAccuracy {
-        let (n, m) = (self.config.scalar_size, self.config.length_size);
+        let (n, m) = (self.config.scalar_size, self.config.depth_size);
         let mut random = SplitMix64(0x6e65_6265_6c5f_6e6f);
         let mut accuracy = TableAccuracy::default();
         for _ in 0..count {
             let i = random.below(n);
             let j = random.below(n);
             let k = random.below(m);
-            let (s_f, s_b, l) = (self.scalar_at(i), self.scalar_at(j), self.length_at(k));
+            let (s_f, s_b) = (self.scalar_at(i), self.scalar_at(j));
+            let rho_hat = crate::segment::rho_hat(&self.transfer, s_f, s_b);
+            let tau = self.depth_at(k).min(1e12);
+            let l = if rho_hat > 0.0 {
+                (tau / rho_hat).min(MAX_SEGMENT_LENGTH)
+            } else {
+                1.0
+            };
             let (n, i, j, k) = (n as usize, i as usize, j as usize, k as usize);
             let pair = j * n + i;
             let exact = exact_segment(&self.transfer, OpticalMode::Sorted, s_f, s_b, l);
-            let stored = DVec4::from(self.colour[k * n * n + pair].map(f64::from));
+            let [r, g, b, a] = self.colour[k * n * n + pair].map(f64::from);
+            let stored = (a * DVec3::new(r, g, b)).extend(a);
             accuracy.colour = accuracy.colour.max((stored - exact).abs().max_element());
+            if exact.w > 0.0 {
+                let kappa = exact.truncate() / exact.w;
+                accuracy.chromaticity = accuracy
+                    .chromaticity
+                    .max((DVec3::new(r, g, b) - kappa).abs().max_element());
+            }
             let alpha = -(-l * f64::from(self.rho_hat[pair])).exp_m1();
             accuracy.opacity = accuracy.opacity.max((alpha - exact.w).abs());
             let emissive = exact_segment(&self.transfer, OpticalMode::Emissive, s_f, s_b, 1.0);
@@ -435,23 +546,44 @@ impl PreintegrationTable {
     }
 
     /// Largest errors of [`PreintegrationTable::segment`] (the interpolated
-    /// lookup) at `count` pseudo-random `(s_f, s_b, l)` with `l` in
-    /// `(0, max_length]` (fixed seed), against [`exact_segment`]: the error a
-    /// renderer sees, dominated by the table's resolution. Emission and maximum
-    /// are compared per unit length (`l = 1`).
-    pub fn interpolation_error(&self, count: usize) -> TableAccuracy {
+    /// lookup) at `count` pseudo-random `(s_f, s_b, τ)` (fixed seed), `s_f`
+    /// and `s_b` uniform in [0, 1] and the optical depth `τ` log-uniform in
+    /// `depths`, against [`exact_segment`] at the length `l = τ / ρ̂(s_f, s_b)`
+    /// (`l = τ` for a transparent pair): the error a renderer sees, dominated
+    /// by the table's resolution. Emission and maximum are compared per unit
+    /// length (`l = 1`).
+    ///
+    /// # Panics
+    ///
+    /// If `depths` is not within `(0, ∞)`.
+    pub fn interpolation_error(&self, count: usize, depths: RangeInclusive<f64>) -> TableAccuracy {
+        let (low, high) = (*depths.start(), *depths.end());
+        assert!(
+            low > 0.0 && low <= high && high.is_finite(),
+            "optical depths {low}..={high} must lie within (0, ∞)"
+        );
+        let (log_low, log_high) = (low.ln(), high.ln());
         let mut random = SplitMix64(0x7072_6569_6e74_6567);
         let mut accuracy = TableAccuracy::default();
-        let max_length = f64::from(self.config.max_length);
         for _ in 0..count {
             let (s_f, s_b) = (random.unit(), random.unit());
-            let l = max_length * (1.0 - random.unit());
+            let tau = (log_low + (log_high - log_low) * random.unit()).exp();
+            let rho_hat = crate::segment::rho_hat(&self.transfer, s_f, s_b);
+            let l = if rho_hat > 0.0 { tau / rho_hat } else { tau };
             let exact = exact_segment(&self.transfer, OpticalMode::Sorted, s_f, s_b, l);
             let table = self.segment(OpticalMode::Sorted, s_f, s_b, l);
             accuracy.colour = accuracy
                 .colour
                 .max((table - exact).truncate().abs().max_element());
             accuracy.opacity = accuracy.opacity.max((table.w - exact.w).abs());
+            if exact.w > 0.0 {
+                let (x, y) = (self.scalar_coordinate(s_f), self.scalar_coordinate(s_b));
+                let z = depth_coordinate(tau, self.config.depth_size as usize);
+                let kappa = self.trilinear(x, y, z).truncate();
+                accuracy.chromaticity = accuracy
+                    .chromaticity
+                    .max((kappa - exact.truncate() / exact.w).abs().max_element());
+            }
             for (mode, error) in [
                 (OpticalMode::Emissive, &mut accuracy.emission),
                 (OpticalMode::Mip, &mut accuracy.maximum),
@@ -481,7 +613,7 @@ impl PreintegrationTable {
     /// Trilinear interpolation of the 3D table at node coordinates.
     fn trilinear(&self, x: f64, y: f64, z: f64) -> DVec4 {
         let n = self.config.scalar_size as usize;
-        let m = self.config.length_size as usize;
+        let m = self.config.depth_size as usize;
         let (z0, tz) = split_coordinate(z, m);
         let slice = |k: usize| {
             self.bilinear(x, y, |p| {
@@ -505,13 +637,13 @@ struct ColumnBuilder<'a> {
     tf: &'a TransferFunction,
     n: usize,
     m: usize,
-    max_length: f64,
-    step: f64,
+    /// `τ_k` of every node along `u` (+∞ for the last).
+    depths: Vec<f64>,
 }
 
 /// Buffers reused from pair to pair: the pieces of a segment and its
-/// quadrature nodes (structure of arrays: depth `∫_0^x ρ`, weight times
-/// emission per channel, `exp(−Δl · depth)` and its running power).
+/// quadrature nodes (structure of arrays: normalised depth `R̃`, weight
+/// times `κρ / ρ̂` per channel and weight times `ρ / ρ̂`).
 #[derive(Default)]
 struct Scratch {
     pieces: Vec<Piece>,
@@ -519,20 +651,17 @@ struct Scratch {
     red: Vec<f64>,
     green: Vec<f64>,
     blue: Vec<f64>,
-    factor: Vec<f64>,
-    power: Vec<f64>,
+    density: Vec<f64>,
 }
 
 impl<'a> ColumnBuilder<'a> {
     fn new(tf: &'a TransferFunction, config: PreintegrationConfig) -> Self {
-        let max_length = f64::from(config.max_length);
-        let m = config.length_size as usize;
+        let m = config.depth_size as usize;
         Self {
             tf,
             n: config.scalar_size as usize,
             m,
-            max_length,
-            step: max_length / (m - 1) as f64,
+            depths: (0..m).map(|k| node_depth(k, m)).collect(),
         }
     }
 
@@ -571,92 +700,122 @@ impl<'a> ColumnBuilder<'a> {
         row.rho_hat[i] = rho_hat as f32;
         row.emission[i] = emission.extend(rho_hat).as_vec4().to_array();
         row.maximum[i] = maximum.extend(rho_max).as_vec4().to_array();
-        let alpha = |k: usize| -(-(k as f64) * self.step * rho_hat).exp_m1();
-        if s_f == s_b {
-            // One constant piece: C = κ α exactly.
+        let mut put = |k: usize, kappa: DVec3, alpha: f64| {
+            row.colour[k * self.n + i] = kappa.extend(alpha).as_vec4().to_array();
+        };
+        if rho_hat <= 0.0 {
+            // Transparent: the unweighted mean κ, α = 0 at every length.
+            let mean: DVec3 = pieces
+                .iter()
+                .map(|p| 0.5 * p.width() * (p.kappa0 + p.kappa1))
+                .sum();
+            for k in 0..self.m {
+                put(k, mean, 0.0);
+            }
+        } else if s_f == s_b {
+            // One constant piece: K = κ exactly.
             let kappa = pieces[0].kappa0;
             for k in 0..self.m {
-                let a = alpha(k);
-                row.colour[k * self.n + i] = (kappa * a).extend(a).as_vec4().to_array();
+                put(k, kappa, -(-self.depths[k]).exp_m1());
             }
         } else {
-            self.sorted_column(i, row, scratch, alpha);
+            put(0, emission / rho_hat, 0.0);
+            let front = pieces
+                .iter()
+                .find(|p| p.depth() > 0.0)
+                .map_or(DVec3::ZERO, |p| p.kappa0);
+            put(self.m - 1, front, 1.0);
+            self.sorted_column(i, rho_hat, row, scratch);
         }
     }
 
-    /// The sorted colour of pair `i` of a row for every length node, by
-    /// quadrature in `x` and powers in `l` (see the module docs).
-    fn sorted_column(
-        &self,
-        i: usize,
-        row: &mut Row,
-        scratch: &mut Scratch,
-        alpha: impl Fn(usize) -> f64,
-    ) {
+    /// The mean chromaticity of pair `i` of a row at every finite positive
+    /// depth node, by quadrature in `x`, band by band of `τ` (see the module
+    /// docs).
+    fn sorted_column(&self, i: usize, rho_hat: f64, row: &mut Row, scratch: &mut Scratch) {
+        let largest = self.depths[self.m - 2];
+        let mut k = 1;
+        let mut lower: f64 = 0.0;
+        while k + 1 < self.m {
+            let upper = (2.0 * lower).max(1.0).min(largest);
+            self.nodes(rho_hat, lower, upper, scratch);
+            let Scratch {
+                depth,
+                red,
+                green,
+                blue,
+                density,
+                ..
+            } = &mut *scratch;
+            let count = depth.len();
+            let len = count.next_multiple_of(LANES);
+            for values in [
+                &mut *depth,
+                &mut *red,
+                &mut *green,
+                &mut *blue,
+                &mut *density,
+            ] {
+                values.resize(len, 0.0);
+            }
+            // Nodes are sorted by depth (built front to back): node q counts at
+            // τ while τ · depth_q ≤ NODE_DEPTH.
+            let mut active = count;
+            while k + 1 < self.m && self.depths[k] <= upper {
+                let tau = self.depths[k];
+                while active > 0 && tau * depth[active - 1] > NODE_DEPTH {
+                    active -= 1;
+                }
+                let lanes = active.next_multiple_of(LANES);
+                let mut sums = [[0.0; LANES]; 4];
+                for q in (0..lanes).step_by(LANES) {
+                    for lane in 0..LANES {
+                        let e = exp_neg(tau * depth[q + lane]);
+                        sums[0][lane] += red[q + lane] * e;
+                        sums[1][lane] += green[q + lane] * e;
+                        sums[2][lane] += blue[q + lane] * e;
+                        sums[3][lane] += density[q + lane] * e;
+                    }
+                }
+                let [r, g, b, w] = sums.map(|s| s.iter().sum::<f64>());
+                let kappa = if w > 0.0 {
+                    DVec3::new(r, g, b) / w
+                } else {
+                    DVec3::ZERO
+                };
+                row.colour[k * self.n + i] = kappa.extend(-(-tau).exp_m1()).as_vec4().to_array();
+                k += 1;
+            }
+            lower = upper;
+        }
+    }
+
+    /// Gauss–Legendre nodes over the part of the segment visible at optical
+    /// depths `τ` in `(lower, upper]`, on intervals of optical depth ≤
+    /// [`INTERVAL_DEPTH`] at every such `τ` that still sees them, with depths
+    /// and weights divided by `ρ̂`.
+    fn nodes(&self, rho_hat: f64, lower: f64, upper: f64, scratch: &mut Scratch) {
         let Scratch {
             pieces,
             depth,
             red,
             green,
             blue,
-            factor,
-            power,
+            density,
         } = scratch;
-        self.nodes(pieces, depth, red, green, blue);
-        // Pad to whole lanes with zero-weight nodes.
-        let count = depth.len();
-        let len = count.next_multiple_of(LANES);
-        for values in [&mut *red, &mut *green, &mut *blue] {
-            values.resize(len, 0.0);
-        }
-        factor.clear();
-        factor.extend(depth.iter().map(|d| (-self.step * d).exp()));
-        factor.resize(len, 0.0);
-        power.clear();
-        power.resize(len, 1.0);
-        // Nodes are sorted by depth (built front to back): node q is visible at
-        // length node k while k · step · depth_q ≤ NODE_DEPTH.
-        let mut active = count;
-        row.colour[i] = [0.0; 4];
-        for k in 1..self.m {
-            let reach = k as f64 * self.step;
-            while active > 0 && reach * depth[active - 1] > NODE_DEPTH {
-                active -= 1;
-            }
-            let lanes = active.next_multiple_of(LANES);
-            let mut sums = [[0.0; LANES]; 3];
-            for q in (0..lanes).step_by(LANES) {
-                for lane in 0..LANES {
-                    let p = power[q + lane] * factor[q + lane];
-                    power[q + lane] = p;
-                    sums[0][lane] += red[q + lane] * p;
-                    sums[1][lane] += green[q + lane] * p;
-                    sums[2][lane] += blue[q + lane] * p;
-                }
-            }
-            let [r, g, b] = sums.map(|s| s.iter().sum::<f64>());
-            row.colour[k * self.n + i] = (reach * DVec3::new(r, g, b))
-                .extend(alpha(k))
-                .as_vec4()
-                .to_array();
-        }
-    }
-
-    /// Gauss–Legendre nodes over the visible part of the segment, on intervals
-    /// of optical depth ≤ [`INTERVAL_DEPTH`] at every length that still sees them.
-    fn nodes(
-        &self,
-        pieces: &[Piece],
-        depth: &mut Vec<f64>,
-        red: &mut Vec<f64>,
-        green: &mut Vec<f64>,
-        blue: &mut Vec<f64>,
-    ) {
-        for values in [&mut *depth, &mut *red, &mut *green, &mut *blue] {
+        for values in [
+            &mut *depth,
+            &mut *red,
+            &mut *green,
+            &mut *blue,
+            &mut *density,
+        ] {
             values.clear();
         }
+        // The segment's lengths at the band's ends.
+        let (shortest, longest) = (lower / rho_hat, upper / rho_hat);
         let mut depth_before = 0.0;
-        'pieces: for piece in pieces {
+        'pieces: for piece in pieces.iter() {
             let piece_depth = piece.depth();
             if piece_depth <= 0.0 {
                 continue;
@@ -666,13 +825,13 @@ impl<'a> ColumnBuilder<'a> {
             while u < width {
                 let local = piece.depth_at(u);
                 let here = depth_before + local;
-                if here * self.step > VISIBLE_DEPTH {
+                if here * shortest > VISIBLE_DEPTH {
                     break 'pieces;
                 }
                 let length = if here > 0.0 {
-                    self.max_length.min(VISIBLE_DEPTH / here)
+                    longest.min(VISIBLE_DEPTH / here)
                 } else {
-                    self.max_length
+                    longest
                 };
                 let target = local + INTERVAL_DEPTH / length;
                 let next = if target >= piece_depth {
@@ -687,11 +846,13 @@ impl<'a> ColumnBuilder<'a> {
                 for (x, w) in GAUSS_NODES.iter().zip(GAUSS_WEIGHTS) {
                     let at = u + x * span;
                     let (kappa, rho) = piece.at(at);
-                    let weighted = kappa * (rho * w * span);
+                    let weight = rho * w * span / rho_hat;
+                    let weighted = kappa * weight;
                     red.push(weighted.x);
                     green.push(weighted.y);
                     blue.push(weighted.z);
-                    depth.push(depth_before + piece.depth_at(at));
+                    density.push(weight);
+                    depth.push((depth_before + piece.depth_at(at)) / rho_hat);
                 }
                 u = next;
             }
@@ -733,9 +894,25 @@ mod tests {
     fn small() -> PreintegrationConfig {
         PreintegrationConfig {
             scalar_size: 16,
-            length_size: 32,
-            max_length: 3.0,
+            depth_size: 32,
         }
+    }
+
+    /// Every optical depth a lookup can see, far beyond both ends of any one
+    /// table length.
+    const EVERY_DEPTH: RangeInclusive<f64> = 1e-3..=1e3;
+
+    #[test]
+    fn the_fast_exponential_matches_the_library() {
+        let mut worst: f64 = 0.0;
+        for step in 0..=175_000 {
+            let x = f64::from(step) * 0.004;
+            worst = worst.max((exp_neg(x) / (-x).exp() - 1.0).abs());
+        }
+        assert!(worst < 1e-14, "{worst}");
+        assert_eq!(exp_neg(0.0), 1.0);
+        assert!(exp_neg(1e9) < 1e-300 && exp_neg(1e9) >= 0.0);
+        assert_eq!(exp_neg(f64::NAN), 1.0);
     }
 
     #[test]
@@ -771,35 +948,49 @@ mod tests {
         let table = PreintegrationTable::build(&tf, small()).unwrap();
         let (n, m) = (16, 32);
         assert_eq!(table.colour().len(), n * n * m);
-        // l = 0 slice is exactly zero.
-        assert!(table.colour()[..n * n].iter().all(|c| *c == [0.0; 4]));
-        // Diagonal: α = 1 − e^{−lρ}, C = κ α, at node (i, i, k).
-        for (i, k) in [(3, 5), (15, 31), (9, 1)] {
-            let (s, l) = (table.scalar_at(i), table.length_at(k));
+        assert_eq!(table.depth_at(0), 0.0);
+        assert_eq!(table.depth_at(16), 16.0 / 15.0);
+        assert_eq!(table.depth_at(30), 30.0);
+        assert_eq!(table.depth_at(31), f64::INFINITY);
+        // τ = 0 and τ = ∞ slices: α exactly 0 and 1 (or 0 where ρ̂ = 0).
+        for p in 0..n * n {
+            assert_eq!(table.colour()[p][3], 0.0);
+            let limit = table.colour()[(m - 1) * n * n + p][3];
+            assert_eq!(limit, if table.rho_hat()[p] > 0.0 { 1.0 } else { 0.0 });
+        }
+        // Diagonal: K = κ, A = 1 − e^{−τ}, at node (i, i, k).
+        for (i, k) in [(3, 5), (15, 30), (9, 1)] {
+            let (s, tau) = (table.scalar_at(i), table.depth_at(k));
             let sample = tf.evaluate(s);
-            let alpha = -(-l * sample.rho).exp_m1();
+            let alpha = if sample.rho > 0.0 {
+                -(-tau).exp_m1()
+            } else {
+                0.0
+            };
             let stored = table.colour()[(k as usize * n + i as usize) * n + i as usize];
-            let expected = (sample.kappa * alpha).extend(alpha).as_vec4().to_array();
+            let expected = sample.kappa.extend(alpha).as_vec4().to_array();
             for (a, b) in stored.iter().zip(expected) {
                 assert!((a - b).abs() < 1e-6, "{stored:?} {expected:?}");
             }
         }
         // x = s_f, y = s_b: an entry with s_f ≠ s_b matches that orientation.
         let (i, j, k) = (2, 13, 20);
-        let stored = table.colour()[(k * n + j) * n + i];
+        let [r, g, b, a] = table.colour()[(k * n + j) * n + i].map(f64::from);
+        let rho_hat = f64::from(table.rho_hat()[j * n + i]);
         let exact = exact_segment(
             &tf,
             OpticalMode::Sorted,
             table.scalar_at(i as u32),
             table.scalar_at(j as u32),
-            table.length_at(k as u32),
+            table.depth_at(k as u32) / rho_hat,
         );
+        let stored = (a * DVec3::new(r, g, b)).extend(a);
         assert!(
-            (DVec4::from(stored.map(f64::from)) - exact)
-                .abs()
-                .max_element()
-                < 1e-4
+            (stored - exact).abs().max_element() < 1e-4,
+            "{stored} {exact}"
         );
+        let mirrored = table.colour()[(k * n + i) * n + j];
+        assert!((mirrored[0] - r as f32).abs() > 1e-3, "{mirrored:?} {r}");
     }
 
     #[test]
@@ -812,11 +1003,92 @@ mod tests {
                 (-1.0, 2.0, 1e9),
                 (0.5, 0.5, f64::INFINITY),
                 (0.3, 0.7, f64::NAN),
+                (0.2, 0.9, f64::INFINITY),
+                (f64::INFINITY, f64::NEG_INFINITY, 1.0),
+                (f64::NAN, f64::NAN, f64::NAN),
+                (0.4, 0.6, 1e-300),
             ] {
                 let c = table.segment(mode, s_f, s_b, l);
                 assert!(c.is_finite() && (0.0..=1.0).contains(&c.w), "{mode:?} {c}");
             }
             assert_eq!(table.segment(mode, 0.3, 0.7, 0.0), DVec4::ZERO);
+            assert_eq!(table.segment(mode, 0.3, 0.7, -1.0), DVec4::ZERO);
+        }
+    }
+
+    /// A transfer function with κ constant and ρ linear in s from `rho0` to `rho1`.
+    fn constant_colour(kappa: [f32; 3], rho0: f32, rho1: f32) -> TransferFunction {
+        TransferFunction::new([
+            ControlPoint {
+                s: 0.0,
+                kappa,
+                rho: rho0,
+            },
+            ControlPoint {
+                s: 1.0,
+                kappa,
+                rho: rho1,
+            },
+        ])
+        .unwrap()
+    }
+
+    #[test]
+    fn uniform_segments_are_exact_at_every_length_and_density() {
+        let kappa = [0.9_f32, 0.6, 0.3];
+        let mut random = SplitMix64(7);
+        for rho in [1e-3_f32, 0.05, 1.0, 30.0, 1e3] {
+            let tf = constant_colour(kappa, rho, rho);
+            let table = PreintegrationTable::build(&tf, small()).unwrap();
+            for step in 0..=80 {
+                let l = 10_f64.powf(-4.0 + f64::from(step) * 0.1);
+                let s = random.unit();
+                let alpha = -(-l * f64::from(rho)).exp_m1();
+                let expected = (DVec3::from(kappa.map(f64::from)) * alpha).extend(alpha);
+                let looked_up = table.segment(OpticalMode::Sorted, s, s, l);
+                assert!(
+                    (looked_up - expected).abs().max_element() < 1e-6,
+                    "ρ {rho} l {l}: {looked_up} {expected}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn constant_colour_with_varying_density_is_exact() {
+        let tf = constant_colour([0.2, 0.7, 1.0], 0.05, 5.0);
+        let table = PreintegrationTable::build(&tf, small()).unwrap();
+        let mut random = SplitMix64(11);
+        for _ in 0..2000 {
+            let (s_f, s_b) = (random.unit(), random.unit());
+            let l = 10_f64.powf(-4.0 + 8.0 * random.unit());
+            let exact = exact_segment(&tf, OpticalMode::Sorted, s_f, s_b, l);
+            let looked_up = table.segment(OpticalMode::Sorted, s_f, s_b, l);
+            assert!(
+                (looked_up - exact).abs().max_element() < 1e-6,
+                "{s_f} {s_b} {l}: {looked_up} {exact}"
+            );
+        }
+    }
+
+    #[test]
+    fn the_depth_limits_are_the_front_colour_and_zero() {
+        let tf = TransferFunction::preset(TransferPreset::Fire);
+        let table = PreintegrationTable::build(&tf, small()).unwrap();
+        for (i, j) in [(3, 12), (12, 3), (7, 8), (15, 0)] {
+            let (s_f, s_b) = (table.scalar_at(i), table.scalar_at(j));
+            let front = tf.evaluate(s_f);
+            assert!(front.rho > 0.0);
+            for l in [f64::INFINITY, 1e30] {
+                let far = table.segment(OpticalMode::Sorted, s_f, s_b, l);
+                let expected = front.kappa.extend(1.0);
+                assert!(
+                    (far - expected).abs().max_element() < 1e-6,
+                    "{s_f} {s_b}: {far} {expected}"
+                );
+            }
+            let near = table.segment(OpticalMode::Sorted, s_f, s_b, 1e-12);
+            assert!(near.abs().max_element() < 1e-10, "{near}");
         }
     }
 
@@ -828,17 +1100,33 @@ mod tests {
             &tf,
             PreintegrationConfig {
                 scalar_size: 64,
-                length_size: 128,
-                ..small()
+                depth_size: 128,
             },
         )
         .unwrap();
         let (coarse, fine) = (
-            coarse.interpolation_error(500),
-            fine.interpolation_error(500),
+            coarse.interpolation_error(500, EVERY_DEPTH),
+            fine.interpolation_error(500, EVERY_DEPTH),
         );
         assert!(fine.colour < coarse.colour, "{coarse:?} {fine:?}");
         assert!(fine.colour < 1e-3, "{fine:?}");
+    }
+
+    #[test]
+    fn varying_colour_is_within_the_stated_error_at_every_depth() {
+        let table = PreintegrationTable::build(
+            &TransferFunction::preset(TransferPreset::Fire),
+            PreintegrationConfig::default(),
+        )
+        .unwrap();
+        for depths in [EVERY_DEPTH, 1e-3..=1e-1, 1e2..=1e3] {
+            let error = table.interpolation_error(2000, depths.clone());
+            eprintln!("{depths:?}: {error:?}");
+            assert!(
+                error.chromaticity < FIRE_LOOKUP_BOUND,
+                "{depths:?}: {error:?}"
+            );
+        }
     }
 
     #[test]
@@ -859,23 +1147,27 @@ mod tests {
         .unwrap();
         let config = PreintegrationConfig {
             scalar_size: 17,
-            length_size: 16,
-            max_length: 1.0,
+            depth_size: 16,
         };
         let table = PreintegrationTable::build(&tf, config).unwrap();
         let entry = |i: usize, j: usize, k: usize| table.colour()[(k * 17 + j) * 17 + i];
-        for k in 1..16 {
-            // Crossing the peak: opaque, the peak's colour.
+        for k in 0..16 {
+            // Crossing the peak: the peak's colour at every depth.
             let crossing = entry(4, 12, k);
-            assert!(crossing[3] > 0.999, "{k}: {crossing:?}");
-            assert!((crossing[0] - crossing[3]).abs() < 1e-3, "{crossing:?}");
-            assert!(
-                (crossing[1] - 0.2 * crossing[3]).abs() < 1e-3,
-                "{crossing:?}"
-            );
+            assert!((crossing[0] - 1.0).abs() < 1e-3, "{crossing:?}");
+            assert!((crossing[1] - 0.2).abs() < 1e-3, "{crossing:?}");
+            assert!(crossing[2].abs() < 1e-3, "{crossing:?}");
             // Not crossing: transparent.
-            assert_eq!(entry(1, 7, k), [0.0; 4]);
-            assert_eq!(entry(15, 9, k), [0.0; 4]);
+            assert_eq!(entry(1, 7, k)[3], 0.0);
+            assert_eq!(entry(15, 9, k)[3], 0.0);
+        }
+        for l in [0.1, 1.0, 1e3] {
+            let crossing = table.segment(OpticalMode::Sorted, 0.25, 0.75, l);
+            assert!(crossing.w > 0.999, "{l}: {crossing}");
+            assert!((crossing.x - crossing.w).abs() < 1e-3, "{crossing}");
+            assert!((crossing.y - 0.2 * crossing.w).abs() < 1e-3, "{crossing}");
+            let beside = table.segment(OpticalMode::Sorted, 1.0 / 16.0, 7.0 / 16.0, l);
+            assert_eq!(beside, DVec4::ZERO);
         }
         assert!(table.is_transparent(0.0, 0.49));
         assert!(!table.is_transparent(0.49, 0.6));
@@ -907,40 +1199,61 @@ mod tests {
             error.to_string(),
             "pre-integration table size 1×1×32 is invalid: each side must be in 2..=1024"
         );
-        for max_length in [0.0, -1.0, f32::NAN, f32::INFINITY] {
-            let config = PreintegrationConfig {
-                max_length,
-                ..small()
-            };
-            let error = PreintegrationTable::build(&tf, config).unwrap_err();
-            assert!(matches!(
-                error,
-                PreintegrationError::InvalidMaxLength { .. }
-            ));
-            assert!(error.to_string().contains("must be finite and > 0"));
-        }
+        let too_large = PreintegrationConfig {
+            depth_size: MAX_TABLE_SIDE + 1,
+            ..small()
+        };
+        let error = PreintegrationTable::build(&tf, too_large).unwrap_err();
+        assert!(matches!(error, PreintegrationError::InvalidSize { .. }));
     }
+
+    #[test]
+    fn the_smallest_depth_axis_interpolates_between_its_limits() {
+        let tf = TransferFunction::preset(TransferPreset::Aurora);
+        let config = PreintegrationConfig {
+            scalar_size: 8,
+            depth_size: 2,
+        };
+        let table = PreintegrationTable::build(&tf, config).unwrap();
+        assert!(table.colour().iter().flatten().all(|v| v.is_finite()));
+        let c = table.segment(OpticalMode::Sorted, 0.2, 0.8, 1.0);
+        assert!(c.is_finite() && c.w > 0.0);
+    }
+
+    /// Largest interpolated sorted colour error of the default table of the
+    /// fire preset over every depth (measured: see the module docs).
+    const FIRE_LOOKUP_BOUND: f64 = 0.03;
+    /// Largest interpolated sorted colour error of the default table of random
+    /// transfer functions (κ < 1, ρ < 3) over every depth.
+    const RANDOM_LOOKUP_BOUND: f64 = 0.25;
 
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(24))]
         #[test]
-        fn random_tables_are_within_stated_error(tf in arbitrary_transfer_function(1..7, 1.0, 3.0), max_length in 0.1_f32..4.0) {
-            let config = PreintegrationConfig { scalar_size: 12, length_size: 16, max_length };
+        fn random_tables_are_within_stated_error(tf in arbitrary_transfer_function(1..7, 1.0, 3.0)) {
+            let config = PreintegrationConfig { scalar_size: 12, depth_size: 16 };
             let table = PreintegrationTable::build(&tf, config).unwrap();
             prop_assert!(table.colour().iter().flatten().all(|v| v.is_finite() && *v >= 0.0));
             let error = table.node_error(200);
             prop_assert!(error.colour < 1e-4, "{:?}", error);
             prop_assert!(error.opacity < 1e-6, "{:?}", error);
-            // α in [0, 1], monotone in l, colour ≤ α max κ, for every pair.
+            // α in [0, 1], monotone in τ, K ≤ max κ, for every pair.
             let (n, m) = (12, 16);
             let max_kappa = tf.max_chromaticity();
             for p in 0..n * n {
                 for k in 1..m {
                     let (a, b) = (table.colour()[(k - 1) * n * n + p], table.colour()[k * n * n + p]);
                     prop_assert!((0.0..=1.0).contains(&b[3]) && b[3] >= a[3]);
-                    prop_assert!(b[..3].iter().all(|c| *c <= b[3] * max_kappa + 1e-4));
+                    prop_assert!(b[..3].iter().all(|c| *c <= max_kappa + 1e-4));
                 }
             }
+        }
+
+        #[test]
+        fn random_lookups_are_within_stated_error_at_every_depth(tf in arbitrary_transfer_function(1..7, 1.0, 3.0)) {
+            let table = PreintegrationTable::build(&tf, PreintegrationConfig::default()).unwrap();
+            let error = table.interpolation_error(300, EVERY_DEPTH);
+            prop_assert!(error.chromaticity < RANDOM_LOOKUP_BOUND, "{:?}", error);
         }
     }
 
@@ -948,8 +1261,7 @@ mod tests {
     fn tables_beyond_the_memory_budget_are_refused_before_allocating() {
         let config = PreintegrationConfig {
             scalar_size: MAX_TABLE_SIDE,
-            length_size: MAX_TABLE_SIDE,
-            max_length: 1.0,
+            depth_size: MAX_TABLE_SIDE,
         };
         let tf = TransferFunction::preset(TransferPreset::Cloud);
         let error = PreintegrationTable::build(&tf, config).unwrap_err();

@@ -114,41 +114,26 @@ pub struct CellBatch {
     /// between the view ray and the sunlight. `None` draws the transfer
     /// function's colour as it is. Default: `None`.
     pub scattering: Option<CellScattering>,
-    /// The longest segment a ray can have in one cell, world units (the
-    /// longest cell diameter); the pre-integration table covers 0 to this
-    /// length. Default: 0 (computed by [`CellBatch::new`]).
-    pub max_segment_length: f32,
 }
 
 impl CellBatch {
-    /// A batch of `cells` with its longest segment computed.
+    /// A batch of `cells` drawn with `transfer_function` in `mode`.
     pub fn new(
         cells: Arc<LodCellBatch>,
         transfer_function: Arc<TransferFunction>,
         mode: OpticalMode,
     ) -> Self {
-        let mut max_segment_length = 0.0_f32;
-        for cell in &cells.cells {
-            let vertices = cell.vertices.map(|v| Vec3::new(v[0], v[1], v[2]));
-            for (index, vertex) in vertices.iter().enumerate() {
-                for other in &vertices[index + 1..] {
-                    max_segment_length = max_segment_length.max(vertex.distance(*other));
-                }
-            }
-        }
         Self {
             cells,
             transfer_function: Some(transfer_function),
             mode,
             scattering: None,
-            max_segment_length,
         }
     }
 
     /// Whether the render system has anything to draw for this batch.
     pub fn is_drawable(&self) -> bool {
         !self.cells.is_empty()
-            && self.max_segment_length > 0.0
             && self
                 .transfer_function
                 .as_ref()

@@ -319,6 +319,30 @@ const ACCURACY_BOUNDS: &[(&str, f64)] = &[
     ("lit_cloud", 0.009),
     ("lit_cloud_nonphysical", 0.006),
     ("lit_cloud_scattering", 0.008),
+    // A thin uniform fog slab (200 m × 200 m × 2 m) as one box of six cells
+    // and as long thin slivers, from grazing to near vertical, above and
+    // inside: lavapipe measured RMSE 2.2e-3 (Sorted, one 8-bit step at most;
+    // 4e-2 to 6.5e-2 and up to 20 steps while the colour table's axis was
+    // the length up to the batch's longest segment), 1.4e-3 (Emissive) and
+    // 2.8e-3 (MIP: one flat colour one 8-bit step off in green).
+    ("slab_cell_above", 0.003),
+    ("slab_cell_inside", 0.003),
+    ("slab_slivers_above", 0.003),
+    ("slab_slivers_inside", 0.003),
+    ("slab_emissive", 0.002),
+    ("slab_mip", 0.004),
+];
+
+/// Largest per-pixel error (linear RGB) allowed for the scenes listed, about
+/// 1.5 steps of the 8-bit sRGB output at the brightest values (one step there
+/// is 8.9e-3 in linear terms); lavapipe measured 8.3e-3 to 8.9e-3.
+const MAX_ERROR_BOUNDS: &[(&str, f64)] = &[
+    ("slab_cell_above", 0.012),
+    ("slab_cell_inside", 0.012),
+    ("slab_slivers_above", 0.012),
+    ("slab_slivers_inside", 0.012),
+    ("slab_emissive", 0.012),
+    ("slab_mip", 0.012),
 ];
 
 #[test]
@@ -369,6 +393,13 @@ fn gpu_cell_projection_matches_the_exact_reference() {
             "{name}: {metrics} exceeds RMSE {bound}\n{}",
             report.join("\n")
         );
+        if let Some((_, max)) = MAX_ERROR_BOUNDS.iter().find(|(scene, _)| scene == name) {
+            assert!(
+                metrics.max_abs <= *max,
+                "{name}: {metrics} exceeds the largest error {max}\n{}",
+                report.join("\n")
+            );
+        }
     }
     eprintln!("{}", report.join("\n"));
 }

@@ -12,8 +12,10 @@
 // segment length l; the cell's linear scalar at entry and exit gives s_f and
 // s_b. The segment's colour comes from the pre-integration tables:
 //
-//   SORTED:   rgb from the 3D table at (s_f, s_b, l), α = 1 − exp(−l ρ̂(s_f, s_b))
-//             (exact opacity, Röttger 2004 eq. 9.2), blended "over" back to front.
+//   SORTED:   optical depth τ = l ρ̂(s_f, s_b), α = 1 − exp(−τ) (exact opacity,
+//             Röttger 2004 eq. 9.2), rgb = α K with K the mean chromaticity from
+//             the 3D table at (s_f, s_b, u = τ / (1 + τ)), blended "over" back to
+//             front.
 //   EMISSIVE: rgb = l · mean emission(s_f, s_b), blended additively (PCP).
 //   MIP:      rgb = max emission over [s_f, s_b], blended with max.
 //
@@ -43,12 +45,10 @@ struct Cell {
 }
 
 struct CellTables {
-    // Longest segment the 3D table covers, world units.
-    max_length: f32,
     // Samples along s_f and s_b.
     scalar_size: u32,
-    // Samples along l.
-    length_size: u32,
+    // Samples along u = τ / (1 + τ).
+    depth_size: u32,
 }
 
 @group(0) @binding(0) var<uniform> view: CellView;
@@ -148,10 +148,12 @@ fn pair_lookup(s_front: f32, s_back: f32) -> vec4<f32> {
     return mix(mix(v00, v10, x.y), mix(v01, v11, x.y), y.y);
 }
 
-fn colour_lookup(s_front: f32, s_back: f32, length: f32) -> vec4<f32> {
+// The mean chromaticity K of a sorted segment of optical depth τ (+∞ reads the
+// last node: 1 / (1 + τ) is 0 there).
+fn colour_lookup(s_front: f32, s_back: f32, depth: f32) -> vec3<f32> {
     let x = table_position(s_front, tables.scalar_size);
     let y = table_position(s_back, tables.scalar_size);
-    let z = table_position(length / tables.max_length, tables.length_size);
+    let z = table_position(1.0 - 1.0 / (1.0 + depth), tables.depth_size);
     let i = vec3<i32>(i32(x.x), i32(y.x), i32(z.x));
     var layers: array<vec4<f32>, 2>;
     for (var dz = 0; dz < 2; dz++) {
@@ -161,7 +163,7 @@ fn colour_lookup(s_front: f32, s_back: f32, length: f32) -> vec4<f32> {
         let v11 = textureLoad(colour_table, i + vec3(1, 1, dz), 0);
         layers[dz] = mix(mix(v00, v10, x.y), mix(v01, v11, x.y), y.y);
     }
-    return mix(layers[0], layers[1], z.y);
+    return mix(layers[0], layers[1], z.y).rgb;
 }
 
 @fragment
@@ -235,8 +237,9 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
 #endif
 
 #ifdef SORTED
-    let colour = colour_lookup(s_front, s_back, length).rgb;
-    let alpha = 1.0 - exp(-length * pair_lookup(s_front, s_back).a);
+    let optical_depth = length * pair_lookup(s_front, s_back).a;
+    let alpha = 1.0 - exp(-optical_depth);
+    let colour = alpha * colour_lookup(s_front, s_back, optical_depth);
 #ifdef SCATTERING
     let g = scattering.sun.w;
     let cos_theta = dot(direction, scattering.sun.xyz);

@@ -27,8 +27,8 @@ use crate::cell_batch::{CellBatch, CellScattering, CellScatteringUniform};
 
 /// Samples along `s_f` and `s_b` of the GPU tables.
 const TABLE_SCALAR_SIZE: u32 = 64;
-/// Samples along `l` of the GPU colour table.
-const TABLE_LENGTH_SIZE: u32 = 128;
+/// Samples along the optical-depth axis `u = τ / (1 + τ)` of the GPU colour table.
+const TABLE_DEPTH_SIZE: u32 = 128;
 
 /// A batch as the render world sees it.
 #[derive(Clone)]
@@ -56,11 +56,10 @@ impl ExtractedCellBatch {
 pub struct ExtractedCellBatches(pub(super) Vec<(Entity, ExtractedCellBatch)>);
 
 /// Pre-integration tables are shared by batches with the same transfer
-/// function and maximum segment length.
+/// function (the tables do not depend on the cells).
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
 pub struct TableKey {
     transfer_hash: u64,
-    max_length_bits: u32,
 }
 
 /// Copies the drawable batches into the render world. A batch whose
@@ -103,7 +102,6 @@ pub fn extract_cell_batches(
                 changed: batch.is_changed(),
                 table_key: TableKey {
                     transfer_hash: transfer_function.content_hash(),
-                    max_length_bits: batch.max_segment_length.to_bits(),
                 },
                 transfer_function,
                 mode: batch.mode,
@@ -193,9 +191,8 @@ pub struct GpuCellTable {
     pub(super) parameters: UniformBuffer<CellTablesUniform>,
 }
 
-/// Unused tables kept for a batch that may need them again (an octree whose
-/// coarsest drawn level, and so its longest segment, goes back and forth),
-/// most recently used first. Each colour table is 8 MiB.
+/// Unused tables kept for a batch that may need them again (a transfer
+/// function that goes back and forth), most recently used first. Each colour table is 8 MiB.
 const SPARE_TABLES: usize = 2;
 
 /// The pre-integration tables this frame's batches use, and up to
@@ -210,9 +207,8 @@ pub struct GpuCellTables {
 /// Parameters of the tables, as the shader's `CellTables`.
 #[derive(Clone, Copy, Default, ShaderType)]
 pub struct CellTablesUniform {
-    max_length: f32,
     scalar_size: u32,
-    length_size: u32,
+    depth_size: u32,
 }
 
 /// Builds the tables that a batch needs and nobody has built, keeps a few
@@ -244,8 +240,7 @@ pub fn prepare_cell_tables(
         }
         let config = PreintegrationConfig {
             scalar_size: TABLE_SCALAR_SIZE,
-            length_size: TABLE_LENGTH_SIZE,
-            max_length: f32::from_bits(batch.table_key.max_length_bits),
+            depth_size: TABLE_DEPTH_SIZE,
         };
         let table = match PreintegrationTable::build(&batch.transfer_function, config) {
             Ok(table) => table,
@@ -285,13 +280,12 @@ pub fn prepare_cell_tables(
             depth_or_array_layers: 1,
         };
         let volume = Extent3d {
-            depth_or_array_layers: TABLE_LENGTH_SIZE,
+            depth_or_array_layers: TABLE_DEPTH_SIZE,
             ..pair
         };
         let mut parameters = UniformBuffer::from(CellTablesUniform {
-            max_length: config.max_length,
             scalar_size: TABLE_SCALAR_SIZE,
-            length_size: TABLE_LENGTH_SIZE,
+            depth_size: TABLE_DEPTH_SIZE,
         });
         parameters.set_label(Some("nebel_cell_tables"));
         parameters.write_buffer(&device, &queue);
