@@ -170,50 +170,69 @@ impl GroundFogDescription {
         Ok(())
     }
 
-    /// The transfer function with ρ times `density`; `scene_dir` resolves a
-    /// strip's path.
-    pub fn transfer_function(&self, scene_dir: &Path) -> Result<TransferFunction, InvalidField> {
-        self.transfer
+    /// Loads the fog map (for a `Png` thickness) and builds the transfer
+    /// function with ρ times `density`; `scene_dir` resolves their paths.
+    /// Errors name the field (relative to the fog).
+    pub fn build(&self, scene_dir: &Path) -> Result<BuiltGroundFog, InvalidField> {
+        let map = match &self.thickness {
+            FogThicknessDescription::Png(map) => Some(
+                HeightField::load_png(scene_dir.join(&map.path), DVec2::ONE, DVec2::ZERO, 1.0)
+                    .map_err(|error| InvalidField::new("thickness.Png.path", error.to_string()))?,
+            ),
+            _ => None,
+        };
+        let transfer_function = self
+            .transfer
             .clone()
             .unwrap_or(TransferDescription::Preset(TransferPreset::GroundFog))
             .build(scene_dir)
             .and_then(|tf| tf.scale_density(self.density))
-            .map_err(|error| InvalidField::new("transfer", error.to_string()))
+            .map_err(|error| InvalidField::new("transfer", error.to_string()))?;
+        Ok(BuiltGroundFog {
+            map,
+            transfer_function,
+        })
     }
 
     /// The thickness at every point of `local` (the terrain's padded heights
-    /// in its own frame); `scene_dir` resolves the map's path.
+    /// in its own frame), from the built fog map for a `Png` thickness.
     pub fn thickness(
         &self,
         local: &HeightField,
-        scene_dir: &Path,
+        built: &BuiltGroundFog,
     ) -> Result<TerrainLayer, InvalidField> {
         let side = local.dims()[0];
-        let layer = match &self.thickness {
-            FogThicknessDescription::Valley(valley) => valley
+        match (&self.thickness, &built.map) {
+            (FogThicknessDescription::Valley(valley), _) => valley
                 .thickness(local)
                 .map_err(|error| InvalidField::new("thickness.Valley", error.to_string()))
                 .and_then(|values| layer(side, values, "thickness.Valley")),
-            FogThicknessDescription::Noise(noise) => noise
+            (FogThicknessDescription::Noise(noise), _) => noise
                 .thickness(side, local.spacing().x)
                 .map_err(|error| InvalidField::new("thickness.Noise", error.to_string()))
                 .and_then(|values| layer(side, values, "thickness.Noise")),
-            FogThicknessDescription::Png(map) => {
-                let field = "thickness.Png.path";
-                let unit = HeightField::load_png(
-                    scene_dir.join(&map.path),
-                    DVec2::ONE,
-                    DVec2::ZERO,
-                    1.0,
-                )
-                .map_err(|error| InvalidField::new(field, error.to_string()))?;
+            (FogThicknessDescription::Png(map), Some(unit)) => {
                 let metres: Vec<f32> = unit.heights().iter().map(|u| u * map.scale).collect();
                 TerrainLayer::resample(&metres, unit.dims(), side)
-                    .map_err(|error| InvalidField::new(field, error.to_string()))
+                    .map_err(|error| InvalidField::new("thickness.Png.path", error.to_string()))
             }
-        }?;
-        Ok(layer)
+            (FogThicknessDescription::Png(_), None) => Err(InvalidField::new(
+                "thickness.Png.path",
+                "the fog map was not loaded",
+            )),
+        }
     }
+}
+
+/// A scene's ground fog with its files read: the fog map (unit values, for
+/// a `Png` thickness) and the density-scaled transfer function.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BuiltGroundFog {
+    /// The fog map's unit values (black 0, white 1), `None` unless the
+    /// thickness is a `Png`.
+    pub map: Option<HeightField>,
+    /// κ and ρ, `density` applied.
+    pub transfer_function: TransferFunction,
 }
 
 fn layer(side: usize, values: Vec<f32>, field: &str) -> Result<TerrainLayer, InvalidField> {
@@ -245,12 +264,12 @@ impl TerrainDescription {
     /// plugin draws them with the same quadtree, layer and refinement
     /// (without culling), ready for the reference; `None` without a fog or
     /// for a fog with no cells. `unit` are the terrain's unit heights,
-    /// `scene_dir` resolves the fog map. Errors name the field (relative to
-    /// `terrain`).
+    /// `built` the fog's files ([`GroundFogDescription::build`]). Errors
+    /// name the field (relative to `terrain`).
     pub fn fog_volume(
         &self,
         unit: &HeightField,
-        scene_dir: &Path,
+        built: &BuiltGroundFog,
         eye: DVec3,
     ) -> Result<Option<BuiltVolume>, InvalidField> {
         let Some(fog) = &self.fog else {
@@ -258,7 +277,7 @@ impl TerrainDescription {
         };
         let within = |invalid: InvalidField| invalid.within("fog");
         let local = self.local_heights(unit)?;
-        let layer = fog.thickness(&local, scene_dir).map_err(within)?;
+        let layer = fog.thickness(&local, built).map_err(within)?;
         if layer.is_zero() || fog.density == 0.0 {
             return Ok(None);
         }
@@ -298,7 +317,7 @@ impl TerrainDescription {
         }
         Ok(Some(BuiltVolume {
             field: VolumeField::Cells(cells.iter().map(GpuCell::to_tetrahedron).collect()),
-            transfer_function: fog.transfer_function(scene_dir).map_err(within)?,
+            transfer_function: built.transfer_function.clone(),
             mode: fog.mode,
             lod: None,
             lighting: None,

@@ -70,7 +70,9 @@ pub mod reference;
 mod terrain;
 mod volume;
 
-pub use ground_fog::{FogMapSource, FogThicknessDescription, GroundFogDescription};
+pub use ground_fog::{
+    BuiltGroundFog, FogMapSource, FogThicknessDescription, GroundFogDescription,
+};
 pub use terrain::{
     PngTerrainSource, ProceduralTerrainSource, TerrainDescription, TerrainHeightSource,
 };
@@ -673,6 +675,47 @@ impl SceneDescription {
         terrain
             .unit_heights(scene_dir)
             .map(Some)
+            .map_err(|invalid| {
+                let invalid = invalid.within("terrain");
+                SceneError::Invalid {
+                    path: scene_path.to_owned(),
+                    field: invalid.field,
+                    reason: invalid.reason,
+                }
+            })
+    }
+
+    /// Reads the terrain fog's files ([`GroundFogDescription::build`]);
+    /// `None` without a terrain fog. `scene_path` is the scene file: it names
+    /// the file in errors and resolves the fog map's relative path.
+    pub fn build_ground_fog(&self, scene_path: &Path) -> Result<Option<BuiltGroundFog>, SceneError> {
+        let Some(fog) = self.terrain.as_ref().and_then(|terrain| terrain.fog.as_ref()) else {
+            return Ok(None);
+        };
+        let scene_dir = scene_path.parent().unwrap_or(Path::new("."));
+        fog.build(scene_dir).map(Some).map_err(|invalid| {
+            let invalid = invalid.within("terrain.fog");
+            SceneError::Invalid {
+                path: scene_path.to_owned(),
+                field: invalid.field,
+                reason: invalid.reason,
+            }
+        })
+    }
+
+    /// The terrain fog's cells for the reference camera
+    /// ([`TerrainDescription::fog_volume`]); `None` without a fog or cells.
+    pub fn build_fog_volume(
+        &self,
+        scene_path: &Path,
+        unit: &nebel_core::field::HeightField,
+        built: &BuiltGroundFog,
+    ) -> Result<Option<BuiltVolume>, SceneError> {
+        let Some(terrain) = &self.terrain else {
+            return Ok(None);
+        };
+        terrain
+            .fog_volume(unit, built, self.reference_camera().position)
             .map_err(|invalid| {
                 let invalid = invalid.within("terrain");
                 SceneError::Invalid {

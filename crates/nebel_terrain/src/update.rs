@@ -139,7 +139,11 @@ pub(crate) fn update_terrain_meshes(
                 .filter(|layered| Arc::ptr_eq(&layered.base, &own))
         });
         let hierarchy = layered.map_or_else(|| own.clone(), |layered| layered.hierarchy.clone());
-        let layer_changed = layered.map(|layered| &layered.hierarchy) != state.layered.as_ref();
+        let layer_changed = match (layered, &state.layered) {
+            (Some(layered), Some(used)) => !Arc::ptr_eq(&layered.hierarchy, used),
+            (None, None) => false,
+            _ => true,
+        };
         if layer_changed {
             state.layered = layered.map(|layered| layered.hierarchy.clone());
         }

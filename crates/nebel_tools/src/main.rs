@@ -206,8 +206,11 @@ fn render(
 
 fn reference(args: &SceneArgs, out: &Path) -> Result<(), CommandError> {
     let scene = args.load()?;
-    let volumes = scene.build_volumes(&args.scene)?;
+    let mut volumes = scene.build_volumes(&args.scene)?;
     let unit_heights = scene.build_terrain(&args.scene)?;
+    if let (Some(unit), Some(fog)) = (&unit_heights, scene.build_ground_fog(&args.scene)?) {
+        volumes.extend(scene.build_fog_volume(&args.scene, unit, &fog)?);
+    }
     let terrain = scene
         .terrain
         .as_ref()
@@ -333,6 +336,7 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
             scene: scene.clone(),
             volumes: vec![equivalent.clone()],
             terrain: scene.build_terrain(scene_path)?,
+            ground_fog: scene.build_ground_fog(scene_path)?,
             bevy_fog,
         };
         let image_path = out_dir.join(format!("{name}.png"));

@@ -16,6 +16,7 @@ use bevy::camera::Hdr;
 use bevy::core_pipeline::tonemapping::{DebandDither, Tonemapping};
 use bevy::prelude::*;
 use std::path::Path;
+use std::sync::Arc;
 
 use nebel_core::field::HeightField;
 use nebel_render::NebelSystems;
@@ -23,7 +24,8 @@ use nebel_render::NebelSystems;
 use crate::headless::{HeadlessError, HeadlessOptions, render_headless};
 use crate::stats::RenderStats;
 use nebel_scene::{
-    BuiltVolume, CameraView, LightDescription, MeshDescription, SceneDescription, SceneError,
+    BuiltGroundFog, BuiltVolume, CameraView, FogThicknessDescription, GroundFogDescription,
+    LightDescription, MeshDescription, SceneDescription, SceneError,
 };
 use nebel_volume::VolumeGrid;
 
@@ -40,6 +42,9 @@ pub struct SceneSetupPlugin {
     /// The scene terrain's unit heights ([`SceneSetupPlugin::new`] builds
     /// them), spawned as a `nebel_terrain::Terrain`.
     pub terrain: Option<HeightField>,
+    /// The terrain fog's files ([`SceneSetupPlugin::new`] reads them),
+    /// spawned as a `nebel_fog::GroundFog` on the terrain.
+    pub ground_fog: Option<BuiltGroundFog>,
     /// Draw grid volumes with Bevy's own `FogVolume` ray marcher instead of
     /// nebel, for comparisons ([`crate::fog_comparison`]). Default: `None`.
     pub bevy_fog: Option<BevyFog>,
@@ -64,10 +69,12 @@ impl SceneSetupPlugin {
     pub fn new(scene: SceneDescription, scene_path: &Path) -> Result<Self, SceneError> {
         let volumes = scene.build_volumes(scene_path)?;
         let terrain = scene.build_terrain(scene_path)?;
+        let ground_fog = scene.build_ground_fog(scene_path)?;
         Ok(Self {
             scene,
             volumes,
             terrain,
+            ground_fog,
             bevy_fog: None,
         })
     }
@@ -77,9 +84,9 @@ impl SceneSetupPlugin {
 #[derive(Resource, Clone, Debug)]
 struct SceneVolumes(Vec<BuiltVolume>);
 
-/// The scene's terrain heights, taken by the startup system.
+/// The scene's terrain heights and fog files, taken by the startup system.
 #[derive(Resource, Clone, Debug)]
-struct SceneTerrain(Option<HeightField>);
+struct SceneTerrain(Option<HeightField>, Option<BuiltGroundFog>);
 
 /// The scene file the world was set up from.
 #[derive(Resource, Clone, Debug, Deref, Reflect)]
@@ -101,7 +108,7 @@ impl Plugin for SceneSetupPlugin {
             .register_type::<LoadedScene>()
             .register_type::<SceneCamera>()
             .insert_resource(SceneVolumes(self.volumes.clone()))
-            .insert_resource(SceneTerrain(self.terrain.clone()))
+            .insert_resource(SceneTerrain(self.terrain.clone(), self.ground_fog.clone()))
             .add_systems(Startup, (spawn_scene, spawn_terrain))
             .add_systems(PostStartup, enable_bevy_fog)
             .add_systems(Update, follow_camera_path.in_set(NebelSystems));
@@ -236,7 +243,7 @@ fn spawn_scene(
                     spawn_bevy_fog(
                         &mut commands,
                         &mut images,
-                        &std::sync::Arc::new(grid.clone()),
+                        &Arc::new(grid.clone()),
                         &fog.0,
                     );
                 }
@@ -347,7 +354,7 @@ fn spawn_terrain(
         warn!("nebel: the scene has a terrain but the app has no TerrainPlugin");
         return;
     };
-    commands.spawn((
+    let mut entity = commands.spawn((
         Terrain {
             source: TerrainSource::Heights(heights.add(TerrainHeights::from_field(unit))),
             spacing: description.spacing,
@@ -363,6 +370,45 @@ fn spawn_terrain(
         },
         Transform::from_translation(Vec3::from(description.center)),
     ));
+    if let (Some(fog), Some(built)) = (&description.fog, &terrain.1)
+        && let Some(fog) = ground_fog(fog, built, &mut heights)
+    {
+        entity.insert(fog);
+    }
+}
+
+/// The scene terrain's fog as a `nebel_fog::GroundFog`, its map (if any) as
+/// an asset; `None` for a `Png` fog whose map was not read.
+fn ground_fog(
+    fog: &GroundFogDescription,
+    built: &BuiltGroundFog,
+    heights: &mut Assets<nebel_terrain::TerrainHeights>,
+) -> Option<nebel_fog::GroundFog> {
+    use nebel_fog::{FogThickness, GroundFog, GroundFogDebug};
+    let thickness = match (&fog.thickness, &built.map) {
+        (FogThicknessDescription::Valley(valley), _) => FogThickness::Valley(*valley),
+        (FogThicknessDescription::Noise(noise), _) => FogThickness::Noise(*noise),
+        (FogThicknessDescription::Png(map), Some(unit)) => FogThickness::Map {
+            map: heights.add(nebel_terrain::TerrainHeights::from_field(unit)),
+            scale: map.scale,
+        },
+        (FogThicknessDescription::Png(_), None) => {
+            error!("nebel: the scene's fog map was not read; no ground fog");
+            return None;
+        }
+    };
+    Some(GroundFog {
+        thickness,
+        // The built transfer function has the density in it.
+        density: 1.0,
+        transfer_function: Arc::new(built.transfer_function.clone()),
+        mode: fog.mode,
+        profile: fog.profile.clone(),
+        roughness_weight: fog.roughness_weight,
+        debug: GroundFogDebug {
+            wireframe: fog.debug_wireframe,
+        },
+    })
 }
 
 fn follow_camera_path(
