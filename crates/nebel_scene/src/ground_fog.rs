@@ -21,9 +21,9 @@
 //!
 //! Heights and altitudes are in the terrain's frame (its `center` at 0), as
 //! the plugin's `GroundFog` reads them. The reference draws the fog as the
-//! cells the plugin draws for the reference camera
-//! ([`TerrainDescription::fog_volume`]): the same quadtree, refinement and
-//! prisms (`nebel_lod::fog_prisms`), without culling.
+//! cells the plugin draws for the reference camera, on the ground the GPU
+//! draws ([`TerrainDescription::fog_reference`]): the same quadtree,
+//! refinement and prisms (`nebel_lod::fog_prisms`), without culling.
 
 use std::path::Path;
 
@@ -39,7 +39,10 @@ use nebel_lod::{
     TriangleOrder, fog_prisms,
 };
 
-use super::{BuiltVolume, InvalidField, TerrainDescription, TransferDescription, VolumeField};
+use super::{
+    BuiltVolume, InvalidField, TerrainDescription, TerrainTriangles, TransferDescription,
+    VolumeField,
+};
 
 /// A terrain's ground fog.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -262,32 +265,36 @@ impl TerrainDescription {
 
     /// The ground fog's cells for an eye at `eye` (world space), as the
     /// plugin draws them with the same quadtree, layer and refinement
-    /// (without culling), ready for the reference; `None` without a fog or
-    /// for a fog with no cells. `unit` are the terrain's unit heights,
-    /// `built` the fog's files ([`GroundFogDescription::build`]). Errors
-    /// name the field (relative to `terrain`).
-    pub fn fog_volume(
+    /// (without culling), and the ground they lie on (the refinement's
+    /// triangles, which the GPU draws), ready for the reference; `None`
+    /// without a fog. `unit` are the terrain's unit heights, `built` the
+    /// fog's files ([`GroundFogDescription::build`]). Errors name the field
+    /// (relative to `terrain`).
+    pub fn fog_reference(
         &self,
         unit: &HeightField,
         built: &BuiltGroundFog,
         eye: DVec3,
-    ) -> Result<Option<BuiltVolume>, InvalidField> {
+    ) -> Result<Option<FogReference>, InvalidField> {
         let Some(fog) = &self.fog else {
             return Ok(None);
         };
         let within = |invalid: InvalidField| invalid.within("fog");
         let local = self.local_heights(unit)?;
         let layer = fog.thickness(&local, built).map_err(within)?;
-        if layer.is_zero() || fog.density == 0.0 {
-            return Ok(None);
-        }
         let side = local.dims()[0];
+        let spacing = local.spacing();
         let quadtree = |error: nebel_lod::TerrainError| InvalidField::new("source", error.to_string());
         let roughness = HeightField::new([side; 2], DVec2::ONE, DVec2::ZERO, layer.values().to_vec())
             .map_err(|error| InvalidField::new("fog.thickness", error.to_string()))?;
-        let hierarchy = TerrainHierarchy::new(local, self.min_accuracy)
-            .and_then(|hierarchy| hierarchy.with_extra_roughness(&roughness, fog.roughness_weight))
-            .map_err(quadtree)?;
+        let mut hierarchy = TerrainHierarchy::new(local, self.min_accuracy).map_err(quadtree)?;
+        // As the plugin: a fog of no thickness leaves the terrain alone.
+        let fogged = !layer.is_zero();
+        if fogged {
+            hierarchy
+                .add_extra_roughness(&roughness, fog.roughness_weight)
+                .map_err(quadtree)?;
+        }
         let center = DVec3::from(self.center.map(f64::from));
         let settings = LodSettings {
             accuracy: self.accuracy,
@@ -298,13 +305,18 @@ impl TerrainDescription {
         };
         let mut mesh = TerrainMesh::new();
         hierarchy
-            .update_with_layer(eye - center, None, &settings, Some(&layer), &mut mesh)
+            .update_with_layer(eye - center, None, &settings, fogged.then_some(&layer), &mut mesh)
             .map_err(quadtree)?;
+        let offset = center + hierarchy.origin();
+        let ground = TerrainTriangles::new(&mesh, offset, side, spacing);
+        if !fogged || fog.density == 0.0 {
+            return Ok(Some(FogReference { volume: None, ground }));
+        }
         let profile = FogProfile::new(fog.profile.clone())
             .map_err(|error| InvalidField::new("fog.profile", error.to_string()))?;
         let input = PrismInput {
-            world_from_mesh: DAffine3::from_translation(center + hierarchy.origin()),
-            eye: eye - center - hierarchy.origin(),
+            world_from_mesh: DAffine3::from_translation(offset),
+            eye: eye - offset,
             mesh_order: TriangleOrder::BackToFront,
             order: CellOrder::BackToFront,
             profile: &profile,
@@ -312,15 +324,23 @@ impl TerrainDescription {
         let mut cells = Vec::new();
         fog_prisms(&mesh, &input, &mut cells)
             .map_err(|error| InvalidField::new("fog", error.to_string()))?;
-        if cells.is_empty() {
-            return Ok(None);
-        }
-        Ok(Some(BuiltVolume {
+        let volume = (!cells.is_empty()).then(|| BuiltVolume {
             field: VolumeField::Cells(cells.iter().map(GpuCell::to_tetrahedron).collect()),
             transfer_function: built.transfer_function.clone(),
             mode: fog.mode,
             lod: None,
             lighting: None,
-        }))
+        });
+        Ok(Some(FogReference { volume, ground }))
     }
+}
+
+/// What the reference draws of a terrain's ground fog: its cells (`None`
+/// when it has none) and the ground they lie on.
+#[derive(Clone, Debug)]
+pub struct FogReference {
+    /// The fog's cells as a volume.
+    pub volume: Option<BuiltVolume>,
+    /// The terrain as the GPU draws it for the same eye.
+    pub ground: TerrainTriangles,
 }

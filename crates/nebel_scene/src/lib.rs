@@ -65,14 +65,15 @@
 //!   University of Bergen, 2008.
 
 mod ground_fog;
-mod opaque;
+pub mod opaque;
 pub mod reference;
 mod terrain;
 mod volume;
 
 pub use ground_fog::{
-    BuiltGroundFog, FogMapSource, FogThicknessDescription, GroundFogDescription,
+    BuiltGroundFog, FogMapSource, FogReference, FogThicknessDescription, GroundFogDescription,
 };
+pub use opaque::{ReferenceTerrain, TerrainTriangles};
 pub use terrain::{
     PngTerrainSource, ProceduralTerrainSource, TerrainDescription, TerrainHeightSource,
 };
@@ -703,19 +704,20 @@ impl SceneDescription {
         })
     }
 
-    /// The terrain fog's cells for the reference camera
-    /// ([`TerrainDescription::fog_volume`]); `None` without a fog or cells.
-    pub fn build_fog_volume(
+    /// The terrain fog's cells and ground for the reference camera
+    /// ([`TerrainDescription::fog_reference`]); `None` without a terrain
+    /// fog.
+    pub fn build_fog_reference(
         &self,
         scene_path: &Path,
         unit: &nebel_core::field::HeightField,
         built: &BuiltGroundFog,
-    ) -> Result<Option<BuiltVolume>, SceneError> {
+    ) -> Result<Option<FogReference>, SceneError> {
         let Some(terrain) = &self.terrain else {
             return Ok(None);
         };
         terrain
-            .fog_volume(unit, built, self.reference_camera().position)
+            .fog_reference(unit, built, self.reference_camera().position)
             .map_err(|invalid| {
                 let invalid = invalid.within("terrain");
                 SceneError::Invalid {

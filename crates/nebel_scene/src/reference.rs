@@ -11,9 +11,11 @@
 
 use std::path::Path;
 
-use crate::{BuiltVolume, LightModel, LightingDescription, SceneDescription, VolumeField};
+use crate::{
+    BuiltVolume, LightModel, LightingDescription, ReferenceTerrain, SceneDescription, VolumeField,
+};
 use glam::{DVec3, DVec4};
-use nebel_core::field::{CloudLighting, DensityGrid, HeightField, PadFill, light_field};
+use nebel_core::field::{CloudLighting, DensityGrid, PadFill, light_field};
 use nebel_core::optics::{OpticalMode, henyey_greenstein};
 use nebel_reference::image_metrics::{ImageMetricsError, LinearImage, save_png, srgb_to_linear};
 use nebel_reference::{
@@ -62,12 +64,13 @@ pub fn reference_image(
 }
 
 /// [`reference_image`] cut at `terrain` too: the scene terrain's heights in
-/// world space (`TerrainDescription::world_heights`), drawn black like the
-/// meshes. `None` ignores the terrain.
+/// world space (`TerrainDescription::world_heights`) or the triangles the GPU
+/// draws (a terrain with fog, [`crate::FogReference::ground`]), drawn black
+/// like the meshes. `None` ignores the terrain.
 pub fn reference_image_with_terrain(
     scene: &SceneDescription,
     volumes: Vec<BuiltVolume>,
-    terrain: Option<&HeightField>,
+    terrain: Option<&ReferenceTerrain>,
     progress: Option<&(dyn Fn(ReferenceProgress) + Sync)>,
 ) -> Result<LinearImage, ReferenceError> {
     let camera = scene.reference_camera();

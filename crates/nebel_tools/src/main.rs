@@ -12,7 +12,9 @@ use clap::{Args, Parser, Subcommand};
 use nebel_core::optics::OpticalMode;
 use nebel_reference::image_metrics::{difference_image, load_png_linear, save_png};
 use nebel_scene::reference::{reference_image, reference_image_with_terrain, save_reference};
-use nebel_scene::{BuiltVolume, LightDescription, SceneDescription, SceneError, VolumeField};
+use nebel_scene::{
+    BuiltVolume, LightDescription, ReferenceTerrain, SceneDescription, SceneError, VolumeField,
+};
 use nebel_tools::error::CommandError;
 use nebel_tools::fog_comparison::{self, BevyFog};
 use nebel_tools::headless::HeadlessOptions;
@@ -208,14 +210,22 @@ fn reference(args: &SceneArgs, out: &Path) -> Result<(), CommandError> {
     let scene = args.load()?;
     let mut volumes = scene.build_volumes(&args.scene)?;
     let unit_heights = scene.build_terrain(&args.scene)?;
-    if let (Some(unit), Some(fog)) = (&unit_heights, scene.build_ground_fog(&args.scene)?) {
-        volumes.extend(scene.build_fog_volume(&args.scene, unit, &fog)?);
-    }
-    let terrain = scene
-        .terrain
-        .as_ref()
-        .zip(unit_heights.as_ref())
-        .map(|(terrain, unit)| terrain.world_heights(unit));
+    let fog = match (&unit_heights, scene.build_ground_fog(&args.scene)?) {
+        (Some(unit), Some(fog)) => scene.build_fog_reference(&args.scene, unit, &fog)?,
+        _ => None,
+    };
+    // A fogged terrain is drawn as the triangles the fog's cells lie on.
+    let terrain = match fog {
+        Some(fog) => {
+            volumes.extend(fog.volume);
+            Some(ReferenceTerrain::Triangles(fog.ground))
+        }
+        None => scene
+            .terrain
+            .as_ref()
+            .zip(unit_heights.as_ref())
+            .map(|(terrain, unit)| ReferenceTerrain::Bilinear(terrain.world_heights(unit))),
+    };
     let started = Instant::now();
     let (bar, report) = reference_bar(true);
     let image = reference_image_with_terrain(&scene, volumes, terrain.as_ref(), Some(&report))?;
