@@ -31,10 +31,10 @@
 use bevy::app::{PluginGroup, PluginGroupBuilder};
 
 pub use nebel_core;
-pub use nebel_lod;
-pub use nebel_render;
 #[cfg(feature = "fog")]
 pub use nebel_fog;
+pub use nebel_lod;
+pub use nebel_render;
 #[cfg(feature = "terrain")]
 pub use nebel_terrain;
 #[cfg(feature = "volume")]
@@ -66,16 +66,16 @@ impl PluginGroup for NebelPlugins {
 /// `use nebel::prelude::*;` brings the plugins and the components a game spawns.
 pub mod prelude {
     pub use crate::NebelPlugins;
+    #[cfg(feature = "fog")]
+    pub use nebel_fog::{
+        FogNoise, FogThickness, GroundFog, GroundFogDebug, GroundFogError, GroundFogPlugin,
+        GroundFogStats, GroundFogStatus, ValleyFog,
+    };
     pub use nebel_render::{CellBatch, HeavyBuilds, LodCamera, NebelSystems};
     #[cfg(feature = "terrain")]
     pub use nebel_terrain::{
         Terrain, TerrainBuildError, TerrainDebug, TerrainHeights, TerrainLodStats, TerrainNoise,
         TerrainPlugin, TerrainSource, TerrainStatus,
-    };
-    #[cfg(feature = "fog")]
-    pub use nebel_fog::{
-        FogNoise, FogThickness, GroundFog, GroundFogDebug, GroundFogError, GroundFogPlugin,
-        GroundFogStats, GroundFogStatus, ValleyFog,
     };
     #[cfg(feature = "volume")]
     pub use nebel_volume::{

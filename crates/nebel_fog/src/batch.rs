@@ -19,12 +19,12 @@ use bevy::diagnostic::Diagnostics;
 use bevy::math::DAffine3;
 use bevy::mesh::PrimitiveTopology;
 use bevy::prelude::*;
+use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::{
     CellBatch as LodCellBatch, CellOrder, FogProfile, GpuCell, PrismInput, TriangleOrder,
     fog_prisms,
 };
-use nebel_core::optics::OpticalMode;
 use nebel_render::camera::to_double;
 use nebel_render::{CellBatch, LodCameras};
 use nebel_terrain::{TerrainLayerLod, TerrainLod, TerrainLodStats};
@@ -58,10 +58,7 @@ fn scaled_transfer(
     state: &mut GroundFogBatch,
     fog: &GroundFog,
 ) -> Result<Arc<TransferFunction>, GroundFogError> {
-    let key = (
-        fog.transfer_function.content_hash(),
-        fog.density.to_bits(),
-    );
+    let key = (fog.transfer_function.content_hash(), fog.density.to_bits());
     if let Some((hash, density, transfer)) = &state.transfer
         && (*hash, *density) == key
     {
@@ -122,13 +119,27 @@ pub(crate) fn update_fog_batches(
         return;
     };
     let mut frame_ms = None;
-    for (entity, fog, lod, terrain_stats, layer, transform, visibility, has_batch, mut state, mut status, mut stats) in
-        &mut fogs
+    for (
+        entity,
+        fog,
+        lod,
+        terrain_stats,
+        layer,
+        transform,
+        visibility,
+        has_batch,
+        mut state,
+        mut status,
+        mut stats,
+    ) in &mut fogs
     {
         let state = &mut *state;
         let layered = layer
             .and_then(|layer| layer.quadtree.as_ref())
-            .filter(|layered| lod.quadtree().is_some_and(|own| Arc::ptr_eq(own, &layered.base)));
+            .filter(|layered| {
+                lod.quadtree()
+                    .is_some_and(|own| Arc::ptr_eq(own, &layered.base))
+            });
         let mesh = lod.mesh();
         let drawable = layered.is_some()
             && visibility.get()
@@ -214,7 +225,11 @@ pub(crate) fn update_fog_batches(
                         ..default()
                     });
                     let wireframe = commands
-                        .spawn((Mesh3d(handle.clone()), MeshMaterial3d(material), Transform::IDENTITY))
+                        .spawn((
+                            Mesh3d(handle.clone()),
+                            MeshMaterial3d(material),
+                            Transform::IDENTITY,
+                        ))
                         .id();
                     state.wireframe = Some((wireframe, handle));
                 }

@@ -106,12 +106,8 @@ fn build_layer(
     let quadtree = if layer.is_zero() {
         None
     } else {
-        let thickness = HeightField::new(
-            [side; 2],
-            DVec2::ONE,
-            DVec2::ZERO,
-            layer.values().to_vec(),
-        )?;
+        let thickness =
+            HeightField::new([side; 2], DVec2::ONE, DVec2::ZERO, layer.values().to_vec())?;
         let hierarchy = (*base)
             .clone()
             .with_extra_roughness(&thickness, roughness_weight)?;
@@ -210,9 +206,8 @@ pub(crate) fn build_fog_layers(
                 Ok(built) => {
                     stats.build_ms = built.build_ms;
                     stats.max_thickness = built.max_thickness;
-                    diagnostics.add_measurement(&GroundFogPlugin::BUILD_MS, || {
-                        f64::from(built.build_ms)
-                    });
+                    diagnostics
+                        .add_measurement(&GroundFogPlugin::BUILD_MS, || f64::from(built.build_ms));
                     commands.entity(entity).insert(TerrainLayerLod {
                         quadtree: built.quadtree,
                         refine_on_every_move: every_move,

@@ -64,3 +64,6 @@ pub use ground_fog::{
 };
 
 pub use nebel_core::field::{FogNoise, ValleyFog};
+
+#[cfg(test)]
+mod tests;

@@ -146,7 +146,8 @@ impl GroundFogDescription {
                 }
             }
             FogThicknessDescription::Valley(valley) => {
-                if !valley.altitude.is_finite() || !(valley.edge.is_finite() && valley.edge >= 0.0) {
+                if !valley.altitude.is_finite() || !(valley.edge.is_finite() && valley.edge >= 0.0)
+                {
                     return Err(InvalidField::new(
                         "thickness.Valley",
                         format!(
@@ -284,9 +285,11 @@ impl TerrainDescription {
         let layer = fog.thickness(&local, built).map_err(within)?;
         let side = local.dims()[0];
         let spacing = local.spacing();
-        let quadtree = |error: nebel_lod::TerrainError| InvalidField::new("source", error.to_string());
-        let roughness = HeightField::new([side; 2], DVec2::ONE, DVec2::ZERO, layer.values().to_vec())
-            .map_err(|error| InvalidField::new("fog.thickness", error.to_string()))?;
+        let quadtree =
+            |error: nebel_lod::TerrainError| InvalidField::new("source", error.to_string());
+        let roughness =
+            HeightField::new([side; 2], DVec2::ONE, DVec2::ZERO, layer.values().to_vec())
+                .map_err(|error| InvalidField::new("fog.thickness", error.to_string()))?;
         let mut hierarchy = TerrainHierarchy::new(local, self.min_accuracy).map_err(quadtree)?;
         // As the plugin: a fog of no thickness leaves the terrain alone.
         let fogged = !layer.is_zero();
@@ -305,12 +308,21 @@ impl TerrainDescription {
         };
         let mut mesh = TerrainMesh::new();
         hierarchy
-            .update_with_layer(eye - center, None, &settings, fogged.then_some(&layer), &mut mesh)
+            .update_with_layer(
+                eye - center,
+                None,
+                &settings,
+                fogged.then_some(&layer),
+                &mut mesh,
+            )
             .map_err(quadtree)?;
         let offset = center + hierarchy.origin();
         let ground = TerrainTriangles::new(&mesh, offset, side, spacing);
         if !fogged || fog.density == 0.0 {
-            return Ok(Some(FogReference { volume: None, ground }));
+            return Ok(Some(FogReference {
+                volume: None,
+                ground,
+            }));
         }
         let profile = FogProfile::new(fog.profile.clone())
             .map_err(|error| InvalidField::new("fog.profile", error.to_string()))?;

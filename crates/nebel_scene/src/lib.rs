@@ -689,8 +689,15 @@ impl SceneDescription {
     /// Reads the terrain fog's files ([`GroundFogDescription::build`]);
     /// `None` without a terrain fog. `scene_path` is the scene file: it names
     /// the file in errors and resolves the fog map's relative path.
-    pub fn build_ground_fog(&self, scene_path: &Path) -> Result<Option<BuiltGroundFog>, SceneError> {
-        let Some(fog) = self.terrain.as_ref().and_then(|terrain| terrain.fog.as_ref()) else {
+    pub fn build_ground_fog(
+        &self,
+        scene_path: &Path,
+    ) -> Result<Option<BuiltGroundFog>, SceneError> {
+        let Some(fog) = self
+            .terrain
+            .as_ref()
+            .and_then(|terrain| terrain.fog.as_ref())
+        else {
             return Ok(None);
         };
         let scene_dir = scene_path.parent().unwrap_or(Path::new("."));

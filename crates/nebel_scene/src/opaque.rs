@@ -122,8 +122,14 @@ impl TerrainTriangles {
                 (((v - o) / s).floor().max(0.0) as usize).min(n - 1)
             };
             (
-                [cell_of(lo.x, origin.x, spacing.x, cells[0]), cell_of(hi.x - 1e-9 * spacing.x, origin.x, spacing.x, cells[0])],
-                [cell_of(lo.z, origin.y, spacing.y, cells[1]), cell_of(hi.z - 1e-9 * spacing.y, origin.y, spacing.y, cells[1])],
+                [
+                    cell_of(lo.x, origin.x, spacing.x, cells[0]),
+                    cell_of(hi.x - 1e-9 * spacing.x, origin.x, spacing.x, cells[0]),
+                ],
+                [
+                    cell_of(lo.z, origin.y, spacing.y, cells[1]),
+                    cell_of(hi.z - 1e-9 * spacing.y, origin.y, spacing.y, cells[1]),
+                ],
                 lo,
                 hi,
             )
@@ -173,12 +179,19 @@ impl TerrainTriangles {
         if !(i >= 0.0 && j >= 0.0) {
             return None;
         }
-        let (i, j) = ((i as usize).min(self.cells[0] - 1), (j as usize).min(self.cells[1] - 1));
+        let (i, j) = (
+            (i as usize).min(self.cells[0] - 1),
+            (j as usize).min(self.cells[1] - 1),
+        );
         let cell = i + self.cells[0] * j;
         let range = self.offsets[cell] as usize..self.offsets[cell + 1] as usize;
         self.items[range].iter().find_map(|&index| {
             let [a, b, c] = self.triangles[index as usize];
-            let (a2, b2, c2) = (DVec2::new(a.x, a.z), DVec2::new(b.x, b.z), DVec2::new(c.x, c.z));
+            let (a2, b2, c2) = (
+                DVec2::new(a.x, a.z),
+                DVec2::new(b.x, b.z),
+                DVec2::new(c.x, c.z),
+            );
             let area = (b2 - a2).perp_dot(c2 - a2);
             let wa = (c2 - b2).perp_dot(xz - b2) / area;
             let wb = (a2 - c2).perp_dot(xz - c2) / area;
@@ -221,7 +234,9 @@ impl<'a> TerrainSurface<'a> {
                     spacing,
                 )
             }
-            ReferenceTerrain::Triangles(triangles) => (triangles.min, triangles.max, triangles.cell),
+            ReferenceTerrain::Triangles(triangles) => {
+                (triangles.min, triangles.max, triangles.cell)
+            }
         };
         // A margin above and below, so a flat terrain's box is not a plane
         // a ray crosses in a single point.
@@ -357,45 +372,62 @@ mod tests {
         let heights = (0..25).map(|i| 1.0 + 0.5 * (i % 5) as f32).collect();
         let field = HeightField::new([5, 5], DVec2::ONE, DVec2::ZERO, heights).unwrap();
         let down = ray([2.0, 10.0, 2.0], [0.0, -1.0, 0.0]);
-        let t = TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone())).hit(&down).unwrap();
+        let t = TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone()))
+            .hit(&down)
+            .unwrap();
         assert!((t - 8.0).abs() < 1e-7, "{t}");
         // Level from the left at y = 2.5: meets the ramp at x = 3.
         let level = ray([-5.0, 2.5, 1.5], [1.0, 0.0, 0.0]);
-        let t = TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone())).hit(&level).unwrap();
+        let t = TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone()))
+            .hit(&level)
+            .unwrap();
         assert!((t - 8.0).abs() < 1e-7, "{t}");
         // Above the highest point, outside the grid, or pointing away: no hit.
         assert_eq!(
-            TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone())).hit(&ray([-5.0, 3.5, 1.5], [1.0, 0.0, 0.0])),
+            TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone()))
+                .hit(&ray([-5.0, 3.5, 1.5], [1.0, 0.0, 0.0])),
             None
         );
         assert_eq!(
-            TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone())).hit(&ray([9.0, 10.0, 2.0], [0.0, -1.0, 0.0])),
+            TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone()))
+                .hit(&ray([9.0, 10.0, 2.0], [0.0, -1.0, 0.0])),
             None
         );
         assert_eq!(
-            TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone())).hit(&ray([2.0, 10.0, 2.0], [0.0, 1.0, 0.0])),
+            TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone()))
+                .hit(&ray([2.0, 10.0, 2.0], [0.0, 1.0, 0.0])),
             None
         );
         // Below the surface the ray sees its back (culled on the GPU too)
         // until it comes out above: then it meets the front.
         assert_eq!(
-            TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone())).hit(&ray([2.0, 1.5, 2.0], [1.0, 0.0, 0.0])),
+            TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone()))
+                .hit(&ray([2.0, 1.5, 2.0], [1.0, 0.0, 0.0])),
             None
         );
         assert_eq!(
-            TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone())).hit(&ray([2.0, 0.5, 2.0], [1.0, 0.0, 0.0])),
+            TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone()))
+                .hit(&ray([2.0, 0.5, 2.0], [1.0, 0.0, 0.0])),
             None
         );
         let up_and_over = ray([-1.0, 0.5, 2.0], [3.0, 1.0, 0.0]);
-        assert_eq!(TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone())).hit(&up_and_over), None);
+        assert_eq!(
+            TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone())).hit(&up_and_over),
+            None
+        );
         let out_and_back =
             Ray::new(DVec3::new(1.0, 1.2, 2.0), DVec3::new(-1.0, 0.05, 0.0)).unwrap();
-        assert_eq!(TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone())).hit(&out_and_back), None);
+        assert_eq!(
+            TerrainSurface::new(&ReferenceTerrain::Bilinear(field.clone())).hit(&out_and_back),
+            None
+        );
         // A flat terrain (a box of no height) is met too, at any angle.
         let flat = HeightField::new([5, 5], DVec2::ONE, DVec2::ZERO, vec![2.0; 25]).unwrap();
         for direction in [[0.0, -1.0, 0.0], [1.0, -1.0, 0.5], [1.0, -0.35, 0.2]] {
             let oblique = ray([0.5, 3.0, 0.5], direction);
-            let t = TerrainSurface::new(&ReferenceTerrain::Bilinear(flat.clone())).hit(&oblique).unwrap();
+            let t = TerrainSurface::new(&ReferenceTerrain::Bilinear(flat.clone()))
+                .hit(&oblique)
+                .unwrap();
             assert!((oblique.at(t).y - 2.0).abs() < 1e-7, "{t}");
         }
     }
@@ -408,8 +440,13 @@ mod tests {
         let heights = (0..289)
             .map(|p| 3.0 * ((p % 17) as f32 * 0.9).sin() * ((p / 17) as f32 * 0.7).cos())
             .collect();
-        let field = HeightField::new([17, 17], DVec2::splat(2.0), DVec2::new(-16.0, -16.0), heights)
-            .unwrap();
+        let field = HeightField::new(
+            [17, 17],
+            DVec2::splat(2.0),
+            DVec2::new(-16.0, -16.0),
+            heights,
+        )
+        .unwrap();
         let hierarchy = TerrainHierarchy::new(field, 2.0).unwrap();
         let mut mesh = TerrainMesh::new();
         let settings = LodSettings {

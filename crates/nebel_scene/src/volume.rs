@@ -604,7 +604,7 @@ impl VolumeDescription {
         let transfer = description
             .build(scene_dir)
             .and_then(|tf| tf.scale_density(self.density_scale))
-        .map_err(|error| InvalidField::new("transfer", error.to_string()))?;
+            .map_err(|error| InvalidField::new("transfer", error.to_string()))?;
         Ok(BuiltVolume {
             field,
             transfer_function: transfer,

@@ -26,9 +26,9 @@ use bevy::diagnostic::Diagnostics;
 use bevy::math::DVec2;
 use bevy::prelude::*;
 use nebel_core::field::{HeightField, TerrainNoise};
-use nebel_lod::{TerrainHierarchy, TerrainMesh};
 use nebel_lod::quadtree::TerrainRefiner;
 use nebel_lod::quadtree::{MAX_TERRAIN_SIDE, pad_to_power_of_two_plus_one};
+use nebel_lod::{TerrainHierarchy, TerrainMesh};
 use nebel_render::{HeavyBuild, HeavyBuilds};
 
 use crate::error::TerrainBuildError;

@@ -62,8 +62,8 @@ pub mod shading;
 pub mod terrain;
 pub mod update;
 
-pub use error::TerrainBuildError;
 pub use build::TerrainLod;
+pub use error::TerrainBuildError;
 pub use heights::{TerrainHeights, TerrainHeightsError, TerrainHeightsLoader};
 pub use layer::{LayeredQuadtree, TerrainLayerLod};
 pub use terrain::{

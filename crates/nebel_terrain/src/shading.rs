@@ -303,6 +303,7 @@ mod tests {
             normals: vec![[0.0, 1.0, 0.0]; 3],
             grid_points: vec![[0, 0], [1, 0], [0, 1]],
             indices: vec![0, 2, 1],
+            ..TerrainMesh::default()
         };
         let mut mesh = empty_mesh();
         let palette = Palette::default();

@@ -581,7 +581,7 @@ mod tests {
             .resource_mut::<Assets<TerrainHeights>>()
             .add(TerrainHeights {
                 dims,
-                values: std::sync::Arc::new(values),
+                values: Arc::new(values),
             })
     }
 
@@ -620,7 +620,7 @@ mod tests {
         app.world_mut()
             .resource_mut::<Assets<TerrainHeights>>()
             .get_mut(&nan)
-            .map(|mut heights| std::sync::Arc::make_mut(&mut heights.values)[11] = 0.25)
+            .map(|mut heights| Arc::make_mut(&mut heights.values)[11] = 0.25)
             .unwrap();
         app.update();
         assert_eq!(status(&app, terrain), TerrainStatus::Ready);

@@ -240,12 +240,7 @@ fn spawn_scene(
         Some(fog) => {
             for volume in &volumes.0 {
                 if let nebel_scene::VolumeField::Grid(grid) = &volume.field {
-                    spawn_bevy_fog(
-                        &mut commands,
-                        &mut images,
-                        &Arc::new(grid.clone()),
-                        &fog.0,
-                    );
+                    spawn_bevy_fog(&mut commands, &mut images, &Arc::new(grid.clone()), &fog.0);
                 }
             }
         }

@@ -1,0 +1,386 @@
+//! The ground fog plugin in an app without a GPU: layers, batches, status,
+//! zero cost without fog, and bad input.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use bevy::asset::AssetPlugin;
+use bevy::camera::{ComputedCameraValues, RenderTargetInfo};
+use bevy::diagnostic::DiagnosticsStore;
+use bevy::prelude::*;
+use bevy::transform::TransformPlugin;
+use nebel_core::field::{FogNoise, TerrainNoise, ValleyFog};
+use nebel_core::optics::OpticalMode;
+use nebel_render::{CellBatch, HeavyBuilds};
+use nebel_terrain::{
+    Terrain, TerrainHeights, TerrainLayerLod, TerrainLod, TerrainLodStats, TerrainPlugin,
+    TerrainSource,
+};
+
+use crate::{FogThickness, GroundFog, GroundFogPlugin, GroundFogStats, GroundFogStatus};
+
+/// A folder of its own per test for the asset server's files.
+fn asset_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("nebel-fog-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// An app with the terrain and fog plugins, builds in the frame, and a
+/// camera at `eye` looking at the origin (what Bevy computes for a 64 × 64
+/// target).
+fn app(dir: &Path, eye: Vec3) -> (App, Entity) {
+    let mut app = App::new();
+    app.add_plugins((
+        MinimalPlugins,
+        TransformPlugin,
+        AssetPlugin {
+            file_path: dir.to_string_lossy().into_owned(),
+            watch_for_changes_override: Some(false),
+            ..default()
+        },
+    ))
+    .init_asset::<Mesh>()
+    .init_asset::<StandardMaterial>()
+    .add_plugins((TerrainPlugin, GroundFogPlugin))
+    .insert_resource(HeavyBuilds::Blocking);
+    let camera = Camera {
+        computed: ComputedCameraValues {
+            clip_from_view: Mat4::perspective_infinite_reverse_rh(1.0, 1.0, 0.1),
+            target_info: Some(RenderTargetInfo {
+                physical_size: UVec2::splat(64),
+                scale_factor: 1.0,
+            }),
+            ..default()
+        },
+        ..default()
+    };
+    let camera = app
+        .world_mut()
+        .spawn((
+            Camera3d::default(),
+            camera,
+            Transform::from_translation(eye).looking_at(Vec3::ZERO, Vec3::Y),
+        ))
+        .id();
+    (app, camera)
+}
+
+/// A 65 × 65 terrain 10 m apart with 100 m of relief.
+fn terrain() -> Terrain {
+    Terrain {
+        source: TerrainSource::Procedural {
+            size: 65,
+            noise: TerrainNoise {
+                wavelength: 300.0,
+                exponent: 1.5,
+                ..default()
+            },
+        },
+        spacing: 10.0,
+        vertical_scale: 100.0,
+        ..default()
+    }
+}
+
+fn valley(altitude: f32) -> GroundFog {
+    GroundFog {
+        thickness: FogThickness::Valley(ValleyFog {
+            altitude,
+            ..default()
+        }),
+        ..default()
+    }
+}
+
+fn settle(app: &mut App) {
+    for _ in 0..3 {
+        app.update();
+    }
+}
+
+fn status(app: &App, entity: Entity) -> GroundFogStatus {
+    app.world().get::<GroundFogStatus>(entity).unwrap().clone()
+}
+
+fn stats(app: &App, entity: Entity) -> GroundFogStats {
+    *app.world().get::<GroundFogStats>(entity).unwrap()
+}
+
+fn batch(app: &App, entity: Entity) -> Option<&CellBatch> {
+    app.world().get::<CellBatch>(entity)
+}
+
+fn measured(app: &App, path: &bevy::diagnostic::DiagnosticPath) -> Option<f64> {
+    app.world()
+        .resource::<DiagnosticsStore>()
+        .get(path)
+        .and_then(|d| d.measurement())
+        .map(|m| m.value)
+}
+
+fn assert_failed(app: &App, entity: Entity, needles: &[&str]) {
+    let GroundFogStatus::Failed(error) = status(app, entity) else {
+        panic!("expected a failure, got {:?}", status(app, entity));
+    };
+    let reason = error.to_string();
+    for needle in needles {
+        assert!(reason.contains(needle), "{reason:?} lacks {needle:?}");
+    }
+    assert!(batch(app, entity).is_none(), "no cells");
+}
+
+#[test]
+fn fog_on_a_terrain_becomes_sorted_prisms_that_follow_the_eye() {
+    let (mut app, camera) = app(&asset_dir("prisms"), Vec3::new(-400.0, 250.0, -300.0));
+    let fog = app
+        .world_mut()
+        .spawn((terrain(), valley(40.0), InheritedVisibility::VISIBLE))
+        .id();
+    settle(&mut app);
+    assert_eq!(status(&app, fog), GroundFogStatus::Ready);
+    let counts = stats(&app, fog);
+    let cells = batch(&app, fog).expect("a batch").cells.len();
+    assert!(counts.prisms > 50, "{counts:?}");
+    assert_eq!(counts.tetrahedra as usize, cells);
+    assert!(
+        counts.max_thickness > 10.0 && counts.max_thickness < 60.0,
+        "{counts:?}"
+    );
+    assert_eq!(batch(&app, fog).unwrap().mode, OpticalMode::Sorted);
+    // The terrain carries the fog's layer and refines on every move.
+    let layer = app.world().get::<TerrainLayerLod>(fog).unwrap();
+    assert!(layer.quadtree.is_some() && layer.refine_on_every_move);
+    let lod = app.world().get::<TerrainLod>(fog).unwrap();
+    assert_eq!(lod.mesh().layer.len(), lod.mesh().positions.len());
+    assert_eq!(
+        measured(&app, &GroundFogPlugin::TETRAHEDRA),
+        Some(cells as f64)
+    );
+    assert!(measured(&app, &GroundFogPlugin::UPDATE_MS).is_some());
+    // A still camera costs nothing; a move of 1 cm refines the terrain and
+    // rebuilds the prisms for the new eye.
+    let (terrain_updates, fog_updates) = (
+        app.world().get::<TerrainLodStats>(fog).unwrap().updates,
+        counts.updates,
+    );
+    app.update();
+    assert_eq!(stats(&app, fog).updates, fog_updates);
+    app.world_mut()
+        .get_mut::<Transform>(camera)
+        .unwrap()
+        .translation
+        .x += 0.01;
+    app.update();
+    assert_eq!(
+        app.world().get::<TerrainLodStats>(fog).unwrap().updates,
+        terrain_updates + 1
+    );
+    assert_eq!(stats(&app, fog).updates, fog_updates + 1);
+    // Unsorted modes: the terrain's own update distance again.
+    app.world_mut().get_mut::<GroundFog>(fog).unwrap().mode = OpticalMode::Emissive;
+    settle(&mut app);
+    assert_eq!(batch(&app, fog).unwrap().mode, OpticalMode::Emissive);
+    assert!(
+        !app.world()
+            .get::<TerrainLayerLod>(fog)
+            .unwrap()
+            .refine_on_every_move
+    );
+    let updates = stats(&app, fog).updates;
+    app.world_mut()
+        .get_mut::<Transform>(camera)
+        .unwrap()
+        .translation
+        .x += 0.01;
+    app.update();
+    assert_eq!(stats(&app, fog).updates, updates);
+}
+
+#[test]
+fn no_fog_means_no_cells_and_no_batch() {
+    let (mut app, _) = app(&asset_dir("none"), Vec3::new(-400.0, 250.0, -300.0));
+    // A terrain alone: no fog diagnostics.
+    let plain = app
+        .world_mut()
+        .spawn((terrain(), InheritedVisibility::VISIBLE))
+        .id();
+    settle(&mut app);
+    assert!(batch(&app, plain).is_none());
+    assert_eq!(measured(&app, &GroundFogPlugin::FOGS), None);
+    // Valleys filled to below the lowest point: no thickness anywhere, no
+    // layer for the terrain, no batch.
+    let dry = app
+        .world_mut()
+        .spawn((terrain(), valley(-50.0), InheritedVisibility::VISIBLE))
+        .id();
+    settle(&mut app);
+    assert_eq!(status(&app, dry), GroundFogStatus::Ready);
+    assert!(batch(&app, dry).is_none());
+    assert!(
+        app.world()
+            .get::<TerrainLayerLod>(dry)
+            .unwrap()
+            .quadtree
+            .is_none()
+    );
+    assert_eq!(stats(&app, dry).max_thickness, 0.0);
+    assert_eq!(measured(&app, &GroundFogPlugin::FOGS), Some(0.0));
+    // No density, or hidden: the batch goes.
+    let fog = app
+        .world_mut()
+        .spawn((terrain(), valley(40.0), InheritedVisibility::VISIBLE))
+        .id();
+    settle(&mut app);
+    assert!(batch(&app, fog).is_some());
+    app.world_mut().get_mut::<GroundFog>(fog).unwrap().density = 0.0;
+    settle(&mut app);
+    assert!(batch(&app, fog).is_none());
+    app.world_mut().get_mut::<GroundFog>(fog).unwrap().density = 0.03;
+    settle(&mut app);
+    assert!(batch(&app, fog).is_some());
+    *app.world_mut().get_mut::<InheritedVisibility>(fog).unwrap() = InheritedVisibility::HIDDEN;
+    settle(&mut app);
+    assert!(batch(&app, fog).is_none());
+}
+
+#[test]
+fn bad_input_fails_with_the_reason_and_never_panics() {
+    let dir = asset_dir("bad");
+    let (mut app, _) = app(&dir, Vec3::new(-400.0, 250.0, -300.0));
+    // A fog without a terrain.
+    let alone = app.world_mut().spawn(valley(40.0)).id();
+    settle(&mut app);
+    assert_failed(&app, alone, &["needs a Terrain"]);
+    // Settings out of range.
+    let weight = app
+        .world_mut()
+        .spawn((
+            terrain(),
+            InheritedVisibility::VISIBLE,
+            GroundFog {
+                roughness_weight: f32::NAN,
+                ..valley(40.0)
+            },
+        ))
+        .id();
+    let coverage = app
+        .world_mut()
+        .spawn((
+            terrain(),
+            InheritedVisibility::VISIBLE,
+            GroundFog {
+                thickness: FogThickness::Noise(FogNoise {
+                    coverage: 2.0,
+                    ..default()
+                }),
+                ..default()
+            },
+        ))
+        .id();
+    let profile = app
+        .world_mut()
+        .spawn((
+            terrain(),
+            InheritedVisibility::VISIBLE,
+            GroundFog {
+                profile: vec![[0.0, 1.0], [0.5, 0.5]],
+                ..valley(40.0)
+            },
+        ))
+        .id();
+    // A map of NaN, a missing map file.
+    let nan = app
+        .world_mut()
+        .resource_mut::<Assets<TerrainHeights>>()
+        .add(TerrainHeights {
+            dims: UVec2::new(2, 2),
+            values: Arc::new(vec![0.5, f32::NAN, 0.5, 0.5]),
+        });
+    let nan_map = app
+        .world_mut()
+        .spawn((
+            terrain(),
+            InheritedVisibility::VISIBLE,
+            GroundFog {
+                thickness: FogThickness::Map {
+                    map: nan,
+                    scale: 30.0,
+                },
+                ..default()
+            },
+        ))
+        .id();
+    let missing = app
+        .world()
+        .resource::<AssetServer>()
+        .load("no_such_fog.png");
+    let missing_map = app
+        .world_mut()
+        .spawn((
+            terrain(),
+            InheritedVisibility::VISIBLE,
+            GroundFog {
+                thickness: FogThickness::Map {
+                    map: missing,
+                    scale: 30.0,
+                },
+                ..default()
+            },
+        ))
+        .id();
+    for _ in 0..200 {
+        app.update();
+        if matches!(status(&app, missing_map), GroundFogStatus::Failed(_)) {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    assert_failed(&app, weight, &["roughness_weight", "NaN"]);
+    assert_failed(&app, coverage, &["coverage"]);
+    assert_failed(&app, profile, &["fog profile"]);
+    assert_failed(&app, nan_map, &["NaN", "finite"]);
+    assert_failed(&app, missing_map, &["no_such_fog.png"]);
+    // Fixing a setting draws the fog.
+    app.world_mut()
+        .get_mut::<GroundFog>(weight)
+        .unwrap()
+        .roughness_weight = 1.0;
+    settle(&mut app);
+    assert_eq!(status(&app, weight), GroundFogStatus::Ready);
+    assert!(batch(&app, weight).is_some());
+}
+
+#[test]
+fn a_fog_map_covers_the_terrain_and_scales_to_metres() {
+    let (mut app, _) = app(&asset_dir("map"), Vec3::new(-400.0, 250.0, -300.0));
+    // A 3 × 2 map: one white pixel, the rest black.
+    let map = app
+        .world_mut()
+        .resource_mut::<Assets<TerrainHeights>>()
+        .add(TerrainHeights {
+            dims: UVec2::new(3, 2),
+            values: Arc::new(vec![0.0, 0.0, 1.0, 0.0, 0.0, 0.0]),
+        });
+    let fog = app
+        .world_mut()
+        .spawn((
+            terrain(),
+            InheritedVisibility::VISIBLE,
+            GroundFog {
+                thickness: FogThickness::Map { map, scale: 25.0 },
+                ..default()
+            },
+        ))
+        .id();
+    settle(&mut app);
+    assert_eq!(status(&app, fog), GroundFogStatus::Ready);
+    assert_eq!(stats(&app, fog).max_thickness, 25.0);
+    let layer = app.world().get::<TerrainLayerLod>(fog).unwrap();
+    let values = layer.quadtree.as_ref().unwrap().layer.values();
+    // The white pixel is the terrain's corner at high x, low z.
+    assert_eq!(values[64], 25.0);
+    assert_eq!(values[0], 0.0);
+    assert_eq!(values[64 + 65 * 64], 0.0);
+    assert!(batch(&app, fog).is_some());
+}
