@@ -1,11 +1,16 @@
 //! Valley fog: a procedural terrain of 513 × 513 points 10 m apart with
 //! 700 m of relief, drawn through the quadtree C-LOD with geomorphing
-//! ([`Terrain`]), under a low sun. The fog that lies in its valleys is not
-//! built yet; the scene is its stage.
+//! ([`Terrain`]), under a low sun, with ground fog ([`GroundFog`]) lying in
+//! its valleys: prisms on the terrain's own triangles, morphed with it,
+//! drawn back to front by cell projection (Röttger and Ertl 2003 §6).
 //!
 //! `cargo run --release --example valley_fog` opens a window with a fly
-//! camera (WASD, Q/E, Shift, right mouse button to look); with no display, or
-//! with `-- --headless`, it renders to `target/nebel/valley_fog.png`.
+//! camera (WASD, Q/E down and up, Shift, right mouse button to look): fly
+//! down into the fog. `F` cycles the fog's thickness between the valleys
+//! filled to 70 m, noise patches and the painted map
+//! `assets/fog/valley_fog_map.png`; `G` shows the prisms' edges. With no
+//! display, or with `-- --headless`, it renders to
+//! `target/nebel/valley_fog.png`.
 
 use std::process::ExitCode;
 
@@ -32,8 +37,48 @@ fn main() -> ExitCode {
             brightness: 1500.0,
             ..default()
         })
-        .add_systems(Startup, spawn_valley);
+        .add_systems(Startup, spawn_valley)
+        .add_systems(Update, switch_fog);
     })
+}
+
+/// The valleys filled up to 70 m, the shore ragged by ±12 m.
+fn valley_fill() -> FogThickness {
+    FogThickness::Valley(ValleyFog {
+        altitude: 70.0,
+        edge: 12.0,
+        ..default()
+    })
+}
+
+/// `F`: valley fill → noise patches → painted map; `G`: the prisms' edges.
+fn switch_fog(
+    keys: Option<Res<ButtonInput<KeyCode>>>,
+    assets: Res<AssetServer>,
+    mut fogs: Query<&mut GroundFog>,
+) {
+    let Some(keys) = keys else {
+        return;
+    };
+    for mut fog in &mut fogs {
+        if keys.just_pressed(KeyCode::KeyF) {
+            fog.thickness = match fog.thickness {
+                FogThickness::Valley(_) => FogThickness::Noise(FogNoise {
+                    thickness: 50.0,
+                    coverage: 0.4,
+                    ..default()
+                }),
+                FogThickness::Noise(_) => FogThickness::Map {
+                    map: assets.load("fog/valley_fog_map.png"),
+                    scale: 80.0,
+                },
+                FogThickness::Map { .. } => valley_fill(),
+            };
+        }
+        if keys.just_pressed(KeyCode::KeyG) {
+            fog.debug.wireframe = !fog.debug.wireframe;
+        }
+    }
 }
 
 fn spawn_valley(mut commands: Commands) {
@@ -65,21 +110,29 @@ fn spawn_valley(mut commands: Commands) {
     // 513 × 513 points of fBm noise (8 octaves from 2.2 km), the exponent
     // 2.2 widening the valley floors; c = 300 keeps a left-out detail under
     // about two pixels.
-    commands.spawn(Terrain {
-        source: TerrainSource::Procedural {
-            size: 513,
-            noise: TerrainNoise {
-                seed: 4,
-                octaves: 8,
-                wavelength: 2200.0,
-                exponent: 2.2,
-                ..default()
+    commands.spawn((
+        Terrain {
+            source: TerrainSource::Procedural {
+                size: 513,
+                noise: TerrainNoise {
+                    seed: 4,
+                    octaves: 8,
+                    wavelength: 2200.0,
+                    exponent: 2.2,
+                    ..default()
+                },
             },
+            spacing: 10.0,
+            vertical_scale: 700.0,
+            accuracy: 300.0,
+            min_accuracy: 2.0,
+            ..default()
         },
-        spacing: 10.0,
-        vertical_scale: 700.0,
-        accuracy: 300.0,
-        min_accuracy: 2.0,
-        ..default()
-    });
+        // Fog in the valleys: 0.02/m at the ground, clear at its top.
+        GroundFog {
+            thickness: valley_fill(),
+            density: 0.02,
+            ..default()
+        },
+    ));
 }

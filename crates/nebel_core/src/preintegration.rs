@@ -98,8 +98,9 @@
 //!   log-uniform from 1e-3 to 1e3, 64×64×128): 2.3e-5 (transmittance) to
 //!   5.6e-3 (aurora), 8.8e-3 (cloud, whose ρ steps at its cut-off) and 2.2e-2
 //!   (fire; 2.4e-2 at τ from 100 to 1000, 1.7e-3 from 1e-3 to 0.1); random
-//!   transfer functions (κ < 1, ρ < 3, up to six control points) up to 0.2
-//!   where κ steps between table nodes (the tests bound 0.25). At 64×64×64
+//!   transfer functions (κ < 1, ρ < 3, up to six control points at least
+//!   1/15 apart) up to 0.046 (the tests bound 0.1); where κ steps within one
+//!   scalar node spacing the error is bounded only by the step. At 64×64×64
 //!   the cloud is at 1.2e-2. The premultiplied colour
 //!   adds the error of the bilinear ρ̂ in α, which grows with τ where ρ̂ is
 //!   not bilinear in `(s_f, s_b)` (near the cloud's cut-off the interpolated
@@ -887,7 +888,7 @@ impl SplitMix64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::test_support::arbitrary_transfer_function;
+    use crate::test_support::{arbitrary_transfer_function, resolved_transfer_function};
     use crate::transfer::{ControlPoint, TransferPreset};
     use proptest::prelude::*;
 
@@ -1224,8 +1225,12 @@ mod tests {
     /// fire preset over every depth (measured: see the module docs).
     const FIRE_LOOKUP_BOUND: f64 = 0.03;
     /// Largest interpolated sorted colour error of the default table of random
-    /// transfer functions (κ < 1, ρ < 3) over every depth.
-    const RANDOM_LOOKUP_BOUND: f64 = 0.25;
+    /// transfer functions (κ < 1, ρ < 3) whose features the table resolves
+    /// (control points at least 1/15 apart) over every depth. Where a
+    /// transfer function steps within one scalar node spacing, the error is
+    /// bounded only by the step in κ. Measured up to 0.046 over 222 random
+    /// transfer functions.
+    const RANDOM_LOOKUP_BOUND: f64 = 0.1;
 
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(24))]
@@ -1250,7 +1255,7 @@ mod tests {
         }
 
         #[test]
-        fn random_lookups_are_within_stated_error_at_every_depth(tf in arbitrary_transfer_function(1..7, 1.0, 3.0)) {
+        fn random_lookups_are_within_stated_error_at_every_depth(tf in resolved_transfer_function(1..7, 1.0, 3.0)) {
             let table = PreintegrationTable::build(&tf, PreintegrationConfig::default()).unwrap();
             let error = table.interpolation_error(300, EVERY_DEPTH);
             prop_assert!(error.chromaticity < RANDOM_LOOKUP_BOUND, "{:?}", error);

@@ -34,6 +34,38 @@ pub(crate) fn arbitrary_transfer_function(
     })
 }
 
+/// Random valid transfer functions whose control points sit on distinct
+/// multiples of 1/15 (so no feature is narrower than about four nodes of a
+/// 64-node table), each κ channel in [0, `kappa_below`), ρ in [0,
+/// `rho_below`).
+pub(crate) fn resolved_transfer_function(
+    point_counts: Range<usize>,
+    kappa_below: f32,
+    rho_below: f32,
+) -> impl Strategy<Value = TransferFunction> {
+    prop::collection::btree_map(
+        0_u8..=15,
+        (
+            prop::array::uniform3(0.0_f32..kappa_below),
+            0.0_f32..rho_below,
+        ),
+        point_counts,
+    )
+    .prop_map(|points| {
+        TransferFunction::new(
+            points
+                .into_iter()
+                .map(|(k, (kappa, rho))| ControlPoint {
+                    s: f32::from(k) / 15.0,
+                    kappa,
+                    rho,
+                })
+                .collect::<Vec<_>>(),
+        )
+        .unwrap()
+    })
+}
+
 /// The message of the error that `result` must hold.
 pub(crate) fn error_message<T: Debug, E: Display>(result: Result<T, E>) -> String {
     result.unwrap_err().to_string()
