@@ -7,7 +7,7 @@
 //! `cargo run --release --example valley_fog` opens a window with a fly
 //! camera (WASD, Q/E down and up, Shift, right mouse button to look): fly
 //! down into the fog. `F` cycles the fog's thickness between the valleys
-//! filled to 70 m, noise patches and the painted map
+//! filled to 110 m, noise patches and the painted map
 //! `assets/fog/valley_fog_map.png`; `G` shows the prisms' edges. With no
 //! display, or with `-- --headless`, it renders to
 //! `target/nebel/valley_fog.png`.
@@ -42,11 +42,11 @@ fn main() -> ExitCode {
     })
 }
 
-/// The valleys filled up to 70 m, the shore ragged by ±12 m.
+/// The valleys filled up to 110 m, the shore ragged by ±15 m.
 fn valley_fill() -> FogThickness {
     FogThickness::Valley(ValleyFog {
-        altitude: 70.0,
-        edge: 12.0,
+        altitude: 110.0,
+        edge: 15.0,
         ..default()
     })
 }
@@ -128,10 +128,10 @@ fn spawn_valley(mut commands: Commands) {
             min_accuracy: 2.0,
             ..default()
         },
-        // Fog in the valleys: 0.02/m at the ground, clear at its top.
+        // Fog in the valleys: 0.015/m at the ground, clear at its top.
         GroundFog {
             thickness: valley_fill(),
-            density: 0.02,
+            density: 0.015,
             ..default()
         },
     ));

@@ -8,7 +8,8 @@
 //! - [`example_runner`]: what every example does: a window with a fly camera
 //!   ([`fly_camera`]), or a headless render when there is no display.
 //! - [`fog_comparison`] and [`lod_sweep`]: the `bench-fog` and `bench-lod`
-//!   commands; [`error`]: why a command failed; [`progress`]: progress bars.
+//!   commands; [`reference`]: the exact CPU reference of a whole scene;
+//!   [`error`]: why a command failed; [`progress`]: progress bars.
 
 pub mod error;
 pub mod example_runner;
@@ -17,6 +18,7 @@ pub mod fog_comparison;
 pub mod headless;
 pub mod lod_sweep;
 pub mod progress;
+pub mod reference;
 pub mod scene_setup;
 pub mod stats;
 

@@ -15,20 +15,83 @@
 //! per `c` joined in sweep order, the full-resolution point in red (the
 //! comparison image of `--comparison-accuracy` scores 0 against itself and
 //! has no dot). SVG needs no font files: the labels are SVG text.
+//!
+//! A scene without volumes whose terrain has ground fog sweeps the terrain's
+//! accuracy `c` instead (the quadtree of terrain and fog prisms, Röttger and
+//! Ertl 2003 §6), full resolution being `c` = [`FULL_TERRAIN_ACCURACY`]
+//! (every node whose roughness is not zero refined); the cells counted are
+//! the fog's tetrahedra, the reference is the scene's
+//! ([`crate::reference::scene_reference`]: the full-resolution fog's cells on
+//! the full-resolution triangles).
 
 use std::path::Path;
 
 use nebel_lod::OctreeSettings;
 use nebel_reference::image_metrics::{ImageErrorMetrics, compare};
-use nebel_scene::reference::{reference_image, save_reference};
+use nebel_scene::reference::save_reference;
 use nebel_scene::{LodDescription, SceneDescription};
 use plotters::coord::combinators::IntoLogRange;
 use plotters::prelude::*;
 
 use crate::error::CommandError;
 use crate::headless::HeadlessOptions;
-use crate::progress::reference_bar;
+use crate::reference::scene_reference;
 use crate::scene_setup::SceneSetupPlugin;
+
+/// The terrain accuracy `c` a ground fog sweep takes as full resolution: a
+/// node whose roughness is above 1e-6 is refined anywhere on a terrain of
+/// up to 8193 points.
+pub const FULL_TERRAIN_ACCURACY: f64 = 1e7;
+
+/// What a sweep varies.
+#[derive(Clone, Copy, Debug)]
+enum Swept {
+    /// The octree of the scene's one grid volume.
+    Volume { min_accuracy: f64 },
+    /// The terrain's quadtree, with its ground fog.
+    TerrainFog,
+}
+
+impl Swept {
+    /// `scene` with the accuracy `c` (`None`: the comparison `lod`, or full
+    /// resolution for the terrain).
+    fn at(
+        self,
+        scene: &SceneDescription,
+        accuracy: Option<f64>,
+        lod: Option<LodDescription>,
+    ) -> SceneDescription {
+        let mut variant = scene.clone();
+        match self {
+            Swept::Volume { min_accuracy } => {
+                variant.volumes[0].lod = match accuracy {
+                    Some(accuracy) => Some(LodDescription {
+                        accuracy,
+                        min_accuracy,
+                    }),
+                    None => lod,
+                };
+            }
+            Swept::TerrainFog => {
+                if let Some(terrain) = &mut variant.terrain {
+                    terrain.accuracy = accuracy
+                        .or(lod.map(|lod| lod.accuracy))
+                        .unwrap_or(FULL_TERRAIN_ACCURACY)
+                        as f32;
+                }
+            }
+        }
+        variant
+    }
+
+    /// The effect and counter the cells drawn are read from.
+    fn cells(self) -> (&'static str, &'static str) {
+        match self {
+            Swept::Volume { .. } => ("volume", "cells_drawn"),
+            Swept::TerrainFog => ("fog", "tetrahedra"),
+        }
+    }
+}
 
 /// One point of the sweep.
 #[derive(Clone, Debug, PartialEq)]
@@ -62,7 +125,8 @@ impl SweepPoint {
 }
 
 /// Runs the sweep and writes `DIR/lod_sweep.csv`, `DIR/lod_sweep.svg` and the
-/// images. `scene` must have exactly one volume, with a grid source.
+/// images. `scene` must have exactly one volume, with a grid source, or no
+/// volume and a terrain with fog (see the module docs).
 ///
 /// `comparison_accuracy`: for a volume too large to draw at full resolution
 /// (the paper's 513 × 65 × 513 field), the image every `c` is scored against
@@ -75,23 +139,34 @@ pub fn run_lod_sweep(
     comparison_accuracy: Option<f64>,
     out_dir: &Path,
 ) -> Result<Vec<SweepPoint>, CommandError> {
-    if scene.volumes.len() != 1 {
-        return Err(CommandError::Unsuitable {
-            path: scene_path.to_owned(),
-            reason: format!(
-                "bench-lod sweeps exactly one volume, the scene has {}",
-                scene.volumes.len()
-            ),
-        });
-    }
+    let fogged = scene
+        .terrain
+        .as_ref()
+        .is_some_and(|terrain| terrain.fog.is_some());
+    let swept = match scene.volumes.len() {
+        1 => Swept::Volume {
+            min_accuracy: scene.volumes[0]
+                .lod
+                .map_or(OctreeSettings::DEFAULT_MIN_ACCURACY, |lod| lod.min_accuracy),
+        },
+        0 if fogged => Swept::TerrainFog,
+        count => {
+            return Err(CommandError::Unsuitable {
+                path: scene_path.to_owned(),
+                reason: format!(
+                    "bench-lod sweeps exactly one volume, or a terrain with fog and no volume; the scene has {count} volumes"
+                ),
+            });
+        }
+    };
     scene.camera.tonemapping = false;
     scene.camera.msaa = 1;
     std::fs::create_dir_all(out_dir).map_err(CommandError::write(out_dir))?;
-    let min_accuracy = scene.volumes[0]
-        .lod
-        .map_or(OctreeSettings::DEFAULT_MIN_ACCURACY, |lod| lod.min_accuracy);
-
-    let lit = scene.volumes[0].lighting.is_some();
+    let min_accuracy = match swept {
+        Swept::Volume { min_accuracy } => min_accuracy,
+        Swept::TerrainFog => 0.0,
+    };
+    let lit = scene.volumes.first().is_some_and(|v| v.lighting.is_some());
     let full_lod = lit.then_some(LodDescription {
         accuracy: f64::INFINITY,
         min_accuracy,
@@ -106,12 +181,8 @@ pub fn run_lod_sweep(
     let reference = match comparison_accuracy {
         Some(_) => None,
         None => {
-            let mut full = scene.clone();
-            full.volumes[0].lod = full_lod;
-            let volumes = full.build_volumes(scene_path)?;
-            let (bar, report) = reference_bar(true);
-            let reference = reference_image(&full, volumes, Some(&report))?;
-            bar.finish_and_clear();
+            let full = swept.at(&scene, None, full_lod);
+            let reference = scene_reference(scene_path, &full, true)?;
             save_reference(&reference, &out_dir.join("reference.png"))?;
             Some(reference)
         }
@@ -121,14 +192,7 @@ pub fn run_lod_sweep(
     let mut images = Vec::with_capacity(accuracies.len() + 1);
     let runs = accuracies.iter().map(|c| Some(*c)).chain([None]);
     for accuracy in runs {
-        let mut variant = scene.clone();
-        variant.volumes[0].lod = match accuracy {
-            Some(accuracy) => Some(LodDescription {
-                accuracy,
-                min_accuracy,
-            }),
-            None => comparison_lod,
-        };
+        let variant = swept.at(&scene, accuracy, comparison_lod);
         let name = match (accuracy, comparison_accuracy) {
             (Some(c), _) => format!("c_{c}"),
             (None, Some(c)) => format!("comparison_c_{c}"),
@@ -150,10 +214,11 @@ pub fn run_lod_sweep(
                 psnr: f64::NAN,
             },
         };
+        let (effect, counter) = swept.cells();
         let cells_drawn = stats
             .effects
-            .get("volume")
-            .and_then(|volume| volume.get("cells_drawn"))
+            .get(effect)
+            .and_then(|effect| effect.get(counter))
             .copied()
             .unwrap_or(0.0);
         points.push(SweepPoint {

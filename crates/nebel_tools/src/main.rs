@@ -11,15 +11,14 @@ use std::time::Instant;
 use clap::{Args, Parser, Subcommand};
 use nebel_core::optics::OpticalMode;
 use nebel_reference::image_metrics::{difference_image, load_png_linear, save_png};
-use nebel_scene::reference::{reference_image, reference_image_with_terrain, save_reference};
-use nebel_scene::{
-    BuiltVolume, LightDescription, ReferenceTerrain, SceneDescription, SceneError, VolumeField,
-};
+use nebel_scene::reference::{reference_image, save_reference};
+use nebel_scene::{BuiltVolume, LightDescription, SceneDescription, SceneError, VolumeField};
 use nebel_tools::error::CommandError;
 use nebel_tools::fog_comparison::{self, BevyFog};
 use nebel_tools::headless::HeadlessOptions;
 use nebel_tools::lod_sweep::run_lod_sweep;
 use nebel_tools::progress::reference_bar;
+use nebel_tools::reference::scene_reference;
 use nebel_tools::scene_setup::SceneSetupPlugin;
 
 /// Factor on the absolute error in `compare --diff` images.
@@ -89,10 +88,11 @@ enum Command {
         #[arg(long, default_value_t = 64)]
         steps: u32,
     },
-    /// Sweep the octree accuracy c of the scene's one grid volume, score
-    /// each image against full resolution and the exact reference, write
-    /// `DIR/lod_sweep.csv` and a plot of frame time against error
-    /// (`DIR/lod_sweep.svg`).
+    /// Sweep the octree accuracy c of the scene's one grid volume (or, in a
+    /// scene without volumes, the accuracy c of its terrain with ground
+    /// fog), score each image against full resolution and the exact
+    /// reference, write `DIR/lod_sweep.csv` and a plot of frame time against
+    /// error (`DIR/lod_sweep.svg`).
     BenchLod {
         #[command(flatten)]
         scene: SceneArgs,
@@ -208,28 +208,8 @@ fn render(
 
 fn reference(args: &SceneArgs, out: &Path) -> Result<(), CommandError> {
     let scene = args.load()?;
-    let mut volumes = scene.build_volumes(&args.scene)?;
-    let unit_heights = scene.build_terrain(&args.scene)?;
-    let fog = match (&unit_heights, scene.build_ground_fog(&args.scene)?) {
-        (Some(unit), Some(fog)) => scene.build_fog_reference(&args.scene, unit, &fog)?,
-        _ => None,
-    };
-    // A fogged terrain is drawn as the triangles the fog's cells lie on.
-    let terrain = match fog {
-        Some(fog) => {
-            volumes.extend(fog.volume);
-            Some(ReferenceTerrain::Triangles(fog.ground))
-        }
-        None => scene
-            .terrain
-            .as_ref()
-            .zip(unit_heights.as_ref())
-            .map(|(terrain, unit)| ReferenceTerrain::Bilinear(terrain.world_heights(unit))),
-    };
     let started = Instant::now();
-    let (bar, report) = reference_bar(true);
-    let image = reference_image_with_terrain(&scene, volumes, terrain.as_ref(), Some(&report))?;
-    bar.finish_and_clear();
+    let image = scene_reference(&args.scene, &scene, true)?;
     save_reference(&image, out)?;
     eprintln!(
         "nebel: wrote {} ({}x{}, exact CPU reference in {:.1} s)",
