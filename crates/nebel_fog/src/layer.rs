@@ -9,8 +9,9 @@
 //! `AsyncComputeTaskPool` (one at a time per fog; at once under
 //! `HeavyBuilds::Blocking`). Its result goes to the terrain as a
 //! [`TerrainLayerLod`], which the terrain's refinement then carries; a fog of
-//! no thickness anywhere gives none (the terrain refines alone, and nothing
-//! of the fog runs per frame).
+//! no thickness anywhere, no density or a transparent transfer function
+//! gives none (the terrain refines alone, and nothing of the fog runs per
+//! frame; the layer is kept for when the fog can be seen again).
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -65,6 +66,9 @@ struct BuiltLayer {
 pub struct GroundFogLayer {
     key: Option<LayerKey>,
     build: Option<(LayerKey, HeavyBuild<Result<BuiltLayer, GroundFogError>>)>,
+    /// The last layer built, handed to the terrain while the fog can be
+    /// seen.
+    built: Option<LayeredQuadtree>,
 }
 
 /// The thickness of `input` on `base`'s grid, and `base` with its roughness.
@@ -187,12 +191,25 @@ pub(crate) fn build_fog_layers(
             continue;
         };
         let every_move = fog.mode == OpticalMode::Sorted;
-        if let Some(mut layer_lod) = layer_lod
-            && layer_lod.refine_on_every_move != every_move
-        {
-            layer_lod.refine_on_every_move = every_move;
-        }
+        // A fog that draws nothing (no density, a transparent transfer
+        // function) leaves the terrain refining alone.
+        let drawn = fog.density > 0.0 && !fog.transfer_function.is_transparent(0.0, 1.0);
         let state = &mut *state;
+        if let Some(mut layer_lod) = layer_lod {
+            if layer_lod.refine_on_every_move != every_move {
+                layer_lod.refine_on_every_move = every_move;
+            }
+            let wanted = state.built.as_ref().filter(|_| drawn);
+            let current = layer_lod.quadtree.as_ref();
+            let same = match (wanted, current) {
+                (Some(a), Some(b)) => Arc::ptr_eq(&a.hierarchy, &b.hierarchy),
+                (None, None) => true,
+                _ => false,
+            };
+            if !same {
+                layer_lod.quadtree = wanted.cloned();
+            }
+        }
         let mut land = |state: &mut GroundFogLayer, status: &mut GroundFogStatus| {
             let Some((key, build)) = state.build.as_mut() else {
                 return;
@@ -209,12 +226,14 @@ pub(crate) fn build_fog_layers(
                     diagnostics
                         .add_measurement(&GroundFogPlugin::BUILD_MS, || f64::from(built.build_ms));
                     commands.entity(entity).insert(TerrainLayerLod {
-                        quadtree: built.quadtree,
+                        quadtree: built.quadtree.clone().filter(|_| drawn),
                         refine_on_every_move: every_move,
                     });
+                    state.built = built.quadtree;
                     *status = GroundFogStatus::Ready;
                 }
                 Err(error) => {
+                    state.built = None;
                     commands.entity(entity).remove::<TerrainLayerLod>();
                     fail(entity, status, error);
                 }
@@ -251,6 +270,7 @@ pub(crate) fn build_fog_layers(
             }
             Err(error) => {
                 state.key = Some(key);
+                state.built = None;
                 commands.entity(entity).remove::<TerrainLayerLod>();
                 fail(entity, &mut status, error);
             }

@@ -439,4 +439,27 @@ fn a_scene_without_volumes_runs_no_cell_projection_work() {
     assert!(stats["effects"].get("cell_projection").is_none(), "{stats}");
     assert!(stats["effects"].get("volume").is_none(), "{stats}");
     assert!(stats["effects"].get("terrain").is_none(), "{stats}");
+    assert!(stats["effects"].get("fog").is_none(), "{stats}");
+
+    // A terrain whose fog has no thickness anywhere: the terrain draws, the
+    // fog draws no cell and runs no pass.
+    let stats_path = out_dir.join("dry_valley_stats.json");
+    let output = nebel(&[
+        "render",
+        "tests/scenes/dry_valley.ron",
+        "--out",
+        out_dir.join("dry_valley_only.png").to_str().unwrap(),
+        "--stats",
+        stats_path.to_str().unwrap(),
+    ]);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let stats: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&stats_path).unwrap()).unwrap();
+    assert!(stats["effects"].get("cell_projection").is_none(), "{stats}");
+    assert!(stats["effects"]["terrain"]["triangles"].as_f64().unwrap() > 0.0, "{stats}");
+    assert_eq!(stats["effects"]["fog"]["tetrahedra"].as_f64(), Some(0.0), "{stats}");
 }
