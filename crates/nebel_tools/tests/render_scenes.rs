@@ -335,7 +335,9 @@ const ACCURACY_BOUNDS: &[(&str, f64)] = &[
     // quadtree's widest, thinnest prisms), above at 45°, inside, and
     // emissive: lavapipe measured RMSE 2.1e-3, 2.1e-3 and 2.7e-4, one 8-bit
     // step at most. Valley fog on a relief, against the same cells on the
-    // same triangles: 1.3e-3 (two silhouette pixels differ by 5e-2).
+    // same triangles, the eye on a plane of the prisms' vertical faces:
+    // 1.1e-3, one step at most (a pixel whose ray ran along those faces
+    // was lost to the cells on both sides: 0.45 off, RMSE 7.7e-3).
     ("fog_slab_above", 0.003),
     ("fog_slab_inside", 0.003),
     ("fog_slab_emissive", 0.002),
@@ -355,6 +357,7 @@ const MAX_ERROR_BOUNDS: &[(&str, f64)] = &[
     ("fog_slab_above", 0.012),
     ("fog_slab_inside", 0.012),
     ("fog_slab_emissive", 0.012),
+    ("valley_fog", 0.012),
 ];
 
 #[test]

@@ -130,6 +130,13 @@ fn ray_distance_at_depth(ndc: vec2<f32>, depth: f32) -> f32 {
     return length(world.xyz / world.w - view.camera_position.xyz);
 }
 
+// The angle between the unit ray `direction` through NDC `ndc` and the ray
+// through the pixel above it, radians.
+fn pixel_angle(ndc: vec2<f32>, direction: vec3<f32>) -> f32 {
+    let above = view.world_from_clip * vec4(ndc.x, ndc.y + 2.0 / view.viewport.w, 1.0, 1.0);
+    return length(normalize(above.xyz / above.w - view.camera_position.xyz) - direction);
+}
+
 // Table coordinates: node i at s = i / (n − 1); returns the lower node and the weight of the upper.
 fn table_position(x: f32, nodes: u32) -> vec2<f32> {
     let scaled = clamp(x, 0.0, 1.0) * f32(nodes - 1u);
@@ -176,7 +183,16 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     // which grows with the distance from the world origin and the cell's
     // size), the plane meets every ray at t = 0: a pixel whose ray grazes
     // that plane would otherwise divide two rounding errors and be lost to
-    // both cells on either side (a one-pixel crack through the eye).
+    // both cells on either side (a one-pixel crack through the eye). A ray
+    // along the plane itself (within 1/16 of a pixel; its pixel lies on the
+    // plane's edge-on line, which the rasterizer, snapping vertices to a
+    // fraction of a pixel, gives to the faces of the cell on either side)
+    // has no side to choose: that face does not clip it, so the cell that
+    // got the pixel draws the ray.
+    let ndc = vec2(
+        (in.clip_position.x - view.viewport.x) / view.viewport.z * 2.0 - 1.0,
+        1.0 - (in.clip_position.y - view.viewport.y) / view.viewport.w * 2.0,
+    );
     let v0 = relative_vertex(cell, 0u);
     let e1 = relative_vertex(cell, 1u) - v0;
     let e2 = relative_vertex(cell, 2u) - v0;
@@ -190,6 +206,9 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
         let denominator = dot(normal, direction);
         var height = dot(normal, relative_vertex(cell, FACE_VERTICES[face * 3u]));
         if abs(height) <= on_plane * length(normal) {
+            if abs(denominator) <= 0.0625 * pixel_angle(ndc, direction) * length(normal) {
+                continue;
+            }
             height = 0.0;
         }
         let t = height / denominator;
@@ -203,10 +222,6 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     // Clip to the near plane (the camera may stand inside the cell) and to the
     // opaque scene: depth 0 is the cleared far plane (reversed Z).
     let pixel = vec2<i32>(floor(in.clip_position.xy));
-    let ndc = vec2(
-        (in.clip_position.x - view.viewport.x) / view.viewport.z * 2.0 - 1.0,
-        1.0 - (in.clip_position.y - view.viewport.y) / view.viewport.w * 2.0,
-    );
     t_entry = max(t_entry, ray_distance_at_depth(ndc, 1.0));
     let depth = textureLoad(depth_texture, pixel, 0);
     if depth > 0.0 {
