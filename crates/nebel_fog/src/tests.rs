@@ -237,7 +237,13 @@ fn no_fog_means_no_cells_and_no_batch() {
     settle(&mut app);
     assert!(batch(&app, fog).is_none());
     // The terrain refines alone meanwhile.
-    assert!(app.world().get::<TerrainLayerLod>(fog).unwrap().quadtree.is_none());
+    assert!(
+        app.world()
+            .get::<TerrainLayerLod>(fog)
+            .unwrap()
+            .quadtree
+            .is_none()
+    );
     app.world_mut().get_mut::<GroundFog>(fog).unwrap().density = 0.03;
     settle(&mut app);
     assert!(batch(&app, fog).is_some());

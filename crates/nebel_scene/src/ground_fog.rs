@@ -146,8 +146,7 @@ impl GroundFogDescription {
                 }
             }
             FogThicknessDescription::Valley(valley) => {
-                if !valley.altitude.is_finite() || !(valley.edge.is_finite() && valley.edge >= 0.0)
-                {
+                if !(valley.altitude.is_finite() && valley.edge.is_finite() && valley.edge >= 0.0) {
                     return Err(InvalidField::new(
                         "thickness.Valley",
                         format!(
@@ -158,8 +157,10 @@ impl GroundFogDescription {
                 }
             }
             FogThicknessDescription::Noise(noise) => {
-                if !(noise.thickness.is_finite() && noise.thickness >= 0.0)
-                    || !(noise.coverage > 0.0 && noise.coverage <= 1.0)
+                if !(noise.thickness.is_finite()
+                    && noise.thickness >= 0.0
+                    && noise.coverage > 0.0
+                    && noise.coverage <= 1.0)
                 {
                     return Err(InvalidField::new(
                         "thickness.Noise",

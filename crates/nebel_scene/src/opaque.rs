@@ -198,7 +198,7 @@ impl TerrainTriangles {
             let wc = 1.0 - wa - wb;
             let tolerance = -1e-9;
             (wa >= tolerance && wb >= tolerance && wc >= tolerance)
-                .then(|| wa * a.y + wb * b.y + wc * c.y)
+                .then_some(wa * a.y + wb * b.y + wc * c.y)
         })
     }
 }

@@ -8,7 +8,7 @@
 //! - [`example_runner`]: what every example does: a window with a fly camera
 //!   ([`fly_camera`]), or a headless render when there is no display.
 //! - [`fog_comparison`] and [`lod_sweep`]: the `bench-fog` and `bench-lod`
-//!   commands; [`reference`]: the exact CPU reference of a whole scene;
+//!   commands; [`reference`](mod@reference): the exact CPU reference of a whole scene;
 //!   [`error`]: why a command failed; [`progress`]: progress bars.
 
 pub mod error;

@@ -463,6 +463,13 @@ fn a_scene_without_volumes_runs_no_cell_projection_work() {
     let stats: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&stats_path).unwrap()).unwrap();
     assert!(stats["effects"].get("cell_projection").is_none(), "{stats}");
-    assert!(stats["effects"]["terrain"]["triangles"].as_f64().unwrap() > 0.0, "{stats}");
-    assert_eq!(stats["effects"]["fog"]["tetrahedra"].as_f64(), Some(0.0), "{stats}");
+    assert!(
+        stats["effects"]["terrain"]["triangles"].as_f64().unwrap() > 0.0,
+        "{stats}"
+    );
+    assert_eq!(
+        stats["effects"]["fog"]["tetrahedra"].as_f64(),
+        Some(0.0),
+        "{stats}"
+    );
 }

@@ -17,7 +17,10 @@
 
 use super::{FieldError, HeightField, TerrainNoise};
 
-/// Patches of ground fog from noise (see the [module docs](self)).
+/// Patches of ground fog from noise: the thickness at a point is
+/// `thickness · max(0, (u − (1 − coverage)) / coverage)` with `u` the unit
+/// [`TerrainNoise`] field there ([`HeightField::terrain`]), so the fog
+/// covers about `coverage` of the ground, thickest at the noise's peaks.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "bevy_reflect", derive(bevy_reflect::Reflect))]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
@@ -46,7 +49,11 @@ impl Default for FogNoise {
     }
 }
 
-/// Valleys filled with fog up to an altitude (see the [module docs](self)).
+/// Valleys filled with fog up to an altitude: the thickness over a ground
+/// height `h` is `max(0, altitude + edge · (2u − 1) − h)`, `u` the unit
+/// [`TerrainNoise`] field of `edge_noise` there, so the fog lies in the
+/// valleys with a flat top that the noise moves by up to `±edge` metres (a
+/// ragged shore).
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "bevy_reflect", derive(bevy_reflect::Reflect))]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
