@@ -6,7 +6,7 @@
 //! module intersects every pixel's ray with the scene's planes, boxes and
 //! spheres in f64 and returns the view-space depth of the nearest hit (`+∞`
 //! where the ray hits nothing), the layout
-//! [`ReferenceScene::opaque_depth`](crate::reference::ReferenceScene::opaque_depth)
+//! [`ReferenceScene::opaque_depth`](nebel_reference::ReferenceScene::opaque_depth)
 //! takes.
 //!
 //! A terrain, given as its height field in world space
