@@ -23,15 +23,17 @@ pub(crate) fn arbitrary_transfer_function(
         ),
         point_counts,
     )
-    .prop_map(|points| {
-        TransferFunction::new(
-            points
-                .into_iter()
-                .map(|(s, kappa, rho)| ControlPoint { s, kappa, rho })
-                .collect::<Vec<_>>(),
-        )
-        .unwrap()
-    })
+    .prop_map(|points| transfer_function(points.into_iter()))
+}
+
+/// The transfer function through `(s, κ, ρ)` points.
+fn transfer_function(points: impl Iterator<Item = (f32, [f32; 3], f32)>) -> TransferFunction {
+    TransferFunction::new(
+        points
+            .map(|(s, kappa, rho)| ControlPoint { s, kappa, rho })
+            .collect::<Vec<_>>(),
+    )
+    .unwrap()
 }
 
 /// Random valid transfer functions whose control points sit on distinct
@@ -52,17 +54,11 @@ pub(crate) fn resolved_transfer_function(
         point_counts,
     )
     .prop_map(|points| {
-        TransferFunction::new(
+        transfer_function(
             points
                 .into_iter()
-                .map(|(k, (kappa, rho))| ControlPoint {
-                    s: f32::from(k) / 15.0,
-                    kappa,
-                    rho,
-                })
-                .collect::<Vec<_>>(),
+                .map(|(k, (kappa, rho))| (f32::from(k) / 15.0, kappa, rho)),
         )
-        .unwrap()
     })
 }
 

@@ -16,7 +16,6 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use bevy::asset::LoadState;
 use bevy::diagnostic::Diagnostics;
 use bevy::math::DVec2;
 use bevy::prelude::*;
@@ -144,14 +143,9 @@ fn thickness_input(
                 scale: *scale,
             },
             None => {
-                return match asset_server.get_load_state(map.id()) {
-                    Some(LoadState::Failed(error)) => Err(GroundFogError::MapNotLoaded {
-                        path: map
-                            .path()
-                            .map_or_else(|| String::from("(no path)"), ToString::to_string),
-                        error,
-                    }),
-                    _ => Ok(None),
+                return match TerrainHeights::load_failure(map, asset_server) {
+                    Some((path, error)) => Err(GroundFogError::MapNotLoaded { path, error }),
+                    None => Ok(None),
                 };
             }
         },
@@ -176,15 +170,7 @@ pub(crate) fn build_fog_layers(
     mode: Res<HeavyBuilds>,
     mut diagnostics: Diagnostics,
 ) {
-    let changed: Vec<AssetId<TerrainHeights>> = map_events
-        .read()
-        .filter_map(|event| match event {
-            AssetEvent::Added { id }
-            | AssetEvent::Modified { id }
-            | AssetEvent::LoadedWithDependencies { id } => Some(*id),
-            AssetEvent::Removed { .. } | AssetEvent::Unused { .. } => None,
-        })
-        .collect();
+    let changed = TerrainHeights::changed(&mut map_events);
     for (entity, fog, lod, layer_lod, mut state, mut status, mut stats) in &mut fogs {
         let Some(lod) = lod else {
             fail(entity, &mut status, GroundFogError::NoTerrain);

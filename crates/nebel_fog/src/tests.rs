@@ -5,12 +5,12 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use bevy::asset::AssetPlugin;
-use bevy::camera::{ComputedCameraValues, RenderTargetInfo};
 use bevy::diagnostic::DiagnosticsStore;
 use bevy::prelude::*;
 use bevy::transform::TransformPlugin;
 use nebel_core::field::{FogNoise, TerrainNoise, ValleyFog};
 use nebel_core::optics::OpticalMode;
+use nebel_render::camera::computed_camera;
 use nebel_render::{CellBatch, HeavyBuilds};
 use nebel_terrain::{
     Terrain, TerrainHeights, TerrainLayerLod, TerrainLod, TerrainLodStats, TerrainPlugin,
@@ -44,17 +44,10 @@ fn app(dir: &Path, eye: Vec3) -> (App, Entity) {
     .init_asset::<StandardMaterial>()
     .add_plugins((TerrainPlugin, GroundFogPlugin))
     .insert_resource(HeavyBuilds::Blocking);
-    let camera = Camera {
-        computed: ComputedCameraValues {
-            clip_from_view: Mat4::perspective_infinite_reverse_rh(1.0, 1.0, 0.1),
-            target_info: Some(RenderTargetInfo {
-                physical_size: UVec2::splat(64),
-                scale_factor: 1.0,
-            }),
-            ..default()
-        },
-        ..default()
-    };
+    let camera = computed_camera(
+        Mat4::perspective_infinite_reverse_rh(1.0, 1.0, 0.1),
+        UVec2::splat(64),
+    );
     let camera = app
         .world_mut()
         .spawn((
@@ -91,6 +84,26 @@ fn valley(altitude: f32) -> GroundFog {
         }),
         ..default()
     }
+}
+
+/// Spawns a visible terrain with `fog`.
+fn spawn_fog(app: &mut App, fog: GroundFog) -> Entity {
+    app.world_mut()
+        .spawn((terrain(), fog, InheritedVisibility::VISIBLE))
+        .id()
+}
+
+/// Whether the terrain of `entity` carries a fog layer.
+fn has_layer(app: &App, entity: Entity) -> bool {
+    app.world()
+        .get::<TerrainLayerLod>(entity)
+        .is_some_and(|layer| layer.quadtree.is_some())
+}
+
+/// Moves the camera by 1 cm.
+fn nudge(app: &mut App, camera: Entity) {
+    let mut transform = app.world_mut().get_mut::<Transform>(camera).unwrap();
+    transform.translation.x += 0.01;
 }
 
 fn settle(app: &mut App) {
@@ -133,10 +146,7 @@ fn assert_failed(app: &App, entity: Entity, needles: &[&str]) {
 #[test]
 fn fog_on_a_terrain_becomes_sorted_prisms_that_follow_the_eye() {
     let (mut app, camera) = app(&asset_dir("prisms"), Vec3::new(-400.0, 250.0, -300.0));
-    let fog = app
-        .world_mut()
-        .spawn((terrain(), valley(40.0), InheritedVisibility::VISIBLE))
-        .id();
+    let fog = spawn_fog(&mut app, valley(40.0));
     settle(&mut app);
     assert_eq!(status(&app, fog), GroundFogStatus::Ready);
     let counts = stats(&app, fog);
@@ -166,11 +176,7 @@ fn fog_on_a_terrain_becomes_sorted_prisms_that_follow_the_eye() {
     );
     app.update();
     assert_eq!(stats(&app, fog).updates, fog_updates);
-    app.world_mut()
-        .get_mut::<Transform>(camera)
-        .unwrap()
-        .translation
-        .x += 0.01;
+    nudge(&mut app, camera);
     app.update();
     assert_eq!(
         app.world().get::<TerrainLodStats>(fog).unwrap().updates,
@@ -188,11 +194,7 @@ fn fog_on_a_terrain_becomes_sorted_prisms_that_follow_the_eye() {
             .refine_on_every_move
     );
     let updates = stats(&app, fog).updates;
-    app.world_mut()
-        .get_mut::<Transform>(camera)
-        .unwrap()
-        .translation
-        .x += 0.01;
+    nudge(&mut app, camera);
     app.update();
     assert_eq!(stats(&app, fog).updates, updates);
 }
@@ -210,40 +212,22 @@ fn no_fog_means_no_cells_and_no_batch() {
     assert_eq!(measured(&app, &GroundFogPlugin::FOGS), None);
     // Valleys filled to below the lowest point: no thickness anywhere, no
     // layer for the terrain, no batch.
-    let dry = app
-        .world_mut()
-        .spawn((terrain(), valley(-50.0), InheritedVisibility::VISIBLE))
-        .id();
+    let dry = spawn_fog(&mut app, valley(-50.0));
     settle(&mut app);
     assert_eq!(status(&app, dry), GroundFogStatus::Ready);
     assert!(batch(&app, dry).is_none());
-    assert!(
-        app.world()
-            .get::<TerrainLayerLod>(dry)
-            .unwrap()
-            .quadtree
-            .is_none()
-    );
+    assert!(!has_layer(&app, dry));
     assert_eq!(stats(&app, dry).max_thickness, 0.0);
     assert_eq!(measured(&app, &GroundFogPlugin::FOGS), Some(0.0));
     // No density, or hidden: the batch goes.
-    let fog = app
-        .world_mut()
-        .spawn((terrain(), valley(40.0), InheritedVisibility::VISIBLE))
-        .id();
+    let fog = spawn_fog(&mut app, valley(40.0));
     settle(&mut app);
     assert!(batch(&app, fog).is_some());
     app.world_mut().get_mut::<GroundFog>(fog).unwrap().density = 0.0;
     settle(&mut app);
     assert!(batch(&app, fog).is_none());
     // The terrain refines alone meanwhile.
-    assert!(
-        app.world()
-            .get::<TerrainLayerLod>(fog)
-            .unwrap()
-            .quadtree
-            .is_none()
-    );
+    assert!(!has_layer(&app, fog));
     app.world_mut().get_mut::<GroundFog>(fog).unwrap().density = 0.03;
     settle(&mut app);
     assert!(batch(&app, fog).is_some());
@@ -261,42 +245,30 @@ fn bad_input_fails_with_the_reason_and_never_panics() {
     settle(&mut app);
     assert_failed(&app, alone, &["needs a Terrain"]);
     // Settings out of range.
-    let weight = app
-        .world_mut()
-        .spawn((
-            terrain(),
-            InheritedVisibility::VISIBLE,
-            GroundFog {
-                roughness_weight: f32::NAN,
-                ..valley(40.0)
-            },
-        ))
-        .id();
-    let coverage = app
-        .world_mut()
-        .spawn((
-            terrain(),
-            InheritedVisibility::VISIBLE,
-            GroundFog {
-                thickness: FogThickness::Noise(FogNoise {
-                    coverage: 2.0,
-                    ..default()
-                }),
+    let weight = spawn_fog(
+        &mut app,
+        GroundFog {
+            roughness_weight: f32::NAN,
+            ..valley(40.0)
+        },
+    );
+    let coverage = spawn_fog(
+        &mut app,
+        GroundFog {
+            thickness: FogThickness::Noise(FogNoise {
+                coverage: 2.0,
                 ..default()
-            },
-        ))
-        .id();
-    let profile = app
-        .world_mut()
-        .spawn((
-            terrain(),
-            InheritedVisibility::VISIBLE,
-            GroundFog {
-                profile: vec![[0.0, 1.0], [0.5, 0.5]],
-                ..valley(40.0)
-            },
-        ))
-        .id();
+            }),
+            ..default()
+        },
+    );
+    let profile = spawn_fog(
+        &mut app,
+        GroundFog {
+            profile: vec![[0.0, 1.0], [0.5, 0.5]],
+            ..valley(40.0)
+        },
+    );
     // A map of NaN, a missing map file.
     let nan = app
         .world_mut()
@@ -305,38 +277,30 @@ fn bad_input_fails_with_the_reason_and_never_panics() {
             dims: UVec2::new(2, 2),
             values: Arc::new(vec![0.5, f32::NAN, 0.5, 0.5]),
         });
-    let nan_map = app
-        .world_mut()
-        .spawn((
-            terrain(),
-            InheritedVisibility::VISIBLE,
-            GroundFog {
-                thickness: FogThickness::Map {
-                    map: nan,
-                    scale: 30.0,
-                },
-                ..default()
+    let nan_map = spawn_fog(
+        &mut app,
+        GroundFog {
+            thickness: FogThickness::Map {
+                map: nan,
+                scale: 30.0,
             },
-        ))
-        .id();
+            ..default()
+        },
+    );
     let missing = app
         .world()
         .resource::<AssetServer>()
         .load("no_such_fog.png");
-    let missing_map = app
-        .world_mut()
-        .spawn((
-            terrain(),
-            InheritedVisibility::VISIBLE,
-            GroundFog {
-                thickness: FogThickness::Map {
-                    map: missing,
-                    scale: 30.0,
-                },
-                ..default()
+    let missing_map = spawn_fog(
+        &mut app,
+        GroundFog {
+            thickness: FogThickness::Map {
+                map: missing,
+                scale: 30.0,
             },
-        ))
-        .id();
+            ..default()
+        },
+    );
     for _ in 0..200 {
         app.update();
         if matches!(status(&app, missing_map), GroundFogStatus::Failed(_)) {
@@ -370,17 +334,13 @@ fn a_fog_map_covers_the_terrain_and_scales_to_metres() {
             dims: UVec2::new(3, 2),
             values: Arc::new(vec![0.0, 0.0, 1.0, 0.0, 0.0, 0.0]),
         });
-    let fog = app
-        .world_mut()
-        .spawn((
-            terrain(),
-            InheritedVisibility::VISIBLE,
-            GroundFog {
-                thickness: FogThickness::Map { map, scale: 25.0 },
-                ..default()
-            },
-        ))
-        .id();
+    let fog = spawn_fog(
+        &mut app,
+        GroundFog {
+            thickness: FogThickness::Map { map, scale: 25.0 },
+            ..default()
+        },
+    );
     settle(&mut app);
     assert_eq!(status(&app, fog), GroundFogStatus::Ready);
     assert_eq!(stats(&app, fog).max_thickness, 25.0);

@@ -113,6 +113,22 @@ fn settings(accuracy: f32) -> LodSettings {
     }
 }
 
+/// The prisms' input for `eye` over a mesh refined front to back (as the
+/// terrain plugin refines), back to front.
+fn prism_input<'a>(
+    hierarchy: &TerrainHierarchy,
+    eye: DVec3,
+    profile: &'a FogProfile,
+) -> PrismInput<'a> {
+    PrismInput {
+        world_from_mesh: DAffine3::from_translation(hierarchy.origin()),
+        eye: eye - hierarchy.origin(),
+        mesh_order: TriangleOrder::FrontToBack,
+        order: CellOrder::BackToFront,
+        profile,
+    }
+}
+
 /// The flight through `hierarchy` at accuracy `c`.
 fn fly(hierarchy: &TerrainHierarchy, layer: &TerrainLayer, accuracy: f32) -> Vec<Frame> {
     let profile = FogProfile::default();
@@ -132,14 +148,8 @@ fn fly(hierarchy: &TerrainHierarchy, layer: &TerrainLayer, accuracy: f32) -> Vec
             )
             .expect("valid view");
         let refined = Instant::now();
-        let input = PrismInput {
-            world_from_mesh: DAffine3::from_translation(hierarchy.origin()),
-            eye: eye - hierarchy.origin(),
-            mesh_order: TriangleOrder::FrontToBack,
-            order: CellOrder::BackToFront,
-            profile: &profile,
-        };
-        let stats = fog_prisms(&mesh, &input, &mut cells).expect("a fog mesh");
+        let stats = fog_prisms(&mesh, &prism_input(hierarchy, eye, &profile), &mut cells)
+            .expect("a fog mesh");
         let done = Instant::now();
         if frame >= WARM_UP {
             frames.push(Frame {
@@ -242,14 +252,8 @@ fn one_frame(c: &mut Criterion) {
                     &mut mesh,
                 )
                 .expect("valid view");
-            let input = PrismInput {
-                world_from_mesh: DAffine3::from_translation(hierarchy.origin()),
-                eye: eye - hierarchy.origin(),
-                mesh_order: TriangleOrder::FrontToBack,
-                order: CellOrder::BackToFront,
-                profile: &profile,
-            };
-            fog_prisms(&mesh, &input, &mut cells).expect("a fog mesh")
+            fog_prisms(&mesh, &prism_input(&hierarchy, eye, &profile), &mut cells)
+                .expect("a fog mesh")
         });
     });
 }

@@ -676,14 +676,7 @@ impl SceneDescription {
         terrain
             .unit_heights(scene_dir)
             .map(Some)
-            .map_err(|invalid| {
-                let invalid = invalid.within("terrain");
-                SceneError::Invalid {
-                    path: scene_path.to_owned(),
-                    field: invalid.field,
-                    reason: invalid.reason,
-                }
-            })
+            .map_err(|invalid| invalid.in_scene(scene_path, "terrain"))
     }
 
     /// Reads the terrain fog's files ([`GroundFogDescription::build`]);
@@ -701,14 +694,9 @@ impl SceneDescription {
             return Ok(None);
         };
         let scene_dir = scene_path.parent().unwrap_or(Path::new("."));
-        fog.build(scene_dir).map(Some).map_err(|invalid| {
-            let invalid = invalid.within("terrain.fog");
-            SceneError::Invalid {
-                path: scene_path.to_owned(),
-                field: invalid.field,
-                reason: invalid.reason,
-            }
-        })
+        fog.build(scene_dir)
+            .map(Some)
+            .map_err(|invalid| invalid.in_scene(scene_path, "terrain.fog"))
     }
 
     /// The terrain fog's cells and ground for the reference camera
@@ -725,14 +713,7 @@ impl SceneDescription {
         };
         terrain
             .fog_reference(unit, built, self.reference_camera().position)
-            .map_err(|invalid| {
-                let invalid = invalid.within("terrain");
-                SceneError::Invalid {
-                    path: scene_path.to_owned(),
-                    field: invalid.field,
-                    reason: invalid.reason,
-                }
-            })
+            .map_err(|invalid| invalid.in_scene(scene_path, "terrain"))
     }
 
     /// Generates or loads every volume's field and transfer function.
@@ -744,14 +725,9 @@ impl SceneDescription {
             .iter()
             .enumerate()
             .map(|(index, volume)| {
-                volume.build(scene_dir).map_err(|invalid| {
-                    let invalid = invalid.within(&format!("volumes[{index}]"));
-                    SceneError::Invalid {
-                        path: scene_path.to_owned(),
-                        field: invalid.field,
-                        reason: invalid.reason,
-                    }
-                })
+                volume
+                    .build(scene_dir)
+                    .map_err(|invalid| invalid.in_scene(scene_path, &format!("volumes[{index}]")))
             })
             .collect()
     }
@@ -772,6 +748,16 @@ impl InvalidField {
         Self {
             field: format!("{prefix}.{}", self.field),
             reason: self.reason,
+        }
+    }
+
+    /// The scene error of this field of `scene_path`, below `prefix`.
+    fn in_scene(self, scene_path: &Path, prefix: &str) -> SceneError {
+        let invalid = self.within(prefix);
+        SceneError::Invalid {
+            path: scene_path.to_owned(),
+            field: invalid.field,
+            reason: invalid.reason,
         }
     }
 

@@ -19,7 +19,6 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use bevy::asset::LoadState;
 use bevy::camera::primitives::Aabb;
 use bevy::camera::visibility::NoAutoAabb;
 use bevy::diagnostic::Diagnostics;
@@ -231,14 +230,9 @@ fn unit_heights(
                 dims: [asset.dims.x as usize, asset.dims.y as usize],
                 values: asset.values.clone(),
             })),
-            None => match asset_server.get_load_state(handle.id()) {
-                Some(LoadState::Failed(error)) => Err(TerrainBuildError::HeightsNotLoaded {
-                    path: handle
-                        .path()
-                        .map_or_else(|| String::from("(no path)"), ToString::to_string),
-                    error,
-                }),
-                _ => Ok(None),
+            None => match TerrainHeights::load_failure(handle, asset_server) {
+                Some((path, error)) => Err(TerrainBuildError::HeightsNotLoaded { path, error }),
+                None => Ok(None),
             },
         },
     }
@@ -283,15 +277,7 @@ pub(crate) fn build_terrains(
     mode: Res<HeavyBuilds>,
     mut diagnostics: Diagnostics,
 ) {
-    let changed: Vec<AssetId<TerrainHeights>> = height_events
-        .read()
-        .filter_map(|event| match event {
-            AssetEvent::Added { id }
-            | AssetEvent::Modified { id }
-            | AssetEvent::LoadedWithDependencies { id } => Some(*id),
-            AssetEvent::Removed { .. } | AssetEvent::Unused { .. } => None,
-        })
-        .collect();
+    let changed = TerrainHeights::changed(&mut height_events);
     for (entity, terrain, mut status, mut stats, mut state) in &mut terrains {
         let state = &mut *state;
         let mut land = |state: &mut TerrainLod, status: &mut TerrainStatus| {

@@ -17,7 +17,7 @@
 use std::sync::Arc;
 
 use bevy::asset::io::Reader;
-use bevy::asset::{AssetLoader, LoadContext};
+use bevy::asset::{AssetLoadError, AssetLoader, LoadContext, LoadState};
 use bevy::prelude::*;
 use bevy::tasks::futures_lite::AsyncReadExt;
 use nebel_core::budget::{BudgetError, MEMORY_BUDGET_BYTES};
@@ -38,6 +38,38 @@ pub struct TerrainHeights {
 }
 
 impl TerrainHeights {
+    /// The height assets added, loaded or modified since `events` last read
+    /// (what a build keyed on an asset rebuilds for).
+    pub fn changed(events: &mut MessageReader<AssetEvent<TerrainHeights>>) -> Vec<AssetId<Self>> {
+        events
+            .read()
+            .filter_map(|event| match event {
+                AssetEvent::Added { id }
+                | AssetEvent::Modified { id }
+                | AssetEvent::LoadedWithDependencies { id } => Some(*id),
+                AssetEvent::Removed { .. } | AssetEvent::Unused { .. } => None,
+            })
+            .collect()
+    }
+
+    /// Why `handle` failed to load: its path (`(no path)` for an asset
+    /// added in memory) and the asset server's error; `None` while it loads
+    /// or once it is loaded.
+    pub fn load_failure(
+        handle: &Handle<Self>,
+        asset_server: &AssetServer,
+    ) -> Option<(String, Arc<AssetLoadError>)> {
+        match asset_server.get_load_state(handle.id()) {
+            Some(LoadState::Failed(error)) => Some((
+                handle
+                    .path()
+                    .map_or_else(|| String::from("(no path)"), ToString::to_string),
+                error,
+            )),
+            _ => None,
+        }
+    }
+
     /// The heights of `field` (its spacing and origin are not kept).
     pub fn from_field(field: &HeightField) -> Self {
         let [nx, nz] = field.dims();

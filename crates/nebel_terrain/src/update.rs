@@ -278,13 +278,13 @@ mod tests {
     use crate::{TerrainDebug, TerrainPlugin};
     use crate::{TerrainHeights, TerrainSource};
     use bevy::asset::AssetPlugin;
-    use bevy::camera::{ComputedCameraValues, RenderTargetInfo};
     use bevy::diagnostic::DiagnosticsStore;
     use bevy::mesh::VertexAttributeValues;
     use bevy::transform::TransformPlugin;
     use nebel_core::field::TerrainNoise;
     use nebel_lod::TerrainMesh;
     use nebel_render::HeavyBuilds;
+    use nebel_render::camera::computed_camera;
     use std::path::PathBuf;
 
     /// A folder of its own per test for the asset server's files.
@@ -318,17 +318,10 @@ mod tests {
         // Every build lands in the frame that starts it, so the tests count
         // frames; `a_background_build_appears_when_ready` covers the default.
         .insert_resource(HeavyBuilds::Blocking);
-        let camera = Camera {
-            computed: ComputedCameraValues {
-                clip_from_view: Mat4::perspective_infinite_reverse_rh(1.0, 1.0, 0.1),
-                target_info: Some(RenderTargetInfo {
-                    physical_size: UVec2::splat(64),
-                    scale_factor: 1.0,
-                }),
-                ..default()
-            },
-            ..default()
-        };
+        let camera = computed_camera(
+            Mat4::perspective_infinite_reverse_rh(1.0, 1.0, 0.1),
+            UVec2::splat(64),
+        );
         let camera = app
             .world_mut()
             .spawn((

@@ -421,23 +421,7 @@ fn gpu_cell_projection_matches_the_exact_reference() {
 
 #[test]
 fn a_scene_without_volumes_runs_no_cell_projection_work() {
-    let out_dir = output_dir();
-    let stats_path = out_dir.join("primitives_stats.json");
-    let output = nebel(&[
-        "render",
-        "tests/scenes/primitives.ron",
-        "--out",
-        out_dir.join("primitives_only.png").to_str().unwrap(),
-        "--stats",
-        stats_path.to_str().unwrap(),
-    ]);
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let stats: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&stats_path).unwrap()).unwrap();
+    let stats = render_stats("tests/scenes/primitives.ron");
     // The group appears as soon as a pass runs, a table is built or cells are uploaded.
     assert!(stats["effects"].get("cell_projection").is_none(), "{stats}");
     assert!(stats["effects"].get("volume").is_none(), "{stats}");
@@ -446,22 +430,7 @@ fn a_scene_without_volumes_runs_no_cell_projection_work() {
 
     // A terrain whose fog has no thickness anywhere: the terrain draws, the
     // fog draws no cell and runs no pass.
-    let stats_path = out_dir.join("dry_valley_stats.json");
-    let output = nebel(&[
-        "render",
-        "tests/scenes/dry_valley.ron",
-        "--out",
-        out_dir.join("dry_valley_only.png").to_str().unwrap(),
-        "--stats",
-        stats_path.to_str().unwrap(),
-    ]);
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let stats: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&stats_path).unwrap()).unwrap();
+    let stats = render_stats("tests/scenes/dry_valley.ron");
     assert!(stats["effects"].get("cell_projection").is_none(), "{stats}");
     assert!(
         stats["effects"]["terrain"]["triangles"].as_f64().unwrap() > 0.0,
@@ -472,4 +441,25 @@ fn a_scene_without_volumes_runs_no_cell_projection_work() {
         Some(0.0),
         "{stats}"
     );
+}
+
+/// `nebel render SCENE --stats`'s statistics.
+fn render_stats(scene: &str) -> serde_json::Value {
+    let out_dir = output_dir();
+    let stem = Path::new(scene).file_stem().unwrap().to_string_lossy();
+    let stats_path = out_dir.join(format!("{stem}_only_stats.json"));
+    let output = nebel(&[
+        "render",
+        scene,
+        "--out",
+        out_dir.join(format!("{stem}_only.png")).to_str().unwrap(),
+        "--stats",
+        stats_path.to_str().unwrap(),
+    ]);
+    assert!(
+        output.status.success(),
+        "{scene}: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    serde_json::from_str(&std::fs::read_to_string(&stats_path).unwrap()).unwrap()
 }

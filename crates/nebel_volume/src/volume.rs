@@ -169,12 +169,12 @@ impl Default for Volume {
 mod tests {
     use super::*;
     use bevy::asset::AssetPlugin;
-    use bevy::camera::{ComputedCameraValues, RenderTargetInfo};
     use bevy::diagnostic::DiagnosticsStore;
     use bevy::math::DVec3;
     use bevy::transform::TransformPlugin;
     use nebel_core::field::DensityGrid;
     use nebel_render::CellBatch;
+    use nebel_render::camera::computed_camera;
 
     fn app_with_volume(mode: OpticalMode) -> (App, Entity, Entity) {
         let mut app = App::new();
@@ -186,17 +186,10 @@ mod tests {
         ))
         .insert_resource(HeavyBuilds::Blocking);
         // What Bevy's camera systems compute for a 64×64 target.
-        let camera = Camera {
-            computed: ComputedCameraValues {
-                clip_from_view: Mat4::perspective_infinite_reverse_rh(1.0, 1.0, 0.1),
-                target_info: Some(RenderTargetInfo {
-                    physical_size: UVec2::splat(64),
-                    scale_factor: 1.0,
-                }),
-                ..default()
-            },
-            ..default()
-        };
+        let camera = computed_camera(
+            Mat4::perspective_infinite_reverse_rh(1.0, 1.0, 0.1),
+            UVec2::splat(64),
+        );
         let camera = app
             .world_mut()
             .spawn((
