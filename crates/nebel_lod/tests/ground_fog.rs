@@ -131,6 +131,33 @@ fn eyes(hierarchy: &TerrainHierarchy, layer: &TerrainLayer) -> Vec<(&'static str
     ]
 }
 
+/// `count` seeded random eyes over and around the terrain (200 m beyond
+/// its edges), from 20 m below its lowest point to far above the fog.
+fn random_eyes(
+    hierarchy: &TerrainHierarchy,
+    count: usize,
+    seed: u64,
+) -> Vec<(&'static str, DVec3)> {
+    let extent = (hierarchy.size() - 1) as f64 * SPACING;
+    let mut rng = seed;
+    let mut random = move || {
+        rng = rng
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (rng >> 11) as f64 / (1u64 << 53) as f64
+    };
+    (0..count)
+        .map(|_| {
+            let offset = DVec3::new(
+                -200.0 + random() * (extent + 400.0),
+                -20.0 + random() * 420.0,
+                -200.0 + random() * (extent + 400.0),
+            );
+            ("a random eye", hierarchy.origin() + offset)
+        })
+        .collect()
+}
+
 fn key(p: [f32; 4]) -> [u32; 3] {
     [p[0].to_bits(), p[1].to_bits(), p[2].to_bits()]
 }
@@ -140,7 +167,8 @@ fn prisms_conform_and_hold_exactly_the_fogs_volume() {
     let (hierarchy, layer) = valley(65);
     let extent = 64.0 * SPACING;
     let origin = hierarchy.origin();
-    for (name, eye) in eyes(&hierarchy, &layer) {
+    let random = random_eyes(&hierarchy, 8, 0x0f09);
+    for (name, eye) in eyes(&hierarchy, &layer).into_iter().chain(random) {
         let mesh = refine(&hierarchy, &layer, eye, TriangleOrder::BackToFront, true);
         let profile = FogProfile::default();
         let (cells, stats) = prisms(
@@ -277,7 +305,8 @@ fn back_to_front_is_a_visibility_order_for_every_eye_by_ray_tests() {
     // A profile of three layers: chains of nine cells per column.
     let profile = FogProfile::new(vec![[0.0, 1.0], [0.3, 0.8], [0.7, 0.3], [1.0, 0.0]]).unwrap();
     for mesh_order in [TriangleOrder::BackToFront, TriangleOrder::FrontToBack] {
-        for (name, eye) in eyes(&hierarchy, &layer) {
+        let more = random_eyes(&hierarchy, 4, 0x5eed);
+        for (name, eye) in eyes(&hierarchy, &layer).into_iter().chain(more) {
             let mesh = refine(&hierarchy, &layer, eye, mesh_order, true);
             let (cells, stats) = prisms(
                 &hierarchy,
@@ -295,7 +324,7 @@ fn back_to_front_is_a_visibility_order_for_every_eye_by_ray_tests() {
                 let target = hierarchy.origin()
                     + DVec3::new(random() * 320.0, 40.0 + random() * 100.0, random() * 320.0);
                 let ray = Ray::new(eye, target - eye).unwrap();
-                hit += check_ray_order(&cells, &ray, &format!("{name}, {mesh_order:?}"));
+                hit += check_ray_order(&cells, &ray, &format!("{name} at {eye}, {mesh_order:?}"));
             }
             assert!(hit > 150, "{name}: the rays hit only {hit} cells");
         }
