@@ -4,13 +4,13 @@
 
 use std::collections::{HashMap, HashSet};
 
-use glam::{DAffine3, DVec2, DVec3};
+use glam::{DAffine3, DMat4, DVec2, DVec3};
 use nebel_core::cell::{Ray, Tetrahedron};
 use nebel_core::field::{HeightField, ValueNoise};
 use nebel_lod::quadtree::TerrainLayer;
 use nebel_lod::{
-    CellOrder, FogProfile, GpuCell, LodSettings, PrismError, PrismInput, PrismStats, TerrainError,
-    TerrainHierarchy, TerrainMesh, TriangleOrder, fog_prisms,
+    CellOrder, FogProfile, Frustum, GpuCell, LodSettings, PrismError, PrismInput, PrismStats,
+    TerrainError, TerrainHierarchy, TerrainMesh, TriangleOrder, fog_prisms,
 };
 
 const SPACING: f64 = 10.0;
@@ -328,6 +328,68 @@ fn back_to_front_is_a_visibility_order_for_every_eye_by_ray_tests() {
             }
             assert!(hit > 150, "{name}: the rays hit only {hit} cells");
         }
+    }
+}
+
+#[test]
+fn culling_keeps_every_cell_the_frustum_sees_above_the_ground() {
+    // A flat view skimming the fog's top from inside a valley: much of the
+    // ground under the fog is below the frustum, the fog above it is not.
+    let (hierarchy, layer) = valley(65);
+    let n = hierarchy.size();
+    let deepest = (0..n * n)
+        .max_by(|a, b| layer.values()[*a].total_cmp(&layer.values()[*b]))
+        .unwrap();
+    let (i, j) = (deepest % n, deepest / n);
+    let ground = f64::from(hierarchy.field().height(i, j));
+    let top = ground + f64::from(layer.values()[deepest]);
+    let eye = hierarchy.origin() + DVec3::new(i as f64 * SPACING, top - 1.0, j as f64 * SPACING);
+    let profile = FogProfile::default();
+    for yaw in [0.3_f64, 1.9, 3.5, 5.1] {
+        let forward = DVec3::new(yaw.cos(), -0.02, yaw.sin());
+        let clip_from_world = DMat4::perspective_infinite_reverse_rh(8f64.to_radians(), 3.0, 1.0)
+            * DMat4::look_to_rh(eye, forward, DVec3::Y);
+        let frustum = Frustum::from_view_projection(clip_from_world).unwrap();
+        let settings = LodSettings {
+            accuracy: 40.0,
+            normals: false,
+            grid_points: true,
+            ..LodSettings::default()
+        };
+        let cells = |frustum: Option<&Frustum>| {
+            let mut mesh = TerrainMesh::new();
+            hierarchy
+                .update_with_layer(eye, frustum, &settings, Some(&layer), &mut mesh)
+                .unwrap();
+            prisms(
+                &hierarchy,
+                &mesh,
+                eye,
+                TriangleOrder::BackToFront,
+                CellOrder::BackToFront,
+                &profile,
+            )
+            .0
+        };
+        let (all, culled) = (cells(None), cells(Some(&frustum)));
+        let kept: HashSet<[[u32; 3]; 4]> =
+            culled.iter().map(|cell| cell.vertices.map(key)).collect();
+        let seen: Vec<&GpuCell> = all
+            .iter()
+            .filter(|cell| (0..4).any(|v| frustum.contains_point(cell.position(v).as_dvec3())))
+            .collect();
+        assert!(
+            seen.len() > 20,
+            "yaw {yaw}: the view sees {} cells",
+            seen.len()
+        );
+        for cell in seen {
+            assert!(
+                kept.contains(&cell.vertices.map(key)),
+                "yaw {yaw}: a cell in view was culled: {cell:?}"
+            );
+        }
+        assert!(culled.len() < all.len(), "yaw {yaw}: nothing culled");
     }
 }
 
