@@ -171,6 +171,11 @@ pub struct PrismInput<'a> {
 /// sorted by grid id.
 struct Column {
     positions: Vec<DVec3>,
+    /// `positions` in world space, rounded once.
+    world: Vec<[f32; 3]>,
+    /// Per vertex, the first vertex at its position (a corner of zero
+    /// thickness has one position on every level).
+    canonical: Vec<usize>,
     scalars: Vec<f32>,
     /// Kept cells, as indices into `positions`, in chain order.
     cells: Vec<[usize; 4]>,
@@ -198,6 +203,8 @@ pub fn fog_prisms(
     let levels = input.profile.points();
     let mut column = Column {
         positions: Vec::with_capacity(3 * levels.len()),
+        world: Vec::with_capacity(3 * levels.len()),
+        canonical: Vec::with_capacity(3 * levels.len()),
         scalars: Vec::with_capacity(3 * levels.len()),
         cells: Vec::with_capacity(3 * levels.len()),
         order: Vec::with_capacity(3 * levels.len()),
@@ -217,7 +224,7 @@ pub fn fog_prisms(
         if thickness.iter().all(|t| *t <= 0.0) {
             return;
         }
-        column.build(mesh, corners, thickness, levels);
+        column.build(mesh, corners, thickness, levels, &input.world_from_mesh);
         if sorted {
             column.sort(input.eye);
         } else {
@@ -230,11 +237,8 @@ pub fn fog_prisms(
             let indices = column.cells[cell];
             out.push(GpuCell {
                 vertices: indices.map(|p| {
-                    let world = input
-                        .world_from_mesh
-                        .transform_point3(column.positions[p])
-                        .as_vec3();
-                    [world.x, world.y, world.z, column.scalars[p]]
+                    let [x, y, z] = column.world[p];
+                    [x, y, z, column.scalars[p]]
                 }),
             });
         }
@@ -255,15 +259,26 @@ impl Column {
         corners: [usize; 3],
         thickness: [f64; 3],
         levels: &[[f32; 2]],
+        world_from_mesh: &DAffine3,
     ) {
         self.positions.clear();
+        self.world.clear();
+        self.canonical.clear();
         self.scalars.clear();
         self.cells.clear();
-        for &[r, s] in levels {
-            for (v, t) in corners.iter().zip(thickness) {
+        for (level, &[r, s]) in levels.iter().enumerate() {
+            for (corner, (v, t)) in corners.iter().zip(thickness).enumerate() {
+                self.canonical
+                    .push(if t <= 0.0 { corner } else { 3 * level + corner });
                 let [x, y, z] = mesh.positions[*v].map(f64::from);
-                self.positions
-                    .push(DVec3::new(x, y + f64::from(r) * t.max(0.0), z));
+                let position = DVec3::new(x, y + f64::from(r) * t.max(0.0), z);
+                self.positions.push(position);
+                self.world.push(
+                    world_from_mesh
+                        .transform_point3(position)
+                        .as_vec3()
+                        .to_array(),
+                );
                 self.scalars.push(s);
             }
         }
@@ -309,7 +324,8 @@ impl Column {
     fn in_front_of_next(&self, k: usize, eye: DVec3) -> bool {
         let (own, next) = (self.cells[k], self.cells[k + 1]);
         let at = |p: usize| self.positions[p];
-        let shared = |p: usize| next.iter().any(|&q| at(q) == at(p));
+        let id = |p: usize| self.canonical[p];
+        let shared = |p: usize| next.iter().any(|&q| id(q) == id(p));
         let Some(apex) = own.iter().copied().find(|&p| !shared(p)) else {
             return false;
         };
