@@ -7,9 +7,13 @@
 //! fog the terrain refines whenever the eye moves, see
 //! [`TerrainLayerLod::refine_on_every_move`]) or the fog's drawing settings
 //! (density, transfer function, mode, profile, debug view) or its placement
-//! changed; otherwise nothing runs. A fog with no layer (no thickness
-//! anywhere), no density, a transparent transfer function, or that is
-//! hidden has no `CellBatch`, so the cell projection runs no pass for it.
+//! changed; otherwise the system compares a counter, a pointer and a few
+//! change ticks per fog. A fog with no layer (no thickness anywhere), no density, a
+//! transparent transfer function, on a failed terrain, or that is hidden has
+//! no `CellBatch`, so the cell projection runs no pass for it. The
+//! wireframe is a child entity in the terrain's frame; removing the
+//! `GroundFog` removes the batch, the terrain's layer, the wireframe and the
+//! fog's state.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -27,10 +31,11 @@ use nebel_lod::{
 };
 use nebel_render::camera::to_double;
 use nebel_render::{CellBatch, LodCameras};
-use nebel_terrain::{TerrainLayerLod, TerrainLod, TerrainLodStats};
+use nebel_terrain::{TerrainLayerLod, TerrainLod, TerrainLodStats, TerrainStatus};
 
 use crate::error::GroundFogError;
 use crate::ground_fog::{GroundFog, GroundFogPlugin, GroundFogStats, GroundFogStatus, fail};
+use crate::layer::GroundFogLayer;
 
 /// What the fog's batch was built from.
 #[derive(Clone, Debug, PartialEq)]
@@ -69,13 +74,20 @@ fn scaled_transfer(
     Ok(scaled)
 }
 
-/// The lines of every cell's six edges, world space.
-fn wireframe_mesh(cells: &[GpuCell]) -> Mesh {
+/// The lines of every cell's six edges, in the frame `local_from_world`
+/// maps the cells' world positions into.
+fn wireframe_mesh(cells: &[GpuCell], local_from_world: &DAffine3) -> Mesh {
+    let local = |cell: &GpuCell, v: usize| {
+        local_from_world
+            .transform_point3(cell.position(v).as_dvec3())
+            .as_vec3()
+            .to_array()
+    };
     let mut positions = Vec::with_capacity(cells.len() * 12);
     for cell in cells {
         for (a, b) in [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)] {
-            positions.push(cell.position(a).to_array());
-            positions.push(cell.position(b).to_array());
+            positions.push(local(cell, a));
+            positions.push(local(cell, b));
         }
     }
     Mesh::new(PrimitiveTopology::LineList, RenderAssetUsages::default())
@@ -88,9 +100,32 @@ fn clear(commands: &mut Commands, entity: Entity, state: &mut GroundFogBatch, ha
         commands.entity(entity).remove::<CellBatch>();
     }
     if let Some((wireframe, _)) = state.wireframe.take() {
-        commands.entity(wireframe).despawn();
+        commands.entity(wireframe).try_despawn();
     }
     state.key = None;
+}
+
+/// A `GroundFog` removed from an entity that lives on: its batch, the
+/// terrain's layer, the wireframe and the fog's state go with it (a
+/// despawned entity takes them, the wireframe being its child).
+pub(crate) fn remove_fogs(
+    mut commands: Commands,
+    mut removed: RemovedComponents<GroundFog>,
+    mut states: Query<&mut GroundFogBatch>,
+) {
+    for entity in removed.read() {
+        let Ok(mut state) = states.get_mut(entity) else {
+            continue;
+        };
+        clear(&mut commands, entity, &mut state, true);
+        commands.entity(entity).remove::<(
+            TerrainLayerLod,
+            GroundFogBatch,
+            GroundFogLayer,
+            GroundFogStatus,
+            GroundFogStats,
+        )>();
+    }
 }
 
 /// Writes every visible fog's cells after the terrain's refinement (see the
@@ -100,12 +135,13 @@ pub(crate) fn update_fog_batches(
     cameras: LodCameras,
     mut fogs: Query<(
         Entity,
-        &GroundFog,
+        Ref<GroundFog>,
         &TerrainLod,
         &TerrainLodStats,
-        Option<&TerrainLayerLod>,
-        &GlobalTransform,
-        &InheritedVisibility,
+        Ref<TerrainStatus>,
+        Option<Ref<TerrainLayerLod>>,
+        Ref<GlobalTransform>,
+        Ref<InheritedVisibility>,
         Has<CellBatch>,
         &mut GroundFogBatch,
         &mut GroundFogStatus,
@@ -124,6 +160,7 @@ pub(crate) fn update_fog_batches(
         fog,
         lod,
         terrain_stats,
+        terrain_status,
         layer,
         transform,
         visibility,
@@ -135,14 +172,28 @@ pub(crate) fn update_fog_batches(
     {
         let state = &mut *state;
         let layered = layer
+            .as_deref()
             .and_then(|layer| layer.quadtree.as_ref())
             .filter(|layered| {
                 lod.quadtree()
                     .is_some_and(|own| Arc::ptr_eq(own, &layered.base))
             });
+        let quadtree = layered.map_or(0, |layered| Arc::as_ptr(&layered.hierarchy) as usize);
+        // Nothing changed since the batch was built.
+        let unchanged = !fog.is_changed()
+            && !transform.is_changed()
+            && !visibility.is_changed()
+            && !terrain_status.is_changed()
+            && state.key.as_ref().is_some_and(|key| {
+                key.terrain_updates == terrain_stats.updates && key.quadtree == quadtree
+            });
+        if unchanged {
+            continue;
+        }
         let mesh = lod.mesh();
         let drawable = layered.is_some()
             && visibility.get()
+            && !matches!(*terrain_status, TerrainStatus::Failed(_))
             && fog.density > 0.0
             && !fog.transfer_function.is_transparent(0.0, 1.0)
             && !mesh.layer.is_empty();
@@ -150,7 +201,7 @@ pub(crate) fn update_fog_batches(
             if has_batch || state.wireframe.is_some() {
                 clear(&mut commands, entity, state, has_batch);
             }
-            if layered.is_none() && *status == GroundFogStatus::Ready {
+            if stats.prisms != 0 || stats.tetrahedra != 0 {
                 *stats = GroundFogStats {
                     prisms: 0,
                     tetrahedra: 0,
@@ -161,7 +212,7 @@ pub(crate) fn update_fog_batches(
         };
         let key = BatchKey {
             terrain_updates: terrain_stats.updates,
-            quadtree: Arc::as_ptr(&layered.hierarchy) as usize,
+            quadtree,
             settings: format!(
                 "{:?} {:?} {:?} {:?} {}",
                 fog.mode,
@@ -175,12 +226,11 @@ pub(crate) fn update_fog_batches(
         if state.key.as_ref() == Some(&key) {
             continue;
         }
-        state.key = Some(key);
         let started = Instant::now();
         let built = FogProfile::new(fog.profile.clone())
             .map_err(GroundFogError::from)
             .and_then(|profile| {
-                let transfer = scaled_transfer(state, fog)?;
+                let transfer = scaled_transfer(state, &fog)?;
                 let world_from_terrain = DAffine3::from_mat4(to_double(transform.to_matrix()));
                 let origin = layered.hierarchy.origin();
                 let input = PrismInput {
@@ -194,23 +244,26 @@ pub(crate) fn update_fog_batches(
                     },
                     profile: &profile,
                 };
-                let mut cells = Vec::new();
+                let mut cells = Vec::with_capacity(mesh.triangle_count() * 3 * profile.layers());
                 let counts = fog_prisms(mesh, &input, &mut cells)?;
-                Ok((cells, counts, transfer))
+                Ok((cells, counts, transfer, world_from_terrain.inverse()))
             });
-        let (cells, counts, transfer) = match built {
+        let (cells, counts, transfer, terrain_from_world) = match built {
             Ok(built) => built,
             Err(error) => {
                 clear(&mut commands, entity, state, has_batch);
+                // Not again until something changes.
+                state.key = Some(key);
                 fail(entity, &mut status, error);
                 continue;
             }
         };
+        state.key = Some(key);
         if let GroundFogStatus::Failed(_) = *status {
             *status = GroundFogStatus::Ready;
         }
         if fog.debug.wireframe {
-            let lines = wireframe_mesh(&cells);
+            let lines = wireframe_mesh(&cells, &terrain_from_world);
             match &state.wireframe {
                 Some((_, handle)) => {
                     if let Some(mut mesh) = meshes.get_mut(handle) {
@@ -224,18 +277,21 @@ pub(crate) fn update_fog_batches(
                         unlit: true,
                         ..default()
                     });
+                    // A child in the terrain's frame: it moves, hides and
+                    // despawns with the terrain.
                     let wireframe = commands
                         .spawn((
                             Mesh3d(handle.clone()),
                             MeshMaterial3d(material),
                             Transform::IDENTITY,
+                            ChildOf(entity),
                         ))
                         .id();
                     state.wireframe = Some((wireframe, handle));
                 }
             }
         } else if let Some((wireframe, _)) = state.wireframe.take() {
-            commands.entity(wireframe).despawn();
+            commands.entity(wireframe).try_despawn();
         }
         if cells.is_empty() {
             if has_batch {

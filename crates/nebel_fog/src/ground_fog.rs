@@ -28,7 +28,7 @@ use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_render::NebelSystems;
 use nebel_terrain::{TerrainHeights, TerrainSystems};
 
-use crate::batch::{GroundFogBatch, measure_fogs, update_fog_batches};
+use crate::batch::{GroundFogBatch, measure_fogs, remove_fogs, update_fog_batches};
 use crate::error::GroundFogError;
 use crate::layer::{GroundFogLayer, build_fog_layers};
 
@@ -69,7 +69,7 @@ impl Plugin for GroundFogPlugin {
                     build_fog_layers
                         .after(TerrainSystems::Build)
                         .before(TerrainSystems::Refine),
-                    (update_fog_batches, measure_fogs)
+                    (remove_fogs, update_fog_batches, measure_fogs)
                         .chain()
                         .after(TerrainSystems::Refine),
                 )
@@ -131,10 +131,11 @@ pub struct GroundFog {
     /// The thickness above the ground. Default: [`ValleyFog::default()`]
     /// (filled up to 60 m in the terrain's frame, ±8 m edge).
     pub thickness: FogThickness,
-    /// Multiplies the transfer function's density ρ, finite and ≥ 0; 0
-    /// draws nothing. With the default transfer function (ρ = 1 at the
-    /// ground) it is the extinction at the ground, 1/m. Default 0.03 (about
-    /// 100 m to fade to 5 %).
+    /// Multiplies the transfer function's density ρ, finite and ≥ 0 (else
+    /// the status is `Failed`); 0 draws nothing and leaves the terrain
+    /// refining without the fog's layer. With the default transfer function
+    /// (ρ = 1 at the ground) it is the extinction at the ground, 1/m.
+    /// Default 0.03 (about 100 m to fade to 5 %).
     pub density: f32,
     /// κ and ρ over the scalar (1 at the ground, 0 at the top with the
     /// default profile). Default: the `GroundFog` preset.

@@ -11,7 +11,9 @@
 //! [`TerrainLayerLod`], which the terrain's refinement then carries; a fog of
 //! no thickness anywhere, no density or a transparent transfer function
 //! gives none (the terrain refines alone, and nothing of the fog runs per
-//! frame; the layer is kept for when the fog can be seen again).
+//! frame; the layer is kept for when the fog can be seen again). Unless the
+//! fog, its map or the terrain's quadtree changed, the system only compares
+//! a pointer per fog.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -68,6 +70,9 @@ pub struct GroundFogLayer {
     /// The last layer built, handed to the terrain while the fog can be
     /// seen.
     built: Option<LayeredQuadtree>,
+    /// The fog map changed while a build was in flight: build again when it
+    /// lands.
+    stale: bool,
 }
 
 /// The thickness of `input` on `base`'s grid, and `base` with its roughness.
@@ -157,7 +162,7 @@ pub(crate) fn build_fog_layers(
     mut commands: Commands,
     mut fogs: Query<(
         Entity,
-        &GroundFog,
+        Ref<GroundFog>,
         Option<&TerrainLod>,
         Option<&mut TerrainLayerLod>,
         &mut GroundFogLayer,
@@ -177,10 +182,32 @@ pub(crate) fn build_fog_layers(
             continue;
         };
         let every_move = fog.mode == OpticalMode::Sorted;
+        let state = &mut *state;
+        // A density out of range is a failure; fixed, the fog is what its
+        // layer makes it again.
+        let density_valid = fog.density.is_finite() && fog.density >= 0.0;
+        let density_failed = matches!(&*status, GroundFogStatus::Failed(GroundFogError::InvalidSetting { setting, .. }) if *setting == "density");
+        if !density_valid {
+            fail(
+                entity,
+                &mut status,
+                GroundFogError::InvalidSetting {
+                    setting: "density",
+                    value: fog.density,
+                    requirement: "finite and ≥ 0",
+                },
+            );
+        } else if density_failed {
+            *status = if state.key.is_some() && state.build.is_none() {
+                GroundFogStatus::Ready
+            } else {
+                GroundFogStatus::Pending
+            };
+        }
         // A fog that draws nothing (no density, a transparent transfer
         // function) leaves the terrain refining alone.
-        let drawn = fog.density > 0.0 && !fog.transfer_function.is_transparent(0.0, 1.0);
-        let state = &mut *state;
+        let drawn =
+            density_valid && fog.density > 0.0 && !fog.transfer_function.is_transparent(0.0, 1.0);
         if let Some(mut layer_lod) = layer_lod {
             if layer_lod.refine_on_every_move != every_move {
                 layer_lod.refine_on_every_move = every_move;
@@ -216,7 +243,9 @@ pub(crate) fn build_fog_layers(
                         refine_on_every_move: every_move,
                     });
                     state.built = built.quadtree;
-                    *status = GroundFogStatus::Ready;
+                    if density_valid {
+                        *status = GroundFogStatus::Ready;
+                    }
                 }
                 Err(error) => {
                     state.built = None;
@@ -225,8 +254,11 @@ pub(crate) fn build_fog_layers(
                 }
             }
         };
+        let map_changed = matches!(&fog.thickness,
+            FogThickness::Map { map, .. } if changed.contains(&map.id()));
         land(state, &mut status);
         if state.build.is_some() {
+            state.stale |= map_changed;
             continue;
         }
         let Some(base) = lod.quadtree() else {
@@ -234,17 +266,25 @@ pub(crate) fn build_fog_layers(
             *status = GroundFogStatus::Pending;
             continue;
         };
+        let quadtree = Arc::as_ptr(base) as usize;
+        let rebuild = map_changed || state.stale;
+        let same_quadtree = state
+            .key
+            .as_ref()
+            .is_some_and(|key| key.quadtree == quadtree);
+        if !rebuild && same_quadtree && !fog.is_changed() {
+            continue;
+        }
         let key = LayerKey {
-            quadtree: Arc::as_ptr(base) as usize,
+            quadtree,
             thickness: format!("{:?}", fog.thickness),
             roughness_weight: fog.roughness_weight.to_bits(),
         };
-        let map_changed = matches!(&fog.thickness,
-            FogThickness::Map { map, .. } if changed.contains(&map.id()));
-        if state.key.as_ref() == Some(&key) && !map_changed {
+        if !rebuild && state.key.as_ref() == Some(&key) {
             continue;
         }
-        match thickness_input(fog, &maps, &asset_server) {
+        state.stale = false;
+        match thickness_input(&fog, &maps, &asset_server) {
             Ok(None) => *status = GroundFogStatus::Pending,
             Ok(Some(input)) => {
                 let (base, weight) = (base.clone(), fog.roughness_weight);

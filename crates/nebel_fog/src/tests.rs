@@ -17,7 +17,9 @@ use nebel_terrain::{
     TerrainSource,
 };
 
-use crate::{FogThickness, GroundFog, GroundFogPlugin, GroundFogStats, GroundFogStatus};
+use crate::{
+    FogThickness, GroundFog, GroundFogDebug, GroundFogPlugin, GroundFogStats, GroundFogStatus,
+};
 
 /// A folder of its own per test for the asset server's files.
 fn asset_dir(name: &str) -> PathBuf {
@@ -351,4 +353,68 @@ fn a_fog_map_covers_the_terrain_and_scales_to_metres() {
     assert_eq!(values[0], 0.0);
     assert_eq!(values[64 + 65 * 64], 0.0);
     assert!(batch(&app, fog).is_some());
+}
+
+#[test]
+fn the_wireframe_is_a_child_and_removing_the_fog_removes_what_it_made() {
+    let (mut app, _) = app(&asset_dir("remove"), Vec3::new(-400.0, 250.0, -300.0));
+    let fog = spawn_fog(
+        &mut app,
+        GroundFog {
+            debug: GroundFogDebug { wireframe: true },
+            ..valley(40.0)
+        },
+    );
+    settle(&mut app);
+    assert!(batch(&app, fog).is_some());
+    let children: Vec<Entity> = app
+        .world()
+        .get::<Children>(fog)
+        .expect("the wireframe is a child")
+        .iter()
+        .collect();
+    assert_eq!(children.len(), 1);
+    assert!(app.world().get::<Mesh3d>(children[0]).is_some());
+    // Removing the fog takes its batch, the terrain's layer and the
+    // wireframe; the terrain stays.
+    app.world_mut().entity_mut(fog).remove::<GroundFog>();
+    settle(&mut app);
+    assert!(batch(&app, fog).is_none());
+    assert!(app.world().get::<TerrainLayerLod>(fog).is_none());
+    assert!(app.world().get_entity(children[0]).is_err());
+    assert!(app.world().get::<Terrain>(fog).is_some());
+    // Despawning a fogged terrain takes its wireframe with it.
+    let fog = spawn_fog(
+        &mut app,
+        GroundFog {
+            debug: GroundFogDebug { wireframe: true },
+            ..valley(40.0)
+        },
+    );
+    settle(&mut app);
+    let wireframe = app.world().get::<Children>(fog).unwrap()[0];
+    app.world_mut().entity_mut(fog).despawn();
+    settle(&mut app);
+    assert!(app.world().get_entity(wireframe).is_err());
+}
+
+#[test]
+fn a_density_out_of_range_fails_and_recovers() {
+    let (mut app, _) = app(&asset_dir("density"), Vec3::new(-400.0, 250.0, -300.0));
+    for density in [f32::NAN, -0.5] {
+        let fog = spawn_fog(
+            &mut app,
+            GroundFog {
+                density,
+                ..valley(40.0)
+            },
+        );
+        settle(&mut app);
+        assert_failed(&app, fog, &["density", "finite and ≥ 0"]);
+        assert!(!has_layer(&app, fog));
+        app.world_mut().get_mut::<GroundFog>(fog).unwrap().density = 0.02;
+        settle(&mut app);
+        assert_eq!(status(&app, fog), GroundFogStatus::Ready);
+        assert!(batch(&app, fog).is_some());
+    }
 }

@@ -29,7 +29,8 @@
 //! prisms share their face diagonals and the mesh conforms, with no cracks
 //! for any refinement. Sorted by id `a < b < c` the pieces are `(a, b, c,
 //! c')`, `(a, b, b', c')`, `(a, a', b', c')`; a piece whose top vertex
-//! `c'`, `b'` or `a'` has zero thickness has no volume and is dropped, so a
+//! `c'`, `b'` or `a'` has zero thickness (or one below the rounding of its
+//! height, so that top and ground coincide) has no volume and is dropped, so a
 //! prism of zero thickness everywhere gives no cell and one of partly zero
 //! thickness keeps exactly the pieces that cover its volume.
 //!
@@ -225,6 +226,9 @@ pub fn fog_prisms(
             return;
         }
         column.build(mesh, corners, thickness, levels, &input.world_from_mesh);
+        if column.cells.is_empty() {
+            return;
+        }
         if sorted {
             column.sort(input.eye);
         } else {
@@ -266,10 +270,19 @@ impl Column {
         self.canonical.clear();
         self.scalars.clear();
         self.cells.clear();
+        // A corner is flat where its top is its ground: no thickness, or one
+        // below the height's rounding.
+        let flat: [bool; 3] = std::array::from_fn(|corner| {
+            let y = f64::from(mesh.positions[corners[corner]][1]);
+            y + thickness[corner].max(0.0) == y
+        });
         for (level, &[r, s]) in levels.iter().enumerate() {
             for (corner, (v, t)) in corners.iter().zip(thickness).enumerate() {
-                self.canonical
-                    .push(if t <= 0.0 { corner } else { 3 * level + corner });
+                self.canonical.push(if flat[corner] {
+                    corner
+                } else {
+                    3 * level + corner
+                });
                 let [x, y, z] = mesh.positions[*v].map(f64::from);
                 let position = DVec3::new(x, y + f64::from(r) * t.max(0.0), z);
                 self.positions.push(position);
@@ -283,7 +296,6 @@ impl Column {
             }
         }
         let [a, b, c] = [0, 1, 2];
-        let flat = thickness.map(|t| t <= 0.0);
         for layer in 0..levels.len() - 1 {
             let (bottom, top) = (3 * layer, 3 * layer + 3);
             // Prism::tetrahedra's pieces, each dropped when its collapsing

@@ -292,8 +292,11 @@ impl TerrainDescription {
             HeightField::new([side; 2], DVec2::ONE, DVec2::ZERO, layer.values().to_vec())
                 .map_err(|error| InvalidField::new("fog.thickness", error.to_string()))?;
         let mut hierarchy = TerrainHierarchy::new(local, self.min_accuracy).map_err(quadtree)?;
-        // As the plugin: a fog of no thickness leaves the terrain alone.
-        let fogged = !layer.is_zero();
+        // As the plugin: a fog that draws nothing (no thickness, no density,
+        // a transparent transfer function) leaves the terrain alone.
+        let fogged = !layer.is_zero()
+            && fog.density > 0.0
+            && !built.transfer_function.is_transparent(0.0, 1.0);
         if fogged {
             hierarchy
                 .add_extra_roughness(&roughness, fog.roughness_weight)
@@ -319,7 +322,7 @@ impl TerrainDescription {
             .map_err(quadtree)?;
         let offset = center + hierarchy.origin();
         let ground = TerrainTriangles::new(&mesh, offset, side, spacing);
-        if !fogged || fog.density == 0.0 {
+        if !fogged {
             return Ok(Some(FogReference {
                 volume: None,
                 ground,

@@ -131,6 +131,11 @@ pub(crate) fn update_terrain_meshes(
         let Some(own) = state.hierarchy.clone() else {
             continue;
         };
+        // Hidden: nothing is refined, and a layer that changed meanwhile is
+        // still new when the terrain shows again.
+        if !visibility.get() {
+            continue;
+        }
         // A layer derived from this quadtree replaces it (see crate::layer).
         let layered = layer.as_ref().and_then(|layer| {
             layer
@@ -146,9 +151,6 @@ pub(crate) fn update_terrain_meshes(
         };
         if layer_changed {
             state.layered = layered.map(|layered| layered.hierarchy.clone());
-        }
-        if !visibility.get() {
-            continue;
         }
         let view = TerrainView {
             world_from_view: affine(&camera.world_from_view),
