@@ -244,7 +244,7 @@ pub(crate) fn update_fog_batches(
                     },
                     profile: &profile,
                 };
-                let mut cells = Vec::with_capacity(mesh.triangle_count() * 3 * profile.layers());
+                let mut cells = Vec::new();
                 let counts = fog_prisms(mesh, &input, &mut cells)?;
                 Ok((cells, counts, transfer, world_from_terrain.inverse()))
             });
