@@ -9,6 +9,7 @@
 //! - [`cell`]: tetrahedra, prisms, hexahedra, their decompositions and exact ray-cell intersection.
 //! - [`segment`]: the exact f64 ray integral of one linear segment, the reference for the tables.
 //! - [`preintegration`]: pre-integration tables (3D colour, ρ̂, emission, MIP) and the zero-opacity test.
+//! - [`height_fog`]: density over altitude as layers and its exact optical depth along any ray.
 //! - [`field`]: density grids and height fields, PNG/raw loaders, noise generators, 2^n+1 resampling.
 //! - [`budget`]: the memory budget every allocation sized by input is checked against first.
 //!
@@ -29,6 +30,7 @@
 pub mod budget;
 pub mod cell;
 pub mod field;
+pub mod height_fog;
 pub mod optics;
 pub mod preintegration;
 pub mod segment;
