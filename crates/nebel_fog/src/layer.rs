@@ -19,9 +19,8 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bevy::diagnostic::Diagnostics;
-use bevy::math::DVec2;
 use bevy::prelude::*;
-use nebel_core::field::{FogNoise, HeightField, ValleyFog};
+use nebel_core::field::{FogNoise, ValleyFog};
 use nebel_core::optics::OpticalMode;
 use nebel_lod::TerrainHierarchy;
 use nebel_lod::quadtree::TerrainLayer;
@@ -114,11 +113,8 @@ fn build_layer(
     let quadtree = if layer.is_zero() {
         None
     } else {
-        let thickness =
-            HeightField::new([side; 2], DVec2::ONE, DVec2::ZERO, layer.values().to_vec())?;
-        let hierarchy = (*base)
-            .clone()
-            .with_extra_roughness(&thickness, roughness_weight)?;
+        let mut hierarchy = (*base).clone();
+        hierarchy.add_layer_roughness(&layer, roughness_weight)?;
         Some(LayeredQuadtree {
             base,
             hierarchy: Arc::new(hierarchy),

@@ -171,8 +171,6 @@ fn median(mut values: Vec<f64>) -> f64 {
 }
 
 fn write_csvs(field: &HeightField, layer: &TerrainLayer) {
-    let roughness = HeightField::new([SIDE; 2], DVec2::ONE, DVec2::ZERO, layer.values().to_vec())
-        .expect("valid field");
     let mut sweep = String::from(
         "c,weight,triangles_median,prisms_median,tetrahedra_median,tetrahedra_max,refine_ms_median,prisms_ms_median,frame_ms_median,frame_ms_max\n",
     );
@@ -180,7 +178,7 @@ fn write_csvs(field: &HeightField, layer: &TerrainLayer) {
     for weight in [0.0_f32, 1.0, 4.0] {
         let started = Instant::now();
         let hierarchy = TerrainHierarchy::new(field.clone(), 2.0)
-            .and_then(|h| h.with_extra_roughness(&roughness, weight))
+            .and_then(|h| h.with_layer_roughness(layer, weight))
             .expect("valid hierarchy");
         eprintln!(
             "hierarchy with weight {weight}: {:.0} ms",
@@ -233,10 +231,8 @@ fn write_csvs(field: &HeightField, layer: &TerrainLayer) {
 
 fn one_frame(c: &mut Criterion) {
     let (field, layer) = scene();
-    let roughness = HeightField::new([SIDE; 2], DVec2::ONE, DVec2::ZERO, layer.values().to_vec())
-        .expect("valid field");
     let hierarchy = TerrainHierarchy::new(field, 2.0)
-        .and_then(|h| h.with_extra_roughness(&roughness, 1.0))
+        .and_then(|h| h.with_layer_roughness(&layer, 1.0))
         .expect("valid hierarchy");
     let (eye, frustum) = view(60);
     let profile = FogProfile::default();

@@ -12,7 +12,7 @@
 //! height, the fog top its morphed height plus its morphed thickness. Both are
 //! blended with the terrain's own weights, so the fog top never pops. The
 //! thickness's roughness enters the quadtree's d2 with a weight
-//! ([`TerrainHierarchy::add_extra_roughness`](crate::quadtree::TerrainHierarchy::add_extra_roughness)),
+//! ([`TerrainHierarchy::add_layer_roughness`](crate::quadtree::TerrainHierarchy::add_layer_roughness)),
 //! so the mesh also refines where the fog's top varies.
 //!
 //! # Cells

@@ -42,11 +42,9 @@ fn valley(n: usize) -> (TerrainHierarchy, TerrainLayer) {
         })
         .collect();
     let layer = TerrainLayer::new(n, thickness).unwrap();
-    let fog_top =
-        HeightField::new([n, n], DVec2::ONE, DVec2::ZERO, layer.values().to_vec()).unwrap();
     let hierarchy = TerrainHierarchy::new(field, 2.0)
         .unwrap()
-        .with_extra_roughness(&fog_top, 1.0)
+        .with_layer_roughness(&layer, 1.0)
         .unwrap();
     (hierarchy, layer)
 }

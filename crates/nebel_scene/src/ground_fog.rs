@@ -288,9 +288,6 @@ impl TerrainDescription {
         let spacing = local.spacing();
         let quadtree =
             |error: nebel_lod::TerrainError| InvalidField::new("source", error.to_string());
-        let roughness =
-            HeightField::new([side; 2], DVec2::ONE, DVec2::ZERO, layer.values().to_vec())
-                .map_err(|error| InvalidField::new("fog.thickness", error.to_string()))?;
         let mut hierarchy = TerrainHierarchy::new(local, self.min_accuracy).map_err(quadtree)?;
         // As the plugin: a fog that draws nothing (no thickness, no density,
         // a transparent transfer function) leaves the terrain alone.
@@ -299,7 +296,7 @@ impl TerrainDescription {
             && !built.transfer_function.is_transparent(0.0, 1.0);
         if fogged {
             hierarchy
-                .add_extra_roughness(&roughness, fog.roughness_weight)
+                .add_layer_roughness(&layer, fog.roughness_weight)
                 .map_err(quadtree)?;
         }
         let center = DVec3::from(self.center.map(f64::from));

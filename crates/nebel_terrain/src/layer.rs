@@ -20,7 +20,7 @@ use nebel_lod::quadtree::TerrainLayer;
 #[reflect(Component, Default, Clone)]
 pub struct TerrainLayerLod {
     /// The terrain's quadtree with the layer's roughness added
-    /// (`TerrainHierarchy::with_extra_roughness`), and the layer: one value
+    /// (`TerrainHierarchy::add_layer_roughness`), and the layer: one value
     /// per grid point of that quadtree. Used only while the terrain's own
     /// quadtree is still the one it was derived from (`base`); `None`: no
     /// layer.

@@ -7,7 +7,7 @@ use nebel_core::field::HeightField;
 
 use super::{
     MIN_RESOLUTION_LOWER_BOUND, NEIGHBOUR_FACTOR_DISTANCE, PARENT_FACTOR_DISTANCE, TerrainError,
-    propagation_factor,
+    TerrainLayer, propagation_factor,
 };
 
 /// log2 of the smallest non-zero d2 code (code 1).
@@ -158,6 +158,37 @@ impl TerrainHierarchy {
         field: &HeightField,
         weight: f32,
     ) -> Result<(), TerrainError> {
+        self.add_roughness_source(field.dims(), field.heights(), weight)
+    }
+
+    /// [`TerrainHierarchy::with_extra_roughness`] of a [`TerrainLayer`]'s
+    /// values (the fog thickness the mesh also carries).
+    pub fn with_layer_roughness(
+        mut self,
+        layer: &TerrainLayer,
+        weight: f32,
+    ) -> Result<Self, TerrainError> {
+        self.add_layer_roughness(layer, weight)?;
+        Ok(self)
+    }
+
+    /// [`TerrainHierarchy::with_layer_roughness`] in place.
+    pub fn add_layer_roughness(
+        &mut self,
+        layer: &TerrainLayer,
+        weight: f32,
+    ) -> Result<(), TerrainError> {
+        self.add_roughness_source([layer.side(); 2], layer.values(), weight)
+    }
+
+    /// Adds `weight` times the local d2 of `values` (`dims` points) and
+    /// propagates it.
+    fn add_roughness_source(
+        &mut self,
+        dims: [usize; 2],
+        values: &[f32],
+        weight: f32,
+    ) -> Result<(), TerrainError> {
         if !(weight.is_finite() && weight >= 0.0) {
             return Err(TerrainError::InvalidParameter {
                 parameter: "extra roughness weight",
@@ -165,14 +196,14 @@ impl TerrainHierarchy {
                 requirement: "finite and not negative",
             });
         }
-        if field.dims() != self.field.dims() {
+        if dims != self.field.dims() {
             return Err(TerrainError::DimsMismatch {
                 terrain: self.field.dims(),
-                extra: field.dims(),
+                extra: dims,
             });
         }
         let shape = self.shape();
-        propagate(&mut self.d2, &shape, field.heights(), weight);
+        propagate(&mut self.d2, &shape, values, weight);
         Ok(())
     }
 
