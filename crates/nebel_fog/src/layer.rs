@@ -12,8 +12,9 @@
 //! no thickness anywhere, no density or a transparent transfer function
 //! gives none (the terrain refines alone, and nothing of the fog runs per
 //! frame; the layer is kept for when the fog can be seen again). Unless the
-//! fog, its map or the terrain's quadtree changed, the system only compares
-//! a pointer per fog.
+//! fog, its map or the terrain's quadtree changed, the system only reads the
+//! fog's density and transfer function and compares pointers per fog: no
+//! key is formatted and nothing is built.
 
 use std::sync::Arc;
 use std::time::Instant;
