@@ -1,7 +1,8 @@
 //! nebel: volumetric effects for Bevy.
 //!
 //! Terrain with continuous level of detail (Röttger's quadtree C-LOD), ground
-//! fog lying in its valleys as prisms on that level of detail, cloud
+//! fog lying in its valleys as prisms on that level of detail, fog layers
+//! (height fog exact along every ray, one full-screen pass), cloud
 //! volumes refined by a view-dependent octree and lit by a light field, and
 //! emissive fire and search lights, drawn by cell projection with
 //! pre-integrated transfer functions, exact per pixel. This umbrella crate is
@@ -58,7 +59,9 @@ impl PluginGroup for NebelPlugins {
         #[cfg(feature = "terrain")]
         let group = group.add(nebel_terrain::TerrainPlugin);
         #[cfg(feature = "fog")]
-        let group = group.add(nebel_fog::GroundFogPlugin);
+        let group = group
+            .add(nebel_fog::GroundFogPlugin)
+            .add(nebel_fog::FogLayersPlugin);
         group
     }
 }
@@ -68,8 +71,9 @@ pub mod prelude {
     pub use crate::NebelPlugins;
     #[cfg(feature = "fog")]
     pub use nebel_fog::{
-        FogNoise, FogThickness, GroundFog, GroundFogDebug, GroundFogError, GroundFogPlugin,
-        GroundFogStats, GroundFogStatus, ValleyFog,
+        FogLayers, FogLayersError, FogLayersPlugin, FogLayersStatus, FogNoise, FogThickness,
+        GroundFog, GroundFogDebug, GroundFogError, GroundFogPlugin, GroundFogStats,
+        GroundFogStatus, HeightFogLayer, ValleyFog,
     };
     pub use nebel_render::{CellBatch, HeavyBuilds, LodCamera, NebelSystems};
     #[cfg(feature = "terrain")]

@@ -31,6 +31,8 @@ use thiserror::Error;
 /// One layer of a [`HeightFog`] (see the module docs). Altitudes in
 /// metres, densities in 1/m.
 #[derive(Clone, Debug, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "bevy_reflect", derive(bevy_reflect::Reflect))]
 pub enum HeightFogLayer {
     /// `density · e^{−falloff (h − base)}`.
     Exponential {
@@ -132,6 +134,15 @@ impl HeightFog {
     /// The layers.
     pub fn layers(&self) -> &[HeightFogLayer] {
         &self.layers
+    }
+
+    /// Whether some layer has a density above zero somewhere.
+    pub fn has_density(&self) -> bool {
+        self.layers.iter().any(|layer| match layer {
+            HeightFogLayer::Exponential { density, .. }
+            | HeightFogLayer::Constant { density, .. } => *density > 0.0,
+            HeightFogLayer::Linear(points) => points.iter().any(|[_, d]| *d > 0.0),
+        })
     }
 
     /// The density at altitude `h`, 1/m (0 for a non-finite `h`).

@@ -55,15 +55,18 @@
 
 pub mod batch;
 pub mod error;
+pub mod fog_layers;
 pub mod ground_fog;
 pub mod layer;
 
 pub use error::GroundFogError;
+pub use fog_layers::{FogLayers, FogLayersError, FogLayersPlugin, FogLayersStatus};
 pub use ground_fog::{
     FogThickness, GroundFog, GroundFogDebug, GroundFogPlugin, GroundFogStats, GroundFogStatus,
 };
 
 pub use nebel_core::field::{FogNoise, ValleyFog};
+pub use nebel_core::height_fog::HeightFogLayer;
 
 #[cfg(test)]
 mod tests;

@@ -418,3 +418,127 @@ fn a_density_out_of_range_fails_and_recovers() {
         assert!(batch(&app, fog).is_some());
     }
 }
+
+/// The fog layers of a camera in an app without a GPU: their status and
+/// what they hand the render world.
+fn fog_layers_status(fog: crate::FogLayers) -> (crate::FogLayersStatus, bool) {
+    let mut app = App::new();
+    app.add_plugins((MinimalPlugins, AssetPlugin::default()))
+        .add_plugins(crate::FogLayersPlugin);
+    let camera = app.world_mut().spawn((Camera3d::default(), fog)).id();
+    app.update();
+    let world = app.world();
+    (
+        world.get::<crate::FogLayersStatus>(camera).unwrap().clone(),
+        world
+            .get::<crate::fog_layers::PreparedFogLayers>(camera)
+            .unwrap()
+            .0
+            .is_some(),
+    )
+}
+
+#[test]
+fn fog_layers_are_checked_and_cost_nothing_without_density() {
+    use crate::{FogLayers, FogLayersStatus, HeightFogLayer};
+    assert_eq!(
+        fog_layers_status(FogLayers::default()),
+        (FogLayersStatus::Ready, true)
+    );
+    // No layers, or layers of zero density: nothing for the render world.
+    for layers in [
+        vec![],
+        vec![
+            HeightFogLayer::Constant {
+                bottom: 0.0,
+                top: 10.0,
+                density: 0.0,
+            },
+            HeightFogLayer::Linear(vec![[0.0, 0.0], [5.0, 0.0]]),
+        ],
+    ] {
+        let fog = FogLayers {
+            layers,
+            ..default()
+        };
+        assert_eq!(fog_layers_status(fog), (FogLayersStatus::Ready, false));
+    }
+    // Bad input: a failed status that names the setting, nothing drawn.
+    let exponential = |density: f64, falloff: f64| HeightFogLayer::Exponential {
+        base: 0.0,
+        density,
+        falloff,
+    };
+    for (fog, needle) in [
+        (
+            FogLayers {
+                layers: vec![exponential(-0.01, 0.01)],
+                ..default()
+            },
+            "density",
+        ),
+        (
+            FogLayers {
+                layers: vec![exponential(f64::NAN, 0.01)],
+                ..default()
+            },
+            "density",
+        ),
+        (
+            FogLayers {
+                layers: vec![exponential(0.01, -1.0)],
+                ..default()
+            },
+            "falloff",
+        ),
+        (
+            FogLayers {
+                layers: vec![HeightFogLayer::Constant {
+                    bottom: 3.0,
+                    top: 3.0,
+                    density: 0.1,
+                }],
+                ..default()
+            },
+            "bottom below top",
+        ),
+        (
+            FogLayers {
+                layers: vec![exponential(0.01, 0.01); 9],
+                ..default()
+            },
+            "at most 8",
+        ),
+        (
+            FogLayers {
+                layers: vec![HeightFogLayer::Linear(
+                    (0..33).map(|i| [f64::from(i), 0.01]).collect(),
+                )],
+                ..default()
+            },
+            "at most 32",
+        ),
+        (
+            FogLayers {
+                start_distance: 10.0,
+                max_distance: 10.0,
+                ..default()
+            },
+            "max_distance",
+        ),
+        (
+            FogLayers {
+                color: Color::linear_rgb(f32::NAN, 0.0, 0.0),
+                ..default()
+            },
+            "color",
+        ),
+    ] {
+        let (status, prepared) = fog_layers_status(fog);
+        let FogLayersStatus::Failed(error) = status else {
+            panic!("{needle}: {status:?}");
+        };
+        assert!(error.to_string().contains(needle), "{error}");
+        assert!(!prepared, "{needle}");
+    }
+}

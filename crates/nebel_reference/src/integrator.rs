@@ -43,11 +43,12 @@ use std::sync::atomic::{AtomicU32, Ordering};
 
 use glam::{DMat3, DQuat, DVec3, DVec4};
 
+use crate::fog::ReferenceFog;
 use crate::image_metrics::LinearImage;
 use nebel_core::budget::BudgetError;
 use nebel_core::cell::{CellSegment, PreparedTetrahedron, Ray, Tetrahedron};
 use nebel_core::field::DensityGrid;
-use nebel_core::optics::{OpticalMode, PremultipliedRgba};
+use nebel_core::optics::{OpticalMode, PremultipliedRgba, henyey_greenstein};
 use nebel_core::segment::exact_segment;
 use nebel_core::transfer::TransferFunction;
 
@@ -243,6 +244,32 @@ pub struct ReferenceScene {
     /// piecewise-linear scalar integrated from the trilinear scalar along the
     /// ray, > 0. Default [`DEFAULT_SCALAR_TOLERANCE`].
     pub scalar_tolerance: f64,
+    /// Sorted volumes only: single scattering of the sun, applied to every
+    /// segment. Default `None` (the segments' colours as integrated).
+    pub scattering: Option<SegmentScattering>,
+    /// Fog layers the volume is seen through: every segment is conjugated by
+    /// the fog in front of it (see [`ReferenceFog`]). The image is then the
+    /// volume alone, to go over the fogged background
+    /// ([`ReferenceFog::over`]); [`ReferenceScene::background`] is
+    /// composited as it is. Default `None`.
+    pub fog: Option<ReferenceFog>,
+}
+
+/// Single scattering of the sun (Nes 2008) for a volume integrated over the
+/// transmittance toward the sun: each segment's premultiplied colour `C` and
+/// opacity `α` become `ambient · α + sunlight · 4π p_HG(θ) · C`, θ between the
+/// ray and the direction toward the sun, as the GPU's `SCATTERING` variant
+/// computes.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SegmentScattering {
+    /// The ambient light's weight.
+    pub ambient: f64,
+    /// The sunlight's weight.
+    pub sunlight: f64,
+    /// Unit direction toward the sun.
+    pub sun_direction: DVec3,
+    /// The Henyey-Greenstein asymmetry `g`.
+    pub asymmetry: f64,
 }
 
 impl ReferenceScene {
@@ -263,6 +290,8 @@ impl ReferenceScene {
             opaque_depth: None,
             background: DVec4::ZERO,
             scalar_tolerance: DEFAULT_SCALAR_TOLERANCE,
+            scattering: None,
+            fog: None,
         }
     }
 
@@ -335,6 +364,9 @@ impl ReferenceScene {
             return Err(ReferenceError::InvalidBackground {
                 value: format!("{background}"),
             });
+        }
+        if let Some(reason) = self.fog.as_ref().and_then(ReferenceFog::invalid) {
+            return Err(ReferenceError::InvalidFog { reason });
         }
         if !(self.scalar_tolerance.is_finite() && self.scalar_tolerance > 0.0) {
             return Err(ReferenceError::InvalidTolerance {
@@ -410,6 +442,12 @@ pub enum ReferenceError {
     InvalidBackground {
         /// The value, formatted.
         value: String,
+    },
+    /// The fog layers' colour, sunlight or distances are out of range.
+    #[error("reference fog: {reason}")]
+    InvalidFog {
+        /// What is wrong.
+        reason: String,
     },
     /// The scalar tolerance is not positive.
     #[error("scalar_tolerance = {value} is invalid: it must be finite and positive")]
@@ -524,10 +562,23 @@ fn render_pixel(
         f64::from(depth[(y * camera.width + x) as usize]) / depth_to_distance
     });
     let volume = if t_near < t_far {
+        let light = scene
+            .scattering
+            .filter(|_| scene.mode == OpticalMode::Sorted)
+            .map(|scattering| {
+                let cos_theta = ray.direction.dot(scattering.sun_direction);
+                (
+                    scattering.ambient,
+                    scattering.sunlight * henyey_greenstein(scattering.asymmetry, cos_theta),
+                )
+            });
         let mut march = March {
             transfer_function: &scene.transfer_function,
             mode: scene.mode,
             colour: DVec4::ZERO,
+            ray,
+            light,
+            fog: scene.fog.as_ref(),
         };
         match integrator {
             Integrator::Cells { cells, bins } => march_cells(
@@ -561,14 +612,45 @@ struct March<'a> {
     transfer_function: &'a TransferFunction,
     mode: OpticalMode,
     colour: PremultipliedRgba,
+    ray: Ray,
+    /// The ray's ambient and sunlight weights of single scattering.
+    light: Option<(f64, f64)>,
+    fog: Option<&'a ReferenceFog>,
 }
 
 impl March<'_> {
-    /// Adds the linear segment `s_front → s_back` of `length` behind what is
+    /// Adds the linear segment `s_front → s_back` of (modulated) `length`,
+    /// lying over `[t_front, t_back]` along the ray, behind what is
     /// accumulated.
-    fn add(&mut self, s_front: f64, s_back: f64, length: f64) {
-        let segment = exact_segment(self.transfer_function, self.mode, s_front, s_back, length);
-        self.colour = self.mode.composite(self.colour, segment);
+    fn add(&mut self, t_front: f64, t_back: f64, s_front: f64, s_back: f64, length: f64) {
+        let (tf, mode, light) = (self.transfer_function, self.mode, self.light);
+        let segment = |s_front: f64, s_back: f64, length: f64| {
+            let segment = exact_segment(tf, mode, s_front, s_back, length);
+            light.map_or(segment, |(ambient, sunlight)| {
+                (ambient * segment.w + sunlight * segment.truncate()).extend(segment.w)
+            })
+        };
+        let whole = segment(s_front, s_back, length);
+        let Some(fog) = self.fog else {
+            self.colour = mode.composite(self.colour, whole);
+            return;
+        };
+        let ray = self.ray;
+        fog.conjugated_pieces(
+            &ray,
+            t_front,
+            t_back,
+            whole,
+            mode == OpticalMode::Sorted,
+            |k, count| {
+                let at = |k: usize| s_front + (s_back - s_front) * k as f64 / count as f64;
+                segment(at(k), at(k + 1), length / count as f64)
+            },
+            |part| {
+                self.colour = mode.composite(self.colour, part);
+                self.is_opaque()
+            },
+        );
     }
 
     /// Whether nothing behind can change the pixel any more.
@@ -604,7 +686,13 @@ fn march_cells(
         segments.sort_unstable_by(|a, b| a.0.t_entry.total_cmp(&b.0.t_entry));
     }
     for (segment, mean) in segments.iter() {
-        march.add(segment.s_entry, segment.s_exit, segment.length() * mean);
+        march.add(
+            segment.t_entry,
+            segment.t_exit,
+            segment.s_entry,
+            segment.s_exit,
+            segment.length() * mean,
+        );
         if march.is_opaque() {
             break;
         }
@@ -841,7 +929,13 @@ fn march_grid(
         for piece in 1..=pieces {
             let x = piece as f64 * piece_length;
             let (s_back, m_back) = (scalar.at(x), modulator_at(x));
-            march.add(s_front, s_back, piece_length * 0.5 * (m_front + m_back));
+            march.add(
+                ta + x - piece_length,
+                ta + x,
+                s_front,
+                s_back,
+                piece_length * 0.5 * (m_front + m_back),
+            );
             if march.is_opaque() {
                 return;
             }
@@ -980,6 +1074,90 @@ mod tests {
             }
         }
         assert!(checked > 600, "only {checked} pixels checked");
+    }
+
+    #[test]
+    fn a_box_inside_fog_matches_the_closed_form_of_both_media() {
+        use crate::fog::ReferenceFog;
+        use nebel_core::height_fog::{HeightFog, HeightFogLayer};
+        // Fog ρ_f = 0.3 everywhere near the box, colour c; the box ρ = 2,
+        // κ = (1, 0.5, 0.25). Along a ray: fog to the box, both media inside
+        // it (extinction ρ + ρ_f, source ρκ + ρ_f c, constant), fog behind to
+        // the largest distance, then the background.
+        let fog = ReferenceFog {
+            fog: HeightFog::new(vec![HeightFogLayer::Constant {
+                bottom: -100.0,
+                top: 100.0,
+                density: 0.3,
+            }])
+            .unwrap(),
+            colour: DVec3::new(0.2, 0.4, 0.9),
+            sun: None,
+            start_distance: 0.0,
+            max_distance: 40.0,
+        };
+        let kappa = DVec3::new(1.0, 0.5, 0.25);
+        let background = DVec4::new(0.05, 0.1, 0.0, 1.0);
+        for (volume, mode) in [
+            (ReferenceVolume::Grid(grid(5, |_| 0.5)), OpticalMode::Sorted),
+            (
+                ReferenceVolume::Cells(grid(3, |_| 0.5).tetrahedra()),
+                OpticalMode::Sorted,
+            ),
+            (
+                ReferenceVolume::Grid(grid(5, |_| 0.5)),
+                OpticalMode::Emissive,
+            ),
+        ] {
+            let mut scene = ReferenceScene::new(camera(), volume, constant_tf(), mode);
+            scene.fog = Some(fog.clone());
+            let image = render(&scene, None).unwrap();
+            let mut checked = 0;
+            for y in 0..30 {
+                for x in 0..40 {
+                    let Some(chord) = box_chord(&scene.camera, x, y, None) else {
+                        continue;
+                    };
+                    let (ray, _) = scene.camera.pixel_ray(x, y);
+                    let t_entry = if chord > 0.0 {
+                        (1.0 - ray.origin.z) / ray.direction.z
+                    } else {
+                        40.0
+                    };
+                    let fog_layer = |length: f64| {
+                        let alpha = 1.0 - (-0.3 * length).exp();
+                        (fog.colour * alpha).extend(alpha)
+                    };
+                    let inside = match mode {
+                        OpticalMode::Sorted => {
+                            let alpha = 1.0 - (-2.3 * chord).exp();
+                            ((2.0 * kappa + 0.3 * fog.colour) / 2.3 * alpha).extend(alpha)
+                        }
+                        _ => {
+                            let alpha = 1.0 - (-0.3 * chord).exp();
+                            ((2.0 * kappa + 0.3 * fog.colour) / 0.3 * alpha).extend(alpha)
+                        }
+                    };
+                    let over = |front: DVec4, back: DVec4| front + (1.0 - front.w) * back;
+                    let behind = fog_layer(40.0 - t_entry - chord);
+                    let expected = over(fog_layer(t_entry), over(inside, over(behind, background)));
+                    // The reference: the volume seen through the fog, over
+                    // the fogged background.
+                    let volume = DVec4::from(image.pixels[(y * 40 + x) as usize].map(f64::from));
+                    let fogged = fog.over(&ray, f64::INFINITY, background);
+                    let pixel = match mode {
+                        OpticalMode::Sorted => over(volume, fogged),
+                        _ => volume.truncate().extend(0.0) + fogged,
+                    };
+                    assert!(
+                        (pixel - expected).truncate().abs().max_element() < 2e-6,
+                        "{mode:?} ({x}, {y}): {pixel} vs {expected}"
+                    );
+                    checked += 1;
+                }
+            }
+            assert!(checked > 600, "only {checked} pixels checked");
+        }
     }
 
     #[test]

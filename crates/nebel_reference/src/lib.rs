@@ -5,7 +5,9 @@
 //!
 //! - [`render`] and [`ReferenceScene`] (module `integrator`): the f64 CPU
 //!   reference renderer through a tetrahedral mesh or a trilinear grid, with
-//!   an optional segment-length modulator and opaque depth.
+//!   an optional segment-length modulator, single scattering, opaque depth
+//!   and fog layers ([`ReferenceFog`], module `fog`: height fog exact along
+//!   every ray, and volumes seen through it).
 //! - [`image_metrics`]: linear images, sRGB PNG input and output, RMSE,
 //!   maximum absolute error and PSNR, difference images.
 //!
@@ -18,10 +20,12 @@
 //! - Röttger 2004: Stefan Röttger, "Volumetric Methods for the Real-Time Display of
 //!   Natural Gaseous Phenomena", doctoral thesis, University of Stuttgart, 2004.
 
+mod fog;
 pub mod image_metrics;
 mod integrator;
 
+pub use fog::{FogSunlight, ReferenceFog};
 pub use integrator::{
     DEFAULT_SCALAR_TOLERANCE, Modulation, ReferenceCamera, ReferenceError, ReferenceScene,
-    ReferenceVolume, RenderProgress, render,
+    ReferenceVolume, RenderProgress, SegmentScattering, render,
 };

@@ -5,6 +5,8 @@
 //!
 //! - [`cell_batch`]: the [`CellBatch`] component, the cells an effect wants drawn.
 //! - [`cell_projection`]: the render feature that draws them, exact per pixel.
+//! - [`fog_layers`]: height fog on the GPU, shared by the fog-layer pass and
+//!   the cell projection ([`ViewFogLayers`]).
 //! - [`builds`]: heavy builds on the task pool ([`HeavyBuilds`]).
 //! - [`camera`]: the camera that drives the level of detail ([`LodCamera`]).
 //! - [`diagnostics`]: the [`NebelSystems`] set that every per-frame nebel system
@@ -26,9 +28,11 @@ pub mod camera;
 pub mod cell_batch;
 pub mod cell_projection;
 pub mod diagnostics;
+pub mod fog_layers;
 
 pub use builds::{HeavyBuild, HeavyBuilds};
 pub use camera::{LodCamera, LodCameras, LodView};
 pub use cell_batch::{CellBatch, CellScattering};
-pub use cell_projection::{CellProjectionPlugin, CellProjectionStats};
+pub use cell_projection::{CellProjectionPlugin, CellProjectionStats, CellProjectionSystems};
 pub use diagnostics::{NebelDiagnosticsPlugin, NebelSystems};
+pub use fog_layers::{FogLayersUniform, ViewFogLayers};

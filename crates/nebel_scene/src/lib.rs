@@ -64,12 +64,14 @@
 //! - Nes 2008: Gisle Nes, "Physically Plausible Weather Visualization", master's thesis,
 //!   University of Bergen, 2008.
 
+mod fog_layers;
 mod ground_fog;
 pub mod opaque;
 pub mod reference;
 mod terrain;
 mod volume;
 
+pub use fog_layers::FogLayersDescription;
 pub use ground_fog::{
     BuiltGroundFog, FogMapSource, FogReference, FogThicknessDescription, GroundFogDescription,
 };
@@ -126,6 +128,10 @@ pub struct SceneDescription {
     /// [`TerrainDescription`]. Default: none.
     #[serde(default)]
     pub terrain: Option<TerrainDescription>,
+    /// Height fog over the whole scene, seen by the camera, see
+    /// [`FogLayersDescription`]. Default: none.
+    #[serde(default)]
+    pub fog_layers: Option<FogLayersDescription>,
 }
 
 /// Image size and the frames to run before the image is taken.
@@ -658,6 +664,11 @@ impl SceneDescription {
                 .validate()
                 .map_err(|invalid| invalid.within("terrain"))?;
         }
+        if let Some(fog_layers) = &self.fog_layers {
+            fog_layers
+                .validate()
+                .map_err(|invalid| invalid.within("fog_layers"))?;
+        }
         Ok(())
     }
 
@@ -856,6 +867,7 @@ fn pose_valid(field: &str, position: [f32; 3], look_at: [f32; 3]) -> Result<(), 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nebel_core::height_fog::HeightFogLayer;
 
     const MINIMAL: &str =
         "(version: 1, camera: (view: Pose((position: (0.0, 1.0, 5.0), look_at: (0.0, 0.0, 0.0)))))";
@@ -976,6 +988,26 @@ mod tests {
                 debug_lod_colours: true,
                 debug_edges: true,
                 fog: None,
+            }),
+            fog_layers: Some(FogLayersDescription {
+                layers: vec![
+                    HeightFogLayer::Exponential {
+                        base: 10.0,
+                        density: 0.01,
+                        falloff: 0.02,
+                    },
+                    HeightFogLayer::Constant {
+                        bottom: 0.0,
+                        top: 40.0,
+                        density: 0.002,
+                    },
+                    HeightFogLayer::Linear(vec![[0.0, 0.0], [20.0, 0.004], [60.0, 0.0]]),
+                ],
+                color: [0.4, 0.5, 0.6],
+                sun_color: [1.0, 0.9, 0.7],
+                sun_asymmetry: 0.3,
+                start_distance: 25.0,
+                max_distance: 5000.0,
             }),
         }
     }
@@ -1139,6 +1171,36 @@ mod tests {
                 "version: 1,",
                 "version: 1, volumes: [(source: Uniform((value: 1.0)), density_scale: -1.0)],",
                 "field volumes[0].density_scale: must be finite and >= 0, got -1",
+            ),
+            (
+                "version: 1,",
+                "version: 1, fog_layers: (layers: [Exponential(base: 0.0, density: -0.1, falloff: 0.01)]),",
+                "field fog_layers.layers: height fog layer 0 is invalid: base and density must be finite, density ≥ 0",
+            ),
+            (
+                "version: 1,",
+                "version: 1, fog_layers: (layers: [Exponential(base: 0.0, density: 0.1, falloff: 0.0)]),",
+                "field fog_layers.layers: height fog layer 0 is invalid: falloff must be finite and > 0",
+            ),
+            (
+                "version: 1,",
+                "version: 1, fog_layers: (layers: [Constant(bottom: 5.0, top: 5.0, density: 0.1)]),",
+                "field fog_layers.layers: height fog layer 0 is invalid: bottom and top must be finite, bottom below top",
+            ),
+            (
+                "version: 1,",
+                "version: 1, fog_layers: (layers: [Linear([(0.0, 0.1), (NaN, 0.0)])]),",
+                "field fog_layers.layers: height fog layer 0 is invalid: needs two or more",
+            ),
+            (
+                "version: 1,",
+                "version: 1, fog_layers: (layers: [], start_distance: 10.0, max_distance: 5.0),",
+                "field fog_layers.max_distance: must be greater than start_distance (10), got 5",
+            ),
+            (
+                "version: 1,",
+                "version: 1, fog_layers: (layers: [], color: (0.0, -1.0, 0.0)),",
+                "field fog_layers.color: colour components must be finite and >= 0, got -1",
             ),
         ];
         for (from, to, expected) in cases {

@@ -16,10 +16,10 @@ use crate::{
 };
 use glam::{DVec3, DVec4};
 use nebel_core::field::{CloudLighting, DensityGrid, PadFill, light_field};
-use nebel_core::optics::{OpticalMode, henyey_greenstein};
+use nebel_core::optics::OpticalMode;
 use nebel_reference::image_metrics::{ImageMetricsError, LinearImage, save_png, srgb_to_linear};
 use nebel_reference::{
-    Modulation, ReferenceCamera, ReferenceError, ReferenceScene, ReferenceVolume, RenderProgress,
+    Modulation, ReferenceError, ReferenceScene, ReferenceVolume, RenderProgress, SegmentScattering,
 };
 
 /// How far a reference image is: which volume, and its rows.
@@ -76,6 +76,15 @@ pub fn reference_image_with_terrain(
     let camera = scene.reference_camera();
     LinearImage::check_budget(camera.width, camera.height)?;
     let opaque_depth = scene.opaque_depth_with_terrain(&camera, terrain)?;
+    let sun = scene.sun_direction();
+    let fog = scene
+        .fog_layers
+        .as_ref()
+        .map(|fog| fog.reference(sun))
+        .transpose()
+        .map_err(|invalid| ReferenceError::InvalidFog {
+            reason: format!("fog_layers.{}: {}", invalid.field, invalid.reason),
+        })?;
     let mut layers = Vec::with_capacity(volumes.len());
     let volume_count = volumes.len();
     let last_frame = f64::from(scene.frame_time(scene.output.frames.saturating_sub(1)));
@@ -100,7 +109,7 @@ pub fn reference_image_with_terrain(
                 ((ReferenceVolume::Grid(grid)), (cloud.min + cloud.max) / 2.0)
             }
         };
-        let sun = scene.sun_direction().unwrap_or(DVec3::Y);
+        let sun = sun.unwrap_or(DVec3::Y);
         let (field, modulation) = match (field, volume.lighting) {
             (ReferenceVolume::Grid(grid), Some(lighting)) => lit_fields(&grid, &lighting, sun)?,
             (field, _) => (field, None),
@@ -108,7 +117,19 @@ pub fn reference_image_with_terrain(
         let mut reference_scene =
             ReferenceScene::new(camera, field, volume.transfer_function, volume.mode);
         reference_scene.modulation = modulation;
+        reference_scene.scattering = volume.lighting.as_ref().and_then(|lighting| {
+            let LightModel::Scattering { asymmetry } = lighting.model else {
+                return None;
+            };
+            Some(SegmentScattering {
+                ambient: f64::from(lighting.ambient),
+                sunlight: f64::from(lighting.diffuse),
+                sun_direction: sun,
+                asymmetry: f64::from(asymmetry),
+            })
+        });
         reference_scene.opaque_depth = opaque_depth.clone();
+        reference_scene.fog = fog.clone();
         let report = |rows: RenderProgress| {
             if let Some(progress) = progress {
                 progress(ReferenceProgress {
@@ -119,12 +140,7 @@ pub fn reference_image_with_terrain(
                 });
             }
         };
-        let mut image = nebel_reference::render(&reference_scene, Some(&report))?;
-        if let Some(lighting) = volume.lighting
-            && volume.mode == OpticalMode::Sorted
-        {
-            scatter(&mut image, &camera, &lighting, sun);
-        }
+        let image = nebel_reference::render(&reference_scene, Some(&report))?;
         layers.push((camera.position.distance(centre), volume.mode, image));
     }
     layers.sort_by(|a, b| b.0.total_cmp(&a.0));
@@ -136,7 +152,18 @@ pub fn reference_image_with_terrain(
             let on_mesh = opaque_depth
                 .as_ref()
                 .is_some_and(|depth| depth[index].is_finite());
-            let behind = DVec3::from(if on_mesh { [0.0; 3] } else { background }.map(f64::from));
+            let mut behind =
+                DVec3::from(if on_mesh { [0.0; 3] } else { background }.map(f64::from));
+            if let Some(fog) = &fog {
+                // The fog from the eye to the surface or the sky, under the
+                // volumes (which the integrator saw through it).
+                let (x, y) = (index as u32 % camera.width, index as u32 / camera.width);
+                let (ray, depth_to_distance) = camera.pixel_ray(x, y);
+                let t_far = opaque_depth.as_ref().map_or(f64::INFINITY, |depth| {
+                    f64::from(depth[index]) / depth_to_distance
+                });
+                behind = fog.over(&ray, t_far, behind.extend(1.0)).truncate();
+            }
             let mut accumulated = DVec4::ZERO;
             for (_, mode, image) in &layers {
                 let mut layer = DVec4::from(image.pixels[index].map(f64::from));
@@ -191,33 +218,6 @@ fn lit_fields(
         }
         LightModel::NonPhysical => (ReferenceVolume::Grid(padded), Some(Modulation::Grid(light))),
     })
-}
-
-/// Single scattering (Nes 2008) of a layer integrated over the
-/// transmittance toward the sun: each pixel's premultiplied colour `C` and
-/// opacity `α` become `ambient · α + sun · 4π p_HG(θ) · C`, θ between the
-/// pixel's ray and the sunlight, as the GPU's `SCATTERING` variant computes.
-/// Other models are left as they are.
-fn scatter(
-    image: &mut LinearImage,
-    camera: &ReferenceCamera,
-    lighting: &LightingDescription,
-    sun: DVec3,
-) {
-    let LightModel::Scattering { asymmetry } = lighting.model else {
-        return;
-    };
-    let width = image.width;
-    for (index, pixel) in image.pixels.iter_mut().enumerate() {
-        let (x, y) = (index as u32 % width, index as u32 / width);
-        let (ray, _) = camera.pixel_ray(x, y);
-        let phase = henyey_greenstein(f64::from(asymmetry), ray.direction.dot(sun));
-        let sunlight = f64::from(lighting.diffuse) * phase;
-        let ambient = f64::from(lighting.ambient) * f64::from(pixel[3]);
-        for channel in &mut pixel[..3] {
-            *channel = (ambient + sunlight * f64::from(*channel)) as f32;
-        }
-    }
 }
 
 /// The scene's clear colour, linear.

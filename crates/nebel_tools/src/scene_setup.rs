@@ -118,6 +118,19 @@ impl Plugin for SceneSetupPlugin {
     }
 }
 
+/// The scene's fog layers as the camera's component.
+fn fog_layers(fog: &nebel_scene::FogLayersDescription) -> nebel_fog::FogLayers {
+    let linear = |c: [f32; 3]| Color::linear_rgb(c[0], c[1], c[2]);
+    nebel_fog::FogLayers {
+        layers: fog.layers.clone(),
+        color: linear(fog.color),
+        sun_color: linear(fog.sun_color),
+        sun_asymmetry: fog.sun_asymmetry,
+        start_distance: fog.start_distance,
+        max_distance: fog.max_distance,
+    }
+}
+
 fn srgb(color: [f32; 3]) -> Color {
     Color::srgb(color[0], color[1], color[2])
 }
@@ -163,6 +176,9 @@ fn spawn_scene(
     });
     if !camera.tonemapping {
         camera_entity.insert((Tonemapping::None, DebandDither::Disabled));
+    }
+    if let Some(fog) = &scene.fog_layers {
+        camera_entity.insert(fog_layers(fog));
     }
 
     let mut ambient = GlobalAmbientLight {

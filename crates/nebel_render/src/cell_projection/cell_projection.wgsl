@@ -28,8 +28,21 @@
 // segment's colour is ambient · α + sun · 4π p_HG(θ) · C, θ between the view
 // ray and the sunlight, constant along the ray.
 //
+// FOG_LAYERS (the view has fog layers, Röttger 2004 §5.3): the segment is
+// seen through the fog in front of it. As maps of the radiance behind, a
+// segment x ↦ C + (1 − α) x among fog pieces x ↦ F + T x equals the segment
+// conjugated by the fog from the eye, (T C + α F, α), followed by the fog
+// from the eye to the end of the ray, which the fog-layer pass has already
+// put over the scene; so the conjugated segments accumulate and composite
+// as before. T and F are taken at the segment's middle: inside the segment
+// the two media overlap, and the middle is Strang splitting, exact to
+// second order in their optical depths. F = c (1 − T), c the fog's colour
+// along the ray. Emissive and MIP segments (α = 0) are scaled by T.
+//
 // All positions are taken relative to the camera so large world coordinates
 // keep their precision.
+
+#import nebel_render::fog_layers::{FogLayers, fog_colour, fog_optical_depth}
 
 struct CellView {
     clip_from_world: mat4x4<f32>,
@@ -37,6 +50,8 @@ struct CellView {
     camera_position: vec4<f32>,
     // x, y, width, height of the viewport in pixels.
     viewport: vec4<f32>,
+    // The view's fog layers (read only by the FOG_LAYERS variant).
+    fog: FogLayers,
 }
 
 struct Cell {
@@ -262,15 +277,24 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     let g = scattering.sun.w;
     let cos_theta = dot(direction, scattering.sun.xyz);
     let phase = (1.0 - g * g) / pow(1.0 + g * g - 2.0 * g * cos_theta, 1.5);
-    return vec4(scattering.ambient_colour.rgb * alpha + scattering.sun_colour.rgb * phase * colour, alpha);
+    var segment = vec4(scattering.ambient_colour.rgb * alpha + scattering.sun_colour.rgb * phase * colour, alpha);
 #else
-    return vec4(colour, alpha);
+    var segment = vec4(colour, alpha);
 #endif
 #endif
 #ifdef EMISSIVE
-    return vec4(length * pair_lookup(s_front, s_back).rgb, 0.0);
+    var segment = vec4(length * pair_lookup(s_front, s_back).rgb, 0.0);
 #endif
 #ifdef MIP
-    return vec4(pair_lookup(s_front, s_back).rgb, 0.0);
+    var segment = vec4(pair_lookup(s_front, s_back).rgb, 0.0);
 #endif
+#ifdef FOG_LAYERS
+    let fog_depth = fog_optical_depth(view.fog, view.camera_position.y, direction.y, 0.0, 0.5 * (t_entry + t_exit));
+    let fog_transmittance = exp(-fog_depth);
+    segment = vec4(
+        fog_transmittance * segment.rgb + segment.a * (1.0 - fog_transmittance) * fog_colour(view.fog, direction),
+        segment.a,
+    );
+#endif
+    return segment;
 }

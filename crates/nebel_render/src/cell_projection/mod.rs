@@ -15,7 +15,8 @@
 //!   length, built once per change on the CPU: 64×64×128 colour, 64×64 pair
 //!   table), per-view uniforms and accumulation targets;
 //! - `pipeline`: bind group layouts, shaders and the pipeline variants
-//!   (optical mode, modulated segment lengths, single scattering, MSAA);
+//!   (optical mode, modulated segment lengths, single scattering, MSAA,
+//!   fog layers);
 //! - `node`: the draw system: batches back to front by the distance of
 //!   their bounds' centre, inside a batch in buffer order (the batch's exact
 //!   order), into a per-view float accumulation target that starts
@@ -28,6 +29,12 @@
 //! of Bevy's views made a 64³ cloud measurably darker. Emissive and MIP
 //! cells write no opacity, so they add to the scene rather than hide it (MIP
 //! takes the maximum over the cells, then adds it).
+//!
+//! A view with fog layers ([`crate::fog_layers::ViewFogLayers`]) has the
+//! fog over its scene already (`nebel_fog`'s pass runs before this one);
+//! every segment is then conjugated by the fog in front of it, which makes
+//! the composite exact for volumes inside and behind the fog up to the
+//! splitting of the fog inside each segment (see `cell_projection.wgsl`).
 //!
 //! Each pixel of a cell is computed exactly under perspective: the fragment
 //! shader intersects the view ray with the cell's planes, clips the segment to
@@ -64,6 +71,15 @@ use resources::{
 /// Draws [`CellBatch`]es (see the module docs).
 #[derive(Default)]
 pub struct CellProjectionPlugin;
+
+/// The cell projection's systems in the `Core3d` schedule; passes that must
+/// draw over the scene before the cells (the fog layers) run before
+/// [`CellProjectionSystems::Draw`].
+#[derive(SystemSet, Clone, Copy, PartialEq, Eq, Hash, Debug)]
+pub enum CellProjectionSystems {
+    /// The cells into the accumulation target and over the scene.
+    Draw,
+}
 
 impl CellProjectionPlugin {
     /// Render passes begun so far (one per view with batches, per frame).
@@ -121,6 +137,7 @@ impl CellProjectionCounters {
 
 impl Plugin for CellProjectionPlugin {
     fn build(&self, app: &mut App) {
+        crate::fog_layers::load_fog_layers_library(app);
         embedded_asset!(app, "cell_projection.wgsl");
         embedded_asset!(app, "cell_composite.wgsl");
         let stats = CellProjectionStats::default();
@@ -170,6 +187,7 @@ impl Plugin for CellProjectionPlugin {
             .add_systems(
                 Core3d,
                 node::draw_cell_batches
+                    .in_set(CellProjectionSystems::Draw)
                     .after(Core3dSystems::MainPass)
                     .before(Core3dSystems::EarlyPostProcess),
             );

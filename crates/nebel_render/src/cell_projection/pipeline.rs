@@ -54,6 +54,8 @@ pub struct CellProjectionPipelineKey {
     pub scattering: bool,
     /// The depth texture is multisampled.
     pub multisampled: bool,
+    /// The view has fog layers: segments are seen through them.
+    pub fog_layers: bool,
     /// The accumulation target's format.
     pub target_format: TextureFormat,
 }
@@ -172,6 +174,9 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
         }
         if key.scattering {
             shader_defs.push("SCATTERING".into());
+        }
+        if key.fog_layers {
+            shader_defs.push("FOG_LAYERS".into());
         }
         RenderPipelineDescriptor {
             label: Some("nebel_cell_projection_pipeline".into()),

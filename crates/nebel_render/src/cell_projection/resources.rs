@@ -24,6 +24,7 @@ use super::pipeline::{
     mode_index, variant_index,
 };
 use crate::cell_batch::{CellBatch, CellScattering, CellScatteringUniform};
+use crate::fog_layers::{FogLayersUniform, ViewFogLayers};
 
 /// Samples along `s_f` and `s_b` of the GPU tables.
 const TABLE_SCALAR_SIZE: u32 = 64;
@@ -324,6 +325,7 @@ pub struct CellViewUniform {
     world_from_clip: Mat4,
     camera_position: Vec4,
     viewport: Vec4,
+    fog: FogLayersUniform,
 }
 
 /// Every view's [`CellViewUniform`] of this frame.
@@ -361,7 +363,13 @@ pub fn make_depth_readable(
 pub fn prepare_cell_views(
     mut commands: Commands,
     extracted: Res<ExtractedCellBatches>,
-    views: Query<(Entity, &ExtractedView, &ExtractedCamera, &Msaa)>,
+    views: Query<(
+        Entity,
+        &ExtractedView,
+        &ExtractedCamera,
+        &Msaa,
+        Option<&ViewFogLayers>,
+    )>,
     mut texture_cache: ResMut<TextureCache>,
     mut composites: ResMut<CellCompositePipelines>,
     mut uniforms: ResMut<CellViewUniforms>,
@@ -376,7 +384,7 @@ pub fn prepare_cell_views(
     }
     uniforms.0.clear();
     let format = accumulation_format(&device);
-    for (entity, view, camera, msaa) in &views {
+    for (entity, view, camera, msaa, fog) in &views {
         let Some(size) = camera.physical_target_size else {
             continue;
         };
@@ -409,6 +417,7 @@ pub fn prepare_cell_views(
             world_from_clip: clip_from_world.inverse(),
             camera_position: view.world_from_view.translation().extend(1.0),
             viewport: view.viewport.as_vec4(),
+            fog: fog.map(|fog| fog.0).unwrap_or_default(),
         });
         let multisampled = *msaa != Msaa::Off;
         // Only the variants some batch of this frame needs.
@@ -424,6 +433,7 @@ pub fn prepare_cell_views(
                         modulated,
                         scattering,
                         multisampled,
+                        fog_layers: fog.is_some(),
                         target_format: format,
                     },
                 ));

@@ -1,0 +1,273 @@
+//! Fog layers: height fog drawn exactly in one full-screen pass, the far
+//! and cheap partner of ground fog (Röttger, "Volumetric Methods for the
+//! Real-Time Display of Natural Gaseous Phenomena", 2004, §5.3, layered
+//! fog).
+//!
+//! Put [`FogLayers`] on a 3D camera. When the fog's density depends on the
+//! altitude only, the optical depth from the eye to any point has a closed
+//! form, `τ = L · (T(h₁) − T(h₀)) / (h₁ − h₀)` with `T` the prefix integral
+//! of the density over altitude (`nebel_core::height_fog`, which takes the
+//! limit for level rays), so one pass over the depth buffer is exact per
+//! pixel: each pixel gets `(c α, α)`, `α = 1 − e^{−τ}` over the fog's
+//! stretch of its ray, blended over the scene. Pixels with nothing opaque
+//! (the sky) integrate to [`FogLayers::max_distance`], where bounded layers
+//! have long ended.
+//!
+//! The fog's colour is constant along a ray: [`FogLayers::color`] plus the
+//! sunlight [`FogLayers::sun_color`] of the first `DirectionalLight`,
+//! scaled by the Henyey-Greenstein phase function (4π p_HG, 1 on average) at
+//! the ray's angle to the sun. Colour that changes with altitude along a ray
+//! would need the thesis's table over eye altitude, fragment altitude and
+//! distance; it is not built.
+//!
+//! # Volumes inside the fog
+//!
+//! The cell projection draws after this pass and sees every cell segment
+//! through the fog in front of it (the segment conjugated by the fog from
+//! the eye to its middle; `nebel_render::cell_projection`), so a cloud inside
+//! or behind the fog is fogged by the fog in front of it only, and hides the
+//! fog behind it. The splitting of the fog inside a segment errs to second
+//! order in the optical depths of the fog and the cell.
+//!
+//! # Handoff with ground fog
+//!
+//! [`FogLayers::start_distance`] begins the layers that far along each ray;
+//! a [`GroundFog`](crate::GroundFog) draws the fog nearer, so neither counts
+//! it twice.
+//!
+//! # Cost
+//!
+//! One full-screen pass of a few dozen arithmetic operations per layer per
+//! pixel, no compute and no storage buffer (it fits WebGL2-class devices:
+//! one uniform block, `nebel_render::fog_layers`). A camera without
+//! `FogLayers`, or whose layers are all of zero density, runs no pass.
+
+mod node;
+mod resources;
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use bevy::diagnostic::{Diagnostic, DiagnosticPath, Diagnostics, RegisterDiagnostic};
+use bevy::prelude::*;
+use nebel_core::height_fog::{HeightFog, HeightFogError, HeightFogLayer};
+use nebel_render::fog_layers::{FogLayersLimitError, FogLayersLook, FogLayersUniform};
+use thiserror::Error;
+
+pub use resources::FogLayersRenderPlugin;
+
+/// Height fog seen by a 3D camera (see the module docs). Put it on the
+/// camera entity; [`FogLayersStatus`] says whether it draws.
+#[derive(Component, Clone, Debug, PartialEq, Reflect)]
+#[reflect(Component, Default, Debug, Clone)]
+#[require(FogLayersStatus, PreparedFogLayers)]
+pub struct FogLayers {
+    /// The density over altitude (world y, metres; densities in 1/m) as a
+    /// sum of layers: exponential, constant between two altitudes, or
+    /// piecewise linear. Overlapping layers add. At most 8 layers and 32
+    /// points of linear profiles together. Empty, or every density zero:
+    /// no fog and no pass. Default: one exponential layer, 0.0015/m at 0 m,
+    /// falling off by e every 250 m.
+    pub layers: Vec<HeightFogLayer>,
+    /// The colour dense fog converges to without sunlight (the ambient light
+    /// it scatters toward the eye), linear HDR. Default a pale blue grey,
+    /// linear (0.5, 0.56, 0.64).
+    pub color: Color,
+    /// Sunlight the fog scatters toward the eye, linear HDR, added to
+    /// [`Self::color`] on average over all directions and scaled by the
+    /// Henyey-Greenstein phase at each ray's angle to the first
+    /// `DirectionalLight` (none: no sunlight). Default black (none).
+    pub sun_color: Color,
+    /// The Henyey-Greenstein asymmetry of the sunlight's scattering, in
+    /// (−1, 1) (clamped to ±0.99): 0 isotropic, toward 1 a bright halo
+    /// around the sun. Default 0.6.
+    pub sun_asymmetry: f32,
+    /// Where the fog begins along each ray, metres, finite and ≥ 0. Nearer,
+    /// a ground fog draws it. Default 0.
+    pub start_distance: f32,
+    /// How far rays that meet nothing opaque are integrated, metres, finite
+    /// and greater than `start_distance`. Default 100 km.
+    pub max_distance: f32,
+}
+
+impl Default for FogLayers {
+    fn default() -> Self {
+        Self {
+            layers: vec![HeightFogLayer::Exponential {
+                base: 0.0,
+                density: 0.0015,
+                falloff: 1.0 / 250.0,
+            }],
+            color: Color::linear_rgb(0.5, 0.56, 0.64),
+            sun_color: Color::BLACK,
+            sun_asymmetry: 0.6,
+            start_distance: 0.0,
+            max_distance: 100_000.0,
+        }
+    }
+}
+
+/// Why [`FogLayers`] draw nothing.
+#[derive(Clone, Debug, Error, PartialEq, Reflect)]
+#[reflect(opaque, Clone, Debug, PartialEq)]
+pub enum FogLayersError {
+    /// A layer is out of range (negative or NaN density, non-positive
+    /// falloff, an empty or reversed range, unordered points).
+    #[error(transparent)]
+    Layer(#[from] HeightFogError),
+    /// More layers or points than the GPU's uniform holds.
+    #[error(transparent)]
+    Limit(#[from] FogLayersLimitError),
+    /// A colour, the asymmetry or a distance is out of range.
+    #[error("fog layers: {setting} = {value} is invalid: it must be {requirement}")]
+    InvalidSetting {
+        /// The setting's name.
+        setting: &'static str,
+        /// The value given, formatted.
+        value: String,
+        /// What it must be.
+        requirement: &'static str,
+    },
+}
+
+/// What became of a camera's [`FogLayers`].
+#[derive(Component, Clone, Debug, Default, PartialEq, Reflect)]
+#[reflect(Component, Default, Clone)]
+pub enum FogLayersStatus {
+    /// Not checked yet (the frame it was added).
+    #[default]
+    Pending,
+    /// Drawn; or nothing to draw, because every layer has zero density.
+    Ready,
+    /// The settings are unusable: why. Logged once; nothing is drawn until
+    /// they change.
+    Failed(FogLayersError),
+}
+
+/// The checked fog of a camera, packed for the GPU (`None`: nothing to
+/// draw). Kept by [`FogLayersPlugin`]; the sun's direction is filled in
+/// each frame.
+#[derive(Component, Clone, Debug, Default, PartialEq)]
+pub struct PreparedFogLayers(pub(crate) Option<FogLayersUniform>);
+
+/// Adds [`FogLayers`]: checks them when they change, and draws them in one
+/// pass in `Core3d` after the opaque pass and before the cell projection
+/// ([`FogLayersRenderPlugin`]).
+#[derive(Default)]
+pub struct FogLayersPlugin;
+
+impl FogLayersPlugin {
+    /// Fog-layer passes run so far (one per camera with fog, per frame).
+    pub const PASSES: DiagnosticPath = DiagnosticPath::const_new("nebel/fog_layers/passes");
+}
+
+/// The number of fog-layer passes run, shared by the main and the render
+/// world.
+#[derive(Resource, Clone, Default, Debug)]
+pub struct FogLayersPasses(pub(crate) Arc<AtomicU64>);
+
+impl FogLayersPasses {
+    /// Passes run so far.
+    pub fn get(&self) -> u64 {
+        self.0.load(Ordering::Relaxed)
+    }
+}
+
+impl Plugin for FogLayersPlugin {
+    fn build(&self, app: &mut App) {
+        let passes = FogLayersPasses::default();
+        app.register_type::<FogLayers>()
+            .register_type::<FogLayersStatus>()
+            .insert_resource(passes.clone())
+            .register_diagnostic(Diagnostic::new(Self::PASSES))
+            .add_systems(PostUpdate, prepare_fog_layers)
+            .add_systems(Last, publish_passes)
+            .add_plugins(FogLayersRenderPlugin { passes });
+    }
+}
+
+/// Checks and packs the fog layers that changed.
+fn prepare_fog_layers(
+    mut fogs: Query<
+        (
+            Entity,
+            &FogLayers,
+            &mut FogLayersStatus,
+            &mut PreparedFogLayers,
+        ),
+        Changed<FogLayers>,
+    >,
+) {
+    for (entity, fog, mut status, mut prepared) in &mut fogs {
+        match pack(fog) {
+            Ok(uniform) => {
+                *status = FogLayersStatus::Ready;
+                prepared.0 = uniform;
+            }
+            Err(error) => {
+                if *status != FogLayersStatus::Failed(error.clone()) {
+                    error!("nebel: fog layers of {entity} not drawn: {error}");
+                    *status = FogLayersStatus::Failed(error);
+                }
+                prepared.0 = None;
+            }
+        }
+    }
+}
+
+/// The fog packed for the GPU, `None` when it has no density anywhere.
+fn pack(fog: &FogLayers) -> Result<Option<FogLayersUniform>, FogLayersError> {
+    let invalid = |setting, value: String, requirement| FogLayersError::InvalidSetting {
+        setting,
+        value,
+        requirement,
+    };
+    for (setting, color) in [("color", fog.color), ("sun_color", fog.sun_color)] {
+        let linear = color.to_linear().to_vec3();
+        if !(linear.is_finite() && linear.min_element() >= 0.0) {
+            return Err(invalid(setting, format!("{linear}"), "finite and ≥ 0"));
+        }
+    }
+    if !fog.sun_asymmetry.is_finite() {
+        return Err(invalid(
+            "sun_asymmetry",
+            fog.sun_asymmetry.to_string(),
+            "finite",
+        ));
+    }
+    if !(fog.start_distance.is_finite() && fog.start_distance >= 0.0) {
+        return Err(invalid(
+            "start_distance",
+            fog.start_distance.to_string(),
+            "finite and ≥ 0",
+        ));
+    }
+    if !(fog.max_distance.is_finite() && fog.max_distance > fog.start_distance) {
+        return Err(invalid(
+            "max_distance",
+            fog.max_distance.to_string(),
+            "finite and greater than start_distance",
+        ));
+    }
+    let height_fog = HeightFog::new(fog.layers.clone())?;
+    let uniform = FogLayersUniform::new(
+        &height_fog,
+        &FogLayersLook {
+            colour: fog.color.to_linear().to_vec3(),
+            sun_colour: fog.sun_color.to_linear().to_vec3(),
+            sun_direction: Vec3::Y,
+            sun_asymmetry: fog.sun_asymmetry,
+            start_distance: fog.start_distance,
+            max_distance: fog.max_distance,
+        },
+    )?;
+    Ok(height_fog.has_density().then_some(uniform))
+}
+
+/// Publishes the pass count as a diagnostic once a pass ran.
+fn publish_passes(passes: Res<FogLayersPasses>, mut diagnostics: Diagnostics) {
+    let count = passes.get();
+    if count > 0 {
+        diagnostics.add_measurement(&FogLayersPlugin::PASSES, || count as f64);
+    }
+}

@@ -1,0 +1,230 @@
+//! The render world of the fog layers, a row of small systems: extraction of
+//! each camera's fog (with the sun's direction of this frame), a readable
+//! depth texture, the per-view uniform and pipeline.
+
+use bevy::core_pipeline::FullscreenShader;
+use bevy::core_pipeline::core_3d::prepare_core_3d_depth_textures;
+use bevy::core_pipeline::schedule::{Core3d, Core3dSystems};
+use bevy::prelude::*;
+use bevy::render::render_resource::binding_types::{
+    texture_depth_2d, texture_depth_2d_multisampled, uniform_buffer,
+};
+use bevy::render::render_resource::*;
+use bevy::render::renderer::{RenderDevice, RenderQueue};
+use bevy::render::sync_world::RenderEntity;
+use bevy::render::view::{ExtractedView, Msaa};
+use bevy::render::{
+    Extract, ExtractSchedule, GpuResourceAppExt, Render, RenderApp, RenderStartup, RenderSystems,
+};
+use bevy::shader::ShaderDefVal;
+use nebel_render::cell_projection::CellProjectionSystems;
+use nebel_render::fog_layers::{FogLayersUniform, ViewFogLayers};
+
+use super::{FogLayersPasses, PreparedFogLayers};
+
+/// The render side of [`super::FogLayersPlugin`].
+pub struct FogLayersRenderPlugin {
+    pub(super) passes: FogLayersPasses,
+}
+
+impl Plugin for FogLayersRenderPlugin {
+    fn build(&self, app: &mut App) {
+        bevy::asset::embedded_asset!(app, "fog_layers.wgsl");
+        let Some(render_app) = app.get_sub_app_mut(RenderApp) else {
+            return;
+        };
+        render_app
+            .insert_resource(self.passes.clone())
+            .init_gpu_resource::<FogPassUniforms>()
+            .init_gpu_resource::<SpecializedRenderPipelines<FogLayersPipeline>>()
+            .add_systems(RenderStartup, init_fog_layers_pipeline)
+            .add_systems(ExtractSchedule, extract_fog_layers)
+            .add_systems(
+                Render,
+                (
+                    make_depth_readable
+                        .in_set(RenderSystems::Prepare)
+                        .before(prepare_core_3d_depth_textures),
+                    prepare_fog_layer_views.in_set(RenderSystems::PrepareResources),
+                ),
+            )
+            .add_systems(
+                Core3d,
+                super::node::draw_fog_layers
+                    .after(Core3dSystems::MainPass)
+                    .before(CellProjectionSystems::Draw)
+                    .before(Core3dSystems::EarlyPostProcess),
+            );
+    }
+}
+
+/// Gives every camera with fog to draw its [`ViewFogLayers`], the sun's
+/// direction taken from the first `DirectionalLight` (a light shines along
+/// its forward axis, so the sun lies behind it); removes it from the others.
+pub fn extract_fog_layers(
+    mut commands: Commands,
+    cameras: Extract<Query<(RenderEntity, Option<&PreparedFogLayers>), With<Camera3d>>>,
+    lights: Extract<Query<&GlobalTransform, With<DirectionalLight>>>,
+) {
+    let sun = lights
+        .iter()
+        .next()
+        .map_or(Vec3::Y, |light| light.back().as_vec3());
+    for (entity, prepared) in &cameras {
+        match prepared.and_then(|prepared| prepared.0) {
+            Some(mut uniform) => {
+                uniform.sun_direction = sun.extend(0.0);
+                commands.entity(entity).insert(ViewFogLayers(uniform));
+            }
+            None => {
+                commands.entity(entity).remove::<ViewFogLayers>();
+            }
+        }
+    }
+}
+
+/// The fog pass reads the view's depth.
+pub fn make_depth_readable(mut cameras: Query<&mut Camera3d, With<ViewFogLayers>>) {
+    for mut camera in &mut cameras {
+        camera.depth_texture_usages.0 |= TextureUsages::TEXTURE_BINDING.bits();
+    }
+}
+
+/// What the fog pass's shader reads, `FogPass` in `fog_layers.wgsl`.
+#[derive(Clone, Copy, ShaderType)]
+pub struct FogPassUniform {
+    /// Clip to view space (the inverse projection).
+    view_from_clip: Mat4,
+    /// The camera's rotation, view to world directions.
+    world_from_view: Mat4,
+    camera_position: Vec4,
+    /// x, y, width, height of the viewport in pixels.
+    viewport: Vec4,
+    fog: FogLayersUniform,
+}
+
+/// Every fogged view's [`FogPassUniform`] of this frame.
+#[derive(Resource, Default)]
+pub struct FogPassUniforms(pub(super) DynamicUniformBuffer<FogPassUniform>);
+
+/// Per fogged view: its uniform's offset and its pipeline.
+#[derive(Component)]
+pub struct FogLayersView {
+    pub(super) uniform_offset: u32,
+    pub(super) multisampled: bool,
+    pub(super) pipeline: CachedRenderPipelineId,
+}
+
+/// The fog pass's bind group layouts (single-sampled and multisampled
+/// depth) and shader.
+#[derive(Resource)]
+pub struct FogLayersPipeline {
+    pub(super) layouts: [BindGroupLayoutDescriptor; 2],
+    shader: Handle<Shader>,
+    fullscreen_vertex: VertexState,
+}
+
+/// What a fog pass pipeline depends on.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+pub struct FogLayersPipelineKey {
+    multisampled: bool,
+    target_format: TextureFormat,
+}
+
+fn init_fog_layers_pipeline(
+    mut commands: Commands,
+    asset_server: Res<AssetServer>,
+    fullscreen_shader: Res<FullscreenShader>,
+) {
+    let layout = |multisampled: bool| {
+        BindGroupLayoutDescriptor::new(
+            "nebel_fog_layers_layout",
+            &BindGroupLayoutEntries::sequential(
+                ShaderStages::FRAGMENT,
+                (
+                    uniform_buffer::<FogPassUniform>(true),
+                    if multisampled {
+                        texture_depth_2d_multisampled()
+                    } else {
+                        texture_depth_2d()
+                    },
+                ),
+            ),
+        )
+    };
+    commands.insert_resource(FogLayersPipeline {
+        layouts: [layout(false), layout(true)],
+        shader: bevy::asset::load_embedded_asset!(asset_server.as_ref(), "fog_layers.wgsl"),
+        fullscreen_vertex: fullscreen_shader.to_vertex_state(),
+    });
+}
+
+impl SpecializedRenderPipeline for FogLayersPipeline {
+    type Key = FogLayersPipelineKey;
+
+    fn specialize(&self, key: Self::Key) -> RenderPipelineDescriptor {
+        let shader_defs: Vec<ShaderDefVal> = if key.multisampled {
+            vec!["MULTISAMPLED".into()]
+        } else {
+            Vec::new()
+        };
+        RenderPipelineDescriptor {
+            label: Some("nebel_fog_layers_pipeline".into()),
+            layout: vec![self.layouts[usize::from(key.multisampled)].clone()],
+            vertex: self.fullscreen_vertex.clone(),
+            fragment: Some(FragmentState {
+                shader: self.shader.clone(),
+                shader_defs,
+                targets: vec![Some(ColorTargetState {
+                    format: key.target_format,
+                    blend: Some(BlendState::PREMULTIPLIED_ALPHA_BLENDING),
+                    write_mask: ColorWrites::ALL,
+                })],
+                ..default()
+            }),
+            ..default()
+        }
+    }
+}
+
+/// Writes each fogged view's uniform and specialises its pipeline.
+pub fn prepare_fog_layer_views(
+    mut commands: Commands,
+    views: Query<(Entity, &ExtractedView, &Msaa, &ViewFogLayers)>,
+    mut uniforms: ResMut<FogPassUniforms>,
+    pipeline: Res<FogLayersPipeline>,
+    mut pipelines: ResMut<SpecializedRenderPipelines<FogLayersPipeline>>,
+    pipeline_cache: Res<PipelineCache>,
+    device: Res<RenderDevice>,
+    queue: Res<RenderQueue>,
+) {
+    if views.is_empty() {
+        return;
+    }
+    uniforms.0.clear();
+    for (entity, view, msaa, fog) in &views {
+        let rotation = Mat4::from_quat(view.world_from_view.rotation());
+        let uniform_offset = uniforms.0.push(&FogPassUniform {
+            view_from_clip: view.clip_from_view.inverse(),
+            world_from_view: rotation,
+            camera_position: view.world_from_view.translation().extend(1.0),
+            viewport: view.viewport.as_vec4(),
+            fog: fog.0,
+        });
+        let multisampled = *msaa != Msaa::Off;
+        let pipeline = pipelines.specialize(
+            &pipeline_cache,
+            &pipeline,
+            FogLayersPipelineKey {
+                multisampled,
+                target_format: view.target_format,
+            },
+        );
+        commands.entity(entity).insert(FogLayersView {
+            uniform_offset,
+            multisampled,
+            pipeline,
+        });
+    }
+    uniforms.0.write_buffer(&device, &queue);
+}

@@ -1,0 +1,362 @@
+//! Fog layers in the reference: height fog along every ray, exact, and the
+//! volume seen through it (Röttger 2004 §5.3, layered fog).
+//!
+//! The fog's density depends on the altitude only ([`HeightFog`]), so the
+//! optical depth of any piece of a ray is exact in closed form. Its colour is
+//! constant along a ray: an ambient colour plus, optionally, sunlight
+//! scattered toward the eye with the Henyey-Greenstein phase function (the
+//! angle between the ray and the sun is the same at every point of a straight
+//! ray). So the fog over `[t₀, t₁]` is the premultiplied layer
+//! `(c · α, α)`, `α = 1 − e^{−τ}`, and layers compose with "over".
+//!
+//! # Volumes inside the fog
+//!
+//! A volume and the fog share the ray. Written as maps of the radiance
+//! behind, a piece of volume `x ↦ C + (1 − α) x` between fog segments
+//! `x ↦ F + T x` is the same as the piece *conjugated* by the fog in front
+//! of it, `(T C + α F, α)` with `T`, `F` the fog from the eye to the piece,
+//! followed by the fog from the eye to the end of the ray (the map algebra:
+//! `Fog₀ₛ ∘ Cell ∘ Fogₛ_D = (Fog₀ₛ ∘ Cell ∘ Fog₀ₛ⁻¹) ∘ Fog₀_D`). So a volume
+//! composited from conjugated pieces, put over the fogged background
+//! ([`ReferenceFog::over`]), is the exact image of both media, as long as the
+//! fog is applied at the right point of each piece. Inside a piece the two
+//! media overlap; conjugating at the piece's middle is Strang splitting,
+//! whose error is third order in the pieces' optical depths: the reference
+//! cuts every piece until that error bound is below 1e-6
+//! ([`conjugation_pieces`]), so its image is exact to far below the 8-bit
+//! floor. Emissive and MIP pieces have no opacity: their colour is scaled by
+//! the fog's transmittance.
+
+use glam::DVec3;
+use nebel_core::cell::Ray;
+use nebel_core::height_fog::HeightFog;
+use nebel_core::optics::{PremultipliedRgba, henyey_greenstein};
+
+/// Sunlight the fog scatters toward the eye.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FogSunlight {
+    /// Unit direction toward the sun.
+    pub direction: DVec3,
+    /// The colour added to the fog's colour on average over all directions,
+    /// linear RGB: it is scaled by `4π p_HG(g, cos θ)`, θ between the ray and
+    /// the direction toward the sun.
+    pub colour: DVec3,
+    /// The Henyey-Greenstein asymmetry `g` (0 isotropic, toward 1 forward).
+    pub asymmetry: f64,
+}
+
+/// Fog layers seen along every ray (see the module docs).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ReferenceFog {
+    /// Density over altitude (y).
+    pub fog: HeightFog,
+    /// The colour dense fog converges to without sunlight, linear RGB.
+    pub colour: DVec3,
+    /// Optional sunlight scattered toward the eye.
+    pub sun: Option<FogSunlight>,
+    /// The fog begins at this distance along each ray, world units (≥ 0):
+    /// nearer, another method (ground fog's prisms) draws it.
+    pub start_distance: f64,
+    /// Where a ray that meets nothing opaque ends, world units (> 0).
+    pub max_distance: f64,
+}
+
+/// Largest number of pieces a volume piece is cut into for the fog.
+const MAX_CONJUGATION_PIECES: f64 = 20_000.0;
+
+impl ReferenceFog {
+    /// Why the fog is invalid, if it is.
+    pub(crate) fn invalid(&self) -> Option<String> {
+        let colours_valid = |c: DVec3| c.is_finite() && c.min_element() >= 0.0;
+        if !colours_valid(self.colour) {
+            return Some(format!("colour {} must be finite and ≥ 0", self.colour));
+        }
+        if let Some(sun) = &self.sun
+            && !(colours_valid(sun.colour)
+                && sun.direction.is_finite()
+                && sun.direction.length() > 0.0
+                && sun.asymmetry.is_finite())
+        {
+            return Some(format!("sunlight {sun:?} must be finite, with a direction"));
+        }
+        if !(self.start_distance.is_finite() && self.start_distance >= 0.0) {
+            return Some(format!(
+                "start_distance {} must be finite and ≥ 0",
+                self.start_distance
+            ));
+        }
+        if !(self.max_distance.is_finite() && self.max_distance > 0.0) {
+            return Some(format!(
+                "max_distance {} must be finite and > 0",
+                self.max_distance
+            ));
+        }
+        None
+    }
+
+    /// The fog's colour along a ray of unit `direction`.
+    pub fn colour_along(&self, direction: DVec3) -> DVec3 {
+        self.colour
+            + self.sun.map_or(DVec3::ZERO, |sun| {
+                let cos_theta = direction.dot(sun.direction.normalize());
+                sun.colour * henyey_greenstein(sun.asymmetry, cos_theta)
+            })
+    }
+
+    /// The optical depth of the fog over `[t0, t1]` along `ray` (clipped to
+    /// `[start_distance, max_distance]`).
+    pub fn optical_depth(&self, ray: &Ray, t0: f64, t1: f64) -> f64 {
+        let (t0, t1) = (t0.max(self.start_distance), t1.min(self.max_distance));
+        if !(t1 > t0) {
+            return 0.0;
+        }
+        let altitude = |t: f64| ray.origin.y + t * ray.direction.y;
+        self.fog.optical_depth(altitude(t0), altitude(t1), t1 - t0)
+    }
+
+    /// The fog over `[t0, t1]` along `ray` as a premultiplied layer.
+    pub fn segment(&self, ray: &Ray, t0: f64, t1: f64) -> PremultipliedRgba {
+        let alpha = -(-self.optical_depth(ray, t0, t1)).exp_m1();
+        (self.colour_along(ray.direction) * alpha).extend(alpha)
+    }
+
+    /// `background` seen through the fog from the eye to `t_far` (+∞: a ray
+    /// that meets nothing opaque, to `max_distance`).
+    pub fn over(&self, ray: &Ray, t_far: f64, background: PremultipliedRgba) -> PremultipliedRgba {
+        let fog = self.segment(ray, 0.0, t_far);
+        fog + (1.0 - fog.w) * background
+    }
+
+    /// A volume piece over `[t0, t1]` seen through the fog in front of it
+    /// (see the module docs), cut into the pieces
+    /// [`conjugation_pieces`] asks for: `piece(k, n)` returns the k-th of n
+    /// equal parts of the volume piece, already lit; the parts go to `emit`
+    /// conjugated, front to back, until it returns `true`. `absorbs`: whether
+    /// the pieces' alpha is an opacity (Sorted), not only a record of their
+    /// density (Emissive, MIP).
+    pub(crate) fn conjugated_pieces(
+        &self,
+        ray: &Ray,
+        t0: f64,
+        t1: f64,
+        whole: PremultipliedRgba,
+        absorbs: bool,
+        mut piece: impl FnMut(usize, usize) -> PremultipliedRgba,
+        mut emit: impl FnMut(PremultipliedRgba) -> bool,
+    ) {
+        let fog_depth = self.optical_depth(ray, t0, t1);
+        let volume_depth = if absorbs {
+            -(1.0 - whole.w).max(1e-300).ln()
+        } else {
+            0.0
+        };
+        let coverage = |part: PremultipliedRgba| if absorbs { part.w } else { 0.0 };
+        let count = conjugation_pieces(fog_depth, volume_depth);
+        let colour = self.colour_along(ray.direction);
+        for k in 0..count {
+            let middle = t0 + (k as f64 + 0.5) / count as f64 * (t1 - t0);
+            let part = if count == 1 { whole } else { piece(k, count) };
+            let transmittance = (-self.optical_depth(ray, 0.0, middle)).exp();
+            let fogged =
+                transmittance * part.truncate() + coverage(part) * (1.0 - transmittance) * colour;
+            if emit(fogged.extend(part.w)) {
+                return;
+            }
+        }
+    }
+}
+
+/// How many equal parts a volume piece of optical depth `volume_depth` over a
+/// stretch of fog of optical depth `fog_depth` is cut into so that conjugating
+/// each at its middle errs by at most about 1e-6: the splitting error of one
+/// part is about `τ_f τ_v (τ_f + τ_v) / 24` relative (Strang splitting of the
+/// two media's affine maps, whose commutator is `τ_f τ_v (c_f − c_v)`), and
+/// emission-only pieces (`τ_v = 0`) err by `τ_f² / 24`.
+fn conjugation_pieces(fog_depth: f64, volume_depth: f64) -> usize {
+    if fog_depth <= 0.0 {
+        return 1;
+    }
+    let error = fog_depth * (fog_depth + volume_depth) * (1.0 + volume_depth) / 24.0;
+    (error / 1e-6)
+        .sqrt()
+        .ceil()
+        .clamp(1.0, MAX_CONJUGATION_PIECES) as usize
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DVec4;
+    use nebel_core::height_fog::HeightFogLayer;
+
+    fn fog(layers: Vec<HeightFogLayer>) -> ReferenceFog {
+        ReferenceFog {
+            fog: HeightFog::new(layers).unwrap(),
+            colour: DVec3::new(0.6, 0.7, 0.8),
+            sun: None,
+            start_distance: 0.0,
+            max_distance: 1e5,
+        }
+    }
+
+    fn slab() -> ReferenceFog {
+        fog(vec![HeightFogLayer::Constant {
+            bottom: 0.0,
+            top: 10.0,
+            density: 0.05,
+        }])
+    }
+
+    /// A ray from `origin` at `elevation` degrees above the horizontal.
+    fn ray(origin: DVec3, elevation: f64) -> Ray {
+        let e = elevation.to_radians();
+        Ray::new(origin, DVec3::new(e.cos(), e.sin(), 0.0)).unwrap()
+    }
+
+    fn close(a: f64, b: f64) -> bool {
+        (a - b).abs() <= 1e-12 * (1.0 + b.abs())
+    }
+
+    #[test]
+    fn a_constant_layer_at_every_angle_inside_above_and_below() {
+        let slab = slab();
+        let eye = DVec3::new(0.0, 4.0, 0.0);
+        for elevation in [
+            -90.0, -60.0, -30.0, -5.0, -0.01, 0.0, 0.01, 5.0, 30.0, 60.0, 90.0,
+        ] {
+            let ray = ray(eye, elevation);
+            let sin = f64::sin(f64::to_radians(elevation));
+            // To an opaque point 3 m along the ray (still inside the slab at
+            // every angle): ρ t.
+            assert!(close(slab.optical_depth(&ray, 0.0, 3.0), 0.05 * 3.0));
+            // Sky pixels: to where the ray leaves the slab, or to the
+            // largest distance for a level ray.
+            let inside = if elevation > 0.0 {
+                (6.0 / sin).min(1e5)
+            } else if elevation < 0.0 {
+                (4.0 / -sin).min(1e5)
+            } else {
+                1e5
+            };
+            let sky = slab.optical_depth(&ray, 0.0, f64::INFINITY);
+            assert!(close(sky, 0.05 * inside), "{elevation}°: {sky}");
+        }
+        // From above and below, through the whole slab: ρ · 10 / |sin|.
+        for (y, elevation) in [(25.0, -40.0), (-7.0, 20.0), (100.0, -89.0)] {
+            let ray = ray(DVec3::new(0.0, y, 0.0), elevation);
+            let through = 0.05 * 10.0 / f64::sin(f64::to_radians(elevation)).abs();
+            let sky = slab.optical_depth(&ray, 0.0, f64::INFINITY);
+            assert!(
+                close(sky, through),
+                "{y} at {elevation}°: {sky} vs {through}"
+            );
+        }
+        // Level rays above and below see nothing.
+        assert_eq!(
+            slab.optical_depth(&ray(DVec3::Y * 11.0, 0.0), 0.0, 1e9),
+            0.0
+        );
+        assert_eq!(
+            slab.optical_depth(&ray(DVec3::Y * -1.0, 0.0), 0.0, 1e9),
+            0.0
+        );
+    }
+
+    #[test]
+    fn the_eye_on_a_layer_boundary() {
+        let slab = slab();
+        let top = DVec3::Y * 10.0;
+        // Down at 30° from the top: the whole slab along 20 m; up: nothing.
+        assert!(close(
+            slab.optical_depth(&ray(top, -30.0), 0.0, 1e3),
+            0.05 * 20.0
+        ));
+        assert!(close(
+            slab.optical_depth(&ray(top, -30.0), 0.0, 8.0),
+            0.05 * 8.0
+        ));
+        assert_eq!(slab.optical_depth(&ray(top, 30.0), 0.0, 1e3), 0.0);
+        // A level ray on the boundary counts as inside (the layers are closed
+        // intervals), so it is the limit of rays from just below.
+        let level = slab.optical_depth(&ray(top, 0.0), 0.0, 50.0);
+        let below = slab.optical_depth(&ray(top - DVec3::Y * 1e-9, 0.0), 0.0, 50.0);
+        assert!(close(level, below) && close(level, 0.05 * 50.0));
+    }
+
+    #[test]
+    fn an_exponential_layer_for_level_and_vertical_rays_to_100_km() {
+        let (density, falloff, base) = (2e-4, 1.0 / 1200.0, 0.0);
+        let fog = fog(vec![HeightFogLayer::Exponential {
+            base,
+            density,
+            falloff,
+        }]);
+        for altitude in [0.0, 350.0, 4000.0] {
+            let at = density * (-falloff * (altitude - base)).exp();
+            // Level, to 100 km and to 1 m: ρ(h) L.
+            let level = ray(DVec3::new(1e5, altitude, -1e5), 0.0);
+            for length in [1.0, 1e3, 1e5] {
+                assert!(close(fog.optical_depth(&level, 0.0, length), at * length));
+            }
+            // Straight up to the largest distance: ρ(h) (1 − e^{−k L}) / k.
+            let up = ray(DVec3::new(0.0, altitude, 0.0), 90.0);
+            let closed = at * -(-falloff * 1e5f64).exp_m1() / falloff;
+            assert!(close(fog.optical_depth(&up, 0.0, f64::INFINITY), closed));
+            // Straight down 100 m.
+            let down = ray(DVec3::new(0.0, altitude, 0.0), -90.0);
+            let closed = at * (falloff * 100.0f64).exp_m1() / falloff;
+            assert!(close(fog.optical_depth(&down, 0.0, 100.0), closed));
+        }
+    }
+
+    #[test]
+    fn the_fog_begins_at_its_start_distance_and_colours_by_the_sun() {
+        let mut slab = slab();
+        slab.start_distance = 40.0;
+        let level = ray(DVec3::Y * 5.0, 0.0);
+        assert_eq!(slab.optical_depth(&level, 0.0, 30.0), 0.0);
+        assert!(close(slab.optical_depth(&level, 0.0, 100.0), 0.05 * 60.0));
+        assert!(close(slab.optical_depth(&level, 50.0, 100.0), 0.05 * 50.0));
+        // The layer over a background: F + T · background, F = c (1 − T).
+        let background = DVec4::new(0.1, 0.2, 0.3, 1.0);
+        let t = (-0.05f64 * 60.0).exp();
+        let over = slab.over(&level, 100.0, background);
+        let expected = slab.colour * (1.0 - t) + t * background.truncate();
+        assert!((over.truncate() - expected).abs().max_element() < 1e-12);
+        assert!(close(over.w, 1.0));
+        // Sunlight: 4π p_HG, 1 on average; (1 + g) / (1 − g)² toward the sun.
+        slab.sun = Some(FogSunlight {
+            direction: DVec3::X,
+            colour: DVec3::splat(0.5),
+            asymmetry: 0.5,
+        });
+        assert!(slab.invalid().is_none());
+        let toward = slab.colour_along(DVec3::X);
+        assert!(
+            ((toward - slab.colour) / 0.5 - DVec3::splat(1.5 / 0.25))
+                .abs()
+                .max_element()
+                < 1e-12
+        );
+    }
+
+    #[test]
+    fn bad_fog_settings_are_named() {
+        let mut bad = slab();
+        bad.colour = DVec3::new(f64::NAN, 0.0, 0.0);
+        assert!(bad.invalid().unwrap().contains("colour"));
+        let mut bad = slab();
+        bad.start_distance = -1.0;
+        assert!(bad.invalid().unwrap().contains("start_distance"));
+        let mut bad = slab();
+        bad.max_distance = f64::INFINITY;
+        assert!(bad.invalid().unwrap().contains("max_distance"));
+        let mut bad = slab();
+        bad.sun = Some(FogSunlight {
+            direction: DVec3::ZERO,
+            colour: DVec3::ONE,
+            asymmetry: 0.0,
+        });
+        assert!(bad.invalid().unwrap().contains("sunlight"));
+    }
+}

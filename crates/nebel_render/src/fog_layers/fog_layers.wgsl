@@ -1,0 +1,108 @@
+// Fog layers: a height fog integrated exactly along a ray (Röttger 2004
+// §5.3, layered fog). See nebel_render's `fog_layers` module for the uniform.
+//
+// The optical depth of the piece [t0, t1] of a ray starting at altitude h
+// with vertical direction d_y is (t1 − t0) times the mean density over the
+// altitudes it crosses, [low, low + range] with range = |d_y| (t1 − t0),
+// computed from the range itself so that level rays keep their precision.
+
+#define_import_path nebel_render::fog_layers
+
+struct FogLayers {
+    colour: vec4<f32>,
+    // w: Henyey-Greenstein asymmetry.
+    sun_colour: vec4<f32>,
+    sun_direction: vec4<f32>,
+    // x: start distance, y: largest distance, z: layer count.
+    ranges: vec4<f32>,
+    layers: array<vec4<f32>, 8>,
+    points: array<vec4<f32>, 16>,
+}
+
+const MAX_FOG_EXPONENT: f32 = 80.0;
+
+// (1 − e^{−x}) / x for x ≥ 0, without cancellation near 0.
+fn one_minus_exp_over(x: f32) -> f32 {
+    if x < 1.0e-3 {
+        return 1.0 - x * (0.5 - x / 6.0);
+    }
+    return (1.0 - exp(-x)) / x;
+}
+
+// The part of [low, low + range] inside [bottom, top], as a length that is
+// exactly `range` when the whole range lies inside.
+fn overlap(low: f32, range: f32, bottom: f32, top: f32) -> f32 {
+    let below = clamp(bottom - low, 0.0, range);
+    let above = clamp((low - top) + range, 0.0, range);
+    return max(range - below - above, 0.0);
+}
+
+fn fog_point(fog: FogLayers, index: u32) -> vec2<f32> {
+    let pair = fog.points[index / 2u];
+    return select(pair.xy, pair.zw, index % 2u == 1u);
+}
+
+// The mean density of layer `layer` over [low, low + range].
+fn layer_mean(fog: FogLayers, layer: vec4<f32>, low: f32, range: f32) -> f32 {
+    if layer.x < 0.5 {
+        let at_low = layer.z * exp(min(-layer.w * (low - layer.y), MAX_FOG_EXPONENT));
+        return at_low * one_minus_exp_over(layer.w * range);
+    }
+    if layer.x < 1.5 {
+        if range <= 0.0 {
+            return select(0.0, layer.w, low >= layer.y && low <= layer.z);
+        }
+        return layer.w * overlap(low, range, layer.y, layer.z) / range;
+    }
+    let first = u32(layer.y);
+    let count = u32(layer.z);
+    var integral = 0.0;
+    for (var i = first; i + 1u < first + count; i++) {
+        let a = fog_point(fog, i);
+        let b = fog_point(fog, i + 1u);
+        if range <= 0.0 {
+            if low >= a.x && low <= b.x {
+                return mix(a.y, b.y, (low - a.x) / (b.x - a.x));
+            }
+            continue;
+        }
+        let inside = overlap(low, range, a.x, b.x);
+        if inside > 0.0 {
+            let middle = max(a.x, low) + 0.5 * inside;
+            integral += inside * mix(a.y, b.y, (middle - a.x) / (b.x - a.x));
+        }
+    }
+    return select(integral / range, 0.0, range <= 0.0);
+}
+
+// The optical depth of the fog over [t0, t1] (clipped to the fog's start and
+// largest distance) along a ray from `altitude` with vertical direction `d_y`.
+fn fog_optical_depth(fog: FogLayers, altitude: f32, d_y: f32, t0_in: f32, t1_in: f32) -> f32 {
+    let t0 = max(t0_in, fog.ranges.x);
+    let t1 = min(t1_in, fog.ranges.y);
+    if !(t1 > t0) {
+        return 0.0;
+    }
+    let length = t1 - t0;
+    let rise = d_y * length;
+    let low = altitude + d_y * t0 + min(rise, 0.0);
+    let range = abs(rise);
+    var mean = 0.0;
+    for (var i = 0u; i < u32(fog.ranges.z); i++) {
+        mean += layer_mean(fog, fog.layers[i], low, range);
+    }
+    return length * mean;
+}
+
+// The fog's colour along a ray of unit `direction`.
+fn fog_colour(fog: FogLayers, direction: vec3<f32>) -> vec3<f32> {
+    let g = fog.sun_colour.w;
+    let cos_theta = dot(direction, fog.sun_direction.xyz);
+    let phase = (1.0 - g * g) / pow(1.0 + g * g - 2.0 * g * cos_theta, 1.5);
+    return fog.colour.rgb + fog.sun_colour.rgb * phase;
+}
+
+// 1 − e^{−τ}, accurate for small τ.
+fn fog_opacity(optical_depth: f32) -> f32 {
+    return optical_depth * one_minus_exp_over(optical_depth);
+}
