@@ -2,7 +2,9 @@
 //! 700 m of relief, drawn through the quadtree C-LOD with geomorphing
 //! ([`Terrain`]), under a low sun, with ground fog ([`GroundFog`]) lying in
 //! its valleys: prisms on the terrain's own triangles, morphed with it,
-//! drawn back to front by cell projection (Röttger and Ertl 2003 §6).
+//! drawn back to front by cell projection (Röttger and Ertl 2003 §6), and
+//! beyond 3 km as fog layers ([`FogLayers`], Röttger 2004 §5.3): the same
+//! fog as a function of altitude, in one full-screen pass.
 //!
 //! `cargo run --release --example valley_fog` opens a window with a fly
 //! camera (WASD, Q/E down and up, Shift, right mouse button to look): fly
@@ -98,6 +100,15 @@ fn spawn_valley(mut commands: Commands) {
             .looking_at(Vec3::new(-300.0, 0.0, -300.0), Vec3::Y),
         // The level of detail follows this camera.
         LodCamera,
+        // Beyond 3 km the fog is drawn as layers of altitude (one pass),
+        // nearer as the prisms of the ground fog.
+        FogLayers {
+            layers: vec![HeightFogLayer::Linear(vec![[0.0, 0.015], [110.0, 0.0]])],
+            color: Color::linear_rgb(0.77, 0.8, 0.86),
+            start_distance: 3000.0,
+            max_distance: 8000.0,
+            ..default()
+        },
     ));
     commands.spawn((
         DirectionalLight {

@@ -298,11 +298,15 @@ pub(crate) fn update_fog_batches(
                 commands.entity(entity).remove::<CellBatch>();
             }
         } else {
-            commands.entity(entity).insert(CellBatch::new(
-                Arc::new(LodCellBatch::with_bounds(cells)),
-                transfer,
-                fog.mode,
-            ));
+            commands.entity(entity).insert(CellBatch {
+                // A camera's fog layers take over from where they begin.
+                ends_where_fog_layers_begin: true,
+                ..CellBatch::new(
+                    Arc::new(LodCellBatch::with_bounds(cells)),
+                    transfer,
+                    fog.mode,
+                )
+            });
         }
         let update_ms = started.elapsed().as_secs_f32() * 1e3;
         *stats = GroundFogStats {

@@ -114,6 +114,11 @@ pub struct CellBatch {
     /// between the view ray and the sunlight. `None` draws the transfer
     /// function's colour as it is. Default: `None`.
     pub scattering: Option<CellScattering>,
+    /// The cells are fog that a view's fog layers take over from where they
+    /// begin (`FogLayers::start_distance` of `nebel_fog`, when above 0):
+    /// their segments end at that distance from the eye, so the two never
+    /// count the same fog twice. Ground fog sets it. Default false.
+    pub ends_where_fog_layers_begin: bool,
 }
 
 impl CellBatch {
@@ -128,6 +133,7 @@ impl CellBatch {
             transfer_function: Some(transfer_function),
             mode,
             scattering: None,
+            ends_where_fog_layers_begin: false,
         }
     }
 

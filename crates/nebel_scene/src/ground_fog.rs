@@ -343,6 +343,7 @@ impl TerrainDescription {
             mode: fog.mode,
             lod: None,
             lighting: None,
+            ends_where_fog_layers_begin: true,
         });
         Ok(Some(FogReference { volume, ground }))
     }

@@ -19,7 +19,8 @@ use nebel_core::field::{CloudLighting, DensityGrid, PadFill, light_field};
 use nebel_core::optics::OpticalMode;
 use nebel_reference::image_metrics::{ImageMetricsError, LinearImage, save_png, srgb_to_linear};
 use nebel_reference::{
-    Modulation, ReferenceError, ReferenceScene, ReferenceVolume, RenderProgress, SegmentScattering,
+    Modulation, ReferenceCamera, ReferenceError, ReferenceScene, ReferenceVolume, RenderProgress,
+    SegmentScattering,
 };
 
 /// How far a reference image is: which volume, and its rows.
@@ -130,6 +131,14 @@ pub fn reference_image_with_terrain(
         });
         reference_scene.opaque_depth = opaque_depth.clone();
         reference_scene.fog = fog.clone();
+        if let Some(start) = fog
+            .as_ref()
+            .map(|fog| fog.start_distance)
+            .filter(|start| volume.ends_where_fog_layers_begin && *start > 0.0)
+        {
+            reference_scene.opaque_depth =
+                Some(depth_within(&camera, opaque_depth.as_deref(), start));
+        }
         let report = |rows: RenderProgress| {
             if let Some(progress) = progress {
                 progress(ReferenceProgress {
@@ -182,6 +191,19 @@ pub fn reference_image_with_terrain(
         height: camera.height,
         pixels,
     })
+}
+
+/// The opaque depth (view-space, per pixel) cut at `distance` along every
+/// ray.
+fn depth_within(camera: &ReferenceCamera, depth: Option<&[f32]>, distance: f64) -> Vec<f32> {
+    (0..camera.height)
+        .flat_map(|y| (0..camera.width).map(move |x| (x, y)))
+        .map(|(x, y)| {
+            let (_, depth_to_distance) = camera.pixel_ray(x, y);
+            let cut = (distance * depth_to_distance) as f32;
+            depth.map_or(cut, |depth| depth[(y * camera.width + x) as usize].min(cut))
+        })
+        .collect()
 }
 
 fn invalid(error: impl ToString) -> ReferenceError {

@@ -443,6 +443,9 @@ pub struct BuiltVolume {
     pub lod: Option<LodDescription>,
     /// Cloud lighting; `None` for an unlit volume.
     pub lighting: Option<LightingDescription>,
+    /// Ground fog: the scene's fog layers take it over from their start
+    /// distance, where its rays end (as the GPU's cell batch of ground fog).
+    pub ends_where_fog_layers_begin: bool,
 }
 
 /// A volume's scalar field.
@@ -611,6 +614,7 @@ impl VolumeDescription {
             mode: self.mode.unwrap_or(default_mode),
             lod: self.lod,
             lighting: self.lighting,
+            ends_where_fog_layers_begin: false,
         })
     }
 

@@ -299,6 +299,7 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
         mode: OpticalMode::Sorted,
         lod: None,
         lighting: None,
+        ends_where_fog_layers_begin: false,
     };
     // Two references: through the trilinear grid (the total error) and
     // through nebel's five tetrahedra per voxel (the error of projection and

@@ -39,6 +39,9 @@
 // second order in their optical depths. F = c (1 − T), c the fog's colour
 // along the ray. Emissive and MIP segments (α = 0) are scaled by T.
 //
+// FOG_HANDOFF (a batch of fog the view's fog layers take over from their
+// start distance): segments end at that distance.
+//
 // All positions are taken relative to the camera so large world coordinates
 // keep their precision.
 
@@ -245,6 +248,10 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     if depth > 0.0 {
         t_exit = min(t_exit, ray_distance_at_depth(ndc, depth));
     }
+#ifdef FOG_HANDOFF
+    // Fog that the view's fog layers take over from their start distance.
+    t_exit = min(t_exit, view.fog.ranges.x);
+#endif
     if t_exit <= t_entry {
         discard;
     }

@@ -62,8 +62,11 @@ pub fn draw_cell_batches(
         else {
             continue;
         };
-        let Some(render_pipeline) = cell_view.pipelines[mode_index(batch.mode)]
-            [variant_index(buffer.modulated, buffer.scattered)]
+        let Some(render_pipeline) = cell_view.pipelines[mode_index(batch.mode)][variant_index(
+            buffer.modulated,
+            buffer.scattered,
+            batch.hands_off && cell_view.hands_off,
+        )]
         .and_then(|id| pipeline_cache.get_render_pipeline(id)) else {
             continue;
         };

@@ -17,10 +17,10 @@ use nebel_core::optics::OpticalMode;
 use super::resources::{CellTablesUniform, CellViewUniform};
 use crate::cell_batch::CellScatteringUniform;
 
-/// The index of a pipeline variant: modulated segment lengths and single
-/// scattering, each on or off.
-pub(super) fn variant_index(modulated: bool, scattering: bool) -> usize {
-    usize::from(modulated) | usize::from(scattering) << 1
+/// The index of a pipeline variant: modulated segment lengths, single
+/// scattering and the handoff to fog layers, each on or off.
+pub(super) fn variant_index(modulated: bool, scattering: bool, handoff: bool) -> usize {
+    usize::from(modulated) | usize::from(scattering) << 1 | usize::from(handoff) << 2
 }
 
 pub(super) fn mode_index(mode: OpticalMode) -> usize {
@@ -56,6 +56,8 @@ pub struct CellProjectionPipelineKey {
     pub multisampled: bool,
     /// The view has fog layers: segments are seen through them.
     pub fog_layers: bool,
+    /// The batch's segments end where the view's fog layers begin.
+    pub handoff: bool,
     /// The accumulation target's format.
     pub target_format: TextureFormat,
 }
@@ -177,6 +179,9 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
         }
         if key.fog_layers {
             shader_defs.push("FOG_LAYERS".into());
+        }
+        if key.handoff {
+            shader_defs.push("FOG_HANDOFF".into());
         }
         RenderPipelineDescriptor {
             label: Some("nebel_cell_projection_pipeline".into()),

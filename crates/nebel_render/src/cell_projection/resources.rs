@@ -36,6 +36,8 @@ const TABLE_DEPTH_SIZE: u32 = 128;
 pub struct ExtractedCellBatch {
     cells: Arc<LodCellBatch>,
     pub(super) scattering: Option<CellScattering>,
+    /// The batch's segments end where the view's fog layers begin.
+    pub(super) hands_off: bool,
     /// The main-world component changed since the last extraction: upload
     /// the cells again.
     changed: bool,
@@ -100,6 +102,7 @@ pub fn extract_cell_batches(
                 scattering: batch
                     .scattering
                     .filter(|_| batch.mode == OpticalMode::Sorted),
+                hands_off: batch.ends_where_fog_layers_begin,
                 changed: batch.is_changed(),
                 table_key: TableKey {
                     transfer_hash: transfer_function.content_hash(),
@@ -341,8 +344,11 @@ pub struct CellProjectionView {
     pub(super) accumulation: CachedTexture,
     /// Per optical mode, the pipeline of each variant ([`variant_index`]),
     /// where a batch of this frame needs it.
-    pub(super) pipelines: [[Option<CachedRenderPipelineId>; 4]; 3],
+    pub(super) pipelines: [[Option<CachedRenderPipelineId>; 8]; 3],
     pub(super) composite: CachedRenderPipelineId,
+    /// Whether the view's fog layers begin beyond the eye, where batches
+    /// that hand off to them end.
+    pub(super) hands_off: bool,
 }
 
 /// Lets the pass read the scene depth, only while there is something to draw.
@@ -421,10 +427,11 @@ pub fn prepare_cell_views(
         });
         let multisampled = *msaa != Msaa::Off;
         // Only the variants some batch of this frame needs.
-        let mut variants = [[None; 4]; 3];
+        let mut variants = [[None; 8]; 3];
         for (_, batch) in &extracted.0 {
             let (modulated, scattering) = (batch.is_modulated(), batch.scattering.is_some());
-            variants[mode_index(batch.mode)][variant_index(modulated, scattering)] =
+            let handoff = batch.hands_off && fog.is_some_and(|fog| fog.0.ranges.x > 0.0);
+            variants[mode_index(batch.mode)][variant_index(modulated, scattering, handoff)] =
                 Some(pipelines.specialize(
                     &pipeline_cache,
                     &pipeline,
@@ -434,6 +441,7 @@ pub fn prepare_cell_views(
                         scattering,
                         multisampled,
                         fog_layers: fog.is_some(),
+                        handoff,
                         target_format: format,
                     },
                 ));
@@ -444,6 +452,7 @@ pub fn prepare_cell_views(
             accumulation,
             pipelines: variants,
             composite,
+            hands_off: fog.is_some_and(|fog| fog.0.ranges.x > 0.0),
         });
     }
     uniforms.0.write_buffer(&device, &queue);
