@@ -295,7 +295,9 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
 #ifdef MIP
     var segment = vec4(pair_lookup(s_front, s_back).rgb, 0.0);
 #endif
-#ifdef FOG_LAYERS
+#ifdef FOG_HANDOFF
+    // The segment ends before the fog layers begin: none of them is in front.
+#else ifdef FOG_LAYERS
     let fog_depth = fog_optical_depth(view.fog, view.camera_position.y, direction.y, 0.0, 0.5 * (t_entry + t_exit));
     let fog_transmittance = exp(-fog_depth);
     segment = vec4(
