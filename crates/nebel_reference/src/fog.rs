@@ -57,7 +57,8 @@ pub struct ReferenceFog {
     /// The fog begins at this distance along each ray, world units (≥ 0):
     /// nearer, another method (ground fog's prisms) draws it.
     pub start_distance: f64,
-    /// Where a ray that meets nothing opaque ends, world units (> 0).
+    /// Where the fog ends along each ray, world units (> 0): a ray that
+    /// meets nothing opaque integrates to here.
     pub max_distance: f64,
 }
 

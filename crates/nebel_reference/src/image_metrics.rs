@@ -333,6 +333,34 @@ pub fn compare(a: &LinearImage, b: &LinearImage) -> Result<ImageErrorMetrics, Im
     })
 }
 
+/// The largest change of the difference `a − b` between two horizontally or
+/// vertically adjacent pixels, over linear RGB channels: how much sharper an
+/// edge (a seam) `a` has than `b` anywhere. Two images that differ by a
+/// smooth function of the pixel give a small value even where they differ
+/// much. Refuses images of different sizes; 0 for images under 2 pixels.
+pub fn largest_difference_step(a: &LinearImage, b: &LinearImage) -> Result<f64, ImageMetricsError> {
+    check_pair(a, b)?;
+    let (width, height) = (a.width as usize, a.height as usize);
+    let difference =
+        |index: usize, c: usize| f64::from(a.pixels[index][c]) - f64::from(b.pixels[index][c]);
+    let mut largest: f64 = 0.0;
+    for y in 0..height {
+        for x in 0..width {
+            let here = y * width + x;
+            let neighbours = [
+                (x + 1 < width).then_some(here + 1),
+                (y + 1 < height).then_some(here + width),
+            ];
+            for there in neighbours.into_iter().flatten() {
+                for c in 0..3 {
+                    largest = largest.max((difference(here, c) - difference(there, c)).abs());
+                }
+            }
+        }
+    }
+    Ok(largest)
+}
+
 /// The difference image `|a − b| · scale` per linear RGB channel, opaque. A
 /// `scale` of 10 makes errors of 0.01 show as 0.1. Refuses images of different
 /// sizes and a negative or non-finite `scale`.
@@ -367,6 +395,31 @@ pub fn difference_image(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_difference_step_sees_seams_not_smooth_offsets() {
+        let image = |value: &dyn Fn(u32, u32) -> f32| LinearImage {
+            width: 8,
+            height: 4,
+            pixels: (0..32)
+                .map(|i| {
+                    let v = value(i % 8, i / 8);
+                    [v, v, v, 1.0]
+                })
+                .collect(),
+        };
+        let base = image(&|x, _| 0.1 * x as f32 / 8.0);
+        // A smooth ramp of difference: steps of 0.01 between neighbours.
+        let ramp = image(&|x, _| 0.1 * x as f32 / 8.0 + 0.01 * x as f32);
+        let step = largest_difference_step(&ramp, &base).unwrap();
+        assert!((step - 0.01).abs() < 1e-6, "{step}");
+        // A seam of 0.2 between columns 3 and 4.
+        let seam = image(&|x, _| 0.1 * x as f32 / 8.0 + if x >= 4 { 0.2 } else { 0.0 });
+        let step = largest_difference_step(&seam, &base).unwrap();
+        assert!((step - 0.2).abs() < 1e-6, "{step}");
+        assert_eq!(largest_difference_step(&base, &base).unwrap(), 0.0);
+        assert!(largest_difference_step(&base, &LinearImage::transparent(2, 2)).is_err());
+    }
 
     fn temp_path(name: &str) -> PathBuf {
         let dir = std::env::temp_dir().join(format!("nebel-image-metrics-{}", std::process::id()));

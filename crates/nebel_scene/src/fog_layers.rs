@@ -34,8 +34,8 @@ pub struct FogLayersDescription {
     /// fog nearer). Default 0.
     #[serde(default)]
     pub start_distance: f32,
-    /// How far rays that meet nothing opaque are integrated, metres.
-    /// Default 100000.
+    /// Where the fog ends along each ray, metres (the sky integrates to
+    /// here). Default 100000.
     #[serde(default = "default_max_distance")]
     pub max_distance: f32,
 }

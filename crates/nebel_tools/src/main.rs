@@ -10,7 +10,9 @@ use std::time::Instant;
 
 use clap::{Args, Parser, Subcommand};
 use nebel_core::optics::OpticalMode;
-use nebel_reference::image_metrics::{difference_image, load_png_linear, save_png};
+use nebel_reference::image_metrics::{
+    difference_image, largest_difference_step, load_png_linear, save_png,
+};
 use nebel_scene::reference::{reference_image, save_reference};
 use nebel_scene::{BuiltVolume, LightDescription, SceneDescription, SceneError, VolumeField};
 use nebel_tools::error::CommandError;
@@ -74,6 +76,10 @@ enum Command {
         /// Also write |A − B| · 10 per channel as a PNG.
         #[arg(long)]
         diff: Option<PathBuf>,
+        /// Also print the largest change of A − B between adjacent pixels
+        /// (the sharpest seam A has that B has not).
+        #[arg(long)]
+        steps: bool,
     },
     /// Render the scene's one grid volume with nebel and with Bevy's
     /// `FogVolume` under the same optics, score both against the exact
@@ -169,7 +175,7 @@ fn run(command: Command) -> Result<(), CommandError> {
             background_builds,
         } => render(&scene, &out, stats.as_deref(), background_builds),
         Command::Reference { scene, out } => reference(&scene, &out),
-        Command::Compare { a, b, diff } => compare(&a, &b, diff.as_deref()),
+        Command::Compare { a, b, diff, steps } => compare(&a, &b, diff.as_deref(), steps),
         Command::BenchFog { scene, out, steps } => bench_fog(&scene, &out, steps),
         Command::BenchLod {
             scene,
@@ -221,10 +227,14 @@ fn reference(args: &SceneArgs, out: &Path) -> Result<(), CommandError> {
     Ok(())
 }
 
-fn compare(a: &Path, b: &Path, diff: Option<&Path>) -> Result<(), CommandError> {
+fn compare(a: &Path, b: &Path, diff: Option<&Path>, steps: bool) -> Result<(), CommandError> {
     let (first, second) = (load_png_linear(a)?, load_png_linear(b)?);
     let metrics = nebel_reference::image_metrics::compare(&first, &second)?;
     println!("{metrics}");
+    if steps {
+        let step = largest_difference_step(&first, &second)?;
+        println!("largest step of A − B between adjacent pixels {step:e}");
+    }
     if let Some(diff_path) = diff {
         let diff = difference_image(&first, &second, DIFF_SCALE)?;
         save_png(&diff, diff_path, [0.0; 3])?;

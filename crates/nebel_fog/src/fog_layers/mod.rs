@@ -85,8 +85,10 @@ pub struct FogLayers {
     /// Where the fog begins along each ray, metres, finite and ≥ 0. Nearer,
     /// a ground fog draws it. Default 0.
     pub start_distance: f32,
-    /// How far rays that meet nothing opaque are integrated, metres, finite
-    /// and greater than `start_distance`. Default 100 km.
+    /// Where the fog ends along each ray, metres, finite and greater than
+    /// `start_distance`: rays that meet nothing opaque (the sky) are
+    /// integrated to here. Set it to the extent of a finite world to keep
+    /// the fog off the horizon beyond it. Default 100 km.
     pub max_distance: f32,
 }
 

@@ -92,7 +92,8 @@ pub struct FogLayersLook {
     pub sun_asymmetry: f32,
     /// Where the fog begins along each ray, metres.
     pub start_distance: f32,
-    /// Where a ray that meets nothing opaque ends, metres.
+    /// Where the fog ends along each ray (the sky integrates to here),
+    /// metres.
     pub max_distance: f32,
 }
 
