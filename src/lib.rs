@@ -51,6 +51,7 @@ impl PluginGroup for NebelPlugins {
     fn build(self) -> PluginGroupBuilder {
         let group = PluginGroupBuilder::start::<Self>()
             .add(nebel_render::NebelDiagnosticsPlugin)
+            .add(nebel_render::NebelQualityPlugin)
             .add(nebel_render::CellProjectionPlugin);
         #[cfg(feature = "volume")]
         let group = group
@@ -75,7 +76,9 @@ pub mod prelude {
         GroundFog, GroundFogDebug, GroundFogError, GroundFogPlugin, GroundFogStats,
         GroundFogStatus, HeightFogLayer, ValleyFog,
     };
-    pub use nebel_render::{CellBatch, HeavyBuilds, LodCamera, NebelSystems};
+    pub use nebel_render::{
+        AutoQuality, CellBatch, HeavyBuilds, LodCamera, NebelQuality, NebelSystems, QualityPreset,
+    };
     #[cfg(feature = "terrain")]
     pub use nebel_terrain::{
         Terrain, TerrainBuildError, TerrainDebug, TerrainHeights, TerrainLodStats, TerrainNoise,

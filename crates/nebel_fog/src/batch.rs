@@ -30,7 +30,7 @@ use nebel_lod::{
     fog_prisms,
 };
 use nebel_render::camera::to_double;
-use nebel_render::{CellBatch, LodCameras};
+use nebel_render::{CellBatch, EffectiveQuality, LodCameras};
 use nebel_terrain::{TerrainLayerLod, TerrainLod, TerrainLodStats, TerrainStatus};
 
 use crate::error::GroundFogError;
@@ -149,11 +149,15 @@ pub(crate) fn update_fog_batches(
     )>,
     mut meshes: ResMut<Assets<Mesh>>,
     mut materials: ResMut<Assets<StandardMaterial>>,
+    quality: Option<Res<EffectiveQuality>>,
     mut diagnostics: Diagnostics,
 ) {
     let Some(camera) = cameras.view() else {
         return;
     };
+    let (prisms, quality_changed) = quality.as_ref().map_or((true, false), |quality| {
+        (quality.ground_fog_prisms(), quality.is_changed())
+    });
     let mut frame_ms = None;
     for (
         entity,
@@ -181,6 +185,7 @@ pub(crate) fn update_fog_batches(
         let quadtree = layered.map_or(0, |layered| Arc::as_ptr(&layered.hierarchy) as usize);
         // Nothing changed since the batch was built.
         let unchanged = !fog.is_changed()
+            && !quality_changed
             && !transform.is_changed()
             && !visibility.is_changed()
             && !terrain_status.is_changed()
@@ -192,6 +197,7 @@ pub(crate) fn update_fog_batches(
         }
         let mesh = lod.mesh();
         let drawable = layered.is_some()
+            && prisms
             && visibility.get()
             && !matches!(*terrain_status, TerrainStatus::Failed(_))
             && fog.density > 0.0

@@ -25,7 +25,7 @@ use nebel_core::field::{FogNoise, ValleyFog};
 use nebel_core::optics::OpticalMode;
 use nebel_lod::TerrainHierarchy;
 use nebel_lod::quadtree::TerrainLayer;
-use nebel_render::{HeavyBuild, HeavyBuilds};
+use nebel_render::{EffectiveQuality, HeavyBuild, HeavyBuilds};
 use nebel_terrain::{LayeredQuadtree, TerrainHeights, TerrainLayerLod, TerrainLod};
 
 use crate::error::GroundFogError;
@@ -170,9 +170,11 @@ pub(crate) fn build_fog_layers(
     mut map_events: MessageReader<AssetEvent<TerrainHeights>>,
     asset_server: Res<AssetServer>,
     mode: Res<HeavyBuilds>,
+    quality: Option<Res<EffectiveQuality>>,
     mut diagnostics: Diagnostics,
 ) {
     let changed = TerrainHeights::changed(&mut map_events);
+    let prisms = quality.is_none_or(|quality| quality.ground_fog_prisms());
     for (entity, fog, lod, layer_lod, mut state, mut status, mut stats) in &mut fogs {
         let Some(lod) = lod else {
             fail(entity, &mut status, GroundFogError::NoTerrain);
@@ -202,9 +204,12 @@ pub(crate) fn build_fog_layers(
             };
         }
         // A fog that draws nothing (no density, a transparent transfer
-        // function) leaves the terrain refining alone.
-        let drawn =
-            density_valid && fog.density > 0.0 && !fog.transfer_function.is_transparent(0.0, 1.0);
+        // function, a quality that leaves it to the fog layers) leaves the
+        // terrain refining alone.
+        let drawn = prisms
+            && density_valid
+            && fog.density > 0.0
+            && !fog.transfer_function.is_transparent(0.0, 1.0);
         if let Some(mut layer_lod) = layer_lod {
             if layer_lod.refine_on_every_move != every_move {
                 layer_lod.refine_on_every_move = every_move;

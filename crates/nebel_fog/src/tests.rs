@@ -542,3 +542,40 @@ fn fog_layers_are_checked_and_cost_nothing_without_density() {
         assert!(!prepared, "{needle}");
     }
 }
+
+#[test]
+fn the_quality_preset_sets_the_fog_method_and_the_terrain_accuracy() {
+    use nebel_render::{NebelQuality, NebelQualityPlugin, QualityPreset};
+    let (mut app, _camera) = app(&asset_dir("quality"), Vec3::new(-400.0, 250.0, -300.0));
+    app.add_plugins(NebelQualityPlugin);
+    let fog = spawn_fog(&mut app, valley(40.0));
+    settle(&mut app);
+    let triangles = |app: &App| app.world().get::<TerrainLodStats>(fog).unwrap().triangles;
+    let high = (triangles(&app), batch(&app, fog).map(|b| b.cells.len()));
+    assert!(high.1.is_some_and(|cells| cells > 0) && has_layer(&app, fog));
+    // Low: the fog's prisms give way to the fog layers, the terrain
+    // refines at half its accuracy and without the fog's layer.
+    app.world_mut().resource_mut::<NebelQuality>().preset = QualityPreset::Low;
+    settle(&mut app);
+    assert!(batch(&app, fog).is_none() && !has_layer(&app, fog));
+    assert_eq!(stats(&app, fog).tetrahedra, 0);
+    assert!(
+        triangles(&app) < high.0,
+        "{} vs {}",
+        triangles(&app),
+        high.0
+    );
+    // Medium: the prisms again, on a coarser terrain than High's.
+    app.world_mut().resource_mut::<NebelQuality>().preset = QualityPreset::Medium;
+    settle(&mut app);
+    let medium = (triangles(&app), batch(&app, fog).map(|b| b.cells.len()));
+    assert!(medium.1.is_some_and(|cells| cells > 0) && has_layer(&app, fog));
+    assert!(medium.0 < high.0, "{} vs {}", medium.0, high.0);
+    // And back to High: what it was.
+    app.world_mut().resource_mut::<NebelQuality>().preset = QualityPreset::High;
+    settle(&mut app);
+    assert_eq!(
+        (triangles(&app), batch(&app, fog).map(|b| b.cells.len())),
+        high
+    );
+}

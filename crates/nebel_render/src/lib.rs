@@ -7,6 +7,8 @@
 //! - [`cell_projection`]: the render feature that draws them, exact per pixel.
 //! - [`fog_layers`]: height fog on the GPU, shared by the fog-layer pass and
 //!   the cell projection ([`ViewFogLayers`]).
+//! - [`quality`]: [`NebelQuality`], presets and the automatic mode that map
+//!   to every effect's method and accuracy.
 //! - [`builds`]: heavy builds on the task pool ([`HeavyBuilds`]).
 //! - [`camera`]: the camera that drives the level of detail ([`LodCamera`]).
 //! - [`diagnostics`]: the [`NebelSystems`] set that every per-frame nebel system
@@ -29,6 +31,7 @@ pub mod cell_batch;
 pub mod cell_projection;
 pub mod diagnostics;
 pub mod fog_layers;
+pub mod quality;
 
 pub use builds::{HeavyBuild, HeavyBuilds};
 pub use camera::{LodCamera, LodCameras, LodView};
@@ -36,3 +39,4 @@ pub use cell_batch::{CellBatch, CellScattering};
 pub use cell_projection::{CellProjectionPlugin, CellProjectionStats, CellProjectionSystems};
 pub use diagnostics::{NebelDiagnosticsPlugin, NebelSystems};
 pub use fog_layers::{FogLayersUniform, ViewFogLayers};
+pub use quality::{AutoQuality, EffectiveQuality, NebelQuality, NebelQualityPlugin, QualityPreset};

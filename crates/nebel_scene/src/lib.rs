@@ -132,6 +132,24 @@ pub struct SceneDescription {
     /// [`FogLayersDescription`]. Default: none.
     #[serde(default)]
     pub fog_layers: Option<FogLayersDescription>,
+    /// The quality preset every effect draws at (`nebel_render`'s
+    /// `NebelQuality`): `Low`, `Medium` or `High`. Default `High`. The
+    /// reference ignores it.
+    #[serde(default)]
+    pub quality: QualityDescription,
+}
+
+/// The quality preset of a scene, see [`SceneDescription::quality`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum QualityDescription {
+    /// Fog layers only (no ground fog prisms); clouds at a quarter, terrain
+    /// at half their accuracy.
+    Low,
+    /// Clouds at half, terrain at three quarters of their accuracy.
+    Medium,
+    /// Every effect at its own accuracy.
+    #[default]
+    High,
 }
 
 /// Image size and the frames to run before the image is taken.
@@ -1009,6 +1027,7 @@ mod tests {
                 start_distance: 25.0,
                 max_distance: 5000.0,
             }),
+            quality: QualityDescription::Medium,
         }
     }
 

@@ -49,8 +49,8 @@ use bevy::ecs::system::SystemParam;
 use bevy::math::DAffine3;
 use bevy::prelude::*;
 use nebel_lod::quadtree::{LodSettings, RefinerSettings, TerrainView, TriangleOrder};
-use nebel_render::LodCameras;
 use nebel_render::camera::to_double;
+use nebel_render::{EffectiveQuality, LodCameras};
 
 use crate::build::{TerrainLod, bounds};
 use crate::layer::TerrainLayerLod;
@@ -80,12 +80,17 @@ impl TerrainAssets<'_, '_> {
     }
 }
 
-/// The refinement settings of `terrain`, carrying a layer or not.
-fn refiner_settings(terrain: &Terrain, layer: Option<&TerrainLayerLod>) -> RefinerSettings {
+/// The refinement settings of `terrain`, carrying a layer or not, its
+/// accuracy scaled by the quality's factor.
+fn refiner_settings(
+    terrain: &Terrain,
+    layer: Option<&TerrainLayerLod>,
+    accuracy_scale: f64,
+) -> RefinerSettings {
     let every_move = layer.is_some_and(|layer| layer.refine_on_every_move);
     RefinerSettings {
         lod: LodSettings {
-            accuracy: terrain.accuracy,
+            accuracy: (f64::from(terrain.accuracy) * accuracy_scale) as f32,
             morph: terrain.morph,
             normals: true,
             // The layer's cells need each vertex's grid point.
@@ -118,11 +123,15 @@ pub(crate) fn update_terrain_meshes(
         Option<Ref<TerrainLayerLod>>,
     )>,
     mut assets: TerrainAssets,
+    quality: Option<Res<EffectiveQuality>>,
     mut diagnostics: Diagnostics,
 ) {
     let Some(camera) = cameras.view() else {
         return;
     };
+    let (accuracy_scale, quality_changed) = quality.as_ref().map_or((1.0, false), |quality| {
+        (quality.terrain_accuracy_scale(), quality.is_changed())
+    });
     let (mut frame_update_ms, mut frame_refine_ms) = (None, None);
     for (entity, terrain, transform, visibility, mut status, mut stats, mut state, layer) in
         &mut terrains
@@ -162,8 +171,11 @@ pub(crate) fn update_terrain_meshes(
             &hierarchy,
             layered.map(|layered| &*layered.layer),
             &view,
-            &refiner_settings(&terrain, layered.and(layer.as_deref())),
-            terrain.is_changed() || layer_changed || layer.as_ref().is_some_and(Ref::is_changed),
+            &refiner_settings(&terrain, layered.and(layer.as_deref()), accuracy_scale),
+            terrain.is_changed()
+                || quality_changed
+                || layer_changed
+                || layer.as_ref().is_some_and(Ref::is_changed),
         );
         let refine_ms = started.elapsed().as_secs_f64() * 1e3;
         let lod_stats = match refined {

@@ -19,13 +19,13 @@ use std::path::Path;
 use std::sync::Arc;
 
 use nebel_core::field::HeightField;
-use nebel_render::NebelSystems;
+use nebel_render::{NebelQuality, NebelSystems, QualityPreset};
 
 use crate::headless::{HeadlessError, HeadlessOptions, render_headless};
 use crate::stats::RenderStats;
 use nebel_scene::{
     BuiltGroundFog, BuiltVolume, CameraView, FogThicknessDescription, GroundFogDescription,
-    LightDescription, MeshDescription, SceneDescription, SceneError,
+    LightDescription, MeshDescription, QualityDescription, SceneDescription, SceneError,
 };
 use nebel_volume::VolumeGrid;
 
@@ -180,6 +180,14 @@ fn spawn_scene(
     if let Some(fog) = &scene.fog_layers {
         camera_entity.insert(fog_layers(fog));
     }
+    commands.insert_resource(NebelQuality {
+        preset: match scene.quality {
+            QualityDescription::Low => QualityPreset::Low,
+            QualityDescription::Medium => QualityPreset::Medium,
+            QualityDescription::High => QualityPreset::High,
+        },
+        auto: None,
+    });
 
     let mut ambient = GlobalAmbientLight {
         brightness: 0.0,

@@ -44,7 +44,7 @@ use nebel_lod::{
     VolumeBatchError, VolumeBatcher, VolumeSource,
 };
 use nebel_render::camera::to_double;
-use nebel_render::{CellBatch, HeavyBuild, HeavyBuilds, LodCameras};
+use nebel_render::{CellBatch, EffectiveQuality, HeavyBuild, HeavyBuilds, LodCameras};
 
 use crate::cloud::CloudGeneration;
 use crate::grid::VolumeGrid;
@@ -283,9 +283,11 @@ pub(crate) fn update_batches(
         &mut VolumeBatching,
     )>,
     suns: Query<&GlobalTransform, With<DirectionalLight>>,
+    quality: Option<Res<EffectiveQuality>>,
     mut diagnostics: Diagnostics,
 ) {
     let camera = cameras.view();
+    let accuracy_scale = quality.map_or(1.0, |quality| quality.volume_accuracy_scale());
     // A degenerate projection culls nothing rather than everything.
     let frustum =
         camera.and_then(|camera| Frustum::from_view_projection(camera.clip_from_world).ok());
@@ -309,7 +311,7 @@ pub(crate) fn update_batches(
         view.frustum = frustum.clone();
         let inputs = FrameInputs {
             transfer: &volume.transfer_function,
-            accuracy: lod.map_or(0.0, |lod| lod.accuracy),
+            accuracy: lod.map_or(0.0, |lod| lod.accuracy * accuracy_scale),
         };
         let scattering =
             lighting.and_then(|lighting| lighting.cell_scattering(sun_world.unwrap_or(Vec3::Y)));

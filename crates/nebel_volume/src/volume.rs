@@ -375,6 +375,36 @@ mod tests {
     }
 
     #[test]
+    fn the_quality_preset_scales_the_octree_accuracy() {
+        use nebel_render::{NebelQuality, NebelQualityPlugin, QualityPreset};
+        let (mut app, _, volume) = app_with_volume(OpticalMode::Emissive);
+        app.add_plugins(NebelQualityPlugin);
+        let noise = nebel_core::field::ProceduralNoise {
+            octaves: 3,
+            ..default()
+        };
+        let grid = DensityGrid::procedural([17, 17, 17], DVec3::splat(0.125), DVec3::ZERO, &noise)
+            .unwrap();
+        let field = grid_field(&mut app, grid);
+        app.world_mut().get_mut::<Volume>(volume).unwrap().field = field;
+        app.world_mut().entity_mut(volume).insert(VolumeLod {
+            accuracy: 40.0,
+            min_accuracy: 2.0,
+        });
+        let cells = |app: &mut App, preset| {
+            app.world_mut().resource_mut::<NebelQuality>().preset = preset;
+            app.update();
+            app.update();
+            app.world().get::<CellBatch>(volume).unwrap().cells.len()
+        };
+        let high = cells(&mut app, QualityPreset::High);
+        let medium = cells(&mut app, QualityPreset::Medium);
+        let low = cells(&mut app, QualityPreset::Low);
+        assert!(low < medium && medium < high, "{low} < {medium} < {high}");
+        assert_eq!(cells(&mut app, QualityPreset::High), high);
+    }
+
+    #[test]
     fn a_lit_volume_carries_its_density_as_modulator_and_follows_the_sun() {
         let (mut app, _, volume) = app_with_volume(OpticalMode::Sorted);
         let noise = nebel_core::field::ProceduralNoise {

@@ -17,6 +17,7 @@ use bevy::render::{
     Extract, ExtractSchedule, GpuResourceAppExt, Render, RenderApp, RenderStartup, RenderSystems,
 };
 use bevy::shader::ShaderDefVal;
+use nebel_render::EffectiveQuality;
 use nebel_render::cell_projection::CellProjectionSystems;
 use nebel_render::fog_layers::{FogLayersUniform, ViewFogLayers};
 
@@ -65,7 +66,12 @@ pub fn extract_fog_layers(
     mut commands: Commands,
     cameras: Extract<Query<(RenderEntity, Option<&PreparedFogLayers>), With<Camera3d>>>,
     lights: Extract<Query<&GlobalTransform, With<DirectionalLight>>>,
+    quality: Extract<Option<Res<EffectiveQuality>>>,
 ) {
+    // A quality without ground fog prisms leaves the whole ray to the layers.
+    let from_the_eye = quality
+        .as_ref()
+        .is_some_and(|quality| !quality.ground_fog_prisms());
     let sun = lights
         .iter()
         .next()
@@ -74,6 +80,9 @@ pub fn extract_fog_layers(
         match prepared.and_then(|prepared| prepared.0) {
             Some(mut uniform) => {
                 uniform.sun_direction = sun.extend(0.0);
+                if from_the_eye {
+                    uniform.ranges.x = 0.0;
+                }
                 commands.entity(entity).insert(ViewFogLayers(uniform));
             }
             None => {
