@@ -7,14 +7,15 @@
 //!   statistics ([`stats`]).
 //! - [`example_runner`]: what every example does: a window with a fly camera
 //!   ([`fly_camera`]), or a headless render when there is no display.
-//! - [`fog_comparison`] and [`lod_sweep`]: the `bench-fog` and `bench-lod`
-//!   commands; [`reference`](mod@reference): the exact CPU reference of a whole scene;
+//! - [`fog_comparison`], [`fog_layer_peers`] and [`lod_sweep`]: the
+//!   `bench-fog`, `bench-fog-layers` and `bench-lod` commands; [`reference`](mod@reference): the exact CPU reference of a whole scene;
 //!   [`error`]: why a command failed; [`progress`]: progress bars.
 
 pub mod error;
 pub mod example_runner;
 pub mod fly_camera;
 pub mod fog_comparison;
+pub mod fog_layer_peers;
 pub mod headless;
 pub mod lod_sweep;
 pub mod progress;

@@ -17,11 +17,12 @@ use nebel_scene::reference::{reference_image, save_reference};
 use nebel_scene::{BuiltVolume, LightDescription, SceneDescription, SceneError, VolumeField};
 use nebel_tools::error::CommandError;
 use nebel_tools::fog_comparison::{self, BevyFog};
+use nebel_tools::fog_layer_peers::run_fog_layer_peers;
 use nebel_tools::headless::HeadlessOptions;
 use nebel_tools::lod_sweep::run_lod_sweep;
 use nebel_tools::progress::reference_bar;
 use nebel_tools::reference::scene_reference;
-use nebel_tools::scene_setup::SceneSetupPlugin;
+use nebel_tools::scene_setup::{BevyPeer, SceneSetupPlugin};
 
 /// Factor on the absolute error in `compare --diff` images.
 const DIFF_SCALE: f32 = 10.0;
@@ -91,6 +92,20 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
         /// Samples per ray of Bevy's fog.
+        #[arg(long, default_value_t = 64)]
+        steps: u32,
+    },
+    /// Render the scene's fog layers with nebel, with Bevy's `DistanceFog`
+    /// (exponential and atmospheric falloff, fitted) and with Bevy's
+    /// `FogVolume` covering them, score each against the exact reference,
+    /// write `DIR/fog_layer_peers.csv`, a plot and the images.
+    BenchFogLayers {
+        #[command(flatten)]
+        scene: SceneArgs,
+        /// The folder to write into.
+        #[arg(long)]
+        out: PathBuf,
+        /// Samples per ray of Bevy's `FogVolume`.
         #[arg(long, default_value_t = 64)]
         steps: u32,
     },
@@ -177,6 +192,9 @@ fn run(command: Command) -> Result<(), CommandError> {
         Command::Reference { scene, out } => reference(&scene, &out),
         Command::Compare { a, b, diff, steps } => compare(&a, &b, diff.as_deref(), steps),
         Command::BenchFog { scene, out, steps } => bench_fog(&scene, &out, steps),
+        Command::BenchFogLayers { scene, out, steps } => {
+            run_fog_layer_peers(&scene.scene, scene.load()?, &out, steps).map(drop)
+        }
         Command::BenchLod {
             scene,
             out,
@@ -338,7 +356,7 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
             volumes: vec![equivalent.clone()],
             terrain: scene.build_terrain(scene_path)?,
             ground_fog: scene.build_ground_fog(scene_path)?,
-            bevy_fog,
+            peer: bevy_fog.map(BevyPeer::FogVolume),
         };
         let image_path = out_dir.join(format!("{name}.png"));
         let options = HeadlessOptions {

@@ -45,10 +45,24 @@ pub struct SceneSetupPlugin {
     /// The terrain fog's files ([`SceneSetupPlugin::new`] reads them),
     /// spawned as a `nebel_fog::GroundFog` on the terrain.
     pub ground_fog: Option<BuiltGroundFog>,
-    /// Draw grid volumes with Bevy's own `FogVolume` ray marcher instead of
-    /// nebel, for comparisons ([`crate::fog_comparison`]). Default: `None`.
-    pub bevy_fog: Option<BevyFog>,
+    /// One of Bevy's own fogs, for comparisons: grid volumes drawn by its
+    /// `FogVolume` ray marcher instead of nebel ([`crate::fog_comparison`]),
+    /// or its `DistanceFog` on the camera. Default: `None`.
+    pub peer: Option<BevyPeer>,
 }
+
+/// Bevy's own fogs a scene can be drawn with, for comparisons.
+#[derive(Clone, Debug)]
+pub enum BevyPeer {
+    /// The grid volumes as `FogVolume`s.
+    FogVolume(BevyFog),
+    /// A `DistanceFog` on the camera.
+    DistanceFog(DistanceFog),
+}
+
+/// The `DistanceFog` a scene's camera gets.
+#[derive(Resource, Clone, Debug)]
+struct BevyDistanceFog(DistanceFog);
 
 impl SceneSetupPlugin {
     /// Renders this scene headless (see [`render_headless`]) with the
@@ -75,7 +89,7 @@ impl SceneSetupPlugin {
             volumes,
             terrain,
             ground_fog,
-            bevy_fog: None,
+            peer: None,
         })
     }
 }
@@ -112,8 +126,14 @@ impl Plugin for SceneSetupPlugin {
             .add_systems(Startup, (spawn_scene, spawn_terrain))
             .add_systems(PostStartup, enable_bevy_fog)
             .add_systems(Update, follow_camera_path.in_set(NebelSystems));
-        if let Some(fog) = self.bevy_fog {
-            app.insert_resource(BevyFogSettings(fog));
+        match self.peer.clone() {
+            Some(BevyPeer::FogVolume(fog)) => {
+                app.insert_resource(BevyFogSettings(fog));
+            }
+            Some(BevyPeer::DistanceFog(fog)) => {
+                app.insert_resource(BevyDistanceFog(fog));
+            }
+            None => {}
         }
     }
 }
@@ -144,6 +164,7 @@ fn spawn_scene(
     scene: Res<LoadedScene>,
     volumes: Res<SceneVolumes>,
     bevy_fog: Option<Res<BevyFogSettings>>,
+    distance_fog: Option<Res<BevyDistanceFog>>,
     mut images: ResMut<Assets<Image>>,
     mut meshes: ResMut<Assets<Mesh>>,
     mut materials: ResMut<Assets<StandardMaterial>>,
@@ -179,6 +200,9 @@ fn spawn_scene(
     }
     if let Some(fog) = &scene.fog_layers {
         camera_entity.insert(fog_layers(fog));
+    }
+    if let Some(fog) = distance_fog {
+        camera_entity.insert(fog.0.clone());
     }
     commands.insert_resource(NebelQuality {
         preset: match scene.quality {
