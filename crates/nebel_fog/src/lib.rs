@@ -1,5 +1,8 @@
-//! nebel's ground fog plugin: volumetric fog lying in the valleys of the C-LOD
-//! terrain (Röttger and Ertl 2003 §6; Röttger 2004 §10.4).
+//! nebel's fog plugins: volumetric ground fog lying in the valleys of the
+//! C-LOD terrain (Röttger and Ertl 2003 §6; Röttger 2004 §10.4), and fog
+//! layers, height fog exact along every ray in one full-screen pass, its far
+//! and cheap partner (Röttger 2004 §5.3; [`fog_layers`], [`FogLayers`] on a
+//! camera, [`FogLayersPlugin`]).
 //!
 //! Put a [`GroundFog`] on a [`Terrain`](nebel_terrain::Terrain) entity;
 //! [`GroundFogPlugin`] then

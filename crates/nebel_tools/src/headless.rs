@@ -76,6 +76,11 @@ pub struct HeadlessOptions {
     /// no frame waits for them, so a frame may show an older build. Default
     /// false: every frame waits for its builds.
     pub background_builds: bool,
+    /// Constrain the device to WebGL2-class limits
+    /// (`wgpu::Limits::downlevel_webgl2_defaults`: no storage buffers or
+    /// textures, no compute) and no optional features, to check what runs
+    /// where Bevy's volumetric fog cannot. Default false.
+    pub webgl2_limits: bool,
 }
 
 /// The image every camera renders into.
@@ -169,6 +174,10 @@ pub fn render_headless(
         .set(RenderPlugin {
             render_creation: WgpuSettings {
                 backends: Some(probed.backends),
+                constrained_limits: options
+                    .webgl2_limits
+                    .then(wgpu::Limits::downlevel_webgl2_defaults),
+                disabled_features: options.webgl2_limits.then(wgpu::Features::all),
                 ..default()
             }
             .into(),

@@ -14,7 +14,9 @@ use nebel_reference::image_metrics::{
     difference_image, largest_difference_step, load_png_linear, save_png,
 };
 use nebel_scene::reference::{reference_image, save_reference};
-use nebel_scene::{BuiltVolume, LightDescription, SceneDescription, SceneError, VolumeField};
+use nebel_scene::{
+    BuiltVolume, LightDescription, QualityDescription, SceneDescription, SceneError, VolumeField,
+};
 use nebel_tools::error::CommandError;
 use nebel_tools::fog_comparison::{self, BevyFog};
 use nebel_tools::fog_layer_peers::run_fog_layer_peers;
@@ -56,6 +58,13 @@ enum Command {
         /// times.
         #[arg(long)]
         background_builds: bool,
+        /// Constrain the device to WebGL2-class limits (no storage buffers,
+        /// no compute) and no optional features, and turn MSAA off (WebGL2
+        /// cannot read multisampled depth); with `WGPU_BACKEND=gl`, a check
+        /// of what runs on downlevel devices (fog layers do; the cell
+        /// projection needs storage buffers).
+        #[arg(long)]
+        webgl2_limits: bool,
     },
     /// Integrate the scene's volumes exactly on the CPU (f64, adaptive, all
     /// cores) from the camera of the last frame, cut at its meshes and
@@ -142,6 +151,18 @@ struct SceneArgs {
     /// Image size instead of the scene's, as `WIDTHxHEIGHT`.
     #[arg(long, value_parser = parse_size)]
     size: Option<(u32, u32)>,
+    /// The quality preset instead of the scene's: low, medium or high.
+    #[arg(long, value_parser = parse_quality)]
+    quality: Option<QualityDescription>,
+}
+
+fn parse_quality(quality: &str) -> Result<QualityDescription, String> {
+    match quality.to_ascii_lowercase().as_str() {
+        "low" => Ok(QualityDescription::Low),
+        "medium" => Ok(QualityDescription::Medium),
+        "high" => Ok(QualityDescription::High),
+        _ => Err(format!("takes low, medium or high, got `{quality}`")),
+    }
 }
 
 fn parse_size(size: &str) -> Result<(u32, u32), String> {
@@ -151,7 +172,7 @@ fn parse_size(size: &str) -> Result<(u32, u32), String> {
 }
 
 impl SceneArgs {
-    /// Loads the scene and applies `--frames` and `--size`.
+    /// Loads the scene and applies `--frames`, `--size` and `--quality`.
     fn load(&self) -> Result<SceneDescription, CommandError> {
         let mut scene = SceneDescription::load(&self.scene)?;
         if let Some(frames) = self.frames {
@@ -160,6 +181,9 @@ impl SceneArgs {
         if let Some((width, height)) = self.size {
             scene.output.width = width;
             scene.output.height = height;
+        }
+        if let Some(quality) = self.quality {
+            scene.quality = quality;
         }
         scene.validate().map_err(|invalid| SceneError::Invalid {
             path: self.scene.clone(),
@@ -188,7 +212,17 @@ fn run(command: Command) -> Result<(), CommandError> {
             out,
             stats,
             background_builds,
-        } => render(&scene, &out, stats.as_deref(), background_builds),
+            webgl2_limits,
+        } => render(
+            &scene,
+            &out,
+            stats.as_deref(),
+            HeadlessOptions {
+                progress: true,
+                background_builds,
+                webgl2_limits,
+            },
+        ),
         Command::Reference { scene, out } => reference(&scene, &out),
         Command::Compare { a, b, diff, steps } => compare(&a, &b, diff.as_deref(), steps),
         Command::BenchFog { scene, out, steps } => bench_fog(&scene, &out, steps),
@@ -208,13 +242,13 @@ fn render(
     args: &SceneArgs,
     out: &Path,
     stats_path: Option<&Path>,
-    background_builds: bool,
+    options: HeadlessOptions,
 ) -> Result<(), CommandError> {
-    let setup = SceneSetupPlugin::new(args.load()?, &args.scene)?;
-    let options = HeadlessOptions {
-        progress: true,
-        background_builds,
-    };
+    let mut scene = args.load()?;
+    if options.webgl2_limits {
+        scene.camera.msaa = 1;
+    }
+    let setup = SceneSetupPlugin::new(scene, &args.scene)?;
     let stats = setup.render_headless(options, out)?;
     if let Some(stats_path) = stats_path {
         std::fs::write(stats_path, stats.to_json()).map_err(CommandError::write(stats_path))?;

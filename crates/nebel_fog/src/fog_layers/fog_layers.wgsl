@@ -17,10 +17,13 @@ struct FogPass {
 }
 
 @group(0) @binding(0) var<uniform> fog_pass: FogPass;
+// The depth is bound as an unfilterable float texture, which WebGPU allows
+// for depth formats: GLSL (WebGL2-class devices) can load its texels, where
+// it cannot load those of a depth texture.
 #ifdef MULTISAMPLED
-@group(0) @binding(1) var depth_texture: texture_depth_multisampled_2d;
+@group(0) @binding(1) var depth_texture: texture_multisampled_2d<f32>;
 #else
-@group(0) @binding(1) var depth_texture: texture_depth_2d;
+@group(0) @binding(1) var depth_texture: texture_2d<f32>;
 #endif
 
 // The fog's opacity along the ray `direction` through `ndc` to `depth` (0:
@@ -51,11 +54,11 @@ fn fragment(in: FullscreenVertexOutput) -> @location(0) vec4<f32> {
     let samples = textureNumSamples(depth_texture);
     var alpha = 0.0;
     for (var i = 0u; i < samples; i++) {
-        alpha += fog_alpha(ndc, direction, textureLoad(depth_texture, pixel, i32(i)));
+        alpha += fog_alpha(ndc, direction, textureLoad(depth_texture, pixel, i32(i)).r);
     }
     alpha /= f32(samples);
 #else
-    let alpha = fog_alpha(ndc, direction, textureLoad(depth_texture, pixel, 0));
+    let alpha = fog_alpha(ndc, direction, textureLoad(depth_texture, pixel, 0).r);
 #endif
     if alpha <= 0.0 {
         discard;

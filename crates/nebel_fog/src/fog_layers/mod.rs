@@ -154,7 +154,8 @@ pub struct PreparedFogLayers(pub(crate) Option<FogLayersUniform>);
 
 /// Adds [`FogLayers`]: checks them when they change, and draws them in one
 /// pass in `Core3d` after the opaque pass and before the cell projection
-/// ([`FogLayersRenderPlugin`]).
+/// ([`FogLayersRenderPlugin`]). Needs `nebel_render::CellProjectionPlugin`,
+/// which loads the shaders' fog library (`NebelPlugins` adds both).
 #[derive(Default)]
 pub struct FogLayersPlugin;
 

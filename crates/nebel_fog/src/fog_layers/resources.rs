@@ -7,7 +7,7 @@ use bevy::core_pipeline::core_3d::prepare_core_3d_depth_textures;
 use bevy::core_pipeline::schedule::{Core3d, Core3dSystems};
 use bevy::prelude::*;
 use bevy::render::render_resource::binding_types::{
-    texture_depth_2d, texture_depth_2d_multisampled, uniform_buffer,
+    texture_2d, texture_2d_multisampled, uniform_buffer,
 };
 use bevy::render::render_resource::*;
 use bevy::render::renderer::{RenderDevice, RenderQueue};
@@ -152,10 +152,11 @@ fn init_fog_layers_pipeline(
                 ShaderStages::FRAGMENT,
                 (
                     uniform_buffer::<FogPassUniform>(true),
+                    // Depth as unfilterable float (see `fog_layers.wgsl`).
                     if multisampled {
-                        texture_depth_2d_multisampled()
+                        texture_2d_multisampled(TextureSampleType::Float { filterable: false })
                     } else {
-                        texture_depth_2d()
+                        texture_2d(TextureSampleType::Float { filterable: false })
                     },
                 ),
             ),

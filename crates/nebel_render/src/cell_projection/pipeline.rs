@@ -31,6 +31,11 @@ pub(super) fn mode_index(mode: OpticalMode) -> usize {
     }
 }
 
+/// Present when the device cannot run the cell projection (no storage
+/// buffers): no batch is extracted.
+#[derive(Resource)]
+pub struct CellProjectionUnsupported;
+
 /// Bind group layouts and shaders of the cell-projection pass and of the
 /// composite pass.
 #[derive(Resource)]
@@ -67,7 +72,18 @@ pub fn init_cell_projection_pipeline(
     mut commands: Commands,
     asset_server: Res<AssetServer>,
     fullscreen_shader: Res<FullscreenShader>,
+    device: Res<RenderDevice>,
 ) {
+    // The cells and their modulators are storage buffers, which
+    // WebGL2-class devices lack: there nothing is drawn (fog layers still
+    // are), and the app goes on.
+    let storage_buffers = device.limits().max_storage_buffers_per_shader_stage;
+    if storage_buffers < 2 {
+        warn!(
+            "nebel: the cell projection is off: the device has {storage_buffers} storage buffers per shader stage, it needs 2"
+        );
+        commands.insert_resource(CellProjectionUnsupported);
+    }
     let view_layout = |multisampled: bool| {
         BindGroupLayoutDescriptor::new(
             "nebel_cell_view_layout",

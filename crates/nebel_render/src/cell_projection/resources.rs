@@ -20,8 +20,8 @@ use nebel_lod::CellBatch as LodCellBatch;
 
 use super::CellProjectionStats;
 use super::pipeline::{
-    CellCompositePipelines, CellProjectionPipeline, CellProjectionPipelineKey, accumulation_format,
-    mode_index, variant_index,
+    CellCompositePipelines, CellProjectionPipeline, CellProjectionPipelineKey,
+    CellProjectionUnsupported, accumulation_format, mode_index, variant_index,
 };
 use crate::cell_batch::{CellBatch, CellScattering, CellScatteringUniform};
 use crate::fog_layers::{FogLayersUniform, ViewFogLayers};
@@ -71,9 +71,13 @@ pub struct TableKey {
 pub fn extract_cell_batches(
     mut extracted: ResMut<ExtractedCellBatches>,
     batches: Extract<Query<(Entity, Ref<CellBatch>)>>,
+    unsupported: Option<Res<CellProjectionUnsupported>>,
     mut refused: Local<HashSet<Entity>>,
 ) {
     extracted.0.clear();
+    if unsupported.is_some() {
+        return;
+    }
     // Forget entities that are gone, so the set stays as small as the world.
     refused.retain(|entity| batches.contains(*entity));
     for (entity, batch) in &batches {
