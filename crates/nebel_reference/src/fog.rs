@@ -108,7 +108,7 @@ impl ReferenceFog {
     /// `[start_distance, max_distance]`).
     pub fn optical_depth(&self, ray: &Ray, t0: f64, t1: f64) -> f64 {
         let (t0, t1) = (t0.max(self.start_distance), t1.min(self.max_distance));
-        if !(t1 > t0) {
+        if t1.partial_cmp(&t0) != Some(std::cmp::Ordering::Greater) {
             return 0.0;
         }
         let altitude = |t: f64| ray.origin.y + t * ray.direction.y;

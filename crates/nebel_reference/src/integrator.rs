@@ -1050,30 +1050,33 @@ mod tests {
         }
     }
 
+    /// The pixels whose ray crosses the box through its front and back
+    /// faces or misses it (see [`box_chord`]), with their chords.
+    fn box_pixels(camera: &ReferenceCamera, back_depth: Option<f64>) -> Vec<(u32, u32, f64)> {
+        (0..camera.height)
+            .flat_map(|y| (0..camera.width).map(move |x| (x, y)))
+            .filter_map(|(x, y)| Some((x, y, box_chord(camera, x, y, back_depth)?)))
+            .collect()
+    }
+
     #[test]
     fn uniform_box_matches_the_closed_form() {
         let volume = ReferenceVolume::Grid(grid(5, |_| 0.5));
         let scene = ReferenceScene::new(camera(), volume, constant_tf(), OpticalMode::Sorted);
         let image = render(&scene, None).unwrap();
-        let mut checked = 0;
-        for y in 0..30 {
-            for x in 0..40 {
-                let Some(chord) = box_chord(&scene.camera, x, y, None) else {
-                    continue;
-                };
-                let alpha = 1.0 - (-2.0 * chord).exp();
-                let expected = [alpha, 0.5 * alpha, 0.25 * alpha, alpha];
-                let pixel = image.pixels[(y * 40 + x) as usize];
-                for c in 0..4 {
-                    assert!(
-                        (f64::from(pixel[c]) - expected[c]).abs() < 1e-6,
-                        "({x}, {y}) {pixel:?} vs {expected:?}"
-                    );
-                }
-                checked += 1;
+        let pixels = box_pixels(&scene.camera, None);
+        for &(x, y, chord) in &pixels {
+            let alpha = 1.0 - (-2.0 * chord).exp();
+            let expected = [alpha, 0.5 * alpha, 0.25 * alpha, alpha];
+            let pixel = image.pixels[(y * 40 + x) as usize];
+            for c in 0..4 {
+                assert!(
+                    (f64::from(pixel[c]) - expected[c]).abs() < 1e-6,
+                    "({x}, {y}) {pixel:?} vs {expected:?}"
+                );
             }
         }
-        assert!(checked > 600, "only {checked} pixels checked");
+        assert!(pixels.len() > 600, "only {} pixels checked", pixels.len());
     }
 
     #[test]
@@ -1112,12 +1115,9 @@ mod tests {
             let mut scene = ReferenceScene::new(camera(), volume, constant_tf(), mode);
             scene.fog = Some(fog.clone());
             let image = render(&scene, None).unwrap();
-            let mut checked = 0;
-            for y in 0..30 {
-                for x in 0..40 {
-                    let Some(chord) = box_chord(&scene.camera, x, y, None) else {
-                        continue;
-                    };
+            let pixels = box_pixels(&scene.camera, None);
+            for &(x, y, chord) in &pixels {
+                {
                     let (ray, _) = scene.camera.pixel_ray(x, y);
                     let t_entry = if chord > 0.0 {
                         (1.0 - ray.origin.z) / ray.direction.z
@@ -1153,10 +1153,9 @@ mod tests {
                         (pixel - expected).truncate().abs().max_element() < 2e-6,
                         "{mode:?} ({x}, {y}): {pixel} vs {expected}"
                     );
-                    checked += 1;
                 }
             }
-            assert!(checked > 600, "only {checked} pixels checked");
+            assert!(pixels.len() > 600, "only {} pixels checked", pixels.len());
         }
     }
 

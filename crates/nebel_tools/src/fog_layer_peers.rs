@@ -36,15 +36,14 @@ use nebel_scene::{
     BuiltVolume, DirectionalLightDescription, LightDescription, MeshDescription, SceneDescription,
     VolumeField,
 };
-use plotters::coord::combinators::IntoLogRange;
-use plotters::prelude::*;
-use plotters::style::Color as _;
+use plotters::style::colors::BLACK;
 
 use crate::error::CommandError;
 use crate::fog_comparison::BevyFog;
 use crate::headless::HeadlessOptions;
 use crate::progress::reference_bar;
 use crate::scene_setup::{BevyPeer, SceneSetupPlugin};
+use crate::time_error_chart::{ChartSeries, time_error_chart};
 
 /// Texels of the `FogVolume`'s density profile over altitude.
 const PROFILE_TEXELS: usize = 64;
@@ -350,55 +349,22 @@ fn fog_volume_peer(
     Some((lit, bevy_fog, volume))
 }
 
-/// Plot size, SVG pixels.
-const PLOT_SIZE: (u32, u32) = (640, 420);
-
 /// Frame time against RMSE, one labelled dot per renderer.
 fn plot(results: &[PeerResult]) -> Result<String, String> {
-    let shown: Vec<&PeerResult> = results
-        .iter()
-        .filter(|r| r.frame_ms.0.is_finite() && r.rmse.is_finite() && r.rmse > 0.0)
-        .collect();
-    let max_ms = shown.iter().map(|r| r.frame_ms.0).fold(1.0, f64::max) * 1.3;
-    let (low, high) = shown
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), r| {
-            (lo.min(r.rmse), hi.max(r.rmse))
-        });
-    let (low, high) = if low <= high {
-        (low / 2.0, high * 2.0)
-    } else {
-        (1e-4, 1.0)
-    };
-    let mut svg = String::new();
-    {
-        let root = SVGBackend::with_string(&mut svg, PLOT_SIZE).into_drawing_area();
-        let error = |e: DrawingAreaErrorKind<_>| e.to_string();
-        root.fill(&WHITE).map_err(error)?;
-        let mut chart = ChartBuilder::on(&root)
-            .caption("Fog layers against Bevy's fogs", ("sans-serif", 18))
-            .margin(16)
-            .x_label_area_size(40)
-            .y_label_area_size(64)
-            .build_cartesian_2d(0.0..max_ms, (low..high).log_scale())
-            .map_err(error)?;
-        chart
-            .configure_mesh()
-            .x_desc("median frame time (ms)")
-            .y_desc("RMSE against the exact reference (linear RGB)")
-            .y_label_formatter(&|v| format!("{v:.0e}"))
-            .draw()
-            .map_err(error)?;
-        chart
-            .draw_series(shown.iter().map(|r| {
-                EmptyElement::at((r.frame_ms.0, r.rmse))
-                    + Circle::new((0, 0), 4, BLACK.filled())
-                    + Text::new(r.renderer, (6, -14), ("sans-serif", 12))
-            }))
-            .map_err(error)?;
-        root.present().map_err(error)?;
-    }
-    Ok(svg)
+    time_error_chart(
+        "Fog layers against Bevy's fogs",
+        "RMSE against the exact reference (linear RGB)",
+        &[ChartSeries {
+            legend: None,
+            points: results
+                .iter()
+                .map(|r| (r.frame_ms.0, r.rmse, Some(r.renderer.to_owned())))
+                .collect(),
+            line: false,
+            colour: BLACK,
+            radius: 4,
+        }],
+    )
 }
 
 #[cfg(test)]

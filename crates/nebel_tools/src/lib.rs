@@ -8,7 +8,8 @@
 //! - [`example_runner`]: what every example does: a window with a fly camera
 //!   ([`fly_camera`]), or a headless render when there is no display.
 //! - [`fog_comparison`], [`fog_layer_peers`] and [`lod_sweep`]: the
-//!   `bench-fog`, `bench-fog-layers` and `bench-lod` commands; [`reference`](mod@reference): the exact CPU reference of a whole scene;
+//!   `bench-fog`, `bench-fog-layers` and `bench-lod` commands, and their
+//!   chart ([`time_error_chart`]); [`reference`](mod@reference): the exact CPU reference of a whole scene;
 //!   [`error`]: why a command failed; [`progress`]: progress bars.
 
 pub mod error;
@@ -22,5 +23,6 @@ pub mod progress;
 pub mod reference;
 pub mod scene_setup;
 pub mod stats;
+pub mod time_error_chart;
 
 pub use nebel_scene;

@@ -30,8 +30,9 @@ use nebel_lod::OctreeSettings;
 use nebel_reference::image_metrics::{ImageErrorMetrics, compare};
 use nebel_scene::reference::save_reference;
 use nebel_scene::{LodDescription, SceneDescription};
-use plotters::coord::combinators::IntoLogRange;
-use plotters::prelude::*;
+use plotters::style::colors::{BLACK, RED};
+
+use crate::time_error_chart::{ChartSeries, time_error_chart};
 
 use crate::error::CommandError;
 use crate::headless::HeadlessOptions;
@@ -267,9 +268,6 @@ pub fn run_lod_sweep(
     Ok(points)
 }
 
-/// Plot size, SVG pixels.
-const PLOT_SIZE: (u32, u32) = (640, 420);
-
 /// The SVG plot of the sweep (see the module docs); `comparison_accuracy`
 /// names the last point when it is not full resolution.
 pub fn plot(points: &[SweepPoint], comparison_accuracy: Option<f64>) -> Result<String, String> {
@@ -277,18 +275,6 @@ pub fn plot(points: &[SweepPoint], comparison_accuracy: Option<f64>) -> Result<S
         .iter()
         .filter(|p| p.frame_ms.is_finite() && p.error().is_finite() && p.error() > 0.0)
         .collect();
-    let max_ms = shown.iter().map(|p| p.frame_ms).fold(1.0, f64::max) * 1.1;
-    let (low, high) = shown
-        .iter()
-        .map(|p| p.error())
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), e| {
-            (lo.min(e), hi.max(e))
-        });
-    let (low, high) = if low <= high {
-        (low / 2.0, high * 2.0)
-    } else {
-        (1e-4, 1.0)
-    };
     let error_label = if points.iter().any(|p| p.rmse.is_finite()) {
         "RMSE against the exact reference (linear RGB)"
     } else {
@@ -298,67 +284,38 @@ pub fn plot(points: &[SweepPoint], comparison_accuracy: Option<f64>) -> Result<S
         Some(c) => format!("comparison, c = {c}"),
         None => String::from("full resolution"),
     };
-    let mut svg = String::new();
-    {
-        let root = SVGBackend::with_string(&mut svg, PLOT_SIZE).into_drawing_area();
-        let error = |e: DrawingAreaErrorKind<_>| e.to_string();
-        root.fill(&WHITE).map_err(error)?;
-        let mut chart = ChartBuilder::on(&root)
-            .caption("Frame time against image error along c", ("sans-serif", 18))
-            .margin(16)
-            .x_label_area_size(40)
-            .y_label_area_size(64)
-            .build_cartesian_2d(0.0..max_ms, (low..high).log_scale())
-            .map_err(error)?;
-        chart
-            .configure_mesh()
-            .x_desc("median frame time (ms)")
-            .y_desc(error_label)
-            .y_label_formatter(&|v| format!("{v:.0e}"))
-            .draw()
-            .map_err(error)?;
-        let swept: Vec<(f64, f64)> = shown
+    let swept = ChartSeries {
+        legend: Some(String::from("octree C-LOD, one dot per c")),
+        points: shown
             .iter()
-            .filter(|p| p.accuracy.is_some())
-            .map(|p| (p.frame_ms, p.error()))
-            .collect();
-        chart
-            .draw_series(LineSeries::new(swept.iter().copied(), &BLACK))
-            .map_err(error)?
-            .label("octree C-LOD, one dot per c")
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK));
-        chart
-            .draw_series(shown.iter().filter_map(|p| {
-                let c = p.accuracy?;
-                Some(
-                    EmptyElement::at((p.frame_ms, p.error()))
-                        + Circle::new((0, 0), 4, BLACK.filled())
-                        + Text::new(format!("c = {c}"), (6, -14), ("sans-serif", 12)),
-                )
-            }))
-            .map_err(error)?;
-        // The comparison image scores 0 against itself: no dot on a log axis.
-        let full: Vec<&&SweepPoint> = shown.iter().filter(|p| p.accuracy.is_none()).collect();
-        if !full.is_empty() {
-            chart
-                .draw_series(
-                    full.iter()
-                        .map(|p| Circle::new((p.frame_ms, p.error()), 5, RED.filled())),
-                )
-                .map_err(error)?
-                .label(full_label)
-                .legend(|(x, y)| Circle::new((x + 10, y), 5, RED.filled()));
-        }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
-            .background_style(WHITE.mix(0.9))
-            .border_style(BLACK)
-            .draw()
-            .map_err(error)?;
-        root.present().map_err(error)?;
-    }
-    Ok(svg)
+            .filter_map(|p| Some((p.frame_ms, p.error(), Some(format!("c = {}", p.accuracy?)))))
+            .collect(),
+        line: true,
+        colour: BLACK,
+        radius: 4,
+    };
+    // The comparison image scores 0 against itself: no dot on a log axis.
+    let full = ChartSeries {
+        legend: Some(full_label),
+        points: shown
+            .iter()
+            .filter(|p| p.accuracy.is_none())
+            .map(|p| (p.frame_ms, p.error(), None))
+            .collect(),
+        line: false,
+        colour: RED,
+        radius: 5,
+    };
+    let series = if full.points.is_empty() {
+        vec![swept]
+    } else {
+        vec![swept, full]
+    };
+    time_error_chart(
+        "Frame time against image error along c",
+        error_label,
+        &series,
+    )
 }
 
 #[cfg(test)]

@@ -94,30 +94,12 @@ enum Command {
     /// Render the scene's one grid volume with nebel and with Bevy's
     /// `FogVolume` under the same optics, score both against the exact
     /// reference, write `DIR/fog_comparison.csv` and the images.
-    BenchFog {
-        #[command(flatten)]
-        scene: SceneArgs,
-        /// The folder to write into.
-        #[arg(long)]
-        out: PathBuf,
-        /// Samples per ray of Bevy's fog.
-        #[arg(long, default_value_t = 64)]
-        steps: u32,
-    },
+    BenchFog(PeerArgs),
     /// Render the scene's fog layers with nebel, with Bevy's `DistanceFog`
     /// (exponential and atmospheric falloff, fitted) and with Bevy's
     /// `FogVolume` covering them, score each against the exact reference,
     /// write `DIR/fog_layer_peers.csv`, a plot and the images.
-    BenchFogLayers {
-        #[command(flatten)]
-        scene: SceneArgs,
-        /// The folder to write into.
-        #[arg(long)]
-        out: PathBuf,
-        /// Samples per ray of Bevy's `FogVolume`.
-        #[arg(long, default_value_t = 64)]
-        steps: u32,
-    },
+    BenchFogLayers(PeerArgs),
     /// Sweep the octree accuracy c of the scene's one grid volume (or, in a
     /// scene without volumes, the accuracy c of its terrain with ground
     /// fog), score each image against full resolution and the exact
@@ -138,6 +120,19 @@ enum Command {
         #[arg(long)]
         comparison_accuracy: Option<f64>,
     },
+}
+
+/// What the comparisons with Bevy's fogs take.
+#[derive(Args)]
+struct PeerArgs {
+    #[command(flatten)]
+    scene: SceneArgs,
+    /// The folder to write into.
+    #[arg(long)]
+    out: PathBuf,
+    /// Samples per ray of Bevy's `FogVolume`.
+    #[arg(long, default_value_t = 64)]
+    steps: u32,
 }
 
 /// A scene file and the output settings a command may override.
@@ -225,8 +220,8 @@ fn run(command: Command) -> Result<(), CommandError> {
         ),
         Command::Reference { scene, out } => reference(&scene, &out),
         Command::Compare { a, b, diff, steps } => compare(&a, &b, diff.as_deref(), steps),
-        Command::BenchFog { scene, out, steps } => bench_fog(&scene, &out, steps),
-        Command::BenchFogLayers { scene, out, steps } => {
+        Command::BenchFog(PeerArgs { scene, out, steps }) => bench_fog(&scene, &out, steps),
+        Command::BenchFogLayers(PeerArgs { scene, out, steps }) => {
             run_fog_layer_peers(&scene.scene, scene.load()?, &out, steps).map(drop)
         }
         Command::BenchLod {

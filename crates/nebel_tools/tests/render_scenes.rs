@@ -9,6 +9,8 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+use nebel_reference::image_metrics::ImageErrorMetrics;
+
 const RENDER_SIZE: &str = "96x64";
 const RENDER_FRAMES: u32 = 3;
 
@@ -406,41 +408,54 @@ const MAX_ERROR_BOUNDS: &[(&str, f64)] = &[
     ("fog_slab_handoff", 0.012),
 ];
 
+/// Renders `tests/accuracy/{name}.ron` (on `backend`, with `extra`
+/// arguments) to `{image}_gpu.png` and its stats, integrates its exact
+/// reference and returns the error of the first against the second, the
+/// render's stderr and its stats.
+fn scored_render(
+    backend: Option<&str>,
+    name: &str,
+    image: &str,
+    extra: &[&str],
+) -> (ImageErrorMetrics, String, serde_json::Value) {
+    let out_dir = output_dir();
+    let scene = format!("tests/accuracy/{name}.ron");
+    let gpu = out_dir.join(format!("{image}_gpu.png"));
+    let exact = out_dir.join(format!("{name}_reference.png"));
+    let stats = out_dir.join(format!("{image}_stats.json"));
+    let mut args = vec![
+        "render",
+        &scene,
+        "--out",
+        gpu.to_str().unwrap(),
+        "--stats",
+        stats.to_str().unwrap(),
+    ];
+    args.extend(extra);
+    let rendered = nebel_on(backend, &args);
+    let stderr = String::from_utf8_lossy(&rendered.stderr).into_owned();
+    assert!(rendered.status.success(), "{name}: {stderr}");
+    let referenced = nebel(&["reference", &scene, "--out", exact.to_str().unwrap()]);
+    assert!(
+        referenced.status.success(),
+        "{name}: {}",
+        String::from_utf8_lossy(&referenced.stderr)
+    );
+    let metrics = nebel_reference::image_metrics::compare(
+        &nebel_reference::image_metrics::load_png_linear(&gpu).unwrap(),
+        &nebel_reference::image_metrics::load_png_linear(&exact).unwrap(),
+    )
+    .unwrap();
+    let stats = serde_json::from_str(&std::fs::read_to_string(&stats).unwrap()).unwrap();
+    (metrics, stderr, stats)
+}
+
 #[test]
 fn gpu_cell_projection_matches_the_exact_reference() {
     let out_dir = output_dir();
     let mut report = Vec::new();
     for (name, bound) in ACCURACY_BOUNDS {
-        let scene = format!("tests/accuracy/{name}.ron");
-        let gpu = out_dir.join(format!("{name}_gpu.png"));
-        let exact = out_dir.join(format!("{name}_reference.png"));
-        let stats = out_dir.join(format!("{name}_stats.json"));
-        let rendered = nebel(&[
-            "render",
-            &scene,
-            "--out",
-            gpu.to_str().unwrap(),
-            "--stats",
-            stats.to_str().unwrap(),
-        ]);
-        assert!(
-            rendered.status.success(),
-            "{name}: {}",
-            String::from_utf8_lossy(&rendered.stderr)
-        );
-        let referenced = nebel(&["reference", &scene, "--out", exact.to_str().unwrap()]);
-        assert!(
-            referenced.status.success(),
-            "{name}: {}",
-            String::from_utf8_lossy(&referenced.stderr)
-        );
-        let metrics = nebel_reference::image_metrics::compare(
-            &nebel_reference::image_metrics::load_png_linear(&gpu).unwrap(),
-            &nebel_reference::image_metrics::load_png_linear(&exact).unwrap(),
-        )
-        .unwrap();
-        let stats: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&stats).unwrap()).unwrap();
+        let (metrics, _, stats) = scored_render(None, name, name, &[]);
         let passes = |effect: &str| stats["effects"][effect]["passes"].as_f64().unwrap_or(0.0);
         if FOG_LAYER_SCENES.contains(name) {
             assert!(passes("fog_layers") >= 1.0, "{name}: no fog-layer pass ran");
@@ -492,68 +507,18 @@ fn gpu_cell_projection_matches_the_exact_reference() {
 /// projection needs storage buffers and turns itself off.
 #[test]
 fn fog_layers_render_on_gl_with_webgl2_limits() {
-    let out_dir = output_dir();
-    let (gl, exact, stats) = (
-        out_dir.join("fog_layers_gl.png"),
-        out_dir.join("fog_layers_gl_reference.png"),
-        out_dir.join("fog_layers_gl.json"),
-    );
-    let scene = "tests/accuracy/fog_layers.ron";
-    let rendered = nebel_on(
-        Some("gl"),
-        &[
-            "render",
-            scene,
-            "--webgl2-limits",
-            "--out",
-            gl.to_str().unwrap(),
-            "--stats",
-            stats.to_str().unwrap(),
-        ],
-    );
-    assert!(
-        rendered.status.success(),
-        "{}",
-        String::from_utf8_lossy(&rendered.stderr)
-    );
-    let stats: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&stats).unwrap()).unwrap();
+    let limits = ["--webgl2-limits"];
+    let (metrics, _, stats) = scored_render(Some("gl"), "fog_layers", "fog_layers_gl", &limits);
     assert_eq!(stats["adapter"]["backend"], "Gl", "{stats}");
     assert!(stats["effects"]["fog_layers"]["passes"].as_f64().unwrap() >= 1.0);
-    let referenced = nebel(&["reference", scene, "--out", exact.to_str().unwrap()]);
-    assert!(referenced.status.success());
-    let metrics = nebel_reference::image_metrics::compare(
-        &nebel_reference::image_metrics::load_png_linear(&gl).unwrap(),
-        &nebel_reference::image_metrics::load_png_linear(&exact).unwrap(),
-    )
-    .unwrap();
     eprintln!("fog_layers on GL with WebGL2 limits: {metrics}");
     assert!(
         metrics.rmse <= 0.004 && metrics.max_abs <= 0.012,
         "{metrics}"
     );
-
-    let cells = out_dir.join("cloud_in_fog_gl.png");
-    let rendered = nebel_on(
-        Some("gl"),
-        &[
-            "render",
-            "tests/accuracy/cloud_in_fog.ron",
-            "--webgl2-limits",
-            "--out",
-            cells.to_str().unwrap(),
-        ],
-    );
-    assert!(
-        rendered.status.success(),
-        "{}",
-        String::from_utf8_lossy(&rendered.stderr)
-    );
-    assert!(
-        String::from_utf8_lossy(&rendered.stderr).contains("the cell projection is off"),
-        "{}",
-        String::from_utf8_lossy(&rendered.stderr)
-    );
+    let (_, stderr, stats) = scored_render(Some("gl"), "cloud_in_fog", "cloud_in_fog_gl", &limits);
+    assert!(stderr.contains("the cell projection is off"), "{stderr}");
+    assert!(stats["effects"].get("cell_projection").is_none(), "{stats}");
 }
 
 #[test]

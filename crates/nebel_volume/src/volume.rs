@@ -227,6 +227,23 @@ mod tests {
     }
 
     /// Moves the camera a metre and runs until the move has propagated.
+    /// Gives `volume` a 17³ noise grid drawn through the octree at
+    /// `accuracy`.
+    fn give_noise_lod(app: &mut App, volume: Entity, accuracy: f64) {
+        let noise = nebel_core::field::ProceduralNoise {
+            octaves: 3,
+            ..default()
+        };
+        let grid = DensityGrid::procedural([17, 17, 17], DVec3::splat(0.125), DVec3::ZERO, &noise)
+            .unwrap();
+        let field = grid_field(app, grid);
+        app.world_mut().get_mut::<Volume>(volume).unwrap().field = field;
+        app.world_mut().entity_mut(volume).insert(VolumeLod {
+            accuracy,
+            min_accuracy: 2.0,
+        });
+    }
+
     fn move_camera(app: &mut App, camera: Entity) {
         let mut transform = app.world_mut().get_mut::<Transform>(camera).unwrap();
         transform.translation.x += 1.0;
@@ -341,18 +358,7 @@ mod tests {
     #[test]
     fn a_lod_volume_draws_fewer_cells_from_afar_and_follows_the_eye() {
         let (mut app, camera, volume) = app_with_volume(OpticalMode::Emissive);
-        let noise = nebel_core::field::ProceduralNoise {
-            octaves: 3,
-            ..default()
-        };
-        let grid = DensityGrid::procedural([17, 17, 17], DVec3::splat(0.125), DVec3::ZERO, &noise)
-            .unwrap();
-        let field = grid_field(&mut app, grid);
-        app.world_mut().get_mut::<Volume>(volume).unwrap().field = field;
-        app.world_mut().entity_mut(volume).insert(VolumeLod {
-            accuracy: 0.0,
-            min_accuracy: 2.0,
-        });
+        give_noise_lod(&mut app, volume, 0.0);
         app.update();
         let coarse = app.world().get::<CellBatch>(volume).unwrap().cells.len();
         assert!(coarse > 0 && coarse < 5 * 16 * 16 * 16, "{coarse} cells");
@@ -379,18 +385,7 @@ mod tests {
         use nebel_render::{NebelQuality, NebelQualityPlugin, QualityPreset};
         let (mut app, _, volume) = app_with_volume(OpticalMode::Emissive);
         app.add_plugins(NebelQualityPlugin);
-        let noise = nebel_core::field::ProceduralNoise {
-            octaves: 3,
-            ..default()
-        };
-        let grid = DensityGrid::procedural([17, 17, 17], DVec3::splat(0.125), DVec3::ZERO, &noise)
-            .unwrap();
-        let field = grid_field(&mut app, grid);
-        app.world_mut().get_mut::<Volume>(volume).unwrap().field = field;
-        app.world_mut().entity_mut(volume).insert(VolumeLod {
-            accuracy: 40.0,
-            min_accuracy: 2.0,
-        });
+        give_noise_lod(&mut app, volume, 40.0);
         let cells = |app: &mut App, preset| {
             app.world_mut().resource_mut::<NebelQuality>().preset = preset;
             app.update();

@@ -7,6 +7,7 @@ use bevy::prelude::*;
 use bevy::render::render_resource::*;
 use bevy::render::renderer::{RenderContext, ViewQuery};
 use bevy::render::view::{ViewDepthTexture, ViewTarget};
+use nebel_render::cell_projection::draw_over_view;
 
 use super::FogLayersPasses;
 use super::resources::{FogLayersPipeline, FogLayersView, FogPassUniforms};
@@ -33,26 +34,13 @@ pub fn draw_fog_layers(
             .get_bind_group_layout(&pipeline.layouts[usize::from(fog_view.multisampled)]),
         &BindGroupEntries::sequential((binding, depth.view())),
     );
-    let mut pass = ctx
-        .command_encoder()
-        .begin_render_pass(&RenderPassDescriptor {
-            label: Some("nebel_fog_layers_pass"),
-            color_attachments: &[Some(RenderPassColorAttachment {
-                view: view_target.main_texture_view(),
-                depth_slice: None,
-                resolve_target: None,
-                ops: Operations {
-                    load: LoadOp::Load,
-                    store: StoreOp::Store,
-                },
-            })],
-            depth_stencil_attachment: None,
-            timestamp_writes: None,
-            occlusion_query_set: None,
-            multiview_mask: None,
-        });
-    pass.set_pipeline(render_pipeline);
-    pass.set_bind_group(0, &bind_group, &[fog_view.uniform_offset]);
-    pass.draw(0..3, 0..1);
+    draw_over_view(
+        &mut ctx,
+        "nebel_fog_layers_pass",
+        view_target,
+        render_pipeline,
+        &bind_group,
+        &[fog_view.uniform_offset],
+    );
     passes.0.fetch_add(1, Ordering::Relaxed);
 }

@@ -46,6 +46,8 @@
 
 mod node;
 mod pipeline;
+
+pub use node::draw_over_view;
 mod resources;
 
 use std::sync::Arc;

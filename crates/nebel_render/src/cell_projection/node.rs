@@ -134,10 +134,30 @@ pub fn draw_cell_batches(
         &pipeline_cache.get_bind_group_layout(&pipeline.composite_layout),
         &BindGroupEntries::single(accumulation),
     );
+    draw_over_view(
+        &mut ctx,
+        "nebel_cell_composite_pass",
+        view_target,
+        composite_pipeline,
+        &composite_bind_group,
+        &[],
+    );
+}
+
+/// One full-screen triangle of `pipeline` (bind group 0: `bind_group` at
+/// `offsets`) blended over the view's HDR image, in a pass of its own.
+pub fn draw_over_view(
+    ctx: &mut RenderContext,
+    label: &str,
+    view_target: &ViewTarget,
+    pipeline: &RenderPipeline,
+    bind_group: &BindGroup,
+    offsets: &[u32],
+) {
     let mut pass = ctx
         .command_encoder()
         .begin_render_pass(&RenderPassDescriptor {
-            label: Some("nebel_cell_composite_pass"),
+            label: Some(label),
             color_attachments: &[Some(RenderPassColorAttachment {
                 view: view_target.main_texture_view(),
                 depth_slice: None,
@@ -152,7 +172,7 @@ pub fn draw_cell_batches(
             occlusion_query_set: None,
             multiview_mask: None,
         });
-    pass.set_pipeline(composite_pipeline);
-    pass.set_bind_group(0, &composite_bind_group, &[]);
+    pass.set_pipeline(pipeline);
+    pass.set_bind_group(0, bind_group, offsets);
     pass.draw(0..3, 0..1);
 }
