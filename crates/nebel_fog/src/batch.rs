@@ -31,9 +31,10 @@ use nebel_lod::{
 };
 use nebel_render::camera::to_double;
 use nebel_render::{CellBatch, EffectiveQuality, LodCameras};
-use nebel_terrain::{TerrainLayerLod, TerrainLod, TerrainLodStats, TerrainStatus};
+use nebel_terrain::{Terrain, TerrainLayerLod, TerrainLod, TerrainLodStats, TerrainStatus};
 
 use crate::error::GroundFogError;
+use crate::fog_layers::PreparedFogLayers;
 use crate::ground_fog::{GroundFog, GroundFogPlugin, GroundFogStats, GroundFogStatus, fail};
 use crate::layer::GroundFogLayer;
 
@@ -47,6 +48,9 @@ struct BatchKey {
     /// The drawing settings as written (`Debug`).
     settings: String,
     transform: GlobalTransform,
+    /// Where the camera's fog layers take over (bits of the distance), if
+    /// they do.
+    handoff: Option<u32>,
 }
 
 /// The fog's batch state: what it was built from, the density-scaled
@@ -146,7 +150,9 @@ pub(crate) fn update_fog_batches(
         &mut GroundFogBatch,
         &mut GroundFogStatus,
         &mut GroundFogStats,
+        &Terrain,
     )>,
+    fog_layers: Query<&PreparedFogLayers>,
     mut meshes: ResMut<Assets<Mesh>>,
     mut materials: ResMut<Assets<StandardMaterial>>,
     quality: Option<Res<EffectiveQuality>>,
@@ -158,6 +164,14 @@ pub(crate) fn update_fog_batches(
     let (prisms, quality_changed) = quality.as_ref().map_or((true, false), |quality| {
         (quality.ground_fog_prisms(), quality.is_changed())
     });
+    // The camera's fog layers take the fog over from their start distance:
+    // the prisms wholly beyond it are left out.
+    let handoff = fog_layers
+        .get(camera.camera)
+        .ok()
+        .and_then(|prepared| prepared.0)
+        .map(|uniform| uniform.ranges.x)
+        .filter(|start| *start > 0.0);
     let mut frame_ms = None;
     for (
         entity,
@@ -172,6 +186,7 @@ pub(crate) fn update_fog_batches(
         mut state,
         mut status,
         mut stats,
+        terrain,
     ) in &mut fogs
     {
         let state = &mut *state;
@@ -190,7 +205,9 @@ pub(crate) fn update_fog_batches(
             && !visibility.is_changed()
             && !terrain_status.is_changed()
             && state.key.as_ref().is_some_and(|key| {
-                key.terrain_updates == terrain_stats.updates && key.quadtree == quadtree
+                key.terrain_updates == terrain_stats.updates
+                    && key.quadtree == quadtree
+                    && key.handoff == handoff.map(f32::to_bits)
             });
         if unchanged {
             continue;
@@ -228,6 +245,7 @@ pub(crate) fn update_fog_batches(
                 fog.transfer_function.content_hash()
             ),
             transform: *transform,
+            handoff: handoff.map(f32::to_bits),
         };
         if state.key.as_ref() == Some(&key) {
             continue;
@@ -249,6 +267,13 @@ pub(crate) fn update_fog_batches(
                         CellOrder::Unordered
                     },
                     profile: &profile,
+                    // Between two refinements the eye moves by up to the
+                    // terrain's update distance: keep that much more.
+                    beyond: handoff.map(|start| {
+                        let moved = f64::from(terrain.update_distance * terrain.spacing)
+                            * transform.scale().max_element() as f64;
+                        (camera.eye, f64::from(start) + moved)
+                    }),
                 };
                 let mut cells = Vec::new();
                 let counts = fog_prisms(mesh, &input, &mut cells)?;

@@ -126,6 +126,7 @@ fn prism_input<'a>(
         mesh_order: TriangleOrder::FrontToBack,
         order: CellOrder::BackToFront,
         profile,
+        beyond: None,
     }
 }
 

@@ -34,6 +34,14 @@
 //! prism of zero thickness everywhere gives no cell and one of partly zero
 //! thickness keeps exactly the pieces that cover its volume.
 //!
+//! # Handoff
+//!
+//! With [`PrismInput::beyond`] a column whose box lies wholly farther from
+//! the eye than a distance is left out (fog layers take the fog over
+//! there; the renderer ends the kept cells' segments at the same distance).
+//! The test is per column, on its world box, so no cell with a point nearer
+//! than the distance is lost.
+//!
 //! # Order
 //!
 //! [`CellOrder::BackToFront`] is an exact visibility order for any eye (above
@@ -166,6 +174,10 @@ pub struct PrismInput<'a> {
     pub order: CellOrder,
     /// The scalar over relative height.
     pub profile: &'a FogProfile,
+    /// Leave out every column whose box lies wholly farther from `eye` (in
+    /// world space) than this many world units: where another method (fog
+    /// layers) takes the fog over. `None` keeps every column.
+    pub beyond: Option<(DVec3, f64)>,
 }
 
 /// The vertices of one column: level `k` of corner `v` at `3k + v`, corners
@@ -226,7 +238,11 @@ pub fn fog_prisms(
             return;
         }
         column.build(mesh, corners, thickness, levels, &input.world_from_mesh);
-        if column.cells.is_empty() {
+        if column.cells.is_empty()
+            || input
+                .beyond
+                .is_some_and(|(eye, distance)| column.distance_from(eye) > distance)
+        {
             return;
         }
         if sorted {
@@ -256,6 +272,19 @@ pub fn fog_prisms(
 }
 
 impl Column {
+    /// The distance from `eye` (world space) to the nearest point of the
+    /// column's world box.
+    fn distance_from(&self, eye: DVec3) -> f64 {
+        let (min, max) =
+            self.world
+                .iter()
+                .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(min, max), p| {
+                    let p = DVec3::from(p.map(f64::from));
+                    (min.min(p), max.max(p))
+                });
+        (eye.clamp(min, max) - eye).length()
+    }
+
     /// The column's vertices and kept cells, in chain order.
     fn build(
         &mut self,

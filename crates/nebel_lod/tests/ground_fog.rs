@@ -85,6 +85,7 @@ fn prisms(
         mesh_order,
         order,
         profile,
+        beyond: None,
     };
     let stats = fog_prisms(mesh, &input, &mut cells).unwrap();
     (cells, stats)
@@ -596,6 +597,7 @@ fn bad_input_is_an_error() {
         mesh_order: TriangleOrder::BackToFront,
         order: CellOrder::BackToFront,
         profile: &profile,
+        beyond: None,
     };
     let mut cells = Vec::new();
     assert_eq!(
@@ -633,5 +635,55 @@ fn bad_input_is_an_error() {
     ] {
         let error = FogProfile::new(points).unwrap_err();
         assert!(error.to_string().contains("fog profile"), "{error}");
+    }
+}
+
+#[test]
+fn columns_beyond_the_handoff_distance_are_left_out_and_no_nearer_one() {
+    let (hierarchy, layer) = valley(65);
+    let profile = FogProfile::default();
+    let random = random_eyes(&hierarchy, 4, 0xbe70);
+    for (name, eye) in eyes(&hierarchy, &layer).into_iter().chain(random) {
+        let mesh = refine(&hierarchy, &layer, eye, TriangleOrder::BackToFront, true);
+        let input = |beyond| PrismInput {
+            world_from_mesh: DAffine3::from_translation(hierarchy.origin()),
+            eye: eye - hierarchy.origin(),
+            mesh_order: TriangleOrder::BackToFront,
+            order: CellOrder::BackToFront,
+            profile: &profile,
+            beyond,
+        };
+        let mut all = Vec::new();
+        fog_prisms(&mesh, &input(None), &mut all).unwrap();
+        let distance = 0.25 * 64.0 * SPACING;
+        let mut near = Vec::new();
+        let stats = fog_prisms(&mesh, &input(Some((eye, distance))), &mut near).unwrap();
+        assert_eq!(stats.tetrahedra, near.len());
+        // The kept cells are cells of the whole set, in the same order...
+        let mut rest = all.iter();
+        for cell in &near {
+            assert!(
+                rest.any(|c| c == cell),
+                "{name}: a kept cell is not in the whole set"
+            );
+        }
+        // ...and every cell with a point nearer than the distance is kept.
+        let nearest = |cell: &GpuCell| {
+            cell.vertices
+                .iter()
+                .map(|v| {
+                    DVec3::new(f64::from(v[0]), f64::from(v[1]), f64::from(v[2])).distance(eye)
+                })
+                .fold(f64::INFINITY, f64::min)
+        };
+        let needed = all.iter().filter(|cell| nearest(cell) <= distance).count();
+        let kept = near.iter().filter(|cell| nearest(cell) <= distance).count();
+        assert_eq!(kept, needed, "{name}");
+        assert!(
+            near.len() < all.len(),
+            "{name}: {} of {} cells kept",
+            near.len(),
+            all.len()
+        );
     }
 }

@@ -333,6 +333,7 @@ impl TerrainDescription {
             mesh_order: TriangleOrder::BackToFront,
             order: CellOrder::BackToFront,
             profile: &profile,
+            beyond: None,
         };
         let mut cells = Vec::new();
         fog_prisms(&mesh, &input, &mut cells)

@@ -15,7 +15,7 @@
 //!
 //! The fog's colour is constant along a ray: [`FogLayers::color`] plus the
 //! sunlight [`FogLayers::sun_color`] of the first `DirectionalLight`,
-//! scaled by the Henyey-Greenstein phase function (4π p_HG, 1 on average) at
+//! scaled by the Henyey-Greenstein phase function (`4π p_HG`, 1 on average) at
 //! the ray's angle to the sun. Colour that changes with altitude along a ray
 //! would need the thesis's table over eye altitude, fragment altitude and
 //! distance; it is not built.
