@@ -29,6 +29,9 @@
 //! writes only when it changes (so its change detection tells them to
 //! refine again). Without the plugin they draw at `High`.
 
+use std::time::Instant;
+
+use bevy::diagnostic::{Diagnostic, DiagnosticPath, Diagnostics, RegisterDiagnostic};
 use bevy::prelude::*;
 
 /// The quality the effects draw at (see the module docs).
@@ -208,6 +211,11 @@ impl DetailController {
 #[derive(Default)]
 pub struct NebelQualityPlugin;
 
+impl NebelQualityPlugin {
+    /// The automatic mode's detail factor, each frame it is on.
+    pub const DETAIL: DiagnosticPath = DiagnosticPath::const_new("nebel/quality/detail");
+}
+
 impl Plugin for NebelQualityPlugin {
     fn build(&self, app: &mut App) {
         app.register_type::<NebelQuality>()
@@ -215,17 +223,21 @@ impl Plugin for NebelQualityPlugin {
             .init_resource::<NebelQuality>()
             .init_resource::<EffectiveQuality>()
             .init_resource::<DetailController>()
+            .register_diagnostic(Diagnostic::new(Self::DETAIL))
             .add_systems(First, update_effective_quality);
     }
 }
 
 /// Writes [`EffectiveQuality`] from the preset and, in the automatic mode,
-/// the last frame's time.
+/// the last frame's wall time (measured here between two runs of this
+/// system, so it holds under any `TimeUpdateStrategy`, headless renders
+/// included).
 pub fn update_effective_quality(
     quality: Res<NebelQuality>,
-    time: Res<Time<Real>>,
+    mut last_frame: Local<Option<Instant>>,
     mut controller: ResMut<DetailController>,
     mut effective: ResMut<EffectiveQuality>,
+    mut diagnostics: Diagnostics,
     mut warned: Local<bool>,
 ) {
     let auto = quality.auto.filter(|auto| {
@@ -239,8 +251,16 @@ pub fn update_effective_quality(
         }
         valid
     });
+    let now = Instant::now();
+    let frame_ms = last_frame
+        .replace(now)
+        .map_or(0.0, |last| now.duration_since(last).as_secs_f32() * 1e3);
     let detail = match auto {
-        Some(auto) => controller.update(time.delta_secs() * 1e3, &auto),
+        Some(auto) => {
+            let detail = controller.update(frame_ms, &auto);
+            diagnostics.add_measurement(&NebelQualityPlugin::DETAIL, || f64::from(detail));
+            detail
+        }
         None => {
             *controller = DetailController::default();
             1.0
@@ -309,6 +329,45 @@ mod tests {
             controller.update(1e6, &auto);
         }
         assert_eq!(controller.detail(), 0.01);
+    }
+
+    #[test]
+    fn the_plugin_lowers_the_detail_of_a_slow_app_and_reports_it() {
+        let mut app = App::new();
+        app.add_plugins((MinimalPlugins, NebelQualityPlugin));
+        app.update();
+        assert_eq!(
+            *app.world().resource::<EffectiveQuality>(),
+            EffectiveQuality::default()
+        );
+        // Any frame is slower than a target of a nanosecond.
+        app.insert_resource(NebelQuality {
+            preset: QualityPreset::Medium,
+            auto: Some(AutoQuality {
+                target_frame_ms: 1e-6,
+                min_detail: 0.5,
+            }),
+        });
+        for _ in 0..100 {
+            app.update();
+        }
+        let effective = *app.world().resource::<EffectiveQuality>();
+        assert_eq!(effective.preset, QualityPreset::Medium);
+        assert!((0.5..1.0).contains(&effective.detail), "{effective:?}");
+        assert_eq!(
+            effective.volume_accuracy_scale(),
+            0.5 * f64::from(effective.detail)
+        );
+        let reported = app
+            .world()
+            .resource::<bevy::diagnostic::DiagnosticsStore>()
+            .get(&NebelQualityPlugin::DETAIL)
+            .and_then(Diagnostic::value);
+        assert_eq!(reported, Some(f64::from(effective.detail)));
+        // Off again: the preset's detail.
+        app.world_mut().resource_mut::<NebelQuality>().auto = None;
+        app.update();
+        assert_eq!(app.world().resource::<EffectiveQuality>().detail, 1.0);
     }
 
     #[test]

@@ -137,6 +137,11 @@ pub struct SceneDescription {
     /// reference ignores it.
     #[serde(default)]
     pub quality: QualityDescription,
+    /// The frame time in ms that `NebelQuality`'s automatic mode holds by
+    /// lowering the detail below the preset's, finite and > 0. Default none
+    /// (the preset's detail).
+    #[serde(default)]
+    pub auto_quality_ms: Option<f32>,
 }
 
 /// The quality preset of a scene, see [`SceneDescription::quality`].
@@ -682,6 +687,9 @@ impl SceneDescription {
                 .validate()
                 .map_err(|invalid| invalid.within("terrain"))?;
         }
+        if let Some(target) = self.auto_quality_ms {
+            positive("auto_quality_ms", target)?;
+        }
         if let Some(fog_layers) = &self.fog_layers {
             fog_layers
                 .validate()
@@ -1028,6 +1036,7 @@ mod tests {
                 max_distance: 5000.0,
             }),
             quality: QualityDescription::Medium,
+            auto_quality_ms: Some(33.3),
         }
     }
 
@@ -1215,6 +1224,11 @@ mod tests {
                 "version: 1,",
                 "version: 1, fog_layers: (layers: [], start_distance: 10.0, max_distance: 5.0),",
                 "field fog_layers.max_distance: must be greater than start_distance (10), got 5",
+            ),
+            (
+                "version: 1,",
+                "version: 1, auto_quality_ms: 0.0,",
+                "field auto_quality_ms: must be finite and > 0, got 0",
             ),
             (
                 "version: 1,",

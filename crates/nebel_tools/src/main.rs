@@ -149,6 +149,10 @@ struct SceneArgs {
     /// The quality preset instead of the scene's: low, medium or high.
     #[arg(long, value_parser = parse_quality)]
     quality: Option<QualityDescription>,
+    /// Hold this frame time (ms) by lowering the detail (the automatic
+    /// quality mode), instead of the scene's `auto_quality_ms`.
+    #[arg(long)]
+    auto_quality: Option<f32>,
 }
 
 fn parse_quality(quality: &str) -> Result<QualityDescription, String> {
@@ -180,9 +184,12 @@ impl SceneArgs {
         if let Some(quality) = self.quality {
             scene.quality = quality;
         }
+        if let Some(target) = self.auto_quality {
+            scene.auto_quality_ms = Some(target);
+        }
         scene.validate().map_err(|invalid| SceneError::Invalid {
             path: self.scene.clone(),
-            field: format!("{} (with --frames/--size)", invalid.field),
+            field: format!("{} (with the command's options)", invalid.field),
             reason: invalid.reason,
         })?;
         Ok(scene)

@@ -19,7 +19,7 @@ use std::path::Path;
 use std::sync::Arc;
 
 use nebel_core::field::HeightField;
-use nebel_render::{NebelQuality, NebelSystems, QualityPreset};
+use nebel_render::{AutoQuality, NebelQuality, NebelSystems, QualityPreset};
 
 use crate::headless::{HeadlessError, HeadlessOptions, render_headless};
 use crate::stats::RenderStats;
@@ -210,7 +210,10 @@ fn spawn_scene(
             QualityDescription::Medium => QualityPreset::Medium,
             QualityDescription::High => QualityPreset::High,
         },
-        auto: None,
+        auto: scene.auto_quality_ms.map(|target_frame_ms| AutoQuality {
+            target_frame_ms,
+            ..default()
+        }),
     });
 
     let mut ambient = GlobalAmbientLight {
