@@ -15,6 +15,8 @@
 //!   [`HeightField::terrain`]).
 //! - Ground fog thickness maps from noise patches ([`FogNoise`]) or valleys
 //!   filled up to an altitude with a noisy edge ([`ValleyFog`]).
+//! - Aurora curtain footprints: arcs with folds and rays that drift, fold and
+//!   pulse smoothly over time ([`AuroraCurtains`]).
 //! - [`effects`]: the emissive effects of Röttger 2004 §10.4, an animated campfire
 //!   density and a search-light cone of tetrahedra.
 //! - The C-LOD hierarchies need (2^n+1) points per axis; other sizes are padded
@@ -28,6 +30,7 @@
 //! ([`crate::budget`], [`FieldError::OverBudget`]; [`DensityGrid::check_budget`]
 //! and [`HeightField::check_budget`] give the same check without building).
 
+mod aurora;
 mod cloud;
 mod density_grid;
 pub mod effects;
@@ -40,6 +43,7 @@ mod resample;
 mod terrain;
 mod value_noise;
 
+pub use aurora::AuroraCurtains;
 pub use cloud::CloudNoise;
 pub use density_grid::DensityGrid;
 pub use effects::{campfire_density, search_light_cells};
