@@ -177,10 +177,9 @@ impl AuroraCurtains {
     /// non-finite input. Errors for invalid settings.
     pub fn strength(&self, u: f64, v: f64, t: f64) -> Result<f32, FieldError> {
         self.validate()?;
-        if !(u.is_finite() && v.is_finite() && t.is_finite())
-            || !(0.0..=1.0).contains(&u)
-            || !(0.0..=1.0).contains(&v)
-        {
+        // NaN is in no range; the time must be finite itself.
+        let inside = (0.0..=1.0).contains(&u) && (0.0..=1.0).contains(&v) && t.is_finite();
+        if !inside {
             return Ok(0.0);
         }
         Ok(self.strength_of(&self.arcs(), u, v, t) as f32)
