@@ -26,8 +26,8 @@ use bevy::prelude::*;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::{
-    CellBatch as LodCellBatch, CellOrder, FogProfile, GpuCell, PrismInput, TriangleOrder,
-    fog_prisms,
+    CellBatch as LodCellBatch, CellOrder, FogProfile, GpuCell, PrismInput, PrismScalar,
+    TriangleOrder, fog_prisms,
 };
 use nebel_render::camera::to_double;
 use nebel_render::{CellBatch, EffectiveQuality, LodCameras};
@@ -269,6 +269,7 @@ pub(crate) fn update_fog_batches(
                     profile: &profile,
                     // Between two refinements the eye moves by up to the
                     // terrain's update distance: keep that much more.
+                    scalar: PrismScalar::Profile,
                     beyond: handoff.map(|start| {
                         let moved = f64::from(terrain.update_distance * terrain.spacing)
                             * transform.scale().max_element() as f64;

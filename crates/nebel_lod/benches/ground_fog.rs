@@ -40,8 +40,8 @@ use glam::{DAffine3, DMat4, DVec2, DVec3};
 use nebel_core::field::{HeightField, ValleyFog, ValueNoise};
 use nebel_lod::quadtree::TerrainLayer;
 use nebel_lod::{
-    CellOrder, FogProfile, Frustum, GpuCell, LodSettings, PrismInput, TerrainHierarchy,
-    TerrainMesh, TriangleOrder, fog_prisms,
+    CellOrder, FogProfile, Frustum, GpuCell, LodSettings, PrismInput, PrismScalar,
+    TerrainHierarchy, TerrainMesh, TriangleOrder, fog_prisms,
 };
 
 const SIDE: usize = 2049;
@@ -126,6 +126,7 @@ fn prism_input<'a>(
         mesh_order: TriangleOrder::FrontToBack,
         order: CellOrder::BackToFront,
         profile,
+        scalar: PrismScalar::Profile,
         beyond: None,
     }
 }

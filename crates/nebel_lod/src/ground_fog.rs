@@ -34,6 +34,19 @@
 //! prism of zero thickness everywhere gives no cell and one of partly zero
 //! thickness keeps exactly the pieces that cover its volume.
 //!
+//! # Layers between two surfaces
+//!
+//! The prisms run from the quadtree's surface up by the layer, so any layer
+//! between a bottom and a top surface over one grid is the bottom as the
+//! terrain and `top − bottom` as the layer (clamped to 0 where the surfaces
+//! cross: no cells there), its roughness added to the quadtree's d2 (Röttger
+//! 2004 §10.4: a cloud layer, aurora curtains). The cells' scalar comes from
+//! the profile over relative height ([`PrismScalar::Profile`]), or from a
+//! second map over the ground that the quadtree morphs with the same weights
+//! ([`PrismScalar::Values`],
+//! [`TerrainHierarchy::update_with_layers`](crate::quadtree::TerrainHierarchy::update_with_layers)),
+//! so it never pops either.
+//!
 //! # Handoff
 //!
 //! With [`PrismInput::beyond`] a column whose box lies wholly farther from
@@ -137,6 +150,12 @@ pub enum PrismError {
         "the terrain mesh has no fog thickness or no grid points per vertex: refine it with update_with_layer and grid_points"
     )]
     MissingLayer,
+    /// A scalar from the mesh's values was asked of a mesh refined without
+    /// them.
+    #[error(
+        "the prisms' scalar comes from the mesh's values, but the mesh has none: refine it with update_with_layers and a value layer"
+    )]
+    MissingValues,
     /// A sorted batch was asked of an unordered mesh.
     #[error("sorted fog needs a back-to-front or front-to-back terrain mesh, not an unordered one")]
     UnorderedMesh,
@@ -160,6 +179,19 @@ pub struct PrismStats {
     pub tetrahedra: usize,
 }
 
+/// Where the scalar of the prisms' vertices comes from.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum PrismScalar {
+    /// The [`FogProfile`]'s scalar at each level's relative height (0 at the
+    /// bottom, 1 at the top with the profile `[(0, 0), (1, 1)]`).
+    #[default]
+    Profile,
+    /// Each column vertex's morphed value from [`TerrainMesh::values`] (a
+    /// map over the ground, clamped to [0, 1]), the same on every level: a
+    /// layer whose scalar varies over the ground only.
+    Values,
+}
+
 /// What [`fog_prisms`] needs besides the mesh.
 #[derive(Clone, Copy, Debug)]
 pub struct PrismInput<'a> {
@@ -174,6 +206,8 @@ pub struct PrismInput<'a> {
     pub order: CellOrder,
     /// The scalar over relative height.
     pub profile: &'a FogProfile,
+    /// Where the cells' scalar comes from.
+    pub scalar: PrismScalar,
     /// Leave out every column whose box lies wholly farther from `eye` (in
     /// world space) than this many world units: where another method (fog
     /// layers) takes the fog over. `None` keeps every column.
@@ -209,6 +243,9 @@ pub fn fog_prisms(
     if mesh.layer.len() != vertices || mesh.grid_points.len() != vertices {
         return Err(PrismError::MissingLayer);
     }
+    if input.scalar == PrismScalar::Values && mesh.values.len() != vertices {
+        return Err(PrismError::MissingValues);
+    }
     let sorted = input.order == CellOrder::BackToFront;
     if sorted && input.mesh_order == TriangleOrder::Unordered {
         return Err(PrismError::UnorderedMesh);
@@ -237,7 +274,14 @@ pub fn fog_prisms(
         if thickness.iter().all(|t| *t <= 0.0) {
             return;
         }
-        column.build(mesh, corners, thickness, levels, &input.world_from_mesh);
+        column.build(
+            mesh,
+            corners,
+            thickness,
+            levels,
+            input.scalar,
+            &input.world_from_mesh,
+        );
         if column.cells.is_empty()
             || input
                 .beyond
@@ -292,6 +336,7 @@ impl Column {
         corners: [usize; 3],
         thickness: [f64; 3],
         levels: &[[f32; 2]],
+        scalar: PrismScalar,
         world_from_mesh: &DAffine3,
     ) {
         self.positions.clear();
@@ -321,7 +366,10 @@ impl Column {
                         .as_vec3()
                         .to_array(),
                 );
-                self.scalars.push(s);
+                self.scalars.push(match scalar {
+                    PrismScalar::Profile => s,
+                    PrismScalar::Values => mesh.values[*v].clamp(0.0, 1.0),
+                });
             }
         }
         let [a, b, c] = [0, 1, 2];

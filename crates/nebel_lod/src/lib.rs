@@ -68,7 +68,7 @@ pub mod volume_batcher;
 pub use batch::{CellBatch, GpuCell};
 pub use frustum::{Frustum, FrustumError};
 pub use full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};
-pub use ground_fog::{FogProfile, PrismError, PrismInput, PrismStats, fog_prisms};
+pub use ground_fog::{FogProfile, PrismError, PrismInput, PrismScalar, PrismStats, fog_prisms};
 pub use octree::{HierarchyError, Node, VolumeHierarchy};
 pub use quadtree::{
     LodSettings, TerrainError, TerrainHierarchy, TerrainLayer, TerrainMesh, TriangleOrder,

@@ -1,6 +1,7 @@
 //! Ground fog prisms on the terrain's level of detail: conforming, exactly the
-//! fog's volume, back to front for every eye, continuous along a flight, and
-//! bad input as errors.
+//! fog's volume, back to front for every eye, continuous along a flight, left
+//! out beyond a handoff distance, with a scalar from a value map, and bad
+//! input as errors.
 
 use std::collections::{HashMap, HashSet};
 
@@ -9,8 +10,8 @@ use nebel_core::cell::{Ray, Tetrahedron};
 use nebel_core::field::{HeightField, ValueNoise};
 use nebel_lod::quadtree::TerrainLayer;
 use nebel_lod::{
-    CellOrder, FogProfile, Frustum, GpuCell, LodSettings, PrismError, PrismInput, PrismStats,
-    TerrainError, TerrainHierarchy, TerrainMesh, TriangleOrder, fog_prisms,
+    CellOrder, FogProfile, Frustum, GpuCell, LodSettings, PrismError, PrismInput, PrismScalar,
+    PrismStats, TerrainError, TerrainHierarchy, TerrainMesh, TriangleOrder, fog_prisms,
 };
 
 const SPACING: f64 = 10.0;
@@ -85,6 +86,7 @@ fn prisms(
         mesh_order,
         order,
         profile,
+        scalar: PrismScalar::Profile,
         beyond: None,
     };
     let stats = fog_prisms(mesh, &input, &mut cells).unwrap();
@@ -512,13 +514,18 @@ fn the_scalar_follows_the_profile_exactly_where_the_thickness_is_constant() {
 /// The fog top at every grid point: the mesh's top surface interpolated over
 /// its triangles.
 fn fog_top(n: usize, mesh: &TerrainMesh) -> Vec<f64> {
+    over_the_grid(n, mesh, |v| {
+        f64::from(mesh.positions[v][1]) + f64::from(mesh.layer[v])
+    })
+}
+
+/// The linear interpolation over the mesh's triangles of `per_vertex` at
+/// every grid point.
+fn over_the_grid(n: usize, mesh: &TerrainMesh, per_vertex: impl Fn(usize) -> f64) -> Vec<f64> {
     let mut out = vec![f64::NAN; n * n];
     for t in mesh.indices.chunks_exact(3) {
         let g = [0, 1, 2].map(|k| mesh.grid_points[t[k] as usize].map(i64::from));
-        let h = [0, 1, 2].map(|k| {
-            let v = t[k] as usize;
-            f64::from(mesh.positions[v][1]) + f64::from(mesh.layer[v])
-        });
+        let h = [0, 1, 2].map(|k| per_vertex(t[k] as usize));
         let total =
             (g[1][0] - g[0][0]) * (g[2][1] - g[0][1]) - (g[1][1] - g[0][1]) * (g[2][0] - g[0][0]);
         let lo = |a: usize| g.iter().map(|p| p[a]).min().unwrap();
@@ -597,6 +604,7 @@ fn bad_input_is_an_error() {
         mesh_order: TriangleOrder::BackToFront,
         order: CellOrder::BackToFront,
         profile: &profile,
+        scalar: PrismScalar::Profile,
         beyond: None,
     };
     let mut cells = Vec::new();
@@ -651,6 +659,7 @@ fn columns_beyond_the_handoff_distance_are_left_out_and_no_nearer_one() {
             mesh_order: TriangleOrder::BackToFront,
             order: CellOrder::BackToFront,
             profile: &profile,
+            scalar: PrismScalar::Profile,
             beyond,
         };
         let mut all = Vec::new();
@@ -686,4 +695,126 @@ fn columns_beyond_the_handoff_distance_are_left_out_and_no_nearer_one() {
             all.len()
         );
     }
+}
+
+/// A value map over the grid of `n²` points, in [0.1, 0.9].
+fn value_map(n: usize) -> TerrainLayer {
+    let values = (0..n * n)
+        .map(|p| {
+            let (i, j) = ((p % n) as f32, (p / n) as f32);
+            0.5 + 0.4 * (0.31 * i).sin() * (0.17 * j + 0.5).cos()
+        })
+        .collect();
+    TerrainLayer::new(n, values).unwrap()
+}
+
+#[test]
+fn a_value_map_gives_the_scalar_of_a_layer_between_two_surfaces_without_popping() {
+    let (hierarchy, layer) = valley(129);
+    let n = hierarchy.size();
+    let values = value_map(n);
+    let refine_with = |eye: DVec3, accuracy: f32, morph: bool| {
+        let settings = LodSettings {
+            accuracy,
+            morph,
+            normals: false,
+            grid_points: true,
+            order: TriangleOrder::BackToFront,
+        };
+        let mut mesh = TerrainMesh::new();
+        hierarchy
+            .update_with_layers(eye, None, &settings, Some(&layer), Some(&values), &mut mesh)
+            .unwrap();
+        mesh
+    };
+    let eye = hierarchy.origin() + DVec3::new(300.0, 400.0, 500.0);
+    // Fully refined, every vertex carries its grid point's value, and every
+    // cell vertex the value of its column vertex, on every level.
+    let fine = refine_with(eye, 1e7, true);
+    assert_eq!(fine.values.len(), fine.positions.len());
+    for (v, [i, j]) in fine.grid_points.iter().enumerate() {
+        assert_eq!(
+            fine.values[v],
+            values.values()[*i as usize + n * *j as usize]
+        );
+    }
+    let profile = FogProfile::new(vec![[0.0, 0.0], [0.5, 0.5], [1.0, 1.0]]).unwrap();
+    let input = PrismInput {
+        world_from_mesh: DAffine3::from_translation(hierarchy.origin()),
+        eye: eye - hierarchy.origin(),
+        mesh_order: TriangleOrder::BackToFront,
+        order: CellOrder::BackToFront,
+        profile: &profile,
+        scalar: PrismScalar::Values,
+        beyond: None,
+    };
+    let mut cells = Vec::new();
+    fog_prisms(&fine, &input, &mut cells).unwrap();
+    assert!(!cells.is_empty());
+    let column_value: HashMap<[u32; 2], f32> = fine
+        .positions
+        .iter()
+        .zip(&fine.values)
+        .map(|(p, value)| {
+            let world = hierarchy.origin() + DVec3::new(f64::from(p[0]), 0.0, f64::from(p[2]));
+            (
+                [(world.x as f32).to_bits(), (world.z as f32).to_bits()],
+                *value,
+            )
+        })
+        .collect();
+    for cell in &cells {
+        for [x, _, z, scalar] in cell.vertices {
+            assert_eq!(Some(&scalar), column_value.get(&[x.to_bits(), z.to_bits()]));
+        }
+    }
+    // Along a flight the values morph with the terrain's weights: the value
+    // surface over the grid moves by a little per frame, where without
+    // morphing it jumps as points become vertices.
+    let largest_jump = |morph: bool| {
+        let mut previous: Option<Vec<f64>> = None;
+        let mut largest = 0.0_f64;
+        for frame in 0..200 {
+            let s = frame as f64 * 2.0;
+            let eye = hierarchy.origin() + DVec3::new(100.0 + s, 250.0 - 0.2 * s, 200.0 + 0.5 * s);
+            let mesh = refine_with(eye, 40.0, morph);
+            let now = over_the_grid(n, &mesh, |v| f64::from(mesh.values[v]));
+            if let Some(before) = &previous {
+                for (value, b) in now.iter().zip(before) {
+                    largest = largest.max((value - b).abs());
+                }
+            }
+            previous = Some(now);
+        }
+        largest
+    };
+    let (morph, pop) = (largest_jump(true), largest_jump(false));
+    println!("largest value jump per 2 m frame: {morph:.4} with morphing, {pop:.4} without");
+    assert!(morph < 0.01, "{morph}");
+    assert!(pop > 5.0 * morph, "{pop} vs {morph}");
+
+    // Bad input: values of another size, values without a layer, the
+    // values' scalar from a mesh without values.
+    let settings = LodSettings {
+        grid_points: true,
+        ..LodSettings::default()
+    };
+    let mut mesh = TerrainMesh::new();
+    let small = value_map(17);
+    assert!(matches!(
+        hierarchy.update_with_layers(eye, None, &settings, Some(&layer), Some(&small), &mut mesh),
+        Err(TerrainError::DimsMismatch { .. })
+    ));
+    assert!(matches!(
+        hierarchy.update_with_layers(eye, None, &settings, None, Some(&values), &mut mesh),
+        Err(TerrainError::InvalidParameter { .. })
+    ));
+    hierarchy
+        .update_with_layer(eye, None, &settings, Some(&layer), &mut mesh)
+        .unwrap();
+    assert!(mesh.values.is_empty());
+    assert_eq!(
+        fog_prisms(&mesh, &input, &mut cells),
+        Err(PrismError::MissingValues)
+    );
 }

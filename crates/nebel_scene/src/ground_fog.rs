@@ -35,8 +35,8 @@ use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::quadtree::{TerrainLayer, pad_to_power_of_two_plus_one};
 use nebel_lod::{
-    CellOrder, FogProfile, GpuCell, LodSettings, PrismInput, TerrainHierarchy, TerrainMesh,
-    TriangleOrder, fog_prisms,
+    CellOrder, FogProfile, GpuCell, LodSettings, PrismInput, PrismScalar, TerrainHierarchy,
+    TerrainMesh, TriangleOrder, fog_prisms,
 };
 
 use super::{
@@ -333,6 +333,7 @@ impl TerrainDescription {
             mesh_order: TriangleOrder::BackToFront,
             order: CellOrder::BackToFront,
             profile: &profile,
+            scalar: PrismScalar::Profile,
             beyond: None,
         };
         let mut cells = Vec::new();

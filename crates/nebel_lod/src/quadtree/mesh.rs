@@ -73,6 +73,10 @@ pub struct TerrainMesh {
     /// The morphed value of the [`TerrainLayer`] per vertex when the update
     /// was given one (the fog's thickness above the ground, say), else empty.
     pub layer: Vec<f32>,
+    /// The morphed value of a second [`TerrainLayer`] per vertex when the
+    /// update was given one (a value over the ground, such as the scalar of
+    /// a layer between two surfaces), else empty.
+    pub values: Vec<f32>,
     /// Three vertex indices per triangle.
     pub indices: Vec<u32>,
 }
@@ -94,6 +98,7 @@ impl TerrainMesh {
         self.normals.clear();
         self.grid_points.clear();
         self.layer.clear();
+        self.values.clear();
         self.indices.clear();
     }
 }
@@ -119,18 +124,28 @@ pub struct LodStats {
 }
 
 /// A vertex value: morphed height, morphed height gradient (∂h/∂x, ∂h/∂z)
-/// and morphed layer value (0 without a layer).
-#[derive(Clone, Copy, Debug, Default)]
-struct Vtx {
+/// and the morphed values of the update's `L` layers (none, the layer, or
+/// the layer and the value layer), so a terrain pays only for the layers it
+/// has.
+#[derive(Clone, Copy, Debug)]
+struct Vtx<const L: usize> {
     h: f32,
     g: [f32; 2],
-    layer: f32,
+    layers: [f32; L],
+}
+
+impl<const L: usize> Vtx<L> {
+    const ZERO: Self = Self {
+        h: 0.0,
+        g: [0.0; 2],
+        layers: [0.0; L],
+    };
 }
 
 /// `w · own + (1 − w) · (a + b)/2`, the same expression wherever a vertex is
 /// computed, so a vertex shared by fans gets one value bit for bit.
 #[inline(always)]
-fn blend(w: f32, own: &Vtx, a: &Vtx, b: &Vtx) -> Vtx {
+fn blend<const L: usize>(w: f32, own: &Vtx<L>, a: &Vtx<L>, b: &Vtx<L>) -> Vtx<L> {
     let v = 1.0 - w;
     Vtx {
         h: w * own.h + v * ((a.h + b.h) * 0.5),
@@ -138,7 +153,9 @@ fn blend(w: f32, own: &Vtx, a: &Vtx, b: &Vtx) -> Vtx {
             w * own.g[0] + v * ((a.g[0] + b.g[0]) * 0.5),
             w * own.g[1] + v * ((a.g[1] + b.g[1]) * 0.5),
         ],
-        layer: w * own.layer + v * ((a.layer + b.layer) * 0.5),
+        layers: std::array::from_fn(|k| {
+            w * own.layers[k] + v * ((a.layers[k] + b.layers[k]) * 0.5)
+        }),
     }
 }
 
@@ -166,10 +183,10 @@ struct Level {
 }
 
 /// Everything one update reads and writes.
-struct Frame<'a> {
+struct Frame<'a, const L: usize> {
     heights: &'a [f32],
-    /// The layer's values per grid point, empty without a layer.
-    layer: &'a [f32],
+    /// The layers' values per grid point: the layer, then the value layer.
+    layers: [&'a [f32]; L],
     /// The layer's largest value, added to the top of every culling box.
     layer_margin: f32,
     n: usize,
@@ -200,12 +217,12 @@ struct Frame<'a> {
 
 /// A node being drawn: position, vertex values and the indices of the
 /// vertices already written for its fan.
-struct NodeVerts {
+struct NodeVerts<const L: usize> {
     ci: u32,
     cj: u32,
     half: u32,
-    ring: [Vtx; 8],
-    centre: Vtx,
+    ring: [Vtx<L>; 8],
+    centre: Vtx<L>,
     index: [u32; 9],
 }
 
@@ -244,12 +261,38 @@ impl TerrainHierarchy {
         layer: Option<&TerrainLayer>,
         mesh: &mut TerrainMesh,
     ) -> Result<LodStats, TerrainError> {
-        if let Some(layer) = layer
-            && layer.side() != self.size
-        {
-            return Err(TerrainError::DimsMismatch {
-                terrain: self.field.dims(),
-                extra: [layer.side(); 2],
+        self.update_with_layers(eye, frustum, settings, layer, None, mesh)
+    }
+
+    /// [`TerrainHierarchy::update_with_layer`] that also morphs a second
+    /// layer, `values` (a value over the ground, such as the scalar of a
+    /// layer between two surfaces), with the same weights into
+    /// [`TerrainMesh::values`]; it does not raise the culling boxes. Each
+    /// layer costs only the updates that carry it. Errors besides
+    /// `update_with_layer`'s: `values` of another size, or without `layer`
+    /// ([`TerrainError::InvalidParameter`]).
+    pub fn update_with_layers(
+        &self,
+        eye: DVec3,
+        frustum: Option<&Frustum>,
+        settings: &LodSettings,
+        layer: Option<&TerrainLayer>,
+        values: Option<&TerrainLayer>,
+        mesh: &mut TerrainMesh,
+    ) -> Result<LodStats, TerrainError> {
+        for extra in [layer, values].into_iter().flatten() {
+            if extra.side() != self.size {
+                return Err(TerrainError::DimsMismatch {
+                    terrain: self.field.dims(),
+                    extra: [extra.side(); 2],
+                });
+            }
+        }
+        if values.is_some() && layer.is_none() {
+            return Err(TerrainError::InvalidParameter {
+                parameter: "values",
+                value: f64::NAN,
+                requirement: "given with a layer (the values ride on the layer's cells)",
             });
         }
         if !eye.is_finite() {
@@ -310,37 +353,52 @@ impl TerrainHierarchy {
         }
         let sx = spacing.x as f32;
         let sz = spacing.y as f32;
-        let mut frame = Frame {
-            heights: self.field.heights(),
-            layer: layer.map_or(&[], TerrainLayer::values),
-            layer_margin: layer.map_or(0.0, TerrainLayer::max),
-            n: self.size,
-            levels: self.levels as usize,
-            d2: &self.d2,
-            weight,
-            level,
-            eye: [local_eye.x as f32, local_eye.z as f32],
-            base2: (vertical * vertical) as f32,
-            spacing: [sx, sz],
-            inv_dx: [0.0, (1.0 / spacing.x) as f32, (0.5 / spacing.x) as f32],
-            inv_dz: [0.0, (1.0 / spacing.y) as f32, (0.5 / spacing.y) as f32],
-            morph: settings.morph,
-            normals: settings.normals,
-            grid: settings.grid_points,
-            order: settings.order,
-            planes,
-            slack,
-            mesh,
-            stats: LodStats::default(),
-        };
-        frame.root(mask);
-        frame.stats.vertices = frame.mesh.positions.len();
-        frame.stats.triangles = frame.mesh.triangle_count();
-        Ok(frame.stats)
+        // One frame type per number of layers, so a terrain without them
+        // blends no layer values.
+        macro_rules! frame {
+            ($layers:expr) => {
+                Frame {
+                    heights: self.field.heights(),
+                    layers: $layers,
+                    layer_margin: layer.map_or(0.0, TerrainLayer::max),
+                    n: self.size,
+                    levels: self.levels as usize,
+                    d2: &self.d2,
+                    weight,
+                    level,
+                    eye: [local_eye.x as f32, local_eye.z as f32],
+                    base2: (vertical * vertical) as f32,
+                    spacing: [sx, sz],
+                    inv_dx: [0.0, (1.0 / spacing.x) as f32, (0.5 / spacing.x) as f32],
+                    inv_dz: [0.0, (1.0 / spacing.y) as f32, (0.5 / spacing.y) as f32],
+                    morph: settings.morph,
+                    normals: settings.normals,
+                    grid: settings.grid_points,
+                    order: settings.order,
+                    planes,
+                    slack,
+                    mesh,
+                    stats: LodStats::default(),
+                }
+            };
+        }
+        Ok(match (layer, values) {
+            (Some(first), Some(second)) => frame!([first.values(), second.values()]).draw(mask),
+            (Some(first), None) => frame!([first.values()]).draw(mask),
+            _ => frame!([]).draw(mask),
+        })
     }
 }
 
-impl Frame<'_> {
+impl<const L: usize> Frame<'_, L> {
+    /// Draws the whole mesh and returns the statistics.
+    fn draw(mut self, mask: u32) -> LodStats {
+        self.root(mask);
+        self.stats.vertices = self.mesh.positions.len();
+        self.stats.triangles = self.mesh.triangle_count();
+        self.stats
+    }
+
     #[inline(always)]
     fn height(&self, i: u32, j: u32) -> f32 {
         self.heights[i as usize + self.n * j as usize]
@@ -364,15 +422,12 @@ impl Frame<'_> {
 
     /// The true value at a grid point.
     #[inline(always)]
-    fn true_vertex(&self, i: u32, j: u32) -> Vtx {
+    fn true_vertex(&self, i: u32, j: u32) -> Vtx<L> {
+        let index = i as usize + self.n * j as usize;
         Vtx {
             h: self.height(i, j),
             g: self.gradient(i, j),
-            layer: if self.layer.is_empty() {
-                0.0
-            } else {
-                self.layer[i as usize + self.n * j as usize]
-            },
+            layers: std::array::from_fn(|k| self.layers[k][index]),
         }
     }
 
@@ -466,8 +521,8 @@ impl Frame<'_> {
             ci: last / 2,
             cj: last / 2,
             half: last / 2,
-            ring: [Vtx::default(); 8],
-            centre: Vtx::default(),
+            ring: [Vtx::ZERO; 8],
+            centre: Vtx::ZERO,
             index: [u32::MAX; 9],
         };
         for (c, &slot) in [1, 3, 5, 7].iter().enumerate() {
@@ -497,7 +552,7 @@ impl Frame<'_> {
     /// Writes the vertex in `slot` of the node (once per node) and returns its
     /// index.
     #[inline(always)]
-    fn vertex(&mut self, verts: &mut NodeVerts, slot: usize) -> u32 {
+    fn vertex(&mut self, verts: &mut NodeVerts<L>, slot: usize) -> u32 {
         let cached = verts.index[slot];
         if cached != u32::MAX {
             return cached;
@@ -524,8 +579,11 @@ impl Frame<'_> {
         if self.grid {
             self.mesh.grid_points.push([i, j]);
         }
-        if !self.layer.is_empty() {
-            self.mesh.layer.push(v.layer);
+        if let Some(layer) = v.layers.first() {
+            self.mesh.layer.push(*layer);
+        }
+        if let Some(value) = v.layers.get(1) {
+            self.mesh.values.push(*value);
         }
         verts.index[slot] = index;
         index
@@ -533,7 +591,7 @@ impl Frame<'_> {
 
     /// Writes the triangle of three vertex slots.
     #[inline(always)]
-    fn triangle(&mut self, verts: &mut NodeVerts, slots: [usize; 3]) {
+    fn triangle(&mut self, verts: &mut NodeVerts<L>, slots: [usize; 3]) {
         let a = self.vertex(verts, slots[0]);
         let b = self.vertex(verts, slots[1]);
         let c = self.vertex(verts, slots[2]);
@@ -551,7 +609,7 @@ impl Frame<'_> {
         level: usize,
         a: u32,
         b: u32,
-        corners: &[Vtx; 4],
+        corners: &[Vtx<L>; 4],
         t: f32,
         known: [f32; 4],
         mut mask: u32,
@@ -594,7 +652,7 @@ impl Frame<'_> {
         // The ring: corners as given, edge midpoints morphed with the minimum
         // weight of the two nodes sharing the edge, present only when the
         // neighbour is refined too (or the edge is on the terrain boundary).
-        let mut ring = [Vtx::default(); 8];
+        let mut ring = [Vtx::ZERO; 8];
         ring[1] = corners[0];
         ring[3] = corners[1];
         ring[5] = corners[2];
@@ -767,7 +825,7 @@ impl Frame<'_> {
     /// Emits the item starting at sector `s`: a child subtree or a fan
     /// triangle.
     #[inline(always)]
-    fn item(&mut self, verts: &mut NodeVerts, s: usize, span: u8, children: &Children) {
+    fn item(&mut self, verts: &mut NodeVerts<L>, s: usize, span: u8, children: &Children) {
         if span == 2 && s & 1 == 0 {
             let q = s >> 1;
             let r = &verts.ring;
