@@ -187,8 +187,14 @@ pub enum TransferPreset {
     /// Fire (emissive): dark red through orange to yellow-white as `s` rises;
     /// nothing below s = 0.1.
     Fire,
-    /// Aurora curtains (emissive): red-violet fringe at low `s`, green core
-    /// at high `s`.
+    /// Aurora curtains (emissive) over the relative altitude `s` in the
+    /// curtains' layer (0 at its bottom, 1 at its top; 100 to 300 km for
+    /// the defaults of nebel's aurora): a thin pink-violet lower fringe
+    /// (molecular nitrogen, near 100 km), the bright green of atomic
+    /// oxygen's 557.7 nm line peaking just above the bottom (ρ = 1 at
+    /// `s = 0.03`) and fading by `s = 0.45` (190 km), then the faint red of
+    /// its 630.0 nm line from `s = 0.6` (220 km), fading to nothing at the
+    /// top: the emission altitudes of the two lines.
     Aurora,
     /// Search-light cone (emissive): warm white, ρ linear in `s` (the
     /// attenuated intensity).
@@ -243,10 +249,12 @@ impl TransferPreset {
                 p(1.0, [1.0, 0.9, 0.6], 1.0),
             ],
             TransferPreset::Aurora => vec![
-                p(0.0, [0.6, 0.1, 0.5], 0.0),
-                p(0.3, [0.7, 0.15, 0.45], 0.3),
-                p(0.6, [0.15, 0.9, 0.35], 0.6),
-                p(1.0, [0.3, 1.0, 0.45], 1.0),
+                p(0.0, [0.55, 0.25, 0.6], 0.5),
+                p(0.03, [0.15, 1.0, 0.35], 1.0),
+                p(0.25, [0.15, 1.0, 0.35], 0.45),
+                p(0.45, [0.55, 0.6, 0.2], 0.12),
+                p(0.6, [1.0, 0.12, 0.15], 0.1),
+                p(1.0, [1.0, 0.12, 0.15], 0.0),
             ],
             TransferPreset::SearchLight => vec![
                 p(0.0, [1.0, 0.95, 0.85], 0.0),

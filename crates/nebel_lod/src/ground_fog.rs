@@ -156,6 +156,12 @@ pub enum PrismError {
         "the prisms' scalar comes from the mesh's values, but the mesh has none: refine it with update_with_layers and a value layer"
     )]
     MissingValues,
+    /// The span of [`PrismScalar::Height`] is not finite and positive.
+    #[error("the prisms' height span is {span}; it must be finite and > 0")]
+    InvalidSpan {
+        /// The span given.
+        span: f32,
+    },
     /// A sorted batch was asked of an unordered mesh.
     #[error("sorted fog needs a back-to-front or front-to-back terrain mesh, not an unordered one")]
     UnorderedMesh,
@@ -180,7 +186,7 @@ pub struct PrismStats {
 }
 
 /// Where the scalar of the prisms' vertices comes from.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub enum PrismScalar {
     /// The [`FogProfile`]'s scalar at each level's relative height (0 at the
     /// bottom, 1 at the top with the profile `[(0, 0), (1, 1)]`).
@@ -190,6 +196,15 @@ pub enum PrismScalar {
     /// map over the ground, clamped to [0, 1]), the same on every level: a
     /// layer whose scalar varies over the ground only.
     Values,
+    /// The height above the bottom divided by `span` (world units of the
+    /// mesh frame, finite and > 0), clamped to [0, 1]: the same scalar at
+    /// the same height above the bottom in thin and thick columns (aurora
+    /// curtains coloured by altitude). It is linear in every tetrahedron
+    /// (the bottom of a column is planar), so the cells carry it exactly.
+    Height {
+        /// The height above the bottom where the scalar reaches 1.
+        span: f32,
+    },
 }
 
 /// What [`fog_prisms`] needs besides the mesh.
@@ -243,8 +258,14 @@ pub fn fog_prisms(
     if mesh.layer.len() != vertices || mesh.grid_points.len() != vertices {
         return Err(PrismError::MissingLayer);
     }
-    if input.scalar == PrismScalar::Values && mesh.values.len() != vertices {
-        return Err(PrismError::MissingValues);
+    match input.scalar {
+        PrismScalar::Values if mesh.values.len() != vertices => {
+            return Err(PrismError::MissingValues);
+        }
+        PrismScalar::Height { span } if !(span.is_finite() && span > 0.0) => {
+            return Err(PrismError::InvalidSpan { span });
+        }
+        _ => {}
     }
     let sorted = input.order == CellOrder::BackToFront;
     if sorted && input.mesh_order == TriangleOrder::Unordered {
@@ -358,7 +379,8 @@ impl Column {
                     3 * level + corner
                 });
                 let [x, y, z] = mesh.positions[*v].map(f64::from);
-                let position = DVec3::new(x, y + f64::from(r) * t.max(0.0), z);
+                let above = f64::from(r) * t.max(0.0);
+                let position = DVec3::new(x, y + above, z);
                 self.positions.push(position);
                 self.world.push(
                     world_from_mesh
@@ -369,6 +391,9 @@ impl Column {
                 self.scalars.push(match scalar {
                     PrismScalar::Profile => s,
                     PrismScalar::Values => mesh.values[*v].clamp(0.0, 1.0),
+                    PrismScalar::Height { span } => {
+                        (above / f64::from(span)).clamp(0.0, 1.0) as f32
+                    }
                 });
             }
         }

@@ -32,6 +32,10 @@
 //!   heights), and [`TerrainHierarchy::update`], one pass per frame that
 //!   refines, geomorphs and writes crack-free triangle fans ([`TerrainMesh`])
 //!   back to front, front to back or unordered, with frustum culling.
+//! - [`surface_layer`]: a layer between two surfaces over one grid
+//!   (Röttger 2004 §10.4: aurora curtains, a cloud layer): [`SurfaceLayer`]
+//!   builds the quadtree over the bottom with the thickness's roughness and
+//!   gives, per eye, the morphed conforming prisms between the surfaces.
 //! - [`view`]: [`View`], what every builder reads of the camera for one
 //!   volume and frame: the volume's placement, the eye, the frustum and the
 //!   viewport (an empty viewport sees nothing).
@@ -61,6 +65,7 @@ pub mod full_resolution;
 pub mod ground_fog;
 pub mod octree;
 pub mod quadtree;
+pub mod surface_layer;
 pub mod view;
 pub mod visibility;
 pub mod volume_batcher;
@@ -73,6 +78,7 @@ pub use octree::{HierarchyError, Node, VolumeHierarchy};
 pub use quadtree::{
     LodSettings, TerrainError, TerrainHierarchy, TerrainLayer, TerrainMesh, TriangleOrder,
 };
+pub use surface_layer::{LayerStats, LayerTop, LayerView, SurfaceLayer, SurfaceLayerError};
 pub use view::View;
 pub use visibility::{CellAdjacency, sorted_batch};
 pub use volume_batcher::{

@@ -1,7 +1,8 @@
 //! Ground fog prisms on the terrain's level of detail: conforming, exactly the
 //! fog's volume, back to front for every eye, continuous along a flight, left
 //! out beyond a handoff distance, with a scalar from a value map, and bad
-//! input as errors.
+//! input as errors; and the same prisms for a layer between two crossing
+//! surfaces, with the height above the bottom as their scalar.
 
 use std::collections::{HashMap, HashSet};
 
@@ -10,8 +11,9 @@ use nebel_core::cell::{Ray, Tetrahedron};
 use nebel_core::field::{HeightField, ValueNoise};
 use nebel_lod::quadtree::TerrainLayer;
 use nebel_lod::{
-    CellOrder, FogProfile, Frustum, GpuCell, LodSettings, PrismError, PrismInput, PrismScalar,
-    PrismStats, TerrainError, TerrainHierarchy, TerrainMesh, TriangleOrder, fog_prisms,
+    CellOrder, FogProfile, Frustum, GpuCell, LayerTop, LayerView, LodSettings, PrismError,
+    PrismInput, PrismScalar, PrismStats, SurfaceLayer, SurfaceLayerError, TerrainError,
+    TerrainHierarchy, TerrainMesh, TriangleOrder, fog_prisms,
 };
 
 const SPACING: f64 = 10.0;
@@ -185,79 +187,94 @@ fn prisms_conform_and_hold_exactly_the_fogs_volume() {
             stats.prisms > 100 && stats.prisms < mesh.triangle_count(),
             "{name}: {stats:?}"
         );
-        // Ground and top positions of every mesh vertex.
-        let mut ground = HashSet::new();
-        let mut top = HashSet::new();
-        for (p, t) in mesh.positions.iter().zip(&mesh.layer) {
-            let world = |dy: f32| {
-                let w = (origin
-                    + DVec3::new(
-                        f64::from(p[0]),
-                        f64::from(p[1]) + f64::from(dy),
-                        f64::from(p[2]),
-                    ))
-                .as_vec3();
-                key([w.x, w.y, w.z, 0.0])
-            };
-            ground.insert(world(0.0));
-            top.insert(world(*t));
-        }
-        // Every face is shared by two cells, or lies on the ground, on the
-        // fog's top or on the terrain's outer boundary.
-        let mut faces: HashMap<[[u32; 3]; 3], usize> = HashMap::new();
-        for cell in &cells {
-            for skip in 0..4 {
-                let mut face: Vec<[u32; 3]> = (0..4)
-                    .filter(|&v| v != skip)
-                    .map(|v| key(cell.vertices[v]))
-                    .collect();
-                face.sort();
-                face.dedup();
-                if face.len() == 3 {
-                    *faces.entry([face[0], face[1], face[2]]).or_default() += 1;
-                }
-            }
-        }
-        let on_boundary = |face: &[[u32; 3]; 3]| {
-            let xs = face.map(|p| f64::from(f32::from_bits(p[0])) - origin.x);
-            let zs = face.map(|p| f64::from(f32::from_bits(p[2])) - origin.z);
-            let all = |v: [f64; 3], target: f64| v.iter().all(|x| (x - target).abs() < 1e-3);
-            all(xs, 0.0) || all(xs, extent) || all(zs, 0.0) || all(zs, extent)
-        };
-        for (face, count) in &faces {
-            assert!(*count <= 2, "{name}: a face shared by {count} cells");
-            if *count == 1 {
-                let lies_on = |set: &HashSet<[u32; 3]>| face.iter().all(|p| set.contains(p));
-                assert!(
-                    lies_on(&ground) || lies_on(&top) || on_boundary(face),
-                    "{name}: a crack at {face:?}"
-                );
-            }
-        }
-        // The cells fill each prism exactly: Σ volume = Σ area · mean thickness.
-        let volume: f64 = cells.iter().map(|c| c.to_tetrahedron().volume()).sum();
-        let expected: f64 = mesh
-            .indices
-            .chunks_exact(3)
-            .map(|t| {
-                let p = |k: usize| {
-                    let [x, _, z] = mesh.positions[t[k] as usize];
-                    DVec2::new(f64::from(x), f64::from(z))
-                };
-                let area = 0.5 * (p(1) - p(0)).perp_dot(p(2) - p(0)).abs();
-                let mean = t
-                    .iter()
-                    .map(|&v| f64::from(mesh.layer[v as usize]))
-                    .sum::<f64>()
-                    / 3.0;
-                area * mean
-            })
-            .sum();
-        assert!(
-            (volume - expected).abs() <= 1e-4 * expected,
-            "{name}: {volume} m³ against {expected} m³"
-        );
+        assert_conforming(&cells, &mesh, origin, extent, name);
+        assert_fills_the_prisms(&cells, &mesh, name);
     }
+}
+
+/// Checks that every face is shared by two cells, or lies on the ground, on
+/// the layer's top or on the grid's outer boundary (`extent` from `origin`).
+fn assert_conforming(
+    cells: &[GpuCell],
+    mesh: &TerrainMesh,
+    origin: DVec3,
+    extent: f64,
+    name: &str,
+) {
+    // Ground and top positions of every mesh vertex.
+    let mut ground = HashSet::new();
+    let mut top = HashSet::new();
+    for (p, t) in mesh.positions.iter().zip(&mesh.layer) {
+        let world = |dy: f32| {
+            let w = (origin
+                + DVec3::new(
+                    f64::from(p[0]),
+                    f64::from(p[1]) + f64::from(dy),
+                    f64::from(p[2]),
+                ))
+            .as_vec3();
+            key([w.x, w.y, w.z, 0.0])
+        };
+        ground.insert(world(0.0));
+        top.insert(world(*t));
+    }
+    let mut faces: HashMap<[[u32; 3]; 3], usize> = HashMap::new();
+    for cell in cells {
+        for skip in 0..4 {
+            let mut face: Vec<[u32; 3]> = (0..4)
+                .filter(|&v| v != skip)
+                .map(|v| key(cell.vertices[v]))
+                .collect();
+            face.sort();
+            face.dedup();
+            if face.len() == 3 {
+                *faces.entry([face[0], face[1], face[2]]).or_default() += 1;
+            }
+        }
+    }
+    let on_boundary = |face: &[[u32; 3]; 3]| {
+        let xs = face.map(|p| f64::from(f32::from_bits(p[0])) - origin.x);
+        let zs = face.map(|p| f64::from(f32::from_bits(p[2])) - origin.z);
+        let all = |v: [f64; 3], target: f64| v.iter().all(|x| (x - target).abs() < 1e-3);
+        all(xs, 0.0) || all(xs, extent) || all(zs, 0.0) || all(zs, extent)
+    };
+    for (face, count) in &faces {
+        assert!(*count <= 2, "{name}: a face shared by {count} cells");
+        if *count == 1 {
+            let lies_on = |set: &HashSet<[u32; 3]>| face.iter().all(|p| set.contains(p));
+            assert!(
+                lies_on(&ground) || lies_on(&top) || on_boundary(face),
+                "{name}: a crack at {face:?}"
+            );
+        }
+    }
+}
+
+/// Checks that the cells fill each prism exactly: Σ volume = Σ area · mean
+/// thickness.
+fn assert_fills_the_prisms(cells: &[GpuCell], mesh: &TerrainMesh, name: &str) {
+    let volume: f64 = cells.iter().map(|c| c.to_tetrahedron().volume()).sum();
+    let expected: f64 = mesh
+        .indices
+        .chunks_exact(3)
+        .map(|t| {
+            let p = |k: usize| {
+                let [x, _, z] = mesh.positions[t[k] as usize];
+                DVec2::new(f64::from(x), f64::from(z))
+            };
+            let area = 0.5 * (p(1) - p(0)).perp_dot(p(2) - p(0)).abs();
+            let mean = t
+                .iter()
+                .map(|&v| f64::from(mesh.layer[v as usize]))
+                .sum::<f64>()
+                / 3.0;
+            area * mean
+        })
+        .sum();
+    assert!(
+        (volume - expected).abs() <= 1e-4 * expected,
+        "{name}: {volume} m³ against {expected} m³"
+    );
 }
 
 /// Sorts the cells hit by `ray` by entry and checks that a nearer cell is
@@ -817,4 +834,227 @@ fn a_value_map_gives_the_scalar_of_a_layer_between_two_surfaces_without_popping(
         fog_prisms(&mesh, &input, &mut cells),
         Err(PrismError::MissingValues)
     );
+}
+
+/// A layer between the valley's ground and a second noise surface that
+/// crosses it (the top dips below the bottom over the ridges).
+fn crossing_layer(n: usize) -> (HeightField, Vec<f32>) {
+    let (hierarchy, _) = valley(n);
+    let bottom = hierarchy.field().clone();
+    let noise = ValueNoise {
+        seed: 11,
+        octaves: 4,
+        wavelength: 200.0,
+        gain: 0.5,
+    };
+    let upper = HeightField::value_noise(
+        [n, n],
+        DVec2::splat(SPACING),
+        DVec2::new(-50.0, 20.0),
+        &noise,
+        160.0,
+    )
+    .unwrap();
+    let top = upper.heights().iter().map(|h| 80.0 + h).collect();
+    (bottom, top)
+}
+
+#[test]
+fn a_layer_between_two_crossing_surfaces_conforms_is_ordered_and_carries_its_height() {
+    let n = 65;
+    let (bottom, top) = crossing_layer(n);
+    let layer = SurfaceLayer::new(bottom.clone(), LayerTop::Surface(&top), None, 2.0, 1.0).unwrap();
+    // The thickness is top − bottom, clamped to 0 where they cross; both
+    // signs occur.
+    let mut crossed = 0;
+    for (p, t) in layer.thickness().values().iter().enumerate() {
+        let difference = top[p] - bottom.heights()[p];
+        assert_eq!(*t, difference.max(0.0));
+        crossed += usize::from(difference < 0.0);
+    }
+    assert!(
+        crossed > n && crossed < n * n / 2,
+        "{crossed} points crossed"
+    );
+    let hierarchy = layer.hierarchy();
+    let origin = hierarchy.origin();
+    let extent = (n - 1) as f64 * SPACING;
+    let span = 250.0;
+    let profile = FogProfile::new(vec![[0.0, 0.0], [0.4, 0.4], [1.0, 1.0]]).unwrap();
+    let mut rng = 0x1a7e_u64;
+    let mut random = move || {
+        rng = rng
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (rng >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let named = [
+        ("below both", origin + DVec3::new(300.0, -80.0, 250.0)),
+        ("between them", origin + DVec3::new(333.0, 230.0, 311.0)),
+        ("above both", origin + DVec3::new(-100.0, 900.0, 500.0)),
+    ];
+    let random_eyes = random_eyes(hierarchy, 3, 0x2f);
+    for (name, eye) in named.into_iter().chain(random_eyes) {
+        let view = |order| LayerView {
+            world_from_field: DAffine3::IDENTITY,
+            eye,
+            frustum: None,
+            lod: LodSettings {
+                accuracy: 40.0,
+                ..LodSettings::default()
+            },
+            order,
+            profile: &profile,
+            scalar: PrismScalar::Height { span },
+        };
+        let mut mesh = TerrainMesh::new();
+        let mut cells = Vec::new();
+        let stats = layer
+            .cells(&view(CellOrder::BackToFront), &mut mesh, &mut cells)
+            .unwrap();
+        assert_eq!(stats.tetrahedra, cells.len());
+        assert_eq!(stats.triangles, mesh.triangle_count());
+        // Only the triangles with a layer above a corner carry prisms.
+        let layered = mesh
+            .indices
+            .chunks_exact(3)
+            .filter(|t| t.iter().any(|&v| mesh.layer[v as usize] > 0.0))
+            .count();
+        assert_eq!(stats.prisms, layered, "{name}");
+        assert!(
+            stats.prisms > 50 && stats.prisms < stats.triangles,
+            "{name}: {stats:?}"
+        );
+        assert_conforming(&cells, &mesh, origin, extent, name);
+        assert_fills_the_prisms(&cells, &mesh, name);
+        // The scalar is the height above the bottom over the span at every
+        // vertex (the bottom of each column is its mesh vertex).
+        let ground: HashMap<[u32; 2], f64> = mesh
+            .positions
+            .iter()
+            .map(|p| {
+                let w = origin + DVec3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+                ([(w.x as f32).to_bits(), (w.z as f32).to_bits()], w.y)
+            })
+            .collect();
+        for cell in &cells {
+            for [x, y, z, s] in cell.vertices {
+                let below = ground[&[x.to_bits(), z.to_bits()]];
+                let expected = ((f64::from(y) - below) / f64::from(span)).clamp(0.0, 1.0);
+                assert!(
+                    (f64::from(s) - expected).abs() < 1e-5,
+                    "{name}: {s} vs {expected}"
+                );
+            }
+        }
+        // Back to front for the eye by ray tests.
+        let tetrahedra: Vec<Tetrahedron> = cells.iter().map(GpuCell::to_tetrahedron).collect();
+        let mut hit = 0;
+        for _ in 0..60 {
+            let target =
+                origin + DVec3::new(random() * extent, random() * 300.0, random() * extent);
+            let ray = Ray::new(eye, target - eye).unwrap();
+            hit += check_ray_order(&tetrahedra, &ray, name);
+        }
+        assert!(hit > 60, "{name}: the rays hit only {hit} cells");
+        // Unordered: the same cells.
+        let mut unordered = Vec::new();
+        layer
+            .cells(&view(CellOrder::Unordered), &mut mesh, &mut unordered)
+            .unwrap();
+        let set = |cells: &[GpuCell]| {
+            let mut keys: Vec<[[u32; 3]; 4]> =
+                cells.iter().map(|cell| cell.vertices.map(key)).collect();
+            keys.sort();
+            keys
+        };
+        assert_eq!(set(&unordered), set(&cells), "{name}");
+    }
+    // Surfaces that meet everywhere give no cells.
+    let flat = SurfaceLayer::new(
+        bottom.clone(),
+        LayerTop::Surface(bottom.heights()),
+        None,
+        2.0,
+        1.0,
+    )
+    .unwrap();
+    assert!(flat.is_empty());
+    let mut cells = Vec::new();
+    let view = LayerView {
+        world_from_field: DAffine3::IDENTITY,
+        eye: origin + DVec3::new(10.0, 500.0, 10.0),
+        frustum: None,
+        lod: LodSettings::default(),
+        order: CellOrder::Unordered,
+        profile: &profile,
+        scalar: PrismScalar::Height { span },
+    };
+    let stats = flat
+        .cells(&view, &mut TerrainMesh::new(), &mut cells)
+        .unwrap();
+    assert!(cells.is_empty() && stats.prisms == 0 && stats.triangles > 0);
+}
+
+#[test]
+fn a_layer_between_two_surfaces_refuses_bad_input() {
+    let n = 33;
+    let (bottom, top) = crossing_layer(n);
+    let build = |top: &[f32], values: Option<&[f32]>, weight: f32| {
+        SurfaceLayer::new(bottom.clone(), LayerTop::Surface(top), values, 2.0, weight)
+    };
+    let mut nan = top.clone();
+    nan[7] = f32::NAN;
+    let messages = [
+        build(&nan, None, 1.0),
+        build(&top[1..], None, 1.0),
+        build(&top, Some(&[0.5; 10]), 1.0),
+        build(&top, None, f32::NAN),
+        SurfaceLayer::new(
+            bottom.clone(),
+            LayerTop::Thickness(&[f32::INFINITY; 33 * 33]),
+            None,
+            2.0,
+            1.0,
+        ),
+    ]
+    .map(|built| built.unwrap_err().to_string());
+    for (message, needle) in messages
+        .iter()
+        .zip(["NaN", "values", "values", "weight", "inf"])
+    {
+        assert!(message.contains(needle), "{message}");
+    }
+    // A bottom that is not 2^k + 1 points per side.
+    let odd = HeightField::new([20, 20], DVec2::ONE, DVec2::ZERO, vec![0.0; 400]).unwrap();
+    assert!(matches!(
+        SurfaceLayer::new(odd, LayerTop::Thickness(&[1.0; 400]), None, 2.0, 1.0),
+        Err(SurfaceLayerError::Terrain(
+            TerrainError::NotPowerOfTwoPlusOne { .. }
+        ))
+    ));
+    // A height span that is not positive.
+    let layer = build(&top, None, 1.0).unwrap();
+    let profile = FogProfile::default();
+    for span in [0.0, -1.0, f32::NAN] {
+        let view = LayerView {
+            world_from_field: DAffine3::IDENTITY,
+            eye: DVec3::new(0.0, 500.0, 0.0),
+            frustum: None,
+            lod: LodSettings::default(),
+            order: CellOrder::Unordered,
+            profile: &profile,
+            scalar: PrismScalar::Height { span },
+        };
+        let error = layer
+            .cells(&view, &mut TerrainMesh::new(), &mut Vec::new())
+            .unwrap_err();
+        assert!(
+            matches!(
+                error,
+                SurfaceLayerError::Prisms(PrismError::InvalidSpan { .. })
+            ),
+            "{error}"
+        );
+    }
 }

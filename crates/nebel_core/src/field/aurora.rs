@@ -19,7 +19,12 @@
 //! curtains' rays), `p_k(t) = 0.75 + 0.25 sin(2π pulse t + ω_k)` the
 //! brightness pulses, `e(u)` a smooth taper to 0 over the last 10 % of the
 //! square so the arcs end inside it, and `b_k ∈ [0.6, 1]` the arc's
-//! brightness. The arcs add, clamped to 1. Every term is smooth in `t`, so
+//! brightness; an arc's share is left out beyond `d = 3` (below `e^{−9}`).
+//! The arcs add; the sum `S` gives the strength `(S − 0.01)/0.99` clamped
+//! to [0, 1], so the curtains end where their faint tails would be
+//! (continuously: the strength reaches 0 there). [`AuroraCurtains::map`]
+//! evaluates each arc only on the points within its reach, so a map costs
+//! about its lit points, not its size times the arcs. Every term is smooth in `t`, so
 //! the footprint never jumps between frames: its change over `Δt` is bounded
 //! by `Δt` times a constant of the settings (the tests measure it).
 
@@ -146,30 +151,54 @@ impl AuroraCurtains {
             .collect()
     }
 
-    /// The strength at `(u, v)` of the unit square at time `t` from `arcs`.
-    fn strength_of(&self, arcs: &[Arc], u: f64, v: f64, t: f64) -> f64 {
+    /// What the strength along the column `u` at time `t` shares: the taper
+    /// times the rays, and each arc's centre line `v_k(u, t)` and its
+    /// brightness `b_k p_k(t)`.
+    fn column(&self, arcs: &[Arc], u: f64, t: f64, centres: &mut Vec<(f64, f64)>) -> f64 {
         let tau = std::f64::consts::TAU;
+        centres.clear();
         let taper = smoothstep(0.0, 0.1, u) * smoothstep(0.0, 0.1, 1.0 - u);
         if taper <= 0.0 {
             return 0.0;
         }
-        let width = f64::from(self.width);
         let streaks = 0.5 + 0.5 * (tau * 40.0 * u + 3.0 * (tau * 7.0 * u).sin() + t).sin();
         let rays = 1.0 - f64::from(self.rays) * streaks;
-        let total: f64 = arcs
-            .iter()
-            .map(|arc| {
-                let centre = arc.centre
-                    + 0.1 * (tau * f64::from(self.drift) * t + arc.sway_phase).sin()
-                    + 0.12 * (tau * arc.bend_cycles * u + arc.bend_phase).sin()
-                    + f64::from(self.fold)
-                        * (tau * arc.fold_cycles * u + arc.fold_phase + tau * 0.2 * t).sin();
-                let d = (v - centre) / width;
-                let pulse = 0.75 + 0.25 * (tau * f64::from(self.pulse) * t + arc.pulse_phase).sin();
-                arc.brightness * (-d * d).exp() * pulse
-            })
-            .sum();
-        (total * rays * taper).clamp(0.0, 1.0)
+        centres.extend(arcs.iter().map(|arc| {
+            let centre = arc.centre
+                + 0.1 * (tau * f64::from(self.drift) * t + arc.sway_phase).sin()
+                + 0.12 * (tau * arc.bend_cycles * u + arc.bend_phase).sin()
+                + f64::from(self.fold)
+                    * (tau * arc.fold_cycles * u + arc.fold_phase + tau * 0.2 * t).sin();
+            let pulse = 0.75 + 0.25 * (tau * f64::from(self.pulse) * t + arc.pulse_phase).sin();
+            (centre, arc.brightness * pulse)
+        }));
+        rays * taper
+    }
+
+    /// Arc `(centre, brightness)`'s share at `v`: zero beyond
+    /// [`CUT_OFF`] half widths, where it is below `e^{−9}`.
+    fn share(&self, (centre, brightness): (f64, f64), v: f64) -> f64 {
+        let d = (v - centre) / f64::from(self.width);
+        if d.abs() > CUT_OFF {
+            0.0
+        } else {
+            brightness * (-d * d).exp()
+        }
+    }
+
+    /// The strength from the arcs' summed shares `total` at a point of a
+    /// column whose taper and rays are `column`: cut at [`FLOOR`] (the arcs'
+    /// faint tails give no curtain) and clamped to 1.
+    fn floored(total: f64, column: f64) -> f64 {
+        ((total * column - FLOOR) / (1.0 - FLOOR)).clamp(0.0, 1.0)
+    }
+
+    /// The strength at `(u, v)` of the unit square at time `t` from `arcs`.
+    fn strength_of(&self, arcs: &[Arc], u: f64, v: f64, t: f64) -> f64 {
+        let mut centres = Vec::with_capacity(arcs.len());
+        let column = self.column(arcs, u, t, &mut centres);
+        let total: f64 = centres.iter().map(|&arc| self.share(arc, v)).sum();
+        Self::floored(total, column)
     }
 
     /// The strength in [0, 1] at `(u, v)` of the unit square at time `t`
@@ -209,14 +238,43 @@ impl AuroraCurtains {
         let t = if t.is_finite() { t } else { 0.0 };
         let arcs = self.arcs();
         let last = (side - 1) as f64;
-        Ok((0..side * side)
-            .map(|p| {
-                let (i, j) = (p % side, p / side);
-                self.strength_of(&arcs, i as f64 / last, j as f64 / last, t) as f32
-            })
-            .collect())
+        let mut map = vec![0.0_f32; side * side];
+        let mut totals = vec![0.0_f64; side];
+        let mut centres = Vec::with_capacity(arcs.len());
+        let reach = CUT_OFF * f64::from(self.width);
+        for i in 0..side {
+            let u = i as f64 / last;
+            let column = self.column(&arcs, u, t, &mut centres);
+            if column <= 0.0 {
+                continue;
+            }
+            totals.fill(0.0);
+            // Only the rows within an arc's reach get a share from it.
+            for &arc in &centres {
+                let rows = |v: f64| (v * last).clamp(0.0, last);
+                // One row more on each side: the share itself decides.
+                let first = (rows(arc.0 - reach).floor() as usize).saturating_sub(1);
+                let end = rows(arc.0 + reach).ceil() as usize + 1;
+                for (j, total) in totals.iter_mut().enumerate().take(end + 1).skip(first) {
+                    *total += self.share(arc, j as f64 / last);
+                }
+            }
+            for (j, total) in totals.iter().enumerate() {
+                if *total > 0.0 {
+                    map[i + side * j] = Self::floored(*total, column) as f32;
+                }
+            }
+        }
+        Ok(map)
     }
 }
+
+/// Half widths beyond which an arc's share is left out (`e^{−9} ≈ 1.2e-4`;
+/// sixteen arcs there sum to less than [`FLOOR`]).
+const CUT_OFF: f64 = 3.0;
+
+/// The strength below which the curtains end.
+const FLOOR: f64 = 0.01;
 
 /// `0` below `a`, `1` above `b`, the cubic `3x² − 2x³` between.
 fn smoothstep(a: f64, b: f64, x: f64) -> f64 {
@@ -266,12 +324,23 @@ mod tests {
         let b = AuroraCurtains { seed: 2, ..a };
         assert_eq!(a.map(65, 3.0).unwrap(), a.map(65, 3.0).unwrap());
         assert_ne!(a.map(65, 3.0).unwrap(), b.map(65, 3.0).unwrap());
-        // The map samples the same function as `strength`.
-        let map = a.map(65, 3.0).unwrap();
-        assert_eq!(
-            map[10 + 65 * 33],
-            a.strength(10.0 / 64.0, 33.0 / 64.0, 3.0).unwrap()
-        );
+        // The map, which evaluates each arc near it only, samples the same
+        // function as `strength` at every point, wide curtains and many arcs
+        // included.
+        for curtains in [
+            a,
+            AuroraCurtains {
+                count: 16,
+                width: 0.25,
+                ..a
+            },
+        ] {
+            let map = curtains.map(65, 3.0).unwrap();
+            for (p, value) in map.iter().enumerate() {
+                let (u, v) = ((p % 65) as f64 / 64.0, (p / 65) as f64 / 64.0);
+                assert_eq!(*value, curtains.strength(u, v, 3.0).unwrap(), "at {p}");
+            }
+        }
     }
 
     #[test]
