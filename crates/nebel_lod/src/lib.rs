@@ -5,6 +5,8 @@
 //! those batches on the CPU, in plain Rust, so they are tested and benchmarked
 //! without a GPU; the Bevy crates only upload them.
 //!
+//! - [`aurora`]: the aurora's curtains as a layer between a plane and a
+//!   top raised by their strength ([`AuroraShape`], Röttger 2004 §10.4).
 //! - [`batch`]: [`GpuCell`] (the GPU layout of one tetrahedron) and [`CellBatch`].
 //! - [`frustum`]: view frusta from planes or a view-projection matrix, and the
 //!   conservative box test used to cull bricks and nodes.
@@ -59,6 +61,7 @@
 //! - Williams 1992: Peter L. Williams, "Visibility Ordering Meshed Polyhedra", ACM
 //!   Transactions on Graphics 11(2), 1992.
 
+pub mod aurora;
 pub mod batch;
 pub mod frustum;
 pub mod full_resolution;
@@ -70,6 +73,7 @@ pub mod view;
 pub mod visibility;
 pub mod volume_batcher;
 
+pub use aurora::AuroraShape;
 pub use batch::{CellBatch, GpuCell};
 pub use frustum::{Frustum, FrustumError};
 pub use full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};

@@ -8,11 +8,11 @@ use std::collections::{HashMap, HashSet};
 
 use glam::{DAffine3, DMat4, DVec2, DVec3};
 use nebel_core::cell::{Ray, Tetrahedron};
-use nebel_core::field::{HeightField, ValueNoise};
+use nebel_core::field::{AuroraCurtains, HeightField, ValueNoise};
 use nebel_lod::quadtree::TerrainLayer;
 use nebel_lod::{
-    CellOrder, FogProfile, Frustum, GpuCell, LayerTop, LayerView, LodSettings, PrismError,
-    PrismInput, PrismScalar, PrismStats, SurfaceLayer, SurfaceLayerError, TerrainError,
+    AuroraShape, CellOrder, FogProfile, Frustum, GpuCell, LayerTop, LayerView, LodSettings,
+    PrismError, PrismInput, PrismScalar, PrismStats, SurfaceLayer, SurfaceLayerError, TerrainError,
     TerrainHierarchy, TerrainMesh, TriangleOrder, fog_prisms,
 };
 
@@ -1056,5 +1056,111 @@ fn a_layer_between_two_surfaces_refuses_bad_input() {
             ),
             "{error}"
         );
+    }
+}
+
+#[test]
+fn aurora_curtains_rise_as_high_as_they_are_strong_and_are_coloured_by_altitude() {
+    let side = 129;
+    let strength = AuroraCurtains::default().map(side, 2.0).unwrap();
+    let shape = AuroraShape {
+        extent: 600e3,
+        bottom: 100e3,
+        top: 300e3,
+    };
+    let layer = shape.layer(side, &strength, 2.0, 1.0).unwrap();
+    let profile = AuroraShape::profile();
+    let view = LayerView {
+        world_from_field: DAffine3::from_translation(DVec3::new(5e3, 0.0, -7e3)),
+        eye: DVec3::new(0.0, 2.0, 0.0),
+        frustum: None,
+        lod: LodSettings {
+            accuracy: 20.0,
+            ..LodSettings::default()
+        },
+        order: CellOrder::Unordered,
+        profile: &profile,
+        scalar: shape.scalar(),
+    };
+    let mut mesh = TerrainMesh::new();
+    let mut cells = Vec::new();
+    let stats = layer.cells(&view, &mut mesh, &mut cells).unwrap();
+    assert!(stats.tetrahedra > 100, "{stats:?}");
+    // The quadtree refines along the curtains, coarse over the dark sky
+    // between them, which has no prisms.
+    assert!(stats.prisms < stats.triangles, "{stats:?}");
+    assert!(stats.triangles < 2 * 128 * 128 / 3, "{stats:?}");
+    let origin = layer.hierarchy().origin() + DVec3::new(5e3, 0.0, -7e3);
+    assert_fills_the_prisms(&cells, &mesh, "aurora");
+    let spacing = 600e3 / (side - 1) as f64;
+    for cell in &cells {
+        for [_, y, _, s] in cell.vertices {
+            let altitude = f64::from(y);
+            assert!(
+                (100e3 - 1.0..=300e3 + 1.0).contains(&altitude),
+                "{altitude}"
+            );
+            // Coloured by altitude: the scalar is the height over the span.
+            let expected = (altitude - 100e3) / 200e3;
+            assert!((f64::from(s) - expected).abs() < 1e-4, "{s} vs {expected}");
+        }
+    }
+    // Without morphing every column stands on a grid point and rises to
+    // exactly its strength times the span.
+    let unmorphed = LayerView {
+        lod: LodSettings {
+            morph: false,
+            ..view.lod
+        },
+        ..view
+    };
+    layer.cells(&unmorphed, &mut mesh, &mut cells).unwrap();
+    for cell in &cells {
+        for [x, y, z, _] in cell.vertices {
+            let (i, j) = (
+                ((f64::from(x) - origin.x) / spacing).round() as usize,
+                ((f64::from(z) - origin.z) / spacing).round() as usize,
+            );
+            let height = f64::from(y) - 100e3;
+            let top = f64::from(strength[i + side * j]) * 200e3;
+            assert!(
+                height.abs() < 0.02 || (height - top).abs() < 0.02,
+                "{height} m above the bottom at ({i}, {j}), where the curtain rises {top} m"
+            );
+        }
+    }
+    // No strength anywhere, no cells; bad shapes and strengths are errors.
+    let dark = shape
+        .layer(side, &vec![0.0; side * side], 2.0, 1.0)
+        .unwrap();
+    assert!(dark.is_empty());
+    let mut nan = strength.clone();
+    nan[side * 60 + 60] = f32::NAN;
+    for (built, needle) in [
+        (shape.layer(side, &nan, 2.0, 1.0), "NaN"),
+        (shape.layer(side, &strength[1..], 2.0, 1.0), "values"),
+        (
+            AuroraShape { top: 50e3, ..shape }.layer(side, &strength, 2.0, 1.0),
+            "top",
+        ),
+        (
+            AuroraShape {
+                extent: f64::INFINITY,
+                ..shape
+            }
+            .layer(side, &strength, 2.0, 1.0),
+            "extent",
+        ),
+        (
+            AuroraShape {
+                bottom: f64::NAN,
+                ..shape
+            }
+            .layer(side, &strength, 2.0, 1.0),
+            "bottom",
+        ),
+    ] {
+        let message = built.unwrap_err().to_string();
+        assert!(message.contains(needle), "{message}");
     }
 }
