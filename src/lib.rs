@@ -3,12 +3,13 @@
 //! Terrain with continuous level of detail (Röttger's quadtree C-LOD), ground
 //! fog lying in its valleys as prisms on that level of detail, fog layers
 //! (height fog exact along every ray, one full-screen pass), cloud
-//! volumes refined by a view-dependent octree and lit by a light field, and
-//! emissive fire and search lights, drawn by cell projection with
-//! pre-integrated transfer functions, exact per pixel. This umbrella crate is
-//! the plugin group [`NebelPlugins`], the [`prelude`] and the re-exported
-//! crates; each effect is a cargo feature (`volume`, `terrain`, `fog`, all
-//! default; `fog` needs `terrain`).
+//! volumes refined by a view-dependent octree and lit by a light field,
+//! emissive fire and search lights, and an aurora (emissive curtains between
+//! two surfaces), drawn by cell projection with pre-integrated transfer
+//! functions, exact per pixel. This umbrella crate is the plugin group
+//! [`NebelPlugins`], the [`prelude`] and the re-exported crates; each effect
+//! is a cargo feature (`volume`, `terrain`, `fog`, `sky`, all default; `fog`
+//! and `sky` need `terrain`).
 //!
 //! ```no_run
 //! use bevy::prelude::*;
@@ -36,6 +37,8 @@ pub use nebel_core;
 pub use nebel_fog;
 pub use nebel_lod;
 pub use nebel_render;
+#[cfg(feature = "sky")]
+pub use nebel_sky;
 #[cfg(feature = "terrain")]
 pub use nebel_terrain;
 #[cfg(feature = "volume")]
@@ -63,6 +66,8 @@ impl PluginGroup for NebelPlugins {
         let group = group
             .add(nebel_fog::GroundFogPlugin)
             .add(nebel_fog::FogLayersPlugin);
+        #[cfg(feature = "sky")]
+        let group = group.add(nebel_sky::AuroraPlugin);
         group
     }
 }
@@ -79,6 +84,11 @@ pub mod prelude {
     pub use nebel_render::{
         AutoQuality, CellBatch, HeavyBuilds, LodCamera, NebelQuality, NebelSystems, QualityPreset,
     };
+    #[cfg(feature = "sky")]
+    pub use nebel_sky::{
+        Aurora, AuroraCurtains, AuroraError, AuroraFootprint, AuroraPlugin, AuroraStats,
+        AuroraStatus,
+    };
     #[cfg(feature = "terrain")]
     pub use nebel_terrain::{
         Terrain, TerrainBuildError, TerrainDebug, TerrainHeights, TerrainLodStats, TerrainNoise,
@@ -93,5 +103,11 @@ pub mod prelude {
 
 /// The README's Rust snippets, compiled as doctests so they stay true.
 #[doc = include_str!("../README.md")]
-#[cfg(all(doctest, feature = "volume", feature = "terrain", feature = "fog"))]
+#[cfg(all(
+    doctest,
+    feature = "volume",
+    feature = "terrain",
+    feature = "fog",
+    feature = "sky"
+))]
 pub struct ReadmeDoctests;

@@ -64,6 +64,7 @@
 //! - Nes 2008: Gisle Nes, "Physically Plausible Weather Visualization", master's thesis,
 //!   University of Bergen, 2008.
 
+mod aurora;
 mod fog_layers;
 mod ground_fog;
 pub mod opaque;
@@ -71,6 +72,7 @@ pub mod reference;
 mod terrain;
 mod volume;
 
+pub use aurora::{AuroraDescription, BuiltAurora, StarsDescription};
 pub use fog_layers::FogLayersDescription;
 pub use ground_fog::{
     BuiltGroundFog, FogMapSource, FogReference, FogThicknessDescription, GroundFogDescription,
@@ -132,6 +134,12 @@ pub struct SceneDescription {
     /// [`FogLayersDescription`]. Default: none.
     #[serde(default)]
     pub fog_layers: Option<FogLayersDescription>,
+    /// An aurora over the scene, see [`AuroraDescription`]. Default: none.
+    #[serde(default)]
+    pub aurora: Option<AuroraDescription>,
+    /// Stars on the sky, see [`StarsDescription`]. Default: none.
+    #[serde(default)]
+    pub stars: Option<StarsDescription>,
     /// The quality preset every effect draws at (`nebel_render`'s
     /// `NebelQuality`): `Low`, `Medium` or `High`. Default `High`. The
     /// reference ignores it.
@@ -695,7 +703,51 @@ impl SceneDescription {
                 .validate()
                 .map_err(|invalid| invalid.within("fog_layers"))?;
         }
+        if let Some(aurora) = &self.aurora {
+            aurora
+                .validate()
+                .map_err(|invalid| invalid.within("aurora"))?;
+        }
+        if let Some(stars) = &self.stars {
+            stars
+                .validate()
+                .map_err(|invalid| invalid.within("stars"))?;
+        }
         Ok(())
+    }
+
+    /// Reads the aurora's files ([`AuroraDescription::build`]); `None`
+    /// without an aurora. `scene_path` names the file in errors and resolves
+    /// the map's path.
+    pub fn build_aurora(&self, scene_path: &Path) -> Result<Option<BuiltAurora>, SceneError> {
+        let Some(aurora) = &self.aurora else {
+            return Ok(None);
+        };
+        let scene_dir = scene_path.parent().unwrap_or(Path::new("."));
+        aurora
+            .build(scene_dir)
+            .map(Some)
+            .map_err(|invalid| invalid.in_scene(scene_path, "aurora"))
+    }
+
+    /// The aurora's cells for the reference camera at the last frame's time
+    /// ([`AuroraDescription::reference`]); `None` without an aurora or cells.
+    pub fn build_aurora_reference(
+        &self,
+        scene_path: &Path,
+        built: &BuiltAurora,
+    ) -> Result<Option<BuiltVolume>, SceneError> {
+        let Some(aurora) = &self.aurora else {
+            return Ok(None);
+        };
+        let last_frame = self.frame_time(self.output.frames.saturating_sub(1));
+        aurora
+            .reference(
+                built,
+                self.reference_camera().position,
+                f64::from(last_frame),
+            )
+            .map_err(|invalid| invalid.in_scene(scene_path, "aurora"))
     }
 
     /// Generates or loads the terrain's unit heights
@@ -894,6 +946,7 @@ fn pose_valid(field: &str, position: [f32; 3], look_at: [f32; 3]) -> Result<(), 
 mod tests {
     use super::*;
     use nebel_core::height_fog::HeightFogLayer;
+    use nebel_core::transfer::TransferPreset;
 
     const MINIMAL: &str =
         "(version: 1, camera: (view: Pose((position: (0.0, 1.0, 5.0), look_at: (0.0, 0.0, 0.0)))))";
@@ -1034,6 +1087,28 @@ mod tests {
                 sun_asymmetry: 0.3,
                 start_distance: 25.0,
                 max_distance: 5000.0,
+            }),
+            aurora: Some(AuroraDescription {
+                curtains: nebel_core::field::AuroraCurtains {
+                    seed: 4,
+                    count: 5,
+                    ..Default::default()
+                },
+                map: Some("aurora.png".into()),
+                center: [1.0, 2.0, 3.0],
+                extent: 4e5,
+                bottom: 9e4,
+                top: 2e5,
+                resolution: 129,
+                brightness: 2e-5,
+                transfer: Some(TransferDescription::Preset(TransferPreset::Fire)),
+                speed: 0.5,
+                accuracy: 8.0,
+            }),
+            stars: Some(StarsDescription {
+                count: 10,
+                seed: 3,
+                brightness: 0.5,
             }),
             quality: QualityDescription::Medium,
             auto_quality_ms: Some(33.3),
@@ -1229,6 +1304,26 @@ mod tests {
                 "version: 1,",
                 "version: 1, auto_quality_ms: 0.0,",
                 "field auto_quality_ms: must be finite and > 0, got 0",
+            ),
+            (
+                "version: 1,",
+                "version: 1, aurora: (bottom: 5e5),",
+                "field aurora.top: aurora top = 300000 is invalid: it must be finite and above the bottom",
+            ),
+            (
+                "version: 1,",
+                "version: 1, aurora: (resolution: 100),",
+                "field aurora.resolution: must be 2^k + 1 from 9 to 2049, got 100",
+            ),
+            (
+                "version: 1,",
+                "version: 1, aurora: (curtains: (count: 0)),",
+                "field aurora.curtains: aurora curtains",
+            ),
+            (
+                "version: 1,",
+                "version: 1, stars: (count: 1000000),",
+                "field stars.count: must be at most 100000, got 1000000",
             ),
             (
                 "version: 1,",

@@ -166,6 +166,7 @@ pub fn run_fog_layer_peers(
             volumes,
             terrain: None,
             ground_fog: None,
+            aurora: None,
             peer,
         };
         let image_path = out_dir.join(format!("{renderer}.png"));

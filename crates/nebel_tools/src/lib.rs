@@ -6,7 +6,8 @@
 //!   adapter wgpu finds (the CPU driver lavapipe included), and its
 //!   statistics ([`stats`]).
 //! - [`example_runner`]: what every example does: a window with a fly camera
-//!   ([`fly_camera`]), or a headless render when there is no display.
+//!   ([`fly_camera`]), or a headless render when there is no display;
+//!   [`stars`]: stars on the night sky.
 //! - [`fog_comparison`], [`fog_layer_peers`] and [`lod_sweep`]: the
 //!   `bench-fog`, `bench-fog-layers` and `bench-lod` commands, and their
 //!   chart ([`time_error_chart`]); [`reference`](mod@reference): the exact CPU reference of a whole scene;
@@ -22,6 +23,7 @@ pub mod lod_sweep;
 pub mod progress;
 pub mod reference;
 pub mod scene_setup;
+pub mod stars;
 pub mod stats;
 pub mod time_error_chart;
 

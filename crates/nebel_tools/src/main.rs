@@ -392,6 +392,7 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
             volumes: vec![equivalent.clone()],
             terrain: scene.build_terrain(scene_path)?,
             ground_fog: scene.build_ground_fog(scene_path)?,
+            aurora: scene.build_aurora(scene_path)?,
             peer: bevy_fog.map(BevyPeer::FogVolume),
         };
         let image_path = out_dir.join(format!("{name}.png"));

@@ -3,7 +3,9 @@
 //! ground, with the terrain's fog (the cells the plugin draws for the
 //! reference camera, on the triangles the GPU draws,
 //! `nebel_scene::TerrainDescription::fog_reference`) or, without fog, as the
-//! full-resolution bilinear surface.
+//! full-resolution bilinear surface, and its aurora (the cells the plugin
+//! draws for the reference camera at the last frame's time,
+//! `nebel_scene::AuroraDescription::reference`).
 
 use std::path::Path;
 
@@ -39,6 +41,9 @@ pub fn scene_reference(
             .zip(unit_heights.as_ref())
             .map(|(terrain, unit)| ReferenceTerrain::Bilinear(terrain.world_heights(unit))),
     };
+    if let Some(aurora) = scene.build_aurora(scene_path)? {
+        volumes.extend(scene.build_aurora_reference(scene_path, &aurora)?);
+    }
     let (bar, report) = reference_bar(progress);
     let image = reference_image_with_terrain(scene, volumes, terrain.as_ref(), Some(&report))?;
     bar.finish_and_clear();

@@ -4,7 +4,10 @@
 //! spawns its camera, lights, meshes, volumes and terrain (a
 //! `nebel_terrain::Terrain` whose heights, generated or loaded from the PNG
 //! relative to the scene file when the plugin is made, become a
-//! `TerrainHeights` asset; the entity sits at the terrain's `center`). A camera with a keyframe path follows
+//! `TerrainHeights` asset; the entity sits at the terrain's `center`), its
+//! aurora (a `nebel_sky::Aurora` at its `center`, a map footprint read when
+//! the plugin is made) and its stars ([`crate::stars`], centred on the
+//! camera's first position). A camera with a keyframe path follows
 //! it by [`Time::elapsed_secs`] (headless runs step time by exactly
 //! `1 / output.frame_rate` per frame, so frame `i` shows the path at
 //! `i / frame_rate`). Colours in scene files are sRGB.
@@ -24,8 +27,9 @@ use nebel_render::{AutoQuality, NebelQuality, NebelSystems, QualityPreset};
 use crate::headless::{HeadlessError, HeadlessOptions, render_headless};
 use crate::stats::RenderStats;
 use nebel_scene::{
-    BuiltGroundFog, BuiltVolume, CameraView, FogThicknessDescription, GroundFogDescription,
-    LightDescription, MeshDescription, QualityDescription, SceneDescription, SceneError,
+    BuiltAurora, BuiltGroundFog, BuiltVolume, CameraView, FogThicknessDescription,
+    GroundFogDescription, LightDescription, MeshDescription, QualityDescription, SceneDescription,
+    SceneError,
 };
 use nebel_volume::VolumeGrid;
 
@@ -45,6 +49,9 @@ pub struct SceneSetupPlugin {
     /// The terrain fog's files ([`SceneSetupPlugin::new`] reads them),
     /// spawned as a `nebel_fog::GroundFog` on the terrain.
     pub ground_fog: Option<BuiltGroundFog>,
+    /// The aurora's files ([`SceneSetupPlugin::new`] reads them), spawned
+    /// as a `nebel_sky::Aurora`.
+    pub aurora: Option<BuiltAurora>,
     /// One of Bevy's own fogs, for comparisons: grid volumes drawn by its
     /// `FogVolume` ray marcher instead of nebel ([`crate::fog_comparison`]),
     /// or its `DistanceFog` on the camera. Default: `None`.
@@ -84,11 +91,13 @@ impl SceneSetupPlugin {
         let volumes = scene.build_volumes(scene_path)?;
         let terrain = scene.build_terrain(scene_path)?;
         let ground_fog = scene.build_ground_fog(scene_path)?;
+        let aurora = scene.build_aurora(scene_path)?;
         Ok(Self {
             scene,
             volumes,
             terrain,
             ground_fog,
+            aurora,
             peer: None,
         })
     }
@@ -97,6 +106,10 @@ impl SceneSetupPlugin {
 /// The scene's built volumes, taken by the startup system.
 #[derive(Resource, Clone, Debug)]
 struct SceneVolumes(Vec<BuiltVolume>);
+
+/// The scene's aurora files, taken by the startup system.
+#[derive(Resource, Clone, Debug)]
+struct SceneAurora(Option<BuiltAurora>);
 
 /// The scene's terrain heights and fog files, taken by the startup system.
 #[derive(Resource, Clone, Debug)]
@@ -123,7 +136,8 @@ impl Plugin for SceneSetupPlugin {
             .register_type::<SceneCamera>()
             .insert_resource(SceneVolumes(self.volumes.clone()))
             .insert_resource(SceneTerrain(self.terrain.clone(), self.ground_fog.clone()))
-            .add_systems(Startup, (spawn_scene, spawn_terrain))
+            .insert_resource(SceneAurora(self.aurora.clone()))
+            .add_systems(Startup, (spawn_scene, spawn_terrain, spawn_aurora))
             .add_systems(PostStartup, enable_bevy_fog)
             .add_systems(Update, follow_camera_path.in_set(NebelSystems));
         match self.peer.clone() {
@@ -258,6 +272,18 @@ fn spawn_scene(
         }
     }
     commands.insert_resource(ambient);
+    if let Some(stars) = &scene.stars {
+        // About 1.5 pixels across at the scene's resolution.
+        let angular_size = 1.5 * camera.fov_degrees.to_radians() / scene.output.height as f32;
+        crate::stars::spawn_stars(
+            &mut commands,
+            &mut meshes,
+            &mut materials,
+            stars,
+            angular_size,
+            Vec3::from(pose.position),
+        );
+    }
 
     for mesh in &scene.meshes {
         let (shape, center, color): (Mesh, _, _) = match mesh {
@@ -455,6 +481,44 @@ fn ground_fog(
             wireframe: fog.debug_wireframe,
         },
     })
+}
+
+/// Spawns the scene's aurora at its centre, its map (if any) as an asset.
+fn spawn_aurora(
+    mut commands: Commands,
+    scene: Res<LoadedScene>,
+    built: Res<SceneAurora>,
+    heights: Option<ResMut<Assets<nebel_terrain::TerrainHeights>>>,
+) {
+    use nebel_sky::{Aurora, AuroraFootprint};
+    let (Some(description), Some(built)) = (&scene.aurora, &built.0) else {
+        return;
+    };
+    let footprint = match (&built.map, heights) {
+        (None, _) => AuroraFootprint::Curtains(description.curtains),
+        (Some(map), Some(mut heights)) => {
+            AuroraFootprint::Map(heights.add(nebel_terrain::TerrainHeights::from_field(map)))
+        }
+        (Some(_), None) => {
+            warn!("nebel: the scene's aurora has a map but the app has no TerrainPlugin");
+            return;
+        }
+    };
+    commands.spawn((
+        Aurora {
+            footprint,
+            extent: description.extent,
+            bottom: description.bottom,
+            top: description.top,
+            resolution: description.resolution,
+            // The built transfer function has the brightness in it.
+            brightness: 1.0,
+            transfer_function: Arc::new(built.transfer_function.clone()),
+            speed: description.speed,
+            accuracy: description.accuracy,
+        },
+        Transform::from_translation(Vec3::from(description.center)),
+    ));
 }
 
 fn follow_camera_path(

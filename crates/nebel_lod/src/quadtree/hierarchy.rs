@@ -87,8 +87,12 @@ impl TerrainHierarchy {
             field,
         };
         hierarchy.compute_height_bounds();
-        let shape = hierarchy.shape();
-        propagate(&mut hierarchy.d2, &shape, hierarchy.field.heights(), 1.0);
+        // A flat field has no roughness: every d2 stays 0 (the bottom of a
+        // layer between two surfaces often is one).
+        if hierarchy.height_range[0] != hierarchy.height_range[1] {
+            let shape = hierarchy.shape();
+            propagate(&mut hierarchy.d2, &shape, hierarchy.field.heights(), 1.0);
+        }
         Ok(hierarchy)
     }
 

@@ -1,0 +1,296 @@
+//! The [`Aurora`] component, its status and statistics, and
+//! [`AuroraPlugin`].
+//!
+//! An aurora is a footprint of curtain strengths in [0, 1] over a square of
+//! [`Aurora::extent`] centred on its entity (in the entity's frame: place
+//! and turn it with its `Transform`), raised into curtains between the
+//! plane at [`Aurora::bottom`] and, where the strength is 1,
+//! [`Aurora::top`] (Röttger 2004 §10.4; the geometry is
+//! [`nebel_lod::AuroraShape`]'s). The curtains emit light only (the thesis's
+//! emissive PCP mode, §10.3): each ray adds `∫ κ(s) ρ(s) dl` over its path
+//! through them, with `s` the altitude above the bottom over `top − bottom`
+//! and ρ scaled by [`Aurora::brightness`], additively over the night sky and
+//! whatever lies behind. So the order of the cells does not matter and the
+//! aurora is right from below (the usual view), from inside and from above.
+//! The default transfer function is the `Aurora` preset: green low (atomic
+//! oxygen's 557.7 nm line, brightest just above the bottom), red high (its
+//! 630.0 nm line above about 220 km), a pink-violet fringe at the bottom.
+//!
+//! # Animation
+//!
+//! A procedural footprint ([`AuroraFootprint::Curtains`]) is sampled every
+//! frame at the virtual time times [`Aurora::speed`]: its arcs sway, fold
+//! and pulse smoothly (`nebel_core::field::AuroraCurtains`), and the
+//! quadtree, refined along the curtains, is built again for each frame's
+//! footprint (its cost, footprint and quadtree together, is
+//! [`AuroraStats::build_ms`]). A map footprint ([`AuroraFootprint::Map`]) is
+//! still: it is built once and refined again only when the eye moves. A
+//! speed of 0 stops the animation.
+//!
+//! # Levels of detail
+//!
+//! The quadtree over the footprint refines where the curtains' top bends
+//! (its roughness is the thickness's, Röttger's d2) and near the eye, with
+//! the criterion's accuracy [`Aurora::accuracy`] (times the terrain factor
+//! of `nebel_render::EffectiveQuality`), and morphs the tops, so curtains
+//! never pop as the eye moves; culled to the view frustum.
+
+mod batch;
+
+use std::sync::Arc;
+
+use bevy::asset::AssetLoadError;
+use bevy::camera::CameraUpdateSystems;
+use bevy::camera::visibility::VisibilitySystems;
+use bevy::diagnostic::{Diagnostic, DiagnosticPath, RegisterDiagnostic};
+use bevy::prelude::*;
+use nebel_core::field::{AuroraCurtains, FieldError};
+use nebel_core::transfer::{TransferError, TransferFunction, TransferPreset};
+use nebel_lod::SurfaceLayerError;
+use nebel_render::NebelSystems;
+use nebel_terrain::TerrainHeights;
+use thiserror::Error;
+
+use batch::{AuroraState, measure_auroras, remove_auroras, update_auroras};
+
+/// Adds [`Aurora`] and its systems (in [`PostUpdate`], after the camera's
+/// transform) and diagnostics. Needs the cell projection
+/// (`nebel_render::CellProjectionPlugin`) to draw, and the terrain plugin
+/// (`nebel_terrain::TerrainPlugin`, for its PNG loader) for a map
+/// footprint; a world without an [`Aurora`] runs no aurora work.
+#[derive(Default)]
+pub struct AuroraPlugin;
+
+impl AuroraPlugin {
+    /// Auroras in the world that draw cells.
+    pub const AURORAS: DiagnosticPath = DiagnosticPath::const_new("nebel/aurora/auroras");
+    /// Tetrahedra drawn, all auroras.
+    pub const TETRAHEDRA: DiagnosticPath = DiagnosticPath::const_new("nebel/aurora/tetrahedra");
+    /// Time of the auroras' work of a frame that did any (footprint,
+    /// quadtree, refinement, prisms and the batch), ms.
+    pub const UPDATE_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/aurora/update_ms");
+}
+
+impl Plugin for AuroraPlugin {
+    fn build(&self, app: &mut App) {
+        app.register_type::<Aurora>()
+            .register_type::<AuroraStatus>()
+            .register_type::<AuroraStats>()
+            .add_systems(
+                PostUpdate,
+                (remove_auroras, update_auroras, measure_auroras)
+                    .chain()
+                    .in_set(NebelSystems)
+                    .after(TransformSystems::Propagate)
+                    .after(CameraUpdateSystems)
+                    .after(VisibilitySystems::VisibilityPropagate),
+            );
+        for (path, suffix) in [
+            (Self::AURORAS, ""),
+            (Self::TETRAHEDRA, ""),
+            (Self::UPDATE_MS, " ms"),
+        ] {
+            app.register_diagnostic(Diagnostic::new(path).with_suffix(suffix));
+        }
+    }
+}
+
+/// Where an aurora's curtains stand.
+#[derive(Clone, Debug, PartialEq, Reflect)]
+#[reflect(Clone)]
+pub enum AuroraFootprint {
+    /// Procedural arcs with folds and rays that drift, fold and pulse.
+    Curtains(AuroraCurtains),
+    /// A grayscale map asset (`asset_server.load::<TerrainHeights>("aurora.png")`:
+    /// black no curtain, white the strongest; values clamped to [0, 1]),
+    /// covering the footprint from corner to corner (first row at −z),
+    /// resampled bilinearly onto [`Aurora::resolution`] points. Still.
+    Map(Handle<TerrainHeights>),
+}
+
+impl Default for AuroraFootprint {
+    fn default() -> Self {
+        Self::Curtains(AuroraCurtains::default())
+    }
+}
+
+/// An aurora over its entity (see the module docs). Lengths are metres in
+/// the entity's frame.
+#[derive(Component, Clone, Debug, PartialEq, Reflect)]
+#[reflect(Component, Default, Clone)]
+#[require(AuroraStatus, AuroraStats, AuroraState, Transform, Visibility)]
+pub struct Aurora {
+    /// Where the curtains stand. Default: [`AuroraCurtains::default()`]
+    /// (three arcs).
+    pub footprint: AuroraFootprint,
+    /// Side of the square footprint, centred on the entity, finite and > 0.
+    /// Default 600 km.
+    pub extent: f32,
+    /// Altitude of the curtains' bottom above the entity, finite. Default
+    /// 100 km (where real auroras end below).
+    pub bottom: f32,
+    /// Altitude the strongest curtains reach, finite and above `bottom`.
+    /// Default 300 km.
+    pub top: f32,
+    /// Points per side of the footprint's grid, `2^k + 1` from 9 to 2049
+    /// (else the status is `Failed`). Default 257 (a 2.3 km grid over the
+    /// default extent).
+    pub resolution: u32,
+    /// Multiplies the transfer function's ρ, finite and ≥ 0: the emission
+    /// per metre of path, 1/m. 0 draws nothing. Default 1.5e-5 (a curtain
+    /// seen through 60 km of its width adds about 0.9 of κ).
+    pub brightness: f32,
+    /// κ (emission colour) and ρ over the altitude in the curtains (0 at
+    /// `bottom`, 1 at `top`). Default: the `Aurora` preset.
+    #[reflect(ignore, default = "aurora_transfer_function")]
+    pub transfer_function: Arc<TransferFunction>,
+    /// Animation seconds per virtual second, finite and ≥ 0; 0 holds the
+    /// curtains still. Default 1.
+    pub speed: f32,
+    /// Accuracy `c` of the quadtree's criterion, finite and > 0: larger
+    /// refines the curtains more. Default 12.
+    pub accuracy: f32,
+}
+
+fn aurora_transfer_function() -> Arc<TransferFunction> {
+    Arc::new(TransferFunction::preset(TransferPreset::Aurora))
+}
+
+impl Default for Aurora {
+    fn default() -> Self {
+        Self {
+            footprint: AuroraFootprint::default(),
+            extent: 600e3,
+            bottom: 100e3,
+            top: 300e3,
+            resolution: 257,
+            brightness: 1.5e-5,
+            transfer_function: aurora_transfer_function(),
+            speed: 1.0,
+            accuracy: 12.0,
+        }
+    }
+}
+
+/// What became of an [`Aurora`].
+#[derive(Component, Clone, Debug, Default, PartialEq, Reflect)]
+#[reflect(Component, Default, Clone)]
+pub enum AuroraStatus {
+    /// Waiting for the footprint map or the first camera.
+    #[default]
+    Pending,
+    /// Drawn where the camera sees it (or nothing to draw: dark, hidden).
+    Ready,
+    /// A setting or the map is unusable: why. Logged once per entity and
+    /// reason; nothing is drawn until the aurora or its map changes.
+    Failed(AuroraError),
+}
+
+/// Statistics of an [`Aurora`], updated by the plugin.
+#[derive(Component, Clone, Copy, Debug, Default, PartialEq, Reflect)]
+#[reflect(Component, Default, Clone)]
+pub struct AuroraStats {
+    /// Triangles of the footprint's refined quadtree in the last update.
+    pub triangles: u32,
+    /// Of them, those under a curtain (each a prism of three tetrahedra).
+    pub prisms: u32,
+    /// Tetrahedra drawn.
+    pub tetrahedra: u32,
+    /// Updates of the cells so far.
+    pub updates: u64,
+    /// Time of the last footprint and quadtree build, ms (every frame while
+    /// animated).
+    pub build_ms: f32,
+    /// Time of the last update: build (if any), refinement, prisms and the
+    /// batch, ms.
+    pub update_ms: f32,
+}
+
+/// Why an [`Aurora`] draws nothing. Every message names the setting or file
+/// at fault.
+#[derive(Clone, Debug, Error, Reflect)]
+#[reflect(opaque, Clone, Debug, PartialEq)]
+pub enum AuroraError {
+    /// The footprint map asset failed to load.
+    #[error("cannot load the aurora's footprint map {path}: {error}")]
+    MapNotLoaded {
+        /// The asset path, or `(no path)` for an asset added in memory.
+        path: String,
+        /// The asset server's error.
+        error: Arc<AssetLoadError>,
+    },
+    /// A setting is out of its range.
+    #[error("aurora {setting} = {value} is invalid: it must be {requirement}")]
+    InvalidSetting {
+        /// The setting's name.
+        setting: &'static str,
+        /// The value given.
+        value: f32,
+        /// What it must be.
+        requirement: &'static str,
+    },
+    /// The curtains' generator refused its settings.
+    #[error(transparent)]
+    Curtains(Arc<FieldError>),
+    /// The layer was refused (NaN in the map, a bad size or shape).
+    #[error(transparent)]
+    Layer(Arc<SurfaceLayerError>),
+    /// The transfer function could not be scaled by the brightness.
+    #[error(transparent)]
+    Transfer(Arc<TransferError>),
+}
+
+impl From<FieldError> for AuroraError {
+    fn from(error: FieldError) -> Self {
+        Self::Curtains(Arc::new(error))
+    }
+}
+
+impl From<SurfaceLayerError> for AuroraError {
+    fn from(error: SurfaceLayerError) -> Self {
+        Self::Layer(Arc::new(error))
+    }
+}
+
+impl From<TransferError> for AuroraError {
+    fn from(error: TransferError) -> Self {
+        Self::Transfer(Arc::new(error))
+    }
+}
+
+/// Two failures are the same when they say the same.
+impl PartialEq for AuroraError {
+    fn eq(&self, other: &Self) -> bool {
+        self.to_string() == other.to_string()
+    }
+}
+
+impl Aurora {
+    /// Checks the settings the footprint and layer do not check themselves.
+    pub fn validate(&self) -> Result<(), AuroraError> {
+        let invalid = |setting, value, requirement| {
+            Err(AuroraError::InvalidSetting {
+                setting,
+                value,
+                requirement,
+            })
+        };
+        let side = self.resolution;
+        if !(9..=2049).contains(&side) || !(side - 1).is_power_of_two() {
+            return invalid("resolution", side as f32, "2^k + 1 from 9 to 2049");
+        }
+        if !(self.brightness.is_finite() && self.brightness >= 0.0) {
+            return invalid("brightness", self.brightness, "finite and >= 0");
+        }
+        if !(self.speed.is_finite() && self.speed >= 0.0) {
+            return invalid("speed", self.speed, "finite and >= 0");
+        }
+        if !(self.accuracy.is_finite() && self.accuracy > 0.0) {
+            return invalid("accuracy", self.accuracy, "finite and > 0");
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests;

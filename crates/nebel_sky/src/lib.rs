@@ -1,0 +1,47 @@
+//! nebel's sky plugins: the aurora ("polar light", Röttger 2004 §10.4),
+//! emissive curtains between two surfaces, drawn by cell projection.
+//!
+//! Put an [`Aurora`] on an entity; [`AuroraPlugin`] then, every frame,
+//!
+//! - samples the curtains' footprint at the animation time (procedural arcs
+//!   that drift, fold and pulse, [`AuroraCurtains`], or a grayscale map);
+//! - raises each curtain from the plane at [`Aurora::bottom`] as high as it
+//!   is strong, up to [`Aurora::top`], as a layer between two surfaces over
+//!   a quadtree C-LOD that refines along the curtains
+//!   ([`nebel_lod::AuroraShape`], [`nebel_lod::SurfaceLayer`]);
+//! - hands the layer's prisms, coloured by altitude, to the cell
+//!   projection as the entity's emissive `CellBatch` (additive, order
+//!   independent, so it is right from below and from above);
+//! - reports [`AuroraStatus`], [`AuroraStats`] and the `nebel/aurora/*`
+//!   diagnostics.
+//!
+//! A world without an aurora, or with a hidden, dark or transparent one,
+//! runs no aurora work: no footprint, no cells, no pass.
+//!
+//! ```no_run
+//! use bevy::prelude::*;
+//! use nebel_sky::{Aurora, AuroraCurtains, AuroraFootprint};
+//!
+//! fn spawn(mut commands: Commands) {
+//!     commands.spawn(Aurora {
+//!         footprint: AuroraFootprint::Curtains(AuroraCurtains {
+//!             count: 4,     // arcs
+//!             drift: 0.02, // sways across the sky per second
+//!             ..default()
+//!         }),
+//!         ..default()
+//!     });
+//! }
+//! # let _ = spawn;
+//! ```
+//!
+//! # References
+//!
+//! - Röttger 2004: Stefan Röttger, "Volumetric Methods for the Real-Time
+//!   Display of Natural Gaseous Phenomena", doctoral thesis, University of
+//!   Stuttgart, 2004.
+
+pub mod aurora;
+
+pub use aurora::{Aurora, AuroraError, AuroraFootprint, AuroraPlugin, AuroraStats, AuroraStatus};
+pub use nebel_core::field::AuroraCurtains;
