@@ -10,7 +10,7 @@
 //!
 //! The `aurora` scene's: four arcs (seed 3, width 0.006) over a 600 km
 //! square centred 350 km north of the eye, from 100 km up to 300 km where
-//! strongest, at 257 and 513 points per side, c = 12; the eye 1.1 km up,
+//! strongest, at 257 (the default) and 513 points per side, c = 12; the eye 1.1 km up,
 //! looking north 12° up, 70° vertical field of view, aspect 16/9. Frames at
 //! 30 Hz from t = 0.
 //!
