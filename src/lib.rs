@@ -4,8 +4,8 @@
 //! fog lying in its valleys as prisms on that level of detail, fog layers
 //! (height fog exact along every ray, one full-screen pass), cloud
 //! volumes refined by a view-dependent octree and lit by a light field,
-//! emissive fire and search lights, and an aurora (emissive curtains between
-//! two surfaces), drawn by cell projection with pre-integrated transfer
+//! emissive fire and search lights, an aurora (emissive curtains between two
+//! surfaces) and a cloud layer between two surfaces, drawn by cell projection with pre-integrated transfer
 //! functions, exact per pixel. This umbrella crate is the plugin group
 //! [`NebelPlugins`], the [`prelude`] and the re-exported crates; each effect
 //! is a cargo feature (`volume`, `terrain`, `fog`, `sky`, all default; `fog`
@@ -67,7 +67,9 @@ impl PluginGroup for NebelPlugins {
             .add(nebel_fog::GroundFogPlugin)
             .add(nebel_fog::FogLayersPlugin);
         #[cfg(feature = "sky")]
-        let group = group.add(nebel_sky::AuroraPlugin);
+        let group = group
+            .add(nebel_sky::AuroraPlugin)
+            .add(nebel_sky::CloudLayerPlugin);
         group
     }
 }
@@ -87,7 +89,8 @@ pub mod prelude {
     #[cfg(feature = "sky")]
     pub use nebel_sky::{
         Aurora, AuroraCurtains, AuroraError, AuroraFootprint, AuroraPlugin, AuroraStats,
-        AuroraStatus,
+        AuroraStatus, CloudLayer, CloudLayerError, CloudLayerPlugin, CloudLayerSource,
+        CloudLayerStats, CloudLayerStatus,
     };
     #[cfg(feature = "terrain")]
     pub use nebel_terrain::{

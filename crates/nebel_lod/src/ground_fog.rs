@@ -162,6 +162,15 @@ pub enum PrismError {
         /// The span given.
         span: f32,
     },
+    /// The lighting of [`PrismScalar::Sunlit`] is not finite, or its
+    /// extinction negative.
+    #[error(
+        "the prisms' lighting (extinction, sun height, ambient, diffuse) = {lighting:?} is invalid: all must be finite and the extinction >= 0"
+    )]
+    InvalidLighting {
+        /// The lighting given.
+        lighting: [f32; 4],
+    },
     /// A sorted batch was asked of an unordered mesh.
     #[error("sorted fog needs a back-to-front or front-to-back terrain mesh, not an unordered one")]
     UnorderedMesh,
@@ -204,6 +213,25 @@ pub enum PrismScalar {
     Height {
         /// The height above the bottom where the scalar reaches 1.
         span: f32,
+    },
+    /// The sunlight that reaches each level through the layer above it, as
+    /// a light intensity for a transfer function over light (the
+    /// `CloudLight` preset): `ambient + diffuse · e^{−extinction · d /
+    /// sun_height}` clamped to [0, 1], `d` the thickness above the level in
+    /// its column (`(1 − r) · t`), `sun_height` the sine of the sun's
+    /// elevation (clamped to at least 0.05): Beer-Lambert along the slant
+    /// path to the top of a plane-parallel layer of the column's local
+    /// thickness. The profile's levels sample it; it is linear between
+    /// them. All four finite, `extinction ≥ 0`.
+    Sunlit {
+        /// Extinction inside the layer, 1 / world unit.
+        extinction: f32,
+        /// Sine of the sun's elevation above the horizon.
+        sun_height: f32,
+        /// Light without the sun.
+        ambient: f32,
+        /// Light of the unshadowed sun.
+        diffuse: f32,
     },
 }
 
@@ -264,6 +292,20 @@ pub fn fog_prisms(
         }
         PrismScalar::Height { span } if !(span.is_finite() && span > 0.0) => {
             return Err(PrismError::InvalidSpan { span });
+        }
+        PrismScalar::Sunlit {
+            extinction,
+            sun_height,
+            ambient,
+            diffuse,
+        } if !([extinction, sun_height, ambient, diffuse]
+            .iter()
+            .all(|v| v.is_finite())
+            && extinction >= 0.0) =>
+        {
+            return Err(PrismError::InvalidLighting {
+                lighting: [extinction, sun_height, ambient, diffuse],
+            });
         }
         _ => {}
     }
@@ -393,6 +435,18 @@ impl Column {
                     PrismScalar::Values => mesh.values[*v].clamp(0.0, 1.0),
                     PrismScalar::Height { span } => {
                         (above / f64::from(span)).clamp(0.0, 1.0) as f32
+                    }
+                    PrismScalar::Sunlit {
+                        extinction,
+                        sun_height,
+                        ambient,
+                        diffuse,
+                    } => {
+                        let depth = t.max(0.0) - above;
+                        let slant = f64::from(sun_height.max(0.05));
+                        let transmittance = (-f64::from(extinction) * depth / slant).exp();
+                        (f64::from(ambient) + f64::from(diffuse) * transmittance).clamp(0.0, 1.0)
+                            as f32
                     }
                 });
             }

@@ -8,6 +8,9 @@
 //! - [`aurora`]: the aurora's curtains as a layer between a plane and a
 //!   top raised by their strength ([`AuroraShape`], Röttger 2004 §10.4).
 //! - [`batch`]: [`GpuCell`] (the GPU layout of one tetrahedron) and [`CellBatch`].
+//! - [`cloud_layer`]: a cloud layer between two surfaces, lit by the sun
+//!   through the layer above each point ([`CloudLayerShape`], Röttger 2004
+//!   §10.4).
 //! - [`frustum`]: view frusta from planes or a view-projection matrix, and the
 //!   conservative box test used to cull bricks and nodes.
 //! - [`full_resolution`]: a density grid as five tetrahedra per voxel in exact
@@ -63,6 +66,7 @@
 
 pub mod aurora;
 pub mod batch;
+pub mod cloud_layer;
 pub mod frustum;
 pub mod full_resolution;
 pub mod ground_fog;
@@ -75,6 +79,7 @@ pub mod volume_batcher;
 
 pub use aurora::AuroraShape;
 pub use batch::{CellBatch, GpuCell};
+pub use cloud_layer::CloudLayerShape;
 pub use frustum::{Frustum, FrustumError};
 pub use full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};
 pub use ground_fog::{FogProfile, PrismError, PrismInput, PrismScalar, PrismStats, fog_prisms};

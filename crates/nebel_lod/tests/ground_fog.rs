@@ -2,18 +2,19 @@
 //! fog's volume, back to front for every eye, continuous along a flight, left
 //! out beyond a handoff distance, with a scalar from a value map, and bad
 //! input as errors; and the same prisms for a layer between two crossing
-//! surfaces, with the height above the bottom as their scalar.
+//! surfaces, with the height above the bottom as their scalar, for aurora
+//! curtains and for a cloud layer lit through the cloud above.
 
 use std::collections::{HashMap, HashSet};
 
 use glam::{DAffine3, DMat4, DVec2, DVec3};
 use nebel_core::cell::{Ray, Tetrahedron};
-use nebel_core::field::{AuroraCurtains, HeightField, ValueNoise};
+use nebel_core::field::{AuroraCurtains, FogNoise, HeightField, ValueNoise};
 use nebel_lod::quadtree::TerrainLayer;
 use nebel_lod::{
-    AuroraShape, CellOrder, FogProfile, Frustum, GpuCell, LayerTop, LayerView, LodSettings,
-    PrismError, PrismInput, PrismScalar, PrismStats, SurfaceLayer, SurfaceLayerError, TerrainError,
-    TerrainHierarchy, TerrainMesh, TriangleOrder, fog_prisms,
+    AuroraShape, CellOrder, CloudLayerShape, FogProfile, Frustum, GpuCell, LayerTop, LayerView,
+    LodSettings, PrismError, PrismInput, PrismScalar, PrismStats, SurfaceLayer, SurfaceLayerError,
+    TerrainError, TerrainHierarchy, TerrainMesh, TriangleOrder, fog_prisms,
 };
 
 const SPACING: f64 = 10.0;
@@ -1163,4 +1164,155 @@ fn aurora_curtains_rise_as_high_as_they_are_strong_and_are_coloured_by_altitude(
         let message = built.unwrap_err().to_string();
         assert!(message.contains(needle), "{message}");
     }
+}
+
+#[test]
+fn a_cloud_layer_is_conforming_sorted_and_lit_through_the_cloud_above() {
+    let side = 65;
+    let extent = 20e3;
+    let noise = FogNoise {
+        thickness: 600.0,
+        coverage: 0.5,
+        ..FogNoise::default()
+    };
+    let thickness = noise.thickness(side, extent / 64.0).unwrap();
+    let shape = CloudLayerShape {
+        extent,
+        base: 1500.0,
+        sag: 0.2,
+    };
+    let layer = shape.layer(side, &thickness, 2.0, 1.0).unwrap();
+    let profile = CloudLayerShape::profile();
+    let (extinction, sun_height, ambient, diffuse) = (0.004_f32, 0.7_f32, 0.3_f32, 0.7_f32);
+    let origin = layer.hierarchy().origin();
+    let mut rng = 0xc10d_u64;
+    let mut random = move || {
+        rng = rng
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (rng >> 11) as f64 / (1u64 << 53) as f64
+    };
+    for (name, eye) in [
+        ("below", DVec3::new(300.0, 200.0, -700.0)),
+        ("inside", DVec3::new(-2100.0, 1550.0, 3300.0)),
+        ("above", DVec3::new(4000.0, 5000.0, 1000.0)),
+    ] {
+        let view = LayerView {
+            world_from_field: DAffine3::IDENTITY,
+            eye,
+            frustum: None,
+            lod: LodSettings {
+                accuracy: 30.0,
+                ..LodSettings::default()
+            },
+            order: CellOrder::BackToFront,
+            profile: &profile,
+            scalar: PrismScalar::Sunlit {
+                extinction,
+                sun_height,
+                ambient,
+                diffuse,
+            },
+        };
+        let mut mesh = TerrainMesh::new();
+        let mut cells = Vec::new();
+        let stats = layer.cells(&view, &mut mesh, &mut cells).unwrap();
+        assert!(
+            stats.prisms > 50 && stats.prisms < stats.triangles,
+            "{name}: {stats:?}"
+        );
+        assert_conforming(&cells, &mesh, origin, extent, name);
+        assert_fills_the_prisms(&cells, &mesh, name);
+        // The light at every vertex: the sun through the cloud above it in
+        // its column.
+        let columns: HashMap<[u32; 2], (f64, f64)> = mesh
+            .positions
+            .iter()
+            .zip(&mesh.layer)
+            .map(|(p, t)| {
+                let w = origin + DVec3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+                (
+                    [(w.x as f32).to_bits(), (w.z as f32).to_bits()],
+                    (w.y, w.y + f64::from(*t)),
+                )
+            })
+            .collect();
+        for cell in &cells {
+            for [x, y, z, s] in cell.vertices {
+                let (_, top) = columns[&[x.to_bits(), z.to_bits()]];
+                let depth = (top - f64::from(y)).max(0.0);
+                let transmittance = (-f64::from(extinction) * depth / f64::from(sun_height)).exp();
+                let expected =
+                    (f64::from(ambient) + f64::from(diffuse) * transmittance).clamp(0.0, 1.0);
+                assert!(
+                    (f64::from(s) - expected).abs() < 1e-4,
+                    "{name}: {s} vs {expected}"
+                );
+            }
+        }
+        let tetrahedra: Vec<Tetrahedron> = cells.iter().map(GpuCell::to_tetrahedron).collect();
+        let mut hit = 0;
+        for _ in 0..60 {
+            let target = DVec3::new(
+                (random() - 0.5) * extent,
+                1300.0 + random() * 700.0,
+                (random() - 0.5) * extent,
+            );
+            let ray = Ray::new(eye, target - eye).unwrap();
+            hit += check_ray_order(&tetrahedra, &ray, name);
+        }
+        assert!(hit > 30, "{name}: the rays hit only {hit} cells");
+    }
+    // Bad lighting and shapes are errors.
+    let view = LayerView {
+        world_from_field: DAffine3::IDENTITY,
+        eye: DVec3::new(0.0, 100.0, 0.0),
+        frustum: None,
+        lod: LodSettings::default(),
+        order: CellOrder::Unordered,
+        profile: &profile,
+        scalar: PrismScalar::Sunlit {
+            extinction: -1.0,
+            sun_height,
+            ambient,
+            diffuse,
+        },
+    };
+    let error = layer
+        .cells(&view, &mut TerrainMesh::new(), &mut Vec::new())
+        .unwrap_err();
+    assert!(
+        matches!(
+            error,
+            SurfaceLayerError::Prisms(PrismError::InvalidLighting { .. })
+        ),
+        "{error}"
+    );
+    for (bad, needle) in [
+        (CloudLayerShape { sag: 1.5, ..shape }, "sag"),
+        (
+            CloudLayerShape {
+                extent: 0.0,
+                ..shape
+            },
+            "extent",
+        ),
+        (
+            CloudLayerShape {
+                base: f64::NAN,
+                ..shape
+            },
+            "base",
+        ),
+    ] {
+        let message = bad
+            .layer(side, &thickness, 2.0, 1.0)
+            .unwrap_err()
+            .to_string();
+        assert!(message.contains(needle), "{message}");
+    }
+    let mut nan = thickness.clone();
+    nan[100] = f32::NAN;
+    let message = shape.layer(side, &nan, 2.0, 1.0).unwrap_err().to_string();
+    assert!(message.contains("NaN"), "{message}");
 }

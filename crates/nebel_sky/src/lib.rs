@@ -1,5 +1,7 @@
 //! nebel's sky plugins: the aurora ("polar light", Röttger 2004 §10.4),
-//! emissive curtains between two surfaces, drawn by cell projection.
+//! emissive curtains between two surfaces, and a cloud layer between two
+//! surfaces, sorted and lit ([`CloudLayer`], [`CloudLayerPlugin`]), both
+//! drawn by cell projection.
 //!
 //! Put an [`Aurora`] on an entity; [`AuroraPlugin`] then, every frame,
 //!
@@ -42,6 +44,11 @@
 //!   Stuttgart, 2004.
 
 pub mod aurora;
+pub mod cloud_layer;
 
 pub use aurora::{Aurora, AuroraError, AuroraFootprint, AuroraPlugin, AuroraStats, AuroraStatus};
-pub use nebel_core::field::AuroraCurtains;
+pub use cloud_layer::{
+    CloudLayer, CloudLayerError, CloudLayerPlugin, CloudLayerSource, CloudLayerStats,
+    CloudLayerStatus,
+};
+pub use nebel_core::field::{AuroraCurtains, FogNoise};

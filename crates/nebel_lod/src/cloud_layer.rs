@@ -1,0 +1,123 @@
+//! A cloud layer between two surfaces (Röttger 2004 §10.4 and Fig. 10.6:
+//! a cloud layer drawn as prisms between two height fields, with the ground
+//! fog's machinery), sorted back to front and lit by the sun through the
+//! layer above each point.
+//!
+//! A [`CloudLayerShape`] turns a thickness per grid point (procedural noise
+//! patches, `nebel_core::field::FogNoise`, or a map) into the layer's two
+//! surfaces over a square of `extent` centred on the origin of its frame:
+//! the base hangs `sag · t` below the altitude `base` and the top rises
+//! `(1 − sag) · t` above it, so thick clouds also reach lower, and where `t`
+//! is 0 the surfaces meet and there is no cloud. Two maps give the surfaces
+//! directly ([`SurfaceLayer::new`]). The cells' scalar is the sunlight that
+//! reaches each level ([`PrismScalar::Sunlit`]), sampled on
+//! [`CloudLayerShape::profile`]'s levels, for a transfer function over
+//! light (the `CloudLight` preset): bright tops, darker bases, as the cloud
+//! volume's light field gives them.
+
+use glam::DVec2;
+use nebel_core::field::HeightField;
+
+use crate::ground_fog::FogProfile;
+use crate::quadtree::TerrainError;
+use crate::surface_layer::{LayerTop, SurfaceLayer, SurfaceLayerError};
+
+/// Where a cloud layer lies (see the [module docs](self)); lengths in world
+/// units (metres).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CloudLayerShape {
+    /// Side of the square layer, finite and > 0.
+    pub extent: f64,
+    /// The altitude the clouds grow from, finite.
+    pub base: f64,
+    /// The part of each cloud's thickness below `base`, in [0, 1].
+    pub sag: f64,
+}
+
+impl CloudLayerShape {
+    /// Checks the shape's ranges.
+    pub fn validate(&self) -> Result<(), TerrainError> {
+        let invalid = |parameter, value, requirement| {
+            Err(TerrainError::InvalidParameter {
+                parameter,
+                value,
+                requirement,
+            })
+        };
+        if !(self.extent.is_finite() && self.extent > 0.0) {
+            return invalid("cloud layer extent", self.extent, "finite and > 0");
+        }
+        if !self.base.is_finite() {
+            return invalid("cloud layer base", self.base, "finite");
+        }
+        if !(0.0..=1.0).contains(&self.sag) {
+            return invalid("cloud layer sag", self.sag, "in [0, 1]");
+        }
+        Ok(())
+    }
+
+    /// The layer of `thickness` (`side × side` values ≥ 0, `side = 2^k + 1`,
+    /// index `i + side · j` along x and z), its quadtree built for the
+    /// minimum resolution `min_resolution` with both surfaces' roughness,
+    /// the thickness's weighted by `roughness_weight`.
+    pub fn layer(
+        &self,
+        side: usize,
+        thickness: &[f32],
+        min_resolution: f32,
+        roughness_weight: f32,
+    ) -> Result<SurfaceLayer, SurfaceLayerError> {
+        self.validate()?;
+        if thickness.len() != side * side || side < 2 {
+            return Err(TerrainError::LayerLength {
+                side,
+                len: thickness.len(),
+            }
+            .into());
+        }
+        if let Some(index) = thickness.iter().position(|t| !t.is_finite()) {
+            return Err(TerrainError::NonFiniteLayer {
+                index,
+                value: thickness[index],
+            }
+            .into());
+        }
+        let below = |t: f32| (self.base - self.sag * f64::from(t.max(0.0))) as f32;
+        let above = |t: f32| (self.base + (1.0 - self.sag) * f64::from(t.max(0.0))) as f32;
+        let bottom = self.field(side, thickness.iter().map(|t| below(*t)).collect())?;
+        let top: Vec<f32> = thickness.iter().map(|t| above(*t)).collect();
+        SurfaceLayer::new(
+            bottom,
+            LayerTop::Surface(&top),
+            None,
+            min_resolution,
+            roughness_weight,
+        )
+    }
+
+    /// The height field of `heights` (`side²`) over the layer's square.
+    pub fn field(&self, side: usize, heights: Vec<f32>) -> Result<HeightField, TerrainError> {
+        self.validate()?;
+        let spacing = self.extent / (side.max(2) - 1) as f64;
+        if let Some(index) = heights.iter().position(|h| !h.is_finite()) {
+            return Err(TerrainError::NonFiniteHeight {
+                i: index % side.max(1),
+                j: index / side.max(1),
+                index,
+                value: heights[index],
+            });
+        }
+        Ok(HeightField::new(
+            [side, side],
+            DVec2::splat(spacing),
+            DVec2::splat(-self.extent / 2.0),
+            heights,
+        )?)
+    }
+
+    /// Four stacked prisms per column, at relative heights 0, ¼, ½, ¾ and 1,
+    /// on which the sunlight is sampled.
+    pub fn profile() -> FogProfile {
+        FogProfile::new((0..=4).map(|k| [k as f32 / 4.0, 0.0]).collect()).expect("a valid profile")
+    }
+}

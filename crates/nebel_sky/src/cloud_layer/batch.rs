@@ -1,0 +1,364 @@
+//! The cloud layer's cells frame after frame: its layer between two
+//! surfaces built once per source and settings, then, whenever the eye, the
+//! view, the sun, the placement or the drawing settings change, refined for
+//! the eye, lit and sorted back to front
+//! ([`nebel_lod::SurfaceLayer::cells`]) as the entity's [`CellBatch`].
+//!
+//! A hidden layer, one of no density or a transparent transfer function
+//! has no batch; removing the `CloudLayer` removes its batch and state.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use bevy::diagnostic::Diagnostics;
+use bevy::math::DAffine3;
+use bevy::prelude::*;
+use nebel_core::optics::OpticalMode;
+use nebel_core::transfer::TransferFunction;
+use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
+use nebel_lod::{
+    CellBatch as LodCellBatch, CellOrder, CloudLayerShape, Frustum, LayerTop, LayerView,
+    LodSettings, PrismScalar, SurfaceLayer, SurfaceLayerError, TerrainLayer, TerrainMesh,
+};
+use nebel_render::camera::to_double;
+use nebel_render::{CellBatch, EffectiveQuality, LodCameras};
+use nebel_terrain::TerrainHeights;
+
+use super::{
+    CloudLayer, CloudLayerError, CloudLayerPlugin, CloudLayerSource, CloudLayerStats,
+    CloudLayerStatus,
+};
+
+/// What a cloud layer's cells were built from.
+#[derive(Clone, Debug, PartialEq)]
+struct CellsKey {
+    builds: u64,
+    clip_from_world: [u64; 16],
+    transform: GlobalTransform,
+    sun: [u32; 3],
+    accuracy: u32,
+}
+
+/// A cloud layer's quadtree, buffers and caches.
+#[derive(Component, Default)]
+pub struct CloudLayerState {
+    /// The layer and the settings and maps it was built from (`Debug`).
+    layer: Option<(String, SurfaceLayer)>,
+    builds: u64,
+    cells: Option<CellsKey>,
+    transfer: Option<(u64, u32, Arc<TransferFunction>)>,
+    mesh: TerrainMesh,
+}
+
+impl CloudLayerState {
+    /// The layer's transfer function with ρ times `density`, cached.
+    fn scaled_transfer(
+        &mut self,
+        layer: &CloudLayer,
+    ) -> Result<Arc<TransferFunction>, CloudLayerError> {
+        let key = (
+            layer.transfer_function.content_hash(),
+            layer.density.to_bits(),
+        );
+        if let Some((hash, density, transfer)) = &self.transfer
+            && (*hash, *density) == key
+        {
+            return Ok(transfer.clone());
+        }
+        let scaled = Arc::new(layer.transfer_function.scale_density(layer.density)?);
+        self.transfer = Some((key.0, key.1, scaled.clone()));
+        Ok(scaled)
+    }
+}
+
+fn fail(entity: Entity, status: &mut CloudLayerStatus, error: CloudLayerError) {
+    if *status != CloudLayerStatus::Failed(error.clone()) {
+        error!("nebel: cloud layer {entity} not drawn: {error}");
+        *status = CloudLayerStatus::Failed(error);
+    }
+}
+
+/// A map's unit values on `side²` points, `None` while it loads.
+fn map_values(
+    handle: &Handle<TerrainHeights>,
+    side: usize,
+    maps: &Assets<TerrainHeights>,
+    asset_server: &AssetServer,
+) -> Result<Option<Vec<f32>>, CloudLayerError> {
+    if let Some((path, error)) = TerrainHeights::load_failure(handle, asset_server) {
+        return Err(CloudLayerError::MapNotLoaded { path, error });
+    }
+    let Some(map) = maps.get(handle) else {
+        return Ok(None);
+    };
+    let dims = [map.dims.x as usize, map.dims.y as usize];
+    let layer = TerrainLayer::resample(&map.values, dims, side)
+        .map_err(|error| CloudLayerError::from(SurfaceLayerError::from(error)))?;
+    Ok(Some(layer.values().to_vec()))
+}
+
+/// The layer of `layer`'s source, `None` while a map loads.
+fn build_layer(
+    layer: &CloudLayer,
+    maps: &Assets<TerrainHeights>,
+    asset_server: &AssetServer,
+) -> Result<Option<SurfaceLayer>, CloudLayerError> {
+    let side = layer.resolution as usize;
+    let shape = CloudLayerShape {
+        extent: f64::from(layer.extent),
+        base: f64::from(layer.base),
+        sag: f64::from(layer.sag),
+    };
+    match &layer.source {
+        CloudLayerSource::Noise(noise) => {
+            let thickness = noise.thickness(side, shape.extent / (side - 1) as f64)?;
+            Ok(Some(shape.layer(
+                side,
+                &thickness,
+                DEFAULT_MIN_RESOLUTION,
+                1.0,
+            )?))
+        }
+        CloudLayerSource::Maps { bottom, top, scale } => {
+            let (Some(bottom), Some(top)) = (
+                map_values(bottom, side, maps, asset_server)?,
+                map_values(top, side, maps, asset_server)?,
+            ) else {
+                return Ok(None);
+            };
+            let surface = |unit: Vec<f32>| -> Vec<f32> {
+                unit.iter().map(|u| layer.base + scale * u).collect()
+            };
+            let bottom = shape
+                .field(side, surface(bottom))
+                .map_err(|error| CloudLayerError::from(SurfaceLayerError::from(error)))?;
+            let top = surface(top);
+            Ok(Some(SurfaceLayer::new(
+                bottom,
+                LayerTop::Surface(&top),
+                None,
+                DEFAULT_MIN_RESOLUTION,
+                1.0,
+            )?))
+        }
+    }
+}
+
+/// A `CloudLayer` removed from an entity that lives on: its batch and
+/// state go with it.
+pub(super) fn remove_cloud_layers(
+    mut commands: Commands,
+    mut removed: RemovedComponents<CloudLayer>,
+) {
+    for entity in removed.read() {
+        if let Ok(mut entity) = commands.get_entity(entity) {
+            entity.remove::<(
+                CellBatch,
+                CloudLayerState,
+                CloudLayerStatus,
+                CloudLayerStats,
+            )>();
+        }
+    }
+}
+
+/// Builds every visible cloud layer's cells (see the module docs).
+pub(super) fn update_cloud_layers(
+    mut commands: Commands,
+    cameras: LodCameras,
+    suns: Query<&GlobalTransform, With<DirectionalLight>>,
+    mut layers: Query<(
+        Entity,
+        Ref<CloudLayer>,
+        Ref<GlobalTransform>,
+        &InheritedVisibility,
+        Has<CellBatch>,
+        &mut CloudLayerState,
+        &mut CloudLayerStatus,
+        &mut CloudLayerStats,
+    )>,
+    maps: Res<Assets<TerrainHeights>>,
+    asset_server: Res<AssetServer>,
+    quality: Option<Res<EffectiveQuality>>,
+    mut diagnostics: Diagnostics,
+) {
+    if layers.is_empty() {
+        return;
+    }
+    let Some(camera) = cameras.view() else {
+        return;
+    };
+    let accuracy_scale = quality
+        .as_ref()
+        .map_or(1.0, |quality| quality.terrain_accuracy_scale());
+    // Toward the sun, world space: straight up without a directional light.
+    let toward_sun = suns
+        .iter()
+        .next()
+        .map_or(Vec3::Y, |sun| -sun.forward().as_vec3());
+    let mut frame_ms = None;
+    for (entity, layer, transform, visibility, has_batch, mut state, mut status, mut stats) in
+        &mut layers
+    {
+        let state = &mut *state;
+        let clear = |commands: &mut Commands, state: &mut CloudLayerState| {
+            if has_batch {
+                commands.entity(entity).remove::<CellBatch>();
+            }
+            state.cells = None;
+        };
+        if let Err(error) = layer.validate() {
+            clear(&mut commands, state);
+            fail(entity, &mut status, error);
+            continue;
+        }
+        if !visibility.get()
+            || layer.density == 0.0
+            || layer.transfer_function.is_transparent(0.0, 1.0)
+        {
+            clear(&mut commands, state);
+            status.set_if_neq(CloudLayerStatus::Ready);
+            continue;
+        }
+        let started = Instant::now();
+        let settings = format!(
+            "{:?} {} {} {} {} {:?}",
+            layer.source,
+            layer.extent,
+            layer.base,
+            layer.sag,
+            layer.resolution,
+            match &layer.source {
+                CloudLayerSource::Maps { bottom, top, .. } => [bottom, top]
+                    .map(|map| maps.get(map).map(|map| Arc::as_ptr(&map.values) as usize)),
+                CloudLayerSource::Noise(_) => [None, None],
+            }
+        );
+        let mut built_ms = None;
+        if state.layer.as_ref().map(|(key, _)| key) != Some(&settings) {
+            if matches!(*status, CloudLayerStatus::Failed(_))
+                && state.layer.is_none()
+                && !layer.is_changed()
+            {
+                continue;
+            }
+            match build_layer(&layer, &maps, &asset_server) {
+                Ok(Some(built)) => {
+                    state.layer = Some((settings, built));
+                    state.builds += 1;
+                    built_ms = Some(started.elapsed().as_secs_f32() * 1e3);
+                }
+                Ok(None) => {
+                    status.set_if_neq(CloudLayerStatus::Pending);
+                    continue;
+                }
+                Err(error) => {
+                    state.layer = None;
+                    clear(&mut commands, state);
+                    fail(entity, &mut status, error);
+                    continue;
+                }
+            }
+        }
+        let world_from_field = DAffine3::from_mat4(to_double(transform.to_matrix()));
+        let sun_local = world_from_field
+            .inverse()
+            .transform_vector3(toward_sun.as_dvec3())
+            .normalize_or(bevy::math::DVec3::Y);
+        let accuracy = (f64::from(layer.accuracy) * accuracy_scale) as f32;
+        let cells_key = CellsKey {
+            builds: state.builds,
+            clip_from_world: camera.clip_from_world.to_cols_array().map(f64::to_bits),
+            transform: *transform,
+            sun: toward_sun.to_array().map(f32::to_bits),
+            accuracy: accuracy.to_bits(),
+        };
+        if state.cells.as_ref() == Some(&cells_key) && !layer.is_changed() {
+            continue;
+        }
+        let transfer = match state.scaled_transfer(&layer) {
+            Ok(transfer) => transfer,
+            Err(error) => {
+                fail(entity, &mut status, error);
+                continue;
+            }
+        };
+        let Some((_, surface_layer)) = &state.layer else {
+            continue;
+        };
+        let frustum = Frustum::from_view_projection(camera.clip_from_world)
+            .ok()
+            .map(|frustum| frustum.in_local_frame(&world_from_field));
+        let profile = CloudLayerShape::profile();
+        let view = LayerView {
+            world_from_field,
+            eye: camera.eye,
+            frustum: frustum.as_ref(),
+            lod: LodSettings {
+                accuracy,
+                ..LodSettings::default()
+            },
+            order: CellOrder::BackToFront,
+            profile: &profile,
+            scalar: PrismScalar::Sunlit {
+                extinction: layer.shadow_extinction,
+                sun_height: sun_local.y as f32,
+                ambient: layer.ambient,
+                diffuse: layer.diffuse,
+            },
+        };
+        let mut cells = Vec::new();
+        let counts = match surface_layer.cells(&view, &mut state.mesh, &mut cells) {
+            Ok(counts) => counts,
+            Err(error) => {
+                fail(entity, &mut status, error.into());
+                continue;
+            }
+        };
+        state.cells = Some(cells_key);
+        status.set_if_neq(CloudLayerStatus::Ready);
+        if cells.is_empty() {
+            if has_batch {
+                commands.entity(entity).remove::<CellBatch>();
+            }
+        } else {
+            commands.entity(entity).insert(CellBatch::new(
+                Arc::new(LodCellBatch::with_bounds(cells)),
+                transfer,
+                OpticalMode::Sorted,
+            ));
+        }
+        let update_ms = started.elapsed().as_secs_f32() * 1e3;
+        *stats = CloudLayerStats {
+            triangles: counts.triangles as u32,
+            prisms: counts.prisms as u32,
+            tetrahedra: counts.tetrahedra as u32,
+            updates: stats.updates + 1,
+            build_ms: built_ms.unwrap_or(stats.build_ms),
+            update_ms,
+        };
+        *frame_ms.get_or_insert(0.0) += f64::from(update_ms);
+    }
+    if let Some(ms) = frame_ms {
+        diagnostics.add_measurement(&CloudLayerPlugin::UPDATE_MS, || ms);
+    }
+}
+
+/// Measures the cloud layers' totals; nothing in a world without one.
+pub(super) fn measure_cloud_layers(
+    layers: Query<(&CloudLayerStats, Has<CellBatch>), With<CloudLayer>>,
+    mut diagnostics: Diagnostics,
+) {
+    if layers.is_empty() {
+        return;
+    }
+    let (mut drawn, mut tetrahedra) = (0.0, 0.0);
+    for (stats, has_batch) in &layers {
+        if has_batch {
+            drawn += 1.0;
+            tetrahedra += f64::from(stats.tetrahedra);
+        }
+    }
+    diagnostics.add_measurement(&CloudLayerPlugin::LAYERS, || drawn);
+    diagnostics.add_measurement(&CloudLayerPlugin::TETRAHEDRA, || tetrahedra);
+}

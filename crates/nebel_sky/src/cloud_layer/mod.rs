@@ -1,0 +1,346 @@
+//! The [`CloudLayer`] component, its status and statistics, and
+//! [`CloudLayerPlugin`].
+//!
+//! A cloud layer lies between two surfaces over a square of
+//! [`CloudLayer::extent`] centred on its entity (Röttger 2004 §10.4 and
+//! Fig. 10.6: a cloud layer as prisms between two height fields, drawn with
+//! the ground fog's machinery). Procedurally ([`CloudLayerSource::Noise`])
+//! the clouds are noise patches of thickness `t` that grow from
+//! [`CloudLayer::base`]: their bottom hangs `sag · t` below it, their top
+//! rises `(1 − sag) · t` above it ([`nebel_lod::CloudLayerShape`]); from two
+//! grayscale maps ([`CloudLayerSource::Maps`]) the bottom and top are
+//! `base + scale · map` each, the clouds where the top lies above the
+//! bottom.
+//!
+//! The layer is drawn sorted (emission and absorption, back to front for
+//! the eye: its quadtree refines and its prisms are ordered again whenever
+//! the eye moves) and lit like a cloud volume: each level of the prisms
+//! carries the light that reaches it, `ambient + diffuse · e^{−σ d / sin
+//! e}`, with `d` the cloud above it in its column, `e` the sun's elevation
+//! (the first `DirectionalLight`; straight up without one) and `σ`
+//! [`CloudLayer::shadow_extinction`] (Beer-Lambert through a plane-parallel
+//! layer of the column's local thickness), read by a transfer function over
+//! light (default the `CloudLight` preset); the view rays see the extinction
+//! [`CloudLayer::density`].
+//!
+//! The layer's quadtree is built once per source and settings, on the main
+//! thread (a few milliseconds for the default 257 points per side).
+
+mod batch;
+
+use std::sync::Arc;
+
+use bevy::asset::AssetLoadError;
+use bevy::camera::CameraUpdateSystems;
+use bevy::camera::visibility::VisibilitySystems;
+use bevy::diagnostic::{Diagnostic, DiagnosticPath, RegisterDiagnostic};
+use bevy::prelude::*;
+use nebel_core::field::{CloudLighting, FieldError, FogNoise, TerrainNoise};
+use nebel_core::transfer::{TransferError, TransferFunction, TransferPreset};
+use nebel_lod::SurfaceLayerError;
+use nebel_render::NebelSystems;
+use nebel_terrain::TerrainHeights;
+use thiserror::Error;
+
+use batch::{CloudLayerState, measure_cloud_layers, remove_cloud_layers, update_cloud_layers};
+
+/// Adds [`CloudLayer`] and its systems (in [`PostUpdate`], after the
+/// camera's transform) and diagnostics. Needs the cell projection to draw,
+/// and the terrain plugin (its PNG loader) for map sources; a world without
+/// a [`CloudLayer`] runs no cloud-layer work.
+#[derive(Default)]
+pub struct CloudLayerPlugin;
+
+impl CloudLayerPlugin {
+    /// Cloud layers in the world that draw cells.
+    pub const LAYERS: DiagnosticPath = DiagnosticPath::const_new("nebel/cloud_layer/layers");
+    /// Tetrahedra drawn, all cloud layers.
+    pub const TETRAHEDRA: DiagnosticPath =
+        DiagnosticPath::const_new("nebel/cloud_layer/tetrahedra");
+    /// Time of the cloud layers' work of a frame that did any (quadtree
+    /// when built, refinement, sorted prisms and the batch), ms.
+    pub const UPDATE_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/cloud_layer/update_ms");
+}
+
+impl Plugin for CloudLayerPlugin {
+    fn build(&self, app: &mut App) {
+        app.register_type::<CloudLayer>()
+            .register_type::<CloudLayerStatus>()
+            .register_type::<CloudLayerStats>()
+            .add_systems(
+                PostUpdate,
+                (
+                    remove_cloud_layers,
+                    update_cloud_layers,
+                    measure_cloud_layers,
+                )
+                    .chain()
+                    .in_set(NebelSystems)
+                    .after(TransformSystems::Propagate)
+                    .after(CameraUpdateSystems)
+                    .after(VisibilitySystems::VisibilityPropagate),
+            );
+        for (path, suffix) in [
+            (Self::LAYERS, ""),
+            (Self::TETRAHEDRA, ""),
+            (Self::UPDATE_MS, " ms"),
+        ] {
+            app.register_diagnostic(Diagnostic::new(path).with_suffix(suffix));
+        }
+    }
+}
+
+/// Where a cloud layer's clouds come from.
+#[derive(Clone, Debug, PartialEq, Reflect)]
+#[reflect(Clone)]
+pub enum CloudLayerSource {
+    /// Noise patches of thickness (their `thickness` at the noise's peaks,
+    /// their `coverage` the part of the sky they cover).
+    Noise(FogNoise),
+    /// Two grayscale map assets (`asset_server.load::<TerrainHeights>(…)`:
+    /// black 0, white 1), the bottom and the top surface at `base + scale ·
+    /// value`, each resampled bilinearly onto [`CloudLayer::resolution`]
+    /// points from corner to corner.
+    Maps {
+        /// The bottom surface's map.
+        bottom: Handle<TerrainHeights>,
+        /// The top surface's map.
+        top: Handle<TerrainHeights>,
+        /// Metres of a white pixel, finite and ≥ 0.
+        scale: f32,
+    },
+}
+
+impl Default for CloudLayerSource {
+    fn default() -> Self {
+        Self::Noise(FogNoise {
+            noise: TerrainNoise {
+                octaves: 5,
+                wavelength: 4000.0,
+                ..TerrainNoise::default()
+            },
+            thickness: 700.0,
+            coverage: 0.45,
+        })
+    }
+}
+
+/// A cloud layer over its entity (see the module docs). Lengths are metres
+/// in the entity's frame.
+#[derive(Component, Clone, Debug, PartialEq, Reflect)]
+#[reflect(Component, Default, Clone)]
+#[require(
+    CloudLayerStatus,
+    CloudLayerStats,
+    CloudLayerState,
+    Transform,
+    Visibility
+)]
+pub struct CloudLayer {
+    /// Where the clouds are. Default: noise patches up to 700 m thick, 5
+    /// octaves from 4 km, covering 45 % of the sky.
+    pub source: CloudLayerSource,
+    /// Side of the square layer, centred on the entity, finite and > 0.
+    /// Default 40 km.
+    pub extent: f32,
+    /// The altitude the clouds grow from, finite. Default 1500 m.
+    pub base: f32,
+    /// The part of a procedural cloud's thickness below `base`, in [0, 1].
+    /// Default 0.2.
+    pub sag: f32,
+    /// Points per side of the layer's grid, `2^k + 1` from 9 to 2049.
+    /// Default 257.
+    pub resolution: u32,
+    /// Multiplies the transfer function's ρ, finite and ≥ 0: with the
+    /// default transfer function the extinction of the view rays, 1/m. 0
+    /// draws nothing. Default 0.01 (100 m to fade to 1/e).
+    pub density: f32,
+    /// Light every point receives, in [0, 1]. Default 0.3.
+    pub ambient: f32,
+    /// Light of the unshadowed sun, in [0, 1]. Default 0.7.
+    pub diffuse: f32,
+    /// Extinction toward the sun, 1/m, finite and ≥ 0; 0 casts no shadow.
+    /// Default 0.004.
+    pub shadow_extinction: f32,
+    /// κ and ρ over the light. Default: the `CloudLight` preset.
+    #[reflect(ignore, default = "cloud_layer_transfer_function")]
+    pub transfer_function: Arc<TransferFunction>,
+    /// Accuracy `c` of the quadtree's criterion, finite and > 0. Default 40.
+    pub accuracy: f32,
+}
+
+fn cloud_layer_transfer_function() -> Arc<TransferFunction> {
+    Arc::new(TransferFunction::preset(TransferPreset::CloudLight))
+}
+
+impl Default for CloudLayer {
+    fn default() -> Self {
+        Self {
+            source: CloudLayerSource::default(),
+            extent: 40e3,
+            base: 1500.0,
+            sag: 0.2,
+            resolution: 257,
+            density: 0.01,
+            ambient: CloudLighting::DEFAULT_AMBIENT,
+            diffuse: CloudLighting::DEFAULT_DIFFUSE,
+            shadow_extinction: 0.004,
+            transfer_function: cloud_layer_transfer_function(),
+            accuracy: 40.0,
+        }
+    }
+}
+
+/// What became of a [`CloudLayer`].
+#[derive(Component, Clone, Debug, Default, PartialEq, Reflect)]
+#[reflect(Component, Default, Clone)]
+pub enum CloudLayerStatus {
+    /// Waiting for the maps or the first camera.
+    #[default]
+    Pending,
+    /// Drawn where the camera sees it (or nothing to draw).
+    Ready,
+    /// A setting or a map is unusable: why. Logged once per entity and
+    /// reason; nothing is drawn until the layer or its maps change.
+    Failed(CloudLayerError),
+}
+
+/// Statistics of a [`CloudLayer`], updated by the plugin.
+#[derive(Component, Clone, Copy, Debug, Default, PartialEq, Reflect)]
+#[reflect(Component, Default, Clone)]
+pub struct CloudLayerStats {
+    /// Triangles of the layer's refined quadtree in the last update.
+    pub triangles: u32,
+    /// Of them, those under a cloud (each a column of stacked prisms).
+    pub prisms: u32,
+    /// Tetrahedra drawn.
+    pub tetrahedra: u32,
+    /// Updates of the cells so far.
+    pub updates: u64,
+    /// Time of the last quadtree build, ms.
+    pub build_ms: f32,
+    /// Time of the last update (refinement, sorted prisms and the batch),
+    /// ms.
+    pub update_ms: f32,
+}
+
+/// Why a [`CloudLayer`] draws nothing. Every message names the setting or
+/// file at fault.
+#[derive(Clone, Debug, Error, Reflect)]
+#[reflect(opaque, Clone, Debug, PartialEq)]
+pub enum CloudLayerError {
+    /// A map asset failed to load.
+    #[error("cannot load the cloud layer's map {path}: {error}")]
+    MapNotLoaded {
+        /// The asset path, or `(no path)` for an asset added in memory.
+        path: String,
+        /// The asset server's error.
+        error: Arc<AssetLoadError>,
+    },
+    /// A setting is out of its range.
+    #[error("cloud layer {setting} = {value} is invalid: it must be {requirement}")]
+    InvalidSetting {
+        /// The setting's name.
+        setting: &'static str,
+        /// The value given.
+        value: f32,
+        /// What it must be.
+        requirement: &'static str,
+    },
+    /// The noise refused its settings.
+    #[error(transparent)]
+    Noise(Arc<FieldError>),
+    /// The layer was refused (NaN in a map, a bad size or shape).
+    #[error(transparent)]
+    Layer(Arc<SurfaceLayerError>),
+    /// The transfer function could not be scaled by the density.
+    #[error(transparent)]
+    Transfer(Arc<TransferError>),
+}
+
+impl From<FieldError> for CloudLayerError {
+    fn from(error: FieldError) -> Self {
+        Self::Noise(Arc::new(error))
+    }
+}
+
+impl From<SurfaceLayerError> for CloudLayerError {
+    fn from(error: SurfaceLayerError) -> Self {
+        Self::Layer(Arc::new(error))
+    }
+}
+
+impl From<TransferError> for CloudLayerError {
+    fn from(error: TransferError) -> Self {
+        Self::Transfer(Arc::new(error))
+    }
+}
+
+/// Two failures are the same when they say the same.
+impl PartialEq for CloudLayerError {
+    fn eq(&self, other: &Self) -> bool {
+        self.to_string() == other.to_string()
+    }
+}
+
+impl CloudLayer {
+    /// Checks the settings the layer's builders do not check themselves.
+    pub fn validate(&self) -> Result<(), CloudLayerError> {
+        let invalid = |setting, value, requirement| {
+            Err(CloudLayerError::InvalidSetting {
+                setting,
+                value,
+                requirement,
+            })
+        };
+        let side = self.resolution;
+        if !(9..=2049).contains(&side) || !(side - 1).is_power_of_two() {
+            return invalid("resolution", side as f32, "2^k + 1 from 9 to 2049");
+        }
+        for (setting, value, ok, requirement) in [
+            (
+                "density",
+                self.density,
+                self.density >= 0.0,
+                "finite and >= 0",
+            ),
+            (
+                "shadow_extinction",
+                self.shadow_extinction,
+                self.shadow_extinction >= 0.0,
+                "finite and >= 0",
+            ),
+            (
+                "accuracy",
+                self.accuracy,
+                self.accuracy > 0.0,
+                "finite and > 0",
+            ),
+            (
+                "ambient",
+                self.ambient,
+                (0.0..=1.0).contains(&self.ambient),
+                "in [0, 1]",
+            ),
+            (
+                "diffuse",
+                self.diffuse,
+                (0.0..=1.0).contains(&self.diffuse),
+                "in [0, 1]",
+            ),
+        ] {
+            if !(value.is_finite() && ok) {
+                return invalid(setting, value, requirement);
+            }
+        }
+        if let CloudLayerSource::Maps { scale, .. } = self.source
+            && !(scale.is_finite() && scale >= 0.0)
+        {
+            return invalid("scale", scale, "finite and >= 0");
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,265 @@
+//! The cloud-layer plugin in an app without a GPU: sorted cells lit from
+//! above, re-sorted as the eye moves, relit as the sun moves, two map
+//! surfaces, nothing for dark or hidden layers, and bad settings as a
+//! status.
+
+use std::sync::Arc;
+
+use bevy::asset::AssetPlugin;
+use bevy::prelude::*;
+use bevy::transform::TransformPlugin;
+use nebel_core::optics::OpticalMode;
+use nebel_render::CellBatch;
+use nebel_render::camera::computed_camera;
+use nebel_terrain::TerrainHeights;
+
+use super::{CloudLayer, CloudLayerPlugin, CloudLayerSource, CloudLayerStats, CloudLayerStatus};
+
+/// An app with the cloud-layer plugin, a sun 60° up, and a camera below the
+/// clouds looking up at them.
+fn app() -> (App, Entity, Entity) {
+    let mut app = App::new();
+    app.add_plugins((
+        MinimalPlugins,
+        TransformPlugin,
+        AssetPlugin {
+            watch_for_changes_override: Some(false),
+            ..default()
+        },
+    ))
+    .init_asset::<TerrainHeights>()
+    .add_plugins(CloudLayerPlugin);
+    let camera = computed_camera(
+        Mat4::perspective_infinite_reverse_rh(1.2, 1.5, 0.1),
+        UVec2::new(96, 64),
+    );
+    let camera = app
+        .world_mut()
+        .spawn((
+            Camera3d::default(),
+            camera,
+            Transform::from_xyz(0.0, 300.0, 4000.0)
+                .looking_at(Vec3::new(0.0, 1500.0, 0.0), Vec3::Y),
+        ))
+        .id();
+    let sun = app
+        .world_mut()
+        .spawn((
+            DirectionalLight::default(),
+            Transform::default().looking_to(Vec3::new(0.5, -3f32.sqrt(), 0.0), Vec3::Y),
+        ))
+        .id();
+    (app, camera, sun)
+}
+
+fn spawn(app: &mut App, layer: CloudLayer) -> Entity {
+    app.world_mut()
+        .spawn((
+            CloudLayer {
+                resolution: 65,
+                extent: 10e3,
+                ..layer
+            },
+            InheritedVisibility::VISIBLE,
+        ))
+        .id()
+}
+
+fn settle(app: &mut App) {
+    for _ in 0..3 {
+        app.update();
+    }
+}
+
+fn batch(app: &App, entity: Entity) -> Option<CellBatch> {
+    app.world().get::<CellBatch>(entity).cloned()
+}
+
+fn stats(app: &App, entity: Entity) -> CloudLayerStats {
+    *app.world().get::<CloudLayerStats>(entity).unwrap()
+}
+
+fn status(app: &App, entity: Entity) -> CloudLayerStatus {
+    app.world().get::<CloudLayerStatus>(entity).unwrap().clone()
+}
+
+/// The mean light of the cells' vertices in the lower and upper half of
+/// the layer's altitudes.
+fn light_below_and_above(batch: &CellBatch, middle: f32) -> (f32, f32) {
+    let (mut below, mut above) = ((0.0, 0), (0.0, 0));
+    for cell in &batch.cells.cells {
+        for [_, y, _, s] in cell.vertices {
+            let side = if y < middle { &mut below } else { &mut above };
+            side.0 += s;
+            side.1 += 1;
+        }
+    }
+    (below.0 / below.1 as f32, above.0 / above.1 as f32)
+}
+
+#[test]
+fn a_cloud_layer_draws_sorted_cells_lit_from_above_that_follow_eye_and_sun() {
+    let (mut app, camera, sun) = app();
+    let layer = spawn(&mut app, CloudLayer::default());
+    settle(&mut app);
+    assert_eq!(status(&app, layer), CloudLayerStatus::Ready);
+    let first = batch(&app, layer).expect("a batch");
+    assert_eq!(first.mode, OpticalMode::Sorted);
+    let counts = stats(&app, layer);
+    assert_eq!(counts.tetrahedra as usize, first.cells.len());
+    assert!(counts.tetrahedra > 100, "{counts:?}");
+    // Between the base's sag and the tops: 1500 m − 0.2 · 700 m to
+    // 1500 m + 0.8 · 700 m.
+    for cell in &first.cells.cells {
+        for [_, y, _, s] in cell.vertices {
+            assert!((1360.0 - 1.0..=2060.0 + 1.0).contains(&y), "{y}");
+            assert!((0.3..=1.0).contains(&s), "{s}");
+        }
+    }
+    // Bright tops, darker bases.
+    let (below, above) = light_below_and_above(&first, 1500.0);
+    assert!(above > below + 0.05, "{below} below, {above} above");
+    // Still: nothing again; the eye moves: sorted again.
+    settle(&mut app);
+    assert_eq!(stats(&app, layer).updates, counts.updates);
+    app.world_mut()
+        .get_mut::<Transform>(camera)
+        .unwrap()
+        .translation
+        .x += 200.0;
+    settle(&mut app);
+    assert_eq!(stats(&app, layer).updates, counts.updates + 1);
+    // A low sun: the light falls.
+    *app.world_mut().get_mut::<Transform>(sun).unwrap() =
+        Transform::default().looking_to(Vec3::new(1.0, -0.2, 0.0), Vec3::Y);
+    settle(&mut app);
+    let low = batch(&app, layer).unwrap();
+    let (low_below, _) = light_below_and_above(&low, 1500.0);
+    assert!(low_below < below, "{low_below} vs {below}");
+}
+
+#[test]
+fn two_map_surfaces_give_clouds_where_the_top_lies_above_the_bottom() {
+    let (mut app, _, _) = app();
+    let side = 17;
+    let map = |values: Vec<f32>| TerrainHeights {
+        dims: UVec2::splat(side as u32),
+        values: Arc::new(values),
+    };
+    // The top at 0.5 everywhere, the bottom at 0.25 on the left half and 1
+    // (above the top: no cloud) on the right.
+    let bottom: Vec<f32> = (0..side * side)
+        .map(|p| if p % side < side / 2 { 0.25 } else { 1.0 })
+        .collect();
+    let mut maps = app.world_mut().resource_mut::<Assets<TerrainHeights>>();
+    let (bottom, top) = (maps.add(map(bottom)), maps.add(map(vec![0.5; side * side])));
+    let layer = spawn(
+        &mut app,
+        CloudLayer {
+            source: CloudLayerSource::Maps {
+                bottom,
+                top,
+                scale: 400.0,
+            },
+            ..default()
+        },
+    );
+    settle(&mut app);
+    assert_eq!(status(&app, layer), CloudLayerStatus::Ready);
+    let cells = batch(&app, layer).expect("a batch").cells;
+    for cell in &cells.cells {
+        for [x, y, _, _] in cell.vertices {
+            // The left half (x < 0 on the 10 km square), from 1600 m up to
+            // the top at 1700 m; where the surfaces cross, a column's corner
+            // of no thickness lies on the bottom, up to 1900 m.
+            assert!(x < 1.0, "a cloud at x = {x}");
+            assert!((1600.0 - 1.0..=1900.0 + 1.0).contains(&y), "{y}");
+        }
+    }
+    // Far from the crossing, the clouds lie between the two surfaces.
+    for cell in &cells.cells {
+        if cell.vertices.iter().all(|v| v[0] < -1000.0) {
+            for [_, y, _, _] in cell.vertices {
+                assert!((1600.0 - 1.0..=1700.0 + 1.0).contains(&y), "{y}");
+            }
+        }
+    }
+}
+
+#[test]
+fn dark_hidden_and_invalid_cloud_layers_draw_nothing() {
+    let (mut app, _, _) = app();
+    let dark = spawn(
+        &mut app,
+        CloudLayer {
+            density: 0.0,
+            ..default()
+        },
+    );
+    let hidden = app
+        .world_mut()
+        .spawn((
+            CloudLayer {
+                resolution: 65,
+                ..default()
+            },
+            InheritedVisibility::HIDDEN,
+        ))
+        .id();
+    let invalid = [
+        (
+            CloudLayer {
+                resolution: 64,
+                ..default()
+            },
+            "resolution",
+        ),
+        (
+            CloudLayer {
+                ambient: 2.0,
+                ..default()
+            },
+            "ambient",
+        ),
+        (
+            CloudLayer {
+                shadow_extinction: f32::NAN,
+                ..default()
+            },
+            "shadow_extinction",
+        ),
+        (
+            CloudLayer {
+                sag: -0.5,
+                ..default()
+            },
+            "sag",
+        ),
+    ]
+    .map(|(layer, needle)| {
+        let resolution = if layer.resolution == 64 { 64 } else { 65 };
+        let entity = app
+            .world_mut()
+            .spawn((
+                CloudLayer {
+                    resolution,
+                    ..layer
+                },
+                InheritedVisibility::VISIBLE,
+            ))
+            .id();
+        (entity, needle)
+    });
+    settle(&mut app);
+    for entity in [dark, hidden] {
+        assert!(batch(&app, entity).is_none());
+        assert_eq!(stats(&app, entity).updates, 0);
+    }
+    for (entity, needle) in invalid {
+        assert!(batch(&app, entity).is_none());
+        let CloudLayerStatus::Failed(error) = status(&app, entity) else {
+            panic!("{needle}: {:?}", status(&app, entity));
+        };
+        assert!(error.to_string().contains(needle), "{error}");
+    }
+}
