@@ -65,6 +65,7 @@
 //!   University of Bergen, 2008.
 
 mod aurora;
+mod cloud_layer;
 mod fog_layers;
 mod ground_fog;
 pub mod opaque;
@@ -73,6 +74,7 @@ mod terrain;
 mod volume;
 
 pub use aurora::{AuroraDescription, BuiltAurora, StarsDescription};
+pub use cloud_layer::{BuiltCloudLayer, CloudLayerDescription, CloudLayerMaps};
 pub use fog_layers::FogLayersDescription;
 pub use ground_fog::{
     BuiltGroundFog, FogMapSource, FogReference, FogThicknessDescription, GroundFogDescription,
@@ -140,6 +142,10 @@ pub struct SceneDescription {
     /// Stars on the sky, see [`StarsDescription`]. Default: none.
     #[serde(default)]
     pub stars: Option<StarsDescription>,
+    /// A cloud layer between two surfaces, see [`CloudLayerDescription`].
+    /// Default: none.
+    #[serde(default)]
+    pub cloud_layer: Option<CloudLayerDescription>,
     /// The quality preset every effect draws at (`nebel_render`'s
     /// `NebelQuality`): `Low`, `Medium` or `High`. Default `High`. The
     /// reference ignores it.
@@ -713,7 +719,45 @@ impl SceneDescription {
                 .validate()
                 .map_err(|invalid| invalid.within("stars"))?;
         }
+        if let Some(layer) = &self.cloud_layer {
+            layer
+                .validate()
+                .map_err(|invalid| invalid.within("cloud_layer"))?;
+        }
         Ok(())
+    }
+
+    /// Reads the cloud layer's files ([`CloudLayerDescription::build`]);
+    /// `None` without a cloud layer.
+    pub fn build_cloud_layer(
+        &self,
+        scene_path: &Path,
+    ) -> Result<Option<BuiltCloudLayer>, SceneError> {
+        let Some(layer) = &self.cloud_layer else {
+            return Ok(None);
+        };
+        let scene_dir = scene_path.parent().unwrap_or(Path::new("."));
+        layer
+            .build(scene_dir)
+            .map(Some)
+            .map_err(|invalid| invalid.in_scene(scene_path, "cloud_layer"))
+    }
+
+    /// The cloud layer's cells for the reference camera and the scene's sun
+    /// ([`CloudLayerDescription::reference`]); `None` without a cloud layer
+    /// or cells.
+    pub fn build_cloud_layer_reference(
+        &self,
+        scene_path: &Path,
+        built: &BuiltCloudLayer,
+    ) -> Result<Option<BuiltVolume>, SceneError> {
+        let Some(layer) = &self.cloud_layer else {
+            return Ok(None);
+        };
+        let toward_sun = self.sun_direction().unwrap_or(DVec3::Y);
+        layer
+            .reference(built, self.reference_camera().position, toward_sun)
+            .map_err(|invalid| invalid.in_scene(scene_path, "cloud_layer"))
     }
 
     /// Reads the aurora's files ([`AuroraDescription::build`]); `None`
@@ -1110,6 +1154,25 @@ mod tests {
                 seed: 3,
                 brightness: 0.5,
             }),
+            cloud_layer: Some(CloudLayerDescription {
+                maps: Some(CloudLayerMaps {
+                    bottom: "base.png".into(),
+                    top: "tops.png".into(),
+                    scale: 600.0,
+                }),
+                center: [0.0, 10.0, 0.0],
+                extent: 2e4,
+                base: 900.0,
+                sag: 0.1,
+                resolution: 65,
+                density: 0.02,
+                ambient: 0.2,
+                diffuse: 0.8,
+                shadow_extinction: 0.001,
+                transfer: Some(TransferDescription::Preset(TransferPreset::Cloud)),
+                accuracy: 20.0,
+                ..Default::default()
+            }),
             quality: QualityDescription::Medium,
             auto_quality_ms: Some(33.3),
         }
@@ -1324,6 +1387,16 @@ mod tests {
                 "version: 1,",
                 "version: 1, stars: (count: 1000000),",
                 "field stars.count: must be at most 100000, got 1000000",
+            ),
+            (
+                "version: 1,",
+                "version: 1, cloud_layer: (sag: 2.0),",
+                "field cloud_layer.sag: cloud layer sag = 2 is invalid: it must be in [0, 1]",
+            ),
+            (
+                "version: 1,",
+                "version: 1, cloud_layer: (ambient: -1.0),",
+                "field cloud_layer.ambient: must be in [0, 1], got -1",
             ),
             (
                 "version: 1,",

@@ -167,6 +167,7 @@ pub fn run_fog_layer_peers(
             terrain: None,
             ground_fog: None,
             aurora: None,
+            cloud_layer: None,
             peer,
         };
         let image_path = out_dir.join(format!("{renderer}.png"));

@@ -393,6 +393,7 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
             terrain: scene.build_terrain(scene_path)?,
             ground_fog: scene.build_ground_fog(scene_path)?,
             aurora: scene.build_aurora(scene_path)?,
+            cloud_layer: scene.build_cloud_layer(scene_path)?,
             peer: bevy_fog.map(BevyPeer::FogVolume),
         };
         let image_path = out_dir.join(format!("{name}.png"));

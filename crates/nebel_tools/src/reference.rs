@@ -5,7 +5,8 @@
 //! `nebel_scene::TerrainDescription::fog_reference`) or, without fog, as the
 //! full-resolution bilinear surface, and its aurora (the cells the plugin
 //! draws for the reference camera at the last frame's time,
-//! `nebel_scene::AuroraDescription::reference`).
+//! `nebel_scene::AuroraDescription::reference`) and its cloud layer
+//! (likewise, `nebel_scene::CloudLayerDescription::reference`).
 
 use std::path::Path;
 
@@ -43,6 +44,9 @@ pub fn scene_reference(
     };
     if let Some(aurora) = scene.build_aurora(scene_path)? {
         volumes.extend(scene.build_aurora_reference(scene_path, &aurora)?);
+    }
+    if let Some(layer) = scene.build_cloud_layer(scene_path)? {
+        volumes.extend(scene.build_cloud_layer_reference(scene_path, &layer)?);
     }
     let (bar, report) = reference_bar(progress);
     let image = reference_image_with_terrain(scene, volumes, terrain.as_ref(), Some(&report))?;

@@ -6,7 +6,8 @@
 //! relative to the scene file when the plugin is made, become a
 //! `TerrainHeights` asset; the entity sits at the terrain's `center`), its
 //! aurora (a `nebel_sky::Aurora` at its `center`, a map footprint read when
-//! the plugin is made) and its stars ([`crate::stars`], centred on the
+//! the plugin is made), its cloud layer (a `nebel_sky::CloudLayer`, likewise)
+//! and its stars ([`crate::stars`], centred on the
 //! camera's first position). A camera with a keyframe path follows
 //! it by [`Time::elapsed_secs`] (headless runs step time by exactly
 //! `1 / output.frame_rate` per frame, so frame `i` shows the path at
@@ -27,7 +28,7 @@ use nebel_render::{AutoQuality, NebelQuality, NebelSystems, QualityPreset};
 use crate::headless::{HeadlessError, HeadlessOptions, render_headless};
 use crate::stats::RenderStats;
 use nebel_scene::{
-    BuiltAurora, BuiltGroundFog, BuiltVolume, CameraView, FogThicknessDescription,
+    BuiltAurora, BuiltCloudLayer, BuiltGroundFog, BuiltVolume, CameraView, FogThicknessDescription,
     GroundFogDescription, LightDescription, MeshDescription, QualityDescription, SceneDescription,
     SceneError,
 };
@@ -52,6 +53,9 @@ pub struct SceneSetupPlugin {
     /// The aurora's files ([`SceneSetupPlugin::new`] reads them), spawned
     /// as a `nebel_sky::Aurora`.
     pub aurora: Option<BuiltAurora>,
+    /// The cloud layer's files ([`SceneSetupPlugin::new`] reads them),
+    /// spawned as a `nebel_sky::CloudLayer`.
+    pub cloud_layer: Option<BuiltCloudLayer>,
     /// One of Bevy's own fogs, for comparisons: grid volumes drawn by its
     /// `FogVolume` ray marcher instead of nebel ([`crate::fog_comparison`]),
     /// or its `DistanceFog` on the camera. Default: `None`.
@@ -92,12 +96,14 @@ impl SceneSetupPlugin {
         let terrain = scene.build_terrain(scene_path)?;
         let ground_fog = scene.build_ground_fog(scene_path)?;
         let aurora = scene.build_aurora(scene_path)?;
+        let cloud_layer = scene.build_cloud_layer(scene_path)?;
         Ok(Self {
             scene,
             volumes,
             terrain,
             ground_fog,
             aurora,
+            cloud_layer,
             peer: None,
         })
     }
@@ -107,9 +113,9 @@ impl SceneSetupPlugin {
 #[derive(Resource, Clone, Debug)]
 struct SceneVolumes(Vec<BuiltVolume>);
 
-/// The scene's aurora files, taken by the startup system.
+/// The scene's aurora and cloud layer files, taken by the startup system.
 #[derive(Resource, Clone, Debug)]
-struct SceneAurora(Option<BuiltAurora>);
+struct SceneSky(Option<BuiltAurora>, Option<BuiltCloudLayer>);
 
 /// The scene's terrain heights and fog files, taken by the startup system.
 #[derive(Resource, Clone, Debug)]
@@ -136,8 +142,11 @@ impl Plugin for SceneSetupPlugin {
             .register_type::<SceneCamera>()
             .insert_resource(SceneVolumes(self.volumes.clone()))
             .insert_resource(SceneTerrain(self.terrain.clone(), self.ground_fog.clone()))
-            .insert_resource(SceneAurora(self.aurora.clone()))
-            .add_systems(Startup, (spawn_scene, spawn_terrain, spawn_aurora))
+            .insert_resource(SceneSky(self.aurora.clone(), self.cloud_layer.clone()))
+            .add_systems(
+                Startup,
+                (spawn_scene, spawn_terrain, spawn_aurora, spawn_cloud_layer),
+            )
             .add_systems(PostStartup, enable_bevy_fog)
             .add_systems(Update, follow_camera_path.in_set(NebelSystems));
         match self.peer.clone() {
@@ -487,7 +496,7 @@ fn ground_fog(
 fn spawn_aurora(
     mut commands: Commands,
     scene: Res<LoadedScene>,
-    built: Res<SceneAurora>,
+    built: Res<SceneSky>,
     heights: Option<ResMut<Assets<nebel_terrain::TerrainHeights>>>,
 ) {
     use nebel_sky::{Aurora, AuroraFootprint};
@@ -515,6 +524,50 @@ fn spawn_aurora(
             brightness: 1.0,
             transfer_function: Arc::new(built.transfer_function.clone()),
             speed: description.speed,
+            accuracy: description.accuracy,
+        },
+        Transform::from_translation(Vec3::from(description.center)),
+    ));
+}
+
+/// Spawns the scene's cloud layer at its centre, its maps (if any) as
+/// assets.
+fn spawn_cloud_layer(
+    mut commands: Commands,
+    scene: Res<LoadedScene>,
+    built: Res<SceneSky>,
+    heights: Option<ResMut<Assets<nebel_terrain::TerrainHeights>>>,
+) {
+    use nebel_sky::{CloudLayer, CloudLayerSource};
+    use nebel_terrain::TerrainHeights;
+    let (Some(description), Some(built)) = (&scene.cloud_layer, &built.1) else {
+        return;
+    };
+    let source = match (&built.maps, &description.maps, heights) {
+        (Some((bottom, top)), Some(maps), Some(mut heights)) => CloudLayerSource::Maps {
+            bottom: heights.add(TerrainHeights::from_field(bottom)),
+            top: heights.add(TerrainHeights::from_field(top)),
+            scale: maps.scale,
+        },
+        (Some(_), _, _) => {
+            warn!("nebel: the scene's cloud layer has maps but the app has no TerrainPlugin");
+            return;
+        }
+        (None, _, _) => CloudLayerSource::Noise(description.noise),
+    };
+    commands.spawn((
+        CloudLayer {
+            source,
+            extent: description.extent,
+            base: description.base,
+            sag: description.sag,
+            resolution: description.resolution,
+            // The built transfer function has the density in it.
+            density: 1.0,
+            ambient: description.ambient,
+            diffuse: description.diffuse,
+            shadow_extinction: description.shadow_extinction,
+            transfer_function: Arc::new(built.transfer_function.clone()),
             accuracy: description.accuracy,
         },
         Transform::from_translation(Vec3::from(description.center)),
