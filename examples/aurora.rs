@@ -1,7 +1,7 @@
 //! Aurora: a night over snowy mountains (a procedural terrain of 513 × 513
 //! points 20 m apart through the quadtree C-LOD, [`Terrain`]), stars, and an
 //! aurora to the north ([`Aurora`]): four seeded arcs with folds and rays
-//! over a 600 km square, rising from 100 km up to 300 km where strongest,
+//! over a 600 km square 350 km away, rising from 100 km up to 300 km where strongest,
 //! drawn as emissive prisms between two surfaces (Röttger 2004 §10.4),
 //! coloured by altitude (oxygen's green 557.7 nm line low, its red 630.0 nm
 //! line high), swaying, folding and pulsing over time.
@@ -91,7 +91,7 @@ fn spawn_night(commands: &mut Commands) {
             ..default()
         }),
         Transform::from_translation(CAMERA)
-            .looking_at(Vec3::new(0.0, 90_000.0, -250_000.0), Vec3::Y),
+            .looking_at(Vec3::new(0.0, 70_000.0, -300_000.0), Vec3::Y),
         // The terrain's level of detail follows this camera.
         LodCamera,
     ));
@@ -99,7 +99,7 @@ fn spawn_night(commands: &mut Commands) {
     commands.spawn((
         DirectionalLight {
             color: Color::srgb(0.55, 0.65, 1.0),
-            illuminance: 60.0,
+            illuminance: 400.0,
             ..default()
         },
         Transform::default().looking_to(Vec3::new(0.4, -0.5, 0.8), Vec3::Y),
@@ -121,17 +121,18 @@ fn spawn_night(commands: &mut Commands) {
         min_accuracy: 2.0,
         ..default()
     });
-    // The curtains' footprint is centred 150 km to the north; they stand
+    // The curtains' footprint is centred 350 km to the north; they stand
     // from 100 km up.
     commands.spawn((
         Aurora {
             footprint: AuroraFootprint::Curtains(AuroraCurtains {
                 seed: 3,
                 count: 4,
+                width: 0.006,
                 ..default()
             }),
             ..default()
         },
-        Transform::from_xyz(0.0, 0.0, -150_000.0),
+        Transform::from_xyz(0.0, 0.0, -350_000.0),
     ));
 }

@@ -12,7 +12,7 @@
 //!     bottom: 100000.0,         // the curtains' bottom, m above center; default 100 km
 //!     top: 300000.0,            // where the strongest reach; default 300 km
 //!     resolution: 257,          // footprint points per side, 2^k + 1 from 9 to 2049
-//!     brightness: 1.5e-5,       // emission per metre, times the transfer function's ρ
+//!     brightness: 6e-6,         // emission per metre, times the transfer function's ρ
 //!     transfer: Preset(Aurora), // κ and ρ over the altitude in the curtains; default this
 //!     speed: 1.0,               // animation seconds per second; default 1
 //!     accuracy: 12.0,           // the quadtree's c; default 12
@@ -79,7 +79,7 @@ impl Default for AuroraDescription {
             bottom: 100e3,
             top: 300e3,
             resolution: 257,
-            brightness: 1.5e-5,
+            brightness: 6e-6,
             transfer: None,
             speed: 1.0,
             accuracy: 12.0,

@@ -137,8 +137,8 @@ pub struct Aurora {
     /// default extent).
     pub resolution: u32,
     /// Multiplies the transfer function's ρ, finite and ≥ 0: the emission
-    /// per metre of path, 1/m. 0 draws nothing. Default 1.5e-5 (a curtain
-    /// seen through 60 km of its width adds about 0.9 of κ).
+    /// per metre of path, 1/m. 0 draws nothing. Default 6e-6 (60 km of a
+    /// curtain's bright base add about 0.36 of κ).
     pub brightness: f32,
     /// κ (emission colour) and ρ over the altitude in the curtains (0 at
     /// `bottom`, 1 at `top`). Default: the `Aurora` preset.
@@ -164,7 +164,7 @@ impl Default for Aurora {
             bottom: 100e3,
             top: 300e3,
             resolution: 257,
-            brightness: 1.5e-5,
+            brightness: 6e-6,
             transfer_function: aurora_transfer_function(),
             speed: 1.0,
             accuracy: 12.0,
