@@ -10,7 +10,7 @@
 //! `(1 − sag) · t` above it, so thick clouds also reach lower, and where `t`
 //! is 0 the surfaces meet and there is no cloud. Two maps give the surfaces
 //! directly ([`SurfaceLayer::new`]). The cells' scalar is the sunlight that
-//! reaches each level ([`PrismScalar::Sunlit`]), sampled on
+//! reaches each level ([`PrismScalar::Sunlit`](crate::PrismScalar::Sunlit)), sampled on
 //! [`CloudLayerShape::profile`]'s levels, for a transfer function over
 //! light (the `CloudLight` preset): bright tops, darker bases, as the cloud
 //! volume's light field gives them.

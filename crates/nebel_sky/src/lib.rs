@@ -45,6 +45,7 @@
 
 pub mod aurora;
 pub mod cloud_layer;
+mod layer_batch;
 
 pub use aurora::{Aurora, AuroraError, AuroraFootprint, AuroraPlugin, AuroraStats, AuroraStatus};
 pub use cloud_layer::{

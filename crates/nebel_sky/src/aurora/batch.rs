@@ -19,17 +19,17 @@ use bevy::diagnostic::Diagnostics;
 use bevy::math::DAffine3;
 use bevy::prelude::*;
 use nebel_core::optics::OpticalMode;
-use nebel_core::transfer::TransferFunction;
 use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
 use nebel_lod::{
-    AuroraShape, CellBatch as LodCellBatch, CellOrder, Frustum, LayerView, LodSettings,
-    SurfaceLayer, TerrainLayer, TerrainMesh,
+    AuroraShape, CellOrder, Frustum, LayerView, LodSettings, SurfaceLayer, SurfaceLayerError,
+    TerrainMesh,
 };
 use nebel_render::camera::to_double;
 use nebel_render::{CellBatch, EffectiveQuality, LodCameras};
 use nebel_terrain::TerrainHeights;
 
 use super::{Aurora, AuroraError, AuroraFootprint, AuroraPlugin, AuroraStats, AuroraStatus};
+use crate::layer_batch::{MapError, ScaledTransfer, map_values, publish_cells, totals};
 
 /// What an aurora's layer was built from.
 #[derive(Clone, Debug, PartialEq)]
@@ -61,26 +61,8 @@ pub struct AuroraState {
     layer: Option<(LayerKey, SurfaceLayer)>,
     builds: u64,
     cells: Option<CellsKey>,
-    transfer: Option<(u64, u32, Arc<TransferFunction>)>,
+    transfer: ScaledTransfer,
     mesh: TerrainMesh,
-}
-
-impl AuroraState {
-    /// The aurora's transfer function with ρ times `brightness`, cached.
-    fn scaled_transfer(&mut self, aurora: &Aurora) -> Result<Arc<TransferFunction>, AuroraError> {
-        let key = (
-            aurora.transfer_function.content_hash(),
-            aurora.brightness.to_bits(),
-        );
-        if let Some((hash, brightness, transfer)) = &self.transfer
-            && (*hash, *brightness) == key
-        {
-            return Ok(transfer.clone());
-        }
-        let scaled = Arc::new(aurora.transfer_function.scale_density(aurora.brightness)?);
-        self.transfer = Some((key.0, key.1, scaled.clone()));
-        Ok(scaled)
-    }
 }
 
 /// Records a failure: the status, one log line per entity and new reason.
@@ -102,16 +84,10 @@ fn footprint(
     match &aurora.footprint {
         AuroraFootprint::Curtains(curtains) => Ok(Some(curtains.map(side, time)?)),
         AuroraFootprint::Map(handle) => {
-            if let Some((path, error)) = TerrainHeights::load_failure(handle, asset_server) {
-                return Err(AuroraError::MapNotLoaded { path, error });
-            }
-            let Some(map) = maps.get(handle) else {
-                return Ok(None);
-            };
-            let dims = [map.dims.x as usize, map.dims.y as usize];
-            let layer = TerrainLayer::resample(&map.values, dims, side)
-                .map_err(|error| AuroraError::from(nebel_lod::SurfaceLayerError::from(error)))?;
-            Ok(Some(layer.values().to_vec()))
+            map_values(handle, side, maps, asset_server).map_err(|error| match error {
+                MapError::NotLoaded(path, error) => AuroraError::MapNotLoaded { path, error },
+                MapError::Values(error) => SurfaceLayerError::from(error).into(),
+            })
         }
     }
 }
@@ -249,10 +225,13 @@ pub(super) fn update_auroras(
         if state.cells.as_ref() == Some(&cells_key) && !transfer_changed {
             continue;
         }
-        let transfer = match state.scaled_transfer(&aurora) {
+        let transfer = match state
+            .transfer
+            .get(&aurora.transfer_function, aurora.brightness)
+        {
             Ok(transfer) => transfer,
             Err(error) => {
-                fail(entity, &mut status, error);
+                fail(entity, &mut status, error.into());
                 continue;
             }
         };
@@ -286,17 +265,14 @@ pub(super) fn update_auroras(
         };
         state.cells = Some(cells_key);
         status.set_if_neq(AuroraStatus::Ready);
-        if cells.is_empty() {
-            if has_batch {
-                commands.entity(entity).remove::<CellBatch>();
-            }
-        } else {
-            commands.entity(entity).insert(CellBatch::new(
-                Arc::new(LodCellBatch::with_bounds(cells)),
-                transfer,
-                OpticalMode::Emissive,
-            ));
-        }
+        publish_cells(
+            &mut commands,
+            entity,
+            has_batch,
+            cells,
+            transfer,
+            OpticalMode::Emissive,
+        );
         let update_ms = started.elapsed().as_secs_f32() * 1e3;
         *stats = AuroraStats {
             triangles: counts.triangles as u32,
@@ -321,13 +297,11 @@ pub(super) fn measure_auroras(
     if auroras.is_empty() {
         return;
     }
-    let (mut drawn, mut tetrahedra) = (0.0, 0.0);
-    for (stats, has_batch) in &auroras {
-        if has_batch {
-            drawn += 1.0;
-            tetrahedra += f64::from(stats.tetrahedra);
-        }
-    }
+    let (drawn, tetrahedra) = totals(
+        auroras
+            .iter()
+            .map(|(stats, has_batch)| (stats.tetrahedra, has_batch)),
+    );
     diagnostics.add_measurement(&AuroraPlugin::AURORAS, || drawn);
     diagnostics.add_measurement(&AuroraPlugin::TETRAHEDRA, || tetrahedra);
 }

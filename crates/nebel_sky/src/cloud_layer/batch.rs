@@ -14,15 +14,16 @@ use bevy::diagnostic::Diagnostics;
 use bevy::math::DAffine3;
 use bevy::prelude::*;
 use nebel_core::optics::OpticalMode;
-use nebel_core::transfer::TransferFunction;
 use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
 use nebel_lod::{
-    CellBatch as LodCellBatch, CellOrder, CloudLayerShape, Frustum, LayerTop, LayerView,
-    LodSettings, PrismScalar, SurfaceLayer, SurfaceLayerError, TerrainLayer, TerrainMesh,
+    CellOrder, CloudLayerShape, Frustum, LayerTop, LayerView, LodSettings, PrismScalar,
+    SurfaceLayer, SurfaceLayerError, TerrainMesh,
 };
 use nebel_render::camera::to_double;
 use nebel_render::{CellBatch, EffectiveQuality, LodCameras};
 use nebel_terrain::TerrainHeights;
+
+use crate::layer_batch::{MapError, ScaledTransfer, map_values, publish_cells, totals};
 
 use super::{
     CloudLayer, CloudLayerError, CloudLayerPlugin, CloudLayerSource, CloudLayerStats,
@@ -46,29 +47,8 @@ pub struct CloudLayerState {
     layer: Option<(String, SurfaceLayer)>,
     builds: u64,
     cells: Option<CellsKey>,
-    transfer: Option<(u64, u32, Arc<TransferFunction>)>,
+    transfer: ScaledTransfer,
     mesh: TerrainMesh,
-}
-
-impl CloudLayerState {
-    /// The layer's transfer function with ρ times `density`, cached.
-    fn scaled_transfer(
-        &mut self,
-        layer: &CloudLayer,
-    ) -> Result<Arc<TransferFunction>, CloudLayerError> {
-        let key = (
-            layer.transfer_function.content_hash(),
-            layer.density.to_bits(),
-        );
-        if let Some((hash, density, transfer)) = &self.transfer
-            && (*hash, *density) == key
-        {
-            return Ok(transfer.clone());
-        }
-        let scaled = Arc::new(layer.transfer_function.scale_density(layer.density)?);
-        self.transfer = Some((key.0, key.1, scaled.clone()));
-        Ok(scaled)
-    }
 }
 
 fn fail(entity: Entity, status: &mut CloudLayerStatus, error: CloudLayerError) {
@@ -79,22 +59,16 @@ fn fail(entity: Entity, status: &mut CloudLayerStatus, error: CloudLayerError) {
 }
 
 /// A map's unit values on `side²` points, `None` while it loads.
-fn map_values(
+fn unit_values(
     handle: &Handle<TerrainHeights>,
     side: usize,
     maps: &Assets<TerrainHeights>,
     asset_server: &AssetServer,
 ) -> Result<Option<Vec<f32>>, CloudLayerError> {
-    if let Some((path, error)) = TerrainHeights::load_failure(handle, asset_server) {
-        return Err(CloudLayerError::MapNotLoaded { path, error });
-    }
-    let Some(map) = maps.get(handle) else {
-        return Ok(None);
-    };
-    let dims = [map.dims.x as usize, map.dims.y as usize];
-    let layer = TerrainLayer::resample(&map.values, dims, side)
-        .map_err(|error| CloudLayerError::from(SurfaceLayerError::from(error)))?;
-    Ok(Some(layer.values().to_vec()))
+    map_values(handle, side, maps, asset_server).map_err(|error| match error {
+        MapError::NotLoaded(path, error) => CloudLayerError::MapNotLoaded { path, error },
+        MapError::Values(error) => SurfaceLayerError::from(error).into(),
+    })
 }
 
 /// The layer of `layer`'s source, `None` while a map loads.
@@ -121,8 +95,8 @@ fn build_layer(
         }
         CloudLayerSource::Maps { bottom, top, scale } => {
             let (Some(bottom), Some(top)) = (
-                map_values(bottom, side, maps, asset_server)?,
-                map_values(top, side, maps, asset_server)?,
+                unit_values(bottom, side, maps, asset_server)?,
+                unit_values(top, side, maps, asset_server)?,
             ) else {
                 return Ok(None);
             };
@@ -276,10 +250,10 @@ pub(super) fn update_cloud_layers(
         if state.cells.as_ref() == Some(&cells_key) && !layer.is_changed() {
             continue;
         }
-        let transfer = match state.scaled_transfer(&layer) {
+        let transfer = match state.transfer.get(&layer.transfer_function, layer.density) {
             Ok(transfer) => transfer,
             Err(error) => {
-                fail(entity, &mut status, error);
+                fail(entity, &mut status, error.into());
                 continue;
             }
         };
@@ -317,17 +291,14 @@ pub(super) fn update_cloud_layers(
         };
         state.cells = Some(cells_key);
         status.set_if_neq(CloudLayerStatus::Ready);
-        if cells.is_empty() {
-            if has_batch {
-                commands.entity(entity).remove::<CellBatch>();
-            }
-        } else {
-            commands.entity(entity).insert(CellBatch::new(
-                Arc::new(LodCellBatch::with_bounds(cells)),
-                transfer,
-                OpticalMode::Sorted,
-            ));
-        }
+        publish_cells(
+            &mut commands,
+            entity,
+            has_batch,
+            cells,
+            transfer,
+            OpticalMode::Sorted,
+        );
         let update_ms = started.elapsed().as_secs_f32() * 1e3;
         *stats = CloudLayerStats {
             triangles: counts.triangles as u32,
@@ -352,13 +323,11 @@ pub(super) fn measure_cloud_layers(
     if layers.is_empty() {
         return;
     }
-    let (mut drawn, mut tetrahedra) = (0.0, 0.0);
-    for (stats, has_batch) in &layers {
-        if has_batch {
-            drawn += 1.0;
-            tetrahedra += f64::from(stats.tetrahedra);
-        }
-    }
+    let (drawn, tetrahedra) = totals(
+        layers
+            .iter()
+            .map(|(stats, has_batch)| (stats.tetrahedra, has_batch)),
+    );
     diagnostics.add_measurement(&CloudLayerPlugin::LAYERS, || drawn);
     diagnostics.add_measurement(&CloudLayerPlugin::TETRAHEDRA, || tetrahedra);
 }
