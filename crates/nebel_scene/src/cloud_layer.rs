@@ -7,7 +7,7 @@
 //! cloud_layer: (
 //!     noise: (noise: (kind: Fbm, seed: 0, octaves: 5, wavelength: 4000.0, persistence: 0.5, exponent: 1.0),
 //!             thickness: 700.0, coverage: 0.45),
-//!     // or maps: Some((bottom: "base.png", top: "tops.png", scale: 800.0)): two grayscale
+//!     // or maps: (bottom: "base.png", top: "tops.png", scale: 800.0): two grayscale
 //!     // surfaces at base + scale · value, relative to the scene file
 //!     center: (0.0, 0.0, 0.0),   // the layer's centre; the base is above it
 //!     extent: 40000.0,           // side of the square layer, m
