@@ -200,42 +200,53 @@ pub(crate) fn update_terrain_meshes(
             }
         };
         *status = TerrainStatus::Ready;
-        let material = terrain
-            .material
-            .clone()
-            .unwrap_or_else(|| assets.default_material());
-        let handle = match &state.mesh {
-            Some(handle) => {
-                if terrain.is_changed() {
-                    commands
-                        .entity(entity)
-                        .insert(MeshMaterial3d(material.clone()));
-                }
-                handle.clone()
+        if state.refiner.mesh().indices.is_empty() {
+            // Nothing of the terrain in view: no mesh at all rather than an
+            // empty one (Bevy's mesh allocator refuses empty meshes); a new
+            // one is made when the terrain comes back into view.
+            if state.mesh.take().is_some() {
+                commands
+                    .entity(entity)
+                    .remove::<(Mesh3d, MeshMaterial3d<StandardMaterial>, Aabb, NoAutoAabb)>();
             }
-            None => {
-                let handle = assets.meshes.add(empty_mesh());
-                commands.entity(entity).insert((
-                    Mesh3d(handle.clone()),
-                    MeshMaterial3d(material),
-                    bounds(&hierarchy),
-                    NoAutoAabb,
-                ));
-                state.mesh = Some(handle.clone());
-                handle
-            }
-        };
-        let colouring = Colouring {
-            palette: terrain
+        } else {
+            let material = terrain
                 .material
-                .is_none()
-                .then_some((&*assets.palette, hierarchy.height_range())),
-            debug: terrain.debug,
-            levels: hierarchy.levels(),
-        };
-        if let Some(mut mesh) = assets.meshes.get_mut(&handle) {
-            let origin = hierarchy.origin().as_vec3();
-            write_mesh(&mut mesh, state.refiner.mesh(), origin, &colouring);
+                .clone()
+                .unwrap_or_else(|| assets.default_material());
+            let handle = match &state.mesh {
+                Some(handle) => {
+                    if terrain.is_changed() {
+                        commands
+                            .entity(entity)
+                            .insert(MeshMaterial3d(material.clone()));
+                    }
+                    handle.clone()
+                }
+                None => {
+                    let handle = assets.meshes.add(empty_mesh());
+                    commands.entity(entity).insert((
+                        Mesh3d(handle.clone()),
+                        MeshMaterial3d(material),
+                        bounds(&hierarchy),
+                        NoAutoAabb,
+                    ));
+                    state.mesh = Some(handle.clone());
+                    handle
+                }
+            };
+            let colouring = Colouring {
+                palette: terrain
+                    .material
+                    .is_none()
+                    .then_some((&*assets.palette, hierarchy.height_range())),
+                debug: terrain.debug,
+                levels: hierarchy.levels(),
+            };
+            if let Some(mut mesh) = assets.meshes.get_mut(&handle) {
+                let origin = hierarchy.origin().as_vec3();
+                write_mesh(&mut mesh, state.refiner.mesh(), origin, &colouring);
+            }
         }
         let update_ms = started.elapsed().as_secs_f64() * 1e3;
         *stats = TerrainLodStats {
@@ -406,6 +417,41 @@ mod tests {
             std::thread::sleep(std::time::Duration::from_millis(2));
         }
         panic!("the terrain stayed pending");
+    }
+
+    #[test]
+    fn a_terrain_wholly_out_of_view_has_no_mesh_until_it_comes_back() {
+        // Bevy's mesh allocator refuses empty meshes: a terrain the frustum
+        // culls entirely must not hand it one.
+        let dir = asset_dir("out-of-view");
+        let (mut app, camera) = app(&dir, Vec3::new(0.0, 300.0, 600.0));
+        let terrain = spawn(&mut app, procedural(65), Transform::default());
+        for _ in 0..3 {
+            app.update();
+        }
+        assert!(!positions(&app, terrain).is_empty());
+        // Looking straight up, away from the terrain.
+        *app.world_mut().get_mut::<Transform>(camera).unwrap() =
+            Transform::from_xyz(0.0, 300.0, 600.0).looking_to(Vec3::Y, Vec3::Z);
+        for _ in 0..3 {
+            app.update();
+        }
+        assert!(app.world().get::<Mesh3d>(terrain).is_none(), "an empty mesh");
+        assert_eq!(app.world().get::<TerrainLodStats>(terrain).unwrap().triangles, 0);
+        let empty = app
+            .world()
+            .resource::<Assets<Mesh>>()
+            .iter()
+            .filter(|(_, mesh)| mesh.count_vertices() == 0)
+            .count();
+        assert_eq!(empty, 0, "an empty mesh asset");
+        // Looking back down: a mesh again.
+        *app.world_mut().get_mut::<Transform>(camera).unwrap() =
+            Transform::from_xyz(0.0, 300.0, 600.0).looking_at(Vec3::ZERO, Vec3::Y);
+        for _ in 0..3 {
+            app.update();
+        }
+        assert!(!positions(&app, terrain).is_empty());
     }
 
     #[test]

@@ -154,6 +154,125 @@ fn summary(info: &wgpu::AdapterInfo) -> AdapterSummary {
     }
 }
 
+/// A headless app whose pipelines have compiled, at the scene's time 0,
+/// its camera rendering into `target`.
+pub(crate) struct HeadlessApp {
+    /// The app.
+    pub(crate) app: App,
+    /// The image every camera renders into.
+    pub(crate) target: Handle<Image>,
+    /// Wall time of each frame before the scene's first.
+    pub(crate) warm_up_times: Vec<Duration>,
+}
+
+impl HeadlessApp {
+    /// Builds the app for `output` (see the module docs), its cameras
+    /// rendering into an image of `format`, adds the scene and runs frames
+    /// with time standing still until every pipeline has compiled; then time
+    /// steps by `1 / output.frame_rate` from the second scene frame on
+    /// ([`HeadlessApp::start_time`]).
+    pub(crate) fn new(
+        output: &OutputSettings,
+        options: HeadlessOptions,
+        format: TextureFormat,
+        add_scene: impl FnOnce(&mut App),
+    ) -> Result<Self, HeadlessError> {
+        let probed = probe_adapter()?;
+        let mut app = App::new();
+        let plugins = DefaultPlugins
+            .set(WindowPlugin {
+                primary_window: None,
+                exit_condition: ExitCondition::DontExit,
+                ..default()
+            })
+            .set(RenderPlugin {
+                render_creation: WgpuSettings {
+                    backends: Some(probed.backends),
+                    constrained_limits: options
+                        .webgl2_limits
+                        .then(wgpu::Limits::downlevel_webgl2_defaults),
+                    disabled_features: options.webgl2_limits.then(wgpu::Features::all),
+                    ..default()
+                }
+                .into(),
+                synchronous_pipeline_compilation: true,
+                ..default()
+            })
+            .set(LogPlugin {
+                level: Level::WARN,
+                filter: String::from("wgpu=error,naga=error"),
+                ..default()
+            })
+            .disable::<WinitPlugin>()
+            // Render each frame in the update that simulates it, so the
+            // captured image is exactly the last scene frame.
+            .disable::<PipelinedRenderingPlugin>();
+        // The global logger can be set once per process: a second render in
+        // the same process (`nebel bench-fog` runs two) keeps the first one's.
+        if LOGGER_SET.swap(true, Ordering::Relaxed) {
+            app.add_plugins(plugins.disable::<LogPlugin>());
+        } else {
+            app.add_plugins(plugins);
+        }
+        let target = render_target(&mut app, output.width, output.height, format);
+        app.add_plugins(NebelPlugins)
+            .insert_resource(HeadlessTarget(target.clone()))
+            .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::ZERO))
+            .insert_resource(if options.background_builds {
+                HeavyBuilds::Background
+            } else {
+                HeavyBuilds::Blocking
+            })
+            .add_systems(First, render_to_image);
+        add_scene(&mut app);
+        app.finish();
+        app.cleanup();
+
+        // Shaders load asynchronously: run frames with time standing still
+        // until no pipeline waits any more, so the scene's first frame is
+        // complete.
+        let mut warm_up_times = Vec::new();
+        for warm_up in 0..WARM_UP_FRAMES {
+            let start = Instant::now();
+            update_and_wait(&mut app);
+            warm_up_times.push(start.elapsed());
+            let cache = app.sub_app(RenderApp).world().resource::<PipelineCache>();
+            if warm_up > 0 && cache.waiting_pipelines().next().is_none() {
+                break;
+            }
+        }
+        let frame_duration = Duration::from_secs_f64(1.0 / f64::from(output.frame_rate));
+        // Virtual time clamps each step to `max_delta` (250 ms by default): a
+        // scene at fewer than 4 frames per second would fall behind its path.
+        let mut virtual_time = app.world_mut().resource_mut::<Time<Virtual>>();
+        let max_delta = virtual_time.max_delta().max(frame_duration);
+        virtual_time.set_max_delta(max_delta);
+        Ok(Self {
+            app,
+            target,
+            warm_up_times,
+        })
+    }
+
+    /// Makes time step by `1 / output.frame_rate` per frame from now on
+    /// (frame 0 is at time 0, like the reference).
+    pub(crate) fn start_time(&mut self, output: &OutputSettings) {
+        let frame_duration = Duration::from_secs_f64(1.0 / f64::from(output.frame_rate));
+        self.app
+            .insert_resource(TimeUpdateStrategy::ManualDuration(frame_duration));
+    }
+
+    /// Runs one frame and waits for the GPU.
+    pub(crate) fn update(&mut self) {
+        update_and_wait(&mut self.app);
+    }
+
+    /// What the app rendered with.
+    pub(crate) fn adapter(&self) -> AdapterSummary {
+        summary(&self.app.world().resource::<RenderAdapterInfo>().0)
+    }
+}
+
 /// Renders the scene that `add_scene` adds to the app headless with the
 /// size, frame count and frame rate of `output`, writes the last frame to
 /// `out` (PNG, sRGB) and returns the statistics (see the module docs).
@@ -163,76 +282,7 @@ pub fn render_headless(
     out: &Path,
     add_scene: impl FnOnce(&mut App),
 ) -> Result<RenderStats, HeadlessError> {
-    let probed = probe_adapter()?;
-    let mut app = App::new();
-    let plugins = DefaultPlugins
-        .set(WindowPlugin {
-            primary_window: None,
-            exit_condition: ExitCondition::DontExit,
-            ..default()
-        })
-        .set(RenderPlugin {
-            render_creation: WgpuSettings {
-                backends: Some(probed.backends),
-                constrained_limits: options
-                    .webgl2_limits
-                    .then(wgpu::Limits::downlevel_webgl2_defaults),
-                disabled_features: options.webgl2_limits.then(wgpu::Features::all),
-                ..default()
-            }
-            .into(),
-            synchronous_pipeline_compilation: true,
-            ..default()
-        })
-        .set(LogPlugin {
-            level: Level::WARN,
-            filter: String::from("wgpu=error,naga=error"),
-            ..default()
-        })
-        .disable::<WinitPlugin>()
-        // Render each frame in the update that simulates it, so the
-        // captured image is exactly the last scene frame.
-        .disable::<PipelinedRenderingPlugin>();
-    // The global logger can be set once per process: a second render in the
-    // same process (`nebel bench-fog` runs two) keeps the first one's.
-    if LOGGER_SET.swap(true, Ordering::Relaxed) {
-        app.add_plugins(plugins.disable::<LogPlugin>());
-    } else {
-        app.add_plugins(plugins);
-    }
-    let target = render_target(&mut app, output.width, output.height);
-    app.add_plugins(NebelPlugins)
-        .insert_resource(HeadlessTarget(target.clone()))
-        .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::ZERO))
-        .insert_resource(if options.background_builds {
-            HeavyBuilds::Background
-        } else {
-            HeavyBuilds::Blocking
-        })
-        .add_systems(First, render_to_image);
-    add_scene(&mut app);
-    app.finish();
-    app.cleanup();
-
-    // Shaders load asynchronously: run frames with time standing still until
-    // no pipeline waits any more, so the scene's first frame is complete.
-    let mut warm_up_times = Vec::new();
-    for warm_up in 0..WARM_UP_FRAMES {
-        let start = Instant::now();
-        update_and_wait(&mut app);
-        warm_up_times.push(start.elapsed());
-        let cache = app.sub_app(RenderApp).world().resource::<PipelineCache>();
-        if warm_up > 0 && cache.waiting_pipelines().next().is_none() {
-            break;
-        }
-    }
-    let frame_duration = Duration::from_secs_f64(1.0 / f64::from(output.frame_rate));
-    // Virtual time clamps each step to `max_delta` (250 ms by default): a
-    // scene at fewer than 4 frames per second would fall behind its path.
-    let mut virtual_time = app.world_mut().resource_mut::<Time<Virtual>>();
-    let max_delta = virtual_time.max_delta().max(frame_duration);
-    virtual_time.set_max_delta(max_delta);
-
+    let mut headless = HeadlessApp::new(output, options, TextureFormat::Rgba8UnormSrgb, add_scene)?;
     let captured: Arc<Mutex<Option<Image>>> = Arc::default();
     let mut frame_times = Vec::with_capacity(output.frames as usize);
     let mut nebel_times = Vec::with_capacity(output.frames as usize);
@@ -240,20 +290,23 @@ pub fn render_headless(
     for frame in 0..output.frames {
         // Frame 0 is at time 0, like the reference; time steps from frame 1 on.
         if frame == 1 {
-            app.insert_resource(TimeUpdateStrategy::ManualDuration(frame_duration));
+            headless.start_time(output);
         }
         if frame + 1 == output.frames {
             let slot = captured.clone();
-            app.world_mut()
-                .spawn(Screenshot::image(target.clone()))
+            headless
+                .app
+                .world_mut()
+                .spawn(Screenshot::image(headless.target.clone()))
                 .observe(move |capture: On<ScreenshotCaptured>| {
                     *slot.lock().expect("capture slot") = Some(capture.image.clone());
                 });
         }
         let start = Instant::now();
-        update_and_wait(&mut app);
+        headless.update();
         frame_times.push(start.elapsed());
-        if let Some(ms) = app
+        if let Some(ms) = headless
+            .app
             .world()
             .resource::<DiagnosticsStore>()
             .get_measurement(&NebelDiagnosticsPlugin::SYSTEMS_MS)
@@ -264,12 +317,12 @@ pub fn render_headless(
     }
     bar.finish_and_clear();
     // The image is taken: drain the builds so the read-back gets the pool.
-    app.insert_resource(HeavyBuilds::Blocking);
+    headless.app.insert_resource(HeavyBuilds::Blocking);
     for _ in 0..READBACK_FRAMES {
         if captured.lock().expect("capture slot").is_some() {
             break;
         }
-        update_and_wait(&mut app);
+        headless.update();
     }
     let image = captured
         .lock()
@@ -278,16 +331,15 @@ pub fn render_headless(
         .ok_or(HeadlessError::Readback)?;
     write_png(image, out)?;
 
-    let world = app.world();
-    let adapter = summary(&world.resource::<RenderAdapterInfo>().0);
+    let world = headless.app.world();
     Ok(RenderStats {
-        adapter,
+        adapter: headless.adapter(),
         frames_rendered: output.frames,
         width: output.width,
         height: output.height,
         frame_wall_ms: TimeSummary::of(&frame_times),
-        warm_up_frames: warm_up_times.len() as u32,
-        warm_up_frame_wall_ms: TimeSummary::of(&warm_up_times),
+        warm_up_frames: headless.warm_up_times.len() as u32,
+        warm_up_frame_wall_ms: TimeSummary::of(&headless.warm_up_times),
         nebel_systems_cpu_ms: TimeSummary::of(&nebel_times),
         effects: effect_counters(world.resource::<DiagnosticsStore>()),
     })
@@ -297,7 +349,7 @@ pub fn render_headless(
 /// anything, by effect: the latest value of each, and for timings (`_ms`)
 /// also the mean and maximum over the diagnostic's history (`_ms_mean`,
 /// `_ms_max`).
-fn effect_counters(store: &DiagnosticsStore) -> BTreeMap<String, BTreeMap<String, f64>> {
+pub(crate) fn effect_counters(store: &DiagnosticsStore) -> BTreeMap<String, BTreeMap<String, f64>> {
     let mut effects: BTreeMap<String, BTreeMap<String, f64>> = BTreeMap::new();
     for diagnostic in store.iter() {
         let mut components = diagnostic.path().components();
@@ -340,7 +392,7 @@ fn render_to_image(
     }
 }
 
-fn render_target(app: &mut App, width: u32, height: u32) -> Handle<Image> {
+fn render_target(app: &mut App, width: u32, height: u32, format: TextureFormat) -> Handle<Image> {
     let mut image = Image::new_uninit(
         Extent3d {
             width,
@@ -348,7 +400,7 @@ fn render_target(app: &mut App, width: u32, height: u32) -> Handle<Image> {
             depth_or_array_layers: 1,
         },
         TextureDimension::D2,
-        TextureFormat::Rgba8UnormSrgb,
+        format,
         RenderAssetUsages::RENDER_WORLD,
     );
     image.texture_descriptor.usage |= TextureUsages::RENDER_ATTACHMENT;

@@ -11,7 +11,8 @@
 //! - [`fog_comparison`], [`fog_layer_peers`] and [`lod_sweep`]: the
 //!   `bench-fog`, `bench-fog-layers` and `bench-lod` commands, and their
 //!   chart ([`time_error_chart`]); [`reference`](mod@reference): the exact CPU reference of a whole scene;
-//!   [`error`]: why a command failed; [`progress`]: progress bars.
+//!   [`error`]: why a command failed; [`progress`]: progress bars;
+//!   [`soak`]: the soak flight of `nebel soak`.
 
 pub mod error;
 pub mod example_runner;
@@ -23,6 +24,7 @@ pub mod lod_sweep;
 pub mod progress;
 pub mod reference;
 pub mod scene_setup;
+pub mod soak;
 pub mod stars;
 pub mod stats;
 pub mod time_error_chart;

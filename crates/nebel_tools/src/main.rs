@@ -25,6 +25,7 @@ use nebel_tools::lod_sweep::run_lod_sweep;
 use nebel_tools::progress::reference_bar;
 use nebel_tools::reference::scene_reference;
 use nebel_tools::scene_setup::{BevyPeer, SceneSetupPlugin};
+use nebel_tools::soak::{soak, write_report};
 
 /// Factor on the absolute error in `compare --diff` images.
 const DIFF_SCALE: f32 = 10.0;
@@ -100,6 +101,24 @@ enum Command {
     /// `FogVolume` covering them, score each against the exact reference,
     /// write `DIR/fog_layer_peers.csv`, a plot and the images.
     BenchFogLayers(PeerArgs),
+    /// Fly the scene headless for many frames along a seeded random path
+    /// through everything it draws as cells, check every frame's cell
+    /// batches and its read-back HDR image for NaN and infinities, and write
+    /// a JSON report (the counts, frame times, resident memory at frames 1,
+    /// 1000, 10000 and the last); fails when anything was non-finite.
+    Soak {
+        /// The scene file (RON); its camera's start is the path's.
+        scene: PathBuf,
+        /// Frames to fly.
+        #[arg(long, default_value_t = 10_000)]
+        frames: u32,
+        /// Seeds the path.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// The JSON report to write.
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Sweep the octree accuracy c of the scene's one grid volume (or, in a
     /// scene without volumes, the accuracy c of its terrain with ground
     /// fog), score each image against full resolution and the exact
@@ -237,6 +256,34 @@ fn run(command: Command) -> Result<(), CommandError> {
             accuracies,
             comparison_accuracy,
         } => bench_lod(&scene, &out, &accuracies, comparison_accuracy),
+        Command::Soak {
+            scene,
+            frames,
+            seed,
+            out,
+        } => soak_flight(&scene, frames, seed, &out),
+    }
+}
+
+fn soak_flight(scene_path: &Path, frames: u32, seed: u64, out: &Path) -> Result<(), CommandError> {
+    let scene = SceneDescription::load(scene_path)?;
+    let setup = SceneSetupPlugin::new(scene, scene_path)?;
+    let report = soak(setup, frames, seed, true)?;
+    write_report(&report, out).map_err(CommandError::write(out))?;
+    eprintln!(
+        "nebel: soak of {frames} frames: {} non-finite cells, {} non-finite channels in {} frames read back; report {}",
+        report.non_finite_cells,
+        report.non_finite_channels,
+        report.frames_read_back,
+        out.display()
+    );
+    if report.is_clean() {
+        Ok(())
+    } else {
+        Err(CommandError::Unsuitable {
+            path: scene_path.to_owned(),
+            reason: String::from("the soak flight found non-finite values (see the report)"),
+        })
     }
 }
 

@@ -226,6 +226,38 @@ fn the_command_line_has_help_per_command_and_a_version() {
     );
 }
 
+/// The soak flight in short (`nebel soak` flies 10,000 frames by default):
+/// 40 frames of its scene, every batch and read-back frame finite, the
+/// report complete.
+#[test]
+fn a_short_soak_flight_finds_nothing_non_finite() {
+    let report = output_dir().join("soak.json");
+    let output = nebel(&[
+        "soak",
+        "benches/scenes/soak.ron",
+        "--frames",
+        "40",
+        "--out",
+        report.to_str().unwrap(),
+    ]);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert_eq!(report["frames"], 40);
+    assert_eq!(report["non_finite_cells"], 0);
+    assert_eq!(report["non_finite_channels"], 0);
+    assert!(
+        report["frames_read_back"].as_u64().unwrap() >= 39,
+        "{report}"
+    );
+    assert!(report["max_cells"].as_u64().unwrap() > 1000, "{report}");
+    assert!(report["memory_kib"]["1"].as_u64().unwrap() > 0, "{report}");
+}
+
 #[test]
 fn reference_and_compare_commands() {
     let out_dir = output_dir();
