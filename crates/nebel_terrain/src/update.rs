@@ -436,8 +436,17 @@ mod tests {
         for _ in 0..3 {
             app.update();
         }
-        assert!(app.world().get::<Mesh3d>(terrain).is_none(), "an empty mesh");
-        assert_eq!(app.world().get::<TerrainLodStats>(terrain).unwrap().triangles, 0);
+        assert!(
+            app.world().get::<Mesh3d>(terrain).is_none(),
+            "an empty mesh"
+        );
+        assert_eq!(
+            app.world()
+                .get::<TerrainLodStats>(terrain)
+                .unwrap()
+                .triangles,
+            0
+        );
         let empty = app
             .world()
             .resource::<Assets<Mesh>>()
