@@ -87,7 +87,9 @@ pub use octree::{HierarchyError, Node, VolumeHierarchy};
 pub use quadtree::{
     LodSettings, TerrainError, TerrainHierarchy, TerrainLayer, TerrainMesh, TriangleOrder,
 };
-pub use surface_layer::{LayerStats, LayerTop, LayerView, SurfaceLayer, SurfaceLayerError};
+pub use surface_layer::{
+    LAYER_SIDES, LayerStats, LayerTop, LayerView, SurfaceLayer, SurfaceLayerError, is_layer_side,
+};
 pub use view::View;
 pub use visibility::{CellAdjacency, sorted_batch};
 pub use volume_batcher::{

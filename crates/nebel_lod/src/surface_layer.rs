@@ -37,6 +37,15 @@ use crate::quadtree::{
     LodSettings, TerrainError, TerrainHierarchy, TerrainLayer, TerrainMesh, TriangleOrder,
 };
 
+/// Grid sides a layer's settings may ask for: `2^k + 1` from 9 to 2049
+/// points (the aurora's and the cloud layer's `resolution`).
+pub const LAYER_SIDES: &str = "2^k + 1 from 9 to 2049";
+
+/// Whether `side` is one of [`LAYER_SIDES`].
+pub fn is_layer_side(side: u32) -> bool {
+    (9..=2049).contains(&side) && (side - 1).is_power_of_two()
+}
+
 /// The top of a [`SurfaceLayer`], one value per grid point of the bottom
 /// (index `i + n·j`).
 #[derive(Clone, Copy, Debug)]

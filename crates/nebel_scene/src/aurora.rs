@@ -38,7 +38,10 @@ use nebel_lod::{
     AuroraShape, CellOrder, GpuCell, LayerView, LodSettings, TerrainLayer, TerrainMesh,
 };
 
-use super::{BuiltVolume, InvalidField, TransferDescription, VolumeField};
+use super::{
+    BuiltVolume, InvalidField, TransferDescription, VolumeField, finite, layer_side, non_negative,
+    positive, shape_error,
+};
 
 /// An aurora over the scene.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -119,13 +122,7 @@ impl StarsDescription {
                 format!("must be at most 100000, got {}", self.count),
             ));
         }
-        if !(self.brightness.is_finite() && self.brightness >= 0.0) {
-            return Err(InvalidField::new(
-                "brightness",
-                format!("must be finite and >= 0, got {}", self.brightness),
-            ));
-        }
-        Ok(())
+        non_negative("brightness", self.brightness)
     }
 
     /// The stars as unit directions with a brightness in (0, 1] each
@@ -173,42 +170,14 @@ impl AuroraDescription {
 
     /// Checks every setting against its documented range.
     pub(super) fn validate(&self) -> Result<(), InvalidField> {
-        self.shape().validate().map_err(|error| {
-            let field = match &error {
-                nebel_lod::TerrainError::InvalidParameter { parameter, .. } => {
-                    parameter.trim_start_matches("aurora ")
-                }
-                _ => "extent",
-            };
-            InvalidField::new(field, error.to_string())
-        })?;
-        if self.center.iter().any(|c| !c.is_finite()) {
-            return Err(InvalidField::new("center", "must be finite"));
-        }
-        let side = self.resolution;
-        if !(9..=2049).contains(&side) || !(side - 1).is_power_of_two() {
-            return Err(InvalidField::new(
-                "resolution",
-                format!("must be 2^k + 1 from 9 to 2049, got {side}"),
-            ));
-        }
-        for (field, value, ok, requirement) in [
-            (
-                "brightness",
-                self.brightness,
-                self.brightness >= 0.0,
-                ">= 0",
-            ),
-            ("speed", self.speed, self.speed >= 0.0, ">= 0"),
-            ("accuracy", self.accuracy, self.accuracy > 0.0, "> 0"),
-        ] {
-            if !(value.is_finite() && ok) {
-                return Err(InvalidField::new(
-                    field,
-                    format!("must be finite and {requirement}, got {value}"),
-                ));
-            }
-        }
+        self.shape()
+            .validate()
+            .map_err(|error| shape_error(error, "aurora "))?;
+        finite("center", &self.center)?;
+        layer_side("resolution", self.resolution)?;
+        non_negative("brightness", self.brightness)?;
+        non_negative("speed", self.speed)?;
+        positive("accuracy", self.accuracy)?;
         if self.map.as_ref().is_some_and(|path| path.trim().is_empty()) {
             return Err(InvalidField::new(
                 "map",

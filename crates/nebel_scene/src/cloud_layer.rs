@@ -42,7 +42,10 @@ use nebel_lod::{
     SurfaceLayer, TerrainLayer, TerrainMesh,
 };
 
-use super::{BuiltVolume, InvalidField, TransferDescription, VolumeField};
+use super::{
+    BuiltVolume, InvalidField, TransferDescription, VolumeField, finite, in_range, layer_side,
+    non_negative, positive, shape_error,
+};
 
 /// A cloud layer over the scene.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -138,64 +141,16 @@ impl CloudLayerDescription {
 
     /// Checks every setting against its documented range.
     pub(super) fn validate(&self) -> Result<(), InvalidField> {
-        self.shape().validate().map_err(|error| {
-            let field = match &error {
-                nebel_lod::TerrainError::InvalidParameter { parameter, .. } => {
-                    parameter.trim_start_matches("cloud layer ")
-                }
-                _ => "extent",
-            };
-            InvalidField::new(field, error.to_string())
-        })?;
-        if self.center.iter().any(|c| !c.is_finite()) {
-            return Err(InvalidField::new("center", "must be finite"));
-        }
-        let side = self.resolution;
-        if !(9..=2049).contains(&side) || !(side - 1).is_power_of_two() {
-            return Err(InvalidField::new(
-                "resolution",
-                format!("must be 2^k + 1 from 9 to 2049, got {side}"),
-            ));
-        }
-        for (field, value, ok, requirement) in [
-            (
-                "density",
-                self.density,
-                self.density >= 0.0,
-                "finite and >= 0",
-            ),
-            (
-                "shadow_extinction",
-                self.shadow_extinction,
-                self.shadow_extinction >= 0.0,
-                "finite and >= 0",
-            ),
-            (
-                "accuracy",
-                self.accuracy,
-                self.accuracy > 0.0,
-                "finite and > 0",
-            ),
-            (
-                "ambient",
-                self.ambient,
-                (0.0..=1.0).contains(&self.ambient),
-                "in [0, 1]",
-            ),
-            (
-                "diffuse",
-                self.diffuse,
-                (0.0..=1.0).contains(&self.diffuse),
-                "in [0, 1]",
-            ),
-        ] {
-            if !(value.is_finite() && ok) {
-                return Err(InvalidField::new(
-                    field,
-                    format!("must be {requirement}, got {value}"),
-                ));
-            }
-        }
+        self.shape()
+            .validate()
+            .map_err(|error| shape_error(error, "cloud layer "))?;
+        finite("center", &self.center)?;
+        layer_side("resolution", self.resolution)?;
+        non_negative("density", self.density)?;
+        non_negative("shadow_extinction", self.shadow_extinction)?;
+        positive("accuracy", self.accuracy)?;
+        in_range("ambient", self.ambient, 0.0, 1.0)?;
+        in_range("diffuse", self.diffuse, 0.0, 1.0)?;
         if let Some(maps) = &self.maps {
             if maps.bottom.trim().is_empty() || maps.top.trim().is_empty() {
                 return Err(InvalidField::new(
@@ -203,12 +158,7 @@ impl CloudLayerDescription {
                     "must name two PNG files (relative to the scene file)",
                 ));
             }
-            if !(maps.scale.is_finite() && maps.scale >= 0.0) {
-                return Err(InvalidField::new(
-                    "maps.scale",
-                    format!("must be finite and >= 0, got {}", maps.scale),
-                ));
-            }
+            non_negative("maps.scale", maps.scale)?;
         }
         Ok(())
     }

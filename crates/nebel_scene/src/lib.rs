@@ -953,6 +953,31 @@ fn non_negative(field: &str, value: f32) -> Result<(), InvalidField> {
     }
 }
 
+/// A layer's grid side ([`nebel_lod::is_layer_side`]).
+fn layer_side(field: &str, side: u32) -> Result<(), InvalidField> {
+    if nebel_lod::is_layer_side(side) {
+        Ok(())
+    } else {
+        Err(InvalidField::new(
+            field,
+            format!("must be {}, got {side}", nebel_lod::LAYER_SIDES),
+        ))
+    }
+}
+
+/// A layer shape's refusal (`AuroraShape::validate`,
+/// `CloudLayerShape::validate`), named by its parameter without the
+/// shape's `prefix`.
+fn shape_error(error: nebel_lod::TerrainError, prefix: &str) -> InvalidField {
+    let field = match &error {
+        nebel_lod::TerrainError::InvalidParameter { parameter, .. } => {
+            parameter.trim_start_matches(prefix).to_owned()
+        }
+        _ => String::from("extent"),
+    };
+    InvalidField::new(field, error.to_string())
+}
+
 fn in_range(field: &str, value: f32, min: f32, max: f32) -> Result<(), InvalidField> {
     if (min..=max).contains(&value) {
         Ok(())

@@ -293,9 +293,8 @@ impl CloudLayer {
                 requirement,
             })
         };
-        let side = self.resolution;
-        if !(9..=2049).contains(&side) || !(side - 1).is_power_of_two() {
-            return invalid("resolution", side as f32, "2^k + 1 from 9 to 2049");
+        if !nebel_lod::is_layer_side(self.resolution) {
+            return invalid("resolution", self.resolution as f32, nebel_lod::LAYER_SIDES);
         }
         for (setting, value, ok, requirement) in [
             (
