@@ -103,6 +103,8 @@ fn non_finite_halves(bytes: &[u8]) -> u64 {
 /// `start`.
 struct SoakPath {
     waypoints: Vec<Vec3>,
+    /// The length of one round through the waypoints.
+    length: f32,
     step: f32,
 }
 
@@ -118,8 +120,12 @@ impl SoakPath {
         };
         let mut waypoints = vec![start];
         waypoints.extend((0..64).map(|_| min + (max - min) * Vec3::new(next(), next(), next())));
+        let length = (0..waypoints.len())
+            .map(|k| waypoints[k].distance(waypoints[(k + 1) % waypoints.len()]))
+            .sum();
         Self {
             waypoints,
+            length,
             step: (max - min).length() / 400.0,
         }
     }
@@ -129,16 +135,10 @@ impl SoakPath {
     fn at(&self, distance: f32) -> Vec3 {
         let count = self.waypoints.len();
         let segment = |k: usize| (self.waypoints[k], self.waypoints[(k + 1) % count]);
-        let total: f32 = (0..count)
-            .map(|k| {
-                let (a, b) = segment(k);
-                a.distance(b)
-            })
-            .sum();
-        if total.is_nan() || total <= 0.0 {
+        if self.length.is_nan() || self.length <= 0.0 {
             return self.waypoints[0];
         }
-        let mut left = distance.rem_euclid(total);
+        let mut left = distance.rem_euclid(self.length);
         for k in 0..count {
             let (a, b) = segment(k);
             let length = a.distance(b);

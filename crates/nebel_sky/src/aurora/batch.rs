@@ -34,8 +34,9 @@ use crate::layer_batch::{MapError, ScaledTransfer, map_values, publish_cells, to
 /// What an aurora's layer was built from.
 #[derive(Clone, Debug, PartialEq)]
 struct LayerKey {
-    /// The footprint and shape settings as written (`Debug`).
-    settings: String,
+    footprint: AuroraFootprint,
+    shape: AuroraShape,
+    resolution: u32,
     /// The animation time, seconds (bits), for a procedural footprint.
     time: Option<u64>,
     /// The map's values (by identity), for a map footprint.
@@ -165,7 +166,9 @@ pub(super) fn update_auroras(
             top: f64::from(aurora.top),
         };
         let layer_key = LayerKey {
-            settings: format!("{:?} {:?} {}", aurora.footprint, shape, aurora.resolution),
+            footprint: aurora.footprint.clone(),
+            shape,
+            resolution: aurora.resolution,
             time: animated.then_some(seconds.to_bits()),
             map: match &aurora.footprint {
                 AuroraFootprint::Map(handle) => maps

@@ -30,6 +30,16 @@ use super::{
     CloudLayerStatus,
 };
 
+/// What a cloud layer's layer was built from.
+#[derive(Clone, Debug, PartialEq)]
+struct LayerKey {
+    source: CloudLayerSource,
+    shape: CloudLayerShape,
+    resolution: u32,
+    /// The maps' values (by identity), for map surfaces.
+    maps: [Option<usize>; 2],
+}
+
 /// What a cloud layer's cells were built from.
 #[derive(Clone, Debug, PartialEq)]
 struct CellsKey {
@@ -43,8 +53,7 @@ struct CellsKey {
 /// A cloud layer's quadtree, buffers and caches.
 #[derive(Component, Default)]
 pub struct CloudLayerState {
-    /// The layer and the settings and maps it was built from (`Debug`).
-    layer: Option<(String, SurfaceLayer)>,
+    layer: Option<(LayerKey, SurfaceLayer)>,
     builds: u64,
     cells: Option<CellsKey>,
     transfer: ScaledTransfer,
@@ -74,15 +83,11 @@ fn unit_values(
 /// The layer of `layer`'s source, `None` while a map loads.
 fn build_layer(
     layer: &CloudLayer,
+    shape: &CloudLayerShape,
     maps: &Assets<TerrainHeights>,
     asset_server: &AssetServer,
 ) -> Result<Option<SurfaceLayer>, CloudLayerError> {
     let side = layer.resolution as usize;
-    let shape = CloudLayerShape {
-        extent: f64::from(layer.extent),
-        base: f64::from(layer.base),
-        sag: f64::from(layer.sag),
-    };
     match &layer.source {
         CloudLayerSource::Noise(noise) => {
             let thickness = noise.thickness(side, shape.extent / (side - 1) as f64)?;
@@ -195,30 +200,31 @@ pub(super) fn update_cloud_layers(
             continue;
         }
         let started = Instant::now();
-        let settings = format!(
-            "{:?} {} {} {} {} {:?}",
-            layer.source,
-            layer.extent,
-            layer.base,
-            layer.sag,
-            layer.resolution,
-            match &layer.source {
+        let layer_key = LayerKey {
+            source: layer.source.clone(),
+            shape: CloudLayerShape {
+                extent: f64::from(layer.extent),
+                base: f64::from(layer.base),
+                sag: f64::from(layer.sag),
+            },
+            resolution: layer.resolution,
+            maps: match &layer.source {
                 CloudLayerSource::Maps { bottom, top, .. } => [bottom, top]
                     .map(|map| maps.get(map).map(|map| Arc::as_ptr(&map.values) as usize)),
                 CloudLayerSource::Noise(_) => [None, None],
-            }
-        );
+            },
+        };
         let mut built_ms = None;
-        if state.layer.as_ref().map(|(key, _)| key) != Some(&settings) {
+        if state.layer.as_ref().map(|(key, _)| key) != Some(&layer_key) {
             if matches!(*status, CloudLayerStatus::Failed(_))
                 && state.layer.is_none()
                 && !layer.is_changed()
             {
                 continue;
             }
-            match build_layer(&layer, &maps, &asset_server) {
+            match build_layer(&layer, &layer_key.shape, &maps, &asset_server) {
                 Ok(Some(built)) => {
-                    state.layer = Some((settings, built));
+                    state.layer = Some((layer_key, built));
                     state.builds += 1;
                     built_ms = Some(started.elapsed().as_secs_f32() * 1e3);
                 }
