@@ -294,7 +294,8 @@ pub(crate) fn update_fog_batches(
         if let GroundFogStatus::Failed(_) = *status {
             *status = GroundFogStatus::Ready;
         }
-        if fog.debug.wireframe {
+        // No cells, no wireframe: Bevy's mesh allocator refuses empty meshes.
+        if fog.debug.wireframe && !cells.is_empty() {
             let lines = wireframe_mesh(&cells, &terrain_from_world);
             match &state.wireframe {
                 Some((_, handle)) => {
