@@ -99,8 +99,9 @@ pub mod prelude {
     };
     #[cfg(feature = "volume")]
     pub use nebel_volume::{
-        Campfire, CloudLightModel, CloudVolume, FlickeringLight, FlickeringLightPlugin, Volume,
-        VolumeError, VolumeField, VolumeGrid, VolumeLighting, VolumeLod, VolumeStatus,
+        Campfire, CloudLightModel, CloudVolume, FlickeringLight, FlickeringLightPlugin,
+        LodCriterion, Volume, VolumeError, VolumeField, VolumeGrid, VolumeLighting, VolumeLod,
+        VolumeStatus,
     };
 }
 

@@ -3,10 +3,13 @@
 //! one of `assets/scenes/cloud_flythrough.ron`, refined and emitted along that
 //! scene's flight into the layer for a sweep of the accuracy `c`.
 //!
-//! Per `c`: the per-frame update (`refine` with the view frustum and the
-//! zero-opacity test, then `lod_batch_with` for the lit cells: morphed light
-//! as scalar, morphed density as modulator), median and maximum over 40
-//! frames of the path, and the cells drawn (median, maximum). Also the
+//! Per setting of each criterion (the distance criterion of Röttger and
+//! Ertl 2003 Eq. 1 along `c`, the screen error along its tolerance): the
+//! per-frame update (`refine` with the view frustum and the zero-opacity
+//! test, then `lod_batch_with` for the lit cells: morphed light as scalar,
+//! morphed density as modulator), median and maximum over 40 frames of the
+//! path on a 640 × 400 target (the scene's), and the cells drawn (median,
+//! maximum); the default tolerance also on a 1920 × 1200 target. Also the
 //! one-off costs (cloud generation, light field with the shadow sweep,
 //! hierarchy) and the hierarchy's bytes per grid point. Writes
 //! `target/nebel/cloud_layer_sweep.csv`.
@@ -22,13 +25,14 @@ use std::time::Instant;
 
 use glam::{DAffine3, DMat4, DVec3, UVec2};
 use nebel_core::field::{CloudLighting, CloudNoise, DensityGrid, light_field};
-use nebel_core::transfer::{ControlPoint, TransferFunction};
-use nebel_lod::octree::{CellScalars, RefinementSettings, lod_batch_with, refine};
-use nebel_lod::{Frustum, View, VolumeHierarchy};
+use nebel_core::transfer::{TransferFunction, TransferPreset};
+use nebel_lod::octree::{CellScalars, LodCriterion, RefinementSettings, lod_batch_with, refine};
+use nebel_lod::{View, VolumeHierarchy};
 
 const DIMS: [usize; 3] = [513, 65, 513];
 const FRAMES: usize = 40;
 const ACCURACIES: [f64; 7] = [0.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0];
+const TOLERANCES: [f64; 6] = [10.0, 3.0, 1.0, 0.3, 0.1, 0.03];
 
 fn median(values: &mut [f64]) -> f64 {
     values.sort_by(f64::total_cmp);
@@ -49,10 +53,10 @@ fn main() {
         DensityGrid::cloud(DIMS, DVec3::splat(10.0), origin, &noise, 0.0).expect("valid cloud");
     let generation_ms = started.elapsed().as_secs_f64() * 1e3;
     let lighting = CloudLighting {
-        ambient: 0.3,
-        diffuse: 0.7,
+        ambient: 0.2,
+        diffuse: 0.8,
         sun_direction: DVec3::new(0.45, 0.6, 0.3),
-        shadow_extinction: 0.008,
+        shadow_extinction: 0.02,
         lambert: true,
     };
     let started = Instant::now();
@@ -67,38 +71,46 @@ fn main() {
         hierarchy.bytes_per_point()
     );
 
-    // The opacity is the density itself (ρ = f): only density 0 is empty.
-    let point = |s: f32| ControlPoint {
-        s,
-        kappa: [0.0; 3],
-        rho: s,
-    };
-    let opacity = TransferFunction::new([point(0.0), point(1.0)]).expect("valid");
-    // The flight of cloud_flythrough.ron: 4 s, fov 60°, 640 × 400.
+    // The scene's transfer function (the isotropic lit cloud, density scale 0.03).
+    let transfer = TransferFunction::preset(TransferPreset::CloudLight)
+        .scale_density(0.03)
+        .expect("a finite scale");
+    // The flight of cloud_flythrough.ron: 4 s, fov 60°, aspect 1.6.
     let (start, end) = (
-        DVec3::new(-3600.0, 1150.0, -400.0),
-        DVec3::new(-700.0, 930.0, -60.0),
+        DVec3::new(-3600.0, 1700.0, -1800.0),
+        DVec3::new(-1200.0, 900.0, -600.0),
     );
-    let (look_start, look_end) = (DVec3::new(0.0, 900.0, 0.0), DVec3::new(800.0, 900.0, 150.0));
+    let (look_start, look_end) = (DVec3::new(0.0, 900.0, 0.0), DVec3::new(600.0, 850.0, 300.0));
     let projection = DMat4::perspective_infinite_reverse_rh(60f64.to_radians(), 1.6, 1.0);
 
     let mut csv = String::from(
-        "c,update_ms_median,update_ms_max,cells_median,cells_max,full_resolution_cells,bytes_per_point\n",
+        "criterion,value,width,height,update_ms_median,update_ms_max,cells_median,cells_max,full_resolution_cells,bytes_per_point\n",
     );
-    for accuracy in ACCURACIES {
-        let settings = RefinementSettings { accuracy };
+    let scene_size = UVec2::new(640, 400);
+    let runs = ACCURACIES
+        .iter()
+        .map(|&c| (LodCriterion::distance(c), scene_size))
+        .chain(
+            TOLERANCES
+                .iter()
+                .map(|&t| (LodCriterion::screen_error(t), scene_size)),
+        )
+        .chain([(LodCriterion::default(), UVec2::new(1920, 1200))]);
+    for (criterion, viewport) in runs {
+        let settings = RefinementSettings {
+            criterion,
+            scalars: CellScalars::LightModulatedByDensity,
+        };
         let (mut times, mut cells) = (Vec::new(), Vec::new());
         for frame in 0..FRAMES {
             let t = frame as f64 / (FRAMES - 1) as f64;
             let eye = start.lerp(end, t);
             let camera = DMat4::look_at_rh(eye, look_start.lerp(look_end, t), DVec3::Y);
-            let frustum = Frustum::from_view_projection(projection * camera).expect("a view");
-            // A 1920 × 1200 target, the projection's aspect ratio of 1.6.
             let view =
-                View::new(DAffine3::IDENTITY, eye, UVec2::new(1920, 1200)).with_frustum(frustum);
+                View::new(DAffine3::IDENTITY, eye, viewport).with_projection(projection * camera);
             let started = Instant::now();
             let refinement =
-                refine(&hierarchy, &view, &opacity, &settings).expect("valid settings");
+                refine(&hierarchy, &view, &transfer, &settings).expect("valid settings");
             let batch = lod_batch_with(
                 &hierarchy,
                 &refinement,
@@ -112,11 +124,18 @@ fn main() {
         let max = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
         let (time_max, cells_max) = (max(&times), max(&cells));
         let (time_median, cells_median) = (median(&mut times), median(&mut cells));
+        let (name, value) = match criterion {
+            LodCriterion::Distance { accuracy } => ("distance", accuracy),
+            LodCriterion::ScreenError { image_error } => ("screen_error", image_error),
+        };
         println!(
-            "c = {accuracy:>5}: update {time_median:7.2} ms median, {time_max:7.2} ms max; cells {cells_median:>8} median, {cells_max:>8} max"
+            "{name} {value:>6} at {}x{}: update {time_median:7.2} ms median, {time_max:7.2} ms max; cells {cells_median:>8} median, {cells_max:>8} max",
+            viewport.x, viewport.y
         );
         csv.push_str(&format!(
-            "{accuracy},{time_median},{time_max},{cells_median},{cells_max},{full_cells},{}\n",
+            "{name},{value},{},{},{time_median},{time_max},{cells_median},{cells_max},{full_cells},{}\n",
+            viewport.x,
+            viewport.y,
             hierarchy.bytes_per_point()
         ));
     }

@@ -25,7 +25,7 @@ use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use glam::{DAffine3, DVec3, UVec2};
 use nebel_core::field::{DensityGrid, ProceduralNoise};
 use nebel_core::transfer::{TransferFunction, TransferPreset};
-use nebel_lod::octree::{RefinementSettings, lod_batch, refine};
+use nebel_lod::octree::{LodCriterion, RefinementSettings, lod_batch, refine};
 use nebel_lod::{View, VolumeHierarchy};
 
 /// Minimum accuracy C of the benches (`K_max` ≈ 0.638).
@@ -74,7 +74,7 @@ fn octree_refine(c: &mut Criterion) {
     for (place, eye) in eyes {
         let view = View::new(DAffine3::IDENTITY, eye, VIEWPORT);
         for accuracy in [1.0, 4.0, 16.0, 64.0] {
-            let settings = RefinementSettings { accuracy };
+            let settings = RefinementSettings::new(LodCriterion::distance(accuracy));
             let run = || {
                 refine(black_box(&hierarchy), &view, &transfer, &settings).expect("valid settings")
             };
@@ -105,7 +105,7 @@ fn octree_emit(c: &mut Criterion) {
             &hierarchy,
             &view,
             &transfer,
-            &RefinementSettings { accuracy },
+            &RefinementSettings::new(LodCriterion::distance(accuracy)),
         )
         .expect("valid settings");
         let run = || {

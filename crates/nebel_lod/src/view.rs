@@ -18,11 +18,19 @@
 //! view with no pixels (zero width or height: a minimised window, a
 //! collapsed split screen) sees nothing: every builder still checks the view
 //! (transform and eye) and then returns an empty batch, or an empty
-//! refinement. The refinement criteria of today are distance-based (Röttger and Ertl 2003
-//! Eq. 1) and do not read the size; criteria in pixels (projected error)
-//! will.
+//! refinement. The octree's screen-error criterion
+//! ([`crate::octree::LodCriterion::ScreenError`]) measures nodes in pixels of
+//! this viewport through the view's projection (`clip_from_world`); the
+//! distance criterion of Röttger and Ertl 2003 Eq. 1 reads neither.
+//!
+//! # Projection
+//!
+//! `clip_from_world` is the camera's projection times the inverse of its
+//! transform, Bevy's convention (clip `x, y` in [−1, 1] across the viewport,
+//! `+y` up, `w > 0` in front of the eye). [`View::with_projection`] sets it
+//! and the frustum from it at once.
 
-use glam::{DAffine3, DVec3, UVec2};
+use glam::{DAffine3, DMat4, DVec3, UVec2};
 use nebel_core::cell::Tetrahedron;
 
 use crate::frustum::Frustum;
@@ -43,6 +51,9 @@ pub struct View {
     /// Width and height of the render target, physical pixels. A zero width
     /// or height sees nothing (module docs).
     pub viewport: UVec2,
+    /// World space to clip space (module docs); `None` when the builder is
+    /// not told the projection, which only the screen-error criterion needs.
+    pub clip_from_world: Option<DMat4>,
 }
 
 impl View {
@@ -54,6 +65,19 @@ impl View {
             eye,
             frustum: None,
             viewport,
+            clip_from_world: None,
+        }
+    }
+
+    /// The view seen through the projection `clip_from_world` (module docs):
+    /// the projection for criteria in pixels, and the frustum culled by,
+    /// unless the matrix has no frustum (not finite or singular), which then
+    /// culls nothing.
+    pub fn with_projection(self, clip_from_world: DMat4) -> Self {
+        Self {
+            frustum: Frustum::from_view_projection(clip_from_world).ok(),
+            clip_from_world: Some(clip_from_world),
+            ..self
         }
     }
 

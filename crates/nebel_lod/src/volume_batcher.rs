@@ -52,12 +52,13 @@
 //!   (an eye move inside one key gives the identical batch) or the frustum
 //!   changed;
 //! - a grid through the octree when the eye moved at all (the level of detail
-//!   depends on the distance), the frustum changed or the accuracy `c`
+//!   depends on the distance), the frustum, the projection or the viewport's
+//!   size changed (the screen error measures pixels) or the criterion
 //!   changed;
 //! - a sorted cell mesh when the eye moved;
 //!
 //! and keeps the batch otherwise: an unordered grid or cell mesh ignores the
-//! eye and the frustum, and only the octree reads the accuracy. While the
+//! eye and the frustum, and only the octree reads the criterion. While the
 //! viewport stays empty nothing is rebuilt (the batch is empty and stays so);
 //! its size is not read otherwise.
 //!
@@ -81,6 +82,7 @@
 //! use glam::{DAffine3, DVec3, UVec2};
 //! use nebel_core::field::DensityGrid;
 //! use nebel_core::transfer::{TransferFunction, TransferPreset};
+//! use nebel_lod::octree::LodCriterion;
 //! use nebel_lod::{BatchSettings, FrameInputs, OctreeSettings, View, VolumeBatcher, VolumeSource};
 //!
 //! // 6 × 5 × 7 points: padded to 9 × 5 × 9 for the octree.
@@ -91,7 +93,7 @@
 //! };
 //! let mut batcher = VolumeBatcher::new(VolumeSource::Grid(Arc::new(grid)), &settings)?;
 //! let transfer = TransferFunction::preset(TransferPreset::Cloud);
-//! let inputs = FrameInputs { transfer: &transfer, accuracy: 16.0 };
+//! let inputs = FrameInputs { transfer: &transfer, criterion: LodCriterion::distance(16.0) };
 //! let view = View::new(DAffine3::IDENTITY, DVec3::new(3.0, 2.0, -20.0), UVec2::new(1280, 720));
 //! assert!(batcher.update(&view, &inputs)?); // the first frame builds
 //! assert!(!batcher.update(&view, &inputs)?); // the same view keeps it
@@ -100,19 +102,19 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
-use std::sync::{Arc, LazyLock};
+use std::sync::Arc;
 
 use nebel_core::budget::{BudgetError, Dims, check_allocation};
 use nebel_core::cell::Tetrahedron;
 use nebel_core::field::{CloudLighting, DensityGrid, FieldError, PadFill, light_field};
-use nebel_core::transfer::{ControlPoint, TransferFunction};
+use nebel_core::transfer::TransferFunction;
 use thiserror::Error;
 
 use crate::batch::{CellBatch, GpuCell};
 use crate::full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};
 use crate::octree::{
-    CellScalars, HierarchyError, RefinementError, RefinementSettings, VolumeHierarchy, k_max,
-    lod_batch_with, refine,
+    CellScalars, HierarchyError, LodCriterion, RefinementError, RefinementSettings,
+    VolumeHierarchy, k_max, lod_batch_with, refine,
 };
 use crate::view::View;
 use crate::visibility::{CellAdjacency, sorted_batch};
@@ -187,9 +189,11 @@ pub struct FrameInputs<'a> {
     /// The volume's transfer function: the zero-opacity test's (except for
     /// [`CellScalars::LightModulatedByDensity`], see the module docs).
     pub transfer: &'a TransferFunction,
-    /// The octree's global accuracy `c` of Röttger and Ertl 2003 Eq. 1
-    /// ([`RefinementSettings::accuracy`]), ≥ 0; ignored without the octree.
-    pub accuracy: f64,
+    /// The octree's error metric and tolerance
+    /// ([`RefinementSettings::criterion`]); ignored without the octree. The
+    /// screen-error criterion needs the view's projection
+    /// ([`View::with_projection`]).
+    pub criterion: LodCriterion,
 }
 
 /// Why a [`VolumeBatcher`] could not be built or updated.
@@ -250,17 +254,6 @@ impl PartialEq for VolumeBatchError {
     }
 }
 
-/// The zero-opacity test of a volume whose density is the opacity itself
-/// (`ρ = f`, the lit model of Röttger and Ertl 2003 §5.1): only density 0 is empty.
-static DENSITY_AS_OPACITY: LazyLock<TransferFunction> = LazyLock::new(|| {
-    let point = |s: f32| ControlPoint {
-        s,
-        kappa: [0.0; 3],
-        rho: s,
-    };
-    TransferFunction::new([point(0.0), point(1.0)]).expect("two ordered control points")
-});
-
 /// What was built once, per kind (module docs).
 #[derive(Debug)]
 enum Kind {
@@ -301,8 +294,8 @@ struct BuiltFor {
     view: View,
     /// [`TransferFunction::content_hash`] of the transfer function.
     transfer: u64,
-    /// The accuracy `c`.
-    accuracy: f64,
+    /// The octree's criterion.
+    criterion: LodCriterion,
     /// The view's [`order_key`] for a grid at full resolution back to front,
     /// `None` for the other kinds.
     order_key: Option<[i64; 11]>,
@@ -414,7 +407,9 @@ impl VolumeBatcher {
     ///   back-to-front batch and a NaN or infinite eye;
     /// - [`VolumeBatchError::Refinement`] for the octree: the same two, and
     ///   [`RefinementError::InvalidAccuracy`] for an accuracy `c` that is NaN
-    ///   or negative.
+    ///   or negative, [`RefinementError::InvalidImageError`] for a tolerance
+    ///   that is not finite and positive, [`RefinementError::MissingProjection`]
+    ///   for the screen error without the view's projection.
     pub fn update(&mut self, view: &View, inputs: &FrameInputs) -> Result<bool, VolumeBatchError> {
         let transfer = inputs.transfer.content_hash();
         let order_key = match &self.kind {
@@ -434,7 +429,7 @@ impl VolumeBatcher {
         self.built = Some(BuiltFor {
             view: view.clone(),
             transfer,
-            accuracy: inputs.accuracy,
+            criterion: inputs.criterion,
             order_key,
         });
         Ok(true)
@@ -512,7 +507,11 @@ impl VolumeBatcher {
                 CellOrder::Unordered => false,
             },
             Kind::Octree { .. } => {
-                eye_moved || frustum_changed || built.accuracy != inputs.accuracy
+                eye_moved
+                    || frustum_changed
+                    || built.view.clip_from_world != view.clip_from_world
+                    || built.view.viewport != view.viewport
+                    || built.criterion != inputs.criterion
             }
             Kind::SortedCells { .. } => eye_moved,
             Kind::UnorderedCells { .. } => false,
@@ -536,15 +535,11 @@ impl VolumeBatcher {
                 }
             },
             Kind::Octree { hierarchy, scalars } => {
-                // The zero-opacity test is on the field that sets the opacity.
-                let opacity = match scalars {
-                    CellScalars::LightModulatedByDensity => &*DENSITY_AS_OPACITY,
-                    CellScalars::Density | CellScalars::DensityModulatedByLight => inputs.transfer,
-                };
                 let settings = RefinementSettings {
-                    accuracy: inputs.accuracy,
+                    criterion: inputs.criterion,
+                    scalars: *scalars,
                 };
-                let refinement = refine(hierarchy, view, opacity, &settings)?;
+                let refinement = refine(hierarchy, view, inputs.transfer, &settings)?;
                 lod_batch_with(hierarchy, &refinement, view, *scalars)?
             }
             Kind::SortedCells { cells, adjacency } => sorted_batch(cells, adjacency, view)?,

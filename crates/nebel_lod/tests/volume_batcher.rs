@@ -9,7 +9,9 @@ use glam::{DAffine3, DMat4, DQuat, DVec3, UVec2};
 use nebel_core::cell::Tetrahedron;
 use nebel_core::field::{CloudLighting, DensityGrid, PadFill, light_field, search_light_cells};
 use nebel_core::transfer::{ControlPoint, TransferFunction, TransferPreset};
-use nebel_lod::octree::{CellScalars, RefinementError, RefinementSettings, lod_batch_with, refine};
+use nebel_lod::octree::{
+    CellScalars, LodCriterion, RefinementError, RefinementSettings, lod_batch_with, refine,
+};
 use nebel_lod::{
     BatchError, BatchLighting, BatchSettings, BrickTable, CellAdjacency, CellBatch, CellOrder,
     FrameInputs, Frustum, HierarchyError, OctreeSettings, View, VolumeBatchError, VolumeBatcher,
@@ -110,7 +112,7 @@ fn density_as_opacity() -> TransferFunction {
 fn inputs(transfer: &TransferFunction) -> FrameInputs<'_> {
     FrameInputs {
         transfer,
-        accuracy: ACCURACY,
+        criterion: LodCriterion::distance(ACCURACY),
     }
 }
 
@@ -211,7 +213,7 @@ fn octree_batch(
         CellScalars::LightModulatedByDensity => density_as_opacity(),
         _ => transfer.clone(),
     };
-    let settings = RefinementSettings { accuracy: ACCURACY };
+    let settings = RefinementSettings::new(LodCriterion::distance(ACCURACY));
     let refinement = refine(&hierarchy, view, &opacity, &settings).unwrap();
     lod_batch_with(&hierarchy, &refinement, view, scalars).unwrap()
 }
@@ -435,7 +437,7 @@ fn the_octree_is_rebuilt_on_every_eye_move() {
 
     // The accuracy c sets the level of detail.
     let finer = FrameInputs {
-        accuracy: 64.0,
+        criterion: LodCriterion::distance(64.0),
         ..inputs(&transfer)
     };
     assert!(batcher.update(&culled, &finer).unwrap());
@@ -463,7 +465,7 @@ fn unordered_batches_ignore_the_eye_and_the_frustum() {
         }
         // Without the octree the accuracy is not read.
         let other_accuracy = FrameInputs {
-            accuracy: f64::NAN,
+            criterion: LodCriterion::distance(f64::NAN),
             ..inputs(&transfer)
         };
         assert!(!batcher.update(&v0, &other_accuracy).unwrap());
@@ -522,7 +524,7 @@ fn every_kind_is_rebuilt_for_a_new_placement_or_transfer_function() {
 
         // Only the octree reads the accuracy.
         let finer = FrameInputs {
-            accuracy: 64.0,
+            criterion: LodCriterion::distance(64.0),
             ..inputs(&fog)
         };
         let octree = batcher.settings().octree.is_some();
@@ -613,7 +615,7 @@ fn bad_views_and_inputs_give_typed_errors_and_keep_the_last_batch() {
         if octree {
             for accuracy in [f64::NAN, -1.0] {
                 let bad = FrameInputs {
-                    accuracy,
+                    criterion: LodCriterion::distance(accuracy),
                     ..inputs(&transfer)
                 };
                 let error = batcher.update(&v0, &bad).unwrap_err();

@@ -1107,8 +1107,9 @@ mod tests {
                 density_scale: 0.5,
                 mode: Some(nebel_core::optics::OpticalMode::Mip),
                 lod: Some(LodDescription {
-                    accuracy: 8.0,
+                    accuracy: Some(8.0),
                     min_accuracy: 3.0,
+                    ..LodDescription::default()
                 }),
                 lighting: Some(LightingDescription {
                     ambient: 0.2,
@@ -1357,6 +1358,16 @@ mod tests {
                 "version: 1,",
                 "version: 1, volumes: [(source: Uniform((value: 1.0)), lod: (min_accuracy: 1.5))],",
                 "field volumes[0].lod.min_accuracy: must be finite and > √3, got 1.5",
+            ),
+            (
+                "version: 1,",
+                "version: 1, volumes: [(source: Uniform((value: 1.0)), lod: (image_error: 0.0))],",
+                "field volumes[0].lod.image_error: must be finite and > 0, got 0",
+            ),
+            (
+                "version: 1,",
+                "version: 1, volumes: [(source: Uniform((value: 1.0)), lod: (image_error: 0.1, accuracy: 4.0))],",
+                "field volumes[0].lod: give either image_error (the screen error) or accuracy (the distance criterion), not both",
             ),
             (
                 "version: 1,",

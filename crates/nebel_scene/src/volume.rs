@@ -13,7 +13,9 @@
 //!                                          // or Strip((path: "ramps/fire.png", max_density: 2.0))
 //!         density_scale: 1.0,              // multiplies ρ; default 1
 //!         mode: Sorted,                    // Sorted, Emissive or Mip; default Sorted
-//!         lod: (accuracy: 16.0, min_accuracy: 4.0), // octree C-LOD; default none (full resolution)
+//!         lod: (image_error: 0.1, min_accuracy: 4.0), // octree C-LOD by the screen error (or
+//!                                          // `accuracy: 16.0`: the distance criterion);
+//!                                          // default none (full resolution)
 //!         lighting: (ambient: 0.3, diffuse: 0.7, shadow_extinction: 0.0, model: Isotropic),
 //!                                          // lit cloud (Röttger and Ertl 2003 §5); default none
 //!     ),
@@ -29,7 +31,7 @@
 //!
 //! Grid sources sample the box `min..max` at `dims` points per axis (corners
 //! included), trilinear in between. A volume with `lighting` is drawn through
-//! the octree (with `lod`, or the default `c = 16, C = 4`); its light field
+//! the octree (with `lod`, or the default: the screen error at 0.1, `C = 4`); its light field
 //! uses the first directional light of the scene as the sun (straight up when
 //! there is none) and its transfer function defaults to `Preset(CloudLight)`
 //! for the `Isotropic` model (colour over light, opacity from the density)
@@ -64,7 +66,7 @@ use nebel_core::field::{
 };
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{ControlPoint, TransferError, TransferFunction, TransferPreset};
-use nebel_lod::octree::RefinementSettings;
+use nebel_lod::octree::LodCriterion;
 use nebel_lod::{GpuCell, OctreeSettings, VolumeHierarchy};
 
 /// One volume of a scene.
@@ -203,20 +205,63 @@ impl CloudSource {
     }
 }
 
-/// Level-of-detail settings of a grid volume.
+/// Level-of-detail settings of a grid volume: the octree refined by the
+/// screen error (`image_error`, the default) or by the distance criterion
+/// (`accuracy`); at most one of the two.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LodDescription {
-    /// Global accuracy `c`, ≥ 0: higher draws more cells. Default 16.
-    #[serde(default = "default_lod_accuracy")]
-    pub accuracy: f64,
+    /// The screen error's tolerance: the RMSE over the image (linear RGB)
+    /// that one node's error alone may cause, > 0. Default 0.1 when
+    /// `accuracy` is not given.
+    #[serde(default)]
+    pub image_error: Option<f64>,
+    /// The distance criterion's global accuracy `c`, ≥ 0: higher draws more
+    /// cells (16 was the default before the screen error).
+    #[serde(default)]
+    pub accuracy: Option<f64>,
     /// Minimum accuracy `C`, > √3. Default 4.
     #[serde(default = "default_lod_min_accuracy")]
     pub min_accuracy: f64,
 }
 
-fn default_lod_accuracy() -> f64 {
-    RefinementSettings::DEFAULT_ACCURACY
+impl Default for LodDescription {
+    /// The screen error at its default tolerance, `C = 4`.
+    fn default() -> Self {
+        Self {
+            image_error: None,
+            accuracy: None,
+            min_accuracy: default_lod_min_accuracy(),
+        }
+    }
+}
+
+impl LodDescription {
+    /// The distance criterion at accuracy `c`.
+    pub fn distance(accuracy: f64) -> Self {
+        Self {
+            accuracy: Some(accuracy),
+            ..Self::default()
+        }
+    }
+
+    /// The screen error at `image_error`.
+    pub fn screen_error(image_error: f64) -> Self {
+        Self {
+            image_error: Some(image_error),
+            ..Self::default()
+        }
+    }
+
+    /// The refinement criterion described (validated: at most one of the two
+    /// is given).
+    pub fn criterion(&self) -> LodCriterion {
+        match (self.image_error, self.accuracy) {
+            (_, Some(accuracy)) => LodCriterion::distance(accuracy),
+            (Some(image_error), None) => LodCriterion::screen_error(image_error),
+            (None, None) => LodCriterion::default(),
+        }
+    }
 }
 
 fn default_lod_min_accuracy() -> f64 {
@@ -716,11 +761,26 @@ impl VolumeDescription {
             ));
         }
         if let Some(lod) = &self.lod {
-            if lod.accuracy.is_nan() || lod.accuracy < 0.0 {
-                return Err(InvalidField::new(
-                    "lod.accuracy",
-                    format!("must be >= 0, got {}", lod.accuracy),
-                ));
+            match (lod.image_error, lod.accuracy) {
+                (Some(_), Some(_)) => {
+                    return Err(InvalidField::new(
+                        "lod",
+                        "give either image_error (the screen error) or accuracy (the distance criterion), not both",
+                    ));
+                }
+                (Some(image_error), None) if !(image_error.is_finite() && image_error > 0.0) => {
+                    return Err(InvalidField::new(
+                        "lod.image_error",
+                        format!("must be finite and > 0, got {image_error}"),
+                    ));
+                }
+                (None, Some(accuracy)) if accuracy.is_nan() || accuracy < 0.0 => {
+                    return Err(InvalidField::new(
+                        "lod.accuracy",
+                        format!("must be >= 0, got {accuracy}"),
+                    ));
+                }
+                _ => {}
             }
             if !(lod.min_accuracy.is_finite() && lod.min_accuracy > 3f64.sqrt()) {
                 return Err(InvalidField::new(

@@ -1,24 +1,28 @@
 //! `nebel bench-lod`: run time against image error of a grid volume drawn
-//! through the octree C-LOD, along a sweep of the accuracy `c` (Röttger and
-//! Ertl, "Fast Volumetric Display of Natural Gaseous Phenomena", 2003, §3).
+//! through the octree C-LOD, along a sweep of each refinement criterion: the
+//! distance criterion's accuracy `c` (Röttger and Ertl, "Fast Volumetric
+//! Display of Natural Gaseous Phenomena", 2003, Eq. 1) and the screen
+//! error's tolerance (`nebel_lod::octree::screen_error`).
 //!
-//! For each `c` the scene's one grid volume is rendered with
-//! `lod: (accuracy: c)` (the scene's `min_accuracy`, default 4) and once at
-//! full resolution (a lit volume, which is always drawn through the octree,
-//! with `c = ∞`, which draws exactly the full-resolution cells), with
-//! tonemapping and MSAA off; every image is scored against the
-//! full-resolution image and against the exact reference of the full
-//! trilinear field. The result is a CSV (`c, cells drawn, frame median ms,
-//! RMSE against full resolution, RMSE, max abs, PSNR` against the reference)
-//! and an SVG plot of the median frame time (x, ms, from 0) against the RMSE
-//! (y, logarithmic), with axes, ticks, labels and a legend: one labelled dot
-//! per `c` joined in sweep order, the full-resolution point in red (the
+//! For each setting the scene's one grid volume is rendered with
+//! `lod: (accuracy: c)` or `lod: (image_error: t)` (the scene's
+//! `min_accuracy`, default 4) and once at full resolution (a lit volume,
+//! which is always drawn through the octree, with `c = ∞`, which draws
+//! exactly the full-resolution cells), with tonemapping and MSAA off; every
+//! image is scored against the full-resolution image and against the exact
+//! reference of the full trilinear field. The result is a CSV (`criterion,
+//! value, cells drawn, frame median ms, RMSE against full resolution, RMSE,
+//! max abs, PSNR` against the reference) and an SVG plot of the median frame
+//! time (x, ms, from 0) against the RMSE (y, logarithmic), with axes, ticks,
+//! labels and a legend: one labelled dot per setting joined in sweep order,
+//! one series per criterion, the full-resolution point in red (the
 //! comparison image of `--comparison-accuracy` scores 0 against itself and
 //! has no dot). SVG needs no font files: the labels are SVG text.
 //!
 //! A scene without volumes whose terrain has ground fog sweeps the terrain's
 //! accuracy `c` instead (the quadtree of terrain and fog prisms, Röttger and
-//! Ertl 2003 §6), full resolution being `c` = [`FULL_TERRAIN_ACCURACY`]
+//! Ertl 2003 §6; the terrain has no screen-error criterion, so tolerances are
+//! not swept there), full resolution being `c` = [`FULL_TERRAIN_ACCURACY`]
 //! (every node whose roughness is not zero refined); the cells counted are
 //! the fog's tetrahedra, the reference is the scene's
 //! ([`crate::reference::scene_reference`]: the full-resolution fog's cells on
@@ -30,7 +34,7 @@ use nebel_lod::OctreeSettings;
 use nebel_reference::image_metrics::{ImageErrorMetrics, compare};
 use nebel_scene::reference::save_reference;
 use nebel_scene::{LodDescription, SceneDescription};
-use plotters::style::colors::{BLACK, RED};
+use plotters::style::colors::{BLACK, BLUE, RED};
 
 use crate::time_error_chart::{ChartSeries, time_error_chart};
 
@@ -53,32 +57,64 @@ enum Swept {
     TerrainFog,
 }
 
+/// One setting of a criterion.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SweepSetting {
+    /// The distance criterion's accuracy `c`.
+    Accuracy(f64),
+    /// The screen error's tolerance.
+    ImageError(f64),
+}
+
+impl SweepSetting {
+    /// The CSV's criterion and value.
+    fn columns(self) -> (&'static str, f64) {
+        match self {
+            SweepSetting::Accuracy(c) => ("distance", c),
+            SweepSetting::ImageError(t) => ("screen_error", t),
+        }
+    }
+
+    /// The dot's label in the plot.
+    fn label(self) -> String {
+        match self {
+            SweepSetting::Accuracy(c) => format!("c = {c}"),
+            SweepSetting::ImageError(t) => format!("{t}"),
+        }
+    }
+}
+
 impl Swept {
-    /// `scene` with the accuracy `c` (`None`: the comparison `lod`, or full
+    /// `scene` with `setting` (`None`: the comparison `lod`, or full
     /// resolution for the terrain).
     fn at(
         self,
         scene: &SceneDescription,
-        accuracy: Option<f64>,
+        setting: Option<SweepSetting>,
         lod: Option<LodDescription>,
     ) -> SceneDescription {
         let mut variant = scene.clone();
         match self {
             Swept::Volume { min_accuracy } => {
-                variant.volumes[0].lod = match accuracy {
-                    Some(accuracy) => Some(LodDescription {
-                        accuracy,
+                variant.volumes[0].lod = match setting {
+                    Some(SweepSetting::Accuracy(c)) => Some(LodDescription {
                         min_accuracy,
+                        ..LodDescription::distance(c)
+                    }),
+                    Some(SweepSetting::ImageError(t)) => Some(LodDescription {
+                        min_accuracy,
+                        ..LodDescription::screen_error(t)
                     }),
                     None => lod,
                 };
             }
             Swept::TerrainFog => {
                 if let Some(terrain) = &mut variant.terrain {
-                    terrain.accuracy = accuracy
-                        .or(lod.map(|lod| lod.accuracy))
-                        .unwrap_or(FULL_TERRAIN_ACCURACY)
-                        as f32;
+                    let accuracy = match setting {
+                        Some(SweepSetting::Accuracy(c)) => Some(c),
+                        _ => lod.and_then(|lod| lod.accuracy),
+                    };
+                    terrain.accuracy = accuracy.unwrap_or(FULL_TERRAIN_ACCURACY) as f32;
                 }
             }
         }
@@ -97,8 +133,8 @@ impl Swept {
 /// One point of the sweep.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SweepPoint {
-    /// The accuracy `c`; `None` for full resolution.
-    pub accuracy: Option<f64>,
+    /// The setting; `None` for full resolution (or the comparison image).
+    pub setting: Option<SweepSetting>,
     /// Cells in the batch of the last frame.
     pub cells_drawn: f64,
     /// Median wall time per frame, ms.
@@ -125,9 +161,10 @@ impl SweepPoint {
     }
 }
 
-/// Runs the sweep and writes `DIR/lod_sweep.csv`, `DIR/lod_sweep.svg` and the
-/// images. `scene` must have exactly one volume, with a grid source, or no
-/// volume and a terrain with fog (see the module docs).
+/// Runs the sweep of `accuracies` and (for a volume) `image_errors` and
+/// writes `DIR/lod_sweep.csv`, `DIR/lod_sweep.svg` and the images. `scene`
+/// must have exactly one volume, with a grid source, or no volume and a
+/// terrain with fog (see the module docs).
 ///
 /// `comparison_accuracy`: for a volume too large to draw at full resolution
 /// (the paper's 513 × 65 × 513 field), the image every `c` is scored against
@@ -137,6 +174,7 @@ pub fn run_lod_sweep(
     scene_path: &Path,
     mut scene: SceneDescription,
     accuracies: &[f64],
+    image_errors: &[f64],
     comparison_accuracy: Option<f64>,
     out_dir: &Path,
 ) -> Result<Vec<SweepPoint>, CommandError> {
@@ -169,13 +207,13 @@ pub fn run_lod_sweep(
     };
     let lit = scene.volumes.first().is_some_and(|v| v.lighting.is_some());
     let full_lod = lit.then_some(LodDescription {
-        accuracy: f64::INFINITY,
         min_accuracy,
+        ..LodDescription::distance(f64::INFINITY)
     });
     let comparison_lod = match comparison_accuracy {
         Some(accuracy) => Some(LodDescription {
-            accuracy,
             min_accuracy,
+            ..LodDescription::distance(accuracy)
         }),
         None => full_lod,
     };
@@ -189,13 +227,28 @@ pub fn run_lod_sweep(
         }
     };
 
-    let mut points = Vec::with_capacity(accuracies.len() + 1);
-    let mut images = Vec::with_capacity(accuracies.len() + 1);
-    let runs = accuracies.iter().map(|c| Some(*c)).chain([None]);
-    for accuracy in runs {
-        let variant = swept.at(&scene, accuracy, comparison_lod);
-        let name = match (accuracy, comparison_accuracy) {
-            (Some(c), _) => format!("c_{c}"),
+    // The terrain has the distance criterion only.
+    let image_errors = match swept {
+        Swept::Volume { .. } => image_errors,
+        Swept::TerrainFog => &[],
+    };
+    let runs: Vec<Option<SweepSetting>> = accuracies
+        .iter()
+        .map(|&c| Some(SweepSetting::Accuracy(c)))
+        .chain(
+            image_errors
+                .iter()
+                .map(|&t| Some(SweepSetting::ImageError(t))),
+        )
+        .chain([None])
+        .collect();
+    let mut points = Vec::with_capacity(runs.len());
+    let mut images = Vec::with_capacity(runs.len());
+    for setting in runs {
+        let variant = swept.at(&scene, setting, comparison_lod);
+        let name = match (setting, comparison_accuracy) {
+            (Some(SweepSetting::Accuracy(c)), _) => format!("c_{c}"),
+            (Some(SweepSetting::ImageError(t)), _) => format!("image_error_{t}"),
             (None, Some(c)) => format!("comparison_c_{c}"),
             (None, None) => String::from("full_resolution"),
         };
@@ -223,7 +276,7 @@ pub fn run_lod_sweep(
             .copied()
             .unwrap_or(0.0);
         points.push(SweepPoint {
-            accuracy,
+            setting,
             cells_drawn,
             frame_ms: stats.frame_wall_ms.median,
             rmse_full: 0.0,
@@ -240,15 +293,20 @@ pub fn run_lod_sweep(
             point.rmse_full = compare(image, full_image)?.rmse;
         }
     }
-    let mut csv = String::from("c,cells_drawn,frame_ms_median,rmse_vs_full,rmse,max_abs,psnr_db\n");
+    let mut csv = String::from(
+        "criterion,value,cells_drawn,frame_ms_median,rmse_vs_full,rmse,max_abs,psnr_db\n",
+    );
     for point in &points {
-        let c = match (point.accuracy, comparison_accuracy) {
-            (Some(c), _) => c.to_string(),
-            (None, Some(c)) => format!("comparison {c}"),
-            (None, None) => String::from("full"),
+        let (criterion, value) = match (point.setting, comparison_accuracy) {
+            (Some(setting), _) => {
+                let (criterion, value) = setting.columns();
+                (criterion, value.to_string())
+            }
+            (None, Some(c)) => ("comparison", c.to_string()),
+            (None, None) => ("full", String::new()),
         };
         csv.push_str(&format!(
-            "{c},{},{},{},{},{},{}\n",
+            "{criterion},{value},{},{},{},{},{},{}\n",
             point.cells_drawn,
             point.frame_ms,
             point.rmse_full,
@@ -284,35 +342,43 @@ pub fn plot(points: &[SweepPoint], comparison_accuracy: Option<f64>) -> Result<S
         Some(c) => format!("comparison, c = {c}"),
         None => String::from("full resolution"),
     };
-    let swept = ChartSeries {
-        legend: Some(String::from("octree C-LOD, one dot per c")),
+    let series_of = |legend: &str, colour, of: fn(SweepSetting) -> bool| ChartSeries {
+        legend: Some(String::from(legend)),
         points: shown
             .iter()
-            .filter_map(|p| Some((p.frame_ms, p.error(), Some(format!("c = {}", p.accuracy?)))))
+            .filter_map(|p| {
+                let setting = p.setting.filter(|s| of(*s))?;
+                Some((p.frame_ms, p.error(), Some(setting.label())))
+            })
             .collect(),
         line: true,
-        colour: BLACK,
+        colour,
         radius: 4,
     };
+    let distance = series_of("distance criterion, one dot per c", BLACK, |s| {
+        matches!(s, SweepSetting::Accuracy(_))
+    });
+    let screen = series_of("screen error, one dot per tolerance", BLUE, |s| {
+        matches!(s, SweepSetting::ImageError(_))
+    });
     // The comparison image scores 0 against itself: no dot on a log axis.
     let full = ChartSeries {
         legend: Some(full_label),
         points: shown
             .iter()
-            .filter(|p| p.accuracy.is_none())
+            .filter(|p| p.setting.is_none())
             .map(|p| (p.frame_ms, p.error(), None))
             .collect(),
         line: false,
         colour: RED,
         radius: 5,
     };
-    let series = if full.points.is_empty() {
-        vec![swept]
-    } else {
-        vec![swept, full]
-    };
+    let series: Vec<ChartSeries> = [distance, screen, full]
+        .into_iter()
+        .filter(|series| !series.points.is_empty())
+        .collect();
     time_error_chart(
-        "Frame time against image error along c",
+        "Frame time against image error along each criterion",
         error_label,
         &series,
     )
@@ -322,9 +388,9 @@ pub fn plot(points: &[SweepPoint], comparison_accuracy: Option<f64>) -> Result<S
 mod tests {
     use super::*;
 
-    fn point(accuracy: Option<f64>, frame_ms: f64, rmse: f64) -> SweepPoint {
+    fn point(setting: Option<SweepSetting>, frame_ms: f64, rmse: f64) -> SweepPoint {
         SweepPoint {
-            accuracy,
+            setting,
             cells_drawn: 0.0,
             frame_ms,
             rmse_full: rmse,
@@ -337,8 +403,9 @@ mod tests {
     #[test]
     fn the_plot_has_axes_labels_a_legend_and_a_dot_per_point() {
         let points = [
-            point(Some(1.0), 10.0, 1e-1),
-            point(Some(64.0), 50.0, 1e-2),
+            point(Some(SweepSetting::Accuracy(1.0)), 10.0, 1e-1),
+            point(Some(SweepSetting::Accuracy(64.0)), 50.0, 1e-2),
+            point(Some(SweepSetting::ImageError(0.03)), 30.0, 5e-3),
             point(None, 100.0, 1e-3),
         ];
         let svg = plot(&points, None).unwrap();
@@ -346,13 +413,15 @@ mod tests {
             "median frame time (ms)",
             "RMSE against the exact reference",
             "c = 64",
+            "0.03",
             "full resolution",
-            "octree C-LOD, one dot per c",
+            "distance criterion, one dot per c",
+            "screen error, one dot per tolerance",
         ] {
             assert!(svg.contains(text), "the plot lacks {text:?}");
         }
-        // Two black dots, the red one and the legend's red dot.
-        assert_eq!(svg.matches("<circle").count(), 4, "{svg}");
+        // Two black dots, a blue one, the red one and the legend's red dot.
+        assert_eq!(svg.matches("<circle").count(), 5, "{svg}");
         // The sweep's dots are left of the full-resolution one, the slower.
         let circles: Vec<(f64, String)> = svg
             .split("<circle")

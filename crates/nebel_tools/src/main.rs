@@ -21,7 +21,7 @@ use nebel_tools::error::CommandError;
 use nebel_tools::fog_comparison::{self, BevyFog};
 use nebel_tools::fog_layer_peers::run_fog_layer_peers;
 use nebel_tools::headless::HeadlessOptions;
-use nebel_tools::lod_sweep::run_lod_sweep;
+use nebel_tools::lod_sweep::{SweepSetting, run_lod_sweep};
 use nebel_tools::progress::reference_bar;
 use nebel_tools::reference::scene_reference;
 use nebel_tools::scene_setup::{BevyPeer, SceneSetupPlugin};
@@ -119,8 +119,9 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
-    /// Sweep the octree accuracy c of the scene's one grid volume (or, in a
-    /// scene without volumes, the accuracy c of its terrain with ground
+    /// Sweep the octree criteria of the scene's one grid volume (the
+    /// distance criterion's accuracy c and the screen error's tolerance; in
+    /// a scene without volumes, the accuracy c of its terrain with ground
     /// fog), score each image against full resolution and the exact
     /// reference, write `DIR/lod_sweep.csv` and a plot of frame time against
     /// error (`DIR/lod_sweep.svg`).
@@ -133,6 +134,10 @@ enum Command {
         /// The accuracies c to sweep, comma-separated.
         #[arg(long, value_delimiter = ',', default_values_t = [0.0, 4.0, 16.0, 64.0, 256.0])]
         accuracies: Vec<f64>,
+        /// The screen error's tolerances to sweep, comma-separated (not for
+        /// a terrain).
+        #[arg(long, value_delimiter = ',', default_values_t = [0.3, 0.1, 0.03, 0.01, 0.003])]
+        image_errors: Vec<f64>,
         /// Score against the image at this c instead of full resolution, for
         /// a volume too large to draw at full resolution (the exact
         /// reference is skipped).
@@ -254,8 +259,15 @@ fn run(command: Command) -> Result<(), CommandError> {
             scene,
             out,
             accuracies,
+            image_errors,
             comparison_accuracy,
-        } => bench_lod(&scene, &out, &accuracies, comparison_accuracy),
+        } => bench_lod(
+            &scene,
+            &out,
+            &accuracies,
+            &image_errors,
+            comparison_accuracy,
+        ),
         Command::Soak {
             scene,
             frames,
@@ -477,16 +489,26 @@ fn bench_lod(
     args: &SceneArgs,
     out_dir: &Path,
     accuracies: &[f64],
+    image_errors: &[f64],
     comparison_accuracy: Option<f64>,
 ) -> Result<(), CommandError> {
     let scene = args.load()?;
-    let points = run_lod_sweep(&args.scene, scene, accuracies, comparison_accuracy, out_dir)?;
+    let points = run_lod_sweep(
+        &args.scene,
+        scene,
+        accuracies,
+        image_errors,
+        comparison_accuracy,
+        out_dir,
+    )?;
     for point in &points {
-        let c = point
-            .accuracy
-            .map_or(String::from("full resolution"), |c| format!("c = {c}"));
+        let setting = match point.setting {
+            Some(SweepSetting::Accuracy(c)) => format!("c = {c}"),
+            Some(SweepSetting::ImageError(t)) => format!("screen error {t}"),
+            None => String::from("full resolution"),
+        };
         println!(
-            "{c}: {} cells, frame {:.1} ms, RMSE {:.3e} against full resolution, {:.3e} against the exact reference",
+            "{setting}: {} cells, frame {:.1} ms, RMSE {:.3e} against full resolution, {:.3e} against the exact reference",
             point.cells_drawn, point.frame_ms, point.rmse_full, point.rmse
         );
     }

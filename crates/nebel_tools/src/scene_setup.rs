@@ -398,7 +398,7 @@ fn spawn_volumes(commands: &mut Commands, grids: &mut Assets<VolumeGrid>, volume
         };
         if let Some(lod) = volume.lod {
             entity.insert(VolumeLod {
-                accuracy: lod.accuracy,
+                criterion: lod.criterion(),
                 min_accuracy: lod.min_accuracy,
             });
         }

@@ -16,7 +16,8 @@
 //!    meanwhile.
 //! 2. `update_batches`: each visible volume's batcher is updated for the view
 //!    of the LOD camera ([`LodCameras`]) and the frame's inputs (the transfer
-//!    function, the accuracy `c`); the entity's `CellBatch` is written only
+//!    function, the criterion of [`VolumeLod`] scaled by the quality preset);
+//!    the entity's `CellBatch` is written only
 //!    when the batch, the optical mode or the scattering changed, so the
 //!    render world uploads only then.
 //! 3. `report_status` derives [`VolumeStatus`] from the stages' failures (the
@@ -51,7 +52,7 @@ use crate::grid::VolumeGrid;
 use crate::lighting::sun_in_local_frame;
 use crate::status::{VolumeError, VolumeStatus};
 use crate::volume::{Volume, VolumeField, VolumePlugin};
-use crate::{VolumeLighting, VolumeLod};
+use crate::{LodCriterion, VolumeLighting, VolumeLod};
 
 /// A finished background build: the batcher and how long it took.
 type BuiltBatcher = Result<(VolumeBatcher, f64), VolumeBatchError>;
@@ -307,11 +308,17 @@ pub(crate) fn update_batches(
         let (Some(camera), Some(batcher)) = (camera, batching.batcher.as_mut()) else {
             continue;
         };
-        let mut view = View::new(world_from_local(transform), camera.eye, camera.viewport);
-        view.frustum = frustum.clone();
+        let view = View {
+            frustum: frustum.clone(),
+            clip_from_world: Some(camera.clip_from_world),
+            ..View::new(world_from_local(transform), camera.eye, camera.viewport)
+        };
         let inputs = FrameInputs {
             transfer: &volume.transfer_function,
-            accuracy: lod.map_or(0.0, |lod| lod.accuracy * accuracy_scale),
+            // Read by the octree alone, which every volume with a `VolumeLod` has.
+            criterion: lod.map_or_else(LodCriterion::default, |lod| {
+                lod.criterion.scaled(accuracy_scale)
+            }),
         };
         let scattering =
             lighting.and_then(|lighting| lighting.cell_scattering(sun_world.unwrap_or(Vec3::Y)));

@@ -35,7 +35,7 @@ pub use flickering_light::{FlickeringLight, FlickeringLightPlugin};
 pub use grid::VolumeGrid;
 pub use grid_loader::{VolumeGridLoadError, VolumeGridLoader, VolumeGridSettings};
 pub use lighting::{CloudLightModel, VolumeLighting};
-pub use lod::VolumeLod;
+pub use lod::{LodCriterion, VolumeLod};
 pub use status::{VolumeError, VolumeStatus};
 pub use volume::{Volume, VolumeField, VolumePlugin};
 

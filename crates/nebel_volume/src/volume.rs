@@ -168,6 +168,7 @@ impl Default for Volume {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::LodCriterion;
     use bevy::asset::AssetPlugin;
     use bevy::diagnostic::DiagnosticsStore;
     use bevy::math::DVec3;
@@ -239,7 +240,7 @@ mod tests {
         let field = grid_field(app, grid);
         app.world_mut().get_mut::<Volume>(volume).unwrap().field = field;
         app.world_mut().entity_mut(volume).insert(VolumeLod {
-            accuracy,
+            criterion: LodCriterion::distance(accuracy),
             min_accuracy: 2.0,
         });
     }
@@ -371,7 +372,7 @@ mod tests {
         app.world_mut()
             .get_mut::<VolumeLod>(volume)
             .unwrap()
-            .accuracy = f64::INFINITY;
+            .criterion = LodCriterion::distance(f64::INFINITY);
         app.update();
         let fine = app.world().get::<CellBatch>(volume).unwrap().cells.len();
         assert!(
@@ -510,7 +511,7 @@ mod tests {
         let (mut app, _, volume) = app_with_volume(OpticalMode::Sorted);
         // C ≤ √3 cannot build an octree.
         app.world_mut().entity_mut(volume).insert(VolumeLod {
-            accuracy: 16.0,
+            criterion: LodCriterion::distance(16.0),
             min_accuracy: 1.0,
         });
         app.update();

@@ -481,7 +481,7 @@ mod tests {
 
     use super::*;
     use crate::full_resolution::{BrickTable, CellOrder, full_resolution_batch};
-    use crate::octree::{HierarchyError, NodeMorph, RefinementSettings, refine};
+    use crate::octree::{HierarchyError, LodCriterion, NodeMorph, RefinementSettings, refine};
 
     /// ρ > 0 for every s > 0: nothing of a field in (0, 1] is culled.
     fn fog() -> TransferFunction {
@@ -530,7 +530,7 @@ mod tests {
             h,
             &view(world_from_grid(), eye),
             &fog(),
-            &RefinementSettings { accuracy },
+            &RefinementSettings::new(LodCriterion::distance(accuracy)),
         )
         .unwrap()
     }

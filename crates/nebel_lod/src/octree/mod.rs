@@ -98,11 +98,13 @@ mod build;
 pub mod emit;
 mod node;
 pub mod refine;
+pub mod screen_error;
 
 pub use emit::{CellScalars, lod_batch, lod_batch_with};
 pub use node::Node;
 pub use refine::{
-    NodeMorph, Refinement, RefinementError, RefinementSettings, RefinementStats, refine,
+    LodCriterion, NodeMorph, Refinement, RefinementError, RefinementSettings, RefinementStats,
+    refine,
 };
 
 use glam::DVec3;

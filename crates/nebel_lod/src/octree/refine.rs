@@ -3,7 +3,20 @@
 //! every root that decides which nodes are drawn as leaves, in exact
 //! back-to-front order for the eye, with the error metric of each node.
 //!
-//! # Error metric (Röttger and Ertl 2003 Eq. 1 and Eq. 6)
+//! # Criteria
+//!
+//! [`RefinementSettings::criterion`] picks the error metric `e`; a node is
+//! refined while `e > 1`, and every visited node gets the morph factor
+//! `e' = clamp(e − 1, 0, 1)` of Eq. 6:
+//!
+//! - [`LodCriterion::ScreenError`] (the default): the estimated colour error
+//!   of the node in the pixels it covers, through the view's projection, the
+//!   transfer function over the node's path length and the opacity in front
+//!   of it, against a tolerance in colour units ([`super::screen_error`]).
+//!   Its `e'` is clamped to the parent's.
+//! - [`LodCriterion::Distance`]: the paper's geometric metric, below.
+//!
+//! # Distance metric (Röttger and Ertl 2003 Eq. 1 and Eq. 6)
 //!
 //! A node of edge `s` (world units) whose centre is at distance `d` from the
 //! eye is refined while
@@ -14,8 +27,7 @@
 //! with, so Eq. 2 to 5 hold: a node is refined whenever one of its children
 //! would be, and stopping the descent at the first unrefined node loses
 //! nothing), `Δ` = [`VolumeHierarchy::deviation`] in density units and `c` =
-//! [`RefinementSettings::accuracy`]. Every visited node also gets the morph
-//! factor `e' = clamp(e − 1, 0, 1)` of Eq. 6.
+//! [`LodCriterion::Distance::accuracy`].
 //!
 //! Decisions:
 //! - `d` is the Euclidean distance from the eye to the node's **centre**, as
@@ -31,7 +43,9 @@
 //!   ([`Frustum::intersects_aabb`] in the grid's own frame, conservative) or
 //!   whose scalar range has zero opacity
 //!   ([`TransferFunction::is_transparent`] of
-//!   [`VolumeHierarchy::scalar_range`], exact for any transfer function) is
+//!   [`VolumeHierarchy::scalar_range`], exact for any transfer function; for
+//!   [`CellScalars::LightModulatedByDensity`], whose opacity is the density
+//!   itself, a node whose densities are all 0) is
 //!   skipped with all its descendants, which are then not visited at all.
 //!   Both tests can only become more aggressive for a smaller box, so a node
 //!   pruned here would also have every one of its voxels pruned by the
@@ -41,6 +55,8 @@
 //!
 //! # Order
 //!
+//! The traversal runs front to back (what the screen-error criterion's
+//! occlusion needs) and the leaves are handed out reversed: back to front.
 //! The leaves come back to front for the eye, also for an eye inside the
 //! volume or exactly on a node plane, by the slab rule of the full-resolution
 //! batch ([`crate::full_resolution`]): along each axis, the slabs are visited
@@ -50,7 +66,8 @@
 //! root wide) and, inside every refined node, to its eight children (two
 //! slabs per axis, split at the node centre). Each split is a plane that
 //! separates what was visited before from what follows with the eye on the
-//! later side, so the nesting is a BSP order of all leaves. The eye is pulled
+//! later side, so the nesting is a BSP order of all leaves, and its reverse
+//! (each split's sides swapped) the front-to-back order of the traversal. The eye is pulled
 //! back into the grid's index frame through `world_from_local` (sidedness is
 //! invariant under affine maps, mirrors included) and compared with the
 //! integer split planes exactly.
@@ -77,48 +94,134 @@ use glam::{DAffine3, DVec3};
 use nebel_core::transfer::TransferFunction;
 use thiserror::Error;
 
+use super::emit::CellScalars;
+use super::screen_error::{Footprint, NodeOptics, ScreenTiles};
 use super::{Node, VolumeHierarchy};
 use crate::frustum::Frustum;
 use crate::full_resolution::{axis_order, index_maps};
 use crate::view::View;
 
-/// The user's controls of the refinement.
+/// The error metric of the refinement (module docs). It (de)serializes as
+/// `ScreenError(image_error: 0.1)` or `Distance(accuracy: 16.0)` with the
+/// `serde` feature.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct RefinementSettings {
-    /// The global accuracy `c` of Röttger and Ertl 2003 Eq. 1, in units of 1/density
-    /// (`c · Δ` is dimensionless, Δ in density units of [0, 1]): a node whose
-    /// deviation Δ exceeds `1/c` is refined `c · Δ` times farther away than
-    /// the minimum accuracy alone would refine it. Higher values give a finer
-    /// mesh; 0 leaves only the distance term `s · C / d`. Must be ≥ 0 and not
-    /// NaN; `+∞` refines every node with Δ > 0 (and every node closer than
-    /// `s · C`) down to voxels. Default
-    /// [`RefinementSettings::DEFAULT_ACCURACY`].
-    pub accuracy: f64,
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "bevy_reflect", derive(bevy_reflect::Reflect))]
+pub enum LodCriterion {
+    /// The estimated colour error on the screen ([`super::screen_error`]):
+    /// a node is refined while the RMSE over the image that its error alone
+    /// would cause exceeds `image_error`, and it covers more than a pixel.
+    /// Needs the view's projection ([`View::clip_from_world`]).
+    ScreenError {
+        /// The tolerated RMSE over the image of one node's error, linear RGB
+        /// (premultiplied, the units of the HDR image before tonemapping),
+        /// finite and above 0. Smaller values draw more cells. Measured on
+        /// the cumulus layers of the examples, the image's RMSE against full
+        /// resolution comes out at 0.06 to 3 times this value. Default
+        /// [`LodCriterion::DEFAULT_IMAGE_ERROR`].
+        image_error: f64,
+    },
+    /// The distance metric of Röttger and Ertl 2003 Eq. 1,
+    /// `e = s · C · max(c · Δ, 1) / d`.
+    Distance {
+        /// The global accuracy `c` of Eq. 1, in units of 1/density (`c · Δ`
+        /// is dimensionless, Δ in density units of [0, 1]): a node whose
+        /// deviation Δ exceeds `1/c` is refined `c · Δ` times farther away
+        /// than the minimum accuracy alone would refine it. Higher values
+        /// give a finer mesh; 0 leaves only the distance term `s · C / d`.
+        /// Must be ≥ 0 and not NaN; `+∞` refines every node with Δ > 0 (and
+        /// every node closer than `s · C`) down to voxels. Default
+        /// [`LodCriterion::DEFAULT_ACCURACY`].
+        accuracy: f64,
+    },
 }
 
-impl RefinementSettings {
-    /// The default global accuracy `c`, 16: deviations above 1/16 of the
-    /// density range extend the refinement distance. A mid value of the
-    /// octree bench's sweep, not yet tuned against image error.
+impl LodCriterion {
+    /// The default tolerance of the screen error, 0.1: on the cumulus layers
+    /// of the examples about as many cells as the distance criterion's
+    /// default `c` = 16 draws, at a half to two thirds of its RMSE seen from
+    /// outside the layer.
+    pub const DEFAULT_IMAGE_ERROR: f64 = 0.1;
+
+    /// The default global accuracy `c` of the distance criterion, 16:
+    /// deviations above 1/16 of the density range extend the refinement
+    /// distance.
     pub const DEFAULT_ACCURACY: f64 = 16.0;
 
-    /// `Ok` when the settings are usable: `accuracy` ≥ 0 and not NaN.
+    /// The distance criterion with accuracy `c`.
+    pub fn distance(accuracy: f64) -> Self {
+        Self::Distance { accuracy }
+    }
+
+    /// The screen-error criterion with the tolerance `image_error`.
+    pub fn screen_error(image_error: f64) -> Self {
+        Self::ScreenError { image_error }
+    }
+
+    /// The criterion refining as if its accuracy were `factor` times higher
+    /// (a quality preset's factor): `c · factor`, or `image_error / factor`.
+    pub fn scaled(self, factor: f64) -> Self {
+        match self {
+            Self::Distance { accuracy } => Self::Distance {
+                accuracy: accuracy * factor,
+            },
+            Self::ScreenError { image_error } => Self::ScreenError {
+                image_error: image_error / factor,
+            },
+        }
+    }
+
+    /// `Ok` when the criterion is usable: `accuracy` ≥ 0 and not NaN,
+    /// `image_error` finite and > 0.
     pub fn validate(&self) -> Result<(), RefinementError> {
-        if self.accuracy >= 0.0 {
-            Ok(())
-        } else {
-            Err(RefinementError::InvalidAccuracy {
-                value: self.accuracy,
-            })
+        match *self {
+            Self::Distance { accuracy } if accuracy >= 0.0 => Ok(()),
+            Self::Distance { accuracy } => {
+                Err(RefinementError::InvalidAccuracy { value: accuracy })
+            }
+            Self::ScreenError { image_error } if image_error > 0.0 && image_error.is_finite() => {
+                Ok(())
+            }
+            Self::ScreenError { image_error } => {
+                Err(RefinementError::InvalidImageError { value: image_error })
+            }
         }
     }
 }
 
-impl Default for RefinementSettings {
+impl Default for LodCriterion {
     fn default() -> Self {
-        Self {
-            accuracy: Self::DEFAULT_ACCURACY,
+        Self::ScreenError {
+            image_error: Self::DEFAULT_IMAGE_ERROR,
         }
+    }
+}
+
+/// The user's controls of the refinement.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct RefinementSettings {
+    /// The error metric and its tolerance. Default
+    /// [`LodCriterion::ScreenError`] at 0.1.
+    pub criterion: LodCriterion,
+    /// What the cells will draw (the emission's [`CellScalars`]): which
+    /// field sets the opacity for the zero-opacity test and how the transfer
+    /// function turns deviations into colour for the screen error. Default
+    /// the density alone.
+    pub scalars: CellScalars,
+}
+
+impl RefinementSettings {
+    /// Density cells refined by `criterion`.
+    pub fn new(criterion: LodCriterion) -> Self {
+        Self {
+            criterion,
+            scalars: CellScalars::Density,
+        }
+    }
+
+    /// `Ok` when the settings are usable ([`LodCriterion::validate`]).
+    pub fn validate(&self) -> Result<(), RefinementError> {
+        self.criterion.validate()
     }
 }
 
@@ -138,6 +241,17 @@ pub enum RefinementError {
         /// The value given.
         value: f64,
     },
+    /// The screen-error tolerance is not a finite number above 0.
+    #[error("the tolerated image error (RMSE) must be finite and above 0, got {value}")]
+    InvalidImageError {
+        /// The value given.
+        value: f64,
+    },
+    /// The screen-error criterion was asked of a view without its projection.
+    #[error(
+        "the screen-error criterion measures nodes in pixels and needs the view's projection (View::with_projection)"
+    )]
+    MissingProjection,
     /// The view's `world_from_local` (with the grid's origin and spacing) is
     /// not finite or not invertible.
     #[error("world_from_local must be finite and invertible (determinant {determinant})")]
@@ -217,10 +331,12 @@ pub(crate) fn index_frame(
 /// - `view`: its `world_from_local` maps the grid's own coordinates (point
 ///   `(i, j, k)` at `origin + (i, j, k) · spacing`) to world space, as for
 ///   [`crate::full_resolution_batch`]; the eye sets distances and order; the
-///   frustum prunes nodes; an empty viewport gives an empty refinement
-///   (after the checks below).
-/// - `transfer`: the transfer function of the zero-opacity test.
-/// - `settings`: the global accuracy `c`.
+///   frustum prunes nodes; the projection and viewport measure nodes in
+///   pixels for the screen-error criterion; an empty viewport gives an empty
+///   refinement (after the checks below).
+/// - `transfer`: the volume's transfer function, as the cells will be drawn
+///   with it ([`RefinementSettings::scalars`] says over which field).
+/// - `settings`: the criterion and what the cells draw.
 ///
 /// Errors: [`RefinementError`].
 pub fn refine(
@@ -231,26 +347,44 @@ pub fn refine(
 ) -> Result<Refinement, RefinementError> {
     settings.validate()?;
     let (world_from_index, eye_index) = index_frame(hierarchy, view)?;
+    let metric = match settings.criterion {
+        LodCriterion::Distance { accuracy } => Metric::Distance { accuracy },
+        LodCriterion::ScreenError { image_error } => {
+            let clip_from_world = view
+                .clip_from_world
+                .ok_or(RefinementError::MissingProjection)?;
+            Metric::ScreenError {
+                image_error,
+                optics: Box::new(NodeOptics::new(transfer, settings.scalars)),
+                tiles: ScreenTiles::new(
+                    clip_from_world,
+                    world_from_index,
+                    view.viewport.to_array(),
+                ),
+            }
+        }
+    };
     if view.viewport_is_empty() {
         return Ok(Refinement::default());
     }
     let m = world_from_index.matrix3;
+    let edges = [m.x_axis.length(), m.y_axis.length(), m.z_axis.length()];
     let mut traversal = Traversal {
         hierarchy,
         world_from_index,
         eye_world: view.eye,
         eye_index,
+        // The screen error gives nodes off the screen no error instead.
         frustum: view
             .frustum
             .as_ref()
+            .filter(|_| matches!(settings.criterion, LodCriterion::Distance { .. }))
             .map(|f| f.in_local_frame(&world_from_index)),
         transfer,
-        accuracy: settings.accuracy,
-        voxel_edge: m
-            .x_axis
-            .length()
-            .max(m.y_axis.length())
-            .max(m.z_axis.length()),
+        density_is_opacity: settings.scalars == CellScalars::LightModulatedByDensity,
+        metric,
+        voxel_edge: edges[0].max(edges[1]).max(edges[2]),
+        shortest_voxel_edge: edges[0].min(edges[1]).min(edges[2]),
         result: Refinement::default(),
     };
 
@@ -262,22 +396,38 @@ pub fn refine(
             .clamp(-(2f64.powi(62)), 2f64.powi(62)) as i64;
         let mut order = Vec::with_capacity(hierarchy.root_counts()[axis]);
         axis_order(0, hierarchy.root_counts()[axis], Some(slab), &mut order);
+        // Front to back.
+        order.reverse();
         order
     });
     let size = 1 << hierarchy.root_level();
     for &z in &root_order[2] {
         for &y in &root_order[1] {
             for &x in &root_order[0] {
-                traversal.visit(Node {
+                let root = Node {
                     level: hierarchy.root_level(),
                     origin: [x * size, y * size, z * size],
-                });
+                };
+                traversal.visit(root, None);
             }
         }
     }
     let mut result = traversal.result;
+    result.leaves.reverse();
     result.stats.leaves = result.leaves.len();
     Ok(result)
+}
+
+/// The error metric of one refinement, with what it keeps while it runs.
+enum Metric {
+    /// Röttger and Ertl 2003 Eq. 1 with the global accuracy `c`.
+    Distance { accuracy: f64 },
+    /// The screen error ([`super::screen_error`]).
+    ScreenError {
+        image_error: f64,
+        optics: Box<NodeOptics>,
+        tiles: ScreenTiles,
+    },
 }
 
 /// The state of one top-down traversal.
@@ -294,17 +444,23 @@ struct Traversal<'a> {
     frustum: Option<Frustum>,
     /// The transfer function of the zero-opacity test.
     transfer: &'a TransferFunction,
-    /// The global accuracy `c`.
-    accuracy: f64,
+    /// The density itself is the opacity (only density 0 is empty).
+    density_is_opacity: bool,
+    /// The error metric.
+    metric: Metric,
     /// The longest world-space image of one voxel edge.
     voxel_edge: f64,
+    /// The shortest world-space image of one voxel edge.
+    shortest_voxel_edge: f64,
     /// What has been found so far.
     result: Refinement,
 }
 
 impl Traversal<'_> {
-    /// Visits `node` and, when it is refined, its children back to front.
-    fn visit(&mut self, node: Node) {
+    /// Visits `node` and, when it is refined, its children front to back;
+    /// `parent` is the parent's `e'` and occlusion weight (`None` for a
+    /// root).
+    fn visit(&mut self, node: Node, parent: Option<(f32, f64)>) {
         let stats = &mut self.result.stats;
         stats.nodes_visited += 1;
         let size = node.size() as f64;
@@ -317,58 +473,140 @@ impl Traversal<'_> {
             stats.culled_by_frustum += 1;
             return;
         }
-        let [s_min, s_max] = self.hierarchy.scalar_range(node);
-        if self
-            .transfer
-            .is_transparent(f64::from(s_min), f64::from(s_max))
-        {
+        let range = self.hierarchy.scalar_range_quantised(node);
+        let transparent = if self.density_is_opacity {
+            range[1] == 0
+        } else {
+            let [s_min, s_max] = range.map(|q| f64::from(q) / 255.0);
+            self.transfer.is_transparent(s_min, s_max)
+        };
+        if transparent {
             stats.culled_transparent += 1;
             return;
         }
 
         let centre = lo + 0.5 * size;
-        let e = self.error(node, centre);
-        let morph = NodeMorph {
-            node,
-            morph: (e - 1.0).clamp(0.0, 1.0) as f32,
-        };
+        let (e, footprint) = self.error(node, centre, lo, range);
+        let mut morph = (e - 1.0).clamp(0.0, 1.0) as f32;
+        // The screen error: e' at most the parent's, and the weight of this
+        // node's occlusion (see `screen_error`).
+        let mut weight = 1.0;
+        if let (Metric::ScreenError { .. }, Some((parent_morph, parent_weight))) =
+            (&self.metric, parent)
+        {
+            morph = morph.min(parent_morph);
+            weight = parent_weight * f64::from(parent_morph);
+        }
+        let morph = NodeMorph { node, morph };
         match node.children() {
             Some(children) if e > 1.0 => {
                 self.result.refined.push(morph);
-                // Per axis the child bit on the eye's far side first; an eye
-                // on the split plane counts as on the upper side.
+                // Per axis the child bit on the eye's side first; an eye on
+                // the split plane counts as on the upper side.
                 let bits = |axis: usize| {
                     if self.eye_index[axis] < centre[axis] {
-                        [1, 0]
-                    } else {
                         [0, 1]
+                    } else {
+                        [1, 0]
                     }
                 };
                 let (bx, by, bz) = (bits(0), bits(1), bits(2));
                 for z in bz {
                     for y in by {
                         for x in bx {
-                            self.visit(children[x + 2 * y + 4 * z]);
+                            let child = children[x + 2 * y + 4 * z];
+                            self.visit(child, Some((morph.morph, weight)));
                         }
                     }
                 }
+                self.occlude(
+                    footprint,
+                    range,
+                    size,
+                    weight * f64::from(1.0 - morph.morph),
+                );
             }
             _ => {
                 if node.level == 0 {
                     self.result.stats.full_resolution_leaves += 1;
                 }
+                self.occlude(footprint, range, size, weight);
                 self.result.leaves.push(morph);
             }
         }
     }
 
-    /// The error metric `e` of Röttger and Ertl 2003 Eq. 1 for `node` with its centre at
-    /// `centre` (grid index coordinates); `∞` when the eye is at the centre.
-    fn error(&self, node: Node, centre: DVec3) -> f64 {
+    /// The screen error's occlusion by a node of this footprint, scalar range
+    /// and size (voxels), with `weight` of its own depth (see
+    /// `screen_error`).
+    fn occlude(&mut self, footprint: Option<Footprint>, range: [u8; 2], size: f64, weight: f64) {
+        if let (Some(footprint), Metric::ScreenError { optics, tiles, .. }) =
+            (footprint, &mut self.metric)
+            && weight > 0.0
+        {
+            let (_, rho_min) = optics.error(range, 0.0, 0.0);
+            tiles.occlude(
+                footprint,
+                weight * rho_min * self.shortest_voxel_edge * size / 2.0,
+            );
+        }
+    }
+
+    /// The error metric `e` of `node` with its box at `lo` and centre at
+    /// `centre` (grid index coordinates), and its footprint for the screen
+    /// error. The distance metric (Eq. 1) is `∞` when the eye is at the
+    /// centre.
+    fn error(
+        &self,
+        node: Node,
+        centre: DVec3,
+        lo: DVec3,
+        range: [u8; 2],
+    ) -> (f64, Option<Footprint>) {
         let s = self.voxel_edge * node.size() as f64;
         let delta = f64::from(self.hierarchy.deviation(node));
-        // `max` ignores the NaN of ∞ · 0 (c = ∞ with Δ = 0).
-        let numerator = s * self.hierarchy.min_accuracy() * (self.accuracy * delta).max(1.0);
+        match &self.metric {
+            Metric::Distance { accuracy } => {
+                // `max` ignores the NaN of ∞ · 0 (c = ∞ with Δ = 0).
+                let numerator = s * self.hierarchy.min_accuracy() * (accuracy * delta).max(1.0);
+                (self.over_eye_distance(numerator, centre), None)
+            }
+            Metric::ScreenError {
+                image_error,
+                optics,
+                tiles,
+            } => {
+                let Some(footprint) = tiles.footprint(lo, node.size() as f64) else {
+                    // Wholly behind the eye.
+                    return (0.0, None);
+                };
+                let share = tiles.visible_share(footprint);
+                let transmittance = tiles.transmittance(footprint);
+                let error = if delta > 0.0 && share > 0.0 && transmittance > 0.0 {
+                    transmittance * optics.error(range, delta, s).0
+                } else {
+                    0.0
+                };
+                // Nodes with detail around the eye are refined (see
+                // `screen_error`).
+                let near = if delta > 0.0 {
+                    self.over_eye_distance(s * 3f64.sqrt(), centre)
+                } else {
+                    0.0
+                };
+                (
+                    (error * share / image_error)
+                        .min(footprint.pixels())
+                        .max(near),
+                    Some(footprint),
+                )
+            }
+        }
+    }
+
+    /// `numerator / d`, `d` the distance of `centre` (grid index
+    /// coordinates) from the eye; `∞` at the centre.
+    fn over_eye_distance(&self, numerator: f64, centre: DVec3) -> f64 {
         let d = self
             .world_from_index
             .transform_point3(centre)
@@ -431,7 +669,26 @@ mod tests {
     }
 
     fn settings(accuracy: f64) -> RefinementSettings {
-        RefinementSettings { accuracy }
+        RefinementSettings::new(LodCriterion::distance(accuracy))
+    }
+
+    fn screen(image_error: f64) -> RefinementSettings {
+        RefinementSettings::new(LodCriterion::screen_error(image_error))
+    }
+
+    /// [`view`] through a 60° perspective looking from `eye` at `target`
+    /// (world units), culled by its frustum.
+    fn projected_view(eye: DVec3, target: DVec3, viewport: glam::UVec2) -> View {
+        let up = if (target - eye).cross(DVec3::Y).length() > 1e-9 {
+            DVec3::Y
+        } else {
+            DVec3::X
+        };
+        let aspect = f64::from(viewport.x) / f64::from(viewport.y);
+        let clip_from_world =
+            DMat4::perspective_infinite_reverse_rh(60f64.to_radians(), aspect, 0.01)
+                * DMat4::look_at_rh(eye, target, up);
+        View::new(world_from_grid(), eye, viewport).with_projection(clip_from_world)
     }
 
     fn world_from_grid() -> DAffine3 {
@@ -547,7 +804,18 @@ mod tests {
 
     #[test]
     fn settings_reject_nan_and_negative_accuracy() {
-        assert_eq!(RefinementSettings::default().accuracy, 16.0);
+        assert_eq!(
+            RefinementSettings::default().criterion,
+            LodCriterion::screen_error(0.1)
+        );
+        assert_eq!(
+            LodCriterion::distance(4.0).scaled(0.5),
+            LodCriterion::distance(2.0)
+        );
+        assert_eq!(
+            LodCriterion::screen_error(0.01).scaled(0.5),
+            LodCriterion::screen_error(0.02)
+        );
         assert!(settings(0.0).validate().is_ok());
         assert!(settings(f64::INFINITY).validate().is_ok());
         for bad in [f64::NAN, -1.0, -0.5, f64::NEG_INFINITY] {
@@ -583,6 +851,158 @@ mod tests {
         hidden.eye.x = f64::INFINITY;
         let r = refine(&h, &hidden, &t, &settings(1.0));
         assert!(matches!(r, Err(RefinementError::NonFiniteEye { .. })));
+    }
+
+    #[test]
+    fn screen_error_rejects_bad_tolerances_and_views_without_projection() {
+        let h = hierarchy([9, 9, 9], 1, 2.0);
+        let t = fog();
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            let err = refine(&h, &view(DVec3::ZERO, None), &t, &screen(bad)).unwrap_err();
+            assert!(
+                matches!(err, RefinementError::InvalidImageError { .. }),
+                "{bad}"
+            );
+            assert!(err.to_string().contains("above 0"));
+        }
+        let err = refine(&h, &view(DVec3::ZERO, None), &t, &screen(0.01)).unwrap_err();
+        assert_eq!(err, RefinementError::MissingProjection);
+        // A projection that is not finite: every footprint is "everywhere",
+        // nothing is NaN.
+        let mut broken = view(DVec3::splat(30.0), None);
+        broken.clip_from_world = Some(DMat4::from_cols_array(&[f64::NAN; 16]));
+        let r = refine(&h, &broken, &t, &screen(0.01)).unwrap();
+        assert!(
+            r.leaves
+                .iter()
+                .chain(&r.refined)
+                .all(|n| (0.0..=1.0).contains(&n.morph))
+        );
+    }
+
+    /// Far away the whole volume is a few pixels: only nodes larger than a
+    /// pixel are refined, however small the tolerance; close up a small
+    /// tolerance refines to voxels, and a larger one draws fewer leaves.
+    #[test]
+    fn screen_error_refines_by_pixels_and_tolerance() {
+        let h = hierarchy([17, 17, 9], 3, 2.0);
+        let t = fog();
+        let target = eye_at_index(&h, DVec3::new(8.0, 8.0, 4.0));
+        let viewport = glam::UVec2::new(320, 200);
+        let far = projected_view(
+            eye_at_index(&h, DVec3::new(8.0, 8.0, 4.0e4)),
+            target,
+            viewport,
+        );
+        let r = refine(&h, &far, &t, &screen(1e-9)).unwrap();
+        assert!(r.refined.is_empty() && r.leaves.len() == 4, "{:?}", r.stats);
+        let near = projected_view(
+            eye_at_index(&h, DVec3::new(8.0, 8.0, 24.0)),
+            target,
+            viewport,
+        );
+        let fine = refine(&h, &near, &t, &screen(1e-9)).unwrap();
+        assert!(fine.stats.full_resolution_leaves > 0);
+        let mut last = fine.leaves.len();
+        for tolerance in [1e-3, 1e-2, 1e-1, 1.0] {
+            let r = refine(&h, &near, &t, &screen(tolerance)).unwrap();
+            assert!(
+                r.leaves.len() <= last,
+                "{tolerance}: {} > {last}",
+                r.leaves.len()
+            );
+            last = r.leaves.len();
+        }
+        assert!(last < fine.leaves.len());
+        // A refined node's e' never exceeds its parent's.
+        let mut morphs = std::collections::HashMap::new();
+        for n in &fine.refined {
+            morphs.insert(n.node, n.morph);
+        }
+        let mut checked = 0;
+        for n in fine.refined.iter().chain(&fine.leaves) {
+            let mask = !((1usize << (n.node.level + 1)) - 1);
+            let parent = Node {
+                level: n.node.level + 1,
+                origin: n.node.origin.map(|o| o & mask),
+            };
+            if let Some(&parent_morph) = morphs.get(&parent) {
+                assert!(
+                    n.morph <= parent_morph,
+                    "{:?}: {} > {parent_morph}",
+                    n.node,
+                    n.morph
+                );
+                checked += 1;
+            }
+        }
+        assert!(checked > 0);
+    }
+
+    /// A dense slab in front of a rough field hides it: the screen error
+    /// draws fewer leaves behind it than behind the same slab made clear,
+    /// and never more than the distance criterion needs for the same view
+    /// at a huge accuracy.
+    #[test]
+    fn screen_error_needs_less_detail_behind_dense_volume() {
+        let dims = [33, 33, 17];
+        let rough = |wall: f32| {
+            let base = field(dims, 9);
+            let values = base
+                .values()
+                .iter()
+                .enumerate()
+                .map(|(index, &v)| if index / (33 * 33) >= 13 { wall } else { v })
+                .collect();
+            DensityGrid::new(dims, base.spacing(), base.origin(), values).unwrap()
+        };
+        // ρ = 0 up to 0.5, then up to 8 per world unit: the wall (density 1)
+        // is opaque, density 0.3 is clear.
+        let transfer = TransferFunction::new([
+            ControlPoint {
+                s: 0.0,
+                kappa: [1.0; 3],
+                rho: 0.0,
+            },
+            ControlPoint {
+                s: 0.04,
+                kappa: [1.0; 3],
+                rho: 0.5,
+            },
+            ControlPoint {
+                s: 0.95,
+                kappa: [1.0; 3],
+                rho: 0.5,
+            },
+            ControlPoint {
+                s: 1.0,
+                kappa: [1.0; 3],
+                rho: 8.0,
+            },
+        ])
+        .unwrap();
+        let viewport = glam::UVec2::new(320, 200);
+        let leaves_behind = |wall: f32| {
+            let h = VolumeHierarchy::new(&rough(wall), 2.0).unwrap();
+            let eye = eye_at_index(&h, DVec3::new(16.0, 16.0, 40.0));
+            let target = eye_at_index(&h, DVec3::new(16.0, 16.0, 0.0));
+            let r = refine(
+                &h,
+                &projected_view(eye, target, viewport),
+                &transfer,
+                &screen(1e-3),
+            )
+            .unwrap();
+            // Behind the voxels at the wall's back face (which the steep
+            // transfer function there refines either way).
+            r.leaves
+                .iter()
+                .filter(|l| l.node.origin[2] + l.node.size() <= 12)
+                .count()
+        };
+        let (hidden, visible) = (leaves_behind(1.0), leaves_behind(0.3));
+        eprintln!("leaves behind an opaque wall {hidden}, behind a clear one {visible}");
+        assert!(4 * hidden < visible, "{hidden} vs {visible}");
     }
 
     #[test]
@@ -710,15 +1130,31 @@ mod tests {
             eye in prop::array::uniform3(-12.0..30.0f64),
             accuracy in 0.0..64.0f64,
             cloud in any::<bool>(),
+            screen_error in any::<bool>(),
         ) {
             let h = hierarchy([17, 17, 9], seed, 2.0);
             let transfer = if cloud { TransferFunction::preset(TransferPreset::Cloud) } else { fog() };
             let eye_index = DVec3::from(eye);
-            let r = run(&h, eye_at_index(&h, eye_index), None, &transfer, accuracy);
+            let eye_world = eye_at_index(&h, eye_index);
+            let r = if screen_error {
+                // Looking at the middle of the field from anywhere, the
+                // frustum culling nothing.
+                let target = eye_at_index(&h, DVec3::new(8.0, 8.0, 4.0)) + DVec3::splat(1e-3);
+                let mut v = projected_view(eye_world, target, glam::UVec2::new(160, 100));
+                v.frustum = None;
+                refine(&h, &v, &transfer, &screen(accuracy.max(0.01) * 1e-3)).unwrap()
+            } else {
+                run(&h, eye_world, None, &transfer, accuracy)
+            };
             prop_assert_eq!(r.stats.leaves, r.leaves.len());
             prop_assert!(r.leaves.iter().all(|l| (0.0..=1.0).contains(&l.morph)));
             prop_assert!(r.leaves.iter().all(|l| l.node.level == 0 || l.morph == 0.0));
-            prop_assert!(r.refined.iter().all(|n| n.morph > 0.0 && n.morph <= 1.0));
+            if screen_error {
+                // e' is clamped to the parent's, so a refined node may have 0.
+                prop_assert!(r.refined.iter().all(|n| (0.0..=1.0).contains(&n.morph)));
+            } else {
+                prop_assert!(r.refined.iter().all(|n| n.morph > 0.0 && n.morph <= 1.0));
+            }
             if cloud {
                 // Every voxel is covered at most once, and every voxel with
                 // some opacity exactly once.
