@@ -92,9 +92,10 @@ enum Command {
         #[arg(long)]
         steps: bool,
     },
-    /// Render the scene's one grid volume with nebel and with Bevy's
-    /// `FogVolume` under the same optics, score both against the exact
-    /// reference, write `DIR/fog_comparison.csv` and the images.
+    /// Render the scene's one grid volume with nebel (through the scene's
+    /// `lod` when it has one) and with Bevy's `FogVolume` under the same
+    /// optics, score both against the exact reference, write
+    /// `DIR/fog_comparison.csv` and the images.
     BenchFog(PeerArgs),
     /// Render the scene's fog layers with nebel, with Bevy's `DistanceFog`
     /// (exponential and atmospheric falloff, fitted) and with Bevy's
@@ -445,10 +446,20 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
     let mut rows = vec![String::from(
         "renderer,frame_ms_median,frame_ms_max,rmse,max_abs,psnr_db,rmse_vs_tetrahedral,max_abs_vs_tetrahedral",
     )];
+    // nebel draws the volume as the scene says (its `lod`, if any); the
+    // references and Bevy's fog see the grid itself.
+    let drawn_by_nebel = BuiltVolume {
+        lod: volume.lod,
+        ..equivalent.clone()
+    };
     for (name, bevy_fog) in [("nebel", None), ("bevy_fog_volume", Some(fog))] {
+        let drawn = match bevy_fog {
+            None => drawn_by_nebel.clone(),
+            Some(_) => equivalent.clone(),
+        };
         let setup = SceneSetupPlugin {
             scene: scene.clone(),
-            volumes: vec![equivalent.clone()],
+            volumes: vec![drawn],
             terrain: scene.build_terrain(scene_path)?,
             ground_fog: scene.build_ground_fog(scene_path)?,
             aurora: scene.build_aurora(scene_path)?,
