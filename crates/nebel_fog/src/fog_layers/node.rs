@@ -6,40 +6,29 @@ use std::sync::atomic::Ordering;
 use bevy::prelude::*;
 use bevy::render::render_resource::*;
 use bevy::render::renderer::{RenderContext, ViewQuery};
-use bevy::render::view::{ViewDepthTexture, ViewTarget};
+use bevy::render::view::ViewTarget;
 use nebel_render::cell_projection::draw_over_view;
 
 use super::FogLayersPasses;
-use super::resources::{FogLayersPipeline, FogLayersView, FogPassUniforms};
+use super::resources::{FogLayersBindGroup, FogLayersView};
 
 /// Draws the view's fog layers over its scene.
 pub fn draw_fog_layers(
-    view: ViewQuery<(&ViewTarget, &ViewDepthTexture, &FogLayersView)>,
-    uniforms: Res<FogPassUniforms>,
-    pipeline: Res<FogLayersPipeline>,
+    view: ViewQuery<(&ViewTarget, &FogLayersView, &FogLayersBindGroup)>,
     pipeline_cache: Res<PipelineCache>,
     passes: Res<FogLayersPasses>,
     mut ctx: RenderContext,
 ) {
-    let (view_target, depth, fog_view) = view.into_inner();
-    let (Some(binding), Some(render_pipeline)) = (
-        uniforms.0.binding(),
-        pipeline_cache.get_render_pipeline(fog_view.pipeline),
-    ) else {
+    let (view_target, fog_view, bind_group) = view.into_inner();
+    let Some(render_pipeline) = pipeline_cache.get_render_pipeline(fog_view.pipeline) else {
         return;
     };
-    let bind_group = ctx.render_device().create_bind_group(
-        "nebel_fog_layers_bind_group",
-        &pipeline_cache
-            .get_bind_group_layout(&pipeline.layouts[usize::from(fog_view.multisampled)]),
-        &BindGroupEntries::sequential((binding, depth.view())),
-    );
     draw_over_view(
         &mut ctx,
         "nebel_fog_layers_pass",
         view_target,
         render_pipeline,
-        &bind_group,
+        &bind_group.bind_group,
         &[fog_view.uniform_offset],
     );
     passes.0.fetch_add(1, Ordering::Relaxed);

@@ -1,6 +1,8 @@
 //! The render world of the fog layers, a row of small systems: extraction of
 //! each camera's fog (with the sun's direction of this frame), a readable
-//! depth texture, the per-view uniform and pipeline.
+//! depth texture, the per-view uniform and pipeline, and the per-view bind
+//! group, made again only when the depth texture or the uniform buffer is a
+//! new one.
 
 use bevy::core_pipeline::FullscreenShader;
 use bevy::core_pipeline::core_3d::prepare_core_3d_depth_textures;
@@ -12,7 +14,7 @@ use bevy::render::render_resource::binding_types::{
 use bevy::render::render_resource::*;
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use bevy::render::sync_world::RenderEntity;
-use bevy::render::view::{ExtractedView, Msaa};
+use bevy::render::view::{ExtractedView, Msaa, ViewDepthTexture};
 use bevy::render::{
     Extract, ExtractSchedule, GpuResourceAppExt, Render, RenderApp, RenderStartup, RenderSystems,
 };
@@ -47,6 +49,7 @@ impl Plugin for FogLayersRenderPlugin {
                         .in_set(RenderSystems::Prepare)
                         .before(prepare_core_3d_depth_textures),
                     prepare_fog_layer_views.in_set(RenderSystems::PrepareResources),
+                    prepare_fog_layer_bind_groups.in_set(RenderSystems::PrepareBindGroups),
                 ),
             )
             .add_systems(
@@ -237,4 +240,48 @@ pub fn prepare_fog_layer_views(
         });
     }
     uniforms.0.write_buffer(&device, &queue);
+}
+
+/// A fogged view's bind group and what it was made from.
+#[derive(Component)]
+pub struct FogLayersBindGroup {
+    pub(super) bind_group: BindGroup,
+    /// The depth texture view, the uniform buffer and whether the depth is
+    /// multisampled.
+    key: (TextureViewId, BufferId, bool),
+}
+
+/// Gives each fogged view its bind group, made again only when the depth
+/// texture, the uniform buffer or the sample count changed.
+pub fn prepare_fog_layer_bind_groups(
+    mut commands: Commands,
+    views: Query<(
+        Entity,
+        &ViewDepthTexture,
+        &FogLayersView,
+        Option<&FogLayersBindGroup>,
+    )>,
+    uniforms: Res<FogPassUniforms>,
+    pipeline: Res<FogLayersPipeline>,
+    pipeline_cache: Res<PipelineCache>,
+    device: Res<RenderDevice>,
+) {
+    let (Some(buffer), Some(binding)) = (uniforms.0.buffer(), uniforms.0.binding()) else {
+        return;
+    };
+    for (entity, depth, fog_view, made) in &views {
+        let key = (depth.view().id(), buffer.id(), fog_view.multisampled);
+        if made.is_some_and(|made| made.key == key) {
+            continue;
+        }
+        let bind_group = device.create_bind_group(
+            "nebel_fog_layers_bind_group",
+            &pipeline_cache
+                .get_bind_group_layout(&pipeline.layouts[usize::from(fog_view.multisampled)]),
+            &BindGroupEntries::sequential((binding.clone(), depth.view())),
+        );
+        commands
+            .entity(entity)
+            .insert(FogLayersBindGroup { bind_group, key });
+    }
 }
