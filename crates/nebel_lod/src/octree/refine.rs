@@ -956,29 +956,18 @@ mod tests {
                 .collect();
             DensityGrid::new(dims, base.spacing(), base.origin(), values).unwrap()
         };
-        // ρ = 0 up to 0.5, then up to 8 per world unit: the wall (density 1)
-        // is opaque, density 0.3 is clear.
+        // ρ = 0.5 per world unit from density 0.04 to 0.95, rising to 8 at
+        // density 1: the wall (density 1) is opaque, density 0.3 lets light through.
+        let white = |s: f32, rho: f32| ControlPoint {
+            s,
+            kappa: [1.0; 3],
+            rho,
+        };
         let transfer = TransferFunction::new([
-            ControlPoint {
-                s: 0.0,
-                kappa: [1.0; 3],
-                rho: 0.0,
-            },
-            ControlPoint {
-                s: 0.04,
-                kappa: [1.0; 3],
-                rho: 0.5,
-            },
-            ControlPoint {
-                s: 0.95,
-                kappa: [1.0; 3],
-                rho: 0.5,
-            },
-            ControlPoint {
-                s: 1.0,
-                kappa: [1.0; 3],
-                rho: 8.0,
-            },
+            white(0.0, 0.0),
+            white(0.04, 0.5),
+            white(0.95, 0.5),
+            white(1.0, 8.0),
         ])
         .unwrap();
         let viewport = glam::UVec2::new(320, 200);
