@@ -227,10 +227,15 @@ mod tests {
         )
     }
 
-    /// Moves the camera a metre and runs until the move has propagated.
-    /// Gives `volume` a 17³ noise grid drawn through the octree at
-    /// `accuracy`.
+    /// Gives `volume` a 17³ noise grid drawn through the octree by the
+    /// distance criterion at `accuracy`.
     fn give_noise_lod(app: &mut App, volume: Entity, accuracy: f64) {
+        give_noise_lod_by(app, volume, LodCriterion::distance(accuracy));
+    }
+
+    /// Gives `volume` a 17³ noise grid drawn through the octree by
+    /// `criterion`.
+    fn give_noise_lod_by(app: &mut App, volume: Entity, criterion: LodCriterion) {
         let noise = nebel_core::field::ProceduralNoise {
             octaves: 3,
             ..default()
@@ -240,7 +245,7 @@ mod tests {
         let field = grid_field(app, grid);
         app.world_mut().get_mut::<Volume>(volume).unwrap().field = field;
         app.world_mut().entity_mut(volume).insert(VolumeLod {
-            criterion: LodCriterion::distance(accuracy),
+            criterion,
             min_accuracy: 2.0,
         });
     }
@@ -384,20 +389,31 @@ mod tests {
     #[test]
     fn the_quality_preset_scales_the_octree_accuracy() {
         use nebel_render::{NebelQuality, NebelQualityPlugin, QualityPreset};
-        let (mut app, _, volume) = app_with_volume(OpticalMode::Emissive);
-        app.add_plugins(NebelQualityPlugin);
-        give_noise_lod(&mut app, volume, 40.0);
-        let cells = |app: &mut App, preset| {
-            app.world_mut().resource_mut::<NebelQuality>().preset = preset;
-            app.update();
-            app.update();
-            app.world().get::<CellBatch>(volume).unwrap().cells.len()
-        };
-        let high = cells(&mut app, QualityPreset::High);
-        let medium = cells(&mut app, QualityPreset::Medium);
-        let low = cells(&mut app, QualityPreset::Low);
-        assert!(low < medium && medium < high, "{low} < {medium} < {high}");
-        assert_eq!(cells(&mut app, QualityPreset::High), high);
+        // The distance criterion's c, and the screen error's tolerance, which
+        // also needs the LOD camera's projection to get through.
+        for criterion in [
+            LodCriterion::distance(40.0),
+            LodCriterion::screen_error(0.002),
+        ] {
+            let (mut app, _, volume) = app_with_volume(OpticalMode::Emissive);
+            app.add_plugins(NebelQualityPlugin);
+            give_noise_lod_by(&mut app, volume, criterion);
+            let cells = |app: &mut App, preset| {
+                app.world_mut().resource_mut::<NebelQuality>().preset = preset;
+                app.update();
+                app.update();
+                assert_eq!(status(app, volume), VolumeStatus::Ready, "{criterion:?}");
+                app.world().get::<CellBatch>(volume).unwrap().cells.len()
+            };
+            let high = cells(&mut app, QualityPreset::High);
+            let medium = cells(&mut app, QualityPreset::Medium);
+            let low = cells(&mut app, QualityPreset::Low);
+            assert!(
+                low < medium && medium < high,
+                "{criterion:?}: {low} < {medium} < {high}"
+            );
+            assert_eq!(cells(&mut app, QualityPreset::High), high);
+        }
     }
 
     #[test]
