@@ -40,7 +40,9 @@
 //! - Voxels (level 0) are always leaves; their `e` may exceed 1 and their
 //!   `e'` is reported as computed.
 //! - Whole subtrees are pruned: a node whose box misses the view frustum
-//!   ([`Frustum::intersects_aabb`] in the grid's own frame, conservative) or
+//!   ([`Frustum::intersects_aabb`] in the grid's own frame, conservative;
+//!   the distance criterion only, the screen error gives such nodes no
+//!   error instead, see [`super::screen_error`]) or
 //!   whose scalar range has zero opacity
 //!   ([`TransferFunction::is_transparent`] of
 //!   [`VolumeHierarchy::scalar_range`], exact for any transfer function; for
@@ -88,7 +90,10 @@
 //! 4 µs (64 root leaves) for c ≤ 16 and 16 µs (295 leaves) for c = 64 with
 //! the eye about one field width outside, and 67 to 79 µs (1212 to 1464
 //! leaves) for c ≤ 16 and 250 µs (4985 leaves) for c = 64 with the eye in
-//! the middle of the field, on the shared development machine.
+//! the middle of the field, on the shared development machine (the distance
+//! criterion). The screen error costs the projection of each visited box
+//! and its tile lookups on top; with the lit batch, `cargo bench -p
+//! nebel_lod --bench cloud_layer` measures both (README).
 
 use glam::{DAffine3, DVec3};
 use nebel_core::transfer::TransferFunction;
@@ -117,7 +122,7 @@ pub enum LodCriterion {
         /// (premultiplied, the units of the HDR image before tonemapping),
         /// finite and above 0. Smaller values draw more cells. Measured on
         /// the cumulus layers of the examples, the image's RMSE against full
-        /// resolution comes out at 0.06 to 3 times this value. Default
+        /// resolution comes out at 0.02 to 3 times this value. Default
         /// [`LodCriterion::DEFAULT_IMAGE_ERROR`].
         image_error: f64,
     },
@@ -331,7 +336,7 @@ pub(crate) fn index_frame(
 /// - `view`: its `world_from_local` maps the grid's own coordinates (point
 ///   `(i, j, k)` at `origin + (i, j, k) · spacing`) to world space, as for
 ///   [`crate::full_resolution_batch`]; the eye sets distances and order; the
-///   frustum prunes nodes; the projection and viewport measure nodes in
+///   frustum prunes nodes (distance criterion); the projection and viewport measure nodes in
 ///   pixels for the screen-error criterion; an empty viewport gives an empty
 ///   refinement (after the checks below).
 /// - `transfer`: the volume's transfer function, as the cells will be drawn
