@@ -358,6 +358,10 @@ pub(crate) struct ScreenTiles {
     tiles: [usize; 2],
     /// Mean optical depth in front, per tile, row by row.
     optical_depth: Vec<f32>,
+    /// `exp(−τ)` of each tile, kept with it (read far more often).
+    transmittance: Vec<f32>,
+    /// Whether any leaf darkened a tile yet.
+    occluded: bool,
 }
 
 impl ScreenTiles {
@@ -387,6 +391,8 @@ impl ScreenTiles {
             tile_pixels: f64::from(tile),
             tiles,
             optical_depth: vec![0.0; tiles[0] * tiles[1]],
+            transmittance: vec![1.0; tiles[0] * tiles[1]],
+            occluded: false,
         }
     }
 
@@ -498,16 +504,27 @@ impl ScreenTiles {
         let Some([tx0, ty0, tx1, ty1]) = self.tiles_meeting(clipped) else {
             return 0.0;
         };
+        if !self.occluded {
+            return 1.0;
+        }
+        // A rectangle of no area still weighs its tiles.
+        let mut covered_x = [0.0; MAX_TILES_ACROSS as usize];
+        for tx in tx0..tx1 {
+            covered_x[tx - tx0] = self.overlap(clipped[0], clipped[2], tx).max(1e-9);
+        }
+        let covered_x = &covered_x[..tx1 - tx0];
+        let columns: f64 = covered_x.iter().sum();
         let (mut light, mut area) = (0.0, 0.0);
         for ty in ty0..ty1 {
-            let covered_y = self.overlap(clipped[1], clipped[3], ty);
-            for tx in tx0..tx1 {
-                // A rectangle of no area still weighs its tiles.
-                let covered = (self.overlap(clipped[0], clipped[2], tx) * covered_y).max(1e-9);
-                let depth = f64::from(self.optical_depth[ty * self.tiles[0] + tx]);
-                light += covered * (-depth).exp();
-                area += covered;
-            }
+            let covered_y = self.overlap(clipped[1], clipped[3], ty).max(1e-9);
+            let row = &self.transmittance[ty * self.tiles[0] + tx0..ty * self.tiles[0] + tx1];
+            let row_light: f64 = row
+                .iter()
+                .zip(covered_x)
+                .map(|(&t, &c)| c * f64::from(t))
+                .sum();
+            light += covered_y * row_light;
+            area += covered_y * columns;
         }
         light / area
     }
@@ -530,7 +547,12 @@ impl ScreenTiles {
             let covered_y = self.overlap(rect[1], rect[3], ty);
             for tx in tx0..tx1 {
                 let covered = self.overlap(rect[0], rect[2], tx) * covered_y;
-                self.optical_depth[ty * self.tiles[0] + tx] += (covered * tau) as f32;
+                if covered > 0.0 {
+                    let index = ty * self.tiles[0] + tx;
+                    self.optical_depth[index] += (covered * tau) as f32;
+                    self.transmittance[index] = (-self.optical_depth[index]).exp();
+                    self.occluded = true;
+                }
             }
         }
     }
