@@ -361,11 +361,11 @@ pub fn refine(
             Metric::ScreenError {
                 image_error,
                 optics: Box::new(NodeOptics::new(transfer, settings.scalars)),
-                tiles: ScreenTiles::new(
+                tiles: Box::new(ScreenTiles::new(
                     clip_from_world,
                     world_from_index,
                     view.viewport.to_array(),
-                ),
+                )),
             }
         }
     };
@@ -431,7 +431,7 @@ enum Metric {
     ScreenError {
         image_error: f64,
         optics: Box<NodeOptics>,
-        tiles: ScreenTiles,
+        tiles: Box<ScreenTiles>,
     },
 }
 
