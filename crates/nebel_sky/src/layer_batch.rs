@@ -1,16 +1,23 @@
 //! What the aurora's and the cloud layer's systems share: a transfer
 //! function scaled by a density and cached, a grayscale map resampled onto
-//! a layer's grid, the batch handed to the cell projection (or taken away
-//! when there are no cells), and the totals of the diagnostics.
+//! a layer's grid, a layer's cells for the LOD camera, the batch handed to
+//! the cell projection (or taken away when there are no cells), and the
+//! totals of the diagnostics.
 
 use std::sync::Arc;
 
 use bevy::asset::AssetLoadError;
+use bevy::math::DAffine3;
 use bevy::prelude::*;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferError, TransferFunction};
-use nebel_lod::{CellBatch as LodCellBatch, GpuCell, TerrainError, TerrainLayer};
+use nebel_lod::{
+    CellBatch as LodCellBatch, CellOrder, FogProfile, Frustum, GpuCell, LayerStats, LayerView,
+    LodSettings, PrismScalar, SurfaceLayer, SurfaceLayerError, TerrainError, TerrainLayer,
+    TerrainMesh,
+};
 use nebel_render::CellBatch;
+use nebel_render::camera::LodView;
 use nebel_terrain::TerrainHeights;
 
 /// A transfer function with ρ times a factor, kept while neither changes.
@@ -62,6 +69,45 @@ pub(crate) fn map_values(
     let dims = [map.dims.x as usize, map.dims.y as usize];
     let layer = TerrainLayer::resample(&map.values, dims, side).map_err(MapError::Values)?;
     Ok(Some(layer.values().to_vec()))
+}
+
+/// How a layer is drawn: its prisms' levels and scalar, and their order.
+pub(crate) struct LayerDrawing<'a> {
+    pub(crate) profile: &'a FogProfile,
+    pub(crate) scalar: PrismScalar,
+    pub(crate) order: CellOrder,
+}
+
+/// `layer`'s cells for `camera` (culled by its frustum in the layer's frame)
+/// with the quadtree at `accuracy`, the layer's bottom placed by
+/// `world_from_field`; `mesh` is the refinement's reused mesh.
+pub(crate) fn layer_cells(
+    layer: &SurfaceLayer,
+    mesh: &mut TerrainMesh,
+    camera: &LodView,
+    world_from_field: DAffine3,
+    accuracy: f32,
+    drawing: LayerDrawing,
+) -> Result<(Vec<GpuCell>, LayerStats), SurfaceLayerError> {
+    // A degenerate projection culls nothing rather than everything.
+    let frustum = Frustum::from_view_projection(camera.clip_from_world)
+        .ok()
+        .map(|frustum| frustum.in_local_frame(&world_from_field));
+    let view = LayerView {
+        world_from_field,
+        eye: camera.eye,
+        frustum: frustum.as_ref(),
+        lod: LodSettings {
+            accuracy,
+            ..LodSettings::default()
+        },
+        order: drawing.order,
+        profile: drawing.profile,
+        scalar: drawing.scalar,
+    };
+    let mut cells = Vec::new();
+    let counts = layer.cells(&view, mesh, &mut cells)?;
+    Ok((cells, counts))
 }
 
 /// Gives `entity` the batch of `cells` (or takes its batch away when there

@@ -20,16 +20,15 @@ use bevy::math::DAffine3;
 use bevy::prelude::*;
 use nebel_core::optics::OpticalMode;
 use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
-use nebel_lod::{
-    AuroraShape, CellOrder, Frustum, LayerView, LodSettings, SurfaceLayer, SurfaceLayerError,
-    TerrainMesh,
-};
+use nebel_lod::{AuroraShape, CellOrder, SurfaceLayer, SurfaceLayerError, TerrainMesh};
 use nebel_render::camera::to_double;
 use nebel_render::{CellBatch, EffectiveQuality, LodCameras};
 use nebel_terrain::TerrainHeights;
 
 use super::{Aurora, AuroraError, AuroraFootprint, AuroraPlugin, AuroraStats, AuroraStatus};
-use crate::layer_batch::{MapError, ScaledTransfer, map_values, publish_cells, totals};
+use crate::layer_batch::{
+    LayerDrawing, MapError, ScaledTransfer, layer_cells, map_values, publish_cells, totals,
+};
 
 /// What an aurora's layer was built from.
 #[derive(Clone, Debug, PartialEq)]
@@ -242,25 +241,20 @@ pub(super) fn update_auroras(
             continue;
         };
         let world_from_field = DAffine3::from_mat4(to_double(transform.to_matrix()));
-        let frustum = Frustum::from_view_projection(camera.clip_from_world)
-            .ok()
-            .map(|frustum| frustum.in_local_frame(&world_from_field));
-        let profile = AuroraShape::profile();
-        let view = LayerView {
-            world_from_field,
-            eye: camera.eye,
-            frustum: frustum.as_ref(),
-            lod: LodSettings {
-                accuracy,
-                ..LodSettings::default()
-            },
-            order: CellOrder::Unordered,
-            profile: &profile,
+        let drawing = LayerDrawing {
+            profile: &AuroraShape::profile(),
             scalar: shape.scalar(),
+            order: CellOrder::Unordered,
         };
-        let mut cells = Vec::new();
-        let counts = match layer.cells(&view, &mut state.mesh, &mut cells) {
-            Ok(counts) => counts,
+        let (cells, counts) = match layer_cells(
+            layer,
+            &mut state.mesh,
+            &camera,
+            world_from_field,
+            accuracy,
+            drawing,
+        ) {
+            Ok(drawn) => drawn,
             Err(error) => {
                 fail(entity, &mut status, error.into());
                 continue;

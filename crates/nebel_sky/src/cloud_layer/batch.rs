@@ -16,14 +16,15 @@ use bevy::prelude::*;
 use nebel_core::optics::OpticalMode;
 use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
 use nebel_lod::{
-    CellOrder, CloudLayerShape, Frustum, LayerTop, LayerView, LodSettings, PrismScalar,
-    SurfaceLayer, SurfaceLayerError, TerrainMesh,
+    CellOrder, CloudLayerShape, LayerTop, PrismScalar, SurfaceLayer, SurfaceLayerError, TerrainMesh,
 };
 use nebel_render::camera::to_double;
 use nebel_render::{CellBatch, EffectiveQuality, LodCameras};
 use nebel_terrain::TerrainHeights;
 
-use crate::layer_batch::{MapError, ScaledTransfer, map_values, publish_cells, totals};
+use crate::layer_batch::{
+    LayerDrawing, MapError, ScaledTransfer, layer_cells, map_values, publish_cells, totals,
+};
 
 use super::{
     CloudLayer, CloudLayerError, CloudLayerPlugin, CloudLayerSource, CloudLayerStats,
@@ -266,30 +267,25 @@ pub(super) fn update_cloud_layers(
         let Some((_, surface_layer)) = &state.layer else {
             continue;
         };
-        let frustum = Frustum::from_view_projection(camera.clip_from_world)
-            .ok()
-            .map(|frustum| frustum.in_local_frame(&world_from_field));
-        let profile = CloudLayerShape::profile();
-        let view = LayerView {
-            world_from_field,
-            eye: camera.eye,
-            frustum: frustum.as_ref(),
-            lod: LodSettings {
-                accuracy,
-                ..LodSettings::default()
-            },
-            order: CellOrder::BackToFront,
-            profile: &profile,
+        let drawing = LayerDrawing {
+            profile: &CloudLayerShape::profile(),
             scalar: PrismScalar::Sunlit {
                 extinction: layer.shadow_extinction,
                 sun_height: sun_local.y as f32,
                 ambient: layer.ambient,
                 diffuse: layer.diffuse,
             },
+            order: CellOrder::BackToFront,
         };
-        let mut cells = Vec::new();
-        let counts = match surface_layer.cells(&view, &mut state.mesh, &mut cells) {
-            Ok(counts) => counts,
+        let (cells, counts) = match layer_cells(
+            surface_layer,
+            &mut state.mesh,
+            &camera,
+            world_from_field,
+            accuracy,
+            drawing,
+        ) {
+            Ok(drawn) => drawn,
             Err(error) => {
                 fail(entity, &mut status, error.into());
                 continue;
