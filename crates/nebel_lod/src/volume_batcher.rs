@@ -52,9 +52,9 @@
 //!   (an eye move inside one key gives the identical batch) or the frustum
 //!   changed;
 //! - a grid through the octree when the eye moved at all (the level of detail
-//!   depends on the distance), the frustum, the projection or the viewport's
-//!   size changed (the screen error measures pixels) or the criterion
-//!   changed;
+//!   depends on the distance), the frustum or the criterion changed, and for
+//!   the screen error (which measures pixels) when the projection or the
+//!   viewport's size changed;
 //! - a sorted cell mesh when the eye moved;
 //!
 //! and keeps the batch otherwise: an unordered grid or cell mesh ignores the
@@ -507,11 +507,13 @@ impl VolumeBatcher {
                 CellOrder::Unordered => false,
             },
             Kind::Octree { .. } => {
+                let measures_pixels = matches!(inputs.criterion, LodCriterion::ScreenError { .. });
                 eye_moved
                     || frustum_changed
-                    || built.view.clip_from_world != view.clip_from_world
-                    || built.view.viewport != view.viewport
                     || built.criterion != inputs.criterion
+                    || (measures_pixels
+                        && (built.view.clip_from_world != view.clip_from_world
+                            || built.view.viewport != view.viewport))
             }
             Kind::SortedCells { .. } => eye_moved,
             Kind::UnorderedCells { .. } => false,

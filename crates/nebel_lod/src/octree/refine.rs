@@ -549,7 +549,7 @@ impl Traversal<'_> {
             (footprint, &mut self.metric)
             && weight > 0.0
         {
-            let (_, rho_min) = optics.error(range, 0.0, 0.0);
+            let rho_min = optics.min_extinction(range);
             tiles.occlude(
                 footprint,
                 weight * rho_min * self.shortest_voxel_edge * size / 2.0,
@@ -588,7 +588,7 @@ impl Traversal<'_> {
                 let share = tiles.visible_share(footprint);
                 let transmittance = tiles.transmittance(footprint);
                 let error = if delta > 0.0 && share > 0.0 && transmittance > 0.0 {
-                    transmittance * optics.error(range, delta, s).0
+                    transmittance * optics.error(range, delta, s)
                 } else {
                     0.0
                 };

@@ -282,14 +282,18 @@ impl NodeOptics {
         }
     }
 
+    /// The smallest extinction over the scalar range `[q_min, q_max]`
+    /// (units of 1/255).
+    pub(crate) fn min_extinction(&self, [q_min, q_max]: [u8; 2]) -> f64 {
+        let (first, last) = intervals(q_min, q_max);
+        -self.rho_min.max(first, last)
+    }
+
     /// The colour error `ε / T` of a ray through a node of scalar range
     /// `[q_min, q_max]` (units of 1/255), deviation `delta` and longest edge
-    /// `length` (world units), and the smallest extinction over its range.
-    pub(crate) fn error(&self, [q_min, q_max]: [u8; 2], delta: f64, length: f64) -> (f64, f64) {
-        let first = usize::from(q_min).min(INTERVALS - 1);
-        let last = usize::from(q_max)
-            .saturating_sub(1)
-            .clamp(first, INTERVALS - 1);
+    /// `length` (world units).
+    pub(crate) fn error(&self, [q_min, q_max]: [u8; 2], delta: f64, length: f64) -> f64 {
+        let (first, last) = intervals(q_min, q_max);
         let rho_hi = self.rho_max.max(first, last);
         let rho_lo = -self.rho_min.max(first, last);
         let e_hi = self.emission_max.max(first, last);
@@ -312,10 +316,18 @@ impl NodeOptics {
         } else {
             length
         };
-        let error = effective_length * delta_e
-            + length * (-depth).exp() * (self.kappa_max + 1.0) * delta_rho;
-        (error, rho_lo)
+        effective_length * delta_e + length * (-depth).exp() * (self.kappa_max + 1.0) * delta_rho
     }
+}
+
+/// The intervals `first ..= last` between quantised densities that the
+/// range `[q_min, q_max]` spans (one for a single value).
+fn intervals(q_min: u8, q_max: u8) -> (usize, usize) {
+    let first = usize::from(q_min).min(INTERVALS - 1);
+    let last = usize::from(q_max)
+        .saturating_sub(1)
+        .clamp(first, INTERVALS - 1);
+    (first, last)
 }
 
 /// The largest slope of any chromaticity channel over [0, 1].
@@ -602,7 +614,8 @@ mod tests {
         let optics = NodeOptics::new(&ramp(2.0), CellScalars::Density);
         let (q0, q1) = (51u8, 153u8);
         let delta = 0.01;
-        let (error, rho_min) = optics.error([q0, q1], delta, 1e-6);
+        let error = optics.error([q0, q1], delta, 1e-6);
+        let rho_min = optics.min_extinction([q0, q1]);
         let (length, rho): (f64, f64) = (1e-6, 2.0 * 51.0 / 255.0);
         let expected = -(-rho * length).exp_m1() / rho * 2.0 * delta
             + length * (-rho * length).exp() * 2.0 * 2.0 * delta;
@@ -612,12 +625,12 @@ mod tests {
         );
         assert!((rho_min - 2.0 * 51.0 / 255.0).abs() < 1e-12);
         // A deviation larger than the range is capped by the range.
-        let (capped, _) = optics.error([q0, q1], 10.0, 1e-6);
+        let capped = optics.error([q0, q1], 10.0, 1e-6);
         let range = 2.0 * 102.0 / 255.0;
         assert!((capped - 1e-6 * 3.0 * range).abs() < 1e-9);
         // Dense and long: the opacity term vanishes, the emission term
         // saturates at δE / ρ_min.
-        let (deep, _) = optics.error([q0, q1], delta, 1e4);
+        let deep = optics.error([q0, q1], delta, 1e4);
         assert!((deep - 2.0 * delta / rho_min).abs() < 1e-9, "{deep}");
     }
 
@@ -627,19 +640,19 @@ mod tests {
             &TransferFunction::preset(TransferPreset::Cloud),
             CellScalars::Density,
         );
-        assert_eq!(cloud.error([0, 255], 0.0, 10.0).0, 0.0);
+        assert_eq!(cloud.error([0, 255], 0.0, 10.0), 0.0);
         // The cloud preset is transparent below its threshold: a range there
         // has no error whatever Δ is.
-        assert_eq!(cloud.error([0, 2], 0.5, 10.0).0, 0.0);
-        assert!(cloud.error([0, 255], 0.1, 10.0).0 > 0.0);
+        assert_eq!(cloud.error([0, 2], 0.5, 10.0), 0.0);
+        assert!(cloud.error([0, 255], 0.1, 10.0) > 0.0);
         for scalars in [
             CellScalars::LightModulatedByDensity,
             CellScalars::DensityModulatedByLight,
         ] {
             let lit = NodeOptics::new(&TransferFunction::preset(TransferPreset::Cloud), scalars);
-            let (error, _) = lit.error([10, 200], 0.05, 10.0);
+            let error = lit.error([10, 200], 0.05, 10.0);
             assert!(error.is_finite() && error > 0.0);
-            assert_eq!(lit.error([10, 200], 0.0, 10.0).0, 0.0);
+            assert_eq!(lit.error([10, 200], 0.0, 10.0), 0.0);
         }
     }
 
