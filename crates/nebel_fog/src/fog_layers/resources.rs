@@ -64,7 +64,8 @@ impl Plugin for FogLayersRenderPlugin {
 
 /// Gives every camera with fog to draw its [`ViewFogLayers`], the sun's
 /// direction taken from the first `DirectionalLight` (a light shines along
-/// its forward axis, so the sun lies behind it); removes it from the others.
+/// its forward axis, so the sun lies behind it); removes it, and what was
+/// prepared from it, from the others.
 pub fn extract_fog_layers(
     mut commands: Commands,
     cameras: Extract<Query<(RenderEntity, Option<&PreparedFogLayers>), With<Camera3d>>>,
@@ -89,7 +90,12 @@ pub fn extract_fog_layers(
                 commands.entity(entity).insert(ViewFogLayers(uniform));
             }
             None => {
-                commands.entity(entity).remove::<ViewFogLayers>();
+                // What was prepared for it too: the view entity is kept
+                // from frame to frame, and the draw runs for every view
+                // that has a pipeline and bind group.
+                commands
+                    .entity(entity)
+                    .remove::<(ViewFogLayers, FogLayersView, FogLayersBindGroup)>();
             }
         }
     }
