@@ -38,6 +38,7 @@ use nebel_lod::{
     CellOrder, FogProfile, GpuCell, LodSettings, PrismInput, PrismScalar, TerrainHierarchy,
     TerrainMesh, TriangleOrder, fog_prisms,
 };
+use nebel_reference::ReferenceCamera;
 
 use super::{
     BuiltVolume, InvalidField, TerrainDescription, TerrainTriangles, TransferDescription,
@@ -265,9 +266,9 @@ impl TerrainDescription {
             })
     }
 
-    /// The ground fog's cells for an eye at `eye` (world space), as the
-    /// plugin draws them with the same quadtree, layer and refinement
-    /// (without culling), and the ground they lie on (the refinement's
+    /// The ground fog's cells for `camera` (world space), as the plugin
+    /// draws them with the same quadtree, layer and refinement (its accuracy
+    /// [`TerrainDescription::accuracy_for`] the camera; without culling), and the ground they lie on (the refinement's
     /// triangles, which the GPU draws), ready for the reference; `None`
     /// without a fog. `unit` are the terrain's unit heights, `built` the
     /// fog's files ([`GroundFogDescription::build`]). Errors name the field
@@ -276,7 +277,7 @@ impl TerrainDescription {
         &self,
         unit: &HeightField,
         built: &BuiltGroundFog,
-        eye: DVec3,
+        camera: &ReferenceCamera,
     ) -> Result<Option<FogReference>, InvalidField> {
         let Some(fog) = &self.fog else {
             return Ok(None);
@@ -301,7 +302,7 @@ impl TerrainDescription {
         }
         let center = DVec3::from(self.center.map(f64::from));
         let settings = LodSettings {
-            accuracy: self.accuracy,
+            accuracy: self.accuracy_for(camera)?,
             morph: self.morph,
             normals: false,
             grid_points: true,
@@ -310,7 +311,7 @@ impl TerrainDescription {
         let mut mesh = TerrainMesh::new();
         hierarchy
             .update_with_layer(
-                eye - center,
+                camera.position - center,
                 None,
                 &settings,
                 fogged.then_some(&layer),
@@ -329,7 +330,7 @@ impl TerrainDescription {
             .map_err(|error| InvalidField::new("fog.profile", error.to_string()))?;
         let input = PrismInput {
             world_from_mesh: DAffine3::from_translation(offset),
-            eye: eye - offset,
+            eye: camera.position - offset,
             mesh_order: TriangleOrder::BackToFront,
             order: CellOrder::BackToFront,
             profile: &profile,

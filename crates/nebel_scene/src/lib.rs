@@ -845,7 +845,7 @@ impl SceneDescription {
             return Ok(None);
         };
         terrain
-            .fog_reference(unit, built, self.reference_camera().position)
+            .fog_reference(unit, built, &self.reference_camera())
             .map_err(|invalid| invalid.in_scene(scene_path, "terrain"))
     }
 
@@ -1131,7 +1131,8 @@ mod tests {
                 center: [10.0, -2.0, 5.0],
                 spacing: 4.0,
                 vertical_scale: 50.0,
-                accuracy: 100.0,
+                accuracy: Some(100.0),
+                pixel_error: None,
                 min_accuracy: 3.0,
                 morph: false,
                 debug_lod_colours: true,

@@ -15,6 +15,7 @@
 //!     spacing: 10.0,             // metres between grid points; default 10
 //!     vertical_scale: 400.0,     // metres of a unit height (white); default 400
 //!     accuracy: 300.0,           // c of f = l²/(d² max(c·d2, C)²); default 300
+//!     // or pixel_error: 2.0,    // the most pixels a left-out detail moves (c from the camera)
 //!     min_accuracy: 2.0,         // C, ≥ 1.6; default 2
 //!     morph: true,               // geomorphing; default true
 //!     debug_lod_colours: false,  // colour each quadtree level; default false
@@ -36,7 +37,7 @@
 
 use std::path::Path;
 
-use glam::DVec2;
+use glam::{DMat4, DVec2};
 use serde::{Deserialize, Serialize};
 
 use super::{GroundFogDescription, InvalidField};
@@ -45,7 +46,10 @@ use nebel_core::field::{
     power_of_two_plus_one,
 };
 use nebel_lod::TerrainHierarchy;
-use nebel_lod::quadtree::{DEFAULT_ACCURACY, DEFAULT_MIN_RESOLUTION, MAX_TERRAIN_SIDE};
+use nebel_lod::quadtree::{
+    DEFAULT_ACCURACY, DEFAULT_MIN_RESOLUTION, MAX_TERRAIN_SIDE, accuracy_for_pixel_error,
+};
+use nebel_reference::ReferenceCamera;
 
 /// A scene's terrain.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -66,9 +70,17 @@ pub struct TerrainDescription {
     #[serde(default = "default_vertical_scale")]
     pub vertical_scale: f32,
     /// Global accuracy `c` of the quadtree, finite and > 0: larger draws
-    /// more triangles. Default 300.
-    #[serde(default = "default_accuracy")]
-    pub accuracy: f32,
+    /// more triangles. Default 300 ([`TerrainDescription::accuracy_for`]);
+    /// not together with `pixel_error`.
+    #[serde(default)]
+    pub accuracy: Option<f32>,
+    /// The most pixels a detail the mesh leaves out (of the ground and of
+    /// its fog's top) may move, finite and > 0: the accuracy is derived
+    /// from the camera's projection and the image size
+    /// (`nebel_lod::quadtree::accuracy_for_pixel_error`). Default: none (the
+    /// accuracy is used); not together with `accuracy`.
+    #[serde(default)]
+    pub pixel_error: Option<f32>,
     /// Minimum resolution `C`, finite and ≥ 1.6: a node is refined within
     /// `C` node sizes of the eye whatever its roughness. Default 2.
     #[serde(default = "default_min_accuracy")]
@@ -95,10 +107,6 @@ fn default_spacing() -> f32 {
 
 fn default_vertical_scale() -> f32 {
     DEFAULT_TERRAIN_VERTICAL_SCALE
-}
-
-fn default_accuracy() -> f32 {
-    DEFAULT_ACCURACY
 }
 
 fn default_min_accuracy() -> f32 {
@@ -235,6 +243,33 @@ impl TerrainDescription {
             .expect("a validated terrain scales to finite heights")
     }
 
+    /// The accuracy `c` given, or the default (300) when neither it nor a
+    /// pixel error is.
+    pub fn accuracy(&self) -> f32 {
+        self.accuracy.unwrap_or(DEFAULT_ACCURACY)
+    }
+
+    /// The accuracy `c` the quadtree refines with for `camera` (a
+    /// perspective one, as every scene camera is): [`Self::accuracy`], or
+    /// the one the pixel error gives for the camera's field of view and image
+    /// size.
+    pub fn accuracy_for(&self, camera: &ReferenceCamera) -> Result<f32, InvalidField> {
+        let Some(pixel_error) = self.pixel_error else {
+            return Ok(self.accuracy());
+        };
+        let aspect = f64::from(camera.width) / f64::from(camera.height.max(1));
+        let clip_from_view =
+            DMat4::perspective_infinite_reverse_rh(camera.vertical_fov, aspect, camera.near);
+        accuracy_for_pixel_error(
+            f64::from(pixel_error),
+            clip_from_view,
+            [camera.width, camera.height],
+            self.min_accuracy,
+        )
+        .map(|accuracy| accuracy as f32)
+        .map_err(|error| InvalidField::new("pixel_error", error.to_string()))
+    }
+
     /// Checks every setting against its documented range; loading the PNG
     /// waits for [`TerrainDescription::unit_heights`].
     pub(super) fn validate(&self) -> Result<(), InvalidField> {
@@ -244,7 +279,15 @@ impl TerrainDescription {
                 format!("must be finite, got {value}"),
             ));
         }
-        let checks: [(&str, f32, bool, &str); 4] = [
+        if self.accuracy.is_some() && self.pixel_error.is_some() {
+            return Err(InvalidField::new(
+                "pixel_error",
+                "give either accuracy or pixel_error, not both",
+            ));
+        }
+        let pixel_error = self.pixel_error.unwrap_or(1.0);
+        let checks: [(&str, f32, bool, &str); 5] = [
+            ("pixel_error", pixel_error, pixel_error > 0.0, "> 0"),
             ("spacing", self.spacing, self.spacing > 0.0, "> 0"),
             (
                 "vertical_scale",
@@ -252,7 +295,7 @@ impl TerrainDescription {
                 self.vertical_scale >= 0.0,
                 ">= 0",
             ),
-            ("accuracy", self.accuracy, self.accuracy > 0.0, "> 0"),
+            ("accuracy", self.accuracy(), self.accuracy() > 0.0, "> 0"),
             (
                 "min_accuracy",
                 self.min_accuracy,
@@ -339,6 +382,32 @@ mod tests {
     }
 
     #[test]
+    fn a_pixel_error_gives_the_accuracy_for_the_camera() {
+        let camera = ReferenceCamera {
+            vertical_fov: 60f64.to_radians(),
+            width: 1920,
+            height: 1080,
+            ..ReferenceCamera::default()
+        };
+        let given = parse("(source: Procedural((dims: 9)), accuracy: 120.0)").unwrap();
+        assert_eq!(given.terrain.unwrap().accuracy_for(&camera).unwrap(), 120.0);
+        let scene = parse("(source: Procedural((dims: 9)), pixel_error: 2.0)").unwrap();
+        let terrain = scene.terrain.unwrap();
+        let accuracy = terrain.accuracy_for(&camera).unwrap();
+        assert!((735.0..750.0).contains(&accuracy), "{accuracy}");
+        let half = ReferenceCamera {
+            width: 960,
+            height: 540,
+            ..camera
+        };
+        let halved = terrain.accuracy_for(&half).unwrap();
+        assert!(
+            (halved - accuracy / 2.0).abs() < 1e-3 * accuracy,
+            "{halved}"
+        );
+    }
+
+    #[test]
     fn defaults_and_both_spellings_of_the_option() {
         for text in [
             "(source: Procedural((dims: 33)))",
@@ -348,7 +417,8 @@ mod tests {
             let terrain = scene.terrain.expect("a terrain");
             assert_eq!(terrain.spacing, 10.0);
             assert_eq!(terrain.vertical_scale, 400.0);
-            assert_eq!((terrain.accuracy, terrain.min_accuracy), (300.0, 2.0));
+            assert_eq!((terrain.accuracy(), terrain.min_accuracy), (300.0, 2.0));
+            assert_eq!(terrain.pixel_error, None);
             assert!(terrain.morph && !terrain.debug_lod_colours && !terrain.debug_edges);
             assert_eq!(terrain.center, [0.0; 3]);
             let TerrainHeightSource::Procedural(source) = &terrain.source else {
@@ -398,6 +468,14 @@ mod tests {
             (
                 "(source: Procedural((dims: 9)), accuracy: NaN)",
                 "field terrain.accuracy: must be finite and > 0, got NaN",
+            ),
+            (
+                "(source: Procedural((dims: 9)), pixel_error: 0.0)",
+                "field terrain.pixel_error: must be finite and > 0, got 0",
+            ),
+            (
+                "(source: Procedural((dims: 9)), accuracy: 300.0, pixel_error: 2.0)",
+                "field terrain.pixel_error: give either accuracy or pixel_error, not both",
             ),
             (
                 "(source: Procedural((dims: 9)), min_accuracy: 1.5)",

@@ -172,6 +172,15 @@ pub struct Terrain {
     /// subtends at most about `1/(2c)` radian. Default 300 (about two pixels
     /// at 1080 lines and 60°).
     pub accuracy: f32,
+    /// A tolerance in pixels that replaces `accuracy` when given: each frame
+    /// `c` is derived from the LOD camera's projection and viewport so that
+    /// no detail the mesh leaves out (of the ground, and of the top of fog
+    /// lying on it) moves by more than this many pixels anywhere in the view
+    /// ([`nebel_lod::quadtree::accuracy_for_pixel_error`]; for a 1080-line,
+    /// 60°, 16:9 view 2 px is `c` ≈ 740). Finite and > 0; needs a
+    /// perspective camera (an orthographic one is a `Failed` status). Default
+    /// `None`: `accuracy` is used.
+    pub pixel_error: Option<f32>,
     /// Minimum resolution `C`, finite and ≥ 1.6: a node is refined within
     /// `C` node sizes of the eye whatever its roughness. Changing it rebuilds
     /// the quadtree. Default 2.
@@ -206,6 +215,7 @@ impl Default for Terrain {
             spacing: DEFAULT_TERRAIN_SPACING,
             vertical_scale: DEFAULT_TERRAIN_VERTICAL_SCALE,
             accuracy: DEFAULT_ACCURACY,
+            pixel_error: None,
             min_accuracy: DEFAULT_MIN_RESOLUTION,
             morph: true,
             update_distance: 0.25,

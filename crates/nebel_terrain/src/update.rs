@@ -9,7 +9,9 @@
 //! order), in the terrain's local frame, in [`PostUpdate`] after transform
 //! propagation and the camera's projection update, so it matches the frame
 //! being drawn, by [`nebel_lod::quadtree::TerrainRefiner`] (no Bevy): it
-//! refines again only when the terrain changed (accuracy, morphing, material,
+//! refines again only when the terrain changed (accuracy or pixel error — the
+//! accuracy a pixel error gives changes with the camera's projection and
+//! viewport —, morphing, material,
 //! debug view, a new quadtree) or the view changed enough (the eye moved more
 //! than `δ = update_distance · spacing`, the camera turned by more than
 //! `view_margin_degrees`, the projection or the terrain's transform
@@ -22,8 +24,8 @@
 //! # Failures
 //!
 //! Unusable input (a height map that failed to load, too small or too
-//! large, NaN or infinite heights, a bad spacing, vertical scale, `c` or
-//! `C`) sets [`TerrainStatus::Failed`] with the reason
+//! large, NaN or infinite heights, a bad spacing, vertical scale, `c`,
+//! pixel error or `C`, a pixel error through an orthographic camera) sets [`TerrainStatus::Failed`] with the reason
 //! ([`TerrainBuildError`](crate::TerrainBuildError)), logs it once per entity
 //! as an error and leaves the entity without a mesh; nothing panics.
 //! Changing the terrain or its height asset tries again.
@@ -48,9 +50,12 @@ use bevy::diagnostic::Diagnostics;
 use bevy::ecs::system::SystemParam;
 use bevy::math::DAffine3;
 use bevy::prelude::*;
-use nebel_lod::quadtree::{LodSettings, RefinerSettings, TerrainView, TriangleOrder};
+use nebel_lod::TerrainError;
+use nebel_lod::quadtree::{
+    LodSettings, RefinerSettings, TerrainView, TriangleOrder, accuracy_for_pixel_error,
+};
 use nebel_render::camera::to_double;
-use nebel_render::{EffectiveQuality, LodCameras};
+use nebel_render::{EffectiveQuality, LodCameras, LodView};
 
 use crate::build::{TerrainLod, bounds};
 use crate::layer::TerrainLayerLod;
@@ -80,17 +85,30 @@ impl TerrainAssets<'_, '_> {
     }
 }
 
-/// The refinement settings of `terrain`, carrying a layer or not, its
-/// accuracy scaled by the quality's factor.
+/// The refinement settings of `terrain` seen by `camera` through a
+/// quadtree of minimum resolution `min_resolution`, carrying a layer or not,
+/// its accuracy (given, or derived from its pixel error for the camera's
+/// projection and viewport) scaled by the quality's factor.
 fn refiner_settings(
     terrain: &Terrain,
     layer: Option<&TerrainLayerLod>,
     accuracy_scale: f64,
-) -> RefinerSettings {
+    camera: &LodView,
+    min_resolution: f32,
+) -> Result<RefinerSettings, TerrainError> {
     let every_move = layer.is_some_and(|layer| layer.refine_on_every_move);
-    RefinerSettings {
+    let accuracy = match terrain.pixel_error {
+        Some(pixel_error) => accuracy_for_pixel_error(
+            f64::from(pixel_error),
+            to_double(camera.clip_from_view),
+            camera.viewport.to_array(),
+            min_resolution,
+        )?,
+        None => f64::from(terrain.accuracy),
+    };
+    Ok(RefinerSettings {
         lod: LodSettings {
-            accuracy: (f64::from(terrain.accuracy) * accuracy_scale) as f32,
+            accuracy: (accuracy * accuracy_scale) as f32,
             morph: terrain.morph,
             normals: true,
             // The layer's cells need each vertex's grid point.
@@ -104,7 +122,7 @@ fn refiner_settings(
             f64::from(terrain.update_distance * terrain.spacing)
         },
         view_margin: f64::from(terrain.view_margin_degrees).to_radians(),
-    }
+    })
 }
 
 /// Refines every visible terrain with a quadtree for the LOD camera when
@@ -167,16 +185,25 @@ pub(crate) fn update_terrain_meshes(
             world_from_terrain: affine(transform),
         };
         let started = Instant::now();
-        let refined = state.refiner.update(
-            &hierarchy,
-            layered.map(|layered| &*layered.layer),
-            &view,
-            &refiner_settings(&terrain, layered.and(layer.as_deref()), accuracy_scale),
-            terrain.is_changed()
-                || quality_changed
-                || layer_changed
-                || layer.as_ref().is_some_and(Ref::is_changed),
-        );
+        let refined = refiner_settings(
+            &terrain,
+            layered.and(layer.as_deref()),
+            accuracy_scale,
+            &camera,
+            hierarchy.min_resolution(),
+        )
+        .and_then(|settings| {
+            state.refiner.update(
+                &hierarchy,
+                layered.map(|layered| &*layered.layer),
+                &view,
+                &settings,
+                terrain.is_changed()
+                    || quality_changed
+                    || layer_changed
+                    || layer.as_ref().is_some_and(Ref::is_changed),
+            )
+        });
         let refine_ms = started.elapsed().as_secs_f64() * 1e3;
         let lod_stats = match refined {
             Ok(Some(lod_stats)) => lod_stats,
@@ -523,6 +550,49 @@ mod tests {
         let after = stats(&app, terrain);
         assert_eq!(after.updates, 4);
         assert!(after.triangles > before, "{} <= {before}", after.triangles);
+    }
+
+    #[test]
+    fn a_pixel_error_refines_for_the_viewport_and_bad_ones_fail() {
+        let (mut app, camera) = app(&asset_dir("pixel-error"), Vec3::new(0.0, 200.0, 300.0));
+        let terrain = spawn(
+            &mut app,
+            Terrain {
+                pixel_error: Some(2.0),
+                ..procedural(65)
+            },
+            Transform::default(),
+        );
+        app.update();
+        assert_eq!(status(&app, terrain), TerrainStatus::Ready);
+        let small = stats(&app, terrain);
+        app.update();
+        assert_eq!(
+            stats(&app, terrain).updates,
+            small.updates,
+            "nothing changed"
+        );
+        // Four times the pixels each way: the same tolerance needs a finer mesh.
+        app.world_mut().entity_mut(camera).insert(computed_camera(
+            Mat4::perspective_infinite_reverse_rh(1.0, 1.0, 0.1),
+            UVec2::splat(256),
+        ));
+        app.update();
+        let large = stats(&app, terrain);
+        assert_eq!(large.updates, small.updates + 1, "a new viewport");
+        assert!(large.triangles > small.triangles, "{large:?} vs {small:?}");
+        for bad in [0.0, f32::NAN, -1.0] {
+            app.world_mut()
+                .get_mut::<Terrain>(terrain)
+                .unwrap()
+                .pixel_error = Some(bad);
+            app.update();
+            assert!(
+                matches!(status(&app, terrain), TerrainStatus::Failed(_)),
+                "pixel error {bad}"
+            );
+            assert!(app.world().get::<Mesh3d>(terrain).is_none());
+        }
     }
 
     #[test]

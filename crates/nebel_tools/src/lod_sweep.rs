@@ -21,8 +21,9 @@
 //!
 //! A scene without volumes whose terrain has ground fog sweeps the terrain's
 //! accuracy `c` instead (the quadtree of terrain and fog prisms, Röttger and
-//! Ertl 2003 §6; the terrain has no screen-error criterion, so tolerances are
-//! not swept there), full resolution being `c` = [`FULL_TERRAIN_ACCURACY`]
+//! Ertl 2003 §6) and, as its screen-error tolerances, the terrain's pixel
+//! error (`nebel_lod::quadtree::accuracy_for_pixel_error`), full resolution
+//! being `c` = [`FULL_TERRAIN_ACCURACY`]
 //! (every node whose roughness is not zero refined); the cells counted are
 //! the fog's tetrahedra, the reference is the scene's
 //! ([`crate::reference::scene_reference`]: the full-resolution fog's cells on
@@ -110,11 +111,12 @@ impl Swept {
             }
             Swept::TerrainFog => {
                 if let Some(terrain) = &mut variant.terrain {
-                    let accuracy = match setting {
-                        Some(SweepSetting::Accuracy(c)) => Some(c),
-                        _ => lod.and_then(|lod| lod.accuracy),
+                    let full = lod.and_then(|lod| lod.accuracy);
+                    (terrain.accuracy, terrain.pixel_error) = match setting {
+                        Some(SweepSetting::Accuracy(c)) => (Some(c as f32), None),
+                        Some(SweepSetting::ImageError(pixels)) => (None, Some(pixels as f32)),
+                        None => (Some(full.unwrap_or(FULL_TERRAIN_ACCURACY) as f32), None),
                     };
-                    terrain.accuracy = accuracy.unwrap_or(FULL_TERRAIN_ACCURACY) as f32;
                 }
             }
         }
@@ -161,7 +163,8 @@ impl SweepPoint {
     }
 }
 
-/// Runs the sweep of `accuracies` and (for a volume) `image_errors` and
+/// Runs the sweep of `accuracies` and `image_errors` (a terrain's pixel
+/// errors) and
 /// writes `DIR/lod_sweep.csv`, `DIR/lod_sweep.svg` and the images. `scene`
 /// must have exactly one volume, with a grid source, or no volume and a
 /// terrain with fog (see the module docs).
@@ -227,11 +230,6 @@ pub fn run_lod_sweep(
         }
     };
 
-    // The terrain has the distance criterion only.
-    let image_errors = match swept {
-        Swept::Volume { .. } => image_errors,
-        Swept::TerrainFog => &[],
-    };
     let runs: Vec<Option<SweepSetting>> = accuracies
         .iter()
         .map(|&c| Some(SweepSetting::Accuracy(c)))

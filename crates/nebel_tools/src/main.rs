@@ -135,8 +135,8 @@ enum Command {
         /// The accuracies c to sweep, comma-separated.
         #[arg(long, value_delimiter = ',', default_values_t = [0.0, 4.0, 16.0, 64.0, 256.0])]
         accuracies: Vec<f64>,
-        /// The screen error's tolerances to sweep, comma-separated (not for
-        /// a terrain).
+        /// The screen error's tolerances to sweep, comma-separated: a
+        /// volume's image error, or a terrain's pixel error.
         #[arg(long, value_delimiter = ',', default_values_t = [0.3, 0.1, 0.03, 0.01, 0.003])]
         image_errors: Vec<f64>,
         /// Score against the image at this c instead of full resolution, for

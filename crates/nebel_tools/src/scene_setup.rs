@@ -440,7 +440,8 @@ fn spawn_terrain(
             source: TerrainSource::Heights(heights.add(TerrainHeights::from_field(unit))),
             spacing: description.spacing,
             vertical_scale: description.vertical_scale,
-            accuracy: description.accuracy,
+            accuracy: description.accuracy(),
+            pixel_error: description.pixel_error,
             min_accuracy: description.min_accuracy,
             morph: description.morph,
             debug: TerrainDebug {

@@ -92,6 +92,10 @@
 //! 676, a slope change of 676:1 across a node); beyond it a node refines
 //! a little late.
 //!
+//! [`accuracy_for_pixel_error`] turns a tolerance in pixels into the `c` that
+//! keeps this angle within that many pixels of a perspective projection and
+//! viewport.
+//!
 //! # Geomorphing
 //!
 //! A refined node gets the weight `t = min(1, (1 − f) / (3/4))`: 1 for
@@ -183,11 +187,13 @@
 mod hierarchy;
 mod layer;
 mod mesh;
+mod pixel_error;
 mod refiner;
 
 pub use hierarchy::{TerrainHierarchy, pad_to_power_of_two_plus_one};
 pub use layer::TerrainLayer;
 pub use mesh::{LodSettings, LodStats, TerrainMesh, TriangleOrder};
+pub use pixel_error::accuracy_for_pixel_error;
 pub use refiner::{RefinerSettings, TerrainRefiner, TerrainView};
 
 use glam::DVec3;
@@ -304,6 +310,13 @@ pub enum TerrainError {
         /// The value found.
         value: f32,
     },
+    /// A pixel tolerance was asked for through a projection that is not a
+    /// finite perspective one (an orthographic view shows far details as
+    /// large as near ones, which the distance-based criterion cannot bound).
+    #[error(
+        "a terrain pixel error needs a finite perspective projection; give an orthographic camera an accuracy instead"
+    )]
+    PixelErrorNeedsPerspective,
     /// The eye position is NaN or infinite.
     #[error("the eye position {eye} is not finite")]
     NonFiniteEye {

@@ -6,8 +6,10 @@
 //! # When the mesh is refined again
 //!
 //! [`TerrainRefiner::update`] refines (into the same [`TerrainMesh`]) on the
-//! first call, when asked to (`settings_changed`: the terrain's settings or
-//! quadtree changed), and when
+//! first call, when asked to (`settings_changed`: the terrain's quadtree or
+//! layer changed), when its [`LodSettings`] differ from the last
+//! refinement's (an accuracy derived from a pixel tolerance changes with the
+//! viewport, say), and when
 //!
 //! - the eye moved more than `update_distance` (terrain units) since the
 //!   last refinement;
@@ -85,8 +87,8 @@ pub struct RefinerSettings {
 #[derive(Clone, Debug, Default)]
 pub struct TerrainRefiner {
     mesh: TerrainMesh,
-    /// The view the mesh was refined for.
-    refined_for: Option<TerrainView>,
+    /// The view and settings the mesh was refined for.
+    refined_for: Option<(TerrainView, LodSettings)>,
 }
 
 impl TerrainRefiner {
@@ -111,8 +113,9 @@ impl TerrainRefiner {
     ) -> Result<Option<LodStats>, TerrainError> {
         let distance = settings.update_distance.max(0.0);
         let margin = settings.view_margin.clamp(0.0, std::f64::consts::FRAC_PI_4);
-        let unchanged = self.refined_for.is_some_and(|last| {
-            last.clip_from_view == view.clip_from_view
+        let unchanged = self.refined_for.is_some_and(|(last, lod)| {
+            lod == settings.lod
+                && last.clip_from_view == view.clip_from_view
                 && last.world_from_terrain == view.world_from_terrain
                 && last.eye().distance(view.eye()) <= distance
                 && last.rotation().angle_between(view.rotation()) <= margin
@@ -136,7 +139,7 @@ impl TerrainRefiner {
             layer,
             &mut self.mesh,
         )?;
-        self.refined_for = Some(*view);
+        self.refined_for = Some((*view, settings.lod));
         Ok(Some(stats))
     }
 
@@ -247,6 +250,11 @@ mod tests {
         let mut placed = moved(3.0, 4f64.to_radians());
         placed.world_from_terrain = DAffine3::from_translation(DVec3::X);
         assert!(update(&mut refiner, placed, false), "the terrain moved");
+        assert!(!update(&mut refiner, placed, false), "unchanged");
+        let mut finer = settings();
+        finer.lod.accuracy *= 1.5;
+        let refined = refiner.update(&hierarchy, None, &placed, &finer, false);
+        assert!(refined.unwrap().is_some(), "a new accuracy");
     }
 
     #[test]

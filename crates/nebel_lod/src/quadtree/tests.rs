@@ -387,6 +387,52 @@ fn morphing_keeps_heights_continuous_along_a_path() {
     assert!(pop_fine > 0.5 * pop, "{pop_fine} vs {pop}");
 }
 
+/// The details the mesh leaves out: for every node that is not refined, each
+/// of its five new points (centre and edge midpoints) at its true height,
+/// with the coarse mesh's height there (the mean of the two ends of the edge
+/// or diagonal it splits). Positions in the height field's frame.
+fn left_out_details(hierarchy: &TerrainHierarchy, mesh: &TerrainMesh) -> Vec<(DVec3, f64)> {
+    let field = hierarchy.field();
+    let n = hierarchy.size();
+    let h = |i: usize, j: usize| f64::from(field.height(i, j));
+    let vertices: HashSet<[u32; 2]> = mesh.grid_points.iter().copied().collect();
+    let mut details = Vec::new();
+    for level in 0..hierarchy.levels() {
+        let s = (n - 1) >> level;
+        let half = s / 2;
+        for b in 0..1usize << level {
+            for a in 0..1usize << level {
+                let (ci, cj) = (a * s + half, b * s + half);
+                if vertices.contains(&[ci as u32, cj as u32]) {
+                    continue; // refined
+                }
+                let (i0, j0, i1, j1) = (a * s, b * s, a * s + s, b * s + s);
+                let diagonal = if (a + b) % 2 == 0 {
+                    ((i0, j0), (i1, j1))
+                } else {
+                    ((i0, j1), (i1, j0))
+                };
+                let points = [
+                    ((ci, cj), diagonal.0, diagonal.1),
+                    ((ci, j0), (i0, j0), (i1, j0)),
+                    ((ci, j1), (i0, j1), (i1, j1)),
+                    ((i0, cj), (i0, j0), (i0, j1)),
+                    ((i1, cj), (i1, j0), (i1, j1)),
+                ];
+                for (m, p, q) in points {
+                    let position =
+                        field.origin() + DVec2::new(m.0 as f64, m.1 as f64) * field.spacing();
+                    details.push((
+                        DVec3::new(position.x, h(m.0, m.1), position.y),
+                        (h(p.0, p.1) + h(q.0, q.1)) / 2.0,
+                    ));
+                }
+            }
+        }
+    }
+    details
+}
+
 /// Every node that is not refined leaves out details (the deviation of its
 /// five new points from the coarse mesh) that subtend at most
 /// `1 / (2c (1 − 1/(2C)))` radian vertically from the eye.
@@ -395,56 +441,99 @@ fn left_out_detail_stays_under_the_bound_of_c() {
     let field = fbm_field(129, 10.0, 640.0, 7, 400.0, DVec2::new(-640.0, -640.0));
     for min_resolution in [1.6f32, 4.0, 9.0] {
         let hierarchy = TerrainHierarchy::new(field.clone(), min_resolution).unwrap();
-        let n = hierarchy.size();
-        let h = |i: usize, j: usize| f64::from(hierarchy.field().height(i, j));
         for (eye, accuracy) in [
             (DVec3::new(0.0, 500.0, 0.0), 20.0f32),
             (DVec3::new(-600.0, 120.0, 300.0), 100.0),
             (DVec3::new(900.0, 800.0, -900.0), 300.0),
         ] {
             let (mesh, _) = update(&hierarchy, eye, None, &settings(accuracy));
-            let vertices: HashSet<[u32; 2]> = mesh.grid_points.iter().copied().collect();
             let bound = 1.0 / (2.0 * f64::from(accuracy) * (1.0 - 0.5 / f64::from(min_resolution)));
-            let mut largest = 0.0f64;
-            for level in 0..hierarchy.levels() {
-                let s = (n - 1) >> level;
-                let half = s / 2;
-                for b in 0..1usize << level {
-                    for a in 0..1usize << level {
-                        let (ci, cj) = (a * s + half, b * s + half);
-                        if vertices.contains(&[ci as u32, cj as u32]) {
-                            continue; // refined
-                        }
-                        let (i0, j0, i1, j1) = (a * s, b * s, a * s + s, b * s + s);
-                        let diagonal = if (a + b) % 2 == 0 {
-                            ((i0, j0), (i1, j1))
-                        } else {
-                            ((i0, j1), (i1, j0))
-                        };
-                        let points = [
-                            ((ci, cj), diagonal.0, diagonal.1),
-                            ((ci, j0), (i0, j0), (i1, j0)),
-                            ((ci, j1), (i0, j1), (i1, j1)),
-                            ((i0, cj), (i0, j0), (i0, j1)),
-                            ((i1, cj), (i1, j0), (i1, j1)),
-                        ];
-                        for (m, p, q) in points {
-                            let detail = (h(m.0, m.1) - (h(p.0, p.1) + h(q.0, q.1)) / 2.0).abs();
-                            let position = field.origin()
-                                + DVec2::new(m.0 as f64, m.1 as f64) * field.spacing();
-                            let distance =
-                                (DVec3::new(position.x, h(m.0, m.1), position.y) - eye).length();
-                            largest = largest.max(detail / distance);
-                        }
-                    }
-                }
-            }
+            let largest = left_out_details(&hierarchy, &mesh)
+                .into_iter()
+                .map(|(point, coarse)| (point.y - coarse).abs() / (point - eye).length())
+                .fold(0.0, f64::max);
             println!(
                 "C = {min_resolution}, c = {accuracy}: largest left-out detail {largest:.2e} rad, bound {bound:.2e} rad, {} triangles",
                 mesh.triangle_count()
             );
             assert!(largest <= bound * 1.0001, "{largest} > {bound}");
         }
+    }
+}
+
+/// With the accuracy of a pixel tolerance, no detail the mesh leaves out
+/// inside the view moves by more than that many pixels between its true and
+/// its coarse height, for views from the ground to high above, through
+/// narrow and wide lenses; the tolerance is approached (the bound is not
+/// vacuous), and a finer tolerance draws more triangles.
+#[test]
+fn left_out_detail_stays_within_the_pixel_tolerance() {
+    let field = fbm_field(257, 10.0, 640.0, 8, 400.0, DVec2::new(-1280.0, -1280.0));
+    let hierarchy = TerrainHierarchy::new(field, 2.0).unwrap();
+    for (eye, target, fov_degrees, viewport) in [
+        (
+            DVec3::new(-1500.0, 700.0, -1500.0),
+            DVec3::ZERO,
+            60.0f64,
+            [320u32, 180u32],
+        ),
+        (
+            DVec3::new(0.0, 420.0, 900.0),
+            DVec3::new(0.0, 150.0, 0.0),
+            90.0,
+            [200, 200],
+        ),
+        (
+            DVec3::new(900.0, 3000.0, 0.0),
+            DVec3::new(0.0, 0.0, 100.0),
+            25.0,
+            [640, 360],
+        ),
+    ] {
+        let world_from_view = DMat4::look_at_rh(eye, target, DVec3::Y).inverse();
+        let aspect = f64::from(viewport[0]) / f64::from(viewport[1]);
+        let clip_from_view =
+            DMat4::perspective_infinite_reverse_rh(fov_degrees.to_radians(), aspect, 0.1);
+        let clip_from_world = clip_from_view * world_from_view.inverse();
+        let pixel = |point: DVec3| {
+            let clip = clip_from_world * point.extend(1.0);
+            let ndc = DVec2::new(clip.x, clip.y) / clip.w;
+            let inside = clip.w > 0.0 && ndc.abs().max_element() <= 1.0;
+            inside.then(|| ndc * DVec2::new(f64::from(viewport[0]), f64::from(viewport[1])) / 2.0)
+        };
+        let mut triangles = Vec::new();
+        for pixel_error in [4.0, 1.0] {
+            let accuracy = accuracy_for_pixel_error(
+                pixel_error,
+                clip_from_view,
+                viewport,
+                hierarchy.min_resolution(),
+            )
+            .unwrap();
+            let (mesh, _) = update(&hierarchy, eye, None, &settings(accuracy as f32));
+            let largest = left_out_details(&hierarchy, &mesh)
+                .into_iter()
+                .filter_map(|(point, coarse)| {
+                    let coarse = DVec3::new(point.x, coarse, point.z);
+                    Some((pixel(point)? - pixel(coarse)?).length())
+                })
+                .fold(0.0, f64::max);
+            println!(
+                "eye {eye}, {fov_degrees}°, {viewport:?}, {pixel_error} px: c = {accuracy:.0}, largest left-out detail {largest:.3} px, {} triangles",
+                mesh.triangle_count()
+            );
+            // To first order in the detail's angle (see pixel_error's docs).
+            assert!(
+                largest <= pixel_error * 1.01,
+                "{largest} px > {pixel_error} px"
+            );
+            assert!(
+                largest >= pixel_error * 0.1,
+                "{largest} px: the bound is vacuous"
+            );
+            triangles.push(mesh.triangle_count());
+        }
+        assert!(triangles[1] > triangles[0], "{triangles:?}");
     }
 }
 
