@@ -63,6 +63,16 @@ impl GpuCell {
 /// `l' = l · f / f_max`; the non-physical variant (§5.2) swaps the two.
 /// `modulators` is empty for an unmodulated batch, otherwise it has one entry
 /// per cell, the modulator at the cell's four vertices in vertex order.
+///
+/// # Keyframe blending
+///
+/// A batch drawn from two keyframes of an animated field (a cloud in the
+/// wind, a light field under a moving sun) carries the next keyframe's
+/// scalar and modulator at every vertex too ([`CellBatch::next_scalars`],
+/// [`CellBatch::next_modulators`]), for the same cells. The renderer draws
+/// each vertex at `(1 − β) · current + β · next` for a blend factor `β` in
+/// [0, 1] that it may change every frame without a new batch; both fields are
+/// linear in the vertices, so that is the field of the blended keyframes.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct CellBatch {
     /// The cells in draw order.
@@ -70,6 +80,12 @@ pub struct CellBatch {
     /// Per cell, the segment-length modulator at its four vertices, in
     /// [0, 1]; empty when the batch is not modulated (see the type docs).
     pub modulators: Vec<[f32; 4]>,
+    /// Per cell, the next keyframe's scalar at its four vertices; empty when
+    /// the batch is not blended (see the type docs).
+    pub next_scalars: Vec<[f32; 4]>,
+    /// Per cell, the next keyframe's modulator at its four vertices; empty
+    /// when the batch is not blended or not modulated.
+    pub next_modulators: Vec<[f32; 4]>,
     /// Minimum corner of the axis-aligned box around every vertex, world units.
     pub bounds_min: Vec3,
     /// Maximum corner of the axis-aligned box around every vertex, world units.
@@ -109,15 +125,21 @@ impl CellBatch {
             vertices.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p)));
         Self {
             cells,
-            modulators: Vec::new(),
             bounds_min,
             bounds_max,
+            ..Self::default()
         }
     }
 
     /// Whether the cells carry segment-length modulators.
     pub fn is_modulated(&self) -> bool {
         !self.modulators.is_empty()
+    }
+
+    /// Whether the cells carry a next keyframe to blend toward (see the type
+    /// docs).
+    pub fn is_blended(&self) -> bool {
+        !self.next_scalars.is_empty()
     }
 
     /// Number of cells.

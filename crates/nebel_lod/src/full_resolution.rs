@@ -383,9 +383,9 @@ pub fn full_resolution_batch(
     }
     Ok(CellBatch {
         cells,
-        modulators: Vec::new(),
         bounds_min,
         bounds_max,
+        ..CellBatch::default()
     })
 }
 

@@ -230,6 +230,12 @@ pub enum VolumeBatchError {
         "lighting needs cell scalars that carry the light (CellScalars::LightModulatedByDensity or CellScalars::DensityModulatedByLight), not CellScalars::Density"
     )]
     UnlitScalars,
+    /// [`VolumeBatcher::with_next_keyframe`] of batchers that do not both
+    /// draw a grid through the octree with the same cell scalars.
+    #[error(
+        "keyframes blend only grids drawn through the octree with the same cell scalars (BatchSettings::octree, BatchLighting::scalars)"
+    )]
+    KeyframesWithoutOctree,
 }
 
 impl From<FieldError> for VolumeBatchError {
@@ -248,7 +254,8 @@ impl PartialEq for VolumeBatchError {
             (Self::OverBudget(a), Self::OverBudget(b)) => a == b,
             (Self::LightingWithoutOctree, Self::LightingWithoutOctree)
             | (Self::OctreeWithoutGrid, Self::OctreeWithoutGrid)
-            | (Self::UnlitScalars, Self::UnlitScalars) => true,
+            | (Self::UnlitScalars, Self::UnlitScalars)
+            | (Self::KeyframesWithoutOctree, Self::KeyframesWithoutOctree) => true,
             _ => false,
         }
     }
@@ -433,6 +440,43 @@ impl VolumeBatcher {
             order_key,
         });
         Ok(true)
+    }
+
+    /// A batcher that blends from this batcher's keyframe to `next`'s (the
+    /// octree of both with [`VolumeHierarchy::with_next_keyframe`]; its
+    /// batches carry `next`'s values too, `CellBatch`'s keyframe blending).
+    /// Built from `self`'s settings; `next` may differ only in its light's
+    /// settings (a keyframe of a moving sun). The batch is empty until the
+    /// first [`VolumeBatcher::update`].
+    ///
+    /// Errors: [`VolumeBatchError::KeyframesWithoutOctree`] unless both draw
+    /// a grid through the octree with the same cell scalars,
+    /// [`VolumeBatchError::Hierarchy`] when their grids or minimum accuracies
+    /// differ or the second keyframe exceeds the memory budget.
+    pub fn with_next_keyframe(&self, next: &VolumeBatcher) -> Result<Self, VolumeBatchError> {
+        let (
+            Kind::Octree { hierarchy, scalars },
+            Kind::Octree {
+                hierarchy: next_hierarchy,
+                scalars: next_scalars,
+            },
+        ) = (&self.kind, &next.kind)
+        else {
+            return Err(VolumeBatchError::KeyframesWithoutOctree);
+        };
+        if scalars != next_scalars {
+            return Err(VolumeBatchError::KeyframesWithoutOctree);
+        }
+        Ok(Self {
+            kind: Kind::Octree {
+                hierarchy: hierarchy.with_next_keyframe(next_hierarchy)?,
+                scalars: *scalars,
+            },
+            settings: self.settings,
+            full_resolution_cells: self.full_resolution_cells,
+            batch: Arc::default(),
+            built: None,
+        })
     }
 
     /// The current batch: world space, in draw order, modulated for a lit

@@ -746,3 +746,50 @@ fn a_full_resolution_batch_beyond_the_memory_budget_is_refused_before_it_is_buil
         "{message}"
     );
 }
+
+/// Keyframes of a moving sun: the pair's batch carries the second sun's light
+/// beside the first's, over cells refined for both; kinds without the octree
+/// and different scalars are refused.
+#[test]
+fn a_batcher_blends_toward_the_next_keyframe() {
+    let eye = eye_at(DVec3::new(4.2, 11.0, 3.1));
+    let v = view(eye).with_frustum(frustum(eye, DVec3::new(4.0, 3.0, 2.5)));
+    let transfer = cloud();
+    let first_sun = lit(CellScalars::LightModulatedByDensity);
+    let mut later = first_sun;
+    if let Some(lighting) = &mut later.lighting {
+        lighting.light.sun_direction = DVec3::new(-0.8, 0.3, 0.1);
+    }
+    let first = VolumeBatcher::new(grid_source(), &first_sun).unwrap();
+    let second = VolumeBatcher::new(grid_source(), &later).unwrap();
+    let mut pair = first.with_next_keyframe(&second).unwrap();
+    assert_eq!(pair.settings(), &first_sun);
+    assert!(pair.update(&v, &inputs(&transfer)).unwrap());
+    let batch = pair.batch();
+    assert!(batch.is_blended() && !batch.is_empty());
+    assert_eq!(batch.next_scalars.len(), batch.len());
+    // Same density in both: the modulators agree, the light differs.
+    assert_eq!(batch.next_modulators, batch.modulators);
+    let scalars: Vec<[f32; 4]> = batch
+        .cells
+        .iter()
+        .map(|c| c.vertices.map(|v| v[3]))
+        .collect();
+    assert_ne!(batch.next_scalars, scalars, "the sun moved");
+    assert!(
+        !pair.update(&v, &inputs(&transfer)).unwrap(),
+        "nothing changed"
+    );
+
+    let sorted = VolumeBatcher::new(grid_source(), &settings(CellOrder::BackToFront, false));
+    let unlit = VolumeBatcher::new(grid_source(), &settings(CellOrder::BackToFront, true));
+    let non_physical =
+        VolumeBatcher::new(grid_source(), &lit(CellScalars::DensityModulatedByLight));
+    for other in [sorted, unlit, non_physical] {
+        let other = other.unwrap();
+        assert_eq!(
+            first.with_next_keyframe(&other).unwrap_err(),
+            VolumeBatchError::KeyframesWithoutOctree
+        );
+    }
+}

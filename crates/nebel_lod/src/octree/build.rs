@@ -73,6 +73,8 @@ impl VolumeHierarchy {
             k_max,
             density: quantise(grid),
             light: light.map(quantise).unwrap_or_default(),
+            next_density: Vec::new(),
+            next_light: Vec::new(),
             words: vec![0; points],
             morph: vec![0; points],
         };

@@ -61,6 +61,11 @@
 //! smooth fields, and the mesh has no geometric gap (every face is covered
 //! from both sides).
 //!
+//! A hierarchy that blends two keyframes
+//! ([`VolumeHierarchy::with_next_keyframe`]) morphs both with the same
+//! weights; the batch carries the second one's scalars and modulators beside
+//! the first's ([`CellBatch::next_scalars`], [`CellBatch::next_modulators`]).
+//!
 //! **Direction of Eq. 8.** As printed, Eq. 8 gives `w` to the coarse
 //! interpolation and `1 − w` to the point's own value. That is reversed: a
 //! node that has just been refined (`e` just above 1, `e' ≈ 0`) must look
@@ -99,7 +104,7 @@
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
 
-use glam::{DVec3, Vec2};
+use glam::{DVec3, Vec4};
 use nebel_core::cell::HexahedronParity;
 
 use super::refine::index_frame;
@@ -174,27 +179,41 @@ pub fn lod_batch_with(
     let mut morpher = Morpher::new(hierarchy, refinement);
     let mut cells = Vec::with_capacity(5 * refinement.leaves.len());
     let modulated = scalars != CellScalars::Density;
-    let mut modulators = Vec::with_capacity(if modulated { cells.capacity() } else { 0 });
+    let blended = hierarchy.has_next_keyframe();
+    let reserve = |wanted: bool| Vec::with_capacity(if wanted { cells.capacity() } else { 0 });
+    let mut modulators = reserve(modulated);
+    let mut next_scalars = reserve(blended);
+    let mut next_modulators = reserve(blended && modulated);
+    // A morphed (density, light) as the cells' (scalar, modulator).
+    let carried = |density: f32, light: f32| match scalars {
+        CellScalars::Density => (density, 0.0),
+        CellScalars::LightModulatedByDensity => (light, density),
+        CellScalars::DensityModulatedByLight => (density, light),
+    };
     for leaf in &refinement.leaves {
         let node = leaf.node;
         let mut corner_modulators = [0.0f32; 8];
+        let mut corner_next = [(0.0f32, 0.0f32); 8];
         let vertices: [[f32; 4]; 8] = std::array::from_fn(|v| {
             let p = node.corner(v);
             let position = world_from_index
                 .transform_point3(DVec3::from(p.map(|c| c as f64)))
                 .as_vec3();
-            let [density, light] = morpher.value(p).to_array();
-            let (scalar, modulator) = match scalars {
-                CellScalars::Density => (density, 0.0),
-                CellScalars::LightModulatedByDensity => (light, density),
-                CellScalars::DensityModulatedByLight => (density, light),
-            };
+            let [density, light, next_density, next_light] = morpher.value(p).to_array();
+            let (scalar, modulator) = carried(density, light);
             corner_modulators[v] = modulator;
+            corner_next[v] = carried(next_density, next_light);
             [position.x, position.y, position.z, scalar]
         });
         let mut cell = |t: &[usize; 4]| {
             if modulated {
                 modulators.push(t.map(|v| corner_modulators[v]));
+            }
+            if blended {
+                next_scalars.push(t.map(|v| corner_next[v].0));
+                if modulated {
+                    next_modulators.push(t.map(|v| corner_next[v].1));
+                }
             }
             GpuCell {
                 vertices: t.map(|v| vertices[v]),
@@ -229,6 +248,8 @@ pub fn lod_batch_with(
     }
     let mut batch = CellBatch::with_bounds(cells);
     batch.modulators = modulators;
+    batch.next_scalars = next_scalars;
+    batch.next_modulators = next_modulators;
     Ok(batch)
 }
 
@@ -273,9 +294,9 @@ struct Morpher<'a> {
     morph: IndexMap<f32>,
     /// Drawn leaves above level 0, by centre index.
     drawn: IndexMap<()>,
-    /// The morphed (density, light) of every point evaluated so far, by flat
-    /// index.
-    values: IndexMap<Vec2>,
+    /// The morphed (density, light, next density, next light) of every
+    /// point evaluated so far, by flat index.
+    values: IndexMap<Vec4>,
 }
 
 impl<'a> Morpher<'a> {
@@ -334,15 +355,20 @@ impl<'a> Morpher<'a> {
         node
     }
 
-    /// The own (quantised) density and light of grid point `p`; light 0
-    /// without a light field.
-    fn own(&self, p: [usize; 3]) -> Vec2 {
+    /// The own (quantised) density and light of grid point `p`, then the
+    /// next keyframe's; 0 for what the hierarchy lacks.
+    fn own(&self, p: [usize; 3]) -> Vec4 {
         let h = self.hierarchy;
-        Vec2::new(h.density(p), h.light(p).unwrap_or(0.0))
+        Vec4::new(
+            h.density(p),
+            h.light(p).unwrap_or(0.0),
+            h.next_density(p).unwrap_or(0.0),
+            h.next_light(p).unwrap_or(0.0),
+        )
     }
 
     /// The morphed density and light of grid point `p` (module docs).
-    fn value(&mut self, p: [usize; 3]) -> Vec2 {
+    fn value(&mut self, p: [usize; 3]) -> Vec4 {
         let h = self.hierarchy;
         let root_level = h.root_level();
         let m = p
@@ -411,7 +437,7 @@ impl<'a> Morpher<'a> {
             // leaf drawn there: it takes that leaf's diagonal.
             let reference = unrefined.map_or(node, |n| self.leaf_above(n));
             let coarse = self.coarse(node, reference, p, odd, half);
-            (w * own + (1.0 - w) * coarse).clamp(Vec2::ZERO, Vec2::ONE)
+            (w * own + (1.0 - w) * coarse).clamp(Vec4::ZERO, Vec4::ONE)
         };
         self.values.insert(index, value);
         value
@@ -428,7 +454,7 @@ impl<'a> Morpher<'a> {
         p: [usize; 3],
         odd: [bool; 3],
         half: usize,
-    ) -> Vec2 {
+    ) -> Vec4 {
         match odd.iter().filter(|&&o| o).count() {
             1 => {
                 let axis = odd.iter().position(|&o| o).unwrap_or(0);
@@ -461,7 +487,7 @@ impl<'a> Morpher<'a> {
             }
             _ => {
                 let central = DECOMPOSITIONS[parity_index(node)].central;
-                let mut sum = Vec2::ZERO;
+                let mut sum = Vec4::ZERO;
                 for v in central {
                     sum += self.value(node.corner(v));
                 }
@@ -858,6 +884,53 @@ mod tests {
             lod_batch(&h, &r, &hidden),
             Err(RefinementError::NonFiniteEye { .. })
         ));
+    }
+
+    #[test]
+    fn a_keyframe_pair_carries_both_keyframes_morphed_over_the_same_cells() {
+        let dims = [17, 9, 9];
+        let (density, light) = (field(dims, 5), field(dims, 6));
+        let (next_density, next_light) = (field(dims, 7), field(dims, 8));
+        let first = VolumeHierarchy::with_light(&density, &light, 2.0).unwrap();
+        let second = VolumeHierarchy::with_light(&next_density, &next_light, 2.0).unwrap();
+        let pair = first.with_next_keyframe(&second).unwrap();
+        let eye = eye_at_index(&pair, DVec3::new(3.3, 4.1, 2.7));
+        // Δ is the larger of both: the pair refines at least as finely as
+        // either keyframe alone.
+        let r = refined(&pair, eye, 8.0);
+        for alone in [&first, &second] {
+            assert!(r.leaves.len() >= refined(alone, eye, 8.0).leaves.len());
+        }
+        for scalars in [
+            CellScalars::LightModulatedByDensity,
+            CellScalars::DensityModulatedByLight,
+        ] {
+            let batch = |h: &VolumeHierarchy| {
+                lod_batch_with(h, &r, &view(world_from_grid(), eye), scalars).unwrap()
+            };
+            let (blended, current, next) = (batch(&pair), batch(&first), batch(&second));
+            assert!(blended.is_blended() && !current.is_blended());
+            // The first keyframe exactly as alone, the second's values beside
+            // it: the morph of each keyframe over the pair's cells.
+            assert_eq!(blended.cells, current.cells);
+            assert_eq!(blended.modulators, current.modulators);
+            let next_scalars: Vec<[f32; 4]> = next
+                .cells
+                .iter()
+                .map(|cell| cell.vertices.map(|v| v[3]))
+                .collect();
+            assert_eq!(blended.next_scalars, next_scalars);
+            assert_eq!(blended.next_modulators, next.modulators);
+        }
+        // Unlit keyframes blend the density alone.
+        let unlit = VolumeHierarchy::new(&density, 2.0)
+            .unwrap()
+            .with_next_keyframe(&VolumeHierarchy::new(&next_density, 2.0).unwrap())
+            .unwrap();
+        let r = refined(&unlit, eye, 8.0);
+        let batch = lod_batch(&unlit, &r, &view(world_from_grid(), eye)).unwrap();
+        assert_eq!(batch.next_scalars.len(), batch.len());
+        assert!(batch.next_modulators.is_empty() && !batch.is_modulated());
     }
 
     #[test]

@@ -96,6 +96,7 @@
 
 mod build;
 pub mod emit;
+pub mod keyframe;
 mod node;
 pub mod refine;
 pub mod screen_error;
@@ -140,6 +141,15 @@ pub enum HierarchyError {
     InvalidMinAccuracy {
         /// The value given.
         value: f64,
+    },
+    /// Two keyframes to blend differ in their grid, their minimum accuracy
+    /// or whether they carry a light field.
+    #[error(
+        "keyframes to blend must share the grid (points, spacing, origin), the minimum accuracy and the light field's presence: {what} differ"
+    )]
+    KeyframeMismatch {
+        /// What differs.
+        what: &'static str,
     },
     /// The hierarchy would exceed the memory budget; nothing was allocated.
     #[error(transparent)]
@@ -192,6 +202,12 @@ pub struct VolumeHierarchy {
     /// Quantised light γ per grid point, `round(255 · γ)`; empty without a
     /// light field.
     light: Vec<u8>,
+    /// The next keyframe's quantised density per grid point; empty unless
+    /// the hierarchy blends two keyframes (see [`mod@keyframe`]).
+    next_density: Vec<u8>,
+    /// The next keyframe's quantised light per grid point; empty unless the
+    /// hierarchy blends two lit keyframes.
+    next_light: Vec<u8>,
     /// Per grid point: Δ (units of 1/65535) at node centres, the packed scalar
     /// range at the centre of a node's +x face, 0 elsewhere.
     words: Vec<u16>,
@@ -331,13 +347,22 @@ impl VolumeHierarchy {
         f32::from(self.deviation_quantised(node)) / 65535.0
     }
 
-    /// `[min, max]` of the quantised density over every grid point of the
+    /// `[min, max]` of the quantised density (of both keyframes when the
+    /// hierarchy blends two) over every grid point of the
     /// node's closed box, units of 1/255. Panics when the node is not in this
     /// hierarchy.
     pub fn scalar_range_quantised(&self, node: Node) -> [u8; 2] {
         if node.level == 0 {
             self.check(node);
-            let values = (0..8).map(|v| self.density_quantised(node.corner(v)));
+            let values = (0..8).flat_map(|v| {
+                let index = self.index(node.corner(v));
+                [
+                    Some(self.density[index]),
+                    self.next_density.get(index).copied(),
+                ]
+                .into_iter()
+                .flatten()
+            });
             return [values.clone().min().unwrap_or(0), values.max().unwrap_or(0)];
         }
         let word = self.words[self.range_index(node)];
@@ -378,6 +403,7 @@ impl VolumeHierarchy {
     pub fn bytes_per_point(&self) -> f64 {
         let bytes = self.density.len() * size_of::<u8>()
             + self.light.len() * size_of::<u8>()
+            + (self.next_density.len() + self.next_light.len()) * size_of::<u8>()
             + self.words.len() * size_of::<u16>()
             + self.morph.len() * size_of::<u8>();
         bytes as f64 / self.density.len() as f64

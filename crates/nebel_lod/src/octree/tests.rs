@@ -464,3 +464,91 @@ proptest! {
         }
     }
 }
+
+/// A pair of keyframes refines on the larger Δ of the two and culls on the
+/// union of their ranges; the blend of the two at any β deviates from its
+/// coarse values by no more than that Δ.
+#[test]
+fn a_keyframe_pair_bounds_every_blend_of_its_keyframes() {
+    let dims = [17, 9, 17];
+    let wave = |phase: f32| {
+        move |[i, j, k]: [usize; 3]| {
+            let x = i as f32 * 0.7 + phase;
+            (0.5 + 0.5 * (x.sin() * (k as f32 * 0.45 - phase).cos()) - 0.05 * j as f32)
+                .clamp(0.0, 1.0)
+        }
+    };
+    let first = VolumeHierarchy::new(&grid(dims, wave(0.0)), C).unwrap();
+    let second = VolumeHierarchy::new(&grid(dims, wave(1.3)), C).unwrap();
+    let pair = first.with_next_keyframe(&second).unwrap();
+    assert!(pair.has_next_keyframe() && !first.has_next_keyframe());
+    assert!((pair.bytes_per_point() - 5.0).abs() < 1e-12);
+    let mut largest_blend = 0.0f64;
+    for node in all_nodes(&pair) {
+        let ranges = [first.scalar_range(node), second.scalar_range(node)];
+        assert_eq!(
+            pair.scalar_range(node),
+            [
+                ranges[0][0].min(ranges[1][0]),
+                ranges[0][1].max(ranges[1][1])
+            ],
+            "{node:?}"
+        );
+        if node.level == 0 {
+            continue;
+        }
+        assert_eq!(
+            pair.deviation(node),
+            first.deviation(node).max(second.deviation(node))
+        );
+        let half = node.size() / 2;
+        for p in box_points(node) {
+            let rel: [usize; 3] = std::array::from_fn(|a| p[a] - node.origin[a]);
+            if !rel.iter().all(|r| r % half == 0) || rel.iter().all(|&r| r % node.size() == 0) {
+                continue;
+            }
+            let offsets = [&first, &second].map(|h| exact_density(h, p) - coarse_value(h, node, p));
+            for beta in [0.25, 0.5, 0.75] {
+                let blend = ((1.0 - beta) * offsets[0] + beta * offsets[1]).abs();
+                largest_blend = largest_blend.max(blend);
+                assert!(
+                    blend <= f64::from(pair.deviation(node)) + 1e-6,
+                    "{node:?} at {p:?}, β = {beta}"
+                );
+            }
+        }
+    }
+    assert!(
+        largest_blend > 0.05,
+        "{largest_blend}: the fields are too flat"
+    );
+    for p in box_points(pair.roots().next().unwrap()).step_by(7) {
+        assert_eq!(pair.density(p), first.density(p));
+        assert_eq!(pair.next_density(p), Some(second.density(p)));
+    }
+
+    // Keyframes of different grids or settings are refused.
+    let mismatch = |other: &VolumeHierarchy| {
+        matches!(
+            first.with_next_keyframe(other),
+            Err(HierarchyError::KeyframeMismatch { .. })
+        )
+    };
+    assert!(mismatch(
+        &VolumeHierarchy::new(&grid([9, 9, 17], wave(0.0)), C).unwrap()
+    ));
+    assert!(mismatch(
+        &VolumeHierarchy::new(&grid(dims, wave(0.0)), 3.0).unwrap()
+    ));
+    let lit = VolumeHierarchy::with_light(&grid(dims, wave(0.0)), &grid(dims, wave(2.0)), C);
+    assert!(mismatch(&lit.unwrap()));
+    let moved = grid(dims, wave(0.0));
+    let moved = DensityGrid::new(
+        dims,
+        moved.spacing(),
+        moved.origin() + DVec3::X,
+        moved.values().to_vec(),
+    )
+    .unwrap();
+    assert!(mismatch(&VolumeHierarchy::new(&moved, C).unwrap()));
+}
