@@ -56,30 +56,64 @@ impl CellScattering {
             f64::from(direction.dot(self.sun_direction)),
         ) as f32
     }
-
-    /// The uniform the shader reads: the unit sun direction with `g` clamped
-    /// to ±0.99, the sun colour, the ambient colour.
-    pub(crate) fn uniform(&self) -> CellScatteringUniform {
-        CellScatteringUniform {
-            sun: self
-                .sun_direction
-                .normalize_or(Vec3::Y)
-                .extend(self.asymmetry.clamp(-0.99, 0.99)),
-            sun_colour: self.sun_colour.extend(0.0),
-            ambient_colour: self.ambient_colour.extend(0.0),
-        }
-    }
 }
 
-/// [`CellScattering`] as the shader's `CellScattering` uniform.
+/// The shader's per-batch `CellBatchParameters` uniform: a batch's
+/// [`CellScattering`] (zeros without one) and its [`CellBlend`].
 #[derive(Clone, Copy, Debug, Default, PartialEq, ShaderType)]
-pub(crate) struct CellScatteringUniform {
-    /// xyz: unit direction toward the sun; w: the asymmetry `g`.
+pub(crate) struct CellBatchUniform {
+    /// xyz: unit direction toward the sun; w: the asymmetry `g`, clamped to
+    /// ±0.99.
     pub sun: Vec4,
     /// The sun colour; w unused.
     pub sun_colour: Vec4,
     /// The ambient colour; w unused.
     pub ambient_colour: Vec4,
+    /// x: the blend factor β toward the next keyframe, in [0, 1]; yzw unused.
+    pub blend: Vec4,
+}
+
+impl CellBatchUniform {
+    /// The uniform of a batch with `scattering` blended by `blend` (already
+    /// clamped, [`CellBlend::clamped`]).
+    pub(crate) fn new(scattering: Option<&CellScattering>, blend: f32) -> Self {
+        let mut uniform = scattering.map_or_else(Self::default, |scattering| Self {
+            sun: scattering
+                .sun_direction
+                .normalize_or(Vec3::Y)
+                .extend(scattering.asymmetry.clamp(-0.99, 0.99)),
+            sun_colour: scattering.sun_colour.extend(0.0),
+            ambient_colour: scattering.ambient_colour.extend(0.0),
+            blend: Vec4::ZERO,
+        });
+        uniform.blend.x = blend;
+        uniform
+    }
+}
+
+/// How far a keyframe-blended [`CellBatch`] is drawn toward its next
+/// keyframe (`nebel_lod::CellBatch`'s keyframe blending): every vertex's
+/// scalar and modulator at `(1 − β) · current + β · next`. Changing it
+/// costs a 64-byte uniform write, not an upload of the cells. Ignored for a
+/// batch that is not blended.
+#[derive(Component, Clone, Copy, Debug, Default, PartialEq, Reflect)]
+#[reflect(Component, Default, Clone)]
+pub struct CellBlend {
+    /// The blend factor β, in [0, 1]: 0 draws the cells' own scalars, 1 the
+    /// next keyframe's. Clamped by the render system (NaN draws as 0).
+    /// Default 0.
+    pub factor: f32,
+}
+
+impl CellBlend {
+    /// The factor the render system draws with: clamped to [0, 1], NaN as 0.
+    pub fn clamped(&self) -> f32 {
+        if self.factor.is_nan() {
+            0.0
+        } else {
+            self.factor.clamp(0.0, 1.0)
+        }
+    }
 }
 
 /// Cells in world space with one transfer function and one optical mode.
@@ -97,7 +131,10 @@ pub struct CellBatch {
     /// integrated over `l' = l · (m_f + m_b)/2` instead of `l` (Röttger and
     /// Ertl 2003, §5.1, Eq. 9; see [`nebel_lod::CellBatch`]). A modulator list
     /// whose length is neither 0 nor the cell count is refused by the render
-    /// system (the batch is not drawn and an error is logged). Shared with
+    /// system (the batch is not drawn and an error is logged); so is a
+    /// keyframe-blended batch whose next scalars (or, when modulated, next
+    /// modulators) do not number the cells. The blend factor is the
+    /// entity's [`CellBlend`]. Shared with
     /// whatever built it (`nebel_lod::VolumeBatcher`). Default: no cells.
     #[reflect(ignore)]
     pub cells: Arc<LodCellBatch>,
@@ -159,6 +196,12 @@ mod tests {
             ..default()
         };
         assert!(scattering.phase(Vec3::Z) > 100.0 * scattering.phase(Vec3::NEG_Z));
-        assert_eq!(scattering.uniform().sun, Vec4::new(0.0, 0.0, 1.0, 0.99));
+        let uniform = CellBatchUniform::new(Some(&scattering), 0.25);
+        assert_eq!(uniform.sun, Vec4::new(0.0, 0.0, 1.0, 0.99));
+        assert_eq!(uniform.blend.x, 0.25);
+        assert_eq!(CellBatchUniform::new(None, 0.5).sun, Vec4::ZERO);
+        for (factor, clamped) in [(f32::NAN, 0.0), (-1.0, 0.0), (0.3, 0.3), (7.0, 1.0)] {
+            assert_eq!(CellBlend { factor }.clamped(), clamped);
+        }
     }
 }

@@ -90,30 +90,65 @@ pub fn reference_image_with_terrain(
     let volume_count = volumes.len();
     let last_frame = f64::from(scene.frame_time(scene.output.frames.saturating_sub(1)));
     for (index, volume) in volumes.into_iter().enumerate() {
-        let (field, centre) = match volume.field {
+        let sun = sun.unwrap_or(DVec3::Y);
+        // A lit grid's fields as the GPU draws them: the light field as one
+        // of scalar and modulator.
+        let lit = |field: ReferenceVolume| match (field, &volume.lighting) {
+            (ReferenceVolume::Grid(grid), Some(lighting)) => lit_fields(&grid, lighting, sun),
+            (field, _) => Ok((field, None)),
+        };
+        let ((field, modulation), centre) = match volume.field {
             VolumeField::Grid(grid) => {
                 let centre = (grid.origin() + grid.max_corner()) / 2.0;
-                (ReferenceVolume::Grid(grid), centre)
+                (lit(ReferenceVolume::Grid(grid))?, centre)
             }
             VolumeField::Cells(cells) => {
                 let points = || cells.iter().flat_map(|cell| cell.positions);
                 let min = points().fold(DVec3::INFINITY, DVec3::min);
                 let max = points().fold(DVec3::NEG_INFINITY, DVec3::max);
-                (ReferenceVolume::Cells(cells), (min + max) / 2.0)
+                ((ReferenceVolume::Cells(cells), None), (min + max) / 2.0)
             }
             VolumeField::Campfire(campfire) => {
                 let centre = (campfire.min + campfire.max) / 2.0;
-                (ReferenceVolume::Grid(campfire.grid_at(last_frame)), centre)
+                (
+                    lit(ReferenceVolume::Grid(campfire.grid_at(last_frame)))?,
+                    centre,
+                )
             }
             VolumeField::Cloud(cloud) => {
-                let grid = cloud.grid_at(last_frame).map_err(invalid)?;
-                ((ReferenceVolume::Grid(grid)), (cloud.min + cloud.max) / 2.0)
+                let centre = (cloud.min + cloud.max) / 2.0;
+                let fields = match cloud.keyframes_at(last_frame) {
+                    // In the wind: the blend of both keyframes' fields (and
+                    // light fields), as the GPU draws it.
+                    Some((times, blend)) => {
+                        let [first, second] = times.map(|t| {
+                            cloud
+                                .grid_at(t)
+                                .map_err(invalid)
+                                .and_then(|grid| lit(ReferenceVolume::Grid(grid)))
+                        });
+                        let ((first, first_modulation), (second, second_modulation)) =
+                            (first?, second?);
+                        let modulation = match (first_modulation, second_modulation) {
+                            (Some(Modulation::Grid(a)), Some(Modulation::Grid(b))) => {
+                                Some(Modulation::Grid(blend_grids(&a, &b, blend)?))
+                            }
+                            _ => None,
+                        };
+                        let field = match (first, second) {
+                            (ReferenceVolume::Grid(a), ReferenceVolume::Grid(b)) => {
+                                ReferenceVolume::Grid(blend_grids(&a, &b, blend)?)
+                            }
+                            (first, _) => first,
+                        };
+                        (field, modulation)
+                    }
+                    None => lit(ReferenceVolume::Grid(
+                        cloud.grid_at(last_frame).map_err(invalid)?,
+                    ))?,
+                };
+                (fields, centre)
             }
-        };
-        let sun = sun.unwrap_or(DVec3::Y);
-        let (field, modulation) = match (field, volume.lighting) {
-            (ReferenceVolume::Grid(grid), Some(lighting)) => lit_fields(&grid, &lighting, sun)?,
-            (field, _) => (field, None),
         };
         let mut reference_scene =
             ReferenceScene::new(camera, field, volume.transfer_function, volume.mode);
@@ -240,6 +275,23 @@ fn lit_fields(
         }
         LightModel::NonPhysical => (ReferenceVolume::Grid(padded), Some(Modulation::Grid(light))),
     })
+}
+
+/// `(1 − blend) · a + blend · b` point by point, on `a`'s points (both
+/// keyframes of one cloud share them).
+fn blend_grids(
+    a: &DensityGrid,
+    b: &DensityGrid,
+    blend: f64,
+) -> Result<DensityGrid, ReferenceError> {
+    let blend = blend as f32;
+    let values = a
+        .values()
+        .iter()
+        .zip(b.values())
+        .map(|(a, b)| (1.0 - blend) * a + blend * b)
+        .collect();
+    DensityGrid::new(a.dims(), a.spacing(), a.origin(), values).map_err(invalid)
 }
 
 /// The scene's clear colour, linear.

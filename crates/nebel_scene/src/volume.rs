@@ -67,6 +67,7 @@ use nebel_core::field::{
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{ControlPoint, TransferError, TransferFunction, TransferPreset};
 use nebel_lod::octree::LodCriterion;
+use nebel_lod::octree::keyframe::{keyframe_index, keyframe_time};
 use nebel_lod::{GpuCell, OctreeSettings, VolumeHierarchy};
 
 /// One volume of a scene.
@@ -185,6 +186,10 @@ pub struct CloudSource {
     /// Height fraction over which the tops round off. Default 0.5.
     #[serde(default)]
     pub top_fade: Option<f32>,
+    /// Seconds between the keyframes a windy cloud is blended from, > 0
+    /// (see `nebel_volume::CloudVolume::keyframe_interval`). Default 2.
+    #[serde(default)]
+    pub keyframe_interval: Option<f32>,
 }
 
 impl CloudSource {
@@ -511,6 +516,8 @@ pub enum VolumeField {
 pub struct AnimatedCloud {
     /// The generator settings.
     pub noise: CloudNoise,
+    /// Seconds between the keyframes a windy cloud is drawn from.
+    pub keyframe_interval: f32,
     /// Grid points per axis.
     pub dims: [usize; 3],
     /// Minimum corner of the box, metres.
@@ -525,6 +532,21 @@ impl AnimatedCloud {
     pub fn grid_at(&self, time: f64) -> Result<DensityGrid, FieldError> {
         let spacing = (self.max - self.min) / (DVec3::from(self.dims.map(|n| n as f64)) - 1.0);
         DensityGrid::cloud(self.dims, spacing, self.min, &self.noise, time)
+    }
+
+    /// The keyframes a windy cloud is drawn between at `time`: their times
+    /// `k·T` and `(k + 1)·T` and the blend factor toward the second
+    /// (`nebel_lod::octree::keyframe`); `None` without wind (the cloud is
+    /// its grid at `time`).
+    pub fn keyframes_at(&self, time: f64) -> Option<([f64; 2], f64)> {
+        if self.noise.wind == DVec3::ZERO {
+            return None;
+        }
+        let interval = f64::from(self.keyframe_interval).max(1e-3);
+        let index = keyframe_index(time, interval);
+        let start = keyframe_time(index, interval);
+        let times = [start, keyframe_time(index + 1, interval)];
+        Some((times, ((time - start) / interval).clamp(0.0, 1.0)))
     }
 }
 
@@ -622,8 +644,17 @@ impl VolumeDescription {
             }),
             VolumeSource::SearchLight(light) => VolumeField::Cells(search_light(light)?),
             VolumeSource::Cloud(cloud) => {
+                if let Some(interval) = cloud.keyframe_interval
+                    && !(interval.is_finite() && interval > 0.0)
+                {
+                    return Err(InvalidField::new(
+                        "source.Cloud.keyframe_interval",
+                        format!("must be finite and > 0, got {interval}"),
+                    ));
+                }
                 let animated = AnimatedCloud {
                     noise: cloud.noise(),
+                    keyframe_interval: cloud.keyframe_interval.unwrap_or(2.0),
                     dims: cloud.dims,
                     min: self.min_corner(),
                     max: self.max_corner(),
@@ -1050,6 +1081,7 @@ mod tests {
             detail_wind: None,
             base_fade: None,
             top_fade: None,
+            keyframe_interval: Some(1.5),
         });
         let mut lit = VolumeDescription {
             mode: None,
@@ -1071,7 +1103,8 @@ mod tests {
         let VolumeField::Cloud(cloud) = built.field else {
             panic!("a cloud source is an animated cloud");
         };
-        // The wind moves the field.
+        // The wind moves the field, drawn between keyframes 1.5 s apart.
+        assert_eq!(cloud.keyframes_at(4.0), Some(([3.0, 4.5], 1.0 / 1.5)));
         let (now, later) = (cloud.grid_at(0.0).unwrap(), cloud.grid_at(3.0).unwrap());
         assert_eq!(now.dims(), [9, 5, 9]);
         assert_ne!(now.values(), later.values());

@@ -370,14 +370,15 @@ fn spawn_volumes(commands: &mut Commands, grids: &mut Assets<VolumeGrid>, volume
         };
         let mut entity = match &volume.field {
             SceneField::Cloud(cloud) => {
-                // The cloud's generator fills the field, at every frame's
-                // time while the wind blows.
+                // The cloud's generator fills the field, or in the wind its
+                // keyframes.
                 let mut entity = commands.spawn((
                     CloudVolume {
                         dims: UVec3::from_array(cloud.dims.map(|n| n as u32)),
                         min: cloud.min.as_vec3(),
                         max: cloud.max.as_vec3(),
                         noise: cloud.noise,
+                        keyframe_interval: cloud.keyframe_interval,
                     },
                     Volume {
                         transfer_function,

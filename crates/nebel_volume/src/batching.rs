@@ -45,10 +45,11 @@ use nebel_lod::{
     VolumeBatchError, VolumeBatcher, VolumeSource,
 };
 use nebel_render::camera::to_double;
-use nebel_render::{CellBatch, EffectiveQuality, HeavyBuild, HeavyBuilds, LodCameras};
+use nebel_render::{CellBatch, CellBlend, EffectiveQuality, HeavyBuild, HeavyBuilds, LodCameras};
 
-use crate::cloud::CloudGeneration;
+use crate::cloud::{CloudGeneration, CloudVolume};
 use crate::grid::VolumeGrid;
+use crate::keyframes::{KeyframeRecipe, KeyframeTrack, is_windy};
 use crate::lighting::sun_in_local_frame;
 use crate::status::{VolumeError, VolumeStatus};
 use crate::volume::{Volume, VolumeField, VolumePlugin};
@@ -101,6 +102,10 @@ fn settings_bits(settings: &BatchSettings) -> [u64; 12] {
 /// (internal).
 #[derive(Component, Default)]
 pub(crate) struct VolumeBatching {
+    /// A windy cloud's keyframes, drawn instead of `batcher`.
+    keyframes: Option<KeyframeTrack>,
+    /// Why the keyframe track's last build failed.
+    keyframe_failure: Option<VolumeError>,
     /// What the batcher was built from.
     built: Option<BuildKey>,
     /// The build in flight and what it builds from.
@@ -119,9 +124,17 @@ pub(crate) struct VolumeBatching {
     update_failure: Option<VolumeError>,
 }
 
-#[cfg(test)]
 impl VolumeBatching {
+    /// The batcher drawn: the keyframe track's pair when it has one.
+    fn drawn(&self) -> Option<&VolumeBatcher> {
+        match &self.keyframes {
+            Some(track) => track.batcher(),
+            None => self.batcher.as_ref(),
+        }
+    }
+
     /// No build in flight.
+    #[cfg(test)]
     pub(crate) fn is_idle(&self) -> bool {
         self.build.is_none()
     }
@@ -174,7 +187,8 @@ fn batch_settings(
     }
 }
 
-/// Takes finished batcher builds and starts new ones (see the module docs).
+/// Takes finished batcher builds and starts new ones, and advances the
+/// keyframe tracks of windy clouds (see the module docs).
 pub(crate) fn build_batchers(
     mut volumes: Query<(
         &Volume,
@@ -182,18 +196,35 @@ pub(crate) fn build_batchers(
         Option<&VolumeLod>,
         Option<&VolumeLighting>,
         &InheritedVisibility,
-        Option<&CloudGeneration>,
+        Option<(&CloudVolume, &CloudGeneration)>,
         &mut VolumeBatching,
     )>,
     suns: Query<&GlobalTransform, With<DirectionalLight>>,
     grids: Res<Assets<VolumeGrid>>,
     asset_server: Res<AssetServer>,
     mode: Res<HeavyBuilds>,
+    time: Res<Time>,
     mut diagnostics: Diagnostics,
 ) {
     let sun_world = suns.iter().next().map(|sun| sun.back().as_vec3());
-    for (volume, transform, lod, lighting, visibility, generation, mut batching) in &mut volumes {
+    for (volume, transform, lod, lighting, visibility, cloud, mut batching) in &mut volumes {
         let batching = &mut *batching;
+        let windy = cloud
+            .map(|(cloud, _)| cloud)
+            .filter(|cloud| is_windy(cloud));
+        if let Some(cloud) = windy {
+            if visibility.get() {
+                let recipe = KeyframeRecipe {
+                    cloud: cloud.clone(),
+                    settings: batch_settings(volume, lod, lighting, sun_world, transform),
+                };
+                advance_keyframes(batching, recipe, &time, *mode, &mut diagnostics);
+            }
+            continue;
+        }
+        batching.keyframes = None;
+        batching.keyframe_failure = None;
+        let generation = cloud.map(|(_, generation)| generation);
         // A build started last frame may be done (always under Blocking).
         finish_build(batching, *mode, &mut diagnostics);
         // A cloud's field is its generator's to fill first.
@@ -231,6 +262,34 @@ pub(crate) fn build_batchers(
         });
         batching.build = Some((key, build));
         finish_build(batching, *mode, &mut diagnostics);
+    }
+}
+
+/// Starts the keyframe track of `recipe` unless it runs already (a new
+/// recipe starts over), and advances it by the frame's time.
+fn advance_keyframes(
+    batching: &mut VolumeBatching,
+    recipe: KeyframeRecipe,
+    time: &Time,
+    mode: HeavyBuilds,
+    diagnostics: &mut Diagnostics,
+) {
+    if !batching
+        .keyframes
+        .as_ref()
+        .is_some_and(|track| track.is_for(&recipe))
+    {
+        batching.keyframes = Some(KeyframeTrack::new(recipe, time.elapsed_secs_f64()));
+        batching.keyframe_failure = None;
+    }
+    let track = batching.keyframes.as_mut().expect("started above");
+    match track.advance(time.elapsed_secs_f64(), mode) {
+        Ok(built_ms) => {
+            if let Some(ms) = built_ms {
+                diagnostics.add_measurement(&VolumePlugin::KEYFRAME_MS, || ms);
+            }
+        }
+        Err(error) => batching.keyframe_failure = Some(error.into()),
     }
 }
 
@@ -297,16 +356,25 @@ pub(crate) fn update_batches(
     let mut rebuilt = false;
     for (entity, volume, transform, lod, lighting, visibility, drawn, mut batching) in &mut volumes
     {
-        if !visibility.get() || batching.batcher.is_none() {
+        if !visibility.get() || batching.drawn().is_none() {
             if drawn.is_some() {
                 // Hidden or failed: nothing to upload or draw.
-                commands.entity(entity).remove::<CellBatch>();
+                commands.entity(entity).remove::<(CellBatch, CellBlend)>();
             }
             continue;
         }
         let batching = &mut *batching;
-        let (Some(camera), Some(batcher)) = (camera, batching.batcher.as_mut()) else {
+        let blend = batching.keyframes.as_ref().map(KeyframeTrack::blend);
+        let batcher = match &mut batching.keyframes {
+            Some(track) => track.batcher_mut(),
+            None => batching.batcher.as_mut(),
+        };
+        let (Some(camera), Some(batcher)) = (camera, batcher) else {
             continue;
+        };
+        match blend {
+            Some(blend) => commands.entity(entity).insert(blend),
+            None => commands.entity(entity).remove::<CellBlend>(),
         };
         let view = View {
             frustum: frustum.clone(),
@@ -366,12 +434,18 @@ pub(crate) fn report_status(
     for (entity, batching, generation, mut status) in &mut volumes {
         let failure = generation
             .and_then(CloudGeneration::failure)
+            .or(batching.keyframe_failure.as_ref())
             .or(batching.source_failure.as_ref())
             .or(batching.build_failure.as_ref())
             .or(batching.update_failure.as_ref());
-        let pending = batching.batcher.is_none()
-            || batching.loading
-            || generation.is_some_and(|generation| !generation.has_grid());
+        let pending = match &batching.keyframes {
+            Some(track) => track.batcher().is_none(),
+            None => {
+                batching.batcher.is_none()
+                    || batching.loading
+                    || generation.is_some_and(|generation| !generation.has_grid())
+            }
+        };
         let derived = match failure {
             Some(error) => VolumeStatus::Failed(error.clone()),
             None if pending => VolumeStatus::Pending,
@@ -398,8 +472,7 @@ pub(crate) fn measure_volumes(
     for (batching, batch) in &volumes {
         drawn += batch.map_or(0, |batch| batch.cells.len());
         full += batching
-            .batcher
-            .as_ref()
+            .drawn()
             .map_or(0, VolumeBatcher::full_resolution_cells);
     }
     let count = volumes.iter().len();

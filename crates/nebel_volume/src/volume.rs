@@ -64,6 +64,9 @@ impl VolumePlugin {
     /// Time of each cloud grid generation (on the task pool), ms.
     pub const GENERATION_MS: DiagnosticPath =
         DiagnosticPath::const_new("nebel/volume/generation_ms");
+    /// Time of each keyframe pair a windy cloud's track built (grid, light
+    /// field, octree and the pair's octree, on the task pool), ms.
+    pub const KEYFRAME_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/volume/keyframe_ms");
 }
 
 impl Plugin for VolumePlugin {
@@ -75,6 +78,7 @@ impl Plugin for VolumePlugin {
             (Self::UPDATE_MS, " ms"),
             (Self::BUILD_MS, " ms"),
             (Self::GENERATION_MS, " ms"),
+            (Self::KEYFRAME_MS, " ms"),
         ] {
             app.register_diagnostic(Diagnostic::new(path).with_suffix(suffix));
         }
@@ -494,6 +498,73 @@ mod tests {
                 .any(|v| v[3] < 0.3),
             "the transmittance has no ambient floor"
         );
+    }
+
+    #[test]
+    fn a_windy_cloud_is_drawn_from_keyframes_blended_by_the_clock() {
+        let (mut app, _, _) = app_with_volume(OpticalMode::Sorted);
+        app.insert_resource(bevy::time::TimeUpdateStrategy::ManualDuration(
+            std::time::Duration::from_millis(250),
+        ));
+        let mut noise = nebel_core::field::CloudNoise {
+            wavelength: 4.0,
+            wind: DVec3::new(2.0, 0.0, 1.0),
+            ..default()
+        };
+        let cloud = app
+            .world_mut()
+            .spawn((
+                crate::CloudVolume {
+                    dims: UVec3::new(9, 5, 9),
+                    min: Vec3::ZERO,
+                    max: Vec3::new(4.0, 2.0, 4.0),
+                    noise,
+                    keyframe_interval: 1.0,
+                },
+                InheritedVisibility::VISIBLE,
+            ))
+            .id();
+        let mut blends = Vec::new();
+        let mut changes = Vec::new();
+        for _ in 0..12 {
+            app.update();
+            let batch = app.world().get::<CellBatch>(cloud);
+            if let Some(batch) = batch {
+                assert!(batch.cells.is_blended() && batch.cells.is_modulated());
+                blends.push(
+                    app.world()
+                        .get::<nebel_render::CellBlend>(cloud)
+                        .unwrap()
+                        .factor,
+                );
+                changes.push(last_changed(&app, cloud).unwrap());
+            }
+        }
+        assert_eq!(status(&app, cloud), VolumeStatus::Ready);
+        assert!(blends.len() >= 10, "{blends:?}");
+        // A quarter of the interval per frame, starting again at each hand-over,
+        // where (and only where) the cells are uploaded again.
+        let hand_overs = blends.windows(2).filter(|w| w[1] < w[0]).count();
+        assert!(hand_overs >= 2, "{blends:?}");
+        let uploads = changes.windows(2).filter(|w| w[1] != w[0]).count();
+        assert_eq!(uploads, hand_overs, "{changes:?} {blends:?}");
+        assert!(
+            blends
+                .windows(2)
+                .all(|w| w[1] < w[0] || (w[1] - w[0] - 0.25).abs() < 1e-5)
+        );
+
+        // Calm: one grid, no keyframes, no blend.
+        noise.wind = DVec3::ZERO;
+        app.world_mut()
+            .get_mut::<crate::CloudVolume>(cloud)
+            .unwrap()
+            .noise = noise;
+        app.update();
+        app.update();
+        let batch = app.world().get::<CellBatch>(cloud).unwrap();
+        assert!(!batch.cells.is_blended());
+        assert!(app.world().get::<nebel_render::CellBlend>(cloud).is_none());
     }
 
     #[test]

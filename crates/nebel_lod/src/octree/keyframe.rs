@@ -25,6 +25,10 @@
 //! weights that depend only on the refinement, so the emitted next values are
 //! exactly the morph of the second keyframe over the same cells, and the GPU's
 //! per-vertex blend draws exactly the morph of the blended field.
+//!
+//! Keyframes `T` apart sit at the times `k·T` for integer `k`
+//! ([`keyframe_index`], [`keyframe_time`]), so every user of a keyframe
+//! sequence (the renderer, a reference image) agrees on them.
 
 use nebel_core::budget::{Dims, check_allocation};
 
@@ -123,4 +127,15 @@ impl VolumeHierarchy {
         let word = self.words[index];
         [(word & 0xff) as u8, (word >> 8) as u8]
     }
+}
+
+/// The index of the keyframe at or before `time` for keyframes `interval`
+/// apart (saturating for times beyond ±2⁶³ intervals; NaN gives 0).
+pub fn keyframe_index(time: f64, interval: f64) -> i64 {
+    (time / interval).floor() as i64
+}
+
+/// The time of keyframe `index` for keyframes `interval` apart.
+pub fn keyframe_time(index: i64, interval: f64) -> f64 {
+    index as f64 * interval
 }

@@ -42,6 +42,10 @@
 // FOG_HANDOFF (a batch of fog the view's fog layers take over from their
 // start distance): segments end at that distance.
 //
+// BLENDED (two keyframes of an animated field): every vertex's scalar and
+// modulator is (1 − β) current + β next; both stay linear over the cell, so
+// the segment is exactly that of the blended field.
+//
 // All positions are taken relative to the camera so large world coordinates
 // keep their precision.
 
@@ -84,14 +88,20 @@ struct CellTables {
 // the MODULATED variant).
 @group(1) @binding(4) var<storage, read> modulators: array<vec4<f32>>;
 
-// The sun and sky of single scattering (read only by the SCATTERING variant).
-struct CellScattering {
+// Per batch: the sun and sky of single scattering (read only by the
+// SCATTERING variant) and the keyframe blend factor (BLENDED).
+struct CellBatchParameters {
     // xyz: unit direction toward the sun; w: Henyey-Greenstein asymmetry g.
     sun: vec4<f32>,
     sun_colour: vec4<f32>,
     ambient_colour: vec4<f32>,
+    // x: the blend factor β toward the next keyframe.
+    blend: vec4<f32>,
 }
-@group(1) @binding(5) var<uniform> scattering: CellScattering;
+@group(1) @binding(5) var<uniform> parameters: CellBatchParameters;
+// Per cell, the next keyframe's scalars (entry 2i) and modulators (2i + 1) at
+// its four vertices (read only by the BLENDED variant).
+@group(1) @binding(6) var<storage, read> next_keyframe: array<vec4<f32>>;
 
 // The three vertices of face f, which omits vertex f.
 const FACE_VERTICES = array<u32, 12>(1u, 2u, 3u, 0u, 3u, 2u, 0u, 1u, 3u, 0u, 2u, 1u);
@@ -261,14 +271,21 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     if abs(determinant) <= 1.0e-9 * scale * sqrt(scale) {
         discard;
     }
-    let s0 = cell.vertices[0].w;
-    let gradient = ((cell.vertices[1].w - s0) * cross(e2, e3) + (cell.vertices[2].w - s0) * cross(e3, e1)
-        + (cell.vertices[3].w - s0) * cross(e1, e2)) / determinant;
+    var scalars = vec4(cell.vertices[0].w, cell.vertices[1].w, cell.vertices[2].w, cell.vertices[3].w);
+#ifdef BLENDED
+    scalars = mix(scalars, next_keyframe[2u * in.cell_index], parameters.blend.x);
+#endif
+    let s0 = scalars.x;
+    let gradient = ((scalars.y - s0) * cross(e2, e3) + (scalars.z - s0) * cross(e3, e1)
+        + (scalars.w - s0) * cross(e1, e2)) / determinant;
     let s_front = clamp(s0 + dot(gradient, t_entry * direction - v0), 0.0, 1.0);
     let s_back = clamp(s0 + dot(gradient, t_exit * direction - v0), 0.0, 1.0);
     var length = t_exit - t_entry;
 #ifdef MODULATED
-    let m = modulators[in.cell_index];
+    var m = modulators[in.cell_index];
+#ifdef BLENDED
+    m = mix(m, next_keyframe[2u * in.cell_index + 1u], parameters.blend.x);
+#endif
     let m_gradient = ((m.y - m.x) * cross(e2, e3) + (m.z - m.x) * cross(e3, e1)
         + (m.w - m.x) * cross(e1, e2)) / determinant;
     let m_front = clamp(m.x + dot(m_gradient, t_entry * direction - v0), 0.0, 1.0);
@@ -281,10 +298,10 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     let alpha = 1.0 - exp(-optical_depth);
     let colour = alpha * colour_lookup(s_front, s_back, optical_depth);
 #ifdef SCATTERING
-    let g = scattering.sun.w;
-    let cos_theta = dot(direction, scattering.sun.xyz);
+    let g = parameters.sun.w;
+    let cos_theta = dot(direction, parameters.sun.xyz);
     let phase = (1.0 - g * g) / pow(1.0 + g * g - 2.0 * g * cos_theta, 1.5);
-    var segment = vec4(scattering.ambient_colour.rgb * alpha + scattering.sun_colour.rgb * phase * colour, alpha);
+    var segment = vec4(parameters.ambient_colour.rgb * alpha + parameters.sun_colour.rgb * phase * colour, alpha);
 #else
     var segment = vec4(colour, alpha);
 #endif

@@ -145,6 +145,7 @@ impl Plugin for CellProjectionPlugin {
         let stats = CellProjectionStats::default();
         app.insert_resource(stats.clone())
             .register_type::<CellBatch>()
+            .register_type::<crate::CellBlend>()
             .register_type::<CellProjectionStats>()
             .register_type::<crate::LodCamera>()
             .register_type::<crate::HeavyBuilds>()

@@ -66,6 +66,7 @@ pub fn draw_cell_batches(
             buffer.modulated,
             buffer.scattered,
             batch.hands_off && cell_view.hands_off,
+            buffer.blended,
         )]
         .and_then(|id| pipeline_cache.get_render_pipeline(id)) else {
             continue;
@@ -83,7 +84,8 @@ pub fn draw_cell_batches(
                 pair_table,
                 table.parameters.binding().expect("written when built"),
                 buffer.modulators.as_entire_binding(),
-                buffer.scattering.binding().expect("written when uploaded"),
+                buffer.parameters.binding().expect("written when uploaded"),
+                buffer.next_keyframe.as_entire_binding(),
             )),
         );
         draws.push((render_pipeline, batch_bind_group, buffer.count));

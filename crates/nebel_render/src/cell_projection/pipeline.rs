@@ -15,12 +15,24 @@ use bevy::shader::ShaderDefVal;
 use nebel_core::optics::OpticalMode;
 
 use super::resources::{CellTablesUniform, CellViewUniform};
-use crate::cell_batch::CellScatteringUniform;
+use crate::cell_batch::CellBatchUniform;
+
+/// The pipeline variants per optical mode ([`variant_index`]).
+pub(super) const VARIANTS: usize = 16;
 
 /// The index of a pipeline variant: modulated segment lengths, single
-/// scattering and the handoff to fog layers, each on or off.
-pub(super) fn variant_index(modulated: bool, scattering: bool, handoff: bool) -> usize {
-    usize::from(modulated) | usize::from(scattering) << 1 | usize::from(handoff) << 2
+/// scattering, the handoff to fog layers and keyframe blending, each on or
+/// off.
+pub(super) fn variant_index(
+    modulated: bool,
+    scattering: bool,
+    handoff: bool,
+    blended: bool,
+) -> usize {
+    usize::from(modulated)
+        | usize::from(scattering) << 1
+        | usize::from(handoff) << 2
+        | usize::from(blended) << 3
 }
 
 pub(super) fn mode_index(mode: OpticalMode) -> usize {
@@ -63,6 +75,8 @@ pub struct CellProjectionPipelineKey {
     pub fog_layers: bool,
     /// The batch's segments end where the view's fog layers begin.
     pub handoff: bool,
+    /// Every vertex blends toward the next keyframe's scalar and modulator.
+    pub blended: bool,
     /// The accumulation target's format.
     pub target_format: TextureFormat,
 }
@@ -74,13 +88,13 @@ pub fn init_cell_projection_pipeline(
     fullscreen_shader: Res<FullscreenShader>,
     device: Res<RenderDevice>,
 ) {
-    // The cells and their modulators are storage buffers, which
-    // WebGL2-class devices lack: there nothing is drawn (fog layers still
-    // are), and the app goes on.
+    // The cells, their modulators and their next keyframe are storage
+    // buffers, which WebGL2-class devices lack: there nothing is drawn (fog
+    // layers still are), and the app goes on.
     let storage_buffers = device.limits().max_storage_buffers_per_shader_stage;
-    if storage_buffers < 2 {
+    if storage_buffers < 3 {
         warn!(
-            "nebel: the cell projection is off: the device has {storage_buffers} storage buffers per shader stage, it needs 2"
+            "nebel: the cell projection is off: the device has {storage_buffers} storage buffers per shader stage, it needs 3"
         );
         commands.insert_resource(CellProjectionUnsupported);
     }
@@ -113,7 +127,8 @@ pub fn init_cell_projection_pipeline(
                     texture_2d(unfilterable),
                     uniform_buffer::<CellTablesUniform>(false),
                     storage_buffer_read_only_sized(false, None),
-                    uniform_buffer::<CellScatteringUniform>(false),
+                    uniform_buffer::<CellBatchUniform>(false),
+                    storage_buffer_read_only_sized(false, None),
                 ),
             ),
         ),
@@ -198,6 +213,9 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
         }
         if key.handoff {
             shader_defs.push("FOG_HANDOFF".into());
+        }
+        if key.blended {
+            shader_defs.push("BLENDED".into());
         }
         RenderPipelineDescriptor {
             label: Some("nebel_cell_projection_pipeline".into()),

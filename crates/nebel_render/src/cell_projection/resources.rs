@@ -21,9 +21,9 @@ use nebel_lod::CellBatch as LodCellBatch;
 use super::CellProjectionStats;
 use super::pipeline::{
     CellCompositePipelines, CellProjectionPipeline, CellProjectionPipelineKey,
-    CellProjectionUnsupported, accumulation_format, mode_index, variant_index,
+    CellProjectionUnsupported, VARIANTS, accumulation_format, mode_index, variant_index,
 };
-use crate::cell_batch::{CellBatch, CellScattering, CellScatteringUniform};
+use crate::cell_batch::{CellBatch, CellBatchUniform, CellBlend, CellScattering};
 use crate::fog_layers::{FogLayersUniform, ViewFogLayers};
 
 /// Samples along `s_f` and `s_b` of the GPU tables.
@@ -45,12 +45,25 @@ pub struct ExtractedCellBatch {
     pub(super) mode: OpticalMode,
     pub(super) table_key: TableKey,
     pub(super) centre: Vec3,
+    /// The blend factor toward the next keyframe, clamped ([`CellBlend`]);
+    /// 0 for a batch that is not blended.
+    blend: f32,
 }
 
 impl ExtractedCellBatch {
     /// Whether the batch carries segment-length modulators.
     pub(super) fn is_modulated(&self) -> bool {
         self.cells.is_modulated()
+    }
+
+    /// Whether the batch blends toward a next keyframe.
+    pub(super) fn is_blended(&self) -> bool {
+        self.cells.is_blended()
+    }
+
+    /// The batch's per-batch uniform.
+    fn uniform(&self) -> CellBatchUniform {
+        CellBatchUniform::new(self.scattering.as_ref(), self.blend)
     }
 }
 
@@ -66,11 +79,11 @@ pub struct TableKey {
 }
 
 /// Copies the drawable batches into the render world. A batch whose
-/// modulators do not match its cells is not drawn; the error is logged once
-/// per entity.
+/// modulators or next keyframe do not match its cells is not drawn; the
+/// error is logged once per entity.
 pub fn extract_cell_batches(
     mut extracted: ResMut<ExtractedCellBatches>,
-    batches: Extract<Query<(Entity, Ref<CellBatch>)>>,
+    batches: Extract<Query<(Entity, Ref<CellBatch>, Option<&CellBlend>)>>,
     unsupported: Option<Res<CellProjectionUnsupported>>,
     mut refused: Local<HashSet<Entity>>,
 ) {
@@ -80,7 +93,7 @@ pub fn extract_cell_batches(
     }
     // Forget entities that are gone, so the set stays as small as the world.
     refused.retain(|entity| batches.contains(*entity));
-    for (entity, batch) in &batches {
+    for (entity, batch, blend) in &batches {
         if !batch.is_drawable() {
             continue;
         }
@@ -88,11 +101,22 @@ pub fn extract_cell_batches(
             continue;
         };
         let cells = &batch.cells;
-        if cells.is_modulated() && cells.modulators.len() != cells.len() {
+        let mismatch = if cells.is_modulated() && cells.modulators.len() != cells.len() {
+            Some(("modulators", cells.modulators.len()))
+        } else if cells.is_blended() && cells.next_scalars.len() != cells.len() {
+            Some(("next scalars", cells.next_scalars.len()))
+        } else if cells.is_blended()
+            && cells.is_modulated()
+            && cells.next_modulators.len() != cells.len()
+        {
+            Some(("next modulators", cells.next_modulators.len()))
+        } else {
+            None
+        };
+        if let Some((what, count)) = mismatch {
             if refused.insert(entity) {
                 error!(
-                    "nebel: the CellBatch of {entity} has {} modulators for {} cells; it is not drawn",
-                    cells.modulators.len(),
+                    "nebel: the CellBatch of {entity} has {count} {what} for {} cells; it is not drawn",
                     cells.len()
                 );
             }
@@ -114,6 +138,11 @@ pub fn extract_cell_batches(
                 transfer_function,
                 mode: batch.mode,
                 centre: (batch.cells.bounds_min + batch.cells.bounds_max) / 2.0,
+                blend: if cells.is_blended() {
+                    blend.map_or(0.0, CellBlend::clamped)
+                } else {
+                    0.0
+                },
             },
         ));
     }
@@ -126,8 +155,15 @@ pub struct GpuCellBuffer {
     /// (the binding must exist; the unmodulated pipeline never reads it).
     pub(super) modulators: Buffer,
     pub(super) modulated: bool,
-    /// The [`CellScattering`] uniform (zeros when the batch has none).
-    pub(super) scattering: UniformBuffer<CellScatteringUniform>,
+    /// Per cell, the next keyframe's scalars then its modulators (zeros
+    /// when not modulated), or one zero entry for a batch that is not
+    /// blended (the binding must exist; the unblended pipeline never reads
+    /// it).
+    pub(super) next_keyframe: Buffer,
+    pub(super) blended: bool,
+    /// The [`CellScattering`] (zeros when the batch has none) and the blend
+    /// factor.
+    pub(super) parameters: UniformBuffer<CellBatchUniform>,
     pub(super) scattered: bool,
     pub(super) count: u32,
 }
@@ -136,7 +172,8 @@ pub struct GpuCellBuffer {
 #[derive(Resource, Default)]
 pub struct GpuCellBuffers(pub(super) HashMap<Entity, GpuCellBuffer>);
 
-/// Uploads batches that are new or changed and drops those that are gone.
+/// Uploads batches that are new or changed, writes the blend factor of
+/// those whose factor alone changed, and drops those that are gone.
 pub fn prepare_cell_buffers(
     extracted: Res<ExtractedCellBatches>,
     mut buffers: ResMut<GpuCellBuffers>,
@@ -151,7 +188,13 @@ pub fn prepare_cell_buffers(
         .0
         .retain(|entity, _| extracted.0.iter().any(|(e, _)| e == entity));
     for (entity, batch) in &extracted.0 {
-        if !batch.changed && buffers.0.contains_key(entity) {
+        if !batch.changed
+            && let Some(buffer) = buffers.0.get_mut(entity)
+        {
+            if buffer.parameters.get().blend.x != batch.blend {
+                buffer.parameters.set(batch.uniform());
+                buffer.parameters.write_buffer(&device, &queue);
+            }
             continue;
         }
         let buffer = device.create_buffer_with_data(&BufferInitDescriptor {
@@ -169,13 +212,25 @@ pub fn prepare_cell_buffers(
             }),
             usage: BufferUsages::STORAGE,
         });
-        let mut scattering = UniformBuffer::from(
-            batch
-                .scattering
-                .map_or_else(CellScatteringUniform::default, |s| s.uniform()),
-        );
-        scattering.set_label(Some("nebel_cell_scattering"));
-        scattering.write_buffer(&device, &queue);
+        let next_keyframe: Vec<[f32; 4]> = if batch.is_blended() {
+            let cells = &batch.cells;
+            (0..cells.len())
+                .flat_map(|i| {
+                    let modulators = cells.next_modulators.get(i).copied().unwrap_or_default();
+                    [cells.next_scalars[i], modulators]
+                })
+                .collect()
+        } else {
+            vec![[0.0; 4]]
+        };
+        let next_keyframe = device.create_buffer_with_data(&BufferInitDescriptor {
+            label: Some("nebel_cell_next_keyframe"),
+            contents: bytemuck::cast_slice(next_keyframe.as_slice()),
+            usage: BufferUsages::STORAGE,
+        });
+        let mut parameters = UniformBuffer::from(batch.uniform());
+        parameters.set_label(Some("nebel_cell_batch_parameters"));
+        parameters.write_buffer(&device, &queue);
         stats.0.uploads.fetch_add(1, Ordering::Relaxed);
         buffers.0.insert(
             *entity,
@@ -183,7 +238,9 @@ pub fn prepare_cell_buffers(
                 buffer,
                 modulators,
                 modulated: batch.is_modulated(),
-                scattering,
+                next_keyframe,
+                blended: batch.is_blended(),
+                parameters,
                 scattered: batch.scattering.is_some(),
                 count: batch.cells.len() as u32,
             },
@@ -348,7 +405,7 @@ pub struct CellProjectionView {
     pub(super) accumulation: CachedTexture,
     /// Per optical mode, the pipeline of each variant ([`variant_index`]),
     /// where a batch of this frame needs it.
-    pub(super) pipelines: [[Option<CachedRenderPipelineId>; 8]; 3],
+    pub(super) pipelines: [[Option<CachedRenderPipelineId>; VARIANTS]; 3],
     pub(super) composite: CachedRenderPipelineId,
     /// Whether the view's fog layers begin beyond the eye, where batches
     /// that hand off to them end.
@@ -431,11 +488,13 @@ pub fn prepare_cell_views(
         });
         let multisampled = *msaa != Msaa::Off;
         // Only the variants some batch of this frame needs.
-        let mut variants = [[None; 8]; 3];
+        let mut variants = [[None; VARIANTS]; 3];
         for (_, batch) in &extracted.0 {
             let (modulated, scattering) = (batch.is_modulated(), batch.scattering.is_some());
             let handoff = batch.hands_off && fog.is_some_and(|fog| fog.0.ranges.x > 0.0);
-            variants[mode_index(batch.mode)][variant_index(modulated, scattering, handoff)] =
+            let blended = batch.is_blended();
+            variants[mode_index(batch.mode)]
+                [variant_index(modulated, scattering, handoff, blended)] =
                 Some(pipelines.specialize(
                     &pipeline_cache,
                     &pipeline,
@@ -446,6 +505,7 @@ pub fn prepare_cell_views(
                         multisampled,
                         fog_layers: fog.is_some(),
                         handoff,
+                        blended,
                         target_format: format,
                     },
                 ));

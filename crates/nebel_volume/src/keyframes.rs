@@ -1,0 +1,367 @@
+//! A cloud in the wind at frame rate: keyframes of the animated field, built
+//! ahead in the background and blended on the GPU, instead of a rebuild that
+//! lands every second or so and steps.
+//!
+//! A windy [`CloudVolume`]'s density at time `t` is a pure function of `t`
+//! (`nebel_core::field::CloudNoise`: every octave drifts with its own wind,
+//! after Schpok et al. 2003 §5.3). The track samples it at keyframe times
+//! `t_k = k·T` (`T` = [`CloudVolume::keyframe_interval`], `k` an integer, so
+//! the keyframes do not depend on when the cloud appeared) and draws between
+//! two of them
+//!
+//! `f(t) = (1 − β) f(t_k) + β f(t_{k+1})`, `β = (t − t_k) / T`,
+//!
+//! through one octree built for both (`VolumeHierarchy::with_next_keyframe`:
+//! Δ the larger of the two, scalar ranges the union, so no blend is refined
+//! too coarsely or culled wrongly). Each frame only `β` changes (the entity's
+//! [`CellBlend`], a uniform write); the batch is rebuilt only when the camera
+//! moves or the next pair takes over.
+//!
+//! While the pair `(t_k, t_{k+1})` is drawn, the next one `(t_{k+1},
+//! t_{k+2})` is built on the task pool: the grid at `t_{k+2}`, its padding,
+//! light field and hierarchy (`VolumeBatcher::new`), and the pair's
+//! hierarchy. At `β = 1` the drawn field is `f(t_{k+1})`, which the next pair
+//! starts from, so the hand-over changes the field only through the
+//! refinement of the new pair's Δ (measured by the wind test). The track's
+//! clock is the animation's: it runs with Bevy's `Time` and waits at the end
+//! of a pair whose successor is not built yet, so a build slower than `T`
+//! slows the wind instead of stepping it.
+//!
+//! # Cost
+//!
+//! One keyframe's CPU time every `T` seconds, on the task pool, and per frame
+//! a uniform write. The 513 × 65 × 513 layer's keyframe takes about 3 s of
+//! one core (grid 2.4 s, light field 0.4 s, hierarchy 0.2 s), so at 60 frames
+//! per second `T` = 25 s spends 2 ms per frame on average. Memory: the drawn
+//! pair (7 bytes per grid point with light), the pair being built and its
+//! second keyframe (5 more per point), and the build's f32 grids.
+//!
+//! # What the blend is not
+//!
+//! Between keyframes the field is a cross-fade, not a drift: features that
+//! move far in `T` (the finest octaves move `detail_wind^(octaves − 1)` times
+//! faster than the coarse shape) fade out at their old place and in at the new
+//! one. Shorter intervals make it a drift, at a proportional cost.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use bevy::math::DVec3;
+use nebel_lod::octree::keyframe::{keyframe_index, keyframe_time};
+use nebel_lod::{BatchSettings, VolumeBatchError, VolumeBatcher, VolumeSource};
+use nebel_render::{CellBlend, HeavyBuild, HeavyBuilds};
+
+use crate::cloud::CloudVolume;
+
+/// What a keyframe is built from, but its time.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct KeyframeRecipe {
+    /// The cloud's settings (its noise carries the wind).
+    pub(crate) cloud: CloudVolume,
+    /// The batch settings, the sun as it is when the track starts.
+    pub(crate) settings: BatchSettings,
+}
+
+impl KeyframeRecipe {
+    /// The keyframe at time `t`: the cloud's grid then and everything the
+    /// batcher builds from it.
+    fn keyframe(&self, t: f64) -> Result<VolumeBatcher, VolumeBatchError> {
+        let grid = self.cloud.grid_at(t)?;
+        VolumeBatcher::new(VolumeSource::Grid(Arc::new(grid)), &self.settings)
+    }
+
+    /// Equality of what the keyframes depend on, by their printed values:
+    /// a NaN setting equals itself, so a track that failed on it is not
+    /// started again every frame.
+    fn same_as(&self, other: &Self) -> bool {
+        format!("{self:?}") == format!("{other:?}")
+    }
+}
+
+/// A pair of keyframes ready to draw.
+#[derive(Debug)]
+struct Pair {
+    /// The blending batcher of keyframes `index` and `index + 1`.
+    batcher: VolumeBatcher,
+    /// The first keyframe's index `k`: its time is `k·T`.
+    index: i64,
+    /// The second keyframe alone, the first of the next pair.
+    second: Arc<VolumeBatcher>,
+}
+
+/// A finished build: a pair and the CPU time it took, ms.
+type BuiltPair = Result<(Pair, f64), VolumeBatchError>;
+
+/// One windy cloud's keyframes (see the module docs).
+#[derive(Debug)]
+pub(crate) struct KeyframeTrack {
+    recipe: KeyframeRecipe,
+    /// Seconds between keyframes.
+    interval: f64,
+    /// The animation time.
+    clock: f64,
+    /// The application time of the last [`KeyframeTrack::advance`].
+    last_time: f64,
+    /// The pair drawn now.
+    drawn: Option<Pair>,
+    /// The next pair, built and waiting for the clock.
+    next: Option<Pair>,
+    /// The build in flight: the first pair, or the one after the last.
+    build: Option<HeavyBuild<BuiltPair>>,
+    /// A build failed: none is started again (the recipe must change).
+    failed: bool,
+}
+
+impl KeyframeTrack {
+    /// A track of `recipe` whose clock starts at `now` (seconds, the
+    /// application's time), in the pair of keyframes around it; nothing to
+    /// draw until that pair is built.
+    pub(crate) fn new(recipe: KeyframeRecipe, now: f64) -> Self {
+        // NaN and anything below a millisecond count as a millisecond.
+        let interval = f64::from(recipe.cloud.keyframe_interval).max(1e-3);
+        let index = keyframe_index(now, interval);
+        let first = {
+            let recipe = recipe.clone();
+            HeavyBuild::spawn(move || {
+                let started = Instant::now();
+                let first = recipe.keyframe(keyframe_time(index, interval))?;
+                let second = recipe.keyframe(keyframe_time(index + 1, interval))?;
+                let pair = pair(&first, Arc::new(second), index)?;
+                Ok((pair, started.elapsed().as_secs_f64() * 1e3))
+            })
+        };
+        Self {
+            recipe,
+            interval,
+            clock: now,
+            last_time: now,
+            drawn: None,
+            next: None,
+            build: Some(first),
+            failed: false,
+        }
+    }
+
+    /// Whether the track draws `recipe`'s keyframes.
+    pub(crate) fn is_for(&self, recipe: &KeyframeRecipe) -> bool {
+        self.recipe.same_as(recipe)
+    }
+
+    /// Advances the clock by the application time since the last call (`now`
+    /// in seconds), takes a finished build (its CPU time in ms is returned),
+    /// hands over to the next pair at the end of the drawn one, and starts
+    /// building the pair after it. A failed
+    /// build is returned as the error; the track keeps what it draws and
+    /// builds nothing more.
+    pub(crate) fn advance(
+        &mut self,
+        now: f64,
+        mode: HeavyBuilds,
+    ) -> Result<Option<f64>, VolumeBatchError> {
+        let delta = now - self.last_time;
+        self.last_time = now;
+        let mut built_ms = None;
+        // Under Blocking the build the last frame started lands now.
+        if let Some(result) = self.build.as_mut().and_then(|build| build.poll(mode)) {
+            self.build = None;
+            self.failed = result.is_err();
+            let (pair, ms) = result?;
+            built_ms = Some(ms);
+            if self.drawn.is_none() {
+                self.drawn = Some(pair);
+            } else {
+                self.next = Some(pair);
+            }
+        }
+        let Some(drawn) = &self.drawn else {
+            return Ok(built_ms);
+        };
+        // Past the drawn pair's end the next one takes over, or the clock
+        // waits for it.
+        let end = keyframe_time(drawn.index + 1, self.interval);
+        // Time runs forward only; a NaN frame time adds nothing.
+        self.clock += delta.max(0.0);
+        if self.clock >= end {
+            match self.next.take() {
+                Some(next) => self.drawn = Some(next),
+                None => self.clock = end,
+            }
+        }
+        let end = self
+            .drawn
+            .as_ref()
+            .map_or(end, |pair| keyframe_time(pair.index + 1, self.interval));
+        self.clock = self.clock.min(end);
+        if self.next.is_none() && self.build.is_none() && !self.failed {
+            let drawn = self.drawn.as_ref().expect("a pair is drawn");
+            let (first, index) = (drawn.second.clone(), drawn.index + 1);
+            let (recipe, interval) = (self.recipe.clone(), self.interval);
+            self.build = Some(HeavyBuild::spawn(move || {
+                let started = Instant::now();
+                let second = recipe.keyframe(keyframe_time(index + 1, interval))?;
+                let pair = pair(&first, Arc::new(second), index)?;
+                Ok((pair, started.elapsed().as_secs_f64() * 1e3))
+            }));
+        }
+        Ok(built_ms)
+    }
+
+    /// The drawn pair's batcher, `None` until the first pair is built.
+    pub(crate) fn batcher_mut(&mut self) -> Option<&mut VolumeBatcher> {
+        self.drawn.as_mut().map(|pair| &mut pair.batcher)
+    }
+
+    /// The drawn pair's batcher, `None` until the first pair is built.
+    pub(crate) fn batcher(&self) -> Option<&VolumeBatcher> {
+        self.drawn.as_ref().map(|pair| &pair.batcher)
+    }
+
+    /// The blend toward the drawn pair's second keyframe.
+    pub(crate) fn blend(&self) -> CellBlend {
+        let factor = self.drawn.as_ref().map_or(0.0, |pair| {
+            let start = keyframe_time(pair.index, self.interval);
+            ((self.clock - start) / self.interval).clamp(0.0, 1.0)
+        });
+        CellBlend {
+            factor: factor as f32,
+        }
+    }
+
+    /// The animation time the drawn field shows.
+    #[cfg(test)]
+    fn clock(&self) -> f64 {
+        self.clock
+    }
+}
+
+/// The pair of keyframes `index` (`first`) and `index + 1` (`second`).
+fn pair(
+    first: &VolumeBatcher,
+    second: Arc<VolumeBatcher>,
+    index: i64,
+) -> Result<Pair, VolumeBatchError> {
+    Ok(Pair {
+        batcher: first.with_next_keyframe(&second)?,
+        index,
+        second,
+    })
+}
+
+/// Whether `cloud` animates: a wind on any axis.
+pub(crate) fn is_windy(cloud: &CloudVolume) -> bool {
+    cloud.noise.wind != DVec3::ZERO
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use bevy::math::{DAffine3, UVec2, UVec3, Vec3};
+    use bevy::tasks::{AsyncComputeTaskPool, TaskPool};
+    use nebel_core::field::{CloudLighting, CloudNoise};
+    use nebel_core::transfer::{TransferFunction, TransferPreset};
+    use nebel_lod::octree::{CellScalars, LodCriterion};
+    use nebel_lod::{BatchLighting, CellOrder, FrameInputs, OctreeSettings, View};
+
+    fn recipe() -> KeyframeRecipe {
+        KeyframeRecipe {
+            cloud: CloudVolume {
+                dims: UVec3::new(17, 9, 17),
+                min: Vec3::new(-8.0, 0.0, -8.0),
+                max: Vec3::new(8.0, 4.0, 8.0),
+                noise: CloudNoise {
+                    wavelength: 12.0,
+                    wind: DVec3::new(1.5, 0.0, 0.5),
+                    octaves: 3,
+                    ..CloudNoise::default()
+                },
+                keyframe_interval: 2.0,
+            },
+            settings: BatchSettings {
+                order: CellOrder::BackToFront,
+                octree: Some(OctreeSettings { min_accuracy: 2.0 }),
+                lighting: Some(BatchLighting {
+                    light: CloudLighting {
+                        shadow_extinction: 0.5,
+                        ..CloudLighting::default()
+                    },
+                    scalars: CellScalars::LightModulatedByDensity,
+                }),
+            },
+        }
+    }
+
+    fn batch_of(batcher: &mut VolumeBatcher) -> Arc<nebel_lod::CellBatch> {
+        let transfer = TransferFunction::preset(TransferPreset::CloudLight);
+        let view = View::new(
+            DAffine3::IDENTITY,
+            DVec3::new(3.0, 9.0, 14.0),
+            UVec2::new(160, 120),
+        );
+        let inputs = FrameInputs {
+            transfer: &transfer,
+            criterion: LodCriterion::distance(8.0),
+        };
+        batcher.update(&view, &inputs).unwrap();
+        batcher.batch().clone()
+    }
+
+    /// The blend rises with the clock and starts again at each hand-over;
+    /// after five of them the drawn pair is exactly the full rebuild of its
+    /// two keyframes at their times: nothing drifts, however long it runs.
+    #[test]
+    fn after_any_number_of_hand_overs_the_pair_is_the_full_rebuild_of_its_keyframes() {
+        AsyncComputeTaskPool::get_or_init(TaskPool::new);
+        let recipe = recipe();
+        // The first pair is (10 s, 12 s); the clock starts at 11 s.
+        let mut track = KeyframeTrack::new(recipe.clone(), 11.0);
+        let mut blends = Vec::new();
+        let mut builds = 0;
+        // 0.3 s frames: the hand-overs fall between frames.
+        for frame in 0..=35 {
+            let now = 11.0 + 0.3 * f64::from(frame);
+            builds += usize::from(track.advance(now, HeavyBuilds::Blocking).unwrap().is_some());
+            blends.push(track.blend().factor);
+        }
+        assert!((track.clock() - 21.5).abs() < 1e-9, "{}", track.clock());
+        assert!((blends[0] - 0.5).abs() < 1e-6);
+        let hand_overs = blends.windows(2).filter(|w| w[1] < w[0]).count();
+        assert_eq!(hand_overs, 5, "{blends:?}");
+        // The first pair, one per hand-over and the one ahead of the drawn.
+        assert_eq!(builds, 7);
+        assert!(blends.iter().all(|b| (0.0..=1.0).contains(b)));
+        let start = keyframe_time(track.drawn.as_ref().unwrap().index, 2.0);
+        assert_eq!(start, 20.0);
+        assert!((track.blend().factor - 0.75).abs() < 1e-6);
+
+        let mut rebuilt = recipe
+            .keyframe(start)
+            .unwrap()
+            .with_next_keyframe(&recipe.keyframe(start + 2.0).unwrap())
+            .unwrap();
+        let drawn = batch_of(track.batcher_mut().unwrap());
+        assert!(drawn.is_blended());
+        assert_eq!(*drawn, *batch_of(&mut rebuilt));
+    }
+
+    /// A build that has not landed holds the clock at the drawn pair's end:
+    /// the wind slows down, the field does not step.
+    #[test]
+    fn the_clock_waits_for_a_late_pair() {
+        AsyncComputeTaskPool::get_or_init(TaskPool::new);
+        let mut track = KeyframeTrack::new(recipe(), 0.0);
+        track.advance(0.0, HeavyBuilds::Blocking).unwrap();
+        assert_eq!(track.blend().factor, 0.0);
+        // The next pair is started but never polled to completion: the
+        // background mode does not wait for it, and it is taken away here.
+        track.build = None;
+        track.advance(5.0, HeavyBuilds::Background).unwrap();
+        assert_eq!(track.clock(), 2.0);
+        assert_eq!(track.blend().factor, 1.0);
+        assert!(track.build.is_some(), "the next pair is built again");
+        // It lands: the clock goes on from where it waited.
+        track.advance(6.0, HeavyBuilds::Blocking).unwrap();
+        track.advance(6.5, HeavyBuilds::Blocking).unwrap();
+        assert!((track.clock() - 3.5).abs() < 1e-9, "{}", track.clock());
+        assert!((track.blend().factor - 0.75).abs() < 1e-6);
+    }
+}
