@@ -77,6 +77,7 @@ impl Layer {
         let settings = RefinementSettings {
             criterion,
             scalars: CellScalars::LightModulatedByDensity,
+            blend: 0.0,
         };
         let started = Instant::now();
         let refinement =

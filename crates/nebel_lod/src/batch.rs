@@ -142,6 +142,46 @@ impl CellBatch {
         !self.next_scalars.is_empty()
     }
 
+    /// The batch as the renderer draws it at blend factor `blend` (clamped
+    /// to [0, 1], NaN as 0): every vertex's scalar and modulator at
+    /// `(1 − β) · current + β · next`, no next keyframe. A batch that is not
+    /// blended is returned as it is.
+    pub fn blended(&self, blend: f32) -> Self {
+        if !self.is_blended() {
+            return self.clone();
+        }
+        let beta = if blend.is_nan() {
+            0.0
+        } else {
+            blend.clamp(0.0, 1.0)
+        };
+        let mix = |current: f32, next: f32| (1.0 - beta) * current + beta * next;
+        let cells = self
+            .cells
+            .iter()
+            .zip(&self.next_scalars)
+            .map(|(cell, next)| GpuCell {
+                vertices: std::array::from_fn(|v| {
+                    let [x, y, z, s] = cell.vertices[v];
+                    [x, y, z, mix(s, next[v])]
+                }),
+            })
+            .collect();
+        let modulators = self
+            .modulators
+            .iter()
+            .zip(&self.next_modulators)
+            .map(|(current, next)| std::array::from_fn(|v| mix(current[v], next[v])))
+            .collect();
+        Self {
+            cells,
+            modulators,
+            next_scalars: Vec::new(),
+            next_modulators: Vec::new(),
+            ..*self
+        }
+    }
+
     /// Number of cells.
     pub fn len(&self) -> usize {
         self.cells.len()
@@ -171,6 +211,25 @@ mod tests {
         assert_eq!(GpuCell::from_tetrahedron(&t).to_tetrahedron(), t);
         let cell = GpuCell::from_tetrahedron(&t);
         assert_eq!(bytemuck::bytes_of(&cell).len(), 64);
+    }
+
+    #[test]
+    fn a_blended_batch_mixes_scalars_and_modulators_and_drops_the_next_keyframe() {
+        let mut batch = CellBatch::from_tetrahedra(&[tetrahedron(0.0, 0.0)]);
+        assert_eq!(batch.blended(0.5), batch, "not blended: unchanged");
+        batch.modulators = vec![[1.0, 0.0, 0.5, 0.25]];
+        batch.next_scalars = vec![[1.0; 4]];
+        batch.next_modulators = vec![[0.0; 4]];
+        let half = batch.blended(0.5);
+        assert!(!half.is_blended());
+        assert_eq!(
+            half.cells[0].vertices.map(|v| v[3]),
+            [0.5, 0.625, 0.75, 0.875]
+        );
+        assert_eq!(half.modulators, vec![[0.5, 0.0, 0.25, 0.125]]);
+        assert_eq!(half.cells[0].position(2), batch.cells[0].position(2));
+        assert_eq!(batch.blended(f32::NAN).cells, batch.cells);
+        assert_eq!(batch.blended(7.0).cells[0].vertices[0][3], 1.0);
     }
 
     #[test]

@@ -93,7 +93,11 @@
 //! };
 //! let mut batcher = VolumeBatcher::new(VolumeSource::Grid(Arc::new(grid)), &settings)?;
 //! let transfer = TransferFunction::preset(TransferPreset::Cloud);
-//! let inputs = FrameInputs { transfer: &transfer, criterion: LodCriterion::distance(16.0) };
+//! let inputs = FrameInputs {
+//!     transfer: &transfer,
+//!     criterion: LodCriterion::distance(16.0),
+//!     blend: 0.0,
+//! };
 //! let view = View::new(DAffine3::IDENTITY, DVec3::new(3.0, 2.0, -20.0), UVec2::new(1280, 720));
 //! assert!(batcher.update(&view, &inputs)?); // the first frame builds
 //! assert!(!batcher.update(&view, &inputs)?); // the same view keeps it
@@ -194,6 +198,11 @@ pub struct FrameInputs<'a> {
     /// screen-error criterion needs the view's projection
     /// ([`View::with_projection`]).
     pub criterion: LodCriterion,
+    /// For a batcher of two keyframes ([`VolumeBatcher::with_next_keyframe`]),
+    /// the blend toward the second that the octree is refined for
+    /// ([`RefinementSettings::blend`]); a new value rebuilds the batch.
+    /// Ignored otherwise.
+    pub blend: f32,
 }
 
 /// Why a [`VolumeBatcher`] could not be built or updated.
@@ -303,6 +312,8 @@ struct BuiltFor {
     transfer: u64,
     /// The octree's criterion.
     criterion: LodCriterion,
+    /// The keyframe blend the octree was refined for.
+    blend: f32,
     /// The view's [`order_key`] for a grid at full resolution back to front,
     /// `None` for the other kinds.
     order_key: Option<[i64; 11]>,
@@ -437,6 +448,7 @@ impl VolumeBatcher {
             view: view.clone(),
             transfer,
             criterion: inputs.criterion,
+            blend: inputs.blend,
             order_key,
         });
         Ok(true)
@@ -550,11 +562,13 @@ impl VolumeBatcher {
                 CellOrder::BackToFront => built.order_key != order_key || frustum_changed,
                 CellOrder::Unordered => false,
             },
-            Kind::Octree { .. } => {
+            Kind::Octree { ref hierarchy, .. } => {
                 let measures_pixels = matches!(inputs.criterion, LodCriterion::ScreenError { .. });
+                let blended = hierarchy.has_next_keyframe();
                 eye_moved
                     || frustum_changed
                     || built.criterion != inputs.criterion
+                    || (blended && built.blend.to_bits() != inputs.blend.to_bits())
                     || (measures_pixels
                         && (built.view.clip_from_world != view.clip_from_world
                             || built.view.viewport != view.viewport))
@@ -584,6 +598,7 @@ impl VolumeBatcher {
                 let settings = RefinementSettings {
                     criterion: inputs.criterion,
                     scalars: *scalars,
+                    blend: inputs.blend,
                 };
                 let refinement = refine(hierarchy, view, inputs.transfer, &settings)?;
                 lod_batch_with(hierarchy, &refinement, view, *scalars)?

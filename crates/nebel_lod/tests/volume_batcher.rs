@@ -113,6 +113,7 @@ fn inputs(transfer: &TransferFunction) -> FrameInputs<'_> {
     FrameInputs {
         transfer,
         criterion: LodCriterion::distance(ACCURACY),
+        blend: 0.0,
     }
 }
 

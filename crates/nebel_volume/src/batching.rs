@@ -364,7 +364,10 @@ pub(crate) fn update_batches(
             continue;
         }
         let batching = &mut *batching;
-        let blend = batching.keyframes.as_ref().map(KeyframeTrack::blend);
+        let blend = batching
+            .keyframes
+            .as_ref()
+            .map(|track| (track.blend(), track.refinement_blend()));
         let batcher = match &mut batching.keyframes {
             Some(track) => track.batcher_mut(),
             None => batching.batcher.as_mut(),
@@ -373,7 +376,7 @@ pub(crate) fn update_batches(
             continue;
         };
         match blend {
-            Some(blend) => commands.entity(entity).insert(blend),
+            Some((blend, _)) => commands.entity(entity).insert(blend),
             None => commands.entity(entity).remove::<CellBlend>(),
         };
         let view = View {
@@ -387,6 +390,7 @@ pub(crate) fn update_batches(
             criterion: lod.map_or_else(LodCriterion::default, |lod| {
                 lod.criterion.scaled(accuracy_scale)
             }),
+            blend: blend.map_or(0.0, |(_, refined_for)| refined_for),
         };
         let scattering =
             lighting.and_then(|lighting| lighting.cell_scattering(sun_world.unwrap_or(Vec3::Y)));

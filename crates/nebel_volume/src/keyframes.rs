@@ -11,18 +11,22 @@
 //!
 //! `f(t) = (1 − β) f(t_k) + β f(t_{k+1})`, `β = (t − t_k) / T`,
 //!
-//! through one octree built for both (`VolumeHierarchy::with_next_keyframe`:
-//! Δ the larger of the two, scalar ranges the union, so no blend is refined
-//! too coarsely or culled wrongly). Each frame only `β` changes (the entity's
-//! [`CellBlend`], a uniform write); the batch is rebuilt only when the camera
-//! moves or the next pair takes over.
+//! through one octree of both (`VolumeHierarchy::with_next_keyframe`),
+//! refined for the blend: Δ and the scalar ranges interpolated between the
+//! keyframes', bounds of the blend's own, so nothing is refined too coarsely
+//! or culled wrongly, and continuous in `β`, so the refinement changes with
+//! the blend as it does with a moving eye. Each frame `β` changes (the
+//! entity's [`CellBlend`], a uniform write); the octree is refined again for
+//! the blend [`REFINEMENT_STEPS`] times per interval (and whenever the camera
+//! moves), each time changing a few cells, as between two frames of a moving
+//! camera.
 //!
 //! While the pair `(t_k, t_{k+1})` is drawn, the next one `(t_{k+1},
 //! t_{k+2})` is built on the task pool: the grid at `t_{k+2}`, its padding,
 //! light field and hierarchy (`VolumeBatcher::new`), and the pair's
-//! hierarchy. At `β = 1` the drawn field is `f(t_{k+1})`, which the next pair
-//! starts from, so the hand-over changes the field only through the
-//! refinement of the new pair's Δ (measured by the wind test). The track's
+//! hierarchy. At `β = 1` the drawn field is `f(t_{k+1})` refined for its own
+//! Δ, which is where the next pair starts: the hand-over changes nothing but
+//! the batch. The track's
 //! clock is the animation's: it runs with Bevy's `Time` and waits at the end
 //! of a pair whose successor is not built yet, so a build slower than `T`
 //! slows the wind instead of stepping it.
@@ -47,7 +51,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bevy::math::DVec3;
-use nebel_lod::octree::keyframe::{keyframe_index, keyframe_time};
+use nebel_lod::octree::keyframe::{REFINEMENT_STEPS, keyframe_index, keyframe_time};
 use nebel_lod::{BatchSettings, VolumeBatchError, VolumeBatcher, VolumeSource};
 use nebel_render::{CellBlend, HeavyBuild, HeavyBuilds};
 
@@ -227,6 +231,13 @@ impl KeyframeTrack {
         }
     }
 
+    /// The blend the octree is refined for: the blend rounded down to a
+    /// step of 1/[`REFINEMENT_STEPS`].
+    pub(crate) fn refinement_blend(&self) -> f32 {
+        let steps = REFINEMENT_STEPS as f32;
+        (self.blend().factor * steps).floor() / steps
+    }
+
     /// The animation time the drawn field shows.
     #[cfg(test)]
     fn clock(&self) -> f64 {
@@ -290,7 +301,7 @@ mod tests {
         }
     }
 
-    fn batch_of(batcher: &mut VolumeBatcher) -> Arc<nebel_lod::CellBatch> {
+    fn batch_of(batcher: &mut VolumeBatcher, blend: f32) -> Arc<nebel_lod::CellBatch> {
         let transfer = TransferFunction::preset(TransferPreset::CloudLight);
         let view = View::new(
             DAffine3::IDENTITY,
@@ -300,6 +311,7 @@ mod tests {
         let inputs = FrameInputs {
             transfer: &transfer,
             criterion: LodCriterion::distance(8.0),
+            blend,
         };
         batcher.update(&view, &inputs).unwrap();
         batcher.batch().clone()
@@ -338,9 +350,11 @@ mod tests {
             .unwrap()
             .with_next_keyframe(&recipe.keyframe(start + 2.0).unwrap())
             .unwrap();
-        let drawn = batch_of(track.batcher_mut().unwrap());
+        let blend = track.refinement_blend();
+        assert_eq!(blend, 0.75);
+        let drawn = batch_of(track.batcher_mut().unwrap(), blend);
         assert!(drawn.is_blended());
-        assert_eq!(*drawn, *batch_of(&mut rebuilt));
+        assert_eq!(*drawn, *batch_of(&mut rebuilt, blend));
     }
 
     /// A build that has not landed holds the clock at the drawn pair's end:

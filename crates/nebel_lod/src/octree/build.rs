@@ -75,6 +75,7 @@ impl VolumeHierarchy {
             light: light.map(quantise).unwrap_or_default(),
             next_density: Vec::new(),
             next_light: Vec::new(),
+            next_words: Vec::new(),
             words: vec![0; points],
             morph: vec![0; points],
         };

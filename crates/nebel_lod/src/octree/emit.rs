@@ -63,8 +63,9 @@
 //!
 //! A hierarchy that blends two keyframes
 //! ([`VolumeHierarchy::with_next_keyframe`]) morphs both with the same
-//! weights; the batch carries the second one's scalars and modulators beside
-//! the first's ([`CellBatch::next_scalars`], [`CellBatch::next_modulators`]).
+//! weights (the refinement's `e'` for its blend); the batch carries the
+//! second one's scalars and modulators beside the first's
+//! ([`CellBatch::next_scalars`], [`CellBatch::next_modulators`]).
 //!
 //! **Direction of Eq. 8.** As printed, Eq. 8 gives `w` to the coarse
 //! interpolation and `1 − w` to the point's own value. That is reversed: a
@@ -905,10 +906,11 @@ mod tests {
             CellScalars::LightModulatedByDensity,
             CellScalars::DensityModulatedByLight,
         ] {
-            let batch = |h: &VolumeHierarchy| {
-                lod_batch_with(h, &r, &view(world_from_grid(), eye), scalars).unwrap()
+            let batch = |h: &VolumeHierarchy, r: &Refinement| {
+                lod_batch_with(h, r, &view(world_from_grid(), eye), scalars).unwrap()
             };
-            let (blended, current, next) = (batch(&pair), batch(&first), batch(&second));
+            let (blended, current, next) =
+                (batch(&pair, &r), batch(&first, &r), batch(&second, &r));
             assert!(blended.is_blended() && !current.is_blended());
             // The first keyframe exactly as alone, the second's values beside
             // it: the morph of each keyframe over the pair's cells.
@@ -931,6 +933,46 @@ mod tests {
         let batch = lod_batch(&unlit, &r, &view(world_from_grid(), eye)).unwrap();
         assert_eq!(batch.next_scalars.len(), batch.len());
         assert!(batch.next_modulators.is_empty() && !batch.is_modulated());
+    }
+
+    /// The refinement follows the blend continuously, and at the hand-over
+    /// the next pair starts exactly where the last one ends: the same cells
+    /// with the same values.
+    #[test]
+    fn the_next_pair_starts_where_the_last_one_ends() {
+        let dims = [17, 9, 9];
+        // Ever rougher keyframes: the second pair refines more than the first.
+        let keyframes: Vec<VolumeHierarchy> = [0.02f32, 0.2, 0.9]
+            .iter()
+            .enumerate()
+            .map(|(k, &roughness)| {
+                let noise = field(dims, 20 + k as u64);
+                let values = noise.values().iter().map(|v| 0.5 + roughness * (v - 0.5));
+                let grid =
+                    DensityGrid::new(dims, noise.spacing(), noise.origin(), values.collect())
+                        .unwrap();
+                VolumeHierarchy::new(&grid, 2.0).unwrap()
+            })
+            .collect();
+        let pairs = [0, 1].map(|k| keyframes[k].with_next_keyframe(&keyframes[k + 1]).unwrap());
+        for index in [DVec3::new(3.3, 4.1, 2.7), DVec3::new(-9.0, 3.0, 12.0)] {
+            let eye = eye_at_index(&pairs[0], index);
+            let batch = |pair: &VolumeHierarchy, blend: f32| {
+                let settings = RefinementSettings {
+                    blend,
+                    ..RefinementSettings::new(LodCriterion::distance(4.0))
+                };
+                let view = view(world_from_grid(), eye);
+                let r = refine(pair, &view, &fog(), &settings).unwrap();
+                lod_batch(pair, &r, &view).unwrap()
+            };
+            let ending = batch(&pairs[0], 1.0);
+            let starting = batch(&pairs[1], 0.0);
+            assert_eq!(ending.blended(1.0), starting.blended(0.0));
+            // Refined for the blend: the cells change within a pair.
+            let sizes = [0.0, 0.5, 1.0].map(|blend| batch(&pairs[1], blend).len());
+            assert!(sizes[0] < sizes[1] && sizes[1] < sizes[2], "{sizes:?}");
+        }
     }
 
     #[test]

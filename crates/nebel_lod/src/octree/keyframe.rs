@@ -10,16 +10,28 @@
 //! only `β` changes from frame to frame.
 //!
 //! [`VolumeHierarchy::with_next_keyframe`] makes the pair's hierarchy: the
-//! first keyframe's quantised density and light, the second's beside them,
-//! and per node
+//! first keyframe's quantised density, light, Δ and scalar ranges, the
+//! second's beside them.
 //!
-//! - Δ = `max(Δ_a, Δ_b)`: the deviation of a blend at any grid point is
-//!   `|(1 − β)(v_a − c_a) + β (v_b − c_b)| ≤ max(|v_a − c_a|, |v_b − c_b|)`
-//!   (the coarse value `c` is linear in the corners), so the refinement of
-//!   Röttger and Ertl 2003 Eq. 1 is conservative for every `β`; the maximum of
-//!   two values that satisfy Eq. 5 (`Δ ≥ K_max Δ_child`) satisfies it too;
-//! - the scalar range is the union of both: every blend lies between them,
-//!   so the zero-opacity test never culls a node either keyframe draws.
+//! The refinement ([`super::refine()`]) is made for a blend factor `β`
+//! ([`super::RefinementSettings::blend`]) with, per node,
+//!
+//! - `Δ_β = (1 − β) Δ_a + β Δ_b` ([`VolumeHierarchy::deviation_at`]): the
+//!   blend's deviation at a grid point is `|(1 − β)(v_a − c_a) + β (v_b −
+//!   c_b)| ≤ (1 − β) Δ_a + β Δ_b` (the coarse value `c` is linear in the
+//!   corners), and a convex combination of two values that satisfy Eq. 5
+//!   (`Δ ≥ K_max Δ_child`) satisfies it too;
+//! - the scalar range `[(1 − β) min_a + β min_b, (1 − β) max_a + β max_b]`
+//!   rounded outward to the density's 1/255 steps
+//!   ([`VolumeHierarchy::scalar_range_at`]): every blend of two values
+//!   lies in it, so the zero-opacity test culls nothing the blend draws.
+//!
+//! Both are continuous in `β` and at `β = 1` are the second keyframe's own,
+//! which is where the next pair starts at `β = 0`: the refinement changes
+//! with the blend as it changes with a moving eye, and the hand-over from
+//! one pair to the next changes nothing. A caller refines again as `β`
+//! advances (the cells change a little at each step, as between the frames
+//! of a moving camera) and blends between refinements on the GPU.
 //!
 //! The morph of Röttger and Ertl 2003 §3 is linear in the grid values with
 //! weights that depend only on the refinement, so the emitted next values are
@@ -32,15 +44,20 @@
 
 use nebel_core::budget::{Dims, check_allocation};
 
-use super::{HierarchyError, Node, VolumeHierarchy};
+use super::{HierarchyError, Node, VolumeHierarchy, unpack_range};
+
+/// How many times per keyframe interval a blended octree is refined again
+/// for the advancing blend (besides whenever the camera moves): the blend a
+/// refinement is made for is the drawn blend rounded down to a step of
+/// `1 / REFINEMENT_STEPS`.
+pub const REFINEMENT_STEPS: u32 = 32;
 
 impl VolumeHierarchy {
     /// The hierarchy that blends from this keyframe to `next` (see the
-    /// module docs): this one's densities, light and morph slots, `next`'s
-    /// densities and light beside them, Δ the larger of the two per node and
-    /// the scalar range the union. Of a hierarchy that already blends, the
-    /// first keyframe stays and `next`'s first becomes the second; its Δ and
-    /// ranges then cover the old second too (still conservative).
+    /// module docs): this one's densities, light, Δ, ranges and morph slots,
+    /// `next`'s densities, light, Δ and ranges beside them. Of a hierarchy
+    /// that already blends, the first keyframe stays and `next`'s first
+    /// becomes the second.
     ///
     /// Errors: [`HierarchyError::KeyframeMismatch`] when the two differ in
     /// points, spacing, origin, minimum accuracy or in having a light field,
@@ -60,7 +77,8 @@ impl VolumeHierarchy {
         if self.has_light() != next.has_light() {
             return mismatch("the light fields");
         }
-        let bytes_per_point = if self.has_light() { 2 } else { 1 };
+        // Density, light and the Δ word.
+        let bytes_per_point = if self.has_light() { 4 } else { 3 };
         check_allocation(
             || {
                 format!(
@@ -71,33 +89,72 @@ impl VolumeHierarchy {
             &self.dims,
             bytes_per_point,
         )?;
-        let mut pair = Self {
+        Ok(Self {
             next_density: next.density.clone(),
             next_light: next.light.clone(),
+            next_words: next.words.clone(),
             ..self.clone()
-        };
-        for level in 1..=self.root_level {
-            let size = 1usize << level;
-            let counts = self.dims.map(|n| (n - 1) / size);
-            for z in 0..counts[2] {
-                for y in 0..counts[1] {
-                    for x in 0..counts[0] {
-                        let node = Node {
-                            level,
-                            origin: [x * size, y * size, z * size],
-                        };
-                        let centre = self.centre_index(node).expect("level ≥ 1");
-                        pair.words[centre] = self.words[centre].max(next.words[centre]);
-                        let range = self.range_index(node);
-                        let ([low, high], [next_low, next_high]) =
-                            (self.packed_range(range), next.packed_range(range));
-                        pair.words[range] =
-                            u16::from(low.min(next_low)) | (u16::from(high.max(next_high)) << 8);
-                    }
-                }
+        })
+    }
+
+    /// The propagated Δ of `node` for the blend `blend` toward the next
+    /// keyframe (clamped to [0, 1], NaN as 0): `(1 − β) Δ_a + β Δ_b` (module
+    /// docs); [`VolumeHierarchy::deviation`] for a single keyframe. Panics
+    /// when the node is not in this hierarchy.
+    pub fn deviation_at(&self, node: Node, blend: f32) -> f32 {
+        let first = self.deviation(node);
+        match self.next_deviation(node) {
+            Some(next) => {
+                let beta = clamped_blend(blend);
+                (1.0 - beta) * first + beta * next
             }
+            None => first,
         }
-        Ok(pair)
+    }
+
+    /// The node's scalar range for the blend `blend` toward the next
+    /// keyframe (clamped to [0, 1], NaN as 0), units of 1/255: the blend of
+    /// both keyframes' ranges rounded outward (module docs);
+    /// [`VolumeHierarchy::scalar_range_quantised`] for a single keyframe.
+    /// Panics when the node is not in this hierarchy.
+    pub fn scalar_range_at(&self, node: Node, blend: f32) -> [u8; 2] {
+        if !self.has_next_keyframe() {
+            return self.scalar_range_quantised(node);
+        }
+        let ([low, high], [next_low, next_high]) = if node.level == 0 {
+            // A voxel's ranges are its corners' in each keyframe.
+            self.check(node);
+            let corners = |density: &[u8]| {
+                let values = (0..8).map(|v| density[self.index(node.corner(v))]);
+                [values.clone().min().unwrap_or(0), values.max().unwrap_or(0)]
+            };
+            (corners(&self.density), corners(&self.next_density))
+        } else {
+            let index = self.range_index(node);
+            (
+                unpack_range(self.words[index]),
+                unpack_range(self.next_words[index]),
+            )
+        };
+        let beta = clamped_blend(blend);
+        let mix = |a: u8, b: u8| (1.0 - beta) * f32::from(a) + beta * f32::from(b);
+        // Rounded outward, and never outside the two keyframes' own.
+        let low = (mix(low, next_low).floor() as u8).max(low.min(next_low));
+        let high = (mix(high, next_high).ceil() as u8).min(high.max(next_high));
+        [low, high]
+    }
+
+    /// The next keyframe's propagated Δ of `node` in density units (0 for a
+    /// voxel); `None` unless the hierarchy blends two keyframes. Panics when
+    /// the node is not in this hierarchy.
+    pub fn next_deviation(&self, node: Node) -> Option<f32> {
+        if !self.has_next_keyframe() {
+            return None;
+        }
+        let word = self
+            .centre_index(node)
+            .map_or(0, |centre| self.next_words[centre]);
+        Some(f32::from(word) / 65535.0)
     }
 
     /// Whether the hierarchy blends two keyframes
@@ -121,11 +178,14 @@ impl VolumeHierarchy {
         let index = self.index(p);
         self.next_light.get(index).map(|&q| f32::from(q) / 255.0)
     }
+}
 
-    /// The `[min, max]` bytes of the range word at flat index `index`.
-    fn packed_range(&self, index: usize) -> [u8; 2] {
-        let word = self.words[index];
-        [(word & 0xff) as u8, (word >> 8) as u8]
+/// A blend factor clamped to [0, 1], NaN as 0.
+fn clamped_blend(blend: f32) -> f32 {
+    if blend.is_nan() {
+        0.0
+    } else {
+        blend.clamp(0.0, 1.0)
     }
 }
 

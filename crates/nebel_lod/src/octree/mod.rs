@@ -156,6 +156,11 @@ pub enum HierarchyError {
     OverBudget(#[from] BudgetError),
 }
 
+/// The `[min, max]` bytes of a packed scalar range word.
+fn unpack_range(word: u16) -> [u8; 2] {
+    [(word & 0xff) as u8, (word >> 8) as u8]
+}
+
 /// Bytes a [`VolumeHierarchy`] keeps per grid point without a light field:
 /// the quantised density (u8), the Δ or range word (u16) and e' (u8).
 const BYTES_PER_POINT: u64 = (2 * size_of::<u8>() + size_of::<u16>()) as u64;
@@ -208,6 +213,9 @@ pub struct VolumeHierarchy {
     /// The next keyframe's quantised light per grid point; empty unless the
     /// hierarchy blends two lit keyframes.
     next_light: Vec<u8>,
+    /// The next keyframe's Δ and scalar ranges (laid out as `words`); empty
+    /// unless the hierarchy blends two keyframes.
+    next_words: Vec<u16>,
     /// Per grid point: Δ (units of 1/65535) at node centres, the packed scalar
     /// range at the centre of a node's +x face, 0 elsewhere.
     words: Vec<u16>,
@@ -365,8 +373,15 @@ impl VolumeHierarchy {
             });
             return [values.clone().min().unwrap_or(0), values.max().unwrap_or(0)];
         }
-        let word = self.words[self.range_index(node)];
-        [(word & 0xff) as u8, (word >> 8) as u8]
+        let index = self.range_index(node);
+        let [low, high] = unpack_range(self.words[index]);
+        match self.next_words.get(index) {
+            Some(&next) => {
+                let [next_low, next_high] = unpack_range(next);
+                [low.min(next_low), high.max(next_high)]
+            }
+            None => [low, high],
+        }
     }
 
     /// `[min, max]` of the node's densities in [0, 1], for
@@ -404,6 +419,7 @@ impl VolumeHierarchy {
         let bytes = self.density.len() * size_of::<u8>()
             + self.light.len() * size_of::<u8>()
             + (self.next_density.len() + self.next_light.len()) * size_of::<u8>()
+            + self.next_words.len() * size_of::<u16>()
             + self.words.len() * size_of::<u16>()
             + self.morph.len() * size_of::<u8>();
         bytes as f64 / self.density.len() as f64

@@ -16,6 +16,11 @@
 //!   Its `e'` is clamped to the parent's.
 //! - [`LodCriterion::Distance`]: the paper's geometric metric, below.
 //!
+//! A hierarchy of two keyframes ([`VolumeHierarchy::with_next_keyframe`])
+//! is refined for the blend [`RefinementSettings::blend`] between them: Δ
+//! and the scalar ranges are interpolated between the keyframes' (see
+//! [`super::keyframe`]).
+//!
 //! # Distance metric (Röttger and Ertl 2003 Eq. 1 and Eq. 6)
 //!
 //! A node of edge `s` (world units) whose centre is at distance `d` from the
@@ -213,6 +218,12 @@ pub struct RefinementSettings {
     /// function turns deviations into colour for the screen error. Default
     /// the density alone.
     pub scalars: CellScalars,
+    /// For a hierarchy of two keyframes, the blend factor β toward the
+    /// second that the cells are refined for: each node's Δ and scalar
+    /// range are interpolated between the two keyframes' (bounds of the
+    /// blend's own, see [`super::keyframe`]). Clamped to [0, 1], NaN as 0;
+    /// ignored for a single keyframe. Default 0.
+    pub blend: f32,
 }
 
 impl RefinementSettings {
@@ -221,6 +232,7 @@ impl RefinementSettings {
         Self {
             criterion,
             scalars: CellScalars::Density,
+            blend: 0.0,
         }
     }
 
@@ -387,6 +399,11 @@ pub fn refine(
             .map(|f| f.in_local_frame(&world_from_index)),
         transfer,
         density_is_opacity: settings.scalars == CellScalars::LightModulatedByDensity,
+        blend: if settings.blend.is_nan() {
+            0.0
+        } else {
+            settings.blend.clamp(0.0, 1.0)
+        },
         metric,
         voxel_edge: edges[0].max(edges[1]).max(edges[2]),
         shortest_voxel_edge: edges[0].min(edges[1]).min(edges[2]),
@@ -451,6 +468,8 @@ struct Traversal<'a> {
     transfer: &'a TransferFunction,
     /// The density itself is the opacity (only density 0 is empty).
     density_is_opacity: bool,
+    /// The keyframe blend refined for, in [0, 1].
+    blend: f32,
     /// The error metric.
     metric: Metric,
     /// The longest world-space image of one voxel edge.
@@ -478,7 +497,7 @@ impl Traversal<'_> {
             stats.culled_by_frustum += 1;
             return;
         }
-        let range = self.hierarchy.scalar_range_quantised(node);
+        let range = self.hierarchy.scalar_range_at(node, self.blend);
         let transparent = if self.density_is_opacity {
             range[1] == 0
         } else {
@@ -491,7 +510,8 @@ impl Traversal<'_> {
         }
 
         let centre = lo + 0.5 * size;
-        let (e, footprint) = self.error(node, centre, lo, range);
+        let delta = self.hierarchy.deviation_at(node, self.blend);
+        let (e, footprint) = self.error(node, centre, lo, range, delta);
         let mut morph = (e - 1.0).clamp(0.0, 1.0) as f32;
         // The screen error: e' at most the parent's, and the weight of this
         // node's occlusion (see `screen_error`).
@@ -557,19 +577,20 @@ impl Traversal<'_> {
         }
     }
 
-    /// The error metric `e` of `node` with its box at `lo` and centre at
-    /// `centre` (grid index coordinates), and its footprint for the screen
-    /// error. The distance metric (Eq. 1) is `∞` when the eye is at the
-    /// centre.
+    /// The error metric `e` of `node` with its box at `lo`, centre at
+    /// `centre` (grid index coordinates) and deviation `delta`, and its
+    /// footprint for the screen error. The distance metric (Eq. 1) is `∞`
+    /// when the eye is at the centre.
     fn error(
         &self,
         node: Node,
         centre: DVec3,
         lo: DVec3,
         range: [u8; 2],
+        delta: f32,
     ) -> (f64, Option<Footprint>) {
         let s = self.voxel_edge * node.size() as f64;
-        let delta = f64::from(self.hierarchy.deviation(node));
+        let delta = f64::from(delta);
         match &self.metric {
             Metric::Distance { accuracy } => {
                 // `max` ignores the NaN of ∞ · 0 (c = ∞ with Δ = 0).

@@ -465,9 +465,10 @@ proptest! {
     }
 }
 
-/// A pair of keyframes refines on the larger Δ of the two and culls on the
-/// union of their ranges; the blend of the two at any β deviates from its
-/// coarse values by no more than that Δ.
+/// A pair of keyframes keeps each one's Δ and range; the blend of the two at
+/// any β deviates from its coarse values by no more than the blended Δ and
+/// lies in the blended range, by which the refinement refines and culls; at
+/// β = 0 and 1 they are the keyframes' own.
 #[test]
 fn a_keyframe_pair_bounds_every_blend_of_its_keyframes() {
     let dims = [17, 9, 17];
@@ -482,7 +483,7 @@ fn a_keyframe_pair_bounds_every_blend_of_its_keyframes() {
     let second = VolumeHierarchy::new(&grid(dims, wave(1.3)), C).unwrap();
     let pair = first.with_next_keyframe(&second).unwrap();
     assert!(pair.has_next_keyframe() && !first.has_next_keyframe());
-    assert!((pair.bytes_per_point() - 5.0).abs() < 1e-12);
+    assert!((pair.bytes_per_point() - 7.0).abs() < 1e-12);
     let mut largest_blend = 0.0f64;
     for node in all_nodes(&pair) {
         let ranges = [first.scalar_range(node), second.scalar_range(node)];
@@ -494,13 +495,23 @@ fn a_keyframe_pair_bounds_every_blend_of_its_keyframes() {
             ],
             "{node:?}"
         );
+        // At either end the refinement sees that keyframe alone, voxels too.
+        assert_eq!(
+            pair.scalar_range_at(node, 0.0),
+            first.scalar_range_quantised(node)
+        );
+        assert_eq!(
+            pair.scalar_range_at(node, 1.0),
+            second.scalar_range_quantised(node)
+        );
         if node.level == 0 {
             continue;
         }
-        assert_eq!(
-            pair.deviation(node),
-            first.deviation(node).max(second.deviation(node))
-        );
+        assert_eq!(pair.deviation(node), first.deviation(node));
+        assert_eq!(pair.next_deviation(node), Some(second.deviation(node)));
+        assert_eq!(pair.deviation_at(node, 0.0), first.deviation(node));
+        assert_eq!(pair.deviation_at(node, 1.0), second.deviation(node));
+
         let half = node.size() / 2;
         for p in box_points(node) {
             let rel: [usize; 3] = std::array::from_fn(|a| p[a] - node.origin[a]);
@@ -508,12 +519,22 @@ fn a_keyframe_pair_bounds_every_blend_of_its_keyframes() {
                 continue;
             }
             let offsets = [&first, &second].map(|h| exact_density(h, p) - coarse_value(h, node, p));
-            for beta in [0.25, 0.5, 0.75] {
-                let blend = ((1.0 - beta) * offsets[0] + beta * offsets[1]).abs();
+            let values = [&first, &second].map(|h| exact_density(h, p));
+            for beta in [0.0f32, 0.25, 0.5, 0.75, 1.0] {
+                let b = f64::from(beta);
+                let blend = ((1.0 - b) * offsets[0] + b * offsets[1]).abs();
                 largest_blend = largest_blend.max(blend);
                 assert!(
-                    blend <= f64::from(pair.deviation(node)) + 1e-6,
+                    blend <= f64::from(pair.deviation_at(node, beta)) + 1e-6,
                     "{node:?} at {p:?}, β = {beta}"
+                );
+                let value = (1.0 - b) * values[0] + b * values[1];
+                let [low, high] = pair
+                    .scalar_range_at(node, beta)
+                    .map(|q| f64::from(q) / 255.0);
+                assert!(
+                    (low - 1e-9..=high + 1e-9).contains(&value),
+                    "{node:?} at {p:?}"
                 );
             }
         }
