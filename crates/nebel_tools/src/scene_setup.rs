@@ -415,6 +415,7 @@ fn spawn_volumes(commands: &mut Commands, grids: &mut Assets<VolumeGrid>, volume
                         CloudLightModel::Scattering { asymmetry }
                     }
                 },
+                ..default()
             });
         }
     }

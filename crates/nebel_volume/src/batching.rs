@@ -37,7 +37,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bevy::diagnostic::Diagnostics;
-use bevy::math::DAffine3;
+use bevy::math::{DAffine3, DVec3};
 use bevy::prelude::*;
 use nebel_core::optics::OpticalMode;
 use nebel_lod::{
@@ -49,7 +49,7 @@ use nebel_render::{CellBatch, CellBlend, EffectiveQuality, HeavyBuild, HeavyBuil
 
 use crate::cloud::{CloudGeneration, CloudVolume};
 use crate::grid::VolumeGrid;
-use crate::keyframes::{KeyframeRecipe, KeyframeTrack, is_windy};
+use crate::keyframes::{KeyframeRecipe, KeyframeSource, KeyframeTrack, SunMotion, is_windy};
 use crate::lighting::sun_in_local_frame;
 use crate::status::{VolumeError, VolumeStatus};
 use crate::volume::{Volume, VolumeField, VolumePlugin};
@@ -106,6 +106,13 @@ pub(crate) struct VolumeBatching {
     keyframes: Option<KeyframeTrack>,
     /// Why the keyframe track's last build failed.
     keyframe_failure: Option<VolumeError>,
+    /// The sun in the volume's frame at the last frame, and that frame's
+    /// time.
+    last_sun: Option<(DVec3, f64)>,
+    /// When the sun last moved.
+    sun_moved_at: Option<f64>,
+    /// The last batch written came from the keyframe track.
+    wrote_keyframes: bool,
     /// What the batcher was built from.
     built: Option<BuildKey>,
     /// The build in flight and what it builds from.
@@ -127,10 +134,17 @@ pub(crate) struct VolumeBatching {
 impl VolumeBatching {
     /// The batcher drawn: the keyframe track's pair when it has one.
     fn drawn(&self) -> Option<&VolumeBatcher> {
-        match &self.keyframes {
-            Some(track) => track.batcher(),
-            None => self.batcher.as_ref(),
-        }
+        self.keyframes
+            .as_ref()
+            .and_then(KeyframeTrack::batcher)
+            .or(self.batcher.as_ref())
+    }
+
+    /// Whether the keyframe track has a pair to draw.
+    fn draws_keyframes(&self) -> bool {
+        self.keyframes
+            .as_ref()
+            .is_some_and(|track| track.batcher().is_some())
     }
 
     /// No build in flight.
@@ -207,22 +221,45 @@ pub(crate) fn build_batchers(
     mut diagnostics: Diagnostics,
 ) {
     let sun_world = suns.iter().next().map(|sun| sun.back().as_vec3());
+    let now = time.elapsed_secs_f64();
     for (volume, transform, lod, lighting, visibility, cloud, mut batching) in &mut volumes {
         let batching = &mut *batching;
+        let sun = observe_sun(batching, lighting, sun_world, transform, now);
         let windy = cloud
             .map(|(cloud, _)| cloud)
             .filter(|cloud| is_windy(cloud));
-        if let Some(cloud) = windy {
+        // A windy cloud, or a lit grid whose sun moved lately, is drawn
+        // from keyframes (see crate::keyframes).
+        let keyframed = match (windy, lighting) {
+            (Some(cloud), _) => Some((
+                KeyframeSource::Cloud(cloud.clone()),
+                cloud.keyframe_interval,
+            )),
+            (None, Some(lighting)) => {
+                let interval = f64::from(lighting.keyframe_interval).max(1e-3);
+                let moving = batching
+                    .sun_moved_at
+                    .is_some_and(|moved| now - moved <= 2.0 * interval);
+                match source(volume, &grids, &asset_server) {
+                    Ok(Some(VolumeSource::Grid(grid))) if moving => {
+                        Some((KeyframeSource::Grid(grid), lighting.keyframe_interval))
+                    }
+                    _ => None,
+                }
+            }
+            (None, None) => None,
+        };
+        if let Some((source, interval)) = keyframed {
             if visibility.get() {
                 let recipe = KeyframeRecipe {
-                    cloud: cloud.clone(),
+                    source,
                     settings: batch_settings(volume, lod, lighting, sun_world, transform),
+                    interval,
                 };
-                advance_keyframes(batching, recipe, &time, *mode, &mut diagnostics);
+                advance_keyframes(batching, recipe, sun, &time, *mode, &mut diagnostics);
             }
             continue;
         }
-        batching.keyframes = None;
         batching.keyframe_failure = None;
         let generation = cloud.map(|(_, generation)| generation);
         // A build started last frame may be done (always under Blocking).
@@ -251,7 +288,12 @@ pub(crate) fn build_batchers(
             settings: batch_settings(volume, lod, lighting, sun_world, transform),
         };
         let unchanged = |last: &Option<BuildKey>| last.as_ref().is_some_and(|k| k.same_as(&key));
-        if unchanged(&batching.built) || unchanged(&batching.failed) {
+        if unchanged(&batching.built) {
+            // Built for the volume as it is: the keyframes are done with.
+            batching.keyframes = None;
+            continue;
+        }
+        if unchanged(&batching.failed) {
             continue;
         }
         let (source, settings) = (key.source.clone(), key.settings);
@@ -265,11 +307,38 @@ pub(crate) fn build_batchers(
     }
 }
 
+/// The sun's motion in a lit volume's frame from its last frame to this one
+/// (`now`), noting when it last moved; a still sun straight up for an unlit
+/// volume.
+fn observe_sun(
+    batching: &mut VolumeBatching,
+    lighting: Option<&VolumeLighting>,
+    sun_world: Option<Vec3>,
+    transform: &GlobalTransform,
+    now: f64,
+) -> SunMotion {
+    if lighting.is_none() {
+        return SunMotion::still(DVec3::Y, now);
+    }
+    let direction = sun_in_local_frame(sun_world, &transform.affine()).as_dvec3();
+    let motion = match batching.last_sun {
+        Some((last, last_time)) => SunMotion::between(last, last_time, direction, now),
+        None => SunMotion::still(direction, now),
+    };
+    if batching.last_sun.is_some_and(|(last, _)| last != direction) {
+        batching.sun_moved_at = Some(now);
+    }
+    batching.last_sun = Some((direction, now));
+    motion
+}
+
 /// Starts the keyframe track of `recipe` unless it runs already (a new
-/// recipe starts over), and advances it by the frame's time.
+/// recipe starts over), lights it by `sun` and advances it by the frame's
+/// time.
 fn advance_keyframes(
     batching: &mut VolumeBatching,
     recipe: KeyframeRecipe,
+    sun: SunMotion,
     time: &Time,
     mode: HeavyBuilds,
     diagnostics: &mut Diagnostics,
@@ -279,10 +348,11 @@ fn advance_keyframes(
         .as_ref()
         .is_some_and(|track| track.is_for(&recipe))
     {
-        batching.keyframes = Some(KeyframeTrack::new(recipe, time.elapsed_secs_f64()));
+        batching.keyframes = Some(KeyframeTrack::new(recipe, sun, time.elapsed_secs_f64()));
         batching.keyframe_failure = None;
     }
     let track = batching.keyframes.as_mut().expect("started above");
+    track.set_sun(sun);
     match track.advance(time.elapsed_secs_f64(), mode) {
         Ok(built_ms) => {
             if let Some(ms) = built_ms {
@@ -364,13 +434,18 @@ pub(crate) fn update_batches(
             continue;
         }
         let batching = &mut *batching;
+        // The keyframes once their first pair is built, the volume's own
+        // batcher until then and after.
+        let from_keyframes = batching.draws_keyframes();
+        let switched = from_keyframes != batching.wrote_keyframes;
         let blend = batching
             .keyframes
             .as_ref()
+            .filter(|_| from_keyframes)
             .map(|track| (track.blend(), track.refinement_blend()));
         let batcher = match &mut batching.keyframes {
-            Some(track) => track.batcher_mut(),
-            None => batching.batcher.as_mut(),
+            Some(track) if from_keyframes => track.batcher_mut(),
+            _ => batching.batcher.as_mut(),
         };
         let (Some(camera), Some(batcher)) = (camera, batcher) else {
             continue;
@@ -405,7 +480,8 @@ pub(crate) fn update_batches(
                             .as_ref()
                             .is_some_and(|tf| Arc::ptr_eq(tf, &volume.transfer_function))
                 });
-                if changed || !current {
+                if changed || !current || switched {
+                    batching.wrote_keyframes = from_keyframes;
                     rebuilt = true;
                     let mut batch = CellBatch::new(
                         batcher.batch().clone(),
@@ -442,14 +518,11 @@ pub(crate) fn report_status(
             .or(batching.source_failure.as_ref())
             .or(batching.build_failure.as_ref())
             .or(batching.update_failure.as_ref());
-        let pending = match &batching.keyframes {
-            Some(track) => track.batcher().is_none(),
-            None => {
-                batching.batcher.is_none()
-                    || batching.loading
-                    || generation.is_some_and(|generation| !generation.has_grid())
-            }
-        };
+        let pending = !batching.draws_keyframes()
+            && (batching.batcher.is_none()
+                || batching.loading
+                || (batching.keyframes.is_none()
+                    && generation.is_some_and(|generation| !generation.has_grid())));
         let derived = match failure {
             Some(error) => VolumeStatus::Failed(error.clone()),
             None if pending => VolumeStatus::Pending,

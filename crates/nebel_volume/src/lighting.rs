@@ -90,6 +90,12 @@ pub struct VolumeLighting {
     /// Which field gives the colour and which the opacity. Default
     /// [`CloudLightModel::Isotropic`].
     pub model: CloudLightModel,
+    /// Seconds between the keyframes of the light field while the sun moves
+    /// (`crate::keyframes`; a windy cloud uses its own
+    /// [`CloudVolume::keyframe_interval`](crate::CloudVolume::keyframe_interval)),
+    /// finite (below 1 ms, and NaN, count as 1 ms). Shorter follows the sun
+    /// more closely at a proportional CPU cost. Default 2.
+    pub keyframe_interval: f32,
 }
 
 impl Default for VolumeLighting {
@@ -99,6 +105,7 @@ impl Default for VolumeLighting {
             diffuse: CloudLighting::DEFAULT_DIFFUSE,
             shadow_extinction: 0.0,
             model: CloudLightModel::Isotropic,
+            keyframe_interval: 2.0,
         }
     }
 }

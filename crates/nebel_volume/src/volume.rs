@@ -573,6 +573,65 @@ mod tests {
     }
 
     #[test]
+    fn a_moving_sun_lights_a_grid_through_keyframes_until_it_rests() {
+        let (mut app, _, volume) = app_with_volume(OpticalMode::Sorted);
+        app.insert_resource(bevy::time::TimeUpdateStrategy::ManualDuration(
+            std::time::Duration::from_millis(100),
+        ));
+        let noise = nebel_core::field::ProceduralNoise {
+            octaves: 3,
+            ..default()
+        };
+        let grid =
+            DensityGrid::procedural([9, 9, 9], DVec3::splat(0.25), DVec3::ZERO, &noise).unwrap();
+        let field = grid_field(&mut app, grid);
+        app.world_mut().get_mut::<Volume>(volume).unwrap().field = field;
+        app.world_mut().entity_mut(volume).insert(VolumeLighting {
+            shadow_extinction: 2.0,
+            keyframe_interval: 0.5,
+            ..default()
+        });
+        let sun = app
+            .world_mut()
+            .spawn((
+                DirectionalLight::default(),
+                Transform::default().looking_to(Vec3::new(1.0, -0.5, 0.0), Vec3::Y),
+            ))
+            .id();
+        let blended = |app: &App| {
+            let batch = app.world().get::<CellBatch>(volume).unwrap();
+            let blend = app.world().get::<nebel_render::CellBlend>(volume);
+            (batch.cells.is_blended(), blend.map(|blend| blend.factor))
+        };
+        app.update();
+        app.update();
+        assert_eq!(blended(&app), (false, None), "a still sun: one build");
+        // A day cycle: 5° per frame about the north-south axis.
+        let mut factors = Vec::new();
+        for _ in 0..20 {
+            app.world_mut()
+                .get_mut::<Transform>(sun)
+                .unwrap()
+                .rotate_x(5f32.to_radians());
+            app.update();
+            if let (true, Some(factor)) = blended(&app) {
+                factors.push(factor);
+            }
+        }
+        assert!(factors.len() >= 15, "{factors:?}");
+        assert!(
+            factors.windows(2).any(|w| w[1] < w[0]),
+            "hand-overs: {factors:?}"
+        );
+        // The sun rests: after two intervals one build for where it stopped.
+        for _ in 0..15 {
+            app.update();
+        }
+        assert_eq!(blended(&app), (false, None));
+        assert_eq!(status(&app, volume), VolumeStatus::Ready);
+    }
+
+    #[test]
     fn a_batch_follows_the_camera_in_the_same_frame() {
         let (mut app, camera, volume) = app_with_volume(OpticalMode::Sorted);
         app.world_mut()
