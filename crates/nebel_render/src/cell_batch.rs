@@ -71,12 +71,15 @@ pub(crate) struct CellBatchUniform {
     pub ambient_colour: Vec4,
     /// x: the blend factor β toward the next keyframe, in [0, 1]; yzw unused.
     pub blend: Vec4,
+    /// The [`CellSunlight`] factor; w unused.
+    pub sunlight: Vec4,
 }
 
 impl CellBatchUniform {
     /// The uniform of a batch with `scattering` blended by `blend` (already
-    /// clamped, [`CellBlend::clamped`]).
-    pub(crate) fn new(scattering: Option<&CellScattering>, blend: f32) -> Self {
+    /// clamped, [`CellBlend::clamped`]) under `sunlight` (already checked,
+    /// [`CellSunlight::checked`]).
+    pub(crate) fn new(scattering: Option<&CellScattering>, blend: f32, sunlight: Vec3) -> Self {
         let mut uniform = scattering.map_or_else(Self::default, |scattering| Self {
             sun: scattering
                 .sun_direction
@@ -84,10 +87,46 @@ impl CellBatchUniform {
                 .extend(scattering.asymmetry.clamp(-0.99, 0.99)),
             sun_colour: scattering.sun_colour.extend(0.0),
             ambient_colour: scattering.ambient_colour.extend(0.0),
-            blend: Vec4::ZERO,
+            ..Self::default()
         });
         uniform.blend.x = blend;
+        uniform.sunlight = sunlight.extend(0.0);
         uniform
+    }
+}
+
+/// The colour and strength of the sunlight a lit [`CellBatch`] is drawn
+/// under, as a factor on its colours (linear RGB): the batch's transfer
+/// function gives the colour under a white sun of the reference strength;
+/// this tints and scales it. For single scattering
+/// ([`CellBatch::scattering`]) it scales the sun's part only; otherwise
+/// the whole colour, sky light included (one light field cannot tell them
+/// apart). A volume plugin sets it from the scene's sun; the render system
+/// writes it into a uniform each frame it changes, without an upload of the
+/// cells. Without it a batch is drawn as if under `(1, 1, 1)`.
+#[derive(Component, Clone, Copy, Debug, PartialEq, Reflect)]
+#[reflect(Component, Default, Clone)]
+pub struct CellSunlight {
+    /// The factor, linear RGB, each finite and ≥ 0 (others draw as 0).
+    /// Default (1, 1, 1).
+    pub colour: Vec3,
+}
+
+impl Default for CellSunlight {
+    fn default() -> Self {
+        Self { colour: Vec3::ONE }
+    }
+}
+
+impl CellSunlight {
+    /// The factor the render system draws with: each channel finite and
+    /// ≥ 0, others as 0.
+    pub fn checked(&self) -> Vec3 {
+        Vec3::from_array(
+            self.colour
+                .to_array()
+                .map(|c| if c.is_finite() { c.max(0.0) } else { 0.0 }),
+        )
     }
 }
 
@@ -196,10 +235,15 @@ mod tests {
             ..default()
         };
         assert!(scattering.phase(Vec3::Z) > 100.0 * scattering.phase(Vec3::NEG_Z));
-        let uniform = CellBatchUniform::new(Some(&scattering), 0.25);
+        let uniform = CellBatchUniform::new(Some(&scattering), 0.25, Vec3::ONE);
         assert_eq!(uniform.sun, Vec4::new(0.0, 0.0, 1.0, 0.99));
         assert_eq!(uniform.blend.x, 0.25);
-        assert_eq!(CellBatchUniform::new(None, 0.5).sun, Vec4::ZERO);
+        assert_eq!(uniform.sunlight, Vec4::new(1.0, 1.0, 1.0, 0.0));
+        assert_eq!(CellBatchUniform::new(None, 0.5, Vec3::ONE).sun, Vec4::ZERO);
+        let sunlight = CellSunlight {
+            colour: Vec3::new(f32::NAN, -1.0, 2.5),
+        };
+        assert_eq!(sunlight.checked(), Vec3::new(0.0, 0.0, 2.5));
         for (factor, clamped) in [(f32::NAN, 0.0), (-1.0, 0.0), (0.3, 0.3), (7.0, 1.0)] {
             assert_eq!(CellBlend { factor }.clamped(), clamped);
         }

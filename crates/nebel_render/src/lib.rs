@@ -35,7 +35,7 @@ pub mod quality;
 
 pub use builds::{HeavyBuild, HeavyBuilds};
 pub use camera::{LodCamera, LodCameras, LodView};
-pub use cell_batch::{CellBatch, CellBlend, CellScattering};
+pub use cell_batch::{CellBatch, CellBlend, CellScattering, CellSunlight};
 pub use cell_projection::{CellProjectionPlugin, CellProjectionStats, CellProjectionSystems};
 pub use diagnostics::{NebelDiagnosticsPlugin, NebelSystems};
 pub use fog_layers::{FogLayersUniform, ViewFogLayers};

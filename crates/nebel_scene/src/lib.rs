@@ -24,7 +24,9 @@
 //!     ),
 //!     clear_color: (0.02, 0.02, 0.05),
 //!     lights: [
-//!         Directional((direction: (-0.5, -1.0, -0.3), illuminance: 10000.0)),
+//!         Directional((direction: (-0.5, -1.0, -0.3), illuminance: 10000.0,
+//!                      // turning with the time (a day cycle); default still:
+//!                      turn: Some((axis: (1.0, 0.0, 0.0), degrees_per_second: 1.0)))),
 //!         Point((position: (0.0, 1.0, 0.0), color: (1.0, 0.6, 0.3), intensity: 100000.0)),
 //!         Ambient((brightness: 200.0)),
 //!     ],
@@ -297,6 +299,36 @@ pub struct DirectionalLightDescription {
     /// Whether it casts shadows. Default: false.
     #[serde(default)]
     pub shadows: bool,
+    /// The light turns with the time (a day cycle): its direction at time
+    /// `t` is `direction` turned about `axis` by `degrees_per_second · t`.
+    /// Default: none (still).
+    #[serde(default)]
+    pub turn: Option<LightTurn>,
+}
+
+/// A light turning at a constant rate about an axis.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LightTurn {
+    /// The axis it turns about, world space, non-zero (normalised).
+    pub axis: [f32; 3],
+    /// How fast it turns, degrees per second, finite (positive turns
+    /// counter-clockwise seen from the axis' tip).
+    pub degrees_per_second: f32,
+}
+
+impl DirectionalLightDescription {
+    /// The direction the light travels in at `time` seconds (normalised),
+    /// turned by [`Self::turn`].
+    pub fn direction_at(&self, time: f64) -> DVec3 {
+        let direction = DVec3::from(self.direction.map(f64::from)).normalize_or(DVec3::NEG_Y);
+        let Some(turn) = self.turn else {
+            return direction;
+        };
+        let axis = DVec3::from(turn.axis.map(f64::from)).normalize_or(DVec3::X);
+        let angle = f64::from(turn.degrees_per_second).to_radians() * time;
+        glam::DQuat::from_axis_angle(axis, angle) * direction
+    }
 }
 
 fn default_illuminance() -> f32 {
@@ -555,14 +587,14 @@ impl SceneDescription {
         .looking_at(DVec3::from(pose.look_at.map(f64::from)), DVec3::Y)
     }
 
-    /// The direction toward the sun: against the travel direction of the
-    /// first directional light, normalised; `None` without one. Lit volumes
-    /// use it (straight up when `None`), as the Bevy side does.
+    /// The direction toward the sun at the last frame: against the travel
+    /// direction of the first directional light, normalised; `None` without
+    /// one. Lit volumes use it (straight up when `None`), as the Bevy side
+    /// does.
     pub fn sun_direction(&self) -> Option<DVec3> {
+        let last_frame = f64::from(self.frame_time(self.output.frames.saturating_sub(1)));
         self.lights.iter().find_map(|light| match light {
-            LightDescription::Directional(sun) => {
-                (-DVec3::from(sun.direction.map(f64::from))).try_normalize()
-            }
+            LightDescription::Directional(sun) => (-sun.direction_at(last_frame)).try_normalize(),
             _ => None,
         })
     }
@@ -647,6 +679,21 @@ impl SceneDescription {
                     }
                     colour(&format!("{field}.color"), sun.color)?;
                     non_negative(&format!("{field}.illuminance"), sun.illuminance)?;
+                    if let Some(turn) = &sun.turn {
+                        finite(&format!("{field}.turn.axis"), &turn.axis)?;
+                        if turn.axis.iter().all(|c| *c == 0.0) {
+                            return Err(InvalidField::new(
+                                format!("{field}.turn.axis"),
+                                "must not be zero",
+                            ));
+                        }
+                        if !turn.degrees_per_second.is_finite() {
+                            return Err(InvalidField::new(
+                                format!("{field}.turn.degrees_per_second"),
+                                format!("must be finite, got {}", turn.degrees_per_second),
+                            ));
+                        }
+                    }
                 }
                 LightDescription::Point(point) => {
                     let field = format!("lights[{index}].Point");
@@ -1054,6 +1101,10 @@ mod tests {
                     color: [1.0, 0.9, 0.8],
                     illuminance: 5000.0,
                     shadows: true,
+                    turn: Some(LightTurn {
+                        axis: [1.0, 0.0, 0.0],
+                        degrees_per_second: 2.0,
+                    }),
                 }),
                 LightDescription::Point(PointLightDescription {
                     position: [0.0, 1.0, 0.0],
@@ -1116,6 +1167,7 @@ mod tests {
                     diffuse: 0.6,
                     shadow_extinction: 0.5,
                     model: LightModel::NonPhysical,
+                    keyframe_interval: 2.0,
                 }),
             }],
             terrain: Some(TerrainDescription {

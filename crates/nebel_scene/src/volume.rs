@@ -143,6 +143,14 @@ pub struct LightingDescription {
     /// Which field gives colour and which opacity. Default `Isotropic`.
     #[serde(default)]
     pub model: LightModel,
+    /// Seconds between the light field's keyframes while the sun turns,
+    /// > 0 (`nebel_volume::VolumeLighting::keyframe_interval`). Default 2.
+    #[serde(default = "default_keyframe_interval")]
+    pub keyframe_interval: f32,
+}
+
+fn default_keyframe_interval() -> f32 {
+    2.0
 }
 
 fn default_ambient() -> f32 {
@@ -849,6 +857,13 @@ impl VolumeDescription {
                     ),
                 ));
             }
+            let interval = lighting.keyframe_interval;
+            if !(interval.is_finite() && interval > 0.0) {
+                return Err(InvalidField::new(
+                    "lighting.keyframe_interval",
+                    format!("must be finite and > 0, got {interval}"),
+                ));
+            }
             if matches!(
                 self.source,
                 VolumeSource::Cells(_) | VolumeSource::Campfire(_) | VolumeSource::SearchLight(_)
@@ -1091,6 +1106,7 @@ mod tests {
                 diffuse: 0.7,
                 shadow_extinction: 0.0,
                 model: LightModel::Isotropic,
+                keyframe_interval: 2.0,
             }),
             ..volume(source)
         };
@@ -1141,6 +1157,7 @@ mod tests {
                 diffuse: 0.7,
                 shadow_extinction: 0.0,
                 model: LightModel::Isotropic,
+                keyframe_interval: 2.0,
             }),
             ..volume(VolumeSource::Cells(Vec::new()))
         };

@@ -335,6 +335,7 @@ fn fog_volume_peer(
         color: [tint.red, tint.green, tint.blue],
         illuminance: 4.0 * std::f32::consts::PI * brightest / Exposure::default().exposure(),
         shadows: false,
+        turn: None,
     });
     let mut lit = scene.clone();
     lit.lights

@@ -28,9 +28,9 @@ use nebel_render::{AutoQuality, NebelQuality, NebelSystems, QualityPreset};
 use crate::headless::{HeadlessError, HeadlessOptions, render_headless};
 use crate::stats::RenderStats;
 use nebel_scene::{
-    BuiltAurora, BuiltCloudLayer, BuiltGroundFog, BuiltVolume, CameraView, FogThicknessDescription,
-    GroundFogDescription, LightDescription, MeshDescription, QualityDescription, SceneDescription,
-    SceneError,
+    BuiltAurora, BuiltCloudLayer, BuiltGroundFog, BuiltVolume, CameraView,
+    DirectionalLightDescription, FogThicknessDescription, GroundFogDescription, LightDescription,
+    MeshDescription, QualityDescription, SceneDescription, SceneError,
 };
 use nebel_volume::VolumeGrid;
 
@@ -148,7 +148,10 @@ impl Plugin for SceneSetupPlugin {
                 (spawn_scene, spawn_terrain, spawn_aurora, spawn_cloud_layer),
             )
             .add_systems(PostStartup, enable_bevy_fog)
-            .add_systems(Update, follow_camera_path.in_set(NebelSystems));
+            .add_systems(
+                Update,
+                (follow_camera_path, turn_lights).in_set(NebelSystems),
+            );
         match self.peer.clone() {
             Some(BevyPeer::FogVolume(fog)) => {
                 app.insert_resource(BevyFogSettings(fog));
@@ -246,7 +249,7 @@ fn spawn_scene(
     for light in &scene.lights {
         match light {
             LightDescription::Directional(sun) => {
-                commands.spawn((
+                let mut light = commands.spawn((
                     DirectionalLight {
                         color: srgb(sun.color),
                         illuminance: sun.illuminance,
@@ -255,6 +258,9 @@ fn spawn_scene(
                     },
                     Transform::default().looking_to(Vec3::from(sun.direction), Vec3::Y),
                 ));
+                if sun.turn.is_some() {
+                    light.insert(TurningLight(sun.clone()));
+                }
             }
             LightDescription::Point(point) => {
                 let mut light = commands.spawn((
@@ -415,7 +421,7 @@ fn spawn_volumes(commands: &mut Commands, grids: &mut Assets<VolumeGrid>, volume
                         CloudLightModel::Scattering { asymmetry }
                     }
                 },
-                ..default()
+                keyframe_interval: lighting.keyframe_interval,
             });
         }
     }
@@ -575,6 +581,19 @@ fn spawn_cloud_layer(
         },
         Transform::from_translation(Vec3::from(description.center)),
     ));
+}
+
+/// A directional light of the scene that turns with the time.
+#[derive(Component)]
+struct TurningLight(DirectionalLightDescription);
+
+/// Points every turning light where the scene says it is at this frame's
+/// time.
+fn turn_lights(time: Res<Time>, mut lights: Query<(&TurningLight, &mut Transform)>) {
+    for (light, mut transform) in &mut lights {
+        let direction = light.0.direction_at(time.elapsed_secs_f64()).as_vec3();
+        *transform = Transform::default().looking_to(direction, Vec3::Y);
+    }
 }
 
 fn follow_camera_path(

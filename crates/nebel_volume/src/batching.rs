@@ -45,7 +45,9 @@ use nebel_lod::{
     VolumeBatchError, VolumeBatcher, VolumeSource,
 };
 use nebel_render::camera::to_double;
-use nebel_render::{CellBatch, CellBlend, EffectiveQuality, HeavyBuild, HeavyBuilds, LodCameras};
+use nebel_render::{
+    CellBatch, CellBlend, CellSunlight, EffectiveQuality, HeavyBuild, HeavyBuilds, LodCameras,
+};
 
 use crate::cloud::{CloudGeneration, CloudVolume};
 use crate::grid::VolumeGrid;
@@ -412,7 +414,7 @@ pub(crate) fn update_batches(
         Option<&CellBatch>,
         &mut VolumeBatching,
     )>,
-    suns: Query<&GlobalTransform, With<DirectionalLight>>,
+    suns: Query<(&GlobalTransform, &DirectionalLight)>,
     quality: Option<Res<EffectiveQuality>>,
     mut diagnostics: Diagnostics,
 ) {
@@ -421,7 +423,11 @@ pub(crate) fn update_batches(
     // A degenerate projection culls nothing rather than everything.
     let frustum =
         camera.and_then(|camera| Frustum::from_view_projection(camera.clip_from_world).ok());
-    let sun_world = suns.iter().next().map(|sun| sun.back().as_vec3());
+    let sun = suns.iter().next();
+    let sun_world = sun.map(|(transform, _)| transform.back().as_vec3());
+    let sunlight = CellSunlight {
+        colour: sun.map_or(Vec3::ONE, |(_, light)| sunlight(light)),
+    };
     let started = Instant::now();
     let mut rebuilt = false;
     for (entity, volume, transform, lod, lighting, visibility, drawn, mut batching) in &mut volumes
@@ -429,7 +435,9 @@ pub(crate) fn update_batches(
         if !visibility.get() || batching.drawn().is_none() {
             if drawn.is_some() {
                 // Hidden or failed: nothing to upload or draw.
-                commands.entity(entity).remove::<(CellBatch, CellBlend)>();
+                commands
+                    .entity(entity)
+                    .remove::<(CellBatch, CellBlend, CellSunlight)>();
             }
             continue;
         }
@@ -453,6 +461,10 @@ pub(crate) fn update_batches(
         match blend {
             Some((blend, _)) => commands.entity(entity).insert(blend),
             None => commands.entity(entity).remove::<CellBlend>(),
+        };
+        match lighting {
+            Some(_) => commands.entity(entity).insert(sunlight),
+            None => commands.entity(entity).remove::<CellSunlight>(),
         };
         let view = View {
             frustum: frustum.clone(),
@@ -499,6 +511,15 @@ pub(crate) fn update_batches(
         let ms = started.elapsed().as_secs_f64() * 1e3;
         diagnostics.add_measurement(&VolumePlugin::UPDATE_MS, || ms);
     }
+}
+
+/// The factor a lit volume's colours take under `sun`: its colour (linear)
+/// times its illuminance over the default `DirectionalLight`'s, the strength
+/// the transfer functions' colours are made for.
+fn sunlight(sun: &DirectionalLight) -> Vec3 {
+    let reference = DirectionalLight::default().illuminance;
+    let linear = sun.color.to_linear();
+    Vec3::new(linear.red, linear.green, linear.blue) * (sun.illuminance / reference)
 }
 
 /// Derives every volume's [`VolumeStatus`] from its stages and logs a new

@@ -97,6 +97,8 @@ struct CellBatchParameters {
     ambient_colour: vec4<f32>,
     // x: the blend factor β toward the next keyframe.
     blend: vec4<f32>,
+    // rgb: the sunlight's colour and strength as a factor on lit colours.
+    sunlight: vec4<f32>,
 }
 @group(1) @binding(5) var<uniform> parameters: CellBatchParameters;
 // Per cell, the next keyframe's scalars (entry 2i) and modulators (2i + 1) at
@@ -301,9 +303,9 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     let g = parameters.sun.w;
     let cos_theta = dot(direction, parameters.sun.xyz);
     let phase = (1.0 - g * g) / pow(1.0 + g * g - 2.0 * g * cos_theta, 1.5);
-    var segment = vec4(parameters.ambient_colour.rgb * alpha + parameters.sun_colour.rgb * phase * colour, alpha);
+    var segment = vec4(parameters.ambient_colour.rgb * alpha + parameters.sunlight.rgb * parameters.sun_colour.rgb * phase * colour, alpha);
 #else
-    var segment = vec4(colour, alpha);
+    var segment = vec4(parameters.sunlight.rgb * colour, alpha);
 #endif
 #endif
 #ifdef EMISSIVE

@@ -146,6 +146,7 @@ impl Plugin for CellProjectionPlugin {
         app.insert_resource(stats.clone())
             .register_type::<CellBatch>()
             .register_type::<crate::CellBlend>()
+            .register_type::<crate::CellSunlight>()
             .register_type::<CellProjectionStats>()
             .register_type::<crate::LodCamera>()
             .register_type::<crate::HeavyBuilds>()

@@ -23,7 +23,7 @@ use super::pipeline::{
     CellCompositePipelines, CellProjectionPipeline, CellProjectionPipelineKey,
     CellProjectionUnsupported, VARIANTS, accumulation_format, mode_index, variant_index,
 };
-use crate::cell_batch::{CellBatch, CellBatchUniform, CellBlend, CellScattering};
+use crate::cell_batch::{CellBatch, CellBatchUniform, CellBlend, CellScattering, CellSunlight};
 use crate::fog_layers::{FogLayersUniform, ViewFogLayers};
 
 /// Samples along `s_f` and `s_b` of the GPU tables.
@@ -48,6 +48,8 @@ pub struct ExtractedCellBatch {
     /// The blend factor toward the next keyframe, clamped ([`CellBlend`]);
     /// 0 for a batch that is not blended.
     blend: f32,
+    /// The sunlight factor ([`CellSunlight`], checked).
+    sunlight: Vec3,
 }
 
 impl ExtractedCellBatch {
@@ -63,7 +65,7 @@ impl ExtractedCellBatch {
 
     /// The batch's per-batch uniform.
     fn uniform(&self) -> CellBatchUniform {
-        CellBatchUniform::new(self.scattering.as_ref(), self.blend)
+        CellBatchUniform::new(self.scattering.as_ref(), self.blend, self.sunlight)
     }
 }
 
@@ -83,7 +85,14 @@ pub struct TableKey {
 /// error is logged once per entity.
 pub fn extract_cell_batches(
     mut extracted: ResMut<ExtractedCellBatches>,
-    batches: Extract<Query<(Entity, Ref<CellBatch>, Option<&CellBlend>)>>,
+    batches: Extract<
+        Query<(
+            Entity,
+            Ref<CellBatch>,
+            Option<&CellBlend>,
+            Option<&CellSunlight>,
+        )>,
+    >,
     unsupported: Option<Res<CellProjectionUnsupported>>,
     mut refused: Local<HashSet<Entity>>,
 ) {
@@ -93,7 +102,7 @@ pub fn extract_cell_batches(
     }
     // Forget entities that are gone, so the set stays as small as the world.
     refused.retain(|entity| batches.contains(*entity));
-    for (entity, batch, blend) in &batches {
+    for (entity, batch, blend, sunlight) in &batches {
         if !batch.is_drawable() {
             continue;
         }
@@ -143,6 +152,7 @@ pub fn extract_cell_batches(
                 } else {
                     0.0
                 },
+                sunlight: sunlight.map_or(Vec3::ONE, CellSunlight::checked),
             },
         ));
     }
@@ -172,8 +182,9 @@ pub struct GpuCellBuffer {
 #[derive(Resource, Default)]
 pub struct GpuCellBuffers(pub(super) HashMap<Entity, GpuCellBuffer>);
 
-/// Uploads batches that are new or changed, writes the blend factor of
-/// those whose factor alone changed, and drops those that are gone.
+/// Uploads batches that are new or changed, writes the per-batch uniform
+/// (blend factor, sunlight) of those where only it changed, and drops those
+/// that are gone.
 pub fn prepare_cell_buffers(
     extracted: Res<ExtractedCellBatches>,
     mut buffers: ResMut<GpuCellBuffers>,
@@ -191,7 +202,7 @@ pub fn prepare_cell_buffers(
         if !batch.changed
             && let Some(buffer) = buffers.0.get_mut(entity)
         {
-            if buffer.parameters.get().blend.x != batch.blend {
+            if *buffer.parameters.get() != batch.uniform() {
                 buffer.parameters.set(batch.uniform());
                 buffer.parameters.write_buffer(&device, &queue);
             }
