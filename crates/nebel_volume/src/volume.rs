@@ -254,6 +254,23 @@ mod tests {
         });
     }
 
+    /// Gives `volume` a 9³ noise grid lit by `lighting` with a shadow of
+    /// extinction 2.
+    fn give_lit_noise(app: &mut App, volume: Entity, lighting: VolumeLighting) {
+        let noise = nebel_core::field::ProceduralNoise {
+            octaves: 3,
+            ..default()
+        };
+        let grid =
+            DensityGrid::procedural([9, 9, 9], DVec3::splat(0.25), DVec3::ZERO, &noise).unwrap();
+        let field = grid_field(app, grid);
+        app.world_mut().get_mut::<Volume>(volume).unwrap().field = field;
+        app.world_mut().entity_mut(volume).insert(VolumeLighting {
+            shadow_extinction: 2.0,
+            ..lighting
+        });
+    }
+
     fn move_camera(app: &mut App, camera: Entity) {
         let mut transform = app.world_mut().get_mut::<Transform>(camera).unwrap();
         transform.translation.x += 1.0;
@@ -423,18 +440,7 @@ mod tests {
     #[test]
     fn a_lit_volume_carries_its_density_as_modulator_and_follows_the_sun() {
         let (mut app, _, volume) = app_with_volume(OpticalMode::Sorted);
-        let noise = nebel_core::field::ProceduralNoise {
-            octaves: 3,
-            ..default()
-        };
-        let grid =
-            DensityGrid::procedural([9, 9, 9], DVec3::splat(0.25), DVec3::ZERO, &noise).unwrap();
-        let field = grid_field(&mut app, grid);
-        app.world_mut().get_mut::<Volume>(volume).unwrap().field = field;
-        app.world_mut().entity_mut(volume).insert(VolumeLighting {
-            shadow_extinction: 2.0,
-            ..default()
-        });
+        give_lit_noise(&mut app, volume, VolumeLighting::default());
         app.update();
         let batch = app.world().get::<CellBatch>(volume).unwrap().clone();
         assert!(batch.cells.is_modulated(), "a lit batch is modulated");
@@ -578,19 +584,11 @@ mod tests {
         app.insert_resource(bevy::time::TimeUpdateStrategy::ManualDuration(
             std::time::Duration::from_millis(100),
         ));
-        let noise = nebel_core::field::ProceduralNoise {
-            octaves: 3,
-            ..default()
-        };
-        let grid =
-            DensityGrid::procedural([9, 9, 9], DVec3::splat(0.25), DVec3::ZERO, &noise).unwrap();
-        let field = grid_field(&mut app, grid);
-        app.world_mut().get_mut::<Volume>(volume).unwrap().field = field;
-        app.world_mut().entity_mut(volume).insert(VolumeLighting {
-            shadow_extinction: 2.0,
+        let lighting = VolumeLighting {
             keyframe_interval: 0.5,
             ..default()
-        });
+        };
+        give_lit_noise(&mut app, volume, lighting);
         let sun = app
             .world_mut()
             .spawn((
