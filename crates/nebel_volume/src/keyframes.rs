@@ -11,7 +11,7 @@
 //! is drawn from keyframes of its light field the same way: each keyframe
 //! lights the grid by the sun at the keyframe's time, extrapolated from its
 //! last two frames as a turn about their common normal at their rate
-//! ([`SunMotion`], exact for a day cycle at a constant rate); the light
+//! (`SunMotion`, exact for a day cycle at a constant rate); the light
 //! between keyframes is their blend. For a still grid a keyframe is its light
 //! field and octree (0.9 s of one core for the 513 × 65 × 513 layer). Once
 //! the sun and wind have rested for that long the volume is built once for
