@@ -57,7 +57,7 @@ pub struct CloudVolume {
     /// (below 1 ms, and NaN, count as 1 ms; infinite fails): the field is blended between
     /// keyframes, each built in the background while the previous pair is
     /// drawn. Shorter follows the wind more closely at a proportional CPU
-    /// cost (one keyframe per interval: about 3 s of one core for the
+    /// cost (one keyframe per interval: about 4 s of one core for the
     /// 513 × 65 × 513 layer). Default 2.
     pub keyframe_interval: f32,
 }

@@ -13,7 +13,7 @@
 //! last two frames as a turn about their common normal at their rate
 //! (`SunMotion`, exact for a day cycle at a constant rate); the light
 //! between keyframes is their blend. For a still grid a keyframe is its light
-//! field and octree (0.9 s of one core for the 513 × 65 × 513 layer). Once
+//! field and octrees (0.84 s of one core for the 513 × 65 × 513 layer). Once
 //! the sun and wind have rested for that long the volume is built once for
 //! the sun where it stopped, and drawn from the keyframes until that build
 //! lands.
@@ -49,12 +49,16 @@
 //!
 //! # Cost
 //!
-//! One keyframe's CPU time every `T` seconds, on the task pool, and per frame
-//! a uniform write. The 513 × 65 × 513 layer's keyframe takes about 3 s of
-//! one core (grid 2.4 s, light field 0.4 s, hierarchy 0.2 s), so at 60 frames
-//! per second `T` = 25 s spends 2 ms per frame on average. Memory: the drawn
-//! pair (7 bytes per grid point with light), the pair being built and its
-//! second keyframe (5 more per point), and the build's f32 grids.
+//! One keyframe's CPU time every `T` seconds on the task pool,
+//! [`REFINEMENT_STEPS`] refinements of the pair per interval in the batch
+//! update (besides the moving camera's own), and per frame a uniform write.
+//! `cargo bench -p nebel_lod --bench wind_keyframes` measured the 513 × 65 ×
+//! 513 layer's keyframe at 4.0 s of one core (grid 3.2 s, light field 0.4 s,
+//! octree 0.37 s, the pair's octree 0.08 s) and a still camera's refinement
+//! step at 17.5 ms, so at 60 frames per second `T` = 38 s spends 2 ms per
+//! frame on average. Memory: the drawn pair (9 bytes per grid point with
+//! light), the pair being built and its second keyframe (5 per point), and
+//! the build's f32 grids.
 //!
 //! # What the blend is not
 //!
