@@ -4,7 +4,9 @@
 //! its valleys: prisms on the terrain's own triangles, morphed with it,
 //! drawn back to front by cell projection (Röttger and Ertl 2003 §6), and
 //! beyond 3 km as fog layers ([`FogLayers`], Röttger 2004 §5.3): the same
-//! fog as a function of altitude, in one full-screen pass.
+//! fog as a function of altitude, in one full-screen pass. Above the hills a
+//! thin cumulus layer ([`CloudVolume`]) drifts in a 10 m/s wind, drawn from
+//! keyframes 4 s apart blended on the GPU, lit by the sun with shadows.
 //!
 //! `cargo run --release --example valley_fog` opens a window with a fly
 //! camera (WASD, Q/E down and up, Shift, right mouse button to look): fly
@@ -15,9 +17,13 @@
 //! `target/nebel/valley_fog.png`.
 
 use std::process::ExitCode;
+use std::sync::Arc;
 
 use bevy::camera::Hdr;
+use bevy::math::DVec3;
 use bevy::prelude::*;
+use nebel::nebel_core::field::CloudNoise;
+use nebel::nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel::prelude::*;
 use nebel_tools::example_runner::Example;
 use nebel_tools::nebel_scene::OutputSettings;
@@ -143,6 +149,37 @@ fn spawn_valley(mut commands: Commands) {
         GroundFog {
             thickness: valley_fill(),
             density: 0.015,
+            ..default()
+        },
+    ));
+    // Drifting clouds over the hills: 129 × 17 × 129 points over 8 km,
+    // 900 to 1,400 m up, a 10 m/s wind (finer octaves faster).
+    commands.spawn((
+        CloudVolume {
+            dims: UVec3::new(129, 17, 129),
+            min: Vec3::new(-4000.0, 900.0, -4000.0),
+            max: Vec3::new(4000.0, 1400.0, 4000.0),
+            noise: CloudNoise {
+                seed: 3,
+                coverage: 0.3,
+                octaves: 5,
+                wavelength: 1600.0,
+                wind: DVec3::new(10.0, 0.0, 3.0),
+                ..default()
+            },
+            keyframe_interval: 4.0,
+        },
+        // Thin: the light preset's opacity at 3 % per metre of density.
+        Volume {
+            transfer_function: Arc::new(
+                TransferFunction::preset(TransferPreset::CloudLight)
+                    .scale_density(0.03)
+                    .expect("a finite scale"),
+            ),
+            ..CloudVolume::lit_volume()
+        },
+        VolumeLighting {
+            shadow_extinction: 0.008,
             ..default()
         },
     ));
