@@ -93,6 +93,6 @@ pub use surface_layer::{
 pub use view::View;
 pub use visibility::{CellAdjacency, sorted_batch};
 pub use volume_batcher::{
-    BatchLighting, BatchSettings, FrameInputs, OctreeSettings, VolumeBatchError, VolumeBatcher,
-    VolumeSource,
+    BatchLighting, BatchSettings, BlendStep, BuiltBlendStep, FrameInputs, OctreeSettings,
+    VolumeBatchError, VolumeBatcher, VolumeSource,
 };

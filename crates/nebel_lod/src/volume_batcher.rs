@@ -284,8 +284,9 @@ enum Kind {
     },
     /// A grid through the octree; the grid itself is not kept.
     Octree {
-        /// The padded grid's hierarchy, with the light field when lit.
-        hierarchy: VolumeHierarchy,
+        /// The padded grid's hierarchy, with the light field when lit
+        /// (shared with a [`BlendStep`] in flight).
+        hierarchy: Arc<VolumeHierarchy>,
         /// The cells' scalar and modulator.
         scalars: CellScalars,
     },
@@ -382,15 +383,15 @@ impl VolumeBatcher {
                 let padded = grid.padded_to_power_of_two_plus_one(PadFill::Value(0.0))?;
                 match settings.lighting {
                     Some(lighting) => Kind::Octree {
-                        hierarchy: VolumeHierarchy::with_light(
+                        hierarchy: Arc::new(VolumeHierarchy::with_light(
                             &padded,
                             &light_field(&padded, &lighting.light)?,
                             octree.min_accuracy,
-                        )?,
+                        )?),
                         scalars: lighting.scalars,
                     },
                     None => Kind::Octree {
-                        hierarchy: VolumeHierarchy::new(&padded, octree.min_accuracy)?,
+                        hierarchy: Arc::new(VolumeHierarchy::new(&padded, octree.min_accuracy)?),
                         scalars: CellScalars::Density,
                     },
                 }
@@ -481,7 +482,7 @@ impl VolumeBatcher {
         }
         Ok(Self {
             kind: Kind::Octree {
-                hierarchy: hierarchy.with_next_keyframe(next_hierarchy)?,
+                hierarchy: Arc::new(hierarchy.with_next_keyframe(next_hierarchy)?),
                 scalars: *scalars,
             },
             settings: self.settings,
@@ -489,6 +490,56 @@ impl VolumeBatcher {
             batch: Arc::default(),
             built: None,
         })
+    }
+
+    /// The rebuild [`VolumeBatcher::update`] would make for `view` and
+    /// `inputs`, detached, when it is for a new keyframe blend alone (the
+    /// view, transfer function and criterion as last built, a batcher of two
+    /// keyframes): a still camera's refinement step, which a caller may run
+    /// on another thread ([`BlendStep::build`]) and hand back with
+    /// [`VolumeBatcher::adopt`] while the current batch is drawn. `None`
+    /// otherwise.
+    pub fn blend_step(&self, view: &View, inputs: &FrameInputs) -> Option<BlendStep> {
+        let Kind::Octree { hierarchy, scalars } = &self.kind else {
+            return None;
+        };
+        let built = self.built.as_ref()?;
+        let only_the_blend = hierarchy.has_next_keyframe()
+            && built.view == *view
+            && built.transfer == inputs.transfer.content_hash()
+            && built.criterion == inputs.criterion
+            && built.blend.to_bits() != inputs.blend.to_bits();
+        only_the_blend.then(|| BlendStep {
+            hierarchy: hierarchy.clone(),
+            scalars: *scalars,
+            view: view.clone(),
+            transfer: inputs.transfer.clone(),
+            criterion: inputs.criterion,
+            blend: inputs.blend,
+        })
+    }
+
+    /// Takes the batch of a finished [`BlendStep`] of this batcher's octree
+    /// (one of another batcher is ignored) as the current batch, as
+    /// [`VolumeBatcher::update`] would have built it; returns whether it did.
+    /// A failed step is its error, and changes nothing.
+    pub fn adopt(&mut self, built: BuiltBlendStep) -> Result<bool, VolumeBatchError> {
+        let Kind::Octree { hierarchy, .. } = &self.kind else {
+            return Ok(false);
+        };
+        if !Arc::ptr_eq(hierarchy, &built.step.hierarchy) {
+            return Ok(false);
+        }
+        let step = built.step;
+        self.batch = Arc::new(built.batch?);
+        self.built = Some(BuiltFor {
+            view: step.view,
+            transfer: step.transfer.content_hash(),
+            criterion: step.criterion,
+            blend: step.blend,
+            order_key: None,
+        });
+        Ok(true)
     }
 
     /// The current batch: world space, in draw order, modulated for a lit
@@ -608,6 +659,42 @@ impl VolumeBatcher {
         };
         Ok(batch)
     }
+}
+
+/// A blended octree's refinement for a new blend, detached from its
+/// batcher ([`VolumeBatcher::blend_step`]).
+#[derive(Debug)]
+pub struct BlendStep {
+    hierarchy: Arc<VolumeHierarchy>,
+    scalars: CellScalars,
+    view: View,
+    transfer: TransferFunction,
+    criterion: LodCriterion,
+    blend: f32,
+}
+
+impl BlendStep {
+    /// Refines and emits the batch, as [`VolumeBatcher::update`] would.
+    pub fn build(self) -> BuiltBlendStep {
+        let settings = RefinementSettings {
+            criterion: self.criterion,
+            scalars: self.scalars,
+            blend: self.blend,
+        };
+        let batch = refine(&self.hierarchy, &self.view, &self.transfer, &settings)
+            .and_then(|refinement| {
+                lod_batch_with(&self.hierarchy, &refinement, &self.view, self.scalars)
+            })
+            .map_err(VolumeBatchError::from);
+        BuiltBlendStep { step: self, batch }
+    }
+}
+
+/// A built [`BlendStep`], for [`VolumeBatcher::adopt`].
+#[derive(Debug)]
+pub struct BuiltBlendStep {
+    step: BlendStep,
+    batch: Result<CellBatch, VolumeBatchError>,
 }
 
 /// `cells` (local frame) moved to world space by the view's

@@ -794,3 +794,54 @@ fn a_batcher_blends_toward_the_next_keyframe() {
         );
     }
 }
+
+/// A still camera's refinement step for a new blend can be built detached
+/// and adopted: the same batch `update` builds; other changes, single
+/// keyframes and other batchers' steps give none or are ignored.
+#[test]
+fn a_blend_step_builds_detached_what_update_builds() {
+    let eye = eye_at(DVec3::new(4.2, 11.0, 3.1));
+    let v = view(eye).with_frustum(frustum(eye, DVec3::new(4.0, 3.0, 2.5)));
+    let transfer = cloud();
+    let first_sun = lit(CellScalars::LightModulatedByDensity);
+    let mut later = first_sun;
+    if let Some(lighting) = &mut later.lighting {
+        lighting.light.sun_direction = DVec3::new(-0.8, 0.3, 0.1);
+    }
+    let first = VolumeBatcher::new(grid_source(), &first_sun).unwrap();
+    let second = VolumeBatcher::new(grid_source(), &later).unwrap();
+    let mut detached = first.with_next_keyframe(&second).unwrap();
+    let mut inline = first.with_next_keyframe(&second).unwrap();
+    let at = |blend: f32| FrameInputs {
+        blend,
+        ..inputs(&transfer)
+    };
+    assert!(
+        detached.blend_step(&v, &at(0.0)).is_none(),
+        "nothing built yet"
+    );
+    detached.update(&v, &at(0.0)).unwrap();
+    inline.update(&v, &at(0.0)).unwrap();
+    assert!(
+        detached.blend_step(&v, &at(0.0)).is_none(),
+        "nothing changed"
+    );
+    let moved = view(eye + DVec3::X);
+    assert!(
+        detached.blend_step(&moved, &at(0.5)).is_none(),
+        "the camera moved"
+    );
+    let step = detached
+        .blend_step(&v, &at(0.5))
+        .expect("a new blend alone");
+    assert!(detached.adopt(step.build()).unwrap());
+    assert!(inline.update(&v, &at(0.5)).unwrap());
+    assert_eq!(detached.batch(), inline.batch());
+    assert!(!detached.update(&v, &at(0.5)).unwrap(), "adopted as built");
+    // A step of another batcher is not taken; a single keyframe has none.
+    let other = inline.blend_step(&v, &at(0.75)).unwrap();
+    assert!(!detached.adopt(other.build()).unwrap());
+    let mut single = VolumeBatcher::new(grid_source(), &first_sun).unwrap();
+    single.update(&v, &at(0.0)).unwrap();
+    assert!(single.blend_step(&v, &at(0.5)).is_none());
+}

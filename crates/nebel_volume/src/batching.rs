@@ -19,7 +19,12 @@
 //!    function, the criterion of [`VolumeLod`] scaled by the quality preset);
 //!    the entity's `CellBatch` is written only
 //!    when the batch, the optical mode or the scattering changed, so the
-//!    render world uploads only then.
+//!    render world uploads only then. A windy cloud or a volume under a
+//!    moving sun is drawn from its keyframe track (`crate::keyframes`), with
+//!    its `CellBlend` and, lit, its `CellSunlight` written every frame; a
+//!    still camera's refinement step for the track's advancing blend is
+//!    built on the task pool (`VolumeBatcher::blend_step`) while the current
+//!    batch is drawn.
 //! 3. `report_status` derives [`VolumeStatus`] from the stages' failures (the
 //!    generator's, the grid asset's, the build's, the last update's, in that
 //!    order) and logs a failure once per entity when it appears; a failed
@@ -41,8 +46,8 @@ use bevy::math::{DAffine3, DVec3};
 use bevy::prelude::*;
 use nebel_core::optics::OpticalMode;
 use nebel_lod::{
-    BatchLighting, BatchSettings, CellOrder, FrameInputs, Frustum, OctreeSettings, View,
-    VolumeBatchError, VolumeBatcher, VolumeSource,
+    BatchLighting, BatchSettings, BuiltBlendStep, CellOrder, FrameInputs, Frustum, OctreeSettings,
+    View, VolumeBatchError, VolumeBatcher, VolumeSource,
 };
 use nebel_render::camera::to_double;
 use nebel_render::{
@@ -115,6 +120,9 @@ pub(crate) struct VolumeBatching {
     sun_moved_at: Option<f64>,
     /// The last batch written came from the keyframe track.
     wrote_keyframes: bool,
+    /// A still camera's refinement step for the keyframes' advancing blend,
+    /// in flight.
+    blend_step: Option<HeavyBuild<BuiltBlendStep>>,
     /// What the batcher was built from.
     built: Option<BuildKey>,
     /// The build in flight and what it builds from.
@@ -416,6 +424,7 @@ pub(crate) fn update_batches(
     )>,
     suns: Query<(&GlobalTransform, &DirectionalLight)>,
     quality: Option<Res<EffectiveQuality>>,
+    mode: Res<HeavyBuilds>,
     mut diagnostics: Diagnostics,
 ) {
     let camera = cameras.view();
@@ -481,7 +490,27 @@ pub(crate) fn update_batches(
         };
         let scattering =
             lighting.and_then(|lighting| lighting.cell_scattering(sun_world.unwrap_or(Vec3::Y)));
-        match batcher.update(&view, &inputs) {
+        // A still camera's refinement step for the advancing blend runs on
+        // the task pool while the current batch is drawn.
+        let updated = match batcher.blend_step(&view, &inputs) {
+            Some(step) => {
+                let build = batching
+                    .blend_step
+                    .get_or_insert_with(|| HeavyBuild::spawn(move || step.build()));
+                match build.poll(*mode) {
+                    Some(built) => {
+                        batching.blend_step = None;
+                        batcher.adopt(built)
+                    }
+                    None => Ok(false),
+                }
+            }
+            None => {
+                batching.blend_step = None;
+                batcher.update(&view, &inputs)
+            }
+        };
+        match updated {
             Ok(changed) => {
                 batching.update_failure = None;
                 let current = drawn.is_some_and(|batch| {

@@ -50,8 +50,10 @@
 //! # Cost
 //!
 //! One keyframe's CPU time every `T` seconds on the task pool,
-//! [`REFINEMENT_STEPS`] refinements of the pair per interval in the batch
-//! update (besides the moving camera's own), and per frame a uniform write.
+//! [`REFINEMENT_STEPS`] refinements of the pair per interval (for a still
+//! camera on the task pool too; a moving camera refines every frame anyway),
+//! the first batch of each new pair in the frame of the hand-over, and per
+//! frame a uniform write.
 //! `cargo bench -p nebel_lod --bench wind_keyframes` measured the 513 × 65 ×
 //! 513 layer's keyframe at 4.0 s of one core (grid 3.2 s, light field 0.4 s,
 //! octree 0.37 s, the pair's octree 0.08 s) and a still camera's refinement
