@@ -10,8 +10,11 @@
 //!    diffuse lighting" of §5.2 on the density gradient, optionally shadowed
 //!    by the transmittance toward the sun (Nes 2008), with the sun taken
 //!    from the first [`DirectionalLight`] (straight up in the volume's frame
-//!    when there is none), and again whenever the sun, the volume or its
-//!    rotation changes;
+//!    when there is none), and again whenever the volume or its rotation
+//!    changes or the sun comes to rest somewhere new; while the sun moves,
+//!    from keyframes of the light field blended on the GPU
+//!    (`crate::keyframes`); the light's colour and illuminance scale the
+//!    colours drawn (`nebel_render::CellSunlight`);
 //! 2. builds the hierarchy over both fields (`VolumeHierarchy::with_light`), so
 //!    refinement follows the larger deviation of density and light (§5.1);
 //! 3. emits cells that carry one field as the transfer function's scalar
