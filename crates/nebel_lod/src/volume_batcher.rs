@@ -509,14 +509,19 @@ impl VolumeBatcher {
             && built.transfer == inputs.transfer.content_hash()
             && built.criterion == inputs.criterion
             && built.blend.to_bits() != inputs.blend.to_bits();
-        only_the_blend.then(|| BlendStep {
-            hierarchy: hierarchy.clone(),
-            scalars: *scalars,
-            view: view.clone(),
-            transfer: inputs.transfer.clone(),
-            criterion: inputs.criterion,
-            blend: inputs.blend,
-        })
+        only_the_blend.then(|| BlendStep::new(hierarchy, *scalars, view, inputs))
+    }
+
+    /// The first build of a batcher of two keyframes, detached as
+    /// [`VolumeBatcher::blend_step`]: the next pair's batch made ahead for the
+    /// current view, adopted before it is drawn. `None` once built or for
+    /// other batchers.
+    pub fn first_build(&self, view: &View, inputs: &FrameInputs) -> Option<BlendStep> {
+        let Kind::Octree { hierarchy, scalars } = &self.kind else {
+            return None;
+        };
+        (self.built.is_none() && hierarchy.has_next_keyframe())
+            .then(|| BlendStep::new(hierarchy, *scalars, view, inputs))
     }
 
     /// Takes the batch of a finished [`BlendStep`] of this batcher's octree
@@ -674,6 +679,22 @@ pub struct BlendStep {
 }
 
 impl BlendStep {
+    fn new(
+        hierarchy: &Arc<VolumeHierarchy>,
+        scalars: CellScalars,
+        view: &View,
+        inputs: &FrameInputs,
+    ) -> Self {
+        Self {
+            hierarchy: hierarchy.clone(),
+            scalars,
+            view: view.clone(),
+            transfer: inputs.transfer.clone(),
+            criterion: inputs.criterion,
+            blend: inputs.blend,
+        }
+    }
+
     /// Refines and emits the batch, as [`VolumeBatcher::update`] would.
     pub fn build(self) -> BuiltBlendStep {
         let settings = RefinementSettings {

@@ -820,7 +820,11 @@ fn a_blend_step_builds_detached_what_update_builds() {
         detached.blend_step(&v, &at(0.0)).is_none(),
         "nothing built yet"
     );
-    detached.update(&v, &at(0.0)).unwrap();
+    // The first build, made ahead, is the first update's.
+    let first = detached.first_build(&v, &at(0.0)).expect("not built yet");
+    assert!(detached.adopt(first.build()).unwrap());
+    assert!(detached.first_build(&v, &at(0.0)).is_none(), "built");
+    assert!(!detached.update(&v, &at(0.0)).unwrap(), "adopted as built");
     inline.update(&v, &at(0.0)).unwrap();
     assert!(
         detached.blend_step(&v, &at(0.0)).is_none(),
@@ -842,6 +846,7 @@ fn a_blend_step_builds_detached_what_update_builds() {
     let other = inline.blend_step(&v, &at(0.75)).unwrap();
     assert!(!detached.adopt(other.build()).unwrap());
     let mut single = VolumeBatcher::new(grid_source(), &first_sun).unwrap();
+    assert!(single.first_build(&v, &at(0.0)).is_none());
     single.update(&v, &at(0.0)).unwrap();
     assert!(single.blend_step(&v, &at(0.5)).is_none());
 }

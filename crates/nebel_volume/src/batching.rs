@@ -22,9 +22,10 @@
 //!    render world uploads only then. A windy cloud or a volume under a
 //!    moving sun is drawn from its keyframe track (`crate::keyframes`), with
 //!    its `CellBlend` and, lit, its `CellSunlight` written every frame; a
-//!    still camera's refinement step for the track's advancing blend is
-//!    built on the task pool (`VolumeBatcher::blend_step`) while the current
-//!    batch is drawn.
+//!    still camera's refinement step for the track's advancing blend and the
+//!    next pair's first batch are built on the task pool
+//!    (`VolumeBatcher::blend_step`, `VolumeBatcher::first_build`) while the
+//!    current batch is drawn.
 //! 3. `report_status` derives [`VolumeStatus`] from the stages' failures (the
 //!    generator's, the grid asset's, the build's, the last update's, in that
 //!    order) and logs a failure once per entity when it appears; a failed
@@ -118,11 +119,14 @@ pub(crate) struct VolumeBatching {
     last_sun: Option<(DVec3, f64)>,
     /// When the sun last moved.
     sun_moved_at: Option<f64>,
-    /// The last batch written came from the keyframe track.
-    wrote_keyframes: bool,
+    /// The keyframe pair (its first keyframe's index) the last batch
+    /// written came from; `None`: the volume's own batcher.
+    wrote_pair: Option<i64>,
     /// A still camera's refinement step for the keyframes' advancing blend,
     /// in flight.
     blend_step: Option<HeavyBuild<BuiltBlendStep>>,
+    /// The next keyframe pair's first batch, made ahead, in flight.
+    next_pair_batch: Option<HeavyBuild<BuiltBlendStep>>,
     /// What the batcher was built from.
     built: Option<BuildKey>,
     /// The build in flight and what it builds from.
@@ -454,7 +458,14 @@ pub(crate) fn update_batches(
         // The keyframes once their first pair is built, the volume's own
         // batcher until then and after.
         let from_keyframes = batching.draws_keyframes();
-        let switched = from_keyframes != batching.wrote_keyframes;
+        let pair = batching
+            .keyframes
+            .as_ref()
+            .and_then(KeyframeTrack::pair_index)
+            .filter(|_| from_keyframes);
+        // A new pair (or the switch to or from the keyframes) writes its
+        // batch even when it was made ahead for this very view.
+        let switched = pair != batching.wrote_pair;
         let blend = batching
             .keyframes
             .as_ref()
@@ -522,7 +533,7 @@ pub(crate) fn update_batches(
                             .is_some_and(|tf| Arc::ptr_eq(tf, &volume.transfer_function))
                 });
                 if changed || !current || switched {
-                    batching.wrote_keyframes = from_keyframes;
+                    batching.wrote_pair = pair;
                     rebuilt = true;
                     let mut batch = CellBatch::new(
                         batcher.batch().clone(),
@@ -535,10 +546,44 @@ pub(crate) fn update_batches(
             }
             Err(error) => batching.update_failure = Some(error.into()),
         }
+        if let Some(track) = batching.keyframes.as_mut().filter(|_| from_keyframes) {
+            prebuild_next_pair(track, &mut batching.next_pair_batch, &view, &inputs, *mode);
+        }
     }
     if rebuilt {
         let ms = started.elapsed().as_secs_f64() * 1e3;
         diagnostics.add_measurement(&VolumePlugin::UPDATE_MS, || ms);
+    }
+}
+
+/// Makes the first batch of `track`'s next pair for this frame's view and
+/// inputs on the task pool (`build` holds it in flight), so that a still
+/// camera's hand-over finds it made. One made for another view, or failed, is
+/// made again in the frame of the hand-over.
+fn prebuild_next_pair(
+    track: &mut KeyframeTrack,
+    build: &mut Option<HeavyBuild<BuiltBlendStep>>,
+    view: &View,
+    inputs: &FrameInputs,
+    mode: HeavyBuilds,
+) {
+    let Some(next) = track.next_batcher_mut() else {
+        *build = None;
+        return;
+    };
+    if build.is_none() {
+        let first = FrameInputs {
+            blend: 0.0,
+            ..*inputs
+        };
+        *build = next
+            .first_build(view, &first)
+            .map(|step| HeavyBuild::spawn(move || step.build()));
+    }
+    if let Some(built) = build.as_mut().and_then(|build| build.poll(mode)) {
+        *build = None;
+        // A failure shows again when the pair is drawn and built in the frame.
+        next.adopt(built).ok();
     }
 }
 

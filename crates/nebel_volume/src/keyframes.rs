@@ -50,10 +50,10 @@
 //! # Cost
 //!
 //! One keyframe's CPU time every `T` seconds on the task pool,
-//! [`REFINEMENT_STEPS`] refinements of the pair per interval (for a still
-//! camera on the task pool too; a moving camera refines every frame anyway),
-//! the first batch of each new pair in the frame of the hand-over, and per
-//! frame a uniform write.
+//! [`REFINEMENT_STEPS`] refinements of the pair per interval and the next
+//! pair's first batch (for a still camera both on the task pool too; a
+//! moving camera refines every frame anyway), and per frame a uniform
+//! write.
 //! `cargo bench -p nebel_lod --bench wind_keyframes` measured the 513 × 65 ×
 //! 513 layer's keyframe at 4.0 s of one core (grid 3.2 s, light field 0.4 s,
 //! octree 0.37 s, the pair's octree 0.08 s) and a still camera's refinement
@@ -330,6 +330,17 @@ impl KeyframeTrack {
     /// The drawn pair's batcher, `None` until the first pair is built.
     pub(crate) fn batcher_mut(&mut self) -> Option<&mut VolumeBatcher> {
         self.drawn.as_mut().map(|pair| &mut pair.batcher)
+    }
+
+    /// The next pair's batcher, once built and waiting for the clock.
+    pub(crate) fn next_batcher_mut(&mut self) -> Option<&mut VolumeBatcher> {
+        self.next.as_mut().map(|pair| &mut pair.batcher)
+    }
+
+    /// The index of the drawn pair's first keyframe; `None` until the first
+    /// pair is built.
+    pub(crate) fn pair_index(&self) -> Option<i64> {
+        self.drawn.as_ref().map(|pair| pair.index)
     }
 
     /// The drawn pair's batcher, `None` until the first pair is built.
