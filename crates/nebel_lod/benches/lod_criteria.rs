@@ -25,20 +25,17 @@
 
 use std::time::Instant;
 
-use glam::{DAffine3, DMat4, DVec3, DVec4, UVec2};
+use glam::DVec3;
 use nebel_core::field::{CloudLighting, CloudNoise, DensityGrid, light_field};
-use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::octree::{CellScalars, LodCriterion, RefinementSettings, lod_batch_with, refine};
-use nebel_lod::{CellBatch, GpuCell, View, VolumeHierarchy};
-use nebel_reference::image_metrics::{LinearImage, compare};
-use nebel_reference::{Modulation, ReferenceCamera, ReferenceScene, ReferenceVolume, render};
+use nebel_lod::{CellBatch, View, VolumeHierarchy};
+use nebel_reference::image_metrics::compare;
+
+mod support;
 
 /// The image size of every measurement.
 const SIZE: [u32; 2] = [320, 200];
-
-/// The sky colour of the scenes, behind the clouds.
-const SKY: DVec4 = DVec4::new(0.36, 0.55, 0.85, 1.0);
 
 const ACCURACIES: [f64; 7] = [0.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0];
 const TOLERANCES: [f64; 6] = [0.3, 0.1, 0.03, 0.01, 0.003, 0.001];
@@ -91,42 +88,6 @@ impl Layer {
         .expect("valid view");
         (batch, started.elapsed().as_secs_f64() * 1e3)
     }
-
-    /// The exact image of `batch` from `camera`.
-    fn image(&self, batch: &CellBatch, camera: ReferenceCamera) -> LinearImage {
-        let cells = batch.cells.iter().map(GpuCell::to_tetrahedron).collect();
-        let mut scene = ReferenceScene::new(
-            camera,
-            ReferenceVolume::Cells(cells),
-            self.transfer.clone(),
-            OpticalMode::Sorted,
-        );
-        scene.modulation = Some(Modulation::Cells(
-            batch.modulators.iter().map(|m| m.map(f64::from)).collect(),
-        ));
-        scene.background = SKY;
-        render(&scene, None).expect("reference render")
-    }
-}
-
-/// The view and camera from `eye` toward `target` (60° vertical field of
-/// view, [`SIZE`]).
-fn view(eye: DVec3, target: DVec3) -> (View, ReferenceCamera) {
-    let [width, height] = SIZE;
-    let aspect = f64::from(width) / f64::from(height);
-    let clip_from_world = DMat4::perspective_infinite_reverse_rh(60f64.to_radians(), aspect, 1.0)
-        * DMat4::look_at_rh(eye, target, DVec3::Y);
-    let view = View::new(DAffine3::IDENTITY, eye, UVec2::new(width, height))
-        .with_projection(clip_from_world);
-    let camera = ReferenceCamera {
-        position: eye,
-        vertical_fov: 60f64.to_radians(),
-        width,
-        height,
-        ..ReferenceCamera::default()
-    }
-    .looking_at(target, DVec3::Y);
-    (view, camera)
 }
 
 /// Sweeps both criteria on one view against `reference` and appends the
@@ -139,9 +100,9 @@ fn sweep(
     target: DVec3,
     reference: LodCriterion,
 ) {
-    let (view, camera) = view(eye, target);
+    let (view, camera) = support::view(eye, target, SIZE);
     let (full, _) = layer.batch(&view, reference);
-    let reference_image = layer.image(&full, camera);
+    let reference_image = support::image(&full, camera, &layer.transfer);
     println!("{name}: reference {reference:?}, {} cells", full.len());
     let criteria = ACCURACIES
         .iter()
@@ -149,7 +110,11 @@ fn sweep(
         .chain(TOLERANCES.iter().map(|&t| LodCriterion::screen_error(t)));
     for criterion in criteria {
         let (batch, update_ms) = layer.batch(&view, criterion);
-        let error = compare(&layer.image(&batch, camera), &reference_image).expect("same size");
+        let error = compare(
+            &support::image(&batch, camera, &layer.transfer),
+            &reference_image,
+        )
+        .expect("same size");
         let (kind, value) = match criterion {
             LodCriterion::Distance { accuracy } => ("distance", accuracy),
             LodCriterion::ScreenError { image_error } => ("screen_error", image_error),

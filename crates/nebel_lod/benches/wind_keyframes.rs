@@ -31,18 +31,15 @@
 
 use std::time::Instant;
 
-use glam::{DAffine3, DMat4, DVec3, DVec4, UVec2};
+use glam::DVec3;
 use nebel_core::field::{CloudLighting, CloudNoise, DensityGrid, light_field_with_threads};
-use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::octree::keyframe::REFINEMENT_STEPS;
 use nebel_lod::octree::{CellScalars, LodCriterion, RefinementSettings, lod_batch_with, refine};
-use nebel_lod::{CellBatch, GpuCell, View, VolumeHierarchy};
+use nebel_lod::{CellBatch, View, VolumeHierarchy};
 use nebel_reference::image_metrics::{LinearImage, compare};
-use nebel_reference::{Modulation, ReferenceCamera, ReferenceScene, ReferenceVolume, render};
 
-/// The sky colour behind the clouds.
-const SKY: DVec4 = DVec4::new(0.36, 0.55, 0.85, 1.0);
+mod support;
 
 /// The wind of the first octave, m/s; finer octaves 1.5 times faster each.
 const WIND: DVec3 = DVec3::new(10.0, 0.0, 4.0);
@@ -122,42 +119,6 @@ fn batch(
     (batch, elapsed_ms(started))
 }
 
-/// The view and camera from `eye` toward `target`, 60° vertical field of
-/// view, `size` pixels.
-fn view(eye: DVec3, target: DVec3, size: [u32; 2]) -> (View, ReferenceCamera) {
-    let [width, height] = size;
-    let aspect = f64::from(width) / f64::from(height);
-    let clip_from_world = DMat4::perspective_infinite_reverse_rh(60f64.to_radians(), aspect, 1.0)
-        * DMat4::look_at_rh(eye, target, DVec3::Y);
-    let view = View::new(DAffine3::IDENTITY, eye, UVec2::new(width, height))
-        .with_projection(clip_from_world);
-    let camera = ReferenceCamera {
-        position: eye,
-        vertical_fov: 60f64.to_radians(),
-        width,
-        height,
-        ..ReferenceCamera::default()
-    }
-    .looking_at(target, DVec3::Y);
-    (view, camera)
-}
-
-/// The exact image of `batch` (not blended) from `camera`.
-fn image(batch: &CellBatch, camera: ReferenceCamera, transfer: &TransferFunction) -> LinearImage {
-    let cells = batch.cells.iter().map(GpuCell::to_tetrahedron).collect();
-    let mut scene = ReferenceScene::new(
-        camera,
-        ReferenceVolume::Cells(cells),
-        transfer.clone(),
-        OpticalMode::Sorted,
-    );
-    scene.modulation = Some(Modulation::Cells(
-        batch.modulators.iter().map(|m| m.map(f64::from)).collect(),
-    ));
-    scene.background = SKY;
-    render(&scene, None).expect("reference render")
-}
-
 fn main() {
     let mut csv = String::from("measure,interval_s,value\n");
     let transfer = transfer();
@@ -176,7 +137,7 @@ fn main() {
         DVec3::new(-3600.0, 1700.0, -1800.0),
         DVec3::new(0.0, 900.0, 0.0),
     );
-    let (still, _) = view(eye, target, [640, 400]);
+    let (still, _) = support::view(eye, target, [640, 400]);
     let (single, single_ms) = batch(&first, &still, &transfer, 0.0);
     let (blended, step_ms) = batch(&pair, &still, &transfer, 0.5);
     println!(
@@ -217,14 +178,14 @@ fn main() {
         DVec3::new(-3300.0, 1000.0, -900.0),
         DVec3::new(0.0, 850.0, 300.0),
     );
-    let (view, camera) = view(eye, target, [320, 200]);
+    let (view, camera) = support::view(eye, target, [320, 200]);
     let (still_keyframe, _) = keyframe(dims, 4, 0.008, 0.0);
     // 32 frames of a flight toward the layer at 100 m/s, 60 frames per second.
     let flight: Vec<LinearImage> = (0..=32)
         .map(|frame| {
             let eye = eye + (target - eye).normalize() * (100.0 / 60.0 * f64::from(frame));
-            let (view, camera) = crate::view(eye, target, [320, 200]);
-            image(
+            let (view, camera) = support::view(eye, target, [320, 200]);
+            support::image(
                 &batch(&still_keyframe, &view, &transfer, 0.0).0,
                 camera,
                 &transfer,
@@ -252,7 +213,7 @@ fn main() {
         // The image of `pair` refined for `refined` and drawn at `blend`.
         let at = |pair: &VolumeHierarchy, refined: f32, blend: f32| {
             let (cells, _) = batch(pair, &view, &transfer, refined);
-            image(&cells.blended(blend), camera, &transfer)
+            support::image(&cells.blended(blend), camera, &transfer)
         };
         let frame = (1.0 / (60.0 * interval)) as f32;
         let steps = REFINEMENT_STEPS as f32;
@@ -267,7 +228,7 @@ fn main() {
             &at(&first_pair, 1.0 - 1.0 / steps, 1.0 - frame),
         )
         .expect("same size");
-        let rebuilt = image(&batch(&mid, &view, &transfer, 0.0).0, camera, &transfer);
+        let rebuilt = support::image(&batch(&mid, &view, &transfer, 0.0).0, camera, &transfer);
         let error = compare(&half_image, &rebuilt).expect("same size");
         println!(
             "129 layer, T = {interval} s: largest change between frames {:.2e} inside a refinement step, {:.2e} across one, {:.2e} at a hand-over; half way RMSE {:.2e} (largest {:.2e}) against a rebuild then",
