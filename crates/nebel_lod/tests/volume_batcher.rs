@@ -748,6 +748,19 @@ fn a_full_resolution_batch_beyond_the_memory_budget_is_refused_before_it_is_buil
     );
 }
 
+/// Two keyframes of the lit grid under a moving sun: the first one's
+/// settings, and a batcher for each sun.
+fn sun_keyframes() -> (BatchSettings, VolumeBatcher, VolumeBatcher) {
+    let first_sun = lit(CellScalars::LightModulatedByDensity);
+    let mut later = first_sun;
+    if let Some(lighting) = &mut later.lighting {
+        lighting.light.sun_direction = DVec3::new(-0.8, 0.3, 0.1);
+    }
+    let first = VolumeBatcher::new(grid_source(), &first_sun).unwrap();
+    let second = VolumeBatcher::new(grid_source(), &later).unwrap();
+    (first_sun, first, second)
+}
+
 /// Keyframes of a moving sun: the pair's batch carries the second sun's light
 /// beside the first's, over cells refined for both; kinds without the octree
 /// and different scalars are refused.
@@ -756,13 +769,7 @@ fn a_batcher_blends_toward_the_next_keyframe() {
     let eye = eye_at(DVec3::new(4.2, 11.0, 3.1));
     let v = view(eye).with_frustum(frustum(eye, DVec3::new(4.0, 3.0, 2.5)));
     let transfer = cloud();
-    let first_sun = lit(CellScalars::LightModulatedByDensity);
-    let mut later = first_sun;
-    if let Some(lighting) = &mut later.lighting {
-        lighting.light.sun_direction = DVec3::new(-0.8, 0.3, 0.1);
-    }
-    let first = VolumeBatcher::new(grid_source(), &first_sun).unwrap();
-    let second = VolumeBatcher::new(grid_source(), &later).unwrap();
+    let (first_sun, first, second) = sun_keyframes();
     let mut pair = first.with_next_keyframe(&second).unwrap();
     assert_eq!(pair.settings(), &first_sun);
     assert!(pair.update(&v, &inputs(&transfer)).unwrap());
@@ -803,13 +810,7 @@ fn a_blend_step_builds_detached_what_update_builds() {
     let eye = eye_at(DVec3::new(4.2, 11.0, 3.1));
     let v = view(eye).with_frustum(frustum(eye, DVec3::new(4.0, 3.0, 2.5)));
     let transfer = cloud();
-    let first_sun = lit(CellScalars::LightModulatedByDensity);
-    let mut later = first_sun;
-    if let Some(lighting) = &mut later.lighting {
-        lighting.light.sun_direction = DVec3::new(-0.8, 0.3, 0.1);
-    }
-    let first = VolumeBatcher::new(grid_source(), &first_sun).unwrap();
-    let second = VolumeBatcher::new(grid_source(), &later).unwrap();
+    let (first_sun, first, second) = sun_keyframes();
     let mut detached = first.with_next_keyframe(&second).unwrap();
     let mut inline = first.with_next_keyframe(&second).unwrap();
     let at = |blend: f32| FrameInputs {

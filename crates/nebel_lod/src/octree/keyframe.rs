@@ -44,7 +44,7 @@
 
 use nebel_core::budget::{Dims, check_allocation};
 
-use super::{HierarchyError, Node, VolumeHierarchy, unpack_range};
+use super::{HierarchyError, Node, VolumeHierarchy};
 
 /// How many times per keyframe interval a blended octree is refined again
 /// for the advancing blend (besides whenever the camera moves): the blend a
@@ -118,23 +118,8 @@ impl VolumeHierarchy {
     /// [`VolumeHierarchy::scalar_range_quantised`] for a single keyframe.
     /// Panics when the node is not in this hierarchy.
     pub fn scalar_range_at(&self, node: Node, blend: f32) -> [u8; 2] {
-        if !self.has_next_keyframe() {
+        let ([low, high], Some([next_low, next_high])) = self.keyframe_ranges(node) else {
             return self.scalar_range_quantised(node);
-        }
-        let ([low, high], [next_low, next_high]) = if node.level == 0 {
-            // A voxel's ranges are its corners' in each keyframe.
-            self.check(node);
-            let corners = |density: &[u8]| {
-                let values = (0..8).map(|v| density[self.index(node.corner(v))]);
-                [values.clone().min().unwrap_or(0), values.max().unwrap_or(0)]
-            };
-            (corners(&self.density), corners(&self.next_density))
-        } else {
-            let index = self.range_index(node);
-            (
-                unpack_range(self.words[index]),
-                unpack_range(self.next_words[index]),
-            )
         };
         let beta = clamped_blend(blend);
         let mix = |a: u8, b: u8| (1.0 - beta) * f32::from(a) + beta * f32::from(b);

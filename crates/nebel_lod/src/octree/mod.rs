@@ -360,28 +360,31 @@ impl VolumeHierarchy {
     /// node's closed box, units of 1/255. Panics when the node is not in this
     /// hierarchy.
     pub fn scalar_range_quantised(&self, node: Node) -> [u8; 2] {
+        match self.keyframe_ranges(node) {
+            ([low, high], Some([next_low, next_high])) => [low.min(next_low), high.max(next_high)],
+            (range, None) => range,
+        }
+    }
+
+    /// The node's `[min, max]` density in the first keyframe and, when the
+    /// hierarchy blends two, in the second, units of 1/255: a voxel's from
+    /// its corners, a larger node's as stored. Panics when the node is not in
+    /// this hierarchy.
+    fn keyframe_ranges(&self, node: Node) -> ([u8; 2], Option<[u8; 2]>) {
         if node.level == 0 {
             self.check(node);
-            let values = (0..8).flat_map(|v| {
-                let index = self.index(node.corner(v));
-                [
-                    Some(self.density[index]),
-                    self.next_density.get(index).copied(),
-                ]
-                .into_iter()
-                .flatten()
-            });
-            return [values.clone().min().unwrap_or(0), values.max().unwrap_or(0)];
+            let corners = |density: &[u8]| {
+                let values = (0..8).map(|v| density[self.index(node.corner(v))]);
+                [values.clone().min().unwrap_or(0), values.max().unwrap_or(0)]
+            };
+            let next = self
+                .has_next_keyframe()
+                .then(|| corners(&self.next_density));
+            return (corners(&self.density), next);
         }
         let index = self.range_index(node);
-        let [low, high] = unpack_range(self.words[index]);
-        match self.next_words.get(index) {
-            Some(&next) => {
-                let [next_low, next_high] = unpack_range(next);
-                [low.min(next_low), high.max(next_high)]
-            }
-            None => [low, high],
-        }
+        let next = self.next_words.get(index).map(|&word| unpack_range(word));
+        (unpack_range(self.words[index]), next)
     }
 
     /// `[min, max]` of the node's densities in [0, 1], for
