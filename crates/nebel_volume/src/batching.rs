@@ -88,7 +88,7 @@ impl BuildKey {
 
 /// The bits of every value of `settings` (0 for the parts it lacks, with a
 /// flag for each part).
-fn settings_bits(settings: &BatchSettings) -> [u64; 12] {
+pub(crate) fn settings_bits(settings: &BatchSettings) -> [u64; 12] {
     let octree = settings.octree.map(|octree| octree.min_accuracy.to_bits());
     let mut bits = [0; 12];
     bits[0] = u64::from(settings.order == CellOrder::BackToFront);
@@ -254,8 +254,8 @@ pub(crate) fn build_batchers(
                 let moving = batching
                     .sun_moved_at
                     .is_some_and(|moved| now - moved <= 2.0 * interval);
-                match source(volume, &grids, &asset_server) {
-                    Ok(Some(VolumeSource::Grid(grid))) if moving => {
+                match moving.then(|| source(volume, &grids, &asset_server)) {
+                    Some(Ok(Some(VolumeSource::Grid(grid)))) => {
                         Some((KeyframeSource::Grid(grid), lighting.keyframe_interval))
                     }
                     _ => None,
@@ -424,6 +424,7 @@ pub(crate) fn update_batches(
         Option<&VolumeLighting>,
         &InheritedVisibility,
         Option<&CellBatch>,
+        (Option<&CellBlend>, Option<&CellSunlight>),
         &mut VolumeBatching,
     )>,
     suns: Query<(&GlobalTransform, &DirectionalLight)>,
@@ -443,7 +444,8 @@ pub(crate) fn update_batches(
     };
     let started = Instant::now();
     let mut rebuilt = false;
-    for (entity, volume, transform, lod, lighting, visibility, drawn, mut batching) in &mut volumes
+    for (entity, volume, transform, lod, lighting, visibility, drawn, parameters, mut batching) in
+        &mut volumes
     {
         if !visibility.get() || batching.drawn().is_none() {
             if drawn.is_some() {
@@ -478,14 +480,26 @@ pub(crate) fn update_batches(
         let (Some(camera), Some(batcher)) = (camera, batcher) else {
             continue;
         };
-        match blend {
-            Some((blend, _)) => commands.entity(entity).insert(blend),
-            None => commands.entity(entity).remove::<CellBlend>(),
-        };
-        match lighting {
-            Some(_) => commands.entity(entity).insert(sunlight),
-            None => commands.entity(entity).remove::<CellSunlight>(),
-        };
+        // The blend and the sunlight, written when they change.
+        let (drawn_blend, drawn_sunlight) = parameters;
+        match (blend.map(|(blend, _)| blend), drawn_blend) {
+            (Some(blend), drawn) if drawn != Some(&blend) => {
+                commands.entity(entity).insert(blend);
+            }
+            (None, Some(_)) => {
+                commands.entity(entity).remove::<CellBlend>();
+            }
+            _ => {}
+        }
+        match (lighting, drawn_sunlight) {
+            (Some(_), drawn) if drawn != Some(&sunlight) => {
+                commands.entity(entity).insert(sunlight);
+            }
+            (None, Some(_)) => {
+                commands.entity(entity).remove::<CellSunlight>();
+            }
+            _ => {}
+        }
         let view = View {
             frustum: frustum.clone(),
             clip_from_world: Some(camera.clip_from_world),

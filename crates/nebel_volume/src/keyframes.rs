@@ -78,6 +78,7 @@ use nebel_lod::octree::keyframe::{REFINEMENT_STEPS, keyframe_index, keyframe_tim
 use nebel_lod::{BatchSettings, VolumeBatchError, VolumeBatcher, VolumeSource};
 use nebel_render::{CellBlend, HeavyBuild, HeavyBuilds};
 
+use crate::batching::settings_bits;
 use crate::cloud::CloudVolume;
 
 /// What a volume's keyframes sample.
@@ -169,16 +170,17 @@ impl KeyframeRecipe {
         VolumeBatcher::new(VolumeSource::Grid(grid), &settings)
     }
 
-    /// Equality of what the keyframes depend on but the sun, by their
-    /// printed values (a NaN setting equals itself, so a track that failed
-    /// on it is not started again every frame) and the grid's identity.
+    /// Equality of what the keyframes depend on but the sun, bit for bit (a
+    /// NaN setting equals itself, so a track that failed on it is not
+    /// started again every frame; the cloud by its printed values) and the
+    /// grid's identity.
     fn same_as(&self, other: &Self) -> bool {
         let without_sun = |recipe: &Self| {
             let mut settings = recipe.settings;
             if let Some(lighting) = &mut settings.lighting {
                 lighting.light.sun_direction = DVec3::ZERO;
             }
-            format!("{settings:?} {}", recipe.interval)
+            (settings_bits(&settings), recipe.interval.to_bits())
         };
         let source = match (&self.source, &other.source) {
             (KeyframeSource::Cloud(a), KeyframeSource::Cloud(b)) => {
