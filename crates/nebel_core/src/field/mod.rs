@@ -38,6 +38,7 @@ mod fog;
 mod height_field;
 mod light;
 mod load;
+mod perlin_row;
 mod procedural;
 mod resample;
 mod terrain;
