@@ -5,10 +5,10 @@
 //!   "adapter": { "name": "llvmpipe (LLVM 15.0.6, 256 bits)", "backend": "Vulkan", "device_type": "Cpu" },
 //!   "frames_rendered": 8,
 //!   "width": 320, "height": 240,
-//!   "frame_wall_ms": { "median": 41.2, "max": 380.5 },
+//!   "frame_wall_ms": { "median": 41.2, "mean": 60.3, "max": 380.5 },
 //!   "warm_up_frames": 2,
-//!   "warm_up_frame_wall_ms": { "median": 700.1, "max": 1210.4 },
-//!   "nebel_systems_cpu_ms": { "median": 0.01, "max": 0.02 },
+//!   "warm_up_frame_wall_ms": { "median": 700.1, "mean": 955.2, "max": 1210.4 },
+//!   "nebel_systems_cpu_ms": { "median": 0.01, "mean": 0.01, "max": 0.02 },
 //!   "effects": { }
 //! }
 //! ```
@@ -37,11 +37,13 @@ pub struct AdapterSummary {
     pub device_type: String,
 }
 
-/// Median and maximum of a per-frame time, milliseconds.
+/// Median, mean and maximum of a per-frame time, milliseconds.
 #[derive(Clone, Copy, Debug, Default, Serialize, PartialEq)]
 pub struct TimeSummary {
     /// Median over the frames, ms.
     pub median: f64,
+    /// Mean over the frames, ms.
+    pub mean: f64,
     /// Maximum over the frames, ms.
     pub max: f64,
 }
@@ -60,7 +62,8 @@ impl TimeSummary {
         } else {
             (millis[middle - 1] + millis[middle]) / 2.0
         };
-        Self { median, max }
+        let mean = millis.iter().sum::<f64>() / millis.len() as f64;
+        Self { median, mean, max }
     }
 }
 
@@ -108,6 +111,7 @@ mod tests {
             TimeSummary::of(&[ms(3), ms(1), ms(2)]),
             TimeSummary {
                 median: 2.0,
+                mean: 2.0,
                 max: 3.0
             }
         );
@@ -115,6 +119,7 @@ mod tests {
             TimeSummary::of(&[ms(4), ms(1), ms(2), ms(8)]),
             TimeSummary {
                 median: 3.0,
+                mean: 3.75,
                 max: 8.0
             }
         );

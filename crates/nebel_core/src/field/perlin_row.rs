@@ -128,6 +128,8 @@ impl PerlinRow {
         debug_assert_eq!(xs.len(), sums.len());
         let y = FixedAxis::new(y);
         let z = FixedAxis::new(z);
+        // The last lattice plane hashed: its x and its corners' gradients.
+        let mut last_plane: Option<(isize, PlaneGradients)> = None;
         let mut start = 0;
         while start < xs.len() {
             let corner = lattice_corner(xs[start]);
@@ -137,10 +139,16 @@ impl PerlinRow {
                     .position(|&x| lattice_corner(x) != corner)
                     .unwrap_or(xs.len() - start);
             if (start..end).any(&live) {
-                self.add_cell(
-                    corner,
-                    y,
-                    z,
+                let lower = match last_plane {
+                    Some((plane, gradients)) if plane == corner => gradients,
+                    _ => self.plane_gradients(corner, y, z),
+                };
+                let upper = self.plane_gradients(corner + 1, y, z);
+                last_plane = Some((corner + 1, upper));
+                add_cell(
+                    corner as f64,
+                    [lower, upper],
+                    [y, z],
                     amplitude,
                     &xs[start..end],
                     &mut sums[start..end],
@@ -150,57 +158,59 @@ impl PerlinRow {
         }
     }
 
-    /// [`PerlinRow::add_row`] for points of one lattice cell, whose lower x
-    /// corner is `corner`.
-    fn add_cell(
-        &self,
-        corner: isize,
-        y: FixedAxis,
-        z: FixedAxis,
-        amplitude: f64,
-        xs: &[f64],
-        sums: &mut [f64],
-    ) {
-        // Corner order (dx, dy, dz) as `noise`: 000, 100, 010, 110, 001, 101, 011, 111.
-        let gradient = |dx: isize, dy: isize, dz: isize| {
-            let hash = self
-                .table
-                .hash(&[corner + dx, y.corner + dy, z.corner + dz]);
+    /// The gradients of the row's cell corners on the lattice plane `x`.
+    fn plane_gradients(&self, x: isize, y: FixedAxis, z: FixedAxis) -> PlaneGradients {
+        let gradient = |dy: isize, dz: isize| {
+            let hash = self.table.hash(&[x, y.corner + dy, z.corner + dz]);
             let y = if dy == 0 { y.near } else { y.far };
             let z = if dz == 0 { z.near } else { z.far };
             CornerGradient::new(hash, y, z)
         };
-        let g000 = gradient(0, 0, 0);
-        let g100 = gradient(1, 0, 0);
-        let g010 = gradient(0, 1, 0);
-        let g110 = gradient(1, 1, 0);
-        let g001 = gradient(0, 0, 1);
-        let g101 = gradient(1, 0, 1);
-        let g011 = gradient(0, 1, 1);
-        let g111 = gradient(1, 1, 1);
-        let corner = corner as f64;
-        for (&x, sum) in xs.iter().zip(sums.iter_mut()) {
-            let near = x - corner;
-            let far = near - 1.0;
-            let fade = quintic(near);
-            let (fz, gz) = (z.fade, z.one_minus_fade);
-            let (fy, gy) = (y.fade, y.one_minus_fade);
-            let lower_x = linear(
-                linear(g000.dot(near), g001.dot(near), fz, gz),
-                linear(g010.dot(near), g011.dot(near), fz, gz),
-                fy,
-                gy,
-            );
-            let upper_x = linear(
-                linear(g100.dot(far), g101.dot(far), fz, gz),
-                linear(g110.dot(far), g111.dot(far), fz, gz),
-                fy,
-                gy,
-            );
-            let noise =
-                (linear(lower_x, upper_x, fade, 1.0 - fade) * SCALE_FACTOR).clamp(-1.0, 1.0);
-            *sum += amplitude * noise;
-        }
+        [
+            gradient(0, 0),
+            gradient(1, 0),
+            gradient(0, 1),
+            gradient(1, 1),
+        ]
+    }
+}
+
+/// The gradients of a cell's four corners on one x lattice plane, in the order
+/// (dy, dz) = 00, 10, 01, 11.
+type PlaneGradients = [CornerGradient; 4];
+
+/// [`PerlinRow::add_row`] for the points `xs` of one lattice cell: `corner`
+/// its lower x, `planes` the gradients on its lower and upper x faces, `[y,
+/// z]` the row's fixed axes.
+fn add_cell(
+    corner: f64,
+    planes: [PlaneGradients; 2],
+    [y, z]: [FixedAxis; 2],
+    amplitude: f64,
+    xs: &[f64],
+    sums: &mut [f64],
+) {
+    let [[g000, g010, g001, g011], [g100, g110, g101, g111]] = planes;
+    let (fz, gz) = (z.fade, z.one_minus_fade);
+    let (fy, gy) = (y.fade, y.one_minus_fade);
+    for (&x, sum) in xs.iter().zip(sums.iter_mut()) {
+        let near = x - corner;
+        let far = near - 1.0;
+        let fade = quintic(near);
+        let lower_x = linear(
+            linear(g000.dot(near), g001.dot(near), fz, gz),
+            linear(g010.dot(near), g011.dot(near), fz, gz),
+            fy,
+            gy,
+        );
+        let upper_x = linear(
+            linear(g100.dot(far), g101.dot(far), fz, gz),
+            linear(g110.dot(far), g111.dot(far), fz, gz),
+            fy,
+            gy,
+        );
+        let noise = (linear(lower_x, upper_x, fade, 1.0 - fade) * SCALE_FACTOR).clamp(-1.0, 1.0);
+        *sum += amplitude * noise;
     }
 }
 
