@@ -8,7 +8,9 @@
 //! - No popping: along a smooth camera path into a cloud the largest
 //!   per-pixel change between consecutive frames stays below a bound that
 //!   the same path without morphing exceeds, while the full-resolution render
-//!   itself (the floor) changes by less than half the bound.
+//!   itself (the floor) changes by less than half the bound; the same cloud
+//!   in the wind, drawn from keyframes (a still camera, the octree refined
+//!   again every step of the blend), stays below the same bound.
 //! - Stress: the eye at node centres and on node faces, edges and corners;
 //!   flat-zero and all-one fields; NaN input; sizes that are not `2^n + 1`; a
 //!   non-cubic forest.
@@ -63,6 +65,18 @@ enum Edge {
 /// (`octaves`, first octave 1/16 cycles per world unit, seed 7); outside it
 /// 0, so every boundary point is exactly 0.
 fn cloud_grid(dims: [usize; 3], spacing: f64, octaves: usize, edge: Edge) -> DensityGrid {
+    drifting_cloud_grid(dims, spacing, octaves, edge, DVec3::ZERO)
+}
+
+/// [`cloud_grid`] with its noise moved by `drift` (world units) through the
+/// envelope, which stays: the cloud a wind blows through its shape.
+fn drifting_cloud_grid(
+    dims: [usize; 3],
+    spacing: f64,
+    octaves: usize,
+    edge: Edge,
+    drift: DVec3,
+) -> DensityGrid {
     let half = DVec3::from(dims.map(|n| (n - 1) as f64 / 2.0));
     let origin = -half * spacing;
     let noise = ProceduralNoise {
@@ -71,7 +85,7 @@ fn cloud_grid(dims: [usize; 3], spacing: f64, octaves: usize, edge: Edge) -> Den
         frequency: 1.0 / 16.0,
         ..ProceduralNoise::default()
     };
-    let raw = DensityGrid::procedural(dims, DVec3::splat(spacing), origin, &noise)
+    let raw = DensityGrid::procedural(dims, DVec3::splat(spacing), origin - drift, &noise)
         .expect("valid noise settings");
     let semi_axes = (half - 1.0).max(DVec3::splat(0.5));
     let [nx, ny, _] = dims;
@@ -1164,5 +1178,131 @@ proptest! {
 
         let values = assert_finite_and_conforming(&batch, DVec3::ZERO, DVec3::new(32.0, 16.0, 8.0));
         assert_no_t_vertex_cracks(&batch, &values);
+    }
+}
+
+/// The wind's keyframes, drawn as the volume plugin draws them: the cloud
+/// of the popping test, its noise drifting through its envelope at one voxel
+/// per second (2 world units per second), keyframes at `k·T`; a still camera;
+/// each pair refined again every `1/REFINEMENT_STEPS` of the interval for the
+/// blend at the step's start, at the popping test's screen error, and drawn at
+/// every frame's blend (60 frames per second, a quarter interval past a
+/// hand-over). The largest per-pixel change between consecutive frames stays
+/// under the popping test's bound, inside a refinement step, across one and
+/// at the hand-over; with morphing off it is at least 1.5 times larger (the
+/// test can fail); the exact blend at full resolution (the floor) changes by
+/// less than half the bound.
+#[test]
+fn wind_keyframes_change_consecutive_frames_less_than_the_popping_bound() {
+    use nebel_lod::octree::keyframe::REFINEMENT_STEPS;
+    const BOUND: f64 = 0.0125;
+    const FRAME_RATE: f64 = 60.0;
+    let dims = [17; 3];
+    let wind = DVec3::new(2.0, 0.0, 0.8);
+    let transfer = cloud_transfer(0.15);
+    let size = [40, 30];
+    let eye = path_eye(40);
+    let cam = camera(eye, DVec3::ZERO, 20.0, size);
+    let view = projected_view(eye, DVec3::ZERO, 20.0, size);
+    let criterion = LodCriterion::screen_error(0.03);
+    for (interval, check_unmorphed) in [(2.0f64, true), (4.0, false)] {
+        let grids: Vec<DensityGrid> = (0..3)
+            .map(|k| drifting_cloud_grid(dims, 2.0, 1, Edge::Soft, wind * (k as f64 * interval)))
+            .collect();
+        let keyframes: Vec<VolumeHierarchy> = grids
+            .iter()
+            .map(|g| VolumeHierarchy::new(g, C_MIN).unwrap())
+            .collect();
+        let pairs = [
+            keyframes[0].with_next_keyframe(&keyframes[1]).unwrap(),
+            keyframes[1].with_next_keyframe(&keyframes[2]).unwrap(),
+        ];
+        let quantised: Vec<DensityGrid> = keyframes
+            .iter()
+            .map(VolumeHierarchy::quantised_grid)
+            .collect();
+        // (pair, refinement step) → batch with morphing on and off.
+        let mut batches: HashMap<(usize, u32), [CellBatch; 2]> = HashMap::new();
+        let mut floor = 0.0f64;
+        // [morphed, unmorphed] × [inside a step, across one, at the hand-over].
+        let mut largest = [[0.0f64; 3]; 2];
+        let mut previous: Option<((usize, u32), LinearImage, [LinearImage; 2])> = None;
+        for frame in 0..(1.25 * interval * FRAME_RATE) as usize {
+            let time = frame as f64 / FRAME_RATE;
+            let pair = (time / interval).floor() as usize;
+            let blend = (time / interval - pair as f64) as f32;
+            let step = (blend * REFINEMENT_STEPS as f32).floor() as u32;
+            let batch = batches.entry((pair, step)).or_insert_with(|| {
+                let settings = RefinementSettings {
+                    blend: step as f32 / REFINEMENT_STEPS as f32,
+                    ..RefinementSettings::new(criterion)
+                };
+                let refinement = refine(&pairs[pair], &view, &transfer, &settings).unwrap();
+                let mut unmorphed = refinement.clone();
+                for node in &mut unmorphed.refined {
+                    node.morph = 1.0;
+                }
+                [&refinement, &unmorphed].map(|r| lod_batch(&pairs[pair], r, &view).unwrap())
+            });
+            let images = [0, 1].map(|i| image(&batch[i].blended(blend), &transfer, cam));
+            let (current, next) = (&quantised[pair], &quantised[pair + 1]);
+            let exact_blend = DensityGrid::new(
+                dims,
+                current.spacing(),
+                current.origin(),
+                current
+                    .values()
+                    .iter()
+                    .zip(next.values())
+                    .map(|(a, b)| (1.0 - blend) * a + blend * b)
+                    .collect(),
+            )
+            .unwrap();
+            let exact = image(&full(&exact_blend, &transfer, eye), &transfer, cam);
+            if let Some((last_key, last_exact, last_images)) = &previous {
+                floor = floor.max(max_change(&exact, last_exact));
+                let kind = if *last_key == (pair, step) {
+                    0
+                } else if last_key.0 == pair {
+                    1
+                } else {
+                    2
+                };
+                for i in 0..2 {
+                    largest[i][kind] =
+                        largest[i][kind].max(max_change(&images[i], &last_images[i]));
+                }
+            }
+            previous = Some(((pair, step), exact, images));
+        }
+        eprintln!(
+            "wind keyframes T = {interval} s, {} batches: largest change between frames inside a refinement step / across one / at the hand-over {:.4} / {:.4} / {:.4} (morphing off {:.4} / {:.4} / {:.4}), exact blend (floor) {floor:.4}, bound {BOUND}",
+            batches.len(),
+            largest[0][0],
+            largest[0][1],
+            largest[0][2],
+            largest[1][0],
+            largest[1][1],
+            largest[1][2],
+        );
+        let [morphed, unmorphed] = largest.map(|l| l.into_iter().fold(0.0, f64::max));
+        assert!(
+            morphed < BOUND,
+            "T = {interval} s: largest change {morphed:.4} ≥ bound {BOUND}"
+        );
+        assert!(
+            largest[0][2] > 0.0,
+            "T = {interval} s: the hand-over was reached"
+        );
+        if check_unmorphed {
+            assert!(
+                unmorphed >= 1.5 * morphed,
+                "T = {interval} s: without morphing {unmorphed:.4} is not 1.5× the morphed {morphed:.4}"
+            );
+        }
+        assert!(
+            floor < 0.5 * BOUND,
+            "T = {interval} s: floor {floor:.4} is not below half the bound"
+        );
     }
 }
