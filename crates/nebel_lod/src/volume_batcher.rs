@@ -547,6 +547,13 @@ impl VolumeBatcher {
         Ok(true)
     }
 
+    /// Whether the batcher has a batch: built by [`VolumeBatcher::update`]
+    /// or adopted from a detached build ([`VolumeBatcher::adopt`]), for some
+    /// view.
+    pub fn is_built(&self) -> bool {
+        self.built.is_some()
+    }
+
     /// The current batch: world space, in draw order, modulated for a lit
     /// cloud. Empty before the first successful [`VolumeBatcher::update`].
     /// Shared: a renderer keeps it without copying the cells, and a rebuild

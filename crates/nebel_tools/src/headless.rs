@@ -47,7 +47,7 @@ use bevy::winit::WinitPlugin;
 use nebel_render::{HeavyBuilds, NebelDiagnosticsPlugin};
 use thiserror::Error;
 
-use crate::stats::{AdapterSummary, RenderStats, TimeSummary};
+use crate::stats::{AdapterSummary, FrameTimes, RenderStats, TimeSummary};
 use nebel::NebelPlugins;
 use nebel_scene::OutputSettings;
 
@@ -341,6 +341,7 @@ pub fn render_headless(
         warm_up_frames: headless.warm_up_times.len() as u32,
         warm_up_frame_wall_ms: TimeSummary::of(&headless.warm_up_times),
         nebel_systems_cpu_ms: TimeSummary::of(&nebel_times),
+        per_frame_ms: FrameTimes::of(&frame_times, &nebel_times),
         effects: effect_counters(world.resource::<DiagnosticsStore>()),
     })
 }

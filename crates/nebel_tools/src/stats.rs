@@ -9,6 +9,7 @@
 //!   "warm_up_frames": 2,
 //!   "warm_up_frame_wall_ms": { "median": 700.1, "mean": 955.2, "max": 1210.4 },
 //!   "nebel_systems_cpu_ms": { "median": 0.01, "mean": 0.01, "max": 0.02 },
+//!   "per_frame_ms": { "wall": [41.2, 380.5, ...], "nebel_systems": [0.01, 0.02, ...] },
 //!   "effects": { }
 //! }
 //! ```
@@ -16,7 +17,8 @@
 //! `frame_wall_ms` is the whole `App::update` plus waiting for the GPU, per
 //! scene frame; `warm_up_frame_wall_ms` the same for the frames before the
 //! first, until every pipeline compiled; `nebel_systems_cpu_ms` is the
-//! diagnostic `nebel/systems_ms` of the scene frames; `effects` has one
+//! diagnostic `nebel/systems_ms` of the scene frames; `per_frame_ms` lists
+//! both per scene frame, in order; `effects` has one
 //! object per effect present in the scene with the latest value of each of
 //! its `nebel/<effect>/<counter>` diagnostics (and `_mean` and `_max` over the
 //! history of each timing), none for an absent effect.
@@ -67,6 +69,26 @@ impl TimeSummary {
     }
 }
 
+/// The times of every scene frame, milliseconds, in frame order.
+#[derive(Clone, Debug, Default, Serialize, PartialEq)]
+pub struct FrameTimes {
+    /// Wall time of each frame, update plus GPU wait.
+    pub wall: Vec<f64>,
+    /// Wall time of the `NebelSystems` set in each frame.
+    pub nebel_systems: Vec<f64>,
+}
+
+impl FrameTimes {
+    /// The times in milliseconds.
+    pub fn of(wall: &[Duration], nebel_systems: &[Duration]) -> Self {
+        let millis = |times: &[Duration]| times.iter().map(|d| d.as_secs_f64() * 1e3).collect();
+        Self {
+            wall: millis(wall),
+            nebel_systems: millis(nebel_systems),
+        }
+    }
+}
+
 /// The statistics of one headless render.
 #[derive(Clone, Debug, Serialize, PartialEq)]
 pub struct RenderStats {
@@ -88,6 +110,8 @@ pub struct RenderStats {
     pub warm_up_frame_wall_ms: TimeSummary,
     /// Wall time per frame of the `NebelSystems` set.
     pub nebel_systems_cpu_ms: TimeSummary,
+    /// Both times of every scene frame, in frame order.
+    pub per_frame_ms: FrameTimes,
     /// Counters per effect present in the scene.
     pub effects: BTreeMap<String, BTreeMap<String, f64>>,
 }

@@ -21,11 +21,14 @@
 //!    when the batch, the optical mode or the scattering changed, so the
 //!    render world uploads only then. A windy cloud or a volume under a
 //!    moving sun is drawn from its keyframe track (`crate::keyframes`), with
-//!    its `CellBlend` and, lit, its `CellSunlight` written every frame; a
+//!    its `CellBlend` and, lit, its `CellSunlight` written when they change; a
 //!    still camera's refinement step for the track's advancing blend and the
 //!    next pair's first batch are built on the task pool
 //!    (`VolumeBatcher::blend_step`, `VolumeBatcher::first_build`) while the
-//!    current batch is drawn.
+//!    current batch is drawn, and so is the first pair's first batch while
+//!    the volume's own batch (or nothing) is drawn: the track draws a pair,
+//!    and hands over to the next, once its batch is made, so that no frame
+//!    builds one.
 //! 3. `report_status` derives [`VolumeStatus`] from the stages' failures (the
 //!    generator's, the grid asset's, the build's, the last update's, in that
 //!    order) and logs a failure once per entity when it appears; a failed
@@ -127,6 +130,9 @@ pub(crate) struct VolumeBatching {
     blend_step: Option<HeavyBuild<BuiltBlendStep>>,
     /// The next keyframe pair's first batch, made ahead, in flight.
     next_pair_batch: Option<HeavyBuild<BuiltBlendStep>>,
+    /// The first keyframe pair's first batch, made while the volume's own
+    /// batch is drawn, in flight.
+    first_pair_batch: Option<HeavyBuild<BuiltBlendStep>>,
     /// What the batcher was built from.
     built: Option<BuildKey>,
     /// The build in flight and what it builds from.
@@ -154,11 +160,12 @@ impl VolumeBatching {
             .or(self.batcher.as_ref())
     }
 
-    /// Whether the keyframe track has a pair to draw.
+    /// Whether the keyframe track's pair is drawn: once it has a batch.
     fn draws_keyframes(&self) -> bool {
         self.keyframes
             .as_ref()
-            .is_some_and(|track| track.batcher().is_some())
+            .and_then(KeyframeTrack::batcher)
+            .is_some_and(VolumeBatcher::is_built)
     }
 
     /// No build in flight.
@@ -367,7 +374,8 @@ fn advance_keyframes(
     }
     let track = batching.keyframes.as_mut().expect("started above");
     track.set_sun(sun);
-    match track.advance(time.elapsed_secs_f64(), mode) {
+    // The next pair takes over once its first batch is made (`make_ahead`).
+    match track.advance(time.elapsed_secs_f64(), mode, VolumeBatcher::is_built) {
         Ok(built_ms) => {
             if let Some(ms) = built_ms {
                 diagnostics.add_measurement(&VolumePlugin::KEYFRAME_MS, || ms);
@@ -457,7 +465,34 @@ pub(crate) fn update_batches(
             continue;
         }
         let batching = &mut *batching;
-        // The keyframes once their first pair is built, the volume's own
+        let view = camera.map(|camera| View {
+            frustum: frustum.clone(),
+            clip_from_world: Some(camera.clip_from_world),
+            ..View::new(world_from_local(transform), camera.eye, camera.viewport)
+        });
+        // Read by the octree alone, which every volume with a `VolumeLod` has.
+        let criterion = lod.map_or_else(LodCriterion::default, |lod| {
+            lod.criterion.scaled(accuracy_scale)
+        });
+        // The first pair's first batch is made on the task pool while the
+        // volume's own batch, if any, is drawn.
+        if let (Some(view), Some(track)) = (&view, batching.keyframes.as_mut()) {
+            let first = FrameInputs {
+                transfer: &volume.transfer_function,
+                criterion,
+                blend: track.refinement_blend(),
+            };
+            if let Err(error) = make_ahead(
+                track.batcher_mut().filter(|pair| !pair.is_built()),
+                &mut batching.first_pair_batch,
+                view,
+                &first,
+                *mode,
+            ) {
+                batching.update_failure = Some(error.into());
+            }
+        }
+        // The keyframes once their first pair has a batch, the volume's own
         // batcher until then and after.
         let from_keyframes = batching.draws_keyframes();
         let pair = batching
@@ -477,7 +512,7 @@ pub(crate) fn update_batches(
             Some(track) if from_keyframes => track.batcher_mut(),
             _ => batching.batcher.as_mut(),
         };
-        let (Some(camera), Some(batcher)) = (camera, batcher) else {
+        let (Some(view), Some(batcher)) = (view, batcher) else {
             continue;
         };
         // The blend and the sunlight, written when they change.
@@ -500,17 +535,9 @@ pub(crate) fn update_batches(
             }
             _ => {}
         }
-        let view = View {
-            frustum: frustum.clone(),
-            clip_from_world: Some(camera.clip_from_world),
-            ..View::new(world_from_local(transform), camera.eye, camera.viewport)
-        };
         let inputs = FrameInputs {
             transfer: &volume.transfer_function,
-            // Read by the octree alone, which every volume with a `VolumeLod` has.
-            criterion: lod.map_or_else(LodCriterion::default, |lod| {
-                lod.criterion.scaled(accuracy_scale)
-            }),
+            criterion,
             blend: blend.map_or(0.0, |(_, refined_for)| refined_for),
         };
         let scattering =
@@ -561,7 +588,20 @@ pub(crate) fn update_batches(
             Err(error) => batching.update_failure = Some(error.into()),
         }
         if let Some(track) = batching.keyframes.as_mut().filter(|_| from_keyframes) {
-            prebuild_next_pair(track, &mut batching.next_pair_batch, &view, &inputs, *mode);
+            let next = FrameInputs {
+                blend: 0.0,
+                ..inputs
+            };
+            // A failure shows again when the pair is drawn and built in the
+            // frame.
+            make_ahead(
+                track.next_batcher_mut(),
+                &mut batching.next_pair_batch,
+                &view,
+                &next,
+                *mode,
+            )
+            .ok();
         }
     }
     if rebuilt {
@@ -570,35 +610,34 @@ pub(crate) fn update_batches(
     }
 }
 
-/// Makes the first batch of `track`'s next pair for this frame's view and
-/// inputs on the task pool (`build` holds it in flight), so that a still
-/// camera's hand-over finds it made. One made for another view, or failed, is
-/// made again in the frame of the hand-over.
-fn prebuild_next_pair(
-    track: &mut KeyframeTrack,
+/// Makes the first batch of a keyframe pair not yet drawn (`pair`: the next
+/// pair, made for the blend 0, or the first pair, while the volume's own
+/// batch or nothing is drawn) for this frame's view and inputs on the task
+/// pool (`build` holds it in flight), so that no frame builds it: the track
+/// hands over to the next pair, and draws the first, once it has its batch.
+/// One made for another view is made again in the frame it is drawn; a
+/// failed one is the error, and is made again.
+fn make_ahead(
+    pair: Option<&mut VolumeBatcher>,
     build: &mut Option<HeavyBuild<BuiltBlendStep>>,
     view: &View,
     inputs: &FrameInputs,
     mode: HeavyBuilds,
-) {
-    let Some(next) = track.next_batcher_mut() else {
+) -> Result<(), VolumeBatchError> {
+    let Some(pair) = pair else {
         *build = None;
-        return;
+        return Ok(());
     };
     if build.is_none() {
-        let first = FrameInputs {
-            blend: 0.0,
-            ..*inputs
-        };
-        *build = next
-            .first_build(view, &first)
+        *build = pair
+            .first_build(view, inputs)
             .map(|step| HeavyBuild::spawn(move || step.build()));
     }
     if let Some(built) = build.as_mut().and_then(|build| build.poll(mode)) {
         *build = None;
-        // A failure shows again when the pair is drawn and built in the frame.
-        next.adopt(built).ok();
+        pair.adopt(built)?;
     }
+    Ok(())
 }
 
 /// The factor a lit volume's colours take under `sun`: its colour (linear)

@@ -45,7 +45,10 @@
 //! the batch. The track's
 //! clock is the animation's: it runs with Bevy's `Time` and waits at the end
 //! of a pair whose successor is not built yet, so a build slower than `T`
-//! slows the wind instead of stepping it.
+//! slows the wind instead of stepping it. The next pair takes over only once
+//! its first batch is made (on the task pool, for the view of the frame it
+//! was made in: `crate::batching`), so no frame builds it, and a hidden
+//! volume's clock waits at the end of its pair (nothing is built for it).
 //!
 //! # Cost
 //!
@@ -73,6 +76,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bevy::math::{DQuat, DVec3};
+use bevy::tasks::AsyncComputeTaskPool;
 use nebel_core::field::DensityGrid;
 use nebel_lod::octree::keyframe::{REFINEMENT_STEPS, keyframe_index, keyframe_time};
 use nebel_lod::{BatchSettings, VolumeBatchError, VolumeBatcher, VolumeSource};
@@ -272,7 +276,8 @@ impl KeyframeTrack {
 
     /// Advances the clock by the application time since the last call (`now`
     /// in seconds), takes a finished build (its CPU time in ms is returned),
-    /// hands over to the next pair at the end of the drawn one, and starts
+    /// hands over to the next pair at the end of the drawn one when
+    /// `next_ready` says it may (its first batch is made), and starts
     /// building the pair after it. A failed
     /// build is returned as the error; the track keeps what it draws and
     /// builds nothing more.
@@ -280,6 +285,7 @@ impl KeyframeTrack {
         &mut self,
         now: f64,
         mode: HeavyBuilds,
+        next_ready: impl Fn(&VolumeBatcher) -> bool,
     ) -> Result<Option<f64>, VolumeBatchError> {
         let delta = now - self.last_time;
         self.last_time = now;
@@ -299,14 +305,23 @@ impl KeyframeTrack {
         let Some(drawn) = &self.drawn else {
             return Ok(built_ms);
         };
-        // Past the drawn pair's end the next one takes over, or the clock
-        // waits for it.
+        // Past the drawn pair's end the next one takes over once it is
+        // ready, or the clock waits for it.
         let end = keyframe_time(drawn.index + 1, self.interval);
         // Time runs forward only; a NaN frame time adds nothing.
         self.clock += delta.max(0.0);
         if self.clock >= end {
-            match self.next.take() {
-                Some(next) => self.drawn = Some(next),
+            match self.next.take_if(|next| next_ready(&next.batcher)) {
+                Some(next) => {
+                    // The old pair (about 10 bytes per grid point) is freed
+                    // on the task pool: 170 MB for the 513 × 65 × 513 layer
+                    // take tens of milliseconds.
+                    if let Some(old) = self.drawn.replace(next) {
+                        AsyncComputeTaskPool::get()
+                            .spawn(async move { drop(old) })
+                            .detach();
+                    }
+                }
                 None => self.clock = end,
             }
         }
@@ -466,7 +481,12 @@ mod tests {
         // 0.3 s frames: the hand-overs fall between frames.
         for frame in 0..=35 {
             let now = 11.0 + 0.3 * f64::from(frame);
-            builds += usize::from(track.advance(now, HeavyBuilds::Blocking).unwrap().is_some());
+            builds += usize::from(
+                track
+                    .advance(now, HeavyBuilds::Blocking, |_| true)
+                    .unwrap()
+                    .is_some(),
+            );
             blends.push(track.blend().factor);
         }
         assert!((track.clock() - 21.5).abs() < 1e-9, "{}", track.clock());
@@ -498,20 +518,44 @@ mod tests {
     fn the_clock_waits_for_a_late_pair() {
         AsyncComputeTaskPool::get_or_init(TaskPool::new);
         let mut track = KeyframeTrack::new(recipe(), sun(), 0.0);
-        track.advance(0.0, HeavyBuilds::Blocking).unwrap();
+        track.advance(0.0, HeavyBuilds::Blocking, |_| true).unwrap();
         assert_eq!(track.blend().factor, 0.0);
         // The next pair is started but never polled to completion: the
         // background mode does not wait for it, and it is taken away here.
         track.build = None;
-        track.advance(5.0, HeavyBuilds::Background).unwrap();
+        track
+            .advance(5.0, HeavyBuilds::Background, |_| true)
+            .unwrap();
         assert_eq!(track.clock(), 2.0);
         assert_eq!(track.blend().factor, 1.0);
         assert!(track.build.is_some(), "the next pair is built again");
         // It lands: the clock goes on from where it waited.
-        track.advance(6.0, HeavyBuilds::Blocking).unwrap();
-        track.advance(6.5, HeavyBuilds::Blocking).unwrap();
+        track.advance(6.0, HeavyBuilds::Blocking, |_| true).unwrap();
+        track.advance(6.5, HeavyBuilds::Blocking, |_| true).unwrap();
         assert!((track.clock() - 3.5).abs() < 1e-9, "{}", track.clock());
         assert!((track.blend().factor - 0.75).abs() < 1e-6);
+    }
+
+    /// A next pair that is built but not ready (its first batch not made)
+    /// holds the clock at the drawn pair's end like a late one; once ready
+    /// it takes over.
+    #[test]
+    fn the_next_pair_takes_over_once_ready() {
+        AsyncComputeTaskPool::get_or_init(TaskPool::new);
+        let mut track = KeyframeTrack::new(recipe(), sun(), 0.0);
+        track.advance(0.0, HeavyBuilds::Blocking, |_| true).unwrap();
+        track.advance(1.0, HeavyBuilds::Blocking, |_| true).unwrap();
+        assert!(track.next.is_some(), "the next pair is built");
+        track
+            .advance(3.0, HeavyBuilds::Blocking, |_| false)
+            .unwrap();
+        assert_eq!(track.clock(), 2.0);
+        assert_eq!(track.pair_index(), Some(0));
+        assert_eq!(track.blend().factor, 1.0);
+        track.advance(3.5, HeavyBuilds::Blocking, |_| true).unwrap();
+        assert_eq!(track.pair_index(), Some(1));
+        assert!((track.clock() - 2.5).abs() < 1e-9, "{}", track.clock());
+        assert!((track.blend().factor - 0.25).abs() < 1e-6);
     }
 
     /// A sun turning at a constant rate is extrapolated exactly; a still or
