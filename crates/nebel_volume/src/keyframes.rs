@@ -48,7 +48,7 @@
 //! slows the wind instead of stepping it. The next pair takes over only once
 //! its first batch is made (on the task pool, for the view of the frame it
 //! was made in: `crate::batching`), so no frame builds it, and a hidden
-//! volume's clock waits at the end of its pair (nothing is built for it).
+//! volume's clock waits at the end of its pair (no batch is made for it).
 //!
 //! # Cost
 //!
@@ -58,12 +58,15 @@
 //! moving camera refines every frame anyway), and per frame a uniform
 //! write.
 //! `cargo bench -p nebel_lod --bench wind_keyframes` measured the 513 × 65 ×
-//! 513 layer's keyframe at 4.0 s of one core (grid 3.2 s, light field 0.4 s,
-//! octree 0.37 s, the pair's octree 0.08 s) and a still camera's refinement
-//! step at 17.5 ms, so at 60 frames per second `T` = 38 s spends 2 ms per
-//! frame on average. Memory: the drawn pair (9 bytes per grid point with
-//! light), the pair being built and its second keyframe (5 per point), and
-//! the build's f32 grids.
+//! 513 layer's keyframe at 1.9 s of one core (grid 0.81 s, light field
+//! 0.52 s, octree 0.45 s, the pair's octree 0.08 s) and a still camera's
+//! refinement step at 27 ms, so at 60 frames per second `T` = 23 s spends 2 ms
+//! per frame on average. On the frame's own thread a still camera costs a
+//! uniform write and, at a refinement step or hand-over, handing a finished
+//! batch to the render world (`benches/scenes/wind_513.ron`: 0.03 ms at
+//! most); a moving camera refines every frame anyway. Memory: the drawn
+//! pair (9 bytes per grid point with light), the pair being built and its
+//! second keyframe (5 per point), and the build's f32 grids.
 //!
 //! # What the blend is not
 //!

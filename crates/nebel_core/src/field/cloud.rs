@@ -61,9 +61,9 @@
 //! among threads with `std::thread::scope`. The paper's 513 × 513 × 65 field
 //! (here 513 × 65 × 513, y up: 17.1 million points, 5 octaves, 86 million
 //! Perlin evaluations less the empty top and bottom layers) takes 0.53 s on
-//! one thread, against 2.06 s for its octave sums alone point by point
-//! through `noise::Perlin` (one run of `cargo bench -p nebel_core --bench
-//! cloud` on a 2-core machine whose other core was building).
+//! one thread and 0.33 s on two, against 2.01 s for its octave sums alone
+//! point by point through `noise::Perlin` on one thread (one run of `cargo
+//! bench -p nebel_core --bench cloud` on a 2-core machine).
 //!
 //! Not here: Schpok et al. 2003's implicit ellipsoids that shape individual clouds and
 //! its per-octave rotation ("torque"); the coverage threshold plays the
