@@ -107,6 +107,17 @@ fn batch(
     transfer: &TransferFunction,
     blend: f32,
 ) -> (CellBatch, f64) {
+    let (batch, [refine_ms, emit_ms]) = timed_batch(hierarchy, view, transfer, blend);
+    (batch, refine_ms + emit_ms)
+}
+
+/// [`batch`] and the times of its refinement and its emission (ms).
+fn timed_batch(
+    hierarchy: &VolumeHierarchy,
+    view: &View,
+    transfer: &TransferFunction,
+    blend: f32,
+) -> (CellBatch, [f64; 2]) {
     let scalars = CellScalars::LightModulatedByDensity;
     let settings = RefinementSettings {
         criterion: LodCriterion::default(),
@@ -115,8 +126,10 @@ fn batch(
     };
     let started = Instant::now();
     let refinement = refine(hierarchy, view, transfer, &settings).expect("valid settings");
+    let refine_ms = elapsed_ms(started);
+    let started = Instant::now();
     let batch = lod_batch_with(hierarchy, &refinement, view, scalars).expect("valid view");
-    (batch, elapsed_ms(started))
+    (batch, [refine_ms, elapsed_ms(started)])
 }
 
 fn main() {
@@ -139,13 +152,14 @@ fn main() {
     );
     let (still, _) = support::view(eye, target, [640, 400]);
     let (single, single_ms) = batch(&first, &still, &transfer, 0.0);
-    let (blended, step_ms) = batch(&pair, &still, &transfer, 0.5);
+    let (blended, [step_refine_ms, step_emit_ms]) = timed_batch(&pair, &still, &transfer, 0.5);
+    let step_ms = step_refine_ms + step_emit_ms;
     println!(
         "513 layer, one keyframe on one thread: grid {:.0} ms, light field {:.0} ms, hierarchy {:.0} ms; the pair's hierarchy {pair_ms:.0} ms; {keyframe_ms:.0} ms a keyframe",
         first_ms[0], first_ms[1], first_ms[2]
     );
     println!(
-        "still camera: a keyframe's batch {single_ms:.1} ms ({} cells), the pair's {step_ms:.1} ms ({} cells, both keyframes; once per refinement step), {:.1} bytes per grid point",
+        "still camera: a keyframe's batch {single_ms:.1} ms ({} cells), the pair's {step_ms:.1} ms ({} cells, both keyframes; once per refinement step: refinement {step_refine_ms:.1} ms, emission {step_emit_ms:.1} ms), {:.1} bytes per grid point",
         single.len(),
         blended.len(),
         pair.bytes_per_point()
