@@ -58,9 +58,9 @@
 //! moving camera refines every frame anyway), and per frame a uniform
 //! write.
 //! `cargo bench -p nebel_lod --bench wind_keyframes` measured the 513 × 65 ×
-//! 513 layer's keyframe at 1.5 s of one core (grid 0.59 s, light field
-//! 0.32 s, octree 0.48 s, the pair's octree 0.08 s) and a still camera's
-//! refinement step at 14 ms, so at 60 frames per second `T` = 16 s spends 2 ms
+//! 513 layer's keyframe at 1.2 s of one core (grid 0.60 s, light field
+//! 0.31 s, octree 0.21 s, the pair's octree 0.08 s) and a still camera's
+//! refinement step at 17 ms, so at 60 frames per second `T` = 15 s spends 2 ms
 //! per frame on average. On the frame's own thread a still camera costs a
 //! uniform write and, at a refinement step or hand-over, handing a finished
 //! batch to the render world (`benches/scenes/wind_513.ron`: 0.03 ms at
