@@ -131,7 +131,7 @@ pub(crate) struct VolumeBatching {
     /// The next keyframe pair's first batch, made ahead, in flight.
     next_pair_batch: Option<HeavyBuild<BuiltBlendStep>>,
     /// The first keyframe pair's first batch, made while the volume's own
-    /// batch is drawn, in flight.
+    /// batch (or nothing) is drawn, in flight.
     first_pair_batch: Option<HeavyBuild<BuiltBlendStep>>,
     /// What the batcher was built from.
     built: Option<BuildKey>,
@@ -592,16 +592,15 @@ pub(crate) fn update_batches(
                 blend: 0.0,
                 ..inputs
             };
-            // A failure shows again when the pair is drawn and built in the
-            // frame.
-            make_ahead(
+            if let Err(error) = make_ahead(
                 track.next_batcher_mut(),
                 &mut batching.next_pair_batch,
                 &view,
                 &next,
                 *mode,
-            )
-            .ok();
+            ) {
+                batching.update_failure = Some(error.into());
+            }
         }
     }
     if rebuilt {
@@ -616,7 +615,8 @@ pub(crate) fn update_batches(
 /// pool (`build` holds it in flight), so that no frame builds it: the track
 /// hands over to the next pair, and draws the first, once it has its batch.
 /// One made for another view is made again in the frame it is drawn; a
-/// failed one is the error, and is made again.
+/// failed one is the error (the volume's update failure), and is made again
+/// the next frame.
 fn make_ahead(
     pair: Option<&mut VolumeBatcher>,
     build: &mut Option<HeavyBuild<BuiltBlendStep>>,
