@@ -45,10 +45,39 @@ impl<T: Send + 'static> HeavyBuild<T> {
     }
 }
 
+/// Drops `value` on the [`AsyncComputeTaskPool`]: freeing what a large build
+/// made (hundreds of megabytes for a 513 × 65 × 513 volume's octrees) can take
+/// tens of milliseconds, which no frame should wait for.
+pub fn free_in_background<T: Send + 'static>(value: T) {
+    AsyncComputeTaskPool::get()
+        .spawn(async move { drop(value) })
+        .detach();
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use bevy::tasks::TaskPool;
+
+    /// Sends the id of the thread it is dropped on.
+    struct ReportsDrop(std::sync::mpsc::Sender<std::thread::ThreadId>);
+
+    impl Drop for ReportsDrop {
+        fn drop(&mut self) {
+            self.0.send(std::thread::current().id()).ok();
+        }
+    }
+
+    #[test]
+    fn freeing_in_the_background_drops_on_the_task_pool() {
+        AsyncComputeTaskPool::get_or_init(TaskPool::new);
+        let (sender, receiver) = std::sync::mpsc::channel();
+        free_in_background(ReportsDrop(sender));
+        let dropped_on = receiver
+            .recv_timeout(std::time::Duration::from_secs(10))
+            .expect("dropped");
+        assert_ne!(dropped_on, std::thread::current().id());
+    }
 
     #[test]
     fn blocking_waits_and_background_does_not() {

@@ -33,7 +33,7 @@ pub mod diagnostics;
 pub mod fog_layers;
 pub mod quality;
 
-pub use builds::{HeavyBuild, HeavyBuilds};
+pub use builds::{HeavyBuild, HeavyBuilds, free_in_background};
 pub use camera::{LodCamera, LodCameras, LodView};
 pub use cell_batch::{CellBatch, CellBlend, CellScattering, CellSunlight};
 pub use cell_projection::{CellProjectionPlugin, CellProjectionStats, CellProjectionSystems};

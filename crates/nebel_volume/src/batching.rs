@@ -56,6 +56,7 @@ use nebel_lod::{
 use nebel_render::camera::to_double;
 use nebel_render::{
     CellBatch, CellBlend, CellSunlight, EffectiveQuality, HeavyBuild, HeavyBuilds, LodCameras,
+    free_in_background,
 };
 
 use crate::cloud::{CloudGeneration, CloudVolume};
@@ -311,7 +312,9 @@ pub(crate) fn build_batchers(
         let unchanged = |last: &Option<BuildKey>| last.as_ref().is_some_and(|k| k.same_as(&key));
         if unchanged(&batching.built) {
             // Built for the volume as it is: the keyframes are done with.
-            batching.keyframes = None;
+            if let Some(track) = batching.keyframes.take() {
+                free_in_background(track);
+            }
             continue;
         }
         if unchanged(&batching.failed) {
@@ -399,14 +402,18 @@ fn finish_build(batching: &mut VolumeBatching, mode: HeavyBuilds, diagnostics: &
     match result {
         Ok((batcher, build_ms)) => {
             diagnostics.add_measurement(&VolumePlugin::BUILD_MS, || build_ms);
-            batching.batcher = Some(batcher);
+            if let Some(old) = batching.batcher.replace(batcher) {
+                free_in_background(old);
+            }
             batching.built = Some(key);
             batching.failed = None;
             batching.build_failure = None;
             batching.update_failure = None;
         }
         Err(error) => {
-            batching.batcher = None;
+            if let Some(old) = batching.batcher.take() {
+                free_in_background(old);
+            }
             batching.built = None;
             batching.failed = Some(key);
             batching.build_failure = Some(error.into());

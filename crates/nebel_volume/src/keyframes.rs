@@ -79,11 +79,10 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bevy::math::{DQuat, DVec3};
-use bevy::tasks::AsyncComputeTaskPool;
 use nebel_core::field::DensityGrid;
 use nebel_lod::octree::keyframe::{REFINEMENT_STEPS, keyframe_index, keyframe_time};
 use nebel_lod::{BatchSettings, VolumeBatchError, VolumeBatcher, VolumeSource};
-use nebel_render::{CellBlend, HeavyBuild, HeavyBuilds};
+use nebel_render::{CellBlend, HeavyBuild, HeavyBuilds, free_in_background};
 
 use crate::batching::settings_bits;
 use crate::cloud::CloudVolume;
@@ -316,13 +315,9 @@ impl KeyframeTrack {
         if self.clock >= end {
             match self.next.take_if(|next| next_ready(&next.batcher)) {
                 Some(next) => {
-                    // The old pair (about 10 bytes per grid point) is freed
-                    // on the task pool: 170 MB for the 513 × 65 × 513 layer
-                    // take tens of milliseconds.
+                    // The old pair: about 10 bytes per grid point.
                     if let Some(old) = self.drawn.replace(next) {
-                        AsyncComputeTaskPool::get()
-                            .spawn(async move { drop(old) })
-                            .detach();
+                        free_in_background(old);
                     }
                 }
                 None => self.clock = end,
