@@ -194,20 +194,20 @@ fn lod(
         h,
         transfer,
         &view(eye, None),
-        LodCriterion::distance(c),
+        &RefinementSettings::new(LodCriterion::distance(c)),
         morph,
     )
 }
 
-/// [`lod`] for any view and criterion.
+/// [`lod`] for any view and refinement settings (criterion, keyframe blend).
 fn lod_in(
     h: &VolumeHierarchy,
     transfer: &TransferFunction,
     view: &View,
-    criterion: LodCriterion,
+    settings: &RefinementSettings,
     morph: bool,
 ) -> (Refinement, CellBatch) {
-    let mut r = refine(h, view, transfer, &RefinementSettings::new(criterion)).expect("refinement");
+    let mut r = refine(h, view, transfer, settings).expect("refinement");
     if !morph {
         for node in &mut r.refined {
             node.morph = 1.0;
@@ -444,7 +444,7 @@ fn error_sweep(grid: &DensityGrid, name: &str, eye: DVec3, target: DVec3) -> Swe
             &h,
             &transfer,
             &view,
-            LodCriterion::screen_error(tolerance),
+            &RefinementSettings::new(LodCriterion::screen_error(tolerance)),
             true,
         );
         let error = rmse(&image(&batch, &transfer, cam), &reference);
@@ -687,8 +687,9 @@ fn morphing_keeps_frame_to_frame_change_below_a_bound_that_popping_exceeds() {
                         projected_view(eye, DVec3::ZERO, 20.0, size)
                     }
                 };
-                let (_, on) = lod_in(&h, &transfer, &view, criterion, true);
-                let (_, off) = lod_in(&h, &transfer, &view, criterion, false);
+                let settings = RefinementSettings::new(criterion);
+                let (_, on) = lod_in(&h, &transfer, &view, &settings, true);
+                let (_, off) = lod_in(&h, &transfer, &view, &settings, false);
                 cells[i] = cells[i].max(on.len());
                 [image(&on, &transfer, cam), image(&off, &transfer, cam)]
             })
@@ -1237,12 +1238,8 @@ fn wind_keyframes_change_consecutive_frames_less_than_the_popping_bound() {
                     blend: step as f32 / REFINEMENT_STEPS as f32,
                     ..RefinementSettings::new(criterion)
                 };
-                let refinement = refine(&pairs[pair], &view, &transfer, &settings).unwrap();
-                let mut unmorphed = refinement.clone();
-                for node in &mut unmorphed.refined {
-                    node.morph = 1.0;
-                }
-                [&refinement, &unmorphed].map(|r| lod_batch(&pairs[pair], r, &view).unwrap())
+                [true, false]
+                    .map(|morph| lod_in(&pairs[pair], &transfer, &view, &settings, morph).1)
             });
             let images = [0, 1].map(|i| image(&batch[i].blended(blend), &transfer, cam));
             let (current, next) = (&quantised[pair], &quantised[pair + 1]);

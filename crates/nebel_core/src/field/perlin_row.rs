@@ -6,8 +6,9 @@
 //! the corners' hashes stay the same along it, and the hashes change only where
 //! the row crosses a lattice plane (every `1 / (frequency · spacing)` points:
 //! about 100 for the first cloud octave at 10 m spacing). [`PerlinRow`] hashes
-//! the eight corners once per crossed cell and evaluates the points of a cell
-//! in one branch-free loop: each corner's gradient dot product is
+//! the four corners of each lattice plane the row crosses once (a cell's
+//! upper face is the next cell's lower face) and evaluates the points of a
+//! cell in one branch-free loop: each corner's gradient dot product is
 //! `s · x + c` with the sign `s ∈ {−1, 0, 1}` of its x component and the
 //! row's constant y–z part `c`, which rounds exactly as `noise`'s
 //! `±x ± y`, `±x ± z`, `±y ± z` (negation and multiplication by ±1 or 0 are
