@@ -465,7 +465,7 @@ impl VolumeBatcher {
     /// Errors: [`VolumeBatchError::KeyframesWithoutOctree`] unless both draw
     /// a grid through the octree with the same cell scalars,
     /// [`VolumeBatchError::Hierarchy`] when their grids or minimum accuracies
-    /// differ or the second keyframe exceeds the memory budget.
+    /// differ.
     pub fn with_next_keyframe(&self, next: &VolumeBatcher) -> Result<Self, VolumeBatchError> {
         let (
             Kind::Octree { hierarchy, scalars },

@@ -2,6 +2,8 @@
 //! by level from the voxels up (Röttger and Ertl 2003 §2.2, §2.4; the rules are in the
 //! module docs of [`super`]).
 
+use std::sync::Arc;
+
 use nebel_core::field::DensityGrid;
 
 use super::{HierarchyError, VolumeHierarchy, k_max};
@@ -71,13 +73,13 @@ impl VolumeHierarchy {
             root_counts: dims.map(|n| (n - 1) >> root_level),
             min_accuracy,
             k_max,
-            density: quantise(grid),
-            light: light.map(quantise).unwrap_or_default(),
-            next_density: Vec::new(),
-            next_light: Vec::new(),
-            next_words: Vec::new(),
-            words: vec![0; points],
-            morph: vec![0; points],
+            density: Arc::new(quantise(grid)),
+            light: Arc::new(light.map(quantise).unwrap_or_default()),
+            next_density: Arc::default(),
+            next_light: Arc::default(),
+            next_words: Arc::default(),
+            words: Arc::new(vec![0; points]),
+            morph: Arc::new(vec![0; points]),
         };
         let diagonals = face_diagonals();
         for level in 1..=root_level {
@@ -125,6 +127,9 @@ impl VolumeHierarchy {
         let centre = offset(1, 1, 1);
         let range_slot = offset(2, 1, 1);
         let k_max = self.k_max;
+        // Nothing shares the arrays of a hierarchy being built: no copy.
+        let (density, light) = (&self.density, &self.light);
+        let words = Arc::make_mut(&mut self.words);
 
         for z in 0..counts[2] {
             for y in 0..counts[1] {
@@ -144,9 +149,9 @@ impl VolumeHierarchy {
                             diagonals.central[parity].iter().map(|&v| corners[v]).sum();
                         deviation.max((4 * d(centre) - central).abs())
                     };
-                    let mut deviation = local_deviation(&self.density);
-                    if !self.light.is_empty() {
-                        deviation = deviation.max(local_deviation(&self.light));
+                    let mut deviation = local_deviation(density);
+                    if !light.is_empty() {
+                        deviation = deviation.max(local_deviation(light));
                     }
                     // 65535 / 1020 = 257 / 4, rounded up.
                     let mut delta = ((deviation as u32 * 257).div_ceil(4)) as u16;
@@ -154,24 +159,24 @@ impl VolumeHierarchy {
                     let range = if level == 1 {
                         let mut range = [u8::MAX, u8::MIN];
                         for &point in &points {
-                            let value = self.density[base + point];
+                            let value = density[base + point];
                             range = [range[0].min(value), range[1].max(value)];
                         }
                         range
                     } else {
                         let mut range = [u8::MAX, u8::MIN];
                         for v in 0..8 {
-                            let child = self.words[base + child_centres[v]];
+                            let child = words[base + child_centres[v]];
                             // Eq. 5 on the stored values, rounded up.
                             let propagated = (k_max * f64::from(child)).ceil() as u16;
                             delta = delta.max(propagated);
-                            let [min, max] = self.words[base + child_ranges[v]].to_le_bytes();
+                            let [min, max] = words[base + child_ranges[v]].to_le_bytes();
                             range = [range[0].min(min), range[1].max(max)];
                         }
                         range
                     };
-                    self.words[base + centre] = delta;
-                    self.words[base + range_slot] = u16::from_le_bytes(range);
+                    words[base + centre] = delta;
+                    words[base + range_slot] = u16::from_le_bytes(range);
                 }
             }
         }

@@ -42,8 +42,6 @@
 //! ([`keyframe_index`], [`keyframe_time`]), so every user of a keyframe
 //! sequence (the renderer, a reference image) agrees on them.
 
-use nebel_core::budget::{Dims, check_allocation};
-
 use super::{HierarchyError, Node, VolumeHierarchy};
 
 /// How many times per keyframe interval a blended octree is refined again
@@ -59,10 +57,11 @@ impl VolumeHierarchy {
     /// that already blends, the first keyframe stays and `next`'s first
     /// becomes the second.
     ///
+    /// Nothing is copied: the pair shares both keyframes' arrays (module
+    /// docs of [`super`]), so it costs no time and no memory beyond theirs.
+    ///
     /// Errors: [`HierarchyError::KeyframeMismatch`] when the two differ in
-    /// points, spacing, origin, minimum accuracy or in having a light field,
-    /// [`HierarchyError::OverBudget`] when the second keyframe's bytes (one
-    /// per point, two with light) exceed the memory budget.
+    /// points, spacing, origin, minimum accuracy or in having a light field.
     pub fn with_next_keyframe(&self, next: &VolumeHierarchy) -> Result<Self, HierarchyError> {
         let mismatch = |what| Err(HierarchyError::KeyframeMismatch { what });
         if self.dims != next.dims {
@@ -77,18 +76,6 @@ impl VolumeHierarchy {
         if self.has_light() != next.has_light() {
             return mismatch("the light fields");
         }
-        // Density, light and the Δ word.
-        let bytes_per_point = if self.has_light() { 4 } else { 3 };
-        check_allocation(
-            || {
-                format!(
-                    "second keyframe of a volume octree of {} points",
-                    Dims(&self.dims)
-                )
-            },
-            &self.dims,
-            bytes_per_point,
-        )?;
         Ok(Self {
             next_density: next.density.clone(),
             next_light: next.light.clone(),

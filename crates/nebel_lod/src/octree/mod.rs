@@ -85,6 +85,12 @@
 //! `nebel_core::budget` before anything is allocated
 //! ([`VolumeHierarchy::check_budget`], [`HierarchyError::OverBudget`]).
 //!
+//! The arrays are shared, not copied: a clone of the hierarchy, and a pair
+//! of keyframes ([`VolumeHierarchy::with_next_keyframe`]), point to the same
+//! arrays as the hierarchies they came from (`Arc`); the e' slots are copied
+//! the first time a shared hierarchy's [`VolumeHierarchy::set_morph_factor`]
+//! writes them.
+//!
 //! # Cost
 //!
 //! One pass over the grid for level 1 (27 reads per level-1 node) and eight
@@ -107,6 +113,8 @@ pub use refine::{
     LodCriterion, NodeMorph, Refinement, RefinementError, RefinementSettings, RefinementStats,
     refine,
 };
+
+use std::sync::Arc;
 
 use glam::DVec3;
 use nebel_core::budget::{BudgetError, Dims, check_allocation};
@@ -203,24 +211,24 @@ pub struct VolumeHierarchy {
     /// `K_max` of `min_accuracy`.
     k_max: f64,
     /// Quantised density per grid point, `round(255 · s)`.
-    density: Vec<u8>,
+    density: Arc<Vec<u8>>,
     /// Quantised light γ per grid point, `round(255 · γ)`; empty without a
     /// light field.
-    light: Vec<u8>,
+    light: Arc<Vec<u8>>,
     /// The next keyframe's quantised density per grid point; empty unless
     /// the hierarchy blends two keyframes (see [`mod@keyframe`]).
-    next_density: Vec<u8>,
+    next_density: Arc<Vec<u8>>,
     /// The next keyframe's quantised light per grid point; empty unless the
     /// hierarchy blends two lit keyframes.
-    next_light: Vec<u8>,
+    next_light: Arc<Vec<u8>>,
     /// The next keyframe's Δ and scalar ranges (laid out as `words`); empty
     /// unless the hierarchy blends two keyframes.
-    next_words: Vec<u16>,
+    next_words: Arc<Vec<u16>>,
     /// Per grid point: Δ (units of 1/65535) at node centres, the packed scalar
     /// range at the centre of a node's +x face, 0 elsewhere.
-    words: Vec<u16>,
+    words: Arc<Vec<u16>>,
     /// Per grid point: e' (units of 1/255) at node centres.
-    morph: Vec<u8>,
+    morph: Arc<Vec<u8>>,
 }
 
 impl VolumeHierarchy {
@@ -412,7 +420,7 @@ impl VolumeHierarchy {
             .centre_index(node)
             .expect("a voxel (level 0) has no morph factor");
         let e = if e.is_nan() { 0.0 } else { e.clamp(0.0, 1.0) };
-        self.morph[centre] = (e * 255.0).round() as u8;
+        Arc::make_mut(&mut self.morph)[centre] = (e * 255.0).round() as u8;
     }
 
     /// Bytes the hierarchy keeps per grid point (density, Δ and range words,
