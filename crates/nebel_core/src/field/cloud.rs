@@ -51,7 +51,8 @@
 //!
 //! **Evaluation.** Each grid row (points along x) is evaluated octave after
 //! octave by `PerlinRow`, which hashes a lattice cell's corners once for all
-//! the row's points in it and gives `noise::Perlin`'s value bit for bit. After
+//! the rows and points in it (the cells of a row are found once per grid)
+//! and gives `noise::Perlin`'s value bit for bit. After
 //! each octave, a point whose partial sum `s` cannot reach the coverage
 //! threshold any more, `s + Σ_{later j} a_j < ln((1 − c) / c)` (`|P| ≤ 1`;
 //! `a_j` the scaled amplitudes), has density 0 whatever the later octaves
@@ -73,7 +74,7 @@ use std::num::NonZeroUsize;
 
 use glam::DVec3;
 
-use super::perlin_row::PerlinRow;
+use super::perlin_row::{PerlinRow, RowLattice};
 use super::{
     DENSITY_GRID, DensityGrid, FieldError, NOISE_OFFSET, SAMPLE_BYTES, budgeted_points,
     check_origin, check_spacing,
@@ -330,8 +331,9 @@ fn unit_noise(v: f64) -> f64 {
 /// every octave).
 struct RowFiller<'a> {
     octaves: &'a [Octave],
-    /// Per octave, the row's x in noise space, `x · φ_i + offset_i.x`.
-    noise_xs: Vec<Vec<f64>>,
+    /// Per octave, the row's x in noise space, `x · φ_i + offset_i.x`, in
+    /// its lattice cells, with the cells' corner hashes.
+    lattices: Vec<RowLattice>,
     /// Per octave, `Σ a_j` over the octaves after it.
     remaining: Vec<f64>,
     sums: Vec<f64>,
@@ -340,16 +342,16 @@ struct RowFiller<'a> {
 
 impl<'a> RowFiller<'a> {
     fn new(octaves: &'a [Octave], xs: &[f64]) -> Self {
-        let noise_xs = octaves
+        let lattices = octaves
             .iter()
-            .map(|o| xs.iter().map(|&x| x * o.frequency + o.offset.x).collect())
+            .map(|o| RowLattice::new(xs.iter().map(|&x| x * o.frequency + o.offset.x).collect()))
             .collect();
         let remaining = (0..octaves.len())
             .map(|i| octaves[i + 1..].iter().map(|o| o.amplitude).sum())
             .collect();
         Self {
             octaves,
-            noise_xs,
+            lattices,
             remaining,
             sums: vec![0.0; xs.len()],
             live: vec![true; xs.len()],
@@ -360,12 +362,15 @@ impl<'a> RowFiller<'a> {
         let zero_below = layer.zero_below();
         self.sums.fill(0.0);
         self.live.fill(true);
-        for ((octave, xs), remaining) in
-            self.octaves.iter().zip(&self.noise_xs).zip(&self.remaining)
+        for ((octave, lattice), remaining) in self
+            .octaves
+            .iter()
+            .zip(&mut self.lattices)
+            .zip(&self.remaining)
         {
             let live = &self.live;
             octave.perlin.add_row(
-                xs,
+                lattice,
                 y * octave.frequency + octave.offset.y,
                 z * octave.frequency + octave.offset.z,
                 octave.amplitude,
