@@ -58,15 +58,20 @@
 //! moving camera refines every frame anyway), and per frame a uniform
 //! write.
 //! `cargo bench -p nebel_lod --bench wind_keyframes` measured the 513 × 65 ×
-//! 513 layer's keyframe at 1.2 s of one core (grid 0.60 s, light field
-//! 0.31 s, octree 0.21 s, the pair's octree 0.08 s) and a still camera's
-//! refinement step at 17 ms, so at 60 frames per second `T` = 15 s spends 2 ms
-//! per frame on average. On the frame's own thread a still camera costs a
+//! 513 layer's keyframe at 2.1 s of one core (grid 1.04 s, light field
+//! 0.67 s, octree 0.38 s; the pair's octree shares both keyframes' arrays
+//! and costs nothing) and a still camera's refinement step at 23 ms, so at
+//! 60 frames per second `T` = 24 s spends 2 ms per frame on average (on a
+//! 2-core machine about 1.7 times slower than the one that measured 1.2 s
+//! and `T` = 15 s with the previous grid and a copied pair; the same runs
+//! of that code here gave keyframes of 2.3 to 3.3 s). On the frame's own
+//! thread a still camera costs a
 //! uniform write and, at a refinement step or hand-over, handing a finished
 //! batch to the render world (`benches/scenes/wind_513.ron`: 0.03 ms at
-//! most); a moving camera refines every frame anyway. Memory: the drawn
-//! pair (9 bytes per grid point with light), the pair being built and its
-//! second keyframe (5 per point), and the build's f32 grids.
+//! most); a moving camera refines every frame anyway. Memory: about 5 bytes
+//! per grid point for each of the three keyframes alive (the drawn pair's
+//! two, which the next pair shares, and the one being built), and the
+//! build's f32 grids.
 //!
 //! # What the blend is not
 //!
@@ -315,7 +320,8 @@ impl KeyframeTrack {
         if self.clock >= end {
             match self.next.take_if(|next| next_ready(&next.batcher)) {
                 Some(next) => {
-                    // The old pair: about 10 bytes per grid point.
+                    // The old pair: its first keyframe's 5 bytes per grid
+                    // point (its second is the new pair's first).
                     if let Some(old) = self.drawn.replace(next) {
                         free_in_background(old);
                     }

@@ -61,10 +61,13 @@
 //! with the pointwise `noise::Perlin` sum bit for bit). z-slices are shared
 //! among threads with `std::thread::scope`. The paper's 513 × 513 × 65 field
 //! (here 513 × 65 × 513, y up: 17.1 million points, 5 octaves, 86 million
-//! Perlin evaluations less the empty top and bottom layers) takes 0.53 s on
-//! one thread and 0.33 s on two, against 2.01 s for its octave sums alone
+//! Perlin evaluations less the empty top and bottom layers) takes 1.12 s on
+//! one thread and 0.59 s on two, against 4.14 s for its octave sums alone
 //! point by point through `noise::Perlin` on one thread (one run of `cargo
-//! bench -p nebel_core --bench cloud` on a 2-core machine).
+//! bench -p nebel_core --bench cloud` on a 2-core machine; runs vary by up to
+//! 1.5× there). Keeping the lattice rows' hashes took a fifth off the
+//! one-thread time of the 6-octave layer of `cloud_flythrough.ron`: 985 to
+//! 1,276 ms against 1,170 to 1,619 ms in five alternating runs of each.
 //!
 //! Not here: Schpok et al. 2003's implicit ellipsoids that shape individual clouds and
 //! its per-octave rotation ("torque"); the coverage threshold plays the
