@@ -58,16 +58,20 @@
 //! `a_j` the scaled amplitudes), has density 0 whatever the later octaves
 //! add: they skip the row's lattice cells in which every point is so. The
 //! density is therefore exactly the formula's (a test compares every point
-//! with the pointwise `noise::Perlin` sum bit for bit). z-slices are shared
-//! among threads with `std::thread::scope`. The paper's 513 × 513 × 65 field
-//! (here 513 × 65 × 513, y up: 17.1 million points, 5 octaves, 86 million
-//! Perlin evaluations less the empty top and bottom layers) takes 1.12 s on
-//! one thread and 0.59 s on two, against 4.14 s for its octave sums alone
-//! point by point through `noise::Perlin` on one thread (one run of `cargo
-//! bench -p nebel_core --bench cloud` on a 2-core machine; runs vary by up to
-//! 1.5× there). Keeping the lattice rows' hashes took a fifth off the
-//! one-thread time of the 6-octave layer of `cloud_flythrough.ron`: 985 to
-//! 1,276 ms against 1,170 to 1,619 ms in five alternating runs of each.
+//! with the pointwise `noise::Perlin` sum bit for bit). The row loops are
+//! compiled for the vector instructions the CPU has (`pulp`'s runtime
+//! dispatch; the same operations in the same order on every instruction
+//! set, so the same density). z-slices are shared among threads with
+//! `std::thread::scope`. The paper's 513 × 513 × 65 field (here 513 × 65 ×
+//! 513, y up: 17.1 million points, 5 octaves, 86 million Perlin evaluations
+//! less the empty top and bottom layers) takes 0.64 s on one thread and
+//! 0.37 s on two, against 4.10 s for its octave sums alone point by point
+//! through `noise::Perlin` on one thread (one run of `cargo bench -p
+//! nebel_core --bench cloud` on a 2-core machine with AVX2; runs vary by up
+//! to 1.5× there). The vector instructions took about a third off the
+//! one-thread time of the 6-octave layer of `cloud_flythrough.ron`: 681 to
+//! 946 ms against 1,094 to 1,288 ms with SSE2 alone, in three alternating
+//! pairs of runs.
 //!
 //! Not here: Schpok et al. 2003's implicit ellipsoids that shape individual clouds and
 //! its per-octave rotation ("torque"); the coverage threshold plays the
@@ -361,7 +365,20 @@ impl<'a> RowFiller<'a> {
         }
     }
 
+    /// The densities of the row at height `y`, depth `z` (world units) into
+    /// `row`, through [`FillRow`].
     fn fill(&mut self, layer: Layer, y: f64, z: f64, row: &mut [f32]) {
+        pulp::Arch::new().dispatch(FillRow {
+            filler: self,
+            layer,
+            y,
+            z,
+            row,
+        });
+    }
+
+    #[inline(always)]
+    fn fill_row(&mut self, layer: Layer, y: f64, z: f64, row: &mut [f32]) {
         let zero_below = layer.zero_below();
         self.sums.fill(0.0);
         self.live.fill(true);
@@ -391,6 +408,28 @@ impl<'a> RowFiller<'a> {
                 0.0
             };
         }
+    }
+}
+
+/// [`RowFiller::fill`] of one row, compiled for the vector instructions the
+/// CPU has (`pulp`'s runtime dispatch: AVX2 and FMA where there are, SSE2
+/// otherwise). The loops are the same IEEE operations in the same order on
+/// every instruction set (Rust never fuses a multiply and an add), so the
+/// density is too.
+struct FillRow<'f, 'a, 'r> {
+    filler: &'f mut RowFiller<'a>,
+    layer: Layer,
+    y: f64,
+    z: f64,
+    row: &'r mut [f32],
+}
+
+impl pulp::WithSimd for FillRow<'_, '_, '_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        self.filler.fill_row(self.layer, self.y, self.z, self.row);
     }
 }
 

@@ -194,6 +194,7 @@ impl PerlinRow {
     /// gives the same `P` bit for bit. The corners of a lattice cell are
     /// hashed once for all the rows of its lattice row while `z`'s corner
     /// stays the same.
+    #[inline(always)]
     pub(super) fn add_row(
         &self,
         lattice: &mut RowLattice,
@@ -216,7 +217,7 @@ impl PerlinRow {
             let [lower, upper] = *slot.get_or_insert_with(|| cell_hashes(*corner));
             add_cell(
                 *corner as f64,
-                [lower, upper].map(|plane| gradients(plane, y, z)),
+                [gradients(lower, y, z), gradients(upper, y, z)],
                 [y, z],
                 amplitude,
                 &xs[range.clone()],
@@ -235,6 +236,7 @@ impl PerlinRow {
 
 /// The gradients of a lattice plane's corners with hashes `hashes` for the
 /// row at `y` and `z`.
+#[inline(always)]
 fn gradients(hashes: PlaneHashes, y: FixedAxis, z: FixedAxis) -> PlaneGradients {
     let [h00, h10, h01, h11] = hashes;
     [
@@ -252,6 +254,7 @@ type PlaneGradients = [CornerGradient; 4];
 /// [`PerlinRow::add_row`] for the points `xs` of one lattice cell: `corner`
 /// its lower x, `planes` the gradients on its lower and upper x faces, `[y,
 /// z]` the row's fixed axes.
+#[inline(always)]
 fn add_cell(
     corner: f64,
     planes: [PlaneGradients; 2],
