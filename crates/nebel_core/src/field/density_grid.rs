@@ -58,13 +58,22 @@ impl DensityGrid {
         check_dims(name, &dims, values.len())?;
         check_spacing(name, &spacing.to_array())?;
         check_origin(name, &origin.to_array())?;
-        check_finite(name, &values)?;
-        if let Some(index) = values.iter().position(|v| !(0.0..=1.0).contains(v)) {
-            return Err(FieldError::OutOfRange {
-                name: name.to_owned(),
-                index,
-                value: values[index],
-            });
+        // One branch-free (vectorised) pass over the values; the passes that
+        // find the first offending value run only when there is one.
+        let in_unit_range = values.chunks(4096).all(|chunk| {
+            chunk
+                .iter()
+                .fold(true, |in_range, v| in_range & (0.0..=1.0).contains(v))
+        });
+        if !in_unit_range {
+            check_finite(name, &values)?;
+            if let Some(index) = values.iter().position(|v| !(0.0..=1.0).contains(v)) {
+                return Err(FieldError::OutOfRange {
+                    name: name.to_owned(),
+                    index,
+                    value: values[index],
+                });
+            }
         }
         Ok(Self {
             dims,
@@ -265,6 +274,28 @@ mod tests {
         let message = err(DensityGrid::new([2, 2, 2], DVec3::ONE, DVec3::ZERO, big));
         assert!(
             message.contains("sample 5 is 1.5, outside [0, 1]"),
+            "{message}"
+        );
+        // Past the first few thousand samples, after an infinite one.
+        let mut late = vec![0.25f32; 16 * 16 * 17];
+        late[4300] = -0.25;
+        late[4301] = f32::INFINITY;
+        let message = err(DensityGrid::new(
+            [16, 16, 17],
+            DVec3::ONE,
+            DVec3::ZERO,
+            late.clone(),
+        ));
+        assert!(message.contains("sample 4301 is inf"), "{message}");
+        late[4301] = 0.5;
+        let message = err(DensityGrid::new(
+            [16, 16, 17],
+            DVec3::ONE,
+            DVec3::ZERO,
+            late,
+        ));
+        assert!(
+            message.contains("sample 4300 is -0.25, outside [0, 1]"),
             "{message}"
         );
         let message = err(DensityGrid::new(
