@@ -58,13 +58,12 @@
 //! moving camera refines every frame anyway), and per frame a uniform
 //! write.
 //! `cargo bench -p nebel_lod --bench wind_keyframes` measured the 513 × 65 ×
-//! 513 layer's keyframe at 2.1 s of one core (grid 1.04 s, light field
-//! 0.67 s, octree 0.38 s; the pair's octree shares both keyframes' arrays
-//! and costs nothing) and a still camera's refinement step at 23 ms, so at
-//! 60 frames per second `T` = 24 s spends 2 ms per frame on average (on a
-//! 2-core machine about 1.7 times slower than the one that measured 1.2 s
-//! and `T` = 15 s with the previous grid and a copied pair; the same runs
-//! of that code here gave keyframes of 2.3 to 3.3 s). On the frame's own
+//! 513 layer's keyframe at 1.9 s of one core (grid 0.70 s, light field
+//! 0.63 s, octree 0.59 s; the pair's octree shares both keyframes' arrays
+//! and costs nothing) and a still camera's refinement step at 26 ms, so at
+//! 60 frames per second `T` = 23 s spends 2 ms per frame on average (one
+//! run on a 2-core machine whose runs vary by up to 1.5×: a second gave
+//! 2.2 s and `T` = 27 s). On the frame's own
 //! thread a still camera costs a
 //! uniform write and, at a refinement step or hand-over, handing a finished
 //! batch to the render world (`benches/scenes/wind_513.ron`: 0.03 ms at
