@@ -68,10 +68,10 @@
 //! 0.37 s on two, against 4.10 s for its octave sums alone point by point
 //! through `noise::Perlin` on one thread (one run of `cargo bench -p
 //! nebel_core --bench cloud` on a 2-core machine with AVX2; runs vary by up
-//! to 1.5× there). The vector instructions took about a third off the
-//! one-thread time of the 6-octave layer of `cloud_flythrough.ron`: 681 to
-//! 946 ms against 1,094 to 1,288 ms with SSE2 alone, in three alternating
-//! pairs of runs.
+//! to 1.5× there). The vector instructions (with the grid's one-pass value
+//! check) took about a third off the one-thread time of the 6-octave layer
+//! of `cloud_flythrough.ron`: 681 to 946 ms against 1,094 to 1,288 ms with
+//! SSE2 alone, in three alternating pairs of runs.
 //!
 //! Not here: Schpok et al. 2003's implicit ellipsoids that shape individual clouds and
 //! its per-octave rotation ("torque"); the coverage threshold plays the

@@ -207,7 +207,6 @@ pub fn light_field_with_threads(
     let spacing = grid.spacing();
     let values = grid.values();
     let g0 = GRADIENT_SOFTNESS / (spacing.x * spacing.y * spacing.z).cbrt();
-    let gamma = |lit: f64| light(ambient, diffuse, lit);
 
     // Lambert pass (and γ itself without a shadow), z-slices per thread.
     let mut out = vec![0.0f32; values.len()];
@@ -216,7 +215,7 @@ pub fn light_field_with_threads(
         lambert: lighting.lambert,
         sun,
         g0,
-        gamma: (!shadow).then_some([ambient, diffuse]),
+        gamma_weights: (!shadow).then_some([ambient, diffuse]),
     };
     let fill = |first_slice: usize, chunk: &mut [f32]| {
         pulp::Arch::new().dispatch(LambertSlices {
@@ -240,7 +239,7 @@ pub fn light_field_with_threads(
 
     if shadow {
         sweep_optical_depth(grid, sun, sigma, |index, tau| {
-            out[index] = gamma((-tau).exp() * f64::from(out[index]));
+            out[index] = gamma(ambient, diffuse, (-tau).exp() * f64::from(out[index]));
         });
     }
     DensityGrid::validated(name, grid.dims(), spacing, grid.origin(), out)
@@ -249,7 +248,7 @@ pub fn light_field_with_threads(
 /// `γ = clamp(ambient + diffuse · lit, 0, 1)` for the product `lit` of the
 /// sun's transmittance and the Lambert term.
 #[inline(always)]
-fn light(ambient: f64, diffuse: f64, lit: f64) -> f32 {
+fn gamma(ambient: f64, diffuse: f64, lit: f64) -> f32 {
     (ambient + diffuse * lit).clamp(0.0, 1.0) as f32
 }
 
@@ -261,7 +260,7 @@ struct LambertPass<'a> {
     sun: DVec3,
     g0: f64,
     /// `[ambient, diffuse]` when the pass writes γ itself (no shadow).
-    gamma: Option<[f64; 2]>,
+    gamma_weights: Option<[f64; 2]>,
 }
 
 /// The [`LambertPass`] over the z-slices from `first_slice` that make up
@@ -283,7 +282,7 @@ impl pulp::WithSimd for LambertSlices<'_> {
             lambert,
             sun,
             g0,
-            gamma,
+            gamma_weights,
         } = *self.pass;
         let [nx, ny, _] = grid.dims();
         let mut terms = vec![1.0; nx];
@@ -293,8 +292,8 @@ impl pulp::WithSimd for LambertSlices<'_> {
                     lambert_row(grid, j, self.first_slice + dk, sun, g0, &mut terms);
                 }
                 for (value, &term) in row.iter_mut().zip(&terms) {
-                    *value = match gamma {
-                        Some([ambient, diffuse]) => light(ambient, diffuse, term),
+                    *value = match gamma_weights {
+                        Some([ambient, diffuse]) => gamma(ambient, diffuse, term),
                         None => term as f32,
                     };
                 }
@@ -306,7 +305,8 @@ impl pulp::WithSimd for LambertSlices<'_> {
 /// [`lambert`] at every point of the grid row `(·, j, k)` into `terms`, bit
 /// for bit: the points with all six neighbours inside the grid in one
 /// branch-free loop over the neighbouring rows (central differences), the
-/// others through [`lambert`].
+/// others through [`lambert`]. Always inlined, so that it is compiled for
+/// the instruction set [`LambertSlices`] dispatches to.
 #[inline(always)]
 fn lambert_row(grid: &DensityGrid, j: usize, k: usize, sun: DVec3, g0: f64, terms: &mut [f64]) {
     let [nx, ny, nz] = grid.dims();

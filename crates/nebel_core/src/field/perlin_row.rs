@@ -193,7 +193,8 @@ impl PerlinRow {
     /// as long as the lattice's points; `noise`'s `get` at the same point
     /// gives the same `P` bit for bit. The corners of a lattice cell are
     /// hashed once for all the rows of its lattice row while `z`'s corner
-    /// stays the same.
+    /// stays the same. Always inlined (with the cell loop), so that it is
+    /// compiled for the instruction set its caller dispatches to.
     #[inline(always)]
     pub(super) fn add_row(
         &self,
