@@ -51,8 +51,13 @@ fn exact_density(hierarchy: &VolumeHierarchy, p: [usize; 3]) -> f64 {
 /// tetrahedra (`nebel_core`'s decomposition), at grid point `p` in its box:
 /// an independent reference for the coarse values.
 fn coarse_value(hierarchy: &VolumeHierarchy, node: Node, p: [usize; 3]) -> f64 {
+    coarse_value_of(|q| exact_density(hierarchy, q), node, p)
+}
+
+/// [`coarse_value`] of the field `value` (quantised values, f64).
+fn coarse_value_of(value: impl Fn([usize; 3]) -> f64, node: Node, p: [usize; 3]) -> f64 {
     let to_f = |q: [usize; 3]| DVec3::new(q[0] as f64, q[1] as f64, q[2] as f64);
-    let corners = std::array::from_fn(|v| exact_density(hierarchy, node.corner(v)));
+    let corners = std::array::from_fn(|v| value(node.corner(v)));
     let hex =
         Hexahedron::axis_aligned(to_f(node.origin), DVec3::splat(node.size() as f64), corners);
     let x = to_f(p);
@@ -74,13 +79,18 @@ fn coarse_value(hierarchy: &VolumeHierarchy, node: Node, p: [usize; 3]) -> f64 {
 
 /// The node's local deviation by the reference: max over its non-corner points.
 fn local_deviation(hierarchy: &VolumeHierarchy, node: Node) -> f64 {
+    local_deviation_of(|p| exact_density(hierarchy, p), node)
+}
+
+/// [`local_deviation`] of the field `value` (quantised values, f64).
+fn local_deviation_of(value: impl Fn([usize; 3]) -> f64 + Copy, node: Node) -> f64 {
     let half = node.size() / 2;
     box_points(node)
         .filter(|p| {
             let rel: [usize; 3] = std::array::from_fn(|a| p[a] - node.origin[a]);
             rel.iter().all(|r| r % half == 0) && !rel.iter().all(|&r| r % node.size() == 0)
         })
-        .map(|p| (exact_density(hierarchy, p) - coarse_value(hierarchy, node, p)).abs())
+        .map(|p| (value(p) - coarse_value_of(value, node, p)).abs())
         .fold(0.0, f64::max)
 }
 
@@ -451,6 +461,50 @@ proptest! {
                 (-1e-9..=1.0 / 65535.0 + 1e-9).contains(&excess),
                 "{node:?}: Δ {} against {bound}", parent / 65535.0
             );
+        }
+    }
+
+    #[test]
+    fn a_lit_hierarchy_takes_the_larger_deviation_of_density_and_light(
+        field in random_grid(),
+        min_accuracy in 1.75f64..20.0,
+        stride in 1usize..64,
+    ) {
+        // A light field as rough as the density and unlike it: the density
+        // values read in another order.
+        let values = field.values();
+        let light_values = (0..values.len())
+            .map(|i| values[(i * (2 * stride + 1) + stride) % values.len()])
+            .collect();
+        let light =
+            DensityGrid::new(field.dims(), field.spacing(), field.origin(), light_values).unwrap();
+        let hierarchy = VolumeHierarchy::with_light(&field, &light, min_accuracy).unwrap();
+        let k = hierarchy.k_max();
+        // The light's quantised value, exactly (`light` is q / 255 in f32).
+        let exact_light = |p| {
+            let light = f64::from(hierarchy.light(p).expect("a lit hierarchy"));
+            (light * 255.0).round() / 255.0
+        };
+        for node in all_nodes(&hierarchy).into_iter().filter(|n| n.level >= 1) {
+            let parent = f64::from(hierarchy.deviation_quantised(node));
+            let mut bound = local_deviation(&hierarchy, node)
+                .max(local_deviation_of(exact_light, node));
+            for child in node.children().unwrap() {
+                let child = f64::from(hierarchy.deviation_quantised(child));
+                prop_assert!(parent >= k * child, "{node:?}: {parent} < {k} · {child}");
+                bound = bound.max(k * child / 65535.0);
+            }
+            let excess = parent / 65535.0 - bound;
+            prop_assert!(
+                (-1e-9..=1.0 / 65535.0 + 1e-9).contains(&excess),
+                "{node:?}: Δ {} against {bound}", parent / 65535.0
+            );
+        }
+        // The ranges stay those of the density.
+        for node in all_nodes(&hierarchy) {
+            let values: Vec<u8> = box_points(node).map(|p| hierarchy.density_quantised(p)).collect();
+            let expected = [*values.iter().min().unwrap(), *values.iter().max().unwrap()];
+            prop_assert_eq!(hierarchy.scalar_range_quantised(node), expected, "{:?}", node);
         }
     }
 
