@@ -59,15 +59,17 @@
 //! lands inside the previous slice in one branch-free loop in vector
 //! instructions; equal bit for bit to the sweep point by point (a test).
 //! The 513 × 513 × 65 field (513 × 65 × 513, y up, 17.1 million points,
-//! the sun along y in index units) takes 0.18 s without a shadow on one
+//! the sun along y in index units) took 0.18 s without a shadow on one
 //! thread (0.11 s on two) and 0.61 s with the sweep (0.57 s), against 0.74
 //! to 0.76 s with the sweep point by point in alternating runs (fastest of
 //! 3 runs each on a 2-core machine; `cargo bench -p nebel_core --bench
-//! cloud`). Against the pointwise Lambert pass in SSE2, three alternating
-//! pairs of runs on the lit 6-octave layer of `cloud_flythrough.ron` took
-//! 596 to 864 ms against 870 to 1,264 ms on one thread; with the sun along
-//! x (spacing 10 × 20 × 10 m, sun `(0.45, 0.6, 0.3)`) the whole light field
-//! took 523 to 686 ms against 906 to 1,123 ms with the sweep point by point.
+//! cloud`; a later run in a faster phase of the machine: 0.37 s with the
+//! sweep, 0.59 s with the sun along x). Against the pointwise Lambert pass
+//! in SSE2, three alternating pairs of runs on the lit 6-octave layer of
+//! `cloud_flythrough.ron` took 596 to 864 ms against 870 to 1,264 ms on one
+//! thread; with the sun along x (spacing 10 × 20 × 10 m, sun `(0.45, 0.6,
+//! 0.3)`) the whole light field took 523 to 686 ms against 906 to 1,123 ms
+//! with the sweep point by point, one slice at a time.
 
 use std::num::NonZeroUsize;
 

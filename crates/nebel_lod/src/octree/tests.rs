@@ -436,6 +436,32 @@ fn random_grid() -> impl Strategy<Value = DensityGrid> {
     })
 }
 
+/// Every node's Δ above the voxels is the largest of its local deviation
+/// (`local`, by the reference) and `K_max` times its children's Δ, rounded
+/// up to 1/65535; Eq. 5 holds exactly on the stored values.
+fn check_deviations(
+    hierarchy: &VolumeHierarchy,
+    local: impl Fn(Node) -> f64,
+) -> Result<(), TestCaseError> {
+    let k = hierarchy.k_max();
+    for node in all_nodes(hierarchy).into_iter().filter(|n| n.level >= 1) {
+        let parent = f64::from(hierarchy.deviation_quantised(node));
+        let mut bound = local(node);
+        for child in node.children().unwrap() {
+            let child = f64::from(hierarchy.deviation_quantised(child));
+            prop_assert!(parent >= k * child, "{node:?}: {parent} < {k} · {child}");
+            bound = bound.max(k * child / 65535.0);
+        }
+        let excess = parent / 65535.0 - bound;
+        prop_assert!(
+            (-1e-9..=1.0 / 65535.0 + 1e-9).contains(&excess),
+            "{node:?}: Δ {} against {bound}",
+            parent / 65535.0
+        );
+    }
+    Ok(())
+}
+
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(64))]
 
@@ -445,23 +471,7 @@ proptest! {
         min_accuracy in 1.75f64..20.0,
     ) {
         let hierarchy = VolumeHierarchy::new(&field, min_accuracy).unwrap();
-        let k = hierarchy.k_max();
-        for node in all_nodes(&hierarchy).into_iter().filter(|n| n.level >= 1) {
-            let parent = f64::from(hierarchy.deviation_quantised(node));
-            let mut bound = local_deviation(&hierarchy, node);
-            for child in node.children().unwrap() {
-                let child = f64::from(hierarchy.deviation_quantised(child));
-                // Eq. 5 holds exactly on the stored values.
-                prop_assert!(parent >= k * child, "{node:?}: {parent} < {k} · {child}");
-                bound = bound.max(k * child / 65535.0);
-            }
-            // Δ is that maximum, rounded up to 1/65535.
-            let excess = parent / 65535.0 - bound;
-            prop_assert!(
-                (-1e-9..=1.0 / 65535.0 + 1e-9).contains(&excess),
-                "{node:?}: Δ {} against {bound}", parent / 65535.0
-            );
-        }
+        check_deviations(&hierarchy, |node| local_deviation(&hierarchy, node))?;
     }
 
     #[test]
@@ -479,27 +489,14 @@ proptest! {
         let light =
             DensityGrid::new(field.dims(), field.spacing(), field.origin(), light_values).unwrap();
         let hierarchy = VolumeHierarchy::with_light(&field, &light, min_accuracy).unwrap();
-        let k = hierarchy.k_max();
         // The light's quantised value, exactly (`light` is q / 255 in f32).
         let exact_light = |p| {
             let light = f64::from(hierarchy.light(p).expect("a lit hierarchy"));
             (light * 255.0).round() / 255.0
         };
-        for node in all_nodes(&hierarchy).into_iter().filter(|n| n.level >= 1) {
-            let parent = f64::from(hierarchy.deviation_quantised(node));
-            let mut bound = local_deviation(&hierarchy, node)
-                .max(local_deviation_of(exact_light, node));
-            for child in node.children().unwrap() {
-                let child = f64::from(hierarchy.deviation_quantised(child));
-                prop_assert!(parent >= k * child, "{node:?}: {parent} < {k} · {child}");
-                bound = bound.max(k * child / 65535.0);
-            }
-            let excess = parent / 65535.0 - bound;
-            prop_assert!(
-                (-1e-9..=1.0 / 65535.0 + 1e-9).contains(&excess),
-                "{node:?}: Δ {} against {bound}", parent / 65535.0
-            );
-        }
+        check_deviations(&hierarchy, |node| {
+            local_deviation(&hierarchy, node).max(local_deviation_of(exact_light, node))
+        })?;
         // The ranges stay those of the density.
         for node in all_nodes(&hierarchy) {
             let values: Vec<u8> = box_points(node).map(|p| hierarchy.density_quantised(p)).collect();
