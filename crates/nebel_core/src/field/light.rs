@@ -39,7 +39,12 @@
 //! after the fraction `t` of the step: `τ(p) = σ t Δs (f(p) + f(e)) / 2` with
 //! f(e) trilinear at the exit point. Anisotropic spacing is exact: the step is
 //! taken in index space and measured in world units. τ is capped at 800
-//! (T = 0 in f64) so no infinity meets a zero weight.
+//! (`exp(−800)` is 0 in f64) so no infinity meets a zero weight. `T` is
+//! `exp_neg` (`crate::optics`: branch-free, so the pass that applies it
+//! vectorises; about 1e-15 relative, and from 700 on `e^{−700}`, which no
+//! f32 γ can tell from 0): on the 513 × 65 × 513 layer under six suns along
+//! every axis every γ equalled the one through the library's `exp` bit for
+//! bit.
 //!
 //! The sweep is exact (to 4·10⁻⁸ in γ) on a density-1 slab wherever the
 //! points it resamples all see the ray leave through the sun-side face. Next
@@ -59,28 +64,29 @@
 //! lands inside the previous slice in one branch-free loop in vector
 //! instructions; equal bit for bit to the sweep point by point (a test).
 //! The 513 × 513 × 65 field (513 × 65 × 513, y up, 17.1 million points,
-//! the sun along y in index units) took 0.18 s without a shadow on one
-//! thread (0.11 s on two) and 0.61 s with the sweep (0.57 s), against 0.74
-//! to 0.76 s with the sweep point by point in alternating runs (fastest of
-//! 3 runs each on a 2-core machine; `cargo bench -p nebel_core --bench
-//! cloud`; a later run in a faster phase of the machine: 0.37 s with the
-//! sweep, 0.59 s with the sun along x). Against the pointwise Lambert pass
-//! in SSE2, three alternating pairs of runs on the lit 6-octave layer of
-//! `cloud_flythrough.ron` took 596 to 864 ms against 870 to 1,264 ms on one
-//! thread; with the sun along x (spacing 10 × 20 × 10 m, sun `(0.45, 0.6,
-//! 0.3)`) the whole light field took 523 to 686 ms against 906 to 1,123 ms
-//! with the sweep point by point, one slice at a time.
+//! the sun along y in index units) takes 0.18 s without a shadow on one
+//! thread and 0.36 to 0.37 s with the sweep, against 0.62 to 0.64 s with the
+//! library's `exp` per point and 0.74 to 0.76 s with the sweep point by
+//! point, in alternating runs (fastest of 3 runs each on a 2-core machine;
+//! `cargo bench -p nebel_core --bench cloud`); with the sun along x 0.84
+//! to 1.03 s (the library's `exp`: 0.69 to 1.10 s). Against the pointwise
+//! Lambert pass in SSE2, three alternating pairs of runs on the lit 6-octave
+//! layer of `cloud_flythrough.ron` took 596 to 864 ms against 870 to 1,264
+//! ms on one thread; with the sun along x (spacing 10 × 20 × 10 m, sun
+//! `(0.45, 0.6, 0.3)`) the whole light field took 523 to 686 ms against 906
+//! to 1,123 ms with the sweep point by point, one slice at a time.
 
 use std::num::NonZeroUsize;
 
 use glam::DVec3;
 
 use super::{DensityGrid, FieldError, SAMPLE_BYTES, check_points};
+use crate::optics::exp_neg;
 
 /// Density change per voxel at which the Lambert weight `w` is one half.
 const GRADIENT_SOFTNESS: f64 = 0.05;
 
-/// Optical depth beyond which the transmittance is 0 in f64.
+/// The largest optical depth kept: `exp(−800)` is 0 in f64.
 const TAU_MAX: f64 = 800.0;
 
 /// Slices of the shadow sweep read and written together when the sweep goes
@@ -259,18 +265,15 @@ pub fn light_field_with_threads(
     }
 
     if shadow {
+        let arch = pulp::Arch::new();
         sweep_optical_depth(grid, sun, sigma, |axes, slices, taus| {
-            let [nb, nc] = [axes.b, axes.c].map(|axis| axes.dims[axis]);
-            for v in 0..nc {
-                for u in 0..nb {
-                    let first = axes.index(0, u, v);
-                    for (&s, taus) in slices.iter().zip(taus) {
-                        let index = first + s * axes.strides[axes.a];
-                        let tau = taus[u + nb * v];
-                        out[index] = gamma(ambient, diffuse, (-tau).exp() * f64::from(out[index]));
-                    }
-                }
-            }
+            arch.dispatch(ShadeSlices {
+                out: &mut out,
+                axes,
+                slices,
+                taus,
+                gamma_weights: [ambient, diffuse],
+            });
         });
     }
     DensityGrid::validated(name, grid.dims(), spacing, grid.origin(), out)
@@ -281,6 +284,56 @@ pub fn light_field_with_threads(
 #[inline(always)]
 fn gamma(ambient: f64, diffuse: f64, lit: f64) -> f32 {
     (ambient + diffuse * lit).clamp(0.0, 1.0) as f32
+}
+
+/// γ from the Lambert terms in `out` and the optical depths toward the sun
+/// of a block of slices of the sweep ([`sweep_optical_depth`]), in place,
+/// compiled for the vector instructions the CPU has: along the rows of a
+/// slice where they are contiguous in the grid, else a slice of the block
+/// at a time, point by point (the block's slices share cache lines). The
+/// transmittance is [`exp_neg`].
+struct ShadeSlices<'a> {
+    out: &'a mut [f32],
+    axes: &'a SweepAxes,
+    slices: &'a [usize],
+    taus: &'a [Vec<f64>],
+    /// `[ambient, diffuse]`.
+    gamma_weights: [f64; 2],
+}
+
+impl pulp::WithSimd for ShadeSlices<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        let Self {
+            out,
+            axes,
+            slices,
+            taus,
+            gamma_weights: [ambient, diffuse],
+        } = self;
+        let shade = |value: &mut f32, tau: f64| {
+            *value = gamma(ambient, diffuse, exp_neg(tau) * f64::from(*value));
+        };
+        let nb = axes.dims[axes.b];
+        if let ([s], [taus], 1) = (slices, taus, axes.strides[axes.b]) {
+            for (v, taus) in taus.chunks_exact(nb).enumerate() {
+                let start = axes.index(*s, 0, v);
+                for (value, &tau) in out[start..start + nb].iter_mut().zip(taus) {
+                    shade(value, tau);
+                }
+            }
+            return;
+        }
+        for (&s, taus) in slices.iter().zip(taus) {
+            for (v, taus) in taus.chunks_exact(nb).enumerate() {
+                for (u, &tau) in taus.iter().enumerate() {
+                    shade(&mut out[axes.index(s, u, v)], tau);
+                }
+            }
+        }
+    }
 }
 
 /// The Lambert pass: per point the Lambert term, or γ without a shadow.
