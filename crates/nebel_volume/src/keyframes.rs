@@ -58,12 +58,12 @@
 //! moving camera refines every frame anyway), and per frame a uniform
 //! write.
 //! `cargo bench -p nebel_lod --bench wind_keyframes` measured the 513 × 65 ×
-//! 513 layer's keyframe at 1.5 s of one core (grid 0.58 s, light field
-//! 0.65 s, octree 0.16 s; the pair's octree shares both keyframes' arrays
-//! and costs nothing) and a still camera's refinement step at 22 ms, so at
-//! 60 frames per second `T` = 18 s spends 2 ms per frame on average (one
+//! 513 layer's keyframe at 1.5 s of one core (grid 0.85 s, light field
+//! 0.44 s, octree 0.22 s; the pair's octree shares both keyframes' arrays
+//! and costs nothing) and a still camera's refinement step at 32 ms, so at
+//! 60 frames per second `T` = 21 s spends 2 ms per frame on average (one
 //! run on a 2-core machine whose runs vary by up to 1.5×: a second gave
-//! 1.7 s, a 34 ms step and `T` = 23 s). On the frame's own
+//! 1.6 s, a 25 ms step and `T` = 20 s). On the frame's own
 //! thread a still camera costs a
 //! uniform write and, at a refinement step or hand-over, handing a finished
 //! batch to the render world (`benches/scenes/wind_513.ron`: 0.03 ms at
