@@ -872,6 +872,25 @@ mod tests {
         tau
     }
 
+    /// A grid `long` points along `long_axis` and `short` along the others,
+    /// its values `levels` in a scrambled repeating order, with `spacing`.
+    fn long_grid(
+        long_axis: usize,
+        long: usize,
+        short: [usize; 2],
+        levels: &[f32],
+        spacing: [f64; 3],
+    ) -> DensityGrid {
+        let mut dims = [short[0], short[1], short[0]];
+        dims[long_axis] = long;
+        dims[(long_axis + 1) % 3] = short[1];
+        let n: usize = dims.iter().product();
+        let values = (0..n)
+            .map(|i| levels[(i * 7 + i / 5) % levels.len()])
+            .collect();
+        DensityGrid::new(dims, DVec3::from(spacing), DVec3::ZERO, values).unwrap()
+    }
+
     proptest::proptest! {
         /// Sweeps along each axis, either way, grazing and steep, over
         /// grids longer than a block of slices along x, with plateaus and
@@ -886,12 +905,8 @@ mod tests {
             sun in proptest::array::uniform3(-1.0f64..1.0),
             sigma in 1e-3f64..5.0,
         ) {
-            let mut dims = [short[0], short[1], short[0]];
-            dims[long_axis] = long;
-            dims[(long_axis + 1) % 3] = short[1];
-            let n: usize = dims.iter().product();
-            let values = (0..n).map(|i| levels[(i * 7 + i / 5) % levels.len()]).collect();
-            let grid = DensityGrid::new(dims, DVec3::from(spacing), DVec3::ZERO, values).unwrap();
+            let grid = long_grid(long_axis, long, short, &levels, spacing);
+            let (dims, n) = (grid.dims(), grid.values().len());
             let sun = DVec3::from(sun).normalize_or(DVec3::Y);
             let expected = pointwise_optical_depth(&grid, sun, sigma);
             let mut swept = vec![f64::NAN; n];
@@ -923,12 +938,8 @@ mod tests {
             sun in proptest::array::uniform3(-1.0f64..1.0),
             sigma in 1e-3f32..5.0,
         ) {
-            let mut dims = [short[0], short[1], short[0]];
-            dims[long_axis] = long;
-            dims[(long_axis + 1) % 3] = short[1];
-            let n: usize = dims.iter().product();
-            let values = (0..n).map(|i| levels[(i * 7 + i / 5) % levels.len()]).collect();
-            let grid = DensityGrid::new(dims, DVec3::from(spacing), DVec3::ZERO, values).unwrap();
+            let grid = long_grid(long_axis, long, short, &levels, spacing);
+            let dims = grid.dims();
             let sun = DVec3::from(sun).normalize_or(DVec3::Y);
             let light = light_field(&grid, &CloudLighting::transmittance(sun, sigma)).unwrap();
             let taus = pointwise_optical_depth(&grid, sun.normalize(), f64::from(sigma));
