@@ -66,8 +66,9 @@
 //! 1.6 s, a 25 ms step and `T` = 20 s). On the frame's own
 //! thread a still camera costs a
 //! uniform write and, at a refinement step or hand-over, handing a finished
-//! batch to the render world (`benches/scenes/wind_513.ron`: 0.03 ms at
-//! most); a moving camera refines every frame anyway. Memory: about 5 bytes
+//! batch to the render world (`benches/scenes/wind_513.ron`: 0.026 ms on
+//! average, 1.3 ms at most in one run, wall time on two cores shared with
+//! lavapipe and the builds); a moving camera refines every frame anyway. Memory: about 5 bytes
 //! per grid point for each of the three keyframes alive (the drawn pair's
 //! two, which the next pair shares, and the one being built), and the
 //! build's f32 grids.
