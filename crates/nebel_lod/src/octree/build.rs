@@ -455,23 +455,9 @@ impl PointKinds {
     }
 }
 
-/// The field quantised to u8, `round(255 · s)`, compiled for the vector
-/// instructions the CPU has (`pulp`'s runtime dispatch; the same IEEE
-/// operations, so the same values, on every CPU).
+/// The field quantised to u8, `round(255 · s)`.
 fn quantise(grid: &DensityGrid) -> Vec<u8> {
-    pulp::Arch::new().dispatch(Quantise(grid.values()))
-}
-
-/// [`quantise`] of a grid's values.
-struct Quantise<'a>(&'a [f32]);
-
-impl pulp::WithSimd for Quantise<'_> {
-    type Output = Vec<u8>;
-
-    #[inline(always)]
-    fn with_simd<S: pulp::Simd>(self, _simd: S) -> Vec<u8> {
-        self.0.iter().map(|&s| quantised(s)).collect()
-    }
+    grid.values().iter().map(|&s| quantised(s)).collect()
 }
 
 /// `(255 · s).round() as u8` for `s` in [0, 1] in operations that
@@ -481,9 +467,7 @@ impl pulp::WithSimd for Quantise<'_> {
 /// nearest integer, ties to even, into the low bits of the sum; where that
 /// went down from a tie (`x` exactly half above it) half-up rounding adds
 /// one. Checked once over every f32 in [0, 1]; the test below checks the
-/// values next to every boundary. Always inlined, so that it is compiled for
-/// the instructions of [`Quantise`].
-#[inline(always)]
+/// values next to every boundary.
 fn quantised(s: f32) -> u8 {
     const SHIFT: f32 = 8_388_608.0;
     let x = s * 255.0;
