@@ -100,7 +100,7 @@ fn main() {
         let settings = RefinementSettings {
             criterion,
             scalars: CellScalars::LightModulatedByDensity,
-            blend: 0.0,
+            ..RefinementSettings::default()
         };
         let (mut times, mut cells) = (Vec::new(), Vec::new());
         for frame in 0..FRAMES {

@@ -74,7 +74,7 @@ impl Layer {
         let settings = RefinementSettings {
             criterion,
             scalars: CellScalars::LightModulatedByDensity,
-            blend: 0.0,
+            ..RefinementSettings::default()
         };
         let started = Instant::now();
         let refinement =

@@ -35,7 +35,7 @@ use std::time::Instant;
 use glam::DVec3;
 use nebel_core::field::{CloudLighting, CloudNoise, DensityGrid, light_field_with_threads};
 use nebel_core::transfer::{TransferFunction, TransferPreset};
-use nebel_lod::octree::keyframe::REFINEMENT_STEPS;
+use nebel_lod::octree::keyframe::{REFINEMENT_SPAN, REFINEMENT_STEPS};
 use nebel_lod::octree::{CellScalars, LodCriterion, RefinementSettings, lod_batch_with, refine};
 use nebel_lod::{CellBatch, View, VolumeHierarchy};
 use nebel_reference::image_metrics::{LinearImage, compare};
@@ -101,7 +101,8 @@ fn keyframe(
 }
 
 /// The lit batch of `hierarchy` for `view` at the default screen error,
-/// refined for the keyframe blend `blend`, and its time (ms).
+/// refined for the keyframe blends from `blend` on (`REFINEMENT_SPAN`, as the
+/// renderer's steps), and its time (ms).
 fn batch(
     hierarchy: &VolumeHierarchy,
     view: &View,
@@ -124,6 +125,7 @@ fn timed_batch(
         criterion: LodCriterion::default(),
         scalars,
         blend,
+        blend_span: REFINEMENT_SPAN,
     };
     let started = Instant::now();
     let refinement = refine(hierarchy, view, transfer, &settings).expect("valid settings");

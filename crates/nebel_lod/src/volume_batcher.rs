@@ -97,6 +97,7 @@
 //!     transfer: &transfer,
 //!     criterion: LodCriterion::distance(16.0),
 //!     blend: 0.0,
+//!     blend_span: 0.0,
 //! };
 //! let view = View::new(DAffine3::IDENTITY, DVec3::new(3.0, 2.0, -20.0), UVec2::new(1280, 720));
 //! assert!(batcher.update(&view, &inputs)?); // the first frame builds
@@ -203,6 +204,10 @@ pub struct FrameInputs<'a> {
     /// ([`RefinementSettings::blend`]); a new value rebuilds the batch.
     /// Ignored otherwise.
     pub blend: f32,
+    /// How far the blend may advance past [`FrameInputs::blend`] while the
+    /// batch is drawn ([`RefinementSettings::blend_span`]); a new value
+    /// rebuilds the batch. Ignored without two keyframes.
+    pub blend_span: f32,
 }
 
 /// Why a [`VolumeBatcher`] could not be built or updated.
@@ -313,8 +318,8 @@ struct BuiltFor {
     transfer: u64,
     /// The octree's criterion.
     criterion: LodCriterion,
-    /// The keyframe blend the octree was refined for.
-    blend: f32,
+    /// The keyframe blend and span the octree was refined for.
+    blends: Blends,
     /// The view's [`order_key`] for a grid at full resolution back to front,
     /// `None` for the other kinds.
     order_key: Option<[i64; 11]>,
@@ -449,7 +454,7 @@ impl VolumeBatcher {
             view: view.clone(),
             transfer,
             criterion: inputs.criterion,
-            blend: inputs.blend,
+            blends: Blends::of(inputs),
             order_key,
         });
         Ok(true)
@@ -508,7 +513,7 @@ impl VolumeBatcher {
             && built.view == *view
             && built.transfer == inputs.transfer.content_hash()
             && built.criterion == inputs.criterion
-            && built.blend.to_bits() != inputs.blend.to_bits();
+            && built.blends != Blends::of(inputs);
         only_the_blend.then(|| BlendStep::new(hierarchy, *scalars, view, inputs))
     }
 
@@ -541,7 +546,7 @@ impl VolumeBatcher {
             view: step.view,
             transfer: step.transfer.content_hash(),
             criterion: step.criterion,
-            blend: step.blend,
+            blends: step.blends,
             order_key: None,
         });
         Ok(true)
@@ -631,7 +636,7 @@ impl VolumeBatcher {
                 eye_moved
                     || frustum_changed
                     || built.criterion != inputs.criterion
-                    || (blended && built.blend.to_bits() != inputs.blend.to_bits())
+                    || (blended && built.blends != Blends::of(inputs))
                     || (measures_pixels
                         && (built.view.clip_from_world != view.clip_from_world
                             || built.view.viewport != view.viewport))
@@ -658,11 +663,7 @@ impl VolumeBatcher {
                 }
             },
             Kind::Octree { hierarchy, scalars } => {
-                let settings = RefinementSettings {
-                    criterion: inputs.criterion,
-                    scalars: *scalars,
-                    blend: inputs.blend,
-                };
+                let settings = Blends::of(inputs).refinement(inputs.criterion, *scalars);
                 let refinement = refine(hierarchy, view, inputs.transfer, &settings)?;
                 lod_batch_with(hierarchy, &refinement, view, *scalars)?
             }
@@ -670,6 +671,41 @@ impl VolumeBatcher {
             Kind::UnorderedCells { cells } => unordered_batch(cells, view)?,
         };
         Ok(batch)
+    }
+}
+
+/// The keyframe blend and span of [`FrameInputs`] a batch is refined for;
+/// equal when bit for bit equal, so any new value rebuilds.
+#[derive(Clone, Copy, Debug)]
+struct Blends {
+    /// [`FrameInputs::blend`].
+    blend: f32,
+    /// [`FrameInputs::blend_span`].
+    span: f32,
+}
+
+impl Blends {
+    fn of(inputs: &FrameInputs) -> Self {
+        Self {
+            blend: inputs.blend,
+            span: inputs.blend_span,
+        }
+    }
+
+    /// The refinement's settings for these blends.
+    fn refinement(self, criterion: LodCriterion, scalars: CellScalars) -> RefinementSettings {
+        RefinementSettings {
+            criterion,
+            scalars,
+            blend: self.blend,
+            blend_span: self.span,
+        }
+    }
+}
+
+impl PartialEq for Blends {
+    fn eq(&self, other: &Self) -> bool {
+        self.blend.to_bits() == other.blend.to_bits() && self.span.to_bits() == other.span.to_bits()
     }
 }
 
@@ -682,7 +718,7 @@ pub struct BlendStep {
     view: View,
     transfer: TransferFunction,
     criterion: LodCriterion,
-    blend: f32,
+    blends: Blends,
 }
 
 impl BlendStep {
@@ -698,17 +734,13 @@ impl BlendStep {
             view: view.clone(),
             transfer: inputs.transfer.clone(),
             criterion: inputs.criterion,
-            blend: inputs.blend,
+            blends: Blends::of(inputs),
         }
     }
 
     /// Refines and emits the batch, as [`VolumeBatcher::update`] would.
     pub fn build(self) -> BuiltBlendStep {
-        let settings = RefinementSettings {
-            criterion: self.criterion,
-            scalars: self.scalars,
-            blend: self.blend,
-        };
+        let settings = self.blends.refinement(self.criterion, self.scalars);
         let batch = refine(&self.hierarchy, &self.view, &self.transfer, &settings)
             .and_then(|refinement| {
                 lod_batch_with(&self.hierarchy, &refinement, &self.view, self.scalars)

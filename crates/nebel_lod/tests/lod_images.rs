@@ -1186,7 +1186,8 @@ proptest! {
 /// of the popping test, its noise drifting through its envelope at one voxel
 /// per second (2 world units per second), keyframes at `k·T`; a still camera;
 /// each pair refined again every `1/REFINEMENT_STEPS` of the interval for the
-/// blend at the step's start, at the popping test's screen error, and drawn at
+/// blends from the step's start (`REFINEMENT_SPAN`), at the popping test's
+/// screen error, and drawn at
 /// every frame's blend (60 frames per second, a quarter interval past a
 /// hand-over). The largest per-pixel change between consecutive frames stays
 /// under the popping test's bound, inside a refinement step, across one and
@@ -1195,7 +1196,7 @@ proptest! {
 /// less than half the bound.
 #[test]
 fn wind_keyframes_change_consecutive_frames_less_than_the_popping_bound() {
-    use nebel_lod::octree::keyframe::REFINEMENT_STEPS;
+    use nebel_lod::octree::keyframe::{REFINEMENT_SPAN, REFINEMENT_STEPS};
     const BOUND: f64 = 0.0125;
     const FRAME_RATE: f64 = 60.0;
     let dims = [17; 3];
@@ -1236,6 +1237,7 @@ fn wind_keyframes_change_consecutive_frames_less_than_the_popping_bound() {
             let batch = batches.entry((pair, step)).or_insert_with(|| {
                 let settings = RefinementSettings {
                     blend: step as f32 / REFINEMENT_STEPS as f32,
+                    blend_span: REFINEMENT_SPAN,
                     ..RefinementSettings::new(criterion)
                 };
                 [true, false]

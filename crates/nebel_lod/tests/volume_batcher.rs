@@ -114,6 +114,7 @@ fn inputs(transfer: &TransferFunction) -> FrameInputs<'_> {
         transfer,
         criterion: LodCriterion::distance(ACCURACY),
         blend: 0.0,
+        blend_span: 0.0,
     }
 }
 
@@ -843,6 +844,14 @@ fn a_blend_step_builds_detached_what_update_builds() {
     assert!(inline.update(&v, &at(0.5)).unwrap());
     assert_eq!(detached.batch(), inline.batch());
     assert!(!detached.update(&v, &at(0.5)).unwrap(), "adopted as built");
+    // A new span of blends is a step too.
+    let spanned = FrameInputs {
+        blend_span: 0.25,
+        ..at(0.5)
+    };
+    let step = detached.blend_step(&v, &spanned).expect("a new span alone");
+    assert!(detached.adopt(step.build()).unwrap());
+    assert!(!detached.update(&v, &spanned).unwrap(), "adopted as built");
     // A step of another batcher is not taken; a single keyframe has none.
     let other = inline.blend_step(&v, &at(0.75)).unwrap();
     assert!(!detached.adopt(other.build()).unwrap());

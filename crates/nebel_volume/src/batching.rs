@@ -49,6 +49,7 @@ use bevy::diagnostic::Diagnostics;
 use bevy::math::{DAffine3, DVec3};
 use bevy::prelude::*;
 use nebel_core::optics::OpticalMode;
+use nebel_lod::octree::keyframe::REFINEMENT_SPAN;
 use nebel_lod::{
     BatchLighting, BatchSettings, BuiltBlendStep, CellOrder, FrameInputs, Frustum, OctreeSettings,
     View, VolumeBatchError, VolumeBatcher, VolumeSource,
@@ -488,6 +489,7 @@ pub(crate) fn update_batches(
                 transfer: &volume.transfer_function,
                 criterion,
                 blend: track.refinement_blend(),
+                blend_span: REFINEMENT_SPAN,
             };
             if let Err(error) = make_ahead(
                 track.batcher_mut().filter(|pair| !pair.is_built()),
@@ -546,6 +548,7 @@ pub(crate) fn update_batches(
             transfer: &volume.transfer_function,
             criterion,
             blend: blend.map_or(0.0, |(_, refined_for)| refined_for),
+            blend_span: blend.map_or(0.0, |_| REFINEMENT_SPAN),
         };
         let scattering =
             lighting.and_then(|lighting| lighting.cell_scattering(sun_world.unwrap_or(Vec3::Y)));

@@ -32,10 +32,12 @@
 //! keyframes', bounds of the blend's own, so nothing is refined too coarsely
 //! or culled wrongly, and continuous in `β`, so the refinement changes with
 //! the blend as it does with a moving eye. Each frame `β` changes (the
-//! entity's [`CellBlend`], a uniform write); the octree is refined again for
-//! the blend [`REFINEMENT_STEPS`] times per interval (and whenever the camera
-//! moves), each time changing a few cells, as between two frames of a moving
-//! camera.
+//! entity's [`CellBlend`], a uniform write); the octree is refined again
+//! [`REFINEMENT_STEPS`] times per interval (and whenever the camera moves),
+//! each time changing a few cells, as between two frames of a moving camera,
+//! for every blend from the step's start to the end of the next step
+//! (`REFINEMENT_SPAN`): the cells are drawn until the next step's
+//! refinement, built on the task pool meanwhile, replaces them.
 //!
 //! While the pair `(t_k, t_{k+1})` is drawn, the next one `(t_{k+1},
 //! t_{k+2})` is built on the task pool: the grid at `t_{k+2}`, its padding,
@@ -419,6 +421,7 @@ mod tests {
     use bevy::tasks::{AsyncComputeTaskPool, TaskPool};
     use nebel_core::field::{CloudLighting, CloudNoise};
     use nebel_core::transfer::{TransferFunction, TransferPreset};
+    use nebel_lod::octree::keyframe::REFINEMENT_SPAN;
     use nebel_lod::octree::{CellScalars, LodCriterion};
     use nebel_lod::{BatchLighting, CellOrder, FrameInputs, OctreeSettings, View};
 
@@ -466,6 +469,7 @@ mod tests {
             transfer: &transfer,
             criterion: LodCriterion::distance(8.0),
             blend,
+            blend_span: REFINEMENT_SPAN,
         };
         batcher.update(&view, &inputs).unwrap();
         batcher.batch().clone()

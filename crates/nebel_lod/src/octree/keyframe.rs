@@ -33,6 +33,17 @@
 //! advances (the cells change a little at each step, as between the frames
 //! of a moving camera) and blends between refinements on the GPU.
 //!
+//! Cells drawn while `β` advances are refined for every blend they are drawn
+//! at, the span from `β` to `β + s`
+//! ([`super::RefinementSettings::blend_span`]): each node's largest Δ over
+//! the span and the hull of its scalar ranges, both those of the span's two
+//! ends since `Δ_β` and the blended extremes are linear in `β`
+//! ([`VolumeHierarchy::deviation_over`],
+//! [`VolumeHierarchy::scalar_range_over`]). So no blend drawn is refined for
+//! less than its Δ, and no node that a drawn blend makes visible is culled;
+//! the largest of two Δ that satisfy Eq. 5 satisfies it too. A stepped
+//! refinement covers two steps ([`REFINEMENT_SPAN`]).
+//!
 //! The morph of Röttger and Ertl 2003 §3 is linear in the grid values with
 //! weights that depend only on the refinement, so the emitted next values are
 //! exactly the morph of the second keyframe over the same cells, and the GPU's
@@ -49,6 +60,14 @@ use super::{HierarchyError, Node, VolumeHierarchy};
 /// refinement is made for is the drawn blend rounded down to a step of
 /// `1 / REFINEMENT_STEPS`.
 pub const REFINEMENT_STEPS: u32 = 32;
+
+/// The blends a stepped refinement is made for
+/// ([`super::RefinementSettings::blend_span`]): from its step's start, two
+/// steps on. The cells are drawn through their own step, and through the
+/// next one until that step's refinement, built while they are drawn,
+/// replaces them (so a step's refinement may take up to a step's time,
+/// `T / REFINEMENT_STEPS`).
+pub const REFINEMENT_SPAN: f32 = 2.0 / REFINEMENT_STEPS as f32;
 
 impl VolumeHierarchy {
     /// The hierarchy that blends from this keyframe to `next` (see the
@@ -89,11 +108,22 @@ impl VolumeHierarchy {
     /// docs); [`VolumeHierarchy::deviation`] for a single keyframe. Panics
     /// when the node is not in this hierarchy.
     pub fn deviation_at(&self, node: Node, blend: f32) -> f32 {
+        self.deviation_over(node, [blend, blend])
+    }
+
+    /// The largest propagated Δ of `node` over the blends between
+    /// `blends[0]` and `blends[1]` (each clamped to [0, 1], NaN as 0):
+    /// `Δ_β` is linear in `β`, so the larger of its values at the two ends
+    /// (module docs). Panics when the node is not in this hierarchy.
+    pub fn deviation_over(&self, node: Node, blends: [f32; 2]) -> f32 {
         let first = self.deviation(node);
         match self.next_deviation(node) {
             Some(next) => {
-                let beta = clamped_blend(blend);
-                (1.0 - beta) * first + beta * next
+                let [start, end] = blends.map(|blend| {
+                    let beta = clamped_blend(blend);
+                    (1.0 - beta) * first + beta * next
+                });
+                start.max(end)
             }
             None => first,
         }
@@ -105,15 +135,27 @@ impl VolumeHierarchy {
     /// [`VolumeHierarchy::scalar_range_quantised`] for a single keyframe.
     /// Panics when the node is not in this hierarchy.
     pub fn scalar_range_at(&self, node: Node, blend: f32) -> [u8; 2] {
+        self.scalar_range_over(node, [blend, blend])
+    }
+
+    /// The node's scalar range over the blends between `blends[0]` and
+    /// `blends[1]` (each clamped to [0, 1], NaN as 0), units of 1/255: the
+    /// hull of [`VolumeHierarchy::scalar_range_at`] at the two ends, which
+    /// holds every blend in between (the blended extremes are linear in
+    /// `β`). Panics when the node is not in this hierarchy.
+    pub fn scalar_range_over(&self, node: Node, blends: [f32; 2]) -> [u8; 2] {
         let ([low, high], Some([next_low, next_high])) = self.keyframe_ranges(node) else {
             return self.scalar_range_quantised(node);
         };
-        let beta = clamped_blend(blend);
-        let mix = |a: u8, b: u8| (1.0 - beta) * f32::from(a) + beta * f32::from(b);
-        // Rounded outward, and never outside the two keyframes' own.
-        let low = (mix(low, next_low).floor() as u8).max(low.min(next_low));
-        let high = (mix(high, next_high).ceil() as u8).min(high.max(next_high));
-        [low, high]
+        let [first, second] = blends.map(|blend| {
+            let beta = clamped_blend(blend);
+            let mix = |a: u8, b: u8| (1.0 - beta) * f32::from(a) + beta * f32::from(b);
+            // Rounded outward, and never outside the two keyframes' own.
+            let low = (mix(low, next_low).floor() as u8).max(low.min(next_low));
+            let high = (mix(high, next_high).ceil() as u8).min(high.max(next_high));
+            [low, high]
+        });
+        [first[0].min(second[0]), first[1].max(second[1])]
     }
 
     /// The next keyframe's propagated Δ of `node` in density units (0 for a

@@ -562,6 +562,28 @@ fn a_keyframe_pair_bounds_every_blend_of_its_keyframes() {
         assert_eq!(pair.next_deviation(node), Some(second.deviation(node)));
         assert_eq!(pair.deviation_at(node, 0.0), first.deviation(node));
         assert_eq!(pair.deviation_at(node, 1.0), second.deviation(node));
+        // Over a span of blends: the largest Δ and a range holding each
+        // blend's, the span's ends in either order.
+        for (start, end) in [(0.0f32, 0.25f32), (0.75, 0.25), (0.5, 1.0)] {
+            let deviation = pair.deviation_over(node, [start, end]);
+            let [low, high] = pair.scalar_range_over(node, [start, end]);
+            for beta in [0.0, 0.25, 0.375, 0.5, 0.625, 0.75, 1.0] {
+                if beta < start.min(end) || beta > start.max(end) {
+                    continue;
+                }
+                assert!(
+                    deviation >= pair.deviation_at(node, beta),
+                    "{node:?}, β = {beta}"
+                );
+                let [at_low, at_high] = pair.scalar_range_at(node, beta);
+                assert!(low <= at_low && at_high <= high, "{node:?}, β = {beta}");
+            }
+            assert_eq!(
+                deviation,
+                pair.deviation_at(node, start)
+                    .max(pair.deviation_at(node, end))
+            );
+        }
 
         let half = node.size() / 2;
         for p in box_points(node) {
