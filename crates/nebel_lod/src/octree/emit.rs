@@ -91,16 +91,30 @@
 //! and spacing applied), rounded to f32 once per point, so shared points
 //! coincide. A view whose viewport has no pixels gets an empty batch.
 //!
-//! # Cost
+//! # Evaluation and cost
 //!
-//! One hash-map insert per refined node for the `e'` table, then per
-//! distinct leaf corner one memoised recursive evaluation (a few lookups),
-//! and the output; one thread. `cargo bench -p nebel_lod --bench octree --
-//! octree_emit` on the paper's 513 × 513 × 65 fBm field, eye inside, measured
-//! 0.27 ms for c = 16 (7 320 cells, about 27 600 cells per ms) and 1.17 ms
-//! for c = 64 (24 925 cells, about 21 400 cells per ms) on the shared
-//! two-core development machine, on top of the refinement's 0.08 and
-//! 0.25 ms.
+//! `v` is evaluated over the refinement's tree, parents first, without
+//! recursion: each refined node gets the values of its 3 × 3 × 3 lattice of
+//! points half its edge apart (its children's corners). Its corners are its
+//! parent's lattice points (a root's are its own values) and the other 19 are
+//! born at its level, so their coarse values average its corners; a leaf's
+//! corners are its parent's lattice points. A point shared by refined
+//! neighbours is evaluated by each, to the same value (the rule is a function
+//! of the point; the averages are sums of two or four terms in a fixed
+//! order). The refinement must be a tree as [`super::refine()`] makes it
+//! (parents listed before their children); anything else is an error.
+//!
+//! One hash-map insert per refined node for the `e'` table, per refined node
+//! its 19 new points (lookups of its neighbours' `e'` in that small table
+//! and four reads of the grid each), per leaf one lookup of its parent's
+//! lattice and the output; one thread. For the wind's keyframe pair of the
+//! 513 × 65 × 513 layer under a still camera (`cargo bench -p nebel_lod
+//! --bench wind_keyframes`, 61 200 cells) the emission took 9.9 to 13.5 ms
+//! in three runs, against 13.0 to 16.9 ms (59 725 cells, refined for one
+//! blend) for a recursive evaluation memoised per point in a hash map, which
+//! gives bit for bit the same cells; a single keyframe's batch (55 895 cells,
+//! refinement included) 13.9 to 19.5 ms against 17.8 to 24.6 ms (the shared
+//! two-core development machine, whose runs vary by up to 1.5×).
 
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
@@ -126,8 +140,10 @@ use crate::view::View;
 /// checks below).
 ///
 /// Errors: [`RefinementError::SingularTransform`] and
-/// [`RefinementError::NonFiniteEye`], as [`super::refine()`]. Panics when a
-/// node of `refinement` is not a node of `hierarchy`.
+/// [`RefinementError::NonFiniteEye`], as [`super::refine()`];
+/// [`RefinementError::MalformedRefinement`] for a refinement that is not a
+/// tree as [`super::refine()`] makes it. Panics when a node of `refinement`
+/// is not a node of `hierarchy`.
 pub fn lod_batch(
     hierarchy: &VolumeHierarchy,
     refinement: &Refinement,
@@ -177,7 +193,7 @@ pub fn lod_batch_with(
         return Ok(CellBatch::default());
     }
 
-    let mut morpher = Morpher::new(hierarchy, refinement);
+    let morpher = Morpher::new(hierarchy, refinement)?;
     let mut cells = Vec::with_capacity(5 * refinement.leaves.len());
     let modulated = scalars != CellScalars::Density;
     let blended = hierarchy.has_next_keyframe();
@@ -195,12 +211,13 @@ pub fn lod_batch_with(
         let node = leaf.node;
         let mut corner_modulators = [0.0f32; 8];
         let mut corner_next = [(0.0f32, 0.0f32); 8];
+        let values = morpher.corner_values(node)?;
         let vertices: [[f32; 4]; 8] = std::array::from_fn(|v| {
             let p = node.corner(v);
             let position = world_from_index
                 .transform_point3(DVec3::from(p.map(|c| c as f64)))
                 .as_vec3();
-            let [density, light, next_density, next_light] = morpher.value(p).to_array();
+            let [density, light, next_density, next_light] = values[v].to_array();
             let (scalar, modulator) = carried(density, light);
             corner_modulators[v] = modulator;
             corner_next[v] = carried(next_density, next_light);
@@ -287,67 +304,135 @@ impl Hasher for IndexHasher {
 /// A map keyed by flat grid index.
 type IndexMap<V> = HashMap<usize, V, BuildHasherDefault<IndexHasher>>;
 
-/// Evaluates the morph rule of the module docs, memoised per grid point.
+/// Evaluates the morph rule of the module docs over the refinement's tree,
+/// parents first. A refined node's **lattice** is its 3 × 3 × 3 grid points
+/// half its edge apart (the corners of its children): its eight corners are
+/// points of its parent's lattice (a root's are its own values), and the
+/// other nineteen are born at its level, so their coarse values average
+/// its corners. So every value is read from a lattice made before it, with
+/// no lookup per point, and a leaf's corners are its parent's lattice.
 struct Morpher<'a> {
     /// The hierarchy read.
     hierarchy: &'a VolumeHierarchy,
-    /// `e'` of every refined node, keyed by the flat index of its centre.
-    morph: IndexMap<f32>,
+    /// `e'` and lattice slot of every refined node, keyed by the flat index
+    /// of its centre.
+    refined: IndexMap<(f32, usize)>,
     /// Drawn leaves above level 0, by centre index.
     drawn: IndexMap<()>,
-    /// The morphed (density, light, next density, next light) of every
-    /// point evaluated so far, by flat index.
-    values: IndexMap<Vec4>,
+    /// The morphed (density, light, next density, next light) of each
+    /// refined node's lattice, in the order of [`Refinement::refined`]:
+    /// point `origin + (a, b, c) · size / 2` at `a + 3b + 9c`.
+    lattices: Vec<[Vec4; 27]>,
+}
+
+/// The index in a lattice of the point `(a, b, c)` half edges from the
+/// node's origin.
+fn lattice_index([a, b, c]: [usize; 3]) -> usize {
+    a + 3 * b + 9 * c
 }
 
 impl<'a> Morpher<'a> {
-    /// The `e'` table of `refinement`, an empty memo.
-    fn new(hierarchy: &'a VolumeHierarchy, refinement: &Refinement) -> Self {
-        let mut morph = IndexMap::default();
-        morph.reserve(refinement.refined.len());
-        for refined in &refinement.refined {
-            let centre = refined
+    /// The lattices of every refined node of `refinement`. Errors with
+    /// [`RefinementError::MalformedRefinement`] for a refined voxel or a
+    /// refined node below the roots' level whose parent is not refined
+    /// before it.
+    fn new(
+        hierarchy: &'a VolumeHierarchy,
+        refinement: &Refinement,
+    ) -> Result<Self, RefinementError> {
+        let mut refined = IndexMap::default();
+        refined.reserve(refinement.refined.len());
+        for (slot, node_morph) in refinement.refined.iter().enumerate() {
+            let centre = node_morph
                 .node
                 .centre()
-                .expect("a refined node is not a voxel");
-            let e = if refined.morph.is_nan() {
+                .ok_or(RefinementError::MalformedRefinement {
+                    node: node_morph.node,
+                })?;
+            let e = if node_morph.morph.is_nan() {
                 0.0
             } else {
-                refined.morph.clamp(0.0, 1.0)
+                node_morph.morph.clamp(0.0, 1.0)
             };
-            morph.insert(hierarchy.index(centre), e);
+            refined.insert(hierarchy.index(centre), (e, slot));
         }
         let drawn = refinement
             .leaves
             .iter()
             .filter_map(|l| l.node.centre().map(|c| (hierarchy.index(c), ())))
             .collect();
-        Self {
+        let mut morpher = Self {
             hierarchy,
-            morph,
+            refined,
             drawn,
-            values: IndexMap::with_capacity_and_hasher(
-                16 * refinement.leaves.len(),
-                Default::default(),
-            ),
+            lattices: Vec::with_capacity(refinement.refined.len()),
+        };
+        for node_morph in &refinement.refined {
+            let corners = morpher.corner_values(node_morph.node)?;
+            let lattice = morpher.lattice(node_morph.node, corners);
+            morpher.lattices.push(lattice);
         }
+        Ok(morpher)
+    }
+
+    /// The morphed values of `node`'s corners ([`Node::corner`] order): a
+    /// root's own, otherwise points of its parent's lattice. Errors with
+    /// [`RefinementError::MalformedRefinement`] when the parent has no
+    /// lattice yet (not refined, or listed after `node`).
+    fn corner_values(&self, node: Node) -> Result<[Vec4; 8], RefinementError> {
+        let h = self.hierarchy;
+        if node.level >= h.root_level() {
+            return Ok(std::array::from_fn(|v| self.own(node.corner(v))));
+        }
+        let parent = parent(node);
+        let lattice = parent
+            .centre()
+            .and_then(|centre| self.refined.get(&h.index(centre)))
+            .and_then(|&(_, slot)| self.lattices.get(slot))
+            .ok_or(RefinementError::MalformedRefinement { node })?;
+        let offset: [usize; 3] =
+            std::array::from_fn(|a| (node.origin[a] - parent.origin[a]) >> node.level);
+        Ok(std::array::from_fn(|v| {
+            lattice[lattice_index(std::array::from_fn(|a| offset[a] + ((v >> a) & 1)))]
+        }))
+    }
+
+    /// The lattice of the refined `node` with the morphed values `corners`
+    /// of its corners.
+    fn lattice(&self, node: Node, corners: [Vec4; 8]) -> [Vec4; 27] {
+        let mut lattice = [Vec4::ZERO; 27];
+        for (v, &value) in corners.iter().enumerate() {
+            lattice[lattice_index(std::array::from_fn(|a| 2 * ((v >> a) & 1)))] = value;
+        }
+        let half = node.size() / 2;
+        for c in 0..3 {
+            for b in 0..3 {
+                for a in 0..3 {
+                    let steps = [a, b, c];
+                    if steps.iter().all(|s| s % 2 == 0) {
+                        continue;
+                    }
+                    let p = std::array::from_fn(|axis| node.origin[axis] + half * steps[axis]);
+                    lattice[lattice_index(steps)] = self.born_value(node, &lattice, p);
+                }
+            }
+        }
+        lattice
     }
 
     /// `e'` of `node`; `None` unless it is refined.
     fn morph_factor(&self, node: Node) -> Option<f32> {
         let centre = node.centre()?;
-        self.morph.get(&self.hierarchy.index(centre)).copied()
+        self.refined
+            .get(&self.hierarchy.index(centre))
+            .map(|&(e, _)| e)
     }
 
     /// The leaf drawn over `node` when `node` is not refined: its highest
     /// ancestor (or itself) below a refined node or at the roots' level.
     fn leaf_above(&self, mut node: Node) -> Node {
         while node.level < self.hierarchy.root_level() {
-            let mask = !((1usize << (node.level + 1)) - 1);
-            let parent = Node {
-                level: node.level + 1,
-                origin: node.origin.map(|o| o & mask),
-            };
+            let parent = parent(node);
             if self.morph_factor(parent).is_some() {
                 break;
             }
@@ -368,25 +453,14 @@ impl<'a> Morpher<'a> {
         )
     }
 
-    /// The morphed density and light of grid point `p` (module docs).
-    fn value(&mut self, p: [usize; 3]) -> Vec4 {
+    /// The morphed value of `p`, a point of the refined `node`'s lattice
+    /// other than its corners (so born at `node`'s level), from the corner
+    /// values in `lattice` (module docs).
+    fn born_value(&self, node: Node, lattice: &[Vec4; 27], p: [usize; 3]) -> Vec4 {
         let h = self.hierarchy;
-        let root_level = h.root_level();
-        let m = p
-            .iter()
-            .map(|&c| c.trailing_zeros().min(root_level))
-            .min()
-            .unwrap_or(root_level);
-        if m >= root_level {
-            return self.own(p);
-        }
-        let index = h.index(p);
-        if let Some(&v) = self.values.get(&index) {
-            return v;
-        }
-        let (half, size) = (1usize << m, 1usize << (m + 1));
-        let odd = p.map(|c| c.trailing_zeros() == m);
-        // The level-(m + 1) nodes sharing p: per axis the one origin an odd
+        let (half, size) = (node.size() / 2, node.size());
+        let odd: [bool; 3] = std::array::from_fn(|a| (p[a] - node.origin[a]) == half);
+        // The level-L nodes sharing p: per axis the one origin an odd
         // coordinate allows, or both sides of an even one that the grid has.
         let dims = h.dims();
         let candidates: [[Option<usize>; 2]; 3] = std::array::from_fn(|a| {
@@ -405,23 +479,23 @@ impl<'a> Morpher<'a> {
         for oz in candidates[2].iter().flatten() {
             for oy in candidates[1].iter().flatten() {
                 for ox in candidates[0].iter().flatten() {
-                    let node = Node {
-                        level: m + 1,
+                    let sharer = Node {
+                        level: node.level,
                         origin: [*ox, *oy, *oz],
                     };
-                    birth.get_or_insert(node);
-                    match self.morph_factor(node) {
+                    birth.get_or_insert(sharer);
+                    match self.morph_factor(sharer) {
                         Some(e) => w = w.min(e),
                         None => {
                             // Only a sharer under a drawn leaf constrains p;
                             // one under a pruned (culled) node draws nothing.
-                            let leaf = self.leaf_above(node);
+                            let leaf = self.leaf_above(sharer);
                             let drawn = leaf
                                 .centre()
                                 .is_some_and(|c| self.drawn.contains_key(&h.index(c)));
                             if drawn {
                                 w = 0.0;
-                                unrefined.get_or_insert(node);
+                                unrefined.get_or_insert(sharer);
                             }
                         }
                     }
@@ -429,44 +503,31 @@ impl<'a> Morpher<'a> {
             }
         }
         let own = self.own(p);
-        let value = if w >= 1.0 {
-            own
-        } else {
-            let node =
-                birth.expect("every non-root-corner point lies in a node of its birth level");
-            // A face centre next to an unrefined sharer is a T-vertex of the
-            // leaf drawn there: it takes that leaf's diagonal.
-            let reference = unrefined.map_or(node, |n| self.leaf_above(n));
-            let coarse = self.coarse(node, reference, p, odd, half);
-            (w * own + (1.0 - w) * coarse).clamp(Vec4::ZERO, Vec4::ONE)
+        if w >= 1.0 {
+            return own;
+        }
+        // The lattice value of a point of `node` half edges `(±1, ±1, ±1)`
+        // (or 0) from `p`: one of its corners.
+        let at = |point: [usize; 3]| {
+            lattice[lattice_index(std::array::from_fn(|a| (point[a] - node.origin[a]) / half))]
         };
-        self.values.insert(index, value);
-        value
-    }
-
-    /// The coarse value of `p` from morphed values of coarser points: along
-    /// the edge of `node` (the birth node), along the diagonal of
-    /// `reference` (the birth node, or the unrefined leaf whose face holds
-    /// `p`) on `p`'s face, or from the central tetrahedron of `node`.
-    fn coarse(
-        &mut self,
-        node: Node,
-        reference: Node,
-        p: [usize; 3],
-        odd: [bool; 3],
-        half: usize,
-    ) -> Vec4 {
-        match odd.iter().filter(|&&o| o).count() {
+        let coarse = match odd.iter().filter(|&&o| o).count() {
             1 => {
+                // Along the edge: its two ends.
                 let axis = odd.iter().position(|&o| o).unwrap_or(0);
                 let (mut lo, mut hi) = (p, p);
                 lo[axis] -= half;
                 hi[axis] += half;
-                0.5 * (self.value(lo) + self.value(hi))
+                0.5 * (at(lo) + at(hi))
             }
             2 => {
-                // The diagonal's direction on the face (normal `axis`); from
-                // `p` half a birth-node edge along it either way.
+                // A face centre next to an unrefined sharer is a T-vertex of
+                // the leaf drawn there: it takes that leaf's diagonal, else
+                // the birth node's (the same for either sharer). The
+                // diagonal's direction on the face (normal `axis`); from `p`
+                // half an edge along it either way.
+                let birth = birth.unwrap_or(node);
+                let reference = unrefined.map_or(birth, |n| self.leaf_above(n));
                 let axis = odd.iter().position(|&o| !o).unwrap_or(0);
                 let central = DECOMPOSITIONS[parity_index(reference)].central;
                 let side = usize::from(p[axis] != reference.origin[axis]);
@@ -484,17 +545,28 @@ impl<'a> Morpher<'a> {
                         (lo[a], hi[a]) = (p[a] + half, p[a] - half);
                     }
                 }
-                0.5 * (self.value(lo) + self.value(hi))
+                0.5 * (at(lo) + at(hi))
             }
             _ => {
+                // The centre: the corners of the node's central tetrahedron.
                 let central = DECOMPOSITIONS[parity_index(node)].central;
                 let mut sum = Vec4::ZERO;
                 for v in central {
-                    sum += self.value(node.corner(v));
+                    sum += at(node.corner(v));
                 }
                 0.25 * sum
             }
-        }
+        };
+        (w * own + (1.0 - w) * coarse).clamp(Vec4::ZERO, Vec4::ONE)
+    }
+}
+
+/// The parent of a node below the roots' level.
+fn parent(node: Node) -> Node {
+    let mask = !((1usize << (node.level + 1)) - 1);
+    Node {
+        level: node.level + 1,
+        origin: node.origin.map(|o| o & mask),
     }
 }
 
@@ -885,6 +957,43 @@ mod tests {
             lod_batch(&h, &r, &hidden),
             Err(RefinementError::NonFiniteEye { .. })
         ));
+    }
+
+    /// A refinement that is not a tree as `refine` makes it is an error
+    /// naming the node: a leaf below an unrefined parent, a refined node
+    /// listed before its parent, a refined voxel.
+    #[test]
+    fn a_malformed_refinement_is_an_error() {
+        let h = hierarchy([9, 9, 9], 3);
+        let v = view(world_from_grid(), DVec3::splat(30.0));
+        let mut split = |node: Node| node.level >= 2;
+        let r = by_hand(&h, &mut split, &mut |_| 0.5);
+        assert!(lod_batch(&h, &r, &v).is_ok());
+        let malformed = |r: &Refinement| match lod_batch(&h, r, &v) {
+            Err(RefinementError::MalformedRefinement { node }) => Some(node),
+            _ => None,
+        };
+        // The first refined node below the root lost: its children's
+        // parent is missing.
+        let mut orphans = r.clone();
+        let lost = orphans.refined.remove(1).node;
+        let orphan = malformed(&orphans).expect("an error");
+        assert_eq!(orphan.level, lost.level - 1);
+        // Children before their parent.
+        let mut reversed = r.clone();
+        reversed.refined.reverse();
+        assert!(malformed(&reversed).is_some());
+        // A voxel refined.
+        let mut refined_voxel = r.clone();
+        let voxel = Node {
+            level: 0,
+            origin: [1, 2, 3],
+        };
+        refined_voxel.refined.push(NodeMorph {
+            node: voxel,
+            morph: 1.0,
+        });
+        assert_eq!(malformed(&refined_voxel), Some(voxel));
     }
 
     #[test]

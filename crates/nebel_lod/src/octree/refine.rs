@@ -291,6 +291,16 @@ pub enum RefinementError {
         /// The eye position given, world units.
         eye: DVec3,
     },
+    /// A refinement given to the emission is not a tree as [`refine()`]
+    /// makes it: a node below the roots' level whose parent is not refined
+    /// and listed before it, or a refined voxel.
+    #[error(
+        "node {node:?} of the refinement is a refined voxel or lies below no refined parent listed before it"
+    )]
+    MalformedRefinement {
+        /// The node.
+        node: Node,
+    },
 }
 
 /// A node with its morph factor `e' = clamp(e − 1, 0, 1)` (Röttger and Ertl 2003 Eq. 6).
