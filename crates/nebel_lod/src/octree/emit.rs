@@ -65,7 +65,18 @@
 //! ([`VolumeHierarchy::with_next_keyframe`]) morphs both with the same
 //! weights (the refinement's `e'` for its blend); the batch carries the
 //! second one's scalars and modulators beside the first's
-//! ([`CellBatch::next_scalars`], [`CellBatch::next_modulators`]).
+//! ([`CellBatch::next_scalars`], [`CellBatch::next_modulators`]). One
+//! exception keeps each keyframe as it would be drawn alone: a leaf that one
+//! keyframe alone would cull as transparent ([`Refinement::hidden_by_keyframe`],
+//! a hole of that keyframe drawn because the other shows something there)
+//! does not constrain that keyframe's values at its neighbours' points, and
+//! draws that keyframe's own densities at its corners (transparent, as the
+//! culling found) instead of morphed ones, which could carry coarse values
+//! from outside the hole. So at `β = 0` the pair draws the first keyframe
+//! as its own refinement over the leaves it shows (a test compares them bit
+//! for bit), and a cloud that forms or vanishes between the keyframes fades
+//! in or out with the blend instead of stepping where the refinement starts
+//! drawing it.
 //!
 //! **Direction of Eq. 8.** As printed, Eq. 8 gives `w` to the coarse
 //! interpolation and `1 − w` to the point's own value. That is reversed: a
@@ -109,12 +120,14 @@
 //! and four reads of the grid each), per leaf one lookup of its parent's
 //! lattice and the output; one thread. For the wind's keyframe pair of the
 //! 513 × 65 × 513 layer under a still camera (`cargo bench -p nebel_lod
-//! --bench wind_keyframes`, 61 200 cells) the emission took 9.9 to 13.5 ms
-//! in three runs, against 13.0 to 16.9 ms (59 725 cells, refined for one
-//! blend) for a recursive evaluation memoised per point in a hash map, which
-//! gives bit for bit the same cells; a single keyframe's batch (55 895 cells,
-//! refinement included) 13.9 to 19.5 ms against 17.8 to 24.6 ms (the shared
-//! two-core development machine, whose runs vary by up to 1.5×).
+//! --bench wind_keyframes`, 61 200 cells) the emission took 10.8 and 11.7 ms
+//! in two runs, against 13.1 and 19.5 ms (59 725 cells, refined for one
+//! blend) in runs alternating with them of the build before, which evaluated
+//! the rule recursively, memoised per point in a hash map (the same cells
+//! bit for bit where no keyframe hides a leaf); a single keyframe's batch (55 895
+//! cells, refinement included) 14.2 and 16.1 ms against 24.3 and 25.5 ms
+//! (the shared two-core development machine, whose runs vary by up to
+//! 1.5×).
 
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
@@ -207,11 +220,11 @@ pub fn lod_batch_with(
         CellScalars::LightModulatedByDensity => (light, density),
         CellScalars::DensityModulatedByLight => (density, light),
     };
-    for leaf in &refinement.leaves {
+    for (index, leaf) in refinement.leaves.iter().enumerate() {
         let node = leaf.node;
         let mut corner_modulators = [0.0f32; 8];
         let mut corner_next = [(0.0f32, 0.0f32); 8];
-        let values = morpher.corner_values(node)?;
+        let values = morpher.leaf_values(node, refinement.hidden(index))?;
         let vertices: [[f32; 4]; 8] = std::array::from_fn(|v| {
             let p = node.corner(v);
             let position = world_from_index
@@ -317,8 +330,10 @@ struct Morpher<'a> {
     /// `e'` and lattice slot of every refined node, keyed by the flat index
     /// of its centre.
     refined: IndexMap<(f32, usize)>,
-    /// Drawn leaves above level 0, by centre index.
-    drawn: IndexMap<()>,
+    /// Drawn leaves above level 0, by centre index, and whether the first
+    /// and the second keyframe alone would cull them
+    /// ([`Refinement::hidden_by_keyframe`]).
+    drawn: IndexMap<[bool; 2]>,
     /// The morphed (density, light, next density, next light) of each
     /// refined node's lattice, in the order of [`Refinement::refined`]:
     /// point `origin + (a, b, c) · size / 2` at `a + 3b + 9c`.
@@ -359,7 +374,11 @@ impl<'a> Morpher<'a> {
         let drawn = refinement
             .leaves
             .iter()
-            .filter_map(|l| l.node.centre().map(|c| (hierarchy.index(c), ())))
+            .enumerate()
+            .filter_map(|(index, leaf)| {
+                let centre = hierarchy.index(leaf.node.centre()?);
+                Some((centre, refinement.hidden(index)))
+            })
             .collect();
         let mut morpher = Self {
             hierarchy,
@@ -395,6 +414,24 @@ impl<'a> Morpher<'a> {
         Ok(std::array::from_fn(|v| {
             lattice[lattice_index(std::array::from_fn(|a| offset[a] + ((v >> a) & 1)))]
         }))
+    }
+
+    /// The values the leaf `node` draws at its corners: their morphed
+    /// values, but where a keyframe alone would cull the leaf (`hidden`),
+    /// that keyframe's own densities (in the range the culling found
+    /// transparent; the light beside them then draws nothing).
+    fn leaf_values(&self, node: Node, hidden: [bool; 2]) -> Result<[Vec4; 8], RefinementError> {
+        let mut values = self.corner_values(node)?;
+        let h = self.hierarchy;
+        for (v, value) in values.iter_mut().enumerate() {
+            if hidden[0] {
+                value.x = h.density(node.corner(v));
+            }
+            if hidden[1] {
+                value.z = h.next_density(node.corner(v)).unwrap_or(0.0);
+            }
+        }
+        Ok(values)
     }
 
     /// The lattice of the refined `node` with the morphed values `corners`
@@ -473,9 +510,12 @@ impl<'a> Morpher<'a> {
                 ]
             }
         });
-        let mut w = 1.0f32;
+        // Per keyframe (the first's density and light, the next's): the
+        // smallest e' of the sharers, and the first unrefined sharer drawn
+        // there.
+        let mut w = [1.0f32; 2];
         let mut birth = None;
-        let mut unrefined = None;
+        let mut unrefined = [None; 2];
         for oz in candidates[2].iter().flatten() {
             for oy in candidates[1].iter().flatten() {
                 for ox in candidates[0].iter().flatten() {
@@ -484,26 +524,30 @@ impl<'a> Morpher<'a> {
                         origin: [*ox, *oy, *oz],
                     };
                     birth.get_or_insert(sharer);
-                    match self.morph_factor(sharer) {
-                        Some(e) => w = w.min(e),
-                        None => {
-                            // Only a sharer under a drawn leaf constrains p;
-                            // one under a pruned (culled) node draws nothing.
-                            let leaf = self.leaf_above(sharer);
-                            let drawn = leaf
-                                .centre()
-                                .is_some_and(|c| self.drawn.contains_key(&h.index(c)));
-                            if drawn {
-                                w = 0.0;
-                                unrefined.get_or_insert(sharer);
-                            }
+                    if let Some(e) = self.morph_factor(sharer) {
+                        w = w.map(|w| w.min(e));
+                        continue;
+                    }
+                    // Only a sharer under a drawn leaf constrains p; one under
+                    // a pruned (culled) node draws nothing, and one under a
+                    // leaf that a keyframe alone would cull does not
+                    // constrain that keyframe's values.
+                    let leaf = self.leaf_above(sharer);
+                    let Some(hidden) = leaf.centre().and_then(|c| self.drawn.get(&h.index(c)))
+                    else {
+                        continue;
+                    };
+                    for keyframe in 0..2 {
+                        if !hidden[keyframe] {
+                            w[keyframe] = 0.0;
+                            unrefined[keyframe].get_or_insert(sharer);
                         }
                     }
                 }
             }
         }
         let own = self.own(p);
-        if w >= 1.0 {
+        if w.iter().all(|&w| w >= 1.0) {
             return own;
         }
         // The lattice value of a point of `node` half edges `(±1, ±1, ±1)`
@@ -523,29 +567,21 @@ impl<'a> Morpher<'a> {
             2 => {
                 // A face centre next to an unrefined sharer is a T-vertex of
                 // the leaf drawn there: it takes that leaf's diagonal, else
-                // the birth node's (the same for either sharer). The
-                // diagonal's direction on the face (normal `axis`); from `p`
-                // half an edge along it either way.
+                // the birth node's (the same for either sharer); each
+                // keyframe by its own sharers.
                 let birth = birth.unwrap_or(node);
-                let reference = unrefined.map_or(birth, |n| self.leaf_above(n));
-                let axis = odd.iter().position(|&o| !o).unwrap_or(0);
-                let central = DECOMPOSITIONS[parity_index(reference)].central;
-                let side = usize::from(p[axis] != reference.origin[axis]);
-                // One end of the diagonal; the other has both in-plane bits
-                // flipped.
-                let end = central
-                    .into_iter()
-                    .find(|v| (v >> axis) & 1 == side)
-                    .unwrap_or(0);
-                let (mut lo, mut hi) = (p, p);
-                for a in (0..3).filter(|&a| a != axis) {
-                    if (end >> a) & 1 == 0 {
-                        (lo[a], hi[a]) = (p[a] - half, p[a] + half);
-                    } else {
-                        (lo[a], hi[a]) = (p[a] + half, p[a] - half);
-                    }
+                let along = |unrefined: Option<Node>| {
+                    let reference = unrefined.map_or(birth, |n| self.leaf_above(n));
+                    let [lo, hi] = face_diagonal(reference, p, odd, half);
+                    0.5 * (at(lo) + at(hi))
+                };
+                let first = along(unrefined[0]);
+                if unrefined[1] == unrefined[0] {
+                    first
+                } else {
+                    let next = along(unrefined[1]);
+                    Vec4::new(first.x, first.y, next.z, next.w)
                 }
-                0.5 * (at(lo) + at(hi))
             }
             _ => {
                 // The centre: the corners of the node's central tetrahedron.
@@ -557,8 +593,33 @@ impl<'a> Morpher<'a> {
                 0.25 * sum
             }
         };
+        let w = Vec4::new(w[0], w[0], w[1], w[1]);
         (w * own + (1.0 - w) * coarse).clamp(Vec4::ZERO, Vec4::ONE)
     }
+}
+
+/// The ends `[lo, hi]` of the diagonal through the face centre `p` (odd
+/// coordinates `odd`, half an edge `half` from the face's corners) in the
+/// decomposition of `reference`, whose face holds `p`.
+fn face_diagonal(reference: Node, p: [usize; 3], odd: [bool; 3], half: usize) -> [[usize; 3]; 2] {
+    // The face's normal; one end of the diagonal from the central
+    // tetrahedron, the other has both in-plane bits flipped.
+    let axis = odd.iter().position(|&o| !o).unwrap_or(0);
+    let central = DECOMPOSITIONS[parity_index(reference)].central;
+    let side = usize::from(p[axis] != reference.origin[axis]);
+    let end = central
+        .into_iter()
+        .find(|v| (v >> axis) & 1 == side)
+        .unwrap_or(0);
+    let (mut lo, mut hi) = (p, p);
+    for a in (0..3).filter(|&a| a != axis) {
+        if (end >> a) & 1 == 0 {
+            (lo[a], hi[a]) = (p[a] - half, p[a] + half);
+        } else {
+            (lo[a], hi[a]) = (p[a] + half, p[a] - half);
+        }
+    }
+    [lo, hi]
 }
 
 /// The parent of a node below the roots' level.
@@ -994,6 +1055,92 @@ mod tests {
             morph: 1.0,
         });
         assert_eq!(malformed(&refined_voxel), Some(voxel));
+    }
+
+    /// A leaf that one keyframe alone would cull (a hole of that keyframe,
+    /// drawn for the other) changes nothing that keyframe shows: its
+    /// values at every other leaf are those of the keyframe alone over the
+    /// refinement without the leaves it hides, bit for bit, and the hidden
+    /// leaves draw its own (transparent) densities.
+    #[test]
+    fn a_keyframe_draws_its_own_morph_around_the_leaves_it_hides() {
+        let dims = [17, 17, 9];
+        let cloud = TransferFunction::preset(TransferPreset::Cloud);
+        let holed = |seed: u64, hole: fn(usize) -> bool| {
+            let grid = field(dims, seed);
+            let values = grid.values().iter().enumerate();
+            let values = values.map(|(n, &v)| if hole(n % dims[0]) { 0.0 } else { v });
+            DensityGrid::new(dims, grid.spacing(), grid.origin(), values.collect()).unwrap()
+        };
+        let keyframes = [
+            VolumeHierarchy::new(&holed(3, |i| i < 6), 2.0).unwrap(),
+            VolumeHierarchy::new(&holed(4, |i| i > 10), 2.0).unwrap(),
+        ];
+        let pair = keyframes[0].with_next_keyframe(&keyframes[1]).unwrap();
+        let mut hidden_leaves = [0; 2];
+        for (case, index) in [DVec3::new(8.3, 4.1, 20.0), DVec3::new(-9.0, 3.0, 2.0)]
+            .into_iter()
+            .enumerate()
+        {
+            let v = view(world_from_grid(), eye_at_index(&pair, index));
+            let settings = RefinementSettings {
+                blend: 0.25 * case as f32,
+                blend_span: 0.5,
+                ..RefinementSettings::new(LodCriterion::distance(2.0))
+            };
+            let r = refine(&pair, &v, &cloud, &settings).unwrap();
+            let batch = lod_batch(&pair, &r, &v).unwrap();
+            for (keyframe, alone) in keyframes.iter().enumerate() {
+                let shown = |index: usize| !r.hidden(index)[keyframe];
+                hidden_leaves[keyframe] += (0..r.leaves.len()).filter(|&i| !shown(i)).count();
+                let without = Refinement {
+                    leaves: (0..r.leaves.len())
+                        .filter(|&i| shown(i))
+                        .map(|i| r.leaves[i])
+                        .collect(),
+                    hidden_by_keyframe: Vec::new(),
+                    ..r.clone()
+                };
+                let expected = lod_batch(alone, &without, &v).unwrap();
+                // The keyframe's scalars of every cell, and those of the cells
+                // of the leaves it shows.
+                let scalars: Vec<[f32; 4]> = if keyframe == 0 {
+                    batch
+                        .cells
+                        .iter()
+                        .map(|c| c.vertices.map(|v| v[3]))
+                        .collect()
+                } else {
+                    batch.next_scalars.clone()
+                };
+                let mut shown_scalars = Vec::new();
+                for (index, (leaf, cells)) in r.leaves.iter().zip(scalars.chunks(5)).enumerate() {
+                    if shown(index) {
+                        shown_scalars.extend_from_slice(cells);
+                    } else {
+                        for cell in cells {
+                            let [lo, hi] = cell
+                                .iter()
+                                .fold([1.0f32, 0.0], |[lo, hi], &s| [lo.min(s), hi.max(s)]);
+                            assert!(
+                                cloud.is_transparent(f64::from(lo), f64::from(hi)),
+                                "{leaf:?}"
+                            );
+                        }
+                    }
+                }
+                let expected_scalars: Vec<[f32; 4]> = expected
+                    .cells
+                    .iter()
+                    .map(|c| c.vertices.map(|v| v[3]))
+                    .collect();
+                assert_eq!(
+                    shown_scalars, expected_scalars,
+                    "keyframe {keyframe}, case {case}"
+                );
+            }
+        }
+        assert!(hidden_leaves.iter().all(|&n| n > 0), "{hidden_leaves:?}");
     }
 
     #[test]

@@ -42,7 +42,10 @@
 //! [`VolumeHierarchy::scalar_range_over`]). So no blend drawn is refined for
 //! less than its Δ, and no node that a drawn blend makes visible is culled;
 //! the largest of two Δ that satisfy Eq. 5 satisfies it too. A stepped
-//! refinement covers two steps ([`REFINEMENT_SPAN`]).
+//! refinement covers two steps ([`REFINEMENT_SPAN`]). A leaf drawn because
+//! one keyframe shows something where the other is transparent changes
+//! nothing the other shows (see [`super::emit`]), so a cloud that forms
+//! between the keyframes fades in with `β`.
 //!
 //! The morph of Röttger and Ertl 2003 §3 is linear in the grid values with
 //! weights that depend only on the refinement, so the emitted next values are

@@ -336,8 +336,26 @@ pub struct Refinement {
     pub leaves: Vec<NodeMorph>,
     /// Every refined node (`e > 1`, not a voxel), parents before children.
     pub refined: Vec<NodeMorph>,
+    /// For a hierarchy of two keyframes, per leaf (in the order of
+    /// [`Refinement::leaves`]) whether the first keyframe alone (`[0]`) and
+    /// the second alone (`[1]`) would cull it as fully transparent: drawn for
+    /// the blends between them, such a leaf draws that keyframe's own values
+    /// and does not constrain its morphed values at the neighbours (see
+    /// [`super::emit`]). Empty for a single keyframe.
+    pub hidden_by_keyframe: Vec<[bool; 2]>,
     /// Counters.
     pub stats: RefinementStats,
+}
+
+impl Refinement {
+    /// [`Refinement::hidden_by_keyframe`] of leaf `index`; neither for a
+    /// single keyframe.
+    pub fn hidden(&self, index: usize) -> [bool; 2] {
+        self.hidden_by_keyframe
+            .get(index)
+            .copied()
+            .unwrap_or_default()
+    }
 }
 
 /// The map from the hierarchy's index space (point `(i, j, k)` at
@@ -451,6 +469,7 @@ pub fn refine(
     }
     let mut result = traversal.result;
     result.leaves.reverse();
+    result.hidden_by_keyframe.reverse();
     result.stats.leaves = result.leaves.len();
     Ok(result)
 }
@@ -523,14 +542,8 @@ impl Traversal<'_> {
             return;
         }
         let range = self.hierarchy.scalar_range_over(node, self.blends);
-        let transparent = if self.density_is_opacity {
-            range[1] == 0
-        } else {
-            let [s_min, s_max] = range.map(|q| f64::from(q) / 255.0);
-            self.transfer.is_transparent(s_min, s_max)
-        };
-        if transparent {
-            stats.culled_transparent += 1;
+        if self.is_transparent(range) {
+            self.result.stats.culled_transparent += 1;
             return;
         }
 
@@ -580,9 +593,27 @@ impl Traversal<'_> {
                 if node.level == 0 {
                     self.result.stats.full_resolution_leaves += 1;
                 }
+                if self.hierarchy.has_next_keyframe() {
+                    // Which keyframe alone would cull the leaf.
+                    let (first, next) = self.hierarchy.keyframe_ranges(node);
+                    let hidden =
+                        [first, next.unwrap_or(first)].map(|alone| self.is_transparent(alone));
+                    self.result.hidden_by_keyframe.push(hidden);
+                }
                 self.occlude(footprint, range, size, weight);
                 self.result.leaves.push(morph);
             }
+        }
+    }
+
+    /// Whether the scalar range `range` (units of 1/255) has zero opacity
+    /// for what the cells draw.
+    fn is_transparent(&self, range: [u8; 2]) -> bool {
+        if self.density_is_opacity {
+            range[1] == 0
+        } else {
+            let [s_min, s_max] = range.map(|q| f64::from(q) / 255.0);
+            self.transfer.is_transparent(s_min, s_max)
         }
     }
 
