@@ -60,12 +60,12 @@
 //! moving camera refines every frame anyway), and per frame a uniform
 //! write.
 //! `cargo bench -p nebel_lod --bench wind_keyframes` measured the 513 × 65 ×
-//! 513 layer's keyframe at 1.5 s of one core (grid 0.85 s, light field
-//! 0.44 s, octree 0.22 s; the pair's octree shares both keyframes' arrays
-//! and costs nothing) and a still camera's refinement step at 32 ms, so at
-//! 60 frames per second `T` = 21 s spends 2 ms per frame on average (one
+//! 513 layer's keyframe at 1.15 s of one core (grid 0.68 s, light field
+//! 0.32 s, octree 0.15 s; the pair's octree shares both keyframes' arrays
+//! and costs nothing) and a still camera's refinement step at 18 ms, so at
+//! 60 frames per second `T` = 14.4 s spends 2 ms per frame on average (one
 //! run on a 2-core machine whose runs vary by up to 1.5×: a second gave
-//! 1.6 s, a 25 ms step and `T` = 20 s). On the frame's own
+//! 1.15 s, a 20 ms step and `T` = 14.8 s). On the frame's own
 //! thread a still camera costs a
 //! uniform write and, at a refinement step or hand-over, handing a finished
 //! batch to the render world (`benches/scenes/wind_513.ron`: 0.026 ms on
