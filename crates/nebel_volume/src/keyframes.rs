@@ -68,8 +68,8 @@
 //! 1.15 s, a 20 ms step and `T` = 14.8 s). On the frame's own
 //! thread a still camera costs a
 //! uniform write and, at a refinement step or hand-over, handing a finished
-//! batch to the render world (`benches/scenes/wind_513.ron`: 0.026 ms on
-//! average, 1.3 ms at most in one run, wall time on two cores shared with
+//! batch to the render world (`benches/scenes/wind_513.ron`: 0.011 ms on
+//! average, 0.025 ms at most in one run, wall time on two cores shared with
 //! lavapipe and the builds); a moving camera refines every frame anyway. Memory: about 5 bytes
 //! per grid point for each of the three keyframes alive (the drawn pair's
 //! two, which the next pair shares, and the one being built), and the
