@@ -403,7 +403,7 @@ impl<'a> Morpher<'a> {
         if node.level >= h.root_level() {
             return Ok(std::array::from_fn(|v| self.own(node.corner(v))));
         }
-        let parent = parent(node);
+        let parent = node.parent();
         let lattice = parent
             .centre()
             .and_then(|centre| self.refined.get(&h.index(centre)))
@@ -469,7 +469,7 @@ impl<'a> Morpher<'a> {
     /// ancestor (or itself) below a refined node or at the roots' level.
     fn leaf_above(&self, mut node: Node) -> Node {
         while node.level < self.hierarchy.root_level() {
-            let parent = parent(node);
+            let parent = node.parent();
             if self.morph_factor(parent).is_some() {
                 break;
             }
@@ -620,15 +620,6 @@ fn face_diagonal(reference: Node, p: [usize; 3], odd: [bool; 3], half: usize) ->
         }
     }
     [lo, hi]
-}
-
-/// The parent of a node below the roots' level.
-fn parent(node: Node) -> Node {
-    let mask = !((1usize << (node.level + 1)) - 1);
-    Node {
-        level: node.level + 1,
-        origin: node.origin.map(|o| o & mask),
-    }
 }
 
 #[cfg(test)]

@@ -198,7 +198,7 @@ impl VolumeHierarchy {
 }
 
 /// A blend factor clamped to [0, 1], NaN as 0.
-fn clamped_blend(blend: f32) -> f32 {
+pub(super) fn clamped_blend(blend: f32) -> f32 {
     if blend.is_nan() {
         0.0
     } else {

@@ -45,6 +45,16 @@ impl Node {
         HexahedronParity::of_cell(i, j, k)
     }
 
+    /// The node of the next level up that contains this one. The caller
+    /// checks that this node is below the roots' level.
+    pub fn parent(&self) -> Node {
+        let mask = !((1usize << (self.level + 1)) - 1);
+        Node {
+            level: self.level + 1,
+            origin: self.origin.map(|o| o & mask),
+        }
+    }
+
     /// The eight children, child `x + 2y + 4z` at the node's corner `v` side;
     /// `None` for a voxel.
     pub fn children(&self) -> Option<[Node; 8]> {

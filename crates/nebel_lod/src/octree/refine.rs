@@ -105,6 +105,7 @@ use nebel_core::transfer::TransferFunction;
 use thiserror::Error;
 
 use super::emit::CellScalars;
+use super::keyframe::clamped_blend;
 use super::screen_error::{Footprint, NodeOptics, ScreenTiles};
 use super::{Node, VolumeHierarchy};
 use crate::frustum::Frustum;
@@ -339,8 +340,8 @@ pub struct Refinement {
     /// For a hierarchy of two keyframes, per leaf (in the order of
     /// [`Refinement::leaves`]) whether the first keyframe alone (`[0]`) and
     /// the second alone (`[1]`) would cull it as fully transparent: drawn for
-    /// the blends between them, such a leaf draws that keyframe's own values
-    /// and does not constrain its morphed values at the neighbours (see
+    /// the blends between them, such a leaf draws that keyframe's own
+    /// densities and does not constrain its morphed values at the neighbours (see
     /// [`super::emit`]). Empty for a single keyframe.
     pub hidden_by_keyframe: Vec<[bool; 2]>,
     /// Counters.
@@ -478,10 +479,9 @@ pub fn refine(
 /// [`RefinementSettings::blend_span`]: NaN read as 0, both clamped to
 /// [0, 1].
 fn blend_interval(blend: f32, span: f32) -> [f32; 2] {
-    let unit = |x: f32| if x.is_nan() { 0.0 } else { x.clamp(0.0, 1.0) };
-    let start = unit(blend);
+    let start = clamped_blend(blend);
     let span = if span.is_nan() { 0.0 } else { span.max(0.0) };
-    [start, unit(start + span)]
+    [start, clamped_blend(start + span)]
 }
 
 /// The error metric of one refinement, with what it keeps while it runs.
@@ -804,6 +804,11 @@ mod tests {
         refine(h, &view(eye, frustum), transfer, &settings(accuracy)).unwrap()
     }
 
+    /// Whether `node` covers the voxel with minimum corner `voxel`.
+    fn holds_voxel(node: Node, voxel: [usize; 3]) -> bool {
+        (0..3).all(|a| voxel[a].wrapping_sub(node.origin[a]) < node.size())
+    }
+
     /// Boxes `[min, max]` of the leaves in grid index coordinates.
     fn boxes(r: &Refinement) -> Vec<(DVec3, DVec3)> {
         r.leaves
@@ -1003,12 +1008,7 @@ mod tests {
         }
         let mut checked = 0;
         for n in fine.refined.iter().chain(&fine.leaves) {
-            let mask = !((1usize << (n.node.level + 1)) - 1);
-            let parent = Node {
-                level: n.node.level + 1,
-                origin: n.node.origin.map(|o| o & mask),
-            };
-            if let Some(&parent_morph) = morphs.get(&parent) {
+            if let Some(&parent_morph) = morphs.get(&n.node.parent()) {
                 assert!(
                     n.morph <= parent_morph,
                     "{:?}: {} > {parent_morph}",
@@ -1245,9 +1245,7 @@ mod tests {
                 };
                 let voxel = |origin| Node { level: 0, origin };
                 assert_tiling(&pair, &spanned, |origin| {
-                    let covered = spanned.leaves.iter().any(|l| {
-                        (0..3).all(|a| origin[a].wrapping_sub(l.node.origin[a]) < l.node.size())
-                    });
+                    let covered = spanned.leaves.iter().any(|l| holds_voxel(l.node, origin));
                     if visible(beta, voxel(origin)) {
                         1
                     } else {
@@ -1309,9 +1307,7 @@ mod tests {
                     let voxel = Node { level: 0, origin: [i, j, k] };
                     let [lo, hi] = h.scalar_range(voxel);
                     let opaque = !transfer.is_transparent(f64::from(lo), f64::from(hi));
-                    let covered = r.leaves.iter().any(|l| {
-                        (0..3).all(|a| (l.node.origin[a]..l.node.origin[a] + l.node.size()).contains(&[i, j, k][a]))
-                    });
+                    let covered = r.leaves.iter().any(|l| holds_voxel(l.node, [i, j, k]));
                     if opaque { 1 } else { usize::from(covered) }
                 });
             } else {
