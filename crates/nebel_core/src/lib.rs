@@ -12,6 +12,7 @@
 //! - [`height_fog`]: density over altitude as layers and its exact optical depth along any ray.
 //! - [`field`]: density grids and height fields, PNG/raw loaders, noise generators, 2^n+1 resampling.
 //! - [`budget`]: the memory budget every allocation sized by input is checked against first.
+//! - [`pacing`]: yield points that let a long build share a per-frame time budget.
 //!
 //! # References
 //!
@@ -32,6 +33,7 @@ pub mod cell;
 pub mod field;
 pub mod height_fog;
 pub mod optics;
+pub mod pacing;
 pub mod preintegration;
 pub mod segment;
 #[cfg(test)]

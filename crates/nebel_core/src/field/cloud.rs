@@ -77,8 +77,6 @@
 //! its per-octave rotation ("torque"); the coverage threshold plays the
 //! ellipsoids' role for a whole cloudscape.
 
-use std::num::NonZeroUsize;
-
 use glam::DVec3;
 
 use super::perlin_row::{PerlinRow, RowLattice};
@@ -86,6 +84,7 @@ use super::{
     DENSITY_GRID, DensityGrid, FieldError, NOISE_OFFSET, SAMPLE_BYTES, budgeted_points,
     check_origin, check_spacing,
 };
+use crate::pacing::{pace, worker_threads};
 
 /// Standard deviation of 3D `noise::Perlin` output (measured, see the module
 /// documentation).
@@ -437,7 +436,9 @@ impl DensityGrid {
     /// A procedural cumulus density grid of `dims` points (geometry as in
     /// [`DensityGrid::new`]; grid axis y is up) at `time` seconds, from the
     /// artist controls `noise` (formulas at [`CloudNoise`]). Uses every
-    /// available core; the result does not depend on the number of threads.
+    /// available core, or only the calling thread when it is paced
+    /// ([`crate::pacing`], a yield point after every z-slice); the result
+    /// does not depend on the number of threads.
     ///
     /// # Errors
     ///
@@ -452,8 +453,7 @@ impl DensityGrid {
         noise: &CloudNoise,
         time: f64,
     ) -> Result<Self, FieldError> {
-        let threads = std::thread::available_parallelism().map_or(2, NonZeroUsize::get);
-        Self::cloud_with_threads(dims, spacing, origin, noise, time, threads)
+        Self::cloud_with_threads(dims, spacing, origin, noise, time, worker_threads())
     }
 
     /// [`DensityGrid::cloud`] on `threads` threads (0 or 1: on the calling
@@ -492,6 +492,7 @@ impl DensityGrid {
                     }
                     filler.fill(layer, origin.y + j as f64 * spacing.y, z, row);
                 }
+                pace();
             }
         };
         let threads = threads.clamp(1, nz);

@@ -4,6 +4,7 @@ use glam::DVec3;
 
 use crate::budget::BudgetError;
 use crate::cell::{Hexahedron, HexahedronParity, Tetrahedron};
+use crate::pacing::pace;
 
 use super::{
     DENSITY_GRID, FieldError, SAMPLE_BYTES, axis_weight, check_dims, check_finite, check_origin,
@@ -23,6 +24,10 @@ pub struct DensityGrid {
     origin: DVec3,
     values: Vec<f32>,
 }
+
+/// How many values the validation of a grid checks between two yield points
+/// of a paced build (a fraction of a millisecond).
+const VALIDATED_PER_PACE: usize = 1 << 18;
 
 impl DensityGrid {
     /// A grid of `dims = [nx, ny, nz]` points (each ≥ 2) with `spacing` (world
@@ -58,12 +63,18 @@ impl DensityGrid {
         check_dims(name, &dims, values.len())?;
         check_spacing(name, &spacing.to_array())?;
         check_origin(name, &origin.to_array())?;
-        // One branch-free (vectorised) pass over the values; the passes that
-        // find the first offending value run only when there is one.
-        let in_unit_range = values.chunks(4096).all(|chunk| {
-            chunk
-                .iter()
-                .fold(true, |in_range, v| in_range & (0.0..=1.0).contains(v))
+        // One branch-free (vectorised) pass over the values, with a yield
+        // point for a paced build after every `VALIDATED_PER_PACE` values;
+        // the passes that find the first offending value run only when there
+        // is one.
+        let in_unit_range = values.chunks(VALIDATED_PER_PACE).all(|run| {
+            let in_range = run.chunks(4096).all(|chunk| {
+                chunk
+                    .iter()
+                    .fold(true, |in_range, v| in_range & (0.0..=1.0).contains(v))
+            });
+            pace();
+            in_range
         });
         if !in_unit_range {
             check_finite(name, &values)?;

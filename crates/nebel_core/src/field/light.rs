@@ -76,12 +76,11 @@
 //! `(0.45, 0.6, 0.3)`) the whole light field took 523 to 686 ms against 906
 //! to 1,123 ms with the sweep point by point, one slice at a time.
 
-use std::num::NonZeroUsize;
-
 use glam::DVec3;
 
 use super::{DensityGrid, FieldError, SAMPLE_BYTES, check_points};
 use crate::optics::exp_neg;
+use crate::pacing::{pace, worker_threads};
 
 /// Density change per voxel at which the Lambert weight `w` is one half.
 const GRADIENT_SOFTNESS: f64 = 0.05;
@@ -195,7 +194,8 @@ impl CloudLighting {
 /// dimensions, spacing and origin), in [0, 1]; formulas in the module
 /// documentation of `field::light`, in short
 /// `γ = clamp(ambient + diffuse · T_sun · lambert, 0, 1)`. Uses every
-/// available core.
+/// available core, or only the calling thread when it is paced
+/// ([`crate::pacing`]: a yield point after every slice of each pass).
 ///
 /// # Errors
 ///
@@ -207,8 +207,7 @@ pub fn light_field(
     grid: &DensityGrid,
     lighting: &CloudLighting,
 ) -> Result<DensityGrid, FieldError> {
-    let threads = std::thread::available_parallelism().map_or(2, NonZeroUsize::get);
-    light_field_with_threads(grid, lighting, threads)
+    light_field_with_threads(grid, lighting, worker_threads())
 }
 
 /// [`light_field`] on `threads` threads (0 or 1: on the calling thread); the
@@ -324,6 +323,7 @@ impl pulp::WithSimd for ShadeSlices<'_> {
                     shade(value, tau);
                 }
             }
+            pace();
             return;
         }
         for (&s, taus) in slices.iter().zip(taus) {
@@ -332,6 +332,7 @@ impl pulp::WithSimd for ShadeSlices<'_> {
                     shade(&mut out[axes.index(s, u, v)], tau);
                 }
             }
+            pace();
         }
     }
 }
@@ -382,6 +383,7 @@ impl pulp::WithSimd for LambertSlices<'_> {
                     };
                 }
             }
+            pace();
         }
     }
 }
@@ -578,9 +580,12 @@ fn sweep_optical_depth(
     } else {
         (SWEEP_BLOCK_BYTES / (12 * points)).clamp(1, SWEEP_BLOCK.min(na))
     };
-    // Slot 0: the last slice of the previous block; then the block's.
-    let mut taus = vec![vec![0.0f64; points]; block + 1];
-    let mut densities = vec![vec![0.0f32; points]; block + 1];
+    // Slot 0: the last slice of the previous block; then the block's. Each
+    // slot zeroed by the allocator, page by page as it is first written (a
+    // clone of one zeroed slot would write all of them here, tens of
+    // megabytes).
+    let mut taus: Vec<Vec<f64>> = (0..=block).map(|_| vec![0.0; points]).collect();
+    let mut densities: Vec<Vec<f32>> = (0..=block).map(|_| vec![0.0; points]).collect();
     let arch = pulp::Arch::new();
     for (block_index, block) in slices.chunks(block).enumerate() {
         for v in 0..nc {
@@ -590,6 +595,7 @@ fn sweep_optical_depth(
                     densities[k + 1][u + nb * v] = values[first + s * axes.strides[a]];
                 }
             }
+            pace();
         }
         for (k, &s) in block.iter().enumerate() {
             let (done, ahead) = taus.split_at_mut(k + 1);
@@ -638,6 +644,7 @@ fn sweep_optical_depth(
                     });
                 }
             }
+            pace();
         }
         visit(&axes, block, &taus[1..=block.len()]);
         taus.swap(0, block.len());

@@ -28,6 +28,7 @@ use glam::{DVec2, DVec3};
 use super::{
     DENSITY_GRID, DensityGrid, FieldError, HEIGHT_FIELD, HeightField, SAMPLE_BYTES, budgeted_points,
 };
+use crate::pacing::pace;
 
 /// The smallest `2^k + 1 ≥ n` (2 for `n ≤ 2`): 3 → 3, 4 → 5, 65 → 65, 100 → 129.
 /// Sizes beyond `2^(bits − 1) + 1`, larger than any allocatable grid, return `n`.
@@ -115,6 +116,10 @@ impl<const N: usize> Resize<N> {
                     break;
                 }
                 *i = 0;
+            }
+            if index[0] == 0 {
+                // A row done: a yield point for a paced build.
+                pace();
             }
         }
         values
