@@ -112,6 +112,7 @@ use std::sync::Arc;
 use nebel_core::budget::{BudgetError, Dims, check_allocation};
 use nebel_core::cell::Tetrahedron;
 use nebel_core::field::{CloudLighting, DensityGrid, FieldError, PadFill, light_field};
+use nebel_core::pacing::drop_paced;
 use nebel_core::transfer::TransferFunction;
 use thiserror::Error;
 
@@ -386,20 +387,27 @@ impl VolumeBatcher {
             (VolumeSource::Grid(grid), Some(octree)) => {
                 k_max(octree.min_accuracy)?;
                 let padded = grid.padded_to_power_of_two_plus_one(PadFill::Value(0.0))?;
-                match settings.lighting {
-                    Some(lighting) => Kind::Octree {
-                        hierarchy: Arc::new(VolumeHierarchy::with_light(
-                            &padded,
-                            &light_field(&padded, &lighting.light)?,
-                            octree.min_accuracy,
-                        )?),
-                        scalars: lighting.scalars,
-                    },
+                // The fields are freed as soon as they are used, each a unit
+                // of a paced build of its own.
+                drop_paced(grid);
+                let octree_kind = match settings.lighting {
+                    Some(lighting) => {
+                        let light = light_field(&padded, &lighting.light)?;
+                        let hierarchy =
+                            VolumeHierarchy::with_light(&padded, &light, octree.min_accuracy)?;
+                        drop_paced(light);
+                        Kind::Octree {
+                            hierarchy: Arc::new(hierarchy),
+                            scalars: lighting.scalars,
+                        }
+                    }
                     None => Kind::Octree {
                         hierarchy: Arc::new(VolumeHierarchy::new(&padded, octree.min_accuracy)?),
                         scalars: CellScalars::Density,
                     },
-                }
+                };
+                drop_paced(padded);
+                octree_kind
             }
             (VolumeSource::Cells(_), Some(_)) => return Err(VolumeBatchError::OctreeWithoutGrid),
             (VolumeSource::Cells(cells), None) => match settings.order {

@@ -1,10 +1,14 @@
 //! Building a [`VolumeHierarchy`]: quantisation, then Δ and scalar ranges level
 //! by level from the voxels up (Röttger and Ertl 2003 §2.2, §2.4; the rules are in the
 //! module docs of [`super`]).
+//!
+//! A yield point for a paced build ([`nebel_core::pacing`]) follows every
+//! 65,536 values quantised and every layer of nodes of each level.
 
 use std::sync::Arc;
 
 use nebel_core::field::DensityGrid;
+use nebel_core::pacing::pace;
 
 use super::{HierarchyError, VolumeHierarchy, k_max};
 use crate::full_resolution::DECOMPOSITIONS;
@@ -123,6 +127,7 @@ impl VolumeHierarchy {
                 level: &mut level,
                 z,
             });
+            pace();
         }
     }
 
@@ -203,6 +208,7 @@ impl VolumeHierarchy {
                     words[base + range_slot] = u16::from_le_bytes(range);
                 }
             }
+            pace();
         }
     }
 }
@@ -455,10 +461,20 @@ impl PointKinds {
     }
 }
 
-/// The field quantised to u8, `round(255 · s)`.
+/// The field quantised to u8, `round(255 · s)`, with a yield point after
+/// every [`QUANTISED_PER_PACE`] values.
 fn quantise(grid: &DensityGrid) -> Vec<u8> {
-    grid.values().iter().map(|&s| quantised(s)).collect()
+    let mut quantised_values = Vec::with_capacity(grid.values().len());
+    for chunk in grid.values().chunks(QUANTISED_PER_PACE) {
+        quantised_values.extend(chunk.iter().map(|&s| quantised(s)));
+        pace();
+    }
+    quantised_values
 }
+
+/// How many values [`quantise`] converts between two yield points (a
+/// fraction of a millisecond).
+const QUANTISED_PER_PACE: usize = 1 << 16;
 
 /// `(255 · s).round() as u8` for `s` in [0, 1] in operations that
 /// vectorise (no call to `round`, which the x86-64 baseline lacks, and no

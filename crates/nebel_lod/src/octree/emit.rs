@@ -134,6 +134,7 @@ use std::hash::{BuildHasherDefault, Hasher};
 
 use glam::{DVec3, Vec4};
 use nebel_core::cell::HexahedronParity;
+use nebel_core::pacing::pace;
 
 use super::refine::index_frame;
 use super::{Node, Refinement, RefinementError, VolumeHierarchy};
@@ -221,6 +222,7 @@ pub fn lod_batch_with(
         CellScalars::DensityModulatedByLight => (density, light),
     };
     for (index, leaf) in refinement.leaves.iter().enumerate() {
+        pace();
         let node = leaf.node;
         let mut corner_modulators = [0.0f32; 8];
         let mut corner_next = [(0.0f32, 0.0f32); 8];
@@ -390,6 +392,7 @@ impl<'a> Morpher<'a> {
             let corners = morpher.corner_values(node_morph.node)?;
             let lattice = morpher.lattice(node_morph.node, corners);
             morpher.lattices.push(lattice);
+            pace();
         }
         Ok(morpher)
     }

@@ -101,6 +101,7 @@
 //! nebel_lod --bench cloud_layer` measures both (README).
 
 use glam::{DAffine3, DVec3};
+use nebel_core::pacing::pace;
 use nebel_core::transfer::TransferFunction;
 use thiserror::Error;
 
@@ -529,6 +530,7 @@ impl Traversal<'_> {
     /// `parent` is the parent's `e'` and occlusion weight (`None` for a
     /// root).
     fn visit(&mut self, node: Node, parent: Option<(f32, f64)>) {
+        pace();
         let stats = &mut self.result.stats;
         stats.nodes_visited += 1;
         let size = node.size() as f64;

@@ -646,3 +646,120 @@ fn a_keyframe_pair_bounds_every_blend_of_its_keyframes() {
     .unwrap();
     assert!(mismatch(&VolumeHierarchy::new(&moved, C).unwrap()));
 }
+
+#[test]
+fn a_paced_keyframe_and_refinement_step_equal_the_unpaced_ones() {
+    use std::cell::Cell;
+    use std::rc::Rc;
+
+    use glam::{DAffine3, DMat4, UVec2};
+    use nebel_core::field::{CloudLighting, CloudNoise, light_field};
+    use nebel_core::pacing::with_pacer;
+    use nebel_core::transfer::{TransferFunction, TransferPreset};
+
+    use crate::View;
+
+    let dims = [33, 17, 33];
+    let noise = CloudNoise {
+        seed: 3,
+        coverage: 0.5,
+        octaves: 3,
+        wavelength: 120.0,
+        wind: DVec3::new(4.0, 0.0, 2.0),
+        ..CloudNoise::default()
+    };
+    let lighting = CloudLighting {
+        sun_direction: DVec3::new(0.4, 0.7, 0.2),
+        shadow_extinction: 0.05,
+        ..CloudLighting::default()
+    };
+    let transfer = TransferFunction::preset(TransferPreset::CloudLight)
+        .scale_density(0.2)
+        .expect("a finite scale");
+    let eye = DVec3::new(-60.0, 90.0, -70.0);
+    let clip_from_world = DMat4::perspective_infinite_reverse_rh(1.0, 1.6, 1.0)
+        * DMat4::look_at_rh(eye, DVec3::new(80.0, 40.0, 80.0), DVec3::Y);
+    let view =
+        View::new(DAffine3::IDENTITY, eye, UVec2::new(160, 100)).with_projection(clip_from_world);
+    let settings = RefinementSettings {
+        scalars: CellScalars::LightModulatedByDensity,
+        ..RefinementSettings::default()
+    };
+    // The yield points `work` passes, under a pacer of its own (paced), or
+    // none as the work runs unpaced, on every core.
+    let counted = |paced: bool, work: &mut dyn FnMut()| {
+        if !paced {
+            work();
+            return 0;
+        }
+        let calls = Rc::new(Cell::new(0usize));
+        let counter = calls.clone();
+        with_pacer(Rc::new(move || counter.set(counter.get() + 1)), work);
+        calls.get()
+    };
+    // A keyframe pair and its batch, the work of budgeted builds, as bits,
+    // and the yield points of each part.
+    let build = |paced: bool| {
+        let mut yield_points = Vec::new();
+        let mut keyframe = |time: f64| {
+            let mut grid = None;
+            yield_points.push(counted(paced, &mut || {
+                grid = Some(
+                    DensityGrid::cloud(dims, DVec3::splat(5.0), DVec3::ZERO, &noise, time)
+                        .expect("valid cloud"),
+                );
+            }));
+            let grid = grid.expect("built");
+            let mut light = None;
+            yield_points.push(counted(paced, &mut || {
+                light = Some(light_field(&grid, &lighting).expect("valid light"));
+            }));
+            let light = light.expect("built");
+            let mut hierarchy = None;
+            yield_points.push(counted(paced, &mut || {
+                hierarchy = Some(VolumeHierarchy::with_light(&grid, &light, C).expect("2^n+1"));
+            }));
+            let bits = |grid: &DensityGrid| -> Vec<u32> {
+                grid.values().iter().map(|v| v.to_bits()).collect()
+            };
+            (hierarchy.expect("built"), [bits(&grid), bits(&light)])
+        };
+        let (first, first_bits) = keyframe(0.0);
+        let (second, _) = keyframe(4.0);
+        let pair = first
+            .with_next_keyframe(&second)
+            .expect("matching keyframes");
+        let mut refinement = None;
+        yield_points.push(counted(paced, &mut || {
+            refinement = Some(refine(&pair, &view, &transfer, &settings).expect("valid settings"));
+        }));
+        let refinement = refinement.expect("refined");
+        let mut batch = None;
+        yield_points.push(counted(paced, &mut || {
+            batch =
+                Some(lod_batch_with(&pair, &refinement, &view, settings.scalars).expect("a batch"));
+        }));
+        let batch = batch.expect("emitted");
+        assert!(!batch.is_empty(), "the view sees the cloud");
+        let sizes = (refinement.stats.nodes_visited, refinement.leaves.len());
+        (first_bits, format!("{batch:?}"), sizes, yield_points)
+    };
+    let (unpaced, paced) = (build(false), build(true));
+    assert_eq!(paced.0, unpaced.0, "pacing changes no grid or light field");
+    assert_eq!(paced.1, unpaced.1, "pacing changes no cell");
+    assert_eq!(paced.2, unpaced.2, "pacing changes no refinement");
+    // A yield point at least per z-slice of a grid, per slice of each of
+    // the light field's passes, per layer of nodes of each octree level, per
+    // node visited by the refinement and per leaf emitted.
+    let ((visited, leaves), points) = (paced.2, &paced.3);
+    let layers: usize = (1..=4).map(|level| (dims[2] - 1) >> level).sum();
+    for keyframe in [&points[0..3], &points[3..6]] {
+        assert!(keyframe[0] >= dims[2], "{points:?}");
+        assert!(keyframe[1] >= 2 * dims[1].min(dims[2]), "{points:?}");
+        assert!(keyframe[2] >= layers, "{points:?}");
+    }
+    assert!(
+        points[6] >= visited && points[7] >= leaves,
+        "{points:?} {visited} {leaves}"
+    );
+}
