@@ -9,7 +9,8 @@
 //!   the cell projection ([`ViewFogLayers`]).
 //! - [`quality`]: [`NebelQuality`], presets and the automatic mode that map
 //!   to every effect's method and accuracy.
-//! - [`builds`]: heavy builds on the task pool ([`HeavyBuilds`]).
+//! - [`builds`]: heavy builds on the task pool or in a per-frame budget
+//!   ([`HeavyBuilds`]).
 //! - [`camera`]: the camera that drives the level of detail ([`LodCamera`]).
 //! - [`diagnostics`]: the [`NebelSystems`] set that every per-frame nebel system
 //!   joins and the CPU time that set takes each frame.
@@ -31,6 +32,7 @@ pub mod cell_batch;
 pub mod cell_projection;
 pub mod diagnostics;
 pub mod fog_layers;
+mod frame_budget;
 pub mod quality;
 
 pub use builds::{HeavyBuild, HeavyBuilds, free_in_background};
