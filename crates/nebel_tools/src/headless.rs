@@ -45,6 +45,7 @@ use bevy::time::TimeUpdateStrategy;
 use bevy::window::ExitCondition;
 use bevy::winit::WinitPlugin;
 use nebel_render::{HeavyBuilds, NebelDiagnosticsPlugin};
+use nebel_volume::VolumePlugin;
 use thiserror::Error;
 
 use crate::stats::{AdapterSummary, FrameTimes, RenderStats, TimeSummary};
@@ -76,6 +77,10 @@ pub struct HeadlessOptions {
     /// no frame waits for them, so a frame may show an older build. Default
     /// false: every frame waits for its builds.
     pub background_builds: bool,
+    /// With `background_builds`, give an animated volume's keyframes and
+    /// refinement steps at most this much CPU time per frame
+    /// (`HeavyBuilds::Budgeted`). Default `None`: no budget.
+    pub build_budget: Option<Duration>,
     /// Constrain the device to WebGL2-class limits
     /// (`wgpu::Limits::downlevel_webgl2_defaults`: no storage buffers or
     /// textures, no compute) and no optional features, to check what runs
@@ -218,10 +223,10 @@ impl HeadlessApp {
         app.add_plugins(NebelPlugins)
             .insert_resource(HeadlessTarget(target.clone()))
             .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::ZERO))
-            .insert_resource(if options.background_builds {
-                HeavyBuilds::Background
-            } else {
-                HeavyBuilds::Blocking
+            .insert_resource(match (options.background_builds, options.build_budget) {
+                (false, _) => HeavyBuilds::Blocking,
+                (true, None) => HeavyBuilds::Background,
+                (true, Some(budget)) => HeavyBuilds::Budgeted(budget),
             })
             .add_systems(First, render_to_image);
         add_scene(&mut app);
@@ -286,6 +291,7 @@ pub fn render_headless(
     let captured: Arc<Mutex<Option<Image>>> = Arc::default();
     let mut frame_times = Vec::with_capacity(output.frames as usize);
     let mut nebel_times = Vec::with_capacity(output.frames as usize);
+    let mut budgeted_times = Vec::new();
     let bar = crate::progress::bar(options.progress, "frame", u64::from(output.frames));
     for frame in 0..output.frames {
         // Frame 0 is at time 0, like the reference; time steps from frame 1 on.
@@ -312,6 +318,15 @@ pub fn render_headless(
             .get_measurement(&NebelDiagnosticsPlugin::SYSTEMS_MS)
         {
             nebel_times.push(Duration::from_secs_f64(ms.value / 1e3));
+        }
+        if let Some(ms) = headless
+            .app
+            .world()
+            .resource::<DiagnosticsStore>()
+            .get_measurement(&VolumePlugin::BUDGETED_BUILD_MS)
+            .filter(|_| options.background_builds && options.build_budget.is_some())
+        {
+            budgeted_times.push(Duration::from_secs_f64(ms.value / 1e3));
         }
         bar.inc(1);
     }
@@ -341,7 +356,8 @@ pub fn render_headless(
         warm_up_frames: headless.warm_up_times.len() as u32,
         warm_up_frame_wall_ms: TimeSummary::of(&headless.warm_up_times),
         nebel_systems_cpu_ms: TimeSummary::of(&nebel_times),
-        per_frame_ms: FrameTimes::of(&frame_times, &nebel_times),
+        budgeted_builds_ms: (!budgeted_times.is_empty()).then(|| TimeSummary::of(&budgeted_times)),
+        per_frame_ms: FrameTimes::of(&frame_times, &nebel_times, &budgeted_times),
         effects: effect_counters(world.resource::<DiagnosticsStore>()),
     })
 }

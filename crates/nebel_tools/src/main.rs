@@ -6,7 +6,7 @@
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use clap::{Args, Parser, Subcommand};
 use nebel_core::optics::OpticalMode;
@@ -59,6 +59,12 @@ enum Command {
         /// times.
         #[arg(long)]
         background_builds: bool,
+        /// With `--background-builds`, give an animated volume's keyframes
+        /// and refinement steps at most this many milliseconds of CPU time
+        /// per frame, on nebel's worker threads (a game's fixed per-frame
+        /// slice); the statistics then list their work per frame.
+        #[arg(long, value_name = "MS", requires = "background_builds", value_parser = parse_budget)]
+        build_budget_ms: Option<Duration>,
         /// Constrain the device to WebGL2-class limits (no storage buffers,
         /// no compute) and no optional features, and turn MSAA off (WebGL2
         /// cannot read multisampled depth); with `WGPU_BACKEND=gl`, a check
@@ -189,6 +195,16 @@ fn parse_quality(quality: &str) -> Result<QualityDescription, String> {
     }
 }
 
+/// A per-frame budget in milliseconds: finite, ≥ 0 and at most a minute.
+fn parse_budget(milliseconds: &str) -> Result<Duration, String> {
+    milliseconds
+        .parse::<f64>()
+        .ok()
+        .filter(|ms| (0.0..=60_000.0).contains(ms))
+        .map(|ms| Duration::from_secs_f64(ms / 1e3))
+        .ok_or_else(|| format!("takes milliseconds from 0 to 60000, got `{milliseconds}`"))
+}
+
 fn parse_size(size: &str) -> Result<(u32, u32), String> {
     size.split_once('x')
         .and_then(|(w, h)| Some((w.parse().ok()?, h.parse().ok()?)))
@@ -239,6 +255,7 @@ fn run(command: Command) -> Result<(), CommandError> {
             out,
             stats,
             background_builds,
+            build_budget_ms,
             webgl2_limits,
         } => render(
             &scene,
@@ -247,6 +264,7 @@ fn run(command: Command) -> Result<(), CommandError> {
             HeadlessOptions {
                 progress: true,
                 background_builds,
+                build_budget: build_budget_ms,
                 webgl2_limits,
             },
         ),

@@ -17,8 +17,10 @@
 //! `frame_wall_ms` is the whole `App::update` plus waiting for the GPU, per
 //! scene frame; `warm_up_frame_wall_ms` the same for the frames before the
 //! first, until every pipeline compiled; `nebel_systems_cpu_ms` is the
-//! diagnostic `nebel/systems_ms` of the scene frames; `per_frame_ms` lists
-//! both per scene frame, in order; `effects` has one
+//! diagnostic `nebel/systems_ms` of the scene frames; under a build budget
+//! (`--build-budget-ms`) `budgeted_builds_ms` summarises the diagnostic
+//! `nebel/volume/budgeted_build_ms`, the work of the budgeted builds per
+//! frame; `per_frame_ms` lists these per scene frame, in order; `effects` has one
 //! object per effect present in the scene with the latest value of each of
 //! its `nebel/<effect>/<counter>` diagnostics (and `_mean` and `_max` over the
 //! history of each timing), none for an absent effect.
@@ -76,15 +78,20 @@ pub struct FrameTimes {
     pub wall: Vec<f64>,
     /// Wall time of the `NebelSystems` set in each frame.
     pub nebel_systems: Vec<f64>,
+    /// Under a build budget, the CPU time the budgeted builds worked in
+    /// each frame (empty, and not written, without one).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub budgeted_builds: Vec<f64>,
 }
 
 impl FrameTimes {
     /// The times in milliseconds.
-    pub fn of(wall: &[Duration], nebel_systems: &[Duration]) -> Self {
+    pub fn of(wall: &[Duration], nebel_systems: &[Duration], budgeted_builds: &[Duration]) -> Self {
         let millis = |times: &[Duration]| times.iter().map(|d| d.as_secs_f64() * 1e3).collect();
         Self {
             wall: millis(wall),
             nebel_systems: millis(nebel_systems),
+            budgeted_builds: millis(budgeted_builds),
         }
     }
 }
@@ -110,6 +117,12 @@ pub struct RenderStats {
     pub warm_up_frame_wall_ms: TimeSummary,
     /// Wall time per frame of the `NebelSystems` set.
     pub nebel_systems_cpu_ms: TimeSummary,
+    /// Under a build budget (`--build-budget-ms`), the CPU time per frame
+    /// the budgeted builds (an animated volume's keyframes and refinement
+    /// steps) worked, on nebel's worker threads: the work a game gives that
+    /// budget each frame.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub budgeted_builds_ms: Option<TimeSummary>,
     /// Both times of every scene frame, in frame order.
     pub per_frame_ms: FrameTimes,
     /// Counters per effect present in the scene.

@@ -373,7 +373,12 @@ fn advance_keyframes(
         .as_ref()
         .is_some_and(|track| track.is_for(&recipe))
     {
-        batching.keyframes = Some(KeyframeTrack::new(recipe, sun, time.elapsed_secs_f64()));
+        batching.keyframes = Some(KeyframeTrack::new(
+            recipe,
+            sun,
+            time.elapsed_secs_f64(),
+            mode,
+        ));
         batching.keyframe_failure = None;
     }
     let track = batching.keyframes.as_mut().expect("started above");
@@ -558,7 +563,7 @@ pub(crate) fn update_batches(
             Some(step) => {
                 let build = batching
                     .blend_step
-                    .get_or_insert_with(|| HeavyBuild::spawn(move || step.build()));
+                    .get_or_insert_with(|| HeavyBuild::spawn_in(*mode, true, move || step.build()));
                 match build.poll(*mode) {
                     Some(built) => {
                         batching.blend_step = None;
@@ -641,7 +646,7 @@ fn make_ahead(
     if build.is_none() {
         *build = pair
             .first_build(view, inputs)
-            .map(|step| HeavyBuild::spawn(move || step.build()));
+            .map(|step| HeavyBuild::spawn_in(mode, true, move || step.build()));
     }
     if let Some(built) = build.as_mut().and_then(|build| build.poll(mode)) {
         *build = None;

@@ -244,15 +244,15 @@ pub(crate) struct KeyframeTrack {
 
 impl KeyframeTrack {
     /// A track of `recipe` whose clock starts at `now` (seconds, the
-    /// application's time), in the pair of keyframes around it; nothing to
-    /// draw until that pair is built.
-    pub(crate) fn new(recipe: KeyframeRecipe, sun: SunMotion, now: f64) -> Self {
+    /// application's time), in the pair of keyframes around it, built as
+    /// `mode` says; nothing to draw until that pair is built.
+    pub(crate) fn new(recipe: KeyframeRecipe, sun: SunMotion, now: f64, mode: HeavyBuilds) -> Self {
         // NaN and anything below a millisecond count as a millisecond.
         let interval = f64::from(recipe.interval).max(1e-3);
         let index = keyframe_index(now, interval);
         let first = {
             let recipe = recipe.clone();
-            HeavyBuild::spawn(move || {
+            HeavyBuild::spawn_in(mode, false, move || {
                 let started = Instant::now();
                 let first = recipe.keyframe(keyframe_time(index, interval), &sun)?;
                 let second = recipe.keyframe(keyframe_time(index + 1, interval), &sun)?;
@@ -340,7 +340,7 @@ impl KeyframeTrack {
             let drawn = self.drawn.as_ref().expect("a pair is drawn");
             let (first, index) = (drawn.second.clone(), drawn.index + 1);
             let (recipe, interval, sun) = (self.recipe.clone(), self.interval, self.sun);
-            self.build = Some(HeavyBuild::spawn(move || {
+            self.build = Some(HeavyBuild::spawn_in(mode, false, move || {
                 let started = Instant::now();
                 let second = recipe.keyframe(keyframe_time(index + 1, interval), &sun)?;
                 let pair = pair(&first, Arc::new(second), index)?;
@@ -483,7 +483,7 @@ mod tests {
         AsyncComputeTaskPool::get_or_init(TaskPool::new);
         let recipe = recipe();
         // The first pair is (10 s, 12 s); the clock starts at 11 s.
-        let mut track = KeyframeTrack::new(recipe.clone(), sun(), 11.0);
+        let mut track = KeyframeTrack::new(recipe.clone(), sun(), 11.0, HeavyBuilds::Blocking);
         let mut blends = Vec::new();
         let mut builds = 0;
         // 0.3 s frames: the hand-overs fall between frames.
@@ -525,7 +525,7 @@ mod tests {
     #[test]
     fn the_clock_waits_for_a_late_pair() {
         AsyncComputeTaskPool::get_or_init(TaskPool::new);
-        let mut track = KeyframeTrack::new(recipe(), sun(), 0.0);
+        let mut track = KeyframeTrack::new(recipe(), sun(), 0.0, HeavyBuilds::Blocking);
         track.advance(0.0, HeavyBuilds::Blocking, |_| true).unwrap();
         assert_eq!(track.blend().factor, 0.0);
         // The next pair is started but never polled to completion: the
@@ -550,7 +550,7 @@ mod tests {
     #[test]
     fn the_next_pair_takes_over_once_ready() {
         AsyncComputeTaskPool::get_or_init(TaskPool::new);
-        let mut track = KeyframeTrack::new(recipe(), sun(), 0.0);
+        let mut track = KeyframeTrack::new(recipe(), sun(), 0.0, HeavyBuilds::Blocking);
         track.advance(0.0, HeavyBuilds::Blocking, |_| true).unwrap();
         track.advance(1.0, HeavyBuilds::Blocking, |_| true).unwrap();
         assert!(track.next.is_some(), "the next pair is built");
@@ -608,7 +608,7 @@ mod tests {
         if let Some(lighting) = &mut moved.settings.lighting {
             lighting.light.sun_direction = DVec3::Z;
         }
-        let track = KeyframeTrack::new(lit.clone(), turning, 0.0);
+        let track = KeyframeTrack::new(lit.clone(), turning, 0.0, HeavyBuilds::Blocking);
         assert!(track.is_for(&moved));
         let other = KeyframeRecipe {
             source: KeyframeSource::Grid(Arc::new(cloud.grid_at(1.0).unwrap())),

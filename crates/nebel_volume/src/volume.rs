@@ -27,7 +27,7 @@ use std::sync::Arc;
 
 use bevy::camera::CameraUpdateSystems;
 use bevy::camera::visibility::VisibilitySystems;
-use bevy::diagnostic::{Diagnostic, DiagnosticPath, RegisterDiagnostic};
+use bevy::diagnostic::{Diagnostic, DiagnosticPath, Diagnostics, RegisterDiagnostic};
 use bevy::prelude::*;
 use bevy::transform::TransformSystems;
 use nebel_core::cell::Tetrahedron;
@@ -67,6 +67,11 @@ impl VolumePlugin {
     /// Time of each keyframe pair a windy cloud's track built (grid, light
     /// field, octree and the pair's octree, on the task pool), ms.
     pub const KEYFRAME_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/volume/keyframe_ms");
+    /// Under [`HeavyBuilds::Budgeted`], the CPU time the budgeted builds
+    /// (keyframes and refinement steps) worked in the frame before, ms: at
+    /// most the budget plus one unit of a build.
+    pub const BUDGETED_BUILD_MS: DiagnosticPath =
+        DiagnosticPath::const_new("nebel/volume/budgeted_build_ms");
 }
 
 impl Plugin for VolumePlugin {
@@ -79,6 +84,7 @@ impl Plugin for VolumePlugin {
             (Self::BUILD_MS, " ms"),
             (Self::GENERATION_MS, " ms"),
             (Self::KEYFRAME_MS, " ms"),
+            (Self::BUDGETED_BUILD_MS, " ms"),
         ] {
             app.register_diagnostic(Diagnostic::new(path).with_suffix(suffix));
         }
@@ -93,6 +99,7 @@ impl Plugin for VolumePlugin {
             .register_type::<VolumeLighting>()
             .register_type::<LodCamera>()
             .register_type::<HeavyBuilds>()
+            .add_systems(First, open_build_budget)
             .add_systems(
                 Update,
                 (
@@ -117,6 +124,17 @@ impl Plugin for VolumePlugin {
                     .after(CameraUpdateSystems)
                     .after(VisibilitySystems::VisibilityPropagate),
             );
+    }
+}
+
+/// Opens the frame's budget for the budgeted builds and measures what they
+/// did in the frame before ([`VolumePlugin::BUDGETED_BUILD_MS`]); nothing
+/// when no budgeted build was ever started.
+fn open_build_budget(mode: Res<HeavyBuilds>, mut diagnostics: Diagnostics) {
+    if let (Some(worked), HeavyBuilds::Budgeted(_)) = (mode.open_frame(), *mode) {
+        diagnostics.add_measurement(&VolumePlugin::BUDGETED_BUILD_MS, || {
+            worked.as_secs_f64() * 1e3
+        });
     }
 }
 
