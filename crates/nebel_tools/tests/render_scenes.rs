@@ -196,6 +196,73 @@ fn a_bad_scene_fails_with_the_file_and_field_named() {
         "{stderr}"
     );
     assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+
+    // A build budget that is not a number of milliseconds from 0 to 60000,
+    // or one without background builds: a usage error naming the option.
+    let windy = "tests/accuracy/windy_cloud.ron";
+    for budget in [
+        &["--background-builds", "--build-budget-ms", "nan"][..],
+        &["--background-builds", "--build-budget-ms=-1"],
+        &["--background-builds", "--build-budget-ms", "1e9"],
+        &["--build-budget-ms", "2"],
+    ] {
+        let output = nebel(&[&["render", windy, "--out", "x.png"][..], budget].concat());
+        assert_eq!(output.status.code(), Some(2), "{budget:?}: a usage error");
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(stderr.contains("--build-budget-ms"), "{budget:?}: {stderr}");
+    }
+}
+
+/// A windy cloud whose keyframes and refinement steps share a small budget
+/// per frame: its builds land and it is drawn, and the statistics list their
+/// work in every frame.
+#[test]
+fn a_windy_cloud_under_a_build_budget_is_drawn_and_its_work_listed() {
+    let out_dir = output_dir();
+    let stats_path = out_dir.join("windy_budgeted_stats.json");
+    let frames = 120;
+    let output = nebel(&[
+        "render",
+        "tests/accuracy/windy_cloud.ron",
+        "--out",
+        out_dir.join("windy_budgeted.png").to_str().unwrap(),
+        "--stats",
+        stats_path.to_str().unwrap(),
+        "--frames",
+        &frames.to_string(),
+        "--background-builds",
+        "--build-budget-ms",
+        "0.5",
+    ]);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let stats: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&stats_path).unwrap()).unwrap();
+    let per_frame = stats["per_frame_ms"]["budgeted_builds"]
+        .as_array()
+        .expect("the budgeted builds' work per frame");
+    assert_eq!(per_frame.len(), frames, "{stats}");
+    assert!(
+        per_frame
+            .iter()
+            .all(|ms| ms.as_f64().is_some_and(|ms| ms.is_finite() && ms >= 0.0)),
+        "{stats}"
+    );
+    assert!(
+        per_frame.iter().any(|ms| ms.as_f64() > Some(0.0)),
+        "the builds ran: {stats}"
+    );
+    assert!(
+        stats["budgeted_builds_ms"]["max"].as_f64().is_some(),
+        "{stats}"
+    );
+    assert!(
+        stats["effects"]["volume"]["cells_drawn"].as_f64() > Some(0.0),
+        "the cloud is drawn: {stats}"
+    );
 }
 
 #[test]
@@ -215,6 +282,7 @@ fn the_command_line_has_help_per_command_and_a_version() {
         "--frames",
         "--size",
         "--background-builds",
+        "--build-budget-ms",
     ] {
         assert!(help.contains(option), "{help}");
     }
