@@ -78,9 +78,10 @@
 //! Under `HeavyBuilds::Budgeted` the keyframes and the refinement steps run
 //! in a fixed slice of CPU time per frame instead (the steps first), and a
 //! keyframe takes as many frames as its CPU time needs: the 513 layer's, at
-//! 2 ms per frame, about 500 (`benches/scenes/wind_513.ron` with
-//! `--build-budget-ms 2`), so the clock then waits at the end of each pair
-//! and the wind slows to about half its speed at `T` = 4 s.
+//! 2 ms per frame, about 380 with its interval's refinement steps
+//! (`benches/scenes/wind_513.ron` with `--build-budget-ms 2`), so the clock
+//! then waits at the end of each pair and the wind slows to about two
+//! thirds of its speed at `T` = 4 s.
 //!
 //! # What the blend is not
 //!
