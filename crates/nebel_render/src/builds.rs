@@ -35,7 +35,10 @@ pub enum HeavyBuilds {
     /// fixed slice of each frame on one core. A frame's work may exceed it
     /// by one unit of a build (at most a millisecond or two for the
     /// 513 × 65 × 513 layer). Builds slower than the budget allows take more
-    /// frames: a windy cloud's wind then slows instead of stepping.
+    /// frames: a windy cloud's wind then slows instead of stepping. A build
+    /// whose result is no longer wanted (its volume despawned or changed)
+    /// still runs to its end in the budget, before the builds queued after
+    /// it.
     Budgeted(Duration),
 }
 
