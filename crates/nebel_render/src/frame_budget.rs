@@ -106,16 +106,18 @@ pub(crate) fn submit<T: Send + 'static, Work: FnOnce() -> T + Send + 'static>(
 }
 
 /// Opens the next frame's budget (`None`: unlimited) and returns the work
-/// the budgeted builds did in the frame before, or `None` when no budgeted
-/// build was ever started (nothing runs then).
-pub(crate) fn open_frame(budget: Option<Duration>) -> Option<Duration> {
-    let shared = WORKERS.get()?.as_ref()?;
+/// the budgeted builds did in the frame before (zero before the workers
+/// started).
+pub(crate) fn open_frame(budget: Option<Duration>) -> Duration {
+    let Some(shared) = WORKERS.get().and_then(Option::as_ref) else {
+        return Duration::ZERO;
+    };
     let mut state = shared.lock();
     let used = std::mem::take(&mut state.used);
     state.budget = budget.unwrap_or(Duration::MAX);
     drop(state);
     shared.changed.notify_all();
-    Some(used)
+    used
 }
 
 /// Starts the two workers; `None` where the platform starts no thread.

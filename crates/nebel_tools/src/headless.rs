@@ -29,7 +29,7 @@ use std::time::{Duration, Instant};
 
 use bevy::asset::RenderAssetUsages;
 use bevy::camera::RenderTarget;
-use bevy::diagnostic::DiagnosticsStore;
+use bevy::diagnostic::{DiagnosticPath, DiagnosticsStore};
 use bevy::log::{Level, LogPlugin};
 use bevy::prelude::*;
 use bevy::render::pipelined_rendering::PipelinedRenderingPlugin;
@@ -311,23 +311,15 @@ pub fn render_headless(
         let start = Instant::now();
         headless.update();
         frame_times.push(start.elapsed());
-        if let Some(ms) = headless
-            .app
-            .world()
-            .resource::<DiagnosticsStore>()
-            .get_measurement(&NebelDiagnosticsPlugin::SYSTEMS_MS)
-        {
-            nebel_times.push(Duration::from_secs_f64(ms.value / 1e3));
-        }
-        if let Some(ms) = headless
-            .app
-            .world()
-            .resource::<DiagnosticsStore>()
-            .get_measurement(&VolumePlugin::BUDGETED_BUILD_MS)
-            .filter(|_| options.background_builds && options.build_budget.is_some())
-        {
-            budgeted_times.push(Duration::from_secs_f64(ms.value / 1e3));
-        }
+        let diagnostics = headless.app.world().resource::<DiagnosticsStore>();
+        let latest = |path: &DiagnosticPath| {
+            diagnostics
+                .get_measurement(path)
+                .map(|ms| Duration::from_secs_f64(ms.value / 1e3))
+        };
+        nebel_times.extend(latest(&NebelDiagnosticsPlugin::SYSTEMS_MS));
+        // Measured every frame under a build budget only.
+        budgeted_times.extend(latest(&VolumePlugin::BUDGETED_BUILD_MS));
         bar.inc(1);
     }
     bar.finish_and_clear();

@@ -218,29 +218,17 @@ fn a_bad_scene_fails_with_the_file_and_field_named() {
 /// work in every frame.
 #[test]
 fn a_windy_cloud_under_a_build_budget_is_drawn_and_its_work_listed() {
-    let out_dir = output_dir();
-    let stats_path = out_dir.join("windy_budgeted_stats.json");
     let frames = 120;
-    let output = nebel(&[
-        "render",
+    let stats = render_stats(
         "tests/accuracy/windy_cloud.ron",
-        "--out",
-        out_dir.join("windy_budgeted.png").to_str().unwrap(),
-        "--stats",
-        stats_path.to_str().unwrap(),
-        "--frames",
-        &frames.to_string(),
-        "--background-builds",
-        "--build-budget-ms",
-        "0.5",
-    ]);
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
+        &[
+            "--frames",
+            &frames.to_string(),
+            "--background-builds",
+            "--build-budget-ms",
+            "0.5",
+        ],
     );
-    let stats: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&stats_path).unwrap()).unwrap();
     let per_frame = stats["per_frame_ms"]["budgeted_builds"]
         .as_array()
         .expect("the budgeted builds' work per frame");
@@ -642,7 +630,7 @@ fn fog_layers_render_on_gl_with_webgl2_limits() {
 
 #[test]
 fn a_scene_without_volumes_runs_no_cell_projection_work() {
-    let stats = render_stats("tests/scenes/primitives.ron");
+    let stats = render_stats("tests/scenes/primitives.ron", &[]);
     // The group appears as soon as a pass runs, a table is built or cells are uploaded.
     assert!(stats["effects"].get("cell_projection").is_none(), "{stats}");
     assert!(stats["effects"].get("volume").is_none(), "{stats}");
@@ -652,7 +640,7 @@ fn a_scene_without_volumes_runs_no_cell_projection_work() {
 
     // A terrain whose fog has no thickness anywhere: the terrain draws, the
     // fog draws no cell and runs no pass.
-    let stats = render_stats("tests/scenes/dry_valley.ron");
+    let stats = render_stats("tests/scenes/dry_valley.ron", &[]);
     assert!(stats["effects"].get("cell_projection").is_none(), "{stats}");
     assert!(
         stats["effects"]["terrain"]["triangles"].as_f64().unwrap() > 0.0,
@@ -665,19 +653,21 @@ fn a_scene_without_volumes_runs_no_cell_projection_work() {
     );
 }
 
-/// `nebel render SCENE --stats`'s statistics.
-fn render_stats(scene: &str) -> serde_json::Value {
+/// `nebel render SCENE --stats`'s statistics, with `options` added.
+fn render_stats(scene: &str, options: &[&str]) -> serde_json::Value {
     let out_dir = output_dir();
     let stem = Path::new(scene).file_stem().unwrap().to_string_lossy();
     let stats_path = out_dir.join(format!("{stem}_only_stats.json"));
-    let output = nebel(&[
+    let image_path = out_dir.join(format!("{stem}_only.png"));
+    let command = [
         "render",
         scene,
         "--out",
-        out_dir.join(format!("{stem}_only.png")).to_str().unwrap(),
+        image_path.to_str().unwrap(),
         "--stats",
         stats_path.to_str().unwrap(),
-    ]);
+    ];
+    let output = nebel(&[&command[..], options].concat());
     assert!(
         output.status.success(),
         "{scene}: {}",
