@@ -18,6 +18,20 @@
 //!   position ([`HexahedronParity::of_cell`]). Every face diagonal of one
 //!   decomposition then coincides with the face diagonal its neighbour uses on the
 //!   shared face, so the tetrahedral mesh conforms (Röttger and Ertl 2003 §3, Figure 1).
+//!   The search-light cone uses it.
+//! - A hexahedron also splits into six tetrahedra around its diagonal from
+//!   corner 0 to corner 7, one per ordering of the axes
+//!   ([`Hexahedron::kuhn_tetrahedra`], [`KUHN_TETRAHEDRA`]; Kuhn, "Some
+//!   combinatorial lemmas in topology", 1960; Freudenthal 1942). Every cell
+//!   uses the same one, whose face diagonals all run from a face's lowest
+//!   corner to its highest, so a grid conforms without alternating. Unlike
+//!   the five-tetrahedron one it is **nested**: halving a box's edges and
+//!   splitting the eight halves the same way splits each of the box's six
+//!   tetrahedra into eight of the halves' (Bey, "Simplicial grid refinement",
+//!   2000). So the piecewise-linear field of a box equals, everywhere, the
+//!   field its halves interpolate from its own values at their corners. The
+//!   density grids and their octrees use it: that is what lets a refining
+//!   octree change its field continuously.
 //! - A prism splits into three tetrahedra ([`Prism::tetrahedra`]). Each
 //!   quadrilateral side face is cut by the diagonal that runs from the bottom
 //!   vertex with the smaller global id to the top vertex with the larger one.
@@ -443,6 +457,44 @@ impl HexahedronParity {
     }
 }
 
+/// Kuhn's six tetrahedra of a hexahedron ([`Hexahedron::kuhn_tetrahedra`]),
+/// as corner indices `x + 2y + 4z`: for the axis ordering `(a, b, c)` (from
+/// `[x, y, z]`), the tetrahedron of the unit cube's points with
+/// `u_a ≥ u_b ≥ u_c`, on corners `0`, `a`, `a + b` and `7` (for an odd
+/// ordering the middle two swapped, so that all six have positive volume like
+/// the five-tetrahedron pieces). Listed with `a` slowest and `b` next. Two listed tetrahedra share a face exactly when their
+/// orderings differ by swapping two neighbours (`a, b` or `b, c`); the face
+/// lies in the plane `u_a = u_b` (or `u_b = u_c`) through the diagonal.
+pub const KUHN_TETRAHEDRA: [[usize; 4]; 6] = kuhn_tetrahedra();
+
+/// The axis orderings of [`KUHN_TETRAHEDRA`], in its order.
+pub const KUHN_AXIS_ORDERS: [[usize; 3]; 6] = [
+    [0, 1, 2],
+    [0, 2, 1],
+    [1, 0, 2],
+    [1, 2, 0],
+    [2, 0, 1],
+    [2, 1, 0],
+];
+
+const fn kuhn_tetrahedra() -> [[usize; 4]; 6] {
+    let mut tetrahedra = [[0; 4]; 6];
+    let mut t = 0;
+    while t < 6 {
+        let [a, b, c] = KUHN_AXIS_ORDERS[t];
+        let (side, diagonal) = (1 << a, (1 << a) | (1 << b));
+        // (a, b, c) is an even permutation of (x, y, z) iff it is a rotation.
+        let even = (a + 1) % 3 == b && (b + 1) % 3 == c;
+        tetrahedra[t] = if even {
+            [0, side, diagonal, 7]
+        } else {
+            [0, diagonal, side, 7]
+        };
+        t += 1;
+    }
+    tetrahedra
+}
+
 /// A hexahedron (voxel or general convex cell with 8 corners), corner
 /// `x + 2y + 4z` at local corner bits `x, y, z ∈ {0, 1}`.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -486,6 +538,16 @@ impl Hexahedron {
                 positions: corners.map(|v| self.positions[v]),
                 scalars: corners.map(|v| self.scalars[v]),
             }
+        })
+    }
+
+    /// Splits the hexahedron into Kuhn's six tetrahedra around its diagonal
+    /// from corner 0 to corner 7, in the order of [`KUHN_TETRAHEDRA`] (see the
+    /// module docs: the same in every cell, conforming and nested).
+    pub fn kuhn_tetrahedra(&self) -> [Tetrahedron; 6] {
+        KUHN_TETRAHEDRA.map(|corners| Tetrahedron {
+            positions: corners.map(|v| self.positions[v]),
+            scalars: corners.map(|v| self.scalars[v]),
         })
     }
 
@@ -618,13 +680,19 @@ mod tests {
                 let sum: f64 = hex.tetrahedra(parity).iter().map(Tetrahedron::volume).sum();
                 prop_assert!((sum - expected).abs() <= 1e-9 * expected.max(1.0));
             }
+            let sum: f64 = hex.kuhn_tetrahedra().iter().map(Tetrahedron::volume).sum();
+            prop_assert!((sum - expected).abs() <= 1e-9 * expected.max(1.0));
         }
 
         #[test]
         fn convex_hexahedron_decompositions_sum_to_volume(hex in convex_hexahedron()) {
             let volume = hex.volume();
-            for parity in [HexahedronParity::Even, HexahedronParity::Odd] {
-                let pieces = hex.tetrahedra(parity);
+            let decompositions = [
+                hex.tetrahedra(HexahedronParity::Even).to_vec(),
+                hex.tetrahedra(HexahedronParity::Odd).to_vec(),
+                hex.kuhn_tetrahedra().to_vec(),
+            ];
+            for pieces in decompositions {
                 let sum: f64 = pieces.iter().map(Tetrahedron::volume).sum();
                 let signed: f64 = pieces.iter().map(Tetrahedron::signed_volume).sum();
                 prop_assert!((sum - volume).abs() <= 1e-9 * volume.max(1.0), "{sum} vs {volume}");
@@ -713,14 +781,9 @@ mod tests {
     fn neighbouring_hexahedra_share_face_diagonals() {
         // Diagonals of a face are the edges of the pieces that join opposite
         // corners of that face; compare them as world-space point pairs.
-        fn face_diagonals(
-            hex: &Hexahedron,
-            parity: HexahedronParity,
-            axis: usize,
-            side: f64,
-        ) -> Vec<[[i64; 3]; 2]> {
+        fn face_diagonals(pieces: &[Tetrahedron], axis: usize, side: f64) -> Vec<[[i64; 3]; 2]> {
             let mut diagonals = Vec::new();
-            for tet in hex.tetrahedra(parity) {
+            for tet in pieces {
                 for i in 0..4 {
                     for j in i + 1..4 {
                         let (a, b) = (tet.positions[i], tet.positions[j]);
@@ -755,12 +818,91 @@ mod tests {
                 let neighbour_parity = HexahedronParity::of_cell(next[0], next[1], next[2]);
                 assert_ne!(parity, neighbour_parity);
                 let side = (here[axis] + 1) as f64;
-                let ours = face_diagonals(&cell(here), parity, axis, side);
-                let theirs = face_diagonals(&cell(next), neighbour_parity, axis, side);
+                let ours = face_diagonals(&cell(here).tetrahedra(parity), axis, side);
+                let theirs = face_diagonals(&cell(next).tetrahedra(neighbour_parity), axis, side);
                 assert_eq!(ours.len(), 1, "one diagonal per face");
                 assert_eq!(ours, theirs, "cell {here:?} axis {axis}");
+                // Kuhn's decomposition is the same in every cell and conforms too.
+                let ours = face_diagonals(&cell(here).kuhn_tetrahedra(), axis, side);
+                let theirs = face_diagonals(&cell(next).kuhn_tetrahedra(), axis, side);
+                assert_eq!(ours.len(), 1, "one Kuhn diagonal per face");
+                assert_eq!(ours, theirs, "Kuhn cell {here:?} axis {axis}");
             }
         }
+    }
+
+    /// The piecewise-linear field of Kuhn's decomposition of the box `min +
+    /// [0, size]³` with corner values `scalars` at `p`, in closed form: with
+    /// the local coordinates sorted, `u_a ≥ u_b ≥ u_c`, the barycentric
+    /// weights on corners `0, a, a + b, 7` are `1 − u_a, u_a − u_b, u_b − u_c,
+    /// u_c`.
+    fn kuhn_field(min: DVec3, size: f64, scalars: &[f64; 8], p: DVec3) -> f64 {
+        let u = ((p - min) / size).to_array();
+        let mut axes = [0, 1, 2];
+        axes.sort_by(|&i, &j| u[j].total_cmp(&u[i]));
+        let [a, b, c] = axes;
+        (1.0 - u[a]) * scalars[0]
+            + (u[a] - u[b]) * scalars[1 << a]
+            + (u[b] - u[c]) * scalars[(1 << a) | (1 << b)]
+            + u[c] * scalars[7]
+    }
+
+    proptest! {
+        /// `kuhn_tetrahedra` interpolates the closed form, and the field of a
+        /// box equals, at every point, that of its eight halves given the
+        /// box's own field at their corners: the decomposition is nested, so
+        /// refining a box by its own field changes nothing.
+        #[test]
+        fn kuhn_decomposition_is_the_closed_form_and_nested(
+            min in point(),
+            size in 0.01..5.0f64,
+            scalars in prop::array::uniform8(0.0..1.0f64),
+            local in prop::array::uniform3(0.0..1.0f64),
+        ) {
+            let p = min + DVec3::from(local) * size;
+            let expected = kuhn_field(min, size, &scalars, p);
+            let hex = Hexahedron::axis_aligned(min, DVec3::splat(size), scalars);
+            let through_pieces: Vec<f64> = hex
+                .kuhn_tetrahedra()
+                .iter()
+                .filter_map(|tet| brute_force_scalar(tet, p))
+                .collect();
+            prop_assert!(!through_pieces.is_empty());
+            for s in through_pieces {
+                prop_assert!((s - expected).abs() <= 1e-9, "{s} vs {expected}");
+            }
+            // The half holding p, and its corners' values from the box's field.
+            let half = 0.5 * size;
+            let half_min = min + DVec3::from(local.map(|u| if u < 0.5 { 0.0 } else { 1.0 })) * half;
+            let half_scalars: [f64; 8] = std::array::from_fn(|v| {
+                let corner = DVec3::new((v & 1) as f64, ((v >> 1) & 1) as f64, (v >> 2) as f64);
+                kuhn_field(min, size, &scalars, half_min + corner * half)
+            });
+            let refined = kuhn_field(half_min, half, &half_scalars, p);
+            prop_assert!((refined - expected).abs() <= 1e-9, "{refined} vs {expected}");
+        }
+    }
+
+    #[test]
+    fn kuhn_tables_list_one_tetrahedron_per_axis_ordering() {
+        for (corners, [a, b, _]) in KUHN_TETRAHEDRA.iter().zip(KUHN_AXIS_ORDERS) {
+            let mut sorted = *corners;
+            sorted[1..3].sort_by_key(|v| v.count_ones());
+            assert_eq!(sorted, [0, 1 << a, (1 << a) | (1 << b), 7]);
+        }
+        let unit = Hexahedron::axis_aligned(DVec3::ZERO, DVec3::ONE, [0.0; 8]);
+        for tet in unit.kuhn_tetrahedra() {
+            assert!((tet.signed_volume() - 1.0 / 6.0).abs() < 1e-15);
+        }
+        let mut orders = KUHN_AXIS_ORDERS.to_vec();
+        orders.sort();
+        orders.dedup();
+        assert_eq!(orders.len(), 6);
+        assert!(orders.iter().all(|o| {
+            let mut sorted = *o;
+            sorted.sort();
+            sorted == [0, 1, 2]
+        }));
     }
 
     #[test]
