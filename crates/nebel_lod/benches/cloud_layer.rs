@@ -65,7 +65,7 @@ fn main() {
     let started = Instant::now();
     let hierarchy = VolumeHierarchy::with_light(&grid, &light, 4.0).expect("2^n+1 grid");
     let hierarchy_ms = started.elapsed().as_secs_f64() * 1e3;
-    let full_cells = 5 * (DIMS[0] - 1) * (DIMS[1] - 1) * (DIMS[2] - 1);
+    let full_cells = 6 * (DIMS[0] - 1) * (DIMS[1] - 1) * (DIMS[2] - 1);
     println!(
         "cloud layer {DIMS:?}: generation {generation_ms:.0} ms, light field {light_ms:.0} ms, hierarchy {hierarchy_ms:.0} ms, {:.1} bytes per grid point, {full_cells} cells at full resolution",
         hierarchy.bytes_per_point()

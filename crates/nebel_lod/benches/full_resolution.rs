@@ -54,7 +54,7 @@ fn bench_grid(c: &mut Criterion, noise: &ProceduralNoise, points: usize) {
         DVec3::new(-4.0, 0.0, -4.0),
     );
     let bricks = BrickTable::new(&grid, BrickTable::DEFAULT_BRICK_SIZE);
-    let cells = 5 * (points - 1).pow(3);
+    let cells = 6 * (points - 1).pow(3);
 
     let mut group = c.benchmark_group(format!("full_resolution_{}", points - 1));
     group.sample_size(20);

@@ -82,7 +82,7 @@ fn octree_refine(c: &mut Criterion) {
             println!(
                 "octree_refine {place} c={accuracy}: {} leaves ({} tetrahedra, {} voxels), {} nodes visited, {} culled transparent",
                 stats.leaves,
-                5 * stats.leaves,
+                6 * stats.leaves,
                 stats.full_resolution_leaves,
                 stats.nodes_visited,
                 stats.culled_transparent

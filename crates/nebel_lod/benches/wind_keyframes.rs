@@ -19,8 +19,10 @@
 //!   intervals of 2, 8 and 32 s: the largest per-pixel change between two
 //!   consecutive frames at 60 frames per second inside a refinement step
 //!   (β = 1/2 and 1/2 + 1/(60 T), the same cells), across one (the octree
-//!   refined for the blend a step of 1/`REFINEMENT_STEPS` later; half way and
-//!   at a pair's first step) and across a hand-over (the last step of one pair, the first of the next), and the
+//!   refined for the span of blends a step of 1/`REFINEMENT_STEPS` later,
+//!   taking over at its start; half way and at a pair's first step; and the
+//!   two refinements at the very blend where one takes over) and across a
+//!   hand-over (the last step of one pair, the first of the next), and the
 //!   error of the blend half way against a full rebuild at that time. For scale, the
 //!   largest change between two frames of a single keyframe over 32 frames
 //!   of a camera flying toward the layer at 100 m/s (1.7 m per frame), which
@@ -253,6 +255,10 @@ fn main() {
         let inside = compare(&at(&first_pair, half, half + frame), &half_image).expect("same size");
         let across =
             compare(&at(&first_pair, step_before, half - frame), &half_image).expect("same size");
+        // The two refinements at the blend where one takes over from the
+        // other: what the switch itself changes.
+        let boundary =
+            compare(&at(&first_pair, step_before, half), &half_image).expect("same size");
         // Across the first step of a pair, where clouds that form between
         // its keyframes start to be drawn.
         let first_step = compare(
@@ -268,9 +274,10 @@ fn main() {
         let rebuilt = support::image(&batch(&mid, &view, &transfer, 0.0).0, camera, &transfer);
         let error = compare(&half_image, &rebuilt).expect("same size");
         println!(
-            "129 layer, T = {interval} s: largest change between frames {:.2e} inside a refinement step, {:.2e} across one ({:.2e} across a pair's first), {:.2e} at a hand-over; half way RMSE {:.2e} (largest {:.2e}) against a rebuild then",
+            "129 layer, T = {interval} s: largest change between frames {:.2e} inside a refinement step, {:.2e} across one ({:.2e} at the switch itself; {:.2e} across a pair's first), {:.2e} at a hand-over; half way RMSE {:.2e} (largest {:.2e}) against a rebuild then",
             inside.max_abs,
             across.max_abs,
+            boundary.max_abs,
             first_step.max_abs,
             hand_over.max_abs,
             error.rmse,
@@ -279,6 +286,7 @@ fn main() {
         for (measure, value) in [
             ("frame_change_max", inside.max_abs),
             ("refinement_step_change_max", across.max_abs),
+            ("refinement_switch_change_max", boundary.max_abs),
             ("first_step_change_max", first_step.max_abs),
             ("hand_over_change_max", hand_over.max_abs),
             ("half_way_rmse", error.rmse),

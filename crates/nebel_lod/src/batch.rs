@@ -67,12 +67,16 @@ impl GpuCell {
 /// # Keyframe blending
 ///
 /// A batch drawn from two keyframes of an animated field (a cloud in the
-/// wind, a light field under a moving sun) carries the next keyframe's
-/// scalar and modulator at every vertex too ([`CellBatch::next_scalars`],
-/// [`CellBatch::next_modulators`]), for the same cells. The renderer draws
-/// each vertex at `(1 − β) · current + β · next` for a blend factor `β` in
-/// [0, 1] that it may change every frame without a new batch; both fields are
-/// linear in the vertices, so that is the field of the blended keyframes.
+/// wind, a light field under a moving sun) serves a span of keyframe blends
+/// ([`CellBatch::blends`]): its scalars and modulators are the field at the
+/// span's first blend, and it carries those at its last blend too
+/// ([`CellBatch::next_scalars`], [`CellBatch::next_modulators`]), for the
+/// same cells. The renderer draws each vertex at `(1 − t) · current + t ·
+/// next` for a mix factor `t` in [0, 1] ([`CellBatch::mix_factor`] of the
+/// blend) that it may change every frame without a new batch, so every
+/// vertex moves continuously from one end of the span to the other. Where a
+/// batch for the next span takes over at that end, it starts from the same
+/// field ([`crate::octree::emit`]).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct CellBatch {
     /// The cells in draw order.
@@ -80,12 +84,20 @@ pub struct CellBatch {
     /// Per cell, the segment-length modulator at its four vertices, in
     /// [0, 1]; empty when the batch is not modulated (see the type docs).
     pub modulators: Vec<[f32; 4]>,
-    /// Per cell, the next keyframe's scalar at its four vertices; empty when
-    /// the batch is not blended (see the type docs).
+    /// Per cell, the scalar at its four vertices at the last blend of
+    /// [`CellBatch::blends`]; empty when the batch is not blended (see the
+    /// type docs).
     pub next_scalars: Vec<[f32; 4]>,
-    /// Per cell, the next keyframe's modulator at its four vertices; empty
-    /// when the batch is not blended or not modulated.
+    /// Per cell, the modulator at its four vertices at the last blend of
+    /// [`CellBatch::blends`]; empty when the batch is not blended or not
+    /// modulated.
     pub next_modulators: Vec<[f32; 4]>,
+    /// For a blended batch, the first and last keyframe blend `β` (in [0,
+    /// 1]) of the span it serves: the cells' own scalars and modulators are
+    /// the field at the first, [`CellBatch::next_scalars`] and
+    /// [`CellBatch::next_modulators`] at the last. `[0, 0]` when not
+    /// blended. Default `[0, 0]`.
+    pub blends: [f32; 2],
     /// Minimum corner of the axis-aligned box around every vertex, world units.
     pub bounds_min: Vec3,
     /// Maximum corner of the axis-aligned box around every vertex, world units.
@@ -142,20 +154,31 @@ impl CellBatch {
         !self.next_scalars.is_empty()
     }
 
-    /// The batch as the renderer draws it at blend factor `blend` (clamped
-    /// to [0, 1], NaN as 0): every vertex's scalar and modulator at
-    /// `(1 − β) · current + β · next`, no next keyframe. A batch that is not
+    /// The mix factor `t` in [0, 1] at which the renderer draws the
+    /// keyframe blend `blend` (see the type docs): `(β − β₀) / (β₁ − β₀)`
+    /// for the span `[β₀, β₁]` of [`CellBatch::blends`], clamped to [0, 1]
+    /// (a batch drawn past its span holds the field at its end); 0 for NaN,
+    /// an empty span or a batch that is not blended.
+    pub fn mix_factor(&self, blend: f32) -> f32 {
+        let [first, last] = self.blends;
+        let t = (blend - first) / (last - first);
+        if self.is_blended() && last > first && !t.is_nan() {
+            t.clamp(0.0, 1.0)
+        } else {
+            0.0
+        }
+    }
+
+    /// The batch as the renderer draws it at keyframe blend `blend`: every
+    /// vertex's scalar and modulator at `(1 − t) · current + t · next` for
+    /// `t` = [`CellBatch::mix_factor`], no next values. A batch that is not
     /// blended is returned as it is.
     pub fn blended(&self, blend: f32) -> Self {
         if !self.is_blended() {
             return self.clone();
         }
-        let beta = if blend.is_nan() {
-            0.0
-        } else {
-            blend.clamp(0.0, 1.0)
-        };
-        let mix = |current: f32, next: f32| (1.0 - beta) * current + beta * next;
+        let t = self.mix_factor(blend);
+        let mix = |current: f32, next: f32| (1.0 - t) * current + t * next;
         let cells = self
             .cells
             .iter()
@@ -178,6 +201,7 @@ impl CellBatch {
             modulators,
             next_scalars: Vec::new(),
             next_modulators: Vec::new(),
+            blends: [0.0; 2],
             ..*self
         }
     }
@@ -220,6 +244,11 @@ mod tests {
         batch.modulators = vec![[1.0, 0.0, 0.5, 0.25]];
         batch.next_scalars = vec![[1.0; 4]];
         batch.next_modulators = vec![[0.0; 4]];
+        batch.blends = [0.25, 0.75];
+        assert_eq!(batch.mix_factor(0.5), 0.5);
+        assert_eq!(batch.mix_factor(0.375), 0.25);
+        assert_eq!(batch.mix_factor(0.0), 0.0, "before the span: its start");
+        assert_eq!(batch.mix_factor(0.9), 1.0, "past the span: its end");
         let half = batch.blended(0.5);
         assert!(!half.is_blended());
         assert_eq!(
@@ -230,6 +259,8 @@ mod tests {
         assert_eq!(half.cells[0].position(2), batch.cells[0].position(2));
         assert_eq!(batch.blended(f32::NAN).cells, batch.cells);
         assert_eq!(batch.blended(7.0).cells[0].vertices[0][3], 1.0);
+        batch.blends = [0.5, 0.5];
+        assert_eq!(batch.mix_factor(0.75), 0.0, "an empty span");
     }
 
     #[test]

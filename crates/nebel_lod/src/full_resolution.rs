@@ -2,9 +2,13 @@
 //! visibility order (Röttger 2004 §8.1 visibility sorting, Röttger and Ertl
 //! 2003 §3 and §4.1).
 //!
-//! Every voxel becomes five tetrahedra with the alternating decomposition of
-//! [`Hexahedron::tetrahedra`] (parity `(i + j + k) mod 2`), so neighbouring
-//! voxels share their face diagonals and the mesh conforms. Before the octree
+//! Every voxel becomes Kuhn's six tetrahedra around its diagonal from its
+//! lowest to its highest corner ([`Hexahedron::kuhn_tetrahedra`], the same in
+//! every voxel), so neighbouring voxels share their face diagonals and the
+//! mesh conforms; it is [`DensityGrid::tetrahedra`] and the octree's finest
+//! level, whose coarser cells it refines without changing their field
+//! (the decomposition is nested; Röttger and Ertl 2003 §2.1 use five
+//! alternating tetrahedra, which are not). Before the octree
 //! C-LOD replaces it, this is the source of every grid volume, and the exact
 //! reference the octree is measured against.
 //!
@@ -38,17 +42,21 @@
 //!   order. Bricks are visited this way, then the voxels inside each brick,
 //!   which is again a BSP order.
 //! - Inside a voxel, the MPVO rule (Williams, "Visibility ordering meshed
-//!   polyhedra", 1992) on its five tetrahedra: each corner tetrahedron shares
-//!   one face with the central tetrahedron and touches the other corner
-//!   tetrahedra only along edges, so the corner tetrahedra on the far side of
-//!   their shared face (seen from the eye) come first, then the central one,
-//!   then those on the eye's side. An eye exactly on a face plane may see
-//!   either order; both are correct.
+//!   polyhedra", 1992) on its six tetrahedra: the tetrahedron of the axis
+//!   ordering `u_a ≥ u_b ≥ u_c` (voxel-local `u`) shares a face with the two
+//!   whose orderings swap a neighbouring pair, in the plane `u_a = u_b` (or
+//!   `u_b = u_c`) through the voxel's diagonal. Of two such neighbours the one
+//!   on the eye's side of their plane is in front, and it orders one more
+//!   pair of axes as the eye's local coordinates do. So the tetrahedra come
+//!   by how many of the three pairs they order against the eye, most first
+//!   ([`kuhn_back_to_front`]): every shared face is then crossed from back
+//!   to front. An eye exactly on a face plane may see either order; both are
+//!   correct.
 //!
 //! The order depends on the eye only through which side of each slab plane
-//! and of each corner-tetrahedron face plane it is on. In voxel index
-//! coordinates `u` those planes are `u_a = m` and `±u_x ± u_y ± u_z = m` for
-//! integers `m`, so [`order_key`] (on which side of each plane the eye is)
+//! and of each plane between tetrahedra it is on. In voxel index coordinates
+//! `u` those planes are `u_a = m` and `u_a − u_b = m` for integers `m`, so
+//! [`order_key`] (on which side of each plane the eye is)
 //! changes whenever the order may change: a caller rebuilds a batch only when
 //! the key, the grid, `world_from_local`, the transfer function, the frustum
 //! or the viewport changed ([`VolumeBatcher`](crate::VolumeBatcher) does).
@@ -64,21 +72,20 @@
 //!
 //! Linear in the voxels of the kept bricks plus one visit per brick; no
 //! sorting. `cargo bench -p nebel_lod --bench full_resolution` (64³ voxels,
-//! every brick kept, 1.31 million cells, 84 MB of output, one thread, on a
-//! shared two-core machine) measured 21 000 to 27 000 cells per ms for both
-//! orders, eye outside or inside (50 to 60 ms per batch), of which allocating
-//! and writing the 84 MB output alone takes 30 to 45 ms there: the builder runs
-//! close to memory speed. A campfire-sized 16³ grid (20 480 cells, output in
-//! cache) builds at 72 000 to 88 000 cells per ms, about 0.27 ms back to front
-//! and 0.23 ms unordered. [`BrickTable::new`] of 65³ points takes about
+//! every brick kept, five tetrahedra per voxel then: 1.31 million cells, 84 MB
+//! of output, one thread, on a shared two-core machine) measured 21 000 to
+//! 27 000 cells per ms for both orders, eye outside or inside (50 to 60 ms
+//! per batch), of which allocating and writing the 84 MB output alone takes
+//! 30 to 45 ms there: the builder runs close to memory speed. A
+//! campfire-sized 16³ grid (20 480 cells then, output in cache) built at
+//! 72 000 to 88 000 cells per ms, about 0.27 ms back to front and 0.23 ms
+//! unordered. Six tetrahedra per voxel write a fifth more. [`BrickTable::new`] of 65³ points takes about
 //! 2 ms. [`order_key`] tells when an eye movement changes the order at all, so
 //! a caller rebuilds only then (or when the frustum or data changed). Large
 //! grids are the octree's job.
 
-use std::sync::LazyLock;
-
 use glam::{DAffine3, DVec3, Vec3};
-use nebel_core::cell::{Hexahedron, HexahedronParity};
+use nebel_core::cell::{KUHN_AXIS_ORDERS, KUHN_TETRAHEDRA};
 use nebel_core::field::DensityGrid;
 use nebel_core::transfer::TransferFunction;
 use thiserror::Error;
@@ -208,51 +215,49 @@ impl BrickTable {
     }
 }
 
-/// The five-tetrahedron pattern of one parity, as corner indices `x + 2y + 4z`.
-pub(crate) struct Decomposition {
-    /// Corner indices of the central tetrahedron.
-    pub(crate) central: [usize; 4],
-    /// Corner tetrahedra: their corner indices and their apex (the cube corner
-    /// whose three neighbours form the face shared with the central one).
-    pub(crate) corners: [([usize; 4], usize); 4],
+/// The axis pairs `[a, b]` of the planes `u_a − u_b = m` between the Kuhn
+/// tetrahedra of every voxel and octree node ([`EyeSides::differences`]).
+pub(crate) const AXIS_PAIRS: [[usize; 2]; 3] = [[0, 1], [1, 2], [0, 2]];
+
+/// The indices into [`KUHN_TETRAHEDRA`] of the six tetrahedra of a cube whose
+/// lowest corner is `origin` (index coordinates, integers), back to front for
+/// an eye with `differences` ([`EyeSides::differences`]): by how many axis
+/// pairs each orders against the eye, most first (module docs). The cube's
+/// size does not matter: its planes between tetrahedra all pass through its
+/// lowest corner and its diagonal.
+pub(crate) fn kuhn_back_to_front(differences: &[f64; 3], origin: [f64; 3]) -> [usize; 6] {
+    // Per axis pair [a, b]: −1 when the eye has u_a < u_b in the cube's own
+    // coordinates, +1 when u_a > u_b, 0 on the plane.
+    let sides: [i8; 3] = std::array::from_fn(|p| {
+        let [a, b] = AXIS_PAIRS[p];
+        let plane = origin[a] - origin[b];
+        i8::from(differences[p] > plane) - i8::from(differences[p] < plane)
+    });
+    let against: [u8; 6] = std::array::from_fn(|t| {
+        let order = KUHN_AXIS_ORDERS[t];
+        let rank = |axis: usize| order.iter().position(|&o| o == axis).unwrap_or(0);
+        AXIS_PAIRS
+            .iter()
+            .zip(sides)
+            .map(|(&[a, b], side)| {
+                // The tetrahedron has u_a ≥ u_b when a comes first.
+                let tetrahedron_side = if rank(a) < rank(b) { 1 } else { -1 };
+                u8::from(side == -tetrahedron_side)
+            })
+            .sum()
+    });
+    let mut order = [0; 6];
+    let mut next = 0;
+    for count in (0..=3).rev() {
+        for t in (0..6).filter(|&t| against[t] == count) {
+            order[next] = t;
+            next += 1;
+        }
+    }
+    order
 }
 
-/// `nebel_core`'s decomposition for each parity, read off once from
-/// [`Hexahedron::tetrahedra`] of a hexahedron whose scalars are its corner
-/// indices, so the batch conforms exactly as `nebel_core`'s meshes do. Indexed
-/// by parity: 0 even, 1 odd. The octree's coarse interpolation reads it too.
-pub(crate) static DECOMPOSITIONS: LazyLock<[Decomposition; 2]> = LazyLock::new(|| {
-    let indices =
-        Hexahedron::axis_aligned(DVec3::ZERO, DVec3::ONE, std::array::from_fn(|v| v as f64));
-    [HexahedronParity::Even, HexahedronParity::Odd].map(|parity| {
-        let tetrahedra = indices
-            .tetrahedra(parity)
-            .map(|t| t.scalars.map(|s| s as usize));
-        // A corner tetrahedron has an apex whose three cube neighbours are
-        // its other vertices; the central one has none.
-        let apex = |t: &[usize; 4]| {
-            t.iter().copied().find(|&a| {
-                t.iter()
-                    .filter(|&&v| v != a)
-                    .all(|&v| (v ^ a).count_ones() == 1)
-            })
-        };
-        let mut central = [0; 4];
-        let mut corners = Vec::with_capacity(4);
-        for t in tetrahedra {
-            match apex(&t) {
-                Some(a) => corners.push((t, a)),
-                None => central = t,
-            }
-        }
-        Decomposition {
-            central,
-            corners: std::array::from_fn(|c| corners[c]),
-        }
-    })
-});
-
-/// Builds the full-resolution batch of `grid` (five tetrahedra per voxel), in
+/// Builds the full-resolution batch of `grid` (six tetrahedra per voxel), in
 /// world space, pruned and ordered as described in the module docs.
 ///
 /// - `bricks`: the grid's [`BrickTable`] (any brick size).
@@ -350,7 +355,7 @@ pub fn full_resolution_batch(
     }
 
     // Pass 2: emit, bricks and voxels in BSP order.
-    let mut cells = Vec::with_capacity(5 * kept_voxels);
+    let mut cells = Vec::with_capacity(6 * kept_voxels);
     let brick_order: [Vec<usize>; 3] = std::array::from_fn(|axis| {
         let mut order = Vec::with_capacity(bricks.bricks[axis]);
         let slab = eye
@@ -396,24 +401,24 @@ pub fn full_resolution_batch(
 /// viewport and transfer function). The frustum and viewport are not read.
 ///
 /// With the eye at `u` in voxel index coordinates, the key holds `⌊u_a⌋` per
-/// axis and, for each of the eight sign vectors `σ`, which integer or open
-/// interval between integers `σ · u` lies on (`2⌊v⌋` for an integer `v`,
+/// axis and, for each axis pair `(a, b)`, which integer or open interval
+/// between integers `u_a − u_b` lies on (`2⌊v⌋` for an integer `v`,
 /// `2⌊v⌋ + 1` otherwise), each clamped to where the order stops changing.
 /// `None` when the eye is not finite or `world_from_local` is not invertible
 /// (then [`full_resolution_batch`] fails for that order too).
-pub fn order_key(grid: &DensityGrid, view: &View) -> Option<[i64; 11]> {
+pub fn order_key(grid: &DensityGrid, view: &View) -> Option<[i64; 6]> {
     let (_, index_from_world) = index_maps(grid.origin(), grid.spacing(), view.world_from_local)?;
     let eye = EyeSides::new(index_from_world.transform_point3(view.eye))?;
     // Beyond ±limit every plane of the grid is on the same side.
     let limit = 4 * grid.dims().iter().sum::<usize>() as i64 + 8;
-    let mut key = [0; 11];
+    let mut key = [0; 6];
     for (axis, slab) in eye.slab.into_iter().enumerate() {
         key[axis] = slab.clamp(-limit, limit);
     }
-    for (apex, v) in eye.diagonal.into_iter().enumerate() {
+    for (pair, v) in eye.differences.into_iter().enumerate() {
         let floor = v.floor();
         let interval = 2.0 * floor + if v == floor { 0.0 } else { 1.0 };
-        key[3 + apex] = interval.clamp(-2.0 * limit as f64, 2.0 * limit as f64) as i64;
+        key[3 + pair] = interval.clamp(-2.0 * limit as f64, 2.0 * limit as f64) as i64;
     }
     Some(key)
 }
@@ -439,15 +444,15 @@ pub(crate) fn index_maps(
     invertible.then_some((world_from_index, index_from_world))
 }
 
-/// What the order depends on: the eye's slab per axis and, per cube corner
-/// (apex) `c`, `σ_c · u` with `σ_c` = +1 on the axes where `c`'s bit is 0 and
-/// −1 where it is 1. Computed once per batch, so every voxel compares the same
-/// rounded values (and [`order_key`] sees exactly what the batch sees).
+/// What the order depends on: the eye's slab per axis and, per axis pair
+/// `[a, b]` of [`AXIS_PAIRS`], `u_a − u_b`. Computed once per batch, so every
+/// voxel compares the same rounded values (and [`order_key`] sees exactly
+/// what the batch sees).
 pub(crate) struct EyeSides {
     /// `⌊u_a⌋` per axis, clamped to the i64 range.
     pub(crate) slab: [i64; 3],
-    /// `σ_c · u` per apex `c`, summed x, y, z.
-    pub(crate) diagonal: [f64; 8],
+    /// `u_a − u_b` per axis pair of [`AXIS_PAIRS`].
+    pub(crate) differences: [f64; 3],
 }
 
 impl EyeSides {
@@ -459,11 +464,8 @@ impl EyeSides {
         // ±2⁶² keeps the i64 arithmetic of the traversal far from overflow.
         let bound = 2f64.powi(62);
         let slab = u.to_array().map(|v| v.floor().clamp(-bound, bound) as i64);
-        let diagonal = std::array::from_fn(|apex| {
-            let sign = |bit: usize| if apex & bit == 0 { 1.0 } else { -1.0 };
-            sign(1) * u.x + sign(2) * u.y + sign(4) * u.z
-        });
-        Some(Self { slab, diagonal })
+        let differences = AXIS_PAIRS.map(|[a, b]| u[a] - u[b]);
+        Some(Self { slab, differences })
     }
 }
 
@@ -486,8 +488,8 @@ pub(crate) fn axis_order(start: usize, end: usize, eye_slab: Option<i64>, order:
     }
 }
 
-/// Appends the five tetrahedra of voxel `[i, j, k]`; with an eye in MPVO
-/// order, else in decomposition order.
+/// Appends the six tetrahedra of voxel `[i, j, k]`; with an eye back to
+/// front ([`kuhn_back_to_front`]), else in the order of [`KUHN_TETRAHEDRA`].
 fn emit_voxel(
     grid: &DensityGrid,
     point: &impl Fn(usize, usize, usize) -> Vec3,
@@ -501,37 +503,15 @@ fn emit_voxel(
         [p.x, p.y, p.z, grid.value(ci, cj, ck)]
     };
     let vertices: [[f32; 4]; 8] = std::array::from_fn(corner);
-    let cell = |t: &[usize; 4]| GpuCell {
-        vertices: t.map(|v| vertices[v]),
+    let cell = |t: usize| GpuCell {
+        vertices: KUHN_TETRAHEDRA[t].map(|v| vertices[v]),
     };
-    let decomposition = &DECOMPOSITIONS[(i + j + k) % 2];
-    let Some(eye) = eye else {
-        cells.extend(decomposition.corners.iter().map(|(t, _)| cell(t)));
-        cells.push(cell(&decomposition.central));
-        return;
-    };
-    // The face a corner tetrahedron with apex `c` shares with the central one
-    // is `Σ_a |u_a − corner_a| = 1` in the voxel, i.e. `σ_c · u = m` with the
-    // integer `m = 1 − popcount(c) + σ_c · (i, j, k)`; the eye is on the apex's
-    // side (the tetrahedron in front) iff `σ_c · u < m`.
-    let (x, y, z) = (i as f64, j as f64, k as f64);
-    let in_front = |apex: usize| {
-        let sign = |bit: usize| if apex & bit == 0 { 1.0 } else { -1.0 };
-        let m = 1.0 - f64::from(apex.count_ones()) + sign(1) * x + sign(2) * y + sign(4) * z;
-        eye.diagonal[apex] < m
-    };
-    let mut front = [false; 4];
-    for (c, (t, apex)) in decomposition.corners.iter().enumerate() {
-        front[c] = in_front(*apex);
-        if !front[c] {
-            cells.push(cell(t));
+    match eye {
+        Some(eye) => {
+            let origin = [i, j, k].map(|n| n as f64);
+            cells.extend(kuhn_back_to_front(&eye.differences, origin).map(cell));
         }
-    }
-    cells.push(cell(&decomposition.central));
-    for (c, (t, _)) in decomposition.corners.iter().enumerate() {
-        if front[c] {
-            cells.push(cell(t));
-        }
+        None => cells.extend((0..6).map(cell)),
     }
 }
 
@@ -562,15 +542,44 @@ mod tests {
         assert!(EyeSides::new(DVec3::new(0.0, f64::NAN, 0.0)).is_none());
     }
 
+    /// For eyes on every side of the planes between a cube's tetrahedra
+    /// (and on them), the order is a permutation in which every pair of
+    /// face neighbours comes far one first: the one whose axis ordering the
+    /// eye's local coordinates break on their shared pair.
     #[test]
-    fn decompositions_have_one_central_and_four_corner_tetrahedra() {
-        for (d, corners) in DECOMPOSITIONS.iter().zip([[0, 3, 5, 6], [1, 2, 4, 7]]) {
-            let mut apexes = d.corners.map(|(_, a)| a);
-            apexes.sort();
-            assert_eq!(apexes, corners);
-            for (t, a) in d.corners {
-                // The face opposite the apex is a face of the central tetrahedron.
-                assert!(t.iter().filter(|&&v| v != a).all(|v| d.central.contains(v)));
+    fn kuhn_order_crosses_every_shared_face_from_back_to_front() {
+        let origin = [3.0, -2.0, 5.0];
+        let values = [-1.5, -0.5, 0.0, 0.25, 0.5, 1.0, 2.0];
+        for &x in &values {
+            for &y in &values {
+                for &z in &values {
+                    let local = [x, y, z];
+                    let u: [f64; 3] = std::array::from_fn(|a| origin[a] + local[a]);
+                    let eye = EyeSides::new(DVec3::from(u)).unwrap();
+                    let order = kuhn_back_to_front(&eye.differences, origin);
+                    let mut sorted = order;
+                    sorted.sort();
+                    assert_eq!(sorted, [0, 1, 2, 3, 4, 5], "{local:?}");
+                    let position = |t: usize| order.iter().position(|&o| o == t).unwrap();
+                    for (s, os) in KUHN_AXIS_ORDERS.into_iter().enumerate() {
+                        for (t, ot) in KUHN_AXIS_ORDERS.into_iter().enumerate() {
+                            // Neighbours: the orderings swap one neighbouring pair.
+                            let swapped = |i: usize| {
+                                os[i] == ot[i + 1]
+                                    && os[i + 1] == ot[i]
+                                    && os[2 - 2 * i] == ot[2 - 2 * i]
+                            };
+                            let Some(i) = (0..2).find(|&i| swapped(i)) else {
+                                continue;
+                            };
+                            // s has u_a ≥ u_b; the eye behind it has u_a < u_b.
+                            let (a, b) = (os[i], os[i + 1]);
+                            if local[a] < local[b] {
+                                assert!(position(s) < position(t), "{local:?}: {s} before {t}");
+                            }
+                        }
+                    }
+                }
             }
         }
     }

@@ -37,7 +37,7 @@
 //!   along any ray from the eye, consecutive cells share a face whose plane
 //!   has the eye on the nearer cell's side, so every cell comes before every
 //!   cell in front of it. Delaunay meshes are acyclic for every eye
-//!   (Edelsbrunner, cited by Williams). So are regular grids of five
+//!   (Edelsbrunner, cited by Williams). So are regular grids of Kuhn's six
 //!   tetrahedra per voxel (the BSP order of
 //!   [`full_resolution_batch`](crate::full_resolution_batch) meets every
 //!   constraint); the search-light cone showed no cycle for any eye tested.

@@ -103,7 +103,7 @@
 //! assert!(batcher.update(&view, &inputs)?); // the first frame builds
 //! assert!(!batcher.update(&view, &inputs)?); // the same view keeps it
 //! assert!(!batcher.batch().is_empty());
-//! assert_eq!(batcher.full_resolution_cells(), 5 * 5 * 4 * 6);
+//! assert_eq!(batcher.full_resolution_cells(), 6 * 5 * 4 * 6);
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
@@ -130,7 +130,7 @@ use crate::visibility::{CellAdjacency, sorted_batch};
 #[derive(Clone, Debug)]
 pub enum VolumeSource {
     /// A density grid: point `(i, j, k)` at `origin + (i, j, k) · spacing`,
-    /// five tetrahedra per voxel.
+    /// six tetrahedra per voxel (Kuhn's, [`crate::full_resolution`]).
     Grid(Arc<DensityGrid>),
     /// Tetrahedra, a conforming mesh for back-to-front order (see
     /// [`crate::visibility`]).
@@ -323,7 +323,7 @@ struct BuiltFor {
     blends: Blends,
     /// The view's [`order_key`] for a grid at full resolution back to front,
     /// `None` for the other kinds.
-    order_key: Option<[i64; 11]>,
+    order_key: Option<[i64; 6]>,
 }
 
 /// A volume's per-frame batching (module docs): built once per source and
@@ -366,7 +366,7 @@ impl VolumeBatcher {
             }
         }
         let full_resolution_cells = match &source {
-            VolumeSource::Grid(grid) => 5 * grid.dims().map(|n| n - 1).iter().product::<usize>(),
+            VolumeSource::Grid(grid) => 6 * grid.dims().map(|n| n - 1).iter().product::<usize>(),
             VolumeSource::Cells(cells) => cells.len(),
         };
         let kind = match (source, settings.octree) {
@@ -525,6 +525,18 @@ impl VolumeBatcher {
         only_the_blend.then(|| BlendStep::new(hierarchy, *scalars, view, inputs))
     }
 
+    /// Whether the batch was last built or adopted for exactly `view` and
+    /// `inputs` (the same view, transfer function, criterion and blends):
+    /// then a refinement step for them would change nothing.
+    pub fn is_built_for(&self, view: &View, inputs: &FrameInputs) -> bool {
+        self.built.as_ref().is_some_and(|built| {
+            built.view == *view
+                && built.transfer == inputs.transfer.content_hash()
+                && built.criterion == inputs.criterion
+                && built.blends == Blends::of(inputs)
+        })
+    }
+
     /// The first build of a batcher of two keyframes, detached as
     /// [`VolumeBatcher::blend_step`]: the next pair's batch made ahead for the
     /// current view, adopted before it is drawn. `None` once built or for
@@ -575,7 +587,7 @@ impl VolumeBatcher {
         &self.batch
     }
 
-    /// The source's cells at full resolution (five per voxel of the grid as
+    /// The source's cells at full resolution (six per voxel of the grid as
     /// given, before any padding; the mesh's cell count), for counters that
     /// compare the drawn cells with them.
     pub fn full_resolution_cells(&self) -> usize {
@@ -619,7 +631,7 @@ impl VolumeBatcher {
         view: &View,
         inputs: &FrameInputs,
         transfer: u64,
-        order_key: Option<[i64; 11]>,
+        order_key: Option<[i64; 6]>,
     ) -> bool {
         let (was_empty, is_empty) = (built.view.viewport_is_empty(), view.viewport_is_empty());
         if was_empty && is_empty {
@@ -763,6 +775,18 @@ impl BlendStep {
 pub struct BuiltBlendStep {
     step: BlendStep,
     batch: Result<CellBatch, VolumeBatchError>,
+}
+
+impl BuiltBlendStep {
+    /// Whether the step was made for exactly `view` and `inputs` (a step made
+    /// ahead for the next blend is adopted once the drawn blend reaches it).
+    pub fn is_for(&self, view: &View, inputs: &FrameInputs) -> bool {
+        let step = &self.step;
+        step.view == *view
+            && step.transfer.content_hash() == inputs.transfer.content_hash()
+            && step.criterion == inputs.criterion
+            && step.blends == Blends::of(inputs)
+    }
 }
 
 /// `cells` (local frame) moved to world space by the view's

@@ -187,7 +187,7 @@ proptest! {
         let u = placement.index_position(g.dims().map(|n| n - 1));
         let eye = world_from_grid.transform_point3(origin + u * spacing);
         let b = batch(&g, brick_size, world_from_grid, eye, None, &linear_transfer(), CellOrder::BackToFront);
-        prop_assert_eq!(b.len(), 5 * voxel_count(&g));
+        prop_assert_eq!(b.len(), 6 * voxel_count(&g));
         assert_back_to_front(&b.cells, eye, &directions, 1e-9);
         // Rays towards the voxel centres and grid points reach every cell.
         let targets: Vec<DVec3> = b.cells.iter().map(|c| {
@@ -225,7 +225,7 @@ proptest! {
         let u = placement.index_position(g.dims().map(|n| n - 1));
         let eye = world_from_grid.transform_point3(g.origin() + u * g.spacing());
         let b = batch(&g, 2, world_from_grid, eye, None, &linear_transfer(), CellOrder::BackToFront);
-        prop_assert_eq!(b.len(), 5 * voxel_count(&g));
+        prop_assert_eq!(b.len(), 6 * voxel_count(&g));
         // The order is exact for the f64 geometry: check it on the cells
         // rebuilt in f64 from their grid points. (In f32, an eye within
         // rounding of a plane may see slivers of about 1e-7 × coordinates in
@@ -327,7 +327,7 @@ proptest! {
                         }
                     }
                     let emitted = voxels_seen.get(&[i, j, k]).copied().unwrap_or(0);
-                    prop_assert_eq!(emitted, if any_opaque { 5 } else { 0 }, "voxel {:?}", [i, j, k]);
+                    prop_assert_eq!(emitted, if any_opaque { 6 } else { 0 }, "voxel {:?}", [i, j, k]);
                 }
             }
         }
@@ -416,7 +416,7 @@ fn full_batch_tiles_the_box_conformingly_and_unordered_has_the_same_cells() {
         &transfer,
         CellOrder::BackToFront,
     );
-    assert_eq!(b.len(), 5 * 4 * 3 * 5);
+    assert_eq!(b.len(), 6 * 4 * 3 * 5);
     let volume: f64 = b.cells.iter().map(|c| c.to_tetrahedron().volume()).sum();
     let extent = g.max_corner() - g.origin();
     let expected = extent.x * extent.y * extent.z * world_from_grid.matrix3.determinant().abs();
@@ -531,7 +531,7 @@ fn transparent_grids_give_empty_batches() {
         CellOrder::BackToFront,
     );
     // Point 3 lies inside brick 1 (voxels 2..4) on each axis: one brick, 8 voxels.
-    assert_eq!(b.len(), 5 * 8);
+    assert_eq!(b.len(), 6 * 8);
     assert_eq!(
         (b.bounds_min, b.bounds_max),
         (Vec3::splat(2.0), Vec3::splat(4.0))
@@ -555,9 +555,9 @@ fn bad_input_gives_clear_errors_and_never_panics() {
     assert!(matches!(err, BatchError::NonFiniteEye { .. }));
     assert!(err.to_string().contains("Unordered"), "{err}");
     let b = build(DVec3::NAN, DAffine3::IDENTITY, CellOrder::Unordered).unwrap();
-    assert_eq!(b.len(), 5 * 27);
+    assert_eq!(b.len(), 6 * 27);
     let b = build(DVec3::INFINITY, DAffine3::IDENTITY, CellOrder::Unordered).unwrap();
-    assert_eq!(b.len(), 5 * 27);
+    assert_eq!(b.len(), 6 * 27);
 
     for world in [
         DAffine3::from_scale(DVec3::new(1.0, 0.0, 1.0)),
@@ -617,7 +617,7 @@ fn bad_input_gives_clear_errors_and_never_panics() {
         DVec3::new(1e5, 1.5, 1.5),
     ] {
         let b = build(eye, DAffine3::IDENTITY, CellOrder::BackToFront).unwrap();
-        assert_eq!(b.len(), 5 * 27);
+        assert_eq!(b.len(), 6 * 27);
         assert!(
             b.cells
                 .iter()
@@ -632,7 +632,13 @@ fn bad_input_gives_clear_errors_and_never_panics() {
     let pairs = assert_back_to_front(
         &b.cells,
         eye,
-        &[DVec3::X, DVec3::new(0.3, -0.2, 0.9), DVec3::NEG_Y],
+        // Not along a plane u_a = u_b through the voxel's centre, which holds
+        // the eye and faces between tetrahedra.
+        &[
+            DVec3::new(1.0, 0.1, -0.2),
+            DVec3::new(0.3, -0.2, 0.9),
+            DVec3::new(0.15, -1.0, 0.05),
+        ],
         1e-9,
     );
     assert!(pairs >= 6);
@@ -667,17 +673,32 @@ proptest! {
 }
 
 #[test]
-fn order_key_changes_across_diagonal_planes_and_refuses_bad_input() {
+fn order_key_changes_across_the_planes_between_tetrahedra_and_refuses_bad_input() {
     use nebel_lod::order_key;
     let g = grid([4, 4, 4], DVec3::ONE, DVec3::ZERO, &[0.5]);
     let key = |u: DVec3| order_key(&g, &view(DAffine3::IDENTITY, u, None)).unwrap();
-    // Same voxel, opposite sides of the corner face x + y + z = 1 (apex 0).
-    assert_ne!(key(DVec3::splat(0.3)), key(DVec3::splat(0.35)));
-    assert_eq!(key(DVec3::splat(0.35)), key(DVec3::splat(0.4)));
-    // On the plane is its own class.
+    // Same voxel, opposite sides of the plane x = y between its tetrahedra.
     assert_ne!(
-        key(DVec3::new(0.5, 0.25, 0.25)),
-        key(DVec3::new(0.5, 0.25, 0.2))
+        key(DVec3::new(0.3, 0.4, 0.2)),
+        key(DVec3::new(0.4, 0.3, 0.2))
+    );
+    assert_eq!(
+        key(DVec3::new(0.4, 0.3, 0.2)),
+        key(DVec3::new(0.45, 0.3, 0.2))
+    );
+    // On the plane is its own class; so is the plane x − y = 1 of the next
+    // voxel along x.
+    assert_ne!(
+        key(DVec3::new(0.3, 0.3, 0.1)),
+        key(DVec3::new(0.3, 0.29, 0.1))
+    );
+    assert_ne!(
+        key(DVec3::new(1.3, 0.3, 0.1)),
+        key(DVec3::new(1.3, 0.29, 0.1))
+    );
+    assert_ne!(
+        key(DVec3::new(1.3, 0.3, 0.1)),
+        key(DVec3::new(1.3, 0.31, 0.1))
     );
     // Far away everything is on one side: the key stops changing.
     assert_eq!(key(DVec3::splat(1e6)), key(DVec3::splat(1e300)));

@@ -28,7 +28,9 @@ use nebel_core::cell::Tetrahedron;
 use nebel_core::field::{DensityGrid, FieldError, PadFill, ProceduralNoise};
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{ControlPoint, TransferFunction, TransferPreset};
-use nebel_lod::octree::{LodCriterion, Refinement, RefinementSettings, lod_batch, refine};
+use nebel_lod::octree::{
+    LodCriterion, NodeMorph, Refinement, RefinementSettings, lod_batch, refine,
+};
 use nebel_lod::{
     BrickTable, CellBatch, CellOrder, Frustum, HierarchyError, Node, View, VolumeHierarchy,
     full_resolution_batch,
@@ -211,6 +213,7 @@ fn lod_in(
     if !morph {
         for node in &mut r.refined {
             node.morph = 1.0;
+            node.end_morph = 1.0;
         }
     }
     let batch = lod_batch(h, &r, view).expect("LOD batch");
@@ -429,7 +432,10 @@ fn error_sweep(grid: &DensityGrid, name: &str, eye: DVec3, target: DVec3) -> Swe
         sweep
             .unmorphed
             .push(rmse(&image(&batch_off, &transfer, cam), &reference));
-        sweep.cells.push(batch.len());
+        // The refinement's size: six cells per leaf. The batch drops the
+        // cells of transparent leaves whose field stays transparent, so a
+        // finer refinement that finds empty space may draw a few fewer.
+        sweep.cells.push(6 * r.leaves.len());
         eprintln!(
             "{name}: c = {c:>3}: {:>6} cells ({} voxel leaves), RMSE morphed {:.3e}, morphing off {:.3e}",
             batch.len(),
@@ -440,7 +446,7 @@ fn error_sweep(grid: &DensityGrid, name: &str, eye: DVec3, target: DVec3) -> Swe
     }
     let view = projected_view(eye, target, 45.0, size);
     for tolerance in SCREEN_SWEEP {
-        let (_, batch) = lod_in(
+        let (r, batch) = lod_in(
             &h,
             &transfer,
             &view,
@@ -449,10 +455,11 @@ fn error_sweep(grid: &DensityGrid, name: &str, eye: DVec3, target: DVec3) -> Swe
         );
         let error = rmse(&image(&batch, &transfer, cam), &reference);
         eprintln!(
-            "{name}: screen error {tolerance:>5}: {:>6} cells, RMSE {error:.3e}",
+            "{name}: screen error {tolerance:>5}: {:>6} cells ({} drawn), RMSE {error:.3e}",
+            6 * r.leaves.len(),
             batch.len()
         );
-        sweep.screen.push((batch.len(), error));
+        sweep.screen.push((6 * r.leaves.len(), error));
     }
     sweep
 }
@@ -794,7 +801,7 @@ fn eye_at_node_centres_faces_edges_and_corners() {
             let (r, batch) = lod(&h, &opaque, eye, c, true);
             assert_morph_factors(&r);
             assert_leaves_tile(&h, &r);
-            assert_eq!(batch.len(), 5 * r.leaves.len());
+            assert_eq!(batch.len(), 6 * r.leaves.len());
             let values = assert_finite_and_conforming(&batch, lo, hi);
             t_vertices += assert_no_t_vertex_cracks(&batch, &values);
             let volume: f64 = batch
@@ -1143,11 +1150,26 @@ proptest! {
         )
         .unwrap();
         let batch = lod_batch(&h, &r, &view(eye, frustum)).unwrap();
-        prop_assert_eq!(batch.len(), 5 * r.leaves.len());
+        // Six cells per leaf, but none for a transparent leaf whose field
+        // stays transparent.
+        let (transparent, shown): (Vec<&NodeMorph>, Vec<&NodeMorph>) =
+            r.leaves.iter().partition(|n| n.transparent[0]);
+        prop_assert_eq!(batch.len() % 6, 0);
+        prop_assert!(batch.len() >= 6 * shown.len() && batch.len() <= 6 * r.leaves.len());
+        prop_assert_eq!(transparent.len(), r.stats.transparent_leaves);
+        prop_assert!(prune || transparent.is_empty());
         assert_morph_factors(&r);
+        // A transparent leaf: e' = 0, its range transparent, its parent
+        // drawn refined.
+        for n in &transparent {
+            let [s_lo, s_hi] = h.scalar_range(n.node);
+            prop_assert!(transfer.is_transparent(f64::from(s_lo), f64::from(s_hi)));
+            prop_assert!(n.morph == 0.0 && n.node.level < h.root_level());
+            prop_assert!(r.refined.iter().any(|p| p.node == n.node.parent()));
+        }
 
         // Eq. 1 and Eq. 6: refined iff e > 1, e' = clamp(e − 1, 0, 1).
-        for n in r.refined.iter().chain(&r.leaves) {
+        for n in r.refined.iter().chain(shown.iter().copied()) {
             let e = error_metric(&h, n.node, eye, c);
             let expected = (e - 1.0).clamp(0.0, 1.0);
             prop_assert!((f64::from(n.morph) - expected).abs() < 1e-5, "{:?}: e = {}", n, e);
@@ -1155,7 +1177,7 @@ proptest! {
         for n in &r.refined {
             prop_assert!(error_metric(&h, n.node, eye, c) > 1.0 - 1e-12, "{:?}", n);
         }
-        for n in r.leaves.iter().filter(|n| n.node.level > 0) {
+        for n in shown.iter().filter(|n| n.node.level > 0) {
             prop_assert!(error_metric(&h, n.node, eye, c) <= 1.0 + 1e-12, "{:?}", n);
         }
 

@@ -133,10 +133,10 @@ fn grid_adjacency_finds_exactly_the_interior_faces() {
         let adjacency = CellAdjacency::new(&cells);
         let voxels = dims.map(|n| n - 1);
         let v: usize = voxels.iter().product();
-        assert_eq!(adjacency.len(), 5 * v);
+        assert_eq!(adjacency.len(), 6 * v);
         assert_eq!(
             adjacency.interior_face_count(),
-            (4 * 5 * v - grid_boundary_faces(voxels)) / 2,
+            (4 * 6 * v - grid_boundary_faces(voxels)) / 2,
             "{dims:?}"
         );
         // Symmetric, and each face plane has its cell inside and the

@@ -238,7 +238,7 @@ fn every_source_builds_what_its_builder_builds() {
     let all = full_resolution_batch(&grid, &bricks, &unculled, &transfer, CellOrder::BackToFront);
     let all = all.unwrap();
     assert!(!sorted.batch().is_empty() && sorted.batch().len() < all.len());
-    assert_eq!(sorted.full_resolution_cells(), 5 * 8 * 6 * 5);
+    assert_eq!(sorted.full_resolution_cells(), 6 * 8 * 6 * 5);
     assert!(sorted.is_view_dependent());
     assert_eq!(sorted.scalars(), CellScalars::Density);
 
@@ -260,7 +260,7 @@ fn every_source_builds_what_its_builder_builds() {
         &octree_batch(None, &culled, &transfer)
     );
     assert!(!octree.batch().is_empty() && !octree.batch().is_modulated());
-    assert_eq!(octree.full_resolution_cells(), 5 * 8 * 6 * 5);
+    assert_eq!(octree.full_resolution_cells(), 6 * 8 * 6 * 5);
     // Its Unordered setting changes nothing: the octree is back to front.
     let mut octree_unordered =
         VolumeBatcher::new(grid_source(), &settings(CellOrder::Unordered, true)).unwrap();
@@ -694,7 +694,7 @@ fn grids_of_any_size_go_through_the_octree() {
             &settings(CellOrder::BackToFront, true),
         )
         .unwrap();
-        assert_eq!(batcher.full_resolution_cells(), 5 * voxels);
+        assert_eq!(batcher.full_resolution_cells(), 6 * voxels);
         assert!(
             batcher
                 .update(&view(DVec3::new(-9.0, 4.0, 3.0)), &inputs(&transfer))
@@ -773,9 +773,15 @@ fn a_batcher_blends_toward_the_next_keyframe() {
     let (first_sun, first, second) = sun_keyframes();
     let mut pair = first.with_next_keyframe(&second).unwrap();
     assert_eq!(pair.settings(), &first_sun);
-    assert!(pair.update(&v, &inputs(&transfer)).unwrap());
+    // Refined for the whole interval: the batch ends at the second sun.
+    let whole = FrameInputs {
+        blend_span: 1.0,
+        ..inputs(&transfer)
+    };
+    assert!(pair.update(&v, &whole).unwrap());
     let batch = pair.batch();
     assert!(batch.is_blended() && !batch.is_empty());
+    assert_eq!(batch.blends, [0.0, 1.0]);
     assert_eq!(batch.next_scalars.len(), batch.len());
     // Same density in both: the modulators agree, the light differs.
     assert_eq!(batch.next_modulators, batch.modulators);
@@ -785,10 +791,7 @@ fn a_batcher_blends_toward_the_next_keyframe() {
         .map(|c| c.vertices.map(|v| v[3]))
         .collect();
     assert_ne!(batch.next_scalars, scalars, "the sun moved");
-    assert!(
-        !pair.update(&v, &inputs(&transfer)).unwrap(),
-        "nothing changed"
-    );
+    assert!(!pair.update(&v, &whole).unwrap(), "nothing changed");
 
     let sorted = VolumeBatcher::new(grid_source(), &settings(CellOrder::BackToFront, false));
     let unlit = VolumeBatcher::new(grid_source(), &settings(CellOrder::BackToFront, true));

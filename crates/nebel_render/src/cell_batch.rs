@@ -130,17 +130,17 @@ impl CellSunlight {
     }
 }
 
-/// How far a keyframe-blended [`CellBatch`] is drawn toward its next
-/// keyframe (`nebel_lod::CellBatch`'s keyframe blending): every vertex's
-/// scalar and modulator at `(1 − β) · current + β · next`. Changing it
-/// costs a 64-byte uniform write, not an upload of the cells. Ignored for a
-/// batch that is not blended.
+/// How far a keyframe-blended [`CellBatch`] is drawn from the field at the
+/// first blend of its span toward the field at its last
+/// (`nebel_lod::CellBatch`'s keyframe blending, whose `mix_factor` gives it
+/// for a keyframe blend): every vertex's scalar and modulator at `(1 − t) ·
+/// current + t · next`. Changing it costs a 64-byte uniform write, not an
+/// upload of the cells. Ignored for a batch that is not blended.
 #[derive(Component, Clone, Copy, Debug, Default, PartialEq, Reflect)]
 #[reflect(Component, Default, Clone)]
 pub struct CellBlend {
-    /// The blend factor β, in [0, 1]: 0 draws the cells' own scalars, 1 the
-    /// next keyframe's. Clamped by the render system (NaN draws as 0).
-    /// Default 0.
+    /// The mix factor `t`, in [0, 1]: 0 draws the cells' own scalars, 1 their
+    /// next ones. Clamped by the render system (NaN draws as 0). Default 0.
     pub factor: f32,
 }
 

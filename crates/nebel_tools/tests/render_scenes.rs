@@ -416,13 +416,20 @@ const ACCURACY_BOUNDS: &[(&str, f64)] = &[
     ("opaque_inside", 0.002),
     ("two_volumes", 0.002),
     ("search_light_sorted", 0.002),
+    // The lit clouds are 9³ grids, so coarse that the tetrahedral field
+    // differs visibly from the reference's trilinear one. Kuhn's six
+    // tetrahedra per voxel, which the octree needs to refine without a step
+    // in the image, are further from it than the alternating five were:
+    // lavapipe measured 6.5e-3, 4.8e-3 and 8.8e-3 with them against 5.8e-3,
+    // 2.9e-3 and 4.1e-3 with the five (the bounds then 9e-3, 6e-3, 8e-3).
     ("lit_cloud", 0.009),
     ("lit_cloud_nonphysical", 0.006),
-    ("lit_cloud_scattering", 0.008),
+    ("lit_cloud_scattering", 0.011),
     // A lit cloud in the wind, blended 3/4 of the way between two keyframes:
-    // lavapipe measured 6.2e-3 (blending with a wrong factor: 2.9e-2 at 1/2,
-    // 0.18 at 0).
-    ("windy_cloud", 0.009),
+    // lavapipe measured 9.2e-3 with Kuhn's tetrahedra, 6.2e-3 with the five
+    // (the bound then 9e-3); blending with a wrong factor: 2.9e-2 at 1/2,
+    // 0.18 at 0.
+    ("windy_cloud", 0.012),
     // A thin uniform fog slab (200 m × 200 m × 2 m) as one box of six cells
     // and as long thin slivers, from grazing to near vertical, above and
     // inside: lavapipe measured RMSE 2.2e-3 (Sorted, one 8-bit step at most;

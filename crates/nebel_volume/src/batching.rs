@@ -127,9 +127,12 @@ pub(crate) struct VolumeBatching {
     /// The keyframe pair (its first keyframe's index) the last batch
     /// written came from; `None`: the volume's own batcher.
     wrote_pair: Option<i64>,
-    /// A still camera's refinement step for the keyframes' advancing blend,
-    /// in flight.
+    /// A still camera's refinement step for the keyframes' advancing blend
+    /// (the next step's, made ahead, or the current one's when the drawn
+    /// batch is older), in flight.
     blend_step: Option<HeavyBuild<BuiltBlendStep>>,
+    /// A finished refinement step waiting for the blend to reach it.
+    ready_step: Option<BuiltBlendStep>,
     /// The next keyframe pair's first batch, made ahead, in flight.
     next_pair_batch: Option<HeavyBuild<BuiltBlendStep>>,
     /// The first keyframe pair's first batch, made while the volume's own
@@ -529,17 +532,8 @@ pub(crate) fn update_batches(
         let (Some(view), Some(batcher)) = (view, batcher) else {
             continue;
         };
-        // The blend and the sunlight, written when they change.
+        // The sunlight, written when it changes.
         let (drawn_blend, drawn_sunlight) = parameters;
-        match (blend.map(|(blend, _)| blend), drawn_blend) {
-            (Some(blend), drawn) if drawn != Some(&blend) => {
-                commands.entity(entity).insert(blend);
-            }
-            (None, Some(_)) => {
-                commands.entity(entity).remove::<CellBlend>();
-            }
-            _ => {}
-        }
         match (lighting, drawn_sunlight) {
             (Some(_), drawn) if drawn != Some(&sunlight) => {
                 commands.entity(entity).insert(sunlight);
@@ -557,26 +551,45 @@ pub(crate) fn update_batches(
         };
         let scattering =
             lighting.and_then(|lighting| lighting.cell_scattering(sun_world.unwrap_or(Vec3::Y)));
-        // A still camera's refinement step for the advancing blend runs on
-        // the task pool while the current batch is drawn.
-        let updated = match batcher.blend_step(&view, &inputs) {
-            Some(step) => {
-                let build = batching
-                    .blend_step
-                    .get_or_insert_with(|| HeavyBuild::spawn_in(*mode, true, move || step.build()));
-                match build.poll(*mode) {
-                    Some(built) => {
-                        batching.blend_step = None;
-                        batcher.adopt(built)
-                    }
-                    None => Ok(false),
-                }
-            }
-            None => {
-                batching.blend_step = None;
-                batcher.update(&view, &inputs)
-            }
+        // A still camera's refinement steps for the advancing blend run on
+        // the task pool while the current batch is drawn, each made ahead
+        // and taking over when the blend reaches it.
+        let step = StepInputs {
+            view: &view,
+            inputs: &inputs,
+            next: blend.map(|_| FrameInputs {
+                blend: inputs.blend + REFINEMENT_SPAN,
+                ..inputs
+            }),
         };
+        let updated = step_batch(
+            batcher,
+            &mut batching.blend_step,
+            &mut batching.ready_step,
+            &step,
+            *mode,
+        );
+        // While the next step's batch is being made, the clock waits at the
+        // end of the drawn one's span.
+        let hold = step.next.filter(|next| {
+            next.blend < 1.0
+                && batching.blend_step.is_some()
+                && batcher.is_built_for(&view, &inputs)
+        });
+        // The blend as the mix of the drawn batch's two ends.
+        let mix = blend.map(|(blend, _)| CellBlend {
+            factor: batcher.batch().mix_factor(blend.factor),
+        });
+        let hold = hold.map(|next| next.blend);
+        match (mix, drawn_blend) {
+            (Some(mix), drawn) if drawn != Some(&mix) => {
+                commands.entity(entity).insert(mix);
+            }
+            (None, Some(_)) => {
+                commands.entity(entity).remove::<CellBlend>();
+            }
+            _ => {}
+        }
         match updated {
             Ok(changed) => {
                 batching.update_failure = None;
@@ -603,6 +616,7 @@ pub(crate) fn update_batches(
             Err(error) => batching.update_failure = Some(error.into()),
         }
         if let Some(track) = batching.keyframes.as_mut().filter(|_| from_keyframes) {
+            track.hold_at(hold);
             let next = FrameInputs {
                 blend: 0.0,
                 ..inputs
@@ -621,6 +635,73 @@ pub(crate) fn update_batches(
     if rebuilt {
         let ms = started.elapsed().as_secs_f64() * 1e3;
         diagnostics.add_measurement(&VolumePlugin::UPDATE_MS, || ms);
+    }
+}
+
+/// The view and inputs of a frame's batch, and for a keyframe pair those of
+/// the next refinement step.
+struct StepInputs<'a> {
+    view: &'a View,
+    inputs: &'a FrameInputs<'a>,
+    next: Option<FrameInputs<'a>>,
+}
+
+/// Brings `batcher`'s batch up to date for the frame (`step`); returns
+/// whether it changed. A keyframe pair under a still camera takes the step
+/// made for this frame's blend when it is ready (`ready`), and otherwise
+/// makes on the task pool (`in_flight`) the step for the drawn blend when
+/// the batch is older, or else the next step ahead. Any other change (the
+/// camera moved) rebuilds now, and steps made for another view are dropped.
+fn step_batch(
+    batcher: &mut VolumeBatcher,
+    in_flight: &mut Option<HeavyBuild<BuiltBlendStep>>,
+    ready: &mut Option<BuiltBlendStep>,
+    step: &StepInputs,
+    mode: HeavyBuilds,
+) -> Result<bool, VolumeBatchError> {
+    let StepInputs { view, inputs, next } = *step;
+    if let Some(built) = in_flight.as_mut().and_then(|build| build.poll(mode)) {
+        *in_flight = None;
+        *ready = Some(built);
+    }
+    let mut updated = Ok(false);
+    if let Some(built) = ready.take_if(|built| built.is_for(view, inputs)) {
+        updated = batcher.adopt(built);
+    }
+    let current = batcher.is_built_for(view, inputs);
+    let wanted = if current {
+        next.as_ref().filter(|next| next.blend < 1.0)
+    } else {
+        Some(inputs)
+    };
+    let wanted_step = wanted.and_then(|wanted| Some((wanted, batcher.blend_step(view, wanted)?)));
+    match wanted_step {
+        Some((wanted, blend_step)) => {
+            if ready
+                .as_ref()
+                .is_some_and(|built| !built.is_for(view, wanted))
+            {
+                *ready = None;
+            }
+            if in_flight.is_none() && ready.is_none() {
+                let mut build = HeavyBuild::spawn_in(mode, true, move || blend_step.build());
+                // Done at once under `HeavyBuilds::Blocking`.
+                match build.poll(mode) {
+                    Some(built) => *ready = Some(built),
+                    None => *in_flight = Some(build),
+                }
+            }
+            if let Some(built) = ready.take_if(|built| built.is_for(view, inputs)) {
+                updated = batcher.adopt(built);
+            }
+            updated
+        }
+        None if current => updated,
+        None => {
+            *in_flight = None;
+            *ready = None;
+            batcher.update(view, inputs)
+        }
     }
 }
 

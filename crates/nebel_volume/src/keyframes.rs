@@ -248,6 +248,10 @@ pub(crate) struct KeyframeTrack {
     sun: SunMotion,
     /// A build failed: none is started again (the recipe must change).
     failed: bool,
+    /// The blend of the drawn pair (its first keyframe's index) at which
+    /// the clock waits: the end of the drawn refinement step while the next
+    /// step's batch is not made yet.
+    hold: Option<(i64, f32)>,
 }
 
 impl KeyframeTrack {
@@ -278,12 +282,22 @@ impl KeyframeTrack {
             build: Some(first),
             sun,
             failed: false,
+            hold: None,
         }
     }
 
     /// Whether the track draws `recipe`'s keyframes.
     pub(crate) fn is_for(&self, recipe: &KeyframeRecipe) -> bool {
         self.recipe.same_as(recipe)
+    }
+
+    /// Makes the clock wait at `blend` of the drawn pair (the end of the
+    /// drawn refinement step, whose successor is not made yet) from the next
+    /// [`KeyframeTrack::advance`] on; `None` lets it run.
+    pub(crate) fn hold_at(&mut self, blend: Option<f32>) {
+        self.hold = blend
+            .zip(self.pair_index())
+            .map(|(blend, index)| (index, blend));
     }
 
     /// Lights the keyframes built from now on by `sun`.
@@ -294,8 +308,9 @@ impl KeyframeTrack {
     /// Advances the clock by the application time since the last call (`now`
     /// in seconds), takes a finished build (its CPU time in ms is returned),
     /// hands over to the next pair at the end of the drawn one when
-    /// `next_ready` says it may (its first batch is made), and starts
-    /// building the pair after it. A failed
+    /// `next_ready` says it may (its first batch is made), holds the clock
+    /// at a refinement step's end while [`KeyframeTrack::hold_at`] says so,
+    /// and starts building the pair after it. A failed
     /// build is returned as the error; the track keeps what it draws and
     /// builds nothing more.
     pub(crate) fn advance(
@@ -326,6 +341,7 @@ impl KeyframeTrack {
         // ready, or the clock waits for it.
         let end = keyframe_time(drawn.index + 1, self.interval);
         // Time runs forward only; a NaN frame time adds nothing.
+        let before = self.clock;
         self.clock += delta.max(0.0);
         if self.clock >= end {
             match self.next.take_if(|next| next_ready(&next.batcher)) {
@@ -339,10 +355,19 @@ impl KeyframeTrack {
                 None => self.clock = end,
             }
         }
-        let end = self
-            .drawn
-            .as_ref()
-            .map_or(end, |pair| keyframe_time(pair.index + 1, self.interval));
+        let end = self.drawn.as_ref().map_or(end, |pair| {
+            // A refinement step whose successor is not made holds the clock
+            // at its end, so the drawn blend never leaves the cells' span.
+            let step_end = self
+                .hold
+                .filter(|&(index, _)| index == pair.index)
+                .map(|(_, blend)| {
+                    let start = keyframe_time(pair.index, self.interval);
+                    (start + f64::from(blend) * self.interval).max(before)
+                });
+            let end = keyframe_time(pair.index + 1, self.interval);
+            step_end.map_or(end, |step_end| step_end.min(end))
+        });
         self.clock = self.clock.min(end);
         if self.next.is_none() && self.build.is_none() && !self.failed {
             let drawn = self.drawn.as_ref().expect("a pair is drawn");
@@ -550,6 +575,27 @@ mod tests {
         track.advance(6.5, HeavyBuilds::Blocking, |_| true).unwrap();
         assert!((track.clock() - 3.5).abs() < 1e-9, "{}", track.clock());
         assert!((track.blend().factor - 0.75).abs() < 1e-6);
+    }
+
+    /// A refinement step whose successor is not made holds the clock at the
+    /// step's end (never back); lifted, the clock goes on from there.
+    #[test]
+    fn the_clock_waits_at_the_end_of_a_step_whose_successor_is_not_made() {
+        AsyncComputeTaskPool::get_or_init(TaskPool::new);
+        // Pairs of 2 s; the clock starts at 0.2 s (blend 0.1).
+        let mut track = KeyframeTrack::new(recipe(), sun(), 0.2, HeavyBuilds::Blocking);
+        track.advance(0.2, HeavyBuilds::Blocking, |_| true).unwrap();
+        track.hold_at(Some(0.25));
+        track.advance(1.2, HeavyBuilds::Blocking, |_| true).unwrap();
+        assert_eq!(track.clock(), 0.5);
+        assert_eq!(track.blend().factor, 0.25);
+        // A hold behind the clock does not move it back.
+        track.hold_at(Some(0.125));
+        track.advance(1.3, HeavyBuilds::Blocking, |_| true).unwrap();
+        assert_eq!(track.clock(), 0.5);
+        track.hold_at(None);
+        track.advance(1.5, HeavyBuilds::Blocking, |_| true).unwrap();
+        assert!((track.clock() - 0.7).abs() < 1e-9, "{}", track.clock());
     }
 
     /// A next pair that is built but not ready (its first batch not made)

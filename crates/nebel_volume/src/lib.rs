@@ -3,7 +3,7 @@
 //!
 //! Spawn a [`Volume`] (or a [`Campfire`] or a [`CloudVolume`], which fill and
 //! animate one); [`VolumePlugin`] turns it into a [`CellBatch`] on the same
-//! entity: the full-resolution grid (five tetrahedra per voxel, alternating),
+//! entity: the full-resolution grid (Kuhn's six tetrahedra per voxel),
 //! or with [`VolumeLod`] the octree C-LOD of Röttger and Ertl 2003, lit as a cloud with
 //! [`VolumeLighting`]. The render system is the same for all of them.
 //!

@@ -3,8 +3,8 @@
 //! A volume is a scalar field in its entity's local frame, a transfer
 //! function and an optical mode. Its [`CellBatch`](nebel_render::CellBatch)
 //! is kept current by the
-//! systems of [`crate::batching`]: a grid volume at full resolution (five
-//! tetrahedra per voxel, alternating; bricks whose scalar range is
+//! systems of [`crate::batching`]: a grid volume at full resolution (Kuhn's
+//! six tetrahedra per voxel; bricks whose scalar range is
 //! transparent under the transfer function dropped, Röttger and Ertl, "Fast
 //! Volumetric Display of Natural Gaseous Phenomena", 2003, §4.1; for
 //! [`OpticalMode::Sorted`] bricks outside the view frustum dropped and the
@@ -144,8 +144,8 @@ fn open_build_budget(mode: Res<HeavyBuilds>, mut diagnostics: Diagnostics) {
 #[reflect(Clone, Default)]
 pub enum VolumeField {
     /// A density grid asset in the volume's local space (its own origin and
-    /// spacing), trilinear between points, drawn as five tetrahedra per
-    /// voxel.
+    /// spacing), trilinear between points, drawn as six tetrahedra per
+    /// voxel (Kuhn's, linear in each).
     Grid(Handle<VolumeGrid>),
     /// Tetrahedra in the volume's local space: a conforming mesh, put in
     /// visibility order when the volume is sorted, drawn as given otherwise.
@@ -327,11 +327,11 @@ mod tests {
     }
 
     #[test]
-    fn a_grid_becomes_five_cells_per_voxel_and_is_rebuilt_only_on_change() {
+    fn a_grid_becomes_six_cells_per_voxel_and_is_rebuilt_only_on_change() {
         let (mut app, camera, volume) = app_with_volume(OpticalMode::Sorted);
         assert_eq!(status(&app, volume), VolumeStatus::Ready);
         let batch = app.world().get::<CellBatch>(volume).expect("a batch");
-        assert_eq!(batch.cells.len(), 5 * 8);
+        assert_eq!(batch.cells.len(), 6 * 8);
         let first = last_changed(&app, volume).unwrap();
 
         app.update();
@@ -375,8 +375,8 @@ mod tests {
                 .map(|m| m.value)
         };
         assert_eq!(measured(VolumePlugin::VOLUMES), Some(1.0));
-        assert_eq!(measured(VolumePlugin::CELLS_DRAWN), Some(40.0));
-        assert_eq!(measured(VolumePlugin::CELLS_FULL_RESOLUTION), Some(40.0));
+        assert_eq!(measured(VolumePlugin::CELLS_DRAWN), Some(48.0));
+        assert_eq!(measured(VolumePlugin::CELLS_FULL_RESOLUTION), Some(48.0));
     }
 
     #[test]
@@ -407,7 +407,7 @@ mod tests {
         give_noise_lod(&mut app, volume, 0.0);
         app.update();
         let coarse = app.world().get::<CellBatch>(volume).unwrap().cells.len();
-        assert!(coarse > 0 && coarse < 5 * 16 * 16 * 16, "{coarse} cells");
+        assert!(coarse > 0 && coarse < 6 * 16 * 16 * 16, "{coarse} cells");
 
         // An emissive volume at full resolution ignores the eye; with LOD it follows it.
         let before = last_changed(&app, volume);
@@ -556,26 +556,33 @@ mod tests {
             let batch = app.world().get::<CellBatch>(cloud);
             if let Some(batch) = batch {
                 assert!(batch.cells.is_blended() && batch.cells.is_modulated());
-                blends.push(
-                    app.world()
-                        .get::<nebel_render::CellBlend>(cloud)
-                        .unwrap()
-                        .factor,
-                );
+                // The blend drawn: the mix of the batch's two ends.
+                let mix = app
+                    .world()
+                    .get::<nebel_render::CellBlend>(cloud)
+                    .unwrap()
+                    .factor;
+                assert!((0.0..=1.0).contains(&mix), "{mix}");
+                let [first, last] = batch.cells.blends;
+                assert!(first < last, "{:?}", batch.cells.blends);
+                blends.push(first + mix * (last - first));
                 changes.push(last_changed(&app, cloud).unwrap());
             }
         }
         assert_eq!(status(&app, cloud), VolumeStatus::Ready);
         assert!(blends.len() >= 240, "{}", blends.len());
         // A hundredth of the interval per frame, starting again at each
-        // hand-over; the cells are uploaded again where (and only where) the
-        // octree is refined for the next step of the blend.
+        // hand-over: each step's batch, made ahead, takes over as the blend
+        // reaches it, so the drawn blend never holds or jumps. The cells are
+        // uploaded again where (and only where) the octree is refined for
+        // the next step of the blend.
         let hand_overs = blends.windows(2).filter(|w| w[1] < w[0]).count();
         assert!(hand_overs >= 2, "{blends:?}");
         assert!(
             blends
                 .windows(2)
-                .all(|w| w[1] < w[0] || (w[1] - w[0] - 0.01).abs() < 1e-4)
+                .all(|w| w[1] < w[0] || (w[1] - w[0] - 0.01).abs() < 1e-4),
+            "{blends:?}"
         );
         let steps = nebel_lod::octree::keyframe::REFINEMENT_STEPS as f32;
         let step = |blend: f32| (blend * steps).floor();

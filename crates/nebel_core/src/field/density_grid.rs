@@ -3,7 +3,7 @@
 use glam::DVec3;
 
 use crate::budget::BudgetError;
-use crate::cell::{Hexahedron, HexahedronParity, Tetrahedron};
+use crate::cell::{Hexahedron, Tetrahedron};
 use crate::pacing::pace;
 
 use super::{
@@ -128,14 +128,15 @@ impl DensityGrid {
     }
 
     /// The full-resolution tetrahedral field: every grid
-    /// cell `(i, j, k)` as a hexahedron split into five tetrahedra with parity
-    /// [`HexahedronParity::of_cell`], so the mesh conforms. Returns
-    /// `5 (nx − 1)(ny − 1)(nz − 1)` cells, cell by cell, x fastest. Inside each
+    /// cell `(i, j, k)` as a hexahedron split into Kuhn's six tetrahedra
+    /// ([`Hexahedron::kuhn_tetrahedra`], the same in every cell), so the mesh
+    /// conforms and the octree's coarser cells are nested in it. Returns
+    /// `6 (nx − 1)(ny − 1)(nz − 1)` cells, cell by cell, x fastest. Inside each
     /// tetrahedron the scalar is linear: it equals the trilinear field at the
     /// grid points and everywhere when the field is linear.
     pub fn tetrahedra(&self) -> Vec<Tetrahedron> {
         let [nx, ny, nz] = self.dims;
-        let mut cells = Vec::with_capacity(5 * (nx - 1) * (ny - 1) * (nz - 1));
+        let mut cells = Vec::with_capacity(6 * (nx - 1) * (ny - 1) * (nz - 1));
         for k in 0..nz - 1 {
             for j in 0..ny - 1 {
                 for i in 0..nx - 1 {
@@ -151,8 +152,7 @@ impl DensityGrid {
                             f64::from(self.value(ci, cj, ck))
                         }),
                     };
-                    let parity = HexahedronParity::of_cell(i as i64, j as i64, k as i64);
-                    cells.extend(hexahedron.tetrahedra(parity));
+                    cells.extend(hexahedron.kuhn_tetrahedra());
                 }
             }
         }
@@ -257,7 +257,7 @@ mod tests {
     fn tetrahedra_fill_the_box_and_interpolate_the_linear_field() {
         let grid = linear_grid();
         let cells = grid.tetrahedra();
-        assert_eq!(cells.len(), 5 * 3 * 2 * 4);
+        assert_eq!(cells.len(), 6 * 3 * 2 * 4);
         let volume: f64 = cells.iter().map(Tetrahedron::volume).sum();
         let extent = grid.max_corner() - grid.origin();
         assert!((volume - extent.x * extent.y * extent.z).abs() < 1e-9);

@@ -11,7 +11,6 @@ use nebel_core::field::DensityGrid;
 use nebel_core::pacing::pace;
 
 use super::{HierarchyError, VolumeHierarchy, k_max};
-use crate::full_resolution::DECOMPOSITIONS;
 
 impl VolumeHierarchy {
     /// Builds the hierarchy of `grid` for the minimum accuracy `C`
@@ -85,12 +84,11 @@ impl VolumeHierarchy {
             words: Arc::new(vec![0; points]),
             morph: Arc::new(vec![0; points]),
         };
-        let diagonals = face_diagonals();
         if root_level >= 1 {
-            hierarchy.build_first_level(&diagonals);
+            hierarchy.build_first_level();
         }
         for level in 2..=root_level {
-            hierarchy.build_level(level, &diagonals);
+            hierarchy.build_level(level);
         }
         Ok(hierarchy)
     }
@@ -103,17 +101,17 @@ impl VolumeHierarchy {
     /// of its densities, pooled over rows and then along them. Each layer of
     /// nodes is compiled for the vector instructions the CPU has (`pulp`'s
     /// runtime dispatch; integer operations, so the same on every CPU).
-    fn build_first_level(&mut self, diagonals: &FaceDiagonals) {
+    fn build_first_level(&mut self) {
         let [nx, ny, nz] = self.dims;
         let plane = nx * ny;
         let mut level = FirstLevel {
-            kinds: PointKinds::new(diagonals, [1, nx, plane]),
+            kinds: PointKinds::new([1, nx, plane]),
             dims: self.dims,
             density: &self.density,
             light: &self.light,
             words: Arc::make_mut(&mut self.words).as_mut_slice(),
             planes: [0; 3].map(|_| vec![0u16; plane]),
-            scratch: vec![0; 4 * nx],
+            scratch: vec![0; 2 * nx],
             deviation: vec![0; nx],
             low: vec![0; nx],
             high: vec![0; nx],
@@ -133,7 +131,7 @@ impl VolumeHierarchy {
 
     /// Computes Δ (propagated from level − 1, already built) and the scalar
     /// range of every node of `level ≥ 2`.
-    fn build_level(&mut self, level: u32, diagonals: &FaceDiagonals) {
+    fn build_level(&mut self, level: u32) {
         let [nx, ny, _] = self.dims;
         let size = 1usize << level;
         let half = size / 2;
@@ -143,19 +141,9 @@ impl VolumeHierarchy {
         let offset = |a: usize, b: usize, c: usize| a * step[0] + b * step[1] + c * step[2];
         let corner_offsets: [usize; 8] =
             std::array::from_fn(|v| offset(2 * (v & 1), 2 * ((v >> 1) & 1), 2 * ((v >> 2) & 1)));
-        // Per parity, the midpoints of the twelve edges and six face
-        // diagonals as flat offsets, with the two corners they lie between.
-        let at_mid = |(mid, ends): ([usize; 3], [usize; 2])| (offset(mid[0], mid[1], mid[2]), ends);
-        let midpoints: [[(usize, [usize; 2]); 18]; 2] = std::array::from_fn(|parity| {
-            let mut all = [(0, [0; 2]); 18];
-            for (slot, &edge) in all
-                .iter_mut()
-                .zip(edge_table().iter().chain(&diagonals.faces[parity]))
-            {
-                *slot = at_mid(edge);
-            }
-            all
-        });
+        // The nineteen points born at this level as flat offsets, with the
+        // two corners their coarse value averages.
+        let midpoints = born_points().map(|(mid, ends)| (offset(mid[0], mid[1], mid[2]), ends));
         // Children: their centres and the centres of their +x faces, relative
         // to the node's origin (quarter = half / 2).
         let quarter = half / 2;
@@ -176,19 +164,16 @@ impl VolumeHierarchy {
             for y in 0..counts[1] {
                 for x in 0..counts[0] {
                     let base = x * size + nx * (y * size + ny * (z * size));
-                    let parity = (x + y + z) & 1;
                     // Deviations in units of 1/1020 (4 · 255), so exact.
                     let local_deviation = |field: &[u8]| {
                         let d = |off: usize| i32::from(field[base + off]);
                         let corners = corner_offsets.map(d);
                         let mut deviation = 0;
-                        for &(mid, [v0, v1]) in &midpoints[parity] {
+                        for &(mid, [v0, v1]) in &midpoints {
                             deviation =
                                 deviation.max(2 * (2 * d(mid) - corners[v0] - corners[v1]).abs());
                         }
-                        let central: i32 =
-                            diagonals.central[parity].iter().map(|&v| corners[v]).sum();
-                        deviation.max((4 * d(centre) - central).abs())
+                        deviation
                     };
                     let mut deviation = local_deviation(density);
                     if !light.is_empty() {
@@ -232,7 +217,7 @@ struct FirstLevel<'a> {
     /// The combined point deviations of the planes `z`, `z + 1`, `z + 2` of
     /// the layer of nodes at `z`.
     planes: [Vec<u16>; 3],
-    /// A row of deviations per residue ([`PointKinds::deviation_row`]).
+    /// A row of deviations per parity of x ([`PointKinds::deviation_row`]).
     scratch: Vec<u16>,
     /// Per point of a row, the largest deviation and the density range over
     /// the nine rows of a row of nodes.
@@ -320,71 +305,37 @@ impl pulp::WithSimd for FirstLevelLayer<'_, '_> {
 }
 
 /// What a grid point is in the level-1 nodes that hold it, by which of its
-/// coordinates are odd, and the flat offsets of the points its coarse value
-/// averages; the deviations along a row of points (units of 1/1020, as
+/// coordinates are odd, and the flat offsets of the two points its coarse
+/// value averages; the deviations along a row of points (units of 1/1020, as
 /// [`VolumeHierarchy::build_level`]).
 struct PointKinds {
-    /// Per odd-coordinate mask (bit `a` for axis `a`) and node parity, the
-    /// offsets of the corners averaged: two for an edge midpoint or a face
-    /// centre, four for a node centre; none for a corner.
-    averaged: [[Averaged; 2]; 8],
-}
-
-/// The corners a point's coarse value averages, as flat offsets.
-#[derive(Clone, Copy, Default)]
-enum Averaged {
-    /// A node corner: no coarse value, deviation 0.
-    #[default]
-    Corner,
-    /// An edge midpoint or face centre: twice `|2 v − a − b|`.
-    Two([isize; 2]),
-    /// A node centre: `|4 v − a − b − c − d|`.
-    Four([isize; 4]),
+    /// Per odd-coordinate mask (bit `a` for axis `a`, the set `S`), the flat
+    /// offsets of `p ∓ 1_S`, the ends of the Kuhn edge through `p` (an edge,
+    /// a face diagonal or the node's diagonal); `None` for a node corner.
+    averaged: [Option<[isize; 2]>; 8],
 }
 
 impl PointKinds {
     /// The kinds for a grid whose axes step by `strides` in flat index.
-    fn new(diagonals: &FaceDiagonals, strides: [usize; 3]) -> Self {
-        // The flat offset of corner `v` of the 2 × 2 × 2 box around a point
-        // with odd coordinates `odd`: ±1 along each odd axis, 0 along the
-        // others (where the point lies on the corner's face or edge).
-        let corner = |v: usize, odd: usize| -> isize {
-            (0..3)
-                .filter(|a| (odd >> a) & 1 == 1)
-                .map(|a| {
-                    let stride = strides[a] as isize;
-                    if (v >> a) & 1 == 1 { stride } else { -stride }
-                })
-                .sum()
-        };
+    fn new(strides: [usize; 3]) -> Self {
         let averaged = std::array::from_fn(|odd: usize| {
-            std::array::from_fn(|parity| match odd.count_ones() {
-                0 => Averaged::Corner,
-                1 => Averaged::Two([corner(0, odd), corner(7, odd)]),
-                2 => {
-                    // The face with the even axis as its normal; a face
-                    // centre lies on the low face of the node above it
-                    // along that axis (the node below, of the other parity,
-                    // has the same diagonal on it).
-                    let normal = (0..3).find(|a| (odd >> a) & 1 == 0).unwrap_or(0);
-                    let (_, ends) = diagonals.faces[parity][2 * normal];
-                    Averaged::Two(ends.map(|v| corner(v, odd)))
-                }
-                _ => Averaged::Four(diagonals.central[parity].map(|v| corner(v, odd))),
-            })
+            let step: isize = (0..3)
+                .filter(|a| (odd >> a) & 1 == 1)
+                .map(|a| strides[a] as isize)
+                .sum();
+            (odd != 0).then_some([-step, step])
         });
         Self { averaged }
     }
 
     /// The deviations of `field` at the points of row `(y, z)` (`out.len()`
     /// points from flat index `row`) into `out`, or their maximum with what
-    /// `out` holds (`combine`); `scratch` holds four rows.
+    /// `out` holds (`combine`); `scratch` holds two rows.
     ///
-    /// A point's node parity is that of the level-1 node whose low corner is
-    /// the point with its coordinates rounded down to even ones, so along a
-    /// row the kind of a point repeats every four points: one pass over the
-    /// row per residue of `x` modulo 4, each the same operations on every
-    /// point (vector instructions), of which that residue's are kept.
+    /// Along a row the kind of a point alternates with the parity of `x`: one
+    /// pass over the row for even and one for odd `x`, each the same
+    /// operations on every point (vector instructions), of which that
+    /// parity's are kept.
     #[inline(always)]
     fn deviation_row(
         &self,
@@ -396,47 +347,30 @@ impl PointKinds {
         combine: bool,
     ) {
         let nx = out.len();
-        let (row_odd, row_parity) = ((y & 1) << 1 | (z & 1) << 2, (y / 2 + z / 2) & 1);
+        let row_odd = (y & 1) << 1 | (z & 1) << 2;
         let mut passes = scratch.chunks_exact_mut(nx);
-        let passes: [&mut [u16]; 4] = std::array::from_fn(|residue| {
-            let deviations = passes.next().expect("four rows of scratch");
-            let kind = self.averaged[row_odd | (residue & 1)][row_parity ^ (residue >> 1)];
-            // Points with odd x are inside the row: their corners at x ± 1
-            // are in it too.
-            let (first, last) = if residue & 1 == 1 {
-                (1, nx - 1)
-            } else {
-                (0, nx)
+        let passes: [&mut [u16]; 2] = std::array::from_fn(|residue| {
+            let deviations = passes.next().expect("two rows of scratch");
+            // Points with odd x are inside the row: their ends at x ± 1 are
+            // in it too.
+            let (first, last) = if residue == 1 { (1, nx - 1) } else { (0, nx) };
+            let kept = &mut deviations[first..last];
+            let Some([a, b]) = self.averaged[row_odd | residue] else {
+                kept.fill(0);
+                return deviations;
             };
             let start = row + first;
             let len = last - first;
             let points = &field[start..start + len];
             let shifted = |offset: isize| &field[start.wrapping_add_signed(offset)..][..len];
-            let kept = &mut deviations[first..last];
-            match kind {
-                Averaged::Corner => kept.fill(0),
-                Averaged::Two([a, b]) => {
-                    let pairs = shifted(a).iter().zip(shifted(b));
-                    for ((d, &v), (&a, &b)) in kept.iter_mut().zip(points).zip(pairs) {
-                        let twice = 2 * i16::from(v) - i16::from(a) - i16::from(b);
-                        *d = 2 * twice.unsigned_abs();
-                    }
-                }
-                Averaged::Four([a, b, c, e]) => {
-                    let corners = shifted(a)
-                        .iter()
-                        .zip(shifted(b))
-                        .zip(shifted(c).iter().zip(shifted(e)));
-                    for ((d, &v), ((&a, &b), (&c, &e))) in kept.iter_mut().zip(points).zip(corners)
-                    {
-                        let sum = i16::from(a) + i16::from(b) + i16::from(c) + i16::from(e);
-                        *d = (4 * i16::from(v) - sum).unsigned_abs();
-                    }
-                }
+            let pairs = shifted(a).iter().zip(shifted(b));
+            for ((d, &v), (&a, &b)) in kept.iter_mut().zip(points).zip(pairs) {
+                let twice = 2 * i16::from(v) - i16::from(a) - i16::from(b);
+                *d = 2 * twice.unsigned_abs();
             }
             deviations
         });
-        // Point x takes pass x mod 4.
+        // Point x takes pass x mod 2.
         let keep = |out: &mut u16, deviation: u16| {
             *out = if combine {
                 (*out).max(deviation)
@@ -444,19 +378,15 @@ impl PointKinds {
                 deviation
             };
         };
-        let whole = nx / 4 * 4;
-        let [p0, p1, p2, p3] = passes.map(|pass| pass.split_at(whole));
-        let quads = p0.0.chunks_exact(4).zip(p1.0.chunks_exact(4));
-        let quads = quads.zip(p2.0.chunks_exact(4).zip(p3.0.chunks_exact(4)));
-        for (out, ((a, b), (c, d))) in out.chunks_exact_mut(4).zip(quads) {
+        let whole = nx / 2 * 2;
+        let [even, odd] = passes.map(|pass| pass.split_at(whole));
+        let pairs = even.0.chunks_exact(2).zip(odd.0.chunks_exact(2));
+        for (out, (a, b)) in out.chunks_exact_mut(2).zip(pairs) {
             keep(&mut out[0], a[0]);
             keep(&mut out[1], b[1]);
-            keep(&mut out[2], c[2]);
-            keep(&mut out[3], d[3]);
         }
-        let rest = [p0.1, p1.1, p2.1, p3.1];
-        for (x, out) in out[whole..].iter_mut().enumerate() {
-            keep(out, rest[x][x]);
+        if whole < nx {
+            keep(&mut out[whole], even.1[0]);
         }
     }
 }
@@ -492,47 +422,34 @@ fn quantised(s: f32) -> u8 {
     nearest + u8::from(x - (shifted - SHIFT) == 0.5)
 }
 
-/// Per parity (0 even, 1 odd), the coarse interpolation's corners on the faces
-/// and of the central tetrahedron, read off the full-resolution
-/// decomposition tables.
-struct FaceDiagonals {
-    /// Per face (axis `a`, side `b`): the face centre in local half-steps and
-    /// the two corners of the face diagonal (the central tetrahedron's edge on
-    /// that face).
-    faces: [[([usize; 3], [usize; 2]); 6]; 2],
-    /// The central tetrahedron's corners.
-    central: [[usize; 4]; 2],
-}
-
-/// The face diagonals of both parities.
-fn face_diagonals() -> FaceDiagonals {
-    let central = [DECOMPOSITIONS[0].central, DECOMPOSITIONS[1].central];
-    let faces = central.map(|central| {
-        std::array::from_fn(|face| {
-            let (axis, side) = (face / 2, face % 2);
-            let mut on_face = central.iter().copied().filter(|v| (v >> axis) & 1 == side);
-            let diagonal = [on_face.next(), on_face.next()]
-                .map(|v| v.expect("the central tetrahedron has one edge on every cube face"));
-            let mut mid = [1; 3];
-            mid[axis] = 2 * side;
-            (mid, diagonal)
-        })
-    });
-    FaceDiagonals { faces, central }
-}
-
-/// The twelve cube edges: midpoint in local half-steps and the two corners.
-fn edge_table() -> [([usize; 3], [usize; 2]); 12] {
-    let mut edges = [([0; 3], [0; 2]); 12];
+/// The nineteen points of a node's 3 × 3 × 3 lattice other than its corners
+/// (local half-steps `(a, b, c)`, some odd), each with the two corners at the
+/// ends of the Kuhn edge through it: `p ∓ 1_S` for `S` its odd axes (an edge
+/// midpoint, a face centre on the face's diagonal from its lowest corner, or
+/// the centre on the node's diagonal from corner 0 to corner 7).
+fn born_points() -> [([usize; 3], [usize; 2]); 19] {
+    let mut points = [([0; 3], [0; 2]); 19];
     let mut n = 0;
-    for axis in 0..3 {
-        for v in (0..8).filter(|v| (v >> axis) & 1 == 0) {
-            let mid = std::array::from_fn(|a| if a == axis { 1 } else { 2 * ((v >> a) & 1) });
-            edges[n] = (mid, [v, v | 1 << axis]);
-            n += 1;
+    for c in 0..3 {
+        for b in 0..3 {
+            for a in 0..3 {
+                let steps = [a, b, c];
+                if steps.iter().all(|s| s % 2 == 0) {
+                    continue;
+                }
+                let bits = |at: usize| -> usize {
+                    (0..3)
+                        .filter(|&axis| steps[axis] == at)
+                        .map(|axis| 1 << axis)
+                        .sum()
+                };
+                let (high, odd) = (bits(2), bits(1));
+                points[n] = (steps, [high, high | odd]);
+                n += 1;
+            }
         }
     }
-    edges
+    points
 }
 
 #[cfg(test)]

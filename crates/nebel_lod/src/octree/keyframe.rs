@@ -5,9 +5,10 @@
 //! frame; rebuilding its grid, light field and hierarchy takes seconds for
 //! the 513 × 65 × 513 layer. Instead the field is drawn as
 //! `f_β = (1 − β) f_a + β f_b` between two keyframes `a` and `b` computed
-//! ahead, with `β` moving from 0 to 1 over the time between them. The batch
-//! of such a pair carries both keyframes' morphed values at every vertex, and
-//! only `β` changes from frame to frame.
+//! ahead, with `β` moving from 0 to 1 over the time between them. A batch of
+//! such a pair serves a short span of blends and carries the field at both
+//! of its ends at every vertex; between them only a mix factor changes from
+//! frame to frame.
 //!
 //! [`VolumeHierarchy::with_next_keyframe`] makes the pair's hierarchy: the
 //! first keyframe's quantised density, light, Δ and scalar ranges, the
@@ -34,23 +35,41 @@
 //! of a moving camera) and blends between refinements on the GPU.
 //!
 //! Cells drawn while `β` advances are refined for every blend they are drawn
-//! at, the span from `β` to `β + s`
+//! at, the span from `β₀` to `β₁ = β₀ + s`
 //! ([`super::RefinementSettings::blend_span`]): each node's largest Δ over
 //! the span and the hull of its scalar ranges, both those of the span's two
 //! ends since `Δ_β` and the blended extremes are linear in `β`
 //! ([`VolumeHierarchy::deviation_over`],
 //! [`VolumeHierarchy::scalar_range_over`]). So no blend drawn is refined for
 //! less than its Δ, and no node that a drawn blend makes visible is culled;
-//! the largest of two Δ that satisfy Eq. 5 satisfies it too. A stepped
-//! refinement covers two steps ([`REFINEMENT_SPAN`]). A leaf drawn because
-//! one keyframe shows something where the other is transparent changes
-//! nothing the other shows (see [`super::emit`]), so a cloud that forms
-//! between the keyframes fades in with `β`.
+//! the largest of two Δ that satisfy Eq. 5 satisfies it too. A cloud that
+//! forms between the keyframes fades in with `β`: where a keyframe is
+//! transparent the blend is the other keyframe's field scaled by `β`.
 //!
-//! The morph of Röttger and Ertl 2003 §3 is linear in the grid values with
-//! weights that depend only on the refinement, so the emitted next values are
-//! exactly the morph of the second keyframe over the same cells, and the GPU's
-//! per-vertex blend draws exactly the morph of the blended field.
+//! **No step between spans.** The refinement takes each node's morph factor
+//! `e'` at both ends of the span, from `Δ_β` and the range at that blend
+//! ([`super::NodeMorph`]); the batch carries the morphed field of the blend
+//! at `β₀` and at `β₁`, and the renderer draws `β` in between as the mix
+//! `t = (β − β₀) / (β₁ − β₀)` of the two (`CellBatch::mix_factor`): every
+//! vertex moves continuously. The next span's batch, made ahead, takes over
+//! at `β₁` and starts from the same field: a node refined in one batch and
+//! not in the other has `e ≤ 1` at `β₁` (each refinement serves `β₁`), so
+//! `e' = 0` there, and with Kuhn's nested tetrahedra
+//! (`nebel_core::cell::KUHN_TETRAHEDRA`) a node at `e' = 0` draws exactly
+//! its unrefined field; the nodes both refine have the same `e'` at `β₁`;
+//! a node transparent at `β₁` takes no part in the morph there in either,
+//! whether one culls, draws or refines it ([`super::emit`]). This is exact
+//! for the distance criterion (a test compares the fields of consecutive
+//! spans at random points). The screen error's `e` of a
+//! node also depends on the occlusion by the nodes in front of it, which
+//! each refinement accumulates for its own span, so there the two batches
+//! may differ slightly at `β₁`. The spans are [`REFINEMENT_STEPS`] steps of
+//! one interval ([`REFINEMENT_SPAN`]); the pair's last span ends at `β = 1`,
+//! the second keyframe, where the next pair's first starts. What the
+//! renderer integrates may still change there for a lit cloud: it takes the
+//! segment-length modulator's mean over each ray segment in a cell
+//! (`CellBatch`'s modulation), and a refinement splits the segments
+//! differently.
 //!
 //! Keyframes `T` apart sit at the times `k·T` for integer `k`
 //! ([`keyframe_index`], [`keyframe_time`]), so every user of a keyframe
@@ -65,12 +84,12 @@ use super::{HierarchyError, Node, VolumeHierarchy};
 pub const REFINEMENT_STEPS: u32 = 32;
 
 /// The blends a stepped refinement is made for
-/// ([`super::RefinementSettings::blend_span`]): from its step's start, two
-/// steps on. The cells are drawn through their own step, and through the
-/// next one until that step's refinement, built while they are drawn,
-/// replaces them (so a step's refinement may take up to a step's time,
-/// `T / REFINEMENT_STEPS`).
-pub const REFINEMENT_SPAN: f32 = 2.0 / REFINEMENT_STEPS as f32;
+/// ([`super::RefinementSettings::blend_span`]): its step, from the step's
+/// start to the next step's. The next step's refinement is made ahead,
+/// while these cells are drawn, and takes over at the step's end (a caller
+/// whose next refinement is late holds the blend there, or draws these
+/// cells' end field until it lands: [`crate::CellBatch::mix_factor`]).
+pub const REFINEMENT_SPAN: f32 = 1.0 / REFINEMENT_STEPS as f32;
 
 impl VolumeHierarchy {
     /// The hierarchy that blends from this keyframe to `next` (see the
@@ -121,14 +140,16 @@ impl VolumeHierarchy {
     pub fn deviation_over(&self, node: Node, blends: [f32; 2]) -> f32 {
         let first = self.deviation(node);
         match self.next_deviation(node) {
-            Some(next) => {
+            // Equal ends blend to themselves exactly: the f32 blend of equal
+            // values may round an ulp above them inside the span.
+            Some(next) if next != first => {
                 let [start, end] = blends.map(|blend| {
                     let beta = clamped_blend(blend);
                     (1.0 - beta) * first + beta * next
                 });
                 start.max(end)
             }
-            None => first,
+            _ => first,
         }
     }
 

@@ -6,8 +6,8 @@
 //! [`mod@refine`]) reads it, and [`lod_batch`] (in [`mod@emit`]) turns a
 //! refinement into a morphed, back-to-front [`crate::CellBatch`].
 //!
-//! - [`Node`]: a node by level and minimum grid point, its corners, centre,
-//!   children and decomposition parity.
+//! - [`Node`]: a node by level and minimum grid point, its corners, centre
+//!   and children.
 //! - [`VolumeHierarchy`]: built once per grid by [`VolumeHierarchy::new`].
 //! - [`k_max`]: the propagation factor of Röttger and Ertl 2003 Eq. 4.
 //!
@@ -21,25 +21,30 @@
 //! becomes 8×8×1 roots of 65³ points, 9×9×5 becomes 2×2×1 roots of 5³. Root
 //! `(r_x, r_y, r_z)` is the level-`m` node at origin `r · 2^m`; roots tile the
 //! grid exactly like the nodes of any level, so neighbouring roots share their
-//! boundary points and alternate their parity like any other neighbours.
+//! boundary points like any other neighbours.
 //!
 //! # The deviation Δ
 //!
-//! A node of level `l ≥ 1` (edge `s = 2^l` voxels) drawn unrefined is its five
-//! tetrahedra ([`Node::parity`], the same decomposition tables as the
+//! A node of level `l ≥ 1` (edge `s = 2^l` voxels) drawn unrefined is Kuhn's
+//! six tetrahedra around its diagonal from its lowest to its highest corner
+//! (`nebel_core::cell::KUHN_TETRAHEDRA`, as every voxel of the
 //! full-resolution batch), i.e. the **piecewise-linear interpolation of its 8
-//! corners over those tetrahedra** (not trilinear). At its 19 non-corner
-//! points that interpolation is (Röttger and Ertl 2003 §3):
-//! - an edge midpoint: the average of the edge's two corners (every cube edge
-//!   is a tetrahedron edge);
-//! - a face centre: the average of the two corners on the face diagonal of the
-//!   node's decomposition. Face neighbours of one level have the opposite
-//!   parity and the same diagonal on their shared face, so this is also "the
-//!   appropriate two corners of the neighbour's decomposition", and the shared
-//!   point has one coarse value;
-//! - the centre: the average of the four corners of the central tetrahedron
-//!   (the cube centre is that tetrahedron's centroid), which alternates with
-//!   the parity.
+//! corners over those tetrahedra** (not trilinear). Röttger and Ertl 2003 §2.1
+//! split a node into five tetrahedra of alternating parity instead; those of
+//! a node and of its children are not nested, so a node refined at `e' = 0`
+//! changed its field inside, and a still camera saw every refinement step.
+//! Kuhn's are nested: the children's tetrahedra split the node's, so a node
+//! refined with its children's points at their coarse values draws exactly
+//! its unrefined field. At the 19 non-corner points (those with odd
+//! coordinates on the axes `S`, in half-edges) the interpolation is the
+//! average of the two corners `p ∓ 1_S` (half-edges) at the ends of the Kuhn
+//! edge through `p`:
+//! - an edge midpoint: the edge's two corners (every cube edge is a
+//!   tetrahedron edge);
+//! - a face centre: the two corners on the face's diagonal from its lowest to
+//!   its highest corner, the same diagonal for both nodes sharing the face,
+//!   so the shared point has one coarse value;
+//! - the centre: corners 0 and 7 (the centre lies on the diagonal).
 //!
 //! The node's local deviation is the **maximum** over those 19 points of
 //! `|value − coarse value|` (Röttger and Ertl 2003 §3 prefers the maximum to the §2.2

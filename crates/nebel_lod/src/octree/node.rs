@@ -1,7 +1,5 @@
 //! [`Node`]: one octree node, addressed by its level and minimum grid point.
 
-use nebel_core::cell::HexahedronParity;
-
 /// One node of the volume octree: the cube of `2^level` voxels per edge whose
 /// minimum corner is grid point `origin` (each coordinate a multiple of
 /// `2^level`).
@@ -34,15 +32,6 @@ impl Node {
     /// The centre grid point; `None` for a voxel (level 0).
     pub fn centre(&self) -> Option<[usize; 3]> {
         (self.level >= 1).then(|| self.origin.map(|o| o + (1 << (self.level - 1))))
-    }
-
-    /// Which five-tetrahedron decomposition the node uses when drawn as a leaf:
-    /// [`HexahedronParity::of_cell`] of `origin / 2^level`, so face neighbours
-    /// of one level alternate and share their face diagonals (for level 0 the
-    /// parity of the full-resolution voxel).
-    pub fn parity(&self) -> HexahedronParity {
-        let [i, j, k] = self.origin.map(|o| (o >> self.level) as i64);
-        HexahedronParity::of_cell(i, j, k)
     }
 
     /// The node of the next level up that contains this one. The caller

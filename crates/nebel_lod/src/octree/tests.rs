@@ -47,9 +47,9 @@ fn exact_density(hierarchy: &VolumeHierarchy, p: [usize; 3]) -> f64 {
     f64::from(hierarchy.density_quantised(p)) / 255.0
 }
 
-/// The piecewise-linear interpolation of the node's corners over its five
-/// tetrahedra (`nebel_core`'s decomposition), at grid point `p` in its box:
-/// an independent reference for the coarse values.
+/// The piecewise-linear interpolation of the node's corners over its six
+/// Kuhn tetrahedra (`nebel_core`'s decomposition), at grid point `p` in its
+/// box: an independent reference for the coarse values.
 fn coarse_value(hierarchy: &VolumeHierarchy, node: Node, p: [usize; 3]) -> f64 {
     coarse_value_of(|q| exact_density(hierarchy, q), node, p)
 }
@@ -61,7 +61,7 @@ fn coarse_value_of(value: impl Fn([usize; 3]) -> f64, node: Node, p: [usize; 3])
     let hex =
         Hexahedron::axis_aligned(to_f(node.origin), DVec3::splat(node.size() as f64), corners);
     let x = to_f(p);
-    for tet in hex.tetrahedra(node.parity()) {
+    for tet in hex.kuhn_tetrahedra() {
         let [p0, p1, p2, p3] = tet.positions;
         let lambda = DMat3::from_cols(p1 - p0, p2 - p0, p3 - p0).inverse() * (x - p0);
         let weights = [
@@ -184,10 +184,6 @@ fn forest_of_9_9_5_has_2_by_2_by_1_roots_of_5_cubed() {
             (2, [4, 4, 0])
         ]
     );
-    // Roots alternate like the nodes of any level.
-    let parities: Vec<_> = hierarchy.roots().map(|n| n.parity()).collect();
-    assert_ne!(parities[0], parities[1]);
-    assert_eq!(parities[0], parities[3]);
     // 2 · 2 roots, each 1 + 8 + 64 nodes.
     assert_eq!(all_nodes(&hierarchy).len(), 4 * 73);
     assert_eq!(hierarchy.bytes_per_point(), 4.0);
@@ -349,7 +345,6 @@ fn face_centres_have_one_coarse_value_from_either_neighbour() {
             if neighbour.origin[axis] + s >= 9 {
                 continue;
             }
-            assert_ne!(node.parity(), neighbour.parity());
             let mut face_centre = node.centre().unwrap();
             face_centre[axis] += h;
             let ours = coarse_value(&hierarchy, node, face_centre);

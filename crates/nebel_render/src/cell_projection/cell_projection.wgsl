@@ -43,8 +43,9 @@
 // start distance): segments end at that distance.
 //
 // BLENDED (two keyframes of an animated field): every vertex's scalar and
-// modulator is (1 − β) current + β next; both stay linear over the cell, so
-// the segment is exactly that of the blended field.
+// modulator is (1 − t) current + t next, the field at the two ends of the
+// batch's span of keyframe blends mixed; both stay linear over the cell, so
+// the segment is exactly that of the mixed field.
 //
 // All positions are taken relative to the camera so large world coordinates
 // keep their precision.
@@ -89,13 +90,14 @@ struct CellTables {
 @group(1) @binding(4) var<storage, read> modulators: array<vec4<f32>>;
 
 // Per batch: the sun and sky of single scattering (read only by the
-// SCATTERING variant) and the keyframe blend factor (BLENDED).
+// SCATTERING variant) and the keyframe mix factor (BLENDED).
 struct CellBatchParameters {
     // xyz: unit direction toward the sun; w: Henyey-Greenstein asymmetry g.
     sun: vec4<f32>,
     sun_colour: vec4<f32>,
     ambient_colour: vec4<f32>,
-    // x: the blend factor β toward the next keyframe.
+    // x: the mix factor t toward the next scalars (the end of the batch's
+    // span of keyframe blends).
     blend: vec4<f32>,
     // rgb: the sunlight's colour and strength as a factor on lit colours.
     sunlight: vec4<f32>,

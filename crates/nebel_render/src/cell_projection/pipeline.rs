@@ -75,7 +75,8 @@ pub struct CellProjectionPipelineKey {
     pub fog_layers: bool,
     /// The batch's segments end where the view's fog layers begin.
     pub handoff: bool,
-    /// Every vertex blends toward the next keyframe's scalar and modulator.
+    /// Every vertex mixes its scalar and modulator with the next ones (the
+    /// field at the end of the batch's span of keyframe blends).
     pub blended: bool,
     /// The accumulation target's format.
     pub target_format: TextureFormat,

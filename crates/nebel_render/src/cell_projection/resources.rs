@@ -165,8 +165,9 @@ pub struct GpuCellBuffer {
     /// (the binding must exist; the unmodulated pipeline never reads it).
     pub(super) modulators: Buffer,
     pub(super) modulated: bool,
-    /// Per cell, the next keyframe's scalars then its modulators (zeros
-    /// when not modulated), or one zero entry for a batch that is not
+    /// Per cell, the next scalars then the next modulators (zeros when not
+    /// modulated: the field at the end of the batch's span of keyframe
+    /// blends), or one zero entry for a batch that is not
     /// blended (the binding must exist; the unblended pipeline never reads
     /// it).
     pub(super) next_keyframe: Buffer,
