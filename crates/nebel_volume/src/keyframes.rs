@@ -32,12 +32,14 @@
 //! keyframes', bounds of the blend's own, so nothing is refined too coarsely
 //! or culled wrongly, and continuous in `β`, so the refinement changes with
 //! the blend as it does with a moving eye. Each frame `β` changes (the
-//! entity's [`CellBlend`], a uniform write); the octree is refined again
+//! entity's [`CellBlend`], a uniform write, the mix of the batch's field at
+//! the two ends of its step); the octree is refined again
 //! [`REFINEMENT_STEPS`] times per interval (and whenever the camera moves),
-//! each time changing a few cells, as between two frames of a moving camera,
-//! for every blend from the step's start to the end of the next step
-//! (`REFINEMENT_SPAN`): the cells are drawn until the next step's
-//! refinement, built on the task pool meanwhile, replaces them.
+//! each time for its step of blends (`REFINEMENT_SPAN`). For a still camera
+//! the next step's refinement is made ahead on the task pool while the
+//! current one is drawn, and takes over when the blend reaches its step,
+//! where both draw the same field (`nebel_lod::octree::keyframe`); until it
+//! is made the clock waits at the end of the drawn step.
 //!
 //! While the pair `(t_k, t_{k+1})` is drawn, the next one `(t_{k+1},
 //! t_{k+2})` is built on the task pool: the grid at `t_{k+2}`, its padding,
@@ -60,28 +62,27 @@
 //! moving camera refines every frame anyway), and per frame a uniform
 //! write.
 //! `cargo bench -p nebel_lod --bench wind_keyframes` measured the 513 × 65 ×
-//! 513 layer's keyframe at 1.15 s of one core (grid 0.68 s, light field
-//! 0.32 s, octree 0.15 s; the pair's octree shares both keyframes' arrays
-//! and costs nothing) and a still camera's refinement step at 18 ms, so at
-//! 60 frames per second `T` = 14.4 s spends 2 ms per frame on average (one
-//! run on a 2-core machine whose runs vary by up to 1.5×: a second gave
-//! 1.15 s, a 20 ms step and `T` = 14.8 s). On the frame's own
-//! thread a still camera costs a
-//! uniform write and, at a refinement step or hand-over, handing a finished
-//! batch to the render world (`benches/scenes/wind_513.ron`: 0.011 ms on
-//! average, 0.025 ms at most in one run, wall time on two cores shared with
-//! lavapipe and the builds); a moving camera refines every frame anyway. Memory: about 5 bytes
-//! per grid point for each of the three keyframes alive (the drawn pair's
-//! two, which the next pair shares, and the one being built), and the
-//! build's f32 grids.
+//! 513 layer's keyframe at 0.49 s of one core (grid 0.30 s, light field
+//! 0.13 s, octree 0.06 s; the pair's octree shares both keyframes' arrays
+//! and costs nothing) and a still camera's refinement step at 12.8 ms, so
+//! at 60 frames per second `T` = 7.5 s spends 2 ms per frame on average (one
+//! run on a 2-core machine whose runs vary by up to 1.5×). On the frame's
+//! own thread a still camera costs a uniform write and, at a refinement step
+//! or hand-over, handing a finished batch to the render world
+//! (`benches/scenes/wind_513.ron`: 0.012 ms on average, 0.022 ms at most in
+//! one run, wall time on two cores shared with lavapipe and the builds); a
+//! moving camera refines every frame anyway. Memory: about 5 bytes per grid
+//! point for each of the three keyframes alive (the drawn pair's two, which
+//! the next pair shares, and the one being built), and the build's f32
+//! grids.
 //!
 //! Under `HeavyBuilds::Budgeted` the keyframes and the refinement steps run
 //! in a fixed slice of CPU time per frame instead (the steps first), and a
 //! keyframe takes as many frames as its CPU time needs: the 513 layer's, at
-//! 2 ms per frame, about 380 with its interval's refinement steps
+//! 2 ms per frame, about 500 with its interval's refinement steps
 //! (`benches/scenes/wind_513.ron` with `--build-budget-ms 2`), so the clock
-//! then waits at the end of each pair and the wind slows to about two
-//! thirds of its speed at `T` = 4 s.
+//! then waits at the end of each pair and the wind slows to about half its
+//! speed at `T` = 4 s.
 //!
 //! # What the blend is not
 //!
