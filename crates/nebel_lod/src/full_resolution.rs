@@ -3,7 +3,8 @@
 //! 2003 §3 and §4.1).
 //!
 //! Every voxel becomes Kuhn's six tetrahedra around its diagonal from its
-//! lowest to its highest corner ([`Hexahedron::kuhn_tetrahedra`], the same in
+//! lowest to its highest corner
+//! ([`nebel_core::cell::Hexahedron::kuhn_tetrahedra`], the same in
 //! every voxel), so neighbouring voxels share their face diagonals and the
 //! mesh conforms; it is [`DensityGrid::tetrahedra`] and the octree's finest
 //! level, whose coarser cells it refines without changing their field
@@ -49,7 +50,7 @@
 //!   on the eye's side of their plane is in front, and it orders one more
 //!   pair of axes as the eye's local coordinates do. So the tetrahedra come
 //!   by how many of the three pairs they order against the eye, most first
-//!   ([`kuhn_back_to_front`]): every shared face is then crossed from back
+//!   (`kuhn_back_to_front`): every shared face is then crossed from back
 //!   to front. An eye exactly on a face plane may see either order; both are
 //!   correct.
 //!
