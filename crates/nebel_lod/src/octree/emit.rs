@@ -380,8 +380,10 @@ struct Morpher<'a> {
     drawn: IndexMap<[bool; 2]>,
     /// The morphed values of each refined node's lattice, in the order of
     /// [`Refinement::refined`]: point `origin + (a, b, c) · size / 2` at
-    /// `a + 3b + 9c`; `None` until made.
-    lattices: Vec<Option<Box<[Morphed; 27]>>>,
+    /// `a + 3b + 9c`.
+    lattices: Vec<[Morphed; 27]>,
+    /// Whether each lattice is made yet.
+    made: Vec<bool>,
     /// The refinement's blends at the span's two ends, clamped.
     blends: [f32; 2],
 }
@@ -446,7 +448,8 @@ impl<'a> Morpher<'a> {
             hierarchy,
             refined,
             drawn,
-            lattices: vec![None; refinement.refined.len()],
+            lattices: vec![[[Vec4::ZERO; 2]; 27]; refinement.refined.len()],
+            made: vec![false; refinement.refined.len()],
             blends: refinement.blends.map(clamped_blend),
         };
         // Coarse levels first (parents before children within each): a
@@ -458,7 +461,8 @@ impl<'a> Morpher<'a> {
             let node = refinement.refined[slot].node;
             let corners = morpher.corner_values(node)?;
             let lattice = morpher.lattice(node, corners)?;
-            morpher.lattices[slot] = Some(Box::new(lattice));
+            morpher.lattices[slot] = lattice;
+            morpher.made[slot] = true;
             pace();
         }
         Ok(morpher)
@@ -477,7 +481,8 @@ impl<'a> Morpher<'a> {
         let lattice = parent
             .centre()
             .and_then(|centre| self.refined.get(&h.index(centre)))
-            .and_then(|&(_, _, slot)| self.lattices.get(slot)?.as_deref())
+            .filter(|&&(_, _, slot)| self.made[slot])
+            .map(|&(_, _, slot)| &self.lattices[slot])
             .ok_or(RefinementError::MalformedRefinement { node })?;
         let offset: [usize; 3] =
             std::array::from_fn(|a| (node.origin[a] - parent.origin[a]) >> node.level);

@@ -325,8 +325,8 @@ pub struct NodeMorph {
     /// The node.
     pub node: Node,
     /// `e'` in [0, 1] at the span's first blend: 0 for every leaf above
-    /// level 0 (a leaf has `e ≤ 1`); above 0 for every refined node of a
-    /// single keyframe.
+    /// level 0 (a leaf has `e ≤ 1`; a leaf of a span takes the span's `e'`
+    /// at both ends); above 0 for every refined node of a single keyframe.
     pub morph: f32,
     /// `e'` in [0, 1] at the span's last blend, as [`NodeMorph::morph`].
     pub end_morph: f32,
@@ -601,18 +601,21 @@ impl Traversal<'_> {
         let delta = self.hierarchy.deviation_over(node, self.blends);
         let terms = self.error_terms(node, centre, lo);
         let e = self.error(&terms, range, delta);
-        // e' for the span (the occlusion's), then at its two ends.
-        let mut morphs = [e, 0.0, 0.0];
+        // e' for the span (the occlusion's), then at its two ends: only a
+        // refined node's are read (the emission's weights), a leaf keeps the
+        // span's.
+        let mut morphs = [e; 3];
         let mut transparent = [false; 2];
-        if self.blends[0] == self.blends[1] || !self.hierarchy.has_next_keyframe() {
-            morphs = [e; 3];
-        } else {
+        if self.blends[0] != self.blends[1] && self.hierarchy.has_next_keyframe() {
+            let refined = e > 1.0 && node.level > 0;
             for (end, &blend) in self.blends.iter().enumerate() {
                 // A node transparent at an end takes no part in the morph
                 // there (`NodeMorph::transparent`).
                 let range = self.hierarchy.scalar_range_at(node, blend);
                 transparent[end] = self.is_transparent(range);
-                if !transparent[end] {
+                if transparent[end] {
+                    morphs[1 + end] = 0.0;
+                } else if refined {
                     let delta = self.hierarchy.deviation_at(node, blend);
                     morphs[1 + end] = self.error(&terms, range, delta);
                 }
