@@ -62,10 +62,10 @@
 //! moving camera refines every frame anyway), and per frame a uniform
 //! write.
 //! `cargo bench -p nebel_lod --bench wind_keyframes` measured the 513 × 65 ×
-//! 513 layer's keyframe at 0.49 s of one core (grid 0.30 s, light field
+//! 513 layer's keyframe at 0.48 s of one core (grid 0.29 s, light field
 //! 0.13 s, octree 0.06 s; the pair's octree shares both keyframes' arrays
-//! and costs nothing) and a still camera's refinement step at 12.8 ms, so
-//! at 60 frames per second `T` = 7.5 s spends 2 ms per frame on average (one
+//! and costs nothing) and a still camera's refinement step at 11.7 ms, so
+//! at 60 frames per second `T` = 7.1 s spends 2 ms per frame on average (one
 //! run on a 2-core machine whose runs vary by up to 1.5×). On the frame's
 //! own thread a still camera costs a uniform write and, at a refinement step
 //! or hand-over, handing a finished batch to the render world
