@@ -58,7 +58,10 @@ impl GpuCell {
 /// [`GpuCell::vertices`] indexes the transfer function (its pre-integration
 /// tables), and the **modulator** `m ∈ [0, 1]` scales the length of every ray
 /// segment before the lookup: `l' = l · (m_f + m_b) / 2`, the mean of the
-/// linear modulator over the segment (exact for a linear `m`). With the light
+/// linear modulator, over each of `nebel_core::optics::MODULATOR_PIECES`
+/// equal pieces of the segment, composited front to back (the optical depth
+/// is exact for a linear `m`; the colour's weighting approaches the
+/// continuous model's with more pieces). With the light
 /// γ as scalar and the density `f / f_max` as modulator this is the paper's
 /// `l' = l · f / f_max`; the non-physical variant (§5.2) swaps the two.
 /// `modulators` is empty for an unmodulated batch, otherwise it has one entry

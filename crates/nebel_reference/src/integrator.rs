@@ -48,7 +48,7 @@ use crate::image_metrics::LinearImage;
 use nebel_core::budget::BudgetError;
 use nebel_core::cell::{CellSegment, PreparedTetrahedron, Ray, Tetrahedron};
 use nebel_core::field::DensityGrid;
-use nebel_core::optics::{OpticalMode, PremultipliedRgba, henyey_greenstein};
+use nebel_core::optics::{MODULATOR_PIECES, OpticalMode, PremultipliedRgba, henyey_greenstein};
 use nebel_core::segment::exact_segment;
 use nebel_core::transfer::TransferFunction;
 
@@ -205,8 +205,9 @@ pub enum ReferenceVolume {
 /// A second field that scales the length of every ray segment before its
 /// integral: `l' = l · m̄`, `m̄` the mean of the modulator `m` over the piece
 /// (Röttger and Ertl 2003 §5.1 Eq. 9, `l' = l · f / f_max`, the lit-cloud model of
-/// `nebel_lod::CellBatch`). Cells: the mean of the linear modulator over the
-/// segment, exactly what the GPU computes. Grid: the trilinear modulator is
+/// `nebel_lod::CellBatch`). Cells: each segment in
+/// [`nebel_core::optics::MODULATOR_PIECES`] equal pieces, each with the mean
+/// of the linear modulator over it, exactly what the GPU computes. Grid: the trilinear modulator is
 /// integrated along with the scalar, piece by piece (the pieces are refined
 /// to the same tolerance for both fields), so the image converges to the
 /// continuous model `∫ κ(s) ρ(s) m e^{−∫ ρ(s) m}` (the modulator's pieces
@@ -532,8 +533,9 @@ pub fn render(
 /// Per-thread buffers reused across pixels.
 #[derive(Default)]
 struct Scratch {
-    /// A segment and the mean modulator over it (1 when unmodulated).
-    segments: Vec<(CellSegment, f64)>,
+    /// A segment and the modulator at its entry and exit (`None` when
+    /// unmodulated).
+    segments: Vec<(CellSegment, Option<[f64; 2]>)>,
     crossings: Vec<f64>,
 }
 
@@ -673,28 +675,49 @@ fn march_cells(
     segments.extend(candidates.iter().filter_map(|&index| {
         let (cell, modulator) = &cells[index as usize];
         let segment = cell.intersect(ray)?.clip_to_range(t_near, t_far)?;
-        let mean = match modulator {
+        let modulation = match modulator {
             Some(modulator) => {
                 let m = modulator.intersect(ray)?.clip_to_range(t_near, t_far)?;
-                0.5 * (m.s_entry + m.s_exit)
+                Some([m.s_entry, m.s_exit])
             }
-            None => 1.0,
+            None => None,
         };
-        (segment.length() > 0.0).then_some((segment, mean))
+        (segment.length() > 0.0).then_some((segment, modulation))
     }));
     if march.mode == OpticalMode::Sorted {
         segments.sort_unstable_by(|a, b| a.0.t_entry.total_cmp(&b.0.t_entry));
     }
-    for (segment, mean) in segments.iter() {
-        march.add(
-            segment.t_entry,
-            segment.t_exit,
-            segment.s_entry,
-            segment.s_exit,
-            segment.length() * mean,
-        );
-        if march.is_opaque() {
-            break;
+    'segments: for (segment, modulation) in segments.iter() {
+        let Some([m_entry, m_exit]) = *modulation else {
+            march.add(
+                segment.t_entry,
+                segment.t_exit,
+                segment.s_entry,
+                segment.s_exit,
+                segment.length(),
+            );
+            if march.is_opaque() {
+                break;
+            }
+            continue;
+        };
+        // The GPU's pieces, each with the mean of the linear modulator.
+        let pieces = MODULATOR_PIECES;
+        let at = |piece: u32| f64::from(piece) / f64::from(pieces);
+        let lerp = |a: f64, b: f64, x: f64| a + (b - a) * x;
+        for piece in 0..pieces {
+            let (a, b) = (at(piece), at(piece + 1));
+            let mean = 0.5 * (lerp(m_entry, m_exit, a) + lerp(m_entry, m_exit, b));
+            march.add(
+                lerp(segment.t_entry, segment.t_exit, a),
+                lerp(segment.t_entry, segment.t_exit, b),
+                lerp(segment.s_entry, segment.s_exit, a),
+                lerp(segment.s_entry, segment.s_exit, b),
+                segment.length() * (b - a) * mean,
+            );
+            if march.is_opaque() {
+                break 'segments;
+            }
         }
     }
 }

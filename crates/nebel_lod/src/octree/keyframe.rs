@@ -66,10 +66,10 @@
 //! may differ slightly at `β₁`. The spans are [`REFINEMENT_STEPS`] steps of
 //! one interval ([`REFINEMENT_SPAN`]); the pair's last span ends at `β = 1`,
 //! the second keyframe, where the next pair's first starts. What the
-//! renderer integrates may still change there for a lit cloud: it takes the
-//! segment-length modulator's mean over each ray segment in a cell
-//! (`CellBatch`'s modulation), and a refinement splits the segments
-//! differently.
+//! renderer integrates may still change there a little for a lit cloud: it
+//! takes the segment-length modulator's mean over each quarter of a ray
+//! segment in a cell (`nebel_core::optics::MODULATOR_PIECES`), and a
+//! refinement splits the segments differently.
 //!
 //! Keyframes `T` apart sit at the times `k·T` for integer `k`
 //! ([`keyframe_index`], [`keyframe_time`]), so every user of a keyframe

@@ -20,7 +20,12 @@
 //   MIP:      rgb = max emission over [s_f, s_b], blended with max.
 //
 // MODULATED (lit clouds, Röttger and Ertl 2003 §5.1 Eq. 9): a second linear field m per
-// cell scales the segment length before the lookups, l' = l (m_f + m_b) / 2.
+// cell scales the segment length before the lookups, l' = l (m_f + m_b) / 2,
+// in MODULATOR_PIECES equal pieces of the segment (a shader def, from
+// nebel_core::optics::MODULATOR_PIECES), each with its own mean m,
+// composited front to back: the mean over the whole segment put the opacity
+// of a cell's dense end into its light end too, and differently for every
+// split of the segments (a refined octree splits them differently).
 //
 // SCATTERING (single scattering of the sun, Nes 2008; sorted only): the
 // table's colour C is the sunlight scattered along the segment (its
@@ -284,7 +289,7 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
         + (scalars.w - s0) * cross(e1, e2)) / determinant;
     let s_front = clamp(s0 + dot(gradient, t_entry * direction - v0), 0.0, 1.0);
     let s_back = clamp(s0 + dot(gradient, t_exit * direction - v0), 0.0, 1.0);
-    var length = t_exit - t_entry;
+    let length = t_exit - t_entry;
 #ifdef MODULATED
     var m = modulators[in.cell_index];
 #ifdef BLENDED
@@ -294,13 +299,30 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
         + (m.w - m.x) * cross(e1, e2)) / determinant;
     let m_front = clamp(m.x + dot(m_gradient, t_entry * direction - v0), 0.0, 1.0);
     let m_back = clamp(m.x + dot(m_gradient, t_exit * direction - v0), 0.0, 1.0);
-    length *= 0.5 * (m_front + m_back);
 #endif
 
 #ifdef SORTED
+#ifdef MODULATED
+    // Piece by piece, front to back: premultiplied colour and transmittance.
+    var colour = vec3(0.0);
+    var transmittance = 1.0;
+    for (var piece = 0u; piece < #{MODULATOR_PIECES}u; piece++) {
+        let a = f32(piece) / f32(#{MODULATOR_PIECES}u);
+        let b = f32(piece + 1u) / f32(#{MODULATOR_PIECES}u);
+        let s_a = mix(s_front, s_back, a);
+        let s_b = mix(s_front, s_back, b);
+        let modulated = length * (b - a) * 0.5 * (mix(m_front, m_back, a) + mix(m_front, m_back, b));
+        let depth = modulated * pair_lookup(s_a, s_b).a;
+        let piece_alpha = 1.0 - exp(-depth);
+        colour += transmittance * piece_alpha * colour_lookup(s_a, s_b, depth);
+        transmittance *= 1.0 - piece_alpha;
+    }
+    let alpha = 1.0 - transmittance;
+#else
     let optical_depth = length * pair_lookup(s_front, s_back).a;
     let alpha = 1.0 - exp(-optical_depth);
     let colour = alpha * colour_lookup(s_front, s_back, optical_depth);
+#endif
 #ifdef SCATTERING
     let g = parameters.sun.w;
     let cos_theta = dot(direction, parameters.sun.xyz);
@@ -311,7 +333,18 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
 #endif
 #endif
 #ifdef EMISSIVE
+#ifdef MODULATED
+    var emitted = vec3(0.0);
+    for (var piece = 0u; piece < #{MODULATOR_PIECES}u; piece++) {
+        let a = f32(piece) / f32(#{MODULATOR_PIECES}u);
+        let b = f32(piece + 1u) / f32(#{MODULATOR_PIECES}u);
+        let modulated = length * (b - a) * 0.5 * (mix(m_front, m_back, a) + mix(m_front, m_back, b));
+        emitted += modulated * pair_lookup(mix(s_front, s_back, a), mix(s_front, s_back, b)).rgb;
+    }
+    var segment = vec4(emitted, 0.0);
+#else
     var segment = vec4(length * pair_lookup(s_front, s_back).rgb, 0.0);
+#endif
 #endif
 #ifdef MIP
     var segment = vec4(pair_lookup(s_front, s_back).rgb, 0.0);

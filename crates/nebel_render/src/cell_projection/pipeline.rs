@@ -205,6 +205,10 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
         }
         if key.modulated {
             shader_defs.push("MODULATED".into());
+            shader_defs.push(ShaderDefVal::UInt(
+                "MODULATOR_PIECES".into(),
+                nebel_core::optics::MODULATOR_PIECES,
+            ));
         }
         if key.scattering {
             shader_defs.push("SCATTERING".into());
