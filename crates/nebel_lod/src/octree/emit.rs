@@ -79,7 +79,7 @@
 //! renderer mixes the two ([`CellBatch::mix_factor`]). Everything above is a
 //! function of the blend alone, so a batch for the next span, refined
 //! differently, starts from the same field where this one ends (for the
-//! distance criterion exactly; see [`super::keyframe`]).
+//! distance criterion and the screen error alike; see [`super::keyframe`]).
 //!
 //! **Direction of Eq. 8.** As printed, Eq. 8 gives `w` to the coarse
 //! interpolation and `1 − w` to the point's own value. That is reversed: a
@@ -1154,10 +1154,11 @@ mod tests {
     /// the other has `e' = 0` there and Kuhn's tetrahedra nest, a node
     /// transparent for one span is a leaf below a drawn parent (not cut out
     /// of the parent's coarse field), and one transparent at the shared blend
-    /// has `e' = 0` there. Random points over rough keyframes with holes
-    /// that open and close between them, from eyes inside and outside,
-    /// under the distance criterion (which the transparent test and the
-    /// refinements make exact; the screen error's occlusion is not).
+    /// has `e' = 0` there; under the screen error each refinement takes the
+    /// occlusion at the span's ends from the nodes in front with their `e'`
+    /// there. Random points over rough keyframes with holes that open and
+    /// close between them, from eyes inside and outside, under both
+    /// criteria.
     #[test]
     fn consecutive_spans_draw_the_same_field_where_they_meet() {
         let dims = [17, 9, 17];
@@ -1189,14 +1190,29 @@ mod tests {
         };
         let (mut compared, mut changed) = (0, 0usize);
         for index in [DVec3::new(8.3, 4.1, 30.0), DVec3::new(6.2, 3.7, 5.1)] {
-            for accuracy in [2.0, 8.0] {
+            for criterion in [
+                LodCriterion::distance(2.0),
+                LodCriterion::distance(8.0),
+                LodCriterion::screen_error(0.02),
+            ] {
                 let eye = eye_at_index(&pairs[0], index);
-                let v = view(world_from_grid(), eye);
+                let centre = eye_at_index(&pairs[0], DVec3::new(8.0, 4.0, 8.0));
+                let clip_from_world = glam::DMat4::perspective_infinite_reverse_rh(1.0, 1.5, 0.01)
+                    * glam::DMat4::look_at_rh(eye, centre, DVec3::Y);
+                // The screen error reads the projection; the distance
+                // criterion would cull by its frustum what no pixel shows.
+                let v = match criterion {
+                    LodCriterion::ScreenError { .. } => {
+                        View::new(world_from_grid(), eye, glam::UVec2::new(240, 160))
+                            .with_projection(clip_from_world)
+                    }
+                    LodCriterion::Distance { .. } => view(world_from_grid(), eye),
+                };
                 let batch = |pair: &VolumeHierarchy, step: usize| {
                     let settings = RefinementSettings {
                         blend: step as f32 * span,
                         blend_span: span,
-                        ..RefinementSettings::new(LodCriterion::distance(accuracy))
+                        ..RefinementSettings::new(criterion)
                     };
                     let r = refine(pair, &v, &cloud, &settings).unwrap();
                     (lod_batch(pair, &r, &v).unwrap(), r.leaves.len())

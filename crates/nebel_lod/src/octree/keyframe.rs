@@ -58,12 +58,13 @@
 //! (`nebel_core::cell::KUHN_TETRAHEDRA`) a node at `e' = 0` draws exactly
 //! its unrefined field; the nodes both refine have the same `e'` at `β₁`;
 //! a node transparent at `β₁` takes no part in the morph there in either,
-//! whether one culls, draws or refines it ([`super::emit`]). This is exact
-//! for the distance criterion (a test compares the fields of consecutive
-//! spans at random points). The screen error's `e` of a
-//! node also depends on the occlusion by the nodes in front of it, which
-//! each refinement accumulates for its own span, so there the two batches
-//! may differ slightly at `β₁`. The spans are [`REFINEMENT_STEPS`] steps of
+//! whether one culls, draws or refines it ([`super::emit`]). The screen
+//! error's `e` of a node also depends on the occlusion by the nodes in
+//! front of it: each refinement accumulates that occlusion at each end of
+//! its span from the nodes' `e'` and ranges there, which are the same in
+//! both, and refines a node when `e > 1` for the span or at either end. A
+//! test compares the fields of consecutive spans at random points under
+//! both criteria. The spans are [`REFINEMENT_STEPS`] steps of
 //! one interval ([`REFINEMENT_SPAN`]); the pair's last span ends at `β = 1`,
 //! the second keyframe, where the next pair's first starts. What the
 //! renderer integrates may still change there a little for a lit cloud: it

@@ -20,8 +20,13 @@
 //! is refined for the span of blends from [`RefinementSettings::blend`] on
 //! ([`RefinementSettings::blend_span`]): Δ and the scalar ranges are
 //! interpolated between the keyframes' (see [`super::keyframe`]); a node is
-//! refined when `e > 1` for the span's largest Δ, and carries `e'` at the
-//! span's two ends ([`NodeMorph`]).
+//! refined when `e > 1` for the span's largest Δ or at either of its ends,
+//! and carries `e'` at the span's two ends ([`NodeMorph`]). The screen error
+//! keeps the occlusion of the nodes in front three times: for the span (its
+//! largest Δ and the hull of the ranges, which decides the refinement) and
+//! at each end (with the nodes' `e'` and ranges there, which give the
+//! `e'` there), so the field a batch draws at an end does not depend on the
+//! span it was refined for.
 //!
 //! # Distance metric (Röttger and Ertl 2003 Eq. 1 and Eq. 6)
 //!
@@ -426,14 +431,19 @@ pub fn refine(
             let clip_from_world = view
                 .clip_from_world
                 .ok_or(RefinementError::MissingProjection)?;
+            let tiles =
+                ScreenTiles::new(clip_from_world, world_from_index, view.viewport.to_array());
+            let blends = blend_interval(settings.blend, settings.blend_span);
+            let spanned = hierarchy.has_next_keyframe() && blends[0] != blends[1];
             Metric::ScreenError {
                 image_error,
                 optics: Box::new(NodeOptics::new(transfer, settings.scalars)),
-                tiles: Box::new(ScreenTiles::new(
-                    clip_from_world,
-                    world_from_index,
-                    view.viewport.to_array(),
-                )),
+                end_tiles: if spanned {
+                    vec![tiles.clone(), tiles.clone()]
+                } else {
+                    Vec::new()
+                },
+                tiles: Box::new(tiles),
             }
         }
     };
@@ -514,6 +524,10 @@ enum Metric {
         image_error: f64,
         optics: Box<NodeOptics>,
         tiles: Box<ScreenTiles>,
+        /// For a span of blends of two keyframes, the occlusion at its first
+        /// and at its last blend, from the nodes in front with their `e'`
+        /// and ranges there; empty otherwise.
+        end_tiles: Vec<ScreenTiles>,
     },
 }
 
@@ -530,6 +544,8 @@ struct ErrorTerms {
     share: f64,
     /// Screen error: the transmittance in front of the footprint.
     transmittance: f64,
+    /// Screen error: the same at the span's first and last blend.
+    end_transmittance: [f64; 2],
 }
 
 /// The state of one top-down traversal.
@@ -562,9 +578,9 @@ struct Traversal<'a> {
 
 impl Traversal<'_> {
     /// Visits `node` and, when it is refined, its children front to back;
-    /// `parent` is the parent's `e'` (for the span, at its first and at its
-    /// last blend) and occlusion weight (`None` for a root).
-    fn visit(&mut self, node: Node, parent: Option<([f32; 3], f64)>) {
+    /// `parent` is the parent's `e'` and occlusion weight, each for the span,
+    /// at its first and at its last blend (`None` for a root).
+    fn visit(&mut self, node: Node, parent: Option<([f32; 3], [f64; 3])>) {
         pace();
         let stats = &mut self.result.stats;
         stats.nodes_visited += 1;
@@ -600,38 +616,42 @@ impl Traversal<'_> {
         let centre = lo + 0.5 * size;
         let delta = self.hierarchy.deviation_over(node, self.blends);
         let terms = self.error_terms(node, centre, lo);
-        let e = self.error(&terms, range, delta);
-        // e' for the span (the occlusion's), then at its two ends: only a
-        // refined node's are read (the emission's weights), a leaf keeps the
-        // span's.
-        let mut morphs = [e; 3];
+        let e = self.error(&terms, range, delta, terms.transmittance);
+        // e for the span (the refinement's and the occlusion's), then at its
+        // two ends, each with the occlusion there.
+        let mut errors = [e; 3];
         let mut transparent = [false; 2];
+        let mut end_ranges = [range; 2];
         if self.blends[0] != self.blends[1] && self.hierarchy.has_next_keyframe() {
-            let refined = e > 1.0 && node.level > 0;
             for (end, &blend) in self.blends.iter().enumerate() {
                 // A node transparent at an end takes no part in the morph
                 // there (`NodeMorph::transparent`).
-                let range = self.hierarchy.scalar_range_at(node, blend);
-                transparent[end] = self.is_transparent(range);
-                if transparent[end] {
-                    morphs[1 + end] = 0.0;
-                } else if refined {
+                end_ranges[end] = self.hierarchy.scalar_range_at(node, blend);
+                transparent[end] = self.is_transparent(end_ranges[end]);
+                errors[1 + end] = if transparent[end] {
+                    0.0
+                } else {
                     let delta = self.hierarchy.deviation_at(node, blend);
-                    morphs[1 + end] = self.error(&terms, range, delta);
-                }
+                    self.error(&terms, end_ranges[end], delta, terms.end_transmittance[end])
+                };
             }
         }
-        let mut morphs = morphs.map(|e| (e - 1.0).clamp(0.0, 1.0) as f32);
-        // The screen error: e' at most the parent's, and the weight of this
-        // node's occlusion (see `screen_error`).
-        let mut weight = 1.0;
-        if let (Metric::ScreenError { .. }, Some((parent_morphs, parent_weight))) =
+        // Refined when any of them asks for it, so a refinement for the next
+        // span refines no node this one would draw coarser at their shared
+        // blend.
+        let refine = errors.iter().any(|&e| e > 1.0);
+        let mut morphs = errors.map(|e| (e - 1.0).clamp(0.0, 1.0) as f32);
+        // The screen error: e' at most the parent's, and the weights of this
+        // node's occlusion for the span and at its ends (see `screen_error`).
+        let mut weights = [1.0; 3];
+        if let (Metric::ScreenError { .. }, Some((parent_morphs, parent_weights))) =
             (&self.metric, parent)
         {
             for (morph, parent_morph) in morphs.iter_mut().zip(parent_morphs) {
                 *morph = morph.min(parent_morph);
             }
-            weight = parent_weight * f64::from(parent_morphs[0]);
+            weights =
+                std::array::from_fn(|set| parent_weights[set] * f64::from(parent_morphs[set]));
         }
         let footprint = terms.footprint;
         let morph = NodeMorph {
@@ -640,8 +660,9 @@ impl Traversal<'_> {
             end_morph: morphs[2],
             transparent,
         };
+        let ranges = [range, end_ranges[0], end_ranges[1]];
         match node.children() {
-            Some(children) if e > 1.0 => {
+            Some(children) if refine => {
                 self.result.refined.push(morph);
                 // Per axis the child bit on the eye's side first; an eye on
                 // the split plane counts as on the upper side.
@@ -657,17 +678,19 @@ impl Traversal<'_> {
                     for y in by {
                         for x in bx {
                             let child = children[x + 2 * y + 4 * z];
-                            self.visit(child, Some((morphs, weight)));
+                            self.visit(child, Some((morphs, weights)));
                         }
                     }
                 }
-                self.occlude(footprint, range, size, weight * f64::from(1.0 - morphs[0]));
+                let unmorphed =
+                    std::array::from_fn(|set| weights[set] * f64::from(1.0 - morphs[set]));
+                self.occlude(footprint, ranges, size, unmorphed);
             }
             _ => {
                 if node.level == 0 {
                     self.result.stats.full_resolution_leaves += 1;
                 }
-                self.occlude(footprint, range, size, weight);
+                self.occlude(footprint, ranges, size, weights);
                 self.result.leaves.push(morph);
             }
         }
@@ -684,19 +707,33 @@ impl Traversal<'_> {
         }
     }
 
-    /// The screen error's occlusion by a node of this footprint, scalar range
-    /// and size (voxels), with `weight` of its own depth (see
-    /// `screen_error`).
-    fn occlude(&mut self, footprint: Option<Footprint>, range: [u8; 2], size: f64, weight: f64) {
-        if let (Some(footprint), Metric::ScreenError { optics, tiles, .. }) =
-            (footprint, &mut self.metric)
-            && weight > 0.0
+    /// The screen error's occlusion by a node of this footprint and size
+    /// (voxels), for the span and at its two ends with the node's scalar
+    /// range and `weights` of its own depth there (see `screen_error`).
+    fn occlude(
+        &mut self,
+        footprint: Option<Footprint>,
+        ranges: [[u8; 2]; 3],
+        size: f64,
+        weights: [f64; 3],
+    ) {
+        let depth = self.shortest_voxel_edge * size / 2.0;
+        if let (
+            Some(footprint),
+            Metric::ScreenError {
+                optics,
+                tiles,
+                end_tiles,
+                ..
+            },
+        ) = (footprint, &mut self.metric)
         {
-            let rho_min = optics.min_extinction(range);
-            tiles.occlude(
-                footprint,
-                weight * rho_min * self.shortest_voxel_edge * size / 2.0,
-            );
+            let sets = std::iter::once(&mut **tiles).chain(end_tiles.iter_mut());
+            for ((tiles, range), weight) in sets.zip(ranges).zip(weights) {
+                if weight > 0.0 {
+                    tiles.occlude(footprint, weight * optics.min_extinction(range) * depth);
+                }
+            }
         }
     }
 
@@ -717,25 +754,37 @@ impl Traversal<'_> {
                 footprint: None,
                 share: 0.0,
                 transmittance: 0.0,
+                end_transmittance: [0.0; 2],
             },
-            Metric::ScreenError { tiles, .. } => {
+            Metric::ScreenError {
+                tiles, end_tiles, ..
+            } => {
                 let footprint = tiles.footprint(lo, node.size() as f64);
+                let transmittance = footprint.map_or(0.0, |f| tiles.transmittance(f));
+                let end_transmittance = std::array::from_fn(|end| {
+                    end_tiles
+                        .get(end)
+                        .zip(footprint)
+                        .map_or(transmittance, |(tiles, f)| tiles.transmittance(f))
+                });
                 ErrorTerms {
                     size,
                     eye_distance,
                     footprint,
                     share: footprint.map_or(0.0, |f| tiles.visible_share(f)),
-                    transmittance: footprint.map_or(0.0, |f| tiles.transmittance(f)),
+                    transmittance,
+                    end_transmittance,
                 }
             }
         }
     }
 
     /// The error metric `e` of a node with the terms `terms`, scalar range
-    /// `range` and deviation `delta`. The distance metric (Eq. 1) is `∞`
-    /// when the eye is at the centre; the screen error is 0 for a node
-    /// wholly behind the eye.
-    fn error(&self, terms: &ErrorTerms, range: [u8; 2], delta: f32) -> f64 {
+    /// `range`, deviation `delta` and, for the screen error, the
+    /// transmittance `transmittance` in front of it. The distance metric
+    /// (Eq. 1) is `∞` when the eye is at the centre; the screen error is 0
+    /// for a node wholly behind the eye.
+    fn error(&self, terms: &ErrorTerms, range: [u8; 2], delta: f32, transmittance: f64) -> f64 {
         let delta = f64::from(delta);
         match &self.metric {
             Metric::Distance { accuracy } => {
@@ -752,7 +801,7 @@ impl Traversal<'_> {
                 let Some(footprint) = terms.footprint else {
                     return 0.0;
                 };
-                let (share, transmittance) = (terms.share, terms.transmittance);
+                let share = terms.share;
                 let error = if delta > 0.0 && share > 0.0 && transmittance > 0.0 {
                     transmittance * optics.error(range, delta, terms.size)
                 } else {
