@@ -62,14 +62,14 @@
 //! moving camera refines every frame anyway), and per frame a uniform
 //! write.
 //! `cargo bench -p nebel_lod --bench wind_keyframes` measured the 513 × 65 ×
-//! 513 layer's keyframe at 0.48 s of one core (grid 0.29 s, light field
+//! 513 layer's keyframe at 0.48 s of one core (grid 0.30 s, light field
 //! 0.13 s, octree 0.06 s; the pair's octree shares both keyframes' arrays
-//! and costs nothing) and a still camera's refinement step at 11.7 ms, so
-//! at 60 frames per second `T` = 7.1 s spends 2 ms per frame on average (one
+//! and costs nothing) and a still camera's refinement step at 16.0 ms, so
+//! at 60 frames per second `T` = 5.1 s spends 2 ms per frame on average (one
 //! run on a 2-core machine whose runs vary by up to 1.5×). On the frame's
 //! own thread a still camera costs a uniform write and, at a refinement step
 //! or hand-over, handing a finished batch to the render world
-//! (`benches/scenes/wind_513.ron`: 0.012 ms on average, 0.022 ms at most in
+//! (`benches/scenes/wind_513.ron`: 0.009 ms on average, 0.015 ms at most in
 //! one run, wall time on two cores shared with lavapipe and the builds); a
 //! moving camera refines every frame anyway. Memory: about 5 bytes per grid
 //! point for each of the three keyframes alive (the drawn pair's two, which
@@ -79,10 +79,11 @@
 //! Under `HeavyBuilds::Budgeted` the keyframes and the refinement steps run
 //! in a fixed slice of CPU time per frame instead (the steps first), and a
 //! keyframe takes as many frames as its CPU time needs: the 513 layer's, at
-//! 2 ms per frame, about 500 with its interval's refinement steps
+//! 2 ms per frame, about 370 with its interval's refinement steps
 //! (`benches/scenes/wind_513.ron` with `--build-budget-ms 2`), so the clock
-//! then waits at the end of each pair and the wind slows to about half its
-//! speed at `T` = 4 s.
+//! then waits at the end of each pair and the wind slows to about two
+//! thirds of its speed at `T` = 4 s (at 4 ms per frame, about 190: full
+//! speed).
 //!
 //! # What the blend is not
 //!

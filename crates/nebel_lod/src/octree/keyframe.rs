@@ -81,8 +81,14 @@ use super::{HierarchyError, Node, VolumeHierarchy};
 /// How many times per keyframe interval a blended octree is refined again
 /// for the advancing blend (besides whenever the camera moves): the blend a
 /// refinement is made for is the drawn blend rounded down to a step of
-/// `1 / REFINEMENT_STEPS`.
-pub const REFINEMENT_STEPS: u32 = 32;
+/// `1 / REFINEMENT_STEPS`. Consecutive steps draw the same field where they
+/// meet (module docs), so fewer steps cost less without a pop; a longer
+/// step refines for more blends at once, so draws a few more cells (`cargo
+/// bench -p nebel_lod --bench wind_keyframes`, one run each, the 513 layer's
+/// pair: 78,642 cells at 32 steps, 81,912 at 8, 86,508 at 4; every change
+/// between frames of the 129 layer under 1.25e-2 at 8 and 4, one at a
+/// hand-over 1.4e-2 at 32).
+pub const REFINEMENT_STEPS: u32 = 8;
 
 /// The blends a stepped refinement is made for
 /// ([`super::RefinementSettings::blend_span`]): its step, from the step's
