@@ -143,7 +143,7 @@ impl VolumeHierarchy {
             std::array::from_fn(|v| offset(2 * (v & 1), 2 * ((v >> 1) & 1), 2 * ((v >> 2) & 1)));
         // The nineteen points born at this level as flat offsets, with the
         // two corners their coarse value averages.
-        let midpoints = born_points().map(|(mid, ends)| (offset(mid[0], mid[1], mid[2]), ends));
+        let midpoints = BORN_POINTS.map(|(mid, ends)| (offset(mid[0], mid[1], mid[2]), ends));
         // Children: their centres and the centres of their +x faces, relative
         // to the node's origin (quarter = half / 2).
         let quarter = half / 2;
@@ -423,31 +423,33 @@ fn quantised(s: f32) -> u8 {
 }
 
 /// The nineteen points of a node's 3 × 3 × 3 lattice other than its corners
-/// (local half-steps `(a, b, c)`, some odd), each with the two corners at the
-/// ends of the Kuhn edge through it: `p ∓ 1_S` for `S` its odd axes (an edge
-/// midpoint, a face centre on the face's diagonal from its lowest corner, or
-/// the centre on the node's diagonal from corner 0 to corner 7).
-fn born_points() -> [([usize; 3], [usize; 2]); 19] {
+/// (local half-steps `(a, b, c)`, some odd; `a` fastest), each with the two
+/// corners (`x + 2y + 4z`) at the ends of the Kuhn edge through it: `p ∓ 1_S`
+/// for `S` its odd axes (an edge midpoint, a face centre on the face's
+/// diagonal from its lowest corner, or the centre on the node's diagonal from
+/// corner 0 to corner 7). The build measures Δ at them and the emission morphs
+/// them.
+pub(super) const BORN_POINTS: [([usize; 3], [usize; 2]); 19] = born_points();
+
+const fn born_points() -> [([usize; 3], [usize; 2]); 19] {
     let mut points = [([0; 3], [0; 2]); 19];
-    let mut n = 0;
-    for c in 0..3 {
-        for b in 0..3 {
-            for a in 0..3 {
-                let steps = [a, b, c];
-                if steps.iter().all(|s| s % 2 == 0) {
-                    continue;
-                }
-                let bits = |at: usize| -> usize {
-                    (0..3)
-                        .filter(|&axis| steps[axis] == at)
-                        .map(|axis| 1 << axis)
-                        .sum()
-                };
-                let (high, odd) = (bits(2), bits(1));
-                points[n] = (steps, [high, high | odd]);
-                n += 1;
+    let (mut n, mut point) = (0, 0);
+    while point < 27 {
+        let steps = [point % 3, point / 3 % 3, point / 9];
+        let (mut high, mut odd, mut axis) = (0, 0, 0);
+        while axis < 3 {
+            match steps[axis] {
+                1 => odd |= 1 << axis,
+                2 => high |= 1 << axis,
+                _ => {}
             }
+            axis += 1;
         }
+        if odd != 0 {
+            points[n] = (steps, [high, high | odd]);
+            n += 1;
+        }
+        point += 1;
     }
     points
 }

@@ -143,6 +143,7 @@ use glam::{DVec3, Vec4};
 use nebel_core::cell::KUHN_TETRAHEDRA;
 use nebel_core::pacing::pace;
 
+use super::build::BORN_POINTS;
 use super::keyframe::clamped_blend;
 use super::refine::index_frame;
 use super::{Node, NodeMorph, Refinement, RefinementError, VolumeHierarchy};
@@ -240,19 +241,9 @@ pub fn lod_batch_with(
         // A transparent leaf whose field stays inside its transparent range
         // at both ends shows nothing.
         if leaf.transparent == [true; 2] {
-            let [low, high] = hierarchy
-                .scalar_range_over(node, blends)
-                .map(|q| f32::from(q) / 255.0);
-            let inside = |density: f32| density >= low - 1e-6 && density <= high + 1e-6;
-            let density_at = |value: Vec4, beta: f32| {
-                if blended {
-                    at_blend(value, beta)[0]
-                } else {
-                    value.x
-                }
-            };
-            if values.iter().all(|[start, end]| {
-                inside(density_at(*start, blends[0])) && inside(density_at(*end, blends[1]))
+            let range = hierarchy.scalar_range_over(node, blends);
+            if values.iter().all(|&[start, end]| {
+                density_within(start, blends[0], range) && density_within(end, blends[1], range)
             }) {
                 continue;
             }
@@ -355,6 +346,14 @@ fn at_blend(value: Vec4, beta: f32) -> [f32; 2] {
     ]
 }
 
+/// Whether the blended density of `value` at `beta` lies in the scalar range
+/// `range` (units of 1/255), give or take f32 rounding.
+fn density_within(value: Vec4, beta: f32, range: [u8; 2]) -> bool {
+    let [low, high] = range.map(|q| f32::from(q) / 255.0);
+    let density = at_blend(value, beta)[0];
+    density >= low - 1e-6 && density <= high + 1e-6
+}
+
 /// A point's morphed (density, light, next density, next light) at the
 /// first and at the last blend of the refinement's span, with the morph
 /// factors there ([`NodeMorph::morph`], [`NodeMorph::end_morph`]); a single
@@ -408,7 +407,6 @@ impl<'a> Morpher<'a> {
         hierarchy: &'a VolumeHierarchy,
         refinement: &Refinement,
     ) -> Result<Self, RefinementError> {
-        let blended = hierarchy.has_next_keyframe();
         let mut refined = IndexMap::default();
         refined.reserve(refinement.refined.len());
         for (slot, node_morph) in refinement.refined.iter().enumerate() {
@@ -418,31 +416,16 @@ impl<'a> Morpher<'a> {
                 .ok_or(RefinementError::MalformedRefinement {
                     node: node_morph.node,
                 })?;
-            let start = clamped_morph(node_morph.morph);
-            let end = if blended {
-                clamped_morph(node_morph.end_morph)
-            } else {
-                start
-            };
-            let transparent = if blended {
-                node_morph.transparent
-            } else {
-                [node_morph.transparent[0]; 2]
-            };
-            refined.insert(hierarchy.index(centre), ([start, end], transparent, slot));
+            let morphs = [node_morph.morph, node_morph.end_morph].map(clamped_morph);
+            refined.insert(
+                hierarchy.index(centre),
+                (morphs, node_morph.transparent, slot),
+            );
         }
         let drawn = refinement
             .leaves
             .iter()
-            .filter_map(|leaf| {
-                let centre = hierarchy.index(leaf.node.centre()?);
-                let transparent = if blended {
-                    leaf.transparent
-                } else {
-                    [leaf.transparent[0]; 2]
-                };
-                Some((centre, transparent))
-            })
+            .filter_map(|leaf| Some((hierarchy.index(leaf.node.centre()?), leaf.transparent)))
             .collect();
         let mut morpher = Self {
             hierarchy,
@@ -498,18 +481,8 @@ impl<'a> Morpher<'a> {
         for (v, &value) in corners.iter().enumerate() {
             lattice[lattice_index(std::array::from_fn(|a| 2 * ((v >> a) & 1)))] = value;
         }
-        let half = node.size() / 2;
-        for c in 0..3 {
-            for b in 0..3 {
-                for a in 0..3 {
-                    let steps = [a, b, c];
-                    if steps.iter().all(|s| s % 2 == 0) {
-                        continue;
-                    }
-                    let p = std::array::from_fn(|axis| node.origin[axis] + half * steps[axis]);
-                    lattice[lattice_index(steps)] = self.born_value(node, &lattice, p)?;
-                }
-            }
+        for (steps, ends) in BORN_POINTS {
+            lattice[lattice_index(steps)] = self.born_value(node, &lattice, steps, ends)?;
         }
         Ok(lattice)
     }
@@ -530,12 +503,7 @@ impl<'a> Morpher<'a> {
     fn leaf_values(&self, leaf: &NodeMorph) -> Result<[Morphed; 8], RefinementError> {
         let node = leaf.node;
         let mut values = self.corner_values(node)?;
-        let transparent = if self.hierarchy.has_next_keyframe() {
-            leaf.transparent
-        } else {
-            [leaf.transparent[0]; 2]
-        };
-        for end in (0..2).filter(|&end| transparent[end]) {
+        for end in (0..2).filter(|&end| leaf.transparent[end]) {
             let ancestor = self.topmost_transparent(node, end);
             if ancestor == node {
                 continue;
@@ -568,19 +536,14 @@ impl<'a> Morpher<'a> {
     /// transparent range there somewhere (the morph carries coarser values
     /// into it). Only then does it constrain the points it shares.
     fn shows(&self, node: Node, end: usize) -> Result<bool, RefinementError> {
-        let [low, high] = self
-            .hierarchy
-            .scalar_range_at(node, self.blends[end])
-            .map(|q| f32::from(q) / 255.0);
-        let blended = self.hierarchy.has_next_keyframe();
-        Ok(self.corner_values(node)?.iter().any(|value| {
-            let density = if blended {
-                at_blend(value[end], self.blends[end])[0]
-            } else {
-                value[end].x
-            };
-            density < low - 1e-6 || density > high + 1e-6
-        }))
+        let (beta, range) = (
+            self.blends[end],
+            self.hierarchy.scalar_range_at(node, self.blends[end]),
+        );
+        Ok(self
+            .corner_values(node)?
+            .iter()
+            .any(|value| !density_within(value[end], beta, range)))
     }
 
     /// The leaf drawn over `node` when `node` is not refined: its highest
@@ -608,18 +571,21 @@ impl<'a> Morpher<'a> {
         )
     }
 
-    /// The morphed value of `p`, a point of the refined `node`'s lattice
-    /// other than its corners (so born at `node`'s level), from the corner
-    /// values in `lattice` (module docs).
+    /// The morphed value of the point `steps` half edges from the refined
+    /// `node`'s origin, other than its corners (so born at `node`'s level),
+    /// from the values in `lattice` of its corners `ends` at the ends of the
+    /// Kuhn edge through it ([`BORN_POINTS`]; module docs).
     fn born_value(
         &self,
         node: Node,
         lattice: &[Morphed; 27],
-        p: [usize; 3],
+        steps: [usize; 3],
+        ends: [usize; 2],
     ) -> Result<Morphed, RefinementError> {
         let h = self.hierarchy;
         let (half, size) = (node.size() / 2, node.size());
-        let odd: [bool; 3] = std::array::from_fn(|a| (p[a] - node.origin[a]) == half);
+        let p: [usize; 3] = std::array::from_fn(|a| node.origin[a] + half * steps[a]);
+        let odd = steps.map(|s| s == 1);
         // The level-L nodes sharing p: per axis the one origin an odd
         // coordinate allows, or both sides of an even one that the grid has.
         let dims = h.dims();
@@ -669,17 +635,8 @@ impl<'a> Morpher<'a> {
         }
         let own = self.own(p);
         // The ends p ∓ h·1_S of the Kuhn edge through p, corners of `node`.
-        let at = |sign: isize| {
-            lattice[lattice_index(std::array::from_fn(|a| {
-                let steps = (p[a] - node.origin[a]) / half;
-                if odd[a] {
-                    steps.wrapping_add_signed(sign)
-                } else {
-                    steps
-                }
-            }))]
-        };
-        let (low, high) = (at(-1), at(1));
+        let [low, high] =
+            ends.map(|v| lattice[lattice_index(std::array::from_fn(|a| 2 * ((v >> a) & 1)))]);
         Ok(std::array::from_fn(|end| {
             let w = w[end];
             if w >= 1.0 {
