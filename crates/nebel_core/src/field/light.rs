@@ -63,16 +63,18 @@
 //! slice's points are a grid row apart), the runs of each row whose step
 //! lands inside the previous slice in one branch-free loop in vector
 //! instructions; equal bit for bit to the sweep point by point (a test).
+//! The Lambert term takes one division per point (see [`lambert_term`]).
 //! The 513 × 513 × 65 field (513 × 65 × 513, y up, 17.1 million points,
-//! the sun along y in index units) takes 0.18 s without a shadow on one
-//! thread and 0.36 to 0.37 s with the sweep, against 0.62 to 0.64 s with the
-//! library's `exp` per point and 0.74 to 0.76 s with the sweep point by
-//! point, in alternating runs (fastest of 3 runs each on a 2-core machine;
-//! `cargo bench -p nebel_core --bench cloud`); with the sun along x 0.84
-//! to 1.03 s (the library's `exp`: 0.69 to 1.10 s). Against the pointwise
-//! Lambert pass in SSE2, three alternating pairs of runs on the lit 6-octave
-//! layer of `cloud_flythrough.ron` took 596 to 864 ms against 870 to 1,264
-//! ms on one thread; with the sun along x (spacing 10 × 20 × 10 m, sun
+//! the sun along y in index units) takes 0.036 s without a shadow on one
+//! thread and 0.113 s with the sweep, 0.258 s with the sun along x (`cargo
+//! bench -p nebel_core --bench cloud`, one run on a 2-core machine; with five
+//! divisions per Lambert term, in the same session: 0.051, 0.127 and 0.272
+//! s). In an earlier session (older code, and possibly a slower machine:
+//! its figures are two to three times today's) the sweep took 0.36 to 0.37 s against 0.62 to 0.64 s with the
+//! library's `exp` per point and 0.74 to 0.76 s point by point; the
+//! pointwise Lambert pass in SSE2 took 870 to 1,264 ms on the lit 6-octave
+//! layer of `cloud_flythrough.ron` against 596 to 864 ms in vector
+//! instructions, and with the sun along x (spacing 10 × 20 × 10 m, sun
 //! `(0.45, 0.6, 0.3)`) the whole light field took 523 to 686 ms against 906
 //! to 1,123 ms with the sweep point by point, one slice at a time.
 
@@ -413,7 +415,7 @@ fn lambert_row(grid: &DensityGrid, j: usize, k: usize, sun: DVec3, g0: f64, term
         row(j, k + 1),
     );
     let spacing = grid.spacing();
-    let [dx, dy, dz] = [spacing.x, spacing.y, spacing.z].map(|s| 2.0 * s);
+    let [dx, dy, dz] = [spacing.x, spacing.y, spacing.z].map(|s| central_difference_scale(2.0 * s));
     let n = nx - 2;
     let (left, right) = (&here[..n], &here[2..]);
     let (below, above, front, back) = (
@@ -424,9 +426,9 @@ fn lambert_row(grid: &DensityGrid, j: usize, k: usize, sun: DVec3, g0: f64, term
     );
     for (i, term) in terms[1..][..n].iter_mut().enumerate() {
         let gradient = DVec3::new(
-            (f64::from(right[i]) - f64::from(left[i])) / dx,
-            (f64::from(above[i]) - f64::from(below[i])) / dy,
-            (f64::from(back[i]) - f64::from(front[i])) / dz,
+            (f64::from(right[i]) - f64::from(left[i])) * dx,
+            (f64::from(above[i]) - f64::from(below[i])) * dy,
+            (f64::from(back[i]) - f64::from(front[i])) * dz,
         );
         *term = lambert_term(gradient, sun, g0);
     }
@@ -448,25 +450,29 @@ fn lambert(grid: &DensityGrid, p: [usize; 3], sun: DVec3, g0: f64) -> f64 {
         };
         let c = p[axis];
         let (lo, hi) = (c.saturating_sub(1), (c + 1).min(n - 1));
-        (at(hi) - at(lo)) / ((hi - lo) as f64 * spacing[axis])
+        (at(hi) - at(lo)) * central_difference_scale((hi - lo) as f64 * spacing[axis])
     }));
     lambert_term(gradient, sun, g0)
 }
 
-/// `(1 − w) + w · max(0, n̂ · L)` for the density gradient `gradient`.
+/// `1 / distance`: the factor of a central (or, on the boundary, one-sided)
+/// difference over `distance` world units. One division per row or point
+/// instead of one per difference; the row pass and the pointwise term
+/// compute it alike, so they agree bit for bit.
+fn central_difference_scale(distance: f64) -> f64 {
+    1.0 / distance
+}
+
+/// `(1 − w) + w · max(0, n̂ · L)` for the density gradient `gradient`, as
+/// `(g0 + max(0, −∇f · L)) / (|∇f| + g0)`: with `w = |∇f| / (|∇f| + g0)` and
+/// `n̂ · L = −∇f · L / |∇f|` the same value, in one division (exactly 1
+/// where the gradient vanishes, as `g0 > 0`).
 #[inline(always)]
 fn lambert_term(gradient: DVec3, sun: DVec3, g0: f64) -> f64 {
-    let magnitude = gradient.length();
-    let w = magnitude / (magnitude + g0);
-    let cosine = -gradient.dot(sun) / magnitude;
-    let lambert = (1.0 - w) + w * cosine.max(0.0);
-    // Only a spacing so small that the gradient overflows gets to NaN with
-    // a non-zero magnitude.
-    if magnitude == 0.0 || lambert.is_nan() {
-        1.0
-    } else {
-        lambert
-    }
+    let lambert = (g0 + (-gradient.dot(sun)).max(0.0)) / (gradient.length() + g0);
+    // Only a spacing so large that `g0` underflows, or so small that the
+    // gradient overflows, gets to NaN.
+    if lambert.is_nan() { 1.0 } else { lambert }
 }
 
 /// The axes of the shadow sweep: `a` along which it steps, `b` and `c`
