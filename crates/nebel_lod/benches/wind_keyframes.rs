@@ -5,7 +5,9 @@
 //! - Cost, the paper's 513 × 65 × 513 layer (the field of
 //!   `assets/scenes/cloud_flythrough.ron`, in a wind of 10 m/s): one
 //!   keyframe's grid generation, light field with the shadow sweep and
-//!   hierarchy, each on one thread, and the pair's hierarchy; then, for a
+//!   hierarchy, each on one thread, and the pair's hierarchy; the same
+//!   keyframe as the renderer builds it (the grid, then
+//!   `VolumeBatcher::new`, on one thread as a paced build); then, for a
 //!   still camera at the flight's start (640 × 400, the default screen
 //!   error 0.1), the pair's batch (refinement and emission of both
 //!   keyframes, the work of each refinement step; the fastest of three runs,
@@ -32,14 +34,20 @@
 //! Writes `target/nebel/wind_keyframes.csv`. Run: `cargo bench -p nebel_lod
 //! --bench wind_keyframes` (about a minute and a half here).
 
+use std::rc::Rc;
+use std::sync::Arc;
 use std::time::Instant;
 
 use glam::DVec3;
 use nebel_core::field::{CloudLighting, CloudNoise, DensityGrid, light_field_with_threads};
+use nebel_core::pacing::with_pacer;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::octree::keyframe::{REFINEMENT_SPAN, REFINEMENT_STEPS};
 use nebel_lod::octree::{CellScalars, LodCriterion, RefinementSettings, lod_batch_with, refine};
-use nebel_lod::{CellBatch, View, VolumeHierarchy};
+use nebel_lod::{
+    BatchLighting, BatchSettings, CellBatch, OctreeSettings, View, VolumeBatcher, VolumeHierarchy,
+    VolumeSource,
+};
 use nebel_reference::image_metrics::{LinearImage, compare};
 
 mod support;
@@ -100,6 +108,34 @@ fn keyframe(
     let started = Instant::now();
     let hierarchy = VolumeHierarchy::with_light(&grid, &light, 4.0).expect("2^n+1 grid");
     (hierarchy, [grid_ms, light_ms, elapsed_ms(started)])
+}
+
+/// What the renderer does for a keyframe on one thread, in ms: the grid at
+/// time 0, then the lit octree batcher built from it (`VolumeBatcher::new`,
+/// the light field and hierarchy with whatever else it does).
+fn renderer_keyframe_ms(dims: [usize; 3], octaves: usize, shadow_extinction: f32) -> f64 {
+    let spacing = DVec3::splat(5120.0 / (dims[0] - 1) as f64);
+    let origin = DVec3::new(-2560.0, 600.0, -2560.0);
+    let settings = BatchSettings {
+        octree: Some(OctreeSettings::default()),
+        lighting: Some(BatchLighting {
+            light: lighting(shadow_extinction),
+            scalars: CellScalars::LightModulatedByDensity,
+        }),
+        ..BatchSettings::default()
+    };
+    // One thread, as a paced build runs.
+    let single_threaded: Rc<dyn Fn()> = Rc::new(|| {});
+    with_pacer(single_threaded, || {
+        let started = Instant::now();
+        let grid =
+            DensityGrid::cloud(dims, spacing, origin, &noise(octaves), 0.0).expect("valid cloud");
+        let batcher = VolumeBatcher::new(VolumeSource::Grid(Arc::new(grid)), &settings)
+            .expect("valid batcher");
+        let ms = elapsed_ms(started);
+        drop(batcher);
+        ms
+    })
 }
 
 /// The lit batch of `hierarchy` for `view` at the default screen error,
@@ -203,6 +239,11 @@ fn main() {
         csv.push_str(&format!("{measure},,{value}\n"));
     }
     drop((first, second, pair));
+    let renderer_ms = renderer_keyframe_ms(dims, 6, 0.02);
+    println!(
+        "the renderer's keyframe on one thread (the grid, then `VolumeBatcher::new`): {renderer_ms:.0} ms"
+    );
+    csv.push_str(&format!("renderer_keyframe_ms,,{renderer_ms}\n"));
 
     // Images on the 129 layer.
     let dims = [129, 17, 129];

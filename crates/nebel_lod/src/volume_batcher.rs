@@ -20,7 +20,8 @@
 //! - A grid through the octree C-LOD of Röttger and Ertl 2003 ([`BatchSettings::octree`]
 //!   set): the grid padded at its high ends with zero density to `2^n + 1`
 //!   points per axis ([`PadFill::Value`]`(0.0)`: empty under any transfer
-//!   function with `ρ(0) = 0`), for a lit cloud its light field ([`light_field`], Röttger and Ertl 2003 §5) and the
+//!   function with `ρ(0) = 0`; a grid of that size, as a cloud's, used as it
+//!   is, not copied), for a lit cloud its light field ([`light_field`], Röttger and Ertl 2003 §5) and the
 //!   [`VolumeHierarchy`] once, then [`refine`](fn@crate::octree::refine) and
 //!   [`lod_batch_with`]. Always back to front (the refinement's order), with
 //!   frustum culling, whatever [`BatchSettings::order`] says. The zero-opacity
@@ -111,7 +112,9 @@ use std::sync::Arc;
 
 use nebel_core::budget::{BudgetError, Dims, check_allocation};
 use nebel_core::cell::Tetrahedron;
-use nebel_core::field::{CloudLighting, DensityGrid, FieldError, PadFill, light_field};
+use nebel_core::field::{
+    CloudLighting, DensityGrid, FieldError, PadFill, light_field, power_of_two_plus_one,
+};
 use nebel_core::pacing::drop_paced;
 use nebel_core::transfer::TransferFunction;
 use thiserror::Error;
@@ -386,10 +389,17 @@ impl VolumeBatcher {
             }
             (VolumeSource::Grid(grid), Some(octree)) => {
                 k_max(octree.min_accuracy)?;
-                let padded = grid.padded_to_power_of_two_plus_one(PadFill::Value(0.0))?;
-                // The fields are freed as soon as they are used, each a unit
-                // of a paced build of its own.
-                drop_paced(grid);
+                // A grid of 2^n+1 points per axis (a cloud's keyframe) is
+                // used as it is, another padded with zero density. The fields
+                // are freed as soon as they are used, each a unit of a paced
+                // build of its own.
+                let padded = if grid.dims() == grid.dims().map(power_of_two_plus_one) {
+                    grid
+                } else {
+                    let padded = grid.padded_to_power_of_two_plus_one(PadFill::Value(0.0))?;
+                    drop_paced(grid);
+                    Arc::new(padded)
+                };
                 let octree_kind = match settings.lighting {
                     Some(lighting) => {
                         let light = light_field(&padded, &lighting.light)?;
