@@ -66,11 +66,13 @@
 //! The Lambert term takes one division per point (see [`lambert_term`]).
 //! The 513 × 513 × 65 field (513 × 65 × 513, y up, 17.1 million points,
 //! the sun along y in index units) takes 0.036 s without a shadow on one
-//! thread and 0.113 s with the sweep, 0.258 s with the sun along x (`cargo
-//! bench -p nebel_core --bench cloud`, one run on a 2-core machine; with five
-//! divisions per Lambert term, in the same session: 0.051, 0.127 and 0.272
-//! s). In an earlier session (older code, and possibly a slower machine:
-//! its figures are two to three times today's) the sweep took 0.36 to 0.37 s against 0.62 to 0.64 s with the
+//! thread and 0.102 s with the sweep, 0.170 s with the sun along x (`cargo
+//! bench -p nebel_core --bench cloud`, one run on a 2-core machine). In the
+//! same session, with five divisions per Lambert term, the slices of a
+//! block in allocations of their own and the shading along x point by
+//! point: 0.051, 0.127 and 0.272 s. In an earlier session (older code,
+//! and possibly a slower machine: its figures are two to three times
+//! today's) the sweep took 0.36 to 0.37 s against 0.62 to 0.64 s with the
 //! library's `exp` per point and 0.74 to 0.76 s point by point; the
 //! pointwise Lambert pass in SSE2 took 870 to 1,264 ms on the lit 6-octave
 //! layer of `cloud_flythrough.ron` against 596 to 864 ms in vector
@@ -288,16 +290,17 @@ fn gamma(ambient: f64, diffuse: f64, lit: f64) -> f32 {
 }
 
 /// γ from the Lambert terms in `out` and the optical depths toward the sun
-/// of a block of slices of the sweep ([`sweep_optical_depth`]), in place,
-/// compiled for the vector instructions the CPU has: along the rows of a
-/// slice where they are contiguous in the grid, else a slice of the block
-/// at a time, point by point (the block's slices share cache lines). The
-/// transmittance is [`exp_neg`].
+/// of a block of slices of the sweep ([`sweep_optical_depth`]: the slices'
+/// τ one after another), in place, compiled for the vector instructions the
+/// CPU has: along the rows of a slice where they are contiguous in the
+/// grid, else (sweeping along x, where a block's slices are consecutive
+/// points of every grid row) along each grid row's run of the block's
+/// slices. The transmittance is [`exp_neg`].
 struct ShadeSlices<'a> {
     out: &'a mut [f32],
     axes: &'a SweepAxes,
     slices: &'a [usize],
-    taus: &'a [Vec<f64>],
+    taus: &'a [f64],
     /// `[ambient, diffuse]`.
     gamma_weights: [f64; 2],
 }
@@ -317,8 +320,9 @@ impl pulp::WithSimd for ShadeSlices<'_> {
         let shade = |value: &mut f32, tau: f64| {
             *value = gamma(ambient, diffuse, exp_neg(tau) * f64::from(*value));
         };
-        let nb = axes.dims[axes.b];
-        if let ([s], [taus], 1) = (slices, taus, axes.strides[axes.b]) {
+        let [nb, nc] = [axes.dims[axes.b], axes.dims[axes.c]];
+        let points = nb * nc;
+        if let ([s], 1) = (slices, axes.strides[axes.b]) {
             for (v, taus) in taus.chunks_exact(nb).enumerate() {
                 let start = axes.index(*s, 0, v);
                 for (value, &tau) in out[start..start + nb].iter_mut().zip(taus) {
@@ -328,10 +332,20 @@ impl pulp::WithSimd for ShadeSlices<'_> {
             pace();
             return;
         }
-        for (&s, taus) in slices.iter().zip(taus) {
-            for (v, taus) in taus.chunks_exact(nb).enumerate() {
-                for (u, &tau) in taus.iter().enumerate() {
-                    shade(&mut out[axes.index(s, u, v)], tau);
+        // Sweeping along x: the block's slices are consecutive points of
+        // every grid row, so each row's run of them is shaded in one loop
+        // from its τ gathered out of the slices.
+        let first = slices.iter().copied().min().unwrap_or(0);
+        let mut row_taus = vec![0.0; slices.len()];
+        for v in 0..nc {
+            for u in 0..nb {
+                let point = u + nb * v;
+                for (&s, taus) in slices.iter().zip(taus.chunks_exact(points)) {
+                    row_taus[s - first] = taus[point];
+                }
+                let start = axes.index(first, u, v);
+                for (value, &tau) in out[start..][..slices.len()].iter_mut().zip(&row_taus) {
+                    shade(value, tau);
                 }
             }
             pace();
@@ -536,7 +550,7 @@ fn sweep_optical_depth(
     grid: &DensityGrid,
     sun: DVec3,
     sigma: f64,
-    mut visit: impl FnMut(&SweepAxes, &[usize], &[Vec<f64>]),
+    mut visit: impl FnMut(&SweepAxes, &[usize], &[f64]),
 ) {
     let dims = grid.dims();
     let values = grid.values();
@@ -586,27 +600,36 @@ fn sweep_optical_depth(
     } else {
         (SWEEP_BLOCK_BYTES / (12 * points)).clamp(1, SWEEP_BLOCK.min(na))
     };
-    // Slot 0: the last slice of the previous block; then the block's. Each
-    // slot zeroed by the allocator, page by page as it is first written (a
-    // clone of one zeroed slot would write all of them here, tens of
-    // megabytes).
-    let mut taus: Vec<Vec<f64>> = (0..=block).map(|_| vec![0.0; points]).collect();
-    let mut densities: Vec<Vec<f32>> = (0..=block).map(|_| vec![0.0; points]).collect();
+    // Slot 0: the last slice of the previous block; then the block's, one
+    // after another in one allocation (separate allocations of a slice each
+    // start at the same offset in a page, so a point's slots all fell into
+    // one set of the L1 cache), zeroed by the allocator page by page as it
+    // is first written.
+    let mut taus = vec![0.0f64; (block + 1) * points];
+    let mut densities = vec![0.0f32; (block + 1) * points];
     let arch = pulp::Arch::new();
     for (block_index, block) in slices.chunks(block).enumerate() {
+        // A row of slots per row of the grid's points: where the sweep goes
+        // along x, a row `v` of the block reads the same few cache lines of
+        // its grid rows for every slice.
+        let stride_b = axes.strides[b];
         for v in 0..nc {
-            for u in 0..nb {
-                let first = axes.index(0, u, v);
-                for (k, &s) in block.iter().enumerate() {
-                    densities[k + 1][u + nb * v] = values[first + s * axes.strides[a]];
+            for (k, &s) in block.iter().enumerate() {
+                let slot = &mut densities[(k + 1) * points + nb * v..][..nb];
+                let row = axes.index(s, 0, v);
+                for (u, density) in slot.iter_mut().enumerate() {
+                    *density = values[row + u * stride_b];
                 }
             }
             pace();
         }
         for (k, &s) in block.iter().enumerate() {
-            let (done, ahead) = taus.split_at_mut(k + 1);
-            let (tau_previous, tau_current) = (&done[k], &mut ahead[0]);
-            let (f_previous, f_current) = (&densities[k], &densities[k + 1]);
+            let (done, ahead) = taus.split_at_mut((k + 1) * points);
+            let (tau_previous, tau_current) = (&done[k * points..], &mut ahead[..points]);
+            let (f_previous, f_current) = (
+                &densities[k * points..][..points],
+                &densities[(k + 1) * points..][..points],
+            );
             if block_index == 0 && k == 0 {
                 // The sun-side slice: the ray leaves at once.
                 tau_current.fill(0.0);
@@ -652,9 +675,10 @@ fn sweep_optical_depth(
             }
             pace();
         }
-        visit(&axes, block, &taus[1..=block.len()]);
-        taus.swap(0, block.len());
-        densities.swap(0, block.len());
+        visit(&axes, block, &taus[points..(block.len() + 1) * points]);
+        let last = block.len() * points;
+        taus.copy_within(last..last + points, 0);
+        densities.copy_within(last..last + points, 0);
     }
 }
 
@@ -924,7 +948,8 @@ mod tests {
             let expected = pointwise_optical_depth(&grid, sun, sigma);
             let mut swept = vec![f64::NAN; n];
             sweep_optical_depth(&grid, sun, sigma, |axes, slices, taus| {
-                for (&s, taus) in slices.iter().zip(taus) {
+                let points = axes.dims[axes.b] * axes.dims[axes.c];
+                for (&s, taus) in slices.iter().zip(taus.chunks_exact(points)) {
                     for v in 0..axes.dims[axes.c] {
                         for u in 0..axes.dims[axes.b] {
                             swept[axes.index(s, u, v)] = taus[u + axes.dims[axes.b] * v];
