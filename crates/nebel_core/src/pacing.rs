@@ -43,6 +43,22 @@ pub fn pace() {
     }
 }
 
+/// `len` copies of `value`, written a mebibyte at a time with a yield
+/// point after each. `vec![value; len]` is one unit of work however large:
+/// where the allocator hands back memory a build freed before (as it does
+/// for the tens of megabytes of a keyframe's arrays once one was freed), it
+/// writes all of it at once, several milliseconds on a busy core.
+pub fn filled_paced<T: Clone>(len: usize, value: T) -> Vec<T> {
+    let piece = ((1 << 20) / size_of::<T>().max(1)).max(1);
+    let mut values = Vec::with_capacity(len);
+    while values.len() < len {
+        let end = (values.len() + piece).min(len);
+        values.resize(end, value.clone());
+        pace();
+    }
+    values
+}
+
 /// Drops `value`, then yields: freeing a large field (tens of megabytes)
 /// takes a millisecond or more, a unit of work of its own.
 pub fn drop_paced<T>(value: T) {
@@ -85,6 +101,20 @@ mod tests {
     use std::cell::Cell;
 
     use super::*;
+
+    #[test]
+    fn filled_paced_is_the_filled_vector_a_mebibyte_per_yield_point() {
+        let piece = (1 << 20) / size_of::<u16>();
+        for len in [0, 1, piece - 1, piece, piece + 1, 3 * piece + 7] {
+            let calls = Rc::new(Cell::new(0));
+            let counter = calls.clone();
+            let values = with_pacer(Rc::new(move || counter.set(counter.get() + 1)), || {
+                filled_paced(len, 7u16)
+            });
+            assert_eq!(values, vec![7u16; len], "length {len}");
+            assert_eq!(calls.get(), len.div_ceil(piece), "length {len}");
+        }
+    }
 
     #[test]
     fn a_pacer_sees_every_yield_point_of_its_work_and_no_other() {

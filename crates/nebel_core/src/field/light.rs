@@ -84,7 +84,7 @@ use glam::DVec3;
 
 use super::{DensityGrid, FieldError, SAMPLE_BYTES, check_points};
 use crate::optics::exp_neg;
-use crate::pacing::{pace, worker_threads};
+use crate::pacing::{filled_paced, pace, worker_threads};
 
 /// Density change per voxel at which the Lambert weight `w` is one half.
 const GRADIENT_SOFTNESS: f64 = 0.05;
@@ -601,12 +601,10 @@ fn sweep_optical_depth(
         (SWEEP_BLOCK_BYTES / (12 * points)).clamp(1, SWEEP_BLOCK.min(na))
     };
     // Slot 0: the last slice of the previous block; then the block's, one
-    // after another in one allocation (separate allocations of a slice each
-    // start at the same offset in a page, so a point's slots all fell into
-    // one set of the L1 cache), zeroed by the allocator page by page as it
-    // is first written.
-    let mut taus = vec![0.0f64; (block + 1) * points];
-    let mut densities = vec![0.0f32; (block + 1) * points];
+    // after another in one allocation, zeroed a piece at a time (tens of
+    // megabytes when sweeping along x).
+    let mut taus = filled_paced((block + 1) * points, 0.0f64);
+    let mut densities = filled_paced((block + 1) * points, 0.0f32);
     let arch = pulp::Arch::new();
     for (block_index, block) in slices.chunks(block).enumerate() {
         // A row of slots per row of the grid's points: where the sweep goes

@@ -8,7 +8,7 @@
 use std::sync::Arc;
 
 use nebel_core::field::DensityGrid;
-use nebel_core::pacing::pace;
+use nebel_core::pacing::{filled_paced, pace};
 
 use super::{HierarchyError, VolumeHierarchy, k_max};
 
@@ -81,8 +81,8 @@ impl VolumeHierarchy {
             next_density: Arc::default(),
             next_light: Arc::default(),
             next_words: Arc::default(),
-            words: Arc::new(vec![0; points]),
-            morph: Arc::new(vec![0; points]),
+            words: Arc::new(filled_paced(points, 0)),
+            morph: Arc::new(filled_paced(points, 0)),
         };
         if root_level >= 1 {
             hierarchy.build_first_level();
