@@ -68,14 +68,14 @@
 //! set, so the same density). z-slices are shared among threads with
 //! `std::thread::scope`. The paper's 513 × 513 × 65 field (here 513 × 65 ×
 //! 513, y up: 17.1 million points, 5 octaves, 86 million Perlin evaluations
-//! less the empty top and bottom layers) takes 0.14 s on one thread and
-//! 0.08 s on two, against 1.53 s for its octave sums alone point by point
+//! less the empty top and bottom layers) takes 0.10 s on one thread and
+//! 0.06 s on two, against 1.53 s for its octave sums alone point by point
 //! through `noise::Perlin` on one thread (`cargo bench -p nebel_core
 //! --bench cloud` on a 2-core machine with AVX2; one run; an earlier
 //! session measured 0.64 s and 4.10 s, so compare figures of one session
-//! only). Interpolating each cell face once per row and the
-//! gradient table instead of a `match` took it from 0.19 s (0.11 s on two
-//! threads), in the same session. The vector instructions (with the grid's one-pass value
+//! only). Interpolating each cell face once per row (once for the two
+//! cells that share it) and the gradient table instead of a `match` took it
+//! from 0.19 s (0.11 s on two threads), in the same session. The vector instructions (with the grid's one-pass value
 //! check) took about a third off the one-thread time of the 6-octave layer
 //! of `cloud_flythrough.ron`: 681 to 946 ms against 1,094 to 1,288 ms with
 //! SSE2 alone, in three alternating pairs of runs.

@@ -17,7 +17,8 @@
 //! On a row, each corner's gradient dot product is linear in x (`s · x + c`
 //! with the sign `s ∈ {−1, 0, 1}` of its gradient's x component and a
 //! constant y–z part `c`), so the y–z interpolation of a cell face's four
-//! corners is one line per face and row ([`PlaneLine`]). [`PerlinRow`]
+//! corners is one line per face and row ([`PlaneLine`]), made once for the
+//! two cells on either side of the face. [`PerlinRow`]
 //! evaluates the points of a cell in one branch-free loop of two lines, the
 //! fade-weighted mean and `noise`'s clamp: about a quarter of the arithmetic
 //! of interpolating the eight dot products point by point as `noise` does,
@@ -254,6 +255,9 @@ impl PerlinRow {
             hashes,
         } = lattice;
         let scale = amplitude * SCALE_FACTOR;
+        // The upper face of a cell is the lower face of the next: its line,
+        // with the x corner of its plane.
+        let mut last_upper: Option<(isize, PlaneLine)> = None;
         for ((corner, range), slot) in
             cells
                 .iter()
@@ -263,8 +267,14 @@ impl PerlinRow {
                 continue;
             }
             let [lower, upper] = *slot.get_or_insert_with(|| cell_hashes(*corner));
+            let lower = match last_upper {
+                Some((plane, line)) if plane == *corner => line,
+                _ => PlaneLine::new(lower, y, z, scale),
+            };
+            let upper = PlaneLine::new(upper, y, z, scale);
+            last_upper = Some((corner + 1, upper));
             add_cell(
-                [lower, upper].map(|hashes| PlaneLine::new(hashes, y, z, scale)),
+                [lower, upper],
                 amplitude,
                 points,
                 range.clone(),
