@@ -62,11 +62,11 @@
 //! moving camera refines every frame anyway), and per frame a uniform
 //! write.
 //! `cargo bench -p nebel_lod --bench wind_keyframes` measured the 513 × 65 ×
-//! 513 layer's keyframe at 0.36 s of one core (grid 0.19 s, light field
+//! 513 layer's keyframe at 0.29 s of one core (grid 0.13 s, light field
 //! 0.10 s, octree 0.06 s; the pair's octree shares both keyframes' arrays
 //! and costs nothing; about 0.07 s more for the light field when the sun
 //! is low over the layer's long side) and a still camera's refinement step
-//! at 16.9 ms, so at 60 frames per second `T` = 3.8 s spends 2 ms per frame
+//! at 17.0 ms, so at 60 frames per second `T` = 3.0 s spends 2 ms per frame
 //! on average (one run on a 2-core machine whose runs vary by up to 1.5×). On the frame's
 //! own thread a still camera costs a uniform write and, at a refinement step
 //! or hand-over, handing a finished batch to the render world

@@ -89,7 +89,7 @@ use super::{HierarchyError, Node, VolumeHierarchy};
 /// between frames of the 129 layer under 1.25e-2 at 8 and 4, one at a
 /// hand-over 1.4e-2 at 32). Four: a step of that pair costs about 17 ms of
 /// one core, so an interval's steps take about 67 ms against 128 ms with
-/// eight, beside a keyframe of about 360 ms, for about 6 % more cells.
+/// eight, beside a keyframe of about 290 ms, for about 6 % more cells.
 pub const REFINEMENT_STEPS: u32 = 4;
 
 /// The blends a stepped refinement is made for
