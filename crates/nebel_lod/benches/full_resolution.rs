@@ -1,8 +1,8 @@
 //! Cost of building a full-resolution cell batch: cells per millisecond of
-//! `full_resolution_batch` for a 64³-voxel noise grid (1.31 million cells, every
+//! `full_resolution_batch` for a 64³-voxel noise grid (1.57 million cells, every
 //! brick kept), eye outside and inside the grid, back-to-front against
 //! unordered, the one-off cost of its `BrickTable`, and a campfire-sized 16³
-//! grid (20 480 cells); and MPVO (`CellAdjacency::back_to_front`, plus the
+//! grid (24 576 cells); and MPVO (`CellAdjacency::back_to_front`, plus the
 //! one-off `CellAdjacency::new`) on the default 16 × 4 × 32 search-light cone
 //! and on the tetrahedra of a 16³ grid.
 //!
