@@ -80,11 +80,12 @@
 //! Under `HeavyBuilds::Budgeted` the keyframes and the refinement steps run
 //! in a fixed slice of CPU time per frame instead (the steps first), and a
 //! keyframe takes as many frames as its CPU time needs: the 513 layer's, at
-//! 2 ms per frame, about 370 with its interval's refinement steps
-//! (`benches/scenes/wind_513.ron` with `--build-budget-ms 2`), so the clock
-//! then waits at the end of each pair and the wind slows to about two
-//! thirds of its speed at `T` = 4 s (at 4 ms per frame, about 190: full
-//! speed).
+//! 2 ms per frame, about 216 with its interval's refinement steps
+//! (`benches/scenes/wind_513.ron` with `--build-budget-ms 2`, on lavapipe),
+//! within the 240 frames of `T` = 4 s at 60 frames per second, so the wind
+//! keeps its speed; at 1.6 ms per frame about 238. Where a keyframe needs
+//! more frames than its interval, the clock waits at the end of each pair
+//! and the wind slows instead of stepping.
 //!
 //! # What the blend is not
 //!
