@@ -1,5 +1,5 @@
 //! The paper's cloud layer (Röttger and Ertl 2003 §5, thesis ch. 11): a lit 513 × 513 × 65
-//! procedural cumulus field (83.9 million tetrahedra at full resolution), the
+//! procedural cumulus field (100.7 million tetrahedra at full resolution), the
 //! one of `assets/scenes/cloud_flythrough.ron`, refined and emitted along that
 //! scene's flight into the layer for a sweep of the accuracy `c`.
 //!
@@ -15,7 +15,7 @@
 //! `target/nebel/cloud_layer_sweep.csv`.
 //!
 //! Image error against full resolution cannot be measured on this field
-//! here (83.9 million cells do not fit a software rasterizer); `nebel
+//! here (100.7 million cells do not fit a software rasterizer); `nebel
 //! bench-lod benches/scenes/cloud_layer_129.ron` measures it on the same
 //! layer at a quarter of the resolution per horizontal axis.
 //!

@@ -5,12 +5,12 @@
 //!
 //! - `cloud_layer_129`: the layer at 129 × 17 × 129 points seen across from
 //!   its edge (the view of `benches/scenes/cloud_layer_129.ron`), scored
-//!   against the full-resolution batch (`c = ∞`, 1.31 million cells before
+//!   against the full-resolution batch (`c = ∞`, 1.57 million cells before
 //!   culling).
 //! - `cloud_flythrough`: the paper's 513 × 65 × 513 field at four moments of
 //!   the scene's flight (a quarter, half, three quarters, the end inside a
-//!   cloud), scored against the distance criterion at `c = 256` (1.3 to 1.6
-//!   million cells; full resolution, 83.9 million, does not fit).
+//!   cloud), scored against the distance criterion at `c = 256` (1.7 to 2.1
+//!   million cells; full resolution, 100.7 million, does not fit).
 //!
 //! Per setting of each criterion (the distance criterion of Röttger and Ertl
 //! 2003 Eq. 1 along `c`, the screen error along its tolerance): the cells of

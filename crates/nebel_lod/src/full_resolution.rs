@@ -73,14 +73,15 @@
 //!
 //! Linear in the voxels of the kept bricks plus one visit per brick; no
 //! sorting. `cargo bench -p nebel_lod --bench full_resolution` (64³ voxels,
-//! every brick kept, five tetrahedra per voxel then: 1.31 million cells, 84 MB
-//! of output, one thread, on a shared two-core machine) measured 21 000 to
-//! 27 000 cells per ms for both orders, eye outside or inside (50 to 60 ms
-//! per batch), of which allocating and writing the 84 MB output alone takes
-//! 30 to 45 ms there: the builder runs close to memory speed. A
-//! campfire-sized 16³ grid (20 480 cells then, output in cache) built at
-//! 72 000 to 88 000 cells per ms, about 0.27 ms back to front and 0.23 ms
-//! unordered. Six tetrahedra per voxel write a fifth more. [`BrickTable::new`] of 65³ points takes about
+//! every brick kept, Kuhn's six tetrahedra per voxel: 1.57 million cells,
+//! one thread, on a two-core machine, one run) measured 51 ms back to front
+//! (about 31 000 cells per ms) and 30 ms unordered, eye outside or inside;
+//! a campfire-sized 16³ grid (24 576 cells, output in cache) 0.53 ms back
+//! to front and 0.19 ms unordered. With five tetrahedra per voxel, in an
+//! earlier session: 21 000 to 27 000 cells per ms for 64³,
+//! of which allocating and writing the 84 MB output alone took 30 to 45 ms
+//! (the builder runs close to memory speed). [`BrickTable::new`] of 65³
+//! points takes about
 //! 2 ms. [`order_key`] tells when an eye movement changes the order at all, so
 //! a caller rebuilds only then (or when the frustum or data changed). Large
 //! grids are the octree's job.
