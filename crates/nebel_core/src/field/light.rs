@@ -335,6 +335,7 @@ impl pulp::WithSimd for ShadeSlices<'_> {
         // Sweeping along x: the block's slices are consecutive points of
         // every grid row, so each row's run of them is shaded in one loop
         // from its τ gathered out of the slices.
+        debug_assert_eq!(axes.strides[axes.a], 1, "only the sweep along x has blocks");
         let first = slices.iter().copied().min().unwrap_or(0);
         let mut row_taus = vec![0.0; slices.len()];
         for v in 0..nc {
