@@ -9,8 +9,8 @@
 //! share the lattice row (the y and z corners) for many points too (every
 //! `1 / (frequency · spacing)` rows), and the grid's rows all have the same
 //! x: a [`RowLattice`] splits the row's points into their lattice cells once
-//! per grid, with each point's distances from its cell's x planes and their
-//! quintic fade, and keeps each cell's eight corner hashes for the lattice
+//! per grid, with each point's distance from its cell's lower x plane and
+//! its quintic fade, and keeps each cell's eight corner hashes for the lattice
 //! rows met since the z corner last changed, so a grid's rows are hashed
 //! once per lattice row, not once per row.
 //!
@@ -129,9 +129,9 @@ pub(super) struct PerlinRow {
 /// they lie in, and the corner hashes of those cells, kept for the rows
 /// that share a lattice row (a y and z corner): one per octave and thread.
 pub(super) struct RowLattice {
-    /// Per point, the x axis of its lattice cell: its distances from the
-    /// cell's lower and upper x planes and the fade between them, the same
-    /// for every row of a grid.
+    /// Per point, its place along the x axis of its lattice cell: the
+    /// distance from the cell's lower x plane and its fade, the same for
+    /// every row of a grid.
     points: RowPoints,
     /// Per lattice cell the row crosses: its lower x corner and the range of
     /// the points in it.
@@ -141,13 +141,11 @@ pub(super) struct RowLattice {
 }
 
 /// The x axis of the points of a row in their lattice cells, as `noise`
-/// computes it for each point: `near = x − corner`, `far = near − 1` and the
-/// quintic fade of `near`, with `1 − fade`.
+/// computes it for each point: `near = x − corner` and its quintic fade
+/// (`far = near − 1` and `1 − fade` are one subtraction away).
 struct RowPoints {
     near: Vec<f64>,
-    far: Vec<f64>,
     fade: Vec<f64>,
-    one_minus_fade: Vec<f64>,
 }
 
 /// Per cell of a [`RowLattice`], the hashes of its lower and upper planes'
@@ -187,14 +185,9 @@ impl RowLattice {
             .zip(corners)
             .map(|(x, corner)| x - corner)
             .collect();
-        let fade: Vec<f64> = near.iter().map(|&near| quintic(near)).collect();
+        let fade = near.iter().map(|&near| quintic(near)).collect();
         Self {
-            points: RowPoints {
-                far: near.iter().map(|near| near - 1.0).collect(),
-                one_minus_fade: fade.iter().map(|fade| 1.0 - fade).collect(),
-                near,
-                fade,
-            },
+            points: RowPoints { near, fade },
             cells,
             hashes: LatticeRowHashes::default(),
         }
@@ -346,19 +339,11 @@ fn add_cell(
     sums: &mut [f64],
 ) {
     let near = &points.near[range.clone()];
-    let far = &points.far[range.clone()];
-    let fade = &points.fade[range.clone()];
-    let one_minus_fade = &points.one_minus_fade[range];
-    for ((((sum, &near), &far), &fade), &one_minus_fade) in sums
-        .iter_mut()
-        .zip(near)
-        .zip(far)
-        .zip(fade)
-        .zip(one_minus_fade)
-    {
+    let fade = &points.fade[range];
+    for ((sum, &near), &fade) in sums.iter_mut().zip(near).zip(fade) {
         let lower = lower.slope * near + lower.constant;
-        let upper = upper.slope * far + upper.constant;
-        *sum += linear(lower, upper, fade, one_minus_fade).clamp(-amplitude, amplitude);
+        let upper = upper.slope * (near - 1.0) + upper.constant;
+        *sum += linear(lower, upper, fade, 1.0 - fade).clamp(-amplitude, amplitude);
     }
 }
 
