@@ -430,7 +430,10 @@ fn lambert_row(grid: &DensityGrid, j: usize, k: usize, sun: DVec3, g0: f64, term
         row(j, k + 1),
     );
     let spacing = grid.spacing();
-    let [dx, dy, dz] = [spacing.x, spacing.y, spacing.z].map(|s| central_difference_scale(2.0 * s));
+    // Differences times the reciprocal of their distance: one division per
+    // row, not per point (the pointwise term does the same, so the two agree
+    // bit for bit).
+    let [dx, dy, dz] = [spacing.x, spacing.y, spacing.z].map(|s| 1.0 / (2.0 * s));
     let n = nx - 2;
     let (left, right) = (&here[..n], &here[2..]);
     let (below, above, front, back) = (
@@ -465,17 +468,9 @@ fn lambert(grid: &DensityGrid, p: [usize; 3], sun: DVec3, g0: f64) -> f64 {
         };
         let c = p[axis];
         let (lo, hi) = (c.saturating_sub(1), (c + 1).min(n - 1));
-        (at(hi) - at(lo)) * central_difference_scale((hi - lo) as f64 * spacing[axis])
+        (at(hi) - at(lo)) * (1.0 / ((hi - lo) as f64 * spacing[axis]))
     }));
     lambert_term(gradient, sun, g0)
-}
-
-/// `1 / distance`: the factor of a central (or, on the boundary, one-sided)
-/// difference over `distance` world units. One division per row or point
-/// instead of one per difference; the row pass and the pointwise term
-/// compute it alike, so they agree bit for bit.
-fn central_difference_scale(distance: f64) -> f64 {
-    1.0 / distance
 }
 
 /// `(1 − w) + w · max(0, n̂ · L)` for the density gradient `gradient`, as
