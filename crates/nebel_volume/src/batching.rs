@@ -534,15 +534,12 @@ pub(crate) fn update_batches(
         };
         // The sunlight, written when it changes.
         let (drawn_blend, drawn_sunlight) = parameters;
-        match (lighting, drawn_sunlight) {
-            (Some(_), drawn) if drawn != Some(&sunlight) => {
-                commands.entity(entity).insert(sunlight);
-            }
-            (None, Some(_)) => {
-                commands.entity(entity).remove::<CellSunlight>();
-            }
-            _ => {}
-        }
+        write_if_changed(
+            &mut commands,
+            entity,
+            lighting.map(|_| sunlight),
+            drawn_sunlight,
+        );
         let inputs = FrameInputs {
             transfer: &volume.transfer_function,
             criterion,
@@ -581,15 +578,7 @@ pub(crate) fn update_batches(
             factor: batcher.batch().mix_factor(blend.factor),
         });
         let hold = hold.map(|next| next.blend);
-        match (mix, drawn_blend) {
-            (Some(mix), drawn) if drawn != Some(&mix) => {
-                commands.entity(entity).insert(mix);
-            }
-            (None, Some(_)) => {
-                commands.entity(entity).remove::<CellBlend>();
-            }
-            _ => {}
-        }
+        write_if_changed(&mut commands, entity, mix, drawn_blend);
         match updated {
             Ok(changed) => {
                 batching.update_failure = None;
@@ -702,6 +691,26 @@ fn step_batch(
             *ready = None;
             batcher.update(view, inputs)
         }
+    }
+}
+
+/// Inserts `wanted` on `entity` where it differs from the `drawn` component,
+/// and removes the component where none is wanted, so that the render world
+/// sees a change only when there is one.
+fn write_if_changed<C: Component + PartialEq>(
+    commands: &mut Commands,
+    entity: Entity,
+    wanted: Option<C>,
+    drawn: Option<&C>,
+) {
+    match (wanted, drawn) {
+        (Some(wanted), drawn) if drawn != Some(&wanted) => {
+            commands.entity(entity).insert(wanted);
+        }
+        (None, Some(_)) => {
+            commands.entity(entity).remove::<C>();
+        }
+        _ => {}
     }
 }
 
