@@ -688,23 +688,15 @@ fn march_cells(
         segments.sort_unstable_by(|a, b| a.0.t_entry.total_cmp(&b.0.t_entry));
     }
     'segments: for (segment, modulation) in segments.iter() {
-        let Some([m_entry, m_exit]) = *modulation else {
-            march.add(
-                segment.t_entry,
-                segment.t_exit,
-                segment.s_entry,
-                segment.s_exit,
-                segment.length(),
-            );
-            if march.is_opaque() {
-                break;
-            }
-            continue;
+        // The GPU's pieces, each with the mean of the linear modulator; an
+        // unmodulated segment is one piece (WGSL's `mix`, exact at 0 and 1,
+        // so that piece is the segment itself).
+        let (pieces, [m_entry, m_exit]) = match *modulation {
+            Some(ends) => (MODULATOR_PIECES, ends),
+            None => (1, [1.0, 1.0]),
         };
-        // The GPU's pieces, each with the mean of the linear modulator.
-        let pieces = MODULATOR_PIECES;
         let at = |piece: u32| f64::from(piece) / f64::from(pieces);
-        let lerp = |a: f64, b: f64, x: f64| a + (b - a) * x;
+        let lerp = |a: f64, b: f64, x: f64| a * (1.0 - x) + b * x;
         for piece in 0..pieces {
             let (a, b) = (at(piece), at(piece + 1));
             let mean = 0.5 * (lerp(m_entry, m_exit, a) + lerp(m_entry, m_exit, b));
