@@ -38,7 +38,10 @@ pub mod quality;
 pub use builds::{HeavyBuild, HeavyBuilds, free_in_background};
 pub use camera::{LodCamera, LodCameras, LodView};
 pub use cell_batch::{CellBatch, CellBlend, CellScattering, CellSunlight};
-pub use cell_projection::{CellProjectionPlugin, CellProjectionStats, CellProjectionSystems};
+pub use cell_projection::{
+    CellProjection, CellProjectionPlugin, CellProjectionStats, CellProjectionSystems,
+    CellResolution, CountCellFragments,
+};
 pub use diagnostics::{NebelDiagnosticsPlugin, NebelSystems};
 pub use fog_layers::{FogLayersUniform, ViewFogLayers};
 pub use quality::{AutoQuality, EffectiveQuality, NebelQuality, NebelQualityPlugin, QualityPreset};

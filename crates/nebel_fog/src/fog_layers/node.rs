@@ -30,6 +30,7 @@ pub fn draw_fog_layers(
         render_pipeline,
         &bind_group.bind_group,
         &[fog_view.uniform_offset],
+        None,
     );
     passes.0.fetch_add(1, Ordering::Relaxed);
 }

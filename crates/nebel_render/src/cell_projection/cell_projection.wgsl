@@ -14,10 +14,13 @@
 //
 //   SORTED:   optical depth τ = l ρ̂(s_f, s_b), α = 1 − exp(−τ) (exact opacity,
 //             Röttger 2004 eq. 9.2), rgb = α K with K the mean chromaticity from
-//             the 3D table at (s_f, s_b, u = τ / (1 + τ)), blended "over" back to
-//             front.
-//   EMISSIVE: rgb = l · mean emission(s_f, s_b), blended additively (PCP).
+//             the 3D table at (s_f, s_b, u = τ / (1 + τ)), blended "under"
+//             front to back: C += T rgb, T *= 1 − α.
+//   EMISSIVE: rgb = l · mean emission(s_f, s_b), added as T rgb (PCP).
 //   MIP:      rgb = max emission over [s_f, s_b], blended with max.
+//
+// A batch's cells are stored back to front (its exact visibility order);
+// instance i draws cell n − 1 − i, so the batch goes front to back.
 //
 // MODULATED (lit clouds, Röttger and Ertl 2003 §5.1 Eq. 9): a second linear field m per
 // cell scales the segment length before the lookups, l' = l (m_f + m_b) / 2,
@@ -52,6 +55,10 @@
 // batch's span of keyframe blends mixed; both stay linear over the cell, so
 // the segment is exactly that of the mixed field.
 //
+// LOW_RESOLUTION (the view draws cells at a fraction of its resolution,
+// low_resolution.wgsl): the viewport and the opaque depth are the
+// low-resolution target's.
+//
 // All positions are taken relative to the camera so large world coordinates
 // keep their precision.
 
@@ -80,11 +87,27 @@ struct CellTables {
 }
 
 @group(0) @binding(0) var<uniform> view: CellView;
-#ifdef MULTISAMPLED
+#ifdef LOW_RESOLUTION
+// The opaque depth of each low-resolution pixel (low_resolution.wgsl).
+@group(0) @binding(1) var depth_texture: texture_2d<f32>;
+#else ifdef MULTISAMPLED
 @group(0) @binding(1) var depth_texture: texture_depth_multisampled_2d;
 #else
 @group(0) @binding(1) var depth_texture: texture_depth_2d;
 #endif
+
+#ifdef COUNT_FRAGMENTS
+// Fragments run, for the fragments-per-pixel diagnostic (a debug setting).
+@group(0) @binding(2) var<storage, read_write> fragment_count: atomic<u32>;
+#endif
+
+fn opaque_depth(pixel: vec2<i32>) -> f32 {
+#ifdef LOW_RESOLUTION
+    return textureLoad(depth_texture, pixel, 0).r;
+#else
+    return textureLoad(depth_texture, pixel, 0);
+#endif
+}
 
 @group(1) @binding(0) var<storage, read> cells: array<Cell>;
 @group(1) @binding(1) var colour_table: texture_3d<f32>;
@@ -137,7 +160,8 @@ fn outward_normal(cell: Cell, face: u32) -> vec3<f32> {
 }
 
 @vertex
-fn vertex(@builtin(vertex_index) vertex_index: u32, @builtin(instance_index) cell_index: u32) -> VertexOutput {
+fn vertex(@builtin(vertex_index) vertex_index: u32, @builtin(instance_index) instance_index: u32) -> VertexOutput {
+    let cell_index = arrayLength(&cells) - 1u - instance_index;
     // One instance per cell, drawn as the triangle strip 0 1 2 3 0 1, which
     // covers the four faces. With the cell positively oriented (v0 and v1
     // swapped otherwise) every face winds with its normal pointing inward, so
@@ -210,8 +234,17 @@ fn colour_lookup(s_front: f32, s_back: f32, depth: f32) -> vec3<f32> {
     return mix(layers[0], layers[1], z.y).rgb;
 }
 
+// The stencil of early termination and of the low resolution's resolved
+// pixels rejects fragments before they run: the shader writes no depth or
+// stencil, so its discards do not change what the test sees.
+#ifdef EARLY_DEPTH_TEST
+@early_depth_test(force)
+#endif
 @fragment
 fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
+#ifdef COUNT_FRAGMENTS
+    atomicAdd(&fragment_count, 1u);
+#endif
     let cell = cells[in.cell_index];
     let direction = normalize(in.relative_position);
 
@@ -263,7 +296,7 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     // opaque scene: depth 0 is the cleared far plane (reversed Z).
     let pixel = vec2<i32>(floor(in.clip_position.xy));
     t_entry = max(t_entry, ray_distance_at_depth(ndc, 1.0));
-    let depth = textureLoad(depth_texture, pixel, 0);
+    let depth = opaque_depth(pixel);
     if depth > 0.0 {
         t_exit = min(t_exit, ray_distance_at_depth(ndc, depth));
     }

@@ -2,33 +2,44 @@
 //! view target after the opaque pass, exact per pixel (Röttger, "Volumetric
 //! Methods for the Real-Time Display of Natural Gaseous Phenomena", 2004,
 //! ch. 8-10; Röttger and Ertl, "Fast Volumetric Display of Natural Gaseous
-//! Phenomena", 2003, §4).
+//! Phenomena", 2003, §4), front to back with early ray termination (Krüger
+//! and Westermann, "Acceleration Techniques for GPU-based Volume Rendering",
+//! 2003, §4), at the resolution a camera's [`CellProjection`] asks for.
 //!
-//! Bevy 0.19 has no render-graph nodes: the pass is a system in the [`Core3d`]
-//! schedule between the main pass and the early post process, reading the
-//! scene depth. The render world is a row of small systems, as in Bevy's
-//! volumetric fog, split by concern:
+//! Bevy 0.19 has no render-graph nodes: the passes are a system in the
+//! [`Core3d`] schedule between the main pass and the early post process,
+//! reading the scene depth. The render world is a row of small systems, as
+//! in Bevy's volumetric fog, split by concern:
 //!
 //! - `resources`: extraction of the drawable batches, their GPU buffers
 //!   (uploaded again only when the batch component changed), the
-//!   pre-integration tables (cached by transfer function hash and segment
-//!   length, built once per change on the CPU: 64×64×128 colour, 64×64 pair
-//!   table), per-view uniforms and accumulation targets;
+//!   pre-integration tables (cached by transfer function hash, built once
+//!   per change on the CPU: 64×64×128 colour, 64×64 pair table), per-view
+//!   uniforms and targets;
 //! - `pipeline`: bind group layouts, shaders and the pipeline variants
 //!   (optical mode, modulated segment lengths, single scattering, MSAA,
-//!   fog layers);
-//! - `node`: the draw system: batches back to front by the distance of
-//!   their bounds' centre, inside a batch in buffer order (the batch's exact
-//!   order), into a per-view float accumulation target that starts
-//!   transparent; then one full-screen pass (`cell_composite.wgsl`) puts the
-//!   result over the scene: `I = C + (1 − α) scene`.
+//!   fog layers, stencil, low resolution, fragment counting);
+//! - `settings`: [`CellProjection`] and its extraction;
+//! - `low_resolution`: the downsampled depth and the upsample;
+//! - `queries`: the GPU time and the fragment counter;
+//! - `node`: the draw system. Batches go front to back by the distance of
+//!   their bounds' centre, inside a batch in reverse buffer order (the
+//!   batch's exact order is back to front), "under" the accumulation: a
+//!   float target of colour `C` and transmittance `T`, cleared to (0, 1),
+//!   takes each segment `(c, α)` as `C += T c`, `T *= 1 − α`. Between
+//!   groups of cells a full-screen pass marks the pixels with
+//!   `T < 1/512` in a stencil, which the later cells' fragments are tested
+//!   against before they run. At a lower resolution the cells go into a
+//!   smaller target first, the upsample fills and marks the pixels it can
+//!   interpolate, and the full-resolution cells draw only the others. One
+//!   full-screen pass (`cell_composite.wgsl`) then puts the result over the
+//!   scene: `I = C + T scene`.
 //!
 //! The accumulation target is `Rgba32Float` where the device can blend it
 //! (`FLOAT32_BLENDABLE`; lavapipe can), `Rgba16Float` otherwise: a ray may
-//! cross hundreds of cells and every blend rounds, and the 16-bit HDR target
-//! of Bevy's views made a 64³ cloud measurably darker. Emissive and MIP
-//! cells write no opacity, so they add to the scene rather than hide it (MIP
-//! takes the maximum over the cells, then adds it).
+//! cross hundreds of cells and every blend rounds. Emissive cells add
+//! `T c` and leave `T`; MIP cells take the maximum over the cells,
+//! unattenuated, and it is added to the scene.
 //!
 //! A view with fog layers ([`crate::fog_layers::ViewFogLayers`]) has the
 //! fog over its scene already (`nebel_fog`'s pass runs before this one);
@@ -44,27 +55,40 @@
 //! [`CellProjectionStats`] counters and the `nebel/cell_projection/*`
 //! diagnostics prove it.
 
+mod low_resolution;
 mod node;
 mod pipeline;
+mod queries;
+mod resources;
+mod settings;
 
 pub use node::draw_over_view;
-mod resources;
+pub use queries::CountCellFragments;
+pub use settings::{CellProjection, CellResolution};
 
-use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 
 use bevy::asset::embedded_asset;
 use bevy::core_pipeline::core_3d::prepare_core_3d_depth_textures;
 use bevy::core_pipeline::schedule::{Core3d, Core3dSystems};
-use bevy::diagnostic::{Diagnostic, DiagnosticPath, Diagnostics, RegisterDiagnostic};
+use bevy::diagnostic::{
+    Diagnostic, DiagnosticMeasurement, DiagnosticPath, Diagnostics, DiagnosticsStore,
+    RegisterDiagnostic,
+};
+use bevy::platform::time::Instant;
 use bevy::prelude::*;
+use bevy::render::extract_resource::ExtractResourcePlugin;
 use bevy::render::render_resource::SpecializedRenderPipelines;
+use bevy::render::renderer::{RenderGraph, RenderGraphSystems};
 use bevy::render::{
     ExtractSchedule, GpuResourceAppExt, Render, RenderApp, RenderStartup, RenderSystems,
 };
 
 use crate::cell_batch::CellBatch;
+use low_resolution::{UpsampleUniforms, init_resample_pipelines};
 use pipeline::{CellCompositePipelines, CellProjectionPipeline, init_cell_projection_pipeline};
+use queries::{CellQueries, collect_cell_queries, map_cell_queries, resolve_cell_queries};
 use resources::{
     CellViewUniforms, ExtractedCellBatches, GpuCellBuffers, GpuCellTables, extract_cell_batches,
     make_depth_readable, prepare_cell_buffers, prepare_cell_tables, prepare_cell_views,
@@ -94,6 +118,13 @@ impl CellProjectionPlugin {
     /// Cells drawn so far, summed over passes.
     pub const CELLS_DRAWN: DiagnosticPath =
         DiagnosticPath::const_new("nebel/cell_projection/cells_drawn");
+    /// Per frame, the fragments the cell shader ran over the views' pixels
+    /// at full resolution, while [`CountCellFragments`] is on.
+    pub const FRAGMENTS_PER_PIXEL: DiagnosticPath =
+        DiagnosticPath::const_new("nebel/cell_projection/fragments_per_pixel");
+    /// Per frame, the GPU time from the first cell pass to the composite,
+    /// milliseconds (where the device has timestamps).
+    pub const GPU_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/cell_projection/gpu_ms");
 }
 
 /// Work counters of the cell-projection render system, shared by the main and
@@ -115,12 +146,46 @@ pub struct CellProjectionCounters {
     pub uploads: AtomicU64,
     /// Cells drawn, summed over passes.
     pub cells_drawn: AtomicU64,
+    /// Frames measured on the GPU whose figures the main world has not
+    /// published yet.
+    measured: Mutex<Vec<FrameMeasurement>>,
+}
+
+/// What the GPU counted of one frame's cell projection.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FrameMeasurement {
+    /// Fragments the cell shader ran per pixel of the views; `None` unless
+    /// [`CountCellFragments`] is on.
+    pub fragments_per_pixel: Option<f64>,
+    /// GPU time of the cell projection, milliseconds; `None` where the
+    /// device has no timestamps.
+    pub gpu_ms: Option<f64>,
 }
 
 impl CellProjectionStats {
     /// The counters.
     pub fn counters(&self) -> &CellProjectionCounters {
         &self.0
+    }
+
+    /// Queues a frame's GPU figures for the main world.
+    fn record(&self, measurement: FrameMeasurement) {
+        self.0
+            .measured
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .push(measurement);
+    }
+
+    /// The frames measured since the last call, oldest first.
+    fn take_measured(&self) -> Vec<FrameMeasurement> {
+        std::mem::take(
+            &mut *self
+                .0
+                .measured
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner),
+        )
     }
 }
 
@@ -142,9 +207,16 @@ impl Plugin for CellProjectionPlugin {
         crate::fog_layers::load_fog_layers_library(app);
         embedded_asset!(app, "cell_projection.wgsl");
         embedded_asset!(app, "cell_composite.wgsl");
+        embedded_asset!(app, "cell_termination.wgsl");
+        embedded_asset!(app, "low_resolution.wgsl");
         let stats = CellProjectionStats::default();
         app.insert_resource(stats.clone())
             .register_type::<CellBatch>()
+            .register_type::<CellProjection>()
+            .register_type::<CountCellFragments>()
+            .init_resource::<CountCellFragments>()
+            .add_plugins(ExtractResourcePlugin::<CountCellFragments>::default())
+            .register_type::<CellResolution>()
             .register_type::<crate::CellBlend>()
             .register_type::<crate::CellSunlight>()
             .register_type::<CellProjectionStats>()
@@ -152,12 +224,14 @@ impl Plugin for CellProjectionPlugin {
             .register_type::<crate::HeavyBuilds>()
             .init_resource::<crate::HeavyBuilds>()
             .register_type::<crate::CellScattering>()
-            .add_systems(Last, publish_counters);
+            .add_systems(Last, (publish_counters, publish_gpu_measurements));
         for path in [
             Self::PASSES,
             Self::TABLES_BUILT,
             Self::UPLOADS,
             Self::CELLS_DRAWN,
+            Self::FRAGMENTS_PER_PIXEL,
+            Self::GPU_MS,
         ] {
             app.register_diagnostic(Diagnostic::new(path));
         }
@@ -172,8 +246,16 @@ impl Plugin for CellProjectionPlugin {
             .init_gpu_resource::<SpecializedRenderPipelines<CellProjectionPipeline>>()
             .init_gpu_resource::<CellViewUniforms>()
             .init_gpu_resource::<CellCompositePipelines>()
-            .add_systems(RenderStartup, init_cell_projection_pipeline)
-            .add_systems(ExtractSchedule, extract_cell_batches)
+            .init_gpu_resource::<CellQueries>()
+            .init_resource::<UpsampleUniforms>()
+            .add_systems(
+                RenderStartup,
+                (init_cell_projection_pipeline, init_resample_pipelines),
+            )
+            .add_systems(
+                ExtractSchedule,
+                (extract_cell_batches, settings::extract_cell_projection),
+            )
             .add_systems(
                 Render,
                 (
@@ -189,12 +271,43 @@ impl Plugin for CellProjectionPlugin {
                 ),
             )
             .add_systems(
+                RenderGraph,
+                (
+                    collect_cell_queries.in_set(RenderGraphSystems::Begin),
+                    resolve_cell_queries
+                        .after(RenderGraphSystems::Render)
+                        .before(RenderGraphSystems::Submit),
+                    map_cell_queries.in_set(RenderGraphSystems::Finish),
+                ),
+            )
+            .add_systems(
                 Core3d,
                 node::draw_cell_batches
                     .in_set(CellProjectionSystems::Draw)
                     .after(Core3dSystems::MainPass)
                     .before(Core3dSystems::EarlyPostProcess),
             );
+    }
+}
+
+/// Publishes each frame the GPU measured, straight into the store: two
+/// frames may come back in one.
+fn publish_gpu_measurements(stats: Res<CellProjectionStats>, mut store: ResMut<DiagnosticsStore>) {
+    for frame in stats.take_measured() {
+        for (path, value) in [
+            (
+                CellProjectionPlugin::FRAGMENTS_PER_PIXEL,
+                frame.fragments_per_pixel,
+            ),
+            (CellProjectionPlugin::GPU_MS, frame.gpu_ms),
+        ] {
+            if let (Some(value), Some(diagnostic)) = (value, store.get_mut(&path)) {
+                diagnostic.add_measurement(DiagnosticMeasurement {
+                    time: Instant::now(),
+                    value,
+                });
+            }
+        }
     }
 }
 

@@ -1,23 +1,219 @@
 //! The cell projection's draw system in the `Core3d` schedule: every batch
-//! into the view's float accumulation target, back to front, then the target
-//! over the view's HDR image in one blend.
+//! into the view's float accumulation target, front to back, in groups
+//! between which the terminated pixels are marked; at a lower resolution
+//! first, then at full resolution where the upsample left pixels open; then
+//! the target over the view's HDR image in one blend.
 
+use std::ops::Range;
 use std::sync::atomic::Ordering;
 
 use bevy::prelude::*;
 use bevy::render::render_resource::*;
 use bevy::render::renderer::{RenderContext, ViewQuery};
+use bevy::render::texture::CachedTexture;
 use bevy::render::view::{ExtractedView, ViewDepthTexture, ViewTarget};
 use nebel_core::optics::OpticalMode;
 
 use super::CellProjectionStats;
-use super::pipeline::{CellProjectionPipeline, mode_index, variant_index};
+use super::low_resolution::{ResamplePipelines, UpsampleUniforms};
+use super::pipeline::{CellProjectionPipeline, mode_index, variant_index, view_layout_index};
+use super::queries::{CellQueries, ViewQueries};
 use super::resources::{
     CellProjectionView, CellViewUniforms, ExtractedCellBatch, ExtractedCellBatches, GpuCellBuffers,
     GpuCellTables,
 };
 
-/// Draws every batch into the view's HDR target, back to front.
+/// Early termination marks the terminated pixels after groups of at least
+/// this many cells...
+const MIN_GROUP_CELLS: u32 = 1024;
+/// ...and at most this many times per round of cell passes.
+const MAX_MARKS: u32 = 16;
+
+/// One batch to draw: its pipeline variant, its bind group and its cells.
+struct Draw {
+    mode: OpticalMode,
+    variant: usize,
+    bind_group: BindGroup,
+    count: u32,
+}
+
+/// Splits the draws, in order, into groups of about `group` cells: each
+/// group lists (draw, instance range) pieces.
+fn groups(counts: &[u32], group: u32) -> Vec<Vec<(usize, Range<u32>)>> {
+    let mut groups = vec![Vec::new()];
+    let mut room = group;
+    for (draw, &count) in counts.iter().enumerate() {
+        let mut start = 0;
+        while start < count {
+            if room == 0 {
+                groups.push(Vec::new());
+                room = group;
+            }
+            let end = count.min(start + room);
+            groups
+                .last_mut()
+                .expect("one group at least")
+                .push((draw, start..end));
+            room -= end - start;
+            start = end;
+        }
+    }
+    groups
+}
+
+/// The targets of one round of cell passes (low or full resolution).
+struct Round<'a> {
+    accumulation: &'a CachedTexture,
+    stencil: Option<&'a CachedTexture>,
+    view_bind_group: BindGroup,
+    uniform_offset: u32,
+    pipelines: &'a [[Option<CachedRenderPipelineId>; super::pipeline::VARIANTS]; 3],
+    /// The viewport the passes set, if not the whole target.
+    viewport: Option<Vec4>,
+    /// Whether the first pass clears the accumulation and the stencil.
+    clear: bool,
+}
+
+/// Everything a round needs besides its targets.
+struct Passes<'a> {
+    draws: &'a [Draw],
+    pipeline: &'a CellProjectionPipeline,
+    pipeline_cache: &'a PipelineCache,
+    stats: &'a CellProjectionStats,
+    /// Marks pay only where a segment has opacity.
+    sorted: bool,
+}
+
+impl Passes<'_> {
+    /// Draws every batch into the round's targets, front to back, marking
+    /// the terminated pixels between groups when the round has a stencil.
+    /// Returns false when a pipeline is not ready yet.
+    fn draw(
+        &self,
+        ctx: &mut RenderContext,
+        round: &Round,
+        counters: &mut ViewQueries,
+        first_of_view: bool,
+    ) -> bool {
+        let cache = self.pipeline_cache;
+        let Some(pipelines) = self
+            .draws
+            .iter()
+            .map(|draw| {
+                round.pipelines[mode_index(draw.mode)][draw.variant]
+                    .and_then(|id| cache.get_render_pipeline(id))
+            })
+            .collect::<Option<Vec<_>>>()
+        else {
+            return false;
+        };
+        let termination = round
+            .stencil
+            .filter(|_| self.sorted)
+            .zip(cache.get_render_pipeline(self.pipeline.termination));
+        let counts: Vec<u32> = self.draws.iter().map(|draw| draw.count).collect();
+        let group = match termination {
+            Some(_) => counts
+                .iter()
+                .sum::<u32>()
+                .div_ceil(MAX_MARKS)
+                .max(MIN_GROUP_CELLS),
+            None => u32::MAX,
+        };
+        let accumulation = &round.accumulation.default_view;
+        let accumulation_bind_group = ctx.render_device().create_bind_group(
+            "nebel_cell_accumulation_bind_group",
+            &cache.get_bind_group_layout(&self.pipeline.composite_layout),
+            &BindGroupEntries::single(accumulation),
+        );
+        for (index, pieces) in groups(&counts, group).iter().enumerate() {
+            let first = index == 0;
+            if let (false, Some((stencil, termination_pipeline))) = (first, termination) {
+                // Pixels that are (nearly) opaque by now take no more cells.
+                let mut pass = ctx
+                    .command_encoder()
+                    .begin_render_pass(&RenderPassDescriptor {
+                        label: Some("nebel_cell_termination_pass"),
+                        color_attachments: &[],
+                        depth_stencil_attachment: Some(RenderPassDepthStencilAttachment {
+                            view: &stencil.default_view,
+                            depth_ops: None,
+                            stencil_ops: Some(Operations {
+                                load: LoadOp::Load,
+                                store: StoreOp::Store,
+                            }),
+                        }),
+                        timestamp_writes: None,
+                        occlusion_query_set: None,
+                        multiview_mask: None,
+                    });
+                pass.set_pipeline(termination_pipeline);
+                pass.set_bind_group(0, &accumulation_bind_group, &[]);
+                pass.set_stencil_reference(1);
+                pass.draw(0..3, 0..1);
+            }
+            let clear = first && round.clear;
+            let mut pass = ctx
+                .command_encoder()
+                .begin_render_pass(&RenderPassDescriptor {
+                    label: Some("nebel_cell_projection_pass"),
+                    color_attachments: &[Some(RenderPassColorAttachment {
+                        view: accumulation,
+                        depth_slice: None,
+                        resolve_target: None,
+                        ops: Operations {
+                            // Colour 0 and transmittance 1.
+                            load: if clear {
+                                LoadOp::Clear(LinearRgba::BLACK.into())
+                            } else {
+                                LoadOp::Load
+                            },
+                            store: StoreOp::Store,
+                        },
+                    })],
+                    depth_stencil_attachment: round.stencil.map(|stencil| {
+                        RenderPassDepthStencilAttachment {
+                            view: &stencil.default_view,
+                            depth_ops: None,
+                            stencil_ops: Some(Operations {
+                                load: if clear {
+                                    LoadOp::Clear(0)
+                                } else {
+                                    LoadOp::Load
+                                },
+                                store: StoreOp::Store,
+                            }),
+                        }
+                    }),
+                    timestamp_writes: if first && first_of_view {
+                        counters.timestamp(false)
+                    } else {
+                        None
+                    },
+                    occlusion_query_set: None,
+                    multiview_mask: None,
+                });
+            self.stats.0.passes.fetch_add(1, Ordering::Relaxed);
+            if let Some(viewport) = round.viewport {
+                pass.set_viewport(viewport.x, viewport.y, viewport.z, viewport.w, 0.0, 1.0);
+            }
+            pass.set_bind_group(0, &round.view_bind_group, &[round.uniform_offset]);
+            for (draw, instances) in pieces {
+                pass.set_pipeline(pipelines[*draw]);
+                pass.set_bind_group(1, &self.draws[*draw].bind_group, &[]);
+                pass.draw(0..6, instances.clone());
+                self.stats
+                    .0
+                    .cells_drawn
+                    .fetch_add(u64::from(instances.len() as u32), Ordering::Relaxed);
+            }
+        }
+        true
+    }
+}
+
+/// Draws every batch into the view's accumulation target, front to back,
+/// and the result over the view's HDR target.
 pub fn draw_cell_batches(
     view: ViewQuery<(
         &ViewTarget,
@@ -29,9 +225,12 @@ pub fn draw_cell_batches(
     buffers: Res<GpuCellBuffers>,
     tables: Res<GpuCellTables>,
     uniforms: Res<CellViewUniforms>,
+    upsample_uniforms: Res<UpsampleUniforms>,
     pipeline: Res<CellProjectionPipeline>,
+    resample: Res<ResamplePipelines>,
     pipeline_cache: Res<PipelineCache>,
     stats: Res<CellProjectionStats>,
+    mut queries: ResMut<CellQueries>,
     mut ctx: RenderContext,
 ) {
     if extracted.0.is_empty() {
@@ -44,17 +243,11 @@ pub fn draw_cell_batches(
     let eye = extracted_view.world_from_view.translation();
     let mut order: Vec<&(Entity, ExtractedCellBatch)> = extracted.0.iter().collect();
     order.sort_by(|(_, a), (_, b)| {
-        b.centre
+        a.centre
             .distance_squared(eye)
-            .total_cmp(&a.centre.distance_squared(eye))
+            .total_cmp(&b.centre.distance_squared(eye))
     });
 
-    let view_bind_group = ctx.render_device().create_bind_group(
-        "nebel_cell_view_bind_group",
-        &pipeline_cache
-            .get_bind_group_layout(&pipeline.view_layouts[usize::from(cell_view.multisampled)]),
-        &BindGroupEntries::sequential((view_binding, depth.view())),
-    );
     let mut draws = Vec::with_capacity(order.len());
     for (entity, batch) in order {
         let (Some(buffer), Some(table)) =
@@ -62,20 +255,11 @@ pub fn draw_cell_batches(
         else {
             continue;
         };
-        let Some(render_pipeline) = cell_view.pipelines[mode_index(batch.mode)][variant_index(
-            buffer.modulated,
-            buffer.scattered,
-            batch.hands_off && cell_view.hands_off,
-            buffer.blended,
-        )]
-        .and_then(|id| pipeline_cache.get_render_pipeline(id)) else {
-            continue;
-        };
         let pair_table = match batch.mode {
             OpticalMode::Mip => &table.maximum,
             OpticalMode::Sorted | OpticalMode::Emissive => &table.emission,
         };
-        let batch_bind_group = ctx.render_device().create_bind_group(
+        let bind_group = ctx.render_device().create_bind_group(
             "nebel_cell_batch_bind_group",
             &pipeline_cache.get_bind_group_layout(&pipeline.batch_layout),
             &BindGroupEntries::sequential((
@@ -88,7 +272,17 @@ pub fn draw_cell_batches(
                 buffer.next_keyframe.as_entire_binding(),
             )),
         );
-        draws.push((render_pipeline, batch_bind_group, buffer.count));
+        draws.push(Draw {
+            mode: batch.mode,
+            variant: variant_index(
+                buffer.modulated,
+                buffer.scattered,
+                batch.hands_off && cell_view.hands_off,
+                buffer.blended,
+            ),
+            bind_group,
+            count: buffer.count,
+        });
     }
     let Some(composite_pipeline) = pipeline_cache.get_render_pipeline(cell_view.composite) else {
         return;
@@ -96,45 +290,93 @@ pub fn draw_cell_batches(
     if draws.is_empty() {
         return;
     }
+    let passes = Passes {
+        draws: &draws,
+        pipeline: &pipeline,
+        pipeline_cache: &pipeline_cache,
+        stats: &stats,
+        sorted: draws.iter().any(|draw| draw.mode == OpticalMode::Sorted),
+    };
+    let size = cell_view.accumulation.texture.size();
+    let mut counters = queries.view(
+        u64::from(size.width) * u64::from(size.height),
+        cell_view.count_fragments,
+    );
+    let view_bind_group = |ctx: &mut RenderContext,
+                           counters: &ViewQueries,
+                           low_resolution: bool,
+                           depth: &TextureView| {
+        ctx.render_device().create_bind_group(
+            "nebel_cell_view_bind_group",
+            &pipeline_cache.get_bind_group_layout(
+                &pipeline.view_layouts[view_layout_index(cell_view.multisampled, low_resolution)],
+            ),
+            &BindGroupEntries::sequential((
+                view_binding.clone(),
+                depth,
+                BindingResource::Buffer(counters.fragment_counter()),
+            )),
+        )
+    };
 
-    // The cells accumulate from transparent black in float, back to front...
-    let accumulation = &cell_view.accumulation.default_view;
-    let mut pass = ctx
-        .command_encoder()
-        .begin_render_pass(&RenderPassDescriptor {
-            label: Some("nebel_cell_projection_pass"),
-            color_attachments: &[Some(RenderPassColorAttachment {
-                view: accumulation,
-                depth_slice: None,
-                resolve_target: None,
-                ops: Operations {
-                    load: LoadOp::Clear(default()),
-                    store: StoreOp::Store,
-                },
-            })],
-            depth_stencil_attachment: None,
-            timestamp_writes: None,
-            occlusion_query_set: None,
-            multiview_mask: None,
-        });
-    stats.0.passes.fetch_add(1, Ordering::Relaxed);
-    pass.set_bind_group(0, &view_bind_group, &[cell_view.uniform_offset]);
-    for (render_pipeline, batch_bind_group, count) in &draws {
-        pass.set_pipeline(render_pipeline);
-        pass.set_bind_group(1, batch_bind_group, &[]);
-        pass.draw(0..6, 0..*count);
-        stats
-            .0
-            .cells_drawn
-            .fetch_add(u64::from(*count), Ordering::Relaxed);
+    // At a lower resolution: the depth down, the cells, the smooth pixels up.
+    let low = cell_view.low.as_ref().and_then(|(low, low_pipelines)| {
+        let downsample = pipeline_cache.get_render_pipeline(low.downsample)?;
+        let upsample = pipeline_cache.get_render_pipeline(low.upsample)?;
+        Some((low, low_pipelines, downsample, upsample))
+    });
+    if let (Some((low, low_pipelines, downsample, upsample)), Some(stencil)) =
+        (low, cell_view.stencil.as_ref())
+    {
+        resample.downsample(
+            &mut ctx,
+            &pipeline_cache,
+            low,
+            downsample,
+            depth.view(),
+            cell_view.multisampled,
+        );
+        let round = Round {
+            accumulation: &low.accumulation,
+            stencil: low.stencil.as_ref(),
+            view_bind_group: view_bind_group(&mut ctx, &counters, true, &low.depth.default_view),
+            uniform_offset: low.uniform_offset,
+            pipelines: low_pipelines,
+            viewport: Some(low.viewport),
+            clear: true,
+        };
+        if !passes.draw(&mut ctx, &round, &mut counters, true) {
+            return;
+        }
+        resample.upsample(
+            &mut ctx,
+            &pipeline_cache,
+            low,
+            upsample,
+            &upsample_uniforms,
+            (depth.view(), cell_view.multisampled),
+            (&cell_view.accumulation.default_view, &stencil.default_view),
+        );
     }
-    drop(pass);
+    // At full resolution: every pixel, or those the upsample left open.
+    let round = Round {
+        accumulation: &cell_view.accumulation,
+        stencil: cell_view.stencil.as_ref(),
+        view_bind_group: view_bind_group(&mut ctx, &counters, false, depth.view()),
+        uniform_offset: cell_view.uniform_offset,
+        pipelines: &cell_view.pipelines,
+        viewport: None,
+        clear: low.is_none(),
+    };
+    if !passes.draw(&mut ctx, &round, &mut counters, low.is_none()) {
+        return;
+    }
 
     // ...and go over the scene in one blend.
     let composite_bind_group = ctx.render_device().create_bind_group(
         "nebel_cell_composite_bind_group",
         &pipeline_cache.get_bind_group_layout(&pipeline.composite_layout),
-        &BindGroupEntries::single(accumulation),
+        &BindGroupEntries::single(&cell_view.accumulation.default_view),
     );
     draw_over_view(
         &mut ctx,
@@ -143,11 +385,14 @@ pub fn draw_cell_batches(
         composite_pipeline,
         &composite_bind_group,
         &[],
+        counters.timestamp(true),
     );
+    counters.timed();
 }
 
 /// One full-screen triangle of `pipeline` (bind group 0: `bind_group` at
-/// `offsets`) blended over the view's HDR image, in a pass of its own.
+/// `offsets`) blended over the view's HDR image, in a pass of its own (with
+/// `timestamp_writes`, if any).
 pub fn draw_over_view(
     ctx: &mut RenderContext,
     label: &str,
@@ -155,6 +400,7 @@ pub fn draw_over_view(
     pipeline: &RenderPipeline,
     bind_group: &BindGroup,
     offsets: &[u32],
+    timestamp_writes: Option<wgpu::RenderPassTimestampWrites>,
 ) {
     let mut pass = ctx
         .command_encoder()
@@ -170,11 +416,46 @@ pub fn draw_over_view(
                 },
             })],
             depth_stencil_attachment: None,
-            timestamp_writes: None,
+            timestamp_writes,
             occlusion_query_set: None,
             multiview_mask: None,
         });
     pass.set_pipeline(pipeline);
     pass.set_bind_group(0, bind_group, offsets);
     pass.draw(0..3, 0..1);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::groups;
+
+    /// Every instance of every draw lands in exactly one group, in order,
+    /// and no group holds more than the group size.
+    #[test]
+    fn groups_cover_every_cell_once_in_order() {
+        for (counts, group) in [
+            (vec![10, 0, 7, 3], 4),
+            (vec![1], 1),
+            (vec![5, 5], 5),
+            (vec![3, 9, 1], 100),
+            (vec![0], 3),
+        ] {
+            let groups = groups(&counts, group);
+            let mut expected =
+                (0..counts.len()).flat_map(|draw| (0..counts[draw]).map(move |i| (draw, i)));
+            for pieces in &groups {
+                let size: u32 = pieces.iter().map(|(_, range)| range.len() as u32).sum();
+                assert!(size <= group, "{counts:?} by {group}: a group of {size}");
+                for (draw, range) in pieces {
+                    assert!(!range.is_empty());
+                    for i in range.clone() {
+                        assert_eq!(expected.next(), Some((*draw, i)));
+                    }
+                }
+            }
+            assert_eq!(expected.next(), None, "{counts:?} by {group}");
+            let total: u32 = counts.iter().sum();
+            assert_eq!(groups.len() as u32, total.div_ceil(group).max(1));
+        }
+    }
 }

@@ -6,7 +6,7 @@ use bevy::asset::load_embedded_asset;
 use bevy::core_pipeline::FullscreenShader;
 use bevy::prelude::*;
 use bevy::render::render_resource::binding_types::{
-    storage_buffer_read_only_sized, texture_2d, texture_3d, texture_depth_2d,
+    storage_buffer_read_only_sized, storage_buffer_sized, texture_2d, texture_3d, texture_depth_2d,
     texture_depth_2d_multisampled, uniform_buffer,
 };
 use bevy::render::render_resource::*;
@@ -14,6 +14,7 @@ use bevy::render::renderer::RenderDevice;
 use bevy::shader::ShaderDefVal;
 use nebel_core::optics::OpticalMode;
 
+use super::CellProjection;
 use super::resources::{CellTablesUniform, CellViewUniform};
 use crate::cell_batch::CellBatchUniform;
 
@@ -52,12 +53,64 @@ pub struct CellProjectionUnsupported;
 /// composite pass.
 #[derive(Resource)]
 pub struct CellProjectionPipeline {
-    pub(super) view_layouts: [BindGroupLayoutDescriptor; 2],
+    /// The view's layouts ([`view_layout_index`]).
+    pub(super) view_layouts: [BindGroupLayoutDescriptor; 3],
     pub(super) batch_layout: BindGroupLayoutDescriptor,
     shader: Handle<Shader>,
     pub(super) composite_layout: BindGroupLayoutDescriptor,
     composite_shader: Handle<Shader>,
     fullscreen_vertex: VertexState,
+    /// Marks the pixels whose transmittance fell below
+    /// [`CellProjection::TERMINATION_TRANSMITTANCE`] in the stencil (reads
+    /// the accumulation through `composite_layout`).
+    pub(super) termination: CachedRenderPipelineId,
+    /// The device can force the early fragment tests, which some drivers
+    /// (lavapipe) leave until after a shader that may discard.
+    early_depth_test: bool,
+}
+
+/// The format of the stencil that marks terminated pixels.
+pub(super) const STENCIL_FORMAT: TextureFormat = TextureFormat::Stencil8;
+
+/// A stencil-only state: `compare` against the reference, `pass` on success
+/// (a test that writes nothing keeps its write mask 0, so the early
+/// fragment tests stay on while the cell shader discards).
+pub(super) fn stencil_state(compare: CompareFunction, pass: StencilOperation) -> DepthStencilState {
+    let face = StencilFaceState {
+        compare,
+        fail_op: StencilOperation::Keep,
+        depth_fail_op: StencilOperation::Keep,
+        pass_op: pass,
+    };
+    DepthStencilState::stencil(
+        STENCIL_FORMAT,
+        StencilState {
+            front: face,
+            back: face,
+            read_mask: 0xff,
+            write_mask: if pass == StencilOperation::Keep {
+                0
+            } else {
+                0xff
+            },
+        },
+    )
+}
+
+/// The stencil test of cell fragments: drawn where the stencil equals the
+/// reference 0 (not terminated).
+fn cell_stencil() -> DepthStencilState {
+    stencil_state(CompareFunction::Equal, StencilOperation::Keep)
+}
+
+/// The index of a view layout: the depth texture as it is (single or
+/// multisampled), or the low resolution's float depth.
+pub(super) fn view_layout_index(multisampled: bool, low_resolution: bool) -> usize {
+    if low_resolution {
+        2
+    } else {
+        usize::from(multisampled)
+    }
 }
 
 /// What a cell-projection pipeline depends on.
@@ -80,6 +133,14 @@ pub struct CellProjectionPipelineKey {
     pub blended: bool,
     /// The accumulation target's format.
     pub target_format: TextureFormat,
+    /// Fragments are drawn only where the stencil is 0 (the view marks
+    /// terminated pixels).
+    pub stencil: bool,
+    /// Drawn into the view's low-resolution target.
+    pub low_resolution: bool,
+    /// Every fragment adds to the fragment counter
+    /// ([`CountCellFragments`](super::CountCellFragments)).
+    pub count_fragments: bool,
 }
 
 /// Creates the bind group layouts and loads the shaders.
@@ -88,36 +149,64 @@ pub fn init_cell_projection_pipeline(
     asset_server: Res<AssetServer>,
     fullscreen_shader: Res<FullscreenShader>,
     device: Res<RenderDevice>,
+    pipeline_cache: Res<PipelineCache>,
 ) {
-    // The cells, their modulators and their next keyframe are storage
-    // buffers, which WebGL2-class devices lack: there nothing is drawn (fog
+    // The cells, their modulators, their next keyframe and the fragment
+    // counter are storage buffers, which WebGL2-class devices lack: there nothing is drawn (fog
     // layers still are), and the app goes on.
     let storage_buffers = device.limits().max_storage_buffers_per_shader_stage;
-    if storage_buffers < 3 {
+    if storage_buffers < 4 {
         warn!(
-            "nebel: the cell projection is off: the device has {storage_buffers} storage buffers per shader stage, it needs 3"
+            "nebel: the cell projection is off: the device has {storage_buffers} storage buffers per shader stage, it needs 4"
         );
         commands.insert_resource(CellProjectionUnsupported);
     }
-    let view_layout = |multisampled: bool| {
+    let unfilterable = TextureSampleType::Float { filterable: false };
+    let view_layout = |depth: BindGroupLayoutEntryBuilder| {
         BindGroupLayoutDescriptor::new(
             "nebel_cell_view_layout",
             &BindGroupLayoutEntries::sequential(
                 ShaderStages::VERTEX_FRAGMENT,
                 (
                     uniform_buffer::<CellViewUniform>(true),
-                    if multisampled {
-                        texture_depth_2d_multisampled()
-                    } else {
-                        texture_depth_2d()
-                    },
+                    depth,
+                    // The fragment counter (`CountCellFragments`).
+                    storage_buffer_sized(false, None).visibility(ShaderStages::FRAGMENT),
                 ),
             ),
         )
     };
-    let unfilterable = TextureSampleType::Float { filterable: false };
+    let composite_layout = BindGroupLayoutDescriptor::new(
+        "nebel_cell_composite_layout",
+        &BindGroupLayoutEntries::single(ShaderStages::FRAGMENT, texture_2d(unfilterable)),
+    );
+    let fullscreen_vertex = fullscreen_shader.to_vertex_state();
+    let termination = pipeline_cache.queue_render_pipeline(RenderPipelineDescriptor {
+        label: Some("nebel_cell_termination_pipeline".into()),
+        layout: vec![composite_layout.clone()],
+        vertex: fullscreen_vertex.clone(),
+        fragment: Some(FragmentState {
+            shader: load_embedded_asset!(asset_server.as_ref(), "cell_termination.wgsl"),
+            shader_defs: vec![ShaderDefVal::UInt(
+                "TERMINATION_TRANSMITTANCE_BITS".into(),
+                CellProjection::TERMINATION_TRANSMITTANCE.to_bits(),
+            )],
+            targets: vec![],
+            ..default()
+        }),
+        // Sets the stencil to the pass's reference 1.
+        depth_stencil: Some(stencil_state(
+            CompareFunction::Always,
+            StencilOperation::Replace,
+        )),
+        ..default()
+    });
     commands.insert_resource(CellProjectionPipeline {
-        view_layouts: [view_layout(false), view_layout(true)],
+        view_layouts: [
+            view_layout(texture_depth_2d()),
+            view_layout(texture_depth_2d_multisampled()),
+            view_layout(texture_2d(unfilterable)),
+        ],
         batch_layout: BindGroupLayoutDescriptor::new(
             "nebel_cell_batch_layout",
             &BindGroupLayoutEntries::sequential(
@@ -134,12 +223,13 @@ pub fn init_cell_projection_pipeline(
             ),
         ),
         shader: load_embedded_asset!(asset_server.as_ref(), "cell_projection.wgsl"),
-        composite_layout: BindGroupLayoutDescriptor::new(
-            "nebel_cell_composite_layout",
-            &BindGroupLayoutEntries::single(ShaderStages::FRAGMENT, texture_2d(unfilterable)),
-        ),
+        composite_layout,
         composite_shader: load_embedded_asset!(asset_server.as_ref(), "cell_composite.wgsl"),
-        fullscreen_vertex: fullscreen_shader.to_vertex_state(),
+        fullscreen_vertex,
+        termination,
+        early_depth_test: device
+            .features()
+            .contains(WgpuFeatures::SHADER_EARLY_DEPTH_TEST),
     });
 }
 
@@ -174,19 +264,25 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
     type Key = CellProjectionPipelineKey;
 
     fn specialize(&self, key: Self::Key) -> RenderPipelineDescriptor {
+        // Front to back, the accumulation holds the colour C and the
+        // transmittance T: a segment (c, α) goes under, C += T c, T *= 1 − α.
+        // Emissive segments have α = 0: they add T c and leave T.
+        let under = BlendState {
+            color: BlendComponent {
+                src_factor: BlendFactor::DstAlpha,
+                dst_factor: BlendFactor::One,
+                operation: BlendOperation::Add,
+            },
+            alpha: BlendComponent {
+                src_factor: BlendFactor::Zero,
+                dst_factor: BlendFactor::OneMinusSrcAlpha,
+                operation: BlendOperation::Add,
+            },
+        };
         let (mode_def, blend) = match key.mode {
-            OpticalMode::Sorted => ("SORTED", BlendState::PREMULTIPLIED_ALPHA_BLENDING),
-            OpticalMode::Emissive => (
-                "EMISSIVE",
-                BlendState {
-                    color: BlendComponent {
-                        src_factor: BlendFactor::One,
-                        dst_factor: BlendFactor::One,
-                        operation: BlendOperation::Add,
-                    },
-                    alpha: BlendComponent::OVER,
-                },
-            ),
+            OpticalMode::Sorted => ("SORTED", under),
+            OpticalMode::Emissive => ("EMISSIVE", under),
+            // The maximum over the cells, unattenuated; T stays (max(0, T)).
             OpticalMode::Mip => (
                 "MIP",
                 BlendState {
@@ -195,12 +291,24 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
                         dst_factor: BlendFactor::One,
                         operation: BlendOperation::Max,
                     },
-                    alpha: BlendComponent::OVER,
+                    alpha: BlendComponent {
+                        src_factor: BlendFactor::One,
+                        dst_factor: BlendFactor::One,
+                        operation: BlendOperation::Max,
+                    },
                 },
             ),
         };
         let mut shader_defs: Vec<ShaderDefVal> = vec![mode_def.into()];
-        if key.multisampled {
+        if key.stencil && self.early_depth_test {
+            shader_defs.push("EARLY_DEPTH_TEST".into());
+        }
+        if key.count_fragments {
+            shader_defs.push("COUNT_FRAGMENTS".into());
+        }
+        if key.low_resolution {
+            shader_defs.push("LOW_RESOLUTION".into());
+        } else if key.multisampled {
             shader_defs.push("MULTISAMPLED".into());
         }
         if key.modulated {
@@ -225,7 +333,7 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
         RenderPipelineDescriptor {
             label: Some("nebel_cell_projection_pipeline".into()),
             layout: vec![
-                self.view_layouts[usize::from(key.multisampled)].clone(),
+                self.view_layouts[view_layout_index(key.multisampled, key.low_resolution)].clone(),
                 self.batch_layout.clone(),
             ],
             vertex: VertexState {
@@ -251,6 +359,7 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
                 cull_mode: Some(Face::Back),
                 ..default()
             },
+            depth_stencil: key.stencil.then(cell_stencil),
             ..default()
         }
     }

@@ -19,10 +19,16 @@ use nebel_core::transfer::TransferFunction;
 use nebel_lod::CellBatch as LodCellBatch;
 
 use super::CellProjectionStats;
+use super::low_resolution::{
+    LOW_DEPTH_FORMAT, LowResolutionView, ResamplePipelineKey, ResamplePipelines, UpsampleUniforms,
+};
 use super::pipeline::{
     CellCompositePipelines, CellProjectionPipeline, CellProjectionPipelineKey,
-    CellProjectionUnsupported, VARIANTS, accumulation_format, mode_index, variant_index,
+    CellProjectionUnsupported, STENCIL_FORMAT, VARIANTS, accumulation_format, mode_index,
+    variant_index,
 };
+use super::queries::CountCellFragments;
+use super::settings::CellProjection;
 use crate::cell_batch::{CellBatch, CellBatchUniform, CellBlend, CellScattering, CellSunlight};
 use crate::fog_layers::{FogLayersUniform, ViewFogLayers};
 
@@ -408,20 +414,32 @@ pub struct CellViewUniform {
 #[derive(Resource, Default)]
 pub struct CellViewUniforms(pub(super) DynamicUniformBuffer<CellViewUniform>);
 
-/// Per view: where its uniform sits, its accumulation target and its
-/// pipelines (three modes drawing into the target, one compositing it).
+/// Per view: where its uniform sits, its targets and its pipelines (three
+/// modes drawing into the accumulation, one compositing it).
 #[derive(Component)]
 pub struct CellProjectionView {
     pub(super) uniform_offset: u32,
     pub(super) multisampled: bool,
     pub(super) accumulation: CachedTexture,
+    /// The stencil of the full-resolution cells: the pixels the low
+    /// resolution resolved and, with early termination, the terminated
+    /// ones are marked.
+    pub(super) stencil: Option<CachedTexture>,
     /// Per optical mode, the pipeline of each variant ([`variant_index`]),
     /// where a batch of this frame needs it.
     pub(super) pipelines: [[Option<CachedRenderPipelineId>; VARIANTS]; 3],
+    /// The low resolution's targets and the pipelines of its cells, if the
+    /// view draws at a lower resolution.
+    pub(super) low: Option<(
+        LowResolutionView,
+        [[Option<CachedRenderPipelineId>; VARIANTS]; 3],
+    )>,
     pub(super) composite: CachedRenderPipelineId,
     /// Whether the view's fog layers begin beyond the eye, where batches
     /// that hand off to them end.
     pub(super) hands_off: bool,
+    /// Whether the cell shader counts its fragments.
+    pub(super) count_fragments: bool,
 }
 
 /// Lets the pass read the scene depth, only while there is something to draw.
@@ -437,8 +455,8 @@ pub fn make_depth_readable(
     }
 }
 
-/// Writes each view's uniform, gets its accumulation target and
-/// specialises its pipelines.
+/// Writes each view's uniforms, gets its targets and specialises its
+/// pipelines.
 pub fn prepare_cell_views(
     mut commands: Commands,
     extracted: Res<ExtractedCellBatches>,
@@ -448,10 +466,14 @@ pub fn prepare_cell_views(
         &ExtractedCamera,
         &Msaa,
         Option<&ViewFogLayers>,
+        Option<&CellProjection>,
     )>,
     mut texture_cache: ResMut<TextureCache>,
     mut composites: ResMut<CellCompositePipelines>,
+    mut resample: ResMut<ResamplePipelines>,
     mut uniforms: ResMut<CellViewUniforms>,
+    mut upsample_uniforms: ResMut<UpsampleUniforms>,
+    count_fragments: Res<CountCellFragments>,
     pipeline: Res<CellProjectionPipeline>,
     mut pipelines: ResMut<SpecializedRenderPipelines<CellProjectionPipeline>>,
     pipeline_cache: Res<PipelineCache>,
@@ -462,28 +484,46 @@ pub fn prepare_cell_views(
         return;
     }
     uniforms.0.clear();
+    upsample_uniforms.0.clear();
     let format = accumulation_format(&device);
-    for (entity, view, camera, msaa, fog) in &views {
+    for (entity, view, camera, msaa, fog, settings) in &views {
         let Some(size) = camera.physical_target_size else {
             continue;
         };
-        let accumulation = texture_cache.get(
-            &device,
-            TextureDescriptor {
-                label: Some("nebel_cell_accumulation"),
-                size: Extent3d {
-                    width: size.x,
-                    height: size.y,
-                    depth_or_array_layers: 1,
+        let settings = settings.copied().unwrap_or_default();
+        let divisor = settings.resolution.divisor();
+        let mut target = |label, size: UVec2, format| {
+            texture_cache.get(
+                &device,
+                TextureDescriptor {
+                    label: Some(label),
+                    size: Extent3d {
+                        width: size.x,
+                        height: size.y,
+                        depth_or_array_layers: 1,
+                    },
+                    mip_level_count: 1,
+                    sample_count: 1,
+                    dimension: TextureDimension::D2,
+                    format,
+                    usage: TextureUsages::RENDER_ATTACHMENT | TextureUsages::TEXTURE_BINDING,
+                    view_formats: &[],
                 },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: TextureDimension::D2,
-                format,
-                usage: TextureUsages::RENDER_ATTACHMENT | TextureUsages::TEXTURE_BINDING,
-                view_formats: &[],
-            },
-        );
+            )
+        };
+        let accumulation = target("nebel_cell_accumulation", size, format);
+        let stencil = (settings.early_termination || divisor > 1)
+            .then(|| target("nebel_cell_stencil", size, STENCIL_FORMAT));
+        let low_size = UVec2::new(size.x.div_ceil(divisor), size.y.div_ceil(divisor));
+        let low_targets = (divisor > 1).then(|| {
+            (
+                target("nebel_cell_low_depth", low_size, LOW_DEPTH_FORMAT),
+                target("nebel_cell_low_accumulation", low_size, format),
+                settings
+                    .early_termination
+                    .then(|| target("nebel_cell_low_stencil", low_size, STENCIL_FORMAT)),
+            )
+        });
         let composite = *composites.0.entry(view.target_format).or_insert_with(|| {
             pipeline_cache.queue_render_pipeline(pipeline.composite_descriptor(view.target_format))
         });
@@ -491,45 +531,92 @@ pub fn prepare_cell_views(
         let clip_from_world = view
             .clip_from_world
             .unwrap_or_else(|| view.clip_from_view * world_from_view.inverse());
-        let uniform_offset = uniforms.0.push(&CellViewUniform {
+        let view_uniform = CellViewUniform {
             clip_from_world,
             world_from_clip: clip_from_world.inverse(),
             camera_position: view.world_from_view.translation().extend(1.0),
             viewport: view.viewport.as_vec4(),
             fog: fog.map(|fog| fog.0).unwrap_or_default(),
-        });
+        };
+        let uniform_offset = uniforms.0.push(&view_uniform);
         let multisampled = *msaa != Msaa::Off;
         // Only the variants some batch of this frame needs.
-        let mut variants = [[None; VARIANTS]; 3];
-        for (_, batch) in &extracted.0 {
-            let (modulated, scattering) = (batch.is_modulated(), batch.scattering.is_some());
-            let handoff = batch.hands_off && fog.is_some_and(|fog| fog.0.ranges.x > 0.0);
-            let blended = batch.is_blended();
-            variants[mode_index(batch.mode)]
-                [variant_index(modulated, scattering, handoff, blended)] =
-                Some(pipelines.specialize(
+        let mut specialize = |stencil: bool, low_resolution: bool| {
+            let mut variants = [[None; VARIANTS]; 3];
+            for (_, batch) in &extracted.0 {
+                let (modulated, scattering) = (batch.is_modulated(), batch.scattering.is_some());
+                let handoff = batch.hands_off && fog.is_some_and(|fog| fog.0.ranges.x > 0.0);
+                let blended = batch.is_blended();
+                variants[mode_index(batch.mode)]
+                    [variant_index(modulated, scattering, handoff, blended)] =
+                    Some(pipelines.specialize(
+                        &pipeline_cache,
+                        &pipeline,
+                        CellProjectionPipelineKey {
+                            mode: batch.mode,
+                            modulated,
+                            scattering,
+                            multisampled,
+                            fog_layers: fog.is_some(),
+                            handoff,
+                            blended,
+                            target_format: format,
+                            stencil,
+                            low_resolution,
+                            count_fragments: count_fragments.0,
+                        },
+                    ));
+            }
+            variants
+        };
+        let variants = specialize(stencil.is_some(), false);
+        let low = low_targets.map(|(depth, low_accumulation, low_stencil)| {
+            let low_variants = specialize(low_stencil.is_some(), true);
+            let viewport = view.viewport.as_vec4() / divisor as f32;
+            let low_view = LowResolutionView {
+                viewport,
+                depth,
+                accumulation: low_accumulation,
+                stencil: low_stencil,
+                uniform_offset: uniforms.0.push(&CellViewUniform {
+                    viewport,
+                    ..view_uniform
+                }),
+                upsample_offset: upsample_uniforms
+                    .push(low_size, settings.checked_upsample_tolerance()),
+                downsample: resample.get(
                     &pipeline_cache,
-                    &pipeline,
-                    CellProjectionPipelineKey {
-                        mode: batch.mode,
-                        modulated,
-                        scattering,
+                    ResamplePipelineKey {
                         multisampled,
-                        fog_layers: fog.is_some(),
-                        handoff,
-                        blended,
-                        target_format: format,
+                        divisor,
+                        upsample: false,
+                        format,
                     },
-                ));
-        }
+                ),
+                upsample: resample.get(
+                    &pipeline_cache,
+                    ResamplePipelineKey {
+                        multisampled,
+                        divisor,
+                        upsample: true,
+                        format,
+                    },
+                ),
+            };
+            (low_view, low_variants)
+        });
         commands.entity(entity).insert(CellProjectionView {
             uniform_offset,
             multisampled,
             accumulation,
+            stencil,
             pipelines: variants,
+            low,
             composite,
             hands_off: fog.is_some_and(|fog| fog.0.ranges.x > 0.0),
+            count_fragments: count_fragments.0,
         });
     }
     uniforms.0.write_buffer(&device, &queue);
+    upsample_uniforms.0.write_buffer(&device, &queue);
 }
