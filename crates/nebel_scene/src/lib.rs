@@ -19,6 +19,8 @@
 //!         view: Pose((position: (0.0, 2.0, 8.0), look_at: (0.0, 0.0, 0.0))),
 //!         tonemapping: true,
 //!         msaa: 4,
+//!         // how cells are drawn; default the quality preset's:
+//!         cell_projection: (resolution: Half, upsample_tolerance: 0.004, early_termination: true),
 //!         // or a path of keyframes, times in seconds, strictly increasing:
 //!         // view: Path([(time: 0.0, position: (..), look_at: (..)), ...]),
 //!     ),
@@ -222,6 +224,69 @@ pub struct CameraSettings {
     /// mesh edges use 1. Default: 4 (Bevy's).
     #[serde(default = "default_msaa")]
     pub msaa: u32,
+    /// How the cells are drawn (`nebel_render`'s `CellProjection`), e.g.
+    /// `cell_projection: (resolution: Full, early_termination: false)`, the
+    /// exact method of the papers. Default: as the quality preset says.
+    #[serde(default)]
+    pub cell_projection: Option<CellProjectionDescription>,
+}
+
+/// How a camera draws cells, see [`CameraSettings::cell_projection`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CellProjectionDescription {
+    /// `Full`, `Half` or `Quarter` of the view's resolution, mixed with full
+    /// resolution where the lower one would be off. Default `Half`.
+    #[serde(default)]
+    pub resolution: CellResolutionDescription,
+    /// Below full resolution, the largest interpolation error (linear RGB
+    /// and transmittance) a pixel may take from the lower resolution before
+    /// it is drawn at full resolution; finite and ≥ 0. Default 0.004.
+    #[serde(default = "default_upsample_tolerance")]
+    pub upsample_tolerance: f32,
+    /// Stop shading pixels whose transmittance fell below 1/512. Default
+    /// true.
+    #[serde(default = "default_early_termination")]
+    pub early_termination: bool,
+}
+
+impl Default for CellProjectionDescription {
+    fn default() -> Self {
+        Self {
+            resolution: CellResolutionDescription::default(),
+            upsample_tolerance: default_upsample_tolerance(),
+            early_termination: default_early_termination(),
+        }
+    }
+}
+
+impl CellProjectionDescription {
+    /// Every cell at full resolution, every ray to its end.
+    pub const EXACT: Self = Self {
+        resolution: CellResolutionDescription::Full,
+        upsample_tolerance: 0.0,
+        early_termination: false,
+    };
+}
+
+fn default_early_termination() -> bool {
+    true
+}
+
+fn default_upsample_tolerance() -> f32 {
+    0.004
+}
+
+/// The resolution of [`CellProjectionDescription`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum CellResolutionDescription {
+    /// Every pixel.
+    Full,
+    /// Half the width and height.
+    #[default]
+    Half,
+    /// A quarter of the width and height.
+    Quarter,
 }
 
 fn default_msaa() -> u32 {
@@ -633,6 +698,18 @@ impl SceneDescription {
             ));
         }
         positive("camera.near", camera.near)?;
+        if let Some(cell_projection) = camera.cell_projection
+            && !(cell_projection.upsample_tolerance.is_finite()
+                && cell_projection.upsample_tolerance >= 0.0)
+        {
+            return Err(InvalidField::new(
+                "camera.cell_projection.upsample_tolerance",
+                format!(
+                    "must be finite and ≥ 0, got {}",
+                    cell_projection.upsample_tolerance
+                ),
+            ));
+        }
         if ![1, 2, 4, 8].contains(&camera.msaa) {
             return Err(InvalidField::new(
                 "camera.msaa",
@@ -1081,6 +1158,7 @@ mod tests {
                 near: 0.05,
                 tonemapping: false,
                 msaa: 1,
+                cell_projection: Some(CellProjectionDescription::EXACT),
                 view: CameraView::Path(vec![
                     CameraKeyframe {
                         time: 0.0,

@@ -44,7 +44,7 @@ use bevy::render::{RenderApp, RenderPlugin};
 use bevy::time::TimeUpdateStrategy;
 use bevy::window::ExitCondition;
 use bevy::winit::WinitPlugin;
-use nebel_render::{HeavyBuilds, NebelDiagnosticsPlugin};
+use nebel_render::{CellProjectionPlugin, CountCellFragments, HeavyBuilds, NebelDiagnosticsPlugin};
 use nebel_volume::VolumePlugin;
 use thiserror::Error;
 
@@ -86,6 +86,10 @@ pub struct HeadlessOptions {
     /// textures, no compute) and no optional features, to check what runs
     /// where Bevy's volumetric fog cannot. Default false.
     pub webgl2_limits: bool,
+    /// Count the fragments the cell shader runs
+    /// ([`CountCellFragments`](nebel_render::CountCellFragments)), which
+    /// costs GPU time. Default false.
+    pub count_fragments: bool,
 }
 
 /// The image every camera renders into.
@@ -228,6 +232,7 @@ impl HeadlessApp {
                 (true, None) => HeavyBuilds::Background,
                 (true, Some(budget)) => HeavyBuilds::Budgeted(budget),
             })
+            .insert_resource(CountCellFragments(options.count_fragments))
             .add_systems(First, render_to_image);
         add_scene(&mut app);
         app.finish();
@@ -244,6 +249,16 @@ impl HeadlessApp {
             let cache = app.sub_app(RenderApp).world().resource::<PipelineCache>();
             if warm_up > 0 && cache.waiting_pipelines().next().is_none() {
                 break;
+            }
+        }
+        // The GPU's per-frame figures describe the scene's frames only.
+        let mut store = app.world_mut().resource_mut::<DiagnosticsStore>();
+        for path in [
+            CellProjectionPlugin::FRAGMENTS_PER_PIXEL,
+            CellProjectionPlugin::GPU_MS,
+        ] {
+            if let Some(diagnostic) = store.get_mut(&path) {
+                diagnostic.clear_history();
             }
         }
         let frame_duration = Duration::from_secs_f64(1.0 / f64::from(output.frame_rate));
@@ -356,8 +371,8 @@ pub fn render_headless(
 
 /// The effects' diagnostics (`nebel/<effect>/<counter>`) that measured
 /// anything, by effect: the latest value of each, and for timings (`_ms`)
-/// also the mean and maximum over the diagnostic's history (`_ms_mean`,
-/// `_ms_max`).
+/// and per-pixel figures (`_per_pixel`) also the mean and maximum over the
+/// diagnostic's history (`_ms_mean`, `_ms_max`, `_per_pixel_mean`, ...).
 pub(crate) fn effect_counters(store: &DiagnosticsStore) -> BTreeMap<String, BTreeMap<String, f64>> {
     let mut effects: BTreeMap<String, BTreeMap<String, f64>> = BTreeMap::new();
     for diagnostic in store.iter() {
@@ -375,7 +390,7 @@ pub(crate) fn effect_counters(store: &DiagnosticsStore) -> BTreeMap<String, BTre
         };
         let group = effects.entry(effect.to_owned()).or_default();
         group.insert(counter.to_owned(), value);
-        if counter.ends_with("_ms") {
+        if counter.ends_with("_ms") || counter.ends_with("_per_pixel") {
             let values = || diagnostic.values().copied();
             let max = values().fold(f64::NEG_INFINITY, f64::max);
             group.insert(

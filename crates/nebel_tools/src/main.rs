@@ -15,7 +15,8 @@ use nebel_reference::image_metrics::{
 };
 use nebel_scene::reference::{reference_image, save_reference};
 use nebel_scene::{
-    BuiltVolume, LightDescription, QualityDescription, SceneDescription, SceneError, VolumeField,
+    BuiltVolume, CellProjectionDescription, CellResolutionDescription, LightDescription,
+    QualityDescription, SceneDescription, SceneError, VolumeField,
 };
 use nebel_tools::error::CommandError;
 use nebel_tools::fog_comparison::{self, BevyFog};
@@ -72,6 +73,11 @@ enum Command {
         /// projection needs storage buffers).
         #[arg(long)]
         webgl2_limits: bool,
+        /// Count the fragments the cell shader runs, for the statistics'
+        /// `fragments_per_pixel` (a debug counter that costs GPU time: take
+        /// timings without it).
+        #[arg(long)]
+        count_fragments: bool,
     },
     /// Integrate the scene's volumes exactly on the CPU (f64, adaptive, all
     /// cores) from the camera of the last frame, cut at its meshes and
@@ -184,6 +190,37 @@ struct SceneArgs {
     /// quality mode), instead of the scene's `auto_quality_ms`.
     #[arg(long)]
     auto_quality: Option<f32>,
+    /// Draw cells at this resolution (full, half or quarter of the view's,
+    /// mixed with full resolution where the lower one would be off) instead
+    /// of the scene's.
+    #[arg(long, value_parser = parse_resolution)]
+    cell_resolution: Option<CellResolutionDescription>,
+    /// Below full resolution, the largest interpolation error (linear RGB
+    /// and transmittance) a pixel may take from the lower resolution,
+    /// instead of the scene's.
+    #[arg(long, value_parser = parse_tolerance)]
+    upsample_tolerance: Option<f32>,
+    /// Draw cells by the exact method of the papers: full resolution, every
+    /// ray to its end (no early termination).
+    #[arg(long, conflicts_with_all = ["cell_resolution", "upsample_tolerance"])]
+    exact: bool,
+}
+
+fn parse_tolerance(tolerance: &str) -> Result<f32, String> {
+    tolerance
+        .parse::<f32>()
+        .ok()
+        .filter(|t| t.is_finite() && *t >= 0.0)
+        .ok_or_else(|| format!("takes a finite number ≥ 0, got `{tolerance}`"))
+}
+
+fn parse_resolution(resolution: &str) -> Result<CellResolutionDescription, String> {
+    match resolution.to_ascii_lowercase().as_str() {
+        "full" => Ok(CellResolutionDescription::Full),
+        "half" => Ok(CellResolutionDescription::Half),
+        "quarter" => Ok(CellResolutionDescription::Quarter),
+        _ => Err(format!("takes full, half or quarter, got `{resolution}`")),
+    }
 }
 
 fn parse_quality(quality: &str) -> Result<QualityDescription, String> {
@@ -212,7 +249,7 @@ fn parse_size(size: &str) -> Result<(u32, u32), String> {
 }
 
 impl SceneArgs {
-    /// Loads the scene and applies `--frames`, `--size` and `--quality`.
+    /// Loads the scene and applies the options.
     fn load(&self) -> Result<SceneDescription, CommandError> {
         let mut scene = SceneDescription::load(&self.scene)?;
         if let Some(frames) = self.frames {
@@ -227,6 +264,19 @@ impl SceneArgs {
         }
         if let Some(target) = self.auto_quality {
             scene.auto_quality_ms = Some(target);
+        }
+        if self.exact {
+            scene.camera.cell_projection = Some(CellProjectionDescription::EXACT);
+        }
+        if self.cell_resolution.is_some() || self.upsample_tolerance.is_some() {
+            let mut cell_projection = scene.camera.cell_projection.unwrap_or_default();
+            if let Some(resolution) = self.cell_resolution {
+                cell_projection.resolution = resolution;
+            }
+            if let Some(tolerance) = self.upsample_tolerance {
+                cell_projection.upsample_tolerance = tolerance;
+            }
+            scene.camera.cell_projection = Some(cell_projection);
         }
         scene.validate().map_err(|invalid| SceneError::Invalid {
             path: self.scene.clone(),
@@ -257,6 +307,7 @@ fn run(command: Command) -> Result<(), CommandError> {
             background_builds,
             build_budget_ms,
             webgl2_limits,
+            count_fragments,
         } => render(
             &scene,
             &out,
@@ -266,6 +317,7 @@ fn run(command: Command) -> Result<(), CommandError> {
                 background_builds,
                 build_budget: build_budget_ms,
                 webgl2_limits,
+                count_fragments,
             },
         ),
         Command::Reference { scene, out } => reference(&scene, &out),

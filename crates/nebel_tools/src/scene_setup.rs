@@ -23,14 +23,17 @@ use std::path::Path;
 use std::sync::Arc;
 
 use nebel_core::field::HeightField;
-use nebel_render::{AutoQuality, NebelQuality, NebelSystems, QualityPreset};
+use nebel_render::{
+    AutoQuality, CellProjection, CellResolution, NebelQuality, NebelSystems, QualityPreset,
+};
 
 use crate::headless::{HeadlessError, HeadlessOptions, render_headless};
 use crate::stats::RenderStats;
 use nebel_scene::{
     BuiltAurora, BuiltCloudLayer, BuiltGroundFog, BuiltVolume, CameraView,
-    DirectionalLightDescription, FogThicknessDescription, GroundFogDescription, LightDescription,
-    MeshDescription, QualityDescription, SceneDescription, SceneError,
+    CellResolutionDescription, DirectionalLightDescription, FogThicknessDescription,
+    GroundFogDescription, LightDescription, MeshDescription, QualityDescription, SceneDescription,
+    SceneError,
 };
 use nebel_volume::VolumeGrid;
 
@@ -223,6 +226,17 @@ fn spawn_scene(
     });
     if !camera.tonemapping {
         camera_entity.insert((Tonemapping::None, DebandDither::Disabled));
+    }
+    if let Some(cell_projection) = camera.cell_projection {
+        camera_entity.insert(CellProjection {
+            resolution: match cell_projection.resolution {
+                CellResolutionDescription::Full => CellResolution::Full,
+                CellResolutionDescription::Half => CellResolution::Half,
+                CellResolutionDescription::Quarter => CellResolution::Quarter,
+            },
+            upsample_tolerance: cell_projection.upsample_tolerance,
+            early_termination: cell_projection.early_termination,
+        });
     }
     if let Some(fog) = &scene.fog_layers {
         camera_entity.insert(fog_layers(fog));
