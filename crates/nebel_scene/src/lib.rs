@@ -1357,8 +1357,27 @@ mod tests {
         assert_eq!(scene.output, OutputSettings::default());
         assert_eq!(scene.camera.fov_degrees, 60.0);
         assert_eq!(scene.camera.near, 0.1);
+        assert_eq!(scene.camera.cell_projection, None);
         assert_eq!(scene.clear_color, [0.0; 3]);
         assert!(scene.lights.is_empty() && scene.meshes.is_empty());
+    }
+
+    #[test]
+    fn cell_projection_takes_documented_defaults() {
+        let text = MINIMAL.replace(
+            "camera: (",
+            "camera: (cell_projection: (resolution: Quarter), ",
+        );
+        let cell_projection = parse(&text).unwrap().camera.cell_projection.unwrap();
+        assert_eq!(
+            cell_projection,
+            CellProjectionDescription {
+                resolution: CellResolutionDescription::Quarter,
+                ..CellProjectionDescription::default()
+            }
+        );
+        assert_eq!(cell_projection.upsample_tolerance, 0.004);
+        assert!(cell_projection.early_termination);
     }
 
     #[test]
@@ -1414,6 +1433,11 @@ mod tests {
                 "camera: (",
                 "camera: (near: 0.0, ",
                 "field camera.near: must be finite and > 0, got 0",
+            ),
+            (
+                "camera: (",
+                "camera: (cell_projection: (upsample_tolerance: -0.1), ",
+                "field camera.cell_projection.upsample_tolerance: must be finite and ≥ 0, got -0.1",
             ),
             (
                 "look_at: (0.0, 0.0, 0.0)",

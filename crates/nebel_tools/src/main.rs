@@ -27,6 +27,7 @@ use nebel_tools::progress::reference_bar;
 use nebel_tools::reference::scene_reference;
 use nebel_tools::scene_setup::{BevyPeer, SceneSetupPlugin};
 use nebel_tools::soak::{soak, write_report};
+use nebel_tools::stats::RenderStats;
 
 /// Factor on the absolute error in `compare --diff` images.
 const DIFF_SCALE: f32 = 10.0;
@@ -496,7 +497,7 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
         ends_where_fog_layers_begin: false,
     };
     // Two references: through the trilinear grid (the total error) and
-    // through nebel's five tetrahedra per voxel (the error of projection and
+    // through nebel's six tetrahedra per voxel (the error of projection and
     // pre-integration alone).
     let tetrahedral = BuiltVolume {
         field: VolumeField::Cells(cells),
@@ -514,22 +515,28 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
         &out_dir.join("reference_tetrahedral.png"),
     )?;
     let mut rows = vec![String::from(
-        "renderer,frame_ms_median,frame_ms_max,rmse,max_abs,psnr_db,rmse_vs_tetrahedral,max_abs_vs_tetrahedral",
+        "renderer,frame_ms_median,frame_ms_max,cells_gpu_ms_mean,fragments_per_pixel,rmse,max_abs,psnr_db,rmse_vs_tetrahedral,max_abs_vs_tetrahedral",
     )];
-    // nebel draws the volume as the scene says (its `lod`, if any); the
-    // references and Bevy's fog see the grid itself.
+    // nebel draws the volume as the scene says (its `lod`, if any), with the
+    // scene's cell projection and with the exact method; the references and
+    // Bevy's fog see the grid itself.
     let drawn_by_nebel = BuiltVolume {
         lod: volume.lod,
         ..equivalent.clone()
     };
-    for (name, bevy_fog) in [("nebel", None), ("bevy_fog_volume", Some(fog))] {
-        let drawn = match bevy_fog {
-            None => drawn_by_nebel.clone(),
-            Some(_) => equivalent.clone(),
-        };
+    let mut exact_scene = scene.clone();
+    exact_scene.camera.cell_projection = Some(CellProjectionDescription::EXACT);
+    for (name, scene, bevy_fog) in [
+        ("nebel", &scene, None),
+        ("nebel_exact", &exact_scene, None),
+        ("bevy_fog_volume", &scene, Some(fog)),
+    ] {
         let setup = SceneSetupPlugin {
             scene: scene.clone(),
-            volumes: vec![drawn],
+            volumes: vec![match bevy_fog {
+                None => drawn_by_nebel.clone(),
+                Some(_) => equivalent.clone(),
+            }],
             terrain: scene.build_terrain(scene_path)?,
             ground_fog: scene.build_ground_fog(scene_path)?,
             aurora: scene.build_aurora(scene_path)?,
@@ -541,7 +548,20 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
             progress: true,
             ..HeadlessOptions::default()
         };
-        let stats = setup.render_headless(options, &image_path)?;
+        let stats = setup.clone().render_headless(options, &image_path)?;
+        // The fragments are counted in a second run: the counter costs time.
+        let fragments = match bevy_fog {
+            None => {
+                let counted = HeadlessOptions {
+                    count_fragments: true,
+                    ..options
+                };
+                let path = out_dir.join(format!("{name}_counted.png"));
+                let counted = setup.render_headless(counted, &path)?;
+                cell_figure(&counted, "fragments_per_pixel_mean")
+            }
+            Some(_) => String::new(),
+        };
         let image = load_png_linear(&image_path)?;
         let metrics = nebel_reference::image_metrics::compare(&image, &reference)?;
         let tetrahedral = nebel_reference::image_metrics::compare(&image, &tetrahedral_reference)?;
@@ -550,9 +570,10 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
             stats.frame_wall_ms.median
         );
         rows.push(format!(
-            "{name},{},{},{},{},{},{},{}",
+            "{name},{},{},{},{fragments},{},{},{},{},{}",
             stats.frame_wall_ms.median,
             stats.frame_wall_ms.max,
+            cell_figure(&stats, "gpu_ms_mean"),
             metrics.rmse,
             metrics.max_abs,
             metrics.psnr,
@@ -564,6 +585,17 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
     std::fs::write(&csv, rows.join("\n") + "\n").map_err(CommandError::write(&csv))?;
     eprintln!("nebel: wrote {}", csv.display());
     Ok(())
+}
+
+/// A figure of the cell projection's diagnostics in `stats` (`gpu_ms_mean`,
+/// `fragments_per_pixel_mean`, ...), or empty where it was not measured.
+fn cell_figure(stats: &RenderStats, figure: &str) -> String {
+    stats
+        .effects
+        .get("cell_projection")
+        .and_then(|figures| figures.get(figure))
+        .map(f64::to_string)
+        .unwrap_or_default()
 }
 
 fn bench_lod(

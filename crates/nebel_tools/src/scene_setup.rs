@@ -41,6 +41,7 @@ use crate::fog_comparison::{BevyFog, BevyFogSettings, enable_bevy_fog, spawn_bev
 use nebel_volume::FlickeringLight;
 
 /// Spawns a scene description at startup.
+#[derive(Clone)]
 pub struct SceneSetupPlugin {
     /// The scene to spawn.
     pub scene: SceneDescription,
