@@ -592,7 +592,7 @@ fn scored_render(
 fn gpu_cell_projection_matches_the_exact_reference() {
     let out_dir = output_dir();
     let mut report = Vec::new();
-    for (name, bound) in ACCURACY_BOUNDS {
+    for (name, _) in ACCURACY_BOUNDS {
         let (metrics, _, stats) = scored_render(None, name, name, &[]);
         let passes = |effect: &str| stats["effects"][effect]["passes"].as_f64().unwrap_or(0.0);
         if FOG_LAYER_SCENES.contains(name) {
