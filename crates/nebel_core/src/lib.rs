@@ -8,6 +8,7 @@
 //! - [`transfer`]: transfer functions κ (chromaticity) and ρ (density) over a scalar.
 //! - [`cell`]: tetrahedra, prisms, hexahedra, their decompositions and exact ray-cell intersection.
 //! - [`segment`]: the exact f64 ray integral of one linear segment, the reference for the tables.
+//! - [`joint_segment`]: the same for several media sharing a segment (volumes that interpenetrate).
 //! - [`preintegration`]: pre-integration tables (3D colour, ρ̂, emission, MIP) and the zero-opacity test.
 //! - [`height_fog`]: density over altitude as layers and its exact optical depth along any ray.
 //! - [`field`]: density grids and height fields, PNG/raw loaders, noise generators, 2^n+1 resampling.
@@ -32,6 +33,7 @@ pub mod budget;
 pub mod cell;
 pub mod field;
 pub mod height_fog;
+pub mod joint_segment;
 pub mod optics;
 pub mod pacing;
 pub mod preintegration;

@@ -50,7 +50,7 @@ use crate::transfer::TransferFunction;
 pub const MAX_SEGMENT_LENGTH: f64 = 1e30;
 
 /// Optical depth behind which the sorted colour integral stops (e^−48 ≈ 1.4e-21).
-const DEPTH_CUTOFF: f64 = 48.0;
+pub(crate) const DEPTH_CUTOFF: f64 = 48.0;
 
 /// Optical depth of one Gauss–Kronrod starting interval.
 const DEPTH_STEP: f64 = 1.0;
@@ -340,14 +340,26 @@ pub(crate) fn piece_max_emission(p: &Piece) -> DVec3 {
 
 /// `l ∫ κ ρ exp(−l ∫_0^u ρ) du` over one piece, from the piece's own front.
 fn sorted_piece_colour(piece: &Piece, l: f64) -> DVec3 {
+    attenuated_emission(piece, l, |u| {
+        let (kappa, rho) = piece.at(u);
+        kappa * rho
+    })
+}
+
+/// `l ∫ e(u) exp(−l ∫_0^u ρ) du` over the local coordinate `u` ∈ [0, width]
+/// of `absorption` (whose ρ is the density that attenuates; its κ is unused),
+/// for an emission `e` smooth on the piece: adaptive Gauss–Kronrod on
+/// intervals of optical depth at most [`DEPTH_STEP`], up to [`DEPTH_CUTOFF`].
+pub(crate) fn attenuated_emission(
+    absorption: &Piece,
+    l: f64,
+    emission: impl Fn(f64) -> DVec3,
+) -> DVec3 {
+    let piece = absorption;
     let total = l * piece.depth();
     let reach = total.min(DEPTH_CUTOFF);
     let intervals = (reach / DEPTH_STEP).ceil().max(1.0) as u32;
-    let integrand = |u: f64| {
-        let (kappa, rho) = piece.at(u);
-        let local_depth = l * piece.depth_at(u);
-        kappa * (l * rho * (-local_depth).exp())
-    };
+    let integrand = |u: f64| emission(u) * (l * (-l * piece.depth_at(u)).exp());
     let mut colour = DVec3::ZERO;
     let mut a = 0.0;
     for i in 1..=intervals {

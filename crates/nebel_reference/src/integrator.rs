@@ -48,6 +48,7 @@ use crate::image_metrics::LinearImage;
 use nebel_core::budget::BudgetError;
 use nebel_core::cell::{CellSegment, PreparedTetrahedron, Ray, Tetrahedron};
 use nebel_core::field::DensityGrid;
+use nebel_core::joint_segment::{JointMedium, exact_joint_segment};
 use nebel_core::optics::{MODULATOR_PIECES, OpticalMode, PremultipliedRgba, henyey_greenstein};
 use nebel_core::segment::exact_segment;
 use nebel_core::transfer::TransferFunction;
@@ -450,6 +451,12 @@ pub enum ReferenceError {
         /// What is wrong.
         reason: String,
     },
+    /// Scenes given to [`render_together`] cannot be rendered together.
+    #[error("volumes rendered together: {reason}")]
+    NotJoint {
+        /// Why not.
+        reason: String,
+    },
     /// The scalar tolerance is not positive.
     #[error("scalar_tolerance = {value} is invalid: it must be finite and positive")]
     InvalidTolerance {
@@ -472,29 +479,71 @@ pub fn render(
     progress: Option<&(dyn Fn(RenderProgress) + Sync)>,
 ) -> Result<LinearImage, ReferenceError> {
     scene.validate()?;
-    let camera = &scene.camera;
-    let (width, height) = (camera.width, camera.height);
-    LinearImage::check_budget(width, height)?;
-    let integrator = match &scene.volume {
-        ReferenceVolume::Cells(cells) => {
-            let modulators = match &scene.modulation {
-                Some(Modulation::Cells(modulators)) => Some(modulators.as_slice()),
-                _ => None,
-            };
-            let (prepared, bins) = CellBins::new(camera, cells, modulators);
-            Integrator::Cells {
-                cells: prepared,
-                bins,
-            }
-        }
-        ReferenceVolume::Grid(grid) => Integrator::Grid(GridFields {
-            grid,
-            modulator: match &scene.modulation {
-                Some(Modulation::Grid(modulator)) => Some(modulator),
-                _ => None,
-            },
-        }),
+    LinearImage::check_budget(scene.camera.width, scene.camera.height)?;
+    let integrator = Integrator::new(scene);
+    Ok(render_rows(&scene.camera, progress, |scratch, x, y| {
+        render_pixel(scene, &integrator, scratch, x, y)
+    }))
+}
+
+/// Renders the volumes of `scenes` along every ray together: the media are
+/// integrated as one, so volumes that interpenetrate absorb and emit jointly
+/// ([`nebel_core::joint_segment`]) and volumes that do not are composited in
+/// their order along each ray, whatever their centres. Sorted volumes absorb;
+/// emissive ones only emit, attenuated by what lies in front of them (their
+/// opacity is not kept: the image's α is the sorted volumes' alone). Each
+/// scene gives its volume, transfer function, mode, modulation, scattering,
+/// scalar tolerance and opaque depth (where its rays end); the camera, fog
+/// and background are shared and must be equal in every scene.
+///
+/// Errors: the errors of [`render`] for each scene, and
+/// [`ReferenceError::NotJoint`] for no scene, a MIP volume (MIP is composited
+/// on its own, with [`render`]) or scenes that differ in camera, fog or
+/// background.
+pub fn render_together(
+    scenes: &[ReferenceScene],
+    progress: Option<&(dyn Fn(RenderProgress) + Sync)>,
+) -> Result<LinearImage, ReferenceError> {
+    let Some(first) = scenes.first() else {
+        return Err(ReferenceError::NotJoint {
+            reason: "no volume".into(),
+        });
     };
+    for (index, scene) in scenes.iter().enumerate() {
+        scene.validate()?;
+        let differs = |what: &str| ReferenceError::NotJoint {
+            reason: format!("volume {index} has another {what} than volume 0"),
+        };
+        if scene.mode == OpticalMode::Mip {
+            return Err(ReferenceError::NotJoint {
+                reason: format!("volume {index} is MIP, which is composited on its own"),
+            });
+        }
+        if scene.camera != first.camera {
+            return Err(differs("camera"));
+        }
+        if scene.fog != first.fog {
+            return Err(differs("fog"));
+        }
+        if scene.background != first.background {
+            return Err(differs("background"));
+        }
+    }
+    LinearImage::check_budget(first.camera.width, first.camera.height)?;
+    let integrators: Vec<Integrator<'_>> = scenes.iter().map(Integrator::new).collect();
+    Ok(render_rows(&first.camera, progress, |scratch, x, y| {
+        render_pixel_together(scenes, &integrators, scratch, x, y)
+    }))
+}
+
+/// An image of `camera`'s size, each pixel from `pixel`, rows shared among
+/// all cores.
+fn render_rows(
+    camera: &ReferenceCamera,
+    progress: Option<&(dyn Fn(RenderProgress) + Sync)>,
+    pixel: impl Fn(&mut Scratch, u32, u32) -> PremultipliedRgba + Sync,
+) -> LinearImage {
+    let (width, height) = (camera.width, camera.height);
     let mut image = LinearImage::transparent(width, height);
     let rows = Mutex::new(image.pixels.chunks_mut(width as usize).enumerate());
     let rows_done = AtomicU32::new(0);
@@ -511,10 +560,8 @@ pub fn render(
                         .unwrap_or_else(std::sync::PoisonError::into_inner)
                         .next();
                     let Some((y, row)) = next else { break };
-                    for (x, pixel) in row.iter_mut().enumerate() {
-                        let colour =
-                            render_pixel(scene, &integrator, &mut scratch, x as u32, y as u32);
-                        *pixel = colour.as_vec4().to_array();
+                    for (x, out) in row.iter_mut().enumerate() {
+                        *out = pixel(&mut scratch, x as u32, y as u32).as_vec4().to_array();
                     }
                     let done = rows_done.fetch_add(1, Ordering::Relaxed) + 1;
                     if let Some(progress) = progress {
@@ -527,7 +574,7 @@ pub fn render(
             });
         }
     });
-    Ok(image)
+    image
 }
 
 /// Per-thread buffers reused across pixels.
@@ -537,6 +584,10 @@ struct Scratch {
     /// unmodulated).
     segments: Vec<(CellSegment, Option<[f64; 2]>)>,
     crossings: Vec<f64>,
+    /// Rendering together: every medium's pieces along the ray and those
+    /// over the current stretch.
+    pieces: Vec<RayPiece>,
+    active: Vec<RayPiece>,
 }
 
 /// The prepared volume.
@@ -550,6 +601,83 @@ enum Integrator<'a> {
     Grid(GridFields<'a>),
 }
 
+impl<'a> Integrator<'a> {
+    fn new(scene: &'a ReferenceScene) -> Self {
+        match &scene.volume {
+            ReferenceVolume::Cells(cells) => {
+                let modulators = match &scene.modulation {
+                    Some(Modulation::Cells(modulators)) => Some(modulators.as_slice()),
+                    _ => None,
+                };
+                let (cells, bins) = CellBins::new(&scene.camera, cells, modulators);
+                Integrator::Cells { cells, bins }
+            }
+            ReferenceVolume::Grid(grid) => Integrator::Grid(GridFields {
+                grid,
+                modulator: match &scene.modulation {
+                    Some(Modulation::Grid(modulator)) => Some(modulator),
+                    _ => None,
+                },
+            }),
+        }
+    }
+
+    /// Marches `ray` over `[t_near, t_far]`, giving the pieces to `sink`.
+    fn march(
+        &self,
+        sink: &mut impl PieceSink,
+        scene: &ReferenceScene,
+        ray: &Ray,
+        (x, y, t_near, t_far): (u32, u32, f64, f64),
+        segments: &mut Vec<(CellSegment, Option<[f64; 2]>)>,
+        crossings: &mut Vec<f64>,
+    ) {
+        match self {
+            Integrator::Cells { cells, bins } => march_cells(
+                sink,
+                cells,
+                bins.candidates(x, y),
+                ray,
+                t_near,
+                t_far,
+                segments,
+            ),
+            Integrator::Grid(fields) => march_grid(
+                sink,
+                fields,
+                scene.scalar_tolerance,
+                ray,
+                t_near,
+                t_far,
+                crossings,
+            ),
+        }
+    }
+}
+
+/// The ray's ambient and sunlight weights of single scattering, for a sorted
+/// volume with scattering.
+fn ray_light(scene: &ReferenceScene, ray: &Ray) -> Option<(f64, f64)> {
+    scene
+        .scattering
+        .filter(|_| scene.mode == OpticalMode::Sorted)
+        .map(|scattering| {
+            let cos_theta = ray.direction.dot(scattering.sun_direction);
+            (
+                scattering.ambient,
+                scattering.sunlight * henyey_greenstein(scattering.asymmetry, cos_theta),
+            )
+        })
+}
+
+/// The ray distance where `scene`'s volume ends along the ray through pixel
+/// `(x, y)`: its opaque depth, converted.
+fn far_distance(scene: &ReferenceScene, x: u32, y: u32, depth_to_distance: f64) -> f64 {
+    scene.opaque_depth.as_ref().map_or(f64::INFINITY, |depth| {
+        f64::from(depth[(y * scene.camera.width + x) as usize]) / depth_to_distance
+    })
+}
+
 fn render_pixel(
     scene: &ReferenceScene,
     integrator: &Integrator<'_>,
@@ -560,48 +688,26 @@ fn render_pixel(
     let camera = &scene.camera;
     let (ray, depth_to_distance) = camera.pixel_ray(x, y);
     let t_near = camera.near / depth_to_distance;
-    let t_far = scene.opaque_depth.as_ref().map_or(f64::INFINITY, |depth| {
-        f64::from(depth[(y * camera.width + x) as usize]) / depth_to_distance
-    });
+    let t_far = far_distance(scene, x, y, depth_to_distance);
     let volume = if t_near < t_far {
-        let light = scene
-            .scattering
-            .filter(|_| scene.mode == OpticalMode::Sorted)
-            .map(|scattering| {
-                let cos_theta = ray.direction.dot(scattering.sun_direction);
-                (
-                    scattering.ambient,
-                    scattering.sunlight * henyey_greenstein(scattering.asymmetry, cos_theta),
-                )
-            });
         let mut march = March {
-            transfer_function: &scene.transfer_function,
-            mode: scene.mode,
+            medium: Medium {
+                transfer_function: &scene.transfer_function,
+                mode: scene.mode,
+                light: ray_light(scene, &ray),
+            },
             colour: DVec4::ZERO,
             ray,
-            light,
             fog: scene.fog.as_ref(),
         };
-        match integrator {
-            Integrator::Cells { cells, bins } => march_cells(
-                &mut march,
-                cells,
-                bins.candidates(x, y),
-                &ray,
-                t_near,
-                t_far,
-                scratch,
-            ),
-            Integrator::Grid(fields) => march_grid(
-                &mut march,
-                fields,
-                scene.scalar_tolerance,
-                &ray,
-                t_near,
-                t_far,
-                scratch,
-            ),
-        }
+        integrator.march(
+            &mut march,
+            scene,
+            &ray,
+            (x, y, t_near, t_far),
+            &mut scratch.segments,
+            &mut scratch.crossings,
+        );
         march.colour
     } else {
         DVec4::ZERO
@@ -609,30 +715,143 @@ fn render_pixel(
     scene.mode.composite(volume, scene.background)
 }
 
-/// Front-to-back accumulation along one ray.
-struct March<'a> {
+/// A pixel of [`render_together`]: every medium's pieces along the ray,
+/// merged by distance; where pieces of several media overlap, the stretch is
+/// integrated jointly.
+fn render_pixel_together(
+    scenes: &[ReferenceScene],
+    integrators: &[Integrator<'_>],
+    scratch: &mut Scratch,
+    x: u32,
+    y: u32,
+) -> PremultipliedRgba {
+    let first = &scenes[0];
+    let (ray, depth_to_distance) = first.camera.pixel_ray(x, y);
+    let t_near = first.camera.near / depth_to_distance;
+    let Scratch {
+        segments,
+        crossings,
+        pieces,
+        active,
+    } = scratch;
+    pieces.clear();
+    for (medium, (scene, integrator)) in scenes.iter().zip(integrators).enumerate() {
+        let t_far = far_distance(scene, x, y, depth_to_distance);
+        if t_near < t_far {
+            let mut collector = Collector {
+                pieces,
+                medium,
+                reach: f64::NEG_INFINITY,
+            };
+            integrator.march(
+                &mut collector,
+                scene,
+                &ray,
+                (x, y, t_near, t_far),
+                segments,
+                crossings,
+            );
+        }
+    }
+    pieces.sort_by(|a, b| a.t_front.total_cmp(&b.t_front));
+    let media: Vec<Medium<'_>> = scenes
+        .iter()
+        .map(|scene| Medium {
+            transfer_function: &scene.transfer_function,
+            mode: scene.mode,
+            light: ray_light(scene, &ray),
+        })
+        .collect();
+    let mut march = JointMarch {
+        colour: DVec4::ZERO,
+        ray,
+        fog: first.fog.as_ref(),
+    };
+    // Sweep the pieces front to back; `active` holds those over `position`.
+    active.clear();
+    let (mut next, mut position) = (0, f64::NEG_INFINITY);
+    loop {
+        if active.is_empty() {
+            let Some(piece) = pieces.get(next) else { break };
+            position = piece.t_front;
+        }
+        while let Some(piece) = pieces.get(next).filter(|piece| piece.t_front <= position) {
+            active.push(*piece);
+            next += 1;
+        }
+        let end = active
+            .iter()
+            .map(|piece| piece.t_back)
+            .chain(pieces.get(next).map(|piece| piece.t_front))
+            .fold(f64::INFINITY, f64::min);
+        if end > position {
+            march.add(&media, active, position, end);
+            if march.is_opaque() {
+                break;
+            }
+        }
+        position = end;
+        active.retain(|piece| piece.t_back > position);
+    }
+    OpticalMode::Sorted.composite(march.colour, first.background)
+}
+
+/// One medium as a ray sees it.
+#[derive(Clone, Copy)]
+struct Medium<'a> {
     transfer_function: &'a TransferFunction,
     mode: OpticalMode,
-    colour: PremultipliedRgba,
-    ray: Ray,
     /// The ray's ambient and sunlight weights of single scattering.
     light: Option<(f64, f64)>,
+}
+
+impl Medium<'_> {
+    /// The exact segment `s_front → s_back` of (modulated) `length`, lit.
+    fn segment(&self, s_front: f64, s_back: f64, length: f64) -> PremultipliedRgba {
+        let segment = exact_segment(self.transfer_function, self.mode, s_front, s_back, length);
+        self.light.map_or(segment, |(ambient, sunlight)| {
+            (ambient * segment.w + sunlight * segment.truncate()).extend(segment.w)
+        })
+    }
+
+    /// Its share of a joint segment over `piece`'s stretch `[t0, t1]`.
+    fn joint(&self, piece: &RayPiece, t0: f64, t1: f64) -> JointMedium<'_> {
+        let (s_front, s_back, length) = piece.part(t0, t1);
+        let (ambient, emission_weight) = self.light.unwrap_or((0.0, 1.0));
+        JointMedium {
+            transfer_function: self.transfer_function,
+            s_front,
+            s_back,
+            density_scale: length / (t1 - t0),
+            absorbs: self.mode == OpticalMode::Sorted,
+            emission_weight,
+            ambient,
+        }
+    }
+}
+
+/// Where a march puts the linear pieces of a volume along a ray.
+trait PieceSink {
+    /// Takes the linear segment `s_front → s_back` of (modulated) `length`,
+    /// lying over `[t_front, t_back]` along the ray.
+    fn add(&mut self, t_front: f64, t_back: f64, s_front: f64, s_back: f64, length: f64);
+
+    /// Whether nothing behind can change the pixel any more.
+    fn is_opaque(&self) -> bool;
+}
+
+/// Front-to-back accumulation of one volume along one ray.
+struct March<'a> {
+    medium: Medium<'a>,
+    colour: PremultipliedRgba,
+    ray: Ray,
     fog: Option<&'a ReferenceFog>,
 }
 
-impl March<'_> {
-    /// Adds the linear segment `s_front → s_back` of (modulated) `length`,
-    /// lying over `[t_front, t_back]` along the ray, behind what is
-    /// accumulated.
+impl PieceSink for March<'_> {
     fn add(&mut self, t_front: f64, t_back: f64, s_front: f64, s_back: f64, length: f64) {
-        let (tf, mode, light) = (self.transfer_function, self.mode, self.light);
-        let segment = |s_front: f64, s_back: f64, length: f64| {
-            let segment = exact_segment(tf, mode, s_front, s_back, length);
-            light.map_or(segment, |(ambient, sunlight)| {
-                (ambient * segment.w + sunlight * segment.truncate()).extend(segment.w)
-            })
-        };
-        let whole = segment(s_front, s_back, length);
+        let (medium, mode) = (self.medium, self.medium.mode);
+        let whole = medium.segment(s_front, s_back, length);
         let Some(fog) = self.fog else {
             self.colour = mode.composite(self.colour, whole);
             return;
@@ -646,7 +865,7 @@ impl March<'_> {
             mode == OpticalMode::Sorted,
             |k, count| {
                 let at = |k: usize| s_front + (s_back - s_front) * k as f64 / count as f64;
-                segment(at(k), at(k + 1), length / count as f64)
+                medium.segment(at(k), at(k + 1), length / count as f64)
             },
             |part| {
                 self.colour = mode.composite(self.colour, part);
@@ -655,22 +874,152 @@ impl March<'_> {
         );
     }
 
-    /// Whether nothing behind can change the pixel any more.
     fn is_opaque(&self) -> bool {
-        self.mode == OpticalMode::Sorted && 1.0 - self.colour.w < MIN_TRANSMITTANCE
+        self.medium.mode == OpticalMode::Sorted && 1.0 - self.colour.w < MIN_TRANSMITTANCE
+    }
+}
+
+/// A linear piece of one medium along a ray, for [`render_together`].
+#[derive(Clone, Copy, Debug)]
+struct RayPiece {
+    t_front: f64,
+    t_back: f64,
+    s_front: f64,
+    s_back: f64,
+    /// The (modulated) length.
+    length: f64,
+    /// Index of the medium (scene).
+    medium: usize,
+}
+
+impl RayPiece {
+    /// The scalars and (modulated) length over `[t0, t1]` ⊆ the piece; the
+    /// piece's own where the stretch is the whole piece.
+    fn part(&self, t0: f64, t1: f64) -> (f64, f64, f64) {
+        let span = self.t_back - self.t_front;
+        let s_at = |t: f64| {
+            if t == self.t_front {
+                self.s_front
+            } else if t == self.t_back {
+                self.s_back
+            } else {
+                self.s_front + (self.s_back - self.s_front) * ((t - self.t_front) / span)
+            }
+        };
+        let length = if t0 == self.t_front && t1 == self.t_back {
+            self.length
+        } else {
+            self.length * ((t1 - t0) / span)
+        };
+        (s_at(t0), s_at(t1), length)
+    }
+}
+
+/// Collects one medium's pieces for [`render_together`]. The pieces of one
+/// medium come front to back and do not overlap: where rounding makes a cell's
+/// entry fall before the previous cell's exit, the piece starts at that exit.
+struct Collector<'a> {
+    pieces: &'a mut Vec<RayPiece>,
+    medium: usize,
+    /// The farthest exit so far.
+    reach: f64,
+}
+
+impl PieceSink for Collector<'_> {
+    fn add(&mut self, t_front: f64, t_back: f64, s_front: f64, s_back: f64, length: f64) {
+        let t_front = t_front.max(self.reach);
+        if t_back > t_front {
+            self.reach = t_back;
+            self.pieces.push(RayPiece {
+                t_front,
+                t_back,
+                s_front,
+                s_back,
+                length,
+                medium: self.medium,
+            });
+        }
+    }
+
+    fn is_opaque(&self) -> bool {
+        false
+    }
+}
+
+/// Front-to-back accumulation of several media along one ray, for
+/// [`render_together`]: "over", with the emissive media's opacity dropped.
+struct JointMarch<'a> {
+    colour: PremultipliedRgba,
+    ray: Ray,
+    fog: Option<&'a ReferenceFog>,
+}
+
+impl JointMarch<'_> {
+    /// Adds the stretch `[t0, t1]` over which the pieces `active` (at least
+    /// one, each covering it) lie: one alone as its own exact segment,
+    /// several as their joint segment.
+    fn add(&mut self, media: &[Medium<'_>], active: &[RayPiece], t0: f64, t1: f64) {
+        let absorbs = active
+            .iter()
+            .any(|piece| media[piece.medium].mode == OpticalMode::Sorted);
+        let stretch = |a: f64, b: f64| {
+            let (ta, tb) = if (a, b) == (0.0, 1.0) {
+                (t0, t1)
+            } else {
+                (t0 + (t1 - t0) * a, t0 + (t1 - t0) * b)
+            };
+            if let [piece] = active {
+                let (s_front, s_back, length) = piece.part(ta, tb);
+                media[piece.medium].segment(s_front, s_back, length)
+            } else {
+                let joint: Vec<JointMedium<'_>> = active
+                    .iter()
+                    .map(|piece| media[piece.medium].joint(piece, ta, tb))
+                    .collect();
+                exact_joint_segment(&joint, tb - ta)
+            }
+        };
+        let coverage = |part: PremultipliedRgba| {
+            if absorbs {
+                part
+            } else {
+                part.truncate().extend(0.0)
+            }
+        };
+        let whole = stretch(0.0, 1.0);
+        let Some(fog) = self.fog else {
+            self.colour = OpticalMode::Sorted.composite(self.colour, coverage(whole));
+            return;
+        };
+        let ray = self.ray;
+        fog.conjugated_pieces(
+            &ray,
+            t0,
+            t1,
+            whole,
+            absorbs,
+            |k, count| stretch(k as f64 / count as f64, (k + 1) as f64 / count as f64),
+            |part| {
+                self.colour = OpticalMode::Sorted.composite(self.colour, coverage(part));
+                self.is_opaque()
+            },
+        );
+    }
+
+    fn is_opaque(&self) -> bool {
+        1.0 - self.colour.w < MIN_TRANSMITTANCE
     }
 }
 
 fn march_cells(
-    march: &mut March<'_>,
+    march: &mut impl PieceSink,
     cells: &[(PreparedTetrahedron, Option<PreparedTetrahedron>)],
     candidates: &[u32],
     ray: &Ray,
     t_near: f64,
     t_far: f64,
-    scratch: &mut Scratch,
+    segments: &mut Vec<(CellSegment, Option<[f64; 2]>)>,
 ) {
-    let segments = &mut scratch.segments;
     segments.clear();
     segments.extend(candidates.iter().filter_map(|&index| {
         let (cell, modulator) = &cells[index as usize];
@@ -684,9 +1033,8 @@ fn march_cells(
         };
         (segment.length() > 0.0).then_some((segment, modulation))
     }));
-    if march.mode == OpticalMode::Sorted {
-        segments.sort_unstable_by(|a, b| a.0.t_entry.total_cmp(&b.0.t_entry));
-    }
+    // Front to back (what emissive and MIP sums need not, but a collector does).
+    segments.sort_unstable_by(|a, b| a.0.t_entry.total_cmp(&b.0.t_entry));
     'segments: for (segment, modulation) in segments.iter() {
         // The GPU's pieces, each with the mean of the linear modulator; an
         // unmodulated segment is one piece (WGSL's `mix`, exact at 0 and 1,
@@ -832,13 +1180,13 @@ struct GridFields<'a> {
 }
 
 fn march_grid(
-    march: &mut March<'_>,
+    march: &mut impl PieceSink,
     &GridFields { grid, modulator }: &GridFields<'_>,
     tolerance: f64,
     ray: &Ray,
     t_near: f64,
     t_far: f64,
-    scratch: &mut Scratch,
+    crossings: &mut Vec<f64>,
 ) {
     let dims = grid.dims();
     // The ray in grid units: u(t) = start + t · step.
@@ -866,7 +1214,6 @@ fn march_grid(
         return;
     }
     // Every crossing of a cell plane inside (t_enter, t_exit), sorted.
-    let crossings = &mut scratch.crossings;
     crossings.clear();
     crossings.push(t_enter);
     for axis in 0..3 {
@@ -1418,6 +1765,160 @@ mod tests {
                 .iter()
                 .all(|p| p[3] > 0.0 && p.iter().all(|c| c.is_finite()))
         );
+    }
+
+    /// A grid of one cell over the box `min..max`, the scalar `value` at
+    /// every corner.
+    fn box_grid(min: DVec3, max: DVec3, value: f32) -> ReferenceVolume {
+        ReferenceVolume::Grid(DensityGrid::new([2, 2, 2], max - min, min, vec![value; 8]).unwrap())
+    }
+
+    /// The uniform transfer function of colour `kappa`, density `rho`.
+    fn uniform_tf(kappa: [f32; 3], rho: f32) -> TransferFunction {
+        TransferFunction::new(vec![ControlPoint { s: 0.5, kappa, rho }]).unwrap()
+    }
+
+    /// Camera on +z looking down −z at the origin.
+    fn axis_camera() -> ReferenceCamera {
+        ReferenceCamera {
+            position: DVec3::new(0.0, 0.0, 6.0),
+            width: 40,
+            height: 30,
+            vertical_fov: 0.3,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn overlapping_volumes_together_match_the_closed_form() {
+        // A over z ∈ [−1, 1], B over z ∈ [−2, 0], both |x|, |y| ≤ 1: along a
+        // ray A alone, then both, then B alone.
+        let (ka, ra) = (DVec3::new(1.0, 0.25, 0.125), 2.0);
+        let (kb, rb) = (DVec3::new(0.125, 0.25, 1.0), 0.5);
+        let camera = axis_camera();
+        let scene = |volume, tf| ReferenceScene::new(camera, volume, tf, OpticalMode::Sorted);
+        let a = scene(
+            box_grid(DVec3::splat(-1.0), DVec3::splat(1.0), 0.5),
+            uniform_tf([1.0, 0.25, 0.125], 2.0),
+        );
+        let b = scene(
+            box_grid(DVec3::new(-1.0, -1.0, -2.0), DVec3::new(1.0, 1.0, 0.0), 0.5),
+            uniform_tf([0.125, 0.25, 1.0], 0.5),
+        );
+        let together = render_together(&[b, a], None).unwrap();
+        let segment = |kappa: DVec3, rho: f64, l: f64| {
+            let alpha = -(-rho * l).exp_m1();
+            (kappa * alpha).extend(alpha)
+        };
+        let mut checked = 0;
+        for (x, y) in (0..camera.height).flat_map(|y| (0..camera.width).map(move |x| (x, y))) {
+            let (ray, _) = camera.pixel_ray(x, y);
+            let at_z = |z: f64| ray.at((z - ray.origin.z) / ray.direction.z);
+            let inside = |p: DVec3| p.x.abs() < 0.99 && p.y.abs() < 0.99;
+            if !(inside(at_z(1.0)) && inside(at_z(-2.0))) {
+                continue;
+            }
+            let l = 1.0 / -ray.direction.z;
+            let both = segment((ka * ra + kb * rb) / (ra + rb), ra + rb, l);
+            let expected = OpticalMode::Sorted.composite(
+                segment(ka, ra, l),
+                OpticalMode::Sorted.composite(both, segment(kb, rb, l)),
+            );
+            let pixel =
+                DVec4::from(together.pixels[(y * camera.width + x) as usize].map(f64::from));
+            assert!(
+                (pixel - expected).abs().max_element() < 1e-6,
+                "({x}, {y}): {pixel} vs {expected}"
+            );
+            checked += 1;
+        }
+        assert!(checked > 100, "only {checked} pixels checked");
+    }
+
+    #[test]
+    fn volumes_apart_together_are_each_alone_in_ray_order() {
+        // A sorted ramp in front of an emissive ramp and a sorted box: each
+        // ray meets them one after the other, so rendering them together is
+        // compositing each alone, front to back (the emissive one without
+        // opacity), whatever the order they are given in.
+        let camera = camera();
+        let front = ReferenceScene::new(
+            camera,
+            ReferenceVolume::Grid(grid(5, |p| (0.5 + 0.4 * p.x * p.y).clamp(0.0, 1.0))),
+            ramp_tf(),
+            OpticalMode::Sorted,
+        );
+        let shifted = |z: f64| {
+            let ReferenceVolume::Grid(grid) = &front.volume else {
+                unreachable!()
+            };
+            let values = (0..125).map(|i| (i % 7) as f32 / 6.0).collect();
+            ReferenceVolume::Grid(
+                DensityGrid::new(
+                    grid.dims(),
+                    grid.spacing(),
+                    grid.origin() - DVec3::Z * z,
+                    values,
+                )
+                .unwrap(),
+            )
+        };
+        let emissive = ReferenceScene::new(camera, shifted(2.5), ramp_tf(), OpticalMode::Emissive);
+        let back = ReferenceScene::new(camera, shifted(5.0), constant_tf(), OpticalMode::Sorted);
+        let together =
+            render_together(&[back.clone(), front.clone(), emissive.clone()], None).unwrap();
+        let [front, emissive, back] =
+            [front, emissive, back].map(|scene| render(&scene, None).unwrap());
+        let mut lit = 0;
+        for (index, pixel) in together.pixels.iter().enumerate() {
+            let at = |image: &LinearImage| DVec4::from(image.pixels[index].map(f64::from));
+            let glow = at(&emissive).truncate().extend(0.0);
+            let expected = OpticalMode::Sorted
+                .composite(at(&front), OpticalMode::Sorted.composite(glow, at(&back)));
+            let pixel = DVec4::from(pixel.map(f64::from));
+            assert!(
+                (pixel - expected).abs().max_element() < 1e-6,
+                "pixel {index}: {pixel} vs {expected}"
+            );
+            lit += usize::from(at(&front).w > 0.01 && glow.max_element() > 0.01);
+        }
+        assert!(lit > 100, "only {lit} pixels see both");
+    }
+
+    #[test]
+    fn scenes_that_cannot_go_together_are_refused() {
+        let scene = ReferenceScene::new(
+            camera(),
+            ReferenceVolume::Grid(grid(3, |_| 0.5)),
+            constant_tf(),
+            OpticalMode::Sorted,
+        );
+        let refused = |scenes: &[ReferenceScene]| {
+            matches!(
+                render_together(scenes, None),
+                Err(ReferenceError::NotJoint { .. })
+            )
+        };
+        assert!(refused(&[]));
+        let mip = ReferenceScene {
+            mode: OpticalMode::Mip,
+            ..scene.clone()
+        };
+        assert!(refused(&[scene.clone(), mip]));
+        let moved = ReferenceScene {
+            camera: ReferenceCamera {
+                position: DVec3::ONE,
+                ..scene.camera
+            },
+            ..scene.clone()
+        };
+        assert!(refused(&[scene.clone(), moved]));
+        let grey = ReferenceScene {
+            background: DVec4::new(0.1, 0.1, 0.1, 1.0),
+            ..scene.clone()
+        };
+        assert!(refused(&[scene.clone(), grey]));
+        assert!(render_together(&[scene.clone(), scene], None).is_ok());
     }
 
     #[test]

@@ -7,7 +7,8 @@
 //!   reference renderer through a tetrahedral mesh or a trilinear grid, with
 //!   an optional segment-length modulator, single scattering, opaque depth
 //!   and fog layers ([`ReferenceFog`], module `fog`: height fog exact along
-//!   every ray, and volumes seen through it).
+//!   every ray, and volumes seen through it); [`render_together`] integrates
+//!   several volumes along each ray as one medium.
 //! - [`image_metrics`]: linear images, sRGB PNG input and output, RMSE,
 //!   maximum absolute error and PSNR, difference images.
 //!
@@ -27,5 +28,5 @@ mod integrator;
 pub use fog::{FogSunlight, ReferenceFog};
 pub use integrator::{
     DEFAULT_SCALAR_TOLERANCE, Modulation, ReferenceCamera, ReferenceError, ReferenceScene,
-    ReferenceVolume, RenderProgress, SegmentScattering, render,
+    ReferenceVolume, RenderProgress, SegmentScattering, render, render_together,
 };

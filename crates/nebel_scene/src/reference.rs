@@ -23,13 +23,14 @@ use nebel_reference::{
     SegmentScattering,
 };
 
-/// How far a reference image is: which volume, and its rows.
+/// How far a reference image is: which pass, and its rows.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ReferenceProgress {
-    /// The volume being integrated, from 0.
-    pub volume: usize,
-    /// Volumes in the image.
-    pub volumes: usize,
+    /// The pass being integrated, from 0: the sorted and emissive volumes
+    /// together first, then each MIP volume.
+    pub pass: usize,
+    /// Passes in the image.
+    pub passes: usize,
     /// Rows of this volume finished so far.
     pub rows_done: u32,
     /// Rows of the image.
@@ -45,13 +46,15 @@ pub struct ReferenceProgress {
 /// the segment-length modulator ([`Modulation::Grid`]), but continuous and in
 /// f32 where the GPU draws the octree's 8-bit, level-of-detail cells.
 ///
-/// Each volume is integrated on its own and the results are combined the way
-/// the GPU pass does: accumulated from transparent, farthest centre first,
-/// each with its mode ([`OpticalMode::composite`]: "over" for sorted, sum for
-/// emissive, maximum for MIP, the last two with no opacity), then put over
-/// the clear colour, or over black where the pixel's ray ends on a mesh. This
-/// is exact when the volumes do not interpenetrate along a ray, and for
-/// emissive and MIP volumes always.
+/// The sorted and emissive volumes are integrated along each ray together
+/// ([`nebel_reference::render_together`]): where they interpenetrate they
+/// absorb and emit as one medium, elsewhere they follow each other in their
+/// order along the ray. That is the truth the GPU is held to. MIP volumes are
+/// integrated on their own and combined with that image the way the GPU
+/// combines batches: farthest first by centre (the sorted and emissive
+/// volumes at their nearest centre), the maximum of colours with no opacity.
+/// The result goes over the clear colour, or over black where the pixel's ray
+/// ends on a mesh.
 ///
 /// Errors: [`ReferenceError::OverBudget`] when the image or the opaque depth
 /// exceeds the memory budget, before it is allocated, and the errors of
@@ -86,10 +89,10 @@ pub fn reference_image_with_terrain(
         .map_err(|invalid| ReferenceError::InvalidFog {
             reason: format!("fog_layers.{}: {}", invalid.field, invalid.reason),
         })?;
-    let mut layers = Vec::with_capacity(volumes.len());
-    let volume_count = volumes.len();
+    let mut joint = Vec::with_capacity(volumes.len());
+    let mut mips = Vec::new();
     let last_frame = f64::from(scene.frame_time(scene.output.frames.saturating_sub(1)));
-    for (index, volume) in volumes.into_iter().enumerate() {
+    for volume in volumes {
         let sun = sun.unwrap_or(DVec3::Y);
         // A lit grid's fields as the GPU draws them: the light field as one
         // of scalar and modulator.
@@ -174,18 +177,40 @@ pub fn reference_image_with_terrain(
             reference_scene.opaque_depth =
                 Some(depth_within(&camera, opaque_depth.as_deref(), start));
         }
-        let report = |rows: RenderProgress| {
+        let distance = camera.position.distance(centre);
+        if volume.mode == OpticalMode::Mip {
+            mips.push((distance, reference_scene));
+        } else {
+            joint.push((distance, reference_scene));
+        }
+    }
+    // One image of the sorted and emissive volumes, one per MIP volume.
+    let passes = mips.len() + usize::from(!joint.is_empty());
+    let report = |pass: usize| {
+        move |rows: RenderProgress| {
             if let Some(progress) = progress {
                 progress(ReferenceProgress {
-                    volume: index,
-                    volumes: volume_count,
+                    pass,
+                    passes,
                     rows_done: rows.rows_done,
                     rows_total: rows.rows_total,
                 });
             }
-        };
-        let image = nebel_reference::render(&reference_scene, Some(&report))?;
-        layers.push((camera.position.distance(centre), volume.mode, image));
+        }
+    };
+    let mut layers = Vec::with_capacity(passes);
+    if !joint.is_empty() {
+        let nearest = joint
+            .iter()
+            .map(|(distance, _)| *distance)
+            .fold(f64::INFINITY, f64::min);
+        let scenes: Vec<ReferenceScene> = joint.into_iter().map(|(_, scene)| scene).collect();
+        let image = nebel_reference::render_together(&scenes, Some(&report(0)))?;
+        layers.push((nearest, OpticalMode::Sorted, image));
+    }
+    for (distance, scene) in mips {
+        let image = nebel_reference::render(&scene, Some(&report(layers.len())))?;
+        layers.push((distance, OpticalMode::Mip, image));
     }
     layers.sort_by(|a, b| b.0.total_cmp(&a.0));
 
@@ -211,8 +236,8 @@ pub fn reference_image_with_terrain(
             let mut accumulated = DVec4::ZERO;
             for (_, mode, image) in &layers {
                 let mut layer = DVec4::from(image.pixels[index].map(f64::from));
-                if *mode != OpticalMode::Sorted {
-                    // Emissive and MIP light the pixel without hiding what is behind.
+                if *mode == OpticalMode::Mip {
+                    // MIP lights the pixel without hiding what is behind.
                     layer.w = 0.0;
                 }
                 accumulated = mode.composite(layer, accumulated);

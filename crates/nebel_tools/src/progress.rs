@@ -21,15 +21,15 @@ pub fn bar(shown: bool, what: &str, length: u64) -> ProgressBar {
     bar
 }
 
-/// A bar over the rows of every volume of an exact reference, and the
+/// A bar over the rows of every pass of an exact reference, and the
 /// callback that moves it.
 pub fn reference_bar(shown: bool) -> (ProgressBar, impl Fn(ReferenceProgress) + Sync) {
     let bar = bar(shown, "reference row", 0);
     let moved = bar.clone();
     let report = move |progress: ReferenceProgress| {
         let total = u64::from(progress.rows_total);
-        moved.set_length(total * progress.volumes as u64);
-        moved.set_position(total * progress.volume as u64 + u64::from(progress.rows_done));
+        moved.set_length(total * progress.passes as u64);
+        moved.set_position(total * progress.pass as u64 + u64::from(progress.rows_done));
     };
     (bar, report)
 }
