@@ -17,7 +17,7 @@ use bevy::render::renderer::RenderContext;
 use bevy::render::texture::CachedTexture;
 use bevy::shader::ShaderDefVal;
 
-use super::pipeline::stencil_state;
+use super::pipeline::{RESOLVED, stencil_state};
 use super::settings::CellResolution;
 
 /// The format of the downsampled depth.
@@ -162,10 +162,11 @@ impl ResamplePipelines {
                         write_mask: ColorWrites::ALL,
                     })],
                 }),
-                // The pixels it fills are marked done.
+                // The pixels it fills are marked resolved.
                 depth_stencil: Some(stencil_state(
                     CompareFunction::Always,
                     StencilOperation::Replace,
+                    RESOLVED,
                 )),
                 ..default()
             }
@@ -284,7 +285,7 @@ impl ResamplePipelines {
             });
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, &bind_group, &[low.upsample_offset]);
-        pass.set_stencil_reference(1);
+        pass.set_stencil_reference(RESOLVED);
         pass.draw(0..3, 0..1);
     }
 }

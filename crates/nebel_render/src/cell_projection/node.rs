@@ -16,7 +16,9 @@ use nebel_core::optics::OpticalMode;
 
 use super::CellProjectionStats;
 use super::low_resolution::{ResamplePipelines, UpsampleUniforms};
-use super::pipeline::{CellProjectionPipeline, mode_index, variant_index, view_layout_index};
+use super::pipeline::{
+    CellProjectionPipeline, TERMINATED, mode_index, variant_index, view_layout_index,
+};
 use super::queries::{CellQueries, ViewQueries};
 use super::resources::{
     CellProjectionView, CellViewUniforms, ExtractedCellBatch, ExtractedCellBatches, GpuCellBuffers,
@@ -80,8 +82,9 @@ struct Passes<'a> {
     pipeline: &'a CellProjectionPipeline,
     pipeline_cache: &'a PipelineCache,
     stats: &'a CellProjectionStats,
-    /// Marks pay only where a segment has opacity.
-    sorted: bool,
+    /// Whether to mark terminated pixels: the view asks for early
+    /// termination and a segment has opacity to mark.
+    terminates: bool,
 }
 
 impl Passes<'_> {
@@ -109,7 +112,7 @@ impl Passes<'_> {
         };
         let termination = round
             .stencil
-            .filter(|_| self.sorted)
+            .filter(|_| self.terminates)
             .zip(cache.get_render_pipeline(self.pipeline.termination));
         let counts: Vec<u32> = self.draws.iter().map(|draw| draw.count).collect();
         let group = match termination {
@@ -149,7 +152,7 @@ impl Passes<'_> {
                     });
                 pass.set_pipeline(termination_pipeline);
                 pass.set_bind_group(0, &accumulation_bind_group, &[]);
-                pass.set_stencil_reference(1);
+                pass.set_stencil_reference(TERMINATED);
                 pass.draw(0..3, 0..1);
             }
             let clear = first && round.clear;
@@ -295,7 +298,8 @@ pub fn draw_cell_batches(
         pipeline: &pipeline,
         pipeline_cache: &pipeline_cache,
         stats: &stats,
-        sorted: draws.iter().any(|draw| draw.mode == OpticalMode::Sorted),
+        terminates: cell_view.early_termination
+            && draws.iter().any(|draw| draw.mode == OpticalMode::Sorted),
     };
     let size = cell_view.accumulation.texture.size();
     let mut counters = queries.view(

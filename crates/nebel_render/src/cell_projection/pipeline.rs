@@ -72,10 +72,21 @@ pub struct CellProjectionPipeline {
 /// The format of the stencil that marks terminated pixels.
 pub(super) const STENCIL_FORMAT: TextureFormat = TextureFormat::Stencil8;
 
-/// A stencil-only state: `compare` against the reference, `pass` on success
-/// (a test that writes nothing keeps its write mask 0, so the early
-/// fragment tests stay on while the cell shader discards).
-pub(super) fn stencil_state(compare: CompareFunction, pass: StencilOperation) -> DepthStencilState {
+/// The stencil bit of pixels the low resolution resolved.
+pub(super) const RESOLVED: u32 = 1;
+
+/// The stencil bit of pixels whose transmittance fell below the threshold.
+pub(super) const TERMINATED: u32 = 2;
+
+/// A stencil-only state on the bits `mask`: `compare` against the
+/// reference, `pass` on success (a test that writes nothing keeps its write
+/// mask 0, so the early fragment tests stay on while the cell shader
+/// discards).
+pub(super) fn stencil_state(
+    compare: CompareFunction,
+    pass: StencilOperation,
+    mask: u32,
+) -> DepthStencilState {
     let face = StencilFaceState {
         compare,
         fail_op: StencilOperation::Keep,
@@ -87,20 +98,25 @@ pub(super) fn stencil_state(compare: CompareFunction, pass: StencilOperation) ->
         StencilState {
             front: face,
             back: face,
-            read_mask: 0xff,
+            read_mask: mask,
             write_mask: if pass == StencilOperation::Keep {
                 0
             } else {
-                0xff
+                mask
             },
         },
     )
 }
 
-/// The stencil test of cell fragments: drawn where the stencil equals the
-/// reference 0 (not terminated).
-fn cell_stencil() -> DepthStencilState {
-    stencil_state(CompareFunction::Equal, StencilOperation::Keep)
+/// The stencil test of cell fragments: drawn where no bit is set (neither
+/// resolved nor terminated), against the reference 0. MIP ignores
+/// termination: its maximum is not attenuated by the transmittance.
+fn cell_stencil(mode: OpticalMode) -> DepthStencilState {
+    let mask = match mode {
+        OpticalMode::Mip => RESOLVED,
+        OpticalMode::Sorted | OpticalMode::Emissive => RESOLVED | TERMINATED,
+    };
+    stencil_state(CompareFunction::Equal, StencilOperation::Keep, mask)
 }
 
 /// The index of a view layout: the depth texture as it is (single or
@@ -194,10 +210,11 @@ pub fn init_cell_projection_pipeline(
             targets: vec![],
             ..default()
         }),
-        // Sets the stencil to the pass's reference 1.
+        // Sets the terminated bit (the pass's reference).
         depth_stencil: Some(stencil_state(
             CompareFunction::Always,
             StencilOperation::Replace,
+            TERMINATED,
         )),
         ..default()
     });
@@ -359,7 +376,7 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
                 cull_mode: Some(Face::Back),
                 ..default()
             },
-            depth_stencil: key.stencil.then(cell_stencil),
+            depth_stencil: key.stencil.then(|| cell_stencil(key.mode)),
             ..default()
         }
     }

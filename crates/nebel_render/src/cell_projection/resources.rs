@@ -440,6 +440,9 @@ pub struct CellProjectionView {
     pub(super) hands_off: bool,
     /// Whether the cell shader counts its fragments.
     pub(super) count_fragments: bool,
+    /// Whether pixels stop taking cells once nearly opaque (the camera's
+    /// `CellProjection::early_termination`).
+    pub(super) early_termination: bool,
 }
 
 /// Lets the pass read the scene depth, only while there is something to draw.
@@ -606,6 +609,7 @@ pub fn prepare_cell_views(
             (low_view, low_variants)
         });
         commands.entity(entity).insert(CellProjectionView {
+            early_termination: settings.early_termination,
             uniform_offset,
             multisampled,
             accumulation,

@@ -38,7 +38,8 @@ pub struct CellProjection {
     /// and, between groups of them, a full-screen pass marks such pixels in
     /// a stencil that the later cells' fragments are tested against. What
     /// the skipped cells would have added is at most the threshold times
-    /// their radiance. Default true.
+    /// their radiance. MIP cells are not skipped (their maximum is not
+    /// attenuated). Default true.
     pub early_termination: bool,
 }
 
