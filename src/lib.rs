@@ -84,7 +84,8 @@ pub mod prelude {
         GroundFogStatus, HeightFogLayer, ValleyFog,
     };
     pub use nebel_render::{
-        AutoQuality, CellBatch, HeavyBuilds, LodCamera, NebelQuality, NebelSystems, QualityPreset,
+        AutoQuality, CellBatch, CellProjection, CellResolution, HeavyBuilds, LodCamera,
+        NebelQuality, NebelSystems, QualityPreset,
     };
     #[cfg(feature = "sky")]
     pub use nebel_sky::{
