@@ -87,7 +87,7 @@ pub struct HeadlessOptions {
     /// where Bevy's volumetric fog cannot. Default false.
     pub webgl2_limits: bool,
     /// Count the fragments the cell shader runs
-    /// ([`CountCellFragments`](nebel_render::CountCellFragments)), which
+    /// ([`CountCellFragments`]), which
     /// costs GPU time. Default false.
     pub count_fragments: bool,
 }
