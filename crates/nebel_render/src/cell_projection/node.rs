@@ -124,14 +124,20 @@ impl Passes<'_> {
             None => u32::MAX,
         };
         let accumulation = &round.accumulation.default_view;
-        let accumulation_bind_group = ctx.render_device().create_bind_group(
-            "nebel_cell_accumulation_bind_group",
-            &cache.get_bind_group_layout(&self.pipeline.composite_layout),
-            &BindGroupEntries::single(accumulation),
-        );
+        // The marking pass reads the accumulation.
+        let termination = termination.map(|(stencil, pipeline)| {
+            let bind_group = ctx.render_device().create_bind_group(
+                "nebel_cell_accumulation_bind_group",
+                &cache.get_bind_group_layout(&self.pipeline.composite_layout),
+                &BindGroupEntries::single(accumulation),
+            );
+            (stencil, pipeline, bind_group)
+        });
         for (index, pieces) in groups(&counts, group).iter().enumerate() {
             let first = index == 0;
-            if let (false, Some((stencil, termination_pipeline))) = (first, termination) {
+            if let (false, Some((stencil, termination_pipeline, accumulation_bind_group))) =
+                (first, &termination)
+            {
                 // Pixels that are (nearly) opaque by now take no more cells.
                 let mut pass = ctx
                     .command_encoder()
@@ -151,7 +157,7 @@ impl Passes<'_> {
                         multiview_mask: None,
                     });
                 pass.set_pipeline(termination_pipeline);
-                pass.set_bind_group(0, &accumulation_bind_group, &[]);
+                pass.set_bind_group(0, accumulation_bind_group, &[]);
                 pass.set_stencil_reference(TERMINATED);
                 pass.draw(0..3, 0..1);
             }

@@ -242,7 +242,12 @@ pub fn resolve_cell_queries(
 pub fn map_cell_queries(mut queries: ResMut<CellQueries>) {
     let current = queries.current;
     let frame = &mut queries.frames[current];
-    if frame.in_flight || !frame.is_used() {
+    if frame.in_flight {
+        return;
+    }
+    if !frame.is_used() {
+        // Nothing measured: the pixels do not carry over to the next frame.
+        frame.pixels = 0;
         return;
     }
     frame.in_flight = true;
