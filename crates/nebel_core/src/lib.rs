@@ -9,6 +9,7 @@
 //! - [`cell`]: tetrahedra, prisms, hexahedra, their decompositions and exact ray-cell intersection.
 //! - [`segment`]: the exact f64 ray integral of one linear segment, the reference for the tables.
 //! - [`joint_segment`]: the same for several media sharing a segment (volumes that interpenetrate).
+//! - [`overlap`]: the joint composite of overlapping volumes known per ray by colour, transmittance and span.
 //! - [`preintegration`]: pre-integration tables (3D colour, ρ̂, emission, MIP) and the zero-opacity test.
 //! - [`height_fog`]: density over altitude as layers and its exact optical depth along any ray.
 //! - [`field`]: density grids and height fields, PNG/raw loaders, noise generators, 2^n+1 resampling.
@@ -35,6 +36,7 @@ pub mod field;
 pub mod height_fog;
 pub mod joint_segment;
 pub mod optics;
+pub mod overlap;
 pub mod pacing;
 pub mod preintegration;
 pub mod segment;
