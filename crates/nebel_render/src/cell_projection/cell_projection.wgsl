@@ -55,6 +55,10 @@
 // batch's span of keyframe blends mixed; both stay linear over the cell, so
 // the segment is exactly that of the mixed field.
 //
+// MERGED (the batch overlaps others, merge.rs): drawn alone into a layer of
+// its own, with a second target that keeps the span of its segments along
+// the ray; cell_merge.wgsl composites the layers jointly.
+//
 // LOW_RESOLUTION (the view draws cells at a fraction of its resolution,
 // low_resolution.wgsl): the viewport and the opaque depth are the
 // low-resolution target's.
@@ -234,6 +238,16 @@ fn colour_lookup(s_front: f32, s_back: f32, depth: f32) -> vec3<f32> {
     return mix(layers[0], layers[1], z.y).rgb;
 }
 
+#ifdef MERGED
+// A batch drawn alone into its merged layer (merge.rs): the segment, and its
+// entry and negated exit distance, min-blended into the batch's span along
+// the ray.
+struct MergedOutput {
+    @location(0) segment: vec4<f32>,
+    @location(1) span: vec2<f32>,
+}
+#endif
+
 // The stencil of early termination and of the low resolution's resolved
 // pixels rejects fragments before they run: the shader writes no depth or
 // stencil, so its discards do not change what the test sees.
@@ -241,7 +255,11 @@ fn colour_lookup(s_front: f32, s_back: f32, depth: f32) -> vec3<f32> {
 @early_depth_test(force)
 #endif
 @fragment
+#ifdef MERGED
+fn fragment(in: VertexOutput) -> MergedOutput {
+#else
 fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
+#endif
 #ifdef COUNT_FRAGMENTS
     atomicAdd(&fragment_count, 1u);
 #endif
@@ -392,5 +410,9 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
         segment.a,
     );
 #endif
+#ifdef MERGED
+    return MergedOutput(segment, vec2(t_entry, -t_exit));
+#else
     return segment;
+#endif
 }

@@ -21,9 +21,10 @@
 //!   fog layers, stencil, low resolution, fragment counting);
 //! - `settings`: [`CellProjection`] and its extraction;
 //! - `low_resolution`: the downsampled depth and the upsample;
+//! - `merge`: batches whose bounds intersect, composited jointly per pixel;
 //! - `queries`: the GPU time and the fragment counter;
 //! - `node`: the draw system. Batches go front to back by the distance of
-//!   their bounds' centre, inside a batch in reverse buffer order (the
+//!   their bounds' centre (batches that overlap merged per pixel), inside a batch in reverse buffer order (the
 //!   batch's exact order is back to front), "under" the accumulation: a
 //!   float target of colour `C` and transmittance `T`, cleared to (0, 1),
 //!   takes each segment `(c, α)` as `C += T c`, `T *= 1 − α`. Between
@@ -56,6 +57,7 @@
 //! diagnostics prove it.
 
 mod low_resolution;
+mod merge;
 mod node;
 mod pipeline;
 mod queries;
@@ -87,6 +89,7 @@ use bevy::render::{
 
 use crate::cell_batch::CellBatch;
 use low_resolution::{UpsampleUniforms, init_resample_pipelines};
+use merge::init_merge_pipelines;
 use pipeline::{CellCompositePipelines, CellProjectionPipeline, init_cell_projection_pipeline};
 use queries::{CellQueries, collect_cell_queries, map_cell_queries, resolve_cell_queries};
 use resources::{
@@ -118,6 +121,10 @@ impl CellProjectionPlugin {
     /// Cells drawn so far, summed over passes.
     pub const CELLS_DRAWN: DiagnosticPath =
         DiagnosticPath::const_new("nebel/cell_projection/cells_drawn");
+    /// Batches drawn merged with others whose bounds they intersect, summed
+    /// over passes.
+    pub const MERGED_BATCHES: DiagnosticPath =
+        DiagnosticPath::const_new("nebel/cell_projection/merged_batches");
     /// Per frame, the fragments the cell shader ran over the views' pixels
     /// at full resolution, while [`CountCellFragments`] is on.
     pub const FRAGMENTS_PER_PIXEL: DiagnosticPath =
@@ -146,6 +153,8 @@ pub struct CellProjectionCounters {
     pub uploads: AtomicU64,
     /// Cells drawn, summed over passes.
     pub cells_drawn: AtomicU64,
+    /// Batches drawn merged, summed over passes.
+    pub merged_batches: AtomicU64,
     /// Frames measured on the GPU whose figures the main world has not
     /// published yet.
     measured: Mutex<Vec<FrameMeasurement>>,
@@ -190,13 +199,15 @@ impl CellProjectionStats {
 }
 
 impl CellProjectionCounters {
-    /// Current values: passes, tables built, uploads, cells drawn.
-    pub fn snapshot(&self) -> [u64; 4] {
+    /// Current values: passes, tables built, uploads, cells drawn, batches
+    /// drawn merged.
+    pub fn snapshot(&self) -> [u64; 5] {
         [
             &self.passes,
             &self.tables_built,
             &self.uploads,
             &self.cells_drawn,
+            &self.merged_batches,
         ]
         .map(|c| c.load(Ordering::Relaxed))
     }
@@ -209,6 +220,7 @@ impl Plugin for CellProjectionPlugin {
         embedded_asset!(app, "cell_composite.wgsl");
         embedded_asset!(app, "cell_termination.wgsl");
         embedded_asset!(app, "low_resolution.wgsl");
+        embedded_asset!(app, "cell_merge.wgsl");
         let stats = CellProjectionStats::default();
         app.insert_resource(stats.clone())
             .register_type::<CellBatch>()
@@ -230,6 +242,7 @@ impl Plugin for CellProjectionPlugin {
             Self::TABLES_BUILT,
             Self::UPLOADS,
             Self::CELLS_DRAWN,
+            Self::MERGED_BATCHES,
             Self::FRAGMENTS_PER_PIXEL,
             Self::GPU_MS,
         ] {
@@ -250,7 +263,11 @@ impl Plugin for CellProjectionPlugin {
             .init_resource::<UpsampleUniforms>()
             .add_systems(
                 RenderStartup,
-                (init_cell_projection_pipeline, init_resample_pipelines),
+                (
+                    init_cell_projection_pipeline,
+                    init_resample_pipelines,
+                    init_merge_pipelines,
+                ),
             )
             .add_systems(
                 ExtractSchedule,
@@ -314,7 +331,7 @@ fn publish_gpu_measurements(stats: Res<CellProjectionStats>, mut store: ResMut<D
 /// Publishes the render world's totals as diagnostics, from the first frame
 /// that did any cell-projection work on.
 fn publish_counters(stats: Res<CellProjectionStats>, mut diagnostics: Diagnostics) {
-    let [passes, tables_built, uploads, cells_drawn] = stats.counters().snapshot();
+    let [passes, tables_built, uploads, cells_drawn, merged] = stats.counters().snapshot();
     if passes + tables_built + uploads == 0 {
         return;
     }
@@ -323,6 +340,7 @@ fn publish_counters(stats: Res<CellProjectionStats>, mut diagnostics: Diagnostic
         (CellProjectionPlugin::TABLES_BUILT, tables_built),
         (CellProjectionPlugin::UPLOADS, uploads),
         (CellProjectionPlugin::CELLS_DRAWN, cells_drawn),
+        (CellProjectionPlugin::MERGED_BATCHES, merged),
     ] {
         diagnostics.add_measurement(&path, || value as f64);
     }

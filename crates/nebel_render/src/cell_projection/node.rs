@@ -16,6 +16,7 @@ use nebel_core::optics::OpticalMode;
 
 use super::CellProjectionStats;
 use super::low_resolution::{ResamplePipelines, UpsampleUniforms};
+use super::merge::{Item, MergePipelines, MergeTargets, items};
 use super::pipeline::{
     CellProjectionPipeline, TERMINATED, mode_index, variant_index, view_layout_index,
 };
@@ -39,24 +40,29 @@ struct Draw {
     count: u32,
 }
 
-/// Splits the draws, in order, into groups of about `group` cells: each
-/// group lists (draw, instance range) pieces.
-fn groups(counts: &[u32], group: u32) -> Vec<Vec<(usize, Range<u32>)>> {
+/// Splits the items, in order, into groups of about `group` cells: each
+/// group lists (item, instance range) pieces. An item drawn `whole` (a run
+/// of merged batches) is never split.
+fn groups(counts: &[u32], whole: &[bool], group: u32) -> Vec<Vec<(usize, Range<u32>)>> {
     let mut groups = vec![Vec::new()];
     let mut room = group;
-    for (draw, &count) in counts.iter().enumerate() {
+    for (item, &count) in counts.iter().enumerate() {
         let mut start = 0;
         while start < count {
             if room == 0 {
                 groups.push(Vec::new());
                 room = group;
             }
-            let end = count.min(start + room);
+            let end = if whole[item] {
+                count
+            } else {
+                count.min(start + room)
+            };
             groups
                 .last_mut()
                 .expect("one group at least")
-                .push((draw, start..end));
-            room -= end - start;
+                .push((item, start..end));
+            room = room.saturating_sub(end - start);
             start = end;
         }
     }
@@ -70,21 +76,101 @@ struct Round<'a> {
     view_bind_group: BindGroup,
     uniform_offset: u32,
     pipelines: &'a [[Option<CachedRenderPipelineId>; super::pipeline::VARIANTS]; 3],
+    /// The layers of merged batches, where batches overlap.
+    merge: Option<&'a MergeTargets>,
     /// The viewport the passes set, if not the whole target.
     viewport: Option<Vec4>,
     /// Whether the first pass clears the accumulation and the stencil.
     clear: bool,
 }
 
+/// What the passes of a round have still to do once: clear the
+/// accumulation, clear the stencil, write the view's first timestamp.
+struct Pending {
+    accumulation: bool,
+    stencil: bool,
+    timestamp: bool,
+}
+
 /// Everything a round needs besides its targets.
 struct Passes<'a> {
     draws: &'a [Draw],
+    /// The drawing order: batches alone and runs of merged batches.
+    items: &'a [Item],
     pipeline: &'a CellProjectionPipeline,
+    merge: &'a MergePipelines,
     pipeline_cache: &'a PipelineCache,
     stats: &'a CellProjectionStats,
     /// Whether to mark terminated pixels: the view asks for early
     /// termination and a segment has opacity to mark.
     terminates: bool,
+}
+
+/// Begins a pass of the round into `colour`, with the round's stencil and
+/// viewport, clearing the stencil and writing the first timestamp if still
+/// pending.
+fn begin_pass<'c>(
+    ctx: &'c mut RenderContext,
+    label: &str,
+    colour: &[Option<RenderPassColorAttachment>],
+    round: &Round,
+    counters: &ViewQueries,
+    pending: &mut Pending,
+) -> wgpu::RenderPass<'c> {
+    let clear_stencil = std::mem::take(&mut pending.stencil);
+    let timestamp = std::mem::take(&mut pending.timestamp);
+    let mut pass = ctx
+        .command_encoder()
+        .begin_render_pass(&RenderPassDescriptor {
+            label: Some(label),
+            color_attachments: colour,
+            depth_stencil_attachment: round.stencil.map(|stencil| {
+                RenderPassDepthStencilAttachment {
+                    view: &stencil.default_view,
+                    depth_ops: None,
+                    stencil_ops: Some(Operations {
+                        load: if clear_stencil {
+                            LoadOp::Clear(0)
+                        } else {
+                            LoadOp::Load
+                        },
+                        store: StoreOp::Store,
+                    }),
+                }
+            }),
+            timestamp_writes: if timestamp {
+                counters.timestamp(false)
+            } else {
+                None
+            },
+            occlusion_query_set: None,
+            multiview_mask: None,
+        });
+    if let Some(viewport) = round.viewport {
+        pass.set_viewport(viewport.x, viewport.y, viewport.z, viewport.w, 0.0, 1.0);
+    }
+    pass
+}
+
+/// The round's accumulation as a colour attachment, cleared to colour 0 and
+/// transmittance 1 if still pending.
+fn accumulation_attachment<'a>(
+    round: &'a Round,
+    pending: &mut Pending,
+) -> [Option<RenderPassColorAttachment<'a>>; 1] {
+    [Some(RenderPassColorAttachment {
+        view: &round.accumulation.default_view,
+        depth_slice: None,
+        resolve_target: None,
+        ops: Operations {
+            load: if std::mem::take(&mut pending.accumulation) {
+                LoadOp::Clear(LinearRgba::BLACK.into())
+            } else {
+                LoadOp::Load
+            },
+            store: StoreOp::Store,
+        },
+    })]
 }
 
 impl Passes<'_> {
@@ -110,11 +196,24 @@ impl Passes<'_> {
         else {
             return false;
         };
+        let merge = round.merge.and_then(|targets| {
+            cache
+                .get_render_pipeline(targets.pipeline)
+                .map(|pipeline| (targets, pipeline))
+        });
+        if merge.is_none() && self.items.iter().any(|item| item.merged) {
+            return false;
+        }
         let termination = round
             .stencil
             .filter(|_| self.terminates)
             .zip(cache.get_render_pipeline(self.pipeline.termination));
-        let counts: Vec<u32> = self.draws.iter().map(|draw| draw.count).collect();
+        let counts: Vec<u32> = self
+            .items
+            .iter()
+            .map(|item| item.draws.iter().map(|&draw| self.draws[draw].count).sum())
+            .collect();
+        let whole: Vec<bool> = self.items.iter().map(|item| item.merged).collect();
         let group = match termination {
             Some(_) => counts
                 .iter()
@@ -123,20 +222,23 @@ impl Passes<'_> {
                 .max(MIN_GROUP_CELLS),
             None => u32::MAX,
         };
-        let accumulation = &round.accumulation.default_view;
         // The marking pass reads the accumulation.
         let termination = termination.map(|(stencil, pipeline)| {
             let bind_group = ctx.render_device().create_bind_group(
                 "nebel_cell_accumulation_bind_group",
                 &cache.get_bind_group_layout(&self.pipeline.composite_layout),
-                &BindGroupEntries::single(accumulation),
+                &BindGroupEntries::single(&round.accumulation.default_view),
             );
             (stencil, pipeline, bind_group)
         });
-        for (index, pieces) in groups(&counts, group).iter().enumerate() {
-            let first = index == 0;
+        let mut pending = Pending {
+            accumulation: round.clear,
+            stencil: round.clear,
+            timestamp: first_of_view,
+        };
+        for (index, pieces) in groups(&counts, &whole, group).iter().enumerate() {
             if let (false, Some((stencil, termination_pipeline, accumulation_bind_group))) =
-                (first, &termination)
+                (index == 0, &termination)
             {
                 // Pixels that are (nearly) opaque by now take no more cells.
                 let mut pass = ctx
@@ -161,63 +263,95 @@ impl Passes<'_> {
                 pass.set_stencil_reference(TERMINATED);
                 pass.draw(0..3, 0..1);
             }
-            let clear = first && round.clear;
-            let mut pass = ctx
-                .command_encoder()
-                .begin_render_pass(&RenderPassDescriptor {
-                    label: Some("nebel_cell_projection_pass"),
-                    color_attachments: &[Some(RenderPassColorAttachment {
-                        view: accumulation,
-                        depth_slice: None,
-                        resolve_target: None,
-                        ops: Operations {
-                            // Colour 0 and transmittance 1.
-                            load: if clear {
-                                LoadOp::Clear(LinearRgba::BLACK.into())
-                            } else {
-                                LoadOp::Load
-                            },
-                            store: StoreOp::Store,
-                        },
-                    })],
-                    depth_stencil_attachment: round.stencil.map(|stencil| {
-                        RenderPassDepthStencilAttachment {
-                            view: &stencil.default_view,
-                            depth_ops: None,
-                            stencil_ops: Some(Operations {
-                                load: if clear {
-                                    LoadOp::Clear(0)
-                                } else {
-                                    LoadOp::Load
-                                },
-                                store: StoreOp::Store,
-                            }),
-                        }
-                    }),
-                    timestamp_writes: if first && first_of_view {
-                        counters.timestamp(false)
-                    } else {
-                        None
-                    },
-                    occlusion_query_set: None,
-                    multiview_mask: None,
-                });
-            self.stats.0.passes.fetch_add(1, Ordering::Relaxed);
-            if let Some(viewport) = round.viewport {
-                pass.set_viewport(viewport.x, viewport.y, viewport.z, viewport.w, 0.0, 1.0);
+            // Batches alone go into the accumulation a run at a time; a run
+            // of merged batches into their layers, then merged under it.
+            let mut run = Vec::new();
+            for (item, instances) in pieces {
+                let item = &self.items[*item];
+                if !item.merged {
+                    run.push((item.draws[0], instances.clone()));
+                    continue;
+                }
+                self.cells_pass(ctx, round, counters, &mut pending, &pipelines, &run);
+                run.clear();
+                let (targets, merge_pipeline) = merge.expect("checked above");
+                for (layer, &draw) in item.draws.iter().enumerate() {
+                    let count = self.draws[draw].count;
+                    let mut pass = begin_pass(
+                        ctx,
+                        "nebel_cell_merged_layer_pass",
+                        &targets.attachments(layer),
+                        round,
+                        counters,
+                        &mut pending,
+                    );
+                    self.stats.0.passes.fetch_add(1, Ordering::Relaxed);
+                    pass.set_bind_group(0, &round.view_bind_group, &[round.uniform_offset]);
+                    pass.set_pipeline(pipelines[draw]);
+                    pass.set_bind_group(1, &self.draws[draw].bind_group, &[]);
+                    pass.draw(0..6, 0..count);
+                    self.stats
+                        .0
+                        .cells_drawn
+                        .fetch_add(u64::from(count), Ordering::Relaxed);
+                    self.stats.0.merged_batches.fetch_add(1, Ordering::Relaxed);
+                }
+                let bind_group =
+                    targets.bind_group(ctx, cache, self.merge, item.draws.len() as u32);
+                let colour = accumulation_attachment(round, &mut pending);
+                let mut pass = begin_pass(
+                    ctx,
+                    "nebel_cell_merge_pass",
+                    &colour,
+                    round,
+                    counters,
+                    &mut pending,
+                );
+                pass.set_pipeline(merge_pipeline);
+                pass.set_bind_group(0, &bind_group, &[]);
+                pass.draw(0..3, 0..1);
             }
-            pass.set_bind_group(0, &round.view_bind_group, &[round.uniform_offset]);
-            for (draw, instances) in pieces {
-                pass.set_pipeline(pipelines[*draw]);
-                pass.set_bind_group(1, &self.draws[*draw].bind_group, &[]);
-                pass.draw(0..6, instances.clone());
-                self.stats
-                    .0
-                    .cells_drawn
-                    .fetch_add(u64::from(instances.len() as u32), Ordering::Relaxed);
+            if !run.is_empty() || pending.accumulation {
+                self.cells_pass(ctx, round, counters, &mut pending, &pipelines, &run);
             }
         }
         true
+    }
+
+    /// One pass of batches alone (`run`: draw, instances) into the round's
+    /// accumulation; none for an empty run.
+    fn cells_pass(
+        &self,
+        ctx: &mut RenderContext,
+        round: &Round,
+        counters: &ViewQueries,
+        pending: &mut Pending,
+        pipelines: &[&RenderPipeline],
+        run: &[(usize, Range<u32>)],
+    ) {
+        if run.is_empty() && !pending.accumulation {
+            return;
+        }
+        let colour = accumulation_attachment(round, pending);
+        let mut pass = begin_pass(
+            ctx,
+            "nebel_cell_projection_pass",
+            &colour,
+            round,
+            counters,
+            pending,
+        );
+        self.stats.0.passes.fetch_add(1, Ordering::Relaxed);
+        pass.set_bind_group(0, &round.view_bind_group, &[round.uniform_offset]);
+        for (draw, instances) in run {
+            pass.set_pipeline(pipelines[*draw]);
+            pass.set_bind_group(1, &self.draws[*draw].bind_group, &[]);
+            pass.draw(0..6, instances.clone());
+            self.stats
+                .0
+                .cells_drawn
+                .fetch_add(u64::from(instances.len() as u32), Ordering::Relaxed);
+        }
     }
 }
 
@@ -237,6 +371,7 @@ pub fn draw_cell_batches(
     upsample_uniforms: Res<UpsampleUniforms>,
     pipeline: Res<CellProjectionPipeline>,
     resample: Res<ResamplePipelines>,
+    merge: Res<MergePipelines>,
     pipeline_cache: Res<PipelineCache>,
     stats: Res<CellProjectionStats>,
     mut queries: ResMut<CellQueries>,
@@ -258,6 +393,7 @@ pub fn draw_cell_batches(
     });
 
     let mut draws = Vec::with_capacity(order.len());
+    let mut draw_groups = Vec::with_capacity(order.len());
     for (entity, batch) in order {
         let (Some(buffer), Some(table)) =
             (buffers.0.get(entity), tables.tables.get(&batch.table_key))
@@ -288,11 +424,14 @@ pub fn draw_cell_batches(
                 buffer.scattered,
                 batch.hands_off && cell_view.hands_off,
                 buffer.blended,
+                batch.group.is_some(),
             ),
             bind_group,
             count: buffer.count,
         });
+        draw_groups.push(batch.group);
     }
+    let items = items(&draw_groups);
     let Some(composite_pipeline) = pipeline_cache.get_render_pipeline(cell_view.composite) else {
         return;
     };
@@ -301,7 +440,9 @@ pub fn draw_cell_batches(
     }
     let passes = Passes {
         draws: &draws,
+        items: &items,
         pipeline: &pipeline,
+        merge: &merge,
         pipeline_cache: &pipeline_cache,
         stats: &stats,
         terminates: cell_view.early_termination
@@ -352,6 +493,7 @@ pub fn draw_cell_batches(
             view_bind_group: view_bind_group(&mut ctx, &counters, true, &low.depth.default_view),
             uniform_offset: low.uniform_offset,
             pipelines: low_pipelines,
+            merge: cell_view.low_merge.as_ref(),
             viewport: Some(low.viewport),
             clear: true,
         };
@@ -375,6 +517,7 @@ pub fn draw_cell_batches(
         view_bind_group: view_bind_group(&mut ctx, &counters, false, depth.view()),
         uniform_offset: cell_view.uniform_offset,
         pipelines: &cell_view.pipelines,
+        merge: cell_view.merge.as_ref(),
         viewport: None,
         clear: low.is_none(),
     };
@@ -439,33 +582,45 @@ pub fn draw_over_view(
 mod tests {
     use super::groups;
 
-    /// Every instance of every draw lands in exactly one group, in order,
-    /// and no group holds more than the group size.
+    /// Every instance of every item lands in exactly one group, in order,
+    /// no group holds more than the group size unless it holds a whole item
+    /// alone at its end, and whole items are never split.
     #[test]
     fn groups_cover_every_cell_once_in_order() {
-        for (counts, group) in [
-            (vec![10, 0, 7, 3], 4),
-            (vec![1], 1),
-            (vec![5, 5], 5),
-            (vec![3, 9, 1], 100),
-            (vec![0], 3),
+        for (counts, whole, group) in [
+            (vec![10, 0, 7, 3], vec![false; 4], 4),
+            (vec![1], vec![false], 1),
+            (vec![5, 5], vec![false; 2], 5),
+            (vec![3, 9, 1], vec![false; 3], 100),
+            (vec![0], vec![false], 3),
+            (vec![3, 9, 1, 6], vec![false, true, false, true], 4),
+            (vec![2, 0, 5], vec![true, true, false], 3),
         ] {
-            let groups = groups(&counts, group);
+            let groups = groups(&counts, &whole, group);
             let mut expected =
-                (0..counts.len()).flat_map(|draw| (0..counts[draw]).map(move |i| (draw, i)));
+                (0..counts.len()).flat_map(|item| (0..counts[item]).map(move |i| (item, i)));
             for pieces in &groups {
                 let size: u32 = pieces.iter().map(|(_, range)| range.len() as u32).sum();
-                assert!(size <= group, "{counts:?} by {group}: a group of {size}");
-                for (draw, range) in pieces {
+                let last = pieces.last().map(|(_, range)| range.len() as u32);
+                assert!(
+                    size <= group || (size - last.unwrap_or(0) < group),
+                    "{counts:?} by {group}: a group of {size}"
+                );
+                for (item, range) in pieces {
                     assert!(!range.is_empty());
+                    if whole[*item] {
+                        assert_eq!(range.len() as u32, counts[*item]);
+                    }
                     for i in range.clone() {
-                        assert_eq!(expected.next(), Some((*draw, i)));
+                        assert_eq!(expected.next(), Some((*item, i)));
                     }
                 }
             }
             assert_eq!(expected.next(), None, "{counts:?} by {group}");
-            let total: u32 = counts.iter().sum();
-            assert_eq!(groups.len() as u32, total.div_ceil(group).max(1));
+            if !whole.contains(&true) {
+                let total: u32 = counts.iter().sum();
+                assert_eq!(groups.len() as u32, total.div_ceil(group).max(1));
+            }
         }
     }
 }

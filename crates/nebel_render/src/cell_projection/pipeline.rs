@@ -15,25 +15,28 @@ use bevy::shader::ShaderDefVal;
 use nebel_core::optics::OpticalMode;
 
 use super::CellProjection;
+use super::merge::{SPAN_BLEND, span_format};
 use super::resources::{CellTablesUniform, CellViewUniform};
 use crate::cell_batch::CellBatchUniform;
 
 /// The pipeline variants per optical mode ([`variant_index`]).
-pub(super) const VARIANTS: usize = 16;
+pub(super) const VARIANTS: usize = 32;
 
 /// The index of a pipeline variant: modulated segment lengths, single
-/// scattering, the handoff to fog layers and keyframe blending, each on or
-/// off.
+/// scattering, the handoff to fog layers, keyframe blending and drawing
+/// into a merged layer, each on or off.
 pub(super) fn variant_index(
     modulated: bool,
     scattering: bool,
     handoff: bool,
     blended: bool,
+    merged: bool,
 ) -> usize {
     usize::from(modulated)
         | usize::from(scattering) << 1
         | usize::from(handoff) << 2
         | usize::from(blended) << 3
+        | usize::from(merged) << 4
 }
 
 pub(super) fn mode_index(mode: OpticalMode) -> usize {
@@ -67,6 +70,8 @@ pub struct CellProjectionPipeline {
     /// The device can force the early fragment tests, which some drivers
     /// (lavapipe) leave until after a shader that may discard.
     early_depth_test: bool,
+    /// The format of a merged layer's span ([`span_format`]).
+    span_format: TextureFormat,
 }
 
 /// The format of the stencil that marks terminated pixels.
@@ -111,7 +116,7 @@ pub(super) fn stencil_state(
 /// The stencil test of cell fragments: drawn where no bit is set (neither
 /// resolved nor terminated), against the reference 0. MIP ignores
 /// termination: its maximum is not attenuated by the transmittance.
-fn cell_stencil(mode: OpticalMode) -> DepthStencilState {
+pub(super) fn cell_stencil(mode: OpticalMode) -> DepthStencilState {
     let mask = match mode {
         OpticalMode::Mip => RESOLVED,
         OpticalMode::Sorted | OpticalMode::Emissive => RESOLVED | TERMINATED,
@@ -157,6 +162,9 @@ pub struct CellProjectionPipelineKey {
     /// Every fragment adds to the fragment counter
     /// ([`CountCellFragments`](super::CountCellFragments)).
     pub count_fragments: bool,
+    /// Drawn into a merged layer of its own, with its span along the ray
+    /// (see [`super::merge`]).
+    pub merged: bool,
 }
 
 /// Creates the bind group layouts and loads the shaders.
@@ -247,6 +255,7 @@ pub fn init_cell_projection_pipeline(
         early_depth_test: device
             .features()
             .contains(WgpuFeatures::SHADER_EARLY_DEPTH_TEST),
+        span_format: span_format(&device),
     });
 }
 
@@ -281,21 +290,7 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
     type Key = CellProjectionPipelineKey;
 
     fn specialize(&self, key: Self::Key) -> RenderPipelineDescriptor {
-        // Front to back, the accumulation holds the colour C and the
-        // transmittance T: a segment (c, α) goes under, C += T c, T *= 1 − α.
-        // Emissive segments have α = 0: they add T c and leave T.
-        let under = BlendState {
-            color: BlendComponent {
-                src_factor: BlendFactor::DstAlpha,
-                dst_factor: BlendFactor::One,
-                operation: BlendOperation::Add,
-            },
-            alpha: BlendComponent {
-                src_factor: BlendFactor::Zero,
-                dst_factor: BlendFactor::OneMinusSrcAlpha,
-                operation: BlendOperation::Add,
-            },
-        };
+        let under = under_blend();
         let (mode_def, blend) = match key.mode {
             OpticalMode::Sorted => ("SORTED", under),
             OpticalMode::Emissive => ("EMISSIVE", under),
@@ -347,6 +342,19 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
         if key.blended {
             shader_defs.push("BLENDED".into());
         }
+        let mut targets = vec![Some(ColorTargetState {
+            format: key.target_format,
+            blend: Some(blend),
+            write_mask: ColorWrites::ALL,
+        })];
+        if key.merged {
+            shader_defs.push("MERGED".into());
+            targets.push(Some(ColorTargetState {
+                format: self.span_format,
+                blend: Some(SPAN_BLEND),
+                write_mask: ColorWrites::ALL,
+            }));
+        }
         RenderPipelineDescriptor {
             label: Some("nebel_cell_projection_pipeline".into()),
             layout: vec![
@@ -361,11 +369,7 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
             fragment: Some(FragmentState {
                 shader: self.shader.clone(),
                 shader_defs,
-                targets: vec![Some(ColorTargetState {
-                    format: key.target_format,
-                    blend: Some(blend),
-                    write_mask: ColorWrites::ALL,
-                })],
+                targets,
                 ..default()
             }),
             // Cells are triangle strips wound inward: back faces are
@@ -379,6 +383,24 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
             depth_stencil: key.stencil.then(|| cell_stencil(key.mode)),
             ..default()
         }
+    }
+}
+
+/// The blend of the accumulation: front to back, it holds the colour C and
+/// the transmittance T, and a segment (c, α) goes under, C += T c,
+/// T *= 1 − α. Emissive segments have α = 0: they add T c and leave T.
+pub(super) fn under_blend() -> BlendState {
+    BlendState {
+        color: BlendComponent {
+            src_factor: BlendFactor::DstAlpha,
+            dst_factor: BlendFactor::One,
+            operation: BlendOperation::Add,
+        },
+        alpha: BlendComponent {
+            src_factor: BlendFactor::Zero,
+            dst_factor: BlendFactor::OneMinusSrcAlpha,
+            operation: BlendOperation::Add,
+        },
     }
 }
 

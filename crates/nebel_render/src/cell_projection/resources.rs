@@ -22,6 +22,7 @@ use super::CellProjectionStats;
 use super::low_resolution::{
     LOW_DEPTH_FORMAT, LowResolutionView, ResamplePipelineKey, ResamplePipelines, UpsampleUniforms,
 };
+use super::merge::{MAX_MERGED, MergePipelines, MergeTargets, merges, overlap_groups, span_format};
 use super::pipeline::{
     CellCompositePipelines, CellProjectionPipeline, CellProjectionPipelineKey,
     CellProjectionUnsupported, STENCIL_FORMAT, VARIANTS, accumulation_format, mode_index,
@@ -51,6 +52,9 @@ pub struct ExtractedCellBatch {
     pub(super) mode: OpticalMode,
     pub(super) table_key: TableKey,
     pub(super) centre: Vec3,
+    /// The group of batches whose bounds this one's intersect, directly or
+    /// through others ([`overlap_groups`]): drawn merged with them.
+    pub(super) group: Option<usize>,
     /// The blend factor toward the next keyframe, clamped ([`CellBlend`]);
     /// 0 for a batch that is not blended.
     blend: f32,
@@ -153,6 +157,7 @@ pub fn extract_cell_batches(
                 transfer_function,
                 mode: batch.mode,
                 centre: (batch.cells.bounds_min + batch.cells.bounds_max) / 2.0,
+                group: None,
                 blend: if cells.is_blended() {
                     blend.map_or(0.0, CellBlend::clamped)
                 } else {
@@ -161,6 +166,17 @@ pub fn extract_cell_batches(
                 sunlight: sunlight.map_or(Vec3::ONE, CellSunlight::checked),
             },
         ));
+    }
+    let bounds: Vec<_> = extracted
+        .0
+        .iter()
+        .map(|(_, batch)| {
+            let cells = &batch.cells;
+            (cells.bounds_min, cells.bounds_max, merges(batch.mode))
+        })
+        .collect();
+    for ((_, batch), group) in extracted.0.iter_mut().zip(overlap_groups(&bounds)) {
+        batch.group = group;
     }
 }
 
@@ -434,6 +450,11 @@ pub struct CellProjectionView {
         LowResolutionView,
         [[Option<CachedRenderPipelineId>; VARIANTS]; 3],
     )>,
+    /// The layers of merged batches at full resolution, where batches of
+    /// this frame overlap...
+    pub(super) merge: Option<MergeTargets>,
+    /// ...and at the low resolution.
+    pub(super) low_merge: Option<MergeTargets>,
     pub(super) composite: CachedRenderPipelineId,
     /// Whether the view's fog layers begin beyond the eye, where batches
     /// that hand off to them end.
@@ -474,6 +495,7 @@ pub fn prepare_cell_views(
     mut texture_cache: ResMut<TextureCache>,
     mut composites: ResMut<CellCompositePipelines>,
     mut resample: ResMut<ResamplePipelines>,
+    mut merge_pipelines: ResMut<MergePipelines>,
     mut uniforms: ResMut<CellViewUniforms>,
     mut upsample_uniforms: ResMut<UpsampleUniforms>,
     count_fragments: Res<CountCellFragments>,
@@ -489,6 +511,17 @@ pub fn prepare_cell_views(
     uniforms.0.clear();
     upsample_uniforms.0.clear();
     let format = accumulation_format(&device);
+    // The largest group of overlapping batches sets the merged layers.
+    let mut members = HashMap::new();
+    for (_, batch) in &extracted.0 {
+        if let Some(group) = batch.group {
+            *members.entry(group).or_insert(0_u32) += 1;
+        }
+    }
+    let merged_layers = members
+        .into_values()
+        .max()
+        .map(|n| n.min(MAX_MERGED as u32));
     for (entity, view, camera, msaa, fog, settings) in &views {
         let Some(size) = camera.physical_target_size else {
             continue;
@@ -550,8 +583,9 @@ pub fn prepare_cell_views(
                 let (modulated, scattering) = (batch.is_modulated(), batch.scattering.is_some());
                 let handoff = batch.hands_off && fog.is_some_and(|fog| fog.0.ranges.x > 0.0);
                 let blended = batch.is_blended();
+                let merged = batch.group.is_some();
                 variants[mode_index(batch.mode)]
-                    [variant_index(modulated, scattering, handoff, blended)] =
+                    [variant_index(modulated, scattering, handoff, blended, merged)] =
                     Some(pipelines.specialize(
                         &pipeline_cache,
                         &pipeline,
@@ -567,6 +601,7 @@ pub fn prepare_cell_views(
                             stencil,
                             low_resolution,
                             count_fragments: count_fragments.0,
+                            merged,
                         },
                     ));
             }
@@ -608,7 +643,26 @@ pub fn prepare_cell_views(
             };
             (low_view, low_variants)
         });
+        let mut merge_targets = |size, stencil: bool| {
+            merged_layers.map(|layers| {
+                let pipeline = merge_pipelines.get(&pipeline_cache, stencil, format);
+                MergeTargets::new(
+                    &mut texture_cache,
+                    &device,
+                    size,
+                    layers,
+                    (format, span_format(&device)),
+                    pipeline,
+                )
+            })
+        };
+        let merge = merge_targets(size, stencil.is_some());
+        let low_merge = low
+            .as_ref()
+            .and_then(|(low, _)| merge_targets(low_size, low.stencil.is_some()));
         commands.entity(entity).insert(CellProjectionView {
+            merge,
+            low_merge,
             early_termination: settings.early_termination,
             uniform_offset,
             multisampled,
