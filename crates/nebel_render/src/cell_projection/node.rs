@@ -17,9 +17,7 @@ use nebel_core::optics::OpticalMode;
 use super::CellProjectionStats;
 use super::low_resolution::{ResamplePipelines, UpsampleUniforms};
 use super::merge::{Item, MergePipelines, MergeTargets, items};
-use super::pipeline::{
-    CellProjectionPipeline, TERMINATED, mode_index, variant_index, view_layout_index,
-};
+use super::pipeline::{CellProjectionPipeline, TERMINATED, mode_index, variant_index};
 use super::queries::{CellQueries, ViewQueries};
 use super::resources::{
     CellProjectionView, CellViewUniforms, ExtractedCellBatch, ExtractedCellBatches, GpuCellBuffers,
@@ -448,26 +446,38 @@ pub fn draw_cell_batches(
         terminates: cell_view.early_termination
             && draws.iter().any(|draw| draw.mode == OpticalMode::Sorted),
     };
-    let size = cell_view.accumulation.texture.size();
+    let viewport = extracted_view.viewport;
     let mut counters = queries.view(
-        u64::from(size.width) * u64::from(size.height),
+        u64::from(viewport.z) * u64::from(viewport.w),
         cell_view.count_fragments,
     );
     let view_bind_group = |ctx: &mut RenderContext,
                            counters: &ViewQueries,
                            low_resolution: bool,
                            depth: &TextureView| {
-        ctx.render_device().create_bind_group(
-            "nebel_cell_view_bind_group",
-            &pipeline_cache.get_bind_group_layout(
-                &pipeline.view_layouts[view_layout_index(cell_view.multisampled, low_resolution)],
-            ),
-            &BindGroupEntries::sequential((
-                view_binding.clone(),
-                depth,
-                BindingResource::Buffer(counters.fragment_counter()),
-            )),
-        )
+        let layout = pipeline_cache.get_bind_group_layout(pipeline.view_layout(
+            cell_view.multisampled,
+            low_resolution,
+            cell_view.count_fragments,
+        ));
+        let device = ctx.render_device();
+        if cell_view.count_fragments {
+            device.create_bind_group(
+                "nebel_cell_view_bind_group",
+                &layout,
+                &BindGroupEntries::sequential((
+                    view_binding.clone(),
+                    depth,
+                    BindingResource::Buffer(counters.fragment_counter()),
+                )),
+            )
+        } else {
+            device.create_bind_group(
+                "nebel_cell_view_bind_group",
+                &layout,
+                &BindGroupEntries::sequential((view_binding.clone(), depth)),
+            )
+        }
     };
 
     // At a lower resolution: the depth down, the cells, the smooth pixels up.

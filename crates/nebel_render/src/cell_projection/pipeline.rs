@@ -56,8 +56,9 @@ pub struct CellProjectionUnsupported;
 /// composite pass.
 #[derive(Resource)]
 pub struct CellProjectionPipeline {
-    /// The view's layouts ([`view_layout_index`]).
-    pub(super) view_layouts: [BindGroupLayoutDescriptor; 3],
+    /// The view's layouts without and with the fragment counter
+    /// ([`view_layout_index`]).
+    view_layouts: [[BindGroupLayoutDescriptor; 3]; 2],
     pub(super) batch_layout: BindGroupLayoutDescriptor,
     shader: Handle<Shader>,
     pub(super) composite_layout: BindGroupLayoutDescriptor,
@@ -72,6 +73,8 @@ pub struct CellProjectionPipeline {
     early_depth_test: bool,
     /// The format of a merged layer's span ([`span_format`]).
     span_format: TextureFormat,
+    /// The device has the storage buffer the fragment counter takes.
+    pub(super) can_count_fragments: bool,
 }
 
 /// The format of the stencil that marks terminated pixels.
@@ -126,7 +129,7 @@ pub(super) fn cell_stencil(mode: OpticalMode) -> DepthStencilState {
 
 /// The index of a view layout: the depth texture as it is (single or
 /// multisampled), or the low resolution's float depth.
-pub(super) fn view_layout_index(multisampled: bool, low_resolution: bool) -> usize {
+fn view_layout_index(multisampled: bool, low_resolution: bool) -> usize {
     if low_resolution {
         2
     } else {
@@ -175,30 +178,36 @@ pub fn init_cell_projection_pipeline(
     device: Res<RenderDevice>,
     pipeline_cache: Res<PipelineCache>,
 ) {
-    // The cells, their modulators, their next keyframe and the fragment
-    // counter are storage buffers, which WebGL2-class devices lack: there nothing is drawn (fog
-    // layers still are), and the app goes on.
+    // The cells, their modulators and their next keyframe are storage
+    // buffers, which WebGL2-class devices lack: there nothing is drawn (fog
+    // layers still are), and the app goes on. The fragment counter takes a
+    // fourth.
     let storage_buffers = device.limits().max_storage_buffers_per_shader_stage;
-    if storage_buffers < 4 {
+    if storage_buffers < 3 {
         warn!(
-            "nebel: the cell projection is off: the device has {storage_buffers} storage buffers per shader stage, it needs 4"
+            "nebel: the cell projection is off: the device has {storage_buffers} storage buffers per shader stage, it needs 3"
         );
         commands.insert_resource(CellProjectionUnsupported);
     }
     let unfilterable = TextureSampleType::Float { filterable: false };
-    let view_layout = |depth: BindGroupLayoutEntryBuilder| {
-        BindGroupLayoutDescriptor::new(
-            "nebel_cell_view_layout",
-            &BindGroupLayoutEntries::sequential(
+    let view_layout = |depth: BindGroupLayoutEntryBuilder, counter: bool| {
+        let (uniform, depth) = (uniform_buffer::<CellViewUniform>(true), depth);
+        let entries = if counter {
+            // The fragment counter (`CountCellFragments`).
+            BindGroupLayoutEntries::sequential(
                 ShaderStages::VERTEX_FRAGMENT,
                 (
-                    uniform_buffer::<CellViewUniform>(true),
+                    uniform,
                     depth,
-                    // The fragment counter (`CountCellFragments`).
                     storage_buffer_sized(false, None).visibility(ShaderStages::FRAGMENT),
                 ),
-            ),
-        )
+            )
+            .to_vec()
+        } else {
+            BindGroupLayoutEntries::sequential(ShaderStages::VERTEX_FRAGMENT, (uniform, depth))
+                .to_vec()
+        };
+        BindGroupLayoutDescriptor::new("nebel_cell_view_layout", &entries)
     };
     let composite_layout = BindGroupLayoutDescriptor::new(
         "nebel_cell_composite_layout",
@@ -227,11 +236,13 @@ pub fn init_cell_projection_pipeline(
         ..default()
     });
     commands.insert_resource(CellProjectionPipeline {
-        view_layouts: [
-            view_layout(texture_depth_2d()),
-            view_layout(texture_depth_2d_multisampled()),
-            view_layout(texture_2d(unfilterable)),
-        ],
+        view_layouts: [false, true].map(|counter| {
+            [
+                view_layout(texture_depth_2d(), counter),
+                view_layout(texture_depth_2d_multisampled(), counter),
+                view_layout(texture_2d(unfilterable), counter),
+            ]
+        }),
         batch_layout: BindGroupLayoutDescriptor::new(
             "nebel_cell_batch_layout",
             &BindGroupLayoutEntries::sequential(
@@ -256,6 +267,7 @@ pub fn init_cell_projection_pipeline(
             .features()
             .contains(WgpuFeatures::SHADER_EARLY_DEPTH_TEST),
         span_format: span_format(&device),
+        can_count_fragments: storage_buffers >= 4,
     });
 }
 
@@ -264,6 +276,17 @@ pub fn init_cell_projection_pipeline(
 pub struct CellCompositePipelines(pub(super) HashMap<TextureFormat, CachedRenderPipelineId>);
 
 impl CellProjectionPipeline {
+    /// The layout of the view's bind group: its depth texture (see
+    /// [`view_layout_index`]), and the fragment counter if `counting`.
+    pub(super) fn view_layout(
+        &self,
+        multisampled: bool,
+        low_resolution: bool,
+        counting: bool,
+    ) -> &BindGroupLayoutDescriptor {
+        &self.view_layouts[usize::from(counting)][view_layout_index(multisampled, low_resolution)]
+    }
+
     pub(super) fn composite_descriptor(
         &self,
         target_format: TextureFormat,
@@ -358,7 +381,8 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
         RenderPipelineDescriptor {
             label: Some("nebel_cell_projection_pipeline".into()),
             layout: vec![
-                self.view_layouts[view_layout_index(key.multisampled, key.low_resolution)].clone(),
+                self.view_layout(key.multisampled, key.low_resolution, key.count_fragments)
+                    .clone(),
                 self.batch_layout.clone(),
             ],
             vertex: VertexState {

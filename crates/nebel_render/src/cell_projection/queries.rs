@@ -9,14 +9,18 @@
 //! the early stencil test then rejects, so early termination would not show.
 //! The counter costs GPU time, so it is off unless asked for; timings are
 //! taken without it. Fragments per pixel are a frame's cell fragments over
-//! the pixels of its views at their full resolution: the work of the exact
-//! fragment shader per pixel, the same figure on every machine.
+//! the pixels of its views' viewports at their full resolution: the work of
+//! the exact fragment shader per pixel, the same figure on every machine.
+//! Where the device cannot force early tests (`SHADER_EARLY_DEPTH_TEST`),
+//! the counter's atomic makes the shader run before the stencil test, so
+//! there the figure includes the fragments early termination would reject
+//! without the counter.
 //!
 //! The results come back a frame or two later through a small ring of
 //! read-back buffers, so reading them never waits for the GPU.
 
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicU8, Ordering};
 
 use bevy::prelude::*;
 use bevy::render::extract_resource::ExtractResource;
@@ -45,6 +49,13 @@ const RING: usize = 4;
 const TIMESTAMP_OFFSET: u64 = QUERY_RESOLVE_BUFFER_ALIGNMENT;
 const BUFFER_BYTES: u64 = TIMESTAMP_OFFSET + 8 * TIMESTAMP_QUERIES as u64;
 
+/// The read-back buffer is on its way back.
+const WAITING: u8 = 0;
+/// The read-back buffer is mapped and can be read.
+const MAPPED: u8 = 1;
+/// The mapping failed: the frame's results are lost and its slot is freed.
+const FAILED: u8 = 2;
+
 /// The counters of one frame and the buffers their results come back in.
 struct QueryFrame {
     timestamps: Option<QuerySet>,
@@ -58,8 +69,9 @@ struct QueryFrame {
     pixels: u64,
     /// The shader counted fragments this frame.
     counted: bool,
-    /// The read-back buffer is mapped (set by the map callback).
-    mapped: Arc<AtomicBool>,
+    /// Where the read-back stands, set by the map callback: [`WAITING`],
+    /// [`MAPPED`] or [`FAILED`].
+    read_back_state: Arc<AtomicU8>,
     /// Between `map_async` and the read.
     in_flight: bool,
 }
@@ -101,13 +113,21 @@ impl QueryFrame {
             views_timed: 0,
             pixels: 0,
             counted: false,
-            mapped: Arc::default(),
+            read_back_state: Arc::default(),
             in_flight: false,
         }
     }
 
     fn is_used(&self) -> bool {
         self.counted || self.views_timed > 0
+    }
+
+    /// Frees the slot for a new frame.
+    fn free(&mut self) {
+        self.views_timed = 0;
+        self.pixels = 0;
+        self.counted = false;
+        self.in_flight = false;
     }
 }
 
@@ -251,25 +271,35 @@ pub fn map_cell_queries(mut queries: ResMut<CellQueries>) {
         return;
     }
     frame.in_flight = true;
-    let mapped = frame.mapped.clone();
+    let state = frame.read_back_state.clone();
     frame
         .read_back
         .slice(..)
         .map_async(MapMode::Read, move |result| {
-            if result.is_ok() {
-                mapped.store(true, Ordering::Release);
-            }
+            state.store(
+                if result.is_ok() { MAPPED } else { FAILED },
+                Ordering::Release,
+            );
         });
     queries.current = (current + 1) % RING;
 }
 
 /// Before a frame: reads the frames whose results came back into the
-/// [`CellProjectionStats`] and frees their slots.
+/// [`CellProjectionStats`] and frees their slots; a slot whose mapping
+/// failed is freed without a measurement.
 pub fn collect_cell_queries(mut queries: ResMut<CellQueries>, stats: Res<CellProjectionStats>) {
     let period_ns = f64::from(queries.timestamp_period_ns);
     for frame in &mut queries.frames {
-        if !frame.in_flight || !frame.mapped.swap(false, Ordering::Acquire) {
+        if !frame.in_flight {
             continue;
+        }
+        match frame.read_back_state.swap(WAITING, Ordering::Acquire) {
+            MAPPED => {}
+            FAILED => {
+                frame.free();
+                continue;
+            }
+            _ => continue,
         }
         let (fragments, timestamps): (u32, Vec<u64>) = {
             let data = frame.read_back.slice(..).get_mapped_range();
@@ -293,9 +323,6 @@ pub fn collect_cell_queries(mut queries: ResMut<CellQueries>, stats: Res<CellPro
             fragments_per_pixel,
             gpu_ms,
         });
-        frame.views_timed = 0;
-        frame.pixels = 0;
-        frame.counted = false;
-        frame.in_flight = false;
+        frame.free();
     }
 }

@@ -511,6 +511,12 @@ pub fn prepare_cell_views(
     uniforms.0.clear();
     upsample_uniforms.0.clear();
     let format = accumulation_format(&device);
+    if count_fragments.0 && !pipeline.can_count_fragments {
+        warn_once!(
+            "nebel: fragments are not counted: the device lacks the counter's storage buffer"
+        );
+    }
+    let count_fragments = count_fragments.0 && pipeline.can_count_fragments;
     // The largest group of overlapping batches sets the merged layers.
     let mut members = HashMap::new();
     for (_, batch) in &extracted.0 {
@@ -600,7 +606,7 @@ pub fn prepare_cell_views(
                             target_format: format,
                             stencil,
                             low_resolution,
-                            count_fragments: count_fragments.0,
+                            count_fragments,
                             merged,
                         },
                     ));
@@ -672,7 +678,7 @@ pub fn prepare_cell_views(
             low,
             composite,
             hands_off: fog.is_some_and(|fog| fog.0.ranges.x > 0.0),
-            count_fragments: count_fragments.0,
+            count_fragments,
         });
     }
     uniforms.0.write_buffer(&device, &queue);
