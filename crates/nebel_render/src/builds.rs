@@ -1,8 +1,8 @@
 //! Heavy builds in the background: terrain quadtrees, cloud grids, light
-//! fields and volume octrees take from milliseconds to a second, so nebel's
-//! plugins run them on Bevy's [`AsyncComputeTaskPool`] instead of in the
-//! frame that needs them, and keep drawing what they had until the result is
-//! ready. [`HeavyBuilds`] chooses whether a frame waits for its builds, or
+//! fields, volume octrees and pre-integration tables take from milliseconds
+//! to a second, so nebel's plugins run them on Bevy's
+//! [`AsyncComputeTaskPool`] instead of in the frame that needs them, and keep
+//! drawing what they had until the result is ready. [`HeavyBuilds`] chooses whether a frame waits for its builds, or
 //! gives the builds of animated volumes a fixed slice of each frame.
 
 use std::sync::mpsc::{Receiver, TryRecvError};

@@ -12,10 +12,10 @@
 //! in Bevy's volumetric fog, split by concern:
 //!
 //! - `resources`: extraction of the drawable batches, their GPU buffers
-//!   (uploaded again only when the batch component changed), the
-//!   pre-integration tables (cached by transfer function hash, built once
-//!   per change on the CPU: 64×64×128 colour, 64×64 pair table), per-view
+//!   (uploaded again only when the batch component changed), per-view
 //!   uniforms and targets;
+//! - `tables`: the pre-integration tables (64×64×128 colour, 64×64 pair
+//!   table), cached by transfer function hash and built off the frame;
 //! - `pipeline`: bind group layouts, shaders and the pipeline variants
 //!   (optical mode, modulated segment lengths, single scattering, MSAA,
 //!   fog layers, stencil, low resolution, fragment counting);
@@ -63,6 +63,7 @@ mod pipeline;
 mod queries;
 mod resources;
 mod settings;
+mod tables;
 
 pub use node::draw_over_view;
 pub use queries::CountCellFragments;
@@ -87,15 +88,17 @@ use bevy::render::{
     ExtractSchedule, GpuResourceAppExt, Render, RenderApp, RenderStartup, RenderSystems,
 };
 
+use crate::builds::HeavyBuilds;
 use crate::cell_batch::CellBatch;
 use low_resolution::{UpsampleUniforms, init_resample_pipelines};
 use merge::init_merge_pipelines;
 use pipeline::{CellCompositePipelines, CellProjectionPipeline, init_cell_projection_pipeline};
 use queries::{CellQueries, collect_cell_queries, map_cell_queries, resolve_cell_queries};
 use resources::{
-    CellViewUniforms, ExtractedCellBatches, GpuCellBuffers, GpuCellTables, extract_cell_batches,
-    make_depth_readable, prepare_cell_buffers, prepare_cell_tables, prepare_cell_views,
+    CellViewUniforms, ExtractedCellBatches, GpuCellBuffers, extract_cell_batches,
+    make_depth_readable, prepare_cell_buffers, prepare_cell_views,
 };
+use tables::{GpuCellTables, extract_heavy_builds, prepare_cell_tables};
 
 /// Draws [`CellBatch`]es (see the module docs).
 #[derive(Default)]
@@ -233,8 +236,8 @@ impl Plugin for CellProjectionPlugin {
             .register_type::<crate::CellSunlight>()
             .register_type::<CellProjectionStats>()
             .register_type::<crate::LodCamera>()
-            .register_type::<crate::HeavyBuilds>()
-            .init_resource::<crate::HeavyBuilds>()
+            .register_type::<HeavyBuilds>()
+            .init_resource::<HeavyBuilds>()
             .register_type::<crate::CellScattering>()
             .add_systems(Last, (publish_counters, publish_gpu_measurements));
         for path in [
@@ -261,6 +264,7 @@ impl Plugin for CellProjectionPlugin {
             .init_gpu_resource::<CellCompositePipelines>()
             .init_gpu_resource::<CellQueries>()
             .init_resource::<UpsampleUniforms>()
+            .init_resource::<HeavyBuilds>()
             .add_systems(
                 RenderStartup,
                 (
@@ -271,7 +275,11 @@ impl Plugin for CellProjectionPlugin {
             )
             .add_systems(
                 ExtractSchedule,
-                (extract_cell_batches, settings::extract_cell_projection),
+                (
+                    extract_cell_batches,
+                    settings::extract_cell_projection,
+                    extract_heavy_builds,
+                ),
             )
             .add_systems(
                 Render,

@@ -21,8 +21,8 @@ use super::pipeline::{CellProjectionPipeline, TERMINATED, mode_index, variant_in
 use super::queries::{CellQueries, ViewQueries};
 use super::resources::{
     CellProjectionView, CellViewUniforms, ExtractedCellBatch, ExtractedCellBatches, GpuCellBuffers,
-    GpuCellTables,
 };
+use super::tables::GpuCellTables;
 
 /// Early termination marks the terminated pixels after groups of at least
 /// this many cells...
@@ -393,9 +393,7 @@ pub fn draw_cell_batches(
     let mut draws = Vec::with_capacity(order.len());
     let mut draw_groups = Vec::with_capacity(order.len());
     for (entity, batch) in order {
-        let (Some(buffer), Some(table)) =
-            (buffers.0.get(entity), tables.tables.get(&batch.table_key))
-        else {
+        let (Some(buffer), Some(table)) = (buffers.0.get(entity), tables.drawn(*entity)) else {
             continue;
         };
         let pair_table = match batch.mode {

@@ -16,7 +16,8 @@ use nebel_core::optics::OpticalMode;
 
 use super::CellProjection;
 use super::merge::{SPAN_BLEND, span_format};
-use super::resources::{CellTablesUniform, CellViewUniform};
+use super::resources::CellViewUniform;
+use super::tables::CellTablesUniform;
 use crate::cell_batch::CellBatchUniform;
 
 /// The pipeline variants per optical mode ([`variant_index`]).

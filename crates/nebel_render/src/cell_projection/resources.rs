@@ -1,6 +1,6 @@
 //! The render world's data of the cell projection and the systems that keep
-//! it: the extracted batches, their GPU buffers, the pre-integration tables
-//! and the per-view uniforms and accumulation targets.
+//! it: the extracted batches, their GPU buffers and the per-view uniforms and
+//! accumulation targets.
 
 use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
@@ -14,7 +14,6 @@ use bevy::render::renderer::{RenderDevice, RenderQueue};
 use bevy::render::texture::{CachedTexture, TextureCache};
 use bevy::render::view::{ExtractedView, Msaa};
 use nebel_core::optics::OpticalMode;
-use nebel_core::preintegration::{PreintegrationConfig, PreintegrationTable};
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::CellBatch as LodCellBatch;
 
@@ -33,11 +32,6 @@ use super::settings::CellProjection;
 use crate::cell_batch::{CellBatch, CellBatchUniform, CellBlend, CellScattering, CellSunlight};
 use crate::fog_layers::{FogLayersUniform, ViewFogLayers};
 
-/// Samples along `s_f` and `s_b` of the GPU tables.
-const TABLE_SCALAR_SIZE: u32 = 64;
-/// Samples along the optical-depth axis `u = τ / (1 + τ)` of the GPU colour table.
-const TABLE_DEPTH_SIZE: u32 = 128;
-
 /// A batch as the render world sees it.
 #[derive(Clone)]
 pub struct ExtractedCellBatch {
@@ -48,7 +42,7 @@ pub struct ExtractedCellBatch {
     /// The main-world component changed since the last extraction: upload
     /// the cells again.
     changed: bool,
-    transfer_function: Arc<TransferFunction>,
+    pub(super) transfer_function: Arc<TransferFunction>,
     pub(super) mode: OpticalMode,
     pub(super) table_key: TableKey,
     pub(super) centre: Vec3,
@@ -87,7 +81,7 @@ pub struct ExtractedCellBatches(pub(super) Vec<(Entity, ExtractedCellBatch)>);
 /// function (the tables do not depend on the cells).
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
 pub struct TableKey {
-    transfer_hash: u64,
+    pub(super) transfer_hash: u64,
 }
 
 /// Copies the drawable batches into the render world. A batch whose
@@ -277,140 +271,6 @@ pub fn prepare_cell_buffers(
                 parameters,
                 scattered: batch.scattering.is_some(),
                 count: batch.cells.len() as u32,
-            },
-        );
-    }
-}
-
-/// The GPU copy of one [`PreintegrationTable`].
-pub struct GpuCellTable {
-    pub(super) colour: TextureView,
-    pub(super) emission: TextureView,
-    pub(super) maximum: TextureView,
-    pub(super) parameters: UniformBuffer<CellTablesUniform>,
-}
-
-/// Unused tables kept for a batch that may need them again (a transfer
-/// function that goes back and forth), most recently used first. Each colour table is 8 MiB.
-const SPARE_TABLES: usize = 2;
-
-/// The pre-integration tables this frame's batches use, and up to
-/// [`SPARE_TABLES`] recently used ones; none while no batch is drawn.
-#[derive(Resource, Default)]
-pub struct GpuCellTables {
-    pub(super) tables: HashMap<TableKey, GpuCellTable>,
-    /// The keys of the tables, most recently used first.
-    recent: Vec<TableKey>,
-}
-
-/// Parameters of the tables, as the shader's `CellTables`.
-#[derive(Clone, Copy, Default, ShaderType)]
-pub struct CellTablesUniform {
-    scalar_size: u32,
-    depth_size: u32,
-}
-
-/// Builds the tables that a batch needs and nobody has built, keeps a few
-/// unused ones (see [`SPARE_TABLES`]).
-pub fn prepare_cell_tables(
-    extracted: Res<ExtractedCellBatches>,
-    mut tables: ResMut<GpuCellTables>,
-    device: Res<RenderDevice>,
-    queue: Res<RenderQueue>,
-    stats: Res<CellProjectionStats>,
-    mut failed: Local<HashSet<TableKey>>,
-) {
-    if extracted.0.is_empty() && tables.tables.is_empty() {
-        return;
-    }
-    let used = |key: &TableKey| extracted.0.iter().any(|(_, b)| b.table_key == *key);
-    failed.retain(used);
-    // This frame's keys first, then the others by recency, up to the spares.
-    let GpuCellTables { tables, recent } = &mut *tables;
-    recent.sort_by_key(|key| !used(key));
-    let kept = recent.iter().filter(|key| used(key)).count() + SPARE_TABLES;
-    let keep = if extracted.0.is_empty() { 0 } else { kept };
-    for key in recent.drain(keep.min(recent.len())..) {
-        tables.remove(&key);
-    }
-    for (_, batch) in &extracted.0 {
-        if tables.contains_key(&batch.table_key) || failed.contains(&batch.table_key) {
-            continue;
-        }
-        let config = PreintegrationConfig {
-            scalar_size: TABLE_SCALAR_SIZE,
-            depth_size: TABLE_DEPTH_SIZE,
-        };
-        let table = match PreintegrationTable::build(&batch.transfer_function, config) {
-            Ok(table) => table,
-            Err(error) => {
-                // Logged once per table: the same inputs fail the same way.
-                error!("nebel: cannot build the pre-integration table: {error}");
-                failed.insert(batch.table_key);
-                continue;
-            }
-        };
-        stats.0.tables_built.fetch_add(1, Ordering::Relaxed);
-        let texture = |label: &'static str,
-                       size: Extent3d,
-                       dimension: TextureDimension,
-                       data: &[[f32; 4]]| {
-            device
-                .create_texture_with_data(
-                    &queue,
-                    &TextureDescriptor {
-                        label: Some(label),
-                        size,
-                        mip_level_count: 1,
-                        sample_count: 1,
-                        dimension,
-                        format: TextureFormat::Rgba32Float,
-                        usage: TextureUsages::TEXTURE_BINDING,
-                        view_formats: &[],
-                    },
-                    TextureDataOrder::LayerMajor,
-                    bytemuck::cast_slice(data),
-                )
-                .create_view(&TextureViewDescriptor::default())
-        };
-        let pair = Extent3d {
-            width: TABLE_SCALAR_SIZE,
-            height: TABLE_SCALAR_SIZE,
-            depth_or_array_layers: 1,
-        };
-        let volume = Extent3d {
-            depth_or_array_layers: TABLE_DEPTH_SIZE,
-            ..pair
-        };
-        let mut parameters = UniformBuffer::from(CellTablesUniform {
-            scalar_size: TABLE_SCALAR_SIZE,
-            depth_size: TABLE_DEPTH_SIZE,
-        });
-        parameters.set_label(Some("nebel_cell_tables"));
-        parameters.write_buffer(&device, &queue);
-        recent.insert(0, batch.table_key);
-        tables.insert(
-            batch.table_key,
-            GpuCellTable {
-                colour: texture(
-                    "nebel_colour_table",
-                    volume,
-                    TextureDimension::D3,
-                    table.colour(),
-                ),
-                emission: texture(
-                    "nebel_emission_table",
-                    pair,
-                    TextureDimension::D2,
-                    table.emission(),
-                ),
-                maximum: texture(
-                    "nebel_maximum_table",
-                    pair,
-                    TextureDimension::D2,
-                    table.maximum(),
-                ),
-                parameters,
             },
         );
     }
