@@ -5,6 +5,7 @@ use bevy::prelude::*;
 use bevy::render::Extract;
 use bevy::render::sync_world::RenderEntity;
 
+use crate::cell_batch::CellBatch;
 use crate::quality::EffectiveQuality;
 
 /// How a camera draws nebel's cells. A camera without it draws as the
@@ -136,12 +137,16 @@ impl Default for CellProjection {
 }
 
 /// Gives every 3D camera's render entity the [`CellProjection`] it draws
-/// with: its own, or the quality preset's.
+/// with: its own, or the quality preset's; nothing while no cells are drawn.
 pub fn extract_cell_projection(
     mut commands: Commands,
     cameras: Extract<Query<(RenderEntity, Option<&CellProjection>), With<Camera3d>>>,
+    batches: Extract<Query<(), With<CellBatch>>>,
     quality: Extract<Option<Res<EffectiveQuality>>>,
 ) {
+    if batches.is_empty() {
+        return;
+    }
     let preset = quality
         .as_ref()
         .map_or_else(CellProjection::default, |quality| {
