@@ -33,6 +33,7 @@ use nebel_render::{HeavyBuild, HeavyBuilds};
 use crate::error::TerrainBuildError;
 use crate::heights::TerrainHeights;
 use crate::terrain::{Terrain, TerrainLodStats, TerrainPlugin, TerrainSource, TerrainStatus};
+use crate::update::Refined;
 
 /// The settings a quadtree is built from, bit for bit: the quadtree is
 /// rebuilt when they change.
@@ -190,8 +191,16 @@ pub struct TerrainLod {
         HeavyBuild<Result<BuiltQuadtree, TerrainBuildError>>,
     )>,
     pub(crate) hierarchy: Option<Arc<TerrainHierarchy>>,
-    /// The level of detail, its mesh buffers reused every refinement.
+    /// The level of detail of the last refinement done.
     pub(crate) refiner: TerrainRefiner,
+    /// The refinement running on a worker, if any.
+    pub(crate) refining: Option<HeavyBuild<Refined>>,
+    /// Something the mesh depends on changed since the last refinement
+    /// started: refine again even if the view did not move.
+    pub(crate) stale: bool,
+    /// The latency the next refinement's culling allows for (see
+    /// [`crate::update`]).
+    pub(crate) latency: (f64, f64),
     pub(crate) mesh: Option<Handle<Mesh>>,
     /// The layered quadtree the last refinement used, if any.
     pub(crate) layered: Option<Arc<TerrainHierarchy>>,
@@ -208,7 +217,7 @@ impl TerrainLod {
     /// to its origin), front to back, with grid points per vertex and, when
     /// the terrain carries a [`TerrainLayerLod`](crate::TerrainLayerLod),
     /// the layer's morphed values.
-    pub fn mesh(&self) -> &TerrainMesh {
+    pub fn mesh(&self) -> &Arc<TerrainMesh> {
         self.refiner.mesh()
     }
 }
@@ -253,6 +262,7 @@ fn fail(
     }
     state.hierarchy = None;
     state.refiner = TerrainRefiner::new();
+    state.refining = None;
     if state.mesh.take().is_some() {
         commands
             .entity(entity)
@@ -364,6 +374,7 @@ fn put_in_place(
             }
             state.hierarchy = Some(hierarchy);
             state.refiner = TerrainRefiner::new();
+            state.refining = None;
             state.layered = None;
             *status = TerrainStatus::Ready;
             Some(build_ms)

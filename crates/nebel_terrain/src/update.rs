@@ -17,7 +17,18 @@
 //! `view_margin_degrees`, the projection or the terrain's transform
 //! changed), and culls with a frustum widened by both so the mesh stays valid
 //! in between; its docs give the bound this keeps. A still camera costs
-//! nothing. The unit test of a flight toward a 129² terrain (`c` = 40,
+//! nothing.
+//!
+//! The refinement and the Bevy mesh it gives run on the
+//! [`AsyncComputeTaskPool`](bevy::tasks::AsyncComputeTaskPool), one per
+//! terrain at a time; the frame keeps drawing the last mesh and takes the new
+//! one in the first frame after it is done (the same frame under
+//! [`HeavyBuilds::Blocking`]). A mesh is then drawn for views up to δ plus
+//! what the view changes during two refinements away from the one it was
+//! refined for, so the culling frustum is widened by twice what the view
+//! moved and turned during the last refinement
+//! ([`RefinerSettings::latency`](nebel_lod::quadtree::RefinerSettings)): no
+//! gap opens at the edges of the view along a steady flight. The unit test of a flight toward a 129² terrain (`c` = 40,
 //! 8.5 m per rebuild) measures surface steps of at most 0.5 m with morphing
 //! against 18 m without.
 //!
@@ -52,10 +63,13 @@ use bevy::math::DAffine3;
 use bevy::prelude::*;
 use nebel_lod::TerrainError;
 use nebel_lod::quadtree::{
-    LodSettings, RefinerSettings, TerrainView, TriangleOrder, accuracy_for_pixel_error,
+    LodSettings, LodStats, RefinerSettings, TerrainHierarchy, TerrainLayer, TerrainRefiner,
+    TerrainView, TriangleOrder, accuracy_for_pixel_error,
 };
 use nebel_render::camera::to_double;
-use nebel_render::{EffectiveQuality, LodCameras, LodView};
+use nebel_render::{
+    EffectiveQuality, HeavyBuild, HeavyBuilds, LodCameras, LodView, free_in_background,
+};
 
 use crate::build::{TerrainLod, bounds};
 use crate::layer::TerrainLayerLod;
@@ -72,7 +86,6 @@ pub(crate) struct TerrainAssets<'w, 's> {
     meshes: ResMut<'w, Assets<Mesh>>,
     materials: ResMut<'w, Assets<StandardMaterial>>,
     default_material: Local<'s, Option<Handle<StandardMaterial>>>,
-    palette: Local<'s, Palette>,
 }
 
 impl TerrainAssets<'_, '_> {
@@ -95,6 +108,7 @@ fn refiner_settings(
     accuracy_scale: f64,
     camera: &LodView,
     min_resolution: f32,
+    latency: (f64, f64),
 ) -> Result<RefinerSettings, TerrainError> {
     let every_move = layer.is_some_and(|layer| layer.refine_on_every_move);
     let accuracy = match terrain.pixel_error {
@@ -122,11 +136,84 @@ fn refiner_settings(
             f64::from(terrain.update_distance * terrain.spacing)
         },
         view_margin: f64::from(terrain.view_margin_degrees).to_radians(),
+        latency,
     })
 }
 
+/// A refinement done on a worker: the refiner with its new mesh, the Bevy
+/// mesh written from it (`None`: nothing in view) and its timings.
+pub(crate) struct Refined {
+    refiner: TerrainRefiner,
+    /// The quadtree refined (the terrain's own or its layered one).
+    hierarchy: Arc<TerrainHierarchy>,
+    /// The view refined for.
+    view: TerrainView,
+    result: Result<(LodStats, Option<Mesh>), TerrainError>,
+    refine_ms: f32,
+    update_ms: f32,
+}
+
+/// What a refinement needs, moved to the worker that runs it.
+struct Refinement {
+    refiner: TerrainRefiner,
+    hierarchy: Arc<TerrainHierarchy>,
+    layer: Option<Arc<TerrainLayer>>,
+    view: TerrainView,
+    settings: RefinerSettings,
+    /// The default material's palette is used (no material of the user's).
+    palette: bool,
+    debug: crate::TerrainDebug,
+}
+
+impl Refinement {
+    /// Refines and writes the Bevy mesh (see the module docs).
+    fn run(mut self) -> Refined {
+        let started = Instant::now();
+        let refined = self.refiner.update(
+            &self.hierarchy,
+            self.layer.as_deref(),
+            &self.view,
+            &self.settings,
+            true,
+        );
+        let refine_ms = started.elapsed().as_secs_f32() * 1e3;
+        let result = refined.map(|stats| {
+            let stats = stats.expect("a forced refinement");
+            let lod = self.refiner.mesh();
+            let mesh = (!lod.indices.is_empty()).then(|| {
+                let palette = Palette::default();
+                let colouring = Colouring {
+                    palette: self
+                        .palette
+                        .then_some((&palette, self.hierarchy.height_range())),
+                    debug: self.debug,
+                    levels: self.hierarchy.levels(),
+                };
+                let mut mesh = empty_mesh();
+                write_mesh(
+                    &mut mesh,
+                    lod,
+                    self.hierarchy.origin().as_vec3(),
+                    &colouring,
+                );
+                mesh
+            });
+            (stats, mesh)
+        });
+        Refined {
+            refiner: self.refiner,
+            hierarchy: self.hierarchy,
+            view: self.view,
+            result,
+            refine_ms,
+            update_ms: started.elapsed().as_secs_f32() * 1e3,
+        }
+    }
+}
+
 /// Refines every visible terrain with a quadtree for the LOD camera when
-/// the view changed enough, and writes its mesh (see the module docs).
+/// the view changed enough, on a worker, and writes its mesh when the
+/// refinement is done (see the module docs).
 pub(crate) fn update_terrain_meshes(
     mut commands: Commands,
     cameras: LodCameras,
@@ -142,6 +229,7 @@ pub(crate) fn update_terrain_meshes(
     )>,
     mut assets: TerrainAssets,
     quality: Option<Res<EffectiveQuality>>,
+    mode: Res<HeavyBuilds>,
     mut diagnostics: Diagnostics,
 ) {
     let Some(camera) = cameras.view() else {
@@ -158,6 +246,13 @@ pub(crate) fn update_terrain_meshes(
         let Some(own) = state.hierarchy.clone() else {
             continue;
         };
+        if terrain.is_changed() && state.mesh.is_some() {
+            let material = terrain
+                .material
+                .clone()
+                .unwrap_or_else(|| assets.default_material());
+            commands.entity(entity).insert(MeshMaterial3d(material));
+        }
         // Hidden: nothing is refined, and a layer that changed meanwhile is
         // still new when the terrain shows again.
         if !visibility.get() {
@@ -179,115 +274,103 @@ pub(crate) fn update_terrain_meshes(
         if layer_changed {
             state.layered = layered.map(|layered| layered.hierarchy.clone());
         }
+        state.stale |= terrain.is_changed()
+            || quality_changed
+            || layer_changed
+            || layer.as_ref().is_some_and(Ref::is_changed);
         let view = TerrainView {
             world_from_view: affine(&camera.world_from_view),
             clip_from_view: to_double(camera.clip_from_view),
             world_from_terrain: affine(transform),
         };
-        let started = Instant::now();
-        let refined = refiner_settings(
+        let settings = match refiner_settings(
             &terrain,
             layered.and(layer.as_deref()),
             accuracy_scale,
             &camera,
             hierarchy.min_resolution(),
-        )
-        .and_then(|settings| {
-            state.refiner.update(
-                &hierarchy,
-                layered.map(|layered| &*layered.layer),
-                &view,
-                &settings,
-                terrain.is_changed()
-                    || quality_changed
-                    || layer_changed
-                    || layer.as_ref().is_some_and(Ref::is_changed),
-            )
-        });
-        let refine_ms = started.elapsed().as_secs_f64() * 1e3;
-        let lod_stats = match refined {
-            Ok(Some(lod_stats)) => lod_stats,
-            Ok(None) => continue,
+            state.latency,
+        ) {
+            Ok(settings) => settings,
             Err(error) => {
-                // The quadtree stays; a new setting or view may fix it.
-                let error = crate::TerrainBuildError::from(error);
-                if *status != TerrainStatus::Failed(error.clone()) {
-                    error!("nebel: terrain {entity} not drawn: {error}");
-                    *status = TerrainStatus::Failed(error);
-                }
-                if state.mesh.take().is_some() {
-                    commands.entity(entity).remove::<(
-                        Mesh3d,
-                        MeshMaterial3d<StandardMaterial>,
-                        Aabb,
-                        NoAutoAabb,
-                    )>();
-                }
+                state.refining = None;
+                failed(&mut commands, entity, &mut status, state, error);
+                continue;
+            }
+        };
+        if state.refining.is_none() && (state.stale || !state.refiner.is_current(&view, &settings))
+        {
+            state.stale = false;
+            let refinement = Refinement {
+                refiner: state.refiner.clone(),
+                hierarchy: hierarchy.clone(),
+                layer: layered.map(|layered| layered.layer.clone()),
+                view,
+                settings,
+                palette: terrain.material.is_none(),
+                debug: terrain.debug,
+            };
+            state.refining = Some(HeavyBuild::spawn(move || refinement.run()));
+        }
+        let Some(refined) = state.refining.as_mut().and_then(|build| build.poll(*mode)) else {
+            continue;
+        };
+        state.refining = None;
+        if !Arc::ptr_eq(&refined.hierarchy, &hierarchy) {
+            // Refined for a quadtree replaced meanwhile.
+            state.stale = true;
+            continue;
+        }
+        state.refiner = refined.refiner;
+        // The next mesh is drawn from its landing until the one after it
+        // lands: about twice what the view changed during this refinement.
+        let (moved, turned) = view.change_since(&refined.view);
+        state.latency = (2.0 * moved, 2.0 * turned);
+        let (lod_stats, mesh) = match refined.result {
+            Ok(done) => done,
+            Err(error) => {
+                failed(&mut commands, entity, &mut status, state, error);
                 continue;
             }
         };
         *status = TerrainStatus::Ready;
-        if state.refiner.mesh().indices.is_empty() {
+        match (mesh, &state.mesh) {
             // Nothing of the terrain in view: no mesh at all rather than an
             // empty one (Bevy's mesh allocator refuses empty meshes); a new
             // one is made when the terrain comes back into view.
-            if state.mesh.take().is_some() {
-                commands
-                    .entity(entity)
-                    .remove::<(Mesh3d, MeshMaterial3d<StandardMaterial>, Aabb, NoAutoAabb)>();
+            (None, _) => remove_mesh(&mut commands, entity, state),
+            (Some(mesh), Some(handle)) => {
+                if let Some(mut drawn) = assets.meshes.get_mut(handle) {
+                    free_in_background(std::mem::replace(&mut *drawn, mesh));
+                }
             }
-        } else {
-            let material = terrain
-                .material
-                .clone()
-                .unwrap_or_else(|| assets.default_material());
-            let handle = match &state.mesh {
-                Some(handle) => {
-                    if terrain.is_changed() {
-                        commands
-                            .entity(entity)
-                            .insert(MeshMaterial3d(material.clone()));
-                    }
-                    handle.clone()
-                }
-                None => {
-                    let handle = assets.meshes.add(empty_mesh());
-                    commands.entity(entity).insert((
-                        Mesh3d(handle.clone()),
-                        MeshMaterial3d(material),
-                        bounds(&hierarchy),
-                        NoAutoAabb,
-                    ));
-                    state.mesh = Some(handle.clone());
-                    handle
-                }
-            };
-            let colouring = Colouring {
-                palette: terrain
+            (Some(mesh), None) => {
+                let material = terrain
                     .material
-                    .is_none()
-                    .then_some((&*assets.palette, hierarchy.height_range())),
-                debug: terrain.debug,
-                levels: hierarchy.levels(),
-            };
-            if let Some(mut mesh) = assets.meshes.get_mut(&handle) {
-                let origin = hierarchy.origin().as_vec3();
-                write_mesh(&mut mesh, state.refiner.mesh(), origin, &colouring);
+                    .clone()
+                    .unwrap_or_else(|| assets.default_material());
+                let handle = assets.meshes.add(mesh);
+                commands.entity(entity).insert((
+                    Mesh3d(handle.clone()),
+                    MeshMaterial3d(material),
+                    bounds(&hierarchy),
+                    NoAutoAabb,
+                ));
+                state.mesh = Some(handle);
             }
         }
-        let update_ms = started.elapsed().as_secs_f64() * 1e3;
         *stats = TerrainLodStats {
             updates: stats.updates + 1,
-            update_ms: update_ms as f32,
-            refine_ms: refine_ms as f32,
+            update_ms: refined.update_ms,
+            refine_ms: refined.refine_ms,
             triangles: lod_stats.triangles as u32,
             vertices: lod_stats.vertices as u32,
             deepest_level: lod_stats.deepest_level,
             culled_nodes: lod_stats.culled as u32,
             ..*stats
         };
-        *frame_update_ms.get_or_insert(0.0) += update_ms;
-        *frame_refine_ms.get_or_insert(0.0) += refine_ms;
+        *frame_update_ms.get_or_insert(0.0) += f64::from(refined.update_ms);
+        *frame_refine_ms.get_or_insert(0.0) += f64::from(refined.refine_ms);
     }
     if let Some(ms) = frame_update_ms {
         diagnostics.add_measurement(&TerrainPlugin::UPDATE_MS, || ms);
@@ -295,6 +378,34 @@ pub(crate) fn update_terrain_meshes(
     if let Some(ms) = frame_refine_ms {
         diagnostics.add_measurement(&TerrainPlugin::REFINE_MS, || ms);
     }
+}
+
+/// The terrain's mesh removed from its entity, if it has one.
+fn remove_mesh(commands: &mut Commands, entity: Entity, state: &mut TerrainLod) {
+    if state.mesh.take().is_some() {
+        commands
+            .entity(entity)
+            .remove::<(Mesh3d, MeshMaterial3d<StandardMaterial>, Aabb, NoAutoAabb)>();
+    }
+}
+
+/// A refinement failed: the status with the reason, logged once, and no
+/// mesh. The quadtree stays; a new setting or view may fix it.
+fn failed(
+    commands: &mut Commands,
+    entity: Entity,
+    status: &mut TerrainStatus,
+    state: &mut TerrainLod,
+    error: TerrainError,
+) {
+    let error = crate::TerrainBuildError::from(error);
+    if *status != TerrainStatus::Failed(error.clone()) {
+        error!("nebel: terrain {entity} not drawn: {error}");
+        *status = TerrainStatus::Failed(error);
+    }
+    // Refined again when the view or a setting changes.
+    state.refiner = TerrainRefiner::new();
+    remove_mesh(commands, entity, state);
 }
 
 /// Measures the terrains' totals (see the module docs); nothing in a world
@@ -935,5 +1046,90 @@ mod tests {
         assert!(app.world().get::<Mesh3d>(terrain).is_some(), "still drawn");
         settle(&mut app, &|app| stats(app, terrain).points_per_side == 257);
         assert_eq!(status(&app, terrain), TerrainStatus::Ready);
+    }
+
+    #[test]
+    fn refinements_run_off_the_frame_and_land_as_a_same_frame_one_would() {
+        let far = Vec3::new(0.0, 300.0, 300.0);
+        let near = Vec3::new(40.0, 120.0, 120.0);
+        let (mut app, camera) = app(&asset_dir("refine-background"), far);
+        app.insert_resource(HeavyBuilds::Background);
+        let terrain = spawn(&mut app, procedural(129), Transform::default());
+        let mesh_of = |app: &App| {
+            let handle = &app.world().get::<Mesh3d>(terrain).expect("a mesh").0;
+            app.world()
+                .resource::<Assets<Mesh>>()
+                .get(handle)
+                .unwrap()
+                .clone()
+        };
+        let mut settled = false;
+        for _ in 0..2000 {
+            app.update();
+            if app.world().get::<Mesh3d>(terrain).is_some() {
+                settled = true;
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        assert!(settled, "no mesh");
+        let first = positions(&app, terrain);
+        let updates = stats(&app, terrain).updates;
+        // A move and a debug view in one frame: while the refinement runs the
+        // old mesh is drawn, then the new one lands with the debug colours
+        // (a setting that changed while a refinement ran is not lost).
+        app.world_mut()
+            .get_mut::<Transform>(camera)
+            .unwrap()
+            .translation = near;
+        app.world_mut().get_mut::<Terrain>(terrain).unwrap().debug = TerrainDebug {
+            lod_colours: true,
+            ..default()
+        };
+        let mut landed = None;
+        for _ in 0..2000 {
+            app.update();
+            let mesh = mesh_of(&app);
+            let now = positions(&app, terrain);
+            if mesh.attribute(Mesh::ATTRIBUTE_COLOR).is_some() {
+                landed = Some(mesh);
+                break;
+            }
+            assert!(now == first, "not the old mesh meanwhile");
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        let landed = landed.expect("the refinement never landed");
+        assert!(stats(&app, terrain).updates > updates);
+
+        // The same terrain refined in the frame, for the same eye.
+        let (mut blocking, same_camera) =
+            app_looking_at(&asset_dir("refine-blocking"), far, Vec3::ZERO);
+        blocking
+            .world_mut()
+            .get_mut::<Transform>(same_camera)
+            .unwrap()
+            .translation = near;
+        let same = spawn(
+            &mut blocking,
+            Terrain {
+                debug: TerrainDebug {
+                    lod_colours: true,
+                    ..default()
+                },
+                ..procedural(129)
+            },
+            Transform::default(),
+        );
+        blocking.update();
+        let expected = positions(&blocking, same);
+        assert!(
+            landed
+                .attribute(Mesh::ATTRIBUTE_POSITION)
+                .unwrap()
+                .as_float3()
+                == Some(expected.as_slice()),
+            "not the mesh of a same-frame refinement"
+        );
+        assert_ne!(expected.len(), first.len(), "the move refined anew");
     }
 }

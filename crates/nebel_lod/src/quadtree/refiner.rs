@@ -33,9 +33,13 @@
 //! mesh stays valid until the next refinement: each plane is turned outward
 //! by `view_margin` about the eye (any rotation by less than that moves every
 //! view direction by less than that) and pushed out by `update_distance`
-//! (any move by less than that shifts every plane by less than that). The
+//! (any move by less than that shifts every plane by less than that), and
+//! by [`RefinerSettings::latency`] more when the mesh is drawn later than
+//! the view it was refined for. The
 //! near plane is dropped (the side planes already bound the view to a cone in
 //! front of the eye). An orthographic camera culls nothing.
+
+use std::sync::Arc;
 
 use glam::{DAffine3, DMat4, DQuat, DVec3};
 
@@ -65,6 +69,15 @@ impl TerrainView {
     fn rotation(&self) -> DQuat {
         DQuat::from_mat3(&self.world_from_view.matrix3)
     }
+
+    /// How far the eye moved (in the terrain's frame) and the camera turned
+    /// (radians) since `earlier`.
+    pub fn change_since(&self, earlier: &TerrainView) -> (f64, f64) {
+        (
+            earlier.eye().distance(self.eye()),
+            earlier.rotation().angle_between(self.rotation()),
+        )
+    }
 }
 
 /// How far the view may change before the mesh is refined again (see the
@@ -81,12 +94,21 @@ pub struct RefinerSettings {
     /// again; the culling frustum is turned out by as much. Clamped to
     /// [0, π/4].
     pub view_margin: f64,
+    /// How far the eye may move (terrain units) and the camera turn
+    /// (radians) between the view a mesh is refined for and the first view
+    /// it is drawn for, as when refinements run on another thread: the
+    /// culling frustum is widened by as much more (the turn in all at most
+    /// π/4). Zero when a mesh is drawn for the view it was refined for.
+    pub latency: (f64, f64),
 }
 
 /// One terrain's level of detail frame after frame (see the module docs).
 #[derive(Clone, Debug, Default)]
 pub struct TerrainRefiner {
-    mesh: TerrainMesh,
+    /// Shared with whoever still reads an earlier refinement (a refinement
+    /// running on another thread, an effect built on the mesh): the next
+    /// refinement writes into a new mesh then, into this one otherwise.
+    mesh: Arc<TerrainMesh>,
     /// The view and settings the mesh was refined for.
     refined_for: Option<(TerrainView, LodSettings)>,
 }
@@ -111,19 +133,14 @@ impl TerrainRefiner {
         settings: &RefinerSettings,
         settings_changed: bool,
     ) -> Result<Option<LodStats>, TerrainError> {
-        let distance = settings.update_distance.max(0.0);
-        let margin = settings.view_margin.clamp(0.0, std::f64::consts::FRAC_PI_4);
-        let unchanged = self.refined_for.is_some_and(|(last, lod)| {
-            lod == settings.lod
-                && last.clip_from_view == view.clip_from_view
-                && last.world_from_terrain == view.world_from_terrain
-                && last.eye().distance(view.eye()) <= distance
-                && last.rotation().angle_between(view.rotation()) <= margin
-        });
-        if unchanged && !settings_changed {
+        if self.is_current(view, settings) && !settings_changed {
             return Ok(None);
         }
         self.refined_for = None;
+        let (moved, turned) = settings.latency;
+        let distance = settings.update_distance.max(0.0) + moved.max(0.0);
+        let margin =
+            (settings.view_margin.max(0.0) + turned.max(0.0)).min(std::f64::consts::FRAC_PI_4);
         let scale = view
             .world_from_terrain
             .matrix3
@@ -132,19 +149,38 @@ impl TerrainRefiner {
             .map(|column| DVec3::from(*column).length())
             .fold(0.0, f64::max);
         let frustum = culling_frustum(view, distance * scale, margin);
+        if Arc::get_mut(&mut self.mesh).is_none() {
+            self.mesh = Arc::default();
+        }
+        let mesh = Arc::get_mut(&mut self.mesh).expect("a mesh of its own");
         let stats = hierarchy.update_with_layer(
             view.eye(),
             frustum.as_ref(),
             &settings.lod,
             layer,
-            &mut self.mesh,
+            mesh,
         )?;
         self.refined_for = Some((*view, settings.lod));
         Ok(Some(stats))
     }
 
+    /// Whether the last refinement still serves `view` with `settings`: the
+    /// view has not changed enough since (see the module docs).
+    pub fn is_current(&self, view: &TerrainView, settings: &RefinerSettings) -> bool {
+        let distance = settings.update_distance.max(0.0);
+        let margin = settings.view_margin.clamp(0.0, std::f64::consts::FRAC_PI_4);
+        self.refined_for.is_some_and(|(last, lod)| {
+            let (moved, turned) = view.change_since(&last);
+            lod == settings.lod
+                && last.clip_from_view == view.clip_from_view
+                && last.world_from_terrain == view.world_from_terrain
+                && moved <= distance
+                && turned <= margin
+        })
+    }
+
     /// The mesh of the last refinement, in the hierarchy's frame.
-    pub fn mesh(&self) -> &TerrainMesh {
+    pub fn mesh(&self) -> &Arc<TerrainMesh> {
         &self.mesh
     }
 }
@@ -208,6 +244,7 @@ mod tests {
             },
             update_distance: 2.5,
             view_margin: 3f64.to_radians(),
+            latency: (0.0, 0.0),
         }
     }
 
@@ -228,10 +265,13 @@ mod tests {
 
         let moved = |x: f64, yaw: f64| view(start + DVec3::new(x, 0.0, 0.0), yaw);
         let update = |refiner: &mut TerrainRefiner, view: TerrainView, changed: bool| {
-            refiner
+            let current = refiner.is_current(&view, &settings());
+            let refined = refiner
                 .update(&hierarchy, None, &view, &settings(), changed)
                 .unwrap()
-                .is_some()
+                .is_some();
+            assert_eq!(refined, !current || changed, "is_current agrees");
+            refined
         };
         assert!(!update(&mut refiner, moved(2.0, 0.0), false), "2 m < δ");
         assert!(update(&mut refiner, moved(3.0, 0.0), false), "3 m > δ");
@@ -255,6 +295,68 @@ mod tests {
         finer.lod.accuracy *= 1.5;
         let refined = refiner.update(&hierarchy, None, &placed, &finer, false);
         assert!(refined.unwrap().is_some(), "a new accuracy");
+    }
+
+    #[test]
+    fn the_latency_widens_the_culling_and_not_the_update_distance() {
+        let hierarchy = hierarchy();
+        let start = view(DVec3::new(-200.0, 300.0, 320.0), -1.2);
+        let late = RefinerSettings {
+            latency: (47.5, 7f64.to_radians()),
+            ..settings()
+        };
+        let mut refiner = TerrainRefiner::new();
+        let stats = refiner
+            .update(&hierarchy, None, &start, &late, false)
+            .unwrap()
+            .unwrap();
+        let frustum = culling_frustum(&start, 50.0, 10f64.to_radians());
+        let mut expected = TerrainMesh::new();
+        let expected_stats = hierarchy
+            .update(start.eye(), frustum.as_ref(), &late.lod, &mut expected)
+            .unwrap();
+        assert_eq!(refiner.mesh().positions, expected.positions);
+        let mut on_time = TerrainRefiner::new();
+        let on_time_stats = on_time
+            .update(&hierarchy, None, &start, &settings(), false)
+            .unwrap()
+            .unwrap();
+        assert_eq!(stats.culled, expected_stats.culled);
+        assert!(
+            stats.culled < on_time_stats.culled && stats.triangles > on_time_stats.triangles,
+            "culls less: {stats:?} {on_time_stats:?}"
+        );
+        // The mesh is still current as far as δ and α go, no farther.
+        let moved = view(DVec3::new(-197.0, 300.0, 320.0), -1.2);
+        assert!(!refiner.is_current(&moved, &late), "3 m > δ");
+    }
+
+    #[test]
+    fn a_mesh_still_read_elsewhere_is_not_overwritten() {
+        let hierarchy = hierarchy();
+        let mut refiner = TerrainRefiner::new();
+        let near = view(DVec3::new(320.0, 150.0, 330.0), 0.0);
+        let far = view(DVec3::new(320.0, 900.0, 1500.0), 0.0);
+        refiner
+            .update(&hierarchy, None, &near, &settings(), false)
+            .unwrap();
+        // Another thread still draws the near mesh.
+        let drawn = refiner.mesh().clone();
+        let near_positions = drawn.positions.clone();
+        refiner
+            .update(&hierarchy, None, &far, &settings(), false)
+            .unwrap();
+        assert_eq!(drawn.positions, near_positions, "the shared mesh kept");
+        assert!(!Arc::ptr_eq(&drawn, refiner.mesh()));
+        assert_ne!(refiner.mesh().positions, near_positions, "a new mesh");
+        // Unshared again: refined in place.
+        drop(drawn);
+        let buffer = Arc::as_ptr(refiner.mesh());
+        refiner
+            .update(&hierarchy, None, &near, &settings(), false)
+            .unwrap();
+        assert_eq!(Arc::as_ptr(refiner.mesh()), buffer, "the buffers reused");
+        assert_eq!(refiner.mesh().positions, near_positions);
     }
 
     #[test]
