@@ -277,16 +277,8 @@ pub(crate) fn update_fog_batches(
             continue;
         }
         if state.building.is_none() {
-            let transfer = match scaled_transfer(state, &fog) {
-                Ok(transfer) => transfer,
-                Err(error) => {
-                    clear(&mut commands, entity, state, has_batch);
-                    // Not again until something changes.
-                    state.key = Some(key);
-                    fail(entity, &mut status, error);
-                    continue;
-                }
-            };
+            // A bad transfer function fails where a failed build does.
+            let transfer = scaled_transfer(state, &fog);
             let world_from_terrain = DAffine3::from_mat4(to_double(transform.to_matrix()));
             let origin = layered.hierarchy.origin();
             let mesh = lod.mesh().clone();
@@ -306,6 +298,7 @@ pub(crate) fn update_fog_batches(
             });
             let build = HeavyBuild::spawn(move || {
                 let started = Instant::now();
+                let transfer = transfer?;
                 let profile = FogProfile::new(profile)?;
                 let input = PrismInput {
                     world_from_mesh: world_from_terrain * DAffine3::from_translation(origin),

@@ -143,13 +143,7 @@ fn random_eyes(
     seed: u64,
 ) -> Vec<(&'static str, DVec3)> {
     let extent = (hierarchy.size() - 1) as f64 * SPACING;
-    let mut rng = seed;
-    let mut random = move || {
-        rng = rng
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (rng >> 11) as f64 / (1u64 << 53) as f64
-    };
+    let mut random = uniform(seed);
     (0..count)
         .map(|_| {
             let offset = DVec3::new(
@@ -278,6 +272,17 @@ fn assert_fills_the_prisms(cells: &[GpuCell], mesh: &TerrainMesh, name: &str) {
     );
 }
 
+/// Uniform numbers in [0, 1) from `seed` (a 64-bit LCG).
+fn uniform(seed: u64) -> impl FnMut() -> f64 {
+    let mut state = seed;
+    move || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
 /// Sorts the cells hit by `ray` by entry and checks that a nearer cell is
 /// always drawn after a farther one; returns the cells hit.
 fn check_ray_order(cells: &[Tetrahedron], ray: &Ray, what: &str) -> usize {
@@ -314,13 +319,7 @@ fn check_ray_order(cells: &[Tetrahedron], ray: &Ray, what: &str) -> usize {
 #[test]
 fn back_to_front_is_a_visibility_order_for_every_eye_by_ray_tests() {
     let (hierarchy, layer) = valley(33);
-    let mut rng = 0x5eed_u64;
-    let mut random = || {
-        rng = rng
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (rng >> 11) as f64 / (1u64 << 53) as f64
-    };
+    let mut random = uniform(0x5eed_u64);
     // A profile of three layers: chains of nine cells per column.
     let profile = FogProfile::new(vec![[0.0, 1.0], [0.3, 0.8], [0.7, 0.3], [1.0, 0.0]]).unwrap();
     for mesh_order in [TriangleOrder::BackToFront, TriangleOrder::FrontToBack] {
@@ -385,13 +384,7 @@ fn an_order_a_frame_old_costs_little_of_the_image() {
     // 60 m/s. Rays from the new eye meet cells out of order only where the
     // eye crossed the plane of a face between them.
     let (hierarchy, layer) = valley(33);
-    let mut rng = 0x1a7e_u64;
-    let mut random = || {
-        rng = rng
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (rng >> 11) as f64 / (1u64 << 53) as f64
-    };
+    let mut random = uniform(0x1a7e_u64);
     let profile = FogProfile::new(vec![[0.0, 1.0], [0.3, 0.8], [0.7, 0.3], [1.0, 0.0]]).unwrap();
     let (mut rays, mut wrong, mut squares, mut worst) = (0, 0, 0.0, 0.0_f64);
     let more = random_eyes(&hierarchy, 4, 0x1a7e);
@@ -959,13 +952,7 @@ fn a_layer_between_two_crossing_surfaces_conforms_is_ordered_and_carries_its_hei
     let extent = (n - 1) as f64 * SPACING;
     let span = 250.0;
     let profile = FogProfile::new(vec![[0.0, 0.0], [0.4, 0.4], [1.0, 1.0]]).unwrap();
-    let mut rng = 0x1a7e_u64;
-    let mut random = move || {
-        rng = rng
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (rng >> 11) as f64 / (1u64 << 53) as f64
-    };
+    let mut random = uniform(0x1a7e_u64);
     let named = [
         ("below both", origin + DVec3::new(300.0, -80.0, 250.0)),
         ("between them", origin + DVec3::new(333.0, 230.0, 311.0)),
@@ -1262,13 +1249,7 @@ fn a_cloud_layer_is_conforming_sorted_and_lit_through_the_cloud_above() {
     let profile = CloudLayerShape::profile();
     let (extinction, sun_height, ambient, diffuse) = (0.004_f32, 0.7_f32, 0.3_f32, 0.7_f32);
     let origin = layer.hierarchy().origin();
-    let mut rng = 0xc10d_u64;
-    let mut random = move || {
-        rng = rng
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (rng >> 11) as f64 / (1u64 << 53) as f64
-    };
+    let mut random = uniform(0xc10d_u64);
     for (name, eye) in [
         ("below", DVec3::new(300.0, 200.0, -700.0)),
         ("inside", DVec3::new(-2100.0, 1550.0, 3300.0)),
