@@ -1089,17 +1089,17 @@ mod tests {
         let mut landed = None;
         for _ in 0..2000 {
             app.update();
-            let mesh = mesh_of(&app);
-            let now = positions(&app, terrain);
-            if mesh.attribute(Mesh::ATTRIBUTE_COLOR).is_some() {
-                landed = Some(mesh);
+            if stats(&app, terrain).updates > updates {
+                landed = Some(mesh_of(&app));
                 break;
             }
-            assert!(now == first, "not the old mesh meanwhile");
+            assert!(
+                positions(&app, terrain) == first,
+                "not the old mesh meanwhile"
+            );
             std::thread::sleep(std::time::Duration::from_millis(1));
         }
         let landed = landed.expect("the refinement never landed");
-        assert!(stats(&app, terrain).updates > updates);
 
         // The same terrain refined in the frame, for the same eye.
         let (mut blocking, same_camera) =
@@ -1129,6 +1129,23 @@ mod tests {
                 .as_float3()
                 == Some(expected.as_slice()),
             "not the mesh of a same-frame refinement"
+        );
+        let colours = |mesh: &Mesh| match mesh.attribute(Mesh::ATTRIBUTE_COLOR) {
+            Some(VertexAttributeValues::Float32x4(c)) => c.clone(),
+            _ => panic!("colours"),
+        };
+        let blocking_mesh = {
+            let handle = &blocking.world().get::<Mesh3d>(same).expect("a mesh").0;
+            blocking
+                .world()
+                .resource::<Assets<Mesh>>()
+                .get(handle)
+                .unwrap()
+                .clone()
+        };
+        assert!(
+            colours(&landed) == colours(&blocking_mesh),
+            "the debug colours set during the refinement were lost"
         );
         assert_ne!(expected.len(), first.len(), "the move refined anew");
     }
