@@ -18,17 +18,10 @@
 //! App::new().add_plugins((DefaultPlugins, NebelPlugins)).run();
 //! ```
 //!
-//! The README shows how to add each effect to a game; its Rust snippets are
-//! compiled as doctests of this crate.
-//!
-//! # References
-//!
-//! - Röttger and Ertl 2003: Stefan Röttger and Thomas Ertl, "Fast Volumetric
-//!   Display of Natural Gaseous Phenomena", Computer Graphics International,
-//!   2003.
-//! - Röttger 2004: Stefan Röttger, "Volumetric Methods for the Real-Time
-//!   Display of Natural Gaseous Phenomena", doctoral thesis, University of
-//!   Stuttgart, 2004.
+//! The guides in the repository's `docs/guides/` show how to add each effect
+//! to a game; their Rust snippets, and the README's, are compiled as doctests
+//! of this crate. The papers nebel implements are listed in
+//! `docs/references.md`.
 
 use bevy::app::{PluginGroup, PluginGroupBuilder};
 
@@ -106,8 +99,8 @@ pub mod prelude {
     };
 }
 
-/// The README's Rust snippets, compiled as doctests so they stay true.
-#[doc = include_str!("../README.md")]
+/// The Rust snippets of the README and the guides, compiled as doctests so
+/// they stay true.
 #[cfg(all(
     doctest,
     feature = "volume",
@@ -115,4 +108,21 @@ pub mod prelude {
     feature = "fog",
     feature = "sky"
 ))]
-pub struct ReadmeDoctests;
+mod doctests {
+    #[doc = include_str!("../README.md")]
+    pub struct Readme;
+    #[doc = include_str!("../docs/guides/volumes.md")]
+    pub struct Volumes;
+    #[doc = include_str!("../docs/guides/terrain.md")]
+    pub struct Terrain;
+    #[doc = include_str!("../docs/guides/ground-fog.md")]
+    pub struct GroundFog;
+    #[doc = include_str!("../docs/guides/fog-layers.md")]
+    pub struct FogLayers;
+    #[doc = include_str!("../docs/guides/aurora.md")]
+    pub struct Aurora;
+    #[doc = include_str!("../docs/guides/cloud-layer.md")]
+    pub struct CloudLayer;
+    #[doc = include_str!("../docs/guides/runtime.md")]
+    pub struct Runtime;
+}

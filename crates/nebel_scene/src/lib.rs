@@ -7,66 +7,14 @@
 //! and renders a scene's exact reference image ([`mod@reference`]); it knows
 //! nothing of Bevy, so the CPU reference renderer reads the same files.
 //!
-//! # Schema, version 1
+//! The schema (version 1), every field with its default, is written out in
+//! the repository's `docs/scene-format.md`; volumes are described in
+//! [`VolumeDescription`], the terrain in [`TerrainDescription`]. Right-handed,
+//! +Y up, metres; unknown fields are errors, so a typo never goes unnoticed,
+//! and every error names the file, the position, the field and the reason,
+//! e.g. `scenes/a.ron:4:9: field camera.fov_degrees: must be in (0, 180), got 190`.
 //!
-//! ```ron
-//! (
-//!     version: 1,
-//!     output: (width: 320, height: 240, frames: 4, frame_rate: 60.0),
-//!     camera: (
-//!         fov_degrees: 60.0,
-//!         near: 0.1,
-//!         view: Pose((position: (0.0, 2.0, 8.0), look_at: (0.0, 0.0, 0.0))),
-//!         tonemapping: true,
-//!         msaa: 4,
-//!         // how cells are drawn; default the quality preset's:
-//!         cell_projection: (resolution: Half, upsample_tolerance: 0.004, early_termination: true),
-//!         // or a path of keyframes, times in seconds, strictly increasing:
-//!         // view: Path([(time: 0.0, position: (..), look_at: (..)), ...]),
-//!     ),
-//!     clear_color: (0.02, 0.02, 0.05),
-//!     lights: [
-//!         Directional((direction: (-0.5, -1.0, -0.3), illuminance: 10000.0,
-//!                      // turning with the time (a day cycle); default still:
-//!                      turn: Some((axis: (1.0, 0.0, 0.0), degrees_per_second: 1.0)))),
-//!         Point((position: (0.0, 1.0, 0.0), color: (1.0, 0.6, 0.3), intensity: 100000.0)),
-//!         Ambient((brightness: 200.0)),
-//!     ],
-//!     meshes: [
-//!         Plane((center: (0.0, 0.0, 0.0), size: (20.0, 20.0), color: (0.3, 0.5, 0.3))),
-//!         Box((center: (0.0, 0.5, 0.0), size: (1.0, 1.0, 1.0))),
-//!         Sphere((center: (2.0, 1.0, 0.0), radius: 1.0, color: (0.8, 0.2, 0.2))),
-//!     ],
-//! )
-//! ```
-//!
-//! Volumes (`volumes: [...]`) are described in [`VolumeDescription`], the
-//! terrain (`terrain: (...)`, at most one) in [`TerrainDescription`].
-//!
-//! Optional values are written bare (`mode: Emissive`, RON's `implicit_some`).
-//!
-//! Conventions: right-handed, +Y up, metres. Colours are sRGB components in
-//! [0, 1] (as a colour picker shows them). Every field but `version` and `camera`
-//! has a default, written next to it below. The scene grows by one list (or one
-//! optional entry) per entity kind; unknown fields are errors, so a typo never
-//! goes unnoticed.
-//!
-//! Errors name the file, the position, the field and the reason, e.g.
-//! `scenes/a.ron:4:9: field camera.fov_degrees: must be in (0, 180), got 190`.
-//!
-//! # References
-//!
-//! Papers are cited by author and year:
-//!
-//! - Röttger and Ertl 2003: Stefan Röttger and Thomas Ertl, "Fast Volumetric Display of
-//!   Natural Gaseous Phenomena", Computer Graphics International, 2003.
-//! - Röttger 2004: Stefan Röttger, "Volumetric Methods for the Real-Time Display of
-//!   Natural Gaseous Phenomena", doctoral thesis, University of Stuttgart, 2004.
-//! - Schpok et al. 2003: Joshua Schpok, Joseph Simons, David S. Ebert and Charles
-//!   Hansen, "A Real-Time Cloud Modeling, Rendering, and Animation System",
-//!   Symposium on Computer Animation, 2003.
-//! - Nes 2008: Gisle Nes, "Physically Plausible Weather Visualization", master's thesis,
-//!   University of Bergen, 2008.
+//! The papers cited by author and year are listed in `docs/references.md`.
 
 mod aurora;
 mod cloud_layer;
