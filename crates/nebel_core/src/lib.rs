@@ -1,8 +1,7 @@
-//! nebel's optics, transfer functions, pre-integration, cells and fields,
-//! without Bevy.
+//! nebel's optics, pre-integration, cells and fields, without Bevy.
 //!
-//! Everything here is plain Rust so it builds in a minute and is tested without a
-//! GPU. The Bevy crates only move these results to the GPU.
+//! Everything here is plain Rust, so it builds without Bevy and is tested
+//! without a GPU. The Bevy crates only move these results to the GPU.
 //!
 //! - [`optics`]: optical modes and compositing of premultiplied RGBA.
 //! - [`transfer`]: transfer functions κ (chromaticity) and ρ (density) over a scalar.
@@ -16,19 +15,7 @@
 //! - [`budget`]: the memory budget every allocation sized by input is checked against first.
 //! - [`pacing`]: yield points that let a long build share a per-frame time budget.
 //!
-//! # References
-//!
-//! Papers are cited by author and year:
-//!
-//! - Röttger and Ertl 2003: Stefan Röttger and Thomas Ertl, "Fast Volumetric Display of
-//!   Natural Gaseous Phenomena", Computer Graphics International, 2003.
-//! - Röttger 2004: Stefan Röttger, "Volumetric Methods for the Real-Time Display of
-//!   Natural Gaseous Phenomena", doctoral thesis, University of Stuttgart, 2004.
-//! - Schpok et al. 2003: Joshua Schpok, Joseph Simons, David S. Ebert and Charles
-//!   Hansen, "A Real-Time Cloud Modeling, Rendering, and Animation System",
-//!   Symposium on Computer Animation, 2003.
-//! - Nes 2008: Gisle Nes, "Physically Plausible Weather Visualization", master's thesis,
-//!   University of Bergen, 2008.
+//! Papers are cited by author and year; `docs/references.md` in the repository lists them.
 
 pub mod budget;
 pub mod cell;

@@ -1,8 +1,9 @@
-//! nebel's fog plugins: volumetric ground fog lying in the valleys of the
-//! C-LOD terrain (Röttger and Ertl 2003 §6; Röttger 2004 §10.4), and fog
-//! layers, height fog exact along every ray in one full-screen pass, its far
-//! and cheap partner (Röttger 2004 §5.3; [`fog_layers`], [`FogLayers`] on a
-//! camera, [`FogLayersPlugin`]).
+//! nebel's fog plugins: ground fog in the terrain's valleys, and fog layers.
+//!
+//! Volumetric ground fog lies in the valleys of the C-LOD terrain (Röttger and
+//! Ertl 2003 §6; Röttger 2004 §10.4). Fog layers, height fog exact along every
+//! ray in one full-screen pass, are its far and cheap partner (Röttger 2004
+//! §5.3; [`fog_layers`], [`FogLayers`] on a camera, [`FogLayersPlugin`]).
 //!
 //! Put a [`GroundFog`] on a [`Terrain`](nebel_terrain::Terrain) entity;
 //! [`GroundFogPlugin`] then
@@ -47,14 +48,7 @@
 //! # let _ = spawn;
 //! ```
 //!
-//! # References
-//!
-//! Papers are cited by author and year:
-//!
-//! - Röttger and Ertl 2003: Stefan Röttger and Thomas Ertl, "Fast Volumetric Display of
-//!   Natural Gaseous Phenomena", Computer Graphics International, 2003.
-//! - Röttger 2004: Stefan Röttger, "Volumetric Methods for the Real-Time Display of
-//!   Natural Gaseous Phenomena", doctoral thesis, University of Stuttgart, 2004.
+//! Papers are cited by author and year; `docs/references.md` in the repository lists them.
 
 pub mod batch;
 pub mod error;

@@ -1,90 +1,38 @@
-//! A density grid at full resolution as a batch of tetrahedra in exact
-//! visibility order (Röttger 2004 §8.1 visibility sorting, Röttger and Ertl
-//! 2003 §3 and §4.1).
+//! A density grid at full resolution as tetrahedra in exact visibility order.
 //!
-//! Every voxel becomes Kuhn's six tetrahedra around its diagonal from its
-//! lowest to its highest corner
-//! ([`nebel_core::cell::Hexahedron::kuhn_tetrahedra`], the same in
-//! every voxel), so neighbouring voxels share their face diagonals and the
-//! mesh conforms; it is [`DensityGrid::tetrahedra`] and the octree's finest
-//! level, whose coarser cells it refines without changing their field
-//! (the decomposition is nested; Röttger and Ertl 2003 §2.1 use five
-//! alternating tetrahedra, which are not). Before the octree
-//! C-LOD replaces it, this is the source of every grid volume, and the exact
-//! reference the octree is measured against.
+//! Visibility sorting after Röttger 2004 §8.1, with the zero-opacity test of
+//! Röttger and Ertl 2003 §4.1. Every voxel becomes Kuhn's six tetrahedra around
+//! its diagonal from its lowest to its highest corner
+//! ([`nebel_core::cell::Hexahedron::kuhn_tetrahedra`], the same in every
+//! voxel), so neighbouring voxels share their face diagonals and the mesh
+//! conforms. It is [`DensityGrid::tetrahedra`] and the octree's finest level,
+//! whose coarser cells it refines without changing their field (the
+//! decomposition is nested; the five alternating tetrahedra of Röttger and Ertl
+//! 2003 §2.1 are not). It draws every grid volume without the octree and is the
+//! exact reference the octree is measured against.
 //!
-//! # Pruning
+//! The grid is cut into bricks of `brick_size³` voxels with their scalar ranges
+//! ([`BrickTable`], once per grid). A brick is skipped when its range has zero
+//! opacity ([`TransferFunction::is_transparent`], the zero-opacity test of
+//! §4.1, exact for any transfer function) or its box misses the view frustum
+//! ([`Frustum::intersects_aabb`](crate::Frustum::intersects_aabb)); an empty
+//! viewport ([`View::viewport_is_empty`]) keeps none.
 //!
-//! The grid is cut into bricks of `brick_size³` voxels (the last brick on an
-//! axis may be thinner). A [`BrickTable`] holds each brick's scalar range,
-//! computed once per grid. A brick is skipped when
-//! - its scalar range has zero opacity, [`TransferFunction::is_transparent`]
-//!   (the zero-opacity test of Röttger and Ertl 2003 §4.1, exact for any transfer
-//!   function: a brick with any ρ > 0 in its range stays), or
-//! - its box misses the view frustum
-//!   ([`Frustum::intersects_aabb`](crate::Frustum::intersects_aabb) in the
-//!   grid's own frame, conservative).
+//! [`CellOrder::BackToFront`] emits no cell before one that occludes it, for
+//! any eye (inside the grid, inside a voxel or on a grid plane included):
+//! bricks and voxels in a nested BSP order of slabs (along each axis from both
+//! far ends towards the eye's slab), and the six tetrahedra of a voxel by the
+//! MPVO rule (Williams 1992), by how many axis pairs each orders against the
+//! eye. The order depends on the eye only through the side of the planes
+//! `u_a = m` and `u_a − u_b = m` it is on, which [`order_key`] records, so a
+//! caller rebuilds only when the key (or the grid, transform, transfer
+//! function, frustum or viewport) changes
+//! ([`VolumeBatcher`](crate::VolumeBatcher) does). [`CellOrder::Unordered`]
+//! emits storage order, for the emissive and MIP modes. The order is exact for
+//! the f64 geometry; the cost is linear in the kept voxels, with no sorting.
 //!
-//! A view whose viewport has no pixels ([`View::viewport_is_empty`]) keeps no
-//! brick: the batch is empty.
-//!
-//! # Visibility order
-//!
-//! [`CellOrder::BackToFront`] emits the cells so that a cell never occludes one
-//! emitted before it, for the given eye, also when the eye is inside the grid,
-//! inside a voxel or exactly on a grid plane:
-//! - Across bricks and voxels: a BSP-style nested traversal of the axis-aligned
-//!   grid in its own frame (the eye is pulled back through the view's
-//!   `world_from_local`; sidedness is invariant under affine maps, mirrors
-//!   included). Along each axis the slabs are visited from both far ends
-//!   towards the eye's slab, the eye's slab last; z outermost, x innermost.
-//!   Each slab boundary is a plane that separates everything visited earlier
-//!   on the eye's far side from what follows, so the nesting is a valid BSP
-//!   order. Bricks are visited this way, then the voxels inside each brick,
-//!   which is again a BSP order.
-//! - Inside a voxel, the MPVO rule (Williams, "Visibility ordering meshed
-//!   polyhedra", 1992) on its six tetrahedra: the tetrahedron of the axis
-//!   ordering `u_a ≥ u_b ≥ u_c` (voxel-local `u`) shares a face with the two
-//!   whose orderings swap a neighbouring pair, in the plane `u_a = u_b` (or
-//!   `u_b = u_c`) through the voxel's diagonal. Of two such neighbours the one
-//!   on the eye's side of their plane is in front, and it orders one more
-//!   pair of axes as the eye's local coordinates do. So the tetrahedra come
-//!   by how many of the three pairs they order against the eye, most first
-//!   (`kuhn_back_to_front`): every shared face is then crossed from back
-//!   to front. An eye exactly on a face plane may see either order; both are
-//!   correct.
-//!
-//! The order depends on the eye only through which side of each slab plane
-//! and of each plane between tetrahedra it is on. In voxel index coordinates
-//! `u` those planes are `u_a = m` and `u_a − u_b = m` for integers `m`, so
-//! [`order_key`] (on which side of each plane the eye is)
-//! changes whenever the order may change: a caller rebuilds a batch only when
-//! the key, the grid, `world_from_local`, the transfer function, the frustum
-//! or the viewport changed ([`VolumeBatcher`](crate::VolumeBatcher) does).
-//!
-//! [`CellOrder::Unordered`] emits bricks, voxels and tetrahedra in storage order
-//! (x fastest), for the emissive and MIP modes, which need no sorting.
-//!
-//! The order is exact for the f64 geometry. The batch stores f32 positions; an
-//! eye within f32 rounding of a plane (about 1e-7 times the coordinates) may
-//! see slivers of that size in the other order, which no image can show.
-//!
-//! # Cost
-//!
-//! Linear in the voxels of the kept bricks plus one visit per brick; no
-//! sorting. `cargo bench -p nebel_lod --bench full_resolution` (64³ voxels,
-//! every brick kept, Kuhn's six tetrahedra per voxel: 1.57 million cells,
-//! one thread, on a two-core machine, one run) measured 51 ms back to front
-//! (about 31 000 cells per ms) and 30 ms unordered, eye outside or inside;
-//! a campfire-sized 16³ grid (24 576 cells, output in cache) 0.53 ms back
-//! to front and 0.19 ms unordered. With five tetrahedra per voxel, in an
-//! earlier session: 21 000 to 27 000 cells per ms for 64³,
-//! of which allocating and writing the 84 MB output alone took 30 to 45 ms
-//! (the builder runs close to memory speed). [`BrickTable::new`] of 65³
-//! points takes about
-//! 2 ms. [`order_key`] tells when an eye movement changes the order at all, so
-//! a caller rebuilds only then (or when the frustum or data changed). Large
-//! grids are the octree's job.
+//! Why the traversal and the in-voxel rule give an exact order is in
+//! `docs/visibility-order.md` in the repository.
 
 use glam::{DAffine3, DVec3, Vec3};
 use nebel_core::cell::{KUHN_AXIS_ORDERS, KUHN_TETRAHEDRA};

@@ -1,85 +1,38 @@
-//! Ground fog as vertical prisms on the terrain's level of detail (Röttger and
-//! Ertl 2003 §6; Röttger 2004 §10.4): every triangle the quadtree draws
-//! carries a prism from the morphed ground up to the morphed fog top, split
-//! into tetrahedra for the cell projection.
+//! Ground fog as vertical prisms on the terrain's level of detail.
 //!
-//! # Input
+//! After Röttger and Ertl 2003 §6 and Röttger 2004 §10.4, every triangle the
+//! quadtree draws carries a prism from the morphed ground up to the morphed fog
+//! top, split into tetrahedra for the cell projection.
 //!
-//! A [`TerrainMesh`] refined with the fog's thickness as its
-//! [`TerrainLayer`](crate::quadtree::TerrainLayer)
-//! ([`TerrainHierarchy::update_with_layer`](crate::quadtree::TerrainHierarchy::update_with_layer)),
-//! with [`TerrainMesh::grid_points`]: the ground of each vertex is its morphed
-//! height, the fog top its morphed height plus its morphed thickness. Both are
-//! blended with the terrain's own weights, so the fog top never pops. The
-//! thickness's roughness enters the quadtree's d2 with a weight
-//! ([`TerrainHierarchy::add_layer_roughness`](crate::quadtree::TerrainHierarchy::add_layer_roughness)),
-//! so the mesh also refines where the fog's top varies.
+//! [`fog_prisms`] reads a [`TerrainMesh`] refined with the fog's thickness as
+//! its [`TerrainLayer`](crate::quadtree::TerrainLayer)
+//! ([`TerrainHierarchy::update_with_layer`](crate::quadtree::TerrainHierarchy::update_with_layer),
+//! with [`TerrainMesh::grid_points`]): ground and top are morphed with the
+//! terrain's own weights, so the fog top never pops, and the thickness's
+//! roughness refines the quadtree too
+//! ([`TerrainHierarchy::add_layer_roughness`](crate::quadtree::TerrainHierarchy::add_layer_roughness)).
 //!
-//! # Cells
+//! A [`FogProfile`] cuts every prism into stacked prisms at relative heights,
+//! with its scalar at each level (the default is the paper's fog, dense at the
+//! ground and clear at its top). Each splits into three tetrahedra by
+//! `nebel_core::cell::Prism::tetrahedra`'s rule on grid ids, so neighbouring
+//! prisms share their face diagonals and the mesh conforms for any refinement;
+//! pieces of zero thickness are dropped. Any layer between two surfaces over
+//! one grid is the bottom as the terrain and their difference as the layer
+//! (aurora curtains, a cloud layer), its scalar from the profile
+//! ([`PrismScalar::Profile`]) or from a second morphed map
+//! ([`PrismScalar::Values`]). With [`PrismInput::beyond`] the columns wholly
+//! beyond a distance are left out, for fog layers to take over there.
 //!
-//! A [`FogProfile`] cuts every prism at relative heights `0 = r_0 < … < r_L
-//! = 1` into `L` stacked prisms; level `k` of a vertex sits at `ground + r_k ·
-//! thickness` with the scalar `s_k` of the profile; inside, the scalar is
-//! linear in each tetrahedron, so it is the profile exactly on every level
-//! and, where the thickness is constant, everywhere (the paper's fog, dense
-//! at the ground and clear at its top, is the default `[(0, 1), (1, 0)]`). Each stacked prism splits into three tetrahedra by
-//! `nebel_core::cell::Prism::tetrahedra`'s rule: every vertical side face is cut by the
-//! diagonal from the bottom of its vertex with the smaller grid id to the top
-//! of the one with the larger id (the id is `i + 2^32 · j`), so neighbouring
-//! prisms share their face diagonals and the mesh conforms, with no cracks
-//! for any refinement. Sorted by id `a < b < c` the pieces are `(a, b, c,
-//! c')`, `(a, b, b', c')`, `(a, a', b', c')`; a piece whose top vertex
-//! `c'`, `b'` or `a'` has zero thickness (or one below the rounding of its
-//! height, so that top and ground coincide) has no volume and is dropped, so a
-//! prism of zero thickness everywhere gives no cell and one of partly zero
-//! thickness keeps exactly the pieces that cover its volume.
+//! [`CellOrder::BackToFront`] is exact for any eye: the columns in the
+//! quadtree's back-to-front triangle order (every ray's ground projection
+//! crosses them in that order), the cells of a column as a chain ordered across
+//! each shared face (Williams 1992's rule on a path). [`CellOrder::Unordered`]
+//! keeps mesh order for the emissive and MIP modes. The [`GpuCell`]s are in
+//! world space, each shared vertex rounded once.
 //!
-//! # Layers between two surfaces
-//!
-//! The prisms run from the quadtree's surface up by the layer, so any layer
-//! between a bottom and a top surface over one grid is the bottom as the
-//! terrain and `top − bottom` as the layer (clamped to 0 where the surfaces
-//! cross: no cells there), its roughness added to the quadtree's d2 (Röttger
-//! 2004 §10.4: a cloud layer, aurora curtains). The cells' scalar comes from
-//! the profile over relative height ([`PrismScalar::Profile`]), or from a
-//! second map over the ground that the quadtree morphs with the same weights
-//! ([`PrismScalar::Values`],
-//! [`TerrainHierarchy::update_with_layers`](crate::quadtree::TerrainHierarchy::update_with_layers)),
-//! so it never pops either.
-//!
-//! # Handoff
-//!
-//! With [`PrismInput::beyond`] a column whose box lies wholly farther from
-//! the eye than a distance is left out (fog layers take the fog over
-//! there; the renderer ends the kept cells' segments at the same distance).
-//! The test is per column, on its world box, so no cell with a point nearer
-//! than the distance is lost.
-//!
-//! # Order
-//!
-//! [`CellOrder::BackToFront`] is an exact visibility order for any eye (above
-//! the fog, inside it, below its top on steep ground, below the ground):
-//! vertical prisms over a planar triangulation are ordered by the 2D order of
-//! their base triangles seen from the eye's ground projection, which is the
-//! quadtree's back-to-front triangle order (a front-to-back mesh is read
-//! backwards), because every ray's ground projection crosses the columns in
-//! that order. Inside a column the cells form a chain, each sharing a face
-//! with the next (the three pieces of a stacked prism, then the next stacked
-//! prism through their common triangle); the eye's side of each shared face
-//! orders each pair, and the chain is drawn in an order consistent with every
-//! pair (Williams 1992's rule on a path, with the dropped pieces skipped: two
-//! kept cells around dropped ones share the face the dropped ones collapsed
-//! to). [`CellOrder::Unordered`] writes the same cells in mesh order, for the
-//! emissive and MIP modes.
-//!
-//! # Output
-//!
-//! [`GpuCell`]s in world space: each vertex mapped by `world_from_mesh`, the
-//! terrain's placement composed with the hierarchy's origin. Positions are
-//! computed in f64 and rounded once, and a vertex shared by cells gets the
-//! same value in each. Frustum culling is the quadtree's, on node boxes raised
-//! by the largest thickness, so nothing of the fog inside the frustum is
-//! culled.
+//! The split, the handling of zero thickness and the proof of the order are in
+//! `docs/ground-fog-prisms.md` in the repository.
 
 use glam::{DAffine3, DVec3};
 use thiserror::Error;
@@ -470,7 +423,7 @@ impl Column {
     }
 
     /// Orders the kept cells back to front for `eye` by the shared faces of
-    /// consecutive cells (see the module docs).
+    /// consecutive cells (see `docs/ground-fog-prisms.md`).
     fn sort(&mut self, eye: DVec3) {
         self.order.clear();
         self.stack.clear();

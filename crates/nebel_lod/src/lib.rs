@@ -13,30 +13,22 @@
 //!   §10.4).
 //! - [`frustum`]: view frusta from planes or a view-projection matrix, and the
 //!   conservative box test used to cull bricks and nodes.
-//! - [`full_resolution`]: a density grid as five tetrahedra per voxel in exact
-//!   back-to-front order for an eye, with per-brick zero-opacity test and
+//! - [`full_resolution`]: a density grid as Kuhn's six tetrahedra per voxel in
+//!   exact back-to-front order for an eye, with per-brick zero-opacity test and
 //!   frustum culling ([`BrickTable`], [`full_resolution_batch`]), and
 //!   [`order_key`], which tells when a new eye position changes that order.
 //! - [`ground_fog`]: ground fog as vertical prisms on the terrain's level of
 //!   detail (Röttger and Ertl 2003 §6): [`fog_prisms`] turns a terrain mesh
 //!   refined with the fog's thickness into conforming tetrahedra, back to
 //!   front for any eye or unordered, with a vertical [`FogProfile`].
-//! - [`octree`]: the volume C-LOD of Röttger and Ertl 2003 §2-3: the view-independent
-//!   hierarchy ([`VolumeHierarchy`], a forest of octrees over a `2^n + 1` grid
-//!   with per-node deviation Δ propagated by `K_max` and scalar ranges, four
-//!   bytes per grid point), the per-frame refinement ([`fn@octree::refine`]:
-//!   leaves back to front with their morph factors e') and the morphed,
-//!   conforming cell batch ([`octree::lod_batch`]); a lit cloud's hierarchy
-//!   also holds its light field, refines on the larger deviation of density
-//!   and light, and emits one as the scalar and the other as the
-//!   segment-length modulator ([`octree::lod_batch_with`], Röttger and Ertl 2003 §5).
+//! - [`octree`]: the volume C-LOD of Röttger and Ertl 2003 §2-3 and §5: the
+//!   view-independent hierarchy ([`VolumeHierarchy`], with a lit cloud's light
+//!   field), the per-frame refinement ([`fn@octree::refine`]) and the morphed,
+//!   conforming cell batch ([`octree::lod_batch`], [`octree::lod_batch_with`]).
 //! - [`quadtree`]: the terrain C-LOD of Röttger 2004 §3.5.3 (Röttger's
-//!   quadtree, libMini's semantics): [`TerrainHierarchy`] over a `2^k + 1`
-//!   square height field with per-node roughness d2 propagated to the parent
-//!   and the parent's neighbours (1/3 byte per grid point besides the
-//!   heights), and [`TerrainHierarchy::update`], one pass per frame that
-//!   refines, geomorphs and writes crack-free triangle fans ([`TerrainMesh`])
-//!   back to front, front to back or unordered, with frustum culling.
+//!   quadtree, libMini's semantics): [`TerrainHierarchy`] and
+//!   [`TerrainHierarchy::update`], one pass per frame that refines, geomorphs
+//!   and writes crack-free triangle fans ([`TerrainMesh`]).
 //! - [`surface_layer`]: a layer between two surfaces over one grid
 //!   (Röttger 2004 §10.4: aurora curtains, a cloud layer): [`SurfaceLayer`]
 //!   builds the quadtree over the bottom with the thickness's roughness and
@@ -48,21 +40,9 @@
 //!   (MPVO, Williams 1992): [`CellAdjacency`] once per mesh, then
 //!   [`CellAdjacency::back_to_front`] or [`sorted_batch`] per eye.
 //! - [`volume_batcher`]: [`VolumeBatcher`], one volume's batch frame after
-//!   frame: a grid at full resolution or through the octree (lit or not) or
-//!   a cell mesh, built once ([`VolumeBatcher::new`]) and rebuilt by
-//!   [`VolumeBatcher::update`] only when the view or the inputs change the
-//!   batch.
+//!   frame, rebuilt only when the view or the inputs change it.
 //!
-//! # References
-//!
-//! Papers are cited by author and year:
-//!
-//! - Röttger and Ertl 2003: Stefan Röttger and Thomas Ertl, "Fast Volumetric Display of
-//!   Natural Gaseous Phenomena", Computer Graphics International, 2003.
-//! - Röttger 2004: Stefan Röttger, "Volumetric Methods for the Real-Time Display of
-//!   Natural Gaseous Phenomena", doctoral thesis, University of Stuttgart, 2004.
-//! - Williams 1992: Peter L. Williams, "Visibility Ordering Meshed Polyhedra", ACM
-//!   Transactions on Graphics 11(2), 1992.
+//! Papers are cited by author and year; `docs/references.md` in the repository lists them.
 
 pub mod aurora;
 pub mod batch;

@@ -1,7 +1,7 @@
-//! Back-to-front visibility order for arbitrary conforming tetrahedral meshes:
-//! MPVO, the Meshed Polyhedra Visibility Ordering of Williams ("Visibility
-//! ordering meshed polyhedra", ACM Transactions on Graphics 11(2), 1992;
-//! Röttger 2004 §8.1 visibility sorting).
+//! Back-to-front visibility order for any conforming tetrahedral mesh (MPVO).
+//!
+//! MPVO is the Meshed Polyhedra Visibility Ordering of Williams 1992, the
+//! visibility sorting of Röttger 2004 §8.1.
 //!
 //! The GPU draws a batch's cells in buffer order with premultiplied "over"
 //! blending, so a sorted (emission-absorption) batch must list every cell
@@ -11,71 +11,28 @@
 //! [`search_light_cells`](nebel_core::field::search_light_cells), cells from a
 //! scene file) gets it here.
 //!
-//! # Algorithm
+//! [`CellAdjacency::new`] runs once per mesh: it pairs the tetrahedra that
+//! share a face (the same three vertex positions, bit for bit) and keeps each
+//! face's plane. Degenerate cells ([`Tetrahedron::is_degenerate`]) match no
+//! face. [`CellAdjacency::back_to_front`] runs per eye: across each interior
+//! face the cell on the far side from the eye goes first, and the constraint
+//! graph is sorted topologically (Kahn's algorithm), in time linear in the
+//! cells.
 //!
-//! [`CellAdjacency::new`] runs once per mesh: it finds, for every face of every
-//! tetrahedron, the one other tetrahedron with the same three vertex positions
-//! (exact f64 bit patterns, `-0.0` equal to `0.0`, in any vertex order), and
-//! keeps each face's plane, oriented out of its cell. Faces found once are
-//! boundary faces; a face found three or more times (not a valid mesh) is
-//! treated as a boundary face by all its cells. Degenerate cells
-//! ([`Tetrahedron::is_degenerate`], zero volume or non-finite) are kept in the
-//! mesh but match no face, so they never constrain the order (the GPU draws
-//! nothing for them anyway).
+//! The order is exact for a convex mesh whose constraint graph is acyclic:
+//! Delaunay meshes and regular grids of Kuhn's six tetrahedra per voxel for
+//! every eye. A cycle (possible in other meshes) is broken by drawing the
+//! remaining cell farthest from the eye next; non-convex meshes are ordered
+//! only through shared faces (MPVONC is not implemented); a non-finite eye
+//! leaves the input order.
 //!
-//! [`CellAdjacency::back_to_front`] runs per eye. Each interior face's plane
-//! separates its two cells; the cell on the far side of the plane from the
-//! eye must be drawn before the cell on the eye's side (an eye exactly on the
-//! plane gives no constraint). These constraints form a directed graph with
-//! at most one edge per interior face, sorted topologically with Kahn's
-//! algorithm in time linear in the cells (plus one sort by distance if a
-//! cycle needs breaking).
+//! Sidedness is invariant under affine maps, so build the adjacency once in the
+//! mesh's own frame and pass the eye in that frame; [`sorted_batch`] does this
+//! for a [`View`] and emits the cells in world space. Shared vertices must be
+//! computed identically for their faces to match.
 //!
-//! # Exactness and its limits
-//!
-//! - For a convex mesh whose constraint graph is acyclic the order is exact:
-//!   along any ray from the eye, consecutive cells share a face whose plane
-//!   has the eye on the nearer cell's side, so every cell comes before every
-//!   cell in front of it. Delaunay meshes are acyclic for every eye
-//!   (Edelsbrunner, cited by Williams). So are regular grids of Kuhn's six
-//!   tetrahedra per voxel (the BSP order of
-//!   [`full_resolution_batch`](crate::full_resolution_batch) meets every
-//!   constraint); the search-light cone showed no cycle for any eye tested.
-//! - Non-Delaunay meshes can have cycles for some eyes. Then no order is exact;
-//!   the cycle is broken deterministically by drawing next the remaining cell
-//!   whose centroid is farthest from the eye (ties: lowest index), and the
-//!   sort goes on from there.
-//! - Non-convex meshes (holes, concavities) are ordered only through shared
-//!   faces: two cells that see each other across empty space get no direct
-//!   constraint (MPVONC, Williams' extension for them, is not implemented).
-//! - The side tests are f64 dot products; an eye within rounding of a face
-//!   plane may get either order for that face, which no image can show.
-//! - A non-finite eye has no order: the cells stay in input order.
-//!
-//! # Using it
-//!
-//! Sidedness is invariant under affine maps, so build the adjacency once in
-//! the mesh's own frame (where shared vertices are bit-identical) and pass the
-//! eye in that frame; the cells may then move with their entity.
-//! [`sorted_batch`] does this for a [`View`]: it pulls the eye back through
-//! the view's `world_from_local`, orders the cells in their own frame and
-//! emits them in world space. Shared
-//! vertices must be computed identically for their faces to match: a mesh
-//! whose cells compute the same corner with different rounding (for example
-//! `origin + i·h + h` against `origin + (i + 1)·h` for a non-dyadic `h`) gets
-//! those faces as boundary faces, unconstrained.
-//!
-//! # Cost
-//!
-//! `cargo bench -p nebel_lod --bench full_resolution -- mpvo` (one thread, on
-//! a shared two-core machine, two runs) measured
-//! [`CellAdjacency::back_to_front`] at 42 000 to 63 000 cells per ms on the
-//! default 16 × 4 × 32 search-light cone (about 9 000 non-degenerate cells,
-//! 0.15 to 0.22 ms) and 48 000 to 82 000 cells per ms on the tetrahedra of a
-//! 16³ grid (20 480 cells, 0.25 to 0.42 ms), eye outside or inside: close to
-//! [`full_resolution_batch`](crate::full_resolution_batch) on the same grid.
-//! [`CellAdjacency::new`] runs at 2 400 to 3 000 cells per ms (3 to 9 ms:
-//! hashing vertices and sorting faces), once per mesh.
+//! The exactness argument and the limits in full are in
+//! `docs/visibility-order.md` in the repository.
 
 use std::collections::HashMap;
 

@@ -1,79 +1,28 @@
-//! One volume's cell batch, frame after frame: the view-independent work once,
-//! and a rebuild only when the view or the inputs change what the batch would
-//! be.
+//! One volume's cell batch, frame after frame, rebuilt only when it changes.
 //!
-//! A [`VolumeBatcher`] owns a volume's source (a density grid or a cell mesh),
-//! everything built from it once, and its current [`CellBatch`]. A renderer
-//! keeps one per volume, calls [`VolumeBatcher::update`] every frame with the
-//! frame's [`View`] and [`FrameInputs`], and uploads the batch when `update`
-//! says it changed. It builds no new batch kind: it picks one of the crate's
-//! builders and decides when to run it.
+//! A [`VolumeBatcher`] owns a volume's source, what is built from it once
+//! ([`VolumeBatcher::new`]; `Send + Sync`, so it can be built on a worker) and
+//! its current [`CellBatch`]. A renderer calls [`VolumeBatcher::update`] every
+//! frame with the [`View`] and [`FrameInputs`] and uploads the batch when it
+//! changed. It picks one of the crate's builders:
 //!
-//! # Kinds
+//! - a grid at full resolution: [`full_resolution_batch`] over a [`BrickTable`]
+//!   (Röttger 2004 §8.1); back to front it is rebuilt when its [`order_key`] or
+//!   the frustum changes, unordered not for the camera at all;
+//! - a grid through the octree C-LOD ([`BatchSettings::octree`]): zero-padded
+//!   to `2^n + 1` points per axis ([`PadFill::Value`]), with a lit cloud's
+//!   [`light_field`] (Röttger and Ertl 2003 §5), then
+//!   [`refine`](fn@crate::octree::refine) and [`lod_batch_with`], back to
+//!   front, rebuilt when the eye, the frustum or the criterion changes (for the
+//!   screen error also the projection or viewport size). Lighting needs the
+//!   octree ([`VolumeBatchError::LightingWithoutOctree`]);
+//! - a cell mesh: back to front by MPVO ([`CellAdjacency`], [`sorted_batch`],
+//!   Williams 1992), rebuilt when the eye moves, or unordered.
 //!
-//! - A grid at full resolution ([`BatchSettings::octree`] `None`): a
-//!   [`BrickTable`] of 4³-voxel bricks once, then
-//!   [`full_resolution_batch`] (Röttger 2004 §8.1, Röttger and Ertl 2003 §4.1). Back to
-//!   front it is culled by the view frustum; unordered (the emissive and MIP
-//!   modes) it is not culled, so that it never needs a rebuild when the camera
-//!   moves.
-//! - A grid through the octree C-LOD of Röttger and Ertl 2003 ([`BatchSettings::octree`]
-//!   set): the grid padded at its high ends with zero density to `2^n + 1`
-//!   points per axis ([`PadFill::Value`]`(0.0)`: empty under any transfer
-//!   function with `ρ(0) = 0`; a grid of that size, as a cloud's, used as it
-//!   is, not copied), for a lit cloud its light field ([`light_field`], Röttger and Ertl 2003 §5) and the
-//!   [`VolumeHierarchy`] once, then [`refine`](fn@crate::octree::refine) and
-//!   [`lod_batch_with`]. Always back to front (the refinement's order), with
-//!   frustum culling, whatever [`BatchSettings::order`] says. The zero-opacity
-//!   test reads the volume's transfer function, except for
-//!   [`CellScalars::LightModulatedByDensity`], whose transfer function is over
-//!   the light and whose opacity is the density itself (`ρ = f`, Röttger and Ertl 2003
-//!   Eq. 9): there only density 0 is empty.
-//! - A cell mesh in back-to-front order: its [`CellAdjacency`] once, then
-//!   [`sorted_batch`] (MPVO, Williams 1992). Not culled.
-//! - A cell mesh unordered: the cells moved to world space as given. Not
-//!   culled.
-//!
-//! [`BatchSettings::lighting`] needs the octree (the light field is drawn
-//! through the hierarchy, which refines on both fields); without it
-//! [`VolumeBatcher::new`] fails with
-//! [`VolumeBatchError::LightingWithoutOctree`] rather than guess a minimum
-//! accuracy.
-//!
-//! # When the batch is rebuilt
-//!
-//! [`VolumeBatcher::update`] compares the view and inputs with those of the
-//! last successful build. It rebuilds
-//! - on the first update, and for every kind when `world_from_local` changed,
-//!   when the transfer function's content changed
-//!   ([`TransferFunction::content_hash`]; also for the kinds whose cells do
-//!   not read it, so that a rebuild always means "pair the batch with the
-//!   current inputs"), or when the viewport became empty or non-empty;
-//! - a grid at full resolution back to front when its [`order_key`] changed
-//!   (an eye move inside one key gives the identical batch) or the frustum
-//!   changed;
-//! - a grid through the octree when the eye moved at all (the level of detail
-//!   depends on the distance), the frustum or the criterion changed, and for
-//!   the screen error (which measures pixels) when the projection or the
-//!   viewport's size changed;
-//! - a sorted cell mesh when the eye moved;
-//!
-//! and keeps the batch otherwise: an unordered grid or cell mesh ignores the
-//! eye and the frustum, and only the octree reads the criterion. While the
-//! viewport stays empty nothing is rebuilt (the batch is empty and stays so);
-//! its size is not read otherwise.
-//!
-//! A failed update changes nothing: the previous batch stays (an empty one
-//! before the first success), and the next update compares with the last
-//! successful build again, so a bad frame is retried and a good one after it
-//! rebuilds only if it differs from the last good one.
-//!
-//! # Threads
-//!
-//! [`VolumeBatcher::new`] does all the view-independent work (padding, light
-//! field, hierarchy, brick table, adjacency: milliseconds to a second for
-//! large grids) and the batcher is `Send + Sync`, so it can be built on a
-//! worker thread and handed over.
+//! Every kind is also rebuilt on the first update, when `world_from_local` or
+//! the transfer function ([`TransferFunction::content_hash`]) changes, or when
+//! the viewport becomes empty or non-empty. A failed update keeps the previous
+//! batch and compares the next with the last successful build.
 //!
 //! # Example
 //!
@@ -196,7 +145,8 @@ pub struct BatchLighting {
 #[derive(Clone, Copy, Debug)]
 pub struct FrameInputs<'a> {
     /// The volume's transfer function: the zero-opacity test's (except for
-    /// [`CellScalars::LightModulatedByDensity`], see the module docs).
+    /// [`CellScalars::LightModulatedByDensity`], whose opacity is the
+    /// density itself, so only density 0 is empty).
     pub transfer: &'a TransferFunction,
     /// The octree's error metric and tolerance
     /// ([`RefinementSettings::criterion`]); ignored without the octree. The
@@ -350,7 +300,10 @@ impl VolumeBatcher {
     /// Does the view-independent work for `source` drawn with `settings`
     /// (module docs: padding, light field and hierarchy for the octree, the
     /// brick table of a grid at full resolution, the adjacency of a sorted
-    /// cell mesh). The batch is empty until the first
+    /// cell mesh). A grid that already has `2^n + 1` points per axis, as a
+    /// cloud's, goes into the octree as it is, not copied; others are padded
+    /// at their high ends with density 0, empty under any transfer function
+    /// with `ρ(0) = 0`. The batch is empty until the first
     /// [`VolumeBatcher::update`].
     ///
     /// Errors: [`VolumeBatchError::LightingWithoutOctree`],
@@ -441,6 +394,13 @@ impl VolumeBatcher {
     /// they differ from the last successful build in something the batch
     /// depends on (module docs), and returns whether it did, i.e. whether
     /// [`VolumeBatcher::batch`] is to be uploaded again.
+    ///
+    /// An unordered grid or cell mesh ignores the eye and the frustum, and
+    /// only the octree reads the criterion. The transfer function's content
+    /// is compared for every kind, also those whose cells do not read it, so
+    /// a rebuild always pairs the batch with the current inputs. While the
+    /// viewport stays empty nothing is rebuilt; its size is read only by the
+    /// screen error.
     ///
     /// Errors (the batch and what it was built from then stay as they were):
     /// - [`VolumeBatchError::Batch`] for a grid at full resolution or a cell

@@ -12,14 +12,7 @@
 //! - [`image_metrics`]: linear images, sRGB PNG input and output, RMSE,
 //!   maximum absolute error and PSNR, difference images.
 //!
-//! # References
-//!
-//! Papers are cited by author and year:
-//!
-//! - Röttger and Ertl 2003: Stefan Röttger and Thomas Ertl, "Fast Volumetric Display of
-//!   Natural Gaseous Phenomena", Computer Graphics International, 2003.
-//! - Röttger 2004: Stefan Röttger, "Volumetric Methods for the Real-Time Display of
-//!   Natural Gaseous Phenomena", doctoral thesis, University of Stuttgart, 2004.
+//! Papers are cited by author and year; `docs/references.md` in the repository lists them.
 
 mod fog;
 pub mod image_metrics;

@@ -15,16 +15,7 @@
 //! - [`diagnostics`]: the [`NebelSystems`] set that every per-frame nebel system
 //!   joins and the CPU time that set takes each frame.
 //!
-//! # References
-//!
-//! Papers are cited by author and year:
-//!
-//! - Röttger and Ertl 2003: Stefan Röttger and Thomas Ertl, "Fast Volumetric Display of
-//!   Natural Gaseous Phenomena", Computer Graphics International, 2003.
-//! - Röttger 2004: Stefan Röttger, "Volumetric Methods for the Real-Time Display of
-//!   Natural Gaseous Phenomena", doctoral thesis, University of Stuttgart, 2004.
-//! - Nes 2008: Gisle Nes, "Physically Plausible Weather Visualization", master's thesis,
-//!   University of Bergen, 2008.
+//! Papers are cited by author and year; `docs/references.md` in the repository lists them.
 
 pub mod builds;
 pub mod camera;

@@ -45,8 +45,9 @@
 //! exceed it: the density grid of `dims`; for a volume drawn through the
 //! octree (with `lod` or `lighting`) the grid padded to `2^n + 1` points per
 //! axis (and its light field, of the same size) and the octree over it; for
-//! one drawn at full resolution the batch of five tetrahedra per voxel; a
-//! search light's cells; a `Cells` list.
+//! one drawn at full resolution its cell batch (the check counts five
+//! tetrahedra per voxel; the batch has Kuhn's six); a search light's cells; a
+//! `Cells` list.
 
 use std::path::Path;
 

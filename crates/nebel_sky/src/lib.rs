@@ -1,7 +1,8 @@
-//! nebel's sky plugins: the aurora ("polar light", Röttger 2004 §10.4),
-//! emissive curtains between two surfaces, and a cloud layer between two
-//! surfaces, sorted and lit ([`CloudLayer`], [`CloudLayerPlugin`]), both
-//! drawn by cell projection.
+//! nebel's sky plugins: the aurora and a lit cloud layer.
+//!
+//! The aurora ("polar light", Röttger 2004 §10.4) is emissive curtains between
+//! two surfaces; the cloud layer lies between two surfaces, sorted and lit
+//! ([`CloudLayer`], [`CloudLayerPlugin`]). Both are drawn by cell projection.
 //!
 //! Put an [`Aurora`] on an entity; [`AuroraPlugin`] then, every frame,
 //!
@@ -37,11 +38,7 @@
 //! # let _ = spawn;
 //! ```
 //!
-//! # References
-//!
-//! - Röttger 2004: Stefan Röttger, "Volumetric Methods for the Real-Time
-//!   Display of Natural Gaseous Phenomena", doctoral thesis, University of
-//!   Stuttgart, 2004.
+//! Papers are cited by author and year; `docs/references.md` in the repository lists them.
 
 pub mod aurora;
 pub mod cloud_layer;

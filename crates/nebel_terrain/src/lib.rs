@@ -1,6 +1,7 @@
-//! nebel's terrain plugin: height fields drawn through Röttger's quadtree
-//! C-LOD with geomorphing (Röttger 2004 §3.5.3, Eq. 3.2; the algorithm is
-//! [`nebel_lod::quadtree`]).
+//! nebel's terrain plugin: height fields drawn through Röttger's quadtree.
+//!
+//! The quadtree C-LOD with geomorphing of Röttger 2004 §3.5.3 (Eq. 3.2); the
+//! algorithm is [`nebel_lod::quadtree`].
 //!
 //! Spawn a [`Terrain`]; [`TerrainPlugin`] gives the entity a Bevy [`Mesh`]
 //! (`Mesh3d`) and a material:
@@ -47,12 +48,7 @@
 //!
 //! [`Mesh`]: bevy::prelude::Mesh
 //!
-//! # References
-//!
-//! Papers are cited by author and year:
-//!
-//! - Röttger 2004: Stefan Röttger, "Volumetric Methods for the Real-Time Display of
-//!   Natural Gaseous Phenomena", doctoral thesis, University of Stuttgart, 2004.
+//! Papers are cited by author and year; `docs/references.md` in the repository lists them.
 
 pub mod build;
 pub mod error;

@@ -16,12 +16,11 @@
 //! Building the quadtree ([`nebel_lod::TerrainHierarchy`]) happens when the
 //! terrain appears, when its source or one of `spacing`, `vertical_scale`
 //! and `min_accuracy` changes, and when its height asset is modified
-//! ([`crate::build`]). It takes about 5 ms for 513², 65 ms for 2049² and a
-//! quarter of a second for 4097², plus the generator's time (a procedural
-//! 4097² measured 0.3 to 0.5 s in all), so it runs on Bevy's
+//! ([`crate::build`]). For large maps that takes longer than a frame (plus
+//! the generator's time for a procedural one), so it runs on Bevy's
 //! `AsyncComputeTaskPool` and the terrain appears (or changes) in the first
-//! frame after it is done ([`HeavyBuilds`] can make the frame wait instead). What happens every frame is in
-//! [`crate::update`].
+//! frame after it is done ([`HeavyBuilds`] can make the frame wait instead).
+//! What happens every frame is in [`crate::update`].
 
 use bevy::diagnostic::{Diagnostic, DiagnosticPath, RegisterDiagnostic};
 use bevy::prelude::*;

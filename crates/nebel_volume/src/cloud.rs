@@ -7,10 +7,9 @@
 //! [`CloudVolume`] fills its entity's [`Volume`] with a cloud grid asset and
 //! requires [`VolumeLod`] and [`VolumeLighting`], so a cloud is lit and drawn
 //! through the octree by default. Without wind the grid is generated on the
-//! task pool (1.5 s for the 513 × 65 × 513 layer on two threads) when the
-//! cloud appears or its settings change, then the light field and the octree
-//! are built in the background (see `crate::batching`); until a generation
-//! is done the previous grid is drawn, so no frame waits (under
+//! task pool when the cloud appears or its settings change, then the light
+//! field and the octree are built in the background (see `crate::batching`);
+//! until a generation is done the previous grid is drawn, so no frame waits (under
 //! [`HeavyBuilds::Blocking`] every frame waits for its own grid instead). A
 //! still cloud costs nothing after its first grid. A generation that fails
 //! (a bad size, say) keeps the last good grid and sets

@@ -1,98 +1,41 @@
-//! A cloud in the wind, or a lit volume under a moving sun, at frame rate:
-//! keyframes of the animated field, built ahead in the background and
-//! blended on the GPU, instead of a rebuild that lands every second or so
-//! and steps.
+//! Keyframes of a cloud in the wind or a lit volume under a moving sun.
 //!
-//! # The sun
+//! The animated field's keyframes are built ahead in the background and blended
+//! on the GPU, so the image moves continuously at frame rate instead of
+//! stepping at every rebuild.
 //!
-//! A lit volume whose sun (the first `DirectionalLight`, in the volume's
-//! frame) moved in the last two keyframe intervals
+//! A windy [`CloudVolume`]'s density is a pure function of time
+//! (`nebel_core::field::CloudNoise`, every octave drifting with its own wind
+//! after Schpok et al. 2003 §5.3). The track samples it at the keyframe times
+//! `t_k = k·T` (`T` = [`CloudVolume::keyframe_interval`]) and draws
+//! `f(t) = (1 − β) f(t_k) + β f(t_{k+1})`, `β = (t − t_k) / T`, through one
+//! octree of both keyframes (`nebel_lod::octree::keyframe`). Each frame only
+//! `β` changes (the entity's [`CellBlend`], a uniform write); the octree is
+//! refined again [`REFINEMENT_STEPS`] times per interval (and whenever the
+//! camera moves), each time for its span of blends, made ahead on the task pool
+//! for a still camera.
+//!
+//! A lit volume whose sun (the first `DirectionalLight`) moved in the last two
+//! intervals
 //! ([`VolumeLighting::keyframe_interval`](crate::VolumeLighting::keyframe_interval))
-//! is drawn from keyframes of its light field the same way: each keyframe
-//! lights the grid by the sun at the keyframe's time, extrapolated from its
-//! last two frames as a turn about their common normal at their rate
-//! (`SunMotion`, exact for a day cycle at a constant rate); the light
-//! between keyframes is their blend. For a still grid a keyframe is its light
-//! field and octrees (0.84 s of one core for the 513 × 65 × 513 layer). Once
-//! the sun and wind have rested for that long the volume is built once for
-//! the sun where it stopped, and drawn from the keyframes until that build
-//! lands.
+//! is drawn from keyframes of its light field the same way, each lit by the sun
+//! extrapolated to the keyframe's time as a turn at a constant rate
+//! (`SunMotion`). Once sun and wind have rested, the volume is built once for
+//! where they stopped.
 //!
-//! A windy [`CloudVolume`]'s density at time `t` is a pure function of `t`
-//! (`nebel_core::field::CloudNoise`: every octave drifts with its own wind,
-//! after Schpok et al. 2003 §5.3). The track samples it at keyframe times
-//! `t_k = k·T` (`T` = [`CloudVolume::keyframe_interval`], `k` an integer, so
-//! the keyframes do not depend on when the cloud appeared) and draws between
-//! two of them
+//! While a pair of keyframes is drawn, the next is built on the task pool
+//! (grid, light field and hierarchy through `VolumeBatcher::new`); at `β = 1`
+//! both draw the same field, so the hand-over changes nothing but the batch.
+//! The clock runs with Bevy's `Time` and waits at the end of a pair or step
+//! whose successor is not ready, so a slow build (or one under
+//! `HeavyBuilds::Budgeted`) slows the wind instead of stepping it; a hidden
+//! volume's clock waits too. About 5 bytes per grid point stay alive for each
+//! of three keyframes.
 //!
-//! `f(t) = (1 − β) f(t_k) + β f(t_{k+1})`, `β = (t − t_k) / T`,
-//!
-//! through one octree of both (`VolumeHierarchy::with_next_keyframe`),
-//! refined for the blend: Δ and the scalar ranges interpolated between the
-//! keyframes', bounds of the blend's own, so nothing is refined too coarsely
-//! or culled wrongly, and continuous in `β`, so the refinement changes with
-//! the blend as it does with a moving eye. Each frame `β` changes (the
-//! entity's [`CellBlend`], a uniform write, the mix of the batch's field at
-//! the two ends of its step); the octree is refined again
-//! [`REFINEMENT_STEPS`] times per interval (and whenever the camera moves),
-//! each time for its step of blends (`REFINEMENT_SPAN`). For a still camera
-//! the next step's refinement is made ahead on the task pool while the
-//! current one is drawn, and takes over when the blend reaches its step,
-//! where both draw the same field (`nebel_lod::octree::keyframe`); until it
-//! is made the clock waits at the end of the drawn step.
-//!
-//! While the pair `(t_k, t_{k+1})` is drawn, the next one `(t_{k+1},
-//! t_{k+2})` is built on the task pool: the grid at `t_{k+2}`, its padding,
-//! light field and hierarchy (`VolumeBatcher::new`), and the pair's
-//! hierarchy. At `β = 1` the drawn field is `f(t_{k+1})` refined for its own
-//! Δ, which is where the next pair starts: the hand-over changes nothing but
-//! the batch. The track's
-//! clock is the animation's: it runs with Bevy's `Time` and waits at the end
-//! of a pair whose successor is not built yet, so a build slower than `T`
-//! slows the wind instead of stepping it. The next pair takes over only once
-//! its first batch is made (on the task pool, for the view of the frame it
-//! was made in: `crate::batching`), so no frame builds it, and a hidden
-//! volume's clock waits at the end of its pair (no batch is made for it).
-//!
-//! # Cost
-//!
-//! One keyframe's CPU time every `T` seconds on the task pool,
-//! [`REFINEMENT_STEPS`] refinements of the pair per interval and the next
-//! pair's first batch (for a still camera both on the task pool too; a
-//! moving camera refines every frame anyway), and per frame a uniform
-//! write.
-//! `cargo bench -p nebel_lod --bench wind_keyframes` measured the 513 × 65 ×
-//! 513 layer's keyframe at 0.29 s of one core (grid 0.13 s, light field
-//! 0.10 s, octree 0.06 s; the pair's octree shares both keyframes' arrays
-//! and costs nothing; about 0.07 s more for the light field when the sun
-//! is low over the layer's long side) and a still camera's refinement step
-//! at 17.0 ms, so at 60 frames per second `T` = 3.0 s spends 2 ms per frame
-//! on average (one run on a 2-core machine whose runs vary by up to 1.5×). On the frame's
-//! own thread a still camera costs a uniform write and, at a refinement step
-//! or hand-over, handing a finished batch to the render world
-//! (`benches/scenes/wind_513.ron`: 0.009 ms on average, 0.015 ms at most in
-//! one run, wall time on two cores shared with lavapipe and the builds); a
-//! moving camera refines every frame anyway. Memory: about 5 bytes per grid
-//! point for each of the three keyframes alive (the drawn pair's two, which
-//! the next pair shares, and the one being built), and the build's f32
-//! grids.
-//!
-//! Under `HeavyBuilds::Budgeted` the keyframes and the refinement steps run
-//! in a fixed slice of CPU time per frame instead (the steps first), and a
-//! keyframe takes as many frames as its CPU time needs: the 513 layer's, at
-//! 2 ms per frame, about 216 with its interval's refinement steps
-//! (`benches/scenes/wind_513.ron` with `--build-budget-ms 2`, on lavapipe),
-//! within the 240 frames of `T` = 4 s at 60 frames per second, so the wind
-//! keeps its speed; at 1.6 ms per frame about 238. Where a keyframe needs
-//! more frames than its interval, the clock waits at the end of each pair
-//! and the wind slows instead of stepping.
-//!
-//! # What the blend is not
-//!
-//! Between keyframes the field is a cross-fade, not a drift: features that
-//! move far in `T` (the finest octaves move `detail_wind^(octaves − 1)` times
-//! faster than the coarse shape) fade out at their old place and in at the new
-//! one. Shorter intervals make it a drift, at a proportional cost.
+//! Between keyframes the field is a cross-fade, not a drift: features that move
+//! far in `T` fade out at their old place and in at the new one. Shorter
+//! intervals make it a drift, at a proportional cost. The reasoning behind each
+//! step is in `docs/wind-keyframes.md` in the repository.
 
 use std::sync::Arc;
 use std::time::Instant;

@@ -1,5 +1,7 @@
-//! nebel's volume plugin: clouds, smoke, fire and search lights as density
-//! grids or cells, drawn by the cell-projection render system.
+//! nebel's volume plugin: clouds, smoke, fire and search lights.
+//!
+//! They are density grids or cells, drawn by the cell-projection render
+//! system.
 //!
 //! Spawn a [`Volume`] (or a [`Campfire`] or a [`CloudVolume`], which fill and
 //! animate one); [`VolumePlugin`] turns it into a [`CellBatch`] on the same
@@ -7,16 +9,7 @@
 //! or with [`VolumeLod`] the octree C-LOD of Röttger and Ertl 2003, lit as a cloud with
 //! [`VolumeLighting`]. The render system is the same for all of them.
 //!
-//! # References
-//!
-//! Papers are cited by author and year:
-//!
-//! - Röttger and Ertl 2003: Stefan Röttger and Thomas Ertl, "Fast Volumetric Display of
-//!   Natural Gaseous Phenomena", Computer Graphics International, 2003.
-//! - Nes 2008: Gisle Nes, "Physically Plausible Weather Visualization", master's thesis,
-//!   University of Bergen, 2008.
-//! - Williams 1992: Peter L. Williams, "Visibility Ordering Meshed Polyhedra", ACM
-//!   Transactions on Graphics 11(2), 1992.
+//! Papers are cited by author and year; `docs/references.md` in the repository lists them.
 
 pub mod batching;
 pub mod campfire;

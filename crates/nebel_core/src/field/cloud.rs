@@ -1,88 +1,40 @@
-//! Procedural cumulus clouds with artist controls, after Schpok et al. 2003 (§3.2 noise
-//! octaves that "subtract" detail from the cloud volume, §4.1 eq. 3 octave
-//! transforms that grow exponentially with the octave, §5.2 media controls:
-//! cloud size as the first octave's scale, detail as the lacunarity, §5.3
-//! per-octave wind and altitude tiers) for the cumulus density `f` of Röttger and Ertl 2003
-//! §5 and §7.
+//! Procedural cumulus cloud density with artist controls.
 //!
-//! [`DensityGrid::cloud`] evaluates, at each grid point's world position `p`
-//! and time `t`:
+//! The cumulus density `f` of Röttger and Ertl 2003 §5 and §7, generated after
+//! Schpok et al. 2003. [`DensityGrid::cloud`] evaluates, at each grid point's
+//! world position `p` and time `t`, with the settings of [`CloudNoise`]:
 //!
-//! 1. **Octaves.** `octaves` separate [`noise::Perlin`] fields, octave `i`
-//!    (from 0) with seed `seed + i` (wrapping), frequency
-//!    `φ_i = lacunarity^i / wavelength` cycles per world unit and amplitude
-//!    `a_i = persistence^i`. Each octave drifts with its own wind (Schpok et al. 2003
-//!    §5.3; eq. 3 with the translation only): it is sampled at
-//!    `x_i = φ_i · (p − wind · t · detail_wind^i) + NOISE_OFFSET`, so the whole
-//!    cloud moves with `wind` and finer octaves move `detail_wind` times faster
-//!    than the next coarser one (wisps torn off the edges when > 1). With one
-//!    octave, `field(t, p) = field(0, p − wind · t)` exactly.
-//!    [`NOISE_OFFSET`](super::NOISE_OFFSET) keeps points off Perlin's zero
-//!    lattice.
-//! 2. **Equalised fBm.** `v = Σ a_i P_i(x_i) / (σ_P √(Σ a_i²))` has about unit
-//!    variance (`σ_P = 0.312`, the standard deviation of `noise::Perlin` in 3D,
-//!    measured over 2·10⁶ random points for three seeds: 0.311–0.313; octaves
-//!    with distinct seeds and frequencies are nearly uncorrelated). The
-//!    logistic approximation of the normal distribution function,
-//!    `u = 1 / (1 + exp(−1.702 v))` (within 0.01 of Φ), makes `u` close to
-//!    uniform on (0, 1), so a threshold on `u` covers a predictable fraction
-//!    of space.
-//! 3. **Coverage remap.** With `c` the coverage at this height (step 4),
-//!    `d = clamp((u − (1 − c)) / c, 0, 1)`, and `d = 0` where `c = 0`. About a
-//!    fraction `c` of the points lie above the threshold `1 − c` (coverage 0:
-//!    empty; 1: everything but measure zero is non-zero); inside a cloud the
-//!    density rises from 0 at its edge to 1 at the noise maximum (Schpok et al. 2003
-//!    Table 2 "cumulus" filter: noise as a density cut-off).
-//! 4. **Vertical profile** (Schpok et al. 2003 altitude tiers), in the height fraction
-//!    `h = j / (ny − 1)` of the grid box (grid axis y is up, as in Bevy):
-//!    - base: the density is multiplied by `b(h) = smoothstep(0, base_fade, h)`
-//!      (1 when `base_fade = 0`), which fades every column in at the same
-//!      altitude: flat cloud bases, zero on the bottom layer.
-//!    - top: the coverage shrinks toward the top,
-//!      `c(h) = coverage · (1 − smoothstep(1 − top_fade, 1, h))` (no change
-//!      when `top_fade = 0`), so only the strongest noise cores reach up:
-//!      rounded tops, zero on the top layer when `top_fade > 0`.
+//! 1. **Octaves** (Schpok et al. 2003 §3.2, §4.1 Eq. 3, §5.2): `octaves`
+//!    [`noise::Perlin`] fields of frequency `lacunarity^i / wavelength` and
+//!    amplitude `persistence^i`, each drifting with its own wind (§5.3):
+//!    sampled at `φ_i · (p − wind · t · detail_wind^i)` plus
+//!    [`NOISE_OFFSET`](super::NOISE_OFFSET).
+//! 2. **Equalised fBm**: `v = Σ a_i P_i / (σ_P √(Σ a_i²))` (`σ_P` the standard
+//!    deviation of 3D Perlin noise) has about unit variance, and the logistic
+//!    approximation of the normal distribution, `u = 1 / (1 + exp(−1.702 v))`,
+//!    makes `u` nearly uniform on (0, 1).
+//! 3. **Coverage remap** (Schpok et al. 2003 Table 2, noise as a density
+//!    cut-off): `d = clamp((u − (1 − c)) / c, 0, 1)`, so about a fraction `c`
+//!    of space is cloud, its density rising from 0 at the edge.
+//! 4. **Vertical profile** (altitude tiers):
+//!    `b(h) = smoothstep(0, base_fade, h)` fades every column in at one
+//!    altitude (flat bases) and the coverage shrinks toward the top
+//!    (`top_fade`: rounded tops).
 //!
-//!    `smoothstep(e0, e1, x) = s²(3 − 2s)`, `s = clamp((x − e0)/(e1 − e0), 0, 1)`.
+//! So `f = b(h) · clamp((u − (1 − c(h))) / c(h), 0, 1)`, in [0, 1], a pure
+//! function of the settings, time and geometry: the same on every run, machine
+//! and thread count.
 //!
-//! The density is therefore `f = b(h) · clamp((u − (1 − c(h))) / c(h), 0, 1)`,
-//! in [0, 1], a pure function of the settings, time and geometry: the same on
-//! every run, machine and thread count.
+//! Rows of grid points are evaluated octave by octave by `PerlinRow`, in the
+//! CPU's vector instructions, and finer octaves skip the points that can no
+//! longer reach the coverage threshold; the result equals the pointwise
+//! `noise::Perlin` sum to a unit in the last place of the f32 density (a test).
+//! Schpok et al. 2003's implicit ellipsoids and per-octave rotation are not
+//! implemented: the coverage threshold plays the ellipsoids' role for a whole
+//! cloudscape.
 //!
-//! **Evaluation.** Each grid row (points along x) is evaluated octave after
-//! octave by `PerlinRow`, which hashes a lattice cell's corners once for all
-//! the rows and points in it (the cells of a row are found once per grid),
-//! interpolates each cell face's corners once per row (the noise is linear
-//! along a row on a face) and gives `noise::Perlin`'s value to a few units
-//! in the last place. After
-//! each octave, a point whose partial sum `s` cannot reach the coverage
-//! threshold any more, `s + Σ_{later j} a_j < ln((1 − c) / c)` (`|P| ≤ 1`;
-//! `a_j` the scaled amplitudes), has density 0 whatever the later octaves
-//! add: they skip the row's lattice cells in which every point is so. The
-//! density is therefore the formula's (a test compares every point with
-//! the pointwise `noise::Perlin` sum: equal to 1e-6, a unit in the last
-//! place of the f32 density; the bound has a margin of 1e-9 against the
-//! rounding, so no point is skipped that the formula makes non-zero). The row loops are
-//! compiled for the vector instructions the CPU has (`pulp`'s runtime
-//! dispatch; the same operations in the same order on every instruction
-//! set, so the same density). z-slices are shared among threads with
-//! `std::thread::scope`. The paper's 513 × 513 × 65 field (here 513 × 65 ×
-//! 513, y up: 17.1 million points, 5 octaves, 86 million Perlin evaluations
-//! less the empty top and bottom layers) takes 0.10 s on one thread and
-//! 0.06 s on two, against 1.53 s for its octave sums alone point by point
-//! through `noise::Perlin` on one thread (`cargo bench -p nebel_core
-//! --bench cloud` on a 2-core machine with AVX2; one run; an earlier
-//! session measured 0.64 s and 4.10 s, so compare figures of one session
-//! only). Interpolating each cell face once per row (once for the two
-//! cells that share it) and the gradient table instead of a `match` took it
-//! from 0.19 s (0.11 s on two threads), in the same session. The vector instructions (with the grid's one-pass value
-//! check) took about a third off the one-thread time of the 6-octave layer
-//! of `cloud_flythrough.ron`: 681 to 946 ms against 1,094 to 1,288 ms with
-//! SSE2 alone, in three alternating pairs of runs.
-//!
-//! Not here: Schpok et al. 2003's implicit ellipsoids that shape individual clouds and
-//! its per-octave rotation ("torque"); the coverage threshold plays the
-//! ellipsoids' role for a whole cloudscape.
+//! Every formula, the skipping bound and the evaluation in full are in
+//! `docs/cloud-field.md` in the repository.
 
 use glam::DVec3;
 
@@ -93,8 +45,8 @@ use super::{
 };
 use crate::pacing::{pace, worker_threads};
 
-/// Standard deviation of 3D `noise::Perlin` output (measured, see the module
-/// documentation).
+/// Standard deviation of 3D `noise::Perlin` output (measured over 2·10⁶
+/// random points for three seeds: 0.311–0.313).
 const PERLIN_STD: f64 = 0.312;
 
 /// Slope of the logistic approximation `1 / (1 + e^{−1.702 v})` of the normal

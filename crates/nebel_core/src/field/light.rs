@@ -1,84 +1,35 @@
-//! The precomputed isotropic light intensity γ(x, y, z) of Röttger and Ertl 2003 §5 (the
-//! second scalar field of a cloud beside its density f: §5.1 eq. 9 lets κ(γ)
-//! colour each segment while f sets its effective length), from "standard
-//! ambient and diffuse lighting" (§5.2), optionally darkened by the
-//! transmittance toward the sun (Nes 2008 §2.2.6, eq. 2.13: self-shadowing
-//! through an attenuation volume swept from the light, §3.4).
+//! The light field γ of a lit cloud, with optional self-shadowing.
 //!
-//! At every grid point p, with L the unit vector toward the sun:
+//! γ(x, y, z) is the precomputed isotropic light intensity of Röttger and Ertl
+//! 2003 §5, the second scalar field of a cloud beside its density `f`: §5.1
+//! Eq. 9 lets κ(γ) colour each segment while `f` sets its effective length; γ
+//! comes from "standard ambient and diffuse lighting" (§5.2), optionally
+//! darkened by the transmittance toward the sun (Nes 2008 §2.2.6, Eq. 2.13:
+//! self-shadowing through an attenuation volume swept from the light, §3.4). At
+//! every grid point p, with L the unit vector toward the sun,
 //!
-//! `γ(p) = clamp(ambient + diffuse · T_sun(p) · lambert(p), 0, 1)`
+//! `γ(p) = clamp(ambient + diffuse · T_sun(p) · lambert(p), 0, 1)`.
 //!
-//! **Lambert term.** The density gradient ∇f is taken by central differences
-//! in world units (one-sided on the boundary points), the outward normal is
-//! `n̂ = −∇f / |∇f|` (density falls outward) and
+//! **Lambert term.** With ∇f by central differences in world units and the
+//! outward normal `n̂ = −∇f / |∇f|`, `lambert = (1 − w) + w · max(0, n̂ · L)`,
+//! `w = |∇f| / (|∇f| + g0)`, `g0 = 0.05 / s̄` (`s̄` the geometric mean
+//! spacing): 1 where the gradient vanishes (a uniform medium counts as lit),
+//! plain Lambert on sharp edges ([`lambert_term`]).
 //!
-//! `lambert = (1 − w) + w · max(0, n̂ · L)`, `w = |∇f| / (|∇f| + g0)`,
+//! **Transmittance.** `T_sun(p) = exp(−τ)`, `τ = σ ∫ f ds` toward the sun to
+//! the grid box's boundary (`σ = shadow_extinction`), swept in O(N) over the
+//! slices of the axis the sun direction in index units mostly follows, from the
+//! sun's side: one step of world length `Δs` to the previous slice,
+//! `τ(p) = τ(q) + σ Δs (f(p) + f(q)) / 2` (trapezoid rule), τ(q) and f(q)
+//! bilinear there, or a partial step to a side face. Interpolating τ rather
+//! than T keeps a uniform slab exact; next to a side face under grazing light
+//! the resampling smooths a kink in τ.
 //!
-//! so the term tends to 1 where the gradient vanishes (a uniform medium counts
-//! as lit, no normal is invented from noise) and to plain Lambert on sharp
-//! edges. `g0 = 0.05 / s̄` density per world unit, `s̄ = (s_x s_y s_z)^{1/3}`
-//! the geometric mean spacing: a change of 0.05 density per voxel is half
-//! way (w = 1/2).
-//!
-//! **Transmittance.** `T_sun(p) = exp(−σ ∫ f ds)` along the ray from p toward
-//! the sun to where it leaves the grid box (`σ = shadow_extinction`, T = 1 when
-//! σ = 0 or outside the box). It is swept in O(N) over the slices of the axis
-//! `a` along which the sun direction in index units, `d = L / spacing`, is
-//! largest, starting with the slice on the sun side (τ = 0 there). A point p of
-//! slice k takes one step toward the sun, `q = p + d / |d_a|` in index space
-//! (exactly one slice along a, a fraction of a point along the other two axes)
-//! of world length `Δs = 1 / |d_a|`, and
-//!
-//! `τ(p) = τ(q) + σ Δs (f(p) + f(q)) / 2`, `T = exp(−τ)`,
-//!
-//! (trapezoid rule; the same as `T(p) = T(q) · exp(−σ Δs (f(p) + f(q))/2)`),
-//! with τ(q) and f(q) bilinear in the previous slice. Interpolating the optical
-//! depth rather than T keeps the uniform-slab case exact (τ is linear there).
-//! Where q lies outside the box sideways, the ray leaves through a side face
-//! after the fraction `t` of the step: `τ(p) = σ t Δs (f(p) + f(e)) / 2` with
-//! f(e) trilinear at the exit point. Anisotropic spacing is exact: the step is
-//! taken in index space and measured in world units. τ is capped at 800
-//! (`exp(−800)` is 0 in f64) so no infinity meets a zero weight. `T` is
-//! `exp_neg` (`crate::optics`: branch-free, so the pass that applies it
-//! vectorises; about 1e-15 relative, and from 700 on `e^{−700}`, which no
-//! f32 γ can tell from 0): within one f32 step of the library's `exp` (a
-//! test), and on the 513 × 65 × 513 layer under six suns along every axis
-//! every γ equalled the one through the library's `exp` bit for bit.
-//!
-//! The sweep is exact (to 4·10⁻⁸ in γ) on a density-1 slab wherever the
-//! points it resamples all see the ray leave through the sun-side face. Next
-//! to a side face, where the exit switches to that face, τ has a kink that the
-//! linear resampling smooths over a few points: up to 0.19 in γ on a density-1
-//! slab under grazing light. Clouds that fade out before the side faces do not
-//! meet it.
-//!
-//! The Lambert pass goes along grid rows: the points with all six
-//! neighbours in the grid in one branch-free loop over the neighbouring
-//! rows, compiled for the vector instructions the CPU has (`pulp`'s runtime
-//! dispatch), equal bit for bit to the pointwise term (a test); it shares
-//! z-slices among threads (`std::thread::scope`). The sweep runs on the
-//! calling thread, a slice at a time over compact copies of the slices'
-//! densities (blocks of up to 64 slices when it goes along x, where a
-//! slice's points are a grid row apart), the runs of each row whose step
-//! lands inside the previous slice in one branch-free loop in vector
-//! instructions; equal bit for bit to the sweep point by point (a test).
-//! The Lambert term takes one division per point (see [`lambert_term`]).
-//! The 513 × 513 × 65 field (513 × 65 × 513, y up, 17.1 million points,
-//! the sun along y in index units) takes 0.036 s without a shadow on one
-//! thread and 0.102 s with the sweep, 0.170 s with the sun along x (`cargo
-//! bench -p nebel_core --bench cloud`, one run on a 2-core machine). In the
-//! same session, with five divisions per Lambert term, the slices of a
-//! block in allocations of their own and the shading along x point by
-//! point: 0.051, 0.127 and 0.272 s. In an earlier session (older code,
-//! and possibly a slower machine: its figures are two to three times
-//! today's) the sweep took 0.36 to 0.37 s against 0.62 to 0.64 s with the
-//! library's `exp` per point and 0.74 to 0.76 s point by point; the
-//! pointwise Lambert pass in SSE2 took 870 to 1,264 ms on the lit 6-octave
-//! layer of `cloud_flythrough.ron` against 596 to 864 ms in vector
-//! instructions, and with the sun along x (spacing 10 × 20 × 10 m, sun
-//! `(0.45, 0.6, 0.3)`) the whole light field took 523 to 686 ms against 906
-//! to 1,123 ms with the sweep point by point, one slice at a time.
+//! Both passes run along grid rows in the CPU's vector instructions, equal bit
+//! for bit to the pointwise formulas (tests); the Lambert pass shares z-slices
+//! among threads, the sweep runs on the calling thread. The derivation of the
+//! sweep, its exactness and its limits are in `docs/cloud-field.md` in the
+//! repository.
 
 use glam::DVec3;
 

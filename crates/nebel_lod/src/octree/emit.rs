@@ -1,140 +1,43 @@
-//! The per-frame emission of a [`Refinement`] as a [`CellBatch`]: Kuhn's six
-//! tetrahedra per leaf (the nested decomposition of [`super`]; Röttger and
-//! Ertl 2003 §2.1 use five) with morphed scalars (Röttger and Ertl 2003 §3,
-//! volumetric morphing), in exact back-to-front order.
+//! The per-frame emission of a [`Refinement`] as a morphed [`CellBatch`].
 //!
-//! # Morph rule (Röttger and Ertl 2003 §3, Eq. 7 and Eq. 8)
+//! Kuhn's six tetrahedra per leaf with morphed scalars (Röttger and Ertl 2003
+//! §3, volumetric morphing, Eq. 7 and Eq. 8), in exact back-to-front order.
 //!
-//! Every grid point `p` has a **birth level** `L`: the smallest level at which
-//! `p` is a non-corner point of the nodes that contain it. With `m` the
-//! smallest number of trailing zero bits of `p`'s coordinates (a coordinate 0
-//! counts as the roots' level), `L = m + 1`, and `p` is, in every level-`L`
-//! node containing it, an edge midpoint (one coordinate with exactly `m`
-//! trailing zeros), a face centre (two) or the centre (three). A point with
-//! `m ≥` the roots' level is a root corner and has no birth level.
+//! Every grid point `p` that is not a root corner is born at the level `L`
+//! where it first is a non-corner point (an edge midpoint, a face centre or a
+//! node centre). The batch gives it
 //!
-//! The value the batch gives `p` is defined recursively, coarse to fine:
+//! `v(p) = w · own(p) + (1 − w) · coarse(p)`,
 //!
-//! - a root corner: its own (quantised) density;
-//! - otherwise `v(p) = w · own(p) + (1 − w) · coarse(p)`, where
-//!   - `w` is the minimum `e'` over **all** level-`L` nodes that share `p`
-//!     (up to four for an edge midpoint, two for a face centre, one for a
-//!     centre; Eq. 7), taking `e'` from [`Refinement::refined`] and `e' = 0`
-//!     for a node that is not in that list but is drawn (a leaf or a node
-//!     below a leaf). A sharer under a node the refinement pruned (frustum or
-//!     a transparent root) draws no cell and does not constrain `p`; nor does
-//!     one that is transparent ([`NodeMorph::transparent`], below), unless
-//!     the largest transparent node holding it shows something. Stored
-//!     `e'` outside [0, 1] is clamped, NaN read as 0;
-//!   - `coarse(p)` averages the **morphed** values `v` of the two coarser
-//!     points `p ∓ h · 1_S`, `h` half a level-`L` edge and `S` the axes on
-//!     which `p`'s coordinate has exactly `m` trailing zeros: the ends of the
-//!     Kuhn edge through `p` (an edge's two ends, the two corners on a face's
-//!     diagonal from its lowest to its highest corner, or the birth node's
-//!     corners 0 and 7). They are corners of every level-`L` node that
-//!     shares `p`, so these are exactly the coarse values Δ is measured
-//!     against (see [`super`]).
+//! with `w` the minimum `e'` of all level-`L` nodes that share `p` (Eq. 7;
+//! `e' = 0` for a drawn node that is not refined) and `coarse(p)` the mean of
+//! the morphed values at the two ends of the Kuhn edge through `p`, the coarse
+//! value Δ is measured against (see [`super`]). Eq. 8 as printed weighs the two
+//! the other way round; this direction makes a node just refined (`e' = 0`)
+//! look like its unrefined self and one with `e' = 1` show its own values, so
+//! with every `e' = 1` the batch is the full-resolution one.
 //!
-//! Because `v` is a function of the grid point alone, every cell that uses a
-//! point gets the same value. T-vertices: a point `p` on a face or edge of a
-//! coarser leaf `N` (not one of `N`'s corners) is shared by a level-`L` node
-//! inside `N`, which is not refined, so `w = 0` and `v(p) = coarse(p)`, which
-//! is, by induction over the levels, exactly `N`'s own piecewise-linear
-//! interpolation at `p`: the Kuhn edge through `p` lies in `N`'s face (or
-//! edge) and in one of `N`'s tetrahedra, whose field is linear along it. This
-//! holds for neighbours that differ by any number of levels, and because the
-//! decomposition is nested, the finer side's triangles on `N`'s face lie in
-//! `N`'s: the field is continuous across the face, not only at its vertices.
+//! Because `v` depends on the grid point alone, every cell that uses a point
+//! gets the same value, T-vertices lie on their coarser neighbour's field and,
+//! Kuhn's decomposition being nested, the field is continuous across faces
+//! between leaves of any levels: a refinement at `e' = 0` changes no pixel. A
+//! node with zero opacity ([`NodeMorph::transparent`]) does not constrain the
+//! points it shares, as if culled (§4.1), but its leaves draw the field of the
+//! largest transparent node holding them where a morphing parent carries
+//! something visible into it. A hierarchy of two keyframes is emitted with the
+//! blended field at both ends of the refinement's span of blends
+//! ([`CellBatch::next_scalars`], [`CellBatch::mix_factor`]).
 //!
-//! For the same reason a node just refined (`e' = 0` for it and its
-//! sharers) draws, inside, exactly the field it drew unrefined: its
-//! children's tetrahedra split its own, with its field's values at their
-//! corners. A refinement that changes a node of `e' = 0` changes no pixel;
-//! the morph then moves each vertex continuously as `e'` grows. (With the
-//! paper's alternating five tetrahedra a node and its children are not
-//! nested, and each such refinement changed the field inside the node.)
+//! Leaves come in the order of [`Refinement::leaves`], the six tetrahedra of
+//! each in the in-voxel MPVO order of [`crate::full_resolution`]; positions are
+//! rounded to f32 once per grid point, so shared points coincide. Values are
+//! evaluated level by level from the roots over each refined node's 3 × 3 × 3
+//! lattice, without recursion; the refinement must be a tree as
+//! [`super::refine()`] makes it.
 //!
-//! **Transparent nodes.** A node whose scalar range has zero opacity (at an
-//! end of the span, [`NodeMorph::transparent`]) takes no part in the morph
-//! there, as if the refinement had culled it (Röttger and Ertl 2003 §4.1):
-//! it does not constrain the points it shares, so a fully refined batch is
-//! still exactly the full-resolution one. But it is not cut out: the leaves
-//! in it draw the piecewise-linear field of the largest transparent node `A`
-//! holding them, from `A`'s corners' morphed values, which is where a
-//! refinement that draws `A` as a leaf draws it; and where that field leaves
-//! `A`'s transparent range (a parent still morphing, `e' < 1`, carries its
-//! coarse field into `A`), `A` constrains the points it shares like any
-//! drawn leaf, so the field is continuous there. So the field at a blend
-//! does not depend on how far below a transparent node a refinement went,
-//! nor on whether it drew it, and a parent that refines around a hole at
-//! `e' = 0` changes no pixel. A transparent leaf whose field stays inside
-//! its range at both ends draws no cells.
-//!
-//! A hierarchy that blends two keyframes
-//! ([`VolumeHierarchy::with_next_keyframe`]) morphs both with the same
-//! weights, the refinement's `e'` at either end of its span of blends
-//! ([`Refinement::blends`]); the batch carries the blended field at the
-//! span's first blend as its scalars and modulators and at its last as
-//! [`CellBatch::next_scalars`] and [`CellBatch::next_modulators`], and the
-//! renderer mixes the two ([`CellBatch::mix_factor`]). Everything above is a
-//! function of the blend alone, so a batch for the next span, refined
-//! differently, starts from the same field where this one ends (for the
-//! distance criterion and the screen error alike; see [`super::keyframe`]).
-//!
-//! **Direction of Eq. 8.** As printed, Eq. 8 gives `w` to the coarse
-//! interpolation and `1 − w` to the point's own value. That is reversed: a
-//! node that has just been refined (`e` just above 1, `e' ≈ 0`) must look
-//! like its unrefined self, i.e. its coarse interpolation, and a node
-//! refined well past the threshold (`e ≥ 2`, `e' = 1`) must show its own
-//! values. This module implements that: `w` weighs the point's own value. So
-//! with every refined `e' = 1` the batch draws the quantised grid's values
-//! at every vertex (with `c = ∞` exactly the full-resolution batch), and
-//! each vertex moves continuously (linearly in each `e'`) between the two.
-//!
-//! # Order and geometry
-//!
-//! Leaves are emitted in the order of [`Refinement::leaves`] (back to front,
-//! see [`mod@super::refine`]). Inside a leaf, the six tetrahedra follow the
-//! MPVO rule of the full-resolution batch ([`crate::full_resolution`]): by
-//! how many axis pairs each orders against the eye, most first; the planes
-//! between them pass through the leaf's lowest corner whatever its size, and
-//! are compared with the eye in grid index coordinates. For a voxel leaf
-//! this is bit for bit the full-resolution batch's in-voxel order.
-//! Positions are the view's `world_from_local` of the grid point (grid origin
-//! and spacing applied), rounded to f32 once per point, so shared points
-//! coincide. A view whose viewport has no pixels gets an empty batch.
-//!
-//! # Evaluation and cost
-//!
-//! `v` is evaluated over the refinement's tree, level by level from the
-//! roots (so parents first, and every transparent node's field before the
-//! finer points it may constrain), without recursion: each refined node
-//! gets the values of its 3 × 3 × 3 lattice of
-//! points half its edge apart (its children's corners). Its corners are its
-//! parent's lattice points (a root's are its own values) and the other 19 are
-//! born at its level, so their coarse values average its corners; a leaf's
-//! corners are its parent's lattice points. A point shared by refined
-//! neighbours is evaluated by each, to the same value (the rule is a function
-//! of the point; the averages are sums of two or four terms in a fixed
-//! order). The refinement must be a tree as [`super::refine()`] makes it
-//! (every refined or leaf node below the roots' level has its parent
-//! refined); anything else is an error.
-//!
-//! One hash-map insert per refined node for the `e'` table, per refined node
-//! its 19 new points (lookups of its neighbours' `e'` in that small table
-//! and four reads of the grid each), per leaf one lookup of its parent's
-//! lattice and the output; one thread. The figures below are from the five
-//! tetrahedra per leaf the emission wrote then (six now: a fifth more
-//! output). For the wind's keyframe pair of the
-//! 513 × 65 × 513 layer under a still camera (`cargo bench -p nebel_lod
-//! --bench wind_keyframes`, 61 200 cells) the emission took 10.8 and 11.7 ms
-//! in two runs, against 13.1 and 19.5 ms (59 725 cells, refined for one
-//! blend) in runs alternating with them of the build before, which evaluated
-//! the rule recursively, memoised per point in a hash map (the same cells
-//! bit for bit where no keyframe hides a leaf); a single keyframe's batch (55 895
-//! cells, refinement included) 14.2 and 16.1 ms against 24.3 and 25.5 ms
-//! (the shared two-core development machine, whose runs vary by up to
-//! 1.5×).
+//! The morph rule in full, its proof of continuity at T-vertices, the rule for
+//! transparent nodes and the direction of Eq. 8 are in `docs/octree-lod.md` in
+//! the repository.
 
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};

@@ -1,80 +1,34 @@
-//! Two keyframes of an animated field in one hierarchy, for a batch that
-//! blends between them on the GPU (`CellBatch`'s keyframe blending).
+//! Two keyframes of an animated field in one hierarchy, blended on the GPU.
 //!
-//! A cloud in the wind or under a moving sun changes everywhere, every
-//! frame; rebuilding its grid, light field and hierarchy takes seconds for
-//! the 513 × 65 × 513 layer. Instead the field is drawn as
-//! `f_β = (1 − β) f_a + β f_b` between two keyframes `a` and `b` computed
-//! ahead, with `β` moving from 0 to 1 over the time between them. A batch of
-//! such a pair serves a short span of blends and carries the field at both
-//! of its ends at every vertex; between them only a mix factor changes from
-//! frame to frame.
+//! A cloud in the wind or under a moving sun changes everywhere, every frame.
+//! Instead of rebuilding it, the field is drawn as `f_β = (1 − β) f_a + β f_b`
+//! between two keyframes `a` and `b` computed ahead, `β` moving from 0 to 1
+//! over the time between them. [`VolumeHierarchy::with_next_keyframe`] makes
+//! the pair's hierarchy, which shares both keyframes' arrays.
 //!
-//! [`VolumeHierarchy::with_next_keyframe`] makes the pair's hierarchy: the
-//! first keyframe's quantised density, light, Δ and scalar ranges, the
-//! second's beside them.
+//! The refinement ([`super::refine()`]) for a blend `β`
+//! ([`super::RefinementSettings::blend`]) uses per node
+//! `Δ_β = (1 − β) Δ_a + β Δ_b` ([`VolumeHierarchy::deviation_at`]), which
+//! bounds the blend's deviation and satisfies Eq. 5 (Röttger and Ertl 2003),
+//! and the blended scalar range rounded outward
+//! ([`VolumeHierarchy::scalar_range_at`]), so the zero-opacity test culls
+//! nothing the blend draws. Both are continuous in `β` and at `β = 1` equal the
+//! second keyframe's, where the next pair starts.
 //!
-//! The refinement ([`super::refine()`]) is made for a blend factor `β`
-//! ([`super::RefinementSettings::blend`]) with, per node,
-//!
-//! - `Δ_β = (1 − β) Δ_a + β Δ_b` ([`VolumeHierarchy::deviation_at`]): the
-//!   blend's deviation at a grid point is `|(1 − β)(v_a − c_a) + β (v_b −
-//!   c_b)| ≤ (1 − β) Δ_a + β Δ_b` (the coarse value `c` is linear in the
-//!   corners), and a convex combination of two values that satisfy Eq. 5
-//!   (`Δ ≥ K_max Δ_child`) satisfies it too;
-//! - the scalar range `[(1 − β) min_a + β min_b, (1 − β) max_a + β max_b]`
-//!   rounded outward to the density's 1/255 steps
-//!   ([`VolumeHierarchy::scalar_range_at`]): every blend of two values
-//!   lies in it, so the zero-opacity test culls nothing the blend draws.
-//!
-//! Both are continuous in `β` and at `β = 1` are the second keyframe's own,
-//! which is where the next pair starts at `β = 0`: the refinement changes
-//! with the blend as it changes with a moving eye, and the hand-over from
-//! one pair to the next changes nothing. A caller refines again as `β`
-//! advances (the cells change a little at each step, as between the frames
-//! of a moving camera) and blends between refinements on the GPU.
-//!
-//! Cells drawn while `β` advances are refined for every blend they are drawn
-//! at, the span from `β₀` to `β₁ = β₀ + s`
-//! ([`super::RefinementSettings::blend_span`]): each node's largest Δ over
-//! the span and the hull of its scalar ranges, both those of the span's two
-//! ends since `Δ_β` and the blended extremes are linear in `β`
+//! A batch serves a span of blends ([`super::RefinementSettings::blend_span`],
+//! [`REFINEMENT_SPAN`], [`REFINEMENT_STEPS`] per interval): it is refined for
+//! the largest Δ and the hull of the ranges over the span
 //! ([`VolumeHierarchy::deviation_over`],
-//! [`VolumeHierarchy::scalar_range_over`]). So no blend drawn is refined for
-//! less than its Δ, and no node that a drawn blend makes visible is culled;
-//! the largest of two Δ that satisfy Eq. 5 satisfies it too. A cloud that
-//! forms between the keyframes fades in with `β`: where a keyframe is
-//! transparent the blend is the other keyframe's field scaled by `β`.
-//!
-//! **No step between spans.** The refinement takes each node's morph factor
-//! `e'` at both ends of the span, from `Δ_β` and the range at that blend
-//! ([`super::NodeMorph`]); the batch carries the morphed field of the blend
-//! at `β₀` and at `β₁`, and the renderer draws `β` in between as the mix
-//! `t = (β − β₀) / (β₁ − β₀)` of the two (`CellBatch::mix_factor`): every
-//! vertex moves continuously. The next span's batch, made ahead, takes over
-//! at `β₁` and starts from the same field: a node refined in one batch and
-//! not in the other has `e ≤ 1` at `β₁` (each refinement serves `β₁`), so
-//! `e' = 0` there, and with Kuhn's nested tetrahedra
-//! (`nebel_core::cell::KUHN_TETRAHEDRA`) a node at `e' = 0` draws exactly
-//! its unrefined field; the nodes both refine have the same `e'` at `β₁`;
-//! a node transparent at `β₁` takes no part in the morph there in either,
-//! whether one culls, draws or refines it ([`super::emit`]). The screen
-//! error's `e` of a node also depends on the occlusion by the nodes in
-//! front of it: each refinement accumulates that occlusion at each end of
-//! its span from the nodes' `e'` and ranges there, which are the same in
-//! both, and refines a node when `e > 1` for the span or at either end. A
-//! test compares the fields of consecutive spans at random points under
-//! both criteria. The spans are [`REFINEMENT_STEPS`] steps of
-//! one interval ([`REFINEMENT_SPAN`]); the pair's last span ends at `β = 1`,
-//! the second keyframe, where the next pair's first starts. What the
-//! renderer integrates may still change there a little for a lit cloud: it
-//! takes the segment-length modulator's mean over each quarter of a ray
-//! segment in a cell (`nebel_core::optics::MODULATOR_PIECES`), and a
-//! refinement splits the segments differently.
+//! [`VolumeHierarchy::scalar_range_over`]) and carries the morphed field at
+//! both of its ends, which the renderer mixes. The next span's batch starts
+//! from the same field: a node refined by one batch and not the other has
+//! `e' = 0` there and, Kuhn's tetrahedra being nested, draws its unrefined
+//! field ([`super::emit`]).
 //!
 //! Keyframes `T` apart sit at the times `k·T` for integer `k`
 //! ([`keyframe_index`], [`keyframe_time`]), so every user of a keyframe
-//! sequence (the renderer, a reference image) agrees on them.
+//! sequence agrees on them. Why no span, hand-over or transparent node makes a
+//! step is in `docs/wind-keyframes.md` in the repository.
 
 use super::{HierarchyError, Node, VolumeHierarchy};
 

@@ -1,113 +1,42 @@
-//! The view-independent half of the volumetric C-LOD (Röttger and Ertl 2003 §2.1, §2.2,
-//! §2.4 and §3): an octree (or a forest of octrees) over a
-//! density grid of `2^n + 1` points per axis, with per node the propagated
-//! simplification error Δ, the scalar range for the zero-opacity test, and a
-//! slot for the morph factor e'. The per-frame refinement ([`refine()`], in
-//! [`mod@refine`]) reads it, and [`lod_batch`] (in [`mod@emit`]) turns a
-//! refinement into a morphed, back-to-front [`crate::CellBatch`].
+//! Volume C-LOD: an octree over a density grid, refined and morphed per frame.
 //!
-//! - [`Node`]: a node by level and minimum grid point, its corners, centre
-//!   and children.
-//! - [`VolumeHierarchy`]: built once per grid by [`VolumeHierarchy::new`].
-//! - [`k_max`]: the propagation factor of Röttger and Ertl 2003 Eq. 4.
+//! The hierarchy is the view-independent half of Röttger and Ertl 2003 (§2.1,
+//! §2.2, §2.4 and §3). [`VolumeHierarchy::new`] builds, once per grid of
+//! `2^n + 1` points per axis, a forest of octrees (cubic roots of `2^m` voxels,
+//! `m` the smallest exponent, tiling the grid) with per node:
 //!
-//! # Forest rule
+//! - the deviation Δ: the largest change of any of its 19 non-corner points
+//!   between its own value and the node's coarse field, propagated bottom-up as
+//!   `Δ := max(Δ_local, K_max · Δ_child)` with [`k_max`] (Eq. 4 and 5), so a
+//!   node is refined whenever one of its children would be;
+//! - its scalar range, for the zero-opacity test;
+//! - a slot for its morph factor e'.
 //!
-//! Every axis needs `n_a = 2^(e_a) + 1` points (a [`HierarchyError`] names the
-//! dims otherwise; padding or resampling, e.g.
-//! `DensityGrid::padded_to_power_of_two_plus_one`, is the caller's job). With
-//! `m = min(e_x, e_y, e_z)` the roots are cubes of `2^m` voxels (`2^m + 1`
-//! points) and there are `2^(e_a − m)` of them along each axis: 513×513×65
-//! becomes 8×8×1 roots of 65³ points, 9×9×5 becomes 2×2×1 roots of 5³. Root
-//! `(r_x, r_y, r_z)` is the level-`m` node at origin `r · 2^m`; roots tile the
-//! grid exactly like the nodes of any level, so neighbouring roots share their
-//! boundary points like any other neighbours.
+//! A node drawn unrefined is Kuhn's six tetrahedra around its diagonal
+//! (`nebel_core::cell::KUHN_TETRAHEDRA`, as every voxel at full resolution);
+//! the paper's five alternating tetrahedra (§2.1) are not nested, Kuhn's are,
+//! so a node refined at `e' = 0` draws exactly its unrefined field.
 //!
-//! # The deviation Δ
+//! Storage follows Röttger and Ertl 2003 §5: four bytes per grid point (density
+//! u8, Δ or scalar range u16, e' u8), five with a lit cloud's light γ
+//! ([`VolumeHierarchy::with_light`], §5.1), checked against the memory budget
+//! first ([`VolumeHierarchy::check_budget`]). Δ and the ranges are computed
+//! from the quantised values the LOD mesh draws
+//! ([`VolumeHierarchy::quantised_grid`]). The arrays are shared (`Arc`), not
+//! copied, by clones and by a pair of keyframes
+//! ([`VolumeHierarchy::with_next_keyframe`]).
 //!
-//! A node of level `l ≥ 1` (edge `s = 2^l` voxels) drawn unrefined is Kuhn's
-//! six tetrahedra around its diagonal from its lowest to its highest corner
-//! (`nebel_core::cell::KUHN_TETRAHEDRA`, as every voxel of the
-//! full-resolution batch), i.e. the **piecewise-linear interpolation of its 8
-//! corners over those tetrahedra** (not trilinear). Röttger and Ertl 2003 §2.1
-//! split a node into five tetrahedra of alternating parity instead; those of
-//! a node and of its children are not nested, so a node refined at `e' = 0`
-//! changed its field inside, and a still camera saw every refinement step.
-//! Kuhn's are nested: the children's tetrahedra split the node's, so a node
-//! refined with its children's points at their coarse values draws exactly
-//! its unrefined field. At the 19 non-corner points (those with odd
-//! coordinates on the axes `S`, in half-edges) the interpolation is the
-//! average of the two corners `p ∓ 1_S` (half-edges) at the ends of the Kuhn
-//! edge through `p`:
-//! - an edge midpoint: the edge's two corners (every cube edge is a
-//!   tetrahedron edge);
-//! - a face centre: the two corners on the face's diagonal from its lowest to
-//!   its highest corner, the same diagonal for both nodes sharing the face,
-//!   so the shared point has one coarse value;
-//! - the centre: corners 0 and 7 (the centre lies on the diagonal).
+//! - [`Node`]: a node by level and minimum grid point, its corners, centre and
+//!   children.
+//! - [`refine()`] (in [`mod@refine`]): the per-frame refinement, by the screen
+//!   error ([`mod@screen_error`]) or the paper's distance criterion.
+//! - [`lod_batch`] (in [`mod@emit`]): a refinement as a morphed, back-to-front
+//!   [`crate::CellBatch`].
+//! - [`mod@keyframe`]: two keyframes of an animated field in one hierarchy.
 //!
-//! The node's local deviation is the **maximum** over those 19 points of
-//! `|value − coarse value|` (Röttger and Ertl 2003 §3 prefers the maximum to the §2.2
-//! average; the average is not offered). Because the morph blends exactly
-//! these points between their own value and this coarse value, Δ is the
-//! largest change of any vertex during the node's morph. It is propagated
-//! bottom-up, level by level (Röttger and Ertl 2003 Eq. 5):
-//! `Δ := max(Δ_local, K_max · Δ_child)` over the eight children, with
-//! `K_max = C / (2C − √3/2)` for the minimum accuracy `C > √3` (Eq. 4), so a
-//! node is refined whenever one of its children would be (Eq. 2). A voxel
-//! (level 0) has no non-corner points: its Δ is 0.
-//!
-//! # Storage and quantisation
-//!
-//! Four bytes per grid point, in three flat arrays indexed like the grid
-//! (`i + nx · (j + ny · k)`), as in Röttger and Ertl 2003 §5 (1 + 2 + 1 bytes):
-//! - density, u8: `q = round(255 · s)`, value `q / 255`. Δ and the ranges are
-//!   computed from these quantised values, i.e. from exactly what the LOD
-//!   mesh will draw; [`VolumeHierarchy::quantised_grid`] gives the same
-//!   values as a [`DensityGrid`], the full-resolution reference the LOD batch
-//!   is compared with. The caller's f32 grid is not kept.
-//! - a u16 word: at a node's centre, Δ as `q / 65535` (Δ ≤ 1 always, since
-//!   `K_max < 1`). The local Δ is exact in these units (`65535 = 255 · 257`
-//!   and coarse values are multiples of 1/1020), and `K_max · Δ_child` is
-//!   rounded up, so the stored values satisfy Eq. 5 exactly and Δ is never
-//!   underestimated. At the centre of a node's +x face (`origin + (s, s/2,
-//!   s/2)`, never a node centre, owned by that node alone) the word holds the
-//!   node's scalar range, min in the low byte and max in the high byte, in
-//!   density units of 1/255: the min and max over every grid point of the
-//!   node's closed box, which bounds every value the LOD mesh or its morph can
-//!   take there.
-//! - e', u8 at a node's centre: `round(255 · e')`, written per frame by the
-//!   caller from the refinement's e' ([`VolumeHierarchy::set_morph_factor`]), 0 after building.
-//!
-//! - light γ, u8, only for a lit cloud ([`VolumeHierarchy::with_light`]):
-//!   quantised like the density; Δ is then the maximum of the deviations of
-//!   both fields (Röttger and Ertl 2003 §5.1), five bytes per grid point in all.
-//!
-//! About 6/7 of the grid points are no node's centre; their Δ and e' slots
-//! stay unused, the price of the paper's addressing by centre point.
-//!
-//! Building checks these bytes against the memory budget of
-//! `nebel_core::budget` before anything is allocated
-//! ([`VolumeHierarchy::check_budget`], [`HierarchyError::OverBudget`]).
-//!
-//! The arrays are shared, not copied: a clone of the hierarchy, and a pair
-//! of keyframes ([`VolumeHierarchy::with_next_keyframe`]), point to the same
-//! arrays as the hierarchies they came from (`Arc`); the e' slots are copied
-//! the first time a shared hierarchy's [`VolumeHierarchy::set_morph_factor`]
-//! writes them.
-//!
-//! # Cost
-//!
-//! One pass over the grid for level 1: every point's deviation from its
-//! coarse value once, along grid rows in the CPU's vector instructions (the
-//! same integers as node by node), then per node the largest over its 27
-//! points; eight child reads per node above; one thread. `cargo bench -p
-//! nebel_lod --bench octree -- octree_build` measured 21.6 ms for a 129³
-//! fBm field and 144 ms for the paper's 513 × 513 × 65 fBm cumulus field
-//! (about 119 million points per second), the whole build including the u8
-//! quantisation, against 44.0 ms and 384 ms for level 1 node by node in the
-//! same session on the shared development machine. The build runs once per
-//! grid (and again when its data change).
+//! The forest rule, the deviation at each kind of point, the quantisation and
+//! where nebel departs from the paper are in `docs/octree-lod.md` in the
+//! repository.
 
 mod build;
 pub mod emit;
@@ -202,7 +131,8 @@ pub fn k_max(min_accuracy: f64) -> Result<f64, HierarchyError> {
 
 /// The view-independent volume octree of a density grid: quantised densities,
 /// the propagated deviation Δ and the scalar range of every node, and the
-/// per-frame morph factor e' (see the module docs for the layout).
+/// per-frame morph factor e' (see the module docs, and `docs/octree-lod.md`
+/// for the layout).
 #[derive(Clone, Debug, PartialEq)]
 pub struct VolumeHierarchy {
     /// Points per axis.

@@ -1,118 +1,39 @@
-//! The per-frame, view-dependent refinement of a [`VolumeHierarchy`] (Röttger and Ertl 2003
-//! §2.2 and §3, §4 for the culling): one top-down traversal of
-//! every root that decides which nodes are drawn as leaves, in exact
-//! back-to-front order for the eye, with the error metric of each node.
+//! The per-frame, view-dependent refinement of a [`VolumeHierarchy`].
 //!
-//! # Criteria
+//! After Röttger and Ertl 2003 §2.2 and §3 (§4 for the culling), [`refine`]
+//! makes one top-down traversal of every root and decides which nodes are drawn
+//! as leaves, in exact back-to-front order for the eye, with the error metric
+//! `e` of each node. A node is refined while `e > 1`, and every visited node
+//! gets the morph factor `e' = clamp(e − 1, 0, 1)` of Eq. 6.
+//! [`RefinementSettings::criterion`] picks the metric:
 //!
-//! [`RefinementSettings::criterion`] picks the error metric `e`; a node is
-//! refined while `e > 1`, and every visited node gets the morph factor
-//! `e' = clamp(e − 1, 0, 1)` of Eq. 6:
+//! - [`LodCriterion::ScreenError`] (the default): the estimated colour error of
+//!   the node in the pixels it covers, against a tolerance in colour units
+//!   ([`super::screen_error`]); its `e'` is clamped to the parent's.
+//! - [`LodCriterion::Distance`]: the paper's `e = s · C · max(c · Δ, 1) / d`
+//!   (Eq. 1), `s` the node's longest edge in world units, `d` the distance of
+//!   its centre from the eye, `C` = [`VolumeHierarchy::min_accuracy`], so the
+//!   descent can stop at the first unrefined node (Eq. 2 to 5). Subtrees
+//!   outside the view frustum are pruned.
 //!
-//! - [`LodCriterion::ScreenError`] (the default): the estimated colour error
-//!   of the node in the pixels it covers, through the view's projection, the
-//!   transfer function over the node's path length and the opacity in front
-//!   of it, against a tolerance in colour units ([`super::screen_error`]).
-//!   Its `e'` is clamped to the parent's.
-//! - [`LodCriterion::Distance`]: the paper's geometric metric, below.
+//! A node whose scalar range has zero opacity is never refined (§4.1): a
+//! transparent root is skipped, any other such node is a leaf marked
+//! [`NodeMorph::transparent`], kept so that a parent still morphing can carry
+//! its coarse field into it. A hierarchy of two keyframes is refined for a span
+//! of blends ([`RefinementSettings::blend_span`]) and carries `e'` at both ends
+//! of the span ([`NodeMorph`]).
 //!
-//! A hierarchy of two keyframes ([`VolumeHierarchy::with_next_keyframe`])
-//! is refined for the span of blends from [`RefinementSettings::blend`] on
-//! ([`RefinementSettings::blend_span`]): Δ and the scalar ranges are
-//! interpolated between the keyframes' (see [`super::keyframe`]); a node is
-//! refined when `e > 1` for the span's largest Δ or at either of its ends,
-//! and carries `e'` at the span's two ends ([`NodeMorph`]). The screen error
-//! keeps the occlusion of the nodes in front three times: for the span (its
-//! largest Δ and the hull of the ranges, which decides the refinement) and
-//! at each end (with the nodes' `e'` and ranges there, which give the
-//! `e'` there), so the field a batch draws at an end does not depend on the
-//! span it was refined for.
+//! The traversal runs front to back (what the screen error's occlusion needs)
+//! and hands out the leaves reversed: the slab rule of the full-resolution
+//! batch ([`crate::full_resolution`]) applied to the roots and, in every
+//! refined node, to its eight children, a BSP order for any eye (inside the
+//! volume and on a node plane included). The [`Refinement`] holds the leaves in
+//! drawing order, every refined node with its `e'`, which the morphing reads,
+//! and [`RefinementStats`].
 //!
-//! # Distance metric (Röttger and Ertl 2003 Eq. 1 and Eq. 6)
-//!
-//! A node of edge `s` (world units) whose centre is at distance `d` from the
-//! eye is refined while
-//!
-//! `e = s · C · max(c · Δ, 1) / d > 1`
-//!
-//! with `C` = [`VolumeHierarchy::min_accuracy`] (the value Δ was propagated
-//! with, so Eq. 2 to 5 hold: a node is refined whenever one of its children
-//! would be, and stopping the descent at the first unrefined node loses
-//! nothing), `Δ` = [`VolumeHierarchy::deviation`] in density units and `c` =
-//! [`LodCriterion::Distance::accuracy`].
-//!
-//! Decisions:
-//! - `d` is the Euclidean distance from the eye to the node's **centre**, as
-//!   in the paper. An eye exactly at a centre (`d = 0`) gives `e = ∞`: the node
-//!   is refined and `e' = 1`; no NaN arises.
-//! - `s` is the node's **longest** edge in world units (`2^level` times the
-//!   longest image of a voxel edge under the view's `world_from_local` and
-//!   the grid spacing), so anisotropic spacing or scaling refines rather too
-//!   much than too little. For the usual cubic voxels it is the edge length.
-//! - Voxels (level 0) are always leaves; their `e` may exceed 1 and their
-//!   `e'` is reported as computed.
-//! - Whole subtrees are pruned: a node whose box misses the view frustum
-//!   ([`Frustum::intersects_aabb`] in the grid's own frame, conservative;
-//!   the distance criterion only, the screen error gives such nodes no
-//!   error instead, see [`super::screen_error`]) is skipped with all its
-//!   descendants, which are then not visited at all.
-//! - A node whose scalar range has zero opacity
-//!   ([`TransferFunction::is_transparent`] of
-//!   [`VolumeHierarchy::scalar_range`], exact for any transfer function; for
-//!   [`CellScalars::LightModulatedByDensity`], whose opacity is the density
-//!   itself, a node whose densities are all 0) is never refined: a root is
-//!   skipped, any other node (its parent drawn refined) is a leaf with `e' =
-//!   0` marked transparent ([`NodeMorph::transparent`]). Röttger and Ertl
-//!   2003 §4.1 skip it, but while its parent morphs (`e' < 1`) the parent's
-//!   coarse field reaches into it, and cutting that field off where the
-//!   parent refines is a step in the image; the emission draws such a leaf
-//!   only where the morph carries something visible into it. The test can
-//!   only become more aggressive for a smaller box, so a node transparent
-//!   here has every one of its voxels pruned by the full-resolution batch
-//!   with one-voxel bricks.
-//! - A view whose viewport has no pixels ([`View::viewport_is_empty`]) gets
-//!   no leaf: the refinement is empty.
-//!
-//! # Order
-//!
-//! The traversal runs front to back (what the screen-error criterion's
-//! occlusion needs) and the leaves are handed out reversed: back to front.
-//! The leaves come back to front for the eye, also for an eye inside the
-//! volume or exactly on a node plane, by the slab rule of the full-resolution
-//! batch ([`crate::full_resolution`]): along each axis, the slabs are visited
-//! from both far ends towards the eye's slab, the eye's slab last (a slab
-//! holds its lower plane, so an eye on a plane belongs to the upper side);
-//! z outermost, x innermost. It is applied to the grid of roots (slabs one
-//! root wide) and, inside every refined node, to its eight children (two
-//! slabs per axis, split at the node centre). Each split is a plane that
-//! separates what was visited before from what follows with the eye on the
-//! later side, so the nesting is a BSP order of all leaves, and its reverse
-//! (each split's sides swapped) the front-to-back order of the traversal. The eye is pulled
-//! back into the grid's index frame through `world_from_local` (sidedness is
-//! invariant under affine maps, mirrors included) and compared with the
-//! integer split planes exactly.
-//!
-//! # Result
-//!
-//! [`refine`] only reads the hierarchy. It returns the leaves in drawing
-//! order, every refined node with its `e'` (parents before children) and
-//! transparency at the span's ends, which
-//! is what the morphing of the non-corner vertices reads (Röttger and Ertl 2003 §3: the
-//! minimum `e'` of the refined nodes sharing a vertex, 0 for an unrefined
-//! one), and counters ([`RefinementStats`]).
-//!
-//! # Cost
-//!
-//! One visit per reached node, one thread, no allocation but the output.
-//! `cargo bench -p nebel_lod --bench octree -- octree_refine` on the paper's
-//! 513 × 513 × 65 fBm field (cloud transfer function, no frustum) measured
-//! 4 µs (64 root leaves) for c ≤ 16 and 16 µs (295 leaves) for c = 64 with
-//! the eye about one field width outside, and 67 to 79 µs (1212 to 1464
-//! leaves) for c ≤ 16 and 250 µs (4985 leaves) for c = 64 with the eye in
-//! the middle of the field, on the shared development machine (the distance
-//! criterion). The screen error costs the projection of each visited box
-//! and its tile lookups on top; with the lit batch, `cargo bench -p
-//! nebel_lod --bench cloud_layer` measures both (README).
+//! The decisions behind the distance metric (centre distance, longest edge, an
+//! eye at a centre), the culling and the order are in `docs/octree-lod.md` in
+//! the repository.
 
 use glam::{DAffine3, DVec3};
 use nebel_core::pacing::pace;

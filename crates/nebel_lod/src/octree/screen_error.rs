@@ -1,124 +1,37 @@
-//! The screen-error criterion of the octree refinement: how much colour a
-//! node would get wrong in the pixels it covers if it were drawn unrefined,
-//! estimated from its projection, its deviation carried through the transfer
-//! function over its path length, and the opacity in front of it.
+//! The octree's screen-error criterion: the colour a node would get wrong.
 //!
-//! Röttger and Ertl 2003 Eq. 1 refines by a geometric error `s · Δ / d`: it
-//! knows neither how many pixels a node covers, what the transfer function
-//! makes of the density deviation Δ, nor whether anything in front hides it.
-//! Jang et al. ("View-dependent multiresolution splatting of non-uniform
-//! data", 2002) refine by two metrics, the screen extent and the field's
-//! variance; this criterion combines the same two kinds of information with
-//! the optics and with occlusion.
+//! It estimates how much colour a node would get wrong in the pixels it covers
+//! if it were drawn unrefined. Röttger and Ertl 2003 Eq. 1 refines by the
+//! geometric error `s · Δ / d`, which knows neither how many pixels a node
+//! covers, what the transfer function makes of the deviation Δ, nor whether
+//! anything in front hides it. Like Jang et al. 2002 this criterion adds the
+//! screen extent, and with it the optics and the occlusion:
 //!
-//! # The estimate
+//! - **The estimate.** Δ (see [`super`]) is carried through the transfer
+//!   function's slopes over the node's scalar range, bounded by the function's
+//!   range there, into a first-order colour error `ε` of a ray through the
+//!   node's longest edge `L` (emission absorption, its own light depth
+//!   included), times the transmittance `T` in front of it. For a lit cloud the
+//!   light's deviation adds as the cells draw it (Röttger and Ertl 2003 §5.1
+//!   and §5.2).
+//! - **The metric.** With `a` the fraction of the viewport the node's projected
+//!   rectangle covers (widened, so nodes entering or leaving the view change
+//!   continuously) and `P` its larger side in pixels,
+//!   `e = min(ε · √a / ε_tol, P / 1 px)` for the tolerance `ε_tol` of
+//!   [`super::LodCriterion::ScreenError`], raised near the eye so the nodes
+//!   around it are refined. `ε · √a` is the image RMSE the node alone would
+//!   cause, so the refinement spends cells where they lower the RMSE most and
+//!   does not change with the resolution; `e' = clamp(e − 1, 0, 1)` (Eq. 6),
+//!   clamped to the parent's. The view frustum prunes nothing: a node off
+//!   screen has no error and fades to a leaf.
+//! - **Occlusion.** The traversal runs front to back over a coarse grid of
+//!   screen tiles holding the mean optical depth of the leaves chosen so far;
+//!   `T` is the mean transmittance over a node's tiles. Nodes add their depth
+//!   weighted by the morph, so the occlusion changes continuously too. It is an
+//!   estimate, not a bound.
 //!
-//! For a node of longest edge `L` (world units; a ray through it crosses at
-//! most about that much of it), scalar range `[s₀, s₁]` and propagated
-//! deviation Δ (density units; the largest change of any vertex when the node
-//! is drawn coarse, see [`super`]), with ρ the extinction and `E` the
-//! emission κ·ρ (largest RGB channel) of the transfer function:
-//!
-//! - `δρ = min(ρ'·Δ, ρ₁ − ρ₀)` and `δE = min(E'·Δ, E₁ − E₀)`: the largest
-//!   slope over the node's range times Δ, but never more than the range of
-//!   the function over `[s₀, s₁]` (every coarse and fine value lies in it);
-//! - the node's own light depth: with `ρ_min` the smallest ρ over the range,
-//!   `L_eff = (1 − exp(−ρ_min L)) / ρ_min` (`L` when `ρ_min = 0`) is the
-//!   length over which an emission error reaches the eye, and
-//!   `L · exp(−ρ_min L)` the weight of an opacity error;
-//! - the colour error of a ray through the node (first order, emission
-//!   absorption, whatever lies behind taken as white, the largest
-//!   chromaticity `κ_max` for the node's own colour):
-//!   `ε = T · (L_eff · δE + L · exp(−ρ_min L) · (κ_max + 1) · δρ)`, with `T`
-//!   the transmittance in front of the node (below);
-//! - for a lit cloud the light γ's deviation is part of Δ; its effect is added
-//!   as the cells draw it: with the light as modulator of the segment length
-//!   (Röttger and Ertl 2003 §5.2) `δE += E₁ Δ` and `δρ += ρ₁ Δ`; with the
-//!   light indexing the colour (§5.1, opacity `ρ_max · f` from the density
-//!   `f`) the tables are over `f` and `δE += ρ_max f₁ · κ'·Δ`, with `κ'` the
-//!   transfer function's largest colour slope.
-//!
-//! Slopes and ranges are tabulated once per refinement over the 255 intervals
-//! between the quantised densities (`q/255`, the values the hierarchy stores),
-//! with eight samples and every control point inside each interval, and read
-//! for a node's range through sparse tables (two lookups per quantity).
-//!
-//! # Pixels and the metric
-//!
-//! The node's box, clipped at a plane just in front of the eye (`w = 10⁻⁹`
-//! of its largest clip coordinate), is projected by the view's
-//! `clip_from_world` into the viewport: `P` is the larger side of its
-//! bounding rectangle in pixels, `a` the area of the rectangle's part on
-//! the viewport widened by half the rectangle's size (at most half the
-//! viewport's) on every side, over the viewport's area: a node entering the
-//! view is refined before it gets there, and one leaving it fades to a leaf
-//! (`√a` falls steeply as `a` vanishes) out of sight. Both change
-//! continuously as the eye moves, also when the box comes to reach behind
-//! the eye (its rectangle then grows past the viewport). A node wholly
-//! behind the eye or whose rectangle misses the widened viewport has no
-//! visible error, so the view frustum is not used to prune nodes (the
-//! traversal of the screen error ignores [`crate::View::frustum`]): a node
-//! leaving the view fades to a leaf with its share,
-//! while a pruned one would drop its `e'` from the points it shares with
-//! nodes still in view at once. The metric is
-//!
-//! `e = min(ε · √a / ε_tol, P / 1 px)`
-//!
-//! with the user's tolerance `ε_tol` ([`super::LodCriterion::ScreenError`]),
-//! raised for a node with detail (Δ > 0) to at least `√3 · s / d` (`s` its
-//! longest edge, `d` the distance of its centre from the eye), so the nodes
-//! around the eye are refined: the eye's own node and every node it
-//! touches have `e ≥ 2`. Without it `e` would jump where the eye leaves a
-//! node through a face with the view turned away: the node covers the whole
-//! view while the eye is inside and none of it just outside (what it adds to
-//! the image, the rays' short paths through it, shrinks continuously; the
-//! estimate, which takes the whole edge as the path, does not), and the
-//! points on that face, right before the eye, would lose its `e'` at once.
-//!
-//! `ε · √a` is the RMSE over the whole image that the node's error alone
-//! would cause (`ε` in a fraction `a` of the pixels). A node is refined
-//! while that exceeds the tolerance **and** it covers more than a pixel
-//! (detail below the pixel grid is not resolved by refining further, so
-//! nodes of about a pixel are leaves). One threshold on the squared error
-//! summed over a node's pixels (`a · ε²`) is what spends a given number of
-//! cells where they lower the image's RMSE most (refining any node adds the
-//! same seven leaves), so large nodes are refined for smaller per-pixel
-//! errors than small ones; and since `a` is a fraction of the image, the
-//! refinement does not change with the resolution (but for the one-pixel
-//! limit). The morph factor is `e' = clamp(e − 1, 0, 1)` as in Eq. 6,
-//! clamped to the parent's, so a node just refined shows no finer detail
-//! than its parent does (the metric is continuous in the view, so is `e'`).
-//!
-//! The estimate `ε` is a first-order bound on a ray's colour error through
-//! the node, not its typical error, while many nodes near the threshold add
-//! up: measured on the lit cumulus layers of the examples, the image's RMSE
-//! against full resolution came out at 0.02 (inside a dense cloud) to 3
-//! times `ε_tol`.
-//!
-//! # Occlusion
-//!
-//! The traversal runs front to back (the reverse of the drawing order) over a
-//! coarse grid of screen tiles (4 pixels or more, at most 128 tiles across)
-//! holding the mean optical depth over each tile of the leaves already
-//! chosen. `T` of a node is the mean of `exp(−τ)` over the tiles its
-//! rectangle meets, weighted by how much of each it covers: the mean
-//! transmittance over the node's pixels, for the mean error over them (off
-//! the viewport, over the tiles of the nearest edge). A leaf adds
-//! `f · ρ_min · L_short / 2` to each tile (`L_short` its shortest edge, half
-//! of it: the chord of most rays through it; at most 30), `f` the fraction of
-//! the tile its rectangle covers, so leaves side by side add up to cover a
-//! tile. For the occlusion
-//! to change continuously too, it follows the morph: a node adds its depth
-//! with the weight `w`, the product of the `e'` of its refined ancestors,
-//! times `1 − e'` if it is refined itself (after its children), so a node
-//! just refined (`e' = 0`) darkens the tiles exactly as it did as a leaf and
-//! its children take over as it morphs. Leaves chosen earlier lie in front
-//! along every ray they share with later nodes (the order is a BSP order),
-//! so `T` only falls for what really lies behind them.
-//! It is an estimate, not a bound: a rectangle is larger than the box's
-//! projection, and a tile half covered by an opaque leaf has a mean optical
-//! depth, not a mean transmittance, so it reads darker than it is (only
-//! nodes wholly inside such tiles at a silhouette are refined less for it).
+//! The formulas, why each term is there and the limits of the estimate are in
+//! `docs/octree-screen-error.md` in the repository.
 
 use glam::{DAffine3, DMat4, DVec3, DVec4};
 use nebel_core::transfer::TransferFunction;
@@ -175,7 +88,7 @@ impl RangeMax {
 }
 
 /// What the criterion reads of the transfer function, per density interval
-/// (module docs).
+/// (see `docs/octree-screen-error.md`).
 #[derive(Clone, Debug)]
 pub(crate) struct NodeOptics {
     rho_max: RangeMax,
@@ -192,7 +105,8 @@ pub(crate) struct NodeOptics {
     light: LightTerm,
 }
 
-/// The light's share of a lit node's error (module docs).
+/// The light's share of a lit node's error (see
+/// `docs/octree-screen-error.md`).
 #[derive(Clone, Copy, Debug)]
 enum LightTerm {
     /// An unlit volume.
@@ -360,7 +274,7 @@ impl Footprint {
 }
 
 /// The projection of index space into the viewport and the occlusion tiles
-/// (module docs).
+/// (see `docs/octree-screen-error.md`).
 #[derive(Clone, Debug)]
 pub(crate) struct ScreenTiles {
     /// Grid index coordinates to clip space.

@@ -100,7 +100,7 @@ impl TerrainHierarchy {
     /// side` points (`2^k + 1`; another side counts as the next such one)
     /// besides the heights it keeps: one d2 code per node and, while the
     /// height bounds are merged, the height ranges of the two finest levels
-    /// (8 bytes per node; see the module docs), checked against the memory
+    /// (8 bytes per node; see `docs/quadtree-lod.md`), checked against the memory
     /// budget without building anything. Errors name a `terrain quadtree of
     /// side × side points`.
     pub fn check_budget(side: usize) -> Result<u64, BudgetError> {
@@ -406,7 +406,7 @@ fn propagate(d2: &mut [u8], shape: &Shape, source: &[f32], weight: f32) {
 }
 
 /// The largest `|a + b − 2m|` of node `(a, b)` (size `s`, half `half`) over its
-/// four edges and its parity diagonal (see the module docs).
+/// four edges and its parity diagonal (see `docs/quadtree-lod.md`).
 fn local_second_difference(h: &[f32], n: usize, a: usize, b: usize, s: usize, half: usize) -> f32 {
     let (i0, j0) = (a * s, b * s);
     let (i1, j1) = (i0 + s, j0 + s);

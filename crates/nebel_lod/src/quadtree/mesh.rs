@@ -8,7 +8,7 @@ use super::hierarchy::{TerrainHierarchy, level_offset};
 use super::{DEFAULT_ACCURACY, TerrainError, TerrainLayer};
 use crate::frustum::Frustum;
 
-/// In which order the triangles come out (see the module docs).
+/// In which order the triangles come out (see `docs/quadtree-lod.md`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub enum TriangleOrder {
     /// Farthest first, for the eye's ground projection: what sorted,
