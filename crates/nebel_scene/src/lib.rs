@@ -1650,7 +1650,7 @@ mod tests {
             (
                 "(source: Ramp((axis: X, from: 0.0, to: 1.0, dims: (300, 300, 300))))",
                 "volumes[0].source.Ramp.dims",
-                "full-resolution batch of 299 × 299 × 299 voxels (5 tetrahedra each) needs 8,553,887,680 bytes",
+                "full-resolution batch of 299 × 299 × 299 voxels (6 tetrahedra each) needs 10,264,665,216 bytes",
             ),
             // Drawn through the octree instead, the grid padded to 1025³ does not.
             (
@@ -1666,7 +1666,7 @@ mod tests {
             (
                 "(source: Campfire((dims: (257, 257, 257))))",
                 "volumes[0].source.Campfire.dims",
-                "full-resolution batch of 256 × 256 × 256 voxels (5 tetrahedra each) needs 5,368,709,120 bytes",
+                "full-resolution batch of 256 × 256 × 256 voxels (6 tetrahedra each) needs 6,442,450,944 bytes",
             ),
             (
                 "(source: SearchLight((position: (0.0, 0.0, 0.0), direction: (0.0, -1.0, 0.0), length: 5.0, half_angle_degrees: 20.0, segments: (256, 256, 256))))",

@@ -45,8 +45,8 @@
 //! exceed it: the density grid of `dims`; for a volume drawn through the
 //! octree (with `lod` or `lighting`) the grid padded to `2^n + 1` points per
 //! axis (and its light field, of the same size) and the octree over it; for
-//! one drawn at full resolution its cell batch (the check counts five
-//! tetrahedra per voxel; the batch has Kuhn's six); a search light's cells; a
+//! one drawn at full resolution its cell batch (Kuhn's six tetrahedra per
+//! voxel); a search light's cells; a
 //! `Cells` list.
 
 use std::path::Path;
@@ -56,7 +56,7 @@ use serde::{Deserialize, Serialize};
 
 use super::InvalidField;
 use nebel_core::budget::{BudgetError, Dims, check_allocation};
-use nebel_core::cell::Tetrahedron;
+use nebel_core::cell::{KUHN_TETRAHEDRA, Tetrahedron};
 use nebel_core::field::effects::{
     CAMPFIRE_DIMS, CAMPFIRE_MAX, CAMPFIRE_MIN, SEARCH_LIGHT_SEGMENTS, campfire_density,
     check_search_light_budget, search_light_cells,
@@ -1042,11 +1042,12 @@ impl VolumeDescription {
             check_allocation(
                 || {
                     format!(
-                        "full-resolution batch of {} voxels (5 tetrahedra each)",
-                        Dims(&voxels)
+                        "full-resolution batch of {} voxels ({} tetrahedra each)",
+                        Dims(&voxels),
+                        KUHN_TETRAHEDRA.len()
                     )
                 },
-                &[5, voxels[0], voxels[1], voxels[2]],
+                &[KUHN_TETRAHEDRA.len(), voxels[0], voxels[1], voxels[2]],
                 size_of::<GpuCell>() as u64,
             )
             .map_err(over_budget(field))?;
