@@ -37,8 +37,8 @@ use bevy::prelude::*;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::{
-    CellBatch as LodCellBatch, CellOrder, FogProfile, GpuCell, PrismInput, PrismScalar, PrismStats,
-    TriangleOrder, fog_prisms,
+    CellOrder, Cells, FogProfile, GpuCell, PrismInput, PrismScalar, PrismStats, TriangleOrder,
+    fog_prisms,
 };
 use nebel_render::camera::to_double;
 use nebel_render::{CellBatch, EffectiveQuality, HeavyBuild, HeavyBuilds, LodCameras};
@@ -389,11 +389,7 @@ pub(crate) fn update_fog_batches(
             commands.entity(entity).insert(CellBatch {
                 // A camera's fog layers take over from where they begin.
                 ends_where_fog_layers_begin: true,
-                ..CellBatch::new(
-                    Arc::new(LodCellBatch::with_bounds(cells)),
-                    transfer,
-                    fog.mode,
-                )
+                ..CellBatch::new(Arc::new(Cells::with_bounds(cells)), transfer, fog.mode)
             });
         }
         *stats = GroundFogStats {

@@ -29,7 +29,7 @@ use glam::DVec3;
 use nebel_core::field::{CloudLighting, CloudNoise, DensityGrid, light_field};
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::octree::{CellScalars, LodCriterion, RefinementSettings, lod_batch_with, refine};
-use nebel_lod::{CellBatch, View, VolumeHierarchy};
+use nebel_lod::{Cells, View, VolumeHierarchy};
 use nebel_reference::image_metrics::compare;
 
 mod support;
@@ -70,7 +70,7 @@ impl Layer {
     }
 
     /// The lit batch for `view` by `criterion`, and the update's time (ms).
-    fn batch(&self, view: &View, criterion: LodCriterion) -> (CellBatch, f64) {
+    fn batch(&self, view: &View, criterion: LodCriterion) -> (Cells, f64) {
         let settings = RefinementSettings {
             criterion,
             scalars: CellScalars::LightModulatedByDensity,

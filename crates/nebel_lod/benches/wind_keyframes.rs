@@ -45,7 +45,7 @@ use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::octree::keyframe::{REFINEMENT_SPAN, REFINEMENT_STEPS};
 use nebel_lod::octree::{CellScalars, LodCriterion, RefinementSettings, lod_batch_with, refine};
 use nebel_lod::{
-    BatchLighting, BatchSettings, CellBatch, OctreeSettings, View, VolumeBatcher, VolumeHierarchy,
+    BatchLighting, BatchSettings, Cells, OctreeSettings, View, VolumeBatcher, VolumeHierarchy,
     VolumeSource,
 };
 use nebel_reference::image_metrics::{LinearImage, compare};
@@ -146,7 +146,7 @@ fn batch(
     view: &View,
     transfer: &TransferFunction,
     blend: f32,
-) -> (CellBatch, f64) {
+) -> (Cells, f64) {
     let (batch, [refine_ms, emit_ms]) = timed_batch(hierarchy, view, transfer, blend);
     (batch, refine_ms + emit_ms)
 }
@@ -157,7 +157,7 @@ fn timed_batch(
     view: &View,
     transfer: &TransferFunction,
     blend: f32,
-) -> (CellBatch, [f64; 2]) {
+) -> (Cells, [f64; 2]) {
     let scalars = CellScalars::LightModulatedByDensity;
     let settings = RefinementSettings {
         criterion: LodCriterion::default(),

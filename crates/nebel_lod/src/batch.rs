@@ -1,6 +1,6 @@
 //! Cell batches: tetrahedra in world space in GPU layout, in draw order.
 //!
-//! A [`CellBatch`] is what every effect hands to the render system: its cells
+//! A [`Cells`] is what every effect hands to the render system: its cells
 //! in the order they are drawn (back to front for the sorted
 //! emission-absorption model, any order for the emissive and MIP modes) and
 //! their world bounds, by which whole batches are ordered against each other.
@@ -20,7 +20,7 @@ pub struct GpuCell {
 
 impl GpuCell {
     /// The tetrahedron rounded to f32. Positions are not checked; see
-    /// [`CellBatch::from_tetrahedra`] for a checked conversion.
+    /// [`Cells::from_tetrahedra`] for a checked conversion.
     pub fn from_tetrahedron(tetrahedron: &Tetrahedron) -> Self {
         Self {
             vertices: std::array::from_fn(|v| {
@@ -71,34 +71,34 @@ impl GpuCell {
 ///
 /// A batch drawn from two keyframes of an animated field (a cloud in the
 /// wind, a light field under a moving sun) serves a span of keyframe blends
-/// ([`CellBatch::blends`]): its scalars and modulators are the field at the
+/// ([`Cells::blends`]): its scalars and modulators are the field at the
 /// span's first blend, and it carries those at its last blend too
-/// ([`CellBatch::next_scalars`], [`CellBatch::next_modulators`]), for the
+/// ([`Cells::next_scalars`], [`Cells::next_modulators`]), for the
 /// same cells. The renderer draws each vertex at `(1 − t) · current + t ·
-/// next` for a mix factor `t` in [0, 1] ([`CellBatch::mix_factor`] of the
+/// next` for a mix factor `t` in [0, 1] ([`Cells::mix_factor`] of the
 /// blend) that it may change every frame without a new batch, so every
 /// vertex moves continuously from one end of the span to the other. Where a
 /// batch for the next span takes over at that end, it starts from the same
 /// field ([`crate::octree::emit`]).
 #[derive(Clone, Debug, Default, PartialEq)]
-pub struct CellBatch {
+pub struct Cells {
     /// The cells in draw order.
-    pub cells: Vec<GpuCell>,
+    pub tetrahedra: Vec<GpuCell>,
     /// Per cell, the segment-length modulator at its four vertices, in
     /// [0, 1]; empty when the batch is not modulated (see the type docs).
     pub modulators: Vec<[f32; 4]>,
     /// Per cell, the scalar at its four vertices at the last blend of
-    /// [`CellBatch::blends`]; empty when the batch is not blended (see the
+    /// [`Cells::blends`]; empty when the batch is not blended (see the
     /// type docs).
     pub next_scalars: Vec<[f32; 4]>,
     /// Per cell, the modulator at its four vertices at the last blend of
-    /// [`CellBatch::blends`]; empty when the batch is not blended or not
+    /// [`Cells::blends`]; empty when the batch is not blended or not
     /// modulated.
     pub next_modulators: Vec<[f32; 4]>,
     /// For a blended batch, the first and last keyframe blend `β` (in [0,
     /// 1]) of the span it serves: the cells' own scalars and modulators are
-    /// the field at the first, [`CellBatch::next_scalars`] and
-    /// [`CellBatch::next_modulators`] at the last. `[0, 0]` when not
+    /// the field at the first, [`Cells::next_scalars`] and
+    /// [`Cells::next_modulators`] at the last. `[0, 0]` when not
     /// blended. Default `[0, 0]`.
     pub blends: [f32; 2],
     /// Minimum corner of the axis-aligned box around every vertex, world units.
@@ -107,7 +107,7 @@ pub struct CellBatch {
     pub bounds_max: Vec3,
 }
 
-impl CellBatch {
+impl Cells {
     /// A batch of scene-given tetrahedra, kept in their order (the caller's
     /// draw order).
     ///
@@ -139,7 +139,7 @@ impl CellBatch {
         let (bounds_min, bounds_max) =
             vertices.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p)));
         Self {
-            cells,
+            tetrahedra: cells,
             bounds_min,
             bounds_max,
             ..Self::default()
@@ -159,7 +159,7 @@ impl CellBatch {
 
     /// The mix factor `t` in [0, 1] at which the renderer draws the
     /// keyframe blend `blend` (see the type docs): `(β − β₀) / (β₁ − β₀)`
-    /// for the span `[β₀, β₁]` of [`CellBatch::blends`], clamped to [0, 1]
+    /// for the span `[β₀, β₁]` of [`Cells::blends`], clamped to [0, 1]
     /// (a batch drawn past its span holds the field at its end); 0 for NaN,
     /// an empty span or a batch that is not blended.
     pub fn mix_factor(&self, blend: f32) -> f32 {
@@ -174,7 +174,7 @@ impl CellBatch {
 
     /// The batch as the renderer draws it at keyframe blend `blend`: every
     /// vertex's scalar and modulator at `(1 − t) · current + t · next` for
-    /// `t` = [`CellBatch::mix_factor`], no next values. A batch that is not
+    /// `t` = [`Cells::mix_factor`], no next values. A batch that is not
     /// blended is returned as it is.
     pub fn blended(&self, blend: f32) -> Self {
         if !self.is_blended() {
@@ -183,7 +183,7 @@ impl CellBatch {
         let t = self.mix_factor(blend);
         let mix = |current: f32, next: f32| (1.0 - t) * current + t * next;
         let cells = self
-            .cells
+            .tetrahedra
             .iter()
             .zip(&self.next_scalars)
             .map(|(cell, next)| GpuCell {
@@ -200,7 +200,7 @@ impl CellBatch {
             .map(|(current, next)| std::array::from_fn(|v| mix(current[v], next[v])))
             .collect();
         Self {
-            cells,
+            tetrahedra: cells,
             modulators,
             next_scalars: Vec::new(),
             next_modulators: Vec::new(),
@@ -211,12 +211,12 @@ impl CellBatch {
 
     /// Number of cells.
     pub fn len(&self) -> usize {
-        self.cells.len()
+        self.tetrahedra.len()
     }
 
     /// Whether the batch has no cells.
     pub fn is_empty(&self) -> bool {
-        self.cells.is_empty()
+        self.tetrahedra.is_empty()
     }
 }
 
@@ -242,7 +242,7 @@ mod tests {
 
     #[test]
     fn a_blended_batch_mixes_scalars_and_modulators_and_drops_the_next_keyframe() {
-        let mut batch = CellBatch::from_tetrahedra(&[tetrahedron(0.0, 0.0)]);
+        let mut batch = Cells::from_tetrahedra(&[tetrahedron(0.0, 0.0)]);
         assert_eq!(batch.blended(0.5), batch, "not blended: unchanged");
         batch.modulators = vec![[1.0, 0.0, 0.5, 0.25]];
         batch.next_scalars = vec![[1.0; 4]];
@@ -255,13 +255,16 @@ mod tests {
         let half = batch.blended(0.5);
         assert!(!half.is_blended());
         assert_eq!(
-            half.cells[0].vertices.map(|v| v[3]),
+            half.tetrahedra[0].vertices.map(|v| v[3]),
             [0.5, 0.625, 0.75, 0.875]
         );
         assert_eq!(half.modulators, vec![[0.5, 0.0, 0.25, 0.125]]);
-        assert_eq!(half.cells[0].position(2), batch.cells[0].position(2));
-        assert_eq!(batch.blended(f32::NAN).cells, batch.cells);
-        assert_eq!(batch.blended(7.0).cells[0].vertices[0][3], 1.0);
+        assert_eq!(
+            half.tetrahedra[0].position(2),
+            batch.tetrahedra[0].position(2)
+        );
+        assert_eq!(batch.blended(f32::NAN).tetrahedra, batch.tetrahedra);
+        assert_eq!(batch.blended(7.0).tetrahedra[0].vertices[0][3], 1.0);
         batch.blends = [0.5, 0.5];
         assert_eq!(batch.mix_factor(0.75), 0.0, "an empty span");
     }
@@ -277,13 +280,13 @@ mod tests {
             tetrahedron(-1.0, 3.0),
             tetrahedron(1e300, 0.5),
         ];
-        let batch = CellBatch::from_tetrahedra(&input);
+        let batch = Cells::from_tetrahedra(&input);
         assert_eq!(batch.len(), 2);
-        assert_eq!(batch.cells[0].vertices[0], [2.0, 2.0, 2.0, 0.1]);
-        assert_eq!(batch.cells[1].vertices[0], [-1.0, -1.0, -1.0, 1.0]);
+        assert_eq!(batch.tetrahedra[0].vertices[0], [2.0, 2.0, 2.0, 0.1]);
+        assert_eq!(batch.tetrahedra[1].vertices[0], [-1.0, -1.0, -1.0, 1.0]);
         assert_eq!(batch.bounds_min, Vec3::splat(-1.0));
         assert_eq!(batch.bounds_max, Vec3::splat(3.0));
-        let empty = CellBatch::from_tetrahedra(&[]);
+        let empty = Cells::from_tetrahedra(&[]);
         assert!(empty.is_empty());
         assert_eq!(
             (empty.bounds_min, empty.bounds_max),

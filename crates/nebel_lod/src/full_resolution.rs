@@ -40,7 +40,7 @@ use nebel_core::field::DensityGrid;
 use nebel_core::transfer::TransferFunction;
 use thiserror::Error;
 
-use crate::batch::{CellBatch, GpuCell};
+use crate::batch::{Cells, GpuCell};
 use crate::view::View;
 
 /// The order in which a batch's cells are emitted.
@@ -228,7 +228,7 @@ pub fn full_resolution_batch(
     view: &View,
     transfer: &TransferFunction,
     order: CellOrder,
-) -> Result<CellBatch, BatchError> {
+) -> Result<Cells, BatchError> {
     let voxels = grid.dims().map(|n| n - 1);
     if bricks.voxels != voxels {
         return Err(BatchError::BrickTableMismatch {
@@ -251,7 +251,7 @@ pub fn full_resolution_batch(
         CellOrder::Unordered => None,
     };
     if view.viewport_is_empty() {
-        return Ok(CellBatch::default());
+        return Ok(Cells::default());
     }
     let local_frustum = view
         .frustum
@@ -301,7 +301,7 @@ pub fn full_resolution_batch(
         }
     }
     if kept_voxels == 0 {
-        return Ok(CellBatch::default());
+        return Ok(Cells::default());
     }
 
     // Pass 2: emit, bricks and voxels in BSP order.
@@ -336,11 +336,11 @@ pub fn full_resolution_batch(
             }
         }
     }
-    Ok(CellBatch {
-        cells,
+    Ok(Cells {
+        tetrahedra: cells,
         bounds_min,
         bounds_max,
-        ..CellBatch::default()
+        ..Cells::default()
     })
 }
 

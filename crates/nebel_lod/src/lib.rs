@@ -1,13 +1,13 @@
 //! nebel's level-of-detail and cell-batch builders, without Bevy.
 //!
-//! Every volumetric effect ends as a [`CellBatch`]: tetrahedra in world space
+//! Every volumetric effect ends as a [`Cells`]: tetrahedra in world space
 //! with a scalar per vertex, in the order the GPU draws them. This crate builds
 //! those batches on the CPU, in plain Rust, so they are tested and benchmarked
 //! without a GPU; the Bevy crates only upload them.
 //!
 //! - [`aurora`]: the aurora's curtains as a layer between a plane and a
 //!   top raised by their strength ([`AuroraShape`], Röttger 2004 §10.4).
-//! - [`batch`]: [`GpuCell`] (the GPU layout of one tetrahedron) and [`CellBatch`].
+//! - [`batch`]: [`GpuCell`] (the GPU layout of one tetrahedron) and [`Cells`].
 //! - [`cloud_layer`]: a cloud layer between two surfaces, lit by the sun
 //!   through the layer above each point ([`CloudLayerShape`], Röttger 2004
 //!   §10.4).
@@ -58,7 +58,7 @@ pub mod visibility;
 pub mod volume_batcher;
 
 pub use aurora::AuroraShape;
-pub use batch::{CellBatch, GpuCell};
+pub use batch::{Cells, GpuCell};
 pub use cloud_layer::CloudLayerShape;
 pub use frustum::{Frustum, FrustumError};
 pub use full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};

@@ -39,7 +39,7 @@ use std::collections::HashMap;
 use glam::DVec3;
 use nebel_core::cell::{Plane, Tetrahedron};
 
-use crate::batch::CellBatch;
+use crate::batch::Cells;
 use crate::full_resolution::BatchError;
 use crate::view::View;
 
@@ -243,7 +243,7 @@ impl CellAdjacency {
 /// `cells` (in the mesh's own frame, `adjacency` built from them) reordered
 /// back to front for the view's eye with [`CellAdjacency::back_to_front`] in
 /// that frame, moved to world space by the view's `world_from_local`, as a
-/// batch ([`CellBatch::from_tetrahedra`], which drops non-finite cells and
+/// batch ([`Cells::from_tetrahedra`], which drops non-finite cells and
 /// clamps scalars). The frustum is not read; an empty viewport gives an empty
 /// batch (after the checks below).
 ///
@@ -258,7 +258,7 @@ pub fn sorted_batch(
     cells: &[Tetrahedron],
     adjacency: &CellAdjacency,
     view: &View,
-) -> Result<CellBatch, BatchError> {
+) -> Result<Cells, BatchError> {
     let local_from_world = view
         .local_from_world()
         .ok_or(BatchError::SingularTransform {
@@ -269,14 +269,14 @@ pub fn sorted_batch(
         return Err(BatchError::NonFiniteEye { eye: view.eye });
     }
     if view.viewport_is_empty() {
-        return Ok(CellBatch::default());
+        return Ok(Cells::default());
     }
     let sorted: Vec<Tetrahedron> = adjacency
         .back_to_front(cells, eye)
         .into_iter()
         .map(|cell| view.to_world(&cells[cell]))
         .collect();
-    Ok(CellBatch::from_tetrahedra(&sorted))
+    Ok(Cells::from_tetrahedra(&sorted))
 }
 
 /// The bit pattern of a position, `-0.0` read as `0.0`.

@@ -2,7 +2,7 @@
 //!
 //! A [`VolumeBatcher`] owns a volume's source, what is built from it once
 //! ([`VolumeBatcher::new`]; `Send + Sync`, so it can be built on a worker) and
-//! its current [`CellBatch`]. A renderer calls [`VolumeBatcher::update`] every
+//! its current [`Cells`]. A renderer calls [`VolumeBatcher::update`] every
 //! frame with the [`View`] and [`FrameInputs`] and uploads the batch when it
 //! changed. It picks one of the crate's builders:
 //!
@@ -68,7 +68,7 @@ use nebel_core::pacing::drop_paced;
 use nebel_core::transfer::TransferFunction;
 use thiserror::Error;
 
-use crate::batch::{CellBatch, GpuCell};
+use crate::batch::{Cells, GpuCell};
 use crate::full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};
 use crate::octree::{
     CellScalars, HierarchyError, LodCriterion, RefinementError, RefinementSettings,
@@ -290,7 +290,7 @@ pub struct VolumeBatcher {
     /// Cells of the source at full resolution.
     full_resolution_cells: usize,
     /// The current batch.
-    batch: Arc<CellBatch>,
+    batch: Arc<Cells>,
     /// What `batch` was built from; `None` before the first successful
     /// update.
     built: Option<BuiltFor>,
@@ -440,7 +440,7 @@ impl VolumeBatcher {
 
     /// A batcher that blends from this batcher's keyframe to `next`'s (the
     /// octree of both with [`VolumeHierarchy::with_next_keyframe`]; its
-    /// batches carry `next`'s values too, `CellBatch`'s keyframe blending).
+    /// batches carry `next`'s values too, `Cells`'s keyframe blending).
     /// Built from `self`'s settings; `next` may differ only in its light's
     /// settings (a keyframe of a moving sun). The batch is empty until the
     /// first [`VolumeBatcher::update`].
@@ -553,7 +553,7 @@ impl VolumeBatcher {
     /// cloud. Empty before the first successful [`VolumeBatcher::update`].
     /// Shared: a renderer keeps it without copying the cells, and a rebuild
     /// makes a new one.
-    pub fn batch(&self) -> &Arc<CellBatch> {
+    pub fn batch(&self) -> &Arc<Cells> {
         &self.batch
     }
 
@@ -637,7 +637,7 @@ impl VolumeBatcher {
     }
 
     /// The batch for `view` and `inputs`, built from scratch.
-    fn build(&self, view: &View, inputs: &FrameInputs) -> Result<CellBatch, VolumeBatchError> {
+    fn build(&self, view: &View, inputs: &FrameInputs) -> Result<Cells, VolumeBatchError> {
         let batch = match &self.kind {
             Kind::FullResolution {
                 grid,
@@ -744,7 +744,7 @@ impl BlendStep {
 #[derive(Debug)]
 pub struct BuiltBlendStep {
     step: BlendStep,
-    batch: Result<CellBatch, VolumeBatchError>,
+    batch: Result<Cells, VolumeBatchError>,
 }
 
 impl BuiltBlendStep {
@@ -760,18 +760,18 @@ impl BuiltBlendStep {
 }
 
 /// `cells` (local frame) moved to world space by the view's
-/// `world_from_local`, in their order ([`CellBatch::from_tetrahedra`]); empty
+/// `world_from_local`, in their order ([`Cells::from_tetrahedra`]); empty
 /// for an empty viewport. Errors: [`BatchError::SingularTransform`] unless
 /// `world_from_local` is finite and invertible.
-fn unordered_batch(cells: &[Tetrahedron], view: &View) -> Result<CellBatch, BatchError> {
+fn unordered_batch(cells: &[Tetrahedron], view: &View) -> Result<Cells, BatchError> {
     if view.local_from_world().is_none() {
         return Err(BatchError::SingularTransform {
             determinant: view.world_from_local.matrix3.determinant(),
         });
     }
     if view.viewport_is_empty() {
-        return Ok(CellBatch::default());
+        return Ok(Cells::default());
     }
     let world: Vec<Tetrahedron> = cells.iter().map(|t| view.to_world(t)).collect();
-    Ok(CellBatch::from_tetrahedra(&world))
+    Ok(Cells::from_tetrahedra(&world))
 }

@@ -9,7 +9,7 @@ use nebel_core::cell::{Ray, Tetrahedron};
 use nebel_core::field::DensityGrid;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::{
-    BatchError, BrickTable, CellBatch, CellOrder, Frustum, GpuCell, View, full_resolution_batch,
+    BatchError, BrickTable, CellOrder, Cells, Frustum, GpuCell, View, full_resolution_batch,
 };
 use proptest::prelude::*;
 
@@ -41,7 +41,7 @@ fn batch(
     frustum: Option<&Frustum>,
     transfer: &TransferFunction,
     order: CellOrder,
-) -> CellBatch {
+) -> Cells {
     let bricks = BrickTable::new(grid, brick_size);
     let view = view(world_from_grid, eye, frustum);
     full_resolution_batch(grid, &bricks, &view, transfer, order).unwrap()
@@ -188,13 +188,13 @@ proptest! {
         let eye = world_from_grid.transform_point3(origin + u * spacing);
         let b = batch(&g, brick_size, world_from_grid, eye, None, &linear_transfer(), CellOrder::BackToFront);
         prop_assert_eq!(b.len(), 6 * voxel_count(&g));
-        assert_back_to_front(&b.cells, eye, &directions, 1e-9);
+        assert_back_to_front(&b.tetrahedra, eye, &directions, 1e-9);
         // Rays towards the voxel centres and grid points reach every cell.
-        let targets: Vec<DVec3> = b.cells.iter().map(|c| {
+        let targets: Vec<DVec3> = b.tetrahedra.iter().map(|c| {
             let t = c.to_tetrahedron();
             t.positions.iter().sum::<DVec3>() / 4.0 - eye
         }).collect();
-        assert_back_to_front(&b.cells, eye, &targets, 1e-9);
+        assert_back_to_front(&b.tetrahedra, eye, &targets, 1e-9);
     }
 
     /// Exact order under general affine maps (rotation, non-uniform scale,
@@ -230,7 +230,7 @@ proptest! {
         // rebuilt in f64 from their grid points. (In f32, an eye within
         // rounding of a plane may see slivers of about 1e-7 × coordinates in
         // the other order, which no image can show.)
-        let exact = exact_cells(&b.cells, &g, world_from_grid);
+        let exact = exact_cells(&b.tetrahedra, &g, world_from_grid);
         let pairs = assert_back_to_front_f64(&exact, eye, &directions, 1e-9);
         // An eye strictly inside sees cells in every direction.
         let inside = matches!(placement, EyePlacement::Inside(_) | EyePlacement::VoxelCentre(_));
@@ -259,16 +259,16 @@ proptest! {
         let full = batch(&g, brick_size, world_from_grid, eye, None, &transfer, CellOrder::BackToFront);
         let culled = batch(&g, brick_size, world_from_grid, eye, Some(&frustum), &transfer, CellOrder::BackToFront);
         let key = |c: &GpuCell| c.vertices.map(|v| v.map(f32::to_bits));
-        let kept: HashMap<_, usize> = culled.cells.iter().enumerate().map(|(i, c)| (key(c), i)).collect();
+        let kept: HashMap<_, usize> = culled.tetrahedra.iter().enumerate().map(|(i, c)| (key(c), i)).collect();
         // Order: the culled batch is a subsequence of the full one.
         let mut last = None;
-        for cell in &full.cells {
+        for cell in &full.tetrahedra {
             if let Some(&index) = kept.get(&key(cell)) {
                 prop_assert!(last.is_none_or(|l| index > l));
                 last = Some(index);
             }
         }
-        for cell in &full.cells {
+        for cell in &full.tetrahedra {
             let t = cell.to_tetrahedron();
             let inside = sample_points(&t).any(|p| strictly_inside(&frustum, p));
             if inside {
@@ -276,7 +276,7 @@ proptest! {
             }
         }
         if brick_size == 1 {
-            for cell in &culled.cells {
+            for cell in &culled.tetrahedra {
                 let t = cell.to_tetrahedron();
                 let centroid = t.positions.iter().sum::<DVec3>() / 4.0;
                 let voxel = (world_from_grid.inverse().transform_point3(centroid) - g.origin()) / g.spacing();
@@ -306,7 +306,7 @@ proptest! {
         let transfer = TransferFunction::preset(TransferPreset::Cloud);
         let b = batch(&g, brick_size, DAffine3::IDENTITY, DVec3::splat(-5.0), None, &transfer, CellOrder::BackToFront);
         let mut voxels_seen: HashMap<[usize; 3], usize> = HashMap::new();
-        for cell in &b.cells {
+        for cell in &b.tetrahedra {
             let centroid = cell.to_tetrahedron().positions.iter().sum::<DVec3>() / 4.0;
             *voxels_seen.entry(centroid.floor().to_array().map(|c| c as usize)).or_default() += 1;
         }
@@ -417,7 +417,11 @@ fn full_batch_tiles_the_box_conformingly_and_unordered_has_the_same_cells() {
         CellOrder::BackToFront,
     );
     assert_eq!(b.len(), 6 * 4 * 3 * 5);
-    let volume: f64 = b.cells.iter().map(|c| c.to_tetrahedron().volume()).sum();
+    let volume: f64 = b
+        .tetrahedra
+        .iter()
+        .map(|c| c.to_tetrahedron().volume())
+        .sum();
     let extent = g.max_corner() - g.origin();
     let expected = extent.x * extent.y * extent.z * world_from_grid.matrix3.determinant().abs();
     assert!(
@@ -428,7 +432,7 @@ fn full_batch_tiles_the_box_conformingly_and_unordered_has_the_same_cells() {
     // Conforming in f32: every triangle is shared by at most two cells and the
     // triangles used once make up exactly the box's surface.
     let mut faces: HashMap<[[u32; 3]; 3], (usize, f64)> = HashMap::new();
-    for cell in &b.cells {
+    for cell in &b.tetrahedra {
         let t = cell.to_tetrahedron();
         for skip in 0..4 {
             let mut corners: Vec<(DVec3, [u32; 3])> = (0..4)
@@ -464,7 +468,7 @@ fn full_batch_tiles_the_box_conformingly_and_unordered_has_the_same_cells() {
     );
 
     // Bounds are those of the vertices.
-    let recomputed = CellBatch::with_bounds(b.cells.clone());
+    let recomputed = Cells::with_bounds(b.tetrahedra.clone());
     assert_eq!(
         (b.bounds_min, b.bounds_max),
         (recomputed.bounds_min, recomputed.bounds_max)
@@ -488,7 +492,7 @@ fn full_batch_tiles_the_box_conformingly_and_unordered_has_the_same_cells() {
         keys.sort();
         keys
     };
-    assert_eq!(sorted(&unordered.cells), sorted(&b.cells));
+    assert_eq!(sorted(&unordered.tetrahedra), sorted(&b.tetrahedra));
     let elsewhere = batch(
         &g,
         2,
@@ -594,7 +598,7 @@ fn bad_input_gives_clear_errors_and_never_panics() {
         };
         for order in [CellOrder::BackToFront, CellOrder::Unordered] {
             let b = full_resolution_batch(&g, &bricks, &hidden, &transfer, order).unwrap();
-            assert_eq!(b, CellBatch::default());
+            assert_eq!(b, Cells::default());
         }
         let nan_eye = View {
             eye: DVec3::NAN,
@@ -619,7 +623,7 @@ fn bad_input_gives_clear_errors_and_never_panics() {
         let b = build(eye, DAffine3::IDENTITY, CellOrder::BackToFront).unwrap();
         assert_eq!(b.len(), 6 * 27);
         assert!(
-            b.cells
+            b.tetrahedra
                 .iter()
                 .flat_map(|c| c.vertices)
                 .flatten()
@@ -630,7 +634,7 @@ fn bad_input_gives_clear_errors_and_never_panics() {
     let eye = DVec3::new(1e5 + 1.5, 1.5, -1e5 + 1.5);
     let b = build(eye, far, CellOrder::BackToFront).unwrap();
     let pairs = assert_back_to_front(
-        &b.cells,
+        &b.tetrahedra,
         eye,
         // Not along a plane u_a = u_b through the voxel's centre, which holds
         // the eye and faces between tetrahedra.

@@ -32,7 +32,7 @@ use nebel_lod::octree::{
     LodCriterion, NodeMorph, Refinement, RefinementSettings, lod_batch, refine,
 };
 use nebel_lod::{
-    BrickTable, CellBatch, CellOrder, Frustum, HierarchyError, Node, View, VolumeHierarchy,
+    BrickTable, CellOrder, Cells, Frustum, HierarchyError, Node, View, VolumeHierarchy,
     full_resolution_batch,
 };
 use nebel_reference::image_metrics::{LinearImage, compare};
@@ -191,7 +191,7 @@ fn lod(
     eye: DVec3,
     c: f64,
     morph: bool,
-) -> (Refinement, CellBatch) {
+) -> (Refinement, Cells) {
     lod_in(
         h,
         transfer,
@@ -208,7 +208,7 @@ fn lod_in(
     view: &View,
     settings: &RefinementSettings,
     morph: bool,
-) -> (Refinement, CellBatch) {
+) -> (Refinement, Cells) {
     let mut r = refine(h, view, transfer, settings).expect("refinement");
     if !morph {
         for node in &mut r.refined {
@@ -233,7 +233,7 @@ fn projected_view(eye: DVec3, target: DVec3, fov_degrees: f64, [width, height]: 
 
 /// The full-resolution batch of `grid` (one-voxel bricks, the same zero-opacity
 /// test per voxel as the octree's), back to front for `eye`.
-fn full(grid: &DensityGrid, transfer: &TransferFunction, eye: DVec3) -> CellBatch {
+fn full(grid: &DensityGrid, transfer: &TransferFunction, eye: DVec3) -> Cells {
     full_resolution_batch(
         grid,
         &BrickTable::new(grid, 1),
@@ -245,9 +245,9 @@ fn full(grid: &DensityGrid, transfer: &TransferFunction, eye: DVec3) -> CellBatc
 }
 
 /// The exact reference image of `batch` (sorted emission-absorption).
-fn image(batch: &CellBatch, transfer: &TransferFunction, camera: ReferenceCamera) -> LinearImage {
+fn image(batch: &Cells, transfer: &TransferFunction, camera: ReferenceCamera) -> LinearImage {
     let cells = batch
-        .cells
+        .tetrahedra
         .iter()
         .map(nebel_lod::GpuCell::to_tetrahedron)
         .collect();
@@ -297,9 +297,9 @@ fn assert_morph_factors(r: &Refinement) {
 /// Panics unless every vertex of `batch` is finite with a scalar in [0, 1],
 /// inside `[lo, hi]` (world units), and every position carries one scalar in
 /// every cell that uses it. Returns the scalar per position (f32 bits).
-fn assert_finite_and_conforming(batch: &CellBatch, lo: DVec3, hi: DVec3) -> HashMap<[u32; 3], f32> {
+fn assert_finite_and_conforming(batch: &Cells, lo: DVec3, hi: DVec3) -> HashMap<[u32; 3], f32> {
     let mut values = HashMap::new();
-    for vertex in batch.cells.iter().flat_map(|c| c.vertices) {
+    for vertex in batch.tetrahedra.iter().flat_map(|c| c.vertices) {
         let [x, y, z, s] = vertex;
         assert!(
             vertex.iter().all(|c| c.is_finite()),
@@ -338,9 +338,9 @@ fn barycentric(t: &Tetrahedron, p: DVec3) -> [f64; 4] {
 /// there. T-vertices between leaves of different levels are exactly these
 /// points; a point strictly inside a cell that is another cell's vertex would
 /// be an overlap and fails too. Returns how many such points were checked.
-fn assert_no_t_vertex_cracks(batch: &CellBatch, values: &HashMap<[u32; 3], f32>) -> usize {
+fn assert_no_t_vertex_cracks(batch: &Cells, values: &HashMap<[u32; 3], f32>) -> usize {
     let mut checked = 0;
-    for cell in &batch.cells {
+    for cell in &batch.tetrahedra {
         let t = cell.to_tetrahedron();
         let lo = t.positions.iter().fold(DVec3::INFINITY, |a, &p| a.min(p));
         let hi = t
@@ -805,7 +805,7 @@ fn eye_at_node_centres_faces_edges_and_corners() {
             let values = assert_finite_and_conforming(&batch, lo, hi);
             t_vertices += assert_no_t_vertex_cracks(&batch, &values);
             let volume: f64 = batch
-                .cells
+                .tetrahedra
                 .iter()
                 .map(|c| c.to_tetrahedron().volume())
                 .sum();
@@ -1246,7 +1246,7 @@ fn wind_keyframes_change_consecutive_frames_less_than_the_popping_bound() {
             .map(VolumeHierarchy::quantised_grid)
             .collect();
         // (pair, refinement step) → batch with morphing on and off.
-        let mut batches: HashMap<(usize, u32), [CellBatch; 2]> = HashMap::new();
+        let mut batches: HashMap<(usize, u32), [Cells; 2]> = HashMap::new();
         let mut floor = 0.0f64;
         // [morphed, unmorphed] × [inside a step, across one, at the hand-over].
         let mut largest = [[0.0f64; 3]; 2];

@@ -6,7 +6,7 @@
 use glam::{DAffine3, DQuat, DVec3, UVec2, Vec3};
 use nebel_core::cell::{Ray, Tetrahedron};
 use nebel_core::field::{DensityGrid, search_light_cells};
-use nebel_lod::{BatchError, CellAdjacency, CellBatch, View, sorted_batch};
+use nebel_lod::{BatchError, CellAdjacency, Cells, View, sorted_batch};
 use proptest::prelude::*;
 
 /// Search-light cone length and half angle used throughout.
@@ -303,7 +303,7 @@ fn sorted_batch_is_the_reordered_mesh() {
     let order = adjacency.back_to_front(&cells, eye);
     let batch = sorted_batch(&cells, &adjacency, &view(eye)).unwrap();
     let reordered: Vec<Tetrahedron> = order.iter().map(|&c| cells[c]).collect();
-    assert_eq!(batch, CellBatch::from_tetrahedra(&reordered));
+    assert_eq!(batch, Cells::from_tetrahedra(&reordered));
     assert_eq!(batch.len(), cells.len());
     assert_eq!(batch.bounds_max.z, 0.0);
     assert!((batch.bounds_min.z - (-CONE_LENGTH as f32)).abs() < 1e-5);
@@ -330,9 +330,9 @@ fn sorted_batch_is_the_reordered_mesh() {
             scalars: cells[c].scalars,
         })
         .collect();
-    assert_eq!(batch, CellBatch::from_tetrahedra(&in_world));
+    assert_eq!(batch, Cells::from_tetrahedra(&in_world));
     let drawn: Vec<Tetrahedron> = batch
-        .cells
+        .tetrahedra
         .iter()
         .map(nebel_lod::GpuCell::to_tetrahedron)
         .collect();

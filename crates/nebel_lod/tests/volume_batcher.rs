@@ -13,7 +13,7 @@ use nebel_lod::octree::{
     CellScalars, LodCriterion, RefinementError, RefinementSettings, lod_batch_with, refine,
 };
 use nebel_lod::{
-    BatchError, BatchLighting, BatchSettings, BrickTable, CellAdjacency, CellBatch, CellOrder,
+    BatchError, BatchLighting, BatchSettings, BrickTable, CellAdjacency, CellOrder, Cells,
     FrameInputs, Frustum, HierarchyError, OctreeSettings, View, VolumeBatchError, VolumeBatcher,
     VolumeHierarchy, VolumeSource, full_resolution_batch, order_key, sorted_batch,
 };
@@ -195,7 +195,7 @@ fn octree_batch(
     lighting: Option<&BatchLighting>,
     view: &View,
     transfer: &TransferFunction,
-) -> CellBatch {
+) -> Cells {
     let padded = grid()
         .padded_to_power_of_two_plus_one(PadFill::Value(0.0))
         .unwrap();
@@ -297,7 +297,7 @@ fn every_source_builds_what_its_builder_builds() {
         .collect();
     assert_eq!(
         unordered_cells.batch().as_ref(),
-        &CellBatch::from_tetrahedra(&in_world)
+        &Cells::from_tetrahedra(&in_world)
     );
     assert_ne!(unordered_cells.batch(), sorted_cells.batch());
 }
@@ -547,7 +547,7 @@ fn an_empty_viewport_gives_an_empty_batch() {
             batcher.update(&hidden, &inputs(&transfer)).unwrap(),
             "{name}"
         );
-        assert_eq!(batcher.batch().as_ref(), &CellBatch::default(), "{name}");
+        assert_eq!(batcher.batch().as_ref(), &Cells::default(), "{name}");
         // Hidden it stays empty, whatever moves.
         let elsewhere = View {
             eye: DVec3::new(9.0, 9.0, 9.0),
@@ -786,7 +786,7 @@ fn a_batcher_blends_toward_the_next_keyframe() {
     // Same density in both: the modulators agree, the light differs.
     assert_eq!(batch.next_modulators, batch.modulators);
     let scalars: Vec<[f32; 4]> = batch
-        .cells
+        .tetrahedra
         .iter()
         .map(|c| c.vertices.map(|v| v[3]))
         .collect();

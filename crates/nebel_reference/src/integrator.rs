@@ -206,7 +206,7 @@ pub enum ReferenceVolume {
 /// A second field that scales the length of every ray segment before its
 /// integral: `l' = l · m̄`, `m̄` the mean of the modulator `m` over the piece
 /// (Röttger and Ertl 2003 §5.1 Eq. 9, `l' = l · f / f_max`, the lit-cloud model of
-/// `nebel_lod::CellBatch`). Cells: each segment in
+/// `nebel_lod::Cells`). Cells: each segment in
 /// [`nebel_core::optics::MODULATOR_PIECES`] equal pieces, each with the mean
 /// of the linear modulator over it, exactly what the GPU computes. Grid: the trilinear modulator is
 /// integrated along with the scalar, piece by piece (the pieces are refined

@@ -12,7 +12,7 @@ use bevy::prelude::*;
 use bevy::render::render_resource::ShaderType;
 use nebel_core::optics::{OpticalMode, henyey_greenstein};
 use nebel_core::transfer::TransferFunction;
-use nebel_lod::CellBatch as LodCellBatch;
+use nebel_lod::Cells;
 
 /// The sun and sky of a scattering batch ([`CellBatch::scattering`]).
 #[derive(Clone, Copy, Debug, PartialEq, Reflect)]
@@ -132,7 +132,7 @@ impl CellSunlight {
 
 /// How far a keyframe-blended [`CellBatch`] is drawn from the field at the
 /// first blend of its span toward the field at its last
-/// (`nebel_lod::CellBatch`'s keyframe blending, whose `mix_factor` gives it
+/// (`nebel_lod::Cells`'s keyframe blending, whose `mix_factor` gives it
 /// for a keyframe blend): every vertex's scalar and modulator at `(1 − t) ·
 /// current + t · next`. Changing it costs a 64-byte uniform write, not an
 /// upload of the cells. Ignored for a batch that is not blended.
@@ -168,7 +168,7 @@ pub struct CellBatch {
     /// their world bounds and, for a lit cloud, per cell the segment-length
     /// modulator `m ∈ [0, 1]` at its four vertices: every ray segment is then
     /// integrated over `l' = l · (m_f + m_b)/2` instead of `l` (Röttger and
-    /// Ertl 2003, §5.1, Eq. 9; see [`nebel_lod::CellBatch`]). A modulator list
+    /// Ertl 2003, §5.1, Eq. 9; see [`nebel_lod::Cells`]). A modulator list
     /// whose length is neither 0 nor the cell count is refused by the render
     /// system (the batch is not drawn and an error is logged); so is a
     /// keyframe-blended batch whose next scalars (or, when modulated, next
@@ -176,7 +176,7 @@ pub struct CellBatch {
     /// entity's [`CellBlend`]. Shared with
     /// whatever built it (`nebel_lod::VolumeBatcher`). Default: no cells.
     #[reflect(ignore)]
-    pub cells: Arc<LodCellBatch>,
+    pub cells: Arc<Cells>,
     /// κ and ρ over the scalar; `None` draws nothing. Default: `None`.
     #[reflect(ignore)]
     pub transfer_function: Option<Arc<TransferFunction>>,
@@ -200,7 +200,7 @@ pub struct CellBatch {
 impl CellBatch {
     /// A batch of `cells` drawn with `transfer_function` in `mode`.
     pub fn new(
-        cells: Arc<LodCellBatch>,
+        cells: Arc<Cells>,
         transfer_function: Arc<TransferFunction>,
         mode: OpticalMode,
     ) -> Self {

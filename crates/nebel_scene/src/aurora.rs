@@ -39,7 +39,7 @@ use nebel_lod::{
 };
 
 use super::{
-    BuiltVolume, InvalidField, TransferDescription, VolumeField, finite, layer_side, non_negative,
+    BuiltVolume, InvalidField, SceneField, TransferDescription, finite, layer_side, non_negative,
     positive, shape_error,
 };
 
@@ -263,7 +263,7 @@ impl AuroraDescription {
             .cells(&view, &mut TerrainMesh::new(), &mut cells)
             .map_err(|error| InvalidField::new("accuracy", error.to_string()))?;
         Ok((!cells.is_empty()).then(|| BuiltVolume {
-            field: VolumeField::Cells(cells.iter().map(GpuCell::to_tetrahedron).collect()),
+            field: SceneField::Cells(cells.iter().map(GpuCell::to_tetrahedron).collect()),
             transfer_function: built.transfer_function.clone(),
             mode: OpticalMode::Emissive,
             lod: None,

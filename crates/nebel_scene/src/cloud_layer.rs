@@ -43,7 +43,7 @@ use nebel_lod::{
 };
 
 use super::{
-    BuiltVolume, InvalidField, TransferDescription, VolumeField, finite, in_range, layer_side,
+    BuiltVolume, InvalidField, SceneField, TransferDescription, finite, in_range, layer_side,
     non_negative, positive, shape_error,
 };
 
@@ -272,7 +272,7 @@ impl CloudLayerDescription {
             .cells(&view, &mut TerrainMesh::new(), &mut cells)
             .map_err(|error| InvalidField::new("accuracy", error.to_string()))?;
         Ok((!cells.is_empty()).then(|| BuiltVolume {
-            field: VolumeField::Cells(cells.iter().map(GpuCell::to_tetrahedron).collect()),
+            field: SceneField::Cells(cells.iter().map(GpuCell::to_tetrahedron).collect()),
             transfer_function: built.transfer_function.clone(),
             mode: OpticalMode::Sorted,
             lod: None,

@@ -41,8 +41,8 @@ use nebel_lod::{
 use nebel_reference::ReferenceCamera;
 
 use super::{
-    BuiltVolume, InvalidField, TerrainDescription, TerrainTriangles, TransferDescription,
-    VolumeField,
+    BuiltVolume, InvalidField, SceneField, TerrainDescription, TerrainTriangles,
+    TransferDescription,
 };
 
 /// A terrain's ground fog.
@@ -341,7 +341,7 @@ impl TerrainDescription {
         fog_prisms(&mesh, &input, &mut cells)
             .map_err(|error| InvalidField::new("fog", error.to_string()))?;
         let volume = (!cells.is_empty()).then(|| BuiltVolume {
-            field: VolumeField::Cells(cells.iter().map(GpuCell::to_tetrahedron).collect()),
+            field: SceneField::Cells(cells.iter().map(GpuCell::to_tetrahedron).collect()),
             transfer_function: built.transfer_function.clone(),
             mode: fog.mode,
             lod: None,

@@ -38,9 +38,9 @@ pub use terrain::{
 
 pub use volume::{
     AnimatedCampfire, AnimatedCloud, Axis, BuiltVolume, CampfireSource, CloudSource, LightModel,
-    LightingDescription, LodDescription, ProceduralSource, RampSource, SearchLightSource,
-    TetrahedronDescription, TransferDescription, TransferStrip, UniformSource, VolumeDescription,
-    VolumeField, VolumeSource,
+    LightingDescription, LodDescription, ProceduralSource, RampSource, SceneField,
+    SearchLightSource, SourceDescription, TetrahedronDescription, TransferDescription,
+    TransferStrip, UniformSource, VolumeDescription,
 };
 
 use std::path::{Path, PathBuf};
@@ -1163,7 +1163,7 @@ mod tests {
                 }),
             ],
             volumes: vec![VolumeDescription {
-                source: VolumeSource::Procedural(ProceduralSource {
+                source: SourceDescription::Procedural(ProceduralSource {
                     dims: [9, 5, 9],
                     kind: nebel_core::field::NoiseKind::Ridged,
                     seed: 4,

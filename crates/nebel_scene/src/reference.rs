@@ -12,7 +12,7 @@
 use std::path::Path;
 
 use crate::{
-    BuiltVolume, LightModel, LightingDescription, ReferenceTerrain, SceneDescription, VolumeField,
+    BuiltVolume, LightModel, LightingDescription, ReferenceTerrain, SceneDescription, SceneField,
 };
 use glam::{DVec3, DVec4};
 use nebel_core::field::{CloudLighting, DensityGrid, PadFill, light_field};
@@ -101,24 +101,24 @@ pub fn reference_image_with_terrain(
             (field, _) => Ok((field, None)),
         };
         let ((field, modulation), centre) = match volume.field {
-            VolumeField::Grid(grid) => {
+            SceneField::Grid(grid) => {
                 let centre = (grid.origin() + grid.max_corner()) / 2.0;
                 (lit(ReferenceVolume::Grid(grid))?, centre)
             }
-            VolumeField::Cells(cells) => {
+            SceneField::Cells(cells) => {
                 let points = || cells.iter().flat_map(|cell| cell.positions);
                 let min = points().fold(DVec3::INFINITY, DVec3::min);
                 let max = points().fold(DVec3::NEG_INFINITY, DVec3::max);
                 ((ReferenceVolume::Cells(cells), None), (min + max) / 2.0)
             }
-            VolumeField::Campfire(campfire) => {
+            SceneField::Campfire(campfire) => {
                 let centre = (campfire.min + campfire.max) / 2.0;
                 (
                     lit(ReferenceVolume::Grid(campfire.grid_at(last_frame)))?,
                     centre,
                 )
             }
-            VolumeField::Cloud(cloud) => {
+            SceneField::Cloud(cloud) => {
                 let centre = (cloud.min + cloud.max) / 2.0;
                 let fields = match cloud.keyframes_at(last_frame) {
                     // In the wind: the blend of both keyframes' fields (and

@@ -76,7 +76,7 @@ use nebel_lod::{GpuCell, OctreeSettings, VolumeHierarchy};
 #[serde(deny_unknown_fields)]
 pub struct VolumeDescription {
     /// Where the scalar field comes from.
-    pub source: VolumeSource,
+    pub source: SourceDescription,
     /// Minimum corner of the grid's box, metres. Default `(-1, -1, -1)`.
     #[serde(default = "default_min")]
     pub min: [f32; 3],
@@ -296,7 +296,7 @@ fn default_density_scale() -> f32 {
 
 /// Where a volume's scalar field comes from.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub enum VolumeSource {
+pub enum SourceDescription {
     /// The same scalar everywhere in the box.
     Uniform(UniformSource),
     /// A scalar linear along one axis of the box.
@@ -492,7 +492,7 @@ pub struct TransferStrip {
 #[derive(Clone, Debug, PartialEq)]
 pub struct BuiltVolume {
     /// The scalar field.
-    pub field: VolumeField,
+    pub field: SceneField,
     /// κ and ρ, `density_scale` applied.
     pub transfer_function: TransferFunction,
     /// How segments combine.
@@ -509,7 +509,7 @@ pub struct BuiltVolume {
 
 /// A volume's scalar field.
 #[derive(Clone, Debug, PartialEq)]
-pub enum VolumeField {
+pub enum SceneField {
     /// A trilinear grid over a box.
     Grid(DensityGrid),
     /// Tetrahedra with a scalar per vertex.
@@ -631,7 +631,7 @@ impl VolumeDescription {
     /// (relative to this volume) and the reason.
     pub fn build(&self, scene_dir: &Path) -> Result<BuiltVolume, InvalidField> {
         let field = match &self.source {
-            VolumeSource::Cells(cells) => VolumeField::Cells(
+            SourceDescription::Cells(cells) => SceneField::Cells(
                 cells
                     .iter()
                     .map(|cell| Tetrahedron {
@@ -640,19 +640,19 @@ impl VolumeDescription {
                     })
                     .collect(),
             ),
-            VolumeSource::Uniform(uniform) => VolumeField::Grid(self.uniform_grid(uniform)?),
-            VolumeSource::Ramp(ramp) => VolumeField::Grid(self.ramp_grid(ramp)?),
-            VolumeSource::Procedural(procedural) => {
-                VolumeField::Grid(self.procedural_grid(procedural)?)
+            SourceDescription::Uniform(uniform) => SceneField::Grid(self.uniform_grid(uniform)?),
+            SourceDescription::Ramp(ramp) => SceneField::Grid(self.ramp_grid(ramp)?),
+            SourceDescription::Procedural(procedural) => {
+                SceneField::Grid(self.procedural_grid(procedural)?)
             }
-            VolumeSource::Campfire(campfire) => VolumeField::Campfire(AnimatedCampfire {
+            SourceDescription::Campfire(campfire) => SceneField::Campfire(AnimatedCampfire {
                 seed: campfire.seed,
                 dims: campfire.dims,
                 min: self.min_corner(),
                 max: self.max_corner(),
             }),
-            VolumeSource::SearchLight(light) => VolumeField::Cells(search_light(light)?),
-            VolumeSource::Cloud(cloud) => {
+            SourceDescription::SearchLight(light) => SceneField::Cells(search_light(light)?),
+            SourceDescription::Cloud(cloud) => {
                 if let Some(interval) = cloud.keyframe_interval
                     && !(interval.is_finite() && interval > 0.0)
                 {
@@ -670,13 +670,13 @@ impl VolumeDescription {
                 };
                 // Checks every generator setting now, not at the first frame.
                 animated.grid_at(0.0).map_err(source_error)?;
-                VolumeField::Cloud(animated)
+                SceneField::Cloud(animated)
             }
         };
         let light_model = self.lighting.map(|lighting| lighting.model);
         let (default_preset, default_mode) = match (&self.source, light_model) {
-            (VolumeSource::Campfire(_), _) => (TransferPreset::Fire, OpticalMode::Emissive),
-            (VolumeSource::SearchLight(_), _) => {
+            (SourceDescription::Campfire(_), _) => (TransferPreset::Fire, OpticalMode::Emissive),
+            (SourceDescription::SearchLight(_), _) => {
                 (TransferPreset::SearchLight, OpticalMode::Emissive)
             }
             (_, Some(LightModel::Isotropic)) => (TransferPreset::CloudLight, OpticalMode::Sorted),
@@ -867,7 +867,9 @@ impl VolumeDescription {
             }
             if matches!(
                 self.source,
-                VolumeSource::Cells(_) | VolumeSource::Campfire(_) | VolumeSource::SearchLight(_)
+                SourceDescription::Cells(_)
+                    | SourceDescription::Campfire(_)
+                    | SourceDescription::SearchLight(_)
             ) {
                 return Err(InvalidField::new(
                     "lighting",
@@ -902,16 +904,16 @@ impl VolumeDescription {
             }
         };
         match &self.source {
-            VolumeSource::Uniform(uniform) => {
+            SourceDescription::Uniform(uniform) => {
                 unit("source.Uniform.value", uniform.value)?;
                 dims("source.Uniform.dims", uniform.dims)
             }
-            VolumeSource::Ramp(ramp) => {
+            SourceDescription::Ramp(ramp) => {
                 unit("source.Ramp.from", ramp.from)?;
                 unit("source.Ramp.to", ramp.to)?;
                 dims("source.Ramp.dims", ramp.dims)
             }
-            VolumeSource::Procedural(procedural) => {
+            SourceDescription::Procedural(procedural) => {
                 dims("source.Procedural.dims", procedural.dims)?;
                 if !(procedural.coverage > 0.0 && procedural.coverage <= 1.0) {
                     return Err(InvalidField::new(
@@ -921,8 +923,8 @@ impl VolumeDescription {
                 }
                 Ok(())
             }
-            VolumeSource::Cloud(cloud) => dims("source.Cloud.dims", cloud.dims),
-            VolumeSource::Campfire(campfire) => dims("source.Campfire.dims", campfire.dims)
+            SourceDescription::Cloud(cloud) => dims("source.Cloud.dims", cloud.dims),
+            SourceDescription::Campfire(campfire) => dims("source.Campfire.dims", campfire.dims)
                 .and_then(|()| {
                     if campfire.dims.iter().all(|n| *n <= 257) {
                         Ok(())
@@ -933,7 +935,7 @@ impl VolumeDescription {
                         ))
                     }
                 }),
-            VolumeSource::SearchLight(light) => {
+            SourceDescription::SearchLight(light) => {
                 let field = "source.SearchLight";
                 if light
                     .position
@@ -980,7 +982,7 @@ impl VolumeDescription {
                 }
                 Ok(())
             }
-            VolumeSource::Cells(cells) => {
+            SourceDescription::Cells(cells) => {
                 if cells.is_empty() {
                     return Err(InvalidField::new("source.Cells", "needs at least one cell"));
                 }
@@ -1005,17 +1007,19 @@ impl VolumeDescription {
     /// budget (see the module docs); errors name the field that sizes it.
     fn check_budget(&self) -> Result<(), InvalidField> {
         let (field, dims) = match &self.source {
-            VolumeSource::Uniform(uniform) => ("source.Uniform.dims", uniform.dims),
-            VolumeSource::Ramp(ramp) => ("source.Ramp.dims", ramp.dims),
-            VolumeSource::Procedural(procedural) => ("source.Procedural.dims", procedural.dims),
-            VolumeSource::Cloud(cloud) => ("source.Cloud.dims", cloud.dims),
-            VolumeSource::Campfire(campfire) => ("source.Campfire.dims", campfire.dims),
-            VolumeSource::SearchLight(light) => {
+            SourceDescription::Uniform(uniform) => ("source.Uniform.dims", uniform.dims),
+            SourceDescription::Ramp(ramp) => ("source.Ramp.dims", ramp.dims),
+            SourceDescription::Procedural(procedural) => {
+                ("source.Procedural.dims", procedural.dims)
+            }
+            SourceDescription::Cloud(cloud) => ("source.Cloud.dims", cloud.dims),
+            SourceDescription::Campfire(campfire) => ("source.Campfire.dims", campfire.dims),
+            SourceDescription::SearchLight(light) => {
                 return check_search_light_budget(light.segments)
                     .map(drop)
                     .map_err(over_budget("source.SearchLight.segments"));
             }
-            VolumeSource::Cells(cells) => {
+            SourceDescription::Cells(cells) => {
                 return check_allocation(
                     || format!("cell list of {} tetrahedra", cells.len()),
                     &[cells.len()],
@@ -1073,7 +1077,7 @@ mod tests {
         );
     }
 
-    fn volume(source: VolumeSource) -> VolumeDescription {
+    fn volume(source: SourceDescription) -> VolumeDescription {
         VolumeDescription {
             source,
             min: [0.0; 3],
@@ -1088,7 +1092,7 @@ mod tests {
 
     #[test]
     fn a_lit_cloud_defaults_to_the_light_preset_and_checks_its_settings() {
-        let source = VolumeSource::Cloud(CloudSource {
+        let source = SourceDescription::Cloud(CloudSource {
             dims: [9, 5, 9],
             seed: 2,
             coverage: Some(0.6),
@@ -1118,7 +1122,7 @@ mod tests {
             built.transfer_function,
             TransferFunction::preset(TransferPreset::CloudLight)
         );
-        let VolumeField::Cloud(cloud) = built.field else {
+        let SceneField::Cloud(cloud) = built.field else {
             panic!("a cloud source is an animated cloud");
         };
         // The wind moves the field, drawn between keyframes 1.5 s apart.
@@ -1161,21 +1165,21 @@ mod tests {
                 model: LightModel::Isotropic,
                 keyframe_interval: 2.0,
             }),
-            ..volume(VolumeSource::Cells(Vec::new()))
+            ..volume(SourceDescription::Cells(Vec::new()))
         };
         assert_eq!(cells.validate().unwrap_err().field, "lighting");
     }
 
     fn grid(built: BuiltVolume) -> DensityGrid {
         match built.field {
-            VolumeField::Grid(grid) => grid,
+            SceneField::Grid(grid) => grid,
             other => panic!("expected a grid, got {other:?}"),
         }
     }
 
     #[test]
     fn ramp_is_linear_along_its_axis_and_spans_the_box() {
-        let ramp = volume(VolumeSource::Ramp(RampSource {
+        let ramp = volume(SourceDescription::Ramp(RampSource {
             axis: Axis::Y,
             from: 0.2,
             to: 0.8,
@@ -1193,7 +1197,7 @@ mod tests {
 
     #[test]
     fn density_scale_multiplies_rho() {
-        let built = volume(VolumeSource::Uniform(UniformSource {
+        let built = volume(SourceDescription::Uniform(UniformSource {
             value: 1.0,
             dims: [2; 3],
         }))
@@ -1209,7 +1213,7 @@ mod tests {
     #[test]
     fn coverage_empties_low_noise() {
         let source = |coverage| {
-            VolumeSource::Procedural(ProceduralSource {
+            SourceDescription::Procedural(ProceduralSource {
                 dims: [9; 3],
                 kind: NoiseKind::Fbm,
                 seed: 3,
@@ -1233,7 +1237,7 @@ mod tests {
     #[test]
     fn ellipsoid_vanishes_at_the_box_faces_and_keeps_the_centre() {
         let source = |ellipsoid| {
-            VolumeSource::Procedural(ProceduralSource {
+            SourceDescription::Procedural(ProceduralSource {
                 dims: [5; 3],
                 kind: NoiseKind::Fbm,
                 seed: 1,
@@ -1258,10 +1262,10 @@ mod tests {
             positions: [[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
             scalars: [0.0, 0.5, 1.0, 0.25],
         };
-        let built = volume(VolumeSource::Cells(vec![cell]))
+        let built = volume(SourceDescription::Cells(vec![cell]))
             .build(Path::new("."))
             .unwrap();
-        let VolumeField::Cells(cells) = built.field else {
+        let SceneField::Cells(cells) = built.field else {
             panic!("expected cells");
         };
         assert_eq!(cells[0].positions[1], DVec3::X);
@@ -1270,7 +1274,7 @@ mod tests {
 
     #[test]
     fn campfire_is_emissive_fire_and_fills_its_box() {
-        let mut fire = volume(VolumeSource::Campfire(CampfireSource {
+        let mut fire = volume(SourceDescription::Campfire(CampfireSource {
             seed: 2,
             dims: [9, 9, 9],
         }));
@@ -1283,7 +1287,7 @@ mod tests {
                 .scale_density(2.0)
                 .unwrap()
         );
-        let VolumeField::Campfire(campfire) = built.field else {
+        let SceneField::Campfire(campfire) = built.field else {
             panic!("expected a campfire");
         };
         let early = campfire.grid_at(0.0);
@@ -1294,7 +1298,7 @@ mod tests {
 
     #[test]
     fn search_light_points_along_its_direction() {
-        let mut light = volume(VolumeSource::SearchLight(SearchLightSource {
+        let mut light = volume(SourceDescription::SearchLight(SearchLightSource {
             position: [1.0, 2.0, 3.0],
             direction: [1.0, 0.0, 0.0],
             length: 10.0,
@@ -1304,7 +1308,7 @@ mod tests {
         light.mode = None;
         let built = light.build(Path::new(".")).unwrap();
         assert_eq!(built.mode, OpticalMode::Emissive);
-        let VolumeField::Cells(cells) = built.field else {
+        let SceneField::Cells(cells) = built.field else {
             panic!("expected cells");
         };
         let far = cells
@@ -1317,7 +1321,7 @@ mod tests {
 
     #[test]
     fn missing_strip_names_the_file() {
-        let mut strip = volume(VolumeSource::Uniform(UniformSource {
+        let mut strip = volume(SourceDescription::Uniform(UniformSource {
             value: 1.0,
             dims: [2; 3],
         }));
@@ -1338,14 +1342,14 @@ mod tests {
     fn building_checks_the_memory_budget_too() {
         for (source, field) in [
             (
-                VolumeSource::Uniform(UniformSource {
+                SourceDescription::Uniform(UniformSource {
                     value: 0.5,
                     dims: [4097; 3],
                 }),
                 "source.Uniform.dims",
             ),
             (
-                VolumeSource::Ramp(RampSource {
+                SourceDescription::Ramp(RampSource {
                     axis: Axis::X,
                     from: 0.0,
                     to: 1.0,
@@ -1354,7 +1358,7 @@ mod tests {
                 "source.Ramp.dims",
             ),
             (
-                VolumeSource::SearchLight(SearchLightSource {
+                SourceDescription::SearchLight(SearchLightSource {
                     position: [0.0; 3],
                     direction: [0.0, 0.0, -1.0],
                     length: 1.0,
@@ -1368,7 +1372,7 @@ mod tests {
             assert_eq!(error.field, field);
             assert!(error.reason.contains("memory budget"), "{}", error.reason);
         }
-        let error = volume(VolumeSource::Procedural(ProceduralSource {
+        let error = volume(SourceDescription::Procedural(ProceduralSource {
             dims: [4097; 3],
             kind: NoiseKind::Fbm,
             seed: 0,

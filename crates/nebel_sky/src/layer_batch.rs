@@ -12,9 +12,8 @@ use bevy::prelude::*;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferError, TransferFunction};
 use nebel_lod::{
-    CellBatch as LodCellBatch, CellOrder, FogProfile, Frustum, GpuCell, LayerStats, LayerView,
-    LodSettings, PrismScalar, SurfaceLayer, SurfaceLayerError, TerrainError, TerrainLayer,
-    TerrainMesh,
+    CellOrder, Cells, FogProfile, Frustum, GpuCell, LayerStats, LayerView, LodSettings,
+    PrismScalar, SurfaceLayer, SurfaceLayerError, TerrainError, TerrainLayer, TerrainMesh,
 };
 use nebel_render::CellBatch;
 use nebel_render::camera::LodView;
@@ -126,7 +125,7 @@ pub(crate) fn publish_cells(
         }
     } else {
         commands.entity(entity).insert(CellBatch::new(
-            Arc::new(LodCellBatch::with_bounds(cells)),
+            Arc::new(Cells::with_bounds(cells)),
             transfer,
             mode,
         ));

@@ -34,7 +34,7 @@ use nebel_reference::image_metrics::{compare, load_png_linear};
 use nebel_scene::reference::{reference_image, save_reference};
 use nebel_scene::{
     BuiltVolume, DirectionalLightDescription, LightDescription, MeshDescription, SceneDescription,
-    VolumeField,
+    SceneField,
 };
 use plotters::style::colors::BLACK;
 
@@ -342,7 +342,7 @@ fn fog_volume_peer(
         .retain(|light| !matches!(light, LightDescription::Directional(_)));
     lit.lights.push(sun);
     let volume = BuiltVolume {
-        field: VolumeField::Grid(grid),
+        field: SceneField::Grid(grid),
         transfer_function: TransferFunction::preset(TransferPreset::Cloud),
         mode: OpticalMode::Sorted,
         lod: None,
@@ -401,7 +401,7 @@ mod tests {
         let fog = scene.fog_layers.as_ref().unwrap().height_fog().unwrap();
         let (lit, bevy_fog, volume) = fog_volume_peer(&scene, &fog, [0.5, 0.6, 0.7], 64).unwrap();
         assert_eq!(bevy_fog.density_factor, 0.01);
-        let VolumeField::Grid(grid) = volume.field else {
+        let SceneField::Grid(grid) = volume.field else {
             panic!("a grid");
         };
         // 1 at the ground, e^{−0.05 h} above, below 1/1000 at the top

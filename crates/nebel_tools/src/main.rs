@@ -16,7 +16,7 @@ use nebel_reference::image_metrics::{
 use nebel_scene::reference::{reference_image, save_reference};
 use nebel_scene::{
     BuiltVolume, CellProjectionDescription, CellResolutionDescription, LightDescription,
-    QualityDescription, SceneDescription, SceneError, VolumeField,
+    QualityDescription, SceneDescription, SceneError, SceneField,
 };
 use nebel_tools::error::CommandError;
 use nebel_tools::fog_comparison::{self, BevyFog};
@@ -453,10 +453,10 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
     let volume = single_volume(&scene, scene_path)?;
     let last_frame = f64::from(scene.frame_time(scene.output.frames - 1));
     let grid = match volume.field {
-        VolumeField::Grid(grid) => grid,
-        VolumeField::Campfire(campfire) => campfire.grid_at(last_frame),
-        VolumeField::Cloud(cloud) => cloud.grid_at(last_frame)?,
-        VolumeField::Cells(_) => {
+        SceneField::Grid(grid) => grid,
+        SceneField::Campfire(campfire) => campfire.grid_at(last_frame),
+        SceneField::Cloud(cloud) => cloud.grid_at(last_frame)?,
+        SceneField::Cells(_) => {
             return Err(CommandError::Unsuitable {
                 path: scene_path.clone(),
                 reason: String::from("bench-fog needs a grid volume"),
@@ -489,7 +489,7 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
         fog.equivalent_transfer_function(light, fog_comparison::bounding_radius(&fog_box))?;
     let cells = grid.tetrahedra();
     let equivalent = BuiltVolume {
-        field: VolumeField::Grid(grid),
+        field: SceneField::Grid(grid),
         transfer_function,
         mode: OpticalMode::Sorted,
         lod: None,
@@ -500,7 +500,7 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
     // through nebel's six tetrahedra per voxel (the error of projection and
     // pre-integration alone).
     let tetrahedral = BuiltVolume {
-        field: VolumeField::Cells(cells),
+        field: SceneField::Cells(cells),
         ..equivalent.clone()
     };
     std::fs::create_dir_all(out_dir).map_err(CommandError::write(out_dir))?;

@@ -346,7 +346,7 @@ fn spawn_scene(
     match bevy_fog {
         Some(fog) => {
             for volume in &volumes.0 {
-                if let nebel_scene::VolumeField::Grid(grid) = &volume.field {
+                if let nebel_scene::SceneField::Grid(grid) = &volume.field {
                     spawn_bevy_fog(&mut commands, &mut images, &Arc::new(grid.clone()), &fog.0);
                 }
             }
@@ -358,7 +358,7 @@ fn spawn_scene(
 /// Spawns the scene's volumes; their fields are in world space.
 fn spawn_volumes(commands: &mut Commands, grids: &mut Assets<VolumeGrid>, volumes: &[BuiltVolume]) {
     use nebel_scene::LightModel;
-    use nebel_scene::VolumeField as SceneField;
+    use nebel_scene::SceneField;
     use nebel_volume::{
         Campfire, CloudLightModel, CloudVolume, Volume, VolumeField, VolumeLighting, VolumeLod,
     };

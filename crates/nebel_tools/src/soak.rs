@@ -242,7 +242,7 @@ pub fn soak(
             cells += batch.cells.len() as u64;
             bad += batch
                 .cells
-                .cells
+                .tetrahedra
                 .iter()
                 .filter(|cell| cell.vertices.iter().flatten().any(|c| !c.is_finite()))
                 .count() as u64;

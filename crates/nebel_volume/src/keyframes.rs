@@ -438,7 +438,7 @@ mod tests {
         SunMotion::still(DVec3::new(0.4, 1.0, 0.3).normalize(), 0.0)
     }
 
-    fn batch_of(batcher: &mut VolumeBatcher, blend: f32) -> Arc<nebel_lod::CellBatch> {
+    fn batch_of(batcher: &mut VolumeBatcher, blend: f32) -> Arc<nebel_lod::Cells> {
         let transfer = TransferFunction::preset(TransferPreset::CloudLight);
         let view = View::new(
             DAffine3::IDENTITY,
@@ -596,7 +596,7 @@ mod tests {
         let turning = SunMotion::between(turn(1.0), 0.0, turn(1.1), 1.0);
         let [mut early, mut late] = [0.0, 5.0].map(|t| lit.keyframe(t, &turning).unwrap());
         let (early, late) = (batch_of(&mut early, 0.0), batch_of(&mut late, 0.0));
-        assert_ne!(early.cells, late.cells, "lit from elsewhere");
+        assert_ne!(early.tetrahedra, late.tetrahedra, "lit from elsewhere");
         // Lit by the sun at the keyframe's time.
         let mut settings = lit.settings;
         if let Some(lighting) = &mut settings.lighting {

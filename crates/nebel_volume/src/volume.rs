@@ -468,7 +468,7 @@ mod tests {
         assert!(
             batch
                 .cells
-                .cells
+                .tetrahedra
                 .iter()
                 .flat_map(|c| c.vertices)
                 .all(|v| v[3] >= 0.3 - 1.0 / 255.0)
@@ -517,7 +517,7 @@ mod tests {
         assert!(
             scattered
                 .cells
-                .cells
+                .tetrahedra
                 .iter()
                 .flat_map(|c| c.vertices)
                 .any(|v| v[3] < 0.3),

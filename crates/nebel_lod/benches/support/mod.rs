@@ -4,7 +4,7 @@
 use glam::{DAffine3, DMat4, DVec3, DVec4, UVec2};
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::TransferFunction;
-use nebel_lod::{CellBatch, GpuCell, View};
+use nebel_lod::{Cells, GpuCell, View};
 use nebel_reference::image_metrics::LinearImage;
 use nebel_reference::{Modulation, ReferenceCamera, ReferenceScene, ReferenceVolume, render};
 
@@ -33,12 +33,12 @@ pub fn view(eye: DVec3, target: DVec3, size: [u32; 2]) -> (View, ReferenceCamera
 
 /// The exact image of the lit `batch` (not blended; its modulators scale
 /// the segment lengths) drawn with `transfer` from `camera`, over the sky.
-pub fn image(
-    batch: &CellBatch,
-    camera: ReferenceCamera,
-    transfer: &TransferFunction,
-) -> LinearImage {
-    let cells = batch.cells.iter().map(GpuCell::to_tetrahedron).collect();
+pub fn image(batch: &Cells, camera: ReferenceCamera, transfer: &TransferFunction) -> LinearImage {
+    let cells = batch
+        .tetrahedra
+        .iter()
+        .map(GpuCell::to_tetrahedron)
+        .collect();
     let mut scene = ReferenceScene::new(
         camera,
         ReferenceVolume::Cells(cells),

@@ -1,4 +1,4 @@
-//! The per-frame emission of a [`Refinement`] as a morphed [`CellBatch`].
+//! The per-frame emission of a [`Refinement`] as a morphed [`Cells`].
 //!
 //! Kuhn's six tetrahedra per leaf with morphed scalars (Röttger and Ertl 2003
 //! §3, volumetric morphing, Eq. 7 and Eq. 8), in exact back-to-front order.
@@ -26,7 +26,7 @@
 //! largest transparent node holding them where a morphing parent carries
 //! something visible into it. A hierarchy of two keyframes is emitted with the
 //! blended field at both ends of the refinement's span of blends
-//! ([`CellBatch::next_scalars`], [`CellBatch::mix_factor`]).
+//! ([`Cells::next_scalars`], [`Cells::mix_factor`]).
 //!
 //! Leaves come in the order of [`Refinement::leaves`], the six tetrahedra of
 //! each in the in-voxel MPVO order of [`crate::full_resolution`]; positions are
@@ -50,7 +50,7 @@ use super::build::BORN_POINTS;
 use super::keyframe::clamped_blend;
 use super::refine::index_frame;
 use super::{Node, NodeMorph, Refinement, RefinementError, VolumeHierarchy};
-use crate::batch::{CellBatch, GpuCell};
+use crate::batch::{Cells, GpuCell};
 use crate::full_resolution::{EyeSides, kuhn_back_to_front};
 use crate::view::View;
 
@@ -74,12 +74,12 @@ pub fn lod_batch(
     hierarchy: &VolumeHierarchy,
     refinement: &Refinement,
     view: &View,
-) -> Result<CellBatch, RefinementError> {
+) -> Result<Cells, RefinementError> {
     lod_batch_with(hierarchy, refinement, view, CellScalars::Density)
 }
 
 /// Which of a lit cloud's two fields the cells carry as their scalar and
-/// which as the segment-length modulator ([`CellBatch`] type docs; Röttger and Ertl 2003
+/// which as the segment-length modulator ([`Cells`] type docs; Röttger and Ertl 2003
 /// §5). Both fields are morphed by the same rule with the same weights.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum CellScalars {
@@ -106,7 +106,7 @@ pub fn lod_batch_with(
     refinement: &Refinement,
     view: &View,
     scalars: CellScalars,
-) -> Result<CellBatch, RefinementError> {
+) -> Result<Cells, RefinementError> {
     if scalars != CellScalars::Density && !hierarchy.has_light() {
         return Err(RefinementError::MissingLightField);
     }
@@ -117,7 +117,7 @@ pub fn lod_batch_with(
         .ok_or(RefinementError::NonFiniteEye { eye: view.eye })?
         .differences;
     if view.viewport_is_empty() {
-        return Ok(CellBatch::default());
+        return Ok(Cells::default());
     }
 
     let morpher = Morpher::new(hierarchy, refinement)?;
@@ -188,7 +188,7 @@ pub fn lod_batch_with(
             cells.push(cell(&KUHN_TETRAHEDRA[t]));
         }
     }
-    let mut batch = CellBatch::with_bounds(cells);
+    let mut batch = Cells::with_bounds(cells);
     batch.modulators = modulators;
     batch.next_scalars = next_scalars;
     batch.next_modulators = next_modulators;
@@ -691,9 +691,9 @@ mod tests {
 
     /// Panics unless every vertex position has one scalar in every cell and
     /// every scalar is in [0, 1].
-    fn assert_one_value_per_point(batch: &CellBatch) {
+    fn assert_one_value_per_point(batch: &Cells) {
         let mut seen = HashMap::new();
-        for vertex in batch.cells.iter().flat_map(|c| c.vertices) {
+        for vertex in batch.tetrahedra.iter().flat_map(|c| c.vertices) {
             let [x, y, z, s] = vertex;
             assert!((0.0..=1.0).contains(&s), "scalar {s} outside [0, 1]");
             let key = [x, y, z].map(f32::to_bits);
@@ -759,8 +759,8 @@ mod tests {
             // full-resolution batch's flat slab order (both back to front),
             // so compare voxel by voxel: each run of six cells with its
             // in-voxel order, as a multiset of voxels.
-            let voxels = |b: &CellBatch| {
-                let mut v: Vec<Vec<[u32; 16]>> = bits(&b.cells)
+            let voxels = |b: &Cells| {
+                let mut v: Vec<Vec<[u32; 16]>> = bits(&b.tetrahedra)
                     .chunks(6)
                     .map(<[[u32; 16]]>::to_vec)
                     .collect();
@@ -776,7 +776,7 @@ mod tests {
     /// in one of `node`'s six tetrahedra and carry `node`'s own
     /// piecewise-linear field (over its quantised corner densities) at every
     /// vertex and inside. Returns the cells checked.
-    fn assert_reproduces(h: &VolumeHierarchy, batch: &CellBatch, node: Node) -> usize {
+    fn assert_reproduces(h: &VolumeHierarchy, batch: &Cells, node: Node) -> usize {
         let lo = DVec3::from(node.origin.map(|o| o as f64));
         let hi = lo + node.size() as f64;
         let coarse = Hexahedron::axis_aligned(
@@ -786,7 +786,7 @@ mod tests {
         )
         .kuhn_tetrahedra();
         let mut checked = 0;
-        for cell in &batch.cells {
+        for cell in &batch.tetrahedra {
             let t = cell.to_tetrahedron();
             if !t
                 .positions
@@ -853,8 +853,8 @@ mod tests {
         });
         let batch_half = lod_batch(&h, &half, &view(DAffine3::IDENTITY, DVec3::ZERO)).unwrap();
         let centre = [6.0f32, 2.0, 6.0];
-        let at_centre = |b: &CellBatch| {
-            b.cells
+        let at_centre = |b: &Cells| {
+            b.tetrahedra
                 .iter()
                 .flat_map(|c| c.vertices)
                 .find(|v| v[..3] == centre)
@@ -901,7 +901,11 @@ mod tests {
             assert!(far_apart, "seed {seed}");
             let batch = lod_batch(&h, &r, &view(identity, DVec3::new(3.0, -2.0, 7.0))).unwrap();
             assert_one_value_per_point(&batch);
-            let cells: Vec<Tetrahedron> = batch.cells.iter().map(GpuCell::to_tetrahedron).collect();
+            let cells: Vec<Tetrahedron> = batch
+                .tetrahedra
+                .iter()
+                .map(GpuCell::to_tetrahedron)
+                .collect();
             let mut t_vertices = 0;
             for cell in &cells {
                 for (&p, &s) in cell.positions.iter().zip(&cell.scalars) {
@@ -1000,10 +1004,10 @@ mod tests {
 
     /// The field a batch draws at `blend` at `p` (world space), `None`
     /// where no cell covers `p`.
-    fn field_at(batch: &CellBatch, blend: f32, p: DVec3) -> Option<f64> {
+    fn field_at(batch: &Cells, blend: f32, p: DVec3) -> Option<f64> {
         let drawn = batch.blended(blend);
         drawn
-            .cells
+            .tetrahedra
             .iter()
             .find_map(|cell| interpolate(&cell.to_tetrahedron(), p))
     }
@@ -1151,10 +1155,10 @@ mod tests {
             // The first keyframe exactly as alone, the second's values beside
             // it: the morph of each keyframe over the pair's cells, with the
             // morph factors at either end.
-            assert_eq!(blended.cells, current.cells);
+            assert_eq!(blended.tetrahedra, current.tetrahedra);
             assert_eq!(blended.modulators, current.modulators);
             let next_scalars: Vec<[f32; 4]> = next
-                .cells
+                .tetrahedra
                 .iter()
                 .map(|cell| cell.vertices.map(|v| v[3]))
                 .collect();
@@ -1254,15 +1258,21 @@ mod tests {
         let light_plain = lod_batch(&light_only, &r, &view(world_from_grid(), eye)).unwrap();
         for i in 0..plain.len() {
             for v in 0..4 {
-                assert_eq!(by_light.cells[i].vertices[v], plain.cells[i].vertices[v]);
-                assert_eq!(by_density.modulators[i][v], plain.cells[i].vertices[v][3]);
                 assert_eq!(
-                    by_light.modulators[i][v],
-                    light_plain.cells[i].vertices[v][3]
+                    by_light.tetrahedra[i].vertices[v],
+                    plain.tetrahedra[i].vertices[v]
                 );
                 assert_eq!(
-                    by_density.cells[i].vertices[v],
-                    light_plain.cells[i].vertices[v]
+                    by_density.modulators[i][v],
+                    plain.tetrahedra[i].vertices[v][3]
+                );
+                assert_eq!(
+                    by_light.modulators[i][v],
+                    light_plain.tetrahedra[i].vertices[v][3]
+                );
+                assert_eq!(
+                    by_density.tetrahedra[i].vertices[v],
+                    light_plain.tetrahedra[i].vertices[v]
                 );
             }
         }
@@ -1301,7 +1311,7 @@ mod tests {
             let batch = lod_batch(&h, &r, &view(world_from_grid(), eye)).unwrap();
             prop_assert_eq!(batch.len(), 6 * r.leaves.len());
             assert_one_value_per_point(&batch);
-            let volume: f64 = batch.cells.iter().map(|c| c.to_tetrahedron().volume()).sum();
+            let volume: f64 = batch.tetrahedra.iter().map(|c| c.to_tetrahedron().volume()).sum();
             let box_volume = 32.0 * 16.0 * 8.0 * 0.5f64.powi(3);
             prop_assert!((volume - box_volume).abs() < 1e-4 * box_volume, "{} vs {}", volume, box_volume);
         }

@@ -51,7 +51,7 @@ pub const REFINEMENT_STEPS: u32 = 4;
 /// start to the next step's. The next step's refinement is made ahead,
 /// while these cells are drawn, and takes over at the step's end (a caller
 /// whose next refinement is late holds the blend there, or draws these
-/// cells' end field until it lands: [`crate::CellBatch::mix_factor`]).
+/// cells' end field until it lands: [`crate::Cells::mix_factor`]).
 pub const REFINEMENT_SPAN: f32 = 1.0 / REFINEMENT_STEPS as f32;
 
 impl VolumeHierarchy {

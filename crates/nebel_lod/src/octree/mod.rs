@@ -31,7 +31,7 @@
 //! - [`refine()`] (in [`mod@refine`]): the per-frame refinement, by the screen
 //!   error ([`mod@screen_error`]) or the paper's distance criterion.
 //! - [`lod_batch`] (in [`mod@emit`]): a refinement as a morphed, back-to-front
-//!   [`crate::CellBatch`].
+//!   [`crate::Cells`].
 //! - [`mod@keyframe`]: two keyframes of an animated field in one hierarchy.
 //!
 //! The forest rule, the deviation at each kind of point, the quantisation and

@@ -1155,11 +1155,11 @@ mod tests {
             // below drawn parents are leaves of their own.
             let shown: Vec<&NodeMorph> = r.leaves.iter().filter(|l| !l.transparent[0]).collect();
             assert!(shown.iter().all(|l| l.node.level == 0));
-            assert_eq!(6 * shown.len(), full.cells.len());
+            assert_eq!(6 * shown.len(), full.tetrahedra.len());
             assert!(r.stats.transparent_leaves > 0);
             assert_eq!(r.stats.leaves, shown.len() + r.stats.transparent_leaves);
             assert_eq!(r.stats.culled_by_frustum > 0, frustum.is_some());
-            assert!(full.cells.len() < 6 * 16 * 16 * 8);
+            assert!(full.tetrahedra.len() < 6 * 16 * 16 * 8);
         }
     }
 

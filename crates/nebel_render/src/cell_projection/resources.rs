@@ -15,7 +15,7 @@ use bevy::render::texture::{CachedTexture, TextureCache};
 use bevy::render::view::{ExtractedView, Msaa};
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::TransferFunction;
-use nebel_lod::CellBatch as LodCellBatch;
+use nebel_lod::Cells;
 
 use super::CellProjectionStats;
 use super::low_resolution::{
@@ -35,7 +35,7 @@ use crate::fog_layers::{FogLayersUniform, ViewFogLayers};
 /// A batch as the render world sees it.
 #[derive(Clone)]
 pub struct ExtractedCellBatch {
-    cells: Arc<LodCellBatch>,
+    cells: Arc<Cells>,
     pub(super) scattering: Option<CellScattering>,
     /// The batch's segments end where the view's fog layers begin.
     pub(super) hands_off: bool,
@@ -227,7 +227,7 @@ pub fn prepare_cell_buffers(
         }
         let buffer = device.create_buffer_with_data(&BufferInitDescriptor {
             label: Some("nebel_cell_batch"),
-            contents: bytemuck::cast_slice(batch.cells.cells.as_slice()),
+            contents: bytemuck::cast_slice(batch.cells.tetrahedra.as_slice()),
             usage: BufferUsages::STORAGE,
         });
         let unmodulated = [[0.0f32; 4]];

@@ -96,7 +96,7 @@ fn an_aurora_draws_emissive_cells_that_follow_its_animation() {
     );
     // Every cell lies between the bottom and the top, its scalar the
     // altitude over the span.
-    for cell in &first.cells.cells {
+    for cell in &first.cells.tetrahedra {
         for [_, y, _, s] in cell.vertices {
             assert!((100e3 - 1.0..=300e3 + 1.0).contains(&y), "{y}");
             assert!((s - (y - 100e3) / 200e3).abs() < 1e-4, "{s} at {y}");
@@ -105,7 +105,7 @@ fn an_aurora_draws_emissive_cells_that_follow_its_animation() {
     // Animated: each frame a new footprint and new cells.
     app.update();
     let second = batch(&app, aurora).unwrap();
-    assert_ne!(first.cells.cells, second.cells.cells);
+    assert_ne!(first.cells.tetrahedra, second.cells.tetrahedra);
     assert_eq!(stats(&app, aurora).updates, counts.updates + 1);
     // Held still (speed 0) with a still camera: nothing is built again.
     app.world_mut().get_mut::<Aurora>(aurora).unwrap().speed = 0.0;
@@ -148,7 +148,7 @@ fn a_map_footprint_draws_still_curtains() {
     let cells = batch(&app, aurora).expect("a batch").cells;
     // The band's curtains reach the top.
     let highest = cells
-        .cells
+        .tetrahedra
         .iter()
         .flat_map(|cell| cell.vertices)
         .map(|v| v[1])

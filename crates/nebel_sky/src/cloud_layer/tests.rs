@@ -87,7 +87,7 @@ fn status(app: &App, entity: Entity) -> CloudLayerStatus {
 /// the layer's altitudes.
 fn light_below_and_above(batch: &CellBatch, middle: f32) -> (f32, f32) {
     let (mut below, mut above) = ((0.0, 0), (0.0, 0));
-    for cell in &batch.cells.cells {
+    for cell in &batch.cells.tetrahedra {
         for [_, y, _, s] in cell.vertices {
             let side = if y < middle { &mut below } else { &mut above };
             side.0 += s;
@@ -110,7 +110,7 @@ fn a_cloud_layer_draws_sorted_cells_lit_from_above_that_follow_eye_and_sun() {
     assert!(counts.tetrahedra > 100, "{counts:?}");
     // Between the base's sag and the tops: 1500 m − 0.2 · 700 m to
     // 1500 m + 0.8 · 700 m.
-    for cell in &first.cells.cells {
+    for cell in &first.cells.tetrahedra {
         for [_, y, _, s] in cell.vertices {
             assert!((1360.0 - 1.0..=2060.0 + 1.0).contains(&y), "{y}");
             assert!((0.3..=1.0).contains(&s), "{s}");
@@ -167,7 +167,7 @@ fn two_map_surfaces_give_clouds_where_the_top_lies_above_the_bottom() {
     settle(&mut app);
     assert_eq!(status(&app, layer), CloudLayerStatus::Ready);
     let cells = batch(&app, layer).expect("a batch").cells;
-    for cell in &cells.cells {
+    for cell in &cells.tetrahedra {
         for [x, y, _, _] in cell.vertices {
             // The left half (x < 0 on the 10 km square), from 1600 m up to
             // the top at 1700 m; where the surfaces cross, a column's corner
@@ -177,7 +177,7 @@ fn two_map_surfaces_give_clouds_where_the_top_lies_above_the_bottom() {
         }
     }
     // Far from the crossing, the clouds lie between the two surfaces.
-    for cell in &cells.cells {
+    for cell in &cells.tetrahedra {
         if cell.vertices.iter().all(|v| v[0] < -1000.0) {
             for [_, y, _, _] in cell.vertices {
                 assert!((1600.0 - 1.0..=1700.0 + 1.0).contains(&y), "{y}");
