@@ -16,14 +16,14 @@
 //!
 //! The cells are rebuilt when the terrain's mesh was rebuilt (for a sorted
 //! fog the terrain refines whenever the eye moves, see
-//! [`TerrainLayerLod::refine_on_every_move`]) or the fog's drawing settings
+//! [`TerrainMapLod::refine_on_every_move`]) or the fog's drawing settings
 //! (density, transfer function, mode, profile, debug view) or its placement
 //! changed; otherwise the system compares a counter, a pointer and a few
-//! change ticks per fog. A fog with no layer (no thickness anywhere), no density, a
+//! change ticks per fog. A fog with no map (no thickness anywhere), no density, a
 //! transparent transfer function, on a failed terrain, or that is hidden has
 //! no `CellBatch`, so the cell projection runs no pass for it. The
 //! wireframe is a child entity in the terrain's frame; removing the
-//! `GroundFog` removes the batch, the terrain's layer, the wireframe and the
+//! `GroundFog` removes the batch, the terrain's map, the wireframe and the
 //! fog's state.
 
 use std::sync::Arc;
@@ -42,19 +42,19 @@ use nebel_lod::{
 };
 use nebel_render::camera::to_double;
 use nebel_render::{CellBatch, EffectiveQuality, HeavyBuild, HeavyBuilds, LodCameras};
-use nebel_terrain::{Terrain, TerrainLayerLod, TerrainLod, TerrainLodStats, TerrainStatus};
+use nebel_terrain::{Terrain, TerrainLod, TerrainLodStats, TerrainMapLod, TerrainStatus};
 
 use crate::error::GroundFogError;
 use crate::fog_layers::PreparedFogLayers;
 use crate::ground_fog::{GroundFog, GroundFogPlugin, GroundFogStats, GroundFogStatus, fail};
-use crate::layer::GroundFogLayer;
+use crate::map::GroundFogMap;
 
 /// What the fog's batch was built from.
 #[derive(Clone, Debug, PartialEq)]
 struct BatchKey {
     /// The terrain's mesh rebuilds.
     terrain_updates: u64,
-    /// The layered quadtree (by identity).
+    /// The mapped quadtree (by identity).
     quadtree: usize,
     /// The drawing settings as written (`Debug`).
     settings: String,
@@ -132,7 +132,7 @@ fn clear(commands: &mut Commands, entity: Entity, state: &mut GroundFogBatch, ha
 }
 
 /// A `GroundFog` removed from an entity that lives on: its batch, the
-/// terrain's layer, the wireframe and the fog's state go with it (a
+/// terrain's map, the wireframe and the fog's state go with it (a
 /// despawned entity takes them, the wireframe being its child).
 pub(crate) fn remove_fogs(
     mut commands: Commands,
@@ -145,9 +145,9 @@ pub(crate) fn remove_fogs(
         };
         clear(&mut commands, entity, &mut state, true);
         commands.entity(entity).remove::<(
-            TerrainLayerLod,
+            TerrainMapLod,
             GroundFogBatch,
-            GroundFogLayer,
+            GroundFogMap,
             GroundFogStatus,
             GroundFogStats,
         )>();
@@ -165,7 +165,7 @@ pub(crate) fn update_fog_batches(
         &TerrainLod,
         &TerrainLodStats,
         Ref<TerrainStatus>,
-        Option<Ref<TerrainLayerLod>>,
+        Option<Ref<TerrainMapLod>>,
         Ref<GlobalTransform>,
         Ref<InheritedVisibility>,
         Has<CellBatch>,
@@ -202,7 +202,7 @@ pub(crate) fn update_fog_batches(
         lod,
         terrain_stats,
         terrain_status,
-        layer,
+        map,
         transform,
         visibility,
         has_batch,
@@ -213,14 +213,14 @@ pub(crate) fn update_fog_batches(
     ) in &mut fogs
     {
         let state = &mut *state;
-        let layered = layer
+        let mapped = map
             .as_deref()
-            .and_then(|layer| layer.quadtree.as_ref())
-            .filter(|layered| {
+            .and_then(|map| map.quadtree.as_ref())
+            .filter(|mapped| {
                 lod.quadtree()
-                    .is_some_and(|own| Arc::ptr_eq(own, &layered.base))
+                    .is_some_and(|own| Arc::ptr_eq(own, &mapped.base))
             });
-        let quadtree = layered.map_or(0, |layered| Arc::as_ptr(&layered.hierarchy) as usize);
+        let quadtree = mapped.map_or(0, |mapped| Arc::as_ptr(&mapped.hierarchy) as usize);
         // Nothing changed since the batch was built.
         let unchanged = !fog.is_changed()
             && !quality_changed
@@ -236,14 +236,14 @@ pub(crate) fn update_fog_batches(
             continue;
         }
         let mesh = lod.mesh();
-        let drawable = layered.is_some()
+        let drawable = mapped.is_some()
             && prisms
             && visibility.get()
             && !matches!(*terrain_status, TerrainStatus::Failed(_))
             && fog.density > 0.0
             && !fog.transfer_function.is_transparent(0.0, 1.0)
-            && !mesh.layer.is_empty();
-        let (Some(layered), true) = (layered, drawable) else {
+            && !mesh.map.is_empty();
+        let (Some(mapped), true) = (mapped, drawable) else {
             state.building = None;
             if has_batch || state.wireframe.is_some() {
                 clear(&mut commands, entity, state, has_batch);
@@ -280,7 +280,7 @@ pub(crate) fn update_fog_batches(
             // A bad transfer function fails where a failed build does.
             let transfer = scaled_transfer(state, &fog);
             let world_from_terrain = DAffine3::from_mat4(to_double(transform.to_matrix()));
-            let origin = layered.hierarchy.origin();
+            let origin = mapped.hierarchy.origin();
             let mesh = lod.mesh().clone();
             let profile = fog.profile.clone();
             let eye = world_from_terrain.inverse().transform_point3(camera.eye) - origin;

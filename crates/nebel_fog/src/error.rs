@@ -38,7 +38,7 @@ pub enum GroundFogError {
     /// The noise or valley generator refused its settings.
     #[error(transparent)]
     Field(Arc<FieldError>),
-    /// The fog map or its layer was refused (NaN values, a bad size).
+    /// The fog map or its terrain map was refused (NaN values, a bad size).
     #[error(transparent)]
     Layer(Arc<TerrainError>),
     /// The vertical profile is not a function on [0, 1].

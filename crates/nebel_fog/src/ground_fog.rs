@@ -8,7 +8,7 @@
 //! times `scale`), seeded noise patches ([`FogNoise`]), or the valleys
 //! filled up to an altitude with a noisy edge ([`ValleyFog`], the default).
 //! A map of any size covers the terrain's grid from corner to corner and is
-//! sampled bilinearly at its points (`nebel_lod::quadtree::TerrainLayer::resample`);
+//! sampled bilinearly at its points (`nebel_lod::quadtree::TerrainMap::resample`);
 //! for a terrain whose heights were padded to `2^k + 1` points, that is the
 //! padded grid.
 //!
@@ -30,10 +30,10 @@ use nebel_terrain::{TerrainHeights, TerrainSystems};
 
 use crate::batch::{GroundFogBatch, measure_fogs, remove_fogs, update_fog_batches};
 use crate::error::GroundFogError;
-use crate::layer::{GroundFogLayer, build_fog_layers};
+use crate::map::{GroundFogMap, build_ground_fog_maps};
 
 /// Adds [`GroundFog`] and its systems (in [`PostUpdate`], around the
-/// terrain's: the fog's layer is built after the terrain's quadtree, its
+/// terrain's: the fog's map is built after the terrain's quadtree, its
 /// cells after the terrain's refinement) and diagnostics.
 ///
 /// Needs the terrain plugin (`nebel_terrain::TerrainPlugin`) and the cell
@@ -66,7 +66,7 @@ impl Plugin for GroundFogPlugin {
             .add_systems(
                 PostUpdate,
                 (
-                    build_fog_layers
+                    build_ground_fog_maps
                         .after(TerrainSystems::Build)
                         .before(TerrainSystems::Refine),
                     (remove_fogs, update_fog_batches, measure_fogs)
@@ -126,14 +126,14 @@ pub struct GroundFogDebug {
 /// same entity (see the module docs).
 #[derive(Component, Clone, Debug, PartialEq, Reflect)]
 #[reflect(Component, Default, Clone)]
-#[require(GroundFogStatus, GroundFogStats, GroundFogLayer, GroundFogBatch)]
+#[require(GroundFogStatus, GroundFogStats, GroundFogMap, GroundFogBatch)]
 pub struct GroundFog {
     /// The thickness above the ground. Default: [`ValleyFog::default()`]
     /// (filled up to 60 m in the terrain's frame, ±8 m edge).
     pub thickness: FogThickness,
     /// Multiplies the transfer function's density ρ, finite and ≥ 0 (else
     /// the status is `Failed`); 0 draws nothing and leaves the terrain
-    /// refining without the fog's layer. With the default transfer function
+    /// refining without the fog's map. With the default transfer function
     /// (ρ = 1 at the ground) it is the extinction at the ground, 1/m.
     /// Default 0.03 (about 100 m to fade to 5 %).
     pub density: f32,
@@ -153,7 +153,7 @@ pub struct GroundFog {
     pub profile: Vec<[f32; 2]>,
     /// Weight of the thickness's roughness in the terrain quadtree's d2,
     /// finite and ≥ 0: larger refines more where the fog's top varies.
-    /// Changing it rebuilds the layer. Default 1.
+    /// Changing it rebuilds the map. Default 1.
     pub roughness_weight: f32,
     /// Debug views. Default: none.
     pub debug: GroundFogDebug,
@@ -182,11 +182,11 @@ impl Default for GroundFog {
 #[derive(Component, Clone, Debug, Default, PartialEq, Reflect)]
 #[reflect(Component, Default, Clone)]
 pub enum GroundFogStatus {
-    /// Waiting for the terrain's quadtree, the fog map or the fog's layer
+    /// Waiting for the terrain's quadtree, the fog map or the fog's map
     /// build on the task pool.
     #[default]
     Pending,
-    /// The layer is built: the fog is drawn where the camera sees it, or
+    /// The map is built: the fog is drawn where the camera sees it, or
     /// nothing is drawn because it has no thickness anywhere or no density.
     Ready,
     /// The settings or the map are unusable, or there is no terrain: why.
@@ -208,7 +208,7 @@ pub struct GroundFogStats {
     pub updates: u64,
     /// Time of the last prism update (prisms, order and the batch), ms.
     pub update_ms: f32,
-    /// Time of the last layer build (thickness and roughness), ms.
+    /// Time of the last map build (thickness and roughness), ms.
     pub build_ms: f32,
     /// The largest thickness, metres.
     pub max_thickness: f32,

@@ -11,7 +11,7 @@
 //! - takes the fog's thickness above the ground from a grayscale map, noise
 //!   patches or the valleys filled to an altitude ([`FogThickness`]), and
 //!   adds its roughness to the terrain quadtree's d2 on the task pool
-//!   ([`layer`]), so the terrain also refines where the fog's top varies;
+//!   ([`map`]), so the terrain also refines where the fog's top varies;
 //! - after every refinement of the terrain, gives every triangle drawn a
 //!   vertical prism up to the fog's top, morphed with the terrain so the top
 //!   never pops, split into conforming tetrahedra and, for the sorted mode,
@@ -54,7 +54,7 @@ pub mod batch;
 pub mod error;
 pub mod fog_layers;
 pub mod ground_fog;
-pub mod layer;
+pub mod map;
 
 pub use error::GroundFogError;
 pub use fog_layers::{FogLayers, FogLayersError, FogLayersPlugin, FogLayersStatus};

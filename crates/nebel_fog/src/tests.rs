@@ -1,4 +1,4 @@
-//! The ground fog plugin in an app without a GPU: layers, batches, status,
+//! The ground fog plugin in an app without a GPU: maps, batches, status,
 //! zero cost without fog, and bad input.
 
 use std::path::{Path, PathBuf};
@@ -13,7 +13,7 @@ use nebel_core::optics::OpticalMode;
 use nebel_render::camera::computed_camera;
 use nebel_render::{CellBatch, HeavyBuilds};
 use nebel_terrain::{
-    Terrain, TerrainHeights, TerrainLayerLod, TerrainLod, TerrainLodStats, TerrainPlugin,
+    Terrain, TerrainHeights, TerrainLod, TerrainLodStats, TerrainMapLod, TerrainPlugin,
     TerrainSource,
 };
 
@@ -96,10 +96,10 @@ fn spawn_fog(app: &mut App, fog: GroundFog) -> Entity {
 }
 
 /// Whether the terrain of `entity` carries a fog layer.
-fn has_layer(app: &App, entity: Entity) -> bool {
+fn has_map(app: &App, entity: Entity) -> bool {
     app.world()
-        .get::<TerrainLayerLod>(entity)
-        .is_some_and(|layer| layer.quadtree.is_some())
+        .get::<TerrainMapLod>(entity)
+        .is_some_and(|map| map.quadtree.is_some())
 }
 
 /// Moves the camera by 1 cm.
@@ -160,11 +160,11 @@ fn fog_on_a_terrain_becomes_sorted_prisms_that_follow_the_eye() {
         "{counts:?}"
     );
     assert_eq!(batch(&app, fog).unwrap().mode, OpticalMode::Sorted);
-    // The terrain carries the fog's layer and refines on every move.
-    let layer = app.world().get::<TerrainLayerLod>(fog).unwrap();
-    assert!(layer.quadtree.is_some() && layer.refine_on_every_move);
+    // The terrain carries the fog's map and refines on every move.
+    let map = app.world().get::<TerrainMapLod>(fog).unwrap();
+    assert!(map.quadtree.is_some() && map.refine_on_every_move);
     let lod = app.world().get::<TerrainLod>(fog).unwrap();
-    assert_eq!(lod.mesh().layer.len(), lod.mesh().positions.len());
+    assert_eq!(lod.mesh().map.len(), lod.mesh().positions.len());
     assert_eq!(
         measured(&app, &GroundFogPlugin::TETRAHEDRA),
         Some(cells as f64)
@@ -191,7 +191,7 @@ fn fog_on_a_terrain_becomes_sorted_prisms_that_follow_the_eye() {
     assert_eq!(batch(&app, fog).unwrap().mode, OpticalMode::Emissive);
     assert!(
         !app.world()
-            .get::<TerrainLayerLod>(fog)
+            .get::<TerrainMapLod>(fog)
             .unwrap()
             .refine_on_every_move
     );
@@ -213,12 +213,12 @@ fn no_fog_means_no_cells_and_no_batch() {
     assert!(batch(&app, plain).is_none());
     assert_eq!(measured(&app, &GroundFogPlugin::FOGS), None);
     // Valleys filled to below the lowest point: no thickness anywhere, no
-    // layer for the terrain, no batch.
+    // map for the terrain, no batch.
     let dry = spawn_fog(&mut app, valley(-50.0));
     settle(&mut app);
     assert_eq!(status(&app, dry), GroundFogStatus::Ready);
     assert!(batch(&app, dry).is_none());
-    assert!(!has_layer(&app, dry));
+    assert!(!has_map(&app, dry));
     assert_eq!(stats(&app, dry).max_thickness, 0.0);
     assert_eq!(measured(&app, &GroundFogPlugin::FOGS), Some(0.0));
     // No density, or hidden: the batch goes.
@@ -229,7 +229,7 @@ fn no_fog_means_no_cells_and_no_batch() {
     settle(&mut app);
     assert!(batch(&app, fog).is_none());
     // The terrain refines alone meanwhile.
-    assert!(!has_layer(&app, fog));
+    assert!(!has_map(&app, fog));
     app.world_mut().get_mut::<GroundFog>(fog).unwrap().density = 0.03;
     settle(&mut app);
     assert!(batch(&app, fog).is_some());
@@ -346,8 +346,8 @@ fn a_fog_map_covers_the_terrain_and_scales_to_metres() {
     settle(&mut app);
     assert_eq!(status(&app, fog), GroundFogStatus::Ready);
     assert_eq!(stats(&app, fog).max_thickness, 25.0);
-    let layer = app.world().get::<TerrainLayerLod>(fog).unwrap();
-    let values = layer.quadtree.as_ref().unwrap().layer.values();
+    let map = app.world().get::<TerrainMapLod>(fog).unwrap();
+    let values = map.quadtree.as_ref().unwrap().map.values();
     // The white pixel is the terrain's corner at high x, low z.
     assert_eq!(values[64], 25.0);
     assert_eq!(values[0], 0.0);
@@ -375,12 +375,12 @@ fn the_wireframe_is_a_child_and_removing_the_fog_removes_what_it_made() {
         .collect();
     assert_eq!(children.len(), 1);
     assert!(app.world().get::<Mesh3d>(children[0]).is_some());
-    // Removing the fog takes its batch, the terrain's layer and the
+    // Removing the fog takes its batch, the terrain's map and the
     // wireframe; the terrain stays.
     app.world_mut().entity_mut(fog).remove::<GroundFog>();
     settle(&mut app);
     assert!(batch(&app, fog).is_none());
-    assert!(app.world().get::<TerrainLayerLod>(fog).is_none());
+    assert!(app.world().get::<TerrainMapLod>(fog).is_none());
     assert!(app.world().get_entity(children[0]).is_err());
     assert!(app.world().get::<Terrain>(fog).is_some());
     // Despawning a fogged terrain takes its wireframe with it.
@@ -411,7 +411,7 @@ fn a_density_out_of_range_fails_and_recovers() {
         );
         settle(&mut app);
         assert_failed(&app, fog, &["density", "finite and ≥ 0"]);
-        assert!(!has_layer(&app, fog));
+        assert!(!has_map(&app, fog));
         app.world_mut().get_mut::<GroundFog>(fog).unwrap().density = 0.02;
         settle(&mut app);
         assert_eq!(status(&app, fog), GroundFogStatus::Ready);
@@ -552,12 +552,12 @@ fn the_quality_preset_sets_the_fog_method_and_the_terrain_accuracy() {
     settle(&mut app);
     let triangles = |app: &App| app.world().get::<TerrainLodStats>(fog).unwrap().triangles;
     let high = (triangles(&app), batch(&app, fog).map(|b| b.cells.len()));
-    assert!(high.1.is_some_and(|cells| cells > 0) && has_layer(&app, fog));
+    assert!(high.1.is_some_and(|cells| cells > 0) && has_map(&app, fog));
     // Low: the fog's prisms give way to the fog layers, the terrain
-    // refines at half its accuracy and without the fog's layer.
+    // refines at half its accuracy and without the fog's map.
     app.world_mut().resource_mut::<NebelQuality>().preset = QualityPreset::Low;
     settle(&mut app);
-    assert!(batch(&app, fog).is_none() && !has_layer(&app, fog));
+    assert!(batch(&app, fog).is_none() && !has_map(&app, fog));
     assert_eq!(stats(&app, fog).tetrahedra, 0);
     assert!(
         triangles(&app) < high.0,
@@ -569,7 +569,7 @@ fn the_quality_preset_sets_the_fog_method_and_the_terrain_accuracy() {
     app.world_mut().resource_mut::<NebelQuality>().preset = QualityPreset::Medium;
     settle(&mut app);
     let medium = (triangles(&app), batch(&app, fog).map(|b| b.cells.len()));
-    assert!(medium.1.is_some_and(|cells| cells > 0) && has_layer(&app, fog));
+    assert!(medium.1.is_some_and(|cells| cells > 0) && has_map(&app, fog));
     assert!(medium.0 < high.0, "{} vs {}", medium.0, high.0);
     // And back to High: what it was.
     app.world_mut().resource_mut::<NebelQuality>().preset = QualityPreset::High;

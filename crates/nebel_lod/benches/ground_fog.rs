@@ -1,7 +1,7 @@
 //! Ground fog benchmarks (`nebel_lod::ground_fog`): the per-frame work of
 //! the paper's scene size (Röttger and Ertl 2003 §6: a 2049² terrain and fog
 //! map, 10 m spacing) along a flight, on one core: the quadtree's refinement
-//! with the fog's thickness as its layer, then the prisms over every fogged
+//! with the fog's thickness as its map, then the prisms over every fogged
 //! triangle, back to front for the eye.
 //!
 //! # Scenario
@@ -14,7 +14,7 @@
 //! toward its centre, 8 m per frame, from 900 m above sea level down to
 //! 120 m (into the fog where the valleys are), looking ahead 20° down, 60°
 //! vertical field of view, aspect 4/3, frustum culling with the fog's
-//! raised boxes. Each frame: `update_with_layer` (morphing on, no normals,
+//! raised boxes. Each frame: `update_with_map` (morphing on, no normals,
 //! grid points, front to back, as the terrain plugin refines) and
 //! `fog_prisms` (the mesh read backwards: back to front; the paper's
 //! profile). 5 warm-up frames.
@@ -38,7 +38,7 @@ use std::time::Instant;
 use criterion::{Criterion, criterion_group};
 use glam::{DAffine3, DMat4, DVec2, DVec3};
 use nebel_core::field::{HeightField, ValleyFog, ValueNoise};
-use nebel_lod::quadtree::TerrainLayer;
+use nebel_lod::quadtree::TerrainMap;
 use nebel_lod::{
     CellOrder, FogProfile, Frustum, GpuCell, LodSettings, PrismInput, PrismScalar,
     TerrainHierarchy, TerrainMesh, TriangleOrder, fog_prisms,
@@ -50,7 +50,7 @@ const WARM_UP: usize = 5;
 const FRAMES: usize = 120;
 
 /// The scenario's terrain and fog thickness (see the module docs).
-fn scene() -> (HeightField, TerrainLayer) {
+fn scene() -> (HeightField, TerrainMap) {
     let half = (SIDE - 1) as f64 * SPACING / 2.0;
     let noise = HeightField::value_noise(
         [SIDE, SIDE],
@@ -76,7 +76,7 @@ fn scene() -> (HeightField, TerrainLayer) {
     let thickness = valley.thickness(&field).expect("valid fog");
     (
         field,
-        TerrainLayer::new(SIDE, thickness).expect("valid layer"),
+        TerrainMap::new(SIDE, thickness).expect("valid layer"),
     )
 }
 
@@ -132,7 +132,7 @@ fn prism_input<'a>(
 }
 
 /// The flight through `hierarchy` at accuracy `c`.
-fn fly(hierarchy: &TerrainHierarchy, layer: &TerrainLayer, accuracy: f32) -> Vec<Frame> {
+fn fly(hierarchy: &TerrainHierarchy, layer: &TerrainMap, accuracy: f32) -> Vec<Frame> {
     let profile = FogProfile::default();
     let mut mesh = TerrainMesh::new();
     let mut cells: Vec<GpuCell> = Vec::new();
@@ -141,7 +141,7 @@ fn fly(hierarchy: &TerrainHierarchy, layer: &TerrainLayer, accuracy: f32) -> Vec
         let (eye, frustum) = view(frame);
         let started = Instant::now();
         let lod = hierarchy
-            .update_with_layer(
+            .update_with_map(
                 eye,
                 Some(&frustum),
                 &settings(accuracy),
@@ -172,7 +172,7 @@ fn median(mut values: Vec<f64>) -> f64 {
     values[values.len() / 2]
 }
 
-fn write_csvs(field: &HeightField, layer: &TerrainLayer) {
+fn write_csvs(field: &HeightField, layer: &TerrainMap) {
     let mut sweep = String::from(
         "c,weight,triangles_median,prisms_median,tetrahedra_median,tetrahedra_max,refine_ms_median,prisms_ms_median,frame_ms_median,frame_ms_max\n",
     );
@@ -180,7 +180,7 @@ fn write_csvs(field: &HeightField, layer: &TerrainLayer) {
     for weight in [0.0_f32, 1.0, 4.0] {
         let started = Instant::now();
         let hierarchy = TerrainHierarchy::new(field.clone(), 2.0)
-            .and_then(|h| h.with_layer_roughness(layer, weight))
+            .and_then(|h| h.with_map_roughness(layer, weight))
             .expect("valid hierarchy");
         eprintln!(
             "hierarchy with weight {weight}: {:.0} ms",
@@ -234,7 +234,7 @@ fn write_csvs(field: &HeightField, layer: &TerrainLayer) {
 fn one_frame(c: &mut Criterion) {
     let (field, layer) = scene();
     let hierarchy = TerrainHierarchy::new(field, 2.0)
-        .and_then(|h| h.with_layer_roughness(&layer, 1.0))
+        .and_then(|h| h.with_map_roughness(&layer, 1.0))
         .expect("valid hierarchy");
     let (eye, frustum) = view(60);
     let profile = FogProfile::default();
@@ -242,7 +242,7 @@ fn one_frame(c: &mut Criterion) {
     c.bench_function("ground_fog_2049_frame_c300", |b| {
         b.iter(|| {
             hierarchy
-                .update_with_layer(
+                .update_with_map(
                     black_box(eye),
                     Some(&frustum),
                     &settings(300.0),

@@ -68,7 +68,7 @@ impl AuroraShape {
     ) -> Result<SurfaceLayer, SurfaceLayerError> {
         self.validate()?;
         if strength.len() != side * side || side < 2 {
-            return Err(TerrainError::LayerLength {
+            return Err(TerrainError::MapLength {
                 side,
                 len: strength.len(),
             }

@@ -69,14 +69,14 @@ impl CloudLayerShape {
     ) -> Result<SurfaceLayer, SurfaceLayerError> {
         self.validate()?;
         if thickness.len() != side * side || side < 2 {
-            return Err(TerrainError::LayerLength {
+            return Err(TerrainError::MapLength {
                 side,
                 len: thickness.len(),
             }
             .into());
         }
         if let Some(index) = thickness.iter().position(|t| !t.is_finite()) {
-            return Err(TerrainError::NonFiniteLayer {
+            return Err(TerrainError::NonFiniteMapValue {
                 index,
                 value: thickness[index],
             }

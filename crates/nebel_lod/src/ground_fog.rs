@@ -5,12 +5,12 @@
 //! top, split into tetrahedra for the cell projection.
 //!
 //! [`fog_prisms`] reads a [`TerrainMesh`] refined with the fog's thickness as
-//! its [`TerrainLayer`](crate::quadtree::TerrainLayer)
-//! ([`TerrainHierarchy::update_with_layer`](crate::quadtree::TerrainHierarchy::update_with_layer),
+//! its [`TerrainMap`](crate::quadtree::TerrainMap)
+//! ([`TerrainHierarchy::update_with_map`](crate::quadtree::TerrainHierarchy::update_with_map),
 //! with [`TerrainMesh::grid_points`]): ground and top are morphed with the
 //! terrain's own weights, so the fog top never pops, and the thickness's
 //! roughness refines the quadtree too
-//! ([`TerrainHierarchy::add_layer_roughness`](crate::quadtree::TerrainHierarchy::add_layer_roughness)).
+//! ([`TerrainHierarchy::add_map_roughness`](crate::quadtree::TerrainHierarchy::add_map_roughness)).
 //!
 //! A [`FogProfile`] cuts every prism into stacked prisms at relative heights,
 //! with its scalar at each level (the default is the paper's fog, dense at the
@@ -18,7 +18,7 @@
 //! `nebel_core::cell::Prism::tetrahedra`'s rule on grid ids, so neighbouring
 //! prisms share their face diagonals and the mesh conforms for any refinement;
 //! pieces of zero thickness are dropped. Any layer between two surfaces over
-//! one grid is the bottom as the terrain and their difference as the layer
+//! one grid is the bottom as the terrain and their difference as the map
 //! (aurora curtains, a cloud layer), its scalar from the profile
 //! ([`PrismScalar::Profile`]) or from a second morphed map
 //! ([`PrismScalar::Values`]). With [`PrismInput::beyond`] the columns wholly
@@ -100,13 +100,13 @@ impl FogProfile {
 pub enum PrismError {
     /// The mesh was refined without the fog's thickness or grid points.
     #[error(
-        "the terrain mesh has no fog thickness or no grid points per vertex: refine it with update_with_layer and grid_points"
+        "the terrain mesh has no fog thickness or no grid points per vertex: refine it with update_with_map and grid_points"
     )]
-    MissingLayer,
+    MissingMap,
     /// A scalar from the mesh's values was asked of a mesh refined without
     /// them.
     #[error(
-        "the prisms' scalar comes from the mesh's values, but the mesh has none: refine it with update_with_layers and a value layer"
+        "the prisms' scalar comes from the mesh's values, but the mesh has none: refine it with update_with_maps and a value map"
     )]
     MissingValues,
     /// The span of [`PrismScalar::Height`] is not finite and positive.
@@ -236,8 +236,8 @@ pub fn fog_prisms(
 ) -> Result<PrismStats, PrismError> {
     out.clear();
     let vertices = mesh.positions.len();
-    if mesh.layer.len() != vertices || mesh.grid_points.len() != vertices {
-        return Err(PrismError::MissingLayer);
+    if mesh.map.len() != vertices || mesh.grid_points.len() != vertices {
+        return Err(PrismError::MissingMap);
     }
     match input.scalar {
         PrismScalar::Values if mesh.values.len() != vertices => {
@@ -286,7 +286,7 @@ pub fn fog_prisms(
             u64::from(i) | (u64::from(j) << 32)
         };
         corners.sort_by_key(|&v| id(v));
-        let thickness = corners.map(|v| f64::from(mesh.layer[v]));
+        let thickness = corners.map(|v| f64::from(mesh.map[v]));
         if thickness.iter().all(|t| *t <= 0.0) {
             return;
         }

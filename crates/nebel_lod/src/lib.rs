@@ -65,7 +65,7 @@ pub use full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_bat
 pub use ground_fog::{FogProfile, PrismError, PrismInput, PrismScalar, PrismStats, fog_prisms};
 pub use octree::{HierarchyError, Node, VolumeHierarchy};
 pub use quadtree::{
-    LodSettings, TerrainError, TerrainHierarchy, TerrainLayer, TerrainMesh, TriangleOrder,
+    LodSettings, TerrainError, TerrainHierarchy, TerrainMap, TerrainMesh, TriangleOrder,
 };
 pub use surface_layer::{
     LAYER_SIDES, LayerStats, LayerTop, LayerView, SurfaceLayer, SurfaceLayerError, is_layer_side,

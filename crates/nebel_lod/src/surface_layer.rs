@@ -14,7 +14,7 @@
 //!
 //! The quadtree's d2 is the bottom's own roughness with the thickness's,
 //! times `roughness_weight`, entered as a maximum
-//! ([`TerrainHierarchy::add_layer_roughness`]), so the mesh refines where
+//! ([`TerrainHierarchy::add_map_roughness`]), so the mesh refines where
 //! either surface bends (the top's second differences are at most the sum
 //! of the bottom's and the thickness's). Every frame,
 //! [`SurfaceLayer::cells`] refines for the eye, morphs the thickness (and
@@ -34,7 +34,7 @@ use crate::frustum::Frustum;
 use crate::full_resolution::CellOrder;
 use crate::ground_fog::{FogProfile, PrismError, PrismInput, PrismScalar, fog_prisms};
 use crate::quadtree::{
-    LodSettings, TerrainError, TerrainHierarchy, TerrainLayer, TerrainMesh, TriangleOrder,
+    LodSettings, TerrainError, TerrainHierarchy, TerrainMap, TerrainMesh, TriangleOrder,
 };
 
 /// Grid sides a layer's settings may ask for: `2^k + 1` from 9 to 2049
@@ -105,8 +105,8 @@ pub struct LayerStats {
 #[derive(Clone, Debug)]
 pub struct SurfaceLayer {
     hierarchy: TerrainHierarchy,
-    thickness: TerrainLayer,
-    values: Option<TerrainLayer>,
+    thickness: TerrainMap,
+    values: Option<TerrainMap>,
 }
 
 impl SurfaceLayer {
@@ -123,10 +123,10 @@ impl SurfaceLayer {
     ) -> Result<Self, SurfaceLayerError> {
         let side = bottom.dims()[0];
         let thickness = match top {
-            LayerTop::Thickness(thickness) => TerrainLayer::new(side, thickness.to_vec())?,
+            LayerTop::Thickness(thickness) => TerrainMap::new(side, thickness.to_vec())?,
             LayerTop::Surface(top) => {
                 if top.len() != bottom.heights().len() {
-                    return Err(TerrainError::LayerLength {
+                    return Err(TerrainError::MapLength {
                         side,
                         len: top.len(),
                     }
@@ -137,14 +137,14 @@ impl SurfaceLayer {
                     .zip(bottom.heights())
                     .map(|(top, bottom)| top - bottom)
                     .collect();
-                TerrainLayer::new(side, difference)?
+                TerrainMap::new(side, difference)?
             }
         };
         let values = values
-            .map(|values| TerrainLayer::new(side, values.to_vec()))
+            .map(|values| TerrainMap::new(side, values.to_vec()))
             .transpose()?;
         let mut hierarchy = TerrainHierarchy::new(bottom, min_resolution)?;
-        hierarchy.add_layer_roughness(&thickness, roughness_weight)?;
+        hierarchy.add_map_roughness(&thickness, roughness_weight)?;
         Ok(Self {
             hierarchy,
             thickness,
@@ -158,12 +158,12 @@ impl SurfaceLayer {
     }
 
     /// The thickness per grid point, clamped to ≥ 0.
-    pub fn thickness(&self) -> &TerrainLayer {
+    pub fn thickness(&self) -> &TerrainMap {
         &self.thickness
     }
 
     /// The value map, if the layer has one.
-    pub fn values(&self) -> Option<&TerrainLayer> {
+    pub fn values(&self) -> Option<&TerrainMap> {
         self.values.as_ref()
     }
 
@@ -196,7 +196,7 @@ impl SurfaceLayer {
         };
         let field_from_world = view.world_from_field.inverse();
         let eye = field_from_world.transform_point3(view.eye);
-        let lod = self.hierarchy.update_with_layers(
+        let lod = self.hierarchy.update_with_maps(
             eye,
             view.frustum,
             &settings,

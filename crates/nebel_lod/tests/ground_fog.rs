@@ -10,7 +10,7 @@ use std::collections::{HashMap, HashSet};
 use glam::{DAffine3, DMat4, DVec2, DVec3};
 use nebel_core::cell::{Ray, Tetrahedron};
 use nebel_core::field::{AuroraCurtains, FogNoise, HeightField, ValueNoise};
-use nebel_lod::quadtree::TerrainLayer;
+use nebel_lod::quadtree::TerrainMap;
 use nebel_lod::{
     AuroraShape, CellOrder, CloudLayerShape, FogProfile, Frustum, GpuCell, LayerTop, LayerView,
     LodSettings, PrismError, PrismInput, PrismScalar, PrismStats, SurfaceLayer, SurfaceLayerError,
@@ -21,7 +21,7 @@ const SPACING: f64 = 10.0;
 
 /// An fBm terrain of `n²` points, 0..300 m, and valley fog filling it up to
 /// 120 m (zero thickness on the ridges), plus a noisy top.
-fn valley(n: usize) -> (TerrainHierarchy, TerrainLayer) {
+fn valley(n: usize) -> (TerrainHierarchy, TerrainMap) {
     let noise = ValueNoise {
         seed: 3,
         octaves: 5,
@@ -45,17 +45,17 @@ fn valley(n: usize) -> (TerrainHierarchy, TerrainLayer) {
             120.0 + wobble - h
         })
         .collect();
-    let layer = TerrainLayer::new(n, thickness).unwrap();
+    let layer = TerrainMap::new(n, thickness).unwrap();
     let hierarchy = TerrainHierarchy::new(field, 2.0)
         .unwrap()
-        .with_layer_roughness(&layer, 1.0)
+        .with_map_roughness(&layer, 1.0)
         .unwrap();
     (hierarchy, layer)
 }
 
 fn refine(
     hierarchy: &TerrainHierarchy,
-    layer: &TerrainLayer,
+    layer: &TerrainMap,
     eye: DVec3,
     order: TriangleOrder,
     morph: bool,
@@ -69,7 +69,7 @@ fn refine(
     };
     let mut mesh = TerrainMesh::new();
     hierarchy
-        .update_with_layer(eye, None, &settings, Some(layer), &mut mesh)
+        .update_with_map(eye, None, &settings, Some(layer), &mut mesh)
         .unwrap();
     mesh
 }
@@ -98,7 +98,7 @@ fn prisms(
 
 /// Eyes above the fog, inside it, exactly on its top, below the ground and
 /// under the top on a steep slope, in world space.
-fn eyes(hierarchy: &TerrainHierarchy, layer: &TerrainLayer) -> Vec<(&'static str, DVec3)> {
+fn eyes(hierarchy: &TerrainHierarchy, layer: &TerrainMap) -> Vec<(&'static str, DVec3)> {
     let n = hierarchy.size();
     let origin = hierarchy.origin();
     let at = |i: usize, j: usize, above_ground: f64| {
@@ -199,7 +199,7 @@ fn assert_conforming(
     // Ground and top positions of every mesh vertex.
     let mut ground = HashSet::new();
     let mut top = HashSet::new();
-    for (p, t) in mesh.positions.iter().zip(&mesh.layer) {
+    for (p, t) in mesh.positions.iter().zip(&mesh.map) {
         let world = |dy: f32| {
             let w = (origin
                 + DVec3::new(
@@ -260,7 +260,7 @@ fn assert_fills_the_prisms(cells: &[GpuCell], mesh: &TerrainMesh, name: &str) {
             let area = 0.5 * (p(1) - p(0)).perp_dot(p(2) - p(0)).abs();
             let mean = t
                 .iter()
-                .map(|&v| f64::from(mesh.layer[v as usize]))
+                .map(|&v| f64::from(mesh.map[v as usize]))
                 .sum::<f64>()
                 / 3.0;
             area * mean
@@ -448,7 +448,7 @@ fn culling_keeps_every_cell_the_frustum_sees_above_the_ground() {
         let cells = |frustum: Option<&Frustum>| {
             let mut mesh = TerrainMesh::new();
             hierarchy
-                .update_with_layer(eye, frustum, &settings, Some(&layer), &mut mesh)
+                .update_with_map(eye, frustum, &settings, Some(&layer), &mut mesh)
                 .unwrap();
             prisms(
                 &hierarchy,
@@ -487,7 +487,7 @@ fn zero_thickness_gives_no_cells_and_partly_zero_prisms_stay_exact() {
     let (hierarchy, _) = valley(33);
     let n = hierarchy.size();
     let eye = hierarchy.origin() + DVec3::new(100.0, 500.0, 100.0);
-    let zero = TerrainLayer::new(n, vec![0.0; n * n]).unwrap();
+    let zero = TerrainMap::new(n, vec![0.0; n * n]).unwrap();
     assert!(zero.is_zero());
     let mesh = refine(&hierarchy, &zero, eye, TriangleOrder::BackToFront, true);
     for order in [CellOrder::BackToFront, CellOrder::Unordered] {
@@ -508,7 +508,7 @@ fn zero_thickness_gives_no_cells_and_partly_zero_prisms_stay_exact() {
     let mut values = vec![0.0; n * n];
     let centre = n / 2 + n * (n / 2);
     values[centre] = 9.0;
-    let spike = TerrainLayer::new(n, values).unwrap();
+    let spike = TerrainMap::new(n, values).unwrap();
     let settings = LodSettings {
         accuracy: 1e6,
         grid_points: true,
@@ -517,7 +517,7 @@ fn zero_thickness_gives_no_cells_and_partly_zero_prisms_stay_exact() {
     };
     let mut mesh = TerrainMesh::new();
     hierarchy
-        .update_with_layer(eye, None, &settings, Some(&spike), &mut mesh)
+        .update_with_map(eye, None, &settings, Some(&spike), &mut mesh)
         .unwrap();
     let (cells, stats) = prisms(
         &hierarchy,
@@ -552,7 +552,7 @@ fn the_scalar_follows_the_profile_exactly_where_the_thickness_is_constant() {
     let field =
         HeightField::value_noise([n, n], DVec2::splat(SPACING), DVec2::ZERO, &noise, 40.0).unwrap();
     let hierarchy = TerrainHierarchy::new(field, 2.0).unwrap();
-    let layer = TerrainLayer::new(n, vec![12.0; n * n]).unwrap();
+    let layer = TerrainMap::new(n, vec![12.0; n * n]).unwrap();
     let profile = FogProfile::new(vec![[0.0, 0.2], [0.25, 1.0], [1.0, 0.0]]).unwrap();
     let eye = DVec3::new(30.0, 200.0, 40.0);
     let mesh = refine(&hierarchy, &layer, eye, TriangleOrder::BackToFront, false);
@@ -603,7 +603,7 @@ fn the_scalar_follows_the_profile_exactly_where_the_thickness_is_constant() {
 /// its triangles.
 fn fog_top(n: usize, mesh: &TerrainMesh) -> Vec<f64> {
     over_the_grid(n, mesh, |v| {
-        f64::from(mesh.positions[v][1]) + f64::from(mesh.layer[v])
+        f64::from(mesh.positions[v][1]) + f64::from(mesh.map[v])
     })
 }
 
@@ -675,9 +675,9 @@ fn bad_input_is_an_error() {
         ..LodSettings::default()
     };
     // A layer of another size.
-    let other = TerrainLayer::new(17, vec![1.0; 17 * 17]).unwrap();
+    let other = TerrainMap::new(17, vec![1.0; 17 * 17]).unwrap();
     let error = hierarchy
-        .update_with_layer(eye, None, &settings, Some(&other), &mut mesh)
+        .update_with_map(eye, None, &settings, Some(&other), &mut mesh)
         .unwrap_err();
     assert!(
         matches!(error, TerrainError::DimsMismatch { .. }),
@@ -698,7 +698,7 @@ fn bad_input_is_an_error() {
     let mut cells = Vec::new();
     assert_eq!(
         fog_prisms(&mesh, &input, &mut cells),
-        Err(PrismError::MissingLayer)
+        Err(PrismError::MissingMap)
     );
     // Sorted fog from an unordered mesh.
     let unordered = LodSettings {
@@ -706,7 +706,7 @@ fn bad_input_is_an_error() {
         ..settings
     };
     hierarchy
-        .update_with_layer(eye, None, &unordered, Some(&layer), &mut mesh)
+        .update_with_map(eye, None, &unordered, Some(&layer), &mut mesh)
         .unwrap();
     let input = PrismInput {
         mesh_order: TriangleOrder::Unordered,
@@ -786,14 +786,14 @@ fn columns_beyond_the_handoff_distance_are_left_out_and_no_nearer_one() {
 }
 
 /// A value map over the grid of `n²` points, in [0.1, 0.9].
-fn value_map(n: usize) -> TerrainLayer {
+fn value_map(n: usize) -> TerrainMap {
     let values = (0..n * n)
         .map(|p| {
             let (i, j) = ((p % n) as f32, (p / n) as f32);
             0.5 + 0.4 * (0.31 * i).sin() * (0.17 * j + 0.5).cos()
         })
         .collect();
-    TerrainLayer::new(n, values).unwrap()
+    TerrainMap::new(n, values).unwrap()
 }
 
 #[test]
@@ -811,7 +811,7 @@ fn a_value_map_gives_the_scalar_of_a_layer_between_two_surfaces_without_popping(
         };
         let mut mesh = TerrainMesh::new();
         hierarchy
-            .update_with_layers(eye, None, &settings, Some(&layer), Some(&values), &mut mesh)
+            .update_with_maps(eye, None, &settings, Some(&layer), Some(&values), &mut mesh)
             .unwrap();
         mesh
     };
@@ -890,15 +890,15 @@ fn a_value_map_gives_the_scalar_of_a_layer_between_two_surfaces_without_popping(
     let mut mesh = TerrainMesh::new();
     let small = value_map(17);
     assert!(matches!(
-        hierarchy.update_with_layers(eye, None, &settings, Some(&layer), Some(&small), &mut mesh),
+        hierarchy.update_with_maps(eye, None, &settings, Some(&layer), Some(&small), &mut mesh),
         Err(TerrainError::DimsMismatch { .. })
     ));
     assert!(matches!(
-        hierarchy.update_with_layers(eye, None, &settings, None, Some(&values), &mut mesh),
+        hierarchy.update_with_maps(eye, None, &settings, None, Some(&values), &mut mesh),
         Err(TerrainError::InvalidParameter { .. })
     ));
     hierarchy
-        .update_with_layer(eye, None, &settings, Some(&layer), &mut mesh)
+        .update_with_map(eye, None, &settings, Some(&layer), &mut mesh)
         .unwrap();
     assert!(mesh.values.is_empty());
     assert_eq!(
@@ -983,7 +983,7 @@ fn a_layer_between_two_crossing_surfaces_conforms_is_ordered_and_carries_its_hei
         let layered = mesh
             .indices
             .chunks_exact(3)
-            .filter(|t| t.iter().any(|&v| mesh.layer[v as usize] > 0.0))
+            .filter(|t| t.iter().any(|&v| mesh.map[v as usize] > 0.0))
             .count();
         assert_eq!(stats.prisms, layered, "{name}");
         assert!(
@@ -1286,7 +1286,7 @@ fn a_cloud_layer_is_conforming_sorted_and_lit_through_the_cloud_above() {
         let columns: HashMap<[u32; 2], (f64, f64)> = mesh
             .positions
             .iter()
-            .zip(&mesh.layer)
+            .zip(&mesh.map)
             .map(|(p, t)| {
                 let w = origin + DVec3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
                 (

@@ -34,9 +34,7 @@ use nebel_core::field::{AuroraCurtains, HeightField};
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
-use nebel_lod::{
-    AuroraShape, CellOrder, GpuCell, LayerView, LodSettings, TerrainLayer, TerrainMesh,
-};
+use nebel_lod::{AuroraShape, CellOrder, GpuCell, LayerView, LodSettings, TerrainMap, TerrainMesh};
 
 use super::{
     BuiltVolume, InvalidField, SceneField, TransferDescription, finite, layer_side, non_negative,
@@ -220,7 +218,7 @@ impl AuroraDescription {
     pub fn strength(&self, built: &BuiltAurora, seconds: f64) -> Result<Vec<f32>, InvalidField> {
         let side = self.resolution as usize;
         match &built.map {
-            Some(map) => TerrainLayer::resample(map.heights(), map.dims(), side)
+            Some(map) => TerrainMap::resample(map.heights(), map.dims(), side)
                 .map(|layer| layer.values().to_vec())
                 .map_err(|error| InvalidField::new("map", error.to_string())),
             None => self

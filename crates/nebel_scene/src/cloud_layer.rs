@@ -39,7 +39,7 @@ use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
 use nebel_lod::{
     CellOrder, CloudLayerShape, GpuCell, LayerTop, LayerView, LodSettings, PrismScalar,
-    SurfaceLayer, TerrainLayer, TerrainMesh,
+    SurfaceLayer, TerrainMap, TerrainMesh,
 };
 
 use super::{
@@ -204,7 +204,7 @@ impl CloudLayerDescription {
         match (&built.maps, &self.maps) {
             (Some((bottom, top)), Some(maps)) => {
                 let surface = |map: &HeightField, field: &str| {
-                    TerrainLayer::resample(map.heights(), map.dims(), side)
+                    TerrainMap::resample(map.heights(), map.dims(), side)
                         .map(|unit| {
                             unit.values()
                                 .iter()

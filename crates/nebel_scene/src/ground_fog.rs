@@ -33,7 +33,7 @@ use serde::{Deserialize, Serialize};
 use nebel_core::field::{FogNoise, HeightField, ValleyFog};
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
-use nebel_lod::quadtree::{TerrainLayer, pad_to_power_of_two_plus_one};
+use nebel_lod::quadtree::{TerrainMap, pad_to_power_of_two_plus_one};
 use nebel_lod::{
     CellOrder, FogProfile, GpuCell, LodSettings, PrismInput, PrismScalar, TerrainHierarchy,
     TerrainMesh, TriangleOrder, fog_prisms,
@@ -206,7 +206,7 @@ impl GroundFogDescription {
         &self,
         local: &HeightField,
         built: &BuiltGroundFog,
-    ) -> Result<TerrainLayer, InvalidField> {
+    ) -> Result<TerrainMap, InvalidField> {
         let side = local.dims()[0];
         match (&self.thickness, &built.map) {
             (FogThicknessDescription::Valley(valley), _) => valley
@@ -219,7 +219,7 @@ impl GroundFogDescription {
                 .and_then(|values| layer(side, values, "thickness.Noise")),
             (FogThicknessDescription::Png(map), Some(unit)) => {
                 let metres: Vec<f32> = unit.heights().iter().map(|u| u * map.scale).collect();
-                TerrainLayer::resample(&metres, unit.dims(), side)
+                TerrainMap::resample(&metres, unit.dims(), side)
                     .map_err(|error| InvalidField::new("thickness.Png.path", error.to_string()))
             }
             (FogThicknessDescription::Png(_), None) => Err(InvalidField::new(
@@ -241,8 +241,8 @@ pub struct BuiltGroundFog {
     pub transfer_function: TransferFunction,
 }
 
-fn layer(side: usize, values: Vec<f32>, field: &str) -> Result<TerrainLayer, InvalidField> {
-    TerrainLayer::new(side, values).map_err(|error| InvalidField::new(field, error.to_string()))
+fn layer(side: usize, values: Vec<f32>, field: &str) -> Result<TerrainMap, InvalidField> {
+    TerrainMap::new(side, values).map_err(|error| InvalidField::new(field, error.to_string()))
 }
 
 impl TerrainDescription {
@@ -297,7 +297,7 @@ impl TerrainDescription {
             && !built.transfer_function.is_transparent(0.0, 1.0);
         if fogged {
             hierarchy
-                .add_layer_roughness(&layer, fog.roughness_weight)
+                .add_map_roughness(&layer, fog.roughness_weight)
                 .map_err(quadtree)?;
         }
         let center = DVec3::from(self.center.map(f64::from));
@@ -310,7 +310,7 @@ impl TerrainDescription {
         };
         let mut mesh = TerrainMesh::new();
         hierarchy
-            .update_with_layer(
+            .update_with_map(
                 camera.position - center,
                 None,
                 &settings,

@@ -13,7 +13,7 @@ use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferError, TransferFunction};
 use nebel_lod::{
     CellOrder, Cells, FogProfile, Frustum, GpuCell, LayerStats, LayerView, LodSettings,
-    PrismScalar, SurfaceLayer, SurfaceLayerError, TerrainError, TerrainLayer, TerrainMesh,
+    PrismScalar, SurfaceLayer, SurfaceLayerError, TerrainError, TerrainMap, TerrainMesh,
 };
 use nebel_render::CellBatch;
 use nebel_render::camera::LodView;
@@ -66,7 +66,7 @@ pub(crate) fn map_values(
         return Ok(None);
     };
     let dims = [map.dims.x as usize, map.dims.y as usize];
-    let layer = TerrainLayer::resample(&map.values, dims, side).map_err(MapError::Values)?;
+    let layer = TerrainMap::resample(&map.values, dims, side).map_err(MapError::Values)?;
     Ok(Some(layer.values().to_vec()))
 }
 

@@ -202,8 +202,8 @@ pub struct TerrainLod {
     /// [`crate::update`]).
     pub(crate) latency: (f64, f64),
     pub(crate) mesh: Option<Handle<Mesh>>,
-    /// The layered quadtree the last refinement used, if any.
-    pub(crate) layered: Option<Arc<TerrainHierarchy>>,
+    /// The mapped quadtree the last refinement used, if any.
+    pub(crate) mapped: Option<Arc<TerrainHierarchy>>,
 }
 
 impl TerrainLod {
@@ -215,8 +215,8 @@ impl TerrainLod {
 
     /// The mesh of the last refinement, in the quadtree's frame (relative
     /// to its origin), front to back, with grid points per vertex and, when
-    /// the terrain carries a [`TerrainLayerLod`](crate::TerrainLayerLod),
-    /// the layer's morphed values.
+    /// the terrain carries a [`TerrainMapLod`](crate::TerrainMapLod),
+    /// the map's morphed values.
     pub fn mesh(&self) -> &Arc<TerrainMesh> {
         self.refiner.mesh()
     }
@@ -375,7 +375,7 @@ fn put_in_place(
             state.hierarchy = Some(hierarchy);
             state.refiner = TerrainRefiner::new();
             state.refining = None;
-            state.layered = None;
+            state.mapped = None;
             *status = TerrainStatus::Ready;
             Some(build_ms)
         }

@@ -23,8 +23,8 @@
 //!   vertex colours; debug views colour the quadtree levels or darken the
 //!   triangle edges ([`TerrainDebug`], [`shading`]).
 //!
-//! - an effect on the terrain's entity can give the level of detail a layer
-//!   to carry ([`TerrainLayerLod`], [`layer`]): the ground fog's thickness,
+//! - an effect on the terrain's entity can give the level of detail a map
+//!   to carry ([`TerrainMapLod`], [`map`]): the ground fog's thickness,
 //!   morphed with the heights, refined by its roughness too.
 //!
 //! [`TerrainStatus`] tells whether the terrain is loading, drawn or failed
@@ -53,7 +53,7 @@
 pub mod build;
 pub mod error;
 pub mod heights;
-pub mod layer;
+pub mod map;
 pub mod shading;
 pub mod terrain;
 pub mod update;
@@ -61,7 +61,7 @@ pub mod update;
 pub use build::TerrainLod;
 pub use error::TerrainBuildError;
 pub use heights::{TerrainHeights, TerrainHeightsError, TerrainHeightsLoader};
-pub use layer::{LayeredQuadtree, TerrainLayerLod};
+pub use map::{MappedQuadtree, TerrainMapLod};
 pub use terrain::{
     Terrain, TerrainDebug, TerrainLodStats, TerrainPlugin, TerrainSource, TerrainStatus,
     TerrainSystems,

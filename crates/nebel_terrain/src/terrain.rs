@@ -31,7 +31,7 @@ use nebel_render::{HeavyBuilds, LodCamera, NebelSystems};
 use crate::build::{TerrainLod, build_terrains};
 use crate::error::TerrainBuildError;
 use crate::heights::{TerrainHeights, TerrainHeightsLoader};
-use crate::layer::TerrainLayerLod;
+use crate::map::TerrainMapLod;
 use crate::update::{measure_terrains, update_terrain_meshes};
 
 /// Adds [`Terrain`], the [`TerrainHeights`] asset and its PNG loader, and the
@@ -78,7 +78,7 @@ impl Plugin for TerrainPlugin {
             .register_type::<TerrainLodStats>()
             .register_type::<LodCamera>()
             .register_type::<HeavyBuilds>()
-            .register_type::<TerrainLayerLod>()
+            .register_type::<TerrainMapLod>()
             .add_systems(
                 PostUpdate,
                 (

@@ -63,7 +63,7 @@ use bevy::math::DAffine3;
 use bevy::prelude::*;
 use nebel_lod::TerrainError;
 use nebel_lod::quadtree::{
-    LodSettings, LodStats, RefinerSettings, TerrainHierarchy, TerrainLayer, TerrainRefiner,
+    LodSettings, LodStats, RefinerSettings, TerrainHierarchy, TerrainMap, TerrainRefiner,
     TerrainView, TriangleOrder, accuracy_for_pixel_error,
 };
 use nebel_render::camera::to_double;
@@ -72,7 +72,7 @@ use nebel_render::{
 };
 
 use crate::build::{TerrainLod, bounds};
-use crate::layer::TerrainLayerLod;
+use crate::map::TerrainMapLod;
 use crate::shading::{Colouring, Palette, default_material, empty_mesh, write_mesh};
 use crate::terrain::{Terrain, TerrainLodStats, TerrainPlugin, TerrainStatus};
 
@@ -99,18 +99,18 @@ impl TerrainAssets<'_, '_> {
 }
 
 /// The refinement settings of `terrain` seen by `camera` through a
-/// quadtree of minimum resolution `min_resolution`, carrying a layer or not,
+/// quadtree of minimum resolution `min_resolution`, carrying a map or not,
 /// its accuracy (given, or derived from its pixel error for the camera's
 /// projection and viewport) scaled by the quality's factor.
 fn refiner_settings(
     terrain: &Terrain,
-    layer: Option<&TerrainLayerLod>,
+    map: Option<&TerrainMapLod>,
     accuracy_scale: f64,
     camera: &LodView,
     min_resolution: f32,
     latency: (f64, f64),
 ) -> Result<RefinerSettings, TerrainError> {
-    let every_move = layer.is_some_and(|layer| layer.refine_on_every_move);
+    let every_move = map.is_some_and(|map| map.refine_on_every_move);
     let accuracy = match terrain.pixel_error {
         Some(pixel_error) => accuracy_for_pixel_error(
             f64::from(pixel_error),
@@ -125,8 +125,8 @@ fn refiner_settings(
             accuracy: (accuracy * accuracy_scale) as f32,
             morph: terrain.morph,
             normals: true,
-            // The layer's cells need each vertex's grid point.
-            grid_points: terrain.debug.lod_colours || layer.is_some(),
+            // The map's cells need each vertex's grid point.
+            grid_points: terrain.debug.lod_colours || map.is_some(),
             // Opaque: nearest first lets the depth test reject more.
             order: TriangleOrder::FrontToBack,
         },
@@ -144,7 +144,7 @@ fn refiner_settings(
 /// mesh written from it (`None`: nothing in view) and its timings.
 pub(crate) struct Refined {
     refiner: TerrainRefiner,
-    /// The quadtree refined (the terrain's own or its layered one).
+    /// The quadtree refined (the terrain's own or its mapped one).
     hierarchy: Arc<TerrainHierarchy>,
     /// The view refined for.
     view: TerrainView,
@@ -157,7 +157,7 @@ pub(crate) struct Refined {
 struct Refinement {
     refiner: TerrainRefiner,
     hierarchy: Arc<TerrainHierarchy>,
-    layer: Option<Arc<TerrainLayer>>,
+    map: Option<Arc<TerrainMap>>,
     view: TerrainView,
     settings: RefinerSettings,
     /// The default material's palette is used (no material of the user's).
@@ -171,7 +171,7 @@ impl Refinement {
         let started = Instant::now();
         let refined = self.refiner.update(
             &self.hierarchy,
-            self.layer.as_deref(),
+            self.map.as_deref(),
             &self.view,
             &self.settings,
             true,
@@ -225,7 +225,7 @@ pub(crate) fn update_terrain_meshes(
         &mut TerrainStatus,
         &mut TerrainLodStats,
         &mut TerrainLod,
-        Option<Ref<TerrainLayerLod>>,
+        Option<Ref<TerrainMapLod>>,
     )>,
     mut assets: TerrainAssets,
     quality: Option<Res<EffectiveQuality>>,
@@ -239,7 +239,7 @@ pub(crate) fn update_terrain_meshes(
         (quality.terrain_accuracy_scale(), quality.is_changed())
     });
     let (mut frame_update_ms, mut frame_refine_ms) = (None, None);
-    for (entity, terrain, transform, visibility, mut status, mut stats, mut state, layer) in
+    for (entity, terrain, transform, visibility, mut status, mut stats, mut state, map) in
         &mut terrains
     {
         let state = &mut *state;
@@ -253,31 +253,30 @@ pub(crate) fn update_terrain_meshes(
                 .unwrap_or_else(|| assets.default_material());
             commands.entity(entity).insert(MeshMaterial3d(material));
         }
-        // Hidden: nothing is refined, and a layer that changed meanwhile is
+        // Hidden: nothing is refined, and a map that changed meanwhile is
         // still new when the terrain shows again.
         if !visibility.get() {
             continue;
         }
-        // A layer derived from this quadtree replaces it (see crate::layer).
-        let layered = layer.as_ref().and_then(|layer| {
-            layer
-                .quadtree
+        // A map derived from this quadtree replaces it (see crate::map).
+        let mapped = map.as_ref().and_then(|map| {
+            map.quadtree
                 .as_ref()
-                .filter(|layered| Arc::ptr_eq(&layered.base, &own))
+                .filter(|mapped| Arc::ptr_eq(&mapped.base, &own))
         });
-        let hierarchy = layered.map_or_else(|| own.clone(), |layered| layered.hierarchy.clone());
-        let layer_changed = match (layered, &state.layered) {
-            (Some(layered), Some(used)) => !Arc::ptr_eq(&layered.hierarchy, used),
+        let hierarchy = mapped.map_or_else(|| own.clone(), |mapped| mapped.hierarchy.clone());
+        let map_changed = match (mapped, &state.mapped) {
+            (Some(mapped), Some(used)) => !Arc::ptr_eq(&mapped.hierarchy, used),
             (None, None) => false,
             _ => true,
         };
-        if layer_changed {
-            state.layered = layered.map(|layered| layered.hierarchy.clone());
+        if map_changed {
+            state.mapped = mapped.map(|mapped| mapped.hierarchy.clone());
         }
         state.stale |= terrain.is_changed()
             || quality_changed
-            || layer_changed
-            || layer.as_ref().is_some_and(Ref::is_changed);
+            || map_changed
+            || map.as_ref().is_some_and(Ref::is_changed);
         let view = TerrainView {
             world_from_view: affine(&camera.world_from_view),
             clip_from_view: to_double(camera.clip_from_view),
@@ -285,7 +284,7 @@ pub(crate) fn update_terrain_meshes(
         };
         let settings = match refiner_settings(
             &terrain,
-            layered.and(layer.as_deref()),
+            mapped.and(map.as_deref()),
             accuracy_scale,
             &camera,
             hierarchy.min_resolution(),
@@ -304,7 +303,7 @@ pub(crate) fn update_terrain_meshes(
             let refinement = Refinement {
                 refiner: state.refiner.clone(),
                 hierarchy: hierarchy.clone(),
-                layer: layered.map(|layered| layered.layer.clone()),
+                map: mapped.map(|mapped| mapped.map.clone()),
                 view,
                 settings,
                 palette: terrain.material.is_none(),

@@ -7,7 +7,7 @@ use nebel_core::field::HeightField;
 
 use super::{
     MIN_RESOLUTION_LOWER_BOUND, NEIGHBOUR_FACTOR_DISTANCE, PARENT_FACTOR_DISTANCE, TerrainError,
-    TerrainLayer, propagation_factor,
+    TerrainMap, propagation_factor,
 };
 
 /// log2 of the smallest non-zero d2 code (code 1).
@@ -165,24 +165,20 @@ impl TerrainHierarchy {
         self.add_roughness_source(field.dims(), field.heights(), weight)
     }
 
-    /// [`TerrainHierarchy::with_extra_roughness`] of a [`TerrainLayer`]'s
+    /// [`TerrainHierarchy::with_extra_roughness`] of a [`TerrainMap`]'s
     /// values (the fog thickness the mesh also carries).
-    pub fn with_layer_roughness(
+    pub fn with_map_roughness(
         mut self,
-        layer: &TerrainLayer,
+        map: &TerrainMap,
         weight: f32,
     ) -> Result<Self, TerrainError> {
-        self.add_layer_roughness(layer, weight)?;
+        self.add_map_roughness(map, weight)?;
         Ok(self)
     }
 
-    /// [`TerrainHierarchy::with_layer_roughness`] in place.
-    pub fn add_layer_roughness(
-        &mut self,
-        layer: &TerrainLayer,
-        weight: f32,
-    ) -> Result<(), TerrainError> {
-        self.add_roughness_source([layer.side(); 2], layer.values(), weight)
+    /// [`TerrainHierarchy::with_map_roughness`] in place.
+    pub fn add_map_roughness(&mut self, map: &TerrainMap, weight: f32) -> Result<(), TerrainError> {
+        self.add_roughness_source([map.side(); 2], map.values(), weight)
     }
 
     /// Adds `weight` times the local d2 of `values` (`dims` points) and

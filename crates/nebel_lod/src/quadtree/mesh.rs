@@ -5,7 +5,7 @@
 use glam::DVec3;
 
 use super::hierarchy::{TerrainHierarchy, level_offset};
-use super::{DEFAULT_ACCURACY, TerrainError, TerrainLayer};
+use super::{DEFAULT_ACCURACY, TerrainError, TerrainMap};
 use crate::frustum::Frustum;
 
 /// In which order the triangles come out (see `docs/quadtree-lod.md`).
@@ -70,10 +70,10 @@ pub struct TerrainMesh {
     /// Grid index `(i, j)` per vertex when [`LodSettings::grid_points`], else
     /// empty.
     pub grid_points: Vec<[u32; 2]>,
-    /// The morphed value of the [`TerrainLayer`] per vertex when the update
+    /// The morphed value of the [`TerrainMap`] per vertex when the update
     /// was given one (the fog's thickness above the ground, say), else empty.
-    pub layer: Vec<f32>,
-    /// The morphed value of a second [`TerrainLayer`] per vertex when the
+    pub map: Vec<f32>,
+    /// The morphed value of a second [`TerrainMap`] per vertex when the
     /// update was given one (a value over the ground, such as the scalar of
     /// a layer between two surfaces), else empty.
     pub values: Vec<f32>,
@@ -97,7 +97,7 @@ impl TerrainMesh {
         self.positions.clear();
         self.normals.clear();
         self.grid_points.clear();
-        self.layer.clear();
+        self.map.clear();
         self.values.clear();
         self.indices.clear();
     }
@@ -124,21 +124,21 @@ pub struct LodStats {
 }
 
 /// A vertex value: morphed height, morphed height gradient (∂h/∂x, ∂h/∂z)
-/// and the morphed values of the update's `L` layers (none, the layer, or
-/// the layer and the value layer), so a terrain pays only for the layers it
+/// and the morphed values of the update's `L` maps (none, the map, or
+/// the map and the value map), so a terrain pays only for the maps it
 /// has.
 #[derive(Clone, Copy, Debug)]
 struct Vtx<const L: usize> {
     h: f32,
     g: [f32; 2],
-    layers: [f32; L],
+    maps: [f32; L],
 }
 
 impl<const L: usize> Vtx<L> {
     const ZERO: Self = Self {
         h: 0.0,
         g: [0.0; 2],
-        layers: [0.0; L],
+        maps: [0.0; L],
     };
 }
 
@@ -153,9 +153,7 @@ fn blend<const L: usize>(w: f32, own: &Vtx<L>, a: &Vtx<L>, b: &Vtx<L>) -> Vtx<L>
             w * own.g[0] + v * ((a.g[0] + b.g[0]) * 0.5),
             w * own.g[1] + v * ((a.g[1] + b.g[1]) * 0.5),
         ],
-        layers: std::array::from_fn(|k| {
-            w * own.layers[k] + v * ((a.layers[k] + b.layers[k]) * 0.5)
-        }),
+        maps: std::array::from_fn(|k| w * own.maps[k] + v * ((a.maps[k] + b.maps[k]) * 0.5)),
     }
 }
 
@@ -185,9 +183,9 @@ struct Level {
 /// Everything one update reads and writes.
 struct Frame<'a, const L: usize> {
     heights: &'a [f32],
-    /// The layers' values per grid point: the layer, then the value layer.
-    layers: [&'a [f32]; L],
-    /// The layer's largest value, added to the top of every culling box.
+    /// The maps' values per grid point: the map, then the value map.
+    maps: [&'a [f32]; L],
+    /// The map's largest value, added to the top of every culling box.
     layer_margin: f32,
     n: usize,
     levels: usize,
@@ -243,44 +241,44 @@ impl TerrainHierarchy {
         settings: &LodSettings,
         mesh: &mut TerrainMesh,
     ) -> Result<LodStats, TerrainError> {
-        self.update_with_layer(eye, frustum, settings, None, mesh)
+        self.update_with_map(eye, frustum, settings, None, mesh)
     }
 
-    /// [`TerrainHierarchy::update`] that also morphs `layer`, a value per grid
+    /// [`TerrainHierarchy::update`] that also morphs `map`, a value per grid
     /// point, with the terrain's weights (every vertex's value is blended from
     /// its coarse endpoints exactly like its height, so it never pops either)
-    /// into [`TerrainMesh::layer`], and culls each node on a box raised by the
-    /// layer's largest value (a layer of thickness above the ground, like
-    /// ground fog, stays inside it). Errors besides `update`'s: a layer of
+    /// into [`TerrainMesh::map`], and culls each node on a box raised by the
+    /// map's largest value (a map of thickness above the ground, like
+    /// ground fog, stays inside it). Errors besides `update`'s: a map of
     /// another size than the terrain ([`TerrainError::DimsMismatch`]).
-    pub fn update_with_layer(
+    pub fn update_with_map(
         &self,
         eye: DVec3,
         frustum: Option<&Frustum>,
         settings: &LodSettings,
-        layer: Option<&TerrainLayer>,
+        map: Option<&TerrainMap>,
         mesh: &mut TerrainMesh,
     ) -> Result<LodStats, TerrainError> {
-        self.update_with_layers(eye, frustum, settings, layer, None, mesh)
+        self.update_with_maps(eye, frustum, settings, map, None, mesh)
     }
 
-    /// [`TerrainHierarchy::update_with_layer`] that also morphs a second
-    /// layer, `values` (a value over the ground, such as the scalar of a
+    /// [`TerrainHierarchy::update_with_map`] that also morphs a second
+    /// map, `values` (a value over the ground, such as the scalar of a
     /// layer between two surfaces), with the same weights into
     /// [`TerrainMesh::values`]; it does not raise the culling boxes. Each
-    /// layer costs only the updates that carry it. Errors besides
-    /// `update_with_layer`'s: `values` of another size, or without `layer`
+    /// map costs only the updates that carry it. Errors besides
+    /// `update_with_map`'s: `values` of another size, or without `map`
     /// ([`TerrainError::InvalidParameter`]).
-    pub fn update_with_layers(
+    pub fn update_with_maps(
         &self,
         eye: DVec3,
         frustum: Option<&Frustum>,
         settings: &LodSettings,
-        layer: Option<&TerrainLayer>,
-        values: Option<&TerrainLayer>,
+        map: Option<&TerrainMap>,
+        values: Option<&TerrainMap>,
         mesh: &mut TerrainMesh,
     ) -> Result<LodStats, TerrainError> {
-        for extra in [layer, values].into_iter().flatten() {
+        for extra in [map, values].into_iter().flatten() {
             if extra.side() != self.size {
                 return Err(TerrainError::DimsMismatch {
                     terrain: self.field.dims(),
@@ -288,11 +286,11 @@ impl TerrainHierarchy {
                 });
             }
         }
-        if values.is_some() && layer.is_none() {
+        if values.is_some() && map.is_none() {
             return Err(TerrainError::InvalidParameter {
                 parameter: "values",
                 value: f64::NAN,
-                requirement: "given with a layer (the values ride on the layer's cells)",
+                requirement: "given with a map (the values ride on the map's cells)",
             });
         }
         if !eye.is_finite() {
@@ -353,14 +351,14 @@ impl TerrainHierarchy {
         }
         let sx = spacing.x as f32;
         let sz = spacing.y as f32;
-        // One frame type per number of layers, so a terrain without them
-        // blends no layer values.
+        // One frame type per number of maps, so a terrain without them
+        // blends no map values.
         macro_rules! frame {
-            ($layers:expr) => {
+            ($maps:expr) => {
                 Frame {
                     heights: self.field.heights(),
-                    layers: $layers,
-                    layer_margin: layer.map_or(0.0, TerrainLayer::max),
+                    maps: $maps,
+                    layer_margin: map.map_or(0.0, TerrainMap::max),
                     n: self.size,
                     levels: self.levels as usize,
                     d2: &self.d2,
@@ -382,7 +380,7 @@ impl TerrainHierarchy {
                 }
             };
         }
-        Ok(match (layer, values) {
+        Ok(match (map, values) {
             (Some(first), Some(second)) => frame!([first.values(), second.values()]).draw(mask),
             (Some(first), None) => frame!([first.values()]).draw(mask),
             _ => frame!([]).draw(mask),
@@ -427,7 +425,7 @@ impl<const L: usize> Frame<'_, L> {
         Vtx {
             h: self.height(i, j),
             g: self.gradient(i, j),
-            layers: std::array::from_fn(|k| self.layers[k][index]),
+            maps: std::array::from_fn(|k| self.maps[k][index]),
         }
     }
 
@@ -579,10 +577,10 @@ impl<const L: usize> Frame<'_, L> {
         if self.grid {
             self.mesh.grid_points.push([i, j]);
         }
-        if let Some(layer) = v.layers.first() {
-            self.mesh.layer.push(*layer);
+        if let Some(map) = v.maps.first() {
+            self.mesh.map.push(*map);
         }
-        if let Some(value) = v.layers.get(1) {
+        if let Some(value) = v.maps.get(1) {
             self.mesh.values.push(*value);
         }
         verts.index[slot] = index;

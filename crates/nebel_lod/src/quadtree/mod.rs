@@ -39,13 +39,13 @@
 //! and the memory layout) are in `docs/quadtree-lod.md` in the repository.
 
 mod hierarchy;
-mod layer;
+mod map;
 mod mesh;
 mod pixel_error;
 mod refiner;
 
 pub use hierarchy::{TerrainHierarchy, pad_to_power_of_two_plus_one};
-pub use layer::TerrainLayer;
+pub use map::TerrainMap;
 pub use mesh::{LodSettings, LodStats, TerrainMesh, TriangleOrder};
 pub use pixel_error::accuracy_for_pixel_error;
 pub use refiner::{RefinerSettings, TerrainRefiner, TerrainView};
@@ -137,28 +137,26 @@ pub enum TerrainError {
         /// Points per axis of the extra field.
         extra: [usize; 2],
     },
-    /// A [`TerrainLayer`]'s values are not one per grid point.
-    #[error("a terrain layer of {side}×{side} points needs {} values, but it has {len}", side * side)]
-    LayerLength {
+    /// A [`TerrainMap`]'s values are not one per grid point.
+    #[error("a terrain map of {side}×{side} points needs {} values, but it has {len}", side * side)]
+    MapLength {
         /// Points per side of the terrain.
         side: usize,
         /// The number of values given.
         len: usize,
     },
-    /// A map to resample into a [`TerrainLayer`] is empty or its values do
+    /// A map to resample into a [`TerrainMap`] is empty or its values do
     /// not fill its size.
-    #[error(
-        "a layer map of {dims:?} points needs that many values (at least one), but it has {len}"
-    )]
-    LayerMapSize {
+    #[error("a map of {dims:?} points needs that many values (at least one), but it has {len}")]
+    MapSize {
         /// Points per axis `[width, height]` of the map.
         dims: [usize; 2],
         /// The number of values given.
         len: usize,
     },
-    /// A layer value is NaN or infinite.
-    #[error("layer value {index} is {value}; every value must be finite")]
-    NonFiniteLayer {
+    /// A map value is NaN or infinite.
+    #[error("map value {index} is {value}; every value must be finite")]
+    NonFiniteMapValue {
         /// Flat index of the value.
         index: usize,
         /// The value found.

@@ -7,7 +7,7 @@
 //!
 //! [`TerrainRefiner::update`] refines (into the same [`TerrainMesh`]) on the
 //! first call, when asked to (`settings_changed`: the terrain's quadtree or
-//! layer changed), when its [`LodSettings`] differ from the last
+//! map changed), when its [`LodSettings`] differ from the last
 //! refinement's (an accuracy derived from a pixel tolerance changes with the
 //! viewport, say), and when
 //!
@@ -43,7 +43,7 @@ use std::sync::Arc;
 
 use glam::{DAffine3, DMat4, DQuat, DVec3};
 
-use super::{LodSettings, LodStats, TerrainError, TerrainHierarchy, TerrainLayer, TerrainMesh};
+use super::{LodSettings, LodStats, TerrainError, TerrainHierarchy, TerrainMap, TerrainMesh};
 use crate::frustum::Frustum;
 
 /// A camera seen from one terrain.
@@ -121,14 +121,14 @@ impl TerrainRefiner {
 
     /// Refines `hierarchy` for `view` if the view changed enough since the
     /// last refinement or `settings_changed` (see the module docs), carrying
-    /// `layer` into the mesh when given
-    /// ([`TerrainHierarchy::update_with_layer`]); returns the refinement's
+    /// `map` into the mesh when given
+    /// ([`TerrainHierarchy::update_with_map`]); returns the refinement's
     /// counters, or `None` when the mesh stays as it is. After an error the
     /// next call refines again.
     pub fn update(
         &mut self,
         hierarchy: &TerrainHierarchy,
-        layer: Option<&TerrainLayer>,
+        map: Option<&TerrainMap>,
         view: &TerrainView,
         settings: &RefinerSettings,
         settings_changed: bool,
@@ -153,13 +153,8 @@ impl TerrainRefiner {
             self.mesh = Arc::default();
         }
         let mesh = Arc::get_mut(&mut self.mesh).expect("a mesh of its own");
-        let stats = hierarchy.update_with_layer(
-            view.eye(),
-            frustum.as_ref(),
-            &settings.lod,
-            layer,
-            mesh,
-        )?;
+        let stats =
+            hierarchy.update_with_map(view.eye(), frustum.as_ref(), &settings.lod, map, mesh)?;
         self.refined_for = Some((*view, settings.lod));
         Ok(Some(stats))
     }

@@ -942,21 +942,21 @@ fn extra_roughness_plugs_into_d2() {
     for weight in [-1.0, f32::NAN, f32::INFINITY] {
         assert!(base.clone().with_extra_roughness(&fog, weight).is_err());
     }
-    // A layer's values are the same source as a field of them.
-    let layer = TerrainLayer::new(33, fog.heights().iter().map(|h| h.max(0.0)).collect()).unwrap();
+    // A map's values are the same source as a field of them.
+    let map = TerrainMap::new(33, fog.heights().iter().map(|h| h.max(0.0)).collect()).unwrap();
     let as_field = HeightField::new(
         [33, 33],
         terrain.spacing(),
         terrain.origin(),
-        layer.values().to_vec(),
+        map.values().to_vec(),
     )
     .unwrap();
-    let by_layer = base.clone().with_layer_roughness(&layer, 0.5).unwrap();
+    let by_map = base.clone().with_map_roughness(&map, 0.5).unwrap();
     let by_field = base.clone().with_extra_roughness(&as_field, 0.5).unwrap();
-    assert_eq!(by_layer.d2, by_field.d2);
-    let small = TerrainLayer::new(17, vec![1.0; 17 * 17]).unwrap();
+    assert_eq!(by_map.d2, by_field.d2);
+    let small = TerrainMap::new(17, vec![1.0; 17 * 17]).unwrap();
     assert!(matches!(
-        base.clone().with_layer_roughness(&small, 1.0),
+        base.clone().with_map_roughness(&small, 1.0),
         Err(TerrainError::DimsMismatch { .. })
     ));
 }

@@ -1,17 +1,17 @@
-//! Building a ground fog's layer on the task pool: its thickness per grid
+//! Building a ground fog's map on the task pool: its thickness per grid
 //! point of the terrain's quadtree and the quadtree with the thickness's
 //! roughness added to d2 (Röttger and Ertl 2003 §6: the fog's thickness
 //! enters the refinement with a weight).
 //!
-//! `build_fog_layers` notices a new fog, a new terrain quadtree, a changed
+//! `build_ground_fog_maps` notices a new fog, a new terrain quadtree, a changed
 //! thickness source or `roughness_weight` (compared bit for bit), and a fog
 //! map that was added, loaded or modified, and starts the build on Bevy's
 //! `AsyncComputeTaskPool` (one at a time per fog; at once under
 //! `HeavyBuilds::Blocking`). Its result goes to the terrain as a
-//! [`TerrainLayerLod`], which the terrain's refinement then carries; a fog of
+//! [`TerrainMapLod`], which the terrain's refinement then carries; a fog of
 //! no thickness anywhere, no density or a transparent transfer function
 //! gives none (the terrain refines alone, and nothing of the fog runs per
-//! frame; the layer is kept for when the fog can be seen again). Unless the
+//! frame; the map is kept for when the fog can be seen again). Unless the
 //! fog, its map or the terrain's quadtree changed, the system only reads the
 //! fog's density and transfer function and compares pointers per fog: no
 //! key is formatted and nothing is built.
@@ -24,18 +24,18 @@ use bevy::prelude::*;
 use nebel_core::field::{FogNoise, ValleyFog};
 use nebel_core::optics::OpticalMode;
 use nebel_lod::TerrainHierarchy;
-use nebel_lod::quadtree::TerrainLayer;
+use nebel_lod::quadtree::TerrainMap;
 use nebel_render::{EffectiveQuality, HeavyBuild, HeavyBuilds};
-use nebel_terrain::{LayeredQuadtree, TerrainHeights, TerrainLayerLod, TerrainLod};
+use nebel_terrain::{MappedQuadtree, TerrainHeights, TerrainLod, TerrainMapLod};
 
 use crate::error::GroundFogError;
 use crate::ground_fog::{
     FogThickness, GroundFog, GroundFogPlugin, GroundFogStats, GroundFogStatus, fail,
 };
 
-/// What a layer is built from, bit for bit.
+/// What a map is built from, bit for bit.
 #[derive(Clone, Debug, PartialEq)]
-struct LayerKey {
+struct MapKey {
     /// The terrain's quadtree (by identity).
     quadtree: usize,
     /// The thickness source as written (`Debug`), so a NaN setting compares
@@ -55,32 +55,32 @@ enum ThicknessInput {
     Valley(ValleyFog),
 }
 
-/// A finished layer: `None` for a fog of no thickness anywhere.
-struct BuiltLayer {
-    quadtree: Option<LayeredQuadtree>,
+/// A finished map: `None` for a fog of no thickness anywhere.
+struct BuiltMap {
+    quadtree: Option<MappedQuadtree>,
     max_thickness: f32,
     build_ms: f32,
 }
 
-/// A ground fog's layer and the build in flight.
+/// A ground fog's map and the build in flight.
 #[derive(Component, Default)]
-pub struct GroundFogLayer {
-    key: Option<LayerKey>,
-    build: Option<(LayerKey, HeavyBuild<Result<BuiltLayer, GroundFogError>>)>,
-    /// The last layer built, handed to the terrain while the fog can be
+pub struct GroundFogMap {
+    key: Option<MapKey>,
+    build: Option<(MapKey, HeavyBuild<Result<BuiltMap, GroundFogError>>)>,
+    /// The last map built, handed to the terrain while the fog can be
     /// seen.
-    built: Option<LayeredQuadtree>,
+    built: Option<MappedQuadtree>,
     /// The fog map changed while a build was in flight: build again when it
     /// lands.
     stale: bool,
 }
 
 /// The thickness of `input` on `base`'s grid, and `base` with its roughness.
-fn build_layer(
+fn build_map(
     base: Arc<TerrainHierarchy>,
     input: ThicknessInput,
     roughness_weight: f32,
-) -> Result<BuiltLayer, GroundFogError> {
+) -> Result<BuiltMap, GroundFogError> {
     let started = Instant::now();
     if !(roughness_weight.is_finite() && roughness_weight >= 0.0) {
         return Err(GroundFogError::InvalidSetting {
@@ -91,7 +91,7 @@ fn build_layer(
     }
     let side = base.size();
     let spacing = base.field().spacing().x;
-    let layer = match input {
+    let map = match input {
         ThicknessInput::Map {
             dims,
             values,
@@ -105,24 +105,24 @@ fn build_layer(
                 });
             }
             let metres: Vec<f32> = values.iter().map(|v| v * scale).collect();
-            TerrainLayer::resample(&metres, dims, side)?
+            TerrainMap::resample(&metres, dims, side)?
         }
-        ThicknessInput::Noise(noise) => TerrainLayer::new(side, noise.thickness(side, spacing)?)?,
-        ThicknessInput::Valley(valley) => TerrainLayer::new(side, valley.thickness(base.field())?)?,
+        ThicknessInput::Noise(noise) => TerrainMap::new(side, noise.thickness(side, spacing)?)?,
+        ThicknessInput::Valley(valley) => TerrainMap::new(side, valley.thickness(base.field())?)?,
     };
-    let max_thickness = layer.max();
-    let quadtree = if layer.is_zero() {
+    let max_thickness = map.max();
+    let quadtree = if map.is_zero() {
         None
     } else {
         let mut hierarchy = (*base).clone();
-        hierarchy.add_layer_roughness(&layer, roughness_weight)?;
-        Some(LayeredQuadtree {
+        hierarchy.add_map_roughness(&map, roughness_weight)?;
+        Some(MappedQuadtree {
             base,
             hierarchy: Arc::new(hierarchy),
-            layer: Arc::new(layer),
+            map: Arc::new(map),
         })
     };
-    Ok(BuiltLayer {
+    Ok(BuiltMap {
         quadtree,
         max_thickness,
         build_ms: started.elapsed().as_secs_f32() * 1e3,
@@ -154,15 +154,15 @@ fn thickness_input(
     }))
 }
 
-/// Takes finished layer builds and starts new ones (see the module docs).
-pub(crate) fn build_fog_layers(
+/// Takes finished map builds and starts new ones (see the module docs).
+pub(crate) fn build_ground_fog_maps(
     mut commands: Commands,
     mut fogs: Query<(
         Entity,
         Ref<GroundFog>,
         Option<&TerrainLod>,
-        Option<&mut TerrainLayerLod>,
-        &mut GroundFogLayer,
+        Option<&mut TerrainMapLod>,
+        &mut GroundFogMap,
         &mut GroundFogStatus,
         &mut GroundFogStats,
     )>,
@@ -175,7 +175,7 @@ pub(crate) fn build_fog_layers(
 ) {
     let changed = TerrainHeights::changed(&mut map_events);
     let prisms = quality.is_none_or(|quality| quality.ground_fog_prisms());
-    for (entity, fog, lod, layer_lod, mut state, mut status, mut stats) in &mut fogs {
+    for (entity, fog, lod, map_lod, mut state, mut status, mut stats) in &mut fogs {
         let Some(lod) = lod else {
             fail(entity, &mut status, GroundFogError::NoTerrain);
             continue;
@@ -183,7 +183,7 @@ pub(crate) fn build_fog_layers(
         let every_move = fog.mode == OpticalMode::Sorted;
         let state = &mut *state;
         // A density out of range is a failure; fixed, the fog is what its
-        // layer makes it again.
+        // map makes it again.
         let density_valid = fog.density.is_finite() && fog.density >= 0.0;
         let density_failed = matches!(&*status, GroundFogStatus::Failed(GroundFogError::InvalidSetting { setting, .. }) if *setting == "density");
         if !density_valid {
@@ -210,22 +210,22 @@ pub(crate) fn build_fog_layers(
             && density_valid
             && fog.density > 0.0
             && !fog.transfer_function.is_transparent(0.0, 1.0);
-        if let Some(mut layer_lod) = layer_lod {
-            if layer_lod.refine_on_every_move != every_move {
-                layer_lod.refine_on_every_move = every_move;
+        if let Some(mut map_lod) = map_lod {
+            if map_lod.refine_on_every_move != every_move {
+                map_lod.refine_on_every_move = every_move;
             }
             let wanted = state.built.as_ref().filter(|_| drawn);
-            let current = layer_lod.quadtree.as_ref();
+            let current = map_lod.quadtree.as_ref();
             let same = match (wanted, current) {
                 (Some(a), Some(b)) => Arc::ptr_eq(&a.hierarchy, &b.hierarchy),
                 (None, None) => true,
                 _ => false,
             };
             if !same {
-                layer_lod.quadtree = wanted.cloned();
+                map_lod.quadtree = wanted.cloned();
             }
         }
-        let mut land = |state: &mut GroundFogLayer, status: &mut GroundFogStatus| {
+        let mut land = |state: &mut GroundFogMap, status: &mut GroundFogStatus| {
             let Some((key, build)) = state.build.as_mut() else {
                 return;
             };
@@ -240,7 +240,7 @@ pub(crate) fn build_fog_layers(
                     stats.max_thickness = built.max_thickness;
                     diagnostics
                         .add_measurement(&GroundFogPlugin::BUILD_MS, || f64::from(built.build_ms));
-                    commands.entity(entity).insert(TerrainLayerLod {
+                    commands.entity(entity).insert(TerrainMapLod {
                         quadtree: built.quadtree.clone().filter(|_| drawn),
                         refine_on_every_move: every_move,
                     });
@@ -251,7 +251,7 @@ pub(crate) fn build_fog_layers(
                 }
                 Err(error) => {
                     state.built = None;
-                    commands.entity(entity).remove::<TerrainLayerLod>();
+                    commands.entity(entity).remove::<TerrainMapLod>();
                     fail(entity, status, error);
                 }
             }
@@ -277,7 +277,7 @@ pub(crate) fn build_fog_layers(
         if !rebuild && same_quadtree && !fog.is_changed() {
             continue;
         }
-        let key = LayerKey {
+        let key = MapKey {
             quadtree,
             thickness: format!("{:?}", fog.thickness),
             roughness_weight: fog.roughness_weight.to_bits(),
@@ -292,14 +292,14 @@ pub(crate) fn build_fog_layers(
                 let (base, weight) = (base.clone(), fog.roughness_weight);
                 state.build = Some((
                     key,
-                    HeavyBuild::spawn(move || build_layer(base, input, weight)),
+                    HeavyBuild::spawn(move || build_map(base, input, weight)),
                 ));
                 land(state, &mut status);
             }
             Err(error) => {
                 state.key = Some(key);
                 state.built = None;
-                commands.entity(entity).remove::<TerrainLayerLod>();
+                commands.entity(entity).remove::<TerrainMapLod>();
                 fail(entity, &mut status, error);
             }
         }

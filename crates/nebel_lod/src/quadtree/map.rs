@@ -4,26 +4,26 @@
 
 use super::TerrainError;
 
-/// A layer over a terrain: one finite, non-negative value per grid point of an
+/// A map over a terrain: one finite, non-negative value per grid point of an
 /// `n × n` terrain, index `i + n·j`, and its largest value.
 ///
-/// [`TerrainHierarchy::update_with_layer`](super::TerrainHierarchy::update_with_layer)
+/// [`TerrainHierarchy::update_with_map`](super::TerrainHierarchy::update_with_map)
 /// morphs it with the terrain's weights into
-/// [`TerrainMesh::layer`](super::TerrainMesh::layer).
+/// [`TerrainMesh::map`](super::TerrainMesh::map).
 #[derive(Clone, Debug, Default, PartialEq)]
-pub struct TerrainLayer {
+pub struct TerrainMap {
     side: usize,
     values: Vec<f32>,
     max: f32,
 }
 
-impl TerrainLayer {
-    /// A layer of `values` on a terrain of `side × side` points (index
-    /// `i + side·j`). Negative values are clamped to 0 (no layer there); a
+impl TerrainMap {
+    /// A map of `values` on a terrain of `side × side` points (index
+    /// `i + side·j`). Negative values are clamped to 0 (no map there); a
     /// NaN or infinite value, or a length other than `side²`, is an error.
     pub fn new(side: usize, mut values: Vec<f32>) -> Result<Self, TerrainError> {
         if values.len() != side * side {
-            return Err(TerrainError::LayerLength {
+            return Err(TerrainError::MapLength {
                 side,
                 len: values.len(),
             });
@@ -49,7 +49,7 @@ impl TerrainLayer {
     pub fn resample(map: &[f32], dims: [usize; 2], side: usize) -> Result<Self, TerrainError> {
         let [width, height] = dims;
         if width == 0 || height == 0 || map.len() != width * height {
-            return Err(TerrainError::LayerMapSize {
+            return Err(TerrainError::MapSize {
                 dims,
                 len: map.len(),
             });
@@ -75,7 +75,7 @@ impl TerrainLayer {
         Self::new(side, values)
     }
 
-    /// Points per side of the terrain the layer belongs to.
+    /// Points per side of the terrain the map belongs to.
     pub fn side(&self) -> usize {
         self.side
     }
@@ -85,12 +85,12 @@ impl TerrainLayer {
         &self.values
     }
 
-    /// The largest value (0 for a layer that is zero everywhere).
+    /// The largest value (0 for a map that is zero everywhere).
     pub fn max(&self) -> f32 {
         self.max
     }
 
-    /// Whether the layer is zero everywhere (a fog of no thickness: nothing
+    /// Whether the map is zero everywhere (a fog of no thickness: nothing
     /// to draw).
     pub fn is_zero(&self) -> bool {
         self.max == 0.0
@@ -99,7 +99,7 @@ impl TerrainLayer {
 
 fn check_finite(values: &[f32]) -> Result<(), TerrainError> {
     match values.iter().position(|v| !v.is_finite()) {
-        Some(index) => Err(TerrainError::NonFiniteLayer {
+        Some(index) => Err(TerrainError::NonFiniteMapValue {
             index,
             value: values[index],
         }),
@@ -114,23 +114,23 @@ mod tests {
     #[test]
     fn resampling_is_bilinear_from_corner_to_corner() {
         // A 2 × 2 map of a plane v = 1 + 2x + 3y (x, y in [0, 1]) onto 5 × 5.
-        let map = [1.0, 3.0, 4.0, 6.0];
-        let layer = TerrainLayer::resample(&map, [2, 2], 5).unwrap();
+        let corners = [1.0, 3.0, 4.0, 6.0];
+        let map = TerrainMap::resample(&corners, [2, 2], 5).unwrap();
         for j in 0..5 {
             for i in 0..5 {
                 let expected = 1.0 + 2.0 * i as f32 / 4.0 + 3.0 * j as f32 / 4.0;
-                assert!((layer.values()[i + 5 * j] - expected).abs() < 1e-6);
+                assert!((map.values()[i + 5 * j] - expected).abs() < 1e-6);
             }
         }
-        assert_eq!(layer.max(), 6.0);
+        assert_eq!(map.max(), 6.0);
         // A map of the terrain's size is taken as it is.
-        let map: Vec<f32> = (0..9).map(|v| v as f32 * 0.37).collect();
-        let same = TerrainLayer::resample(&map, [3, 3], 3).unwrap();
-        assert_eq!(same.values(), &map[..]);
+        let values: Vec<f32> = (0..9).map(|v| v as f32 * 0.37).collect();
+        let same = TerrainMap::resample(&values, [3, 3], 3).unwrap();
+        assert_eq!(same.values(), &values[..]);
         // One value covers everything; other sizes of any aspect work.
-        let one = TerrainLayer::resample(&[2.5], [1, 1], 9).unwrap();
+        let one = TerrainMap::resample(&[2.5], [1, 1], 9).unwrap();
         assert!(one.values().iter().all(|v| *v == 2.5));
-        let wide = TerrainLayer::resample(&[0.0, 1.0, 2.0, 3.0, 4.0], [5, 1], 3).unwrap();
+        let wide = TerrainMap::resample(&[0.0, 1.0, 2.0, 3.0, 4.0], [5, 1], 3).unwrap();
         assert_eq!(
             wide.values(),
             &[0.0, 2.0, 4.0, 0.0, 2.0, 4.0, 0.0, 2.0, 4.0]
@@ -138,20 +138,23 @@ mod tests {
     }
 
     #[test]
-    fn bad_layers_are_errors_and_negative_values_clamp() {
-        let clamped = TerrainLayer::new(2, vec![-1.0, 0.5, -0.0, 2.0]).unwrap();
+    fn bad_maps_are_errors_and_negative_values_clamp() {
+        let clamped = TerrainMap::new(2, vec![-1.0, 0.5, -0.0, 2.0]).unwrap();
         assert_eq!(clamped.values(), &[0.0, 0.5, 0.0, 2.0]);
-        assert!(TerrainLayer::new(2, vec![0.0; 4]).unwrap().is_zero());
-        let nan = TerrainLayer::new(2, vec![0.0, f32::NAN, 0.0, 0.0]).unwrap_err();
+        assert!(TerrainMap::new(2, vec![0.0; 4]).unwrap().is_zero());
+        let nan = TerrainMap::new(2, vec![0.0, f32::NAN, 0.0, 0.0]).unwrap_err();
         assert_eq!(
             nan.to_string(),
-            "layer value 1 is NaN; every value must be finite"
+            "map value 1 is NaN; every value must be finite"
         );
-        let short = TerrainLayer::new(3, vec![0.0; 4]).unwrap_err();
+        let short = TerrainMap::new(3, vec![0.0; 4]).unwrap_err();
         assert!(short.to_string().contains("9"), "{short}");
-        let map = TerrainLayer::resample(&[1.0; 5], [2, 2], 3).unwrap_err();
-        assert!(map.to_string().contains("[2, 2]"), "{map}");
-        let inf = TerrainLayer::resample(&[1.0, f32::INFINITY], [2, 1], 3).unwrap_err();
-        assert!(matches!(inf, TerrainError::NonFiniteLayer { index: 1, .. }));
+        let size = TerrainMap::resample(&[1.0; 5], [2, 2], 3).unwrap_err();
+        assert!(size.to_string().contains("[2, 2]"), "{size}");
+        let inf = TerrainMap::resample(&[1.0, f32::INFINITY], [2, 1], 3).unwrap_err();
+        assert!(matches!(
+            inf,
+            TerrainError::NonFiniteMapValue { index: 1, .. }
+        ));
     }
 }
