@@ -149,42 +149,20 @@ mod tests {
         }
     }
 
-    /// The thread a build runs on: a worker of the task pool, or this one
-    /// where Bevy is built without `multi_threaded` and the pool runs each
-    /// task where it is spawned (as when this crate's tests build alone).
-    fn build_thread() -> std::thread::ThreadId {
-        AsyncComputeTaskPool::get_or_init(TaskPool::new);
-        HeavyBuild::spawn(|| std::thread::current().id())
-            .poll(HeavyBuilds::Blocking)
-            .expect("a blocking poll returns the result")
-    }
-
     #[test]
     fn freeing_in_the_background_drops_on_the_task_pool() {
-        let pool_thread = build_thread();
+        AsyncComputeTaskPool::get_or_init(TaskPool::new);
         let (sender, receiver) = std::sync::mpsc::channel();
         free_in_background(ReportsDrop(sender));
         let dropped_on = receiver
             .recv_timeout(Duration::from_secs(10))
             .expect("dropped");
-        if pool_thread == std::thread::current().id() {
-            assert_eq!(dropped_on, pool_thread, "freed where it was spawned");
-        } else {
-            assert_ne!(dropped_on, std::thread::current().id());
-        }
+        assert_ne!(dropped_on, std::thread::current().id());
     }
 
     #[test]
     fn blocking_waits_and_background_does_not() {
-        if build_thread() == std::thread::current().id() {
-            // Tasks run where they are spawned: a build is done at once, and
-            // either mode returns it.
-            let mut build = HeavyBuild::spawn(|| 7);
-            assert_eq!(build.poll(HeavyBuilds::Background), Some(7));
-            let mut build = HeavyBuild::spawn(|| 8);
-            assert_eq!(build.poll(HeavyBuilds::Blocking), Some(8));
-            return;
-        }
+        AsyncComputeTaskPool::get_or_init(TaskPool::new);
         let (sender, receiver) = std::sync::mpsc::channel::<()>();
         let mut build = HeavyBuild::spawn(move || {
             receiver.recv().unwrap();
