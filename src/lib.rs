@@ -9,7 +9,7 @@
 //! functions, exact per pixel. This umbrella crate is the plugin group
 //! [`NebelPlugins`], the [`prelude`] and the re-exported crates; each effect
 //! is a cargo feature (`volume`, `terrain`, `fog`, `sky`, all default; `fog`
-//! and `sky` need `terrain`).
+//! needs `terrain`).
 //!
 //! ```no_run
 //! use bevy::prelude::*;
@@ -77,8 +77,8 @@ pub mod prelude {
         GroundFogStatus, HeightFogLayer, ValleyFog,
     };
     pub use nebel_render::{
-        AutoQuality, CellBatch, CellProjection, CellResolution, HeavyBuilds, LodCamera,
-        NebelQuality, NebelSystems, QualityPreset,
+        AutoQuality, CellBatch, CellProjection, CellResolution, GrayscaleMap, HeavyBuilds,
+        LodCamera, NebelQuality, NebelSystems, QualityPreset,
     };
     #[cfg(feature = "sky")]
     pub use nebel_sky::{
@@ -88,8 +88,8 @@ pub mod prelude {
     };
     #[cfg(feature = "terrain")]
     pub use nebel_terrain::{
-        Terrain, TerrainBuildError, TerrainDebug, TerrainHeights, TerrainLodStats, TerrainNoise,
-        TerrainPlugin, TerrainSource, TerrainStatus,
+        Terrain, TerrainBuildError, TerrainDebug, TerrainLodStats, TerrainNoise, TerrainPlugin,
+        TerrainSource, TerrainStatus,
     };
     #[cfg(feature = "volume")]
     pub use nebel_volume::{

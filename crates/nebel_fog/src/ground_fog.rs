@@ -4,7 +4,7 @@
 //! A ground fog lies on the [`Terrain`](nebel_terrain::Terrain) of its
 //! entity. Its thickness above the ground (metres, per terrain grid point)
 //! comes from a [`FogThickness`]: a grayscale fog map through the
-//! `AssetServer` (the terrain's [`TerrainHeights`] asset: black 0, white 1,
+//! `AssetServer` (the terrain's [`GrayscaleMap`] asset: black 0, white 1,
 //! times `scale`), seeded noise patches ([`FogNoise`]), or the valleys
 //! filled up to an altitude with a noisy edge ([`ValleyFog`], the default).
 //! A map of any size covers the terrain's grid from corner to corner and is
@@ -25,8 +25,9 @@ use bevy::prelude::*;
 use nebel_core::field::{FogNoise, ValleyFog};
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
+use nebel_render::GrayscaleMap;
 use nebel_render::NebelSystems;
-use nebel_terrain::{TerrainHeights, TerrainSystems};
+use nebel_terrain::TerrainSystems;
 
 use crate::batch::{GroundFogBatch, measure_fogs, remove_fogs, update_fog_batches};
 use crate::error::GroundFogError;
@@ -91,12 +92,12 @@ impl Plugin for GroundFogPlugin {
 #[derive(Clone, Debug, PartialEq, Reflect)]
 #[reflect(Clone)]
 pub enum FogThickness {
-    /// A grayscale map asset (`asset_server.load::<TerrainHeights>("fog.png")`:
+    /// A grayscale map asset (`asset_server.load::<GrayscaleMap>("fog.png")`:
     /// black 0, white 1), times `scale` metres, resampled bilinearly onto
     /// the terrain's grid.
     Map {
         /// The map.
-        map: Handle<TerrainHeights>,
+        map: Handle<GrayscaleMap>,
         /// Metres of a white pixel, finite and ≥ 0.
         scale: f32,
     },

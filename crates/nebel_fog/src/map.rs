@@ -25,8 +25,9 @@ use nebel_core::field::{FogNoise, ValleyFog};
 use nebel_core::optics::OpticalMode;
 use nebel_lod::TerrainHierarchy;
 use nebel_lod::quadtree::TerrainMap;
+use nebel_render::GrayscaleMap;
 use nebel_render::{EffectiveQuality, HeavyBuild, HeavyBuilds};
-use nebel_terrain::{MappedQuadtree, TerrainHeights, TerrainLod, TerrainMapLod};
+use nebel_terrain::{MappedQuadtree, TerrainLod, TerrainMapLod};
 
 use crate::error::GroundFogError;
 use crate::ground_fog::{
@@ -132,7 +133,7 @@ fn build_map(
 /// The thickness input of `fog`, `Ok(None)` while its map loads.
 fn thickness_input(
     fog: &GroundFog,
-    maps: &Assets<TerrainHeights>,
+    maps: &Assets<GrayscaleMap>,
     asset_server: &AssetServer,
 ) -> Result<Option<ThicknessInput>, GroundFogError> {
     Ok(Some(match &fog.thickness {
@@ -145,7 +146,7 @@ fn thickness_input(
                 scale: *scale,
             },
             None => {
-                return match TerrainHeights::load_failure(map, asset_server) {
+                return match GrayscaleMap::load_failure(map, asset_server) {
                     Some((path, error)) => Err(GroundFogError::MapNotLoaded { path, error }),
                     None => Ok(None),
                 };
@@ -166,14 +167,14 @@ pub(crate) fn build_ground_fog_maps(
         &mut GroundFogStatus,
         &mut GroundFogStats,
     )>,
-    maps: Res<Assets<TerrainHeights>>,
-    mut map_events: MessageReader<AssetEvent<TerrainHeights>>,
+    maps: Res<Assets<GrayscaleMap>>,
+    mut map_events: MessageReader<AssetEvent<GrayscaleMap>>,
     asset_server: Res<AssetServer>,
     mode: Res<HeavyBuilds>,
     quality: Option<Res<EffectiveQuality>>,
     mut diagnostics: Diagnostics,
 ) {
-    let changed = TerrainHeights::changed(&mut map_events);
+    let changed = GrayscaleMap::changed(&mut map_events);
     let prisms = quality.is_none_or(|quality| quality.ground_fog_prisms());
     for (entity, fog, lod, map_lod, mut state, mut status, mut stats) in &mut fogs {
         let Some(lod) = lod else {

@@ -11,10 +11,9 @@ use bevy::transform::TransformPlugin;
 use nebel_core::field::{FogNoise, TerrainNoise, ValleyFog};
 use nebel_core::optics::OpticalMode;
 use nebel_render::camera::computed_camera;
-use nebel_render::{CellBatch, HeavyBuilds};
+use nebel_render::{CellBatch, GrayscaleMap, HeavyBuilds};
 use nebel_terrain::{
-    Terrain, TerrainHeights, TerrainLod, TerrainLodStats, TerrainMapLod, TerrainPlugin,
-    TerrainSource,
+    Terrain, TerrainLod, TerrainLodStats, TerrainMapLod, TerrainPlugin, TerrainSource,
 };
 
 use crate::{
@@ -274,8 +273,8 @@ fn bad_input_fails_with_the_reason_and_never_panics() {
     // A map of NaN, a missing map file.
     let nan = app
         .world_mut()
-        .resource_mut::<Assets<TerrainHeights>>()
-        .add(TerrainHeights {
+        .resource_mut::<Assets<GrayscaleMap>>()
+        .add(GrayscaleMap {
             dims: UVec2::new(2, 2),
             values: Arc::new(vec![0.5, f32::NAN, 0.5, 0.5]),
         });
@@ -331,8 +330,8 @@ fn a_fog_map_covers_the_terrain_and_scales_to_metres() {
     // A 3 × 2 map: one white pixel, the rest black.
     let map = app
         .world_mut()
-        .resource_mut::<Assets<TerrainHeights>>()
-        .add(TerrainHeights {
+        .resource_mut::<Assets<GrayscaleMap>>()
+        .add(GrayscaleMap {
             dims: UVec2::new(3, 2),
             values: Arc::new(vec![0.0, 0.0, 1.0, 0.0, 0.0, 0.0]),
         });

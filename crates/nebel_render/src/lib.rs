@@ -12,6 +12,8 @@
 //! - [`builds`]: heavy builds on the task pool or in a per-frame budget
 //!   ([`HeavyBuilds`]).
 //! - [`camera`]: the camera that drives the level of detail ([`LodCamera`]).
+//! - [`grayscale_map`]: [`GrayscaleMap`], a grayscale PNG as unit values on a
+//!   grid: terrain heights, fog thickness, a sky layer's surfaces.
 //! - [`diagnostics`]: the [`NebelSystems`] set that every per-frame nebel system
 //!   joins and the CPU time that set takes each frame.
 //!
@@ -24,6 +26,7 @@ pub mod cell_projection;
 pub mod diagnostics;
 pub mod fog_layers;
 mod frame_budget;
+pub mod grayscale_map;
 pub mod quality;
 
 pub use builds::{HeavyBuild, HeavyBuilds, free_in_background};
@@ -35,4 +38,5 @@ pub use cell_projection::{
 };
 pub use diagnostics::{NebelDiagnosticsPlugin, NebelSystems};
 pub use fog_layers::{FogLayersUniform, ViewFogLayers};
+pub use grayscale_map::{GrayscaleMap, GrayscaleMapError, GrayscaleMapLoader, GrayscaleMapPlugin};
 pub use quality::{AutoQuality, EffectiveQuality, NebelQuality, NebelQualityPlugin, QualityPreset};

@@ -16,8 +16,8 @@ use nebel_lod::{
     PrismScalar, SurfaceLayer, SurfaceLayerError, TerrainError, TerrainMap, TerrainMesh,
 };
 use nebel_render::CellBatch;
+use nebel_render::GrayscaleMap;
 use nebel_render::camera::LodView;
-use nebel_terrain::TerrainHeights;
 
 /// A transfer function with ρ times a factor, kept while neither changes.
 #[derive(Default)]
@@ -54,12 +54,12 @@ pub(crate) enum MapError {
 /// A map's values resampled onto `side²` points (bilinear, corner to
 /// corner), `None` while it loads.
 pub(crate) fn map_values(
-    handle: &Handle<TerrainHeights>,
+    handle: &Handle<GrayscaleMap>,
     side: usize,
-    maps: &Assets<TerrainHeights>,
+    maps: &Assets<GrayscaleMap>,
     asset_server: &AssetServer,
 ) -> Result<Option<Vec<f32>>, MapError> {
-    if let Some((path, error)) = TerrainHeights::load_failure(handle, asset_server) {
+    if let Some((path, error)) = GrayscaleMap::load_failure(handle, asset_server) {
         return Err(MapError::NotLoaded(path, error));
     }
     let Some(map) = maps.get(handle) else {

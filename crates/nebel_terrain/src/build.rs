@@ -28,10 +28,9 @@ use nebel_core::field::{HeightField, TerrainNoise};
 use nebel_lod::quadtree::TerrainRefiner;
 use nebel_lod::quadtree::{MAX_TERRAIN_SIDE, pad_to_power_of_two_plus_one};
 use nebel_lod::{TerrainHierarchy, TerrainMesh};
-use nebel_render::{HeavyBuild, HeavyBuilds};
+use nebel_render::{GrayscaleMap, HeavyBuild, HeavyBuilds};
 
 use crate::error::TerrainBuildError;
-use crate::heights::TerrainHeights;
 use crate::terrain::{Terrain, TerrainLodStats, TerrainPlugin, TerrainSource, TerrainStatus};
 use crate::update::Refined;
 
@@ -40,7 +39,7 @@ use crate::update::Refined;
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub(crate) struct BuildKey {
     /// The height asset, or the procedural source's settings.
-    source: Result<AssetId<TerrainHeights>, [u64; 7]>,
+    source: Result<AssetId<GrayscaleMap>, [u64; 7]>,
     /// `spacing`, `vertical_scale`, `min_accuracy`.
     settings: [u32; 3],
 }
@@ -226,7 +225,7 @@ impl TerrainLod {
 /// loads.
 fn unit_heights(
     terrain: &Terrain,
-    heights: &Assets<TerrainHeights>,
+    heights: &Assets<GrayscaleMap>,
     asset_server: &AssetServer,
 ) -> Result<Option<UnitHeights>, TerrainBuildError> {
     match &terrain.source {
@@ -239,7 +238,7 @@ fn unit_heights(
                 dims: [asset.dims.x as usize, asset.dims.y as usize],
                 values: asset.values.clone(),
             })),
-            None => match TerrainHeights::load_failure(handle, asset_server) {
+            None => match GrayscaleMap::load_failure(handle, asset_server) {
                 Some((path, error)) => Err(TerrainBuildError::HeightsNotLoaded { path, error }),
                 None => Ok(None),
             },
@@ -281,13 +280,13 @@ pub(crate) fn build_terrains(
         &mut TerrainLodStats,
         &mut TerrainLod,
     )>,
-    heights: Res<Assets<TerrainHeights>>,
-    mut height_events: MessageReader<AssetEvent<TerrainHeights>>,
+    heights: Res<Assets<GrayscaleMap>>,
+    mut height_events: MessageReader<AssetEvent<GrayscaleMap>>,
     asset_server: Res<AssetServer>,
     mode: Res<HeavyBuilds>,
     mut diagnostics: Diagnostics,
 ) {
-    let changed = TerrainHeights::changed(&mut height_events);
+    let changed = GrayscaleMap::changed(&mut height_events);
     for (entity, terrain, mut status, mut stats, mut state) in &mut terrains {
         let state = &mut *state;
         let mut land = |state: &mut TerrainLod, status: &mut TerrainStatus| {

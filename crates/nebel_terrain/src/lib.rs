@@ -7,7 +7,7 @@
 //! (`Mesh3d`) and a material:
 //!
 //! - the heights come from a 16-bit grayscale PNG through the `AssetServer`
-//!   ([`TerrainHeights`], [`TerrainHeightsLoader`]) or from a procedural
+//!   (`nebel_render::GrayscaleMap`) or from a procedural
 //!   generator ([`TerrainSource::Procedural`]), times the vertical scale, on
 //!   a grid `spacing` apart centred on the entity ([`terrain`]);
 //! - the quadtree refines where `f = l² / (d² · max(c · d2, C)²) < 1` for the
@@ -33,11 +33,12 @@
 //!
 //! ```no_run
 //! use bevy::prelude::*;
-//! use nebel_terrain::{Terrain, TerrainHeights, TerrainPlugin, TerrainSource};
+//! use nebel_render::GrayscaleMap;
+//! use nebel_terrain::{Terrain, TerrainPlugin, TerrainSource};
 //!
 //! fn spawn_terrain(mut commands: Commands, assets: Res<AssetServer>) {
 //!     commands.spawn(Terrain {
-//!         source: TerrainSource::Heights(assets.load::<TerrainHeights>("valley.png")),
+//!         source: TerrainSource::Heights(assets.load::<GrayscaleMap>("valley.png")),
 //!         spacing: 10.0,         // metres between grid points
 //!         vertical_scale: 400.0, // metres of a white pixel
 //!         ..default()
@@ -52,7 +53,6 @@
 
 pub mod build;
 pub mod error;
-pub mod heights;
 pub mod map;
 pub mod shading;
 pub mod terrain;
@@ -60,7 +60,6 @@ pub mod update;
 
 pub use build::TerrainLod;
 pub use error::TerrainBuildError;
-pub use heights::{TerrainHeights, TerrainHeightsError, TerrainHeightsLoader};
 pub use map::{MappedQuadtree, TerrainMapLod};
 pub use terrain::{
     Terrain, TerrainDebug, TerrainLodStats, TerrainPlugin, TerrainSource, TerrainStatus,

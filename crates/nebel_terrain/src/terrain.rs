@@ -1,7 +1,7 @@
 //! The [`Terrain`] component, its status and statistics, and
 //! [`TerrainPlugin`].
 //!
-//! A terrain's heights come from a [`TerrainHeights`] asset (a 16-bit PNG
+//! A terrain's heights come from a [`GrayscaleMap`] asset (a 16-bit PNG
 //! through the `AssetServer`, or one built in memory) or from the
 //! procedural generator `nebel_core::field::HeightField::terrain`. They are
 //! unit heights: `vertical_scale` multiplies them, `spacing` places the grid
@@ -26,15 +26,14 @@ use bevy::diagnostic::{Diagnostic, DiagnosticPath, RegisterDiagnostic};
 use bevy::prelude::*;
 use nebel_core::field::{DEFAULT_TERRAIN_SPACING, DEFAULT_TERRAIN_VERTICAL_SCALE, TerrainNoise};
 use nebel_lod::quadtree::{DEFAULT_ACCURACY, DEFAULT_MIN_RESOLUTION};
-use nebel_render::{HeavyBuilds, LodCamera, NebelSystems};
+use nebel_render::{GrayscaleMap, GrayscaleMapPlugin, HeavyBuilds, LodCamera, NebelSystems};
 
 use crate::build::{TerrainLod, build_terrains};
 use crate::error::TerrainBuildError;
-use crate::heights::{TerrainHeights, TerrainHeightsLoader};
 use crate::map::TerrainMapLod;
 use crate::update::{measure_terrains, update_terrain_meshes};
 
-/// Adds [`Terrain`], the [`TerrainHeights`] asset and its PNG loader, and the
+/// Adds [`Terrain`], the [`GrayscaleMap`] asset and its PNG loader, and the
 /// terrain's systems (in [`PostUpdate`], see [`crate::build`] and
 /// [`crate::update`]) and diagnostics.
 ///
@@ -70,9 +69,8 @@ impl TerrainPlugin {
 
 impl Plugin for TerrainPlugin {
     fn build(&self, app: &mut App) {
-        app.init_asset::<TerrainHeights>()
-            .register_asset_loader(TerrainHeightsLoader)
-            .init_resource::<HeavyBuilds>()
+        GrayscaleMapPlugin::add_once(app);
+        app.init_resource::<HeavyBuilds>()
             .register_type::<Terrain>()
             .register_type::<TerrainStatus>()
             .register_type::<TerrainLodStats>()
@@ -124,8 +122,8 @@ pub enum TerrainSystems {
 #[derive(Clone, Debug, PartialEq, Reflect)]
 #[reflect(Clone)]
 pub enum TerrainSource {
-    /// A height map asset, e.g. `asset_server.load::<TerrainHeights>("h.png")`.
-    Heights(Handle<TerrainHeights>),
+    /// A height map asset, e.g. `asset_server.load::<GrayscaleMap>("h.png")`.
+    Heights(Handle<GrayscaleMap>),
     /// Seeded fractal noise rescaled to [0, 1]
     /// (`nebel_core::field::HeightField::terrain`).
     Procedural {

@@ -436,15 +436,16 @@ pub(crate) fn measure_terrains(terrains: Query<&TerrainLodStats>, mut diagnostic
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::TerrainSource;
     use crate::build::BuildInput;
     use crate::{TerrainDebug, TerrainPlugin};
-    use crate::{TerrainHeights, TerrainSource};
     use bevy::asset::AssetPlugin;
     use bevy::diagnostic::DiagnosticsStore;
     use bevy::mesh::VertexAttributeValues;
     use bevy::transform::TransformPlugin;
     use nebel_core::field::TerrainNoise;
     use nebel_lod::TerrainMesh;
+    use nebel_render::GrayscaleMap;
     use nebel_render::HeavyBuilds;
     use nebel_render::camera::computed_camera;
     use std::path::PathBuf;
@@ -818,16 +819,16 @@ mod tests {
         );
     }
 
-    fn heights_asset(app: &mut App, dims: UVec2, values: Vec<f32>) -> Handle<TerrainHeights> {
+    fn heights_asset(app: &mut App, dims: UVec2, values: Vec<f32>) -> Handle<GrayscaleMap> {
         app.world_mut()
-            .resource_mut::<Assets<TerrainHeights>>()
-            .add(TerrainHeights {
+            .resource_mut::<Assets<GrayscaleMap>>()
+            .add(GrayscaleMap {
                 dims,
                 values: Arc::new(values),
             })
     }
 
-    fn from_asset(handle: Handle<TerrainHeights>) -> Terrain {
+    fn from_asset(handle: Handle<GrayscaleMap>) -> Terrain {
         Terrain {
             source: TerrainSource::Heights(handle),
             ..procedural(2)
@@ -860,7 +861,7 @@ mod tests {
 
         // Fixing the asset in place rebuilds the terrain.
         app.world_mut()
-            .resource_mut::<Assets<TerrainHeights>>()
+            .resource_mut::<Assets<GrayscaleMap>>()
             .get_mut(&nan)
             .map(|mut heights| Arc::make_mut(&mut heights.values)[11] = 0.25)
             .unwrap();
@@ -917,7 +918,7 @@ mod tests {
             let handle = app
                 .world()
                 .resource::<AssetServer>()
-                .load::<TerrainHeights>(path.to_owned());
+                .load::<GrayscaleMap>(path.to_owned());
             spawn(app, from_asset(handle), Transform::default())
         };
 

@@ -4,7 +4,7 @@
 //! spawns its camera, lights, meshes, volumes and terrain (a
 //! `nebel_terrain::Terrain` whose heights, generated or loaded from the PNG
 //! relative to the scene file when the plugin is made, become a
-//! `TerrainHeights` asset; the entity sits at the terrain's `center`), its
+//! `GrayscaleMap` asset; the entity sits at the terrain's `center`), its
 //! aurora (a `nebel_sky::Aurora` at its `center`, a map footprint read when
 //! the plugin is made), its cloud layer (a `nebel_sky::CloudLayer`, likewise)
 //! and its stars ([`crate::stars`], centred on the
@@ -448,9 +448,10 @@ fn spawn_terrain(
     mut commands: Commands,
     scene: Res<LoadedScene>,
     terrain: Res<SceneTerrain>,
-    heights: Option<ResMut<Assets<nebel_terrain::TerrainHeights>>>,
+    heights: Option<ResMut<Assets<nebel_render::GrayscaleMap>>>,
 ) {
-    use nebel_terrain::{Terrain, TerrainDebug, TerrainHeights, TerrainSource};
+    use nebel_render::GrayscaleMap;
+    use nebel_terrain::{Terrain, TerrainDebug, TerrainSource};
     let (Some(description), Some(unit)) = (&scene.terrain, &terrain.0) else {
         return;
     };
@@ -460,7 +461,7 @@ fn spawn_terrain(
     };
     let mut entity = commands.spawn((
         Terrain {
-            source: TerrainSource::Heights(heights.add(TerrainHeights::from_field(unit))),
+            source: TerrainSource::Heights(heights.add(GrayscaleMap::from_field(unit))),
             spacing: description.spacing,
             vertical_scale: description.vertical_scale,
             accuracy: description.accuracy(),
@@ -487,14 +488,14 @@ fn spawn_terrain(
 fn ground_fog(
     fog: &GroundFogDescription,
     built: &BuiltGroundFog,
-    heights: &mut Assets<nebel_terrain::TerrainHeights>,
+    heights: &mut Assets<nebel_render::GrayscaleMap>,
 ) -> Option<nebel_fog::GroundFog> {
     use nebel_fog::{FogThickness, GroundFog, GroundFogDebug};
     let thickness = match (&fog.thickness, &built.map) {
         (FogThicknessDescription::Valley(valley), _) => FogThickness::Valley(*valley),
         (FogThicknessDescription::Noise(noise), _) => FogThickness::Noise(*noise),
         (FogThicknessDescription::Png(map), Some(unit)) => FogThickness::Map {
-            map: heights.add(nebel_terrain::TerrainHeights::from_field(unit)),
+            map: heights.add(nebel_render::GrayscaleMap::from_field(unit)),
             scale: map.scale,
         },
         (FogThicknessDescription::Png(_), None) => {
@@ -521,7 +522,7 @@ fn spawn_aurora(
     mut commands: Commands,
     scene: Res<LoadedScene>,
     built: Res<SceneSky>,
-    heights: Option<ResMut<Assets<nebel_terrain::TerrainHeights>>>,
+    heights: Option<ResMut<Assets<nebel_render::GrayscaleMap>>>,
 ) {
     use nebel_sky::{Aurora, AuroraFootprint};
     let (Some(description), Some(built)) = (&scene.aurora, &built.0) else {
@@ -530,7 +531,7 @@ fn spawn_aurora(
     let footprint = match (&built.map, heights) {
         (None, _) => AuroraFootprint::Curtains(description.curtains),
         (Some(map), Some(mut heights)) => {
-            AuroraFootprint::Map(heights.add(nebel_terrain::TerrainHeights::from_field(map)))
+            AuroraFootprint::Map(heights.add(nebel_render::GrayscaleMap::from_field(map)))
         }
         (Some(_), None) => {
             warn!("nebel: the scene's aurora has a map but the app has no TerrainPlugin");
@@ -560,17 +561,17 @@ fn spawn_cloud_layer(
     mut commands: Commands,
     scene: Res<LoadedScene>,
     built: Res<SceneSky>,
-    heights: Option<ResMut<Assets<nebel_terrain::TerrainHeights>>>,
+    heights: Option<ResMut<Assets<nebel_render::GrayscaleMap>>>,
 ) {
+    use nebel_render::GrayscaleMap;
     use nebel_sky::{CloudLayer, CloudLayerSource};
-    use nebel_terrain::TerrainHeights;
     let (Some(description), Some(built)) = (&scene.cloud_layer, &built.1) else {
         return;
     };
     let source = match (&built.maps, &description.maps, heights) {
         (Some((bottom, top)), Some(maps), Some(mut heights)) => CloudLayerSource::Maps {
-            bottom: heights.add(TerrainHeights::from_field(bottom)),
-            top: heights.add(TerrainHeights::from_field(top)),
+            bottom: heights.add(GrayscaleMap::from_field(bottom)),
+            top: heights.add(GrayscaleMap::from_field(top)),
             scale: maps.scale,
         },
         (Some(_), _, _) => {

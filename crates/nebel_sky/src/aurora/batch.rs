@@ -21,9 +21,9 @@ use bevy::prelude::*;
 use nebel_core::optics::OpticalMode;
 use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
 use nebel_lod::{AuroraShape, CellOrder, SurfaceLayer, SurfaceLayerError, TerrainMesh};
+use nebel_render::GrayscaleMap;
 use nebel_render::camera::to_double;
 use nebel_render::{CellBatch, EffectiveQuality, LodCameras};
-use nebel_terrain::TerrainHeights;
 
 use super::{Aurora, AuroraError, AuroraFootprint, AuroraPlugin, AuroraStats, AuroraStatus};
 use crate::layer_batch::{
@@ -78,7 +78,7 @@ fn footprint(
     aurora: &Aurora,
     side: usize,
     time: f64,
-    maps: &Assets<TerrainHeights>,
+    maps: &Assets<GrayscaleMap>,
     asset_server: &AssetServer,
 ) -> Result<Option<Vec<f32>>, AuroraError> {
     match &aurora.footprint {
@@ -117,7 +117,7 @@ pub(super) fn update_auroras(
         &mut AuroraStatus,
         &mut AuroraStats,
     )>,
-    maps: Res<Assets<TerrainHeights>>,
+    maps: Res<Assets<GrayscaleMap>>,
     asset_server: Res<AssetServer>,
     quality: Option<Res<EffectiveQuality>>,
     mut diagnostics: Diagnostics,

@@ -47,17 +47,17 @@ use bevy::prelude::*;
 use nebel_core::field::{AuroraCurtains, FieldError};
 use nebel_core::transfer::{TransferError, TransferFunction, TransferPreset};
 use nebel_lod::SurfaceLayerError;
-use nebel_render::NebelSystems;
-use nebel_terrain::TerrainHeights;
+use nebel_render::GrayscaleMap;
+use nebel_render::{GrayscaleMapPlugin, NebelSystems};
 use thiserror::Error;
 
 use batch::{AuroraState, measure_auroras, remove_auroras, update_auroras};
 
 /// Adds [`Aurora`] and its systems (in [`PostUpdate`], after the camera's
 /// transform) and diagnostics. Needs the cell projection
-/// (`nebel_render::CellProjectionPlugin`) to draw, and the terrain plugin
-/// (`nebel_terrain::TerrainPlugin`, for its PNG loader) for a map
-/// footprint; a world without an [`Aurora`] runs no aurora work.
+/// (`nebel_render::CellProjectionPlugin`) to draw; adds the map asset's
+/// plugin (`nebel_render::GrayscaleMapPlugin`) for map footprints. A world
+/// without an [`Aurora`] runs no aurora work.
 #[derive(Default)]
 pub struct AuroraPlugin;
 
@@ -73,6 +73,7 @@ impl AuroraPlugin {
 
 impl Plugin for AuroraPlugin {
     fn build(&self, app: &mut App) {
+        GrayscaleMapPlugin::add_once(app);
         app.register_type::<Aurora>()
             .register_type::<AuroraStatus>()
             .register_type::<AuroraStats>()
@@ -101,11 +102,11 @@ impl Plugin for AuroraPlugin {
 pub enum AuroraFootprint {
     /// Procedural arcs with folds and rays that drift, fold and pulse.
     Curtains(AuroraCurtains),
-    /// A grayscale map asset (`asset_server.load::<TerrainHeights>("aurora.png")`:
+    /// A grayscale map asset (`asset_server.load::<GrayscaleMap>("aurora.png")`:
     /// black no curtain, white the strongest; values clamped to [0, 1]),
     /// covering the footprint from corner to corner (first row at −z),
     /// resampled bilinearly onto [`Aurora::resolution`] points. Still.
-    Map(Handle<TerrainHeights>),
+    Map(Handle<GrayscaleMap>),
 }
 
 impl Default for AuroraFootprint {

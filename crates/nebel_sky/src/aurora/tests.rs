@@ -11,8 +11,8 @@ use bevy::time::TimeUpdateStrategy;
 use bevy::transform::TransformPlugin;
 use nebel_core::optics::OpticalMode;
 use nebel_render::CellBatch;
+use nebel_render::GrayscaleMap;
 use nebel_render::camera::computed_camera;
-use nebel_terrain::TerrainHeights;
 
 use super::{Aurora, AuroraFootprint, AuroraPlugin, AuroraStats, AuroraStatus};
 
@@ -28,7 +28,6 @@ fn app() -> (App, Entity) {
             ..default()
         },
     ))
-    .init_asset::<TerrainHeights>()
     .add_plugins(AuroraPlugin)
     .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(
         1.0 / 30.0,
@@ -131,8 +130,8 @@ fn a_map_footprint_draws_still_curtains() {
         .collect();
     let map = app
         .world_mut()
-        .resource_mut::<Assets<TerrainHeights>>()
-        .add(TerrainHeights {
+        .resource_mut::<Assets<GrayscaleMap>>()
+        .add(GrayscaleMap {
             dims: UVec2::splat(side as u32),
             values: Arc::new(values),
         });

@@ -18,9 +18,9 @@ use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
 use nebel_lod::{
     CellOrder, CloudLayerShape, LayerTop, PrismScalar, SurfaceLayer, SurfaceLayerError, TerrainMesh,
 };
+use nebel_render::GrayscaleMap;
 use nebel_render::camera::to_double;
 use nebel_render::{CellBatch, EffectiveQuality, LodCameras};
-use nebel_terrain::TerrainHeights;
 
 use crate::layer_batch::{
     LayerDrawing, MapError, ScaledTransfer, layer_cells, map_values, publish_cells, totals,
@@ -70,9 +70,9 @@ fn fail(entity: Entity, status: &mut CloudLayerStatus, error: CloudLayerError) {
 
 /// A map's unit values on `side²` points, `None` while it loads.
 fn unit_values(
-    handle: &Handle<TerrainHeights>,
+    handle: &Handle<GrayscaleMap>,
     side: usize,
-    maps: &Assets<TerrainHeights>,
+    maps: &Assets<GrayscaleMap>,
     asset_server: &AssetServer,
 ) -> Result<Option<Vec<f32>>, CloudLayerError> {
     map_values(handle, side, maps, asset_server).map_err(|error| match error {
@@ -85,7 +85,7 @@ fn unit_values(
 fn build_layer(
     layer: &CloudLayer,
     shape: &CloudLayerShape,
-    maps: &Assets<TerrainHeights>,
+    maps: &Assets<GrayscaleMap>,
     asset_server: &AssetServer,
 ) -> Result<Option<SurfaceLayer>, CloudLayerError> {
     let side = layer.resolution as usize;
@@ -157,7 +157,7 @@ pub(super) fn update_cloud_layers(
         &mut CloudLayerStatus,
         &mut CloudLayerStats,
     )>,
-    maps: Res<Assets<TerrainHeights>>,
+    maps: Res<Assets<GrayscaleMap>>,
     asset_server: Res<AssetServer>,
     quality: Option<Res<EffectiveQuality>>,
     mut diagnostics: Diagnostics,

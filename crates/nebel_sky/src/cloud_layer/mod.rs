@@ -38,16 +38,16 @@ use bevy::prelude::*;
 use nebel_core::field::{CloudLighting, FieldError, FogNoise, TerrainNoise};
 use nebel_core::transfer::{TransferError, TransferFunction, TransferPreset};
 use nebel_lod::SurfaceLayerError;
-use nebel_render::NebelSystems;
-use nebel_terrain::TerrainHeights;
+use nebel_render::GrayscaleMap;
+use nebel_render::{GrayscaleMapPlugin, NebelSystems};
 use thiserror::Error;
 
 use batch::{CloudLayerState, measure_cloud_layers, remove_cloud_layers, update_cloud_layers};
 
 /// Adds [`CloudLayer`] and its systems (in [`PostUpdate`], after the
-/// camera's transform) and diagnostics. Needs the cell projection to draw,
-/// and the terrain plugin (its PNG loader) for map sources; a world without
-/// a [`CloudLayer`] runs no cloud-layer work.
+/// camera's transform) and diagnostics. Needs the cell projection to draw;
+/// adds the map asset's plugin (`nebel_render::GrayscaleMapPlugin`) for map
+/// sources. A world without a [`CloudLayer`] runs no cloud-layer work.
 #[derive(Default)]
 pub struct CloudLayerPlugin;
 
@@ -64,6 +64,7 @@ impl CloudLayerPlugin {
 
 impl Plugin for CloudLayerPlugin {
     fn build(&self, app: &mut App) {
+        GrayscaleMapPlugin::add_once(app);
         app.register_type::<CloudLayer>()
             .register_type::<CloudLayerStatus>()
             .register_type::<CloudLayerStats>()
@@ -97,15 +98,15 @@ pub enum CloudLayerSource {
     /// Noise patches of thickness (their `thickness` at the noise's peaks,
     /// their `coverage` the part of the sky they cover).
     Noise(FogNoise),
-    /// Two grayscale map assets (`asset_server.load::<TerrainHeights>(…)`:
+    /// Two grayscale map assets (`asset_server.load::<GrayscaleMap>(…)`:
     /// black 0, white 1), the bottom and the top surface at `base + scale ·
     /// value`, each resampled bilinearly onto [`CloudLayer::resolution`]
     /// points from corner to corner.
     Maps {
         /// The bottom surface's map.
-        bottom: Handle<TerrainHeights>,
+        bottom: Handle<GrayscaleMap>,
         /// The top surface's map.
-        top: Handle<TerrainHeights>,
+        top: Handle<GrayscaleMap>,
         /// Metres of a white pixel, finite and ≥ 0.
         scale: f32,
     },

@@ -10,8 +10,8 @@ use bevy::prelude::*;
 use bevy::transform::TransformPlugin;
 use nebel_core::optics::OpticalMode;
 use nebel_render::CellBatch;
+use nebel_render::GrayscaleMap;
 use nebel_render::camera::computed_camera;
-use nebel_terrain::TerrainHeights;
 
 use super::{CloudLayer, CloudLayerPlugin, CloudLayerSource, CloudLayerStats, CloudLayerStatus};
 
@@ -27,7 +27,6 @@ fn app() -> (App, Entity, Entity) {
             ..default()
         },
     ))
-    .init_asset::<TerrainHeights>()
     .add_plugins(CloudLayerPlugin);
     let camera = computed_camera(
         Mat4::perspective_infinite_reverse_rh(1.2, 1.5, 0.1),
@@ -142,7 +141,7 @@ fn a_cloud_layer_draws_sorted_cells_lit_from_above_that_follow_eye_and_sun() {
 fn two_map_surfaces_give_clouds_where_the_top_lies_above_the_bottom() {
     let (mut app, _, _) = app();
     let side = 17;
-    let map = |values: Vec<f32>| TerrainHeights {
+    let map = |values: Vec<f32>| GrayscaleMap {
         dims: UVec2::splat(side as u32),
         values: Arc::new(values),
     };
@@ -151,7 +150,7 @@ fn two_map_surfaces_give_clouds_where_the_top_lies_above_the_bottom() {
     let bottom: Vec<f32> = (0..side * side)
         .map(|p| if p % side < side / 2 { 0.25 } else { 1.0 })
         .collect();
-    let mut maps = app.world_mut().resource_mut::<Assets<TerrainHeights>>();
+    let mut maps = app.world_mut().resource_mut::<Assets<GrayscaleMap>>();
     let (bottom, top) = (maps.add(map(bottom)), maps.add(map(vec![0.5; side * side])));
     let layer = spawn(
         &mut app,

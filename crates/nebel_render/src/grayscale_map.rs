@@ -1,15 +1,16 @@
-//! Height maps as Bevy assets: [`TerrainHeights`] and its PNG loader.
+//! Grayscale maps as Bevy assets: [`GrayscaleMap`] and its PNG loader.
 //!
-//! A [`TerrainHeights`] holds *unit* heights on a grid: the terrain's
-//! `vertical_scale` multiplies them and its `spacing` places the points, so
-//! one map serves terrains of any size. Load an 8- or 16-bit grayscale PNG
-//! with `asset_server.load::<TerrainHeights>("heights.png")` (black = 0,
-//! white = 1; image columns run along +x, rows, top row first, along +z,
-//! like `nebel_core::field::HeightField::load_png`), or build one in memory
-//! with [`TerrainHeights::from_field`] and add it to
-//! `Assets<TerrainHeights>`.
+//! A [`GrayscaleMap`] holds *unit* values on a grid, which each effect
+//! scales: a terrain's heights (its `vertical_scale`), a ground fog's
+//! thickness, a sky layer's surfaces or an aurora's footprint. Load an 8- or
+//! 16-bit grayscale PNG with `asset_server.load::<GrayscaleMap>("map.png")`
+//! (black = 0, white = 1; image columns run along +x, rows, top row first,
+//! along +z, like `nebel_core::field::HeightField::load_png`), or build one
+//! in memory with [`GrayscaleMap::from_field`] and add it to
+//! `Assets<GrayscaleMap>`. [`GrayscaleMapPlugin`] registers both; every
+//! plugin that reads maps adds it.
 //!
-//! [`TerrainHeightsLoader`] registers no file extension, so it never takes a
+//! [`GrayscaleMapLoader`] registers no file extension, so it never takes a
 //! PNG that is loaded as an `Image`: Bevy picks it by the asset type asked
 //! for. Use 16-bit maps for terrain; 8 bits give 256 height steps, visible
 //! as terraces on gentle slopes.
@@ -26,7 +27,7 @@ use thiserror::Error;
 
 /// Unit heights on a regular grid, x fastest (see the module docs).
 #[derive(Asset, TypePath, Clone, Debug, PartialEq)]
-pub struct TerrainHeights {
+pub struct GrayscaleMap {
     /// Grid points along x (image columns) and z (image rows).
     pub dims: UVec2,
     /// `dims.x · dims.y` unit heights, point `(i, j)` at `i + dims.x · j`;
@@ -37,10 +38,10 @@ pub struct TerrainHeights {
     pub values: Arc<Vec<f32>>,
 }
 
-impl TerrainHeights {
+impl GrayscaleMap {
     /// The height assets added, loaded or modified since `events` last read
     /// (what a build keyed on an asset rebuilds for).
-    pub fn changed(events: &mut MessageReader<AssetEvent<TerrainHeights>>) -> Vec<AssetId<Self>> {
+    pub fn changed(events: &mut MessageReader<AssetEvent<GrayscaleMap>>) -> Vec<AssetId<Self>> {
         events
             .read()
             .filter_map(|event| match event {
@@ -82,7 +83,7 @@ impl TerrainHeights {
     /// Decodes an 8- or 16-bit grayscale PNG: value / 255 or / 65535. The
     /// heights are checked against the memory budget from the PNG's header,
     /// before the image is decoded.
-    pub fn from_png_bytes(bytes: &[u8]) -> Result<Self, TerrainHeightsError> {
+    pub fn from_png_bytes(bytes: &[u8]) -> Result<Self, GrayscaleMapError> {
         let reader = || {
             image::ImageReader::with_format(std::io::Cursor::new(bytes), image::ImageFormat::Png)
         };
@@ -102,7 +103,7 @@ impl TerrainHeights {
                 .map(|v| f32::from(v) / 65535.0)
                 .collect(),
             other => {
-                return Err(TerrainHeightsError::NotGrayscale {
+                return Err(GrayscaleMapError::NotGrayscale {
                     found: format!("{:?}", other.color()),
                 });
             }
@@ -116,7 +117,7 @@ impl TerrainHeights {
 
 /// Why a height map could not be loaded.
 #[derive(Debug, Error)]
-pub enum TerrainHeightsError {
+pub enum GrayscaleMapError {
     /// The file could not be read.
     #[error("cannot read the height map: {0}")]
     Io(#[from] std::io::Error),
@@ -134,21 +135,43 @@ pub enum TerrainHeightsError {
     },
 }
 
-/// Loads [`TerrainHeights`] from grayscale PNGs (see the module docs).
-#[derive(Clone, Copy, Debug, Default, TypePath)]
-pub struct TerrainHeightsLoader;
+/// Registers the [`GrayscaleMap`] asset and its loader, once however many
+/// plugins add it.
+#[derive(Default)]
+pub struct GrayscaleMapPlugin;
 
-impl AssetLoader for TerrainHeightsLoader {
-    type Asset = TerrainHeights;
+impl GrayscaleMapPlugin {
+    /// Adds the plugin to `app` unless it is there already: for the plugins
+    /// of the effects that read maps.
+    pub fn add_once(app: &mut App) {
+        if !app.is_plugin_added::<Self>() {
+            app.add_plugins(Self);
+        }
+    }
+}
+
+impl Plugin for GrayscaleMapPlugin {
+    fn build(&self, app: &mut App) {
+        app.init_asset::<GrayscaleMap>()
+            .register_asset_loader(GrayscaleMapLoader);
+    }
+}
+
+/// Loads [`GrayscaleMap`] from grayscale PNGs (see the module docs).
+#[derive(Clone, Copy, Debug, Default, TypePath)]
+pub struct GrayscaleMapLoader;
+
+impl AssetLoader for GrayscaleMapLoader {
+    type Asset = GrayscaleMap;
     type Settings = ();
-    type Error = TerrainHeightsError;
+    type Error = GrayscaleMapError;
 
     async fn load(
         &self,
         reader: &mut dyn Reader,
         _settings: &(),
         _load_context: &mut LoadContext<'_>,
-    ) -> Result<TerrainHeights, TerrainHeightsError> {
+    ) -> Result<GrayscaleMap, GrayscaleMapError> {
         // A compressed PNG larger than the budget cannot decode within it.
         let mut bytes = Vec::new();
         reader
@@ -156,13 +179,13 @@ impl AssetLoader for TerrainHeightsLoader {
             .read_to_end(&mut bytes)
             .await?;
         if bytes.len() as u64 > MEMORY_BUDGET_BYTES {
-            return Err(TerrainHeightsError::OverBudget(BudgetError {
+            return Err(GrayscaleMapError::OverBudget(BudgetError {
                 what: String::from("height map file"),
                 bytes: bytes.len() as u128,
                 limit: MEMORY_BUDGET_BYTES,
             }));
         }
-        TerrainHeights::from_png_bytes(&bytes)
+        GrayscaleMap::from_png_bytes(&bytes)
     }
 }
 
@@ -184,19 +207,19 @@ mod tests {
             vec![0, 65535, 32768, 1, 2, 3],
         )
         .unwrap();
-        let heights = TerrainHeights::from_png_bytes(&png(sixteen.into())).unwrap();
+        let heights = GrayscaleMap::from_png_bytes(&png(sixteen.into())).unwrap();
         assert_eq!(heights.dims, UVec2::new(3, 2));
         assert_eq!(heights.values[1], 1.0);
         assert!((heights.values[2] - 32768.0 / 65535.0).abs() < 1e-7);
 
         let eight = image::GrayImage::from_raw(2, 2, vec![0, 255, 51, 0]).unwrap();
-        let heights = TerrainHeights::from_png_bytes(&png(eight.into())).unwrap();
+        let heights = GrayscaleMap::from_png_bytes(&png(eight.into())).unwrap();
         assert_eq!(*heights.values, vec![0.0, 1.0, 0.2, 0.0]);
 
         let colour = image::RgbImage::from_raw(1, 1, vec![1, 2, 3]).unwrap();
-        let error = TerrainHeights::from_png_bytes(&png(colour.into())).unwrap_err();
+        let error = GrayscaleMap::from_png_bytes(&png(colour.into())).unwrap_err();
         assert!(error.to_string().contains("found Rgb8"), "{error}");
-        let error = TerrainHeights::from_png_bytes(b"not a png").unwrap_err();
+        let error = GrayscaleMap::from_png_bytes(b"not a png").unwrap_err();
         assert!(error.to_string().contains("cannot decode"), "{error}");
 
         // A header of 100 000 × 100 000 pixels: refused before decoding.
@@ -206,11 +229,8 @@ mod tests {
         let mut writer = encoder.write_header().unwrap();
         writer.write_chunk(png::chunk::IDAT, &[]).unwrap();
         drop(writer);
-        let error = TerrainHeights::from_png_bytes(&huge).unwrap_err();
-        assert!(
-            matches!(error, TerrainHeightsError::OverBudget(_)),
-            "{error}"
-        );
+        let error = GrayscaleMap::from_png_bytes(&huge).unwrap_err();
+        assert!(matches!(error, GrayscaleMapError::OverBudget(_)), "{error}");
         assert!(error.to_string().contains("memory budget"), "{error}");
     }
 }
