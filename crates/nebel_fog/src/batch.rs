@@ -46,7 +46,7 @@ use nebel_terrain::{Terrain, TerrainLod, TerrainLodStats, TerrainMapLod, Terrain
 
 use crate::error::GroundFogError;
 use crate::fog_layers::PreparedFogLayers;
-use crate::ground_fog::{GroundFog, GroundFogPlugin, GroundFogStats, GroundFogStatus, fail};
+use crate::ground_fog::{GroundFog, GroundFogPlugin, GroundFogStats, GroundFogStatus};
 use crate::map::GroundFogMap;
 
 /// What the fog's batch was built from.
@@ -341,7 +341,7 @@ pub(crate) fn update_fog_batches(
                 clear(&mut commands, entity, state, has_batch);
                 // Not again until something changes.
                 state.key = Some(key);
-                fail(entity, &mut status, error);
+                status.fail("ground fog", entity, error);
                 continue;
             }
         };

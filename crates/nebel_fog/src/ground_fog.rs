@@ -20,13 +20,12 @@
 
 use std::sync::Arc;
 
-use bevy::diagnostic::{Diagnostic, DiagnosticPath, RegisterDiagnostic};
+use bevy::diagnostic::DiagnosticPath;
 use bevy::prelude::*;
 use nebel_core::field::{FogNoise, ValleyFog};
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
-use nebel_render::GrayscaleMap;
-use nebel_render::NebelSystems;
+use nebel_render::{EffectStatus, GrayscaleMap, NebelSystems, register_diagnostics};
 use nebel_terrain::TerrainSystems;
 
 use crate::batch::{GroundFogBatch, measure_fogs, remove_fogs, update_fog_batches};
@@ -76,15 +75,16 @@ impl Plugin for GroundFogPlugin {
                 )
                     .in_set(NebelSystems),
             );
-        for (path, suffix) in [
-            (Self::FOGS, ""),
-            (Self::PRISMS, ""),
-            (Self::TETRAHEDRA, ""),
-            (Self::UPDATE_MS, " ms"),
-            (Self::BUILD_MS, " ms"),
-        ] {
-            app.register_diagnostic(Diagnostic::new(path).with_suffix(suffix));
-        }
+        register_diagnostics(
+            app,
+            &[
+                (Self::FOGS, ""),
+                (Self::PRISMS, ""),
+                (Self::TETRAHEDRA, ""),
+                (Self::UPDATE_MS, " ms"),
+                (Self::BUILD_MS, " ms"),
+            ],
+        );
     }
 }
 
@@ -178,23 +178,8 @@ impl Default for GroundFog {
     }
 }
 
-/// What became of a [`GroundFog`]: read it to show a loading screen or an
-/// error.
-#[derive(Component, Clone, Debug, Default, PartialEq, Reflect)]
-#[reflect(Component, Default, Clone)]
-pub enum GroundFogStatus {
-    /// Waiting for the terrain's quadtree, the fog map or the fog's map
-    /// build on the task pool.
-    #[default]
-    Pending,
-    /// The map is built: the fog is drawn where the camera sees it, or
-    /// nothing is drawn because it has no thickness anywhere or no density.
-    Ready,
-    /// The settings or the map are unusable, or there is no terrain: why.
-    /// Logged once per entity and reason; nothing is drawn until the fog,
-    /// its map or its terrain changes.
-    Failed(GroundFogError),
-}
+/// What became of a [`GroundFog`]: pending, ready, or failed and why.
+pub type GroundFogStatus = EffectStatus<GroundFogError>;
 
 /// Statistics of a [`GroundFog`], updated by the plugin.
 #[derive(Component, Clone, Copy, Debug, Default, PartialEq, Reflect)]
@@ -213,12 +198,4 @@ pub struct GroundFogStats {
     pub build_ms: f32,
     /// The largest thickness, metres.
     pub max_thickness: f32,
-}
-
-/// Records a failure: the status, one log line per entity and new reason.
-pub(crate) fn fail(entity: Entity, status: &mut GroundFogStatus, error: GroundFogError) {
-    if *status != GroundFogStatus::Failed(error.clone()) {
-        error!("nebel: ground fog {entity} not drawn: {error}");
-        *status = GroundFogStatus::Failed(error);
-    }
 }

@@ -31,7 +31,7 @@ use nebel_terrain::{MappedQuadtree, TerrainLod, TerrainMapLod};
 
 use crate::error::GroundFogError;
 use crate::ground_fog::{
-    FogThickness, GroundFog, GroundFogPlugin, GroundFogStats, GroundFogStatus, fail,
+    FogThickness, GroundFog, GroundFogPlugin, GroundFogStats, GroundFogStatus,
 };
 
 /// What a map is built from, bit for bit.
@@ -178,7 +178,7 @@ pub(crate) fn build_ground_fog_maps(
     let prisms = quality.is_none_or(|quality| quality.ground_fog_prisms());
     for (entity, fog, lod, map_lod, mut state, mut status, mut stats) in &mut fogs {
         let Some(lod) = lod else {
-            fail(entity, &mut status, GroundFogError::NoTerrain);
+            status.fail("ground fog", entity, GroundFogError::NoTerrain);
             continue;
         };
         let every_move = fog.mode == OpticalMode::Sorted;
@@ -188,9 +188,9 @@ pub(crate) fn build_ground_fog_maps(
         let density_valid = fog.density.is_finite() && fog.density >= 0.0;
         let density_failed = matches!(&*status, GroundFogStatus::Failed(GroundFogError::InvalidSetting { setting, .. }) if *setting == "density");
         if !density_valid {
-            fail(
+            status.fail(
+                "ground fog",
                 entity,
-                &mut status,
                 GroundFogError::InvalidSetting {
                     setting: "density",
                     value: fog.density,
@@ -253,7 +253,7 @@ pub(crate) fn build_ground_fog_maps(
                 Err(error) => {
                     state.built = None;
                     commands.entity(entity).remove::<TerrainMapLod>();
-                    fail(entity, status, error);
+                    status.fail("ground fog", entity, error);
                 }
             }
         };
@@ -301,7 +301,7 @@ pub(crate) fn build_ground_fog_maps(
                 state.key = Some(key);
                 state.built = None;
                 commands.entity(entity).remove::<TerrainMapLod>();
-                fail(entity, &mut status, error);
+                status.fail("ground fog", entity, error);
             }
         }
     }

@@ -14,6 +14,7 @@
 //! - [`camera`]: the camera that drives the level of detail ([`LodCamera`]).
 //! - [`grayscale_map`]: [`GrayscaleMap`], a grayscale PNG as unit values on a
 //!   grid: terrain heights, fog thickness, a sky layer's surfaces.
+//! - [`effect`]: what every effect plugin shares ([`EffectStatus`]).
 //! - [`diagnostics`]: the [`NebelSystems`] set that every per-frame nebel system
 //!   joins and the CPU time that set takes each frame.
 //!
@@ -24,6 +25,7 @@ pub mod camera;
 pub mod cell_batch;
 pub mod cell_projection;
 pub mod diagnostics;
+pub mod effect;
 pub mod fog_layers;
 mod frame_budget;
 pub mod grayscale_map;
@@ -37,6 +39,7 @@ pub use cell_projection::{
     CellResolution, CountCellFragments,
 };
 pub use diagnostics::{NebelDiagnosticsPlugin, NebelSystems};
+pub use effect::{EffectStatus, register_diagnostics};
 pub use fog_layers::{FogLayersUniform, ViewFogLayers};
 pub use grayscale_map::{GrayscaleMap, GrayscaleMapError, GrayscaleMapLoader, GrayscaleMapPlugin};
 pub use quality::{AutoQuality, EffectiveQuality, NebelQuality, NebelQualityPlugin, QualityPreset};

@@ -255,10 +255,7 @@ fn fail(
     state: &mut TerrainLod,
     error: TerrainBuildError,
 ) {
-    if *status != TerrainStatus::Failed(error.clone()) {
-        error!("nebel: terrain {entity} not drawn: {error}");
-        *status = TerrainStatus::Failed(error);
-    }
+    status.fail("terrain", entity, error);
     state.hierarchy = None;
     state.refiner = TerrainRefiner::new();
     state.refining = None;

@@ -22,11 +22,14 @@
 //! frame after it is done ([`HeavyBuilds`] can make the frame wait instead).
 //! What happens every frame is in [`crate::update`].
 
-use bevy::diagnostic::{Diagnostic, DiagnosticPath, RegisterDiagnostic};
+use bevy::diagnostic::DiagnosticPath;
 use bevy::prelude::*;
 use nebel_core::field::{DEFAULT_TERRAIN_SPACING, DEFAULT_TERRAIN_VERTICAL_SCALE, TerrainNoise};
 use nebel_lod::quadtree::{DEFAULT_ACCURACY, DEFAULT_MIN_RESOLUTION};
-use nebel_render::{GrayscaleMap, GrayscaleMapPlugin, HeavyBuilds, LodCamera, NebelSystems};
+use nebel_render::{
+    EffectStatus, GrayscaleMap, GrayscaleMapPlugin, HeavyBuilds, LodCamera, NebelSystems,
+    register_diagnostics,
+};
 
 use crate::build::{TerrainLod, build_terrains};
 use crate::error::TerrainBuildError;
@@ -92,19 +95,20 @@ impl Plugin for TerrainPlugin {
                     .after(bevy::camera::visibility::VisibilitySystems::VisibilityPropagate)
                     .before(bevy::camera::visibility::VisibilitySystems::CheckVisibility),
             );
-        for (path, suffix) in [
-            (Self::TERRAINS, ""),
-            (Self::TRIANGLES, ""),
-            (Self::VERTICES, ""),
-            (Self::UPDATES, ""),
-            (Self::UPDATE_MS, " ms"),
-            (Self::REFINE_MS, " ms"),
-            (Self::BUILD_MS, " ms"),
-            (Self::POINTS, ""),
-            (Self::BYTES_PER_POINT, " B"),
-        ] {
-            app.register_diagnostic(Diagnostic::new(path).with_suffix(suffix));
-        }
+        register_diagnostics(
+            app,
+            &[
+                (Self::TERRAINS, ""),
+                (Self::TRIANGLES, ""),
+                (Self::VERTICES, ""),
+                (Self::UPDATES, ""),
+                (Self::UPDATE_MS, " ms"),
+                (Self::REFINE_MS, " ms"),
+                (Self::BUILD_MS, " ms"),
+                (Self::POINTS, ""),
+                (Self::BYTES_PER_POINT, " B"),
+            ],
+        );
     }
 }
 
@@ -223,22 +227,8 @@ impl Default for Terrain {
     }
 }
 
-/// What became of a [`Terrain`]'s heights: read it to show a loading screen
-/// or an error.
-#[derive(Component, Clone, Debug, Default, PartialEq, Reflect)]
-#[reflect(Component, Default, Clone)]
-pub enum TerrainStatus {
-    /// Waiting for the height asset or for the quadtree's build on the task
-    /// pool (the previous quadtree, if any, is drawn meanwhile).
-    #[default]
-    Pending,
-    /// The quadtree is built; the entity has its mesh once a camera sees it.
-    Ready,
-    /// The heights or settings are unusable: why. Logged once per entity;
-    /// the entity has no mesh and nothing is rebuilt until the terrain or
-    /// its asset changes.
-    Failed(TerrainBuildError),
-}
+/// What became of a [`Terrain`]: pending, ready, or failed and why.
+pub type TerrainStatus = EffectStatus<TerrainBuildError>;
 
 /// Statistics of a [`Terrain`]'s level of detail, updated by the plugin.
 #[derive(Component, Clone, Copy, Debug, Default, PartialEq, Reflect)]

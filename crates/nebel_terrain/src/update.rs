@@ -398,10 +398,7 @@ fn failed(
     error: TerrainError,
 ) {
     let error = crate::TerrainBuildError::from(error);
-    if *status != TerrainStatus::Failed(error.clone()) {
-        error!("nebel: terrain {entity} not drawn: {error}");
-        *status = TerrainStatus::Failed(error);
-    }
+    status.fail("terrain", entity, error);
     // Refined again when the view or a setting changes.
     state.refiner = TerrainRefiner::new();
     remove_mesh(commands, entity, state);

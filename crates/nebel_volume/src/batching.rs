@@ -776,16 +776,18 @@ pub(crate) fn report_status(
                 || batching.loading
                 || (batching.keyframes.is_none()
                     && generation.is_some_and(|generation| !generation.has_grid())));
-        let derived = match failure {
-            Some(error) => VolumeStatus::Failed(error.clone()),
-            None if pending => VolumeStatus::Pending,
-            None => VolumeStatus::Ready,
-        };
-        if *status != derived {
-            if let VolumeStatus::Failed(error) = &derived {
-                error!("nebel: volume {entity}: {error}");
+        match failure {
+            // Touched only on a new failure, so the status changes when it does.
+            Some(error) if *status != VolumeStatus::Failed(error.clone()) => {
+                status.fail("volume", entity, error.clone());
             }
-            *status = derived;
+            Some(_) => {}
+            None if pending => {
+                status.set_if_neq(VolumeStatus::Pending);
+            }
+            None => {
+                status.set_if_neq(VolumeStatus::Ready);
+            }
         }
     }
 }

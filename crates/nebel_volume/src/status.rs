@@ -6,26 +6,11 @@ use bevy::asset::AssetLoadError;
 use bevy::prelude::*;
 use nebel_core::field::FieldError;
 use nebel_lod::VolumeBatchError;
+use nebel_render::EffectStatus;
 use thiserror::Error;
 
-/// Whether a [`Volume`](crate::Volume) is drawn, still being built, or
-/// failed (and why). Read it to show a loading screen or an error.
-#[derive(Component, Clone, Debug, Default, PartialEq, Reflect)]
-#[reflect(Component, Default, Clone)]
-pub enum VolumeStatus {
-    /// Waiting for the grid asset, the generator or the background build of
-    /// the batcher (the previous batch, if any, is drawn meanwhile).
-    #[default]
-    Pending,
-    /// Built; the entity has its [`CellBatch`](nebel_render::CellBatch)
-    /// while it is visible.
-    Ready,
-    /// The volume's data or settings are unusable: why. Logged once per
-    /// entity and failure; nothing is rebuilt until the volume, its settings
-    /// or its grid change (a generator that fails keeps its last good grid
-    /// drawn).
-    Failed(VolumeError),
-}
+/// What became of a [`Volume`](crate::Volume): pending, ready, or failed and why.
+pub type VolumeStatus = EffectStatus<VolumeError>;
 
 /// Why a volume is not drawn (or not updated). Every message names what is
 /// at fault.

@@ -27,13 +27,13 @@ use std::sync::Arc;
 
 use bevy::camera::CameraUpdateSystems;
 use bevy::camera::visibility::VisibilitySystems;
-use bevy::diagnostic::{Diagnostic, DiagnosticPath, Diagnostics, RegisterDiagnostic};
+use bevy::diagnostic::{DiagnosticPath, Diagnostics};
 use bevy::prelude::*;
 use bevy::transform::TransformSystems;
 use nebel_core::cell::Tetrahedron;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
-use nebel_render::{HeavyBuilds, LodCamera, NebelSystems};
+use nebel_render::{HeavyBuilds, LodCamera, NebelSystems, register_diagnostics};
 
 use crate::batching::{
     VolumeBatching, build_batchers, measure_volumes, report_status, update_batches,
@@ -76,18 +76,19 @@ impl VolumePlugin {
 
 impl Plugin for VolumePlugin {
     fn build(&self, app: &mut App) {
-        for (path, suffix) in [
-            (Self::VOLUMES, ""),
-            (Self::CELLS_DRAWN, ""),
-            (Self::CELLS_FULL_RESOLUTION, ""),
-            (Self::UPDATE_MS, " ms"),
-            (Self::BUILD_MS, " ms"),
-            (Self::GENERATION_MS, " ms"),
-            (Self::KEYFRAME_MS, " ms"),
-            (Self::BUDGETED_BUILD_MS, " ms"),
-        ] {
-            app.register_diagnostic(Diagnostic::new(path).with_suffix(suffix));
-        }
+        register_diagnostics(
+            app,
+            &[
+                (Self::VOLUMES, ""),
+                (Self::CELLS_DRAWN, ""),
+                (Self::CELLS_FULL_RESOLUTION, ""),
+                (Self::UPDATE_MS, " ms"),
+                (Self::BUILD_MS, " ms"),
+                (Self::GENERATION_MS, " ms"),
+                (Self::KEYFRAME_MS, " ms"),
+                (Self::BUDGETED_BUILD_MS, " ms"),
+            ],
+        );
         app.init_asset::<VolumeGrid>()
             .register_asset_loader(crate::grid_loader::VolumeGridLoader)
             .init_resource::<HeavyBuilds>()

@@ -51,6 +51,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use bevy::diagnostic::{Diagnostic, DiagnosticPath, Diagnostics, RegisterDiagnostic};
 use bevy::prelude::*;
 use nebel_core::height_fog::{HeightFog, HeightFogError, HeightFogLayer};
+use nebel_render::EffectStatus;
 use nebel_render::fog_layers::{FogLayersLimitError, FogLayersLook, FogLayersUniform};
 use thiserror::Error;
 
@@ -132,19 +133,8 @@ pub enum FogLayersError {
     },
 }
 
-/// What became of a camera's [`FogLayers`].
-#[derive(Component, Clone, Debug, Default, PartialEq, Reflect)]
-#[reflect(Component, Default, Clone)]
-pub enum FogLayersStatus {
-    /// Not checked yet (the frame it was added).
-    #[default]
-    Pending,
-    /// Drawn; or nothing to draw, because every layer has zero density.
-    Ready,
-    /// The settings are unusable: why. Logged once; nothing is drawn until
-    /// they change.
-    Failed(FogLayersError),
-}
+/// What became of a camera's [`FogLayers`]: pending, ready, or failed and why.
+pub type FogLayersStatus = EffectStatus<FogLayersError>;
 
 /// The checked fog of a camera, packed for the GPU (`None`: nothing to
 /// draw). Kept by [`FogLayersPlugin`]; the sun's direction is filled in
@@ -208,10 +198,7 @@ fn prepare_fog_layers(
                 prepared.0 = uniform;
             }
             Err(error) => {
-                if *status != FogLayersStatus::Failed(error.clone()) {
-                    error!("nebel: fog layers of {entity} not drawn: {error}");
-                    *status = FogLayersStatus::Failed(error);
-                }
+                status.fail("fog layers of", entity, error);
                 prepared.0 = None;
             }
         }

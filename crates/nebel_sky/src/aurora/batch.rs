@@ -65,14 +65,6 @@ pub struct AuroraState {
     mesh: TerrainMesh,
 }
 
-/// Records a failure: the status, one log line per entity and new reason.
-fn fail(entity: Entity, status: &mut AuroraStatus, error: AuroraError) {
-    if *status != AuroraStatus::Failed(error.clone()) {
-        error!("nebel: aurora {entity} not drawn: {error}");
-        *status = AuroraStatus::Failed(error);
-    }
-}
-
 /// The footprint's strengths on `side²` points, `None` while its map loads.
 fn footprint(
     aurora: &Aurora,
@@ -144,7 +136,7 @@ pub(super) fn update_auroras(
                 commands.entity(entity).remove::<CellBatch>();
             }
             state.cells = None;
-            fail(entity, &mut status, error);
+            status.fail("aurora", entity, error);
             continue;
         }
         if dark {
@@ -211,7 +203,7 @@ pub(super) fn update_auroras(
                     if has_batch {
                         commands.entity(entity).remove::<CellBatch>();
                     }
-                    fail(entity, &mut status, error);
+                    status.fail("aurora", entity, error);
                     continue;
                 }
             }
@@ -233,7 +225,7 @@ pub(super) fn update_auroras(
         {
             Ok(transfer) => transfer,
             Err(error) => {
-                fail(entity, &mut status, error.into());
+                status.fail("aurora", entity, error.into());
                 continue;
             }
         };
@@ -256,7 +248,7 @@ pub(super) fn update_auroras(
         ) {
             Ok(drawn) => drawn,
             Err(error) => {
-                fail(entity, &mut status, error.into());
+                status.fail("aurora", entity, error.into());
                 continue;
             }
         };

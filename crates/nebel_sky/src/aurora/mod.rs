@@ -42,13 +42,14 @@ use std::sync::Arc;
 use bevy::asset::AssetLoadError;
 use bevy::camera::CameraUpdateSystems;
 use bevy::camera::visibility::VisibilitySystems;
-use bevy::diagnostic::{Diagnostic, DiagnosticPath, RegisterDiagnostic};
+use bevy::diagnostic::DiagnosticPath;
 use bevy::prelude::*;
 use nebel_core::field::{AuroraCurtains, FieldError};
 use nebel_core::transfer::{TransferError, TransferFunction, TransferPreset};
 use nebel_lod::SurfaceLayerError;
-use nebel_render::GrayscaleMap;
-use nebel_render::{GrayscaleMapPlugin, NebelSystems};
+use nebel_render::{
+    EffectStatus, GrayscaleMap, GrayscaleMapPlugin, NebelSystems, register_diagnostics,
+};
 use thiserror::Error;
 
 use batch::{AuroraState, measure_auroras, remove_auroras, update_auroras};
@@ -86,13 +87,14 @@ impl Plugin for AuroraPlugin {
                     .after(CameraUpdateSystems)
                     .after(VisibilitySystems::VisibilityPropagate),
             );
-        for (path, suffix) in [
-            (Self::AURORAS, ""),
-            (Self::TETRAHEDRA, ""),
-            (Self::UPDATE_MS, " ms"),
-        ] {
-            app.register_diagnostic(Diagnostic::new(path).with_suffix(suffix));
-        }
+        register_diagnostics(
+            app,
+            &[
+                (Self::AURORAS, ""),
+                (Self::TETRAHEDRA, ""),
+                (Self::UPDATE_MS, " ms"),
+            ],
+        );
     }
 }
 
@@ -173,19 +175,8 @@ impl Default for Aurora {
     }
 }
 
-/// What became of an [`Aurora`].
-#[derive(Component, Clone, Debug, Default, PartialEq, Reflect)]
-#[reflect(Component, Default, Clone)]
-pub enum AuroraStatus {
-    /// Waiting for the footprint map or the first camera.
-    #[default]
-    Pending,
-    /// Drawn where the camera sees it (or nothing to draw: dark, hidden).
-    Ready,
-    /// A setting or the map is unusable: why. Logged once per entity and
-    /// reason; nothing is drawn until the aurora or its map changes.
-    Failed(AuroraError),
-}
+/// What became of an [`Aurora`]: pending, ready, or failed and why.
+pub type AuroraStatus = EffectStatus<AuroraError>;
 
 /// Statistics of an [`Aurora`], updated by the plugin.
 #[derive(Component, Clone, Copy, Debug, Default, PartialEq, Reflect)]

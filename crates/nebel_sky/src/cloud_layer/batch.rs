@@ -61,13 +61,6 @@ pub struct CloudLayerState {
     mesh: TerrainMesh,
 }
 
-fn fail(entity: Entity, status: &mut CloudLayerStatus, error: CloudLayerError) {
-    if *status != CloudLayerStatus::Failed(error.clone()) {
-        error!("nebel: cloud layer {entity} not drawn: {error}");
-        *status = CloudLayerStatus::Failed(error);
-    }
-}
-
 /// A map's unit values on `side²` points, `None` while it loads.
 fn unit_values(
     handle: &Handle<GrayscaleMap>,
@@ -189,7 +182,7 @@ pub(super) fn update_cloud_layers(
         };
         if let Err(error) = layer.validate() {
             clear(&mut commands, state);
-            fail(entity, &mut status, error);
+            status.fail("cloud layer", entity, error);
             continue;
         }
         if !visibility.get()
@@ -236,7 +229,7 @@ pub(super) fn update_cloud_layers(
                 Err(error) => {
                     state.layer = None;
                     clear(&mut commands, state);
-                    fail(entity, &mut status, error);
+                    status.fail("cloud layer", entity, error);
                     continue;
                 }
             }
@@ -260,7 +253,7 @@ pub(super) fn update_cloud_layers(
         let transfer = match state.transfer.get(&layer.transfer_function, layer.density) {
             Ok(transfer) => transfer,
             Err(error) => {
-                fail(entity, &mut status, error.into());
+                status.fail("cloud layer", entity, error.into());
                 continue;
             }
         };
@@ -287,7 +280,7 @@ pub(super) fn update_cloud_layers(
         ) {
             Ok(drawn) => drawn,
             Err(error) => {
-                fail(entity, &mut status, error.into());
+                status.fail("cloud layer", entity, error.into());
                 continue;
             }
         };

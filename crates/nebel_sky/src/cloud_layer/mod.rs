@@ -33,13 +33,14 @@ use std::sync::Arc;
 use bevy::asset::AssetLoadError;
 use bevy::camera::CameraUpdateSystems;
 use bevy::camera::visibility::VisibilitySystems;
-use bevy::diagnostic::{Diagnostic, DiagnosticPath, RegisterDiagnostic};
+use bevy::diagnostic::DiagnosticPath;
 use bevy::prelude::*;
 use nebel_core::field::{CloudLighting, FieldError, FogNoise, TerrainNoise};
 use nebel_core::transfer::{TransferError, TransferFunction, TransferPreset};
 use nebel_lod::SurfaceLayerError;
-use nebel_render::GrayscaleMap;
-use nebel_render::{GrayscaleMapPlugin, NebelSystems};
+use nebel_render::{
+    EffectStatus, GrayscaleMap, GrayscaleMapPlugin, NebelSystems, register_diagnostics,
+};
 use thiserror::Error;
 
 use batch::{CloudLayerState, measure_cloud_layers, remove_cloud_layers, update_cloud_layers};
@@ -81,13 +82,14 @@ impl Plugin for CloudLayerPlugin {
                     .after(CameraUpdateSystems)
                     .after(VisibilitySystems::VisibilityPropagate),
             );
-        for (path, suffix) in [
-            (Self::LAYERS, ""),
-            (Self::TETRAHEDRA, ""),
-            (Self::UPDATE_MS, " ms"),
-        ] {
-            app.register_diagnostic(Diagnostic::new(path).with_suffix(suffix));
-        }
+        register_diagnostics(
+            app,
+            &[
+                (Self::LAYERS, ""),
+                (Self::TETRAHEDRA, ""),
+                (Self::UPDATE_MS, " ms"),
+            ],
+        );
     }
 }
 
@@ -192,19 +194,8 @@ impl Default for CloudLayer {
     }
 }
 
-/// What became of a [`CloudLayer`].
-#[derive(Component, Clone, Debug, Default, PartialEq, Reflect)]
-#[reflect(Component, Default, Clone)]
-pub enum CloudLayerStatus {
-    /// Waiting for the maps or the first camera.
-    #[default]
-    Pending,
-    /// Drawn where the camera sees it (or nothing to draw).
-    Ready,
-    /// A setting or a map is unusable: why. Logged once per entity and
-    /// reason; nothing is drawn until the layer or its maps change.
-    Failed(CloudLayerError),
-}
+/// What became of a [`CloudLayer`]: pending, ready, or failed and why.
+pub type CloudLayerStatus = EffectStatus<CloudLayerError>;
 
 /// Statistics of a [`CloudLayer`], updated by the plugin.
 #[derive(Component, Clone, Copy, Debug, Default, PartialEq, Reflect)]

@@ -1,0 +1,92 @@
+//! What every effect plugin shares: the status of an effect's entity, its
+//! diagnostics' registration, and its failures logged once.
+//!
+//! Each effect names its status after itself, e.g. `pub type AuroraStatus =
+//! EffectStatus<AuroraError>`, so a game reads `AuroraStatus::Failed(error)`
+//! and two effects on one entity keep separate statuses.
+
+use std::fmt::Display;
+
+use bevy::diagnostic::{Diagnostic, DiagnosticPath, RegisterDiagnostic};
+use bevy::prelude::*;
+use bevy::reflect::{FromReflect, GetTypeRegistration, Typed};
+
+/// Whether an effect's entity is drawn, still waiting, or failed, and why.
+/// Read it to show a loading screen or an error.
+#[derive(Component, Clone, Debug, PartialEq, Reflect)]
+#[reflect(Component, Default, Clone)]
+pub enum EffectStatus<E>
+where
+    E: Clone + Send + Sync + FromReflect + TypePath + Typed + GetTypeRegistration,
+{
+    /// Waiting for an asset, a build on the task pool or the first camera
+    /// (the last result, if any, is drawn meanwhile).
+    Pending,
+    /// Built: drawn where the camera sees it, or nothing to draw (hidden,
+    /// transparent, of no density).
+    Ready,
+    /// A setting, an asset or a build is unusable: why. Logged once per
+    /// entity and reason; nothing is rebuilt until the entity, its settings
+    /// or its assets change.
+    Failed(E),
+}
+
+impl<E> Default for EffectStatus<E>
+where
+    E: Clone + Send + Sync + FromReflect + TypePath + Typed + GetTypeRegistration,
+{
+    fn default() -> Self {
+        Self::Pending
+    }
+}
+
+impl<E> EffectStatus<E>
+where
+    E: Clone
+        + PartialEq
+        + Display
+        + Send
+        + Sync
+        + FromReflect
+        + TypePath
+        + Typed
+        + GetTypeRegistration,
+{
+    /// Records a failure of the `effect` (its name in the log) on `entity`:
+    /// one error line per entity and new reason.
+    pub fn fail(&mut self, effect: &str, entity: Entity, error: E) {
+        if !matches!(self, Self::Failed(old) if *old == error) {
+            error!("nebel: {effect} {entity} not drawn: {error}");
+            *self = Self::Failed(error);
+        }
+    }
+}
+
+/// Registers an effect's diagnostics, each with its suffix (`" ms"` for
+/// timings, `""` for counts).
+pub fn register_diagnostics(app: &mut App, diagnostics: &[(DiagnosticPath, &'static str)]) {
+    for (path, suffix) in diagnostics {
+        app.register_diagnostic(Diagnostic::new(path.clone()).with_suffix(*suffix));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(Clone, Debug, PartialEq, thiserror::Error, Reflect)]
+    #[reflect(opaque, Clone, Debug, PartialEq)]
+    #[error("bad {0}")]
+    struct Bad(u32);
+
+    #[test]
+    fn a_failure_is_recorded_once_per_reason() {
+        let entity = Entity::from_raw_u32(1).unwrap();
+        let mut status = EffectStatus::<Bad>::default();
+        assert_eq!(status, EffectStatus::Pending);
+        status.fail("test", entity, Bad(1));
+        assert_eq!(status, EffectStatus::Failed(Bad(1)));
+        status.fail("test", entity, Bad(2));
+        assert_eq!(status, EffectStatus::Failed(Bad(2)));
+    }
+}
