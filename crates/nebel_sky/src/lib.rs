@@ -42,7 +42,7 @@
 
 pub mod aurora;
 pub mod cloud_layer;
-mod layer_batch;
+mod sky_layer;
 
 pub use aurora::{Aurora, AuroraError, AuroraFootprint, AuroraPlugin, AuroraStats, AuroraStatus};
 pub use cloud_layer::{

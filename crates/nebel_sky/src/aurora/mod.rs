@@ -40,19 +40,16 @@ mod batch;
 use std::sync::Arc;
 
 use bevy::asset::AssetLoadError;
-use bevy::camera::CameraUpdateSystems;
-use bevy::camera::visibility::VisibilitySystems;
 use bevy::diagnostic::DiagnosticPath;
 use bevy::prelude::*;
 use nebel_core::field::{AuroraCurtains, FieldError};
 use nebel_core::transfer::{TransferError, TransferFunction, TransferPreset};
 use nebel_lod::SurfaceLayerError;
-use nebel_render::{
-    EffectStatus, GrayscaleMap, GrayscaleMapPlugin, NebelSystems, register_diagnostics,
-};
+use nebel_render::{EffectStatus, GrayscaleMap};
 use thiserror::Error;
 
-use batch::{AuroraState, measure_auroras, remove_auroras, update_auroras};
+use crate::sky_layer::add_sky_layer;
+use batch::AuroraState;
 
 /// Adds [`Aurora`] and its systems (in [`PostUpdate`], after the camera's
 /// transform) and diagnostics. Needs the cell projection
@@ -74,27 +71,10 @@ impl AuroraPlugin {
 
 impl Plugin for AuroraPlugin {
     fn build(&self, app: &mut App) {
-        GrayscaleMapPlugin::add_once(app);
         app.register_type::<Aurora>()
             .register_type::<AuroraStatus>()
-            .register_type::<AuroraStats>()
-            .add_systems(
-                PostUpdate,
-                (remove_auroras, update_auroras, measure_auroras)
-                    .chain()
-                    .in_set(NebelSystems)
-                    .after(TransformSystems::Propagate)
-                    .after(CameraUpdateSystems)
-                    .after(VisibilitySystems::VisibilityPropagate),
-            );
-        register_diagnostics(
-            app,
-            &[
-                (Self::AURORAS, ""),
-                (Self::TETRAHEDRA, ""),
-                (Self::UPDATE_MS, " ms"),
-            ],
-        );
+            .register_type::<AuroraStats>();
+        add_sky_layer::<Aurora>(app);
     }
 }
 

@@ -31,19 +31,16 @@ mod batch;
 use std::sync::Arc;
 
 use bevy::asset::AssetLoadError;
-use bevy::camera::CameraUpdateSystems;
-use bevy::camera::visibility::VisibilitySystems;
 use bevy::diagnostic::DiagnosticPath;
 use bevy::prelude::*;
 use nebel_core::field::{CloudLighting, FieldError, FogNoise, TerrainNoise};
 use nebel_core::transfer::{TransferError, TransferFunction, TransferPreset};
 use nebel_lod::SurfaceLayerError;
-use nebel_render::{
-    EffectStatus, GrayscaleMap, GrayscaleMapPlugin, NebelSystems, register_diagnostics,
-};
+use nebel_render::{EffectStatus, GrayscaleMap};
 use thiserror::Error;
 
-use batch::{CloudLayerState, measure_cloud_layers, remove_cloud_layers, update_cloud_layers};
+use crate::sky_layer::add_sky_layer;
+use batch::CloudLayerState;
 
 /// Adds [`CloudLayer`] and its systems (in [`PostUpdate`], after the
 /// camera's transform) and diagnostics. Needs the cell projection to draw;
@@ -65,31 +62,10 @@ impl CloudLayerPlugin {
 
 impl Plugin for CloudLayerPlugin {
     fn build(&self, app: &mut App) {
-        GrayscaleMapPlugin::add_once(app);
         app.register_type::<CloudLayer>()
             .register_type::<CloudLayerStatus>()
-            .register_type::<CloudLayerStats>()
-            .add_systems(
-                PostUpdate,
-                (
-                    remove_cloud_layers,
-                    update_cloud_layers,
-                    measure_cloud_layers,
-                )
-                    .chain()
-                    .in_set(NebelSystems)
-                    .after(TransformSystems::Propagate)
-                    .after(CameraUpdateSystems)
-                    .after(VisibilitySystems::VisibilityPropagate),
-            );
-        register_diagnostics(
-            app,
-            &[
-                (Self::LAYERS, ""),
-                (Self::TETRAHEDRA, ""),
-                (Self::UPDATE_MS, " ms"),
-            ],
-        );
+            .register_type::<CloudLayerStats>();
+        add_sky_layer::<CloudLayer>(app);
     }
 }
 

@@ -1,0 +1,398 @@
+//! What the aurora and the cloud layer share: one skeleton of systems over
+//! the [`SkyLayer`] trait that each implements. Every frame, for each
+//! visible layer, the layer between two surfaces is built again when what
+//! it is built from changed ([`SkyLayer::layer_key`]), and its cells
+//! ([`nebel_lod::SurfaceLayer::cells`]) when the layer, the eye, the view,
+//! the placement, the sun (for a sunlit layer) or the drawing settings
+//! changed; they go to the cell projection as the entity's `CellBatch`. A
+//! hidden or dark layer (no density or brightness, a transparent transfer
+//! function) has no batch and costs a few comparisons per frame; removing
+//! the component removes its batch and state.
+
+use std::fmt::Display;
+use std::sync::Arc;
+use std::time::Instant;
+
+use bevy::asset::AssetLoadError;
+use bevy::camera::CameraUpdateSystems;
+use bevy::camera::visibility::VisibilitySystems;
+use bevy::diagnostic::{DiagnosticPath, Diagnostics};
+use bevy::ecs::component::Mutable;
+use bevy::math::{DAffine3, DVec3};
+use bevy::prelude::*;
+use bevy::reflect::{FromReflect, GetTypeRegistration, Typed};
+use nebel_core::optics::OpticalMode;
+use nebel_core::transfer::{TransferError, TransferFunction};
+use nebel_lod::{
+    CellOrder, Cells, FogProfile, Frustum, LayerStats, LayerView, LodSettings, PrismScalar,
+    SurfaceLayer, SurfaceLayerError, TerrainError, TerrainMap, TerrainMesh,
+};
+use nebel_render::camera::to_double;
+use nebel_render::{
+    CellBatch, EffectStatus, EffectiveQuality, GrayscaleMap, GrayscaleMapPlugin, LodCameras,
+    NebelSystems, register_diagnostics,
+};
+
+/// A transfer function with ρ times a factor, kept while neither changes.
+#[derive(Default)]
+pub(crate) struct ScaledTransfer(Option<(u64, u32, Arc<TransferFunction>)>);
+
+impl ScaledTransfer {
+    /// `transfer` with ρ times `factor`, from the cache when both are the
+    /// same as last time.
+    pub(crate) fn get(
+        &mut self,
+        transfer: &TransferFunction,
+        factor: f32,
+    ) -> Result<Arc<TransferFunction>, TransferError> {
+        let key = (transfer.content_hash(), factor.to_bits());
+        if let Some((hash, bits, scaled)) = &self.0
+            && (*hash, *bits) == key
+        {
+            return Ok(scaled.clone());
+        }
+        let scaled = Arc::new(transfer.scale_density(factor)?);
+        self.0 = Some((key.0, key.1, scaled.clone()));
+        Ok(scaled)
+    }
+}
+
+/// Why a map could not be read onto a layer's grid.
+pub(crate) enum MapError {
+    /// The asset failed to load: its path and the asset server's error.
+    NotLoaded(String, Arc<AssetLoadError>),
+    /// Its values were refused (NaN, no values).
+    Values(TerrainError),
+}
+
+/// A map's values resampled onto `side²` points (bilinear, corner to
+/// corner), `None` while it loads.
+pub(crate) fn map_values(
+    handle: &Handle<GrayscaleMap>,
+    side: usize,
+    maps: &Assets<GrayscaleMap>,
+    asset_server: &AssetServer,
+) -> Result<Option<Vec<f32>>, MapError> {
+    if let Some((path, error)) = GrayscaleMap::load_failure(handle, asset_server) {
+        return Err(MapError::NotLoaded(path, error));
+    }
+    let Some(map) = maps.get(handle) else {
+        return Ok(None);
+    };
+    let dims = [map.dims.x as usize, map.dims.y as usize];
+    let layer = TerrainMap::resample(&map.values, dims, side).map_err(MapError::Values)?;
+    Ok(Some(layer.values().to_vec()))
+}
+
+/// An effect drawn as a layer between two surfaces: what the aurora and the
+/// cloud layer tell the systems they share (see the module docs).
+pub trait SkyLayer: Component + Sized {
+    /// Why it draws nothing.
+    type Error: Clone
+        + PartialEq
+        + Display
+        + From<SurfaceLayerError>
+        + From<TransferError>
+        + Send
+        + Sync
+        + FromReflect
+        + TypePath
+        + Typed
+        + GetTypeRegistration;
+    /// What its layer is built from; a new key builds the layer again.
+    type LayerKey: Clone + PartialEq + Send + Sync + 'static;
+    /// Its statistics component.
+    type Stats: Component<Mutability = Mutable> + Default;
+    /// Its name in the log.
+    const NAME: &'static str;
+    /// Its diagnostics: layers drawn, their tetrahedra, and the time of a
+    /// frame's work.
+    const DRAWN: DiagnosticPath;
+    /// See [`SkyLayer::DRAWN`].
+    const TETRAHEDRA: DiagnosticPath;
+    /// See [`SkyLayer::DRAWN`].
+    const UPDATE_MS: DiagnosticPath;
+    /// How its segments combine.
+    const MODE: OpticalMode;
+    /// Whether the sun's direction changes its cells.
+    const SUNLIT: bool;
+
+    /// Checks the settings its builders do not check themselves.
+    fn validate(&self) -> Result<(), Self::Error>;
+    /// Whether it draws nothing whatever the view: no density or brightness,
+    /// a transparent transfer function.
+    fn is_dark(&self) -> bool;
+    /// What its layer is built from at `seconds` of virtual time.
+    fn layer_key(&self, seconds: f64, maps: &Assets<GrayscaleMap>) -> Self::LayerKey;
+    /// Its layer for `key`, `None` while a map loads.
+    fn build_layer(
+        &self,
+        key: &Self::LayerKey,
+        maps: &Assets<GrayscaleMap>,
+        asset_server: &AssetServer,
+    ) -> Result<Option<SurfaceLayer>, Self::Error>;
+    /// Its transfer function and the factor of its ρ.
+    fn transfer(&self) -> (&TransferFunction, f32);
+    /// The quadtree's accuracy `c` before the quality's scale.
+    fn accuracy(&self) -> f32;
+    /// Its prisms' levels, scalar and order, with `sun` the direction toward
+    /// the sun in the layer's frame.
+    fn drawing(&self, key: &Self::LayerKey, sun: DVec3) -> (FogProfile, PrismScalar, CellOrder);
+    /// Records an update in its statistics.
+    fn record(stats: &mut Self::Stats, counts: LayerStats, build_ms: Option<f32>, update_ms: f32);
+    /// The tetrahedra its statistics count.
+    fn tetrahedra(stats: &Self::Stats) -> u32;
+}
+
+/// Adds the systems of the layer `T` (in [`PostUpdate`], after the camera's
+/// transform) and its diagnostics, and the grayscale maps it reads.
+pub(crate) fn add_sky_layer<T: SkyLayer>(app: &mut App) {
+    GrayscaleMapPlugin::add_once(app);
+    app.add_systems(
+        PostUpdate,
+        (
+            remove_sky_layers::<T>,
+            update_sky_layers::<T>,
+            measure_sky_layers::<T>,
+        )
+            .chain()
+            .in_set(NebelSystems)
+            .after(TransformSystems::Propagate)
+            .after(CameraUpdateSystems)
+            .after(VisibilitySystems::VisibilityPropagate),
+    );
+    register_diagnostics(
+        app,
+        &[(T::DRAWN, ""), (T::TETRAHEDRA, ""), (T::UPDATE_MS, " ms")],
+    );
+}
+
+/// What a layer's cells were built from.
+#[derive(Clone, Debug, PartialEq)]
+struct CellsKey {
+    /// Layer builds so far.
+    builds: u64,
+    /// The camera's clip-from-world transform.
+    clip_from_world: [u64; 16],
+    /// The layer's placement.
+    transform: GlobalTransform,
+    /// Toward the sun, world space, for a sunlit layer.
+    sun: Option<[u32; 3]>,
+    /// The refinement's accuracy (bits).
+    accuracy: u32,
+}
+
+/// A layer's quadtree, buffers and caches.
+#[derive(Component)]
+pub struct SkyLayerState<T: SkyLayer> {
+    layer: Option<(T::LayerKey, SurfaceLayer)>,
+    builds: u64,
+    cells: Option<CellsKey>,
+    transfer: ScaledTransfer,
+    mesh: TerrainMesh,
+}
+
+impl<T: SkyLayer> Default for SkyLayerState<T> {
+    fn default() -> Self {
+        Self {
+            layer: None,
+            builds: 0,
+            cells: None,
+            transfer: ScaledTransfer::default(),
+            mesh: TerrainMesh::default(),
+        }
+    }
+}
+
+/// A layer component removed from an entity that lives on: its batch and
+/// state go with it.
+fn remove_sky_layers<T: SkyLayer>(mut commands: Commands, mut removed: RemovedComponents<T>) {
+    for entity in removed.read() {
+        if let Ok(mut entity) = commands.get_entity(entity) {
+            entity.remove::<(
+                CellBatch,
+                SkyLayerState<T>,
+                EffectStatus<T::Error>,
+                T::Stats,
+            )>();
+        }
+    }
+}
+
+/// Builds every visible layer's cells (see the module docs).
+#[expect(clippy::too_many_arguments, reason = "a Bevy system's parameters")]
+fn update_sky_layers<T: SkyLayer>(
+    mut commands: Commands,
+    cameras: LodCameras,
+    time: Res<Time<Virtual>>,
+    suns: Query<&GlobalTransform, With<DirectionalLight>>,
+    mut layers: Query<(
+        Entity,
+        Ref<T>,
+        Ref<GlobalTransform>,
+        &InheritedVisibility,
+        Has<CellBatch>,
+        &mut SkyLayerState<T>,
+        &mut EffectStatus<T::Error>,
+        &mut T::Stats,
+    )>,
+    maps: Res<Assets<GrayscaleMap>>,
+    asset_server: Res<AssetServer>,
+    quality: Option<Res<EffectiveQuality>>,
+    mut diagnostics: Diagnostics,
+) {
+    if layers.is_empty() {
+        return;
+    }
+    let Some(camera) = cameras.view() else {
+        return;
+    };
+    let accuracy_scale = quality
+        .as_ref()
+        .map_or(1.0, |quality| quality.terrain_accuracy_scale());
+    // Toward the sun, world space: straight up without a directional light.
+    let toward_sun = suns
+        .iter()
+        .next()
+        .map_or(Vec3::Y, |sun| -sun.forward().as_vec3());
+    let mut frame_ms = None;
+    for (entity, layer, transform, visibility, has_batch, mut state, mut status, mut stats) in
+        &mut layers
+    {
+        let state = &mut *state;
+        let clear = |commands: &mut Commands, state: &mut SkyLayerState<T>| {
+            if has_batch {
+                commands.entity(entity).remove::<CellBatch>();
+            }
+            state.cells = None;
+        };
+        if let Err(error) = layer.validate() {
+            clear(&mut commands, state);
+            status.fail(T::NAME, entity, error);
+            continue;
+        }
+        if !visibility.get() || layer.is_dark() {
+            clear(&mut commands, state);
+            status.set_if_neq(EffectStatus::Ready);
+            continue;
+        }
+        let started = Instant::now();
+        let layer_key = layer.layer_key(time.elapsed_secs_f64(), &maps);
+        let mut built_ms = None;
+        if state.layer.as_ref().map(|(key, _)| key) != Some(&layer_key) {
+            // Not again until something changes, also after a failure.
+            if matches!(*status, EffectStatus::Failed(_))
+                && state.layer.is_none()
+                && !layer.is_changed()
+            {
+                continue;
+            }
+            match layer.build_layer(&layer_key, &maps, &asset_server) {
+                Ok(Some(built)) => {
+                    state.layer = Some((layer_key, built));
+                    state.builds += 1;
+                    built_ms = Some(started.elapsed().as_secs_f32() * 1e3);
+                }
+                Ok(None) => {
+                    status.set_if_neq(EffectStatus::Pending);
+                    continue;
+                }
+                Err(error) => {
+                    state.layer = None;
+                    clear(&mut commands, state);
+                    status.fail(T::NAME, entity, error);
+                    continue;
+                }
+            }
+        }
+        let world_from_field = DAffine3::from_mat4(to_double(transform.to_matrix()));
+        let accuracy = (f64::from(layer.accuracy()) * accuracy_scale) as f32;
+        let cells_key = CellsKey {
+            builds: state.builds,
+            clip_from_world: camera.clip_from_world.to_cols_array().map(f64::to_bits),
+            transform: *transform,
+            sun: T::SUNLIT.then(|| toward_sun.to_array().map(f32::to_bits)),
+            accuracy: accuracy.to_bits(),
+        };
+        if state.cells.as_ref() == Some(&cells_key) && !layer.is_changed() {
+            continue;
+        }
+        let (transfer_function, factor) = layer.transfer();
+        let transfer = match state.transfer.get(transfer_function, factor) {
+            Ok(transfer) => transfer,
+            Err(error) => {
+                status.fail(T::NAME, entity, error.into());
+                continue;
+            }
+        };
+        let Some((key, surface_layer)) = &state.layer else {
+            continue;
+        };
+        let sun = world_from_field
+            .inverse()
+            .transform_vector3(toward_sun.as_dvec3())
+            .normalize_or(DVec3::Y);
+        let (profile, scalar, order) = layer.drawing(key, sun);
+        // A degenerate projection culls nothing rather than everything.
+        let frustum = Frustum::from_view_projection(camera.clip_from_world)
+            .ok()
+            .map(|frustum| frustum.in_local_frame(&world_from_field));
+        let view = LayerView {
+            world_from_field,
+            eye: camera.eye,
+            frustum: frustum.as_ref(),
+            lod: LodSettings {
+                accuracy,
+                ..LodSettings::default()
+            },
+            order,
+            profile: &profile,
+            scalar,
+        };
+        let mut cells = Vec::new();
+        let counts = match surface_layer.cells(&view, &mut state.mesh, &mut cells) {
+            Ok(counts) => counts,
+            Err(error) => {
+                status.fail(T::NAME, entity, error.into());
+                continue;
+            }
+        };
+        state.cells = Some(cells_key);
+        status.set_if_neq(EffectStatus::Ready);
+        if cells.is_empty() {
+            if has_batch {
+                commands.entity(entity).remove::<CellBatch>();
+            }
+        } else {
+            commands.entity(entity).insert(CellBatch::new(
+                Arc::new(Cells::with_bounds(cells)),
+                transfer,
+                T::MODE,
+            ));
+        }
+        let update_ms = started.elapsed().as_secs_f32() * 1e3;
+        T::record(&mut stats, counts, built_ms, update_ms);
+        *frame_ms.get_or_insert(0.0) += f64::from(update_ms);
+    }
+    if let Some(ms) = frame_ms {
+        diagnostics.add_measurement(&T::UPDATE_MS, || ms);
+    }
+}
+
+/// Measures the layers' totals; nothing in a world without one.
+fn measure_sky_layers<T: SkyLayer>(
+    layers: Query<(&T::Stats, Has<CellBatch>), With<T>>,
+    mut diagnostics: Diagnostics,
+) {
+    if layers.is_empty() {
+        return;
+    }
+    let (drawn, tetrahedra) = layers.iter().filter(|(_, has_batch)| *has_batch).fold(
+        (0.0, 0.0),
+        |(drawn, tetrahedra), (stats, _)| {
+            (drawn + 1.0, tetrahedra + f64::from(T::tetrahedra(stats)))
+        },
+    );
+    diagnostics.add_measurement(&T::DRAWN, || drawn);
+    diagnostics.add_measurement(&T::TETRAHEDRA, || tetrahedra);
+}
