@@ -13,7 +13,7 @@ use bevy::reflect::{FromReflect, GetTypeRegistration, Typed};
 
 /// Whether an effect's entity is drawn, still waiting, or failed, and why.
 /// Read it to show a loading screen or an error.
-#[derive(Component, Clone, Debug, PartialEq, Reflect)]
+#[derive(Component, Clone, Debug, Default, PartialEq, Reflect)]
 #[reflect(Component, Default, Clone)]
 pub enum EffectStatus<E>
 where
@@ -21,6 +21,7 @@ where
 {
     /// Waiting for an asset, a build on the task pool or the first camera
     /// (the last result, if any, is drawn meanwhile).
+    #[default]
     Pending,
     /// Built: drawn where the camera sees it, or nothing to draw (hidden,
     /// transparent, of no density).
@@ -29,15 +30,6 @@ where
     /// entity and reason; nothing is rebuilt until the entity, its settings
     /// or its assets change.
     Failed(E),
-}
-
-impl<E> Default for EffectStatus<E>
-where
-    E: Clone + Send + Sync + FromReflect + TypePath + Typed + GetTypeRegistration,
-{
-    fn default() -> Self {
-        Self::Pending
-    }
 }
 
 impl<E> EffectStatus<E>
