@@ -1,15 +1,22 @@
 //! What the aurora and the cloud layer share: one skeleton of systems over
-//! the [`SkyLayer`] trait that each implements. Every frame, for each
-//! visible layer, the layer between two surfaces is built again when what
-//! it is built from changed ([`SkyLayer::layer_key`]), and its cells
-//! ([`nebel_lod::SurfaceLayer::cells`]) when the layer, the eye, the view,
-//! the placement, the sun (for a sunlit layer) or the drawing settings
-//! changed; they go to the cell projection as the entity's `CellBatch`. A
+//! the [`SkyLayer`] trait that each implements. For each visible layer whose
+//! cells are out of date (the layer's key, the eye, the view, the placement,
+//! the sun for a sunlit layer, or a setting changed), one build at a time
+//! runs on Bevy's `AsyncComputeTaskPool`: the layer between two surfaces
+//! when its key changed ([`SkyLayer::layer_key`]; a map's values are read
+//! on the frame's thread first), then its cells for the eye
+//! ([`nebel_lod::SurfaceLayer::cells`]). The layer draws its last
+//! `CellBatch` until the build is done and takes the new one in the first
+//! frame after (the same frame under `HeavyBuilds::Blocking`). A sorted
+//! layer's cells are then ordered for the eye of an earlier frame: prisms on
+//! a triangulation, as the ground fog's, whose order stays a visibility
+//! order while the eye keeps to the same side of every face's plane. A
 //! hidden or dark layer (no density or brightness, a transparent transfer
 //! function) has no batch and costs a few comparisons per frame; removing
 //! the component removes its batch and state.
 
 use std::fmt::Display;
+use std::marker::PhantomData;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -24,13 +31,13 @@ use bevy::reflect::{FromReflect, GetTypeRegistration, Typed};
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferError, TransferFunction};
 use nebel_lod::{
-    CellOrder, Cells, FogProfile, Frustum, LayerStats, LayerView, LodSettings, PrismScalar,
-    SurfaceLayer, SurfaceLayerError, TerrainError, TerrainMap, TerrainMesh,
+    CellOrder, Cells, FogProfile, Frustum, GpuCell, LayerStats, LayerView, LodSettings,
+    PrismScalar, SurfaceLayer, SurfaceLayerError, TerrainError, TerrainMap, TerrainMesh,
 };
 use nebel_render::camera::to_double;
 use nebel_render::{
-    CellBatch, EffectStatus, EffectiveQuality, GrayscaleMap, GrayscaleMapPlugin, LodCameras,
-    NebelSystems, register_diagnostics,
+    CellBatch, EffectStatus, EffectiveQuality, GrayscaleMap, GrayscaleMapPlugin, HeavyBuild,
+    HeavyBuilds, LodCameras, NebelSystems, register_diagnostics,
 };
 
 /// A transfer function with ρ times a factor, kept while neither changes.
@@ -101,6 +108,9 @@ pub trait SkyLayer: Component + Sized {
         + GetTypeRegistration;
     /// What its layer is built from; a new key builds the layer again.
     type LayerKey: Clone + PartialEq + Send + Sync + 'static;
+    /// What a build of its layer reads besides the key: the values of its
+    /// maps, taken from the assets on the frame's thread.
+    type LayerInput: Send + 'static;
     /// Its statistics component.
     type Stats: Component<Mutability = Mutable> + Default;
     /// Its name in the log.
@@ -124,13 +134,17 @@ pub trait SkyLayer: Component + Sized {
     fn is_dark(&self) -> bool;
     /// What its layer is built from at `seconds` of virtual time.
     fn layer_key(&self, seconds: f64, maps: &Assets<GrayscaleMap>) -> Self::LayerKey;
-    /// Its layer for `key`, `None` while a map loads.
-    fn build_layer(
-        &self,
+    /// What a build of the layer for `key` reads, `None` while a map loads.
+    fn layer_input(
         key: &Self::LayerKey,
         maps: &Assets<GrayscaleMap>,
         asset_server: &AssetServer,
-    ) -> Result<Option<SurfaceLayer>, Self::Error>;
+    ) -> Result<Option<Self::LayerInput>, Self::Error>;
+    /// Its layer for `key` (on a worker).
+    fn build_layer(
+        key: &Self::LayerKey,
+        input: Self::LayerInput,
+    ) -> Result<SurfaceLayer, Self::Error>;
     /// Its transfer function and the factor of its ρ.
     fn transfer(&self) -> (&TransferFunction, f32);
     /// The quadtree's accuracy `c` before the quality's scale.
@@ -148,7 +162,7 @@ pub trait SkyLayer: Component + Sized {
 /// transform) and its diagnostics, and the grayscale maps it reads.
 pub(crate) fn add_sky_layer<T: SkyLayer>(app: &mut App) {
     GrayscaleMapPlugin::add_once(app);
-    app.add_systems(
+    app.init_resource::<HeavyBuilds>().add_systems(
         PostUpdate,
         (
             remove_sky_layers::<T>,
@@ -168,10 +182,9 @@ pub(crate) fn add_sky_layer<T: SkyLayer>(app: &mut App) {
 }
 
 /// What a layer's cells were built from.
-#[derive(Clone, Debug, PartialEq)]
-struct CellsKey {
-    /// Layer builds so far.
-    builds: u64,
+struct CellsKey<T: SkyLayer> {
+    /// The layer they were refined from.
+    layer: T::LayerKey,
     /// The camera's clip-from-world transform.
     clip_from_world: [u64; 16],
     /// The layer's placement.
@@ -182,24 +195,60 @@ struct CellsKey {
     accuracy: u32,
 }
 
+impl<T: SkyLayer> PartialEq for CellsKey<T> {
+    fn eq(&self, other: &Self) -> bool {
+        self.layer == other.layer
+            && self.clip_from_world == other.clip_from_world
+            && self.transform == other.transform
+            && self.sun == other.sun
+            && self.accuracy == other.accuracy
+    }
+}
+
+/// What a build on a worker hands back.
+struct Built<T: SkyLayer> {
+    /// The layer, when the build made a new one.
+    layer: Option<Arc<SurfaceLayer>>,
+    cells: Vec<GpuCell>,
+    counts: LayerStats,
+    /// The refinement's mesh, lent to the build.
+    mesh: TerrainMesh,
+    transfer: Arc<TransferFunction>,
+    build_ms: Option<f32>,
+    update_ms: f32,
+    _layer: PhantomData<fn() -> T>,
+}
+
+/// A build in flight and what it is built from.
+type Building<T> = (
+    CellsKey<T>,
+    HeavyBuild<Result<Built<T>, <T as SkyLayer>::Error>>,
+);
+
 /// A layer's quadtree, buffers and caches.
 #[derive(Component)]
 pub struct SkyLayerState<T: SkyLayer> {
-    layer: Option<(T::LayerKey, SurfaceLayer)>,
-    builds: u64,
-    cells: Option<CellsKey>,
+    /// The layer and what it was built from.
+    layer: Option<(T::LayerKey, Arc<SurfaceLayer>)>,
+    /// What the cells drawn (or the last failure) came from.
+    cells: Option<CellsKey<T>>,
+    /// The component changed since the last build started.
+    dirty: bool,
+    building: Option<Building<T>>,
     transfer: ScaledTransfer,
-    mesh: TerrainMesh,
+    /// The refinement's mesh, reused; `None` while a build holds it.
+    mesh: Option<TerrainMesh>,
 }
 
 impl<T: SkyLayer> Default for SkyLayerState<T> {
     fn default() -> Self {
         Self {
             layer: None,
-            builds: 0,
             cells: None,
+            dirty: true,
+            building: None,
             transfer: ScaledTransfer::default(),
-            mesh: TerrainMesh::default(),
+            mesh: Some(TerrainMesh::default()),
         }
     }
 }
@@ -219,12 +268,14 @@ fn remove_sky_layers<T: SkyLayer>(mut commands: Commands, mut removed: RemovedCo
     }
 }
 
-/// Builds every visible layer's cells (see the module docs).
+/// Starts the builds of every visible layer whose cells are out of date and
+/// takes the finished ones (see the module docs).
 #[expect(clippy::too_many_arguments, reason = "a Bevy system's parameters")]
 fn update_sky_layers<T: SkyLayer>(
     mut commands: Commands,
     cameras: LodCameras,
     time: Res<Time<Virtual>>,
+    mode: Res<HeavyBuilds>,
     suns: Query<&GlobalTransform, With<DirectionalLight>>,
     mut layers: Query<(
         Entity,
@@ -260,11 +311,13 @@ fn update_sky_layers<T: SkyLayer>(
         &mut layers
     {
         let state = &mut *state;
+        state.dirty |= layer.is_changed();
         let clear = |commands: &mut Commands, state: &mut SkyLayerState<T>| {
             if has_batch {
                 commands.entity(entity).remove::<CellBatch>();
             }
             state.cells = None;
+            state.building = None;
         };
         if let Err(error) = layer.validate() {
             clear(&mut commands, state);
@@ -276,103 +329,150 @@ fn update_sky_layers<T: SkyLayer>(
             status.set_if_neq(EffectStatus::Ready);
             continue;
         }
-        let started = Instant::now();
-        let layer_key = layer.layer_key(time.elapsed_secs_f64(), &maps);
-        let mut built_ms = None;
-        if state.layer.as_ref().map(|(key, _)| key) != Some(&layer_key) {
-            // Not again until something changes, also after a failure.
-            if matches!(*status, EffectStatus::Failed(_))
+        if state.building.is_none() {
+            let layer_key = layer.layer_key(time.elapsed_secs_f64(), &maps);
+            let accuracy = (f64::from(layer.accuracy()) * accuracy_scale) as f32;
+            let key = CellsKey {
+                layer: layer_key,
+                clip_from_world: camera.clip_from_world.to_cols_array().map(f64::to_bits),
+                transform: *transform,
+                sun: T::SUNLIT.then(|| toward_sun.to_array().map(f32::to_bits)),
+                accuracy: accuracy.to_bits(),
+            };
+            // Drawn already, or failed for this layer: not again until
+            // something changes.
+            let failed = matches!(*status, EffectStatus::Failed(_))
                 && state.layer.is_none()
-                && !layer.is_changed()
-            {
+                && state
+                    .cells
+                    .as_ref()
+                    .is_some_and(|cells| cells.layer == key.layer);
+            if !state.dirty && (failed || state.cells.as_ref() == Some(&key)) {
                 continue;
             }
-            match layer.build_layer(&layer_key, &maps, &asset_server) {
-                Ok(Some(built)) => {
-                    state.layer = Some((layer_key, built));
-                    state.builds += 1;
-                    built_ms = Some(started.elapsed().as_secs_f32() * 1e3);
+            // The layer, when its key changed: its maps' values now, the
+            // build on the worker.
+            let new_layer = if state.layer.as_ref().map(|(built, _)| built) == Some(&key.layer) {
+                None
+            } else {
+                match T::layer_input(&key.layer, &maps, &asset_server) {
+                    Ok(Some(input)) => Some(input),
+                    Ok(None) => {
+                        status.set_if_neq(EffectStatus::Pending);
+                        continue;
+                    }
+                    Err(error) => {
+                        state.layer = None;
+                        clear(&mut commands, state);
+                        // Not again until something changes.
+                        state.cells = Some(key);
+                        state.dirty = false;
+                        status.fail(T::NAME, entity, error);
+                        continue;
+                    }
                 }
-                Ok(None) => {
-                    status.set_if_neq(EffectStatus::Pending);
-                    continue;
-                }
+            };
+            let (transfer_function, factor) = layer.transfer();
+            let transfer = match state.transfer.get(transfer_function, factor) {
+                Ok(transfer) => transfer,
                 Err(error) => {
-                    state.layer = None;
-                    clear(&mut commands, state);
-                    status.fail(T::NAME, entity, error);
+                    status.fail(T::NAME, entity, error.into());
                     continue;
                 }
-            }
+            };
+            let world_from_field = DAffine3::from_mat4(to_double(transform.to_matrix()));
+            let sun = world_from_field
+                .inverse()
+                .transform_vector3(toward_sun.as_dvec3())
+                .normalize_or(DVec3::Y);
+            let (profile, scalar, order) = layer.drawing(&key.layer, sun);
+            // A degenerate projection culls nothing rather than everything.
+            let frustum = Frustum::from_view_projection(camera.clip_from_world)
+                .ok()
+                .map(|frustum| frustum.in_local_frame(&world_from_field));
+            let eye = camera.eye;
+            let layer_key = key.layer.clone();
+            let current = state.layer.as_ref().map(|(_, built)| built.clone());
+            let mut mesh = state.mesh.take().unwrap_or_default();
+            let build = HeavyBuild::spawn(move || {
+                let started = Instant::now();
+                let (layer, build_ms) = match new_layer {
+                    Some(input) => {
+                        let built = Arc::new(T::build_layer(&layer_key, input)?);
+                        (Some(built), Some(started.elapsed().as_secs_f32() * 1e3))
+                    }
+                    None => (None, None),
+                };
+                let surface = layer
+                    .as_ref()
+                    .or(current.as_ref())
+                    .expect("a layer built now or before");
+                let view = LayerView {
+                    world_from_field,
+                    eye,
+                    frustum: frustum.as_ref(),
+                    lod: LodSettings {
+                        accuracy,
+                        ..LodSettings::default()
+                    },
+                    order,
+                    profile: &profile,
+                    scalar,
+                };
+                let mut cells = Vec::new();
+                let counts = surface.cells(&view, &mut mesh, &mut cells)?;
+                Ok(Built {
+                    layer,
+                    cells,
+                    counts,
+                    mesh,
+                    transfer,
+                    build_ms,
+                    update_ms: started.elapsed().as_secs_f32() * 1e3,
+                    _layer: PhantomData,
+                })
+            });
+            state.building = Some((key, build));
+            state.dirty = false;
         }
-        let world_from_field = DAffine3::from_mat4(to_double(transform.to_matrix()));
-        let accuracy = (f64::from(layer.accuracy()) * accuracy_scale) as f32;
-        let cells_key = CellsKey {
-            builds: state.builds,
-            clip_from_world: camera.clip_from_world.to_cols_array().map(f64::to_bits),
-            transform: *transform,
-            sun: T::SUNLIT.then(|| toward_sun.to_array().map(f32::to_bits)),
-            accuracy: accuracy.to_bits(),
-        };
-        if state.cells.as_ref() == Some(&cells_key) && !layer.is_changed() {
+        let Some(built) = state
+            .building
+            .as_mut()
+            .and_then(|(_, build)| build.poll(*mode))
+        else {
             continue;
-        }
-        let (transfer_function, factor) = layer.transfer();
-        let transfer = match state.transfer.get(transfer_function, factor) {
-            Ok(transfer) => transfer,
+        };
+        let (key, _) = state.building.take().expect("a build was polled");
+        let built = match built {
+            Ok(built) => built,
             Err(error) => {
-                status.fail(T::NAME, entity, error.into());
+                state.layer = None;
+                clear(&mut commands, state);
+                // Not again until something changes.
+                state.cells = Some(key);
+                status.fail(T::NAME, entity, error);
                 continue;
             }
         };
-        let Some((key, surface_layer)) = &state.layer else {
-            continue;
-        };
-        let sun = world_from_field
-            .inverse()
-            .transform_vector3(toward_sun.as_dvec3())
-            .normalize_or(DVec3::Y);
-        let (profile, scalar, order) = layer.drawing(key, sun);
-        // A degenerate projection culls nothing rather than everything.
-        let frustum = Frustum::from_view_projection(camera.clip_from_world)
-            .ok()
-            .map(|frustum| frustum.in_local_frame(&world_from_field));
-        let view = LayerView {
-            world_from_field,
-            eye: camera.eye,
-            frustum: frustum.as_ref(),
-            lod: LodSettings {
-                accuracy,
-                ..LodSettings::default()
-            },
-            order,
-            profile: &profile,
-            scalar,
-        };
-        let mut cells = Vec::new();
-        let counts = match surface_layer.cells(&view, &mut state.mesh, &mut cells) {
-            Ok(counts) => counts,
-            Err(error) => {
-                status.fail(T::NAME, entity, error.into());
-                continue;
-            }
-        };
-        state.cells = Some(cells_key);
+        if let Some(layer) = built.layer {
+            state.layer = Some((key.layer.clone(), layer));
+        }
+        state.mesh = Some(built.mesh);
+        state.cells = Some(key);
         status.set_if_neq(EffectStatus::Ready);
-        if cells.is_empty() {
+        if built.cells.is_empty() {
             if has_batch {
                 commands.entity(entity).remove::<CellBatch>();
             }
         } else {
             commands.entity(entity).insert(CellBatch::new(
-                Arc::new(Cells::with_bounds(cells)),
-                transfer,
+                Arc::new(Cells::with_bounds(built.cells)),
+                built.transfer,
                 T::MODE,
             ));
         }
-        let update_ms = started.elapsed().as_secs_f32() * 1e3;
-        T::record(&mut stats, counts, built_ms, update_ms);
-        *frame_ms.get_or_insert(0.0) += f64::from(update_ms);
+        T::record(&mut stats, built.counts, built.build_ms, built.update_ms);
+        *frame_ms.get_or_insert(0.0) += f64::from(built.update_ms);
     }
     if let Some(ms) = frame_ms {
         diagnostics.add_measurement(&T::UPDATE_MS, || ms);

@@ -11,6 +11,7 @@ use std::sync::Arc;
 use bevy::diagnostic::DiagnosticPath;
 use bevy::math::DVec3;
 use bevy::prelude::*;
+use nebel_core::field::AuroraCurtains;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
@@ -37,9 +38,17 @@ pub struct AuroraLayerKey {
     map: Option<usize>,
 }
 
+/// The footprint a build samples: procedural curtains at a time, seconds,
+/// or a map's values.
+pub enum FootprintInput {
+    Curtains(AuroraCurtains, f64),
+    Map(Vec<f32>),
+}
+
 impl SkyLayer for Aurora {
     type Error = AuroraError;
     type LayerKey = AuroraLayerKey;
+    type LayerInput = FootprintInput;
     type Stats = AuroraStats;
     const NAME: &'static str = "aurora";
     const DRAWN: DiagnosticPath = AuroraPlugin::AURORAS;
@@ -76,34 +85,41 @@ impl SkyLayer for Aurora {
         }
     }
 
-    fn build_layer(
-        &self,
+    fn layer_input(
         key: &AuroraLayerKey,
         maps: &Assets<GrayscaleMap>,
         asset_server: &AssetServer,
-    ) -> Result<Option<SurfaceLayer>, AuroraError> {
-        let side = key.resolution as usize;
-        let strength = match &key.footprint {
-            AuroraFootprint::Curtains(curtains) => {
-                let time = key.time.map_or(0.0, f64::from_bits);
-                Some(curtains.map(side, time)?)
-            }
+    ) -> Result<Option<FootprintInput>, AuroraError> {
+        match &key.footprint {
+            AuroraFootprint::Curtains(curtains) => Ok(Some(FootprintInput::Curtains(
+                curtains.clone(),
+                key.time.map_or(0.0, f64::from_bits),
+            ))),
             AuroraFootprint::Map(handle) => {
-                map_values(handle, side, maps, asset_server).map_err(|error| match error {
-                    MapError::NotLoaded(path, error) => AuroraError::MapNotLoaded { path, error },
-                    MapError::Values(error) => SurfaceLayerError::from(error).into(),
-                })?
+                let values = map_values(handle, key.resolution as usize, maps, asset_server)
+                    .map_err(|error| match error {
+                        MapError::NotLoaded(path, error) => {
+                            AuroraError::MapNotLoaded { path, error }
+                        }
+                        MapError::Values(error) => SurfaceLayerError::from(error).into(),
+                    })?;
+                Ok(values.map(FootprintInput::Map))
             }
+        }
+    }
+
+    fn build_layer(
+        key: &AuroraLayerKey,
+        input: FootprintInput,
+    ) -> Result<SurfaceLayer, AuroraError> {
+        let side = key.resolution as usize;
+        let strength = match input {
+            FootprintInput::Curtains(curtains, time) => curtains.map(side, time)?,
+            FootprintInput::Map(values) => values,
         };
-        let Some(strength) = strength else {
-            return Ok(None);
-        };
-        Ok(Some(key.shape.layer(
-            side,
-            &strength,
-            DEFAULT_MIN_RESOLUTION,
-            1.0,
-        )?))
+        Ok(key
+            .shape
+            .layer(side, &strength, DEFAULT_MIN_RESOLUTION, 1.0)?)
     }
 
     fn transfer(&self) -> (&TransferFunction, f32) {

@@ -10,9 +10,9 @@ use bevy::prelude::*;
 use bevy::time::TimeUpdateStrategy;
 use bevy::transform::TransformPlugin;
 use nebel_core::optics::OpticalMode;
-use nebel_render::CellBatch;
 use nebel_render::GrayscaleMap;
 use nebel_render::camera::computed_camera;
+use nebel_render::{CellBatch, HeavyBuilds};
 
 use super::{Aurora, AuroraFootprint, AuroraPlugin, AuroraStats, AuroraStatus};
 
@@ -29,6 +29,7 @@ fn app() -> (App, Entity) {
         },
     ))
     .add_plugins(AuroraPlugin)
+    .insert_resource(HeavyBuilds::Blocking)
     .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(
         1.0 / 30.0,
     )));

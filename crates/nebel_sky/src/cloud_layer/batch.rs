@@ -7,6 +7,7 @@ use std::sync::Arc;
 use bevy::diagnostic::DiagnosticPath;
 use bevy::math::DVec3;
 use bevy::prelude::*;
+use nebel_core::field::FogNoise;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
@@ -45,9 +46,21 @@ fn unit_values(
     })
 }
 
+/// What a build makes the two surfaces from: noise, or two maps' unit
+/// values with the metres of a white pixel.
+pub enum SurfacesInput {
+    Noise(FogNoise),
+    Maps {
+        bottom: Vec<f32>,
+        top: Vec<f32>,
+        scale: f32,
+    },
+}
+
 impl SkyLayer for CloudLayer {
     type Error = CloudLayerError;
     type LayerKey = CloudLayerKey;
+    type LayerInput = SurfacesInput;
     type Stats = CloudLayerStats;
     const NAME: &'static str = "cloud layer";
     const DRAWN: DiagnosticPath = CloudLayerPlugin::LAYERS;
@@ -81,31 +94,40 @@ impl SkyLayer for CloudLayer {
         }
     }
 
-    fn build_layer(
-        &self,
+    fn layer_input(
         key: &CloudLayerKey,
         maps: &Assets<GrayscaleMap>,
         asset_server: &AssetServer,
-    ) -> Result<Option<SurfaceLayer>, CloudLayerError> {
+    ) -> Result<Option<SurfacesInput>, CloudLayerError> {
+        let side = key.resolution as usize;
+        Ok(match &key.source {
+            CloudLayerSource::Noise(noise) => Some(SurfacesInput::Noise(noise.clone())),
+            CloudLayerSource::Maps { bottom, top, scale } => match (
+                unit_values(bottom, side, maps, asset_server)?,
+                unit_values(top, side, maps, asset_server)?,
+            ) {
+                (Some(bottom), Some(top)) => Some(SurfacesInput::Maps {
+                    bottom,
+                    top,
+                    scale: *scale,
+                }),
+                _ => None,
+            },
+        })
+    }
+
+    fn build_layer(
+        key: &CloudLayerKey,
+        input: SurfacesInput,
+    ) -> Result<SurfaceLayer, CloudLayerError> {
         let side = key.resolution as usize;
         let shape = &key.shape;
-        match &key.source {
-            CloudLayerSource::Noise(noise) => {
+        match input {
+            SurfacesInput::Noise(noise) => {
                 let thickness = noise.thickness(side, shape.extent / (side - 1) as f64)?;
-                Ok(Some(shape.layer(
-                    side,
-                    &thickness,
-                    DEFAULT_MIN_RESOLUTION,
-                    1.0,
-                )?))
+                Ok(shape.layer(side, &thickness, DEFAULT_MIN_RESOLUTION, 1.0)?)
             }
-            CloudLayerSource::Maps { bottom, top, scale } => {
-                let (Some(bottom), Some(top)) = (
-                    unit_values(bottom, side, maps, asset_server)?,
-                    unit_values(top, side, maps, asset_server)?,
-                ) else {
-                    return Ok(None);
-                };
+            SurfacesInput::Maps { bottom, top, scale } => {
                 let base = shape.base as f32;
                 let surface = |unit: Vec<f32>| -> Vec<f32> {
                     unit.iter().map(|u| base + scale * u).collect()
@@ -114,13 +136,13 @@ impl SkyLayer for CloudLayer {
                     .field(side, surface(bottom))
                     .map_err(|error| CloudLayerError::from(SurfaceLayerError::from(error)))?;
                 let top = surface(top);
-                Ok(Some(SurfaceLayer::new(
+                Ok(SurfaceLayer::new(
                     bottom,
                     LayerTop::Surface(&top),
                     None,
                     DEFAULT_MIN_RESOLUTION,
                     1.0,
-                )?))
+                )?)
             }
         }
     }

@@ -9,9 +9,9 @@ use bevy::asset::AssetPlugin;
 use bevy::prelude::*;
 use bevy::transform::TransformPlugin;
 use nebel_core::optics::OpticalMode;
-use nebel_render::CellBatch;
 use nebel_render::GrayscaleMap;
 use nebel_render::camera::computed_camera;
+use nebel_render::{CellBatch, HeavyBuilds};
 
 use super::{CloudLayer, CloudLayerPlugin, CloudLayerSource, CloudLayerStats, CloudLayerStatus};
 
@@ -27,7 +27,8 @@ fn app() -> (App, Entity, Entity) {
             ..default()
         },
     ))
-    .add_plugins(CloudLayerPlugin);
+    .add_plugins(CloudLayerPlugin)
+    .insert_resource(HeavyBuilds::Blocking);
     let camera = computed_camera(
         Mat4::perspective_infinite_reverse_rh(1.2, 1.5, 0.1),
         UVec2::new(96, 64),
@@ -261,4 +262,51 @@ fn dark_hidden_and_invalid_cloud_layers_draw_nothing() {
         };
         assert!(error.to_string().contains(needle), "{error}");
     }
+}
+
+#[test]
+fn in_the_background_the_last_cells_draw_until_the_new_ones_land_as_same_frame_ones_would() {
+    let (mut blocking, blocking_camera, _) = app();
+    let (mut background, background_camera, _) = app();
+    background.insert_resource(HeavyBuilds::Background);
+    let layers = [&mut blocking, &mut background].map(|app| spawn(app, CloudLayer::default()));
+    // Bounded waits for the background's builds: a guard against a hang.
+    let land = |app: &mut App, layer: Entity, after: u64| {
+        for _ in 0..10_000 {
+            app.update();
+            if stats(app, layer).updates > after {
+                return;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        panic!("no build landed");
+    };
+    settle(&mut blocking);
+    land(&mut background, layers[1], 0);
+    for (app, camera) in [
+        (&mut blocking, blocking_camera),
+        (&mut background, background_camera),
+    ] {
+        app.world_mut()
+            .get_mut::<Transform>(camera)
+            .unwrap()
+            .translation
+            .x += 300.0;
+    }
+    let drawn = batch(&background, layers[1]).expect("a batch");
+    let updates = stats(&background, layers[1]).updates;
+    background.update();
+    // The frame that starts a build draws what it had, unless the build
+    // already landed.
+    if stats(&background, layers[1]).updates == updates {
+        assert_eq!(batch(&background, layers[1]).unwrap().cells, drawn.cells);
+    }
+    land(&mut background, layers[1], updates);
+    settle(&mut blocking);
+    let (same_frame, landed) = (
+        batch(&blocking, layers[0]).unwrap(),
+        batch(&background, layers[1]).unwrap(),
+    );
+    assert_ne!(landed.cells, drawn.cells, "refined for the new eye");
+    assert_eq!(landed.cells, same_frame.cells);
 }
