@@ -92,7 +92,7 @@ impl SkyLayer for Aurora {
     ) -> Result<Option<FootprintInput>, AuroraError> {
         match &key.footprint {
             AuroraFootprint::Curtains(curtains) => Ok(Some(FootprintInput::Curtains(
-                curtains.clone(),
+                *curtains,
                 key.time.map_or(0.0, f64::from_bits),
             ))),
             AuroraFootprint::Map(handle) => {

@@ -18,12 +18,12 @@
 //!
 //! # Animation
 //!
-//! A procedural footprint ([`AuroraFootprint::Curtains`]) is sampled every
-//! frame at the virtual time times [`Aurora::speed`]: its arcs sway, fold
-//! and pulse smoothly (`nebel_core::field::AuroraCurtains`), and the
-//! quadtree, refined along the curtains, is built again for each frame's
-//! footprint (its cost, footprint and quadtree together, is
-//! [`AuroraStats::build_ms`]). A map footprint ([`AuroraFootprint::Map`]) is
+//! A procedural footprint ([`AuroraFootprint::Curtains`]) is sampled at the
+//! virtual time times [`Aurora::speed`]: its arcs sway, fold and pulse
+//! smoothly (`nebel_core::field::AuroraCurtains`), and the quadtree, refined
+//! along the curtains, is built again for each new footprint, on a worker,
+//! one build at a time, so as often as the builds keep up (their cost,
+//! footprint and quadtree together, is [`AuroraStats::build_ms`]). A map footprint ([`AuroraFootprint::Map`]) is
 //! still: it is built once and refined again only when the eye moves. A
 //! speed of 0 stops the animation.
 //!
@@ -64,8 +64,8 @@ impl AuroraPlugin {
     pub const AURORAS: DiagnosticPath = DiagnosticPath::const_new("nebel/aurora/auroras");
     /// Tetrahedra drawn, all auroras.
     pub const TETRAHEDRA: DiagnosticPath = DiagnosticPath::const_new("nebel/aurora/tetrahedra");
-    /// Time of the auroras' work of a frame that did any (footprint,
-    /// quadtree, refinement, prisms and the batch), ms.
+    /// Time of the builds that landed in a frame (footprint, quadtree,
+    /// refinement and prisms, on a worker), ms.
     pub const UPDATE_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/aurora/update_ms");
 }
 
@@ -170,11 +170,11 @@ pub struct AuroraStats {
     pub tetrahedra: u32,
     /// Updates of the cells so far.
     pub updates: u64,
-    /// Time of the last footprint and quadtree build, ms (every frame while
+    /// Time of the last footprint and quadtree build, ms (every build while
     /// animated).
     pub build_ms: f32,
-    /// Time of the last update: build (if any), refinement, prisms and the
-    /// batch, ms.
+    /// Time of the last build on a worker: footprint and quadtree (if
+    /// any), refinement and prisms, ms.
     pub update_ms: f32,
 }
 

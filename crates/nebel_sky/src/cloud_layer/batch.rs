@@ -101,7 +101,7 @@ impl SkyLayer for CloudLayer {
     ) -> Result<Option<SurfacesInput>, CloudLayerError> {
         let side = key.resolution as usize;
         Ok(match &key.source {
-            CloudLayerSource::Noise(noise) => Some(SurfacesInput::Noise(noise.clone())),
+            CloudLayerSource::Noise(noise) => Some(SurfacesInput::Noise(*noise)),
             CloudLayerSource::Maps { bottom, top, scale } => match (
                 unit_values(bottom, side, maps, asset_server)?,
                 unit_values(top, side, maps, asset_server)?,

@@ -23,8 +23,9 @@
 //! light (default the `CloudLight` preset); the view rays see the extinction
 //! [`CloudLayer::density`].
 //!
-//! The layer's quadtree is built once per source and settings, on the main
-//! thread (a few milliseconds for the default 257 points per side).
+//! The layer's quadtree is built once per source and settings, and its
+//! cells whenever the view changes, on a worker (see the crate's shared
+//! sky-layer skeleton); the last cells draw meanwhile.
 
 mod batch;
 
@@ -55,8 +56,8 @@ impl CloudLayerPlugin {
     /// Tetrahedra drawn, all cloud layers.
     pub const TETRAHEDRA: DiagnosticPath =
         DiagnosticPath::const_new("nebel/cloud_layer/tetrahedra");
-    /// Time of the cloud layers' work of a frame that did any (quadtree
-    /// when built, refinement, sorted prisms and the batch), ms.
+    /// Time of the builds that landed in a frame (quadtree when built,
+    /// refinement and sorted prisms, on a worker), ms.
     pub const UPDATE_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/cloud_layer/update_ms");
 }
 
@@ -187,8 +188,8 @@ pub struct CloudLayerStats {
     pub updates: u64,
     /// Time of the last quadtree build, ms.
     pub build_ms: f32,
-    /// Time of the last update (refinement, sorted prisms and the batch),
-    /// ms.
+    /// Time of the last build on a worker (quadtree when built, refinement
+    /// and sorted prisms), ms.
     pub update_ms: f32,
 }
 
