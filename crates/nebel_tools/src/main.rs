@@ -181,6 +181,10 @@ struct SceneArgs {
     /// Frames to run instead of the scene's `output.frames`.
     #[arg(long)]
     frames: Option<u32>,
+    /// Simulated frames per second instead of the scene's
+    /// `output.frame_rate` (60 follows a game's frames along a path).
+    #[arg(long)]
+    frame_rate: Option<f32>,
     /// Image size instead of the scene's, as `WIDTHxHEIGHT`.
     #[arg(long, value_parser = parse_size)]
     size: Option<(u32, u32)>,
@@ -255,6 +259,9 @@ impl SceneArgs {
         let mut scene = SceneDescription::load(&self.scene)?;
         if let Some(frames) = self.frames {
             scene.output.frames = frames;
+        }
+        if let Some(frame_rate) = self.frame_rate {
+            scene.output.frame_rate = frame_rate;
         }
         if let Some((width, height)) = self.size {
             scene.output.width = width;

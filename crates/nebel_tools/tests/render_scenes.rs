@@ -197,6 +197,23 @@ fn a_bad_scene_fails_with_the_file_and_field_named() {
     );
     assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
 
+    // A frame rate the scene could not have: refused like the scene's own,
+    // naming the field and the option.
+    let output = nebel(&[
+        "render",
+        "tests/accuracy/windy_cloud.ron",
+        "--out",
+        "x.png",
+        "--frame-rate",
+        "0",
+    ]);
+    assert_eq!(output.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("output.frame_rate (with the command's options)"),
+        "{stderr}"
+    );
+
     // A build budget that is not a number of milliseconds from 0 to 60000,
     // or one without background builds: a usage error naming the option.
     let windy = "tests/accuracy/windy_cloud.ron";
@@ -268,6 +285,7 @@ fn the_command_line_has_help_per_command_and_a_version() {
         "--out",
         "--stats",
         "--frames",
+        "--frame-rate",
         "--size",
         "--background-builds",
         "--build-budget-ms",
