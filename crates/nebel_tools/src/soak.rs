@@ -19,7 +19,8 @@
 //! The report (JSON) has the counts, the frames whose read-back came back,
 //! the frame times and the process's resident memory (`VmRSS` of
 //! `/proc/self/status`, KiB; absent where there is no such file) at frame
-//! 1, 1,000, 10,000 and the last.
+//! 1, every 1,000th and the last, with its growth per frame after the
+//! warm-up (from frame 1,000 on).
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -63,9 +64,13 @@ pub struct SoakReport {
     pub entries_into_volumes: u32,
     /// Frame wall times, ms.
     pub frame_wall_ms: TimeSummary,
-    /// Resident memory in KiB at frames 1, 1000, 10000 and the last (those
-    /// reached), by frame number.
+    /// Resident memory in KiB at frame 1, every 1,000th frame and the last,
+    /// by frame number.
     pub memory_kib: BTreeMap<u32, u64>,
+    /// Growth of the resident memory per frame after the warm-up, from
+    /// frame 1,000 to the last, KiB; `None` for a flight of 1,000 frames or
+    /// fewer.
+    pub growth_kib_per_frame: Option<f64>,
 }
 
 impl SoakReport {
@@ -209,6 +214,7 @@ pub fn soak(
         entries_into_volumes: 0,
         frame_wall_ms: TimeSummary::default(),
         memory_kib: BTreeMap::new(),
+        growth_kib_per_frame: None,
     };
     let mut frame_times = Vec::with_capacity(frames as usize);
     let mut was_inside = false;
@@ -255,7 +261,7 @@ pub fn soak(
         report.frames_inside_volumes += u32::from(inside);
         report.entries_into_volumes += u32::from(inside && !was_inside);
         was_inside = inside;
-        if [1, 1000, 10_000, frames].contains(&frame)
+        if (frame == 1 || frame % 1000 == 0 || frame == frames)
             && let Some(kib) = resident_kib()
         {
             report.memory_kib.insert(frame, kib);
@@ -276,7 +282,17 @@ pub fn soak(
     report.non_finite_channels = counts.non_finite;
     report.frames_with_non_finite_channels = counts.frames_with_non_finite;
     report.frame_wall_ms = TimeSummary::of(&frame_times);
+    report.growth_kib_per_frame = growth_after_warm_up(&report.memory_kib);
     Ok(report)
+}
+
+/// The growth per frame from frame 1,000 to the last sample of `memory`
+/// (KiB by frame), `None` without samples on both sides.
+fn growth_after_warm_up(memory: &BTreeMap<u32, u64>) -> Option<f64> {
+    const WARM_UP: u32 = 1000;
+    let start = *memory.get(&WARM_UP)?;
+    let (&last, &end) = memory.last_key_value()?;
+    (last > WARM_UP).then(|| (end as f64 - start as f64) / f64::from(last - WARM_UP))
 }
 
 /// Writes `report` as pretty JSON to `out`.
@@ -321,6 +337,24 @@ mod tests {
             .collect();
         // 1.0, +inf, −inf, NaN, the smallest subnormal, the largest finite.
         assert_eq!(non_finite_halves(&halves), 3);
+    }
+
+    #[test]
+    fn the_growth_is_measured_after_the_warm_up() {
+        let memory = BTreeMap::from([(1, 100), (1000, 400), (2000, 500), (3000, 700)]);
+        assert_eq!(growth_after_warm_up(&memory), Some(0.15));
+        // Shrinking counts as negative growth.
+        let memory = BTreeMap::from([(1000, 400), (2000, 300)]);
+        assert_eq!(growth_after_warm_up(&memory), Some(-0.1));
+        // Not past the warm-up: nothing to say.
+        assert_eq!(
+            growth_after_warm_up(&BTreeMap::from([(1, 100), (1000, 400)])),
+            None
+        );
+        assert_eq!(
+            growth_after_warm_up(&BTreeMap::from([(1, 100), (40, 400)])),
+            None
+        );
     }
 
     #[test]
