@@ -341,7 +341,7 @@ pub(crate) fn update_fog_batches(
                 clear(&mut commands, entity, state, has_batch);
                 // Not again until something changes.
                 state.key = Some(key);
-                status.fail("ground fog", entity, error);
+                GroundFogStatus::fail(status.reborrow(), "ground fog", entity, error);
                 continue;
             }
         };

@@ -178,7 +178,12 @@ pub(crate) fn build_ground_fog_maps(
     let prisms = quality.is_none_or(|quality| quality.ground_fog_prisms());
     for (entity, fog, lod, map_lod, mut state, mut status, mut stats) in &mut fogs {
         let Some(lod) = lod else {
-            status.fail("ground fog", entity, GroundFogError::NoTerrain);
+            GroundFogStatus::fail(
+                status.reborrow(),
+                "ground fog",
+                entity,
+                GroundFogError::NoTerrain,
+            );
             continue;
         };
         let every_move = fog.mode == OpticalMode::Sorted;
@@ -188,7 +193,8 @@ pub(crate) fn build_ground_fog_maps(
         let density_valid = fog.density.is_finite() && fog.density >= 0.0;
         let density_failed = matches!(&*status, GroundFogStatus::Failed(GroundFogError::InvalidSetting { setting, .. }) if *setting == "density");
         if !density_valid {
-            status.fail(
+            GroundFogStatus::fail(
+                status.reborrow(),
                 "ground fog",
                 entity,
                 GroundFogError::InvalidSetting {
@@ -253,7 +259,7 @@ pub(crate) fn build_ground_fog_maps(
                 Err(error) => {
                     state.built = None;
                     commands.entity(entity).remove::<TerrainMapLod>();
-                    status.fail("ground fog", entity, error);
+                    GroundFogStatus::fail(&mut *status, "ground fog", entity, error);
                 }
             }
         };
@@ -301,7 +307,7 @@ pub(crate) fn build_ground_fog_maps(
                 state.key = Some(key);
                 state.built = None;
                 commands.entity(entity).remove::<TerrainMapLod>();
-                status.fail("ground fog", entity, error);
+                GroundFogStatus::fail(status.reborrow(), "ground fog", entity, error);
             }
         }
     }

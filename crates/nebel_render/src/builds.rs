@@ -202,7 +202,9 @@ mod tests {
         let done = units.clone();
         let mut build = HeavyBuild::spawn_in(budgeted, false, move || {
             for _ in 0..4 {
-                // A unit of work that takes CPU time, then a yield point.
+                // A unit of work that takes CPU time (so at least as much wall
+                // time, more than the pacer waits between two looks at the
+                // budget), then a yield point.
                 let started = crate::frame_budget::thread_time();
                 while crate::frame_budget::thread_time() - started < Duration::from_micros(100) {}
                 done.fetch_add(1, Ordering::SeqCst);

@@ -6,6 +6,7 @@
 //! and two effects on one entity keep separate statuses.
 
 use std::fmt::Display;
+use std::ops::DerefMut;
 
 use bevy::diagnostic::{Diagnostic, DiagnosticPath, RegisterDiagnostic};
 use bevy::prelude::*;
@@ -45,11 +46,13 @@ where
         + GetTypeRegistration,
 {
     /// Records a failure of the `effect` (its name in the log) on `entity`:
-    /// one error line per entity and new reason.
-    pub fn fail(&mut self, effect: &str, entity: Entity, error: E) {
-        if !matches!(self, Self::Failed(old) if *old == error) {
+    /// one error line per entity and new reason. It writes `status` only
+    /// for a new reason, so a `Mut` (pass `status.reborrow()`) is marked
+    /// changed only when the status changes.
+    pub fn fail(mut status: impl DerefMut<Target = Self>, effect: &str, entity: Entity, error: E) {
+        if !matches!(&*status, Self::Failed(old) if *old == error) {
             error!("nebel: {effect} {entity} not drawn: {error}");
-            *self = Self::Failed(error);
+            *status = Self::Failed(error);
         }
     }
 }
@@ -76,9 +79,32 @@ mod tests {
         let entity = Entity::from_raw_u32(1).unwrap();
         let mut status = EffectStatus::<Bad>::default();
         assert_eq!(status, EffectStatus::Pending);
-        status.fail("test", entity, Bad(1));
+        EffectStatus::fail(&mut status, "test", entity, Bad(1));
         assert_eq!(status, EffectStatus::Failed(Bad(1)));
-        status.fail("test", entity, Bad(2));
+        EffectStatus::fail(&mut status, "test", entity, Bad(2));
         assert_eq!(status, EffectStatus::Failed(Bad(2)));
+    }
+
+    #[test]
+    fn the_same_failure_again_leaves_the_status_unchanged() {
+        let mut world = World::new();
+        let entity = world.spawn(EffectStatus::<Bad>::Pending).id();
+        let fail = |world: &mut World, error| {
+            let mut status = world.get_mut::<EffectStatus<Bad>>(entity).unwrap();
+            EffectStatus::fail(status.reborrow(), "test", entity, error);
+        };
+        let changed = |world: &World| {
+            world
+                .entity(entity)
+                .get_ref::<EffectStatus<Bad>>()
+                .unwrap()
+                .is_changed()
+        };
+        fail(&mut world, Bad(1));
+        world.clear_trackers();
+        fail(&mut world, Bad(1));
+        assert!(!changed(&world), "the same reason: not written");
+        fail(&mut world, Bad(2));
+        assert!(changed(&world), "a new reason: written");
     }
 }

@@ -16,7 +16,6 @@
 //! the component removes its batch and state.
 
 use std::fmt::Display;
-use std::marker::PhantomData;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -206,7 +205,7 @@ impl<T: SkyLayer> PartialEq for CellsKey<T> {
 }
 
 /// What a build on a worker hands back.
-struct Built<T: SkyLayer> {
+struct Built {
     /// The layer, when the build made a new one.
     layer: Option<Arc<SurfaceLayer>>,
     cells: Vec<GpuCell>,
@@ -216,13 +215,12 @@ struct Built<T: SkyLayer> {
     transfer: Arc<TransferFunction>,
     build_ms: Option<f32>,
     update_ms: f32,
-    _layer: PhantomData<fn() -> T>,
 }
 
 /// A build in flight and what it is built from.
 type Building<T> = (
     CellsKey<T>,
-    HeavyBuild<Result<Built<T>, <T as SkyLayer>::Error>>,
+    HeavyBuild<Result<Built, <T as SkyLayer>::Error>>,
 );
 
 /// A layer's quadtree, buffers and caches.
@@ -321,7 +319,7 @@ fn update_sky_layers<T: SkyLayer>(
         };
         if let Err(error) = layer.validate() {
             clear(&mut commands, state);
-            status.fail(T::NAME, entity, error);
+            EffectStatus::fail(status.reborrow(), T::NAME, entity, error);
             continue;
         }
         if !visibility.get() || layer.is_dark() {
@@ -367,7 +365,7 @@ fn update_sky_layers<T: SkyLayer>(
                         // Not again until something changes.
                         state.cells = Some(key);
                         state.dirty = false;
-                        status.fail(T::NAME, entity, error);
+                        EffectStatus::fail(status.reborrow(), T::NAME, entity, error);
                         continue;
                     }
                 }
@@ -376,7 +374,7 @@ fn update_sky_layers<T: SkyLayer>(
             let transfer = match state.transfer.get(transfer_function, factor) {
                 Ok(transfer) => transfer,
                 Err(error) => {
-                    status.fail(T::NAME, entity, error.into());
+                    EffectStatus::fail(status.reborrow(), T::NAME, entity, error.into());
                     continue;
                 }
             };
@@ -429,7 +427,6 @@ fn update_sky_layers<T: SkyLayer>(
                     transfer,
                     build_ms,
                     update_ms: started.elapsed().as_secs_f32() * 1e3,
-                    _layer: PhantomData,
                 })
             });
             state.building = Some((key, build));
@@ -450,7 +447,7 @@ fn update_sky_layers<T: SkyLayer>(
                 clear(&mut commands, state);
                 // Not again until something changes.
                 state.cells = Some(key);
-                status.fail(T::NAME, entity, error);
+                EffectStatus::fail(status.reborrow(), T::NAME, entity, error);
                 continue;
             }
         };

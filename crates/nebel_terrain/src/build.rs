@@ -255,7 +255,7 @@ fn fail(
     state: &mut TerrainLod,
     error: TerrainBuildError,
 ) {
-    status.fail("terrain", entity, error);
+    TerrainStatus::fail(&mut *status, "terrain", entity, error);
     state.hierarchy = None;
     state.refiner = TerrainRefiner::new();
     state.refining = None;

@@ -398,7 +398,7 @@ fn failed(
     error: TerrainError,
 ) {
     let error = crate::TerrainBuildError::from(error);
-    status.fail("terrain", entity, error);
+    TerrainStatus::fail(&mut *status, "terrain", entity, error);
     // Refined again when the view or a setting changes.
     state.refiner = TerrainRefiner::new();
     remove_mesh(commands, entity, state);

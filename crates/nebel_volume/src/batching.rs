@@ -777,11 +777,9 @@ pub(crate) fn report_status(
                 || (batching.keyframes.is_none()
                     && generation.is_some_and(|generation| !generation.has_grid())));
         match failure {
-            // Touched only on a new failure, so the status changes when it does.
-            Some(error) if *status != VolumeStatus::Failed(error.clone()) => {
-                status.fail("volume", entity, error.clone());
+            Some(error) => {
+                VolumeStatus::fail(status.reborrow(), "volume", entity, error.clone());
             }
-            Some(_) => {}
             None if pending => {
                 status.set_if_neq(VolumeStatus::Pending);
             }

@@ -198,7 +198,7 @@ fn prepare_fog_layers(
                 prepared.0 = uniform;
             }
             Err(error) => {
-                status.fail("fog layers of", entity, error);
+                FogLayersStatus::fail(status.reborrow(), "fog layers of", entity, error);
                 prepared.0 = None;
             }
         }
