@@ -11,10 +11,11 @@
 // upsample: a full-resolution pixel takes the bilinear mix of the four
 // low-resolution pixels around it only when (1) the mix of their depths
 // predicts its own depth within a relative tolerance (no edge of opaque
-// geometry, no sky against geometry) and (2) the error of the linear
-// interpolation, estimated from the second differences of colour and
-// transmittance around the four (h² |f''| / 8), is within a tolerance (no
-// edge or fine detail of the volume). It then writes the mix and marks the
+// geometry, no sky against geometry) and (2) the error of the bilinear
+// interpolation at the pixel's weights (w_x, w_y), estimated from the second
+// differences of colour and transmittance around the four as
+// (w_x (1 − w_x) |f_xx| + w_y (1 − w_y) |f_yy|) h² / 2, is within a
+// tolerance (no edge or fine detail of the volume). It then writes the mix and marks the
 // stencil; every other pixel keeps the cleared accumulation and is drawn by
 // the full-resolution cell passes, which test the stencil.
 
@@ -78,13 +79,15 @@ fn upsample(in: FullscreenVertexOutput) -> @location(0) vec4<f32> {
             values[y][x] = low_value(lower + vec2(x - 1, y - 1));
         }
     }
-    var curvature = vec4(0.0);
+    var curvature_x = vec4(0.0);
+    var curvature_y = vec4(0.0);
     var predicted = 0.0;
     for (var y = 1; y < 3; y++) {
         for (var x = 1; x < 3; x++) {
             let second_x = values[y][x - 1] - 2.0 * values[y][x] + values[y][x + 1];
             let second_y = values[y - 1][x] - 2.0 * values[y][x] + values[y + 1][x];
-            curvature = max(curvature, abs(second_x) + abs(second_y));
+            curvature_x = max(curvature_x, abs(second_x));
+            curvature_y = max(curvature_y, abs(second_y));
             let w = mix(1.0 - weight.x, weight.x, f32(x - 1)) * mix(1.0 - weight.y, weight.y, f32(y - 1));
             predicted += w * textureLoad(low_depth, clamp(lower + vec2(x - 1, y - 1), vec2(0), last), 0).r;
         }
@@ -94,9 +97,12 @@ fn upsample(in: FullscreenVertexOutput) -> @location(0) vec4<f32> {
         mix(values[2][1], values[2][2], weight.x),
         weight.y,
     );
-    // Linear interpolation between samples h apart is off by at most
-    // h² |f''| / 8: an eighth of the second differences.
-    let interpolation_error = 0.125 * max(max(curvature.r, curvature.g), max(curvature.b, curvature.a));
+    // Bilinear interpolation between samples h apart, at weights w, is off
+    // by w (1 − w) h² |f''| / 2 along each axis, to leading order (it
+    // reproduces the mixed term exactly).
+    let spread = 0.5 * weight * (1.0 - weight);
+    let error = spread.x * curvature_x + spread.y * curvature_y;
+    let interpolation_error = max(max(error.r, error.g), max(error.b, error.a));
     let depth = full_depth(pixel);
     // Along the border the ring is cut: no estimate there.
     let inside = all(lower >= vec2(1)) && all(lower + 2 <= last);

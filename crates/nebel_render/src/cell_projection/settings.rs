@@ -26,9 +26,10 @@ pub struct CellProjection {
     pub resolution: CellResolution,
     /// Below full resolution, the largest interpolation error a pixel may
     /// take from the lower resolution, in linear RGB and transmittance:
-    /// the error of the bilinear mix of its four low-resolution neighbours,
-    /// estimated as an eighth of their second differences (`h² |f''| / 8`
-    /// for samples `h` apart). A pixel beyond it is drawn at full
+    /// the error of the bilinear mix of its four low-resolution neighbours
+    /// at its weights `w`, estimated from their second differences along
+    /// each axis (`w (1 − w) h² |f''| / 2` for samples `h` apart, the
+    /// leading term of the error). A pixel beyond it is drawn at full
     /// resolution. 0 draws every pixel whose neighbours are not exactly
     /// linear at full resolution; larger values trade fine detail for
     /// speed. A value that is not finite and ≥ 0 counts as 0. Default
