@@ -73,6 +73,6 @@ pub use surface_layer::{
 pub use view::View;
 pub use visibility::{CellAdjacency, sorted_batch};
 pub use volume_batcher::{
-    BatchLighting, BatchSettings, BlendStep, BuiltBlendStep, FrameInputs, OctreeSettings,
+    BatchLighting, BatchSettings, BuiltRefinementStep, FrameInputs, OctreeSettings, RefinementStep,
     VolumeBatchError, VolumeBatcher, VolumeSource,
 };

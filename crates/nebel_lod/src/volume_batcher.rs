@@ -244,7 +244,7 @@ enum Kind {
     /// A grid through the octree; the grid itself is not kept.
     Octree {
         /// The padded grid's hierarchy, with the light field when lit
-        /// (shared with a [`BlendStep`] in flight).
+        /// (shared with a [`RefinementStep`] in flight).
         hierarchy: Arc<VolumeHierarchy>,
         /// The cells' scalar and modulator.
         scalars: CellScalars,
@@ -476,23 +476,20 @@ impl VolumeBatcher {
     }
 
     /// The rebuild [`VolumeBatcher::update`] would make for `view` and
-    /// `inputs`, detached, when it is for a new keyframe blend alone (the
-    /// view, transfer function and criterion as last built, a batcher of two
-    /// keyframes): a still camera's refinement step, which a caller may run
-    /// on another thread ([`BlendStep::build`]) and hand back with
-    /// [`VolumeBatcher::adopt`] while the current batch is drawn. `None`
-    /// otherwise.
-    pub fn blend_step(&self, view: &View, inputs: &FrameInputs) -> Option<BlendStep> {
+    /// `inputs`, detached, for a grid through the octree: a refinement a
+    /// caller may run on another thread ([`RefinementStep::build`]) and hand
+    /// back with [`VolumeBatcher::adopt`] while the current batch is drawn
+    /// (the camera moved, a keyframe blend advanced, the criterion or the
+    /// transfer function changed). `None` when `update` would not rebuild,
+    /// and for the other kinds, whose rebuilds are not detached.
+    pub fn refinement_step(&self, view: &View, inputs: &FrameInputs) -> Option<RefinementStep> {
         let Kind::Octree { hierarchy, scalars } = &self.kind else {
             return None;
         };
-        let built = self.built.as_ref()?;
-        let only_the_blend = hierarchy.has_next_keyframe()
-            && built.view == *view
-            && built.transfer == inputs.transfer.content_hash()
-            && built.criterion == inputs.criterion
-            && built.blends != Blends::of(inputs);
-        only_the_blend.then(|| BlendStep::new(hierarchy, *scalars, view, inputs))
+        let rebuild = self.built.as_ref().is_none_or(|built| {
+            self.needs_rebuild(built, view, inputs, inputs.transfer.content_hash(), None)
+        });
+        rebuild.then(|| RefinementStep::new(hierarchy, *scalars, view, inputs))
     }
 
     /// Whether the batch was last built or adopted for exactly `view` and
@@ -508,22 +505,22 @@ impl VolumeBatcher {
     }
 
     /// The first build of a batcher of two keyframes, detached as
-    /// [`VolumeBatcher::blend_step`]: the next pair's batch made ahead for the
+    /// [`VolumeBatcher::refinement_step`]: the next pair's batch made ahead for the
     /// current view, adopted before it is drawn. `None` once built or for
     /// other batchers.
-    pub fn first_build(&self, view: &View, inputs: &FrameInputs) -> Option<BlendStep> {
+    pub fn first_build(&self, view: &View, inputs: &FrameInputs) -> Option<RefinementStep> {
         let Kind::Octree { hierarchy, scalars } = &self.kind else {
             return None;
         };
         (self.built.is_none() && hierarchy.has_next_keyframe())
-            .then(|| BlendStep::new(hierarchy, *scalars, view, inputs))
+            .then(|| RefinementStep::new(hierarchy, *scalars, view, inputs))
     }
 
-    /// Takes the batch of a finished [`BlendStep`] of this batcher's octree
+    /// Takes the batch of a finished [`RefinementStep`] of this batcher's octree
     /// (one of another batcher is ignored) as the current batch, as
     /// [`VolumeBatcher::update`] would have built it; returns whether it did.
     /// A failed step is its error, and changes nothing.
-    pub fn adopt(&mut self, built: BuiltBlendStep) -> Result<bool, VolumeBatchError> {
+    pub fn adopt(&mut self, built: BuiltRefinementStep) -> Result<bool, VolumeBatchError> {
         let Kind::Octree { hierarchy, .. } = &self.kind else {
             return Ok(false);
         };
@@ -699,10 +696,10 @@ impl PartialEq for Blends {
     }
 }
 
-/// A blended octree's refinement for a new blend, detached from its
-/// batcher ([`VolumeBatcher::blend_step`]).
+/// An octree's refinement for a new view or new inputs, detached from its
+/// batcher ([`VolumeBatcher::refinement_step`]).
 #[derive(Debug)]
-pub struct BlendStep {
+pub struct RefinementStep {
     hierarchy: Arc<VolumeHierarchy>,
     scalars: CellScalars,
     view: View,
@@ -711,7 +708,7 @@ pub struct BlendStep {
     blends: Blends,
 }
 
-impl BlendStep {
+impl RefinementStep {
     fn new(
         hierarchy: &Arc<VolumeHierarchy>,
         scalars: CellScalars,
@@ -729,33 +726,39 @@ impl BlendStep {
     }
 
     /// Refines and emits the batch, as [`VolumeBatcher::update`] would.
-    pub fn build(self) -> BuiltBlendStep {
+    pub fn build(self) -> BuiltRefinementStep {
         let settings = self.blends.refinement(self.criterion, self.scalars);
         let batch = refine(&self.hierarchy, &self.view, &self.transfer, &settings)
             .and_then(|refinement| {
                 lod_batch_with(&self.hierarchy, &refinement, &self.view, self.scalars)
             })
             .map_err(VolumeBatchError::from);
-        BuiltBlendStep { step: self, batch }
+        BuiltRefinementStep { step: self, batch }
     }
 }
 
-/// A built [`BlendStep`], for [`VolumeBatcher::adopt`].
+/// A built [`RefinementStep`], for [`VolumeBatcher::adopt`].
 #[derive(Debug)]
-pub struct BuiltBlendStep {
-    step: BlendStep,
+pub struct BuiltRefinementStep {
+    step: RefinementStep,
     batch: Result<Cells, VolumeBatchError>,
 }
 
-impl BuiltBlendStep {
+impl BuiltRefinementStep {
+    /// Whether the step was made for `inputs` (the transfer function, the
+    /// criterion and the blends), from any view: one the camera moved away
+    /// from while it was made is still the newest batch for them.
+    pub fn is_for_inputs(&self, inputs: &FrameInputs) -> bool {
+        let step = &self.step;
+        step.transfer.content_hash() == inputs.transfer.content_hash()
+            && step.criterion == inputs.criterion
+            && step.blends == Blends::of(inputs)
+    }
+
     /// Whether the step was made for exactly `view` and `inputs` (a step made
     /// ahead for the next blend is adopted once the drawn blend reaches it).
     pub fn is_for(&self, view: &View, inputs: &FrameInputs) -> bool {
-        let step = &self.step;
-        step.view == *view
-            && step.transfer.content_hash() == inputs.transfer.content_hash()
-            && step.criterion == inputs.criterion
-            && step.blends == Blends::of(inputs)
+        self.step.view == *view && self.is_for_inputs(inputs)
     }
 }
 

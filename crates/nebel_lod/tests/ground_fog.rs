@@ -2,6 +2,8 @@
 //! fog's volume, back to front for every eye, continuous along a flight, left
 //! out beyond a handoff distance, and bad input as errors.
 
+#[path = "support/rays.rs"]
+mod rays;
 mod support;
 
 use std::collections::HashSet;
@@ -14,6 +16,7 @@ use nebel_lod::{
     CellOrder, FogProfile, Frustum, GpuCell, LodSettings, PrismError, PrismInput, PrismScalar,
     PrismStats, TerrainError, TerrainHierarchy, TerrainMesh, TriangleOrder, fog_prisms,
 };
+use rays::composites;
 use support::{
     SPACING, assert_conforming, assert_fills_the_prisms, check_ray_order, key, over_the_grid,
     random_eyes, uniform, valley,
@@ -161,34 +164,6 @@ fn back_to_front_is_a_visibility_order_for_every_eye_by_ray_tests() {
     }
 }
 
-/// The colour `ray` gets from `cells` composited back to front in their
-/// drawn order, and in the order of their distance along the ray: each cell
-/// emits its mean scalar `s` and has extinction `0.02 s` per metre (fog
-/// about 100 m thick, optical depths up to 2).
-fn composites(cells: &[Tetrahedron], ray: &Ray) -> (f64, f64) {
-    let mut hits: Vec<(f64, usize, f64, f64)> = cells
-        .iter()
-        .enumerate()
-        .filter_map(|(index, cell)| {
-            let segment = cell.intersect(ray)?;
-            let entry = segment.t_entry.max(0.0);
-            let length = segment.t_exit - entry;
-            let scalar = cell.scalars.iter().sum::<f64>() / 4.0;
-            let alpha = 1.0 - (-0.02 * scalar * length.max(0.0)).exp();
-            (length > 1e-4).then_some((entry, index, scalar, alpha))
-        })
-        .collect();
-    let over = |hits: &[(f64, usize, f64, f64)]| {
-        hits.iter().fold(0.0, |colour, (_, _, scalar, alpha)| {
-            scalar * alpha + (1.0 - alpha) * colour
-        })
-    };
-    hits.sort_by_key(|hit| hit.1);
-    let drawn = over(&hits);
-    hits.sort_by(|a, b| b.0.total_cmp(&a.0));
-    (drawn, over(&hits))
-}
-
 #[test]
 fn an_order_a_frame_old_costs_little_of_the_image() {
     // Built in the background, the prisms of a sorted fog are drawn a frame
@@ -218,7 +193,9 @@ fn an_order_a_frame_old_costs_little_of_the_image() {
             let target = hierarchy.origin()
                 + DVec3::new(random() * 320.0, 40.0 + random() * 100.0, random() * 320.0);
             let ray = Ray::new(moved, target - moved).unwrap();
-            let (drawn, exact) = composites(&cells, &ray);
+            // Each cell emits its mean scalar `s` and has extinction `0.02 s`
+            // per metre (fog about 100 m thick, optical depths up to 2).
+            let (drawn, exact) = composites(&cells, &ray, 0.02);
             let error = (drawn - exact).abs();
             rays += 1;
             wrong += usize::from(error > 1e-9);

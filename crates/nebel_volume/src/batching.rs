@@ -19,16 +19,20 @@
 //!    function, the criterion of [`VolumeLod`] scaled by the quality preset);
 //!    the entity's `CellBatch` is written only
 //!    when the batch, the optical mode or the scattering changed, so the
-//!    render world uploads only then. A windy cloud or a volume under a
-//!    moving sun is drawn from its keyframe track (`crate::keyframes`), with
-//!    its `CellBlend` and, lit, its `CellSunlight` written when they change; a
-//!    still camera's refinement step for the track's advancing blend and the
-//!    next pair's first batch are built on the task pool
-//!    (`VolumeBatcher::blend_step`, `VolumeBatcher::first_build`) while the
-//!    current batch is drawn, and so is the first pair's first batch while
-//!    the volume's own batch (or nothing) is drawn: the track draws a pair,
-//!    and hands over to the next, once its batch is made, so that no frame
-//!    builds one.
+//!    render world uploads only then. An octree's refinement (the camera
+//!    moved, the criterion or the transfer function changed) is made on the
+//!    task pool (`VolumeBatcher::refinement_step`) while the last batch is
+//!    drawn, and taken in the first frame after it is done, even if the
+//!    camera has moved on meanwhile; the next starts from the newest view.
+//!    A windy cloud or a volume under a moving sun is drawn from its
+//!    keyframe track (`crate::keyframes`), with its `CellBlend` and, lit, its
+//!    `CellSunlight` written when they change; a still camera's refinement
+//!    step for the track's advancing blend and the next pair's first batch
+//!    (`VolumeBatcher::first_build`) are made ahead on the task pool too, and
+//!    so is the first pair's first batch while the volume's own batch (or
+//!    nothing) is drawn: the track draws a pair, and hands over to the next,
+//!    once its batch is made, so that no frame builds one. The other kinds
+//!    (a grid at full resolution, a cell mesh) rebuild on the frame.
 //! 3. `report_status` derives [`VolumeStatus`] from the stages' failures (the
 //!    generator's, the grid asset's, the build's, the last update's, in that
 //!    order) and logs a failure once per entity when it appears; a failed
@@ -38,9 +42,14 @@
 //! A hidden volume (its [`InheritedVisibility`] false) has no batch and
 //! builds nothing. The systems run in `PostUpdate`, after transform
 //! propagation, the camera's projection update and visibility propagation, so
-//! a batch is built for the eye of the frame it is drawn in (a batch one frame
-//! behind a moving camera is ordered and refined for the wrong eye). The
-//! systems that change volumes (campfire, clouds) run in `Update`.
+//! a refinement starts from the eye of the frame (under
+//! [`HeavyBuilds::Blocking`] it is drawn in that frame). In the background an
+//! octree batch is drawn a build or two after the eye it was refined and
+//! ordered for: its order stays a visibility order while the eye keeps to the
+//! same side of every face's plane between cells, and only rays across a
+//! face whose plane the eye crossed composite two cells out of order
+//! (`nebel_lod`'s octree tests measure the image cost of an order a frame
+//! old). The systems that change volumes (campfire, clouds) run in `Update`.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -51,8 +60,8 @@ use bevy::prelude::*;
 use nebel_core::optics::OpticalMode;
 use nebel_lod::octree::keyframe::REFINEMENT_SPAN;
 use nebel_lod::{
-    BatchLighting, BatchSettings, BuiltBlendStep, CellOrder, FrameInputs, Frustum, OctreeSettings,
-    View, VolumeBatchError, VolumeBatcher, VolumeSource,
+    BatchLighting, BatchSettings, BuiltRefinementStep, CellOrder, FrameInputs, Frustum,
+    OctreeSettings, View, VolumeBatchError, VolumeBatcher, VolumeSource,
 };
 use nebel_render::camera::to_double;
 use nebel_render::{
@@ -127,17 +136,17 @@ pub(crate) struct VolumeBatching {
     /// The keyframe pair (its first keyframe's index) the last batch
     /// written came from; `None`: the volume's own batcher.
     wrote_pair: Option<i64>,
-    /// A still camera's refinement step for the keyframes' advancing blend
-    /// (the next step's, made ahead, or the current one's when the drawn
-    /// batch is older), in flight.
-    blend_step: Option<HeavyBuild<BuiltBlendStep>>,
-    /// A finished refinement step waiting for the blend to reach it.
-    ready_step: Option<BuiltBlendStep>,
+    /// The octree's refinement in flight: for the frame's view and inputs
+    /// when the drawn batch is older, or a still camera's next step of the
+    /// keyframes' advancing blend, made ahead.
+    refinement_step: Option<HeavyBuild<BuiltRefinementStep>>,
+    /// A finished refinement waiting for the blend to reach it.
+    ready_step: Option<BuiltRefinementStep>,
     /// The next keyframe pair's first batch, made ahead, in flight.
-    next_pair_batch: Option<HeavyBuild<BuiltBlendStep>>,
+    next_pair_batch: Option<HeavyBuild<BuiltRefinementStep>>,
     /// The first keyframe pair's first batch, made while the volume's own
     /// batch (or nothing) is drawn, in flight.
-    first_pair_batch: Option<HeavyBuild<BuiltBlendStep>>,
+    first_pair_batch: Option<HeavyBuild<BuiltRefinementStep>>,
     /// What the batcher was built from.
     built: Option<BuildKey>,
     /// The build in flight and what it builds from.
@@ -561,7 +570,7 @@ pub(crate) fn update_batches(
         };
         let updated = step_batch(
             batcher,
-            &mut batching.blend_step,
+            &mut batching.refinement_step,
             &mut batching.ready_step,
             &step,
             *mode,
@@ -570,7 +579,7 @@ pub(crate) fn update_batches(
         // end of the drawn one's span.
         let hold = step.next.filter(|next| {
             next.blend < 1.0
-                && batching.blend_step.is_some()
+                && batching.refinement_step.is_some()
                 && batcher.is_built_for(&view, &inputs)
         });
         // The blend as the mix of the drawn batch's two ends.
@@ -636,36 +645,43 @@ struct StepInputs<'a> {
 }
 
 /// Brings `batcher`'s batch up to date for the frame (`step`); returns
-/// whether it changed. A keyframe pair under a still camera takes the step
-/// made for this frame's blend when it is ready (`ready`), and otherwise
-/// makes on the task pool (`in_flight`) the step for the drawn blend when
-/// the batch is older, or else the next step ahead. Any other change (the
-/// camera moved) rebuilds now, and steps made for another view are dropped.
+/// whether it changed. An octree's refinement is made on the task pool
+/// (`in_flight`) while the current batch is drawn: for this frame's view and
+/// inputs when the batch is older, else, for a keyframe pair under a still
+/// camera, the next step ahead. A finished one (`ready`) is taken when it is
+/// for this frame's inputs, also when the camera has moved on since it was
+/// started (it is newer than the drawn batch; the next starts from the
+/// current view), or, made ahead, once the blend reaches it. The other kinds
+/// rebuild at once.
 fn step_batch(
     batcher: &mut VolumeBatcher,
-    in_flight: &mut Option<HeavyBuild<BuiltBlendStep>>,
-    ready: &mut Option<BuiltBlendStep>,
+    in_flight: &mut Option<HeavyBuild<BuiltRefinementStep>>,
+    ready: &mut Option<BuiltRefinementStep>,
     step: &StepInputs,
     mode: HeavyBuilds,
 ) -> Result<bool, VolumeBatchError> {
     let StepInputs { view, inputs, next } = *step;
+    let mut updated = Ok(false);
+    let mut take = |ready: &mut Option<BuiltRefinementStep>, batcher: &mut VolumeBatcher| {
+        if let Some(built) = ready.take_if(|built| built.is_for_inputs(inputs)) {
+            updated = batcher.adopt(built);
+        }
+    };
     if let Some(built) = in_flight.as_mut().and_then(|build| build.poll(mode)) {
         *in_flight = None;
         *ready = Some(built);
     }
-    let mut updated = Ok(false);
-    if let Some(built) = ready.take_if(|built| built.is_for(view, inputs)) {
-        updated = batcher.adopt(built);
-    }
+    take(ready, batcher);
     let current = batcher.is_built_for(view, inputs);
     let wanted = if current {
         next.as_ref().filter(|next| next.blend < 1.0)
     } else {
         Some(inputs)
     };
-    let wanted_step = wanted.and_then(|wanted| Some((wanted, batcher.blend_step(view, wanted)?)));
+    let wanted_step =
+        wanted.and_then(|wanted| Some((wanted, batcher.refinement_step(view, wanted)?)));
     match wanted_step {
-        Some((wanted, blend_step)) => {
+        Some((wanted, refinement)) => {
             if ready
                 .as_ref()
                 .is_some_and(|built| !built.is_for(view, wanted))
@@ -673,24 +689,18 @@ fn step_batch(
                 *ready = None;
             }
             if in_flight.is_none() && ready.is_none() {
-                let mut build = HeavyBuild::spawn_in(mode, true, move || blend_step.build());
+                let mut build = HeavyBuild::spawn_in(mode, true, move || refinement.build());
                 // Done at once under `HeavyBuilds::Blocking`.
                 match build.poll(mode) {
                     Some(built) => *ready = Some(built),
                     None => *in_flight = Some(build),
                 }
             }
-            if let Some(built) = ready.take_if(|built| built.is_for(view, inputs)) {
-                updated = batcher.adopt(built);
-            }
+            take(ready, batcher);
             updated
         }
         None if current => updated,
-        None => {
-            *in_flight = None;
-            *ready = None;
-            batcher.update(view, inputs)
-        }
+        None => batcher.update(view, inputs),
     }
 }
 
@@ -724,7 +734,7 @@ fn write_if_changed<C: Component + PartialEq>(
 /// the next frame.
 fn make_ahead(
     pair: Option<&mut VolumeBatcher>,
-    build: &mut Option<HeavyBuild<BuiltBlendStep>>,
+    build: &mut Option<HeavyBuild<BuiltRefinementStep>>,
     view: &View,
     inputs: &FrameInputs,
     mode: HeavyBuilds,
