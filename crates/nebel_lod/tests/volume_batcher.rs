@@ -918,7 +918,7 @@ fn an_octree_order_a_frame_or_two_old_costs_little_of_the_image() {
             .batch()
             .tetrahedra
             .iter()
-            .map(|cell| cell.to_tetrahedron())
+            .map(nebel_lod::GpuCell::to_tetrahedron)
             .collect();
         assert!(!cells.is_empty());
         // From the eye it was ordered for, the order is exact.
