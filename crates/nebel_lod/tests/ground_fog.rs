@@ -16,7 +16,7 @@ use nebel_lod::{
     CellOrder, FogProfile, Frustum, GpuCell, LodSettings, PrismError, PrismInput, PrismScalar,
     PrismStats, TerrainError, TerrainHierarchy, TerrainMesh, TriangleOrder, fog_prisms,
 };
-use rays::composites;
+use rays::{OrderCost, composites};
 use support::{
     SPACING, assert_conforming, assert_fills_the_prisms, check_ray_order, key, over_the_grid,
     random_eyes, uniform, valley,
@@ -173,7 +173,7 @@ fn an_order_a_frame_old_costs_little_of_the_image() {
     let (hierarchy, layer) = valley(33);
     let mut random = uniform(0x1a7e_u64);
     let profile = FogProfile::new(vec![[0.0, 1.0], [0.3, 0.8], [0.7, 0.3], [1.0, 0.0]]).unwrap();
-    let (mut rays, mut wrong, mut squares, mut worst) = (0, 0, 0.0, 0.0_f64);
+    let mut cost = OrderCost::default();
     let more = random_eyes(&hierarchy, 4, 0x1a7e);
     for (_, eye) in eyes(&hierarchy, &layer).into_iter().chain(more) {
         let angle = random() * std::f64::consts::TAU;
@@ -195,18 +195,12 @@ fn an_order_a_frame_old_costs_little_of_the_image() {
             let ray = Ray::new(moved, target - moved).unwrap();
             // Each cell emits its mean scalar `s` and has extinction `0.02 s`
             // per metre (fog about 100 m thick, optical depths up to 2).
-            let (drawn, exact) = composites(&cells, &ray, 0.02);
-            let error = (drawn - exact).abs();
-            rays += 1;
-            wrong += usize::from(error > 1e-9);
-            squares += error * error;
-            worst = worst.max(error);
+            cost.add(composites(&cells, &ray, 0.02));
         }
     }
-    let rmse = (squares / f64::from(rays)).sqrt();
-    println!("{wrong} of {rays} rays differ; RMSE {rmse:.2e}, max {worst:.2e}");
+    println!("{cost}");
     // Half an 8-bit step in RMS over the rays into the fog.
-    assert!(rmse <= 1.0 / 510.0, "RMSE {rmse:.2e}, max {worst:.2e}");
+    assert!(cost.rmse() <= 1.0 / 510.0, "{cost}");
 }
 
 #[test]

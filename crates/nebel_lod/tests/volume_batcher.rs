@@ -901,7 +901,7 @@ fn an_octree_order_a_frame_or_two_old_costs_little_of_the_image() {
         state ^= state << 17;
         (state >> 11) as f64 / (1u64 << 53) as f64
     };
-    let (mut rays, mut wrong, mut squares, mut worst) = (0, 0, 0.0, 0.0_f64);
+    let mut cost = rays::OrderCost::default();
     for _ in 0..4 {
         // An eye inside the grid or just outside it, moved one or two
         // voxels (a fly-through's frame or two at 60 frames a second).
@@ -921,35 +921,27 @@ fn an_octree_order_a_frame_or_two_old_costs_little_of_the_image() {
             .map(nebel_lod::GpuCell::to_tetrahedron)
             .collect();
         assert!(!cells.is_empty());
-        // From the eye it was ordered for, the order is exact.
-        for _ in 0..50 {
+        // A ray from `eye` (index coordinates) to a random point in the
+        // grid, composited both ways; optical depths up to about 3.
+        let mut composites = |eye: DVec3| {
             let target = at(DVec3::new(
                 random() * 32.0,
                 random() * 16.0,
                 random() * 32.0,
             ));
-            let ray = Ray::new(at(u), target - at(u)).unwrap();
-            let (drawn, exact) = rays::composites(&cells, &ray, 0.15);
+            let ray = Ray::new(at(eye), target - at(eye)).unwrap();
+            rays::composites(&cells, &ray, 0.15)
+        };
+        // From the eye it was ordered for, the order is exact.
+        for _ in 0..50 {
+            let (drawn, exact) = composites(u);
             assert!((drawn - exact).abs() <= 1e-9, "{drawn} against {exact}");
         }
         for _ in 0..250 {
-            let target = at(DVec3::new(
-                random() * 32.0,
-                random() * 16.0,
-                random() * 32.0,
-            ));
-            let ray = Ray::new(at(moved), target - at(moved)).unwrap();
-            // Optical depths up to about 3 across the grid.
-            let (drawn, exact) = rays::composites(&cells, &ray, 0.15);
-            let error = (drawn - exact).abs();
-            rays += 1;
-            wrong += usize::from(error > 1e-9);
-            squares += error * error;
-            worst = worst.max(error);
+            cost.add(composites(moved));
         }
     }
-    let rmse = (squares / f64::from(rays)).sqrt();
-    println!("{wrong} of {rays} rays differ; RMSE {rmse:.2e}, max {worst:.2e}");
+    println!("{cost}");
     // Half an 8-bit step in RMS over the rays into the volume.
-    assert!(rmse <= 1.0 / 510.0, "RMSE {rmse:.2e}, max {worst:.2e}");
+    assert!(cost.rmse() <= 1.0 / 510.0, "{cost}");
 }

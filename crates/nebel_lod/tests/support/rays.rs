@@ -31,3 +31,42 @@ pub fn composites(cells: &[Tetrahedron], ray: &Ray, extinction: f64) -> (f64, f6
     hits.sort_by(|a, b| b.0.total_cmp(&a.0));
     (drawn, over(&hits))
 }
+
+/// How far rays composited in a drawn order are from their ray order, over
+/// many rays: how many differ, the RMS and the largest difference.
+#[derive(Default)]
+pub struct OrderCost {
+    rays: u32,
+    wrong: u32,
+    squares: f64,
+    worst: f64,
+}
+
+impl OrderCost {
+    /// Adds one ray's colour in the drawn order and in the ray order.
+    pub fn add(&mut self, (drawn, exact): (f64, f64)) {
+        let error = (drawn - exact).abs();
+        self.rays += 1;
+        self.wrong += u32::from(error > 1e-9);
+        self.squares += error * error;
+        self.worst = self.worst.max(error);
+    }
+
+    /// The root mean square of the differences.
+    pub fn rmse(&self) -> f64 {
+        (self.squares / f64::from(self.rays.max(1))).sqrt()
+    }
+}
+
+impl std::fmt::Display for OrderCost {
+    fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        write!(
+            f,
+            "{} of {} rays differ; RMSE {:.2e}, max {:.2e}",
+            self.wrong,
+            self.rays,
+            self.rmse(),
+            self.worst
+        )
+    }
+}
