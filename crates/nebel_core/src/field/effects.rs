@@ -113,14 +113,15 @@ pub fn campfire_density(dims: [usize; 3], time_seconds: f64, seed: u32) -> Densi
                     k as f64 / (nz - 1) as f64,
                 );
                 let p = CAMPFIRE_MIN + f * extent;
-                let n = noise.get([
-                    p.x * FLAME_FREQUENCY + NOISE_OFFSET[0],
-                    (p.y - FLAME_RISE * time) * FLAME_FREQUENCY + NOISE_OFFSET[1],
-                    p.z * FLAME_FREQUENCY + NOISE_OFFSET[2],
-                    FLAME_FLICKER * time + FLICKER_OFFSET,
-                ]);
-                let n = ((n + 1.0) / 2.0).clamp(0.0, 1.0);
-                values.push(flame(f.y, p.x.hypot(p.z), if n.is_nan() { 0.0 } else { n }));
+                let r = p.x.hypot(p.z);
+                // Outside the widest flame any noise gives (n = 1) the
+                // density is 0 whatever the noise: most of the box.
+                let n = if r < flame_radius(f.y, 1.0) {
+                    flame_noise(&noise, p, time)
+                } else {
+                    0.0
+                };
+                values.push(flame(f.y, r, n));
             }
         }
     }
@@ -129,10 +130,29 @@ pub fn campfire_density(dims: [usize; 3], time_seconds: f64, seed: u32) -> Densi
         .expect("campfire densities are finite, in [0, 1], on a valid grid")
 }
 
+/// The unit noise `n` of the flame at `p` (world units) and `time` seconds
+/// (module docs), 0 where the noise is NaN.
+fn flame_noise(noise: &Fbm<Perlin>, p: DVec3, time: f64) -> f64 {
+    let n = noise.get([
+        p.x * FLAME_FREQUENCY + NOISE_OFFSET[0],
+        (p.y - FLAME_RISE * time) * FLAME_FREQUENCY + NOISE_OFFSET[1],
+        p.z * FLAME_FREQUENCY + NOISE_OFFSET[2],
+        FLAME_FLICKER * time + FLICKER_OFFSET,
+    ]);
+    let n = ((n + 1.0) / 2.0).clamp(0.0, 1.0);
+    if n.is_nan() { 0.0 } else { n }
+}
+
+/// The flame radius `R` at height fraction `h` and unit noise `n`; rounding
+/// keeps it non-decreasing in `n`, so `n = 1` bounds it.
+fn flame_radius(h: f64, n: f64) -> f64 {
+    0.34 * (1.0 - h).max(0.0).powf(0.75) * (0.6 + 0.8 * n)
+}
+
 /// The flame envelope times the noise at height fraction `h`, radius `r`
 /// (world units) and unit noise `n` (module docs).
 fn flame(h: f64, r: f64, n: f64) -> f32 {
-    let radius = 0.34 * (1.0 - h).max(0.0).powf(0.75) * (0.6 + 0.8 * n);
+    let radius = flame_radius(h, n);
     if radius <= 0.0 {
         return 0.0;
     }
@@ -281,6 +301,40 @@ mod tests {
             campfire_density(CAMPFIRE_DIMS, 1.25, 8),
             "changes with seed"
         );
+    }
+
+    proptest::proptest! {
+        /// The grid equals the one with the noise evaluated at every point,
+        /// bit for bit.
+        #[test]
+        fn skipping_the_noise_outside_the_widest_flame_changes_no_value(
+            dims in proptest::array::uniform3(2_usize..40),
+            time in -100.0_f64..1e4,
+            seed: u32,
+        ) {
+            let grid = campfire_density(dims, time, seed);
+            let noise = Fbm::<Perlin>::new(seed)
+                .set_octaves(4)
+                .set_frequency(1.0)
+                .set_lacunarity(2.0)
+                .set_persistence(0.5);
+            let extent = CAMPFIRE_MAX - CAMPFIRE_MIN;
+            let [nx, ny, nz] = dims;
+            for k in 0..nz {
+                for j in 0..ny {
+                    for i in 0..nx {
+                        let f = DVec3::new(
+                            i as f64 / (nx - 1) as f64,
+                            j as f64 / (ny - 1) as f64,
+                            k as f64 / (nz - 1) as f64,
+                        );
+                        let p = CAMPFIRE_MIN + f * extent;
+                        let full = flame(f.y, p.x.hypot(p.z), flame_noise(&noise, p, time));
+                        proptest::prop_assert_eq!(grid.value(i, j, k).to_bits(), full.to_bits());
+                    }
+                }
+            }
+        }
     }
 
     #[test]
