@@ -7,13 +7,20 @@
 //! the entity's local space; scale and move the entity's [`Transform`] to place
 //! it. The volume is emissive with the `Fire` preset by default, so it needs no
 //! sorting and the rebuild each frame is only the 16³ grid and its cells.
+//!
+//! The grid is made on the `AsyncComputeTaskPool` and written into the asset
+//! in the first frame after: the fire drawn is a frame old, the next grid
+//! already on its way (under [`HeavyBuilds::Blocking`] each frame waits for
+//! its own time's grid).
 
 use std::sync::Arc;
 
 use bevy::prelude::*;
+use nebel_core::field::DensityGrid;
 use nebel_core::field::effects::{CAMPFIRE_DIMS, campfire_density};
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
+use nebel_render::{HeavyBuild, HeavyBuilds};
 
 use crate::grid::VolumeGrid;
 use crate::volume::{Volume, VolumeField};
@@ -21,7 +28,7 @@ use crate::volume::{Volume, VolumeField};
 /// Makes a [`Volume`] an animated campfire.
 #[derive(Component, Clone, Copy, Debug, Reflect)]
 #[reflect(Component, Default, Clone)]
-#[require(Volume = campfire_volume())]
+#[require(Volume = campfire_volume(), CampfireAnimation)]
 pub struct Campfire {
     /// Noise seed: two fires with different seeds flicker differently. Default 0.
     pub seed: u32,
@@ -50,18 +57,37 @@ fn campfire_volume() -> Volume {
     }
 }
 
-/// Regenerates every visible campfire's grid for the current time, in its
-/// grid asset (added on the first frame).
+/// A campfire's next grid in the making.
+#[derive(Component, Default)]
+pub(crate) struct CampfireAnimation(Option<HeavyBuild<DensityGrid>>);
+
+/// Writes every visible campfire's newest grid into its grid asset (added on
+/// the first frame) and starts the next one for the current time (see the
+/// module docs).
 pub(crate) fn animate_campfires(
     time: Res<Time>,
-    mut fires: Query<(&Campfire, &InheritedVisibility, &mut Volume)>,
+    mode: Res<HeavyBuilds>,
+    mut fires: Query<(
+        &Campfire,
+        &InheritedVisibility,
+        &mut Volume,
+        &mut CampfireAnimation,
+    )>,
     mut grids: ResMut<Assets<VolumeGrid>>,
 ) {
-    for (campfire, visibility, mut volume) in &mut fires {
+    let at = time.elapsed_secs_f64();
+    for (campfire, visibility, mut volume, mut animation) in &mut fires {
+        let building = &mut animation.0;
         if !visibility.get() {
+            *building = None;
             continue;
         }
-        let grid = campfire_density(campfire.dims, time.elapsed_secs_f64(), campfire.seed);
+        let Campfire { seed, dims } = *campfire;
+        let start = || HeavyBuild::spawn(move || campfire_density(dims, at, seed));
+        let Some(grid) = building.get_or_insert_with(start).poll(*mode) else {
+            continue;
+        };
+        *building = (*mode != HeavyBuilds::Blocking).then(start);
         match &volume.field {
             VolumeField::Grid(handle) if let Some(mut asset) = grids.get_mut(handle) => {
                 *asset = grid.into();

@@ -198,6 +198,7 @@ mod tests {
     use bevy::math::DVec3;
     use bevy::transform::TransformPlugin;
     use nebel_core::field::DensityGrid;
+    use nebel_core::field::effects::campfire_density;
     use nebel_render::CellBatch;
     use nebel_render::camera::computed_camera;
 
@@ -731,6 +732,68 @@ mod tests {
             std::thread::sleep(std::time::Duration::from_millis(1));
         }
         panic!("the fire never appeared: its builds were dropped");
+    }
+
+    /// The campfire's grid asset, if it has one yet.
+    fn campfire_grid(app: &App, fire: Entity) -> Option<Arc<DensityGrid>> {
+        match &app.world().get::<Volume>(fire)?.field {
+            VolumeField::Grid(handle) => Some(
+                app.world()
+                    .resource::<Assets<VolumeGrid>>()
+                    .get(handle)?
+                    .0
+                    .clone(),
+            ),
+            VolumeField::Cells(_) => None,
+        }
+    }
+
+    #[test]
+    fn a_campfire_draws_its_frames_grid_when_blocking_and_the_last_frames_in_the_background() {
+        let (mut app, _, volume) = app_with_volume(OpticalMode::Emissive);
+        app.world_mut().despawn(volume);
+        let campfire = crate::Campfire {
+            seed: 5,
+            dims: [9, 13, 9],
+        };
+        let fire = app
+            .world_mut()
+            .spawn((campfire, InheritedVisibility::VISIBLE))
+            .id();
+        let now = |app: &App| app.world().resource::<Time>().elapsed_secs_f64();
+        for _ in 0..3 {
+            std::thread::sleep(std::time::Duration::from_millis(2));
+            app.update();
+            let grid = campfire_grid(&app, fire).expect("a grid every frame");
+            assert_eq!(*grid, campfire_density(campfire.dims, now(&app), campfire.seed));
+        }
+        // In the background each new grid is one started in an earlier
+        // frame, and they keep coming.
+        app.insert_resource(HeavyBuilds::Background);
+        let mut times = vec![now(&app)];
+        let mut last = campfire_grid(&app, fire);
+        let mut new_grids = 0;
+        for _ in 0..2000 {
+            std::thread::sleep(std::time::Duration::from_millis(1));
+            app.update();
+            let grid = campfire_grid(&app, fire);
+            if grid != last {
+                let grid = grid.as_deref().unwrap();
+                assert!(
+                    times
+                        .iter()
+                        .any(|at| *grid == campfire_density(campfire.dims, *at, campfire.seed)),
+                    "a grid of an earlier frame's time"
+                );
+                new_grids += 1;
+                if new_grids == 4 {
+                    return;
+                }
+            }
+            times.push(now(&app));
+            last = grid;
+        }
+        panic!("only {new_grids} new grids in the background");
     }
 
     #[test]
