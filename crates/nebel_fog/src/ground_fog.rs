@@ -25,7 +25,7 @@ use bevy::prelude::*;
 use nebel_core::field::{FogNoise, ValleyFog};
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
-use nebel_render::{EffectStatus, GrayscaleMap, NebelSystems, register_diagnostics};
+use nebel_render::{EffectStatus, GrayscaleMap, NebelSystems, cpu_timed, register_diagnostics};
 use nebel_terrain::TerrainSystems;
 
 use crate::batch::{GroundFogBatch, measure_fogs, remove_fogs, update_fog_batches};
@@ -66,10 +66,14 @@ impl Plugin for GroundFogPlugin {
             .add_systems(
                 PostUpdate,
                 (
-                    build_ground_fog_maps
+                    cpu_timed(build_ground_fog_maps)
                         .after(TerrainSystems::Build)
                         .before(TerrainSystems::Refine),
-                    (remove_fogs, update_fog_batches, measure_fogs)
+                    (
+                        cpu_timed(remove_fogs),
+                        cpu_timed(update_fog_batches),
+                        cpu_timed(measure_fogs),
+                    )
                         .chain()
                         .after(TerrainSystems::Refine),
                 )

@@ -1,18 +1,28 @@
-//! nebel's system set and the CPU time it takes per frame, as a Bevy
-//! diagnostic.
+//! nebel's system set and the time it takes per frame, as Bevy diagnostics.
 //!
 //! Every per-frame nebel system in the main world joins the [`NebelSystems`]
 //! set, in [`Update`] (systems that move or animate: camera paths, fire,
 //! clouds) or in [`PostUpdate`] (systems that build view-dependent batches:
 //! they must see this frame's propagated transforms, camera projections and
 //! visibility, so the set runs there after [`TransformSystems::Propagate`],
-//! [`CameraUpdateSystems`] and [`VisibilitySystems::VisibilityPropagate`]).
-//! [`NebelDiagnosticsPlugin`] brackets the set with two marker systems in
-//! each schedule and records, each frame, the summed wall time between them
-//! as the diagnostic [`NebelDiagnosticsPlugin::SYSTEMS_MS`]. With Bevy's
-//! multi-threaded executor an unrelated system may run beside the set, so the
-//! figure is an upper bound of nebel's own CPU time; with no nebel system it is
-//! the cost of the markers alone (microseconds).
+//! [`CameraUpdateSystems`] and [`VisibilitySystems::VisibilityPropagate`]),
+//! each wrapped in [`cpu_timed`]. [`NebelDiagnosticsPlugin`] records two
+//! figures per frame:
+//!
+//! - [`NebelDiagnosticsPlugin::SYSTEMS_CPU_MS`]: the CPU time the systems
+//!   wrapped in [`cpu_timed`] ran, each measured by its thread's CPU clock,
+//!   summed over the frame: nebel's own work, whichever threads the executor
+//!   ran it on, not counting time the threads waited for a core or for a
+//!   build (`HeavyBuilds::Blocking`), nor the commands the systems queued.
+//!   The sum is kept per process: in a process that runs several apps at
+//!   once (tests) each app's figure includes the others' systems.
+//! - [`NebelDiagnosticsPlugin::SYSTEMS_MS`]: the wall time between two marker
+//!   systems that bracket the set in each schedule. With Bevy's multi-threaded
+//!   executor an unrelated system may run beside the set, and on a machine
+//!   whose cores are busy (the task pool's builds, a software GPU) the
+//!   set's threads wait for a core, so it is an upper bound.
+//!
+//! With no nebel system both are the cost of the markers alone (microseconds).
 //!
 //! Each effect plugin registers its own counters as diagnostics under
 //! `nebel/<effect>/<counter>` (for example `nebel/volume/cells_drawn`), each
@@ -20,11 +30,13 @@
 //! `nebel render --stats` reports them. An effect absent from a scene
 //! measures nothing, so its diagnostics have no value.
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use bevy::camera::CameraUpdateSystems;
 use bevy::camera::visibility::VisibilitySystems;
 use bevy::diagnostic::{Diagnostic, DiagnosticPath, Diagnostics, RegisterDiagnostic};
+use bevy::ecs::system::{Adapt, IntoAdapterSystem, RunSystemError, SystemIn, SystemInput};
 use bevy::prelude::*;
 use bevy::transform::TransformSystems;
 
@@ -33,14 +45,58 @@ use bevy::transform::TransformSystems;
 #[derive(SystemSet, Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct NebelSystems;
 
-/// Adds [`NebelSystems`] and its per-frame CPU time
-/// ([`NebelDiagnosticsPlugin::SYSTEMS_MS`]).
+/// CPU time of the systems wrapped in [`cpu_timed`] since the frame's
+/// figure was last taken, nanoseconds.
+static SYSTEMS_CPU_NANOS: AtomicU64 = AtomicU64::new(0);
+
+/// `system`, its CPU time counted in
+/// [`NebelDiagnosticsPlugin::SYSTEMS_CPU_MS`] (see the module docs).
+pub fn cpu_timed<S, I, O, M>(system: S) -> IntoAdapterSystem<CpuTimed, S>
+where
+    S: IntoSystem<I, O, M>,
+    I: SystemInput,
+{
+    IntoAdapterSystem::new(CpuTimed, system)
+}
+
+/// The adapter of [`cpu_timed`]: runs the system and adds the CPU time its
+/// thread spent on it.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct CpuTimed;
+
+impl<S: System> Adapt<S> for CpuTimed {
+    type In = S::In;
+    type Out = S::Out;
+
+    fn adapt(
+        &mut self,
+        input: <S::In as SystemInput>::Inner<'_>,
+        run_system: impl FnOnce(SystemIn<'_, S>) -> Result<S::Out, RunSystemError>,
+    ) -> Result<S::Out, RunSystemError> {
+        let started = crate::frame_budget::thread_time();
+        let result = run_system(input);
+        let spent = crate::frame_budget::thread_time().saturating_sub(started);
+        SYSTEMS_CPU_NANOS.fetch_add(
+            u64::try_from(spent.as_nanos()).unwrap_or(u64::MAX),
+            Ordering::Relaxed,
+        );
+        result
+    }
+}
+
+/// Adds [`NebelSystems`] and its time per frame
+/// ([`NebelDiagnosticsPlugin::SYSTEMS_CPU_MS`],
+/// [`NebelDiagnosticsPlugin::SYSTEMS_MS`]).
 #[derive(Default)]
 pub struct NebelDiagnosticsPlugin;
 
 impl NebelDiagnosticsPlugin {
-    /// Wall time of the [`NebelSystems`] set per frame, milliseconds.
+    /// Wall time of the [`NebelSystems`] set per frame, milliseconds: an
+    /// upper bound (see the module docs).
     pub const SYSTEMS_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/systems_ms");
+    /// CPU time of nebel's systems per frame, milliseconds (see the module
+    /// docs).
+    pub const SYSTEMS_CPU_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/systems_cpu_ms");
 }
 
 /// When the set started this frame and how long it ran so far.
@@ -54,6 +110,7 @@ impl Plugin for NebelDiagnosticsPlugin {
     fn build(&self, app: &mut App) {
         app.init_resource::<SetTimer>()
             .register_diagnostic(Diagnostic::new(Self::SYSTEMS_MS).with_suffix(" ms"))
+            .register_diagnostic(Diagnostic::new(Self::SYSTEMS_CPU_MS).with_suffix(" ms"))
             .configure_sets(
                 PostUpdate,
                 NebelSystems
@@ -71,7 +128,13 @@ impl Plugin for NebelDiagnosticsPlugin {
             .add_systems(
                 PostUpdate,
                 (
-                    start_timing.before(NebelSystems),
+                    // Not before what the set waits for: Bevy's propagation
+                    // is not nebel's time.
+                    start_timing
+                        .before(NebelSystems)
+                        .after(TransformSystems::Propagate)
+                        .after(CameraUpdateSystems)
+                        .after(VisibilitySystems::VisibilityPropagate),
                     end_timing.after(NebelSystems),
                 ),
             );
@@ -97,6 +160,8 @@ fn end_timing(mut timer: ResMut<SetTimer>, mut diagnostics: Diagnostics) {
     diagnostics.add_measurement(&NebelDiagnosticsPlugin::SYSTEMS_MS, || {
         frame.as_secs_f64() * 1e3
     });
+    let cpu = SYSTEMS_CPU_NANOS.swap(0, Ordering::Relaxed);
+    diagnostics.add_measurement(&NebelDiagnosticsPlugin::SYSTEMS_CPU_MS, || cpu as f64 / 1e6);
 }
 
 #[cfg(test)]
@@ -104,8 +169,16 @@ mod tests {
     use super::*;
     use bevy::diagnostic::DiagnosticsStore;
 
+    /// Works `ms` of its thread's CPU time.
+    fn spin(ms: u64) {
+        let started = crate::frame_budget::thread_time();
+        while crate::frame_budget::thread_time() - started < Duration::from_millis(ms) {}
+    }
+
+    // One test: the sum of CPU time is per process, and each app's last
+    // marker takes it.
     #[test]
-    fn one_bounded_measurement_per_frame() {
+    fn bounded_measurements_per_frame_and_cpu_time_counts_work_not_waiting() {
         let mut app = App::new();
         app.add_plugins(NebelDiagnosticsPlugin);
         let frames = 3;
@@ -113,10 +186,37 @@ mod tests {
             app.update();
         }
         let store = app.world().resource::<DiagnosticsStore>();
-        let diagnostic = store.get(&NebelDiagnosticsPlugin::SYSTEMS_MS).unwrap();
-        assert_eq!(diagnostic.history_len(), frames);
-        // A duration: finite and not negative (its size is the benches' business).
-        assert!(diagnostic.values().all(|ms| ms.is_finite() && *ms >= 0.0));
-        assert!(diagnostic.get_max_history_length() < 1000, "bounded");
+        for path in [
+            NebelDiagnosticsPlugin::SYSTEMS_MS,
+            NebelDiagnosticsPlugin::SYSTEMS_CPU_MS,
+        ] {
+            let diagnostic = store.get(&path).unwrap();
+            assert_eq!(diagnostic.history_len(), frames);
+            // A duration: finite and not negative (its size is the benches' business).
+            assert!(diagnostic.values().all(|ms| ms.is_finite() && *ms >= 0.0));
+            assert!(diagnostic.get_max_history_length() < 1000, "bounded");
+        }
+
+        // Timed systems in both schedules: 3 ms of work, 20 ms asleep.
+        app.add_systems(Update, cpu_timed(|| spin(2)).in_set(NebelSystems))
+            .add_systems(
+                PostUpdate,
+                (
+                    cpu_timed(|| spin(1)),
+                    cpu_timed(|| std::thread::sleep(Duration::from_millis(20))),
+                )
+                    .in_set(NebelSystems),
+            );
+        for _ in 0..frames {
+            app.update();
+            let store = app.world().resource::<DiagnosticsStore>();
+            let latest = |path| store.get_measurement(&path).unwrap().value;
+            let cpu = latest(NebelDiagnosticsPlugin::SYSTEMS_CPU_MS);
+            let wall = latest(NebelDiagnosticsPlugin::SYSTEMS_MS);
+            assert!(cpu >= 3.0, "{cpu} ms");
+            assert!(wall >= 20.0 && wall >= cpu, "{wall} ms");
+            #[cfg(unix)]
+            assert!(cpu < 15.0, "asleep is not work: {cpu} ms");
+        }
     }
 }

@@ -38,7 +38,7 @@ pub use cell_projection::{
     CellProjection, CellProjectionPlugin, CellProjectionStats, CellProjectionSystems,
     CellResolution, CountCellFragments,
 };
-pub use diagnostics::{NebelDiagnosticsPlugin, NebelSystems};
+pub use diagnostics::{NebelDiagnosticsPlugin, NebelSystems, cpu_timed};
 pub use effect::{EffectStatus, register_diagnostics};
 pub use fog_layers::{FogLayersUniform, ViewFogLayers};
 pub use grayscale_map::{GrayscaleMap, GrayscaleMapError, GrayscaleMapLoader, GrayscaleMapPlugin};

@@ -36,7 +36,7 @@ use nebel_lod::{
 use nebel_render::camera::to_double;
 use nebel_render::{
     CellBatch, EffectStatus, EffectiveQuality, GrayscaleMap, GrayscaleMapPlugin, HeavyBuild,
-    HeavyBuilds, LodCameras, NebelSystems, register_diagnostics,
+    HeavyBuilds, LodCameras, NebelSystems, cpu_timed, register_diagnostics,
 };
 
 /// A transfer function with ρ times a factor, kept while neither changes.
@@ -164,9 +164,9 @@ pub(crate) fn add_sky_layer<T: SkyLayer>(app: &mut App) {
     app.init_resource::<HeavyBuilds>().add_systems(
         PostUpdate,
         (
-            remove_sky_layers::<T>,
-            update_sky_layers::<T>,
-            measure_sky_layers::<T>,
+            cpu_timed(remove_sky_layers::<T>),
+            cpu_timed(update_sky_layers::<T>),
+            cpu_timed(measure_sky_layers::<T>),
         )
             .chain()
             .in_set(NebelSystems)

@@ -28,7 +28,7 @@ use nebel_core::field::{DEFAULT_TERRAIN_SPACING, DEFAULT_TERRAIN_VERTICAL_SCALE,
 use nebel_lod::quadtree::{DEFAULT_ACCURACY, DEFAULT_MIN_RESOLUTION};
 use nebel_render::{
     EffectStatus, GrayscaleMap, GrayscaleMapPlugin, HeavyBuilds, LodCamera, NebelSystems,
-    register_diagnostics,
+    cpu_timed, register_diagnostics,
 };
 
 use crate::build::{TerrainLod, build_terrains};
@@ -83,9 +83,9 @@ impl Plugin for TerrainPlugin {
             .add_systems(
                 PostUpdate,
                 (
-                    build_terrains.in_set(TerrainSystems::Build),
-                    update_terrain_meshes.in_set(TerrainSystems::Refine),
-                    measure_terrains,
+                    cpu_timed(build_terrains).in_set(TerrainSystems::Build),
+                    cpu_timed(update_terrain_meshes).in_set(TerrainSystems::Refine),
+                    cpu_timed(measure_terrains),
                 )
                     .chain()
                     .in_set(NebelSystems)

@@ -306,6 +306,7 @@ pub fn render_headless(
     let captured: Arc<Mutex<Option<Image>>> = Arc::default();
     let mut frame_times = Vec::with_capacity(output.frames as usize);
     let mut nebel_times = Vec::with_capacity(output.frames as usize);
+    let mut nebel_wall_times = Vec::with_capacity(output.frames as usize);
     let mut budgeted_times = Vec::new();
     let bar = crate::progress::bar(options.progress, "frame", u64::from(output.frames));
     for frame in 0..output.frames {
@@ -332,7 +333,8 @@ pub fn render_headless(
                 .get_measurement(path)
                 .map(|ms| Duration::from_secs_f64(ms.value / 1e3))
         };
-        nebel_times.extend(latest(&NebelDiagnosticsPlugin::SYSTEMS_MS));
+        nebel_times.extend(latest(&NebelDiagnosticsPlugin::SYSTEMS_CPU_MS));
+        nebel_wall_times.extend(latest(&NebelDiagnosticsPlugin::SYSTEMS_MS));
         // Measured every frame under a build budget only.
         budgeted_times.extend(latest(&VolumePlugin::BUDGETED_BUILD_MS));
         bar.inc(1);
@@ -363,8 +365,14 @@ pub fn render_headless(
         warm_up_frames: headless.warm_up_times.len() as u32,
         warm_up_frame_wall_ms: TimeSummary::of(&headless.warm_up_times),
         nebel_systems_cpu_ms: TimeSummary::of(&nebel_times),
+        nebel_systems_wall_ms: TimeSummary::of(&nebel_wall_times),
         budgeted_builds_ms: (!budgeted_times.is_empty()).then(|| TimeSummary::of(&budgeted_times)),
-        per_frame_ms: FrameTimes::of(&frame_times, &nebel_times, &budgeted_times),
+        per_frame_ms: FrameTimes::of(
+            &frame_times,
+            &nebel_times,
+            &nebel_wall_times,
+            &budgeted_times,
+        ),
         effects: effect_counters(world.resource::<DiagnosticsStore>()),
     })
 }

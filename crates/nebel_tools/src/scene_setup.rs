@@ -25,6 +25,7 @@ use std::sync::Arc;
 use nebel_core::field::HeightField;
 use nebel_render::{
     AutoQuality, CellProjection, CellResolution, NebelQuality, NebelSystems, QualityPreset,
+    cpu_timed,
 };
 
 use crate::headless::{HeadlessError, HeadlessOptions, render_headless};
@@ -154,7 +155,7 @@ impl Plugin for SceneSetupPlugin {
             .add_systems(PostStartup, enable_bevy_fog)
             .add_systems(
                 Update,
-                (follow_camera_path, turn_lights).in_set(NebelSystems),
+                (cpu_timed(follow_camera_path), cpu_timed(turn_lights)).in_set(NebelSystems),
             );
         match self.peer.clone() {
             Some(BevyPeer::FogVolume(fog)) => {

@@ -46,8 +46,10 @@ pub struct FlickeringLightPlugin;
 
 impl Plugin for FlickeringLightPlugin {
     fn build(&self, app: &mut App) {
-        app.register_type::<FlickeringLight>()
-            .add_systems(Update, flicker.in_set(nebel_render::NebelSystems));
+        app.register_type::<FlickeringLight>().add_systems(
+            Update,
+            nebel_render::cpu_timed(flicker).in_set(nebel_render::NebelSystems),
+        );
     }
 }
 

@@ -33,7 +33,7 @@ use bevy::transform::TransformSystems;
 use nebel_core::cell::Tetrahedron;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
-use nebel_render::{HeavyBuilds, LodCamera, NebelSystems, register_diagnostics};
+use nebel_render::{HeavyBuilds, LodCamera, NebelSystems, cpu_timed, register_diagnostics};
 
 use crate::batching::{
     VolumeBatching, build_batchers, measure_volumes, report_status, update_batches,
@@ -104,8 +104,8 @@ impl Plugin for VolumePlugin {
             .add_systems(
                 Update,
                 (
-                    crate::campfire::animate_campfires,
-                    crate::cloud::generate_clouds,
+                    cpu_timed(crate::campfire::animate_campfires),
+                    cpu_timed(crate::cloud::generate_clouds),
                 )
                     .in_set(NebelSystems),
             )
@@ -114,10 +114,10 @@ impl Plugin for VolumePlugin {
             .add_systems(
                 PostUpdate,
                 (
-                    build_batchers,
-                    update_batches,
-                    report_status,
-                    measure_volumes,
+                    cpu_timed(build_batchers),
+                    cpu_timed(update_batches),
+                    cpu_timed(report_status),
+                    cpu_timed(measure_volumes),
                 )
                     .chain()
                     .in_set(NebelSystems)
@@ -765,7 +765,10 @@ mod tests {
             std::thread::sleep(std::time::Duration::from_millis(2));
             app.update();
             let grid = campfire_grid(&app, fire).expect("a grid every frame");
-            assert_eq!(*grid, campfire_density(campfire.dims, now(&app), campfire.seed));
+            assert_eq!(
+                *grid,
+                campfire_density(campfire.dims, now(&app), campfire.seed)
+            );
         }
         // In the background each new grid is one started in an earlier
         // frame, and they keep coming.
