@@ -12,11 +12,11 @@
 //! the order stays a visibility order while the eye keeps to the same side of
 //! every face's plane, and only rays across a face whose plane the eye
 //! crossed composite two cells out of order (`nebel_lod`'s ground-fog tests
-//! measure the image cost of an order 1 m old).
+//! measure the image cost of an order up to a grid spacing old).
 //!
 //! The cells are rebuilt when the terrain's mesh was rebuilt (for a sorted
-//! fog the terrain refines whenever the eye moves, see
-//! [`TerrainMapLod::refine_on_every_move`]) or the fog's drawing settings
+//! fog the terrain refines after at most half a grid spacing, see
+//! [`TerrainMapLod::max_update_distance`]) or the fog's drawing settings
 //! (density, transfer function, mode, profile, debug view) or its placement
 //! changed; otherwise the system compares a counter, a pointer and a few
 //! change ticks per fog. A fog with no map (no thickness anywhere), no density, a

@@ -101,10 +101,10 @@ fn has_map(app: &App, entity: Entity) -> bool {
         .is_some_and(|map| map.quadtree.is_some())
 }
 
-/// Moves the camera by 1 cm.
-fn nudge(app: &mut App, camera: Entity) {
+/// Moves the camera by `metres` along x.
+fn nudge(app: &mut App, camera: Entity, metres: f32) {
     let mut transform = app.world_mut().get_mut::<Transform>(camera).unwrap();
-    transform.translation.x += 0.01;
+    transform.translation.x += metres;
 }
 
 fn settle(app: &mut App) {
@@ -159,9 +159,9 @@ fn fog_on_a_terrain_becomes_sorted_prisms_that_follow_the_eye() {
         "{counts:?}"
     );
     assert_eq!(batch(&app, fog).unwrap().mode, OpticalMode::Sorted);
-    // The terrain carries the fog's map and refines on every move.
+    // The terrain carries the fog's map and refines after half a spacing.
     let map = app.world().get::<TerrainMapLod>(fog).unwrap();
-    assert!(map.quadtree.is_some() && map.refine_on_every_move);
+    assert!(map.quadtree.is_some() && map.max_update_distance == Some(0.5));
     let lod = app.world().get::<TerrainLod>(fog).unwrap();
     assert_eq!(lod.mesh().map.len(), lod.mesh().positions.len());
     assert_eq!(
@@ -169,15 +169,39 @@ fn fog_on_a_terrain_becomes_sorted_prisms_that_follow_the_eye() {
         Some(cells as f64)
     );
     assert!(measured(&app, &GroundFogPlugin::UPDATE_MS).is_some());
-    // A still camera costs nothing; a move of 1 cm refines the terrain and
-    // rebuilds the prisms for the new eye.
+    // A still camera costs nothing, nor does a move of 1 cm; one beyond the
+    // terrain's update distance (a quarter spacing, 2.5 m, within the fog's
+    // half) refines the terrain and rebuilds the prisms for the new eye.
     let (terrain_updates, fog_updates) = (
         app.world().get::<TerrainLodStats>(fog).unwrap().updates,
         counts.updates,
     );
     app.update();
+    nudge(&mut app, camera, 0.01);
+    app.update();
     assert_eq!(stats(&app, fog).updates, fog_updates);
-    nudge(&mut app, camera);
+    nudge(&mut app, camera, 2.5);
+    app.update();
+    assert_eq!(
+        app.world().get::<TerrainLodStats>(fog).unwrap().updates,
+        terrain_updates + 1
+    );
+    assert_eq!(stats(&app, fog).updates, fog_updates + 1);
+    // A terrain that would wait for 2 spacings waits for half of one under a
+    // sorted fog: 6 m is enough.
+    app.world_mut()
+        .get_mut::<Terrain>(fog)
+        .unwrap()
+        .update_distance = 2.0;
+    settle(&mut app);
+    let (terrain_updates, fog_updates) = (
+        app.world().get::<TerrainLodStats>(fog).unwrap().updates,
+        stats(&app, fog).updates,
+    );
+    nudge(&mut app, camera, 4.0);
+    app.update();
+    assert_eq!(stats(&app, fog).updates, fog_updates);
+    nudge(&mut app, camera, 2.0);
     app.update();
     assert_eq!(
         app.world().get::<TerrainLodStats>(fog).unwrap().updates,
@@ -188,14 +212,15 @@ fn fog_on_a_terrain_becomes_sorted_prisms_that_follow_the_eye() {
     app.world_mut().get_mut::<GroundFog>(fog).unwrap().mode = OpticalMode::Emissive;
     settle(&mut app);
     assert_eq!(batch(&app, fog).unwrap().mode, OpticalMode::Emissive);
-    assert!(
-        !app.world()
+    assert_eq!(
+        app.world()
             .get::<TerrainMapLod>(fog)
             .unwrap()
-            .refine_on_every_move
+            .max_update_distance,
+        None
     );
     let updates = stats(&app, fog).updates;
-    nudge(&mut app, camera);
+    nudge(&mut app, camera, 4.0);
     app.update();
     assert_eq!(stats(&app, fog).updates, updates);
 }

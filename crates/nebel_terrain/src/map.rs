@@ -26,10 +26,11 @@ pub struct TerrainMapLod {
     /// map.
     #[reflect(ignore)]
     pub quadtree: Option<MappedQuadtree>,
-    /// Refine whenever the eye moves at all (a sorted map's cell order
-    /// depends on the exact eye), not only after `Terrain::update_distance`.
-    /// Default false.
-    pub refine_on_every_move: bool,
+    /// The most grid spacings the eye may move before the terrain refines
+    /// again, whatever `Terrain::update_distance` says: a sorted map's cells
+    /// are ordered for the eye the terrain was refined for. `None` (the
+    /// default): the terrain's own.
+    pub max_update_distance: Option<f32>,
 }
 
 /// A quadtree with a map, derived from a terrain's own quadtree.

@@ -110,7 +110,6 @@ fn refiner_settings(
     min_resolution: f32,
     latency: (f64, f64),
 ) -> Result<RefinerSettings, TerrainError> {
-    let every_move = map.is_some_and(|map| map.refine_on_every_move);
     let accuracy = match terrain.pixel_error {
         Some(pixel_error) => accuracy_for_pixel_error(
             f64::from(pixel_error),
@@ -130,11 +129,13 @@ fn refiner_settings(
             // Opaque: nearest first lets the depth test reject more.
             order: TriangleOrder::FrontToBack,
         },
-        update_distance: if every_move {
-            0.0
-        } else {
-            f64::from(terrain.update_distance * terrain.spacing)
-        },
+        update_distance: f64::from(
+            map.and_then(|map| map.max_update_distance)
+                .map_or(terrain.update_distance, |most| {
+                    terrain.update_distance.min(most)
+                })
+                * terrain.spacing,
+        ),
         view_margin: f64::from(terrain.view_margin_degrees).to_radians(),
         latency,
     })
