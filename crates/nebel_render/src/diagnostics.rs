@@ -13,7 +13,8 @@
 //!   wrapped in [`cpu_timed`] ran, each measured by its thread's CPU clock,
 //!   summed over the frame: nebel's own work, whichever threads the executor
 //!   ran it on, not counting time the threads waited for a core or for a
-//!   build (`HeavyBuilds::Blocking`), nor the commands the systems queued.
+//!   build (`HeavyBuilds::Blocking`), nor the commands the systems queued
+//!   (on a platform without a thread CPU clock, the systems' wall time).
 //!   The sum is kept per process: in a process that runs several apps at
 //!   once (tests) each app's figure includes the others' systems.
 //! - [`NebelDiagnosticsPlugin::SYSTEMS_MS`]: the wall time between two marker
