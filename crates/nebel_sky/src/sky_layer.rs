@@ -1,7 +1,10 @@
 //! What the aurora and the cloud layer share: one skeleton of systems over
 //! the [`SkyLayer`] trait that each implements. For each visible layer whose
-//! cells are out of date (the layer's key, the eye, the view, the placement,
-//! the sun for a sunlit layer, or a setting changed), one build at a time
+//! cells are out of date (the layer's key, the projection, the placement,
+//! the sun for a sunlit layer or a setting changed, the eye moved more than
+//! a quarter of the layer's grid spacing or the camera turned more than 3°,
+//! as for the terrain: `nebel_lod::quadtree::TerrainRefiner`, whose docs
+//! bound the morph's step this allows), one build at a time
 //! runs on Bevy's `AsyncComputeTaskPool`: the layer between two surfaces
 //! when its key changed ([`SkyLayer::layer_key`]; a map's values are read
 //! on the frame's thread first), then its cells for the eye
@@ -10,7 +13,11 @@
 //! frame after (the same frame under `HeavyBuilds::Blocking`). A sorted
 //! layer's cells are then ordered for the eye of an earlier frame: prisms on
 //! a triangulation, as the ground fog's, whose order stays a visibility
-//! order while the eye keeps to the same side of every face's plane. A
+//! order while the eye keeps to the same side of every face's plane (the
+//! ground-fog tests of `nebel_lod` hold orders up to a grid spacing old to
+//! half an 8-bit step). The cells are culled by the camera's side planes
+//! widened by what the view may change until the next cells land (the
+//! thresholds, and twice what it changed during the last build). A
 //! hidden or dark layer (no density or brightness, a transparent transfer
 //! function) has no batch and costs a few comparisons per frame; removing
 //! the component removes its batch and state.
@@ -29,9 +36,10 @@ use bevy::prelude::*;
 use bevy::reflect::{FromReflect, GetTypeRegistration, Typed};
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferError, TransferFunction};
+use nebel_lod::quadtree::TerrainView;
 use nebel_lod::{
-    CellOrder, Cells, FogProfile, Frustum, GpuCell, LayerStats, LayerView, LodSettings,
-    PrismScalar, SurfaceLayer, SurfaceLayerError, TerrainError, TerrainMap, TerrainMesh,
+    CellOrder, Cells, FogProfile, GpuCell, LayerStats, LayerView, LodSettings, PrismScalar,
+    SurfaceLayer, SurfaceLayerError, TerrainError, TerrainMap, TerrainMesh,
 };
 use nebel_render::camera::to_double;
 use nebel_render::{
@@ -180,12 +188,19 @@ pub(crate) fn add_sky_layer<T: SkyLayer>(app: &mut App) {
     );
 }
 
+/// How far the eye may move, in grid spacings of the layer, before its
+/// cells are refined again (module docs).
+const UPDATE_DISTANCE: f64 = 0.25;
+/// How far the camera may turn, radians (3°), before the cells are refined
+/// again.
+const VIEW_MARGIN: f64 = std::f64::consts::PI / 60.0;
+
 /// What a layer's cells were built from.
 struct CellsKey<T: SkyLayer> {
     /// The layer they were refined from.
     layer: T::LayerKey,
-    /// The camera's clip-from-world transform.
-    clip_from_world: [u64; 16],
+    /// The camera they were refined for, seen from the layer.
+    view: TerrainView,
     /// The layer's placement.
     transform: GlobalTransform,
     /// Toward the sun, world space, for a sunlit layer.
@@ -194,13 +209,19 @@ struct CellsKey<T: SkyLayer> {
     accuracy: u32,
 }
 
-impl<T: SkyLayer> PartialEq for CellsKey<T> {
-    fn eq(&self, other: &Self) -> bool {
+impl<T: SkyLayer> CellsKey<T> {
+    /// Whether cells built for `self` serve `other`: the same inputs and
+    /// projection, the eye moved by at most `distance` (the layer's units)
+    /// and the camera turned by at most `angle` (radians).
+    fn serves(&self, other: &Self, distance: f64, angle: f64) -> bool {
+        let (moved, turned) = other.view.change_since(&self.view);
         self.layer == other.layer
-            && self.clip_from_world == other.clip_from_world
             && self.transform == other.transform
             && self.sun == other.sun
             && self.accuracy == other.accuracy
+            && self.view.clip_from_view == other.view.clip_from_view
+            && moved <= distance
+            && turned <= angle
     }
 }
 
@@ -236,6 +257,10 @@ pub struct SkyLayerState<T: SkyLayer> {
     transfer: ScaledTransfer,
     /// The refinement's mesh, reused; `None` while a build holds it.
     mesh: Option<TerrainMesh>,
+    /// Twice how far the eye moved (the layer's units) and the camera
+    /// turned (radians) while the last build ran: how much more the next
+    /// one's culling keeps.
+    latency: (f64, f64),
 }
 
 impl<T: SkyLayer> Default for SkyLayerState<T> {
@@ -247,6 +272,7 @@ impl<T: SkyLayer> Default for SkyLayerState<T> {
             building: None,
             transfer: ScaledTransfer::default(),
             mesh: Some(TerrainMesh::default()),
+            latency: (0.0, 0.0),
         }
     }
 }
@@ -327,12 +353,22 @@ fn update_sky_layers<T: SkyLayer>(
             status.set_if_neq(EffectStatus::Ready);
             continue;
         }
+        let world_from_field = DAffine3::from_mat4(to_double(transform.to_matrix()));
+        let view = TerrainView {
+            world_from_view: DAffine3::from_mat4(to_double(camera.world_from_view.to_matrix())),
+            clip_from_view: to_double(camera.clip_from_view),
+            world_from_terrain: world_from_field,
+        };
+        // A quarter of the layer's grid spacing, in its units.
+        let distance = state.layer.as_ref().map_or(0.0, |(_, built)| {
+            UPDATE_DISTANCE * built.hierarchy().field().spacing().max_element()
+        });
         if state.building.is_none() {
             let layer_key = layer.layer_key(time.elapsed_secs_f64(), &maps);
             let accuracy = (f64::from(layer.accuracy()) * accuracy_scale) as f32;
             let key = CellsKey {
                 layer: layer_key,
-                clip_from_world: camera.clip_from_world.to_cols_array().map(f64::to_bits),
+                view,
                 transform: *transform,
                 sun: T::SUNLIT.then(|| toward_sun.to_array().map(f32::to_bits)),
                 accuracy: accuracy.to_bits(),
@@ -345,7 +381,11 @@ fn update_sky_layers<T: SkyLayer>(
                     .cells
                     .as_ref()
                     .is_some_and(|cells| cells.layer == key.layer);
-            if !state.dirty && (failed || state.cells.as_ref() == Some(&key)) {
+            let drawn = state
+                .cells
+                .as_ref()
+                .is_some_and(|cells| cells.serves(&key, distance, VIEW_MARGIN));
+            if !state.dirty && (failed || drawn) {
                 continue;
             }
             // The layer, when its key changed: its maps' values now, the
@@ -378,16 +418,23 @@ fn update_sky_layers<T: SkyLayer>(
                     continue;
                 }
             };
-            let world_from_field = DAffine3::from_mat4(to_double(transform.to_matrix()));
             let sun = world_from_field
                 .inverse()
                 .transform_vector3(toward_sun.as_dvec3())
                 .normalize_or(DVec3::Y);
             let (profile, scalar, order) = layer.drawing(&key.layer, sun);
-            // A degenerate projection culls nothing rather than everything.
-            let frustum = Frustum::from_view_projection(camera.clip_from_world)
-                .ok()
-                .map(|frustum| frustum.in_local_frame(&world_from_field));
+            // Widened by what the view may change until the next cells land
+            // (module docs); a degenerate projection culls nothing.
+            let scale = world_from_field
+                .matrix3
+                .to_cols_array_2d()
+                .iter()
+                .map(|column| DVec3::from(*column).length())
+                .fold(0.0, f64::max);
+            let frustum = view.culling_frustum(
+                (distance + state.latency.0) * scale,
+                (VIEW_MARGIN + state.latency.1).min(std::f64::consts::FRAC_PI_4),
+            );
             let eye = camera.eye;
             let layer_key = key.layer.clone();
             let current = state.layer.as_ref().map(|(_, built)| built.clone());
@@ -440,6 +487,8 @@ fn update_sky_layers<T: SkyLayer>(
             continue;
         };
         let (key, _) = state.building.take().expect("a build was polled");
+        let (moved, turned) = view.change_since(&key.view);
+        state.latency = (2.0 * moved, 2.0 * turned);
         let built = match built {
             Ok(built) => built,
             Err(error) => {

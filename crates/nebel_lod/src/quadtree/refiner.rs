@@ -70,6 +70,33 @@ impl TerrainView {
         DQuat::from_mat3(&self.world_from_view.matrix3)
     }
 
+    /// The camera's side planes, each turned outward by `angle` (radians)
+    /// about the eye and pushed out by `margin` (world units), in the
+    /// terrain's frame: a frustum that still holds everything the camera sees
+    /// after it moved by less than `margin` and turned by less than `angle`
+    /// (see the module docs). `None` (cull nothing) for an orthographic or
+    /// degenerate camera.
+    pub fn culling_frustum(&self, margin: f64, angle: f64) -> Option<Frustum> {
+        if self.clip_from_view.row(3).z == 0.0 {
+            // Orthographic: the side planes are parallel to the view.
+            return None;
+        }
+        let clip_from_world = self.clip_from_view * DMat4::from(self.world_from_view.inverse());
+        let exact = Frustum::from_view_projection(clip_from_world).ok()?;
+        let eye = self.world_from_view.translation;
+        let forward = self.world_from_view.matrix3 * DVec3::NEG_Z;
+        let (sin, cos) = angle.sin_cos();
+        let widened = exact.planes().iter().take(4).map(|plane| {
+            let normal = plane.truncate();
+            let offset = normal.dot(eye) + plane.w;
+            let along = (forward - forward.dot(normal) * normal).normalize_or_zero();
+            let turned = (cos * normal + sin * along).normalize_or(normal);
+            (turned, -turned.dot(eye) + offset + margin)
+        });
+        let frustum = Frustum::from_planes(widened).ok()?;
+        Some(frustum.in_local_frame(&self.world_from_terrain))
+    }
+
     /// How far the eye moved (in the terrain's frame) and the camera turned
     /// (radians) since `earlier`.
     pub fn change_since(&self, earlier: &TerrainView) -> (f64, f64) {
@@ -148,7 +175,7 @@ impl TerrainRefiner {
             .iter()
             .map(|column| DVec3::from(*column).length())
             .fold(0.0, f64::max);
-        let frustum = culling_frustum(view, distance * scale, margin);
+        let frustum = view.culling_frustum(distance * scale, margin);
         if Arc::get_mut(&mut self.mesh).is_none() {
             self.mesh = Arc::default();
         }
@@ -178,29 +205,6 @@ impl TerrainRefiner {
     pub fn mesh(&self) -> &Arc<TerrainMesh> {
         &self.mesh
     }
-}
-
-/// The widened culling frustum in the terrain's frame (see the module docs);
-/// `None` culls nothing.
-fn culling_frustum(view: &TerrainView, margin: f64, angle: f64) -> Option<Frustum> {
-    if view.clip_from_view.row(3).z == 0.0 {
-        // Orthographic: the side planes are parallel to the view.
-        return None;
-    }
-    let clip_from_world = view.clip_from_view * DMat4::from(view.world_from_view.inverse());
-    let exact = Frustum::from_view_projection(clip_from_world).ok()?;
-    let eye = view.world_from_view.translation;
-    let forward = view.world_from_view.matrix3 * DVec3::NEG_Z;
-    let (sin, cos) = angle.sin_cos();
-    let widened = exact.planes().iter().take(4).map(|plane| {
-        let normal = plane.truncate();
-        let offset = normal.dot(eye) + plane.w;
-        let along = (forward - forward.dot(normal) * normal).normalize_or_zero();
-        let turned = (cos * normal + sin * along).normalize_or(normal);
-        (turned, -turned.dot(eye) + offset + margin)
-    });
-    let frustum = Frustum::from_planes(widened).ok()?;
-    Some(frustum.in_local_frame(&view.world_from_terrain))
 }
 
 #[cfg(test)]
@@ -252,7 +256,7 @@ mod tests {
         assert!(first.unwrap().is_some_and(|stats| stats.triangles > 0));
         let mut expected = TerrainMesh::new();
         let eye = start;
-        let frustum = culling_frustum(&view(start, 0.0), 2.5, 3f64.to_radians());
+        let frustum = view(start, 0.0).culling_frustum(2.5, 3f64.to_radians());
         hierarchy
             .update(eye, frustum.as_ref(), &settings().lod, &mut expected)
             .unwrap();
@@ -305,7 +309,7 @@ mod tests {
             .update(&hierarchy, None, &start, &late, false)
             .unwrap()
             .unwrap();
-        let frustum = culling_frustum(&start, 50.0, 10f64.to_radians());
+        let frustum = start.culling_frustum(50.0, 10f64.to_radians());
         let mut expected = TerrainMesh::new();
         let expected_stats = hierarchy
             .update(start.eye(), frustum.as_ref(), &late.lod, &mut expected)
@@ -361,7 +365,7 @@ mod tests {
         let hierarchy = hierarchy();
         let start = DVec3::new(-200.0, 300.0, 320.0);
         let (delta, alpha) = (2.5, 3f64.to_radians());
-        let widened = culling_frustum(&view(start, -1.2), delta, alpha).unwrap();
+        let widened = view(start, -1.2).culling_frustum(delta, alpha).unwrap();
         let origin = hierarchy.origin();
         for (dx, dyaw) in [
             (2.4, 0.0),
@@ -369,7 +373,7 @@ mod tests {
             (0.0, -2.9f64.to_radians()),
         ] {
             let other = view(start + DVec3::new(dx, 0.0, 0.0), -1.2 + dyaw);
-            let exact = culling_frustum(&other, 0.0, 0.0).unwrap();
+            let exact = other.culling_frustum(0.0, 0.0).unwrap();
             let mut culled = TerrainMesh::new();
             let mut seen = TerrainMesh::new();
             let lod = settings().lod;
@@ -407,7 +411,7 @@ mod tests {
         let hierarchy = hierarchy();
         let mut orthographic = view(DVec3::new(0.0, 500.0, 0.0), 0.0);
         orthographic.clip_from_view = DMat4::orthographic_rh(-10.0, 10.0, -10.0, 10.0, 0.1, 100.0);
-        assert!(culling_frustum(&orthographic, 1.0, 0.1).is_none());
+        assert!(orthographic.culling_frustum(1.0, 0.1).is_none());
         let mut refiner = TerrainRefiner::new();
         let mut bad = settings();
         bad.lod.accuracy = f32::NAN;

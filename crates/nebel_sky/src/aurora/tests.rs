@@ -154,8 +154,13 @@ fn a_map_footprint_draws_still_curtains() {
         .map(|v| v[1])
         .fold(0.0, f32::max);
     assert!((highest - 300e3).abs() < 1.0, "{highest}");
-    // Still: no new cells while the camera stands, new ones when it moves.
+    // Still: no new cells while the camera stands, nor when it moves by less
+    // than a quarter of the footprint's spacing (9.4 km); new ones beyond.
     let updates = stats(&app, aurora).updates;
+    settle(&mut app);
+    assert_eq!(stats(&app, aurora).updates, updates);
+    let mut transform = app.world_mut().get_mut::<Transform>(camera).unwrap();
+    transform.translation.x += 2000.0;
     settle(&mut app);
     assert_eq!(stats(&app, aurora).updates, updates);
     let mut transform = app.world_mut().get_mut::<Transform>(camera).unwrap();

@@ -119,16 +119,28 @@ fn a_cloud_layer_draws_sorted_cells_lit_from_above_that_follow_eye_and_sun() {
     // Bright tops, darker bases.
     let (below, above) = light_below_and_above(&first, 1500.0);
     assert!(above > below + 0.05, "{below} below, {above} above");
-    // Still: nothing again; the eye moves: sorted again.
+    // Still: nothing again, nor after a move under a quarter of the layer's
+    // spacing (156 m) and a turn under 3°; beyond them: sorted again.
+    settle(&mut app);
+    assert_eq!(stats(&app, layer).updates, counts.updates);
+    let mut transform = app.world_mut().get_mut::<Transform>(camera).unwrap();
+    transform.translation.x += 30.0;
+    transform.rotate_y(2f32.to_radians());
     settle(&mut app);
     assert_eq!(stats(&app, layer).updates, counts.updates);
     app.world_mut()
         .get_mut::<Transform>(camera)
         .unwrap()
         .translation
-        .x += 200.0;
+        .x += 20.0;
     settle(&mut app);
     assert_eq!(stats(&app, layer).updates, counts.updates + 1);
+    app.world_mut()
+        .get_mut::<Transform>(camera)
+        .unwrap()
+        .rotate_y(4f32.to_radians());
+    settle(&mut app);
+    assert_eq!(stats(&app, layer).updates, counts.updates + 2);
     // A low sun: the light falls.
     *app.world_mut().get_mut::<Transform>(sun).unwrap() =
         Transform::default().looking_to(Vec3::new(1.0, -0.2, 0.0), Vec3::Y);
