@@ -95,39 +95,54 @@ pub fn campfire_density(dims: [usize; 3], time_seconds: f64, seed: u32) -> Densi
     } else {
         0.0
     };
-    let noise = Fbm::<Perlin>::new(seed)
-        .set_octaves(4)
-        .set_frequency(1.0)
-        .set_lacunarity(2.0)
-        .set_persistence(0.5);
-    let extent = CAMPFIRE_MAX - CAMPFIRE_MIN;
+    let noise = flame_fbm(seed);
+    let values = campfire_points(dims)
+        .map(|(f, p)| {
+            let r = p.x.hypot(p.z);
+            // Outside the widest flame any noise gives (n = 1) the density
+            // is 0 whatever the noise: most of the box.
+            let n = if r < flame_radius(f.y, 1.0) {
+                flame_noise(&noise, p, time)
+            } else {
+                0.0
+            };
+            flame(f.y, r, n)
+        })
+        .collect();
     let [nx, ny, nz] = dims;
-    let mut values = Vec::with_capacity(nx * ny * nz);
-    for k in 0..nz {
-        for j in 0..ny {
-            for i in 0..nx {
+    let extent = CAMPFIRE_MAX - CAMPFIRE_MIN;
+    let spacing = extent / DVec3::new((nx - 1) as f64, (ny - 1) as f64, (nz - 1) as f64);
+    DensityGrid::new(dims, spacing, CAMPFIRE_MIN, values)
+        .expect("campfire densities are finite, in [0, 1], on a valid grid")
+}
+
+/// The fractions (0 to 1 along each axis) and positions of the points of a
+/// campfire grid of `dims` points (at least 2 per axis), x fastest.
+fn campfire_points(dims: [usize; 3]) -> impl Iterator<Item = (DVec3, DVec3)> {
+    let [nx, ny, nz] = dims;
+    let extent = CAMPFIRE_MAX - CAMPFIRE_MIN;
+    (0..nz).flat_map(move |k| {
+        (0..ny).flat_map(move |j| {
+            (0..nx).map(move |i| {
                 // Fractions from the indices, so the boundary is exactly 0 or 1.
                 let f = DVec3::new(
                     i as f64 / (nx - 1) as f64,
                     j as f64 / (ny - 1) as f64,
                     k as f64 / (nz - 1) as f64,
                 );
-                let p = CAMPFIRE_MIN + f * extent;
-                let r = p.x.hypot(p.z);
-                // Outside the widest flame any noise gives (n = 1) the
-                // density is 0 whatever the noise: most of the box.
-                let n = if r < flame_radius(f.y, 1.0) {
-                    flame_noise(&noise, p, time)
-                } else {
-                    0.0
-                };
-                values.push(flame(f.y, r, n));
-            }
-        }
-    }
-    let spacing = extent / DVec3::new((nx - 1) as f64, (ny - 1) as f64, (nz - 1) as f64);
-    DensityGrid::new(dims, spacing, CAMPFIRE_MIN, values)
-        .expect("campfire densities are finite, in [0, 1], on a valid grid")
+                (f, CAMPFIRE_MIN + f * extent)
+            })
+        })
+    })
+}
+
+/// The flame's fBm (module docs) for `seed`.
+fn flame_fbm(seed: u32) -> Fbm<Perlin> {
+    Fbm::<Perlin>::new(seed)
+        .set_octaves(4)
+        .set_frequency(1.0)
+        .set_lacunarity(2.0)
+        .set_persistence(0.5)
 }
 
 /// The unit noise `n` of the flame at `p` (world units) and `time` seconds
@@ -313,27 +328,10 @@ mod tests {
             seed: u32,
         ) {
             let grid = campfire_density(dims, time, seed);
-            let noise = Fbm::<Perlin>::new(seed)
-                .set_octaves(4)
-                .set_frequency(1.0)
-                .set_lacunarity(2.0)
-                .set_persistence(0.5);
-            let extent = CAMPFIRE_MAX - CAMPFIRE_MIN;
-            let [nx, ny, nz] = dims;
-            for k in 0..nz {
-                for j in 0..ny {
-                    for i in 0..nx {
-                        let f = DVec3::new(
-                            i as f64 / (nx - 1) as f64,
-                            j as f64 / (ny - 1) as f64,
-                            k as f64 / (nz - 1) as f64,
-                        );
-                        let p = CAMPFIRE_MIN + f * extent;
-                        let full = flame(f.y, p.x.hypot(p.z), flame_noise(&noise, p, time));
-                        proptest::prop_assert_eq!(grid.value(i, j, k).to_bits(), full.to_bits());
-                    }
-                }
-            }
+            let noise = flame_fbm(seed);
+            let full = campfire_points(dims)
+                .map(|(f, p)| flame(f.y, p.x.hypot(p.z), flame_noise(&noise, p, time)).to_bits());
+            proptest::prop_assert!(grid.values().iter().map(|v| v.to_bits()).eq(full));
         }
     }
 
