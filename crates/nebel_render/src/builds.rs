@@ -3,8 +3,11 @@
 //! to a second, so nebel's plugins run them on Bevy's
 //! [`AsyncComputeTaskPool`] instead of in the frame that needs them, and keep
 //! drawing what they had until the result is ready. [`HeavyBuilds`] chooses whether a frame waits for its builds, or
-//! gives the builds of animated volumes a fixed slice of each frame.
+//! gives the builds of animated volumes a fixed slice of each frame. The CPU
+//! time the builds on the task pool worked is summed for the diagnostic
+//! `nebel/builds_cpu_ms` ([`crate::NebelDiagnosticsPlugin::BUILDS_CPU_MS`]).
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, TryRecvError};
 use std::sync::{Mutex, PoisonError};
 use std::time::Duration;
@@ -42,6 +45,16 @@ pub enum HeavyBuilds {
     Budgeted(Duration),
 }
 
+/// CPU time of the builds on the task pool that ended since the sum was last
+/// taken, nanoseconds.
+static BUILDS_CPU_NANOS: AtomicU64 = AtomicU64::new(0);
+
+/// The CPU time the builds on the task pool worked (those that ended since
+/// the last call), and a new sum from zero.
+pub(crate) fn take_builds_cpu_time() -> Duration {
+    Duration::from_nanos(BUILDS_CPU_NANOS.swap(0, Ordering::Relaxed))
+}
+
 /// A heavy build in flight.
 #[derive(Debug)]
 pub struct HeavyBuild<T>(Running<T>);
@@ -58,9 +71,18 @@ enum Running<T> {
 impl<T: Send + 'static> HeavyBuild<T> {
     /// Starts `work` on the [`AsyncComputeTaskPool`].
     pub fn spawn(work: impl FnOnce() -> T + Send + 'static) -> Self {
-        Self(Running::Task(
-            AsyncComputeTaskPool::get().spawn(async move { work() }),
-        ))
+        Self(Running::Task(AsyncComputeTaskPool::get().spawn(
+            async move {
+                let started = crate::frame_budget::thread_time();
+                let result = work();
+                let spent = crate::frame_budget::thread_time().saturating_sub(started);
+                BUILDS_CPU_NANOS.fetch_add(
+                    u64::try_from(spent.as_nanos()).unwrap_or(u64::MAX),
+                    Ordering::Relaxed,
+                );
+                result
+            },
+        )))
     }
 
     /// Starts `work` on the budgeted workers under [`HeavyBuilds::Budgeted`]
@@ -177,7 +199,7 @@ mod tests {
     /// millisecond apart: a guard against a hang).
     fn wait_for(done: &std::sync::atomic::AtomicUsize, count: usize) {
         for _ in 0..10_000 {
-            if done.load(std::sync::atomic::Ordering::SeqCst) >= count {
+            if done.load(Ordering::SeqCst) >= count {
                 return;
             }
             std::thread::sleep(Duration::from_millis(1));

@@ -23,7 +23,14 @@
 //!   whose cores are busy (the task pool's builds, a software GPU) the
 //!   set's threads wait for a core, so it is an upper bound.
 //!
-//! With no nebel system both are the cost of the markers alone (microseconds).
+//! - [`NebelDiagnosticsPlugin::BUILDS_CPU_MS`]: the CPU time of nebel's heavy
+//!   builds on the task pool ([`crate::HeavyBuild::spawn`]) that ended since
+//!   the frame before: the work nebel does beside the frame (a build's whole
+//!   time lands in the frame it ends in, so its mean over frames is what
+//!   counts).
+//!
+//! With no nebel system the first two are the cost of the markers alone
+//! (microseconds).
 //!
 //! Each effect plugin registers its own counters as diagnostics under
 //! `nebel/<effect>/<counter>` (for example `nebel/volume/cells_drawn`), each
@@ -98,6 +105,9 @@ impl NebelDiagnosticsPlugin {
     /// CPU time of nebel's systems per frame, milliseconds (see the module
     /// docs).
     pub const SYSTEMS_CPU_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/systems_cpu_ms");
+    /// CPU time of nebel's builds on the task pool that ended since the
+    /// frame before, milliseconds (see the module docs).
+    pub const BUILDS_CPU_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/builds_cpu_ms");
 }
 
 /// When the set started this frame and how long it ran so far.
@@ -112,6 +122,7 @@ impl Plugin for NebelDiagnosticsPlugin {
         app.init_resource::<SetTimer>()
             .register_diagnostic(Diagnostic::new(Self::SYSTEMS_MS).with_suffix(" ms"))
             .register_diagnostic(Diagnostic::new(Self::SYSTEMS_CPU_MS).with_suffix(" ms"))
+            .register_diagnostic(Diagnostic::new(Self::BUILDS_CPU_MS).with_suffix(" ms"))
             .configure_sets(
                 PostUpdate,
                 NebelSystems
@@ -163,12 +174,17 @@ fn end_timing(mut timer: ResMut<SetTimer>, mut diagnostics: Diagnostics) {
     });
     let cpu = SYSTEMS_CPU_NANOS.swap(0, Ordering::Relaxed);
     diagnostics.add_measurement(&NebelDiagnosticsPlugin::SYSTEMS_CPU_MS, || cpu as f64 / 1e6);
+    let builds = crate::builds::take_builds_cpu_time();
+    diagnostics.add_measurement(&NebelDiagnosticsPlugin::BUILDS_CPU_MS, || {
+        builds.as_secs_f64() * 1e3
+    });
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use bevy::diagnostic::DiagnosticsStore;
+    use bevy::tasks::{AsyncComputeTaskPool, TaskPool};
 
     /// Works `ms` of its thread's CPU time.
     fn spin(ms: u64) {
@@ -190,6 +206,7 @@ mod tests {
         for path in [
             NebelDiagnosticsPlugin::SYSTEMS_MS,
             NebelDiagnosticsPlugin::SYSTEMS_CPU_MS,
+            NebelDiagnosticsPlugin::BUILDS_CPU_MS,
         ] {
             let diagnostic = store.get(&path).unwrap();
             assert_eq!(diagnostic.history_len(), frames);
@@ -219,5 +236,17 @@ mod tests {
             #[cfg(unix)]
             assert!(cpu < 15.0, "asleep is not work: {cpu} ms");
         }
+
+        // A build of 4 ms on the task pool counts in the frame after it ends.
+        AsyncComputeTaskPool::get_or_init(TaskPool::new);
+        let mut build = crate::HeavyBuild::spawn(|| spin(4));
+        build.poll(crate::HeavyBuilds::Blocking);
+        app.update();
+        let store = app.world().resource::<DiagnosticsStore>();
+        let builds = store
+            .get_measurement(&NebelDiagnosticsPlugin::BUILDS_CPU_MS)
+            .unwrap()
+            .value;
+        assert!(builds >= 4.0, "{builds} ms");
     }
 }

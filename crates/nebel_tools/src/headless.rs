@@ -307,6 +307,7 @@ pub fn render_headless(
     let mut frame_times = Vec::with_capacity(output.frames as usize);
     let mut nebel_times = Vec::with_capacity(output.frames as usize);
     let mut nebel_wall_times = Vec::with_capacity(output.frames as usize);
+    let mut build_times = Vec::with_capacity(output.frames as usize);
     let mut budgeted_times = Vec::new();
     let bar = crate::progress::bar(options.progress, "frame", u64::from(output.frames));
     for frame in 0..output.frames {
@@ -335,6 +336,7 @@ pub fn render_headless(
         };
         nebel_times.extend(latest(&NebelDiagnosticsPlugin::SYSTEMS_CPU_MS));
         nebel_wall_times.extend(latest(&NebelDiagnosticsPlugin::SYSTEMS_MS));
+        build_times.extend(latest(&NebelDiagnosticsPlugin::BUILDS_CPU_MS));
         // Measured every frame under a build budget only.
         budgeted_times.extend(latest(&VolumePlugin::BUDGETED_BUILD_MS));
         bar.inc(1);
@@ -366,6 +368,7 @@ pub fn render_headless(
         warm_up_frame_wall_ms: TimeSummary::of(&headless.warm_up_times),
         nebel_systems_cpu_ms: TimeSummary::of(&nebel_times),
         nebel_systems_wall_ms: TimeSummary::of(&nebel_wall_times),
+        nebel_builds_cpu_ms: TimeSummary::of(&build_times),
         budgeted_builds_ms: (!budgeted_times.is_empty()).then(|| TimeSummary::of(&budgeted_times)),
         per_frame_ms: FrameTimes::of(
             &frame_times,

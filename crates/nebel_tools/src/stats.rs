@@ -10,6 +10,7 @@
 //!   "warm_up_frame_wall_ms": { "median": 700.1, "mean": 955.2, "max": 1210.4 },
 //!   "nebel_systems_cpu_ms": { "median": 0.01, "mean": 0.01, "max": 0.02 },
 //!   "nebel_systems_wall_ms": { "median": 0.02, "mean": 0.02, "max": 0.05 },
+//!   "nebel_builds_cpu_ms": { "median": 0.0, "mean": 1.2, "max": 9.8 },
 //!   "per_frame_ms": { "wall": [41.2, 380.5, ...], "nebel_systems": [0.01, 0.02, ...], "nebel_systems_wall": [0.02, 0.05, ...] },
 //!   "effects": { }
 //! }
@@ -20,7 +21,9 @@
 //! first, until every pipeline compiled; `nebel_systems_cpu_ms` is the
 //! diagnostic `nebel/systems_cpu_ms` of the scene frames (the CPU time of
 //! nebel's systems) and `nebel_systems_wall_ms` the diagnostic
-//! `nebel/systems_ms` (the wall time of their set, an upper bound); under a build budget
+//! `nebel/systems_ms` (the wall time of their set, an upper bound);
+//! `nebel_builds_cpu_ms` the diagnostic `nebel/builds_cpu_ms` (the CPU time of
+//! the builds on the task pool that ended in each frame); under a build budget
 //! (`--build-budget-ms`) `budgeted_builds_ms` summarises the diagnostic
 //! `nebel/volume/budgeted_build_ms`, the work of the budgeted builds per
 //! frame; `per_frame_ms` lists these per scene frame, in order; `effects` has one
@@ -130,6 +133,8 @@ pub struct RenderStats {
     pub nebel_systems_cpu_ms: TimeSummary,
     /// Wall time per frame of the `NebelSystems` set: an upper bound.
     pub nebel_systems_wall_ms: TimeSummary,
+    /// CPU time of the builds on the task pool that ended in each frame.
+    pub nebel_builds_cpu_ms: TimeSummary,
     /// Under a build budget (`--build-budget-ms`), the CPU time per frame
     /// the budgeted builds (an animated volume's keyframes and refinement
     /// steps) worked, on nebel's worker threads: the work a game gives that
