@@ -40,7 +40,7 @@ use nebel_lod::{
     CellOrder, Cells, FogProfile, GpuCell, PrismInput, PrismScalar, PrismStats, TriangleOrder,
     fog_prisms,
 };
-use nebel_render::camera::to_double;
+use nebel_render::camera::to_double_affine;
 use nebel_render::{CellBatch, EffectiveQuality, HeavyBuild, HeavyBuilds, LodCameras};
 use nebel_terrain::{Terrain, TerrainLod, TerrainLodStats, TerrainMapLod, TerrainStatus};
 
@@ -279,7 +279,7 @@ pub(crate) fn update_fog_batches(
         if state.building.is_none() {
             // A bad transfer function fails where a failed build does.
             let transfer = scaled_transfer(state, &fog);
-            let world_from_terrain = DAffine3::from_mat4(to_double(transform.to_matrix()));
+            let world_from_terrain = to_double_affine(&transform);
             let origin = mapped.hierarchy.origin();
             let mesh = lod.mesh().clone();
             let profile = fog.profile.clone();

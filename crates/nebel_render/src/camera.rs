@@ -11,8 +11,9 @@
 
 use bevy::camera::{ComputedCameraValues, RenderTargetInfo};
 use bevy::ecs::system::SystemParam;
-use bevy::math::{DMat4, DVec3};
+use bevy::math::{DAffine3, DMat4, DVec3};
 use bevy::prelude::*;
+use nebel_lod::quadtree::TerrainView;
 
 /// Marks the camera whose view drives nebel's level of detail (see the
 /// module docs). Put it on one camera, e.g. the player's when a minimap
@@ -104,6 +105,23 @@ pub fn computed_camera(clip_from_view: Mat4, physical_size: UVec2) -> Camera {
 /// `matrix` in f64.
 pub fn to_double(matrix: Mat4) -> DMat4 {
     DMat4::from_cols_array(&matrix.to_cols_array().map(f64::from))
+}
+
+/// The world-from-local map of `transform` in f64.
+pub fn to_double_affine(transform: &GlobalTransform) -> DAffine3 {
+    DAffine3::from_mat4(to_double(transform.to_matrix()))
+}
+
+impl LodView {
+    /// This camera seen from a surface placed by `world_from_local` (a
+    /// terrain, a layer between two surfaces).
+    pub fn seen_from(&self, world_from_local: DAffine3) -> TerrainView {
+        TerrainView {
+            world_from_view: to_double_affine(&self.world_from_view),
+            clip_from_view: to_double(self.clip_from_view),
+            world_from_terrain: world_from_local,
+        }
+    }
 }
 
 #[cfg(test)]

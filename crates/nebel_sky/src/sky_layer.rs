@@ -31,7 +31,7 @@ use bevy::camera::CameraUpdateSystems;
 use bevy::camera::visibility::VisibilitySystems;
 use bevy::diagnostic::{DiagnosticPath, Diagnostics};
 use bevy::ecs::component::Mutable;
-use bevy::math::{DAffine3, DVec3};
+use bevy::math::DVec3;
 use bevy::prelude::*;
 use bevy::reflect::{FromReflect, GetTypeRegistration, Typed};
 use nebel_core::optics::OpticalMode;
@@ -41,7 +41,7 @@ use nebel_lod::{
     CellOrder, Cells, FogProfile, GpuCell, LayerStats, LayerView, LodSettings, PrismScalar,
     SurfaceLayer, SurfaceLayerError, TerrainError, TerrainMap, TerrainMesh,
 };
-use nebel_render::camera::to_double;
+use nebel_render::camera::to_double_affine;
 use nebel_render::{
     CellBatch, EffectStatus, EffectiveQuality, GrayscaleMap, GrayscaleMapPlugin, HeavyBuild,
     HeavyBuilds, LodCameras, NebelSystems, cpu_timed, register_diagnostics,
@@ -353,12 +353,8 @@ fn update_sky_layers<T: SkyLayer>(
             status.set_if_neq(EffectStatus::Ready);
             continue;
         }
-        let world_from_field = DAffine3::from_mat4(to_double(transform.to_matrix()));
-        let view = TerrainView {
-            world_from_view: DAffine3::from_mat4(to_double(camera.world_from_view.to_matrix())),
-            clip_from_view: to_double(camera.clip_from_view),
-            world_from_terrain: world_from_field,
-        };
+        let world_from_field = to_double_affine(&transform);
+        let view = camera.seen_from(world_from_field);
         // A quarter of the layer's grid spacing, in its units.
         let distance = state.layer.as_ref().map_or(0.0, |(_, built)| {
             UPDATE_DISTANCE * built.hierarchy().field().spacing().max_element()
@@ -425,16 +421,8 @@ fn update_sky_layers<T: SkyLayer>(
             let (profile, scalar, order) = layer.drawing(&key.layer, sun);
             // Widened by what the view may change until the next cells land
             // (module docs); a degenerate projection culls nothing.
-            let scale = world_from_field
-                .matrix3
-                .to_cols_array_2d()
-                .iter()
-                .map(|column| DVec3::from(*column).length())
-                .fold(0.0, f64::max);
-            let frustum = view.culling_frustum(
-                (distance + state.latency.0) * scale,
-                (VIEW_MARGIN + state.latency.1).min(std::f64::consts::FRAC_PI_4),
-            );
+            let frustum =
+                view.culling_frustum(distance + state.latency.0, VIEW_MARGIN + state.latency.1);
             let eye = camera.eye;
             let layer_key = key.layer.clone();
             let current = state.layer.as_ref().map(|(_, built)| built.clone());

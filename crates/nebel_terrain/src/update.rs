@@ -59,14 +59,13 @@ use bevy::camera::primitives::Aabb;
 use bevy::camera::visibility::NoAutoAabb;
 use bevy::diagnostic::Diagnostics;
 use bevy::ecs::system::SystemParam;
-use bevy::math::DAffine3;
 use bevy::prelude::*;
 use nebel_lod::TerrainError;
 use nebel_lod::quadtree::{
     LodSettings, LodStats, RefinerSettings, TerrainHierarchy, TerrainMap, TerrainRefiner,
     TerrainView, TriangleOrder, accuracy_for_pixel_error,
 };
-use nebel_render::camera::to_double;
+use nebel_render::camera::{to_double, to_double_affine};
 use nebel_render::{
     EffectiveQuality, HeavyBuild, HeavyBuilds, LodCameras, LodView, free_in_background,
 };
@@ -75,10 +74,6 @@ use crate::build::{TerrainLod, bounds};
 use crate::map::TerrainMapLod;
 use crate::shading::{Colouring, Palette, default_material, empty_mesh, write_mesh};
 use crate::terrain::{Terrain, TerrainLodStats, TerrainPlugin, TerrainStatus};
-
-fn affine(transform: &GlobalTransform) -> DAffine3 {
-    DAffine3::from_mat4(to_double(transform.to_matrix()))
-}
 
 /// The meshes and materials the terrain systems write.
 #[derive(SystemParam)]
@@ -278,11 +273,7 @@ pub(crate) fn update_terrain_meshes(
             || quality_changed
             || map_changed
             || map.as_ref().is_some_and(Ref::is_changed);
-        let view = TerrainView {
-            world_from_view: affine(&camera.world_from_view),
-            clip_from_view: to_double(camera.clip_from_view),
-            world_from_terrain: affine(transform),
-        };
+        let view = camera.seen_from(to_double_affine(transform));
         let settings = match refiner_settings(
             &terrain,
             mapped.and(map.as_deref()),

@@ -55,7 +55,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bevy::diagnostic::Diagnostics;
-use bevy::math::{DAffine3, DVec3};
+use bevy::math::DVec3;
 use bevy::prelude::*;
 use nebel_core::optics::OpticalMode;
 use nebel_lod::octree::keyframe::REFINEMENT_SPAN;
@@ -63,7 +63,7 @@ use nebel_lod::{
     BatchLighting, BatchSettings, BuiltRefinementStep, CellOrder, FrameInputs, Frustum,
     OctreeSettings, View, VolumeBatchError, VolumeBatcher, VolumeSource,
 };
-use nebel_render::camera::to_double;
+use nebel_render::camera::to_double_affine;
 use nebel_render::{
     CellBatch, CellBlend, CellSunlight, EffectiveQuality, HeavyBuild, HeavyBuilds, LodCameras,
     free_in_background,
@@ -439,11 +439,6 @@ fn finish_build(batching: &mut VolumeBatching, mode: HeavyBuilds, diagnostics: &
     }
 }
 
-/// The world-from-local map of `transform` in f64.
-fn world_from_local(transform: &GlobalTransform) -> DAffine3 {
-    DAffine3::from_mat4(to_double(transform.to_matrix()))
-}
-
 /// Updates every visible volume's batch for this frame's view and writes it
 /// when it changed (see the module docs).
 pub(crate) fn update_batches(
@@ -493,7 +488,7 @@ pub(crate) fn update_batches(
         let view = camera.map(|camera| View {
             frustum: frustum.clone(),
             clip_from_world: Some(camera.clip_from_world),
-            ..View::new(world_from_local(transform), camera.eye, camera.viewport)
+            ..View::new(to_double_affine(transform), camera.eye, camera.viewport)
         });
         // Read by the octree alone, which every volume with a `VolumeLod` has.
         let criterion = lod.map_or_else(LodCriterion::default, |lod| {

@@ -70,17 +70,27 @@ impl TerrainView {
         DQuat::from_mat3(&self.world_from_view.matrix3)
     }
 
-    /// The camera's side planes, each turned outward by `angle` (radians)
-    /// about the eye and pushed out by `margin` (world units), in the
-    /// terrain's frame: a frustum that still holds everything the camera sees
-    /// after it moved by less than `margin` and turned by less than `angle`
-    /// (see the module docs). `None` (cull nothing) for an orthographic or
-    /// degenerate camera.
-    pub fn culling_frustum(&self, margin: f64, angle: f64) -> Option<Frustum> {
+    /// The camera's side planes, each turned outward by `angle` (radians,
+    /// at most π/4) about the eye and pushed out by `distance` (terrain
+    /// units), in the terrain's frame: a frustum that still holds everything
+    /// the camera sees after the eye moved by less than `distance` and the
+    /// camera turned by less than `angle` (see the module docs). `None` (cull
+    /// nothing) for an orthographic or degenerate camera.
+    pub fn culling_frustum(&self, distance: f64, angle: f64) -> Option<Frustum> {
         if self.clip_from_view.row(3).z == 0.0 {
             // Orthographic: the side planes are parallel to the view.
             return None;
         }
+        // Terrain units to world units: at most the longest axis.
+        let margin = distance
+            * self
+                .world_from_terrain
+                .matrix3
+                .to_cols_array_2d()
+                .iter()
+                .map(|column| DVec3::from(*column).length())
+                .fold(0.0, f64::max);
+        let angle = angle.min(std::f64::consts::FRAC_PI_4);
         let clip_from_world = self.clip_from_view * DMat4::from(self.world_from_view.inverse());
         let exact = Frustum::from_view_projection(clip_from_world).ok()?;
         let eye = self.world_from_view.translation;
@@ -166,16 +176,8 @@ impl TerrainRefiner {
         self.refined_for = None;
         let (moved, turned) = settings.latency;
         let distance = settings.update_distance.max(0.0) + moved.max(0.0);
-        let margin =
-            (settings.view_margin.max(0.0) + turned.max(0.0)).min(std::f64::consts::FRAC_PI_4);
-        let scale = view
-            .world_from_terrain
-            .matrix3
-            .to_cols_array_2d()
-            .iter()
-            .map(|column| DVec3::from(*column).length())
-            .fold(0.0, f64::max);
-        let frustum = view.culling_frustum(distance * scale, margin);
+        let margin = settings.view_margin.max(0.0) + turned.max(0.0);
+        let frustum = view.culling_frustum(distance, margin);
         if Arc::get_mut(&mut self.mesh).is_none() {
             self.mesh = Arc::default();
         }
