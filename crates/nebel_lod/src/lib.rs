@@ -46,23 +46,28 @@
 
 pub mod aurora;
 pub mod batch;
+pub mod builds;
 pub mod cloud_layer;
 pub mod frustum;
 pub mod full_resolution;
 pub mod ground_fog;
+mod keyframe_track;
 pub mod octree;
 pub mod quadtree;
 pub mod surface_layer;
 pub mod view;
 pub mod visibility;
 pub mod volume_batcher;
+pub mod volume_batching;
 
 pub use aurora::AuroraShape;
 pub use batch::{Cells, GpuCell};
+pub use builds::{BuildKind, BuildPool, LocalBuilds};
 pub use cloud_layer::CloudLayerShape;
 pub use frustum::{Frustum, FrustumError};
 pub use full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};
 pub use ground_fog::{FogProfile, PrismError, PrismInput, PrismScalar, PrismStats, fog_prisms};
+pub use keyframe_track::AnimatedGrid;
 pub use octree::{HierarchyError, Node, VolumeHierarchy};
 pub use quadtree::{
     LodSettings, TerrainError, TerrainHierarchy, TerrainMap, TerrainMesh, TriangleOrder,
@@ -76,3 +81,4 @@ pub use volume_batcher::{
     BatchLighting, BatchSettings, BuiltRefinementStep, FrameInputs, OctreeSettings, RefinementStep,
     VolumeBatchError, VolumeBatcher, VolumeSource,
 };
+pub use volume_batching::{BuildRequest, FrameBatch, LandedBuilds, VolumeBatching};

@@ -148,6 +148,32 @@ impl HeavyBuilds {
     }
 }
 
+/// nebel's volumes batch on the task pool: a new batcher outside any budget,
+/// keyframes in it, refinements first in it (see [`HeavyBuild::spawn_in`]).
+impl nebel_lod::BuildPool for HeavyBuilds {
+    type Pending<T: Send + 'static> = HeavyBuild<T>;
+
+    fn spawn<T: Send + 'static>(
+        self,
+        kind: nebel_lod::BuildKind,
+        work: impl FnOnce() -> T + Send + 'static,
+    ) -> HeavyBuild<T> {
+        match kind {
+            nebel_lod::BuildKind::Batcher => HeavyBuild::spawn(work),
+            nebel_lod::BuildKind::Keyframes => HeavyBuild::spawn_in(self, false, work),
+            nebel_lod::BuildKind::Refinement => HeavyBuild::spawn_in(self, true, work),
+        }
+    }
+
+    fn poll<T: Send + 'static>(self, pending: &mut HeavyBuild<T>) -> Option<T> {
+        pending.poll(self)
+    }
+
+    fn free<T: Send + 'static>(self, value: T) {
+        free_in_background(value);
+    }
+}
+
 /// Drops `value` on the [`AsyncComputeTaskPool`]: freeing what a large build
 /// made (hundreds of megabytes for a 513 × 65 × 513 volume's octrees) can take
 /// tens of milliseconds, which no frame should wait for.

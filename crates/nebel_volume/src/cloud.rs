@@ -17,7 +17,7 @@
 //!
 //! In the wind the cloud is drawn from keyframes of its field every
 //! [`CloudVolume::keyframe_interval`] seconds, blended on the GPU and built
-//! ahead in the background (`crate::keyframes`); its grid asset is then not
+//! ahead in the background (`nebel_lod::VolumeBatching`); its grid asset is then not
 //! written.
 
 use std::sync::Arc;
@@ -28,10 +28,10 @@ use bevy::math::DVec3;
 use bevy::prelude::*;
 use nebel_core::field::{CloudNoise, DensityGrid, FieldError};
 use nebel_core::transfer::{TransferFunction, TransferPreset};
+use nebel_lod::AnimatedGrid;
 use nebel_render::{HeavyBuild, HeavyBuilds};
 
 use crate::grid::VolumeGrid;
-use crate::keyframes::is_windy;
 use crate::status::VolumeError;
 use crate::{Volume, VolumeField, VolumeLighting, VolumeLod, VolumePlugin};
 
@@ -95,6 +95,18 @@ impl CloudVolume {
     }
 }
 
+/// A windy cloud's keyframes sample it at their times.
+impl AnimatedGrid for CloudVolume {
+    fn grid_at(&self, time: f64) -> Result<DensityGrid, FieldError> {
+        CloudVolume::grid_at(self, time)
+    }
+}
+
+/// Whether `cloud` animates: a wind on any axis.
+pub(crate) fn is_windy(cloud: &CloudVolume) -> bool {
+    cloud.noise.wind != DVec3::ZERO
+}
+
 /// A cloud's generation in flight and its last failure (internal).
 #[derive(Component, Default)]
 pub(crate) struct CloudGeneration {
@@ -125,7 +137,7 @@ impl CloudGeneration {
 /// Starts a visible, still cloud's generation when its settings changed or
 /// when it has none yet (one at a time, and not again after a failure until
 /// the settings change), and writes the finished grids into the volume's
-/// grid asset. A windy cloud is the keyframe track's (`crate::keyframes`).
+/// grid asset. A windy cloud is its keyframes' (`nebel_lod::VolumeBatching`).
 pub(crate) fn generate_clouds(
     time: Res<Time>,
     mode: Res<HeavyBuilds>,

@@ -17,7 +17,6 @@ pub mod cloud;
 pub mod flickering_light;
 pub mod grid;
 pub mod grid_loader;
-pub mod keyframes;
 pub mod lighting;
 pub mod lod;
 pub mod status;

@@ -13,7 +13,7 @@
 //!    when there is none), and again whenever the volume or its rotation
 //!    changes or the sun comes to rest somewhere new; while the sun moves,
 //!    from keyframes of the light field blended on the GPU
-//!    (`crate::keyframes`); the light's colour and illuminance scale the
+//!    (`nebel_lod::VolumeBatching`); the light's colour and illuminance scale the
 //!    colours drawn (`nebel_render::CellSunlight`);
 //! 2. builds the hierarchy over both fields (`VolumeHierarchy::with_light`), so
 //!    refinement follows the larger deviation of density and light (§5.1);
@@ -94,7 +94,7 @@ pub struct VolumeLighting {
     /// [`CloudLightModel::Isotropic`].
     pub model: CloudLightModel,
     /// Seconds between the keyframes of the light field while the sun moves
-    /// (`crate::keyframes`; a windy cloud uses its own
+    /// (`nebel_lod::VolumeBatching`; a windy cloud uses its own
     /// [`CloudVolume::keyframe_interval`](crate::CloudVolume::keyframe_interval)),
     /// finite (below 1 ms, and NaN, count as 1 ms). Shorter follows the sun
     /// more closely at a proportional CPU cost. Default 2.

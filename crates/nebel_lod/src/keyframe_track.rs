@@ -1,59 +1,49 @@
-//! Keyframes of a cloud in the wind or a lit volume under a moving sun.
+//! Keyframes of an animated volume: a cloud in the wind or a lit grid under a
+//! moving sun, built ahead and blended on the GPU, so the image moves at
+//! frame rate instead of stepping at every rebuild.
 //!
-//! The animated field's keyframes are built ahead in the background and blended
-//! on the GPU, so the image moves continuously at frame rate instead of
-//! stepping at every rebuild.
+//! An animated field's density is a pure function of time ([`AnimatedGrid`];
+//! a cloud's `nebel_core::field::CloudNoise` drifts every octave with its own
+//! wind after Schpok et al. 2003 §5.3). The track samples it at the keyframe
+//! times `t_k = k·T` and draws `f(t) = (1 − β) f(t_k) + β f(t_{k+1})`,
+//! `β = (t − t_k) / T`, through one octree of both keyframes
+//! ([`crate::octree::keyframe`]): each frame only `β` changes, and the octree
+//! is refined again [`REFINEMENT_STEPS`] times per interval. A lit grid under a
+//! moving sun is drawn the same way from keyframes of its light field, each lit
+//! by the sun extrapolated to the keyframe's time as a turn at a constant rate
+//! (`SunMotion`).
 //!
-//! A windy [`CloudVolume`]'s density is a pure function of time
-//! (`nebel_core::field::CloudNoise`, every octave drifting with its own wind
-//! after Schpok et al. 2003 §5.3). The track samples it at the keyframe times
-//! `t_k = k·T` (`T` = [`CloudVolume::keyframe_interval`]) and draws
-//! `f(t) = (1 − β) f(t_k) + β f(t_{k+1})`, `β = (t − t_k) / T`, through one
-//! octree of both keyframes (`nebel_lod::octree::keyframe`). Each frame only
-//! `β` changes (the entity's [`CellBlend`], a uniform write); the octree is
-//! refined again [`REFINEMENT_STEPS`] times per interval (and whenever the
-//! camera moves), each time for its span of blends, made ahead on the task pool
-//! for a still camera.
-//!
-//! A lit volume whose sun (the first `DirectionalLight`) moved in the last two
-//! intervals
-//! ([`VolumeLighting::keyframe_interval`](crate::VolumeLighting::keyframe_interval))
-//! is drawn from keyframes of its light field the same way, each lit by the sun
-//! extrapolated to the keyframe's time as a turn at a constant rate
-//! (`SunMotion`). Once sun and wind have rested, the volume is built once for
-//! where they stopped.
-//!
-//! While a pair of keyframes is drawn, the next is built on the task pool
-//! (grid, light field and hierarchy through `VolumeBatcher::new`); at `β = 1`
+//! While a pair is drawn, the next is built on the [`BuildPool`]; at `β = 1`
 //! both draw the same field, so the hand-over changes nothing but the batch.
-//! The clock runs with Bevy's `Time` and waits at the end of a pair or step
-//! whose successor is not ready, so a slow build (or one under
-//! `HeavyBuilds::Budgeted`) slows the wind instead of stepping it; a hidden
-//! volume's clock waits too. About 5 bytes per grid point stay alive for each
-//! of three keyframes.
-//!
-//! Between keyframes the field is a cross-fade, not a drift: features that move
-//! far in `T` fade out at their old place and in at the new one. Shorter
-//! intervals make it a drift, at a proportional cost. The reasoning behind each
-//! step is in `docs/wind-keyframes.md` in the repository.
+//! The clock waits at the end of a pair or refinement step whose successor is
+//! not ready, so a slow build slows the animation instead of stepping it.
+//! Between keyframes the field is a cross-fade, not a drift (see
+//! `docs/wind-keyframes.md`).
 
 use std::sync::Arc;
 use std::time::Instant;
 
-use bevy::math::{DQuat, DVec3};
-use nebel_core::field::DensityGrid;
-use nebel_lod::octree::keyframe::{REFINEMENT_STEPS, keyframe_index, keyframe_time};
-use nebel_lod::{BatchSettings, VolumeBatchError, VolumeBatcher, VolumeSource};
-use nebel_render::{CellBlend, HeavyBuild, HeavyBuilds, free_in_background};
+use glam::{DQuat, DVec3};
+use nebel_core::field::{DensityGrid, FieldError};
 
-use crate::batching::settings_bits;
-use crate::cloud::CloudVolume;
+use crate::builds::{BuildKind, BuildPool};
+use crate::octree::keyframe::{REFINEMENT_STEPS, keyframe_index, keyframe_time};
+use crate::volume_batching::settings_bits;
+use crate::{BatchSettings, VolumeBatchError, VolumeBatcher, VolumeSource};
+
+/// A density field that moves with time, sampled on a grid at any time (a
+/// cloud in the wind). Two are the same animation when their `Debug`
+/// texts agree.
+pub trait AnimatedGrid: std::fmt::Debug + Send + Sync {
+    /// The grid at `time` seconds.
+    fn grid_at(&self, time: f64) -> Result<DensityGrid, FieldError>;
+}
 
 /// What a volume's keyframes sample.
 #[derive(Clone, Debug)]
 pub(crate) enum KeyframeSource {
-    /// A cloud in the wind: its grid at each keyframe's time.
-    Cloud(CloudVolume),
+    /// A field in motion: its grid at each keyframe's time.
+    Animated(Arc<dyn AnimatedGrid>),
     /// A grid that does not move (lit under a moving sun).
     Grid(Arc<DensityGrid>),
 }
@@ -128,7 +118,7 @@ impl KeyframeRecipe {
     /// by the sun then, and everything the batcher builds from it.
     fn keyframe(&self, t: f64, sun: &SunMotion) -> Result<VolumeBatcher, VolumeBatchError> {
         let grid = match &self.source {
-            KeyframeSource::Cloud(cloud) => Arc::new(cloud.grid_at(t)?),
+            KeyframeSource::Animated(field) => Arc::new(field.grid_at(t)?),
             KeyframeSource::Grid(grid) => grid.clone(),
         };
         let mut settings = self.settings;
@@ -140,7 +130,7 @@ impl KeyframeRecipe {
 
     /// Equality of what the keyframes depend on but the sun, bit for bit (a
     /// NaN setting equals itself, so a track that failed on it is not
-    /// started again every frame; the cloud by its printed values) and the
+    /// started again every frame; an animation by its printed values) and the
     /// grid's identity.
     fn same_as(&self, other: &Self) -> bool {
         let without_sun = |recipe: &Self| {
@@ -151,7 +141,7 @@ impl KeyframeRecipe {
             (settings_bits(&settings), recipe.interval.to_bits())
         };
         let source = match (&self.source, &other.source) {
-            (KeyframeSource::Cloud(a), KeyframeSource::Cloud(b)) => {
+            (KeyframeSource::Animated(a), KeyframeSource::Animated(b)) => {
                 format!("{a:?}") == format!("{b:?}")
             }
             (KeyframeSource::Grid(a), KeyframeSource::Grid(b)) => Arc::ptr_eq(a, b),
@@ -175,9 +165,8 @@ struct Pair {
 /// A finished build: a pair and the CPU time it took, ms.
 type BuiltPair = Result<(Pair, f64), VolumeBatchError>;
 
-/// One windy cloud's keyframes (see the module docs).
-#[derive(Debug)]
-pub(crate) struct KeyframeTrack {
+/// One animated volume's keyframes (see the module docs).
+pub(crate) struct KeyframeTrack<P: BuildPool> {
     recipe: KeyframeRecipe,
     /// Seconds between keyframes.
     interval: f64,
@@ -190,7 +179,7 @@ pub(crate) struct KeyframeTrack {
     /// The next pair, built and waiting for the clock.
     next: Option<Pair>,
     /// The build in flight: the first pair, or the one after the last.
-    build: Option<HeavyBuild<BuiltPair>>,
+    build: Option<P::Pending<BuiltPair>>,
     /// The sun the keyframes built from now on are lit by.
     sun: SunMotion,
     /// A build failed: none is started again (the recipe must change).
@@ -201,17 +190,17 @@ pub(crate) struct KeyframeTrack {
     hold: Option<(i64, f32)>,
 }
 
-impl KeyframeTrack {
+impl<P: BuildPool> KeyframeTrack<P> {
     /// A track of `recipe` whose clock starts at `now` (seconds, the
-    /// application's time), in the pair of keyframes around it, built as
-    /// `mode` says; nothing to draw until that pair is built.
-    pub(crate) fn new(recipe: KeyframeRecipe, sun: SunMotion, now: f64, mode: HeavyBuilds) -> Self {
+    /// application's time), in the pair of keyframes around it, built on
+    /// `pool`; nothing to draw until that pair is built.
+    pub(crate) fn new(recipe: KeyframeRecipe, sun: SunMotion, now: f64, pool: P) -> Self {
         // NaN and anything below a millisecond count as a millisecond.
         let interval = f64::from(recipe.interval).max(1e-3);
         let index = keyframe_index(now, interval);
         let first = {
             let recipe = recipe.clone();
-            HeavyBuild::spawn_in(mode, false, move || {
+            pool.spawn(BuildKind::Keyframes, move || {
                 let started = Instant::now();
                 let first = recipe.keyframe(keyframe_time(index, interval), &sun)?;
                 let second = recipe.keyframe(keyframe_time(index + 1, interval), &sun)?;
@@ -263,14 +252,14 @@ impl KeyframeTrack {
     pub(crate) fn advance(
         &mut self,
         now: f64,
-        mode: HeavyBuilds,
+        pool: P,
         next_ready: impl Fn(&VolumeBatcher) -> bool,
     ) -> Result<Option<f64>, VolumeBatchError> {
         let delta = now - self.last_time;
         self.last_time = now;
         let mut built_ms = None;
         // Under Blocking the build the last frame started lands now.
-        if let Some(result) = self.build.as_mut().and_then(|build| build.poll(mode)) {
+        if let Some(result) = self.build.as_mut().and_then(|build| pool.poll(build)) {
             self.build = None;
             self.failed = result.is_err();
             let (pair, ms) = result?;
@@ -296,7 +285,7 @@ impl KeyframeTrack {
                     // The old pair: its first keyframe's 5 bytes per grid
                     // point (its second is the new pair's first).
                     if let Some(old) = self.drawn.replace(next) {
-                        free_in_background(old);
+                        pool.free(old);
                     }
                 }
                 None => self.clock = end,
@@ -320,7 +309,7 @@ impl KeyframeTrack {
             let drawn = self.drawn.as_ref().expect("a pair is drawn");
             let (first, index) = (drawn.second.clone(), drawn.index + 1);
             let (recipe, interval, sun) = (self.recipe.clone(), self.interval, self.sun);
-            self.build = Some(HeavyBuild::spawn_in(mode, false, move || {
+            self.build = Some(pool.spawn(BuildKind::Keyframes, move || {
                 let started = Instant::now();
                 let second = recipe.keyframe(keyframe_time(index + 1, interval), &sun)?;
                 let pair = pair(&first, Arc::new(second), index)?;
@@ -352,21 +341,19 @@ impl KeyframeTrack {
     }
 
     /// The blend toward the drawn pair's second keyframe.
-    pub(crate) fn blend(&self) -> CellBlend {
+    pub(crate) fn blend(&self) -> f32 {
         let factor = self.drawn.as_ref().map_or(0.0, |pair| {
             let start = keyframe_time(pair.index, self.interval);
             ((self.clock - start) / self.interval).clamp(0.0, 1.0)
         });
-        CellBlend {
-            factor: factor as f32,
-        }
+        factor as f32
     }
 
     /// The blend the octree is refined for: the blend rounded down to a
     /// step of 1/[`REFINEMENT_STEPS`].
     pub(crate) fn refinement_blend(&self) -> f32 {
         let steps = REFINEMENT_STEPS as f32;
-        (self.blend().factor * steps).floor() / steps
+        (self.blend() * steps).floor() / steps
     }
 
     /// The animation time the drawn field shows.
@@ -389,36 +376,37 @@ fn pair(
     })
 }
 
-/// Whether `cloud` animates: a wind on any axis.
-pub(crate) fn is_windy(cloud: &CloudVolume) -> bool {
-    cloud.noise.wind != DVec3::ZERO
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use bevy::math::{DAffine3, UVec2, UVec3, Vec3};
-    use bevy::tasks::{AsyncComputeTaskPool, TaskPool};
+    use glam::{DAffine3, UVec2};
     use nebel_core::field::{CloudLighting, CloudNoise};
     use nebel_core::transfer::{TransferFunction, TransferPreset};
-    use nebel_lod::octree::keyframe::REFINEMENT_SPAN;
-    use nebel_lod::octree::{CellScalars, LodCriterion};
-    use nebel_lod::{BatchLighting, CellOrder, FrameInputs, OctreeSettings, View};
+
+    use crate::builds::LocalBuilds;
+    use crate::octree::keyframe::REFINEMENT_SPAN;
+    use crate::octree::{CellScalars, LodCriterion};
+    use crate::{BatchLighting, CellOrder, FrameInputs, OctreeSettings, View};
+
+    /// A 17 × 9 × 17 cloud over 16 × 4 × 16 in the wind.
+    #[derive(Debug)]
+    struct Wind(CloudNoise);
+
+    impl AnimatedGrid for Wind {
+        fn grid_at(&self, time: f64) -> Result<DensityGrid, FieldError> {
+            let min = DVec3::new(-8.0, 0.0, -8.0);
+            DensityGrid::cloud([17, 9, 17], DVec3::new(1.0, 0.5, 1.0), min, &self.0, time)
+        }
+    }
 
     fn recipe() -> KeyframeRecipe {
         KeyframeRecipe {
-            source: KeyframeSource::Cloud(CloudVolume {
-                dims: UVec3::new(17, 9, 17),
-                min: Vec3::new(-8.0, 0.0, -8.0),
-                max: Vec3::new(8.0, 4.0, 8.0),
-                noise: CloudNoise {
-                    wavelength: 12.0,
-                    wind: DVec3::new(1.5, 0.0, 0.5),
-                    octaves: 3,
-                    ..CloudNoise::default()
-                },
-                keyframe_interval: 2.0,
-            }),
+            source: KeyframeSource::Animated(Arc::new(Wind(CloudNoise {
+                wavelength: 12.0,
+                wind: DVec3::new(1.5, 0.0, 0.5),
+                octaves: 3,
+                ..CloudNoise::default()
+            }))),
             settings: BatchSettings {
                 order: CellOrder::BackToFront,
                 octree: Some(OctreeSettings { min_accuracy: 2.0 }),
@@ -438,7 +426,7 @@ mod tests {
         SunMotion::still(DVec3::new(0.4, 1.0, 0.3).normalize(), 0.0)
     }
 
-    fn batch_of(batcher: &mut VolumeBatcher, blend: f32) -> Arc<nebel_lod::Cells> {
+    fn batch_of(batcher: &mut VolumeBatcher, blend: f32) -> Arc<crate::Cells> {
         let transfer = TransferFunction::preset(TransferPreset::CloudLight);
         let view = View::new(
             DAffine3::IDENTITY,
@@ -460,10 +448,9 @@ mod tests {
     /// two keyframes at their times: nothing drifts, however long it runs.
     #[test]
     fn after_any_number_of_hand_overs_the_pair_is_the_full_rebuild_of_its_keyframes() {
-        AsyncComputeTaskPool::get_or_init(TaskPool::new);
         let recipe = recipe();
         // The first pair is (10 s, 12 s); the clock starts at 11 s.
-        let mut track = KeyframeTrack::new(recipe.clone(), sun(), 11.0, HeavyBuilds::Blocking);
+        let mut track = KeyframeTrack::new(recipe.clone(), sun(), 11.0, LocalBuilds::Blocking);
         let mut blends = Vec::new();
         let mut builds = 0;
         // 0.3 s frames: the hand-overs fall between frames.
@@ -471,11 +458,11 @@ mod tests {
             let now = 11.0 + 0.3 * f64::from(frame);
             builds += usize::from(
                 track
-                    .advance(now, HeavyBuilds::Blocking, |_| true)
+                    .advance(now, LocalBuilds::Blocking, |_| true)
                     .unwrap()
                     .is_some(),
             );
-            blends.push(track.blend().factor);
+            blends.push(track.blend());
         }
         assert!((track.clock() - 21.5).abs() < 1e-9, "{}", track.clock());
         assert!((blends[0] - 0.5).abs() < 1e-6);
@@ -486,7 +473,7 @@ mod tests {
         assert!(blends.iter().all(|b| (0.0..=1.0).contains(b)));
         let start = keyframe_time(track.drawn.as_ref().unwrap().index, 2.0);
         assert_eq!(start, 20.0);
-        assert!((track.blend().factor - 0.75).abs() < 1e-6);
+        assert!((track.blend() - 0.75).abs() < 1e-6);
 
         let mut rebuilt = recipe
             .keyframe(start, &sun())
@@ -504,44 +491,40 @@ mod tests {
     /// the wind slows down, the field does not step.
     #[test]
     fn the_clock_waits_for_a_late_pair() {
-        AsyncComputeTaskPool::get_or_init(TaskPool::new);
-        let mut track = KeyframeTrack::new(recipe(), sun(), 0.0, HeavyBuilds::Blocking);
-        track.advance(0.0, HeavyBuilds::Blocking, |_| true).unwrap();
-        assert_eq!(track.blend().factor, 0.0);
+        let mut track = KeyframeTrack::new(recipe(), sun(), 0.0, LocalBuilds::Blocking);
+        track.advance(0.0, LocalBuilds::Blocking, |_| true).unwrap();
+        assert_eq!(track.blend(), 0.0);
         // The next pair is started but never polled to completion: the
         // background mode does not wait for it, and it is taken away here.
         track.build = None;
-        track
-            .advance(5.0, HeavyBuilds::Background, |_| true)
-            .unwrap();
+        track.advance(5.0, LocalBuilds::Deferred, |_| true).unwrap();
         assert_eq!(track.clock(), 2.0);
-        assert_eq!(track.blend().factor, 1.0);
+        assert_eq!(track.blend(), 1.0);
         assert!(track.build.is_some(), "the next pair is built again");
         // It lands: the clock goes on from where it waited.
-        track.advance(6.0, HeavyBuilds::Blocking, |_| true).unwrap();
-        track.advance(6.5, HeavyBuilds::Blocking, |_| true).unwrap();
+        track.advance(6.0, LocalBuilds::Blocking, |_| true).unwrap();
+        track.advance(6.5, LocalBuilds::Blocking, |_| true).unwrap();
         assert!((track.clock() - 3.5).abs() < 1e-9, "{}", track.clock());
-        assert!((track.blend().factor - 0.75).abs() < 1e-6);
+        assert!((track.blend() - 0.75).abs() < 1e-6);
     }
 
     /// A refinement step whose successor is not made holds the clock at the
     /// step's end (never back); lifted, the clock goes on from there.
     #[test]
     fn the_clock_waits_at_the_end_of_a_step_whose_successor_is_not_made() {
-        AsyncComputeTaskPool::get_or_init(TaskPool::new);
         // Pairs of 2 s; the clock starts at 0.2 s (blend 0.1).
-        let mut track = KeyframeTrack::new(recipe(), sun(), 0.2, HeavyBuilds::Blocking);
-        track.advance(0.2, HeavyBuilds::Blocking, |_| true).unwrap();
+        let mut track = KeyframeTrack::new(recipe(), sun(), 0.2, LocalBuilds::Blocking);
+        track.advance(0.2, LocalBuilds::Blocking, |_| true).unwrap();
         track.hold_at(Some(0.25));
-        track.advance(1.2, HeavyBuilds::Blocking, |_| true).unwrap();
+        track.advance(1.2, LocalBuilds::Blocking, |_| true).unwrap();
         assert_eq!(track.clock(), 0.5);
-        assert_eq!(track.blend().factor, 0.25);
+        assert_eq!(track.blend(), 0.25);
         // A hold behind the clock does not move it back.
         track.hold_at(Some(0.125));
-        track.advance(1.3, HeavyBuilds::Blocking, |_| true).unwrap();
+        track.advance(1.3, LocalBuilds::Blocking, |_| true).unwrap();
         assert_eq!(track.clock(), 0.5);
         track.hold_at(None);
-        track.advance(1.5, HeavyBuilds::Blocking, |_| true).unwrap();
+        track.advance(1.5, LocalBuilds::Blocking, |_| true).unwrap();
         assert!((track.clock() - 0.7).abs() < 1e-9, "{}", track.clock());
     }
 
@@ -550,28 +533,26 @@ mod tests {
     /// it takes over.
     #[test]
     fn the_next_pair_takes_over_once_ready() {
-        AsyncComputeTaskPool::get_or_init(TaskPool::new);
-        let mut track = KeyframeTrack::new(recipe(), sun(), 0.0, HeavyBuilds::Blocking);
-        track.advance(0.0, HeavyBuilds::Blocking, |_| true).unwrap();
-        track.advance(1.0, HeavyBuilds::Blocking, |_| true).unwrap();
+        let mut track = KeyframeTrack::new(recipe(), sun(), 0.0, LocalBuilds::Blocking);
+        track.advance(0.0, LocalBuilds::Blocking, |_| true).unwrap();
+        track.advance(1.0, LocalBuilds::Blocking, |_| true).unwrap();
         assert!(track.next.is_some(), "the next pair is built");
         track
-            .advance(3.0, HeavyBuilds::Blocking, |_| false)
+            .advance(3.0, LocalBuilds::Blocking, |_| false)
             .unwrap();
         assert_eq!(track.clock(), 2.0);
         assert_eq!(track.pair_index(), Some(0));
-        assert_eq!(track.blend().factor, 1.0);
-        track.advance(3.5, HeavyBuilds::Blocking, |_| true).unwrap();
+        assert_eq!(track.blend(), 1.0);
+        track.advance(3.5, LocalBuilds::Blocking, |_| true).unwrap();
         assert_eq!(track.pair_index(), Some(1));
         assert!((track.clock() - 2.5).abs() < 1e-9, "{}", track.clock());
-        assert!((track.blend().factor - 0.25).abs() < 1e-6);
+        assert!((track.blend() - 0.25).abs() < 1e-6);
     }
 
     /// A sun turning at a constant rate is extrapolated exactly; a still or
     /// reversed one stands still; keyframes of a grid under it are lit by it.
     #[test]
     fn the_sun_is_extrapolated_at_its_rate() {
-        AsyncComputeTaskPool::get_or_init(TaskPool::new);
         let turn = |angle: f64| DQuat::from_rotation_z(angle) * DVec3::X;
         let motion = SunMotion::between(turn(0.1), 1.0, turn(0.15), 1.5);
         assert!((motion.rate - 0.1).abs() < 1e-12);
@@ -585,8 +566,8 @@ mod tests {
         assert_eq!(opposite.at(5.0), DVec3::NEG_X, "no axis: still");
 
         // A still grid's keyframes differ by their sun alone.
-        let KeyframeSource::Cloud(cloud) = recipe().source else {
-            unreachable!("a cloud recipe")
+        let KeyframeSource::Animated(cloud) = recipe().source else {
+            unreachable!("an animated recipe")
         };
         let grid = Arc::new(cloud.grid_at(0.0).unwrap());
         let lit = KeyframeRecipe {
@@ -609,7 +590,7 @@ mod tests {
         if let Some(lighting) = &mut moved.settings.lighting {
             lighting.light.sun_direction = DVec3::Z;
         }
-        let track = KeyframeTrack::new(lit.clone(), turning, 0.0, HeavyBuilds::Blocking);
+        let track = KeyframeTrack::new(lit.clone(), turning, 0.0, LocalBuilds::Blocking);
         assert!(track.is_for(&moved));
         let other = KeyframeRecipe {
             source: KeyframeSource::Grid(Arc::new(cloud.grid_at(1.0).unwrap())),
