@@ -151,6 +151,69 @@ impl Frustum {
         })
     }
 
+    /// This frustum of a perspective camera at `eye` (four side planes, then
+    /// the near plane facing the view direction, as
+    /// [`Frustum::from_view_projection`] gives it) widened so that it holds
+    /// everything the camera sees after the eye moved by less than
+    /// `distance` and the camera turned by less than `angle` (radians), with
+    /// no near plane. Each side plane is pushed out by `distance` (a move
+    /// shifts every plane by less than that) and turned outward about the
+    /// eye, towards the view direction, by `atan(tan(angle) / cos φ)`, `φ`
+    /// the angle between the middle of its face and the face's edges: a turn
+    /// by less than `angle` takes an edge direction at most `angle` out of
+    /// the plane, and an edge at `φ` from the middle needs that much. The turn
+    /// is at most π/4 (only very wide views and turns reach it; then views
+    /// near the limit may leave the frustum, which [`Frustum::holds_view`]
+    /// tells). `None` for another frustum (an orthographic camera's, whose
+    /// side planes are parallel to the view).
+    pub fn widened(&self, eye: DVec3, distance: f64, angle: f64) -> Option<Frustum> {
+        let [left, right, bottom, top, near] = self.planes.as_slice() else {
+            return None;
+        };
+        let forward = near.truncate();
+        let tan = angle.clamp(0.0, std::f64::consts::FRAC_PI_4).tan();
+        let sides = [
+            (left, [bottom, top]),
+            (right, [bottom, top]),
+            (bottom, [left, right]),
+            (top, [left, right]),
+        ];
+        let widened = sides.map(|(plane, neighbours)| {
+            let normal = plane.truncate();
+            let offset = normal.dot(eye) + plane.w;
+            let middle = (forward - forward.dot(normal) * normal).normalize_or_zero();
+            let cos_edge = neighbours
+                .map(|other| edge(normal, other.truncate(), forward).dot(middle))
+                .into_iter()
+                .fold(1.0, f64::min);
+            let turn = tan
+                .atan2(cos_edge.max(0.0))
+                .min(std::f64::consts::FRAC_PI_4);
+            let (sin, cos) = turn.sin_cos();
+            let turned = (cos * normal + sin * middle).normalize_or(normal);
+            (turned, -turned.dot(eye) + offset + distance.max(0.0))
+        });
+        Frustum::from_planes(widened).ok()
+    }
+
+    /// Whether this frustum holds everything the perspective frustum `view`
+    /// of a camera at `eye` sees ([`Frustum::widened`]'s shape): the eye and
+    /// the four edges of its view cone, the near plane ignored. `false` for
+    /// another `view`.
+    pub fn holds_view(&self, view: &Frustum, eye: DVec3) -> bool {
+        let [left, right, bottom, top, near] = view.planes.as_slice() else {
+            return false;
+        };
+        let forward = near.truncate();
+        let edges = [(left, bottom), (bottom, right), (right, top), (top, left)]
+            .map(|(a, b)| edge(a.truncate(), b.truncate(), forward));
+        self.contains_point(eye)
+            && self
+                .planes
+                .iter()
+                .all(|plane| edges.iter().all(|edge| plane.truncate().dot(*edge) >= 0.0))
+    }
+
     /// The same frustum in the local frame of an object placed by
     /// `world_from_local` (planes pulled back through the affine map), so that
     /// boxes in the object's own coordinates can be tested exactly as boxes.
@@ -170,6 +233,13 @@ impl Frustum {
             .collect();
         Self { planes }
     }
+}
+
+/// The unit direction of the line where the planes with normals `a` and `b`
+/// meet, the one along `forward`.
+fn edge(a: DVec3, b: DVec3, forward: DVec3) -> DVec3 {
+    let edge = a.cross(b).normalize_or_zero();
+    if edge.dot(forward) < 0.0 { -edge } else { edge }
 }
 
 /// `plane` scaled so its normal has unit length; `None` for a zero or
@@ -265,6 +335,56 @@ mod tests {
         assert!(f.contains_point(eye + forward));
         assert!(!f.contains_point(eye + forward * 0.2));
         assert!(!f.contains_point(eye + forward * 11.0));
+    }
+
+    #[test]
+    fn a_widened_frustum_holds_every_view_within_its_move_and_turn() {
+        let projection = DMat4::perspective_infinite_reverse_rh(0.9, 1.6, 0.1);
+        let eye = DVec3::new(1.0, 2.0, 3.0);
+        let exact = Frustum::from_view_projection(projection * view()).unwrap();
+        let (distance, angle) = (0.5, 3f64.to_radians());
+        let widened = exact.widened(eye, distance, angle).unwrap();
+        assert_eq!(widened.planes().len(), 4, "no near plane");
+        assert!(widened.holds_view(&exact, eye));
+        let mut state = 0x9e37_u64;
+        let mut random = move || {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1);
+            (state >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        };
+        for _ in 0..500 {
+            let axis = DVec3::new(random(), random(), random()).normalize();
+            let direction = DVec3::new(random(), random(), random()).normalize();
+            // Any view moved and turned by less than the margins.
+            let (moved, turned) = (0.99 * distance * random().abs(), 0.99 * angle * random());
+            let other = eye + direction * moved;
+            let camera = DMat4::from(glam::DAffine3::from_rotation_translation(
+                glam::DQuat::from_axis_angle(axis, turned),
+                DVec3::ZERO,
+            ));
+            let world_from_view = DMat4::from_translation(other)
+                * camera
+                * DMat4::from_translation(-eye)
+                * view().inverse();
+            let seen = Frustum::from_view_projection(projection * world_from_view.inverse());
+            assert!(
+                widened.holds_view(&seen.unwrap(), other),
+                "{moved} {turned}"
+            );
+        }
+        // A turn of twice the margin, or a wider view, leaves it.
+        let yaw = DMat4::from_rotation_y(2.0 * angle);
+        let turned = Frustum::from_view_projection(projection * view() * yaw).unwrap();
+        assert!(!widened.holds_view(&turned, eye));
+        let wider = DMat4::perspective_infinite_reverse_rh(1.1, 1.6, 0.1);
+        let wider = Frustum::from_view_projection(wider * view()).unwrap();
+        assert!(!widened.holds_view(&wider, eye));
+        let right = DVec3::new(0.2, -0.1, -1.0).cross(DVec3::Y).normalize();
+        assert!(!widened.holds_view(&exact, eye + right * 2.0 * distance));
+        // An orthographic frustum is not widened or held.
+        let ortho = DMat4::orthographic_rh(-1.0, 1.0, -1.0, 1.0, 0.5, 10.0);
+        let ortho = Frustum::from_view_projection(ortho * view()).unwrap();
+        assert!(ortho.widened(eye, distance, angle).is_none());
+        assert!(!widened.holds_view(&ortho, eye));
     }
 
     #[test]

@@ -13,9 +13,10 @@
 //!   to `2^n + 1` points per axis ([`PadFill::Value`]), with a lit cloud's
 //!   [`light_field`] (Röttger and Ertl 2003 §5), then
 //!   [`refine`](fn@crate::octree::refine) and [`lod_batch_with`], back to
-//!   front, rebuilt when the eye, the frustum or the criterion changes (for the
-//!   screen error also the projection or viewport size). Lighting needs the
-//!   octree ([`VolumeBatchError::LightingWithoutOctree`]);
+//!   front, rebuilt when the criterion changes or the view left what the
+//!   batch serves (the eye moved half a voxel, the camera turned 3°, a new
+//!   projection: [`crate::octree::refresh`]). Lighting needs the octree
+//!   ([`VolumeBatchError::LightingWithoutOctree`]);
 //! - a cell mesh: back to front by MPVO ([`CellAdjacency`], [`sorted_batch`],
 //!   Williams 1992), rebuilt when the eye moves, or unordered.
 //!
@@ -72,7 +73,7 @@ use crate::batch::{Cells, GpuCell};
 use crate::full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};
 use crate::octree::{
     CellScalars, HierarchyError, LodCriterion, RefinementError, RefinementSettings,
-    VolumeHierarchy, k_max, lod_batch_with, refine,
+    VolumeHierarchy, k_max, lod_batch_with, refine, refresh,
 };
 use crate::view::View;
 use crate::visibility::{CellAdjacency, sorted_batch};
@@ -414,14 +415,7 @@ impl VolumeBatcher {
     ///   for the screen error without the view's projection.
     pub fn update(&mut self, view: &View, inputs: &FrameInputs) -> Result<bool, VolumeBatchError> {
         let transfer = inputs.transfer.content_hash();
-        let order_key = match &self.kind {
-            Kind::FullResolution {
-                grid,
-                order: CellOrder::BackToFront,
-                ..
-            } => order_key(grid, view),
-            _ => None,
-        };
+        let order_key = self.order_key(view);
         if let Some(built) = &self.built
             && !self.needs_rebuild(built, view, inputs, transfer, order_key)
         {
@@ -492,15 +486,21 @@ impl VolumeBatcher {
         rebuild.then(|| RefinementStep::new(hierarchy, *scalars, view, inputs))
     }
 
-    /// Whether the batch was last built or adopted for exactly `view` and
-    /// `inputs` (the same view, transfer function, criterion and blends):
-    /// then a refinement step for them would change nothing.
+    /// Whether the batch was last built or adopted for `inputs` (the same
+    /// transfer function, criterion and blends) and a view that serves
+    /// `view` (module docs): then an update or a refinement step for them
+    /// would change nothing.
     pub fn is_built_for(&self, view: &View, inputs: &FrameInputs) -> bool {
         self.built.as_ref().is_some_and(|built| {
-            built.view == *view
-                && built.transfer == inputs.transfer.content_hash()
+            built.blends == Blends::of(inputs)
                 && built.criterion == inputs.criterion
-                && built.blends == Blends::of(inputs)
+                && !self.needs_rebuild(
+                    built,
+                    view,
+                    inputs,
+                    inputs.transfer.content_hash(),
+                    self.order_key(view),
+                )
         })
     }
 
@@ -589,6 +589,19 @@ impl VolumeBatcher {
         }
     }
 
+    /// The [`order_key`] of `view` for a grid at full resolution back to
+    /// front, `None` for the other kinds.
+    fn order_key(&self, view: &View) -> Option<[i64; 6]> {
+        match &self.kind {
+            Kind::FullResolution {
+                grid,
+                order: CellOrder::BackToFront,
+                ..
+            } => order_key(grid, view),
+            _ => None,
+        }
+    }
+
     /// Whether a batch built for `built` may differ from one for `view` and
     /// `inputs` (with the transfer function's content hash `transfer` and, for
     /// a sorted full-resolution grid, the view's `order_key`).
@@ -618,15 +631,10 @@ impl VolumeBatcher {
                 CellOrder::Unordered => false,
             },
             Kind::Octree { ref hierarchy, .. } => {
-                let measures_pixels = matches!(inputs.criterion, LodCriterion::ScreenError { .. });
                 let blended = hierarchy.has_next_keyframe();
-                eye_moved
-                    || frustum_changed
-                    || built.criterion != inputs.criterion
+                built.criterion != inputs.criterion
                     || (blended && built.blends != Blends::of(inputs))
-                    || (measures_pixels
-                        && (built.view.clip_from_world != view.clip_from_world
-                            || built.view.viewport != view.viewport))
+                    || !refresh::serves(hierarchy, &built.view, view, inputs.criterion)
             }
             Kind::SortedCells { .. } => eye_moved,
             Kind::UnorderedCells { .. } => false,
@@ -651,6 +659,7 @@ impl VolumeBatcher {
             },
             Kind::Octree { hierarchy, scalars } => {
                 let settings = Blends::of(inputs).refinement(inputs.criterion, *scalars);
+                let view = &refresh::culling_view(hierarchy, view);
                 let refinement = refine(hierarchy, view, inputs.transfer, &settings)?;
                 lod_batch_with(hierarchy, &refinement, view, *scalars)?
             }
@@ -728,9 +737,10 @@ impl RefinementStep {
     /// Refines and emits the batch, as [`VolumeBatcher::update`] would.
     pub fn build(self) -> BuiltRefinementStep {
         let settings = self.blends.refinement(self.criterion, self.scalars);
-        let batch = refine(&self.hierarchy, &self.view, &self.transfer, &settings)
+        let view = refresh::culling_view(&self.hierarchy, &self.view);
+        let batch = refine(&self.hierarchy, &view, &self.transfer, &settings)
             .and_then(|refinement| {
-                lod_batch_with(&self.hierarchy, &refinement, &self.view, self.scalars)
+                lod_batch_with(&self.hierarchy, &refinement, &view, self.scalars)
             })
             .map_err(VolumeBatchError::from);
         BuiltRefinementStep { step: self, batch }
@@ -755,10 +765,13 @@ impl BuiltRefinementStep {
             && step.blends == Blends::of(inputs)
     }
 
-    /// Whether the step was made for exactly `view` and `inputs` (a step made
-    /// ahead for the next blend is adopted once the drawn blend reaches it).
+    /// Whether the step was made for `inputs` and a view that serves `view`
+    /// ([`crate::octree::refresh`]; a step made ahead for the next blend is
+    /// adopted once the drawn blend reaches it).
     pub fn is_for(&self, view: &View, inputs: &FrameInputs) -> bool {
-        self.step.view == *view && self.is_for_inputs(inputs)
+        let step = &self.step;
+        self.is_for_inputs(inputs)
+            && refresh::serves(&step.hierarchy, &step.view, view, step.criterion)
     }
 }
 

@@ -20,10 +20,12 @@
 //!   not made. A grid at full resolution or a cell mesh rebuilds on the
 //!   caller's thread.
 //!
-//! An octree batch drawn a build or two after the eye it was ordered for stays
-//! a visibility order while the eye keeps to the same side of every face's
-//! plane between cells; only rays across a face whose plane the eye crossed
-//! composite two cells out of order (the octree tests measure the image cost).
+//! An octree batch is kept until the eye moved half a voxel or left its
+//! widened frustum ([`crate::octree::refresh`]), and is drawn a build or two
+//! after the eye it was ordered for: it stays a visibility order while the
+//! eye keeps to the same side of every face's plane between cells; only rays
+//! across a face whose plane the eye crossed composite two cells out of order
+//! (the octree tests measure the image cost).
 
 use std::sync::Arc;
 use std::time::Instant;

@@ -13,7 +13,7 @@ use nebel_core::cell::{Ray, Tetrahedron};
 use nebel_core::field::{CloudLighting, DensityGrid, PadFill, light_field, search_light_cells};
 use nebel_core::transfer::{ControlPoint, TransferFunction, TransferPreset};
 use nebel_lod::octree::{
-    CellScalars, LodCriterion, RefinementError, RefinementSettings, lod_batch_with, refine,
+    CellScalars, LodCriterion, RefinementError, RefinementSettings, lod_batch_with, refine, refresh,
 };
 use nebel_lod::{
     BatchError, BatchLighting, BatchSettings, BrickTable, CellAdjacency, CellOrder, Cells,
@@ -86,6 +86,17 @@ fn frustum(eye: DVec3, target: DVec3) -> Frustum {
     let camera = DMat4::look_at_rh(eye, eye_at(target), DVec3::Y);
     Frustum::from_view_projection(DMat4::perspective_infinite_reverse_rh(0.4, 1.0, 0.1) * camera)
         .expect("a valid projection")
+}
+
+/// Uniform numbers in [0, 1) from `seed` (xorshift).
+fn uniform(seed: u64) -> impl FnMut() -> f64 {
+    let mut state = seed;
+    move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    }
 }
 
 fn cloud() -> TransferFunction {
@@ -219,6 +230,8 @@ fn octree_batch(
         _ => transfer.clone(),
     };
     let settings = RefinementSettings::new(LodCriterion::distance(ACCURACY));
+    // Culled, as the batcher culls, for the views the batch serves.
+    let view = &refresh::culling_view(&hierarchy, view);
     let refinement = refine(&hierarchy, view, &opacity, &settings).unwrap();
     lod_batch_with(&hierarchy, &refinement, view, scalars).unwrap()
 }
@@ -417,28 +430,72 @@ fn a_sorted_grid_is_rebuilt_when_its_order_key_or_frustum_changes() {
 }
 
 #[test]
-fn the_octree_is_rebuilt_on_every_eye_move() {
+fn the_octree_is_refined_again_after_half_a_voxel_or_a_turn_of_3_degrees() {
     let transfer = cloud();
     let mut batcher =
         VolumeBatcher::new(grid_source(), &settings(CellOrder::BackToFront, true)).unwrap();
-    let v0 = view(eye_at(DVec3::new(3.3, 2.45, 1.7)));
+    let g = grid();
+    // A step of `voxels` along the grid's index axes from index point `u`.
+    let at = |u: DVec3, voxels: DVec3| eye_at(u + voxels);
+    let u = DVec3::new(3.3, 2.45, 1.7);
+    let v0 = view(at(u, DVec3::ZERO));
     assert!(batcher.update(&v0, &inputs(&transfer)).unwrap());
     assert!(!batcher.update(&v0, &inputs(&transfer)).unwrap());
-    let nudged = View {
-        eye: v0.eye + DVec3::new(1e-9, 0.0, 0.0),
-        ..v0.clone()
+    // Within half a voxel (index units: the spacing is not cubic) the batch
+    // serves; beyond it the octree refines again.
+    for (step, rebuilds) in [
+        (DVec3::new(1e-9, 0.0, 0.0), false),
+        (DVec3::new(0.0, 0.49, 0.0), false),
+        (DVec3::new(0.3, 0.0, -0.39), false),
+        (DVec3::new(0.0, 0.0, 0.51), true),
+    ] {
+        let moved = view(at(u, step));
+        assert_eq!(
+            batcher.update(&moved, &inputs(&transfer)).unwrap(),
+            rebuilds,
+            "{step}"
+        );
+        if rebuilds {
+            assert_eq!(
+                batcher.batch().as_ref(),
+                &octree_batch(None, &moved, &transfer)
+            );
+        }
+    }
+    assert!(batcher.update(&v0, &inputs(&transfer)).unwrap());
+    assert!(g.spacing().x != g.spacing().y);
+
+    // Culled by a camera: a new frustum refines, and so does a turn of more
+    // than 3° or a zoom; a turn of less does not.
+    let camera = |eye: DVec3, yaw: f64, fov: f64| {
+        let forward = (eye_at(DVec3::new(8.0, 6.0, 5.0)) - eye).normalize();
+        let turned = DQuat::from_rotation_y(yaw.to_radians()) * forward;
+        let clip_from_world = DMat4::perspective_infinite_reverse_rh(fov, 1.0, 0.1)
+            * DMat4::look_to_rh(eye, turned, DVec3::Y);
+        view(eye).with_frustum(Frustum::from_view_projection(clip_from_world).unwrap())
     };
-    assert!(batcher.update(&nudged, &inputs(&transfer)).unwrap());
-    assert!(!batcher.update(&nudged, &inputs(&transfer)).unwrap());
-    let culled = nudged
-        .clone()
-        .with_frustum(frustum(nudged.eye, DVec3::new(8.0, 6.0, 5.0)));
+    let culled = camera(v0.eye, 0.0, 0.4);
     assert!(batcher.update(&culled, &inputs(&transfer)).unwrap());
     assert!(!batcher.update(&culled, &inputs(&transfer)).unwrap());
     assert_eq!(
         batcher.batch().as_ref(),
         &octree_batch(None, &culled, &transfer)
     );
+    for (yaw, fov, rebuilds) in [
+        (2.9, 0.4, false),
+        (-2.9, 0.4, false),
+        (3.2, 0.4, true),
+        (0.0, 0.38, true),
+    ] {
+        let turned = camera(v0.eye, yaw, fov);
+        let rebuilt = batcher.update(&turned, &inputs(&transfer)).unwrap();
+        assert_eq!(rebuilt, rebuilds, "{yaw}° {fov}");
+        // Back to the first camera for the next case.
+        if rebuilt {
+            assert!(batcher.update(&culled, &inputs(&transfer)).unwrap());
+        }
+    }
+    assert!(batcher.update(&v0, &inputs(&transfer)).unwrap());
 
     // The accuracy c sets the level of detail.
     let finer = FrameInputs {
@@ -884,6 +941,84 @@ fn a_refinement_step_builds_detached_what_update_builds() {
 /// order only where the eye crossed the plane of a face between them, near
 /// the eye, where the cells are small and thin: the image changes by far
 /// less than an 8-bit step.
+/// A batch serves the camera until the eye moved half a voxel
+/// (`refresh::REFRESH_DISTANCE`): seen from there, against a batch refined
+/// for that eye, it composites some rays out of order and carries the morph
+/// of another distance. Both together change what the camera sees by less
+/// than half an 8-bit step, for the distance and the screen-error criterion.
+#[test]
+fn an_octree_batch_kept_for_half_a_voxel_costs_little_of_the_image() {
+    let grid = field([33, 17, 33], 11);
+    let source = VolumeSource::Grid(Arc::new(grid.clone()));
+    let settings = BatchSettings {
+        octree: Some(OctreeSettings::default()),
+        ..BatchSettings::default()
+    };
+    let transfer = cloud();
+    let at = |u: DVec3| world_from_local().transform_point3(grid.origin() + u * grid.spacing());
+    let mut random = uniform(0x0c7e_u64);
+    let centre = at(DVec3::new(16.0, 8.0, 16.0));
+    for criterion in [LodCriterion::distance(ACCURACY), LodCriterion::default()] {
+        for step in [0.5 * refresh::REFRESH_DISTANCE, refresh::REFRESH_DISTANCE] {
+            let mut cost = rays::OrderCost::default();
+            for _ in 0..4 {
+                let u = DVec3::new(
+                    random() * 40.0 - 4.0,
+                    random() * 20.0 - 2.0,
+                    random() * 40.0 - 4.0,
+                );
+                let direction =
+                    DVec3::new(random() - 0.5, random() - 0.5, random() - 0.5).normalize();
+                let moved = u + direction * step;
+                // A camera looking at the grid's centre, for the screen error.
+                let seen_from = |u: DVec3| {
+                    let eye = at(u);
+                    let clip_from_world = DMat4::perspective_infinite_reverse_rh(1.0, 1.0, 0.1)
+                        * DMat4::look_at_rh(eye, centre, DVec3::Y);
+                    View {
+                        clip_from_world: Some(clip_from_world),
+                        ..view(eye)
+                    }
+                };
+                let batch = |u: DVec3| -> Vec<Tetrahedron> {
+                    let mut batcher = VolumeBatcher::new(source.clone(), &settings).unwrap();
+                    let inputs = FrameInputs {
+                        criterion,
+                        ..inputs(&transfer)
+                    };
+                    batcher.update(&seen_from(u), &inputs).unwrap();
+                    let cells = batcher.batch().tetrahedra.iter();
+                    cells.map(nebel_lod::GpuCell::to_tetrahedron).collect()
+                };
+                let (kept, fresh) = (batch(u), batch(moved));
+                assert!(!kept.is_empty() && !fresh.is_empty());
+                let clip_from_world = seen_from(moved).clip_from_world.unwrap();
+                let mut traced = 0;
+                while traced < 250 {
+                    let target = at(DVec3::new(
+                        random() * 32.0,
+                        random() * 16.0,
+                        random() * 32.0,
+                    ));
+                    // Rays the camera sees.
+                    let clip = clip_from_world * target.extend(1.0);
+                    if !(clip.w > 0.0 && clip.x.abs() <= clip.w && clip.y.abs() <= clip.w) {
+                        continue;
+                    }
+                    traced += 1;
+                    let ray = Ray::new(at(moved), target - at(moved)).unwrap();
+                    let (drawn, _) = rays::composites(&kept, &ray, 0.15);
+                    let (_, exact) = rays::composites(&fresh, &ray, 0.15);
+                    cost.add((drawn, exact));
+                }
+            }
+            println!("{criterion:?}, {step} voxels: {cost}");
+            // Half an 8-bit step in RMS over the rays into the volume.
+            assert!(cost.rmse() <= 1.0 / 510.0, "{criterion:?}, {step}: {cost}");
+        }
+    }
+}
+
 #[test]
 fn an_octree_order_a_frame_or_two_old_costs_little_of_the_image() {
     let grid = field([33, 17, 33], 7);
@@ -894,13 +1029,7 @@ fn an_octree_order_a_frame_or_two_old_costs_little_of_the_image() {
     };
     let transfer = cloud();
     let at = |u: DVec3| world_from_local().transform_point3(grid.origin() + u * grid.spacing());
-    let mut state = 0x5eed_u64;
-    let mut random = move || {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        (state >> 11) as f64 / (1u64 << 53) as f64
-    };
+    let mut random = uniform(0x5eed_u64);
     let mut cost = rays::OrderCost::default();
     for _ in 0..4 {
         // An eye inside the grid or just outside it, moved one or two

@@ -33,7 +33,7 @@
 use super::{HierarchyError, Node, VolumeHierarchy};
 
 /// How many times per keyframe interval a blended octree is refined again
-/// for the advancing blend (besides whenever the camera moves): the blend a
+/// for the advancing blend (besides when the camera moved enough): the blend a
 /// refinement is made for is the drawn blend rounded down to a step of
 /// `1 / REFINEMENT_STEPS`. Consecutive steps draw the same field where they
 /// meet (module docs), so fewer steps cost less without a pop; a longer

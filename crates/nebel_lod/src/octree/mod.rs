@@ -33,6 +33,7 @@
 //! - [`lod_batch`] (in [`mod@emit`]): a refinement as a morphed, back-to-front
 //!   [`crate::Cells`].
 //! - [`mod@keyframe`]: two keyframes of an animated field in one hierarchy.
+//! - [`mod@refresh`]: when a moving camera's batch is refined again.
 //!
 //! The forest rule, the deviation at each kind of point, the quantisation and
 //! where nebel departs from the paper are in `docs/octree-lod.md` in the
@@ -43,6 +44,7 @@ pub mod emit;
 pub mod keyframe;
 mod node;
 pub mod refine;
+pub mod refresh;
 pub mod screen_error;
 
 pub use emit::{CellScalars, lod_batch, lod_batch_with};

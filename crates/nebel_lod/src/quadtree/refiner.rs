@@ -77,10 +77,6 @@ impl TerrainView {
     /// camera turned by less than `angle` (see the module docs). `None` (cull
     /// nothing) for an orthographic or degenerate camera.
     pub fn culling_frustum(&self, distance: f64, angle: f64) -> Option<Frustum> {
-        if self.clip_from_view.row(3).z == 0.0 {
-            // Orthographic: the side planes are parallel to the view.
-            return None;
-        }
         // Terrain units to world units: at most the longest axis.
         let margin = distance
             * self
@@ -90,20 +86,10 @@ impl TerrainView {
                 .iter()
                 .map(|column| DVec3::from(*column).length())
                 .fold(0.0, f64::max);
-        let angle = angle.min(std::f64::consts::FRAC_PI_4);
         let clip_from_world = self.clip_from_view * DMat4::from(self.world_from_view.inverse());
-        let exact = Frustum::from_view_projection(clip_from_world).ok()?;
-        let eye = self.world_from_view.translation;
-        let forward = self.world_from_view.matrix3 * DVec3::NEG_Z;
-        let (sin, cos) = angle.sin_cos();
-        let widened = exact.planes().iter().take(4).map(|plane| {
-            let normal = plane.truncate();
-            let offset = normal.dot(eye) + plane.w;
-            let along = (forward - forward.dot(normal) * normal).normalize_or_zero();
-            let turned = (cos * normal + sin * along).normalize_or(normal);
-            (turned, -turned.dot(eye) + offset + margin)
-        });
-        let frustum = Frustum::from_planes(widened).ok()?;
+        let frustum = Frustum::from_view_projection(clip_from_world)
+            .ok()?
+            .widened(self.world_from_view.translation, margin, angle)?;
         Some(frustum.in_local_frame(&self.world_from_terrain))
     }
 

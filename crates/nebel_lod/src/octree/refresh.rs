@@ -1,0 +1,121 @@
+//! When an octree's batch is refined again for a moving camera: not on every
+//! move, but once the eye moved [`REFRESH_DISTANCE`] voxels or the view left
+//! the frustum the batch was culled with, as the terrain waits for a
+//! distance and a turn.
+//!
+//! A refinement culls with the camera's side planes widened as
+//! [`Frustum::widened`] widens them: turned out by [`REFRESH_ANGLE`] and
+//! pushed out by as far as a move of [`REFRESH_DISTANCE`] voxels reaches in
+//! the world. Its batch serves every later view of the same volume, criterion
+//! and transfer function while
+//!
+//! - the eye is within [`REFRESH_DISTANCE`] voxels (index units of the grid)
+//!   of the eye it was refined for;
+//! - that widened frustum holds the new view's cone ([`Frustum::holds_view`]:
+//!   a turn or a move that stays inside it, or a zoom in), and the projection
+//!   is the same up to a rotation (the side planes' angles to each other);
+//! - for the screen error, the viewport is the same.
+//!
+//! An orthographic or degenerate camera culls with its exact frustum, and any
+//! change of it refines again. Drawn from an eye up to half a voxel away
+//! (plus a frame or two of latency), a batch composites rays across the faces
+//! whose planes the eye crossed out of order and carries the morph of a
+//! slightly different distance: the octree tests bound both together against
+//! a batch refined for the new eye.
+
+use glam::{DAffine3, DVec3};
+
+use super::VolumeHierarchy;
+use crate::frustum::Frustum;
+use crate::full_resolution::index_maps;
+use crate::octree::LodCriterion;
+use crate::view::View;
+
+/// How far the eye may move, in voxels (the grid's index units), before an
+/// octree's batch is refined again.
+pub const REFRESH_DISTANCE: f64 = 0.5;
+
+/// How far the camera may turn, radians (3°), before an octree's batch is
+/// refined again.
+pub const REFRESH_ANGLE: f64 = 3.0 * std::f64::consts::PI / 180.0;
+
+/// `view` with the frustum a refinement for it culls with (module docs).
+pub fn culling_view(hierarchy: &VolumeHierarchy, view: &View) -> View {
+    let culling = view.frustum.as_ref().and_then(|frustum| {
+        let (world_from_index, _) = maps(hierarchy, view)?;
+        widened(frustum, view.eye, &world_from_index)
+    });
+    View {
+        frustum: culling.or_else(|| view.frustum.clone()),
+        ..view.clone()
+    }
+}
+
+/// Whether a batch refined for `refined` under `criterion` serves `view`
+/// (module docs).
+pub(crate) fn serves(
+    hierarchy: &VolumeHierarchy,
+    refined: &View,
+    view: &View,
+    criterion: LodCriterion,
+) -> bool {
+    let measures_pixels = matches!(criterion, LodCriterion::ScreenError { .. });
+    if refined.world_from_local != view.world_from_local
+        || refined.viewport_is_empty() != view.viewport_is_empty()
+        || refined.clip_from_world.is_some() != view.clip_from_world.is_some()
+        || (measures_pixels && refined.viewport != view.viewport)
+    {
+        return false;
+    }
+    let Some((world_from_index, index_from_world)) = maps(hierarchy, view) else {
+        return false;
+    };
+    let moved = index_from_world
+        .transform_point3(refined.eye)
+        .distance(index_from_world.transform_point3(view.eye));
+    // A NaN distance refines again (and the refinement reports the eye).
+    if !(moved <= REFRESH_DISTANCE) {
+        return false;
+    }
+    match (&refined.frustum, &view.frustum) {
+        (None, None) => true,
+        (Some(was), Some(is)) => match widened(was, refined.eye, &world_from_index) {
+            Some(culling) => same_shape(was, is) && culling.holds_view(is, view.eye),
+            None => was == is,
+        },
+        _ => false,
+    }
+}
+
+/// The hierarchy's world-from-index and index-from-world maps for `view`.
+fn maps(hierarchy: &VolumeHierarchy, view: &View) -> Option<(DAffine3, DAffine3)> {
+    index_maps(
+        hierarchy.origin(),
+        hierarchy.spacing(),
+        view.world_from_local,
+    )
+}
+
+/// `frustum` of a camera at `eye` widened for the thresholds: a move of
+/// [`REFRESH_DISTANCE`] index units reaches at most that times the map's
+/// Frobenius norm in the world.
+fn widened(frustum: &Frustum, eye: DVec3, world_from_index: &DAffine3) -> Option<Frustum> {
+    let m = world_from_index.matrix3;
+    let norm =
+        (m.x_axis.length_squared() + m.y_axis.length_squared() + m.z_axis.length_squared()).sqrt();
+    frustum.widened(eye, REFRESH_DISTANCE * norm, REFRESH_ANGLE)
+}
+
+/// Whether two frusta have the same angles between their planes (the same
+/// projection, turned): their normals' dot products agree to 1e-6, about
+/// what a single-precision camera transform keeps.
+fn same_shape(a: &Frustum, b: &Frustum) -> bool {
+    let (a, b) = (a.planes(), b.planes());
+    a.len() == b.len()
+        && (0..a.len()).all(|i| {
+            (i + 1..a.len()).all(|j| {
+                let dot = |planes: &[glam::DVec4]| planes[i].truncate().dot(planes[j].truncate());
+                (dot(a) - dot(b)).abs() <= 1e-6
+            })
+        })
+}
