@@ -17,16 +17,29 @@
 //! (divide by 1000 for cells per ms); the cell counts are printed once per
 //! case.
 //!
+//! `octree_refresh`: how often a moving camera's batch is refined again
+//! (`octree::refresh`: after half a voxel or a turn out of the widened
+//! frustum), along 240 frames of a camera inside the 513 × 513 × 65 field
+//! flying at 0.01 to 1 voxel a frame and turning 0.05° a frame, under the
+//! default screen error at 1920 × 1080 (`VolumeBatcher::update` on one
+//! thread): the refinements (before the thresholds, every frame the camera
+//! moved refined) and the mean time per frame, printed once per speed.
+//!
 //! Run: `cargo bench -p nebel_lod --bench octree`.
 
 use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use glam::{DAffine3, DVec3, UVec2};
+use std::sync::Arc;
+use std::time::Instant;
+
+use glam::{DAffine3, DMat4, DQuat, DVec3, UVec2};
 use nebel_core::field::{DensityGrid, ProceduralNoise};
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::octree::{LodCriterion, RefinementSettings, lod_batch, refine};
-use nebel_lod::{View, VolumeHierarchy};
+use nebel_lod::{
+    BatchSettings, FrameInputs, OctreeSettings, View, VolumeBatcher, VolumeHierarchy, VolumeSource,
+};
 
 /// Minimum accuracy C of the benches (`K_max` ≈ 0.638).
 const MIN_ACCURACY: f64 = 2.0;
@@ -124,5 +137,51 @@ fn octree_emit(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, octree_build, octree_refine, octree_emit);
+fn octree_refresh(_: &mut Criterion) {
+    let grid = Arc::new(fbm_grid([513, 513, 65]));
+    let settings = BatchSettings {
+        octree: Some(OctreeSettings {
+            min_accuracy: MIN_ACCURACY,
+        }),
+        ..BatchSettings::default()
+    };
+    let transfer = TransferFunction::preset(TransferPreset::Cloud);
+    let inputs = FrameInputs {
+        transfer: &transfer,
+        criterion: LodCriterion::default(),
+        blend: 0.0,
+        blend_span: 0.0,
+    };
+    const FRAMES: u32 = 240;
+    for speed in [0.01, 0.1, 0.3, 1.0] {
+        // Inside the slab, flying diagonally and turning left.
+        let view = |frame: u32| {
+            let eye = DVec3::new(100.0, 100.0, 32.0)
+                + DVec3::new(1.0, 1.0, 0.0).normalize() * speed * f64::from(frame);
+            let turn = DQuat::from_rotation_z((0.05 * f64::from(frame)).to_radians());
+            let forward = turn * DVec3::new(1.0, 0.6, -0.1);
+            let clip_from_world = DMat4::perspective_infinite_reverse_rh(1.0, 16.0 / 9.0, 0.1)
+                * DMat4::look_to_rh(eye, forward, DVec3::Z);
+            View::new(DAffine3::IDENTITY, eye, VIEWPORT).with_projection(clip_from_world)
+        };
+        let source = VolumeSource::Grid(grid.clone());
+        let mut batcher = VolumeBatcher::new(source, &settings).expect("valid settings");
+        let started = Instant::now();
+        let refinements = (0..FRAMES)
+            .filter(|frame| batcher.update(&view(*frame), &inputs).expect("valid view"))
+            .count();
+        println!(
+            "octree_refresh {speed} voxels a frame: {refinements} refinements in {FRAMES} frames, {:.2} ms a frame",
+            started.elapsed().as_secs_f64() * 1e3 / f64::from(FRAMES)
+        );
+    }
+}
+
+criterion_group!(
+    benches,
+    octree_build,
+    octree_refine,
+    octree_emit,
+    octree_refresh
+);
 criterion_main!(benches);
