@@ -357,7 +357,7 @@ mod tests {
             // Any view moved and turned by less than the margins.
             let (moved, turned) = (0.99 * distance * random().abs(), 0.99 * angle * random());
             let other = eye + direction * moved;
-            let camera = DMat4::from(glam::DAffine3::from_rotation_translation(
+            let camera = DMat4::from(DAffine3::from_rotation_translation(
                 glam::DQuat::from_axis_angle(axis, turned),
                 DVec3::ZERO,
             ));

@@ -74,7 +74,7 @@ pub(crate) fn serves(
         .transform_point3(refined.eye)
         .distance(index_from_world.transform_point3(view.eye));
     // A NaN distance refines again (and the refinement reports the eye).
-    if !(moved <= REFRESH_DISTANCE) {
+    if moved.is_nan() || moved > REFRESH_DISTANCE {
         return false;
     }
     match (&refined.frustum, &view.frustum) {
