@@ -82,9 +82,9 @@ pub mod prelude {
     };
     #[cfg(feature = "sky")]
     pub use nebel_sky::{
-        Aurora, AuroraCurtains, AuroraError, AuroraFootprint, AuroraPlugin, AuroraStats,
-        AuroraStatus, CloudLayer, CloudLayerError, CloudLayerPlugin, CloudLayerSource,
-        CloudLayerStats, CloudLayerStatus,
+        Aurora, AuroraCurtains, AuroraFootprint, AuroraPlugin, AuroraStats, AuroraStatus,
+        CloudLayer, CloudLayerPlugin, CloudLayerSource, CloudLayerStats, CloudLayerStatus,
+        SkyLayerError,
     };
     #[cfg(feature = "terrain")]
     pub use nebel_terrain::{

@@ -2,7 +2,7 @@
 //! diagnostics' registration, and its failures logged once.
 //!
 //! Each effect names its status after itself, e.g. `pub type AuroraStatus =
-//! EffectStatus<AuroraError>`, so a game reads `AuroraStatus::Failed(error)`
+//! EffectStatus<SkyLayerError>`, so a game reads `AuroraStatus::Failed(error)`
 //! and two effects on one entity keep separate statuses.
 
 use std::fmt::Display;

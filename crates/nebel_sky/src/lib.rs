@@ -42,11 +42,12 @@
 
 pub mod aurora;
 pub mod cloud_layer;
+mod error;
 mod sky_layer;
 
-pub use aurora::{Aurora, AuroraError, AuroraFootprint, AuroraPlugin, AuroraStats, AuroraStatus};
+pub use aurora::{Aurora, AuroraFootprint, AuroraPlugin, AuroraStats, AuroraStatus};
 pub use cloud_layer::{
-    CloudLayer, CloudLayerError, CloudLayerPlugin, CloudLayerSource, CloudLayerStats,
-    CloudLayerStatus,
+    CloudLayer, CloudLayerPlugin, CloudLayerSource, CloudLayerStats, CloudLayerStatus,
 };
+pub use error::SkyLayerError;
 pub use nebel_core::field::{AuroraCurtains, FogNoise};

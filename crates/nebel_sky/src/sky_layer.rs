@@ -22,30 +22,29 @@
 //! function) has no batch and costs a few comparisons per frame; removing
 //! the component removes its batch and state.
 
-use std::fmt::Display;
 use std::sync::Arc;
 use std::time::Instant;
 
-use bevy::asset::AssetLoadError;
 use bevy::camera::CameraUpdateSystems;
 use bevy::camera::visibility::VisibilitySystems;
 use bevy::diagnostic::{DiagnosticPath, Diagnostics};
 use bevy::ecs::component::Mutable;
 use bevy::math::DVec3;
 use bevy::prelude::*;
-use bevy::reflect::{FromReflect, GetTypeRegistration, Typed};
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferError, TransferFunction};
 use nebel_lod::quadtree::TerrainView;
 use nebel_lod::{
     CellOrder, Cells, FogProfile, GpuCell, LayerStats, LayerView, LodSettings, PrismScalar,
-    SurfaceLayer, SurfaceLayerError, TerrainError, TerrainMap, TerrainMesh,
+    SurfaceLayer, SurfaceLayerError, TerrainMap, TerrainMesh,
 };
 use nebel_render::camera::to_double_affine;
 use nebel_render::{
     CellBatch, EffectStatus, EffectiveQuality, GrayscaleMap, GrayscaleMapPlugin, HeavyBuild,
     HeavyBuilds, LodCameras, NebelSystems, cpu_timed, register_diagnostics,
 };
+
+use crate::error::SkyLayerError;
 
 /// A transfer function with ρ times a factor, kept while neither changes.
 #[derive(Default)]
@@ -71,48 +70,30 @@ impl ScaledTransfer {
     }
 }
 
-/// Why a map could not be read onto a layer's grid.
-pub(crate) enum MapError {
-    /// The asset failed to load: its path and the asset server's error.
-    NotLoaded(String, Arc<AssetLoadError>),
-    /// Its values were refused (NaN, no values).
-    Values(TerrainError),
-}
-
-/// A map's values resampled onto `side²` points (bilinear, corner to
-/// corner), `None` while it loads.
+/// A map of the sky layer `layer` (its name) resampled onto `side²` points
+/// (bilinear, corner to corner), `None` while it loads.
 pub(crate) fn map_values(
+    layer: &'static str,
     handle: &Handle<GrayscaleMap>,
     side: usize,
     maps: &Assets<GrayscaleMap>,
     asset_server: &AssetServer,
-) -> Result<Option<Vec<f32>>, MapError> {
+) -> Result<Option<Vec<f32>>, SkyLayerError> {
     if let Some((path, error)) = GrayscaleMap::load_failure(handle, asset_server) {
-        return Err(MapError::NotLoaded(path, error));
+        return Err(SkyLayerError::MapNotLoaded { layer, path, error });
     }
     let Some(map) = maps.get(handle) else {
         return Ok(None);
     };
     let dims = [map.dims.x as usize, map.dims.y as usize];
-    let layer = TerrainMap::resample(&map.values, dims, side).map_err(MapError::Values)?;
-    Ok(Some(layer.values().to_vec()))
+    let values = TerrainMap::resample(&map.values, dims, side)
+        .map_err(|error| SkyLayerError::from(SurfaceLayerError::from(error)))?;
+    Ok(Some(values.values().to_vec()))
 }
 
 /// An effect drawn as a layer between two surfaces: what the aurora and the
 /// cloud layer tell the systems they share (see the module docs).
 pub trait SkyLayer: Component + Sized {
-    /// Why it draws nothing.
-    type Error: Clone
-        + PartialEq
-        + Display
-        + From<SurfaceLayerError>
-        + From<TransferError>
-        + Send
-        + Sync
-        + FromReflect
-        + TypePath
-        + Typed
-        + GetTypeRegistration;
     /// What its layer is built from; a new key builds the layer again.
     type LayerKey: Clone + PartialEq + Send + Sync + 'static;
     /// What a build of its layer reads besides the key: the values of its
@@ -135,7 +116,7 @@ pub trait SkyLayer: Component + Sized {
     const SUNLIT: bool;
 
     /// Checks the settings its builders do not check themselves.
-    fn validate(&self) -> Result<(), Self::Error>;
+    fn validate(&self) -> Result<(), SkyLayerError>;
     /// Whether it draws nothing whatever the view: no density or brightness,
     /// a transparent transfer function.
     fn is_dark(&self) -> bool;
@@ -146,12 +127,12 @@ pub trait SkyLayer: Component + Sized {
         key: &Self::LayerKey,
         maps: &Assets<GrayscaleMap>,
         asset_server: &AssetServer,
-    ) -> Result<Option<Self::LayerInput>, Self::Error>;
+    ) -> Result<Option<Self::LayerInput>, SkyLayerError>;
     /// Its layer for `key` (on a worker).
     fn build_layer(
         key: &Self::LayerKey,
         input: Self::LayerInput,
-    ) -> Result<SurfaceLayer, Self::Error>;
+    ) -> Result<SurfaceLayer, SkyLayerError>;
     /// Its transfer function and the factor of its ρ.
     fn transfer(&self) -> (&TransferFunction, f32);
     /// The quadtree's accuracy `c` before the quality's scale.
@@ -239,10 +220,7 @@ struct Built {
 }
 
 /// A build in flight and what it is built from.
-type Building<T> = (
-    CellsKey<T>,
-    HeavyBuild<Result<Built, <T as SkyLayer>::Error>>,
-);
+type Building<T> = (CellsKey<T>, HeavyBuild<Result<Built, SkyLayerError>>);
 
 /// A layer's quadtree, buffers and caches.
 #[derive(Component)]
@@ -285,7 +263,7 @@ fn remove_sky_layers<T: SkyLayer>(mut commands: Commands, mut removed: RemovedCo
             entity.remove::<(
                 CellBatch,
                 SkyLayerState<T>,
-                EffectStatus<T::Error>,
+                EffectStatus<SkyLayerError>,
                 T::Stats,
             )>();
         }
@@ -308,7 +286,7 @@ fn update_sky_layers<T: SkyLayer>(
         &InheritedVisibility,
         Has<CellBatch>,
         &mut SkyLayerState<T>,
-        &mut EffectStatus<T::Error>,
+        &mut EffectStatus<SkyLayerError>,
         &mut T::Stats,
     )>,
     maps: Res<Assets<GrayscaleMap>>,

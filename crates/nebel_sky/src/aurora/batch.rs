@@ -15,13 +15,12 @@ use nebel_core::field::AuroraCurtains;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
-use nebel_lod::{
-    AuroraShape, CellOrder, FogProfile, LayerStats, PrismScalar, SurfaceLayer, SurfaceLayerError,
-};
+use nebel_lod::{AuroraShape, CellOrder, FogProfile, LayerStats, PrismScalar, SurfaceLayer};
 use nebel_render::GrayscaleMap;
 
-use super::{Aurora, AuroraError, AuroraFootprint, AuroraPlugin, AuroraStats};
-use crate::sky_layer::{MapError, SkyLayer, SkyLayerState, map_values};
+use super::{Aurora, AuroraFootprint, AuroraPlugin, AuroraStats};
+use crate::SkyLayerError;
+use crate::sky_layer::{SkyLayer, SkyLayerState, map_values};
 
 /// An aurora's layer, buffers and caches.
 pub type AuroraState = SkyLayerState<Aurora>;
@@ -46,7 +45,6 @@ pub enum FootprintInput {
 }
 
 impl SkyLayer for Aurora {
-    type Error = AuroraError;
     type LayerKey = AuroraLayerKey;
     type LayerInput = FootprintInput;
     type Stats = AuroraStats;
@@ -57,7 +55,7 @@ impl SkyLayer for Aurora {
     const MODE: OpticalMode = OpticalMode::Emissive;
     const SUNLIT: bool = false;
 
-    fn validate(&self) -> Result<(), AuroraError> {
+    fn validate(&self) -> Result<(), SkyLayerError> {
         Aurora::validate(self)
     }
 
@@ -89,20 +87,15 @@ impl SkyLayer for Aurora {
         key: &AuroraLayerKey,
         maps: &Assets<GrayscaleMap>,
         asset_server: &AssetServer,
-    ) -> Result<Option<FootprintInput>, AuroraError> {
+    ) -> Result<Option<FootprintInput>, SkyLayerError> {
         match &key.footprint {
             AuroraFootprint::Curtains(curtains) => Ok(Some(FootprintInput::Curtains(
                 *curtains,
                 key.time.map_or(0.0, f64::from_bits),
             ))),
             AuroraFootprint::Map(handle) => {
-                let values = map_values(handle, key.resolution as usize, maps, asset_server)
-                    .map_err(|error| match error {
-                        MapError::NotLoaded(path, error) => {
-                            AuroraError::MapNotLoaded { path, error }
-                        }
-                        MapError::Values(error) => SurfaceLayerError::from(error).into(),
-                    })?;
+                let side = key.resolution as usize;
+                let values = map_values(Self::NAME, handle, side, maps, asset_server)?;
                 Ok(values.map(FootprintInput::Map))
             }
         }
@@ -111,7 +104,7 @@ impl SkyLayer for Aurora {
     fn build_layer(
         key: &AuroraLayerKey,
         input: FootprintInput,
-    ) -> Result<SurfaceLayer, AuroraError> {
+    ) -> Result<SurfaceLayer, SkyLayerError> {
         let side = key.resolution as usize;
         let strength = match input {
             FootprintInput::Curtains(curtains, time) => curtains.map(side, time)?,

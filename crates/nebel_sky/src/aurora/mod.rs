@@ -39,15 +39,13 @@ mod batch;
 
 use std::sync::Arc;
 
-use bevy::asset::AssetLoadError;
 use bevy::diagnostic::DiagnosticPath;
 use bevy::prelude::*;
-use nebel_core::field::{AuroraCurtains, FieldError};
-use nebel_core::transfer::{TransferError, TransferFunction, TransferPreset};
-use nebel_lod::SurfaceLayerError;
+use nebel_core::field::AuroraCurtains;
+use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_render::{EffectStatus, GrayscaleMap};
-use thiserror::Error;
 
+use crate::SkyLayerError;
 use crate::sky_layer::add_sky_layer;
 use batch::AuroraState;
 
@@ -156,7 +154,7 @@ impl Default for Aurora {
 }
 
 /// What became of an [`Aurora`]: pending, ready, or failed and why.
-pub type AuroraStatus = EffectStatus<AuroraError>;
+pub type AuroraStatus = EffectStatus<SkyLayerError>;
 
 /// Statistics of an [`Aurora`], updated by the plugin.
 #[derive(Component, Clone, Copy, Debug, Default, PartialEq, Reflect)]
@@ -178,86 +176,31 @@ pub struct AuroraStats {
     pub update_ms: f32,
 }
 
-/// Why an [`Aurora`] draws nothing. Every message names the setting or file
-/// at fault.
-#[derive(Clone, Debug, Error, Reflect)]
-#[reflect(opaque, Clone, Debug, PartialEq)]
-pub enum AuroraError {
-    /// The footprint map asset failed to load.
-    #[error("cannot load the aurora's footprint map {path}: {error}")]
-    MapNotLoaded {
-        /// The asset path, or `(no path)` for an asset added in memory.
-        path: String,
-        /// The asset server's error.
-        error: Arc<AssetLoadError>,
-    },
-    /// A setting is out of its range.
-    #[error("aurora {setting} = {value} is invalid: it must be {requirement}")]
-    InvalidSetting {
-        /// The setting's name.
-        setting: &'static str,
-        /// The value given.
-        value: f32,
-        /// What it must be.
-        requirement: &'static str,
-    },
-    /// The curtains' generator refused its settings.
-    #[error(transparent)]
-    Curtains(Arc<FieldError>),
-    /// The layer was refused (NaN in the map, a bad size or shape).
-    #[error(transparent)]
-    Layer(Arc<SurfaceLayerError>),
-    /// The transfer function could not be scaled by the brightness.
-    #[error(transparent)]
-    Transfer(Arc<TransferError>),
-}
-
-impl From<FieldError> for AuroraError {
-    fn from(error: FieldError) -> Self {
-        Self::Curtains(Arc::new(error))
-    }
-}
-
-impl From<SurfaceLayerError> for AuroraError {
-    fn from(error: SurfaceLayerError) -> Self {
-        Self::Layer(Arc::new(error))
-    }
-}
-
-impl From<TransferError> for AuroraError {
-    fn from(error: TransferError) -> Self {
-        Self::Transfer(Arc::new(error))
-    }
-}
-
-/// Two failures are the same when they say the same.
-impl PartialEq for AuroraError {
-    fn eq(&self, other: &Self) -> bool {
-        self.to_string() == other.to_string()
-    }
-}
-
 impl Aurora {
     /// Checks the settings the footprint and layer do not check themselves.
-    pub fn validate(&self) -> Result<(), AuroraError> {
-        let invalid = |setting, value, requirement| {
-            Err(AuroraError::InvalidSetting {
-                setting,
-                value,
-                requirement,
-            })
+    pub fn validate(&self) -> Result<(), SkyLayerError> {
+        let check = |ok, setting, value, requirement| {
+            SkyLayerError::check(ok, "aurora", setting, value, requirement)
         };
-        if !nebel_lod::is_layer_side(self.resolution) {
-            return invalid("resolution", self.resolution as f32, nebel_lod::LAYER_SIDES);
-        }
-        if !(self.brightness.is_finite() && self.brightness >= 0.0) {
-            return invalid("brightness", self.brightness, "finite and >= 0");
-        }
-        if !(self.speed.is_finite() && self.speed >= 0.0) {
-            return invalid("speed", self.speed, "finite and >= 0");
-        }
-        if !(self.accuracy.is_finite() && self.accuracy > 0.0) {
-            return invalid("accuracy", self.accuracy, "finite and > 0");
+        let resolution = self.resolution as f32;
+        let layer_side = nebel_lod::is_layer_side(self.resolution);
+        check(layer_side, "resolution", resolution, nebel_lod::LAYER_SIDES)?;
+        for (setting, value, ok, requirement) in [
+            (
+                "brightness",
+                self.brightness,
+                self.brightness >= 0.0,
+                "finite and >= 0",
+            ),
+            ("speed", self.speed, self.speed >= 0.0, "finite and >= 0"),
+            (
+                "accuracy",
+                self.accuracy,
+                self.accuracy > 0.0,
+                "finite and > 0",
+            ),
+        ] {
+            check(value.is_finite() && ok, setting, value, requirement)?;
         }
         Ok(())
     }

@@ -17,8 +17,9 @@ use nebel_lod::{
 };
 use nebel_render::GrayscaleMap;
 
-use super::{CloudLayer, CloudLayerError, CloudLayerPlugin, CloudLayerSource, CloudLayerStats};
-use crate::sky_layer::{MapError, SkyLayer, SkyLayerState, map_values};
+use super::{CloudLayer, CloudLayerPlugin, CloudLayerSource, CloudLayerStats};
+use crate::SkyLayerError;
+use crate::sky_layer::{SkyLayer, SkyLayerState, map_values};
 
 /// A cloud layer's quadtree, buffers and caches.
 pub type CloudLayerState = SkyLayerState<CloudLayer>;
@@ -33,19 +34,6 @@ pub struct CloudLayerKey {
     maps: [Option<usize>; 2],
 }
 
-/// A map's unit values on `side²` points, `None` while it loads.
-fn unit_values(
-    handle: &Handle<GrayscaleMap>,
-    side: usize,
-    maps: &Assets<GrayscaleMap>,
-    asset_server: &AssetServer,
-) -> Result<Option<Vec<f32>>, CloudLayerError> {
-    map_values(handle, side, maps, asset_server).map_err(|error| match error {
-        MapError::NotLoaded(path, error) => CloudLayerError::MapNotLoaded { path, error },
-        MapError::Values(error) => SurfaceLayerError::from(error).into(),
-    })
-}
-
 /// What a build makes the two surfaces from: noise, or two maps' unit
 /// values with the metres of a white pixel.
 pub enum SurfacesInput {
@@ -58,7 +46,6 @@ pub enum SurfacesInput {
 }
 
 impl SkyLayer for CloudLayer {
-    type Error = CloudLayerError;
     type LayerKey = CloudLayerKey;
     type LayerInput = SurfacesInput;
     type Stats = CloudLayerStats;
@@ -69,7 +56,7 @@ impl SkyLayer for CloudLayer {
     const MODE: OpticalMode = OpticalMode::Sorted;
     const SUNLIT: bool = true;
 
-    fn validate(&self) -> Result<(), CloudLayerError> {
+    fn validate(&self) -> Result<(), SkyLayerError> {
         CloudLayer::validate(self)
     }
 
@@ -98,13 +85,13 @@ impl SkyLayer for CloudLayer {
         key: &CloudLayerKey,
         maps: &Assets<GrayscaleMap>,
         asset_server: &AssetServer,
-    ) -> Result<Option<SurfacesInput>, CloudLayerError> {
+    ) -> Result<Option<SurfacesInput>, SkyLayerError> {
         let side = key.resolution as usize;
         Ok(match &key.source {
             CloudLayerSource::Noise(noise) => Some(SurfacesInput::Noise(*noise)),
             CloudLayerSource::Maps { bottom, top, scale } => match (
-                unit_values(bottom, side, maps, asset_server)?,
-                unit_values(top, side, maps, asset_server)?,
+                map_values(Self::NAME, bottom, side, maps, asset_server)?,
+                map_values(Self::NAME, top, side, maps, asset_server)?,
             ) {
                 (Some(bottom), Some(top)) => Some(SurfacesInput::Maps {
                     bottom,
@@ -119,7 +106,7 @@ impl SkyLayer for CloudLayer {
     fn build_layer(
         key: &CloudLayerKey,
         input: SurfacesInput,
-    ) -> Result<SurfaceLayer, CloudLayerError> {
+    ) -> Result<SurfaceLayer, SkyLayerError> {
         let side = key.resolution as usize;
         let shape = &key.shape;
         match input {
@@ -134,7 +121,7 @@ impl SkyLayer for CloudLayer {
                 };
                 let bottom = shape
                     .field(side, surface(bottom))
-                    .map_err(|error| CloudLayerError::from(SurfaceLayerError::from(error)))?;
+                    .map_err(|error| SkyLayerError::from(SurfaceLayerError::from(error)))?;
                 let top = surface(top);
                 Ok(SurfaceLayer::new(
                     bottom,

@@ -31,15 +31,13 @@ mod batch;
 
 use std::sync::Arc;
 
-use bevy::asset::AssetLoadError;
 use bevy::diagnostic::DiagnosticPath;
 use bevy::prelude::*;
-use nebel_core::field::{CloudLighting, FieldError, FogNoise, TerrainNoise};
-use nebel_core::transfer::{TransferError, TransferFunction, TransferPreset};
-use nebel_lod::SurfaceLayerError;
+use nebel_core::field::{CloudLighting, FogNoise, TerrainNoise};
+use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_render::{EffectStatus, GrayscaleMap};
-use thiserror::Error;
 
+use crate::SkyLayerError;
 use crate::sky_layer::add_sky_layer;
 use batch::CloudLayerState;
 
@@ -172,7 +170,7 @@ impl Default for CloudLayer {
 }
 
 /// What became of a [`CloudLayer`]: pending, ready, or failed and why.
-pub type CloudLayerStatus = EffectStatus<CloudLayerError>;
+pub type CloudLayerStatus = EffectStatus<SkyLayerError>;
 
 /// Statistics of a [`CloudLayer`], updated by the plugin.
 #[derive(Component, Clone, Copy, Debug, Default, PartialEq, Reflect)]
@@ -193,78 +191,15 @@ pub struct CloudLayerStats {
     pub update_ms: f32,
 }
 
-/// Why a [`CloudLayer`] draws nothing. Every message names the setting or
-/// file at fault.
-#[derive(Clone, Debug, Error, Reflect)]
-#[reflect(opaque, Clone, Debug, PartialEq)]
-pub enum CloudLayerError {
-    /// A map asset failed to load.
-    #[error("cannot load the cloud layer's map {path}: {error}")]
-    MapNotLoaded {
-        /// The asset path, or `(no path)` for an asset added in memory.
-        path: String,
-        /// The asset server's error.
-        error: Arc<AssetLoadError>,
-    },
-    /// A setting is out of its range.
-    #[error("cloud layer {setting} = {value} is invalid: it must be {requirement}")]
-    InvalidSetting {
-        /// The setting's name.
-        setting: &'static str,
-        /// The value given.
-        value: f32,
-        /// What it must be.
-        requirement: &'static str,
-    },
-    /// The noise refused its settings.
-    #[error(transparent)]
-    Noise(Arc<FieldError>),
-    /// The layer was refused (NaN in a map, a bad size or shape).
-    #[error(transparent)]
-    Layer(Arc<SurfaceLayerError>),
-    /// The transfer function could not be scaled by the density.
-    #[error(transparent)]
-    Transfer(Arc<TransferError>),
-}
-
-impl From<FieldError> for CloudLayerError {
-    fn from(error: FieldError) -> Self {
-        Self::Noise(Arc::new(error))
-    }
-}
-
-impl From<SurfaceLayerError> for CloudLayerError {
-    fn from(error: SurfaceLayerError) -> Self {
-        Self::Layer(Arc::new(error))
-    }
-}
-
-impl From<TransferError> for CloudLayerError {
-    fn from(error: TransferError) -> Self {
-        Self::Transfer(Arc::new(error))
-    }
-}
-
-/// Two failures are the same when they say the same.
-impl PartialEq for CloudLayerError {
-    fn eq(&self, other: &Self) -> bool {
-        self.to_string() == other.to_string()
-    }
-}
-
 impl CloudLayer {
     /// Checks the settings the layer's builders do not check themselves.
-    pub fn validate(&self) -> Result<(), CloudLayerError> {
-        let invalid = |setting, value, requirement| {
-            Err(CloudLayerError::InvalidSetting {
-                setting,
-                value,
-                requirement,
-            })
+    pub fn validate(&self) -> Result<(), SkyLayerError> {
+        let check = |ok, setting, value, requirement| {
+            SkyLayerError::check(ok, "cloud layer", setting, value, requirement)
         };
-        if !nebel_lod::is_layer_side(self.resolution) {
-            return invalid("resolution", self.resolution as f32, nebel_lod::LAYER_SIDES);
-        }
+        let resolution = self.resolution as f32;
+        let layer_side = nebel_lod::is_layer_side(self.resolution);
+        check(layer_side, "resolution", resolution, nebel_lod::LAYER_SIDES)?;
         for (setting, value, ok, requirement) in [
             (
                 "density",
@@ -297,14 +232,15 @@ impl CloudLayer {
                 "in [0, 1]",
             ),
         ] {
-            if !(value.is_finite() && ok) {
-                return invalid(setting, value, requirement);
-            }
+            check(value.is_finite() && ok, setting, value, requirement)?;
         }
-        if let CloudLayerSource::Maps { scale, .. } = self.source
-            && !(scale.is_finite() && scale >= 0.0)
-        {
-            return invalid("scale", scale, "finite and >= 0");
+        if let CloudLayerSource::Maps { scale, .. } = self.source {
+            check(
+                scale.is_finite() && scale >= 0.0,
+                "scale",
+                scale,
+                "finite and >= 0",
+            )?;
         }
         Ok(())
     }

@@ -1,0 +1,97 @@
+//! Why an aurora or a cloud layer draws nothing: one error for both sky
+//! layers, each message naming the layer and the setting or file at fault.
+
+use std::sync::Arc;
+
+use bevy::asset::AssetLoadError;
+use bevy::prelude::*;
+use nebel_core::field::FieldError;
+use nebel_core::transfer::TransferError;
+use nebel_lod::SurfaceLayerError;
+use thiserror::Error;
+
+/// Why an [`Aurora`](crate::Aurora) or a [`CloudLayer`](crate::CloudLayer)
+/// draws nothing.
+#[derive(Clone, Debug, Error, Reflect)]
+#[reflect(opaque, Clone, Debug, PartialEq)]
+pub enum SkyLayerError {
+    /// A map asset failed to load.
+    #[error("cannot load the {layer}'s map {path}: {error}")]
+    MapNotLoaded {
+        /// The layer: `aurora` or `cloud layer`.
+        layer: &'static str,
+        /// The asset path, or `(no path)` for an asset added in memory.
+        path: String,
+        /// The asset server's error.
+        error: Arc<AssetLoadError>,
+    },
+    /// A setting is out of its range.
+    #[error("{layer} {setting} = {value} is invalid: it must be {requirement}")]
+    InvalidSetting {
+        /// The layer: `aurora` or `cloud layer`.
+        layer: &'static str,
+        /// The setting's name.
+        setting: &'static str,
+        /// The value given.
+        value: f32,
+        /// What it must be.
+        requirement: &'static str,
+    },
+    /// The aurora's curtains or the cloud layer's noise refused its
+    /// settings.
+    #[error(transparent)]
+    Field(Arc<FieldError>),
+    /// The layer was refused (NaN in a map, a bad size or shape).
+    #[error(transparent)]
+    Layer(Arc<SurfaceLayerError>),
+    /// The transfer function could not be scaled by the brightness or
+    /// density.
+    #[error(transparent)]
+    Transfer(Arc<TransferError>),
+}
+
+impl SkyLayerError {
+    /// `Err` of [`SkyLayerError::InvalidSetting`] unless `ok`.
+    pub(crate) fn check(
+        ok: bool,
+        layer: &'static str,
+        setting: &'static str,
+        value: f32,
+        requirement: &'static str,
+    ) -> Result<(), Self> {
+        if ok {
+            return Ok(());
+        }
+        Err(Self::InvalidSetting {
+            layer,
+            setting,
+            value,
+            requirement,
+        })
+    }
+}
+
+impl From<FieldError> for SkyLayerError {
+    fn from(error: FieldError) -> Self {
+        Self::Field(Arc::new(error))
+    }
+}
+
+impl From<SurfaceLayerError> for SkyLayerError {
+    fn from(error: SurfaceLayerError) -> Self {
+        Self::Layer(Arc::new(error))
+    }
+}
+
+impl From<TransferError> for SkyLayerError {
+    fn from(error: TransferError) -> Self {
+        Self::Transfer(Arc::new(error))
+    }
+}
+
+/// Two failures are the same when they say the same.
+impl PartialEq for SkyLayerError {
+    fn eq(&self, other: &Self) -> bool {
+        self.to_string() == other.to_string()
+    }
+}
