@@ -7,11 +7,10 @@ use std::sync::Arc;
 use bevy::asset::AssetPlugin;
 use bevy::diagnostic::DiagnosticsStore;
 use bevy::prelude::*;
-use bevy::transform::TransformPlugin;
 use nebel_core::field::{FogNoise, TerrainNoise, ValleyFog};
 use nebel_core::optics::OpticalMode;
-use nebel_render::camera::computed_camera;
-use nebel_render::{CellBatch, GrayscaleMap, HeavyBuilds};
+use nebel_render::headless::{headless_app, spawn_computed_camera};
+use nebel_render::{CellBatch, GrayscaleMap};
 use nebel_terrain::{
     Terrain, TerrainLod, TerrainLodStats, TerrainMapLod, TerrainPlugin, TerrainSource,
 };
@@ -31,32 +30,12 @@ fn asset_dir(name: &str) -> PathBuf {
 /// camera at `eye` looking at the origin (what Bevy computes for a 64 × 64
 /// target).
 fn app(dir: &Path, eye: Vec3) -> (App, Entity) {
-    let mut app = App::new();
-    app.add_plugins((
-        MinimalPlugins,
-        TransformPlugin,
-        AssetPlugin {
-            file_path: dir.to_string_lossy().into_owned(),
-            watch_for_changes_override: Some(false),
-            ..default()
-        },
-    ))
-    .init_asset::<Mesh>()
-    .init_asset::<StandardMaterial>()
-    .add_plugins((TerrainPlugin, GroundFogPlugin))
-    .insert_resource(HeavyBuilds::Blocking);
-    let camera = computed_camera(
-        Mat4::perspective_infinite_reverse_rh(1.0, 1.0, 0.1),
-        UVec2::splat(64),
-    );
-    let camera = app
-        .world_mut()
-        .spawn((
-            Camera3d::default(),
-            camera,
-            Transform::from_translation(eye).looking_at(Vec3::ZERO, Vec3::Y),
-        ))
-        .id();
+    let mut app = headless_app(Some(dir));
+    app.init_asset::<Mesh>()
+        .init_asset::<StandardMaterial>()
+        .add_plugins((TerrainPlugin, GroundFogPlugin));
+    let transform = Transform::from_translation(eye).looking_at(Vec3::ZERO, Vec3::Y);
+    let camera = spawn_computed_camera(app.world_mut(), 1.0, UVec2::splat(64), transform);
     (app, camera)
 }
 

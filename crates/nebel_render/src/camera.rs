@@ -9,7 +9,6 @@
 //! for the placeholder projection would be wrong. [`LodCameras::view`] gives
 //! the chosen camera's [`LodView`].
 
-use bevy::camera::{ComputedCameraValues, RenderTargetInfo};
 use bevy::ecs::system::SystemParam;
 use bevy::math::{DAffine3, DMat4, DVec3};
 use bevy::prelude::*;
@@ -84,24 +83,6 @@ impl LodCameras<'_, '_> {
     }
 }
 
-/// A camera as Bevy's camera systems leave it for a render target of
-/// `physical_size` pixels: `clip_from_view` and the target already
-/// computed. For driving the level of detail in an app that renders nothing
-/// (tests, a server): [`LodCameras`] picks it like any active camera.
-pub fn computed_camera(clip_from_view: Mat4, physical_size: UVec2) -> Camera {
-    Camera {
-        computed: ComputedCameraValues {
-            clip_from_view,
-            target_info: Some(RenderTargetInfo {
-                physical_size,
-                scale_factor: 1.0,
-            }),
-            ..default()
-        },
-        ..default()
-    }
-}
-
 /// `matrix` in f64.
 pub fn to_double(matrix: Mat4) -> DMat4 {
     DMat4::from_cols_array(&matrix.to_cols_array().map(f64::from))
@@ -126,6 +107,8 @@ impl LodView {
 
 #[cfg(test)]
 mod tests {
+    use bevy::camera::{ComputedCameraValues, RenderTargetInfo};
+
     use super::*;
 
     fn camera(order: isize, active: bool, projected: bool) -> Camera {

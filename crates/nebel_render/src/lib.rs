@@ -29,6 +29,7 @@ pub mod effect;
 pub mod fog_layers;
 mod frame_budget;
 pub mod grayscale_map;
+pub mod headless;
 pub mod quality;
 
 pub use builds::{HeavyBuild, HeavyBuilds, free_in_background};

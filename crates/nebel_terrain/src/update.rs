@@ -428,15 +428,13 @@ mod tests {
     use crate::TerrainSource;
     use crate::build::BuildInput;
     use crate::{TerrainDebug, TerrainPlugin};
-    use bevy::asset::AssetPlugin;
     use bevy::diagnostic::DiagnosticsStore;
     use bevy::mesh::VertexAttributeValues;
-    use bevy::transform::TransformPlugin;
     use nebel_core::field::TerrainNoise;
     use nebel_lod::TerrainMesh;
     use nebel_render::GrayscaleMap;
     use nebel_render::HeavyBuilds;
-    use nebel_render::camera::computed_camera;
+    use nebel_render::headless::{computed_camera, headless_app, spawn_computed_camera};
     use std::path::PathBuf;
 
     /// A folder of its own per test for the asset server's files.
@@ -454,34 +452,14 @@ mod tests {
     }
 
     fn app_looking_at(dir: &std::path::Path, eye: Vec3, target: Vec3) -> (App, Entity) {
-        let mut app = App::new();
-        app.add_plugins((
-            MinimalPlugins,
-            TransformPlugin,
-            AssetPlugin {
-                file_path: dir.to_string_lossy().into_owned(),
-                watch_for_changes_override: Some(false),
-                ..default()
-            },
-        ))
-        .init_asset::<Mesh>()
-        .init_asset::<StandardMaterial>()
-        .add_plugins(TerrainPlugin)
         // Every build lands in the frame that starts it, so the tests count
         // frames; `a_background_build_appears_when_ready` covers the default.
-        .insert_resource(HeavyBuilds::Blocking);
-        let camera = computed_camera(
-            Mat4::perspective_infinite_reverse_rh(1.0, 1.0, 0.1),
-            UVec2::splat(64),
-        );
-        let camera = app
-            .world_mut()
-            .spawn((
-                Camera3d::default(),
-                camera,
-                Transform::from_translation(eye).looking_at(target, Vec3::Y),
-            ))
-            .id();
+        let mut app = headless_app(Some(dir));
+        app.init_asset::<Mesh>()
+            .init_asset::<StandardMaterial>()
+            .add_plugins(TerrainPlugin);
+        let transform = Transform::from_translation(eye).looking_at(target, Vec3::Y);
+        let camera = spawn_computed_camera(app.world_mut(), 1.0, UVec2::splat(64), transform);
         (app, camera)
     }
 

@@ -193,37 +193,18 @@ impl Default for Volume {
 mod tests {
     use super::*;
     use crate::LodCriterion;
-    use bevy::asset::AssetPlugin;
     use bevy::diagnostic::DiagnosticsStore;
     use bevy::math::DVec3;
-    use bevy::transform::TransformPlugin;
     use nebel_core::field::DensityGrid;
     use nebel_core::field::effects::campfire_density;
     use nebel_render::CellBatch;
-    use nebel_render::camera::computed_camera;
+    use nebel_render::headless::{headless_app, spawn_computed_camera};
 
     fn app_with_volume(mode: OpticalMode) -> (App, Entity, Entity) {
-        let mut app = App::new();
-        app.add_plugins((
-            MinimalPlugins,
-            TransformPlugin,
-            AssetPlugin::default(),
-            VolumePlugin,
-        ))
-        .insert_resource(HeavyBuilds::Blocking);
-        // What Bevy's camera systems compute for a 64×64 target.
-        let camera = computed_camera(
-            Mat4::perspective_infinite_reverse_rh(1.0, 1.0, 0.1),
-            UVec2::splat(64),
-        );
-        let camera = app
-            .world_mut()
-            .spawn((
-                Camera3d::default(),
-                camera,
-                Transform::from_xyz(5.0, 2.0, 7.0).looking_at(Vec3::ONE, Vec3::Y),
-            ))
-            .id();
+        let mut app = headless_app(None);
+        app.add_plugins(VolumePlugin);
+        let transform = Transform::from_xyz(5.0, 2.0, 7.0).looking_at(Vec3::ONE, Vec3::Y);
+        let camera = spawn_computed_camera(app.world_mut(), 1.0, UVec2::splat(64), transform);
         let grid = DensityGrid::new([3, 3, 3], DVec3::ONE, DVec3::ZERO, vec![1.0; 27]).unwrap();
         let field = grid_field(&mut app, grid);
         let volume = app

@@ -5,46 +5,26 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use bevy::asset::AssetPlugin;
 use bevy::prelude::*;
 use bevy::time::TimeUpdateStrategy;
-use bevy::transform::TransformPlugin;
 use nebel_core::optics::OpticalMode;
+use nebel_render::CellBatch;
 use nebel_render::GrayscaleMap;
-use nebel_render::camera::computed_camera;
-use nebel_render::{CellBatch, HeavyBuilds};
+use nebel_render::headless::{headless_app, spawn_computed_camera};
 
 use super::{Aurora, AuroraFootprint, AuroraPlugin, AuroraStats, AuroraStatus};
 
 /// An app with the aurora plugin, 1/30 s frames, and a camera on the ground
 /// looking up at the aurora.
 fn app() -> (App, Entity) {
-    let mut app = App::new();
-    app.add_plugins((
-        MinimalPlugins,
-        TransformPlugin,
-        AssetPlugin {
-            watch_for_changes_override: Some(false),
-            ..default()
-        },
-    ))
-    .add_plugins(AuroraPlugin)
-    .insert_resource(HeavyBuilds::Blocking)
-    .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(
-        1.0 / 30.0,
-    )));
-    let camera = computed_camera(
-        Mat4::perspective_infinite_reverse_rh(1.4, 1.5, 0.1),
-        UVec2::new(96, 64),
-    );
-    let camera = app
-        .world_mut()
-        .spawn((
-            Camera3d::default(),
-            camera,
-            Transform::from_xyz(0.0, 2.0, 0.0).looking_at(Vec3::new(0.0, 150e3, 80e3), Vec3::Y),
-        ))
-        .id();
+    let mut app = headless_app(None);
+    app.add_plugins(AuroraPlugin)
+        .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_secs_f64(
+            1.0 / 30.0,
+        )));
+    let transform =
+        Transform::from_xyz(0.0, 2.0, 0.0).looking_at(Vec3::new(0.0, 150e3, 80e3), Vec3::Y);
+    let camera = spawn_computed_camera(app.world_mut(), 1.4, UVec2::new(96, 64), transform);
     (app, camera)
 }
 

@@ -5,43 +5,22 @@
 
 use std::sync::Arc;
 
-use bevy::asset::AssetPlugin;
 use bevy::prelude::*;
-use bevy::transform::TransformPlugin;
 use nebel_core::optics::OpticalMode;
-use nebel_render::GrayscaleMap;
-use nebel_render::camera::computed_camera;
 use nebel_render::{CellBatch, HeavyBuilds};
+use nebel_render::GrayscaleMap;
+use nebel_render::headless::{headless_app, spawn_computed_camera};
 
 use super::{CloudLayer, CloudLayerPlugin, CloudLayerSource, CloudLayerStats, CloudLayerStatus};
 
 /// An app with the cloud-layer plugin, a sun 60° up, and a camera below the
 /// clouds looking up at them.
 fn app() -> (App, Entity, Entity) {
-    let mut app = App::new();
-    app.add_plugins((
-        MinimalPlugins,
-        TransformPlugin,
-        AssetPlugin {
-            watch_for_changes_override: Some(false),
-            ..default()
-        },
-    ))
-    .add_plugins(CloudLayerPlugin)
-    .insert_resource(HeavyBuilds::Blocking);
-    let camera = computed_camera(
-        Mat4::perspective_infinite_reverse_rh(1.2, 1.5, 0.1),
-        UVec2::new(96, 64),
-    );
-    let camera = app
-        .world_mut()
-        .spawn((
-            Camera3d::default(),
-            camera,
-            Transform::from_xyz(0.0, 300.0, 4000.0)
-                .looking_at(Vec3::new(0.0, 1500.0, 0.0), Vec3::Y),
-        ))
-        .id();
+    let mut app = headless_app(None);
+    app.add_plugins(CloudLayerPlugin);
+    let transform =
+        Transform::from_xyz(0.0, 300.0, 4000.0).looking_at(Vec3::new(0.0, 1500.0, 0.0), Vec3::Y);
+    let camera = spawn_computed_camera(app.world_mut(), 1.2, UVec2::new(96, 64), transform);
     let sun = app
         .world_mut()
         .spawn((
