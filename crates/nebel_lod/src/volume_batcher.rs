@@ -70,7 +70,9 @@ use nebel_core::transfer::TransferFunction;
 use thiserror::Error;
 
 use crate::batch::{Cells, GpuCell};
+use crate::frustum::Frustum;
 use crate::full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};
+use crate::octree::refresh::Latency;
 use crate::octree::{
     CellScalars, HierarchyError, LodCriterion, RefinementError, RefinementSettings,
     VolumeHierarchy, k_max, lod_batch_with, refine, refresh,
@@ -278,6 +280,8 @@ struct BuiltFor {
     /// The view's [`order_key`] for a grid at full resolution back to front,
     /// `None` for the other kinds.
     order_key: Option<[i64; 6]>,
+    /// The frustum the octree culled with ([`refresh::culling`]).
+    culling: Option<Frustum>,
 }
 
 /// A volume's per-frame batching (module docs): built once per source and
@@ -421,13 +425,18 @@ impl VolumeBatcher {
         {
             return Ok(false);
         }
-        self.batch = Arc::new(self.build(view, inputs)?);
+        let culling = match &self.kind {
+            Kind::Octree { hierarchy, .. } => refresh::culling(hierarchy, view, Latency::default()),
+            _ => view.frustum.clone(),
+        };
+        self.batch = Arc::new(self.build(view, culling.as_ref(), inputs)?);
         self.built = Some(BuiltFor {
             view: view.clone(),
             transfer,
             criterion: inputs.criterion,
             blends: Blends::of(inputs),
             order_key,
+            culling,
         });
         Ok(true)
     }
@@ -535,6 +544,7 @@ impl VolumeBatcher {
             criterion: step.criterion,
             blends: step.blends,
             order_key: None,
+            culling: built.culling,
         });
         Ok(true)
     }
@@ -634,15 +644,27 @@ impl VolumeBatcher {
                 let blended = hierarchy.has_next_keyframe();
                 built.criterion != inputs.criterion
                     || (blended && built.blends != Blends::of(inputs))
-                    || !refresh::serves(hierarchy, &built.view, view, inputs.criterion)
+                    || !refresh::serves(
+                        hierarchy,
+                        &built.view,
+                        built.culling.as_ref(),
+                        view,
+                        inputs.criterion,
+                    )
             }
             Kind::SortedCells { .. } => eye_moved,
             Kind::UnorderedCells { .. } => false,
         }
     }
 
-    /// The batch for `view` and `inputs`, built from scratch.
-    fn build(&self, view: &View, inputs: &FrameInputs) -> Result<Cells, VolumeBatchError> {
+    /// The batch for `view` and `inputs`, built from scratch; the octree
+    /// culls with `culling`.
+    fn build(
+        &self,
+        view: &View,
+        culling: Option<&Frustum>,
+        inputs: &FrameInputs,
+    ) -> Result<Cells, VolumeBatchError> {
         let batch = match &self.kind {
             Kind::FullResolution {
                 grid,
@@ -659,7 +681,10 @@ impl VolumeBatcher {
             },
             Kind::Octree { hierarchy, scalars } => {
                 let settings = Blends::of(inputs).refinement(inputs.criterion, *scalars);
-                let view = &refresh::culling_view(hierarchy, view);
+                let view = &View {
+                    frustum: culling.cloned(),
+                    ..view.clone()
+                };
                 let refinement = refine(hierarchy, view, inputs.transfer, &settings)?;
                 lod_batch_with(hierarchy, &refinement, view, *scalars)?
             }
@@ -715,6 +740,7 @@ pub struct RefinementStep {
     transfer: TransferFunction,
     criterion: LodCriterion,
     blends: Blends,
+    latency: Latency,
 }
 
 impl RefinementStep {
@@ -731,19 +757,34 @@ impl RefinementStep {
             transfer: inputs.transfer.clone(),
             criterion: inputs.criterion,
             blends: Blends::of(inputs),
+            latency: Latency::default(),
         }
+    }
+
+    /// The step culling wider by `latency`, for a batch drawn that much
+    /// later than its view ([`refresh::culling`]).
+    pub fn with_latency(self, latency: Latency) -> Self {
+        Self { latency, ..self }
     }
 
     /// Refines and emits the batch, as [`VolumeBatcher::update`] would.
     pub fn build(self) -> BuiltRefinementStep {
         let settings = self.blends.refinement(self.criterion, self.scalars);
-        let view = refresh::culling_view(&self.hierarchy, &self.view);
+        let culling = refresh::culling(&self.hierarchy, &self.view, self.latency);
+        let view = View {
+            frustum: culling.clone(),
+            ..self.view.clone()
+        };
         let batch = refine(&self.hierarchy, &view, &self.transfer, &settings)
             .and_then(|refinement| {
                 lod_batch_with(&self.hierarchy, &refinement, &view, self.scalars)
             })
             .map_err(VolumeBatchError::from);
-        BuiltRefinementStep { step: self, batch }
+        BuiltRefinementStep {
+            step: self,
+            culling,
+            batch,
+        }
     }
 }
 
@@ -751,6 +792,8 @@ impl RefinementStep {
 #[derive(Debug)]
 pub struct BuiltRefinementStep {
     step: RefinementStep,
+    /// The frustum it culled with.
+    culling: Option<Frustum>,
     batch: Result<Cells, VolumeBatchError>,
 }
 
@@ -770,8 +813,14 @@ impl BuiltRefinementStep {
     /// adopted once the drawn blend reaches it).
     pub fn is_for(&self, view: &View, inputs: &FrameInputs) -> bool {
         let step = &self.step;
+        let culling = self.culling.as_ref();
         self.is_for_inputs(inputs)
-            && refresh::serves(&step.hierarchy, &step.view, view, step.criterion)
+            && refresh::serves(&step.hierarchy, &step.view, culling, view, step.criterion)
+    }
+
+    /// How far `view` is from the view the step was made for.
+    pub fn latency_to(&self, view: &View) -> Latency {
+        Latency::between(&self.step.hierarchy, &self.step.view, view)
     }
 }
 

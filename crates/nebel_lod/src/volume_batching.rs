@@ -39,6 +39,7 @@ use crate::keyframe_track::{
 };
 use crate::octree::LodCriterion;
 use crate::octree::keyframe::REFINEMENT_SPAN;
+use crate::octree::refresh::Latency;
 use crate::{
     BatchLighting, BatchSettings, BuiltRefinementStep, CellOrder, Cells, FrameInputs, View,
     VolumeBatchError, VolumeBatcher, VolumeSource,
@@ -150,6 +151,9 @@ pub struct VolumeBatching<P: BuildPool> {
     refinement_step: Option<P::Pending<BuiltRefinementStep>>,
     /// A finished refinement waiting for the blend to reach it.
     ready_step: Option<BuiltRefinementStep>,
+    /// Twice how far the view changed while the last refinement was made:
+    /// the next culls wider by as much.
+    latency: Latency,
     /// The next keyframe pair's first batch, made ahead, in flight.
     next_pair_batch: Option<P::Pending<BuiltRefinementStep>>,
     /// The first keyframe pair's first batch, made while the volume's own
@@ -179,6 +183,7 @@ impl<P: BuildPool> Default for VolumeBatching<P> {
             returned_pair: None,
             refinement_step: None,
             ready_step: None,
+            latency: Latency::default(),
             next_pair_batch: None,
             first_pair_batch: None,
             built: None,
@@ -446,6 +451,7 @@ impl<P: BuildPool> VolumeBatching<P> {
             batcher,
             &mut self.refinement_step,
             &mut self.ready_step,
+            &mut self.latency,
             &step,
         );
         // While the next step's batch is being made, the clock waits at the
@@ -512,13 +518,15 @@ struct StepInputs<'a> {
 /// camera, the next step ahead. A finished one (`ready`) is taken when it is
 /// for this frame's inputs, also when the camera has moved on since it was
 /// started (it is newer than the drawn batch; the next starts from the
-/// current view), or, made ahead, once the blend reaches it. The other kinds
-/// rebuild at once.
+/// current view), or, made ahead, once the blend reaches it. A step culls
+/// wider by `latency`, twice how far the view changed while the last one
+/// was made. The other kinds rebuild at once.
 fn step_batch<P: BuildPool>(
     pool: P,
     batcher: &mut VolumeBatcher,
     in_flight: &mut Option<P::Pending<BuiltRefinementStep>>,
     ready: &mut Option<BuiltRefinementStep>,
+    latency: &mut Latency,
     step: &StepInputs,
 ) -> Result<bool, VolumeBatchError> {
     let StepInputs { view, inputs, next } = *step;
@@ -529,6 +537,11 @@ fn step_batch<P: BuildPool>(
         }
     };
     if let Some(built) = in_flight.as_mut().and_then(|build| pool.poll(build)) {
+        let change = built.latency_to(view);
+        *latency = Latency {
+            distance: 2.0 * change.distance,
+            angle: 2.0 * change.angle,
+        };
         *in_flight = None;
         *ready = Some(built);
     }
@@ -550,6 +563,7 @@ fn step_batch<P: BuildPool>(
                 *ready = None;
             }
             if in_flight.is_none() && ready.is_none() {
+                let refinement = refinement.with_latency(*latency);
                 let mut build = pool.spawn(BuildKind::Refinement, move || refinement.build());
                 // Done at once when the pool waits.
                 match pool.poll(&mut build) {
@@ -603,7 +617,7 @@ mod tests {
     use nebel_core::transfer::TransferPreset;
 
     use super::*;
-    use crate::LocalBuilds::{Blocking, Deferred};
+    use crate::LocalBuilds::{self, Blocking, Deferred};
     use crate::OctreeSettings;
     use crate::octree::CellScalars;
 
@@ -739,6 +753,44 @@ mod tests {
         assert!(landed.changed);
         assert_eq!(*landed.cells, *fresh(&grid, settings(None), eyes[2]));
         assert!(!update(&mut batching, Blocking, eyes[2]).unwrap().changed);
+    }
+
+    /// A refinement drawn a frame late, while the camera turned, makes the
+    /// next one cull wider by twice the turn, so that a camera turning at
+    /// that rate stays inside what the batch holds until the next lands.
+    #[test]
+    fn a_refinement_drawn_while_the_camera_turned_culls_wider_next() {
+        let grid = grid();
+        let eye = DVec3::new(4.0, 4.0, -14.0);
+        let turned = |degrees: f64| {
+            let forward = glam::DQuat::from_rotation_y(degrees.to_radians()) * DVec3::Z;
+            let clip_from_world = glam::DMat4::perspective_infinite_reverse_rh(0.8, 4.0 / 3.0, 0.1)
+                * glam::DMat4::look_to_rh(eye, forward, DVec3::Y);
+            view(eye).with_projection(clip_from_world)
+        };
+        let transfer = TransferFunction::preset(TransferPreset::CloudLight);
+        let criterion = LodCriterion::distance(8.0);
+        let frame = |batching: &mut VolumeBatching<LocalBuilds>, pool, degrees| {
+            let view = turned(degrees);
+            let drawn = batching.update(pool, Some(&view), &transfer, criterion);
+            drawn.unwrap().changed
+        };
+        let mut batching = VolumeBatching::default();
+        batching.build(Blocking, request(0.0, &grid, settings(None)));
+        assert!(frame(&mut batching, Blocking, 0.0));
+        // Made for 10°, drawn at 20°: the next, for 20°, culls 20° wider.
+        assert!(!frame(&mut batching, Deferred, 10.0));
+        assert!(frame(&mut batching, Blocking, 20.0));
+        assert!(
+            !frame(&mut batching, Blocking, 35.0),
+            "inside the wider culling"
+        );
+        assert!(frame(&mut batching, Blocking, 65.0), "beyond it");
+        // Without the latency, a turn of 15° refines again.
+        let mut still = VolumeBatching::default();
+        still.build(Blocking, request(0.0, &grid, settings(None)));
+        assert!(frame(&mut still, Blocking, 20.0));
+        assert!(frame(&mut still, Blocking, 35.0));
     }
 
     /// A lit grid whose sun moves is drawn from keyframes, blended; two

@@ -231,7 +231,10 @@ fn octree_batch(
     };
     let settings = RefinementSettings::new(LodCriterion::distance(ACCURACY));
     // Culled, as the batcher culls, for the views the batch serves.
-    let view = &refresh::culling_view(&hierarchy, view);
+    let view = &View {
+        frustum: refresh::culling(&hierarchy, view, refresh::Latency::default()),
+        ..view.clone()
+    };
     let refinement = refine(&hierarchy, view, &opacity, &settings).unwrap();
     lod_batch_with(&hierarchy, &refinement, view, scalars).unwrap()
 }

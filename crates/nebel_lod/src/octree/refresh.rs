@@ -6,8 +6,10 @@
 //! A refinement culls with the camera's side planes widened as
 //! [`Frustum::widened`] widens them: turned out by [`REFRESH_ANGLE`] and
 //! pushed out by as far as a move of [`REFRESH_DISTANCE`] voxels reaches in
-//! the world. Its batch serves every later view of the same volume, criterion
-//! and transfer function while
+//! the world, each plus a [`Latency`] when the batch is drawn later than its
+//! view (made on a worker: twice how far the view changed while the last one
+//! was made). Its batch serves every later view of the same volume,
+//! criterion and transfer function while
 //!
 //! - the eye is within [`REFRESH_DISTANCE`] voxels (index units of the grid)
 //!   of the eye it was refined for;
@@ -23,7 +25,7 @@
 //! slightly different distance: the octree tests bound both together against
 //! a batch refined for the new eye.
 
-use glam::{DAffine3, DVec3};
+use glam::DAffine3;
 
 use super::VolumeHierarchy;
 use crate::frustum::Frustum;
@@ -39,23 +41,69 @@ pub const REFRESH_DISTANCE: f64 = 0.5;
 /// refined again.
 pub const REFRESH_ANGLE: f64 = 3.0 * std::f64::consts::PI / 180.0;
 
-/// `view` with the frustum a refinement for it culls with (module docs).
-pub fn culling_view(hierarchy: &VolumeHierarchy, view: &View) -> View {
-    let culling = view.frustum.as_ref().and_then(|frustum| {
-        let (world_from_index, _) = maps(hierarchy, view)?;
-        widened(frustum, view.eye, &world_from_index)
-    });
-    View {
-        frustum: culling.or_else(|| view.frustum.clone()),
-        ..view.clone()
+/// How much more a refinement's culling allows for the view's change until
+/// its batch is drawn, as when it is made on a worker (module docs): the
+/// eye's move in voxels and the camera's turn in radians, besides the
+/// thresholds.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Latency {
+    /// The eye's move, voxels (index units).
+    pub distance: f64,
+    /// The camera's turn, radians.
+    pub angle: f64,
+}
+
+impl Latency {
+    /// How far the view changed from `from` to `to` for `hierarchy`: the
+    /// eye's move in index units, and the largest angle any plane of the
+    /// frustum turned (0 without both frusta). Zero for a singular placement
+    /// or a non-finite eye.
+    pub fn between(hierarchy: &VolumeHierarchy, from: &View, to: &View) -> Self {
+        let Some((_, index_from_world)) = maps(hierarchy, to) else {
+            return Self::default();
+        };
+        let distance = index_from_world
+            .transform_point3(from.eye)
+            .distance(index_from_world.transform_point3(to.eye));
+        let angle = match (&from.frustum, &to.frustum) {
+            (Some(a), Some(b)) if a.planes().len() == b.planes().len() => a
+                .planes()
+                .iter()
+                .zip(b.planes())
+                .map(|(a, b)| a.truncate().angle_between(b.truncate()))
+                .fold(0.0, f64::max),
+            _ => 0.0,
+        };
+        let finite = |x: f64| if x.is_finite() { x } else { 0.0 };
+        Self {
+            distance: finite(distance),
+            angle: finite(angle),
+        }
     }
 }
 
-/// Whether a batch refined for `refined` under `criterion` serves `view`
-/// (module docs).
+/// The frustum a refinement for `view` culls with (module docs): widened by
+/// the thresholds and `latency`, or the view's own for a camera that cannot
+/// be widened.
+pub fn culling(hierarchy: &VolumeHierarchy, view: &View, latency: Latency) -> Option<Frustum> {
+    let widened = view.frustum.as_ref().and_then(|frustum| {
+        let (world_from_index, _) = maps(hierarchy, view)?;
+        let m = world_from_index.matrix3;
+        let norm =
+            (m.x_axis.length_squared() + m.y_axis.length_squared() + m.z_axis.length_squared())
+                .sqrt();
+        let distance = (REFRESH_DISTANCE + latency.distance) * norm;
+        frustum.widened(view.eye, distance, REFRESH_ANGLE + latency.angle)
+    });
+    widened.or_else(|| view.frustum.clone())
+}
+
+/// Whether a batch refined for `refined` under `criterion`, culled with
+/// `culling` ([`culling`]), serves `view` (module docs).
 pub(crate) fn serves(
     hierarchy: &VolumeHierarchy,
     refined: &View,
+    culling: Option<&Frustum>,
     view: &View,
     criterion: LodCriterion,
 ) -> bool {
@@ -67,7 +115,7 @@ pub(crate) fn serves(
     {
         return false;
     }
-    let Some((world_from_index, index_from_world)) = maps(hierarchy, view) else {
+    let Some((_, index_from_world)) = maps(hierarchy, view) else {
         return false;
     };
     let moved = index_from_world
@@ -79,11 +127,10 @@ pub(crate) fn serves(
     }
     match (&refined.frustum, &view.frustum) {
         (None, None) => true,
-        (Some(was), Some(is)) => match widened(was, refined.eye, &world_from_index) {
-            Some(culling) => same_shape(was, is) && culling.holds_view(is, view.eye),
-            None => was == is,
-        },
-        _ => false,
+        (Some(was), Some(is)) if culling != Some(was) => {
+            culling.is_some_and(|culling| same_shape(was, is) && culling.holds_view(is, view.eye))
+        }
+        (was, is) => was == is,
     }
 }
 
@@ -94,16 +141,6 @@ fn maps(hierarchy: &VolumeHierarchy, view: &View) -> Option<(DAffine3, DAffine3)
         hierarchy.spacing(),
         view.world_from_local,
     )
-}
-
-/// `frustum` of a camera at `eye` widened for the thresholds: a move of
-/// [`REFRESH_DISTANCE`] index units reaches at most that times the map's
-/// Frobenius norm in the world.
-fn widened(frustum: &Frustum, eye: DVec3, world_from_index: &DAffine3) -> Option<Frustum> {
-    let m = world_from_index.matrix3;
-    let norm =
-        (m.x_axis.length_squared() + m.y_axis.length_squared() + m.z_axis.length_squared()).sqrt();
-    frustum.widened(eye, REFRESH_DISTANCE * norm, REFRESH_ANGLE)
 }
 
 /// Whether two frusta have the same angles between their planes (the same
