@@ -88,6 +88,16 @@ fn frustum(eye: DVec3, target: DVec3) -> Frustum {
         .expect("a valid projection")
 }
 
+/// A rough 33 × 17 × 33 field of `seed`, its source and octree settings.
+fn rough_octree(seed: u64) -> (DensityGrid, VolumeSource, BatchSettings) {
+    let grid = field([33, 17, 33], seed);
+    let settings = BatchSettings {
+        octree: Some(OctreeSettings::default()),
+        ..BatchSettings::default()
+    };
+    (grid.clone(), VolumeSource::Grid(Arc::new(grid)), settings)
+}
+
 /// Uniform numbers in [0, 1) from `seed` (xorshift).
 fn uniform(seed: u64) -> impl FnMut() -> f64 {
     let mut state = seed;
@@ -939,11 +949,6 @@ fn a_refinement_step_builds_detached_what_update_builds() {
     assert!(single.refinement_step(&moved, &at(0.0)).is_some());
 }
 
-/// Refined on a worker, an octree batch is drawn a frame or two after the eye
-/// it was refined and ordered for. Rays from the new eye meet cells out of
-/// order only where the eye crossed the plane of a face between them, near
-/// the eye, where the cells are small and thin: the image changes by far
-/// less than an 8-bit step.
 /// A batch serves the camera until the eye moved half a voxel
 /// (`refresh::REFRESH_DISTANCE`): seen from there, against a batch refined
 /// for that eye, it composites some rays out of order and carries the morph
@@ -951,12 +956,7 @@ fn a_refinement_step_builds_detached_what_update_builds() {
 /// than half an 8-bit step, for the distance and the screen-error criterion.
 #[test]
 fn an_octree_batch_kept_for_half_a_voxel_costs_little_of_the_image() {
-    let grid = field([33, 17, 33], 11);
-    let source = VolumeSource::Grid(Arc::new(grid.clone()));
-    let settings = BatchSettings {
-        octree: Some(OctreeSettings::default()),
-        ..BatchSettings::default()
-    };
+    let (grid, source, settings) = rough_octree(11);
     let transfer = cloud();
     let at = |u: DVec3| world_from_local().transform_point3(grid.origin() + u * grid.spacing());
     let mut random = uniform(0x0c7e_u64);
@@ -1022,14 +1022,14 @@ fn an_octree_batch_kept_for_half_a_voxel_costs_little_of_the_image() {
     }
 }
 
+/// Refined on a worker, an octree batch is drawn a frame or two after the eye
+/// it was refined and ordered for. Rays from the new eye meet cells out of
+/// order only where the eye crossed the plane of a face between them, near
+/// the eye, where the cells are small and thin: the image changes by far
+/// less than an 8-bit step.
 #[test]
 fn an_octree_order_a_frame_or_two_old_costs_little_of_the_image() {
-    let grid = field([33, 17, 33], 7);
-    let source = VolumeSource::Grid(Arc::new(grid.clone()));
-    let settings = BatchSettings {
-        octree: Some(OctreeSettings::default()),
-        ..BatchSettings::default()
-    };
+    let (grid, source, settings) = rough_octree(7);
     let transfer = cloud();
     let at = |u: DVec3| world_from_local().transform_point3(grid.origin() + u * grid.spacing());
     let mut random = uniform(0x5eed_u64);
