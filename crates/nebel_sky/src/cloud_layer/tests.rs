@@ -7,9 +7,9 @@ use std::sync::Arc;
 
 use bevy::prelude::*;
 use nebel_core::optics::OpticalMode;
-use nebel_render::{CellBatch, HeavyBuilds};
 use nebel_render::GrayscaleMap;
 use nebel_render::headless::{headless_app, spawn_computed_camera};
+use nebel_render::{CellBatch, HeavyBuilds};
 
 use super::{CloudLayer, CloudLayerPlugin, CloudLayerSource, CloudLayerStats, CloudLayerStatus};
 
