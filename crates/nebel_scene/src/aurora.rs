@@ -27,18 +27,19 @@
 
 use std::path::Path;
 
-use glam::{DAffine3, DVec2, DVec3};
+use glam::{DVec2, DVec3};
 use serde::{Deserialize, Serialize};
 
 use nebel_core::field::{AuroraCurtains, HeightField};
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
-use nebel_lod::{AuroraShape, CellOrder, GpuCell, LayerView, LodSettings, TerrainMap, TerrainMesh};
+use nebel_lod::{AuroraShape, CellOrder, TerrainMap};
 
+use super::sky_layer::{LayerDrawing, layer_reference};
 use super::{
-    BuiltVolume, InvalidField, SceneField, TransferDescription, finite, layer_side, non_negative,
-    positive, shape_error,
+    BuiltVolume, InvalidField, TransferDescription, finite, layer_side, non_negative, positive,
+    shape_error,
 };
 
 /// An aurora over the scene.
@@ -243,30 +244,15 @@ impl AuroraDescription {
         let layer = shape
             .layer(side, &strength, DEFAULT_MIN_RESOLUTION, 1.0)
             .map_err(|error| InvalidField::new("map", error.to_string()))?;
-        let profile = AuroraShape::profile();
-        let view = LayerView {
-            world_from_field: DAffine3::from_translation(DVec3::from(self.center.map(f64::from))),
-            eye,
-            frustum: None,
-            lod: LodSettings {
-                accuracy: self.accuracy,
-                ..LodSettings::default()
-            },
-            order: CellOrder::Unordered,
-            profile: &profile,
+        let drawing = LayerDrawing {
+            center: self.center,
+            accuracy: self.accuracy,
+            profile: &AuroraShape::profile(),
             scalar: shape.scalar(),
-        };
-        let mut cells = Vec::new();
-        layer
-            .cells(&view, &mut TerrainMesh::new(), &mut cells)
-            .map_err(|error| InvalidField::new("accuracy", error.to_string()))?;
-        Ok((!cells.is_empty()).then(|| BuiltVolume {
-            field: SceneField::Cells(cells.iter().map(GpuCell::to_tetrahedron).collect()),
-            transfer_function: built.transfer_function.clone(),
+            order: CellOrder::Unordered,
+            transfer_function: &built.transfer_function,
             mode: OpticalMode::Emissive,
-            lod: None,
-            lighting: None,
-            ends_where_fog_layers_begin: false,
-        }))
+        };
+        layer_reference(&layer, &drawing, eye)
     }
 }

@@ -30,21 +30,19 @@
 
 use std::path::Path;
 
-use glam::{DAffine3, DVec2, DVec3};
+use glam::{DVec2, DVec3};
 use serde::{Deserialize, Serialize};
 
 use nebel_core::field::{CloudLighting, FogNoise, HeightField, TerrainNoise};
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
-use nebel_lod::{
-    CellOrder, CloudLayerShape, GpuCell, LayerTop, LayerView, LodSettings, PrismScalar,
-    SurfaceLayer, TerrainMap, TerrainMesh,
-};
+use nebel_lod::{CellOrder, CloudLayerShape, LayerTop, PrismScalar, SurfaceLayer, TerrainMap};
 
+use super::sky_layer::{LayerDrawing, layer_reference};
 use super::{
-    BuiltVolume, InvalidField, SceneField, TransferDescription, finite, in_range, layer_side,
-    non_negative, positive, shape_error,
+    BuiltVolume, InvalidField, TransferDescription, finite, in_range, layer_side, non_negative,
+    positive, shape_error,
 };
 
 /// A cloud layer over the scene.
@@ -249,35 +247,20 @@ impl CloudLayerDescription {
         toward_sun: DVec3,
     ) -> Result<Option<BuiltVolume>, InvalidField> {
         let layer = self.layer(built)?;
-        let profile = CloudLayerShape::profile();
-        let view = LayerView {
-            world_from_field: DAffine3::from_translation(DVec3::from(self.center.map(f64::from))),
-            eye,
-            frustum: None,
-            lod: LodSettings {
-                accuracy: self.accuracy,
-                ..LodSettings::default()
-            },
-            order: CellOrder::BackToFront,
-            profile: &profile,
+        let drawing = LayerDrawing {
+            center: self.center,
+            accuracy: self.accuracy,
+            profile: &CloudLayerShape::profile(),
             scalar: PrismScalar::Sunlit {
                 extinction: self.shadow_extinction,
                 sun_height: toward_sun.normalize_or(DVec3::Y).y as f32,
                 ambient: self.ambient,
                 diffuse: self.diffuse,
             },
-        };
-        let mut cells = Vec::new();
-        layer
-            .cells(&view, &mut TerrainMesh::new(), &mut cells)
-            .map_err(|error| InvalidField::new("accuracy", error.to_string()))?;
-        Ok((!cells.is_empty()).then(|| BuiltVolume {
-            field: SceneField::Cells(cells.iter().map(GpuCell::to_tetrahedron).collect()),
-            transfer_function: built.transfer_function.clone(),
+            order: CellOrder::BackToFront,
+            transfer_function: &built.transfer_function,
             mode: OpticalMode::Sorted,
-            lod: None,
-            lighting: None,
-            ends_where_fog_layers_begin: false,
-        }))
+        };
+        layer_reference(&layer, &drawing, eye)
     }
 }

@@ -22,6 +22,7 @@ mod fog_layers;
 mod ground_fog;
 pub mod opaque;
 pub mod reference;
+mod sky_layer;
 mod terrain;
 mod volume;
 
