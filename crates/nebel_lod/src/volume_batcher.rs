@@ -280,7 +280,8 @@ struct BuiltFor {
     /// The view's [`order_key`] for a grid at full resolution back to front,
     /// `None` for the other kinds.
     order_key: Option<[i64; 6]>,
-    /// The frustum the octree culled with ([`refresh::culling`]).
+    /// The frustum the octree culled with ([`refresh::culling`]); `None`
+    /// for the other kinds, which cull with the view's own.
     culling: Option<Frustum>,
 }
 
@@ -427,7 +428,7 @@ impl VolumeBatcher {
         }
         let culling = match &self.kind {
             Kind::Octree { hierarchy, .. } => refresh::culling(hierarchy, view, Latency::default()),
-            _ => view.frustum.clone(),
+            _ => None,
         };
         self.batch = Arc::new(self.build(view, culling.as_ref(), inputs)?);
         self.built = Some(BuiltFor {
@@ -658,7 +659,7 @@ impl VolumeBatcher {
     }
 
     /// The batch for `view` and `inputs`, built from scratch; the octree
-    /// culls with `culling`.
+    /// culls with `culling`, the other kinds with the view's frustum.
     fn build(
         &self,
         view: &View,
