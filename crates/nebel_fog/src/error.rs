@@ -7,6 +7,7 @@ use bevy::prelude::*;
 use nebel_core::field::FieldError;
 use nebel_core::transfer::TransferError;
 use nebel_lod::{PrismError, TerrainError};
+use nebel_render::InvalidSetting;
 use thiserror::Error;
 
 /// Why a [`GroundFog`](crate::GroundFog) draws nothing. Every message names
@@ -26,15 +27,8 @@ pub enum GroundFogError {
         error: Arc<AssetLoadError>,
     },
     /// A setting is out of its range.
-    #[error("{setting} = {value} is invalid: it must be {requirement}")]
-    InvalidSetting {
-        /// The setting's name.
-        setting: &'static str,
-        /// The value given.
-        value: f32,
-        /// What it must be.
-        requirement: &'static str,
-    },
+    #[error(transparent)]
+    InvalidSetting(#[from] InvalidSetting),
     /// The noise or valley generator refused its settings.
     #[error(transparent)]
     Field(Arc<FieldError>),

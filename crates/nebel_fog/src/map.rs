@@ -33,7 +33,7 @@ use nebel_core::optics::OpticalMode;
 use nebel_lod::TerrainHierarchy;
 use nebel_lod::quadtree::TerrainMap;
 use nebel_render::GrayscaleMap;
-use nebel_render::{EffectiveQuality, HeavyBuild, HeavyBuilds};
+use nebel_render::{EffectiveQuality, HeavyBuild, HeavyBuilds, InvalidSetting};
 use nebel_terrain::{MappedQuadtree, TerrainLod, TerrainMapLod};
 
 use crate::error::GroundFogError;
@@ -94,13 +94,13 @@ fn build_map(
     roughness_weight: f32,
 ) -> Result<BuiltMap, GroundFogError> {
     let started = Instant::now();
-    if !(roughness_weight.is_finite() && roughness_weight >= 0.0) {
-        return Err(GroundFogError::InvalidSetting {
-            setting: "roughness_weight",
-            value: roughness_weight,
-            requirement: "finite and ≥ 0",
-        });
-    }
+    let valid = roughness_weight.is_finite() && roughness_weight >= 0.0;
+    InvalidSetting::check(
+        valid,
+        "roughness_weight",
+        roughness_weight,
+        "finite and ≥ 0",
+    )?;
     let side = base.size();
     let spacing = base.field().spacing().x;
     let map = match input {
@@ -109,13 +109,8 @@ fn build_map(
             values,
             scale,
         } => {
-            if !(scale.is_finite() && scale >= 0.0) {
-                return Err(GroundFogError::InvalidSetting {
-                    setting: "thickness.Map.scale",
-                    value: scale,
-                    requirement: "finite and ≥ 0",
-                });
-            }
+            let valid = scale.is_finite() && scale >= 0.0;
+            InvalidSetting::check(valid, "thickness.Map.scale", scale, "finite and ≥ 0")?;
             let metres: Vec<f32> = values.iter().map(|v| v * scale).collect();
             TerrainMap::resample(&metres, dims, side)?
         }
@@ -203,17 +198,17 @@ pub(crate) fn build_ground_fog_maps(
         // A density out of range is a failure; fixed, the fog is what its
         // map makes it again.
         let density_valid = fog.density.is_finite() && fog.density >= 0.0;
-        let density_failed = matches!(&*status, GroundFogStatus::Failed(GroundFogError::InvalidSetting { setting, .. }) if *setting == "density");
+        let density_failed = matches!(&*status, GroundFogStatus::Failed(GroundFogError::InvalidSetting(invalid)) if invalid.setting == "density");
         if !density_valid {
             GroundFogStatus::fail(
                 status.reborrow(),
                 "ground fog",
                 entity,
-                GroundFogError::InvalidSetting {
+                GroundFogError::InvalidSetting(InvalidSetting {
                     setting: "density",
                     value: fog.density,
                     requirement: "finite and ≥ 0",
-                },
+                }),
             );
         } else if density_failed {
             *status = if state.key.is_some() && state.build.is_none() {

@@ -1,5 +1,6 @@
 //! What every effect plugin shares: the status of an effect's entity, its
-//! diagnostics' registration, and its failures logged once.
+//! diagnostics' registration, its failures logged once, and the error of a
+//! setting out of its range.
 //!
 //! Each effect names its status after itself, e.g. `pub type AuroraStatus =
 //! EffectStatus<SkyLayerError>`, so a game reads `AuroraStatus::Failed(error)`
@@ -11,6 +12,39 @@ use std::ops::DerefMut;
 use bevy::diagnostic::{Diagnostic, DiagnosticPath, RegisterDiagnostic};
 use bevy::prelude::*;
 use bevy::reflect::{FromReflect, GetTypeRegistration, Typed};
+use thiserror::Error;
+
+/// A setting out of its range: its name, the value given and what it must
+/// be. Each effect's error carries it.
+#[derive(Clone, Copy, Debug, PartialEq, Error)]
+#[error("{setting} = {value} is invalid: it must be {requirement}")]
+pub struct InvalidSetting {
+    /// The setting's name.
+    pub setting: &'static str,
+    /// The value given.
+    pub value: f32,
+    /// What it must be.
+    pub requirement: &'static str,
+}
+
+impl InvalidSetting {
+    /// `Err` of the setting unless `ok`.
+    pub fn check(
+        ok: bool,
+        setting: &'static str,
+        value: f32,
+        requirement: &'static str,
+    ) -> Result<(), Self> {
+        if ok {
+            return Ok(());
+        }
+        Err(Self {
+            setting,
+            value,
+            requirement,
+        })
+    }
+}
 
 /// Whether an effect's entity is drawn, still waiting, or failed, and why.
 /// Read it to show a loading screen or an error.

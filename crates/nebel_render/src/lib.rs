@@ -40,7 +40,7 @@ pub use cell_projection::{
     CellResolution, CountCellFragments,
 };
 pub use diagnostics::{NebelDiagnosticsPlugin, NebelSystems, cpu_timed};
-pub use effect::{EffectStatus, register_diagnostics};
+pub use effect::{EffectStatus, InvalidSetting, register_diagnostics};
 pub use fog_layers::{FogLayersUniform, ViewFogLayers};
 pub use grayscale_map::{GrayscaleMap, GrayscaleMapError, GrayscaleMapLoader, GrayscaleMapPlugin};
 pub use quality::{AutoQuality, EffectiveQuality, NebelQuality, NebelQualityPlugin, QualityPreset};

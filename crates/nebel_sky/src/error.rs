@@ -8,6 +8,7 @@ use bevy::prelude::*;
 use nebel_core::field::FieldError;
 use nebel_core::transfer::TransferError;
 use nebel_lod::SurfaceLayerError;
+use nebel_render::InvalidSetting;
 use thiserror::Error;
 
 /// Why an [`Aurora`](crate::Aurora) or a [`CloudLayer`](crate::CloudLayer)
@@ -26,16 +27,12 @@ pub enum SkyLayerError {
         error: Arc<AssetLoadError>,
     },
     /// A setting is out of its range.
-    #[error("{layer} {setting} = {value} is invalid: it must be {requirement}")]
+    #[error("{layer} {setting}")]
     InvalidSetting {
         /// The layer: `aurora` or `cloud layer`.
         layer: &'static str,
-        /// The setting's name.
-        setting: &'static str,
-        /// The value given.
-        value: f32,
-        /// What it must be.
-        requirement: &'static str,
+        /// The setting.
+        setting: InvalidSetting,
     },
     /// The aurora's curtains or the cloud layer's noise refused its
     /// settings.
@@ -51,7 +48,8 @@ pub enum SkyLayerError {
 }
 
 impl SkyLayerError {
-    /// `Err` of [`SkyLayerError::InvalidSetting`] unless `ok`.
+    /// `Err` of [`SkyLayerError::InvalidSetting`] of the `layer` unless
+    /// `ok` ([`InvalidSetting::check`]).
     pub(crate) fn check(
         ok: bool,
         layer: &'static str,
@@ -59,15 +57,8 @@ impl SkyLayerError {
         value: f32,
         requirement: &'static str,
     ) -> Result<(), Self> {
-        if ok {
-            return Ok(());
-        }
-        Err(Self::InvalidSetting {
-            layer,
-            setting,
-            value,
-            requirement,
-        })
+        InvalidSetting::check(ok, setting, value, requirement)
+            .map_err(|setting| Self::InvalidSetting { layer, setting })
     }
 }
 

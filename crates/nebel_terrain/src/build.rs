@@ -28,7 +28,7 @@ use nebel_core::field::{HeightField, TerrainNoise};
 use nebel_lod::quadtree::TerrainRefiner;
 use nebel_lod::quadtree::{MAX_TERRAIN_SIDE, pad_to_power_of_two_plus_one};
 use nebel_lod::{TerrainHierarchy, TerrainMesh};
-use nebel_render::{GrayscaleMap, HeavyBuild, HeavyBuilds};
+use nebel_render::{GrayscaleMap, HeavyBuild, HeavyBuilds, InvalidSetting};
 
 use crate::error::TerrainBuildError;
 use crate::terrain::{Terrain, TerrainLodStats, TerrainPlugin, TerrainSource, TerrainStatus};
@@ -121,12 +121,10 @@ pub(crate) fn build_quadtree(input: BuildInput) -> Result<BuiltQuadtree, Terrain
         vertical_scale,
         min_accuracy,
     } = input;
-    if !(spacing.is_finite() && spacing > 0.0) {
-        return Err(TerrainBuildError::InvalidSpacing(spacing));
-    }
-    if !vertical_scale.is_finite() {
-        return Err(TerrainBuildError::InvalidVerticalScale(vertical_scale));
-    }
+    let valid = spacing.is_finite() && spacing > 0.0;
+    InvalidSetting::check(valid, "spacing", spacing, "finite and positive")?;
+    let valid = vertical_scale.is_finite();
+    InvalidSetting::check(valid, "vertical_scale", vertical_scale, "finite")?;
     let (dims, values) = match heights {
         UnitHeights::Asset { dims, values } => (dims, values),
         UnitHeights::Procedural { size, noise } => {

@@ -7,6 +7,7 @@ use bevy::prelude::*;
 use nebel_core::field::FieldError;
 use nebel_lod::TerrainError;
 use nebel_lod::quadtree::MAX_TERRAIN_SIDE;
+use nebel_render::InvalidSetting;
 use thiserror::Error;
 
 /// Why a [`Terrain`](crate::Terrain) has no mesh. Every message names the
@@ -28,12 +29,10 @@ pub enum TerrainBuildError {
         /// The points per side asked for.
         size: u32,
     },
-    /// `spacing` is not finite and positive.
-    #[error("spacing = {0} is invalid: it must be finite and positive")]
-    InvalidSpacing(f32),
-    /// `vertical_scale` is not finite.
-    #[error("vertical_scale = {0} is invalid: it must be finite")]
-    InvalidVerticalScale(f32),
+    /// `spacing` is not finite and positive, or `vertical_scale` not
+    /// finite.
+    #[error(transparent)]
+    InvalidSetting(#[from] InvalidSetting),
     /// The height map has fewer than 2 points along a side.
     #[error("the height map has {nx} × {nz} points; a terrain needs at least 2 × 2")]
     TooSmall {
