@@ -61,9 +61,4 @@ impl From<TransferError> for GroundFogError {
     }
 }
 
-/// Two failures are the same when they say the same.
-impl PartialEq for GroundFogError {
-    fn eq(&self, other: &Self) -> bool {
-        self.to_string() == other.to_string()
-    }
-}
+nebel_render::eq_by_message!(GroundFogError);

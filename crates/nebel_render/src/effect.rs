@@ -14,6 +14,21 @@ use bevy::prelude::*;
 use bevy::reflect::{FromReflect, GetTypeRegistration, Typed};
 use thiserror::Error;
 
+/// Implements `PartialEq` for an effect's error by its message: two failures
+/// are the same when they say the same (their sources are `Arc`s of errors
+/// that have no `PartialEq`). [`EffectStatus::fail`] logs a failure only
+/// when it differs from the last.
+#[macro_export]
+macro_rules! eq_by_message {
+    ($error:ty) => {
+        impl PartialEq for $error {
+            fn eq(&self, other: &Self) -> bool {
+                self.to_string() == other.to_string()
+            }
+        }
+    };
+}
+
 /// A setting out of its range: its name, the value given and what it must
 /// be. Each effect's error carries it.
 #[derive(Clone, Copy, Debug, PartialEq, Error)]

@@ -80,9 +80,4 @@ impl From<TransferError> for SkyLayerError {
     }
 }
 
-/// Two failures are the same when they say the same.
-impl PartialEq for SkyLayerError {
-    fn eq(&self, other: &Self) -> bool {
-        self.to_string() == other.to_string()
-    }
-}
+nebel_render::eq_by_message!(SkyLayerError);

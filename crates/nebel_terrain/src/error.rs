@@ -97,9 +97,4 @@ impl From<TerrainError> for TerrainBuildError {
     }
 }
 
-/// Two failures are the same when they say the same.
-impl PartialEq for TerrainBuildError {
-    fn eq(&self, other: &Self) -> bool {
-        self.to_string() == other.to_string()
-    }
-}
+nebel_render::eq_by_message!(TerrainBuildError);

@@ -40,9 +40,4 @@ impl From<FieldError> for VolumeError {
     }
 }
 
-/// Two failures are the same when they say the same.
-impl PartialEq for VolumeError {
-    fn eq(&self, other: &Self) -> bool {
-        self.to_string() == other.to_string()
-    }
-}
+nebel_render::eq_by_message!(VolumeError);
