@@ -126,7 +126,10 @@ pub(crate) fn serves(
         return false;
     }
     match (&refined.frustum, &view.frustum) {
-        (None, None) => true,
+        // No frustum to widen (a projection that has none): the screen
+        // error, which measures through the projection, refines for any
+        // other.
+        (None, None) => !measures_pixels || refined.clip_from_world == view.clip_from_world,
         (Some(was), Some(is)) if culling != Some(was) => {
             culling.is_some_and(|culling| same_shape(was, is) && culling.holds_view(is, view.eye))
         }
@@ -155,4 +158,44 @@ fn same_shape(a: &Frustum, b: &Frustum) -> bool {
                 (dot(a) - dot(b)).abs() <= 1e-6
             })
         })
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::{DMat4, DVec3, UVec2};
+    use nebel_core::field::DensityGrid;
+
+    use super::*;
+
+    /// A view from `eye` through `clip_from_world` without a frustum, as a
+    /// projection that has none leaves it.
+    fn unculled(eye: DVec3, clip_from_world: DMat4) -> View {
+        View {
+            clip_from_world: Some(clip_from_world),
+            ..View::new(DAffine3::IDENTITY, eye, UVec2::new(64, 48))
+        }
+    }
+
+    #[test]
+    fn without_a_frustum_the_screen_error_refines_for_another_projection() {
+        let grid = DensityGrid::new([5; 3], DVec3::ONE, DVec3::ZERO, vec![0.5; 125]).unwrap();
+        let hierarchy = VolumeHierarchy::new(&grid, 4.0).unwrap();
+        let eye = DVec3::new(2.0, 2.0, -6.0);
+        let looking = |target: DVec3| {
+            DMat4::perspective_infinite_reverse_rh(1.0, 4.0 / 3.0, 0.1)
+                * DMat4::look_at_rh(eye, target, DVec3::Y)
+        };
+        let refined = unculled(eye, looking(DVec3::splat(2.0)));
+        let turned = unculled(eye, looking(DVec3::new(2.5, 2.0, 2.0)));
+        let screen = LodCriterion::default();
+        let distance = LodCriterion::distance(8.0);
+        assert!(serves(&hierarchy, &refined, None, &refined, screen));
+        assert!(!serves(&hierarchy, &refined, None, &turned, screen));
+        assert!(serves(&hierarchy, &refined, None, &turned, distance));
+        let moved = View {
+            eye: eye + DVec3::X,
+            ..refined.clone()
+        };
+        assert!(!serves(&hierarchy, &refined, None, &moved, distance));
+    }
 }
