@@ -28,11 +28,10 @@
 //! Run: `cargo bench -p nebel_lod --bench octree`.
 
 use std::hint::black_box;
-
-use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use std::sync::Arc;
 use std::time::Instant;
 
+use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use glam::{DAffine3, DMat4, DQuat, DVec3, UVec2};
 use nebel_core::field::{DensityGrid, ProceduralNoise};
 use nebel_core::transfer::{TransferFunction, TransferPreset};

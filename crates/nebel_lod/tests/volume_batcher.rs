@@ -98,6 +98,18 @@ fn rough_octree(seed: u64) -> (DensityGrid, VolumeSource, BatchSettings) {
     (grid.clone(), VolumeSource::Grid(Arc::new(grid)), settings)
 }
 
+/// An eye inside the rough octree's grid or just outside it (index
+/// coordinates) and a direction to move it in.
+fn eye_and_direction(random: &mut impl FnMut() -> f64) -> (DVec3, DVec3) {
+    let u = DVec3::new(
+        random() * 40.0 - 4.0,
+        random() * 20.0 - 2.0,
+        random() * 40.0 - 4.0,
+    );
+    let direction = DVec3::new(random() - 0.5, random() - 0.5, random() - 0.5).normalize();
+    (u, direction)
+}
+
 /// Uniform numbers in [0, 1) from `seed` (xorshift).
 fn uniform(seed: u64) -> impl FnMut() -> f64 {
     let mut state = seed;
@@ -965,13 +977,7 @@ fn an_octree_batch_kept_for_half_a_voxel_costs_little_of_the_image() {
         for step in [0.5 * refresh::REFRESH_DISTANCE, refresh::REFRESH_DISTANCE] {
             let mut cost = rays::OrderCost::default();
             for _ in 0..4 {
-                let u = DVec3::new(
-                    random() * 40.0 - 4.0,
-                    random() * 20.0 - 2.0,
-                    random() * 40.0 - 4.0,
-                );
-                let direction =
-                    DVec3::new(random() - 0.5, random() - 0.5, random() - 0.5).normalize();
+                let (u, direction) = eye_and_direction(&mut random);
                 let moved = u + direction * step;
                 // A camera looking at the grid's centre, for the screen error.
                 let seen_from = |u: DVec3| {
@@ -1037,12 +1043,7 @@ fn an_octree_order_a_frame_or_two_old_costs_little_of_the_image() {
     for _ in 0..4 {
         // An eye inside the grid or just outside it, moved one or two
         // voxels (a fly-through's frame or two at 60 frames a second).
-        let u = DVec3::new(
-            random() * 40.0 - 4.0,
-            random() * 20.0 - 2.0,
-            random() * 40.0 - 4.0,
-        );
-        let direction = DVec3::new(random() - 0.5, random() - 0.5, random() - 0.5).normalize();
+        let (u, direction) = eye_and_direction(&mut random);
         let moved = u + direction * (1.0 + random());
         let mut batcher = VolumeBatcher::new(source.clone(), &settings).unwrap();
         batcher.update(&view(at(u)), &inputs(&transfer)).unwrap();
