@@ -5,8 +5,12 @@
 //! emission-absorption model, any order for the emissive and MIP modes) and
 //! their world bounds, by which whole batches are ordered against each other.
 
+use std::sync::Arc;
+
 use glam::{DVec3, Vec3};
 use nebel_core::cell::Tetrahedron;
+
+use crate::cell_grid::CellGrid;
 
 /// One tetrahedron as the GPU reads it: four vertices, each
 /// `[x, y, z, s]` with the world position in world units (f32, relative to the
@@ -80,6 +84,13 @@ impl GpuCell {
 /// vertex moves continuously from one end of the span to the other. Where a
 /// batch for the next span takes over at that end, it starts from the same
 /// field ([`crate::octree::emit`]).
+///
+/// # A grid drawn whole
+///
+/// A batch may instead be a whole density grid ([`Cells::grid`]): its Kuhn
+/// tetrahedra, ray cast by the renderer front to back without being
+/// emitted ([`crate::cell_grid`]). It has no tetrahedra, modulators or next
+/// keyframe then.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Cells {
     /// The cells in draw order.
@@ -105,6 +116,9 @@ pub struct Cells {
     pub bounds_min: Vec3,
     /// Maximum corner of the axis-aligned box around every vertex, world units.
     pub bounds_max: Vec3,
+    /// A grid drawn whole by ray casting instead of `tetrahedra` (see the
+    /// type docs). Default `None`.
+    pub grid: Option<Arc<CellGrid>>,
 }
 
 impl Cells {
@@ -205,18 +219,30 @@ impl Cells {
             next_scalars: Vec::new(),
             next_modulators: Vec::new(),
             blends: [0.0; 2],
+            grid: self.grid.clone(),
             ..*self
         }
     }
 
-    /// Number of cells.
+    /// The batch of a whole grid, drawn by ray casting (see the type docs).
+    pub fn from_grid(grid: CellGrid) -> Self {
+        let (bounds_min, bounds_max) = grid.bounds();
+        Self {
+            bounds_min,
+            bounds_max,
+            grid: Some(Arc::new(grid)),
+            ..Self::default()
+        }
+    }
+
+    /// Number of cells: the tetrahedra, or the grid's.
     pub fn len(&self) -> usize {
-        self.tetrahedra.len()
+        self.tetrahedra.len() + self.grid.as_ref().map_or(0, |grid| grid.cell_count())
     }
 
     /// Whether the batch has no cells.
     pub fn is_empty(&self) -> bool {
-        self.tetrahedra.is_empty()
+        self.len() == 0
     }
 }
 

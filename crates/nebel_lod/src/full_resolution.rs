@@ -138,6 +138,11 @@ impl BrickTable {
         }
     }
 
+    /// Voxels per axis of the grid the table belongs to.
+    pub fn voxels(&self) -> [usize; 3] {
+        self.voxels
+    }
+
     /// Voxels per brick edge.
     pub fn brick_size(&self) -> usize {
         self.brick_size

@@ -417,6 +417,7 @@ mod tests {
                     },
                     scalars: CellScalars::LightModulatedByDensity,
                 }),
+                ..BatchSettings::default()
             },
             interval: 2.0,
         }

@@ -8,6 +8,8 @@
 //! - [`aurora`]: the aurora's curtains as a layer between a plane and a
 //!   top raised by their strength ([`AuroraShape`], Röttger 2004 §10.4).
 //! - [`batch`]: [`GpuCell`] (the GPU layout of one tetrahedron) and [`Cells`].
+//! - [`cell_grid`]: a density grid drawn whole, by ray casting through its
+//!   voxels' Kuhn tetrahedra ([`CellGrid`]), exact like the sorted cells.
 //! - [`cloud_layer`]: a cloud layer between two surfaces, lit by the sun
 //!   through the layer above each point ([`CloudLayerShape`], Röttger 2004
 //!   §10.4).
@@ -47,6 +49,7 @@
 pub mod aurora;
 pub mod batch;
 pub mod builds;
+pub mod cell_grid;
 pub mod cloud_layer;
 pub mod frustum;
 pub mod full_resolution;
@@ -63,6 +66,7 @@ pub mod volume_batching;
 pub use aurora::AuroraShape;
 pub use batch::{Cells, GpuCell};
 pub use builds::{BuildKind, BuildPool, LocalBuilds};
+pub use cell_grid::CellGrid;
 pub use cloud_layer::CloudLayerShape;
 pub use frustum::{Frustum, FrustumError};
 pub use full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};
@@ -78,7 +82,7 @@ pub use surface_layer::{
 pub use view::View;
 pub use visibility::{CellAdjacency, sorted_batch};
 pub use volume_batcher::{
-    BatchLighting, BatchSettings, BuiltRefinementStep, FrameInputs, OctreeSettings, RefinementStep,
-    VolumeBatchError, VolumeBatcher, VolumeSource,
+    BatchLighting, BatchSettings, BuiltRefinementStep, FrameInputs, GridDrawing, OctreeSettings,
+    RefinementStep, VolumeBatchError, VolumeBatcher, VolumeSource,
 };
 pub use volume_batching::{BuildRequest, FrameBatch, LandedBuilds, VolumeBatching};

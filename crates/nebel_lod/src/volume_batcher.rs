@@ -6,7 +6,13 @@
 //! frame with the [`View`] and [`FrameInputs`] and uploads the batch when it
 //! changed. It picks one of the crate's builders:
 //!
-//! - a grid at full resolution: [`full_resolution_batch`] over a [`BrickTable`]
+//! - a grid at full resolution, by default whole ([`GridDrawing::RayCast`],
+//!   [`Cells::from_grid`]): the renderer ray casts its tetrahedra, so only a
+//!   new placement or transfer function builds it again, with its bricks'
+//!   zero-opacity test ([`CellGrid::with_occupancy`]; none visible leaves
+//!   the batch empty);
+//! - a grid at full resolution as projected cells
+//!   ([`GridDrawing::ProjectedCells`]): [`full_resolution_batch`] over a [`BrickTable`]
 //!   (Röttger 2004 §8.1); back to front it is rebuilt when its [`order_key`] or
 //!   the frustum changes, unordered not for the camera at all;
 //! - a grid through the octree C-LOD ([`BatchSettings::octree`]): zero-padded
@@ -70,6 +76,7 @@ use nebel_core::transfer::TransferFunction;
 use thiserror::Error;
 
 use crate::batch::{Cells, GpuCell};
+use crate::cell_grid::CellGrid;
 use crate::frustum::Frustum;
 use crate::full_resolution::{BatchError, BrickTable, CellOrder, full_resolution_batch, order_key};
 use crate::octree::refresh::Latency;
@@ -106,6 +113,23 @@ pub struct BatchSettings {
     pub octree: Option<OctreeSettings>,
     /// Light the cloud (Röttger and Ertl 2003 §5); needs `octree`. Default `None`.
     pub lighting: Option<BatchLighting>,
+    /// How a grid at full resolution is drawn. Default
+    /// [`GridDrawing::RayCast`].
+    pub drawing: GridDrawing,
+}
+
+/// How a grid at full resolution (without the octree) is drawn; both are
+/// exact for the grid's tetrahedra.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum GridDrawing {
+    /// The whole grid, ray cast front to back through its tetrahedra
+    /// ([`crate::cell_grid`]): no batch to rebuild when the eye moves, and
+    /// a pixel stops once it is opaque. The default.
+    #[default]
+    RayCast,
+    /// Its tetrahedra emitted in visibility order and projected
+    /// ([`crate::full_resolution`]), as Röttger 2004 §8 draws them.
+    ProjectedCells,
 }
 
 /// The view-independent settings of the octree C-LOD.
@@ -235,7 +259,14 @@ impl PartialEq for VolumeBatchError {
 /// What was built once, per kind (module docs).
 #[derive(Debug)]
 enum Kind {
-    /// A grid at full resolution.
+    /// A grid at full resolution, ray cast whole.
+    RayCastGrid {
+        /// The grid.
+        grid: Arc<DensityGrid>,
+        /// Its bricks' scalar ranges, for the zero-opacity test.
+        bricks: BrickTable,
+    },
+    /// A grid at full resolution, as projected cells.
     FullResolution {
         /// The grid.
         grid: Arc<DensityGrid>,
@@ -332,6 +363,12 @@ impl VolumeBatcher {
             VolumeSource::Cells(cells) => cells.len(),
         };
         let kind = match (source, settings.octree) {
+            (VolumeSource::Grid(grid), None) if settings.drawing == GridDrawing::RayCast => {
+                Kind::RayCastGrid {
+                    bricks: BrickTable::new(&grid, BrickTable::DEFAULT_BRICK_SIZE),
+                    grid,
+                }
+            }
             (VolumeSource::Grid(grid), None) => {
                 // The batch of a grid whose every brick is kept.
                 let voxels = grid.dims().map(|n| n - 1);
@@ -596,7 +633,7 @@ impl VolumeBatcher {
         match self.kind {
             Kind::FullResolution { order, .. } => order == CellOrder::BackToFront,
             Kind::Octree { .. } | Kind::SortedCells { .. } => true,
-            Kind::UnorderedCells { .. } => false,
+            Kind::RayCastGrid { .. } | Kind::UnorderedCells { .. } => false,
         }
     }
 
@@ -654,7 +691,7 @@ impl VolumeBatcher {
                     )
             }
             Kind::SortedCells { .. } => eye_moved,
-            Kind::UnorderedCells { .. } => false,
+            Kind::RayCastGrid { .. } | Kind::UnorderedCells { .. } => false,
         }
     }
 
@@ -667,6 +704,15 @@ impl VolumeBatcher {
         inputs: &FrameInputs,
     ) -> Result<Cells, VolumeBatchError> {
         let batch = match &self.kind {
+            Kind::RayCastGrid { grid, bricks } => {
+                let grid = CellGrid::new(grid.clone(), view.world_from_local)?
+                    .with_occupancy(bricks, inputs.transfer)?;
+                if view.viewport_is_empty() || !grid.occupied().contains(&1) {
+                    Cells::default()
+                } else {
+                    Cells::from_grid(grid)
+                }
+            }
             Kind::FullResolution {
                 grid,
                 bricks,

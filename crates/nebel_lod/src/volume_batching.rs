@@ -644,6 +644,7 @@ mod tests {
                 },
                 scalars: CellScalars::LightModulatedByDensity,
             }),
+            ..BatchSettings::default()
         }
     }
 

@@ -17,8 +17,8 @@ use nebel_lod::octree::{
 };
 use nebel_lod::{
     BatchError, BatchLighting, BatchSettings, BrickTable, CellAdjacency, CellOrder, Cells,
-    FrameInputs, Frustum, HierarchyError, OctreeSettings, View, VolumeBatchError, VolumeBatcher,
-    VolumeHierarchy, VolumeSource, full_resolution_batch, order_key, sorted_batch,
+    FrameInputs, Frustum, GridDrawing, HierarchyError, OctreeSettings, View, VolumeBatchError,
+    VolumeBatcher, VolumeHierarchy, VolumeSource, full_resolution_batch, order_key, sorted_batch,
 };
 
 /// The render target of every view here, pixels.
@@ -172,6 +172,7 @@ fn settings(order: CellOrder, octree: bool) -> BatchSettings {
         order,
         octree: octree.then(OctreeSettings::default),
         lighting: None,
+        drawing: GridDrawing::ProjectedCells,
     }
 }
 
@@ -193,6 +194,16 @@ fn lit(scalars: CellScalars) -> BatchSettings {
 fn every_kind() -> Vec<(&'static str, VolumeBatcher)> {
     let new = |source, settings| VolumeBatcher::new(source, &settings).expect("valid settings");
     vec![
+        (
+            "ray-cast grid",
+            new(
+                grid_source(),
+                BatchSettings {
+                    drawing: GridDrawing::RayCast,
+                    ..settings(CellOrder::BackToFront, false)
+                },
+            ),
+        ),
         (
             "sorted grid",
             new(grid_source(), settings(CellOrder::BackToFront, false)),
@@ -271,7 +282,8 @@ fn every_source_builds_what_its_builder_builds() {
     let unculled = view(eye);
 
     // Full resolution, back to front: culled by the frustum.
-    let mut sorted = VolumeBatcher::new(grid_source(), &BatchSettings::default()).unwrap();
+    let mut sorted =
+        VolumeBatcher::new(grid_source(), &settings(CellOrder::BackToFront, false)).unwrap();
     assert!(sorted.update(&culled, &inputs(&transfer)).unwrap());
     let expected =
         full_resolution_batch(&grid, &bricks, &culled, &transfer, CellOrder::BackToFront);
@@ -417,7 +429,8 @@ fn a_sorted_grid_is_rebuilt_when_its_order_key_or_frustum_changes() {
     let fresh = |v: &View| {
         full_resolution_batch(&grid, &bricks, v, &transfer, CellOrder::BackToFront).unwrap()
     };
-    let mut batcher = VolumeBatcher::new(grid_source(), &BatchSettings::default()).unwrap();
+    let mut batcher =
+        VolumeBatcher::new(grid_source(), &settings(CellOrder::BackToFront, false)).unwrap();
     let u = DVec3::new(3.3, 2.45, 1.7);
     let v0 = view(eye_at(u));
     assert!(batcher.update(&v0, &inputs(&transfer)).unwrap());
@@ -557,6 +570,52 @@ fn unordered_batches_ignore_the_eye_and_the_frustum() {
         };
         assert!(!batcher.update(&v0, &other_accuracy).unwrap());
         assert_eq!(batcher.batch(), &first);
+    }
+}
+
+#[test]
+fn a_ray_cast_grid_is_the_whole_grid_built_once_for_its_placement() {
+    let transfer = cloud();
+    for mode in [CellOrder::BackToFront, CellOrder::Unordered] {
+        let mut batcher = VolumeBatcher::new(
+            grid_source(),
+            &BatchSettings {
+                order: mode,
+                ..BatchSettings::default()
+            },
+        )
+        .unwrap();
+        assert!(!batcher.is_view_dependent());
+        let v0 = view(eye_at(DVec3::new(-5.0, 2.0, 1.0)));
+        assert!(batcher.update(&v0, &inputs(&transfer)).unwrap());
+        let batch = batcher.batch().clone();
+        let drawn = batch.grid.as_ref().expect("a whole grid");
+        assert!(batch.tetrahedra.is_empty());
+        assert_eq!(batch.len(), 6 * 8 * 6 * 5);
+        assert_eq!(drawn.grid(), &grid());
+        let corner = world_from_local().transform_point3(grid().max_corner());
+        let mapped = drawn
+            .world_from_index()
+            .transform_point3(DVec3::new(8.0, 6.0, 5.0));
+        assert!((mapped - corner).length() < 1e-9);
+        assert!(batch.bounds_min.cmple(corner.as_vec3()).all());
+        assert!(batch.bounds_max.cmpge(corner.as_vec3()).all());
+        // No eye, frustum or accuracy builds it again.
+        for eye in [
+            DVec3::new(40.0, -3.0, 7.0),
+            eye_at(DVec3::splat(2.5)),
+            DVec3::NAN,
+        ] {
+            let moved = View { eye, ..v0.clone() }.with_frustum(frustum(
+                DVec3::new(40.0, -3.0, 7.0),
+                DVec3::new(8.0, 6.0, 5.0),
+            ));
+            assert!(!batcher.update(&moved, &inputs(&transfer)).unwrap());
+        }
+        assert_eq!(batcher.batch(), &batch);
+        // A transfer function transparent over the grid's values draws nothing.
+        assert!(batcher.update(&v0, &inputs(&clear())).unwrap());
+        assert!(batcher.batch().is_empty());
     }
 }
 
@@ -821,7 +880,7 @@ fn a_full_resolution_batch_beyond_the_memory_budget_is_refused_before_it_is_buil
     .unwrap();
     let error = VolumeBatcher::new(
         VolumeSource::Grid(Arc::new(grid)),
-        &BatchSettings::default(),
+        &settings(CellOrder::BackToFront, false),
     )
     .unwrap_err();
     assert!(matches!(error, VolumeBatchError::OverBudget(_)), "{error}");

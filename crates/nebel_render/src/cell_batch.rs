@@ -173,7 +173,10 @@ pub struct CellBatch {
     /// system (the batch is not drawn and an error is logged); so is a
     /// keyframe-blended batch whose next scalars (or, when modulated, next
     /// modulators) do not number the cells. The blend factor is the
-    /// entity's [`CellBlend`]. Shared with
+    /// entity's [`CellBlend`]. A batch that is a whole grid
+    /// (`nebel_lod::Cells::grid`) is ray cast through its tetrahedra
+    /// instead; one whose values exceed the device's storage buffer binding
+    /// is refused the same way. Shared with
     /// whatever built it (`nebel_lod::VolumeBatcher`). Default: no cells.
     #[reflect(ignore)]
     pub cells: Arc<Cells>,

@@ -346,6 +346,7 @@ impl TerrainDescription {
             mode: fog.mode,
             lod: None,
             lighting: None,
+            projected_cells: false,
             ends_where_fog_layers_begin: true,
         });
         Ok(Some(FogReference { volume, ground }))

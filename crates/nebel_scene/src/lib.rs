@@ -1196,6 +1196,7 @@ mod tests {
                     model: LightModel::NonPhysical,
                     keyframe_interval: 2.0,
                 }),
+                projected_cells: false,
             }],
             terrain: Some(TerrainDescription {
                 source: TerrainHeightSource::Procedural(ProceduralTerrainSource {
@@ -1647,9 +1648,9 @@ mod tests {
                 "volumes[0].source.Uniform.dims",
                 "density grid of 2049 × 2049 × 2049 points needs 34,410,094,596 bytes",
             ),
-            // The grid fits; its batch at full resolution does not.
+            // The grid fits; its batch of projected cells does not.
             (
-                "(source: Ramp((axis: X, from: 0.0, to: 1.0, dims: (300, 300, 300))))",
+                "(source: Ramp((axis: X, from: 0.0, to: 1.0, dims: (300, 300, 300))), projected_cells: true)",
                 "volumes[0].source.Ramp.dims",
                 "full-resolution batch of 299 × 299 × 299 voxels (6 tetrahedra each) needs 10,264,665,216 bytes",
             ),
@@ -1665,7 +1666,7 @@ mod tests {
                 "padded to 2^n+1 points per axis for the octree, the density grid of 1025 × 1025 × 1025 points",
             ),
             (
-                "(source: Campfire((dims: (257, 257, 257))))",
+                "(source: Campfire((dims: (257, 257, 257))), projected_cells: true)",
                 "volumes[0].source.Campfire.dims",
                 "full-resolution batch of 256 × 256 × 256 voxels (6 tetrahedra each) needs 6,442,450,944 bytes",
             ),
@@ -1689,9 +1690,11 @@ mod tests {
                 other => panic!("{volume}: expected a budget error, got {other:?}"),
             }
         }
-        // Within the budget: the same sources at sizes that fit.
+        // Within the budget: the same sources at sizes that fit, and ray
+        // cast (the default), which needs no cells.
         for volume in [
-            "(source: Ramp((axis: X, from: 0.0, to: 1.0, dims: (200, 200, 200))))",
+            "(source: Ramp((axis: X, from: 0.0, to: 1.0, dims: (200, 200, 200))), projected_cells: true)",
+            "(source: Ramp((axis: X, from: 0.0, to: 1.0, dims: (300, 300, 300))))",
             "(source: Cloud((dims: (513, 65, 513))), lod: (accuracy: 16.0), lighting: (ambient: 0.3))",
             "(source: Campfire((dims: (129, 129, 129))))",
         ] {

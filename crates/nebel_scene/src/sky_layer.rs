@@ -59,6 +59,7 @@ pub(crate) fn layer_reference(
         mode: drawing.mode,
         lod: None,
         lighting: None,
+        projected_cells: false,
         ends_where_fog_layers_begin: false,
     }))
 }

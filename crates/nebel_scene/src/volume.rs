@@ -102,6 +102,11 @@ pub struct VolumeDescription {
     /// Light a grid volume as a cloud (Röttger and Ertl 2003 §5). Default: none (unlit).
     #[serde(default)]
     pub lighting: Option<LightingDescription>,
+    /// Draw a grid at full resolution as its tetrahedra projected in
+    /// visibility order (Röttger 2004 §8) instead of ray casting them; both
+    /// are exact. Ignored with `lod` or `lighting`. Default false.
+    #[serde(default)]
+    pub projected_cells: bool,
 }
 
 /// Which field of a lit cloud gives the colour and which the opacity (paper
@@ -502,6 +507,8 @@ pub struct BuiltVolume {
     pub lod: Option<LodDescription>,
     /// Cloud lighting; `None` for an unlit volume.
     pub lighting: Option<LightingDescription>,
+    /// A grid at full resolution is drawn as projected cells, not ray cast.
+    pub projected_cells: bool,
     /// Ground fog: the scene's fog layers take it over from their start
     /// distance, where its rays end (as the GPU's cell batch of ground fog).
     pub ends_where_fog_layers_begin: bool,
@@ -699,6 +706,7 @@ impl VolumeDescription {
             mode: self.mode.unwrap_or(default_mode),
             lod: self.lod,
             lighting: self.lighting,
+            projected_cells: self.projected_cells,
             ends_where_fog_layers_begin: false,
         })
     }
@@ -1041,7 +1049,8 @@ impl VolumeDescription {
             };
             DensityGrid::check_budget(padded).map_err(padded_error)?;
             VolumeHierarchy::check_budget(padded, self.lighting.is_some()).map_err(padded_error)?;
-        } else {
+        } else if self.projected_cells {
+            // A ray-cast grid needs only the grid itself.
             let voxels = dims.map(|n| n - 1);
             check_allocation(
                 || {
@@ -1087,6 +1096,7 @@ mod tests {
             mode: Some(OpticalMode::Emissive),
             lod: None,
             lighting: None,
+            projected_cells: false,
         }
     }
 

@@ -347,6 +347,7 @@ fn fog_volume_peer(
         mode: OpticalMode::Sorted,
         lod: None,
         lighting: None,
+        projected_cells: false,
         ends_where_fog_layers_begin: false,
     };
     Some((lit, bevy_fog, volume))

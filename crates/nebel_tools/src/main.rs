@@ -205,10 +205,14 @@ struct SceneArgs {
     /// instead of the scene's.
     #[arg(long, value_parser = parse_tolerance)]
     upsample_tolerance: Option<f32>,
-    /// Draw cells by the exact method of the papers: full resolution, every
-    /// ray to its end (no early termination).
+    /// Draw cells by the exact method of the papers: full resolution, grids
+    /// as projected cells, every ray to its end (no early termination).
     #[arg(long, conflicts_with_all = ["cell_resolution", "upsample_tolerance"])]
     exact: bool,
+    /// Draw grids at full resolution as their tetrahedra projected in
+    /// visibility order instead of ray casting them.
+    #[arg(long)]
+    projected_cells: bool,
 }
 
 fn parse_tolerance(tolerance: &str) -> Result<f32, String> {
@@ -275,6 +279,11 @@ impl SceneArgs {
         }
         if self.exact {
             scene.camera.cell_projection = Some(CellProjectionDescription::EXACT);
+        }
+        if self.exact || self.projected_cells {
+            for volume in &mut scene.volumes {
+                volume.projected_cells = true;
+            }
         }
         if self.cell_resolution.is_some() || self.upsample_tolerance.is_some() {
             let mut cell_projection = scene.camera.cell_projection.unwrap_or_default();
@@ -501,6 +510,7 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
         mode: OpticalMode::Sorted,
         lod: None,
         lighting: None,
+        projected_cells: false,
         ends_where_fog_layers_begin: false,
     };
     // Two references: through the trilinear grid (the total error) and
@@ -531,19 +541,26 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
         lod: volume.lod,
         ..equivalent.clone()
     };
+    // A grid at full resolution is ray cast by default; the paper's
+    // projected cells are measured beside it.
+    let projected = BuiltVolume {
+        projected_cells: true,
+        ..drawn_by_nebel.clone()
+    };
     let mut exact_scene = scene.clone();
     exact_scene.camera.cell_projection = Some(CellProjectionDescription::EXACT);
-    for (name, scene, bevy_fog) in [
-        ("nebel", &scene, None),
-        ("nebel_exact", &exact_scene, None),
-        ("bevy_fog_volume", &scene, Some(fog)),
-    ] {
+    let mut renderers = vec![
+        ("nebel", &scene, &drawn_by_nebel, None),
+        ("nebel_exact", &exact_scene, &drawn_by_nebel, None),
+    ];
+    if volume.lod.is_none() {
+        renderers.push(("nebel_projected_cells", &exact_scene, &projected, None));
+    }
+    renderers.push(("bevy_fog_volume", &scene, &equivalent, Some(fog)));
+    for (name, scene, drawn, bevy_fog) in renderers {
         let setup = SceneSetupPlugin {
             scene: scene.clone(),
-            volumes: vec![match bevy_fog {
-                None => drawn_by_nebel.clone(),
-                Some(_) => equivalent.clone(),
-            }],
+            volumes: vec![drawn.clone()],
             terrain: scene.build_terrain(scene_path)?,
             ground_fog: scene.build_ground_fog(scene_path)?,
             aurora: scene.build_aurora(scene_path)?,

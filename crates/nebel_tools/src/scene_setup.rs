@@ -361,7 +361,8 @@ fn spawn_volumes(commands: &mut Commands, grids: &mut Assets<VolumeGrid>, volume
     use nebel_scene::LightModel;
     use nebel_scene::SceneField;
     use nebel_volume::{
-        Campfire, CloudLightModel, CloudVolume, Volume, VolumeField, VolumeLighting, VolumeLod,
+        Campfire, CloudLightModel, CloudVolume, ProjectedCells, Volume, VolumeField,
+        VolumeLighting, VolumeLod,
     };
     use std::sync::Arc;
     for volume in volumes {
@@ -419,6 +420,9 @@ fn spawn_volumes(commands: &mut Commands, grids: &mut Assets<VolumeGrid>, volume
                 mode: volume.mode,
             }),
         };
+        if volume.projected_cells {
+            entity.insert(ProjectedCells);
+        }
         if let Some(lod) = volume.lod {
             entity.insert(VolumeLod {
                 criterion: lod.criterion(),

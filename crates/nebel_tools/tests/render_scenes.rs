@@ -729,7 +729,12 @@ fn early_termination_skips_the_cells_behind_opaque_pixels() {
         None,
         "dense_cloud",
         "dense_cloud_terminated",
-        &["--cell-resolution", "full", "--count-fragments"],
+        &[
+            "--cell-resolution",
+            "full",
+            "--projected-cells",
+            "--count-fragments",
+        ],
     );
     assert_within_bounds("dense_cloud", &terminated, &mut report);
     let (all, skipped) = (
@@ -741,6 +746,63 @@ fn early_termination_skips_the_cells_behind_opaque_pixels() {
         report.join("\n")
     );
     assert!(all > 10.0 && skipped < 0.6 * all, "{all} and {skipped}");
+}
+
+/// Accuracy scenes with grids at full resolution (each scene's count of
+/// grids), ray cast by default.
+const GRID_SCENES: &[(&str, f64)] = &[
+    ("dense_cloud", 1.0),
+    ("ramp_sorted", 1.0),
+    ("ramp_emissive", 1.0),
+    ("ramp_mip", 1.0),
+    ("wide_oblique", 1.0),
+    ("opaque_inside", 1.0),
+    ("cloud_in_fog", 2.0),
+    ("two_volumes", 2.0),
+];
+
+/// A ray-cast grid is its projected cells, segment for segment: at full
+/// resolution both images agree to one 8-bit step in every pixel, and the
+/// ray caster runs at most one fragment per pixel per grid (its box's back
+/// faces) where the cells run one per cell the ray crosses.
+#[test]
+fn a_ray_cast_grid_draws_what_its_projected_cells_draw() {
+    let out_dir = output_dir();
+    let mut report = Vec::new();
+    for (name, grids) in GRID_SCENES {
+        let full = ["--cell-resolution", "full", "--count-fragments"];
+        let (ray_cast, _, ray_cast_stats) =
+            scored_render(None, name, &format!("{name}_ray_cast"), &full);
+        let projected_options = [&full[..], &["--projected-cells"]].concat();
+        let (projected, _, projected_stats) =
+            scored_render(None, name, &format!("{name}_projected"), &projected_options);
+        let load = |image: &str| {
+            image::open(out_dir.join(format!("{image}_gpu.png")))
+                .unwrap()
+                .to_rgb8()
+        };
+        let (a, b) = (
+            load(&format!("{name}_ray_cast")),
+            load(&format!("{name}_projected")),
+        );
+        let largest = a
+            .as_raw()
+            .iter()
+            .zip(b.as_raw())
+            .map(|(p, q)| p.abs_diff(*q))
+            .max()
+            .unwrap();
+        let (cast, cells) = (
+            fragments_per_pixel(&ray_cast_stats),
+            fragments_per_pixel(&projected_stats),
+        );
+        report.push(format!(
+            "{name}: {largest}/255 at most; ray cast {ray_cast}, {cast} fragments per pixel; projected {projected}, {cells}"
+        ));
+        assert!(largest <= 1, "{}", report.join("\n"));
+        assert!(cast <= *grids && cast <= cells, "{}", report.join("\n"));
+    }
+    eprintln!("{}", report.join("\n"));
 }
 
 /// A lower resolution interpolates only where the opaque depth is smooth:

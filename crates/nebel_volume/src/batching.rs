@@ -35,8 +35,8 @@ use bevy::diagnostic::Diagnostics;
 use bevy::prelude::*;
 use nebel_core::optics::OpticalMode;
 use nebel_lod::{
-    AnimatedGrid, BatchLighting, BatchSettings, BuildRequest, CellOrder, Frustum, OctreeSettings,
-    View, VolumeSource,
+    AnimatedGrid, BatchLighting, BatchSettings, BuildRequest, CellOrder, Frustum, GridDrawing,
+    OctreeSettings, View, VolumeSource,
 };
 use nebel_render::camera::to_double_affine;
 use nebel_render::{CellBatch, CellBlend, CellSunlight, EffectiveQuality, HeavyBuilds, LodCameras};
@@ -45,7 +45,7 @@ use crate::cloud::{CloudGeneration, CloudVolume, is_windy};
 use crate::grid::VolumeGrid;
 use crate::lighting::sun_in_local_frame;
 use crate::status::{VolumeError, VolumeStatus};
-use crate::volume::{Volume, VolumeField, VolumePlugin};
+use crate::volume::{ProjectedCells, Volume, VolumeField, VolumePlugin};
 use crate::{LodCriterion, VolumeLighting, VolumeLod};
 
 /// A volume's batching and the state of its source (internal).
@@ -96,6 +96,7 @@ fn batch_settings(
     lighting: Option<&VolumeLighting>,
     sun_world: Option<Vec3>,
     transform: &GlobalTransform,
+    projected: bool,
 ) -> BatchSettings {
     BatchSettings {
         order: match volume.mode {
@@ -110,6 +111,11 @@ fn batch_settings(
                 .light_field_settings(sun_in_local_frame(sun_world, &transform.affine())),
             scalars: lighting.model.cell_scalars(),
         }),
+        drawing: if projected {
+            GridDrawing::ProjectedCells
+        } else {
+            GridDrawing::RayCast
+        },
     }
 }
 
@@ -124,6 +130,7 @@ pub(crate) fn build_batchers(
         Option<&VolumeLighting>,
         &InheritedVisibility,
         Option<(&CloudVolume, &CloudGeneration)>,
+        Has<ProjectedCells>,
         &mut VolumeBatching,
     )>,
     suns: Query<&GlobalTransform, With<DirectionalLight>>,
@@ -134,7 +141,9 @@ pub(crate) fn build_batchers(
     mut diagnostics: Diagnostics,
 ) {
     let sun_world = suns.iter().next().map(|sun| sun.back().as_vec3());
-    for (volume, transform, lod, lighting, visibility, cloud, mut batching) in &mut volumes {
+    for (volume, transform, lod, lighting, visibility, cloud, projected, mut batching) in
+        &mut volumes
+    {
         // A cloud's field is its generator's to fill first.
         let awaiting_grid = cloud.is_some_and(|(_, generation)| !generation.has_grid());
         let source = if awaiting_grid {
@@ -155,7 +164,7 @@ pub(crate) fn build_batchers(
             now: time.elapsed_secs_f64(),
             visible: visibility.get(),
             source: source.ok().flatten(),
-            settings: batch_settings(volume, lod, lighting, sun_world, transform),
+            settings: batch_settings(volume, lod, lighting, sun_world, transform, projected),
             sun_keyframe_interval: lighting.map(|lighting| lighting.keyframe_interval),
             animation,
         };

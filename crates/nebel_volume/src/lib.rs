@@ -5,8 +5,9 @@
 //!
 //! Spawn a [`Volume`] (or a [`Campfire`] or a [`CloudVolume`], which fill and
 //! animate one); [`VolumePlugin`] turns it into a [`CellBatch`] on the same
-//! entity: the full-resolution grid (Kuhn's six tetrahedra per voxel),
-//! or with [`VolumeLod`] the octree C-LOD of Röttger and Ertl 2003, lit as a cloud with
+//! entity: the full-resolution grid (Kuhn's six tetrahedra per voxel), ray
+//! cast whole, or as projected cells with [`ProjectedCells`]; or with
+//! [`VolumeLod`] the octree C-LOD of Röttger and Ertl 2003, lit as a cloud with
 //! [`VolumeLighting`]. The render system is the same for all of them.
 //!
 //! Papers are cited by author and year; `docs/references.md` in the repository lists them.
@@ -30,6 +31,6 @@ pub use grid_loader::{VolumeGridLoadError, VolumeGridLoader, VolumeGridSettings}
 pub use lighting::{CloudLightModel, VolumeLighting};
 pub use lod::{LodCriterion, VolumeLod};
 pub use status::{VolumeError, VolumeStatus};
-pub use volume::{Volume, VolumeField, VolumePlugin};
+pub use volume::{ProjectedCells, Volume, VolumeField, VolumePlugin};
 
 pub use nebel_render::CellBatch;

@@ -93,6 +93,7 @@ impl Plugin for VolumePlugin {
             .register_asset_loader(crate::grid_loader::VolumeGridLoader)
             .init_resource::<HeavyBuilds>()
             .register_type::<Volume>()
+            .register_type::<ProjectedCells>()
             .register_type::<VolumeStatus>()
             .register_type::<crate::Campfire>()
             .register_type::<crate::CloudVolume>()
@@ -174,6 +175,16 @@ pub struct Volume {
     /// How segments combine. Default [`OpticalMode::Sorted`].
     pub mode: OpticalMode,
 }
+
+/// Draws a grid [`Volume`] at full resolution as its tetrahedra projected
+/// in exact visibility order (Röttger 2004 §8), as the paper does, instead
+/// of ray casting them. Both are exact for the grid's tetrahedra; ray
+/// casting needs no order rebuilt when the eye moves and stops each pixel
+/// once it is opaque. No effect with [`VolumeLod`](crate::VolumeLod) or on
+/// a volume of cells.
+#[derive(Component, Clone, Copy, Debug, Default, PartialEq, Eq, Reflect)]
+#[reflect(Component, Default, Clone)]
+pub struct ProjectedCells;
 
 fn cloud_transfer_function() -> Arc<TransferFunction> {
     Arc::new(TransferFunction::preset(TransferPreset::Cloud))
@@ -315,6 +326,27 @@ mod tests {
         assert_eq!(status(&app, volume), VolumeStatus::Ready);
         let batch = app.world().get::<CellBatch>(volume).expect("a batch");
         assert_eq!(batch.cells.len(), 6 * 8);
+        // Ray cast (the default): the whole grid, whatever the eye.
+        assert!(batch.cells.grid.is_some() && batch.cells.tetrahedra.is_empty());
+        let cast = last_changed(&app, volume);
+        let start = *app.world().get::<Transform>(camera).unwrap();
+        *app.world_mut().get_mut::<Transform>(camera).unwrap() =
+            Transform::from_xyz(1.0, 1.0, -6.0).looking_at(Vec3::ONE, Vec3::Y);
+        app.update();
+        turn_camera(&mut app, camera);
+        assert_eq!(
+            last_changed(&app, volume),
+            cast,
+            "a ray-cast grid ignores the eye"
+        );
+        *app.world_mut().get_mut::<Transform>(camera).unwrap() = start;
+
+        // As projected cells: six per voxel, in the eye's order.
+        app.world_mut().entity_mut(volume).insert(ProjectedCells);
+        app.update();
+        let batch = app.world().get::<CellBatch>(volume).expect("a batch");
+        assert_eq!(batch.cells.tetrahedra.len(), 6 * 8);
+        assert!(batch.cells.grid.is_none());
         let first = last_changed(&app, volume).unwrap();
 
         app.update();

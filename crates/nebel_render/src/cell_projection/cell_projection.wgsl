@@ -63,6 +63,16 @@
 // low_resolution.wgsl): the viewport and the opaque depth are the
 // low-resolution target's.
 //
+// RAY_CAST (a whole density grid, nebel_lod's cell_grid): instead of cells,
+// the grid's box is drawn as its back faces, and each fragment walks its
+// ray through the voxels (Amanatides and Woo 1987), splitting each voxel's
+// stretch where the ray crosses the planes u_a = u_b between Kuhn's six
+// tetrahedra: the pieces are exactly the segments of the grid's tetrahedra,
+// front to back, each shaded as above and composited under the ones in
+// front; the ray stops once its transmittance is below the early
+// termination's threshold, and voxels in bricks without opacity under the
+// transfer function are not shaded (their segments add nothing).
+//
 // All positions are taken relative to the camera so large world coordinates
 // keep their precision.
 
@@ -113,13 +123,33 @@ fn opaque_depth(pixel: vec2<i32>) -> f32 {
 #endif
 }
 
+#ifdef RAY_CAST
+// The grid's values, x fastest (nebel_core's DensityGrid).
+@group(1) @binding(0) var<storage, read> grid_values: array<f32>;
+#else
 @group(1) @binding(0) var<storage, read> cells: array<Cell>;
+#endif
 @group(1) @binding(1) var colour_table: texture_3d<f32>;
 @group(1) @binding(2) var pair_table: texture_2d<f32>;
 @group(1) @binding(3) var<uniform> tables: CellTables;
+#ifdef RAY_CAST
+// Where the grid lies.
+struct CellGrid {
+    // Grid index coordinates to world.
+    world_from_index: mat4x4<f32>,
+    // World offsets to index offsets (the linear part only).
+    index_from_world: mat4x4<f32>,
+    // xyz: voxels per axis; w: 1 when world_from_index mirrors.
+    voxels: vec4<u32>,
+    // xyz: bricks per axis of `occupied`; w: voxels per brick edge.
+    bricks: vec4<u32>,
+}
+@group(1) @binding(4) var<storage, read> grid: CellGrid;
+#else
 // Per cell, the segment-length modulator at its four vertices (read only by
 // the MODULATED variant).
 @group(1) @binding(4) var<storage, read> modulators: array<vec4<f32>>;
+#endif
 
 // Per batch: the sun and sky of single scattering (read only by the
 // SCATTERING variant) and the keyframe mix factor (BLENDED).
@@ -135,9 +165,14 @@ struct CellBatchParameters {
     sunlight: vec4<f32>,
 }
 @group(1) @binding(5) var<uniform> parameters: CellBatchParameters;
+#ifdef RAY_CAST
+// Per brick of the grid (x fastest), 1 where it may have opacity.
+@group(1) @binding(6) var<storage, read> occupied: array<u32>;
+#else
 // Per cell, the next keyframe's scalars (entry 2i) and modulators (2i + 1) at
 // its four vertices (read only by the BLENDED variant).
 @group(1) @binding(6) var<storage, read> next_keyframe: array<vec4<f32>>;
+#endif
 
 // The three vertices of face f, which omits vertex f.
 const FACE_VERTICES = array<u32, 12>(1u, 2u, 3u, 0u, 3u, 2u, 0u, 1u, 3u, 0u, 2u, 1u);
@@ -149,6 +184,32 @@ struct VertexOutput {
     @location(1) @interpolate(flat) cell_index: u32,
 }
 
+#ifdef RAY_CAST
+// The grid box's twelve triangles, corners x + 2y + 4z of the index box,
+// each wound with its normal pointing inward like a cell's faces, so the
+// rasterizer keeps the back faces: every pixel of the box runs once.
+const BOX_TRIANGLES = array<u32, 36>(
+    0u, 2u, 4u, 2u, 6u, 4u, 1u, 5u, 3u, 3u, 5u, 7u, 0u, 4u, 1u, 1u, 4u, 5u,
+    2u, 3u, 6u, 3u, 7u, 6u, 0u, 1u, 2u, 1u, 3u, 2u, 4u, 6u, 5u, 5u, 6u, 7u,
+);
+
+@vertex
+fn vertex(@builtin(vertex_index) vertex_index: u32) -> VertexOutput {
+    // A mirroring placement turns the winding: swap each triangle's last two.
+    var index = vertex_index;
+    if grid.voxels.w == 1u && index % 3u != 0u {
+        index = select(index + 1u, index - 1u, index % 3u == 2u);
+    }
+    let corner = BOX_TRIANGLES[index];
+    let bits = vec3<u32>(corner & 1u, (corner >> 1u) & 1u, corner >> 2u);
+    let position = (grid.world_from_index * vec4(vec3<f32>(bits * grid.voxels.xyz), 1.0)).xyz;
+    var out: VertexOutput;
+    out.cell_index = 0u;
+    out.relative_position = position - view.camera_position.xyz;
+    out.clip_position = view.clip_from_world * vec4(position, 1.0);
+    return out;
+}
+#else
 fn relative_vertex(cell: Cell, index: u32) -> vec3<f32> {
     return cell.vertices[index].xyz - view.camera_position.xyz;
 }
@@ -187,6 +248,8 @@ fn vertex(@builtin(vertex_index) vertex_index: u32, @builtin(instance_index) ins
     out.clip_position = view.clip_from_world * vec4(vertex, 1.0);
     return out;
 }
+
+#endif
 
 // Distance along the unit ray `direction` from the camera to the point at NDC
 // (x, y, depth).
@@ -238,6 +301,80 @@ fn colour_lookup(s_front: f32, s_back: f32, depth: f32) -> vec3<f32> {
     return mix(layers[0], layers[1], z.y).rgb;
 }
 
+// The premultiplied colour and opacity of a segment from s_front to s_back
+// (with modulator m_front to m_back under MODULATED) of length
+// segment_length along the unit ray `direction`, seen through the fog layers
+// in front of it from its middle distance `middle` (see the header).
+fn segment_colour(
+    s_front: f32,
+    s_back: f32,
+    m_front: f32,
+    m_back: f32,
+    segment_length: f32,
+    direction: vec3<f32>,
+    middle: f32,
+) -> vec4<f32> {
+#ifdef SORTED
+#ifdef MODULATED
+    // Piece by piece, front to back: premultiplied colour and transmittance.
+    var colour = vec3(0.0);
+    var transmittance = 1.0;
+    for (var piece = 0u; piece < #{MODULATOR_PIECES}u; piece++) {
+        let a = f32(piece) / f32(#{MODULATOR_PIECES}u);
+        let b = f32(piece + 1u) / f32(#{MODULATOR_PIECES}u);
+        let s_a = mix(s_front, s_back, a);
+        let s_b = mix(s_front, s_back, b);
+        let modulated = segment_length * (b - a) * 0.5 * (mix(m_front, m_back, a) + mix(m_front, m_back, b));
+        let depth = modulated * pair_lookup(s_a, s_b).a;
+        let piece_alpha = 1.0 - exp(-depth);
+        colour += transmittance * piece_alpha * colour_lookup(s_a, s_b, depth);
+        transmittance *= 1.0 - piece_alpha;
+    }
+    let alpha = 1.0 - transmittance;
+#else
+    let optical_depth = segment_length * pair_lookup(s_front, s_back).a;
+    let alpha = 1.0 - exp(-optical_depth);
+    let colour = alpha * colour_lookup(s_front, s_back, optical_depth);
+#endif
+#ifdef SCATTERING
+    let g = parameters.sun.w;
+    let cos_theta = dot(direction, parameters.sun.xyz);
+    let phase = (1.0 - g * g) / pow(1.0 + g * g - 2.0 * g * cos_theta, 1.5);
+    var segment = vec4(parameters.ambient_colour.rgb * alpha + parameters.sunlight.rgb * parameters.sun_colour.rgb * phase * colour, alpha);
+#else
+    var segment = vec4(parameters.sunlight.rgb * colour, alpha);
+#endif
+#endif
+#ifdef EMISSIVE
+#ifdef MODULATED
+    var emitted = vec3(0.0);
+    for (var piece = 0u; piece < #{MODULATOR_PIECES}u; piece++) {
+        let a = f32(piece) / f32(#{MODULATOR_PIECES}u);
+        let b = f32(piece + 1u) / f32(#{MODULATOR_PIECES}u);
+        let modulated = segment_length * (b - a) * 0.5 * (mix(m_front, m_back, a) + mix(m_front, m_back, b));
+        emitted += modulated * pair_lookup(mix(s_front, s_back, a), mix(s_front, s_back, b)).rgb;
+    }
+    var segment = vec4(emitted, 0.0);
+#else
+    var segment = vec4(segment_length * pair_lookup(s_front, s_back).rgb, 0.0);
+#endif
+#endif
+#ifdef MIP
+    var segment = vec4(pair_lookup(s_front, s_back).rgb, 0.0);
+#endif
+#ifdef FOG_HANDOFF
+    // The segment ends before the fog layers begin: none of them is in front.
+#else ifdef FOG_LAYERS
+    let fog_depth = fog_optical_depth(view.fog, view.camera_position.y, direction.y, 0.0, middle);
+    let fog_transmittance = exp(-fog_depth);
+    segment = vec4(
+        fog_transmittance * segment.rgb + segment.a * (1.0 - fog_transmittance) * fog_colour(view.fog, direction),
+        segment.a,
+    );
+#endif
+    return segment;
+}
+
 #ifdef MERGED
 // A batch drawn alone into its merged layer (merge.rs): the segment, and its
 // entry and negated exit distance, min-blended into the batch's span along
@@ -248,6 +385,215 @@ struct MergedOutput {
 }
 #endif
 
+#ifdef RAY_CAST
+// The grid's value at point p.
+fn grid_value(p: vec3<u32>) -> f32 {
+    let points = grid.voxels.xyz + 1u;
+    return grid_values[p.x + points.x * (p.y + points.y * p.z)];
+}
+
+// The field of Kuhn's tetrahedra in a voxel with corner values `values`
+// (corner x + 2y + 4z) at local coordinates u in [0, 1]³: with the axes
+// ordered u_a ≥ u_b ≥ u_c, the barycentric combination of corners 0, e_a,
+// e_a + e_b and 7.
+fn kuhn_value(values: ptr<function, array<f32, 8>>, u: vec3<f32>) -> f32 {
+    var a = 0u;
+    var b = 1u;
+    var c = 2u;
+    if u[b] > u[a] {
+        let swap = a;
+        a = b;
+        b = swap;
+    }
+    if u[c] > u[b] {
+        let swap = b;
+        b = c;
+        c = swap;
+    }
+    if u[b] > u[a] {
+        let swap = a;
+        a = b;
+        b = swap;
+    }
+    let side = 1u << a;
+    let diagonal = side | (1u << b);
+    return (*values)[0] * (1.0 - u[a]) + (*values)[side] * (u[a] - u[b])
+        + (*values)[diagonal] * (u[b] - u[c]) + (*values)[7] * u[c];
+}
+
+// The ray's accumulated colour and transmittance, front to back.
+struct Accumulated {
+    colour: vec3<f32>,
+    transmittance: f32,
+}
+
+// Composites the pieces of the ray's stretch [t0, t1] through `voxel`
+// (the ray at index coordinates origin + t step) under `accumulated`.
+fn shade_voxel(
+    voxel: vec3<i32>,
+    origin: vec3<f32>,
+    step: vec3<f32>,
+    direction: vec3<f32>,
+    t0: f32,
+    t1: f32,
+    accumulated: ptr<function, Accumulated>,
+) {
+    let low = vec3<u32>(voxel);
+    var values: array<f32, 8>;
+    for (var c = 0u; c < 8u; c++) {
+        values[c] = grid_value(low + vec3<u32>(c & 1u, (c >> 1u) & 1u, c >> 2u));
+    }
+    let local = origin - vec3<f32>(voxel);
+    // Where the ray crosses u_x = u_y, u_y = u_z and u_x = u_z, sorted.
+    var breaks = vec3(t1);
+    let rates = vec3(step.x - step.y, step.y - step.z, step.x - step.z);
+    let offsets = vec3(local.x - local.y, local.y - local.z, local.x - local.z);
+    for (var k = 0; k < 3; k++) {
+        if rates[k] != 0.0 {
+            let t = -offsets[k] / rates[k];
+            if t > t0 && t < t1 {
+                breaks[k] = t;
+            }
+        }
+    }
+    let lowest = min(min(breaks.x, breaks.y), breaks.z);
+    let highest = max(max(breaks.x, breaks.y), breaks.z);
+    var ends = array<f32, 4>(lowest, breaks.x + breaks.y + breaks.z - lowest - highest, highest, t1);
+    var start = t0;
+    var s_start = kuhn_value(&values, clamp(local + start * step, vec3(0.0), vec3(1.0)));
+    for (var k = 0; k < 4; k++) {
+        let end = ends[k];
+        if end > start {
+            let s_end = kuhn_value(&values, clamp(local + end * step, vec3(0.0), vec3(1.0)));
+            let segment = segment_colour(
+                clamp(s_start, 0.0, 1.0),
+                clamp(s_end, 0.0, 1.0),
+                1.0,
+                1.0,
+                end - start,
+                direction,
+                0.5 * (start + end),
+            );
+#ifdef MIP
+            (*accumulated).colour = max((*accumulated).colour, segment.rgb);
+#else
+            (*accumulated).colour += (*accumulated).transmittance * segment.rgb;
+            (*accumulated).transmittance *= 1.0 - segment.a;
+#endif
+            start = end;
+            s_start = s_end;
+        }
+    }
+}
+
+#ifdef EARLY_DEPTH_TEST
+@early_depth_test(force)
+#endif
+@fragment
+#ifdef MERGED
+fn fragment(in: VertexOutput) -> MergedOutput {
+#else
+fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
+#endif
+#ifdef COUNT_FRAGMENTS
+    atomicAdd(&fragment_count, 1u);
+#endif
+    let direction = normalize(in.relative_position);
+    let ndc = vec2(
+        (in.clip_position.x - view.viewport.x) / view.viewport.z * 2.0 - 1.0,
+        1.0 - (in.clip_position.y - view.viewport.y) / view.viewport.w * 2.0,
+    );
+    // The ray in index coordinates: origin + t step, t the world distance.
+    let index_from_world = mat3x3(
+        grid.index_from_world[0].xyz,
+        grid.index_from_world[1].xyz,
+        grid.index_from_world[2].xyz,
+    );
+    let origin = index_from_world * (view.camera_position.xyz - grid.world_from_index[3].xyz);
+    let step = index_from_world * direction;
+    let voxels = vec3<f32>(grid.voxels.xyz);
+
+    // The ray inside the box, after the near plane and before the opaque
+    // scene (depth 0 is the cleared far plane, reversed Z).
+    var t_entry = ray_distance_at_depth(ndc, 1.0);
+    var t_exit = 3.0e38;
+    let depth = opaque_depth(vec2<i32>(floor(in.clip_position.xy)));
+    if depth > 0.0 {
+        t_exit = min(t_exit, ray_distance_at_depth(ndc, depth));
+    }
+#ifdef FOG_HANDOFF
+    t_exit = min(t_exit, view.fog.ranges.x);
+#endif
+    for (var axis = 0; axis < 3; axis++) {
+        if step[axis] == 0.0 {
+            if origin[axis] < 0.0 || origin[axis] > voxels[axis] {
+                discard;
+            }
+        } else {
+            let a = -origin[axis] / step[axis];
+            let b = (voxels[axis] - origin[axis]) / step[axis];
+            t_entry = max(t_entry, min(a, b));
+            t_exit = min(t_exit, max(a, b));
+        }
+    }
+    if t_exit <= t_entry {
+        discard;
+    }
+
+    // The voxel the ray enters (on a grid plane, the one it moves into) and
+    // the distances to its next plane along each axis.
+    let entry = origin + t_entry * step;
+    var voxel = vec3<i32>(0);
+    var next = vec3(3.0e38);
+    var advance = vec3(3.0e38);
+    for (var axis = 0; axis < 3; axis++) {
+        let p = entry[axis];
+        var cell = floor(p);
+        if step[axis] < 0.0 && p == cell {
+            cell -= 1.0;
+        }
+        voxel[axis] = clamp(i32(cell), 0, i32(grid.voxels[axis]) - 1);
+        if step[axis] != 0.0 {
+            let boundary = f32(voxel[axis] + select(0, 1, step[axis] > 0.0));
+            next[axis] = (boundary - origin[axis]) / step[axis];
+            advance[axis] = 1.0 / abs(step[axis]);
+        }
+    }
+
+    var accumulated = Accumulated(vec3(0.0), 1.0);
+    var t = t_entry;
+    let steps = grid.voxels.x + grid.voxels.y + grid.voxels.z + 3u;
+    for (var i = 0u; i < steps; i++) {
+        var axis = 0;
+        if next.y < next[axis] {
+            axis = 1;
+        }
+        if next.z < next[axis] {
+            axis = 2;
+        }
+        let end = min(next[axis], t_exit);
+        let brick = vec3<u32>(voxel) / grid.bricks.w;
+        if end > t && occupied[brick.x + grid.bricks.x * (brick.y + grid.bricks.y * brick.z)] != 0u {
+            shade_voxel(voxel, origin, step, direction, t, end, &accumulated);
+        }
+        t = max(t, end);
+        if t >= t_exit || accumulated.transmittance < bitcast<f32>(#{TERMINATION_TRANSMITTANCE_BITS}u) {
+            break;
+        }
+        voxel[axis] += select(-1, 1, step[axis] > 0.0);
+        if voxel[axis] < 0 || voxel[axis] >= i32(grid.voxels[axis]) {
+            break;
+        }
+        next[axis] += advance[axis];
+    }
+    let segment = vec4(accumulated.colour, 1.0 - accumulated.transmittance);
+#ifdef MERGED
+    return MergedOutput(segment, vec2(t_entry, -t));
+#else
+    return segment;
+#endif
+}
+#else
 // The stencil of early termination and of the low resolution's resolved
 // pixels rejects fragments before they run: the shader writes no depth or
 // stencil, so its discards do not change what the test sees.
@@ -352,67 +698,15 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     let m_back = clamp(m.x + dot(m_gradient, t_exit * direction - v0), 0.0, 1.0);
 #endif
 
-#ifdef SORTED
-#ifdef MODULATED
-    // Piece by piece, front to back: premultiplied colour and transmittance.
-    var colour = vec3(0.0);
-    var transmittance = 1.0;
-    for (var piece = 0u; piece < #{MODULATOR_PIECES}u; piece++) {
-        let a = f32(piece) / f32(#{MODULATOR_PIECES}u);
-        let b = f32(piece + 1u) / f32(#{MODULATOR_PIECES}u);
-        let s_a = mix(s_front, s_back, a);
-        let s_b = mix(s_front, s_back, b);
-        let modulated = length * (b - a) * 0.5 * (mix(m_front, m_back, a) + mix(m_front, m_back, b));
-        let depth = modulated * pair_lookup(s_a, s_b).a;
-        let piece_alpha = 1.0 - exp(-depth);
-        colour += transmittance * piece_alpha * colour_lookup(s_a, s_b, depth);
-        transmittance *= 1.0 - piece_alpha;
-    }
-    let alpha = 1.0 - transmittance;
-#else
-    let optical_depth = length * pair_lookup(s_front, s_back).a;
-    let alpha = 1.0 - exp(-optical_depth);
-    let colour = alpha * colour_lookup(s_front, s_back, optical_depth);
+#ifndef MODULATED
+    let m_front = 1.0;
+    let m_back = 1.0;
 #endif
-#ifdef SCATTERING
-    let g = parameters.sun.w;
-    let cos_theta = dot(direction, parameters.sun.xyz);
-    let phase = (1.0 - g * g) / pow(1.0 + g * g - 2.0 * g * cos_theta, 1.5);
-    var segment = vec4(parameters.ambient_colour.rgb * alpha + parameters.sunlight.rgb * parameters.sun_colour.rgb * phase * colour, alpha);
-#else
-    var segment = vec4(parameters.sunlight.rgb * colour, alpha);
-#endif
-#endif
-#ifdef EMISSIVE
-#ifdef MODULATED
-    var emitted = vec3(0.0);
-    for (var piece = 0u; piece < #{MODULATOR_PIECES}u; piece++) {
-        let a = f32(piece) / f32(#{MODULATOR_PIECES}u);
-        let b = f32(piece + 1u) / f32(#{MODULATOR_PIECES}u);
-        let modulated = length * (b - a) * 0.5 * (mix(m_front, m_back, a) + mix(m_front, m_back, b));
-        emitted += modulated * pair_lookup(mix(s_front, s_back, a), mix(s_front, s_back, b)).rgb;
-    }
-    var segment = vec4(emitted, 0.0);
-#else
-    var segment = vec4(length * pair_lookup(s_front, s_back).rgb, 0.0);
-#endif
-#endif
-#ifdef MIP
-    var segment = vec4(pair_lookup(s_front, s_back).rgb, 0.0);
-#endif
-#ifdef FOG_HANDOFF
-    // The segment ends before the fog layers begin: none of them is in front.
-#else ifdef FOG_LAYERS
-    let fog_depth = fog_optical_depth(view.fog, view.camera_position.y, direction.y, 0.0, 0.5 * (t_entry + t_exit));
-    let fog_transmittance = exp(-fog_depth);
-    segment = vec4(
-        fog_transmittance * segment.rgb + segment.a * (1.0 - fog_transmittance) * fog_colour(view.fog, direction),
-        segment.a,
-    );
-#endif
+    let segment = segment_colour(s_front, s_back, m_front, m_back, length, direction, 0.5 * (t_entry + t_exit));
 #ifdef MERGED
     return MergedOutput(segment, vec2(t_entry, -t_exit));
 #else
     return segment;
 #endif
 }
+#endif

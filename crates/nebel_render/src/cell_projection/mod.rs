@@ -48,6 +48,12 @@
 //! the composite exact for volumes inside and behind the fog up to the
 //! splitting of the fog inside each segment (see `cell_projection.wgsl`).
 //!
+//! A batch that is a whole grid (`nebel_lod::Cells::grid`) draws the back
+//! faces of its box instead, and each fragment walks its ray through the
+//! voxels' Kuhn tetrahedra front to back, compositing exactly the segments
+//! the grid's cells would give (Amanatides and Woo, "A Fast Voxel Traversal
+//! Algorithm for Ray Tracing", 1987; see `cell_projection.wgsl`).
+//!
 //! Each pixel of a cell is computed exactly under perspective: the fragment
 //! shader intersects the view ray with the cell's planes, clips the segment to
 //! the near plane and to the opaque depth and looks up the tables (see

@@ -30,12 +30,42 @@ const MIN_GROUP_CELLS: u32 = 1024;
 /// ...and at most this many times per round of cell passes.
 const MAX_MARKS: u32 = 16;
 
-/// One batch to draw: its pipeline variant, its bind group and its cells.
+/// One batch to draw: its pipeline variant, its bind group, what it draws
+/// and its instances.
 struct Draw {
     mode: OpticalMode,
     variant: usize,
     bind_group: BindGroup,
+    shape: DrawShape,
+    /// Instances: one per cell, one for a grid.
     count: u32,
+}
+
+/// What a draw's instances are.
+#[derive(Clone, Copy)]
+enum DrawShape {
+    /// One cell each, a triangle strip of six vertices.
+    Cells,
+    /// A whole grid of `cells` tetrahedra, ray cast from the 36 vertices of
+    /// its box.
+    Grid { cells: u32 },
+}
+
+impl Draw {
+    /// Draws `instances` into `pass` and counts their cells.
+    fn record(
+        &self,
+        pass: &mut wgpu::RenderPass<'_>,
+        instances: Range<u32>,
+        stats: &CellProjectionStats,
+    ) {
+        let (vertices, cells) = match self.shape {
+            DrawShape::Cells => (6, instances.len() as u64),
+            DrawShape::Grid { cells } => (36, u64::from(cells)),
+        };
+        pass.draw(0..vertices, instances);
+        stats.0.cells_drawn.fetch_add(cells, Ordering::Relaxed);
+    }
 }
 
 /// Splits the items, in order, into groups of about `group` cells: each
@@ -287,11 +317,7 @@ impl Passes<'_> {
                     pass.set_bind_group(0, &round.view_bind_group, &[round.uniform_offset]);
                     pass.set_pipeline(pipelines[draw]);
                     pass.set_bind_group(1, &self.draws[draw].bind_group, &[]);
-                    pass.draw(0..6, 0..count);
-                    self.stats
-                        .0
-                        .cells_drawn
-                        .fetch_add(u64::from(count), Ordering::Relaxed);
+                    self.draws[draw].record(&mut pass, 0..count, self.stats);
                     self.stats.0.merged_batches.fetch_add(1, Ordering::Relaxed);
                 }
                 let bind_group =
@@ -344,11 +370,7 @@ impl Passes<'_> {
         for (draw, instances) in run {
             pass.set_pipeline(pipelines[*draw]);
             pass.set_bind_group(1, &self.draws[*draw].bind_group, &[]);
-            pass.draw(0..6, instances.clone());
-            self.stats
-                .0
-                .cells_drawn
-                .fetch_add(u64::from(instances.len() as u32), Ordering::Relaxed);
+            self.draws[*draw].record(&mut pass, instances.clone(), self.stats);
         }
     }
 }
@@ -421,9 +443,17 @@ pub fn draw_cell_batches(
                 batch.hands_off && cell_view.hands_off,
                 buffer.blended,
                 batch.group.is_some(),
+                buffer.ray_cast,
             ),
             bind_group,
-            count: buffer.count,
+            shape: if buffer.ray_cast {
+                DrawShape::Grid {
+                    cells: buffer.count,
+                }
+            } else {
+                DrawShape::Cells
+            },
+            count: if buffer.ray_cast { 1 } else { buffer.count },
         });
         draw_groups.push(batch.group);
     }

@@ -21,23 +21,25 @@ use super::tables::CellTablesUniform;
 use crate::cell_batch::CellBatchUniform;
 
 /// The pipeline variants per optical mode ([`variant_index`]).
-pub(super) const VARIANTS: usize = 32;
+pub(super) const VARIANTS: usize = 64;
 
 /// The index of a pipeline variant: modulated segment lengths, single
-/// scattering, the handoff to fog layers, keyframe blending and drawing
-/// into a merged layer, each on or off.
+/// scattering, the handoff to fog layers, keyframe blending, drawing into a
+/// merged layer and ray casting a whole grid, each on or off.
 pub(super) fn variant_index(
     modulated: bool,
     scattering: bool,
     handoff: bool,
     blended: bool,
     merged: bool,
+    ray_cast: bool,
 ) -> usize {
     usize::from(modulated)
         | usize::from(scattering) << 1
         | usize::from(handoff) << 2
         | usize::from(blended) << 3
         | usize::from(merged) << 4
+        | usize::from(ray_cast) << 5
 }
 
 pub(super) fn mode_index(mode: OpticalMode) -> usize {
@@ -169,6 +171,9 @@ pub struct CellProjectionPipelineKey {
     /// Drawn into a merged layer of its own, with its span along the ray
     /// (see [`super::merge`]).
     pub merged: bool,
+    /// A whole grid, ray cast through its tetrahedra (`nebel_lod`'s
+    /// `cell_grid`): its box is drawn instead of cells.
+    pub ray_cast: bool,
 }
 
 /// Creates the bind group layouts and loads the shaders.
@@ -366,6 +371,13 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
         if key.blended {
             shader_defs.push("BLENDED".into());
         }
+        if key.ray_cast {
+            shader_defs.push("RAY_CAST".into());
+            shader_defs.push(ShaderDefVal::UInt(
+                "TERMINATION_TRANSMITTANCE_BITS".into(),
+                CellProjection::TERMINATION_TRANSMITTANCE.to_bits(),
+            ));
+        }
         let mut targets = vec![Some(ColorTargetState {
             format: key.target_format,
             blend: Some(blend),
@@ -397,10 +409,15 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
                 targets,
                 ..default()
             }),
-            // Cells are triangle strips wound inward: back faces are
-            // counter-clockwise, so culling "back" (clockwise) keeps them.
+            // Cells are triangle strips wound inward, a grid's box a list
+            // of triangles: back faces are counter-clockwise, so culling
+            // "back" (clockwise) keeps them.
             primitive: PrimitiveState {
-                topology: PrimitiveTopology::TriangleStrip,
+                topology: if key.ray_cast {
+                    PrimitiveTopology::TriangleList
+                } else {
+                    PrimitiveTopology::TriangleStrip
+                },
                 front_face: FrontFace::Ccw,
                 cull_mode: Some(Face::Back),
                 ..default()

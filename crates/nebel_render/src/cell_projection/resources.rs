@@ -6,6 +6,7 @@ use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 
+use bevy::math::DMat4;
 use bevy::prelude::*;
 use bevy::render::Extract;
 use bevy::render::camera::ExtractedCamera;
@@ -15,7 +16,7 @@ use bevy::render::texture::{CachedTexture, TextureCache};
 use bevy::render::view::{ExtractedView, Msaa};
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::TransferFunction;
-use nebel_lod::Cells;
+use nebel_lod::{CellGrid, Cells};
 
 use super::CellProjectionStats;
 use super::low_resolution::{
@@ -65,6 +66,11 @@ impl ExtractedCellBatch {
     /// Whether the batch blends toward a next keyframe.
     pub(super) fn is_blended(&self) -> bool {
         self.cells.is_blended()
+    }
+
+    /// Whether the batch is a whole grid, ray cast.
+    pub(super) fn is_ray_cast(&self) -> bool {
+        self.cells.grid.is_some()
     }
 
     /// The batch's per-batch uniform.
@@ -185,19 +191,58 @@ pub struct GpuCellBuffer {
     /// modulated: the field at the end of the batch's span of keyframe
     /// blends), or one zero entry for a batch that is not
     /// blended (the binding must exist; the unblended pipeline never reads
-    /// it).
+    /// it); a ray-cast grid's brick occupancy.
     pub(super) next_keyframe: Buffer,
     pub(super) blended: bool,
     /// The [`CellScattering`] (zeros when the batch has none) and the blend
     /// factor.
     pub(super) parameters: UniformBuffer<CellBatchUniform>,
     pub(super) scattered: bool,
+    /// A whole grid, ray cast: `buffer` holds its values, `modulators` its
+    /// [`GpuCellGrid`] and `next_keyframe` its brick occupancy.
+    pub(super) ray_cast: bool,
+    /// The cells: the tetrahedra, or the grid's.
     pub(super) count: u32,
 }
 
-/// The GPU copies of this frame's batches, by main-world entity.
+/// Where a ray-cast grid lies, as the shader's `CellGrid`.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct GpuCellGrid {
+    world_from_index: [f32; 16],
+    /// The linear part of `index_from_world`, in a 4×4 matrix.
+    index_from_world: [f32; 16],
+    /// Voxels per axis; 1 in the last when `world_from_index` mirrors.
+    voxels: [u32; 4],
+    /// Bricks per axis of the occupancy; voxels per brick edge in the last.
+    bricks: [u32; 4],
+}
+
+impl GpuCellGrid {
+    fn new(grid: &CellGrid) -> Self {
+        let world_from_index = grid.world_from_index();
+        let [x, y, z] = grid.voxels().map(|n| n as u32);
+        let [bx, by, bz] = grid.brick_counts().map(|n| n as u32);
+        Self {
+            world_from_index: DMat4::from(world_from_index).as_mat4().to_cols_array(),
+            index_from_world: DMat4::from_mat3(grid.index_from_world().matrix3)
+                .as_mat4()
+                .to_cols_array(),
+            voxels: [
+                x,
+                y,
+                z,
+                u32::from(world_from_index.matrix3.determinant() < 0.0),
+            ],
+            bricks: [bx, by, bz, grid.brick_size() as u32],
+        }
+    }
+}
+
+/// The GPU copies of this frame's batches, by main-world entity, and the
+/// grids refused as too large for the device (logged once each).
 #[derive(Resource, Default)]
-pub struct GpuCellBuffers(pub(super) HashMap<Entity, GpuCellBuffer>);
+pub struct GpuCellBuffers(pub(super) HashMap<Entity, GpuCellBuffer>, HashSet<Entity>);
 
 /// Uploads batches that are new or changed, writes the per-batch uniform
 /// (blend factor, sunlight) of those where only it changed, and drops those
@@ -215,6 +260,9 @@ pub fn prepare_cell_buffers(
     buffers
         .0
         .retain(|entity, _| extracted.0.iter().any(|(e, _)| e == entity));
+    buffers
+        .1
+        .retain(|entity| extracted.0.iter().any(|(e, _)| e == entity));
     for (entity, batch) in &extracted.0 {
         if !batch.changed
             && let Some(buffer) = buffers.0.get_mut(entity)
@@ -225,37 +273,56 @@ pub fn prepare_cell_buffers(
             }
             continue;
         }
-        let buffer = device.create_buffer_with_data(&BufferInitDescriptor {
-            label: Some("nebel_cell_batch"),
-            contents: bytemuck::cast_slice(batch.cells.tetrahedra.as_slice()),
-            usage: BufferUsages::STORAGE,
-        });
-        let unmodulated = [[0.0f32; 4]];
-        let modulators = device.create_buffer_with_data(&BufferInitDescriptor {
-            label: Some("nebel_cell_modulators"),
-            contents: bytemuck::cast_slice(if batch.is_modulated() {
-                batch.cells.modulators.as_slice()
-            } else {
-                &unmodulated[..]
-            }),
-            usage: BufferUsages::STORAGE,
-        });
-        let next_keyframe: Vec<[f32; 4]> = if batch.is_blended() {
-            let cells = &batch.cells;
-            (0..cells.len())
-                .flat_map(|i| {
-                    let modulators = cells.next_modulators.get(i).copied().unwrap_or_default();
-                    [cells.next_scalars[i], modulators]
-                })
-                .collect()
+        let (buffer, modulators, next_keyframe) = if let Some(grid) = &batch.cells.grid {
+            let values = grid.grid().values();
+            let limit = device.limits().max_storage_buffer_binding_size;
+            if size_of_val(values) as u64 > limit {
+                if buffers.1.insert(*entity) {
+                    error!(
+                        "nebel: the grid of {entity} has {} values, more than the device's storage buffer binding holds ({limit} bytes); it is not drawn: draw it through the octree",
+                        values.len()
+                    );
+                }
+                buffers.0.remove(entity);
+                continue;
+            }
+            (
+                device.create_buffer_with_data(&BufferInitDescriptor {
+                    label: Some("nebel_cell_grid_values"),
+                    contents: bytemuck::cast_slice(values),
+                    usage: BufferUsages::STORAGE,
+                }),
+                device.create_buffer_with_data(&BufferInitDescriptor {
+                    label: Some("nebel_cell_grid"),
+                    contents: bytemuck::bytes_of(&GpuCellGrid::new(grid)),
+                    usage: BufferUsages::STORAGE,
+                }),
+                device.create_buffer_with_data(&BufferInitDescriptor {
+                    label: Some("nebel_cell_grid_occupancy"),
+                    contents: bytemuck::cast_slice(grid.occupied()),
+                    usage: BufferUsages::STORAGE,
+                }),
+            )
         } else {
-            vec![[0.0; 4]]
+            let unmodulated = [[0.0f32; 4]];
+            (
+                device.create_buffer_with_data(&BufferInitDescriptor {
+                    label: Some("nebel_cell_batch"),
+                    contents: bytemuck::cast_slice(batch.cells.tetrahedra.as_slice()),
+                    usage: BufferUsages::STORAGE,
+                }),
+                device.create_buffer_with_data(&BufferInitDescriptor {
+                    label: Some("nebel_cell_modulators"),
+                    contents: bytemuck::cast_slice(if batch.is_modulated() {
+                        batch.cells.modulators.as_slice()
+                    } else {
+                        &unmodulated[..]
+                    }),
+                    usage: BufferUsages::STORAGE,
+                }),
+                next_keyframe_buffer(&device, &batch.cells),
+            )
         };
-        let next_keyframe = device.create_buffer_with_data(&BufferInitDescriptor {
-            label: Some("nebel_cell_next_keyframe"),
-            contents: bytemuck::cast_slice(next_keyframe.as_slice()),
-            usage: BufferUsages::STORAGE,
-        });
         let mut parameters = UniformBuffer::from(batch.uniform());
         parameters.set_label(Some("nebel_cell_batch_parameters"));
         parameters.write_buffer(&device, &queue);
@@ -270,10 +337,32 @@ pub fn prepare_cell_buffers(
                 blended: batch.is_blended(),
                 parameters,
                 scattered: batch.scattering.is_some(),
+                ray_cast: batch.is_ray_cast(),
                 count: batch.cells.len() as u32,
             },
         );
     }
+}
+
+/// Per cell, the next scalars then the next modulators of a blended batch
+/// (zeros when not modulated), or one zero entry for a batch that is not
+/// blended (the binding must exist; the unblended pipeline never reads it).
+fn next_keyframe_buffer(device: &RenderDevice, cells: &Cells) -> Buffer {
+    let next_keyframe: Vec<[f32; 4]> = if cells.is_blended() {
+        (0..cells.len())
+            .flat_map(|i| {
+                let modulators = cells.next_modulators.get(i).copied().unwrap_or_default();
+                [cells.next_scalars[i], modulators]
+            })
+            .collect()
+    } else {
+        vec![[0.0; 4]]
+    };
+    device.create_buffer_with_data(&BufferInitDescriptor {
+        label: Some("nebel_cell_next_keyframe"),
+        contents: bytemuck::cast_slice(next_keyframe.as_slice()),
+        usage: BufferUsages::STORAGE,
+    })
 }
 
 /// The camera data the shader needs, as its `CellView`.
@@ -450,8 +539,9 @@ pub fn prepare_cell_views(
                 let handoff = batch.hands_off && fog.is_some_and(|fog| fog.0.ranges.x > 0.0);
                 let blended = batch.is_blended();
                 let merged = batch.group.is_some();
+                let ray_cast = batch.is_ray_cast();
                 variants[mode_index(batch.mode)]
-                    [variant_index(modulated, scattering, handoff, blended, merged)] =
+                    [variant_index(modulated, scattering, handoff, blended, merged, ray_cast)] =
                     Some(pipelines.specialize(
                         &pipeline_cache,
                         &pipeline,
@@ -468,6 +558,7 @@ pub fn prepare_cell_views(
                             low_resolution,
                             count_fragments,
                             merged,
+                            ray_cast,
                         },
                     ));
             }
