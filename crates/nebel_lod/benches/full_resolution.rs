@@ -1,7 +1,9 @@
 //! Cost of building a full-resolution cell batch: cells per millisecond of
 //! `full_resolution_batch` for a 64³-voxel noise grid (1.57 million cells, every
 //! brick kept), eye outside and inside the grid, back-to-front against
-//! unordered, the one-off cost of its `BrickTable`, and a campfire-sized 16³
+//! unordered, the one-off cost of its `BrickTable`, the batch of the same grid
+//! ray cast whole (`CellGrid` with its brick occupancy, built once per
+//! placement and transfer function instead of per eye), and a campfire-sized 16³
 //! grid (24 576 cells); and MPVO (`CellAdjacency::back_to_front`, plus the
 //! one-off `CellAdjacency::new`) on the default 16 × 4 × 32 search-light cone
 //! and on the tetrahedra of a 16³ grid.
@@ -13,13 +15,14 @@
 //! `-- mpvo`).
 
 use std::hint::black_box;
+use std::sync::Arc;
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use glam::{DAffine3, DQuat, DVec3, UVec2};
 use nebel_core::cell::Tetrahedron;
 use nebel_core::field::{DensityGrid, ProceduralNoise, search_light_cells};
 use nebel_core::transfer::{TransferFunction, TransferPreset};
-use nebel_lod::{BrickTable, CellAdjacency, CellOrder, View, full_resolution_batch};
+use nebel_lod::{BrickTable, CellAdjacency, CellGrid, CellOrder, View, full_resolution_batch};
 
 /// Points per axis: 64³ voxels.
 const POINTS: usize = 65;
@@ -88,6 +91,18 @@ fn bench_grid(c: &mut Criterion, noise: &ProceduralNoise, points: usize) {
             );
         }
     }
+    group.finish();
+
+    let mut group = c.benchmark_group(format!("ray_cast_grid_{}", points - 1));
+    group.throughput(Throughput::Elements(cells as u64));
+    let shared = Arc::new(grid.clone());
+    group.bench_function("new_with_occupancy", |b| {
+        b.iter(|| {
+            CellGrid::new(black_box(shared.clone()), world_from_grid)
+                .and_then(|grid| grid.with_occupancy(&bricks, &transfer))
+                .expect("valid input")
+        });
+    });
     group.finish();
 
     let mut group = c.benchmark_group(format!("brick_table_{}", points - 1));

@@ -41,8 +41,8 @@ use crate::octree::LodCriterion;
 use crate::octree::keyframe::REFINEMENT_SPAN;
 use crate::octree::refresh::Latency;
 use crate::{
-    BatchLighting, BatchSettings, BuiltRefinementStep, CellOrder, Cells, FrameInputs, View,
-    VolumeBatchError, VolumeBatcher, VolumeSource,
+    BatchLighting, BatchSettings, BuiltRefinementStep, CellOrder, Cells, FrameInputs, GridDrawing,
+    View, VolumeBatchError, VolumeBatcher, VolumeSource,
 };
 
 /// A finished batcher build: the batcher and how long it took, ms.
@@ -69,11 +69,12 @@ impl BuildKey {
 }
 
 /// The bits of every value of `settings` (0 for the parts it lacks, with a
-/// flag for each part).
+/// flag for each part; the order and the drawing share the first).
 pub(crate) fn settings_bits(settings: &BatchSettings) -> [u64; 12] {
     let octree = settings.octree.map(|octree| octree.min_accuracy.to_bits());
     let mut bits = [0; 12];
-    bits[0] = u64::from(settings.order == CellOrder::BackToFront);
+    bits[0] = u64::from(settings.order == CellOrder::BackToFront)
+        | u64::from(settings.drawing == GridDrawing::ProjectedCells) << 1;
     bits[1] = u64::from(octree.is_some());
     bits[2] = octree.unwrap_or(0);
     if let Some(BatchLighting { light, scalars }) = settings.lighting {

@@ -344,6 +344,7 @@ mod tests {
         // As projected cells: six per voxel, in the eye's order.
         app.world_mut().entity_mut(volume).insert(ProjectedCells);
         app.update();
+        app.update();
         let batch = app.world().get::<CellBatch>(volume).expect("a batch");
         assert_eq!(batch.cells.tetrahedra.len(), 6 * 8);
         assert!(batch.cells.grid.is_none());
