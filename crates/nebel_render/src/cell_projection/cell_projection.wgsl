@@ -498,11 +498,14 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
 #ifdef COUNT_FRAGMENTS
     atomicAdd(&fragment_count, 1u);
 #endif
-    let direction = normalize(in.relative_position);
     let ndc = vec2(
         (in.clip_position.x - view.viewport.x) / view.viewport.z * 2.0 - 1.0,
         1.0 - (in.clip_position.y - view.viewport.y) / view.viewport.w * 2.0,
     );
+    // The pixel's ray from its centre on the near plane, not interpolated
+    // over the box's faces (large triangles, whose interpolation rounds more).
+    let near = view.world_from_clip * vec4(ndc, 1.0, 1.0);
+    let direction = normalize(near.xyz / near.w - view.camera_position.xyz);
     // The ray in index coordinates: origin + t step, t the world distance.
     let index_from_world = mat3x3(
         grid.index_from_world[0].xyz,
