@@ -456,9 +456,11 @@ fn shade_voxel(
             }
         }
     }
+    // Sorted by comparisons only: no rounding may put an end past t1.
     let lowest = min(min(breaks.x, breaks.y), breaks.z);
+    let middle = max(min(breaks.x, breaks.y), min(max(breaks.x, breaks.y), breaks.z));
     let highest = max(max(breaks.x, breaks.y), breaks.z);
-    var ends = array<f32, 4>(lowest, breaks.x + breaks.y + breaks.z - lowest - highest, highest, t1);
+    var ends = array<f32, 4>(lowest, middle, highest, t1);
     var start = t0;
     var s_start = kuhn_value(&values, clamp(local + start * step, vec3(0.0), vec3(1.0)));
     for (var k = 0; k < 4; k++) {
