@@ -41,6 +41,9 @@ pub struct CellGrid {
     bricks: [usize; 3],
     /// Per brick (x fastest), 1 where it may have opacity, 0 where empty.
     occupied: Vec<u32>,
+    /// The transfer function has no opacity on `[0, clear_below]`
+    /// (negative where it has some at 0).
+    clear_below: f32,
 }
 
 impl CellGrid {
@@ -61,12 +64,15 @@ impl CellGrid {
             brick_size: voxels.into_iter().max().unwrap_or(1),
             bricks: [1; 3],
             occupied: vec![1],
+            clear_below: -1.0,
         })
     }
 
     /// The grid with its bricks of `bricks` (a table of this grid) marked
-    /// empty where `transfer` has zero opacity over their scalar range; an
-    /// error when the table is another grid's.
+    /// empty where `transfer` has zero opacity over their scalar range, and
+    /// the scalar below which `transfer` has none
+    /// ([`CellGrid::clear_below`]); an error when the table is another
+    /// grid's.
     pub fn with_occupancy(
         self,
         bricks: &BrickTable,
@@ -94,8 +100,17 @@ impl CellGrid {
             brick_size: bricks.brick_size(),
             bricks: counts,
             occupied,
+            clear_below: clear_below(transfer),
             ..self
         })
+    }
+
+    /// A scalar below which the transfer function of
+    /// [`CellGrid::with_occupancy`] has no opacity: a voxel whose corners
+    /// are all at most this adds nothing (negative without a transfer
+    /// function or with opacity at 0).
+    pub fn clear_below(&self) -> f32 {
+        self.clear_below
     }
 
     /// Voxels per brick edge of the occupancy.
@@ -266,6 +281,29 @@ impl CellGrid {
     }
 }
 
+/// The largest f32 `s` with no opacity of `transfer` on `[0, s]` (to 2⁻⁴⁰,
+/// rounded down), or −1 when it has opacity at 0.
+fn clear_below(transfer: &TransferFunction) -> f32 {
+    if !transfer.is_transparent(0.0, 0.0) {
+        return -1.0;
+    }
+    let (mut clear, mut opaque) = (0.0f64, 2.0f64);
+    for _ in 0..40 {
+        let middle = 0.5 * (clear + opaque);
+        if transfer.is_transparent(0.0, middle) && middle <= 1.0 {
+            clear = middle;
+        } else {
+            opaque = middle;
+        }
+    }
+    let rounded = clear as f32;
+    if f64::from(rounded) > clear {
+        rounded.next_down()
+    } else {
+        rounded
+    }
+}
+
 /// The piecewise-linear field of Kuhn's tetrahedra in a voxel with corner
 /// values `values` (corner `x + 2y + 4z`) at local coordinates `u` in
 /// [0, 1]³: with the axes ordered `u_a ≥ u_b ≥ u_c`, the barycentric
@@ -406,7 +444,7 @@ mod tests {
     }
 
     /// A transfer function with no opacity below s = 0.4.
-    fn clear_below() -> TransferFunction {
+    fn opaque_above_0_4() -> TransferFunction {
         let point = |s: f32, rho: f32| nebel_core::transfer::ControlPoint {
             s,
             kappa: [1.0; 3],
@@ -432,13 +470,32 @@ mod tests {
             .collect();
         let grid =
             Arc::new(DensityGrid::new(dims, DVec3::ONE, DVec3::ZERO, values).expect("valid"));
-        let transfer = clear_below();
+        let transfer = opaque_above_0_4();
         let table = BrickTable::new(&grid, 4);
         let cells = CellGrid::new(grid.clone(), DAffine3::IDENTITY)
             .expect("invertible")
             .with_occupancy(&table, &transfer)
             .expect("the grid's table");
         assert_eq!(cells.brick_counts(), [3, 2, 3]);
+        let clear = f64::from(cells.clear_below());
+        assert!((clear - f64::from(0.4f32)).abs() < 1e-9, "{clear}");
+        assert!(transfer.is_transparent(0.0, clear) && !transfer.is_transparent(0.0, clear + 1e-6));
+        let point = |s: f32, rho: f32| nebel_core::transfer::ControlPoint {
+            s,
+            kappa: [1.0; 3],
+            rho,
+        };
+        let dense =
+            TransferFunction::new([point(0.0, 1.0), point(1.0, 2.0)]).expect("valid points");
+        let unclear = CellGrid::new(grid.clone(), DAffine3::IDENTITY).unwrap();
+        assert!(unclear.clear_below() < 0.0);
+        assert!(
+            unclear
+                .with_occupancy(&table, &dense)
+                .unwrap()
+                .clear_below()
+                < 0.0
+        );
         let brick_of = |p: DVec3| {
             let [x, y, z] = [p.x, p.y, p.z].map(|c| (c.max(0.0) as usize / 4).min(2));
             x + 3 * (y.min(1) + 2 * z)

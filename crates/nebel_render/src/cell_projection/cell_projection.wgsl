@@ -143,6 +143,9 @@ struct CellGrid {
     voxels: vec4<u32>,
     // xyz: bricks per axis of `occupied`; w: voxels per brick edge.
     bricks: vec4<u32>,
+    // x: the scalar at or below which the transfer function has no opacity
+    // (negative for none).
+    clear: vec4<f32>,
 }
 @group(1) @binding(4) var<storage, read> grid: CellGrid;
 #else
@@ -334,7 +337,10 @@ fn segment_colour(
 #else
     let optical_depth = segment_length * pair_lookup(s_front, s_back).a;
     let alpha = 1.0 - exp(-optical_depth);
-    let colour = alpha * colour_lookup(s_front, s_back, optical_depth);
+    var colour = vec3(0.0);
+    if optical_depth > 0.0 {
+        colour = alpha * colour_lookup(s_front, s_back, optical_depth);
+    }
 #endif
 #ifdef SCATTERING
     let g = parameters.sun.w;
@@ -440,8 +446,14 @@ fn shade_voxel(
 ) {
     let low = vec3<u32>(voxel);
     var values: array<f32, 8>;
+    var highest_value = -1.0;
     for (var c = 0u; c < 8u; c++) {
         values[c] = grid_value(low + vec3<u32>(c & 1u, (c >> 1u) & 1u, c >> 2u));
+        highest_value = max(highest_value, values[c]);
+    }
+    // No corner above the clear range: no scalar in the voxel is.
+    if highest_value <= grid.clear.x {
+        return;
     }
     let local = origin - vec3<f32>(voxel);
     // Where the ray crosses u_x = u_y, u_y = u_z and u_x = u_z, sorted.

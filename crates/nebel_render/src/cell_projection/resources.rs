@@ -216,6 +216,9 @@ struct GpuCellGrid {
     voxels: [u32; 4],
     /// Bricks per axis of the occupancy; voxels per brick edge in the last.
     bricks: [u32; 4],
+    /// The scalar at or below which the transfer function has no opacity
+    /// (negative for none); the rest unused.
+    clear: [f32; 4],
 }
 
 impl GpuCellGrid {
@@ -235,6 +238,7 @@ impl GpuCellGrid {
                 u32::from(world_from_index.matrix3.determinant() < 0.0),
             ],
             bricks: [bx, by, bz, grid.brick_size() as u32],
+            clear: [grid.clear_below(), 0.0, 0.0, 0.0],
         }
     }
 }
