@@ -70,8 +70,8 @@
 // tetrahedra: the pieces are exactly the segments of the grid's tetrahedra,
 // front to back, each shaded as above and composited under the ones in
 // front; the ray stops once its transmittance is below the early
-// termination's threshold, and voxels in bricks without opacity under the
-// transfer function are not shaded (their segments add nothing).
+// termination's threshold; it jumps over bricks without opacity under the
+// transfer function (their segments add nothing).
 //
 // All positions are taken relative to the camera so large world coordinates
 // keep their precision.
@@ -588,9 +588,43 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
         if next.z < next[axis] {
             axis = 2;
         }
-        let end = min(next[axis], t_exit);
         let brick = vec3<u32>(voxel) / grid.bricks.w;
-        if end > t && occupied[brick.x + grid.bricks.x * (brick.y + grid.bricks.y * brick.z)] != 0u {
+        if occupied[brick.x + grid.bricks.x * (brick.y + grid.bricks.y * brick.z)] == 0u {
+            // An empty brick: on to the voxel where the ray leaves it.
+            let low = vec3<f32>(brick * grid.bricks.w);
+            let high = min(low + f32(grid.bricks.w), voxels);
+            var leave = 3.0e38;
+            var leave_axis = 0;
+            for (var a = 0; a < 3; a++) {
+                if step[a] != 0.0 {
+                    let crossing = (select(low[a], high[a], step[a] > 0.0) - origin[a]) / step[a];
+                    if crossing < leave {
+                        leave = crossing;
+                        leave_axis = a;
+                    }
+                }
+            }
+            t = max(t, leave);
+            if t >= t_exit {
+                break;
+            }
+            let p = origin + t * step;
+            for (var a = 0; a < 3; a++) {
+                voxel[a] = clamp(i32(floor(p[a])), i32(low[a]), i32(high[a]) - 1);
+            }
+            voxel[leave_axis] = i32(select(low[leave_axis] - 1.0, high[leave_axis], step[leave_axis] > 0.0));
+            if voxel[leave_axis] < 0 || voxel[leave_axis] >= i32(grid.voxels[leave_axis]) {
+                break;
+            }
+            for (var a = 0; a < 3; a++) {
+                if step[a] != 0.0 {
+                    next[a] = (f32(voxel[a] + select(0, 1, step[a] > 0.0)) - origin[a]) / step[a];
+                }
+            }
+            continue;
+        }
+        let end = min(next[axis], t_exit);
+        if end > t {
             shade_voxel(voxel, origin, step, direction, t, end, &accumulated);
         }
         t = max(t, end);
