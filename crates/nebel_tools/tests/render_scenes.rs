@@ -649,23 +649,28 @@ fn gpu_cell_projection_matches_the_exact_reference() {
         assert_within_bounds(name, &metrics, &mut report);
     }
     for (a, b) in AGREEING_SCENES {
-        let load = |name: &str| {
-            image::open(out_dir.join(format!("{name}_gpu.png")))
-                .unwrap()
-                .to_rgb8()
-        };
-        let (a_image, b_image) = (load(a), load(b));
-        let largest = a_image
-            .as_raw()
-            .iter()
-            .zip(b_image.as_raw())
-            .map(|(p, q)| p.abs_diff(*q))
-            .max()
-            .unwrap();
+        let largest = largest_step(&out_dir, a, b);
         report.push(format!("{a} against {b}: {largest}/255 at most"));
         assert!(largest <= 1, "{a} against {b}: {largest}/255");
     }
     eprintln!("{}", report.join("\n"));
+}
+
+/// The largest difference, in 8-bit steps of any channel, between the
+/// renders `{a}_gpu.png` and `{b}_gpu.png` in `out_dir`.
+fn largest_step(out_dir: &Path, a: &str, b: &str) -> u8 {
+    let load = |image: &str| {
+        image::open(out_dir.join(format!("{image}_gpu.png")))
+            .unwrap()
+            .to_rgb8()
+    };
+    let (a, b) = (load(a), load(b));
+    a.as_raw()
+        .iter()
+        .zip(b.as_raw())
+        .map(|(p, q)| p.abs_diff(*q))
+        .max()
+        .unwrap()
 }
 
 /// Checks `metrics` of accuracy scene `name` against its bounds
@@ -778,22 +783,11 @@ fn a_ray_cast_grid_draws_what_its_projected_cells_draw() {
         let projected_options = [&full[..], &["--projected-cells"]].concat();
         let (projected, _, projected_stats) =
             scored_render(None, name, &format!("{name}_projected"), &projected_options);
-        let load = |image: &str| {
-            image::open(out_dir.join(format!("{image}_gpu.png")))
-                .unwrap()
-                .to_rgb8()
-        };
-        let (a, b) = (
-            load(&format!("{name}_ray_cast")),
-            load(&format!("{name}_projected")),
+        let largest = largest_step(
+            &out_dir,
+            &format!("{name}_ray_cast"),
+            &format!("{name}_projected"),
         );
-        let largest = a
-            .as_raw()
-            .iter()
-            .zip(b.as_raw())
-            .map(|(p, q)| p.abs_diff(*q))
-            .max()
-            .unwrap();
         let (cast, cells) = (
             fragments_per_pixel(&ray_cast_stats),
             fragments_per_pixel(&projected_stats),

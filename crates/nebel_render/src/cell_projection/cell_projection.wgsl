@@ -268,6 +268,14 @@ fn pixel_angle(ndc: vec2<f32>, direction: vec3<f32>) -> f32 {
     return length(normalize(above.xyz / above.w - view.camera_position.xyz) - direction);
 }
 
+// The NDC of a fragment's pixel centre in the view's viewport.
+fn pixel_ndc(clip_position: vec4<f32>) -> vec2<f32> {
+    return vec2(
+        (clip_position.x - view.viewport.x) / view.viewport.z * 2.0 - 1.0,
+        1.0 - (clip_position.y - view.viewport.y) / view.viewport.w * 2.0,
+    );
+}
+
 // Table coordinates: node i at s = i / (n − 1); returns the lower node and the weight of the upper.
 fn table_position(x: f32, nodes: u32) -> vec2<f32> {
     let scaled = clamp(x, 0.0, 1.0) * f32(nodes - 1u);
@@ -512,10 +520,7 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
 #ifdef COUNT_FRAGMENTS
     atomicAdd(&fragment_count, 1u);
 #endif
-    let ndc = vec2(
-        (in.clip_position.x - view.viewport.x) / view.viewport.z * 2.0 - 1.0,
-        1.0 - (in.clip_position.y - view.viewport.y) / view.viewport.w * 2.0,
-    );
+    let ndc = pixel_ndc(in.clip_position);
     // The pixel's ray from its centre on the near plane, not interpolated
     // over the box's faces (large triangles, whose interpolation rounds more).
     let near = view.world_from_clip * vec4(ndc, 1.0, 1.0);
@@ -674,10 +679,7 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     // fraction of a pixel, gives to the faces of the cell on either side)
     // has no side to choose: that face does not clip it, so the cell that
     // got the pixel draws the ray.
-    let ndc = vec2(
-        (in.clip_position.x - view.viewport.x) / view.viewport.z * 2.0 - 1.0,
-        1.0 - (in.clip_position.y - view.viewport.y) / view.viewport.w * 2.0,
-    );
+    let ndc = pixel_ndc(in.clip_position);
     let v0 = relative_vertex(cell, 0u);
     let e1 = relative_vertex(cell, 1u) - v0;
     let e2 = relative_vertex(cell, 2u) - v0;
