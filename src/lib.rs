@@ -94,8 +94,8 @@ pub mod prelude {
     #[cfg(feature = "volume")]
     pub use nebel_volume::{
         Campfire, CloudLightModel, CloudVolume, FlickeringLight, FlickeringLightPlugin,
-        LodCriterion, Volume, VolumeError, VolumeField, VolumeGrid, VolumeLighting, VolumeLod,
-        VolumeStatus,
+        LodCriterion, ProjectedCells, Volume, VolumeError, VolumeField, VolumeGrid, VolumeLighting,
+        VolumeLod, VolumeStatus,
     };
 }
 
