@@ -389,6 +389,13 @@ fn segment_colour(
     return segment;
 }
 
+// A fragment's premultiplied colour and opacity, and its entry and
+// negated exit distance along the ray (read by the MERGED variant).
+struct Shaded {
+    segment: vec4<f32>,
+    span: vec2<f32>,
+}
+
 #ifdef MERGED
 // A batch drawn alone into its merged layer (merge.rs): the segment, and its
 // entry and negated exit distance, min-blended into the batch's span along
@@ -508,18 +515,9 @@ fn shade_voxel(
     }
 }
 
-#ifdef EARLY_DEPTH_TEST
-@early_depth_test(force)
-#endif
-@fragment
-#ifdef MERGED
-fn fragment(in: VertexOutput) -> MergedOutput {
-#else
-fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
-#endif
-#ifdef COUNT_FRAGMENTS
-    atomicAdd(&fragment_count, 1u);
-#endif
+// The segment of the grid along the fragment's ray: every piece through
+// its tetrahedra, composited front to back.
+fn ray_cast(in: VertexOutput) -> Shaded {
     let ndc = pixel_ndc(in.clip_position);
     // The pixel's ray from its centre on the near plane, not interpolated
     // over the box's faces (large triangles, whose interpolation rounds more).
@@ -642,29 +640,11 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
         }
         next[axis] += advance[axis];
     }
-    let segment = vec4(accumulated.colour, 1.0 - accumulated.transmittance);
-#ifdef MERGED
-    return MergedOutput(segment, vec2(t_entry, -t));
-#else
-    return segment;
-#endif
+    return Shaded(vec4(accumulated.colour, 1.0 - accumulated.transmittance), vec2(t_entry, -t));
 }
 #else
-// The stencil of early termination and of the low resolution's resolved
-// pixels rejects fragments before they run: the shader writes no depth or
-// stencil, so its discards do not change what the test sees.
-#ifdef EARLY_DEPTH_TEST
-@early_depth_test(force)
-#endif
-@fragment
-#ifdef MERGED
-fn fragment(in: VertexOutput) -> MergedOutput {
-#else
-fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
-#endif
-#ifdef COUNT_FRAGMENTS
-    atomicAdd(&fragment_count, 1u);
-#endif
+// The segment of the fragment's cell along its ray.
+fn project_cell(in: VertexOutput) -> Shaded {
     let cell = cells[in.cell_index];
     let direction = normalize(in.relative_position);
 
@@ -756,10 +736,33 @@ fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
     let m_back = 1.0;
 #endif
     let segment = segment_colour(s_front, s_back, m_front, m_back, length, direction, 0.5 * (t_entry + t_exit));
-#ifdef MERGED
-    return MergedOutput(segment, vec2(t_entry, -t_exit));
-#else
-    return segment;
-#endif
+    return Shaded(segment, vec2(t_entry, -t_exit));
 }
 #endif
+
+// The stencil of early termination and of the low resolution's resolved
+// pixels rejects fragments before they run: the shader writes no depth or
+// stencil, so its discards do not change what the test sees.
+#ifdef EARLY_DEPTH_TEST
+@early_depth_test(force)
+#endif
+@fragment
+#ifdef MERGED
+fn fragment(in: VertexOutput) -> MergedOutput {
+#else
+fn fragment(in: VertexOutput) -> @location(0) vec4<f32> {
+#endif
+#ifdef COUNT_FRAGMENTS
+    atomicAdd(&fragment_count, 1u);
+#endif
+#ifdef RAY_CAST
+    let shaded = ray_cast(in);
+#else
+    let shaded = project_cell(in);
+#endif
+#ifdef MERGED
+    return MergedOutput(shaded.segment, shaded.span);
+#else
+    return shaded.segment;
+#endif
+}

@@ -18,7 +18,8 @@
 //!   table), cached by transfer function hash and built off the frame;
 //! - `pipeline`: bind group layouts, shaders and the pipeline variants
 //!   (optical mode, modulated segment lengths, single scattering, MSAA,
-//!   fog layers, stencil, low resolution, fragment counting);
+//!   fog layers, stencil, low resolution, fragment counting, ray casting
+//!   a whole grid);
 //! - `settings`: [`CellProjection`] and its extraction;
 //! - `low_resolution`: the downsampled depth and the upsample;
 //! - `merge`: batches whose bounds intersect, composited jointly per pixel;
