@@ -755,10 +755,11 @@ fn early_termination_skips_the_cells_behind_opaque_pixels() {
 
 /// Accuracy scenes with grids at full resolution (each scene's count of
 /// grids), ray cast by default: sorted, emissive and MIP (whose maximum
-/// shows any spurious piece), with fog layers, an opaque scene and two
-/// volumes.
+/// shows any spurious piece), with fog layers, an opaque scene, two
+/// volumes, and a sparse cloud whose empty bricks the rays jump over.
 const GRID_SCENES: &[(&str, f64)] = &[
     ("dense_cloud", 1.0),
+    ("sparse_cloud", 1.0),
     ("ramp_sorted", 1.0),
     ("ramp_emissive", 1.0),
     ("ramp_mip", 1.0),
