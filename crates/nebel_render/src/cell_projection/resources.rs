@@ -91,8 +91,9 @@ pub struct TableKey {
 }
 
 /// Copies the drawable batches into the render world. A batch whose
-/// modulators or next keyframe do not match its cells is not drawn; the
-/// error is logged once per entity.
+/// modulators or next keyframe do not match its cells, or whose grid does
+/// not fit the device's storage-buffer binding, is not drawn; the error is
+/// logged once per entity.
 pub fn extract_cell_batches(
     mut extracted: ResMut<ExtractedCellBatches>,
     batches: Extract<
@@ -104,6 +105,7 @@ pub fn extract_cell_batches(
         )>,
     >,
     unsupported: Option<Res<CellProjectionUnsupported>>,
+    device: Res<RenderDevice>,
     mut refused: Local<HashSet<Entity>>,
 ) {
     extracted.0.clear();
@@ -120,24 +122,31 @@ pub fn extract_cell_batches(
             continue;
         };
         let cells = &batch.cells;
-        let mismatch = if cells.is_modulated() && cells.modulators.len() != cells.len() {
-            Some(("modulators", cells.modulators.len()))
+        let mismatch =
+            |what: &str, count: usize| Some(format!("{count} {what} for {} cells", cells.len()));
+        let limit = device.limits().max_storage_buffer_binding_size;
+        let refusal = if let Some(grid) = &cells.grid
+            && size_of_val(grid.grid().values()) as u64 > limit
+        {
+            Some(format!(
+                "a grid of {} values, more than the device's storage-buffer binding holds ({limit} bytes; draw it through the octree)",
+                grid.grid().values().len()
+            ))
+        } else if cells.is_modulated() && cells.modulators.len() != cells.len() {
+            mismatch("modulators", cells.modulators.len())
         } else if cells.is_blended() && cells.next_scalars.len() != cells.len() {
-            Some(("next scalars", cells.next_scalars.len()))
+            mismatch("next scalars", cells.next_scalars.len())
         } else if cells.is_blended()
             && cells.is_modulated()
             && cells.next_modulators.len() != cells.len()
         {
-            Some(("next modulators", cells.next_modulators.len()))
+            mismatch("next modulators", cells.next_modulators.len())
         } else {
             None
         };
-        if let Some((what, count)) = mismatch {
+        if let Some(refusal) = refusal {
             if refused.insert(entity) {
-                error!(
-                    "nebel: the CellBatch of {entity} has {count} {what} for {} cells; it is not drawn",
-                    cells.len()
-                );
+                error!("nebel: the CellBatch of {entity} has {refusal}; it is not drawn");
             }
             continue;
         }
@@ -243,10 +252,9 @@ impl GpuCellGrid {
     }
 }
 
-/// The GPU copies of this frame's batches, by main-world entity, and the
-/// grids refused as too large for the device (logged once each).
+/// The GPU copies of this frame's batches, by main-world entity.
 #[derive(Resource, Default)]
-pub struct GpuCellBuffers(pub(super) HashMap<Entity, GpuCellBuffer>, HashSet<Entity>);
+pub struct GpuCellBuffers(pub(super) HashMap<Entity, GpuCellBuffer>);
 
 /// Uploads batches that are new or changed, writes the per-batch uniform
 /// (blend factor, sunlight) of those where only it changed, and drops those
@@ -264,9 +272,6 @@ pub fn prepare_cell_buffers(
     buffers
         .0
         .retain(|entity, _| extracted.0.iter().any(|(e, _)| e == entity));
-    buffers
-        .1
-        .retain(|entity| extracted.0.iter().any(|(e, _)| e == entity));
     for (entity, batch) in &extracted.0 {
         if !batch.changed
             && let Some(buffer) = buffers.0.get_mut(entity)
@@ -278,22 +283,10 @@ pub fn prepare_cell_buffers(
             continue;
         }
         let (buffer, modulators, next_keyframe) = if let Some(grid) = &batch.cells.grid {
-            let values = grid.grid().values();
-            let limit = device.limits().max_storage_buffer_binding_size;
-            if size_of_val(values) as u64 > limit {
-                if buffers.1.insert(*entity) {
-                    error!(
-                        "nebel: the grid of {entity} has {} values, more than the device's storage buffer binding holds ({limit} bytes); it is not drawn: draw it through the octree",
-                        values.len()
-                    );
-                }
-                buffers.0.remove(entity);
-                continue;
-            }
             (
                 device.create_buffer_with_data(&BufferInitDescriptor {
                     label: Some("nebel_cell_grid_values"),
-                    contents: bytemuck::cast_slice(values),
+                    contents: bytemuck::cast_slice(grid.grid().values()),
                     usage: BufferUsages::STORAGE,
                 }),
                 device.create_buffer_with_data(&BufferInitDescriptor {
