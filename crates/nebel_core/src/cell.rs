@@ -21,8 +21,9 @@
 //!   The search-light cone uses it.
 //! - A hexahedron also splits into six tetrahedra around its diagonal from
 //!   corner 0 to corner 7, one per ordering of the axes
-//!   ([`Hexahedron::kuhn_tetrahedra`], [`KUHN_TETRAHEDRA`]; Kuhn, "Some
-//!   combinatorial lemmas in topology", 1960; Freudenthal 1942). Every cell
+//!   ([`Hexahedron::kuhn_tetrahedra`], [`KUHN_TETRAHEDRA`], their field
+//!   [`kuhn_value`]; Kuhn, "Some combinatorial lemmas in topology", 1960;
+//!   Freudenthal 1942). Every cell
 //!   uses the same one, whose face diagonals all run from a face's lowest
 //!   corner to its highest, so a grid conforms without alternating. Unlike
 //!   the five-tetrahedron one it is **nested**: halving a box's edges and
@@ -495,6 +496,22 @@ const fn kuhn_tetrahedra() -> [[usize; 4]; 6] {
     tetrahedra
 }
 
+/// The piecewise-linear field of Kuhn's tetrahedra ([`KUHN_TETRAHEDRA`]) in
+/// a box with corner values `values` (corner `x + 2y + 4z`) at local
+/// coordinates `u` in [0, 1]³, in closed form: with the axes ordered `u_a ≥
+/// u_b ≥ u_c`, the barycentric weights of corners 0, `e_a`, `e_a + e_b` and 7
+/// are `1 − u_a`, `u_a − u_b`, `u_b − u_c` and `u_c`.
+pub fn kuhn_value(values: &[f64; 8], u: DVec3) -> f64 {
+    let mut axes = [0, 1, 2];
+    axes.sort_by(|&a, &b| u[b].total_cmp(&u[a]));
+    let [a, b, c] = axes;
+    let (side, diagonal) = (1 << a, (1 << a) | (1 << b));
+    values[0] * (1.0 - u[a])
+        + values[side] * (u[a] - u[b])
+        + values[diagonal] * (u[b] - u[c])
+        + values[7] * u[c]
+}
+
 /// A hexahedron (voxel or general convex cell with 8 corners), corner
 /// `x + 2y + 4z` at local corner bits `x, y, z ∈ {0, 1}`.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -831,20 +848,9 @@ mod tests {
         }
     }
 
-    /// The piecewise-linear field of Kuhn's decomposition of the box `min +
-    /// [0, size]³` with corner values `scalars` at `p`, in closed form: with
-    /// the local coordinates sorted, `u_a ≥ u_b ≥ u_c`, the barycentric
-    /// weights on corners `0, a, a + b, 7` are `1 − u_a, u_a − u_b, u_b − u_c,
-    /// u_c`.
+    /// [`kuhn_value`] of the box `min + [0, size]³` at `p`.
     fn kuhn_field(min: DVec3, size: f64, scalars: &[f64; 8], p: DVec3) -> f64 {
-        let u = ((p - min) / size).to_array();
-        let mut axes = [0, 1, 2];
-        axes.sort_by(|&i, &j| u[j].total_cmp(&u[i]));
-        let [a, b, c] = axes;
-        (1.0 - u[a]) * scalars[0]
-            + (u[a] - u[b]) * scalars[1 << a]
-            + (u[b] - u[c]) * scalars[(1 << a) | (1 << b)]
-            + u[c] * scalars[7]
+        kuhn_value(scalars, (p - min) / size)
     }
 
     proptest! {

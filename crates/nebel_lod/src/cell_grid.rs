@@ -23,7 +23,7 @@
 use std::sync::Arc;
 
 use glam::{DAffine3, DVec3, Vec3};
-use nebel_core::cell::{CellSegment, Ray};
+use nebel_core::cell::{CellSegment, Ray, kuhn_value};
 use nebel_core::field::DensityGrid;
 use nebel_core::transfer::TransferFunction;
 
@@ -302,21 +302,6 @@ fn clear_below(transfer: &TransferFunction) -> f32 {
     } else {
         rounded
     }
-}
-
-/// The piecewise-linear field of Kuhn's tetrahedra in a voxel with corner
-/// values `values` (corner `x + 2y + 4z`) at local coordinates `u` in
-/// [0, 1]³: with the axes ordered `u_a ≥ u_b ≥ u_c`, the barycentric
-/// combination of corners 0, `e_a`, `e_a + e_b` and 7.
-pub fn kuhn_value(values: &[f64; 8], u: DVec3) -> f64 {
-    let mut axes = [0, 1, 2];
-    axes.sort_by(|&a, &b| u[b].total_cmp(&u[a]));
-    let [a, b, c] = axes;
-    let (side, diagonal) = (1 << a, (1 << a) | (1 << b));
-    values[0] * (1.0 - u[a])
-        + values[side] * (u[a] - u[b])
-        + values[diagonal] * (u[b] - u[c])
-        + values[7] * u[c]
 }
 
 #[cfg(test)]
