@@ -69,12 +69,12 @@ impl BuildKey {
 }
 
 /// The bits of every value of `settings` (0 for the parts it lacks, with a
-/// flag for each part; the order and the drawing share the first).
-pub(crate) fn settings_bits(settings: &BatchSettings) -> [u64; 12] {
+/// flag for each part).
+pub(crate) fn settings_bits(settings: &BatchSettings) -> [u64; 13] {
     let octree = settings.octree.map(|octree| octree.min_accuracy.to_bits());
-    let mut bits = [0; 12];
-    bits[0] = u64::from(settings.order == CellOrder::BackToFront)
-        | u64::from(settings.drawing == GridDrawing::ProjectedCells) << 1;
+    let mut bits = [0; 13];
+    bits[0] = u64::from(settings.order == CellOrder::BackToFront);
+    bits[12] = u64::from(settings.drawing == GridDrawing::ProjectedCells);
     bits[1] = u64::from(octree.is_some());
     bits[2] = octree.unwrap_or(0);
     if let Some(BatchLighting { light, scalars }) = settings.lighting {
@@ -84,7 +84,7 @@ pub(crate) fn settings_bits(settings: &BatchSettings) -> [u64; 12] {
         bits[6] = u64::from(light.shadow_extinction.to_bits());
         bits[7] = u64::from(light.lambert);
         bits[8] = scalars as u64;
-        bits[9..].copy_from_slice(&light.sun_direction.to_array().map(f64::to_bits));
+        bits[9..12].copy_from_slice(&light.sun_direction.to_array().map(f64::to_bits));
     }
     bits
 }
