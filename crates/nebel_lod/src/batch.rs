@@ -90,7 +90,9 @@ impl GpuCell {
 /// A batch may instead be a whole density grid ([`Cells::grid`]): its Kuhn
 /// tetrahedra, ray cast by the renderer front to back without being
 /// emitted ([`crate::cell_grid`]). It has no tetrahedra, modulators or next
-/// keyframe then.
+/// keyframe then; a lit grid carries its modulators at its points
+/// ([`CellGrid::modulators`]), a blended one its next keyframe
+/// ([`CellGrid::next_keyframe`]).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Cells {
     /// The cells in draw order.
@@ -160,15 +162,20 @@ impl Cells {
         }
     }
 
-    /// Whether the cells carry segment-length modulators.
+    /// Whether the cells carry segment-length modulators (per cell, or at a
+    /// ray-cast grid's points).
     pub fn is_modulated(&self) -> bool {
         !self.modulators.is_empty()
+            || self
+                .grid
+                .as_ref()
+                .is_some_and(|grid| grid.modulators().is_some())
     }
 
     /// Whether the cells carry a next keyframe to blend toward (see the type
     /// docs).
     pub fn is_blended(&self) -> bool {
-        !self.next_scalars.is_empty()
+        !self.next_scalars.is_empty() || self.grid.as_ref().is_some_and(|grid| grid.is_blended())
     }
 
     /// The mix factor `t` in [0, 1] at which the renderer draws the
@@ -195,6 +202,13 @@ impl Cells {
             return self.clone();
         }
         let t = self.mix_factor(blend);
+        if let Some(grid) = &self.grid {
+            return Self {
+                grid: Some(Arc::new(grid.blended(t))),
+                blends: [0.0; 2],
+                ..self.clone()
+            };
+        }
         let mix = |current: f32, next: f32| (1.0 - t) * current + t * next;
         let cells = self
             .tetrahedra
@@ -224,10 +238,17 @@ impl Cells {
         }
     }
 
-    /// The batch of a whole grid, drawn by ray casting (see the type docs).
+    /// The batch of a whole grid, drawn by ray casting (see the type
+    /// docs); a blended grid serves the whole span of its two keyframes,
+    /// blends `[0, 1]`.
     pub fn from_grid(grid: CellGrid) -> Self {
         let (bounds_min, bounds_max) = grid.bounds();
         Self {
+            blends: if grid.is_blended() {
+                [0.0, 1.0]
+            } else {
+                [0.0; 2]
+            },
             bounds_min,
             bounds_max,
             grid: Some(Arc::new(grid)),

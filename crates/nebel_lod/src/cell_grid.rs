@@ -17,6 +17,21 @@
 //! their pieces: exact, since their segments have no opacity and emit
 //! nothing.
 //!
+//! A lit cloud's grid carries a second field at the same points, the
+//! segment-length modulator ([`CellGrid::with_modulators`]; the light and the
+//! density of Röttger and Ertl 2003 §5, as [`crate::Cells`] describes): it is
+//! linear over the same tetrahedra, so each piece has its value at both
+//! ends too. Where the modulator is the density (§5.1, `l' = l · f`), the
+//! opacity is zero exactly where the density is, and the bricks are tested
+//! on it ([`CellGrid::with_modulator_occupancy`]).
+//!
+//! A grid of two keyframes ([`CellGrid::with_next_keyframe`], a cloud in the
+//! wind or a light field under a moving sun) carries both fields at its
+//! points; the renderer draws each point at `(1 − t) current + t next` for
+//! the batch's mix factor `t` ([`crate::Cells::mix_factor`]), still linear
+//! over the same tetrahedra. Its bricks are tested on the range spanning
+//! both keyframes ([`BrickTable::spanning`]), which holds every mix.
+//!
 //! [`CellGrid::segments`] is that traversal on the CPU: the model the shader
 //! follows, tested against the tetrahedra's own intersections.
 
@@ -44,6 +59,20 @@ pub struct CellGrid {
     /// The transfer function has no opacity on `[0, clear_below]`
     /// (negative where it has some at 0).
     clear_below: f32,
+    /// The segment-length modulator at the same points, if any.
+    modulators: Option<Arc<DensityGrid>>,
+    /// The occupancy and `clear_below` are over the modulators (their
+    /// opacity) instead of the scalars.
+    clears_modulators: bool,
+    /// The next keyframe's scalars and modulators, for a blended grid.
+    next: Option<NextKeyframe>,
+}
+
+/// A blended grid's fields at its next keyframe.
+#[derive(Clone, Debug, PartialEq)]
+struct NextKeyframe {
+    scalars: Arc<DensityGrid>,
+    modulators: Option<Arc<DensityGrid>>,
 }
 
 impl CellGrid {
@@ -65,6 +94,93 @@ impl CellGrid {
             bricks: [1; 3],
             occupied: vec![1],
             clear_below: -1.0,
+            modulators: None,
+            clears_modulators: false,
+            next: None,
+        })
+    }
+
+    /// The grid blending toward `next`, the same grid's fields at the next
+    /// keyframe (module docs; its placement and occupancy are not read); an
+    /// error when its points differ or only one of the two has modulators.
+    /// Give the occupancy a table spanning both keyframes.
+    pub fn with_next_keyframe(self, next: &CellGrid) -> Result<Self, BatchError> {
+        if next.grid.dims() != self.grid.dims()
+            || next.modulators.is_some() != self.modulators.is_some()
+        {
+            return Err(BatchError::KeyframeMismatch {
+                current: self.grid.dims(),
+                current_modulated: self.modulators.is_some(),
+                next: next.grid.dims(),
+                next_modulated: next.modulators.is_some(),
+            });
+        }
+        Ok(Self {
+            next: Some(NextKeyframe {
+                scalars: next.grid.clone(),
+                modulators: next.modulators.clone(),
+            }),
+            ..self
+        })
+    }
+
+    /// Whether the grid blends toward a next keyframe.
+    pub fn is_blended(&self) -> bool {
+        self.next.is_some()
+    }
+
+    /// The next keyframe's scalars and modulators, for a blended grid.
+    pub fn next_keyframe(&self) -> Option<(&DensityGrid, Option<&DensityGrid>)> {
+        self.next
+            .as_ref()
+            .map(|next| (next.scalars.as_ref(), next.modulators.as_deref()))
+    }
+
+    /// The grid as drawn at mix factor `t` (clamped to [0, 1], NaN as 0):
+    /// every field at `(1 − t) current + t next`, not blended; a grid that
+    /// is not blended as it is.
+    pub fn blended(&self, t: f32) -> Self {
+        let Some(next) = &self.next else {
+            return self.clone();
+        };
+        let t = if t.is_nan() { 0.0 } else { t.clamp(0.0, 1.0) };
+        let mix = |current: &DensityGrid, next: &DensityGrid| {
+            let values = current
+                .values()
+                .iter()
+                .zip(next.values())
+                .map(|(&a, &b)| (1.0 - t) * a + t * b)
+                .collect();
+            Arc::new(
+                DensityGrid::new(current.dims(), current.spacing(), current.origin(), values)
+                    .expect("the mix of two fields on the grid's points"),
+            )
+        };
+        Self {
+            grid: mix(&self.grid, &next.scalars),
+            modulators: self
+                .modulators
+                .as_ref()
+                .zip(next.modulators.as_ref())
+                .map(|(current, next)| mix(current, next)),
+            next: None,
+            ..self.clone()
+        }
+    }
+
+    /// The grid with `modulators`, the segment-length modulator at its points
+    /// (module docs); an error when they are not on a grid of the same
+    /// points.
+    pub fn with_modulators(self, modulators: Arc<DensityGrid>) -> Result<Self, BatchError> {
+        if modulators.dims() != self.grid.dims() {
+            return Err(BatchError::ModulatorMismatch {
+                scalars: self.grid.dims(),
+                modulators: modulators.dims(),
+            });
+        }
+        Ok(Self {
+            modulators: Some(modulators),
+            ..self
         })
     }
 
@@ -101,14 +217,70 @@ impl CellGrid {
             bricks: counts,
             occupied,
             clear_below: clear_below(transfer),
+            clears_modulators: false,
             ..self
         })
+    }
+
+    /// The grid with its bricks of `bricks` (a table of the modulators)
+    /// marked empty where the modulator is at most 0 throughout, for a
+    /// modulator that carries the opacity (the density of §5.1: a piece's
+    /// optical depth is its length times the mean modulator, so none where
+    /// the modulator is 0 at both ends); [`CellGrid::clear_below`] is then 0,
+    /// over the modulators. An error without modulators
+    /// ([`BatchError::ModulatorMismatch`]) or when the table is another
+    /// grid's.
+    pub fn with_modulator_occupancy(self, bricks: &BrickTable) -> Result<Self, BatchError> {
+        let voxels = self.voxels();
+        if self.modulators.is_none() {
+            return Err(BatchError::ModulatorMismatch {
+                scalars: self.grid.dims(),
+                modulators: [0; 3],
+            });
+        }
+        if bricks.voxels() != voxels {
+            return Err(BatchError::BrickTableMismatch {
+                table: bricks.voxels(),
+                grid: voxels,
+            });
+        }
+        let counts = bricks.brick_counts();
+        let mut occupied = Vec::with_capacity(counts.iter().product());
+        for bz in 0..counts[2] {
+            for by in 0..counts[1] {
+                for bx in 0..counts[0] {
+                    let [_, high] = bricks.scalar_range([bx, by, bz]).unwrap_or([0.0, 1.0]);
+                    occupied.push(u32::from(high > 0.0));
+                }
+            }
+        }
+        Ok(Self {
+            brick_size: bricks.brick_size(),
+            bricks: counts,
+            occupied,
+            clear_below: 0.0,
+            clears_modulators: true,
+            ..self
+        })
+    }
+
+    /// The segment-length modulator at the grid's points, if any.
+    pub fn modulators(&self) -> Option<&DensityGrid> {
+        self.modulators.as_deref()
+    }
+
+    /// Whether the occupancy and [`CellGrid::clear_below`] are over the
+    /// modulators ([`CellGrid::with_modulator_occupancy`]) instead of the
+    /// scalars.
+    pub fn clears_modulators(&self) -> bool {
+        self.clears_modulators
     }
 
     /// A scalar below which the transfer function of
     /// [`CellGrid::with_occupancy`] has no opacity: a voxel whose corners
     /// are all at most this adds nothing (negative without a transfer
-    /// function or with opacity at 0).
+    /// function or with opacity at 0). Over the modulators where
+    /// [`CellGrid::clears_modulators`].
     pub fn clear_below(&self) -> f32 {
         self.clear_below
     }
@@ -182,6 +354,26 @@ impl CellGrid {
     /// the planes between Kuhn's tetrahedra, with the linear field's value
     /// at both ends. Zero-length pieces are left out.
     pub fn segments(&self, ray: &Ray, t_min: f64, t_max: f64) -> Vec<CellSegment> {
+        self.field_segments(&self.grid, ray, t_min, t_max)
+    }
+
+    /// [`CellGrid::segments`] with the modulator's values at their ends
+    /// instead of the scalar's; none without modulators.
+    pub fn modulator_segments(&self, ray: &Ray, t_min: f64, t_max: f64) -> Vec<CellSegment> {
+        self.modulators.as_ref().map_or_else(Vec::new, |field| {
+            self.field_segments(field, ray, t_min, t_max)
+        })
+    }
+
+    /// The pieces of `ray` with the values of `field`, a grid of the same
+    /// points.
+    fn field_segments(
+        &self,
+        field: &DensityGrid,
+        ray: &Ray,
+        t_min: f64,
+        t_max: f64,
+    ) -> Vec<CellSegment> {
         let origin = self.index_from_world.transform_point3(ray.origin);
         let step = self.index_from_world.transform_vector3(ray.direction);
         let voxels = self.voxels();
@@ -226,7 +418,7 @@ impl CellGrid {
                 .unwrap_or(0);
             let end = next[axis].min(t_exit);
             if end > t {
-                self.voxel_segments(voxel, origin, step, t, end, &mut segments);
+                voxel_segments(field, voxel, origin, step, [t, end], &mut segments);
             }
             t = t.max(end);
             voxel[axis] += if step[axis] > 0.0 { 1 } else { -1 };
@@ -237,46 +429,46 @@ impl CellGrid {
         }
         segments
     }
+}
 
-    /// The pieces of the stretch `[t0, t1]` of the ray through `voxel`.
-    fn voxel_segments(
-        &self,
-        voxel: [i64; 3],
-        origin: DVec3,
-        step: DVec3,
-        t0: f64,
-        t1: f64,
-        segments: &mut Vec<CellSegment>,
-    ) {
-        let corner = DVec3::new(voxel[0] as f64, voxel[1] as f64, voxel[2] as f64);
-        let local = origin - corner;
-        let values: [f64; 8] = std::array::from_fn(|c| {
-            let [i, j, k] = [0, 1, 2].map(|axis| voxel[axis] as usize + (c >> axis & 1));
-            f64::from(self.grid.value(i, j, k))
-        });
-        let mut breaks = [t1; 3];
-        for (slot, (a, b)) in [(0, 1), (1, 2), (0, 2)].into_iter().enumerate() {
-            let rate = step[a] - step[b];
-            if rate != 0.0 {
-                let t = -(local[a] - local[b]) / rate;
-                if t > t0 && t < t1 {
-                    breaks[slot] = t;
-                }
+/// The pieces of the stretch `[t0, t1]` of the ray through `voxel`, with
+/// the values of `field`.
+fn voxel_segments(
+    field: &DensityGrid,
+    voxel: [i64; 3],
+    origin: DVec3,
+    step: DVec3,
+    [t0, t1]: [f64; 2],
+    segments: &mut Vec<CellSegment>,
+) {
+    let corner = DVec3::new(voxel[0] as f64, voxel[1] as f64, voxel[2] as f64);
+    let local = origin - corner;
+    let values: [f64; 8] = std::array::from_fn(|c| {
+        let [i, j, k] = [0, 1, 2].map(|axis| voxel[axis] as usize + (c >> axis & 1));
+        f64::from(field.value(i, j, k))
+    });
+    let mut breaks = [t1; 3];
+    for (slot, (a, b)) in [(0, 1), (1, 2), (0, 2)].into_iter().enumerate() {
+        let rate = step[a] - step[b];
+        if rate != 0.0 {
+            let t = -(local[a] - local[b]) / rate;
+            if t > t0 && t < t1 {
+                breaks[slot] = t;
             }
         }
-        breaks.sort_by(f64::total_cmp);
-        let at = |t: f64| kuhn_value(&values, (local + t * step).clamp(DVec3::ZERO, DVec3::ONE));
-        let mut start = t0;
-        for end in breaks.into_iter().chain([t1]) {
-            if end > start {
-                segments.push(CellSegment {
-                    t_entry: start,
-                    t_exit: end,
-                    s_entry: at(start),
-                    s_exit: at(end),
-                });
-                start = end;
-            }
+    }
+    breaks.sort_by(f64::total_cmp);
+    let at = |t: f64| kuhn_value(&values, (local + t * step).clamp(DVec3::ZERO, DVec3::ONE));
+    let mut start = t0;
+    for end in breaks.into_iter().chain([t1]) {
+        if end > start {
+            segments.push(CellSegment {
+                t_entry: start,
+                t_exit: end,
+                s_entry: at(start),
+                s_exit: at(end),
+            });
+            start = end;
         }
     }
 }
@@ -361,6 +553,7 @@ mod tests {
             spacing in prop::array::uniform3(0.2f64..3.0),
             origin in prop::array::uniform3(-5.0f64..5.0),
             values in prop::collection::vec(0.0f32..=1.0, 216),
+            modulator_values in prop::collection::vec(0.0f32..=1.0, 216),
             linear in prop::array::uniform9(-2.0f64..2.0),
             eye in prop::array::uniform3(-12.0f64..12.0),
             target in prop::array::uniform3(0.0f64..1.0),
@@ -378,23 +571,34 @@ mod tests {
                 .expect("a direction");
             let (t_min, t_max) = (clip.0, clip.0 + clip.1);
 
-            let cells: Vec<Tetrahedron> = grid.tetrahedra().iter().map(|t| placed(t, world_from_local)).collect();
-            let expected = tetrahedra_segments(&cells, &ray, t_min, t_max);
-            let grid = CellGrid::new(Arc::new(grid), world_from_local).expect("invertible");
-            let traversed: Vec<CellSegment> = grid
-                .segments(&ray, t_min, t_max)
-                .into_iter()
-                .filter(|s| s.t_exit - s.t_entry > 1e-9)
-                .collect();
-            prop_assert_eq!(traversed.len(), expected.len());
-            for (got, want) in traversed.iter().zip(&expected) {
-                for (g, w) in [
-                    (got.t_entry, want.t_entry),
-                    (got.t_exit, want.t_exit),
-                    (got.s_entry, want.s_entry),
-                    (got.s_exit, want.s_exit),
-                ] {
-                    prop_assert!((g - w).abs() < 1e-7, "{got:?} against {want:?}");
+            let modulators = DensityGrid::new(dims, DVec3::from(spacing), DVec3::from(origin), modulator_values[..count].to_vec())
+                .expect("valid grid");
+            let placed_cells = |grid: &DensityGrid| -> Vec<Tetrahedron> {
+                grid.tetrahedra().iter().map(|t| placed(t, world_from_local)).collect()
+            };
+            let expected = tetrahedra_segments(&placed_cells(&grid), &ray, t_min, t_max);
+            let expected_modulators = tetrahedra_segments(&placed_cells(&modulators), &ray, t_min, t_max);
+            let grid = CellGrid::new(Arc::new(grid), world_from_local)
+                .expect("invertible")
+                .with_modulators(Arc::new(modulators))
+                .expect("the same points");
+            let pieces = |segments: Vec<CellSegment>| -> Vec<CellSegment> {
+                segments.into_iter().filter(|s| s.t_exit - s.t_entry > 1e-9).collect()
+            };
+            for (traversed, expected) in [
+                (pieces(grid.segments(&ray, t_min, t_max)), expected),
+                (pieces(grid.modulator_segments(&ray, t_min, t_max)), expected_modulators),
+            ] {
+                prop_assert_eq!(traversed.len(), expected.len());
+                for (got, want) in traversed.iter().zip(&expected) {
+                    for (g, w) in [
+                        (got.t_entry, want.t_entry),
+                        (got.t_exit, want.t_exit),
+                        (got.s_entry, want.s_entry),
+                        (got.s_exit, want.s_exit),
+                    ] {
+                        prop_assert!((g - w).abs() < 1e-7, "{got:?} against {want:?}");
+                    }
                 }
             }
         }
@@ -518,6 +722,184 @@ mod tests {
                 .with_occupancy(&other, &transfer),
             Err(BatchError::BrickTableMismatch { .. })
         ));
+    }
+
+    #[test]
+    fn every_piece_in_a_brick_without_density_has_no_opacity() {
+        // A lit cloud (§5.1): the light is the scalar, the density the
+        // modulator, 0 where x ≤ 6.
+        let dims = [13, 9, 11];
+        let field = |f: fn(usize, usize) -> f32| {
+            let values = (0..dims.iter().product::<usize>())
+                .map(|n| f(n % dims[0], n))
+                .collect();
+            Arc::new(DensityGrid::new(dims, DVec3::ONE, DVec3::ZERO, values).expect("valid"))
+        };
+        let density = field(|x, n| {
+            if x > 6 {
+                0.1 + 0.07 * (n % 11) as f32
+            } else {
+                0.0
+            }
+        });
+        let light = field(|_, n| 0.2 + 0.05 * (n % 9) as f32);
+        let table = BrickTable::new(&density, 4);
+        let cells = CellGrid::new(light.clone(), DAffine3::IDENTITY)
+            .expect("invertible")
+            .with_modulators(density.clone())
+            .expect("the same points")
+            .with_modulator_occupancy(&table)
+            .expect("the modulators' table");
+        assert!(cells.clears_modulators());
+        assert_eq!(cells.clear_below(), 0.0);
+        // Bricks x = 0 cover points 0..=4, all without density; x = 1
+        // reaches x = 7.
+        for (index, &occupied) in cells.occupied().iter().enumerate() {
+            assert_eq!(occupied, u32::from(index % 3 != 0), "brick {index}");
+        }
+        let brick_of = |p: DVec3| {
+            let [x, y, z] = [p.x, p.y, p.z].map(|c| (c.max(0.0) as usize / 4).min(2));
+            x + 3 * (y.min(1) + 2 * z)
+        };
+        let mut checked = 0;
+        for n in 0..200 {
+            let f = n as f64;
+            let eye = DVec3::new(-3.0 + (f * 0.37) % 18.0, -2.0 + (f * 0.71) % 13.0, -4.0);
+            let target = DVec3::new((f * 0.53) % 12.0, (f * 0.29) % 8.0, (f * 0.61) % 10.0);
+            let ray = Ray::new(eye, target - eye).expect("a direction");
+            let scalars = cells.segments(&ray, 0.0, 100.0);
+            let modulators = cells.modulator_segments(&ray, 0.0, 100.0);
+            assert_eq!(scalars.len(), modulators.len());
+            for (scalar, modulator) in scalars.iter().zip(&modulators) {
+                assert_eq!(
+                    (scalar.t_entry, scalar.t_exit),
+                    (modulator.t_entry, modulator.t_exit)
+                );
+                let middle = ray.at(0.5 * (modulator.t_entry + modulator.t_exit));
+                if cells.occupied()[brick_of(middle)] == 0 {
+                    checked += 1;
+                    assert!(
+                        modulator.s_entry <= 0.0 && modulator.s_exit <= 0.0,
+                        "{modulator:?}"
+                    );
+                }
+            }
+        }
+        assert!(checked > 100, "{checked}");
+        // Modulators on other points, and modulator occupancy without
+        // modulators, are refused.
+        let other =
+            Arc::new(DensityGrid::new([5; 3], DVec3::ONE, DVec3::ZERO, vec![0.5; 125]).unwrap());
+        let unmodulated = CellGrid::new(light, DAffine3::IDENTITY).unwrap();
+        assert!(matches!(
+            unmodulated.clone().with_modulators(other),
+            Err(BatchError::ModulatorMismatch { .. })
+        ));
+        assert!(
+            unmodulated
+                .modulator_segments(&Ray::new(DVec3::ZERO, DVec3::X).unwrap(), 0.0, 9.0)
+                .is_empty()
+        );
+        assert!(matches!(
+            unmodulated.with_modulator_occupancy(&table),
+            Err(BatchError::ModulatorMismatch { .. })
+        ));
+    }
+
+    #[test]
+    fn a_blended_grid_draws_every_mix_of_its_keyframes() {
+        // Two keyframes of a lit cloud (§5.1): the density moves from x > 8
+        // to x > 6 and the light changes; neither has density where x ≤ 4.
+        let dims = [13, 9, 11];
+        let field = |f: &dyn Fn(usize, usize) -> f32| {
+            let values = (0..dims.iter().product::<usize>())
+                .map(|n| f(n % dims[0], n))
+                .collect();
+            Arc::new(DensityGrid::new(dims, DVec3::ONE, DVec3::ZERO, values).expect("valid"))
+        };
+        let density = |edge: usize| {
+            field(&move |x, n| {
+                if x > edge {
+                    0.1 + 0.07 * (n % 11) as f32
+                } else {
+                    0.0
+                }
+            })
+        };
+        let (first, second) = (density(8), density(6));
+        let (first_light, second_light) = (
+            field(&|_, n| 0.2 + 0.05 * (n % 9) as f32),
+            field(&|_, n| 0.9 - 0.04 * (n % 7) as f32),
+        );
+        let keyframe = |light: &Arc<DensityGrid>, density: &Arc<DensityGrid>| {
+            CellGrid::new(light.clone(), DAffine3::IDENTITY)
+                .expect("invertible")
+                .with_modulators(density.clone())
+                .expect("the same points")
+        };
+        let bricks = BrickTable::new(&first, 4)
+            .spanning(&BrickTable::new(&second, 4))
+            .expect("the same grid");
+        let pair = keyframe(&first_light, &first)
+            .with_next_keyframe(&keyframe(&second_light, &second))
+            .expect("the same points")
+            .with_modulator_occupancy(&bricks)
+            .expect("the modulators' table");
+        assert!(pair.is_blended());
+        // The second keyframe's density reaches brick x = 1 (x = 7, 8),
+        // the first's does not: the pair's occupancy holds both.
+        for (index, &occupied) in pair.occupied().iter().enumerate() {
+            assert_eq!(occupied, u32::from(index % 3 != 0), "brick {index}");
+        }
+        let brick_of = |p: DVec3| {
+            let [x, y, z] = [p.x, p.y, p.z].map(|c| (c.max(0.0) as usize / 4).min(2));
+            x + 3 * (y.min(1) + 2 * z)
+        };
+        for t in [0.0f32, 0.25, 0.6, 1.0] {
+            let drawn = pair.blended(t);
+            assert!(!drawn.is_blended());
+            let mix = |a: &DensityGrid, b: &DensityGrid| -> Vec<f32> {
+                a.values()
+                    .iter()
+                    .zip(b.values())
+                    .map(|(&a, &b)| (1.0 - t) * a + t * b)
+                    .collect()
+            };
+            assert_eq!(drawn.grid().values(), mix(&first_light, &second_light));
+            assert_eq!(
+                drawn.modulators().map(DensityGrid::values),
+                Some(&mix(&first, &second)[..])
+            );
+            assert_eq!(drawn.occupied(), pair.occupied());
+            let mut checked = 0;
+            for n in 0..100 {
+                let f = n as f64;
+                let eye = DVec3::new(-3.0 + (f * 0.37) % 18.0, -2.0 + (f * 0.71) % 13.0, -4.0);
+                let target = DVec3::new((f * 0.53) % 12.0, (f * 0.29) % 8.0, (f * 0.61) % 10.0);
+                let ray = Ray::new(eye, target - eye).expect("a direction");
+                for modulator in drawn.modulator_segments(&ray, 0.0, 100.0) {
+                    let middle = ray.at(0.5 * (modulator.t_entry + modulator.t_exit));
+                    if pair.occupied()[brick_of(middle)] == 0 {
+                        checked += 1;
+                        assert!(modulator.s_entry <= 0.0 && modulator.s_exit <= 0.0);
+                    }
+                }
+            }
+            assert!(checked > 50, "{checked}");
+        }
+        assert_eq!(pair.blended(f32::NAN).grid(), first_light.as_ref());
+        // A next keyframe on other points, or without modulators, is refused.
+        let other =
+            Arc::new(DensityGrid::new([5; 3], DVec3::ONE, DVec3::ZERO, vec![0.5; 125]).unwrap());
+        for next in [
+            keyframe(&other, &other),
+            CellGrid::new(second_light, DAffine3::IDENTITY).unwrap(),
+        ] {
+            assert!(matches!(
+                keyframe(&first_light, &first).with_next_keyframe(&next),
+                Err(BatchError::KeyframeMismatch { .. })
+            ));
+        }
     }
 
     #[test]

@@ -68,6 +68,31 @@ pub enum BatchError {
         /// Voxels per axis of the grid given.
         grid: [usize; 3],
     },
+    /// A ray-cast grid's modulators lie on another grid than its scalars.
+    #[error(
+        "the modulators have {modulators:?} points but the scalars {scalars:?}; both fields must share the grid"
+    )]
+    ModulatorMismatch {
+        /// Points per axis of the scalars.
+        scalars: [usize; 3],
+        /// Points per axis of the modulators.
+        modulators: [usize; 3],
+    },
+    /// A ray-cast grid's next keyframe lies on other points, or only one of
+    /// the two keyframes has modulators.
+    #[error(
+        "the next keyframe has {next:?} points (modulated: {next_modulated}) but the grid {current:?} (modulated: {current_modulated}); both keyframes must share the grid and its fields"
+    )]
+    KeyframeMismatch {
+        /// Points per axis of the current keyframe.
+        current: [usize; 3],
+        /// Whether it has modulators.
+        current_modulated: bool,
+        /// Points per axis of the next keyframe.
+        next: [usize; 3],
+        /// Whether it has modulators.
+        next_modulated: bool,
+    },
     /// The view's `world_from_local` is not finite or not invertible.
     #[error("world_from_local must be finite and invertible (determinant {determinant})")]
     SingularTransform {
@@ -103,6 +128,31 @@ pub struct BrickTable {
 impl BrickTable {
     /// The default brick edge, voxels: 4³ voxels (5³ points) per brick.
     pub const DEFAULT_BRICK_SIZE: usize = 4;
+
+    /// The table of two fields on the same points, each brick's range
+    /// spanning both (the ranges of any mix `(1 − t) a + t b`, `t` in [0,
+    /// 1], lie within it); an error when the tables are of other grids or
+    /// brick sizes.
+    pub fn spanning(&self, other: &BrickTable) -> Result<Self, BatchError> {
+        if (other.voxels, other.brick_size) != (self.voxels, self.brick_size) {
+            return Err(BatchError::BrickTableMismatch {
+                table: other.voxels,
+                grid: self.voxels,
+            });
+        }
+        let ranges = self
+            .ranges
+            .iter()
+            .zip(&other.ranges)
+            .map(|(a, b)| [a[0].min(b[0]), a[1].max(b[1])])
+            .collect();
+        Ok(Self {
+            voxels: self.voxels,
+            brick_size: self.brick_size,
+            bricks: self.bricks,
+            ranges,
+        })
+    }
 
     /// Scans `grid` once (cost about one read per grid point). `brick_size` is
     /// the brick edge in voxels; 0 is treated as 1.

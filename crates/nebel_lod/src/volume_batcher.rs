@@ -10,7 +10,9 @@
 //!   [`Cells::from_grid`]): the renderer ray casts its tetrahedra, so only a
 //!   new placement or transfer function builds it again, with its bricks'
 //!   zero-opacity test ([`CellGrid::with_occupancy`]; none visible leaves
-//!   the batch empty);
+//!   the batch empty). A lit grid carries its [`light_field`] as the
+//!   modulator or the scalar ([`CellGrid::with_modulators`]), with the
+//!   bricks tested on the density;
 //! - a grid at full resolution as projected cells
 //!   ([`GridDrawing::ProjectedCells`]): [`full_resolution_batch`] over a [`BrickTable`]
 //!   (Röttger 2004 §8.1); back to front it is rebuilt when its [`order_key`] or
@@ -21,8 +23,8 @@
 //!   [`refine`](fn@crate::octree::refine) and [`lod_batch_with`], back to
 //!   front, rebuilt when the criterion changes or the view left what the
 //!   batch serves (the eye moved half a voxel, the camera turned 3°, a new
-//!   projection: [`crate::octree::refresh`]). Lighting needs the octree
-//!   ([`VolumeBatchError::LightingWithoutOctree`]);
+//!   projection: [`crate::octree::refresh`]). Lighting needs the octree or
+//!   ray casting ([`VolumeBatchError::LightingWithoutOctree`]);
 //! - a cell mesh: back to front by MPVO ([`CellAdjacency`], [`sorted_batch`],
 //!   Williams 1992), rebuilt when the eye moves, or unordered.
 //!
@@ -65,6 +67,8 @@
 //! ```
 
 use std::sync::Arc;
+
+use glam::DAffine3;
 
 use nebel_core::budget::{BudgetError, Dims, check_allocation};
 use nebel_core::cell::Tetrahedron;
@@ -111,7 +115,8 @@ pub struct BatchSettings {
     /// Draw a grid through the octree C-LOD; `None` (the default) draws it at
     /// full resolution. Only for [`VolumeSource::Grid`].
     pub octree: Option<OctreeSettings>,
-    /// Light the cloud (Röttger and Ertl 2003 §5); needs `octree`. Default `None`.
+    /// Light the cloud (Röttger and Ertl 2003 §5); needs `octree` or
+    /// [`GridDrawing::RayCast`]. Default `None`.
     pub lighting: Option<BatchLighting>,
     /// How a grid at full resolution is drawn. Default
     /// [`GridDrawing::RayCast`].
@@ -208,9 +213,10 @@ pub enum VolumeBatchError {
     /// A full-resolution or cell-mesh batch could not be built for the view.
     #[error(transparent)]
     Batch(#[from] BatchError),
-    /// [`BatchSettings::lighting`] without [`BatchSettings::octree`].
+    /// [`BatchSettings::lighting`] with projected cells at full resolution
+    /// ([`GridDrawing::ProjectedCells`] without [`BatchSettings::octree`]).
     #[error(
-        "lighting needs the octree (BatchSettings::octree): the light field is drawn through the volume hierarchy"
+        "lighting needs the octree (BatchSettings::octree) or a ray-cast grid (GridDrawing::RayCast): projected cells at full resolution carry no light field"
     )]
     LightingWithoutOctree,
     /// [`BatchSettings::octree`] with a cell mesh.
@@ -226,11 +232,12 @@ pub enum VolumeBatchError {
     )]
     UnlitScalars,
     /// [`VolumeBatcher::with_next_keyframe`] of batchers that do not both
-    /// draw a grid through the octree with the same cell scalars.
+    /// draw a grid through the octree, or both ray cast one, with the same
+    /// cell scalars.
     #[error(
-        "keyframes blend only grids drawn through the octree with the same cell scalars (BatchSettings::octree, BatchLighting::scalars)"
+        "keyframes blend only grids drawn alike (both through the octree or both ray cast: BatchSettings::octree, BatchSettings::drawing) with the same cell scalars (BatchLighting::scalars)"
     )]
-    KeyframesWithoutOctree,
+    MismatchedKeyframes,
 }
 
 impl From<FieldError> for VolumeBatchError {
@@ -250,7 +257,7 @@ impl PartialEq for VolumeBatchError {
             (Self::LightingWithoutOctree, Self::LightingWithoutOctree)
             | (Self::OctreeWithoutGrid, Self::OctreeWithoutGrid)
             | (Self::UnlitScalars, Self::UnlitScalars)
-            | (Self::KeyframesWithoutOctree, Self::KeyframesWithoutOctree) => true,
+            | (Self::MismatchedKeyframes, Self::MismatchedKeyframes) => true,
             _ => false,
         }
     }
@@ -261,10 +268,15 @@ impl PartialEq for VolumeBatchError {
 enum Kind {
     /// A grid at full resolution, ray cast whole.
     RayCastGrid {
-        /// The grid.
-        grid: Arc<DensityGrid>,
-        /// Its bricks' scalar ranges, for the zero-opacity test.
+        /// The grid and a lit grid's light field.
+        fields: RayCastFields,
+        /// Which field is the scalar ([`CellScalars::Density`] unlit).
+        scalars: CellScalars,
+        /// The density's brick ranges, for the zero-opacity test, spanning
+        /// both keyframes of a pair.
         bricks: BrickTable,
+        /// A pair's next keyframe.
+        next: Option<RayCastFields>,
     },
     /// A grid at full resolution, as projected cells.
     FullResolution {
@@ -295,6 +307,35 @@ enum Kind {
         /// The cells, local frame.
         cells: Arc<Vec<Tetrahedron>>,
     },
+}
+
+/// A ray-cast grid's fields at one keyframe.
+#[derive(Clone, Debug)]
+struct RayCastFields {
+    /// The density.
+    density: Arc<DensityGrid>,
+    /// A lit grid's light field.
+    light: Option<Arc<DensityGrid>>,
+}
+
+impl RayCastFields {
+    /// The fields placed by `world_from_local`: the scalar, and a lit grid's
+    /// modulator, as `scalars` picks them.
+    fn placed(
+        &self,
+        scalars: CellScalars,
+        world_from_local: DAffine3,
+    ) -> Result<CellGrid, BatchError> {
+        match (&self.light, scalars) {
+            (Some(light), CellScalars::LightModulatedByDensity) => {
+                CellGrid::new(light.clone(), world_from_local)?
+                    .with_modulators(self.density.clone())
+            }
+            (Some(light), _) => CellGrid::new(self.density.clone(), world_from_local)?
+                .with_modulators(light.clone()),
+            (None, _) => CellGrid::new(self.density.clone(), world_from_local),
+        }
+    }
 }
 
 /// What the current batch was built from.
@@ -351,7 +392,7 @@ impl VolumeBatcher {
     /// [`VolumeBatchError::Field`] for invalid light-field settings.
     pub fn new(source: VolumeSource, settings: &BatchSettings) -> Result<Self, VolumeBatchError> {
         if let Some(lighting) = settings.lighting {
-            if settings.octree.is_none() {
+            if settings.octree.is_none() && settings.drawing == GridDrawing::ProjectedCells {
                 return Err(VolumeBatchError::LightingWithoutOctree);
             }
             if lighting.scalars == CellScalars::Density {
@@ -364,9 +405,20 @@ impl VolumeBatcher {
         };
         let kind = match (source, settings.octree) {
             (VolumeSource::Grid(grid), None) if settings.drawing == GridDrawing::RayCast => {
+                let light = match settings.lighting {
+                    Some(lighting) => Some(Arc::new(light_field(&grid, &lighting.light)?)),
+                    None => None,
+                };
                 Kind::RayCastGrid {
                     bricks: BrickTable::new(&grid, BrickTable::DEFAULT_BRICK_SIZE),
-                    grid,
+                    fields: RayCastFields {
+                        density: grid,
+                        light,
+                    },
+                    scalars: settings
+                        .lighting
+                        .map_or(CellScalars::Density, |lighting| lighting.scalars),
+                    next: None,
                 }
             }
             (VolumeSource::Grid(grid), None) => {
@@ -480,35 +532,54 @@ impl VolumeBatcher {
     }
 
     /// A batcher that blends from this batcher's keyframe to `next`'s (the
-    /// octree of both with [`VolumeHierarchy::with_next_keyframe`]; its
-    /// batches carry `next`'s values too, `Cells`'s keyframe blending).
-    /// Built from `self`'s settings; `next` may differ only in its light's
-    /// settings (a keyframe of a moving sun). The batch is empty until the
-    /// first [`VolumeBatcher::update`].
+    /// octree of both with [`VolumeHierarchy::with_next_keyframe`], or a
+    /// ray-cast grid with both keyframes' fields,
+    /// [`CellGrid::with_next_keyframe`]; its batches carry `next`'s values
+    /// too, `Cells`'s keyframe blending). Built from `self`'s settings;
+    /// `next` may differ only in its light's settings (a keyframe of a
+    /// moving sun). The batch is empty until the first
+    /// [`VolumeBatcher::update`].
     ///
-    /// Errors: [`VolumeBatchError::KeyframesWithoutOctree`] unless both draw
-    /// a grid through the octree with the same cell scalars,
-    /// [`VolumeBatchError::Hierarchy`] when their grids or minimum accuracies
-    /// differ.
+    /// Errors: [`VolumeBatchError::MismatchedKeyframes`] unless both draw a
+    /// grid through the octree, or both ray cast one, with the same cell
+    /// scalars, [`VolumeBatchError::Hierarchy`] when the octrees' grids or
+    /// minimum accuracies differ, [`VolumeBatchError::Batch`] when the
+    /// ray-cast grids differ in size.
     pub fn with_next_keyframe(&self, next: &VolumeBatcher) -> Result<Self, VolumeBatchError> {
-        let (
-            Kind::Octree { hierarchy, scalars },
-            Kind::Octree {
-                hierarchy: next_hierarchy,
-                scalars: next_scalars,
-            },
-        ) = (&self.kind, &next.kind)
-        else {
-            return Err(VolumeBatchError::KeyframesWithoutOctree);
-        };
-        if scalars != next_scalars {
-            return Err(VolumeBatchError::KeyframesWithoutOctree);
-        }
-        Ok(Self {
-            kind: Kind::Octree {
+        let kind = match (&self.kind, &next.kind) {
+            (
+                Kind::Octree { hierarchy, scalars },
+                Kind::Octree {
+                    hierarchy: next_hierarchy,
+                    scalars: next_scalars,
+                },
+            ) if scalars == next_scalars => Kind::Octree {
                 hierarchy: Arc::new(hierarchy.with_next_keyframe(next_hierarchy)?),
                 scalars: *scalars,
             },
+            (
+                Kind::RayCastGrid {
+                    fields,
+                    scalars,
+                    bricks,
+                    next: None,
+                },
+                Kind::RayCastGrid {
+                    fields: next_fields,
+                    scalars: next_scalars,
+                    bricks: next_bricks,
+                    next: None,
+                },
+            ) if scalars == next_scalars => Kind::RayCastGrid {
+                fields: fields.clone(),
+                scalars: *scalars,
+                bricks: bricks.spanning(next_bricks)?,
+                next: Some(next_fields.clone()),
+            },
+            _ => return Err(VolumeBatchError::MismatchedKeyframes),
+        };
+        Ok(Self {
+            kind,
             settings: self.settings,
             full_resolution_cells: self.full_resolution_cells,
             batch: Arc::default(),
@@ -620,7 +691,7 @@ impl VolumeBatcher {
     /// the source's, and the batch has no modulators).
     pub fn scalars(&self) -> CellScalars {
         match self.kind {
-            Kind::Octree { scalars, .. } => scalars,
+            Kind::Octree { scalars, .. } | Kind::RayCastGrid { scalars, .. } => scalars,
             _ => CellScalars::Density,
         }
     }
@@ -704,9 +775,24 @@ impl VolumeBatcher {
         inputs: &FrameInputs,
     ) -> Result<Cells, VolumeBatchError> {
         let batch = match &self.kind {
-            Kind::RayCastGrid { grid, bricks } => {
-                let grid = CellGrid::new(grid.clone(), view.world_from_local)?
-                    .with_occupancy(bricks, inputs.transfer)?;
+            Kind::RayCastGrid {
+                fields,
+                scalars,
+                bricks,
+                next,
+            } => {
+                let mut grid = fields.placed(*scalars, view.world_from_local)?;
+                if let Some(next) = next {
+                    grid =
+                        grid.with_next_keyframe(&next.placed(*scalars, view.world_from_local)?)?;
+                }
+                // The bricks are the density's: the scalar's, or the
+                // modulator's where the density modulates the light.
+                let grid = if *scalars == CellScalars::LightModulatedByDensity {
+                    grid.with_modulator_occupancy(bricks)?
+                } else {
+                    grid.with_occupancy(bricks, inputs.transfer)?
+                };
                 if view.viewport_is_empty() || !grid.occupied().contains(&1) {
                     Cells::default()
                 } else {

@@ -587,7 +587,8 @@ fn step_batch<P: BuildPool>(
 /// over to the next pair, and draws the first, once it has its batch. One
 /// made for another view is made again in the frame it is drawn; a failed
 /// one is the error (the volume's update failure), and is made again the
-/// next frame.
+/// next frame. A pair whose batch does not depend on the view (a ray-cast
+/// grid: its keyframes' fields and occupancy, no refinement) is made here.
 fn make_ahead<P: BuildPool>(
     pool: P,
     pair: Option<&mut VolumeBatcher>,
@@ -599,6 +600,10 @@ fn make_ahead<P: BuildPool>(
         *build = None;
         return Ok(());
     };
+    if !pair.is_built() && !pair.is_view_dependent() {
+        pair.update(view, inputs)?;
+        return Ok(());
+    }
     if build.is_none() {
         *build = pair
             .first_build(view, inputs)
@@ -795,42 +800,50 @@ mod tests {
         assert!(frame(&mut still, Blocking, 35.0));
     }
 
-    /// A lit grid whose sun moves is drawn from keyframes, blended; two
-    /// intervals after the sun rests it is built once for where it stopped.
+    /// A lit grid whose sun moves is drawn from keyframes, blended, through
+    /// the octree or ray cast; two intervals after the sun rests it is built
+    /// once for where it stopped.
     #[test]
     fn a_moving_sun_draws_keyframes_until_it_rests() {
-        let grid = grid();
-        let eye = DVec3::new(4.0, 12.0, -14.0);
-        let sun = |angle: f64| DVec3::new(angle.sin(), angle.cos(), 0.0);
-        let mut batching = VolumeBatching::default();
-        batching.build(Blocking, request(0.0, &grid, settings(Some(sun(0.2)))));
-        update(&mut batching, Blocking, eye).unwrap();
-        assert!(!batching.is_animated());
-        let mut keyframes = 0;
-        for frame in 1..=10 {
-            let now = 0.1 * f64::from(frame);
-            let landed = batching.build(
-                Blocking,
-                request(now, &grid, settings(Some(sun(0.2 + now)))),
-            );
-            keyframes += usize::from(landed.keyframes_ms.is_some());
+        let ray_cast = |sun: DVec3| BatchSettings {
+            octree: None,
+            drawing: GridDrawing::RayCast,
+            ..settings(Some(sun))
+        };
+        let octree = |sun: DVec3| settings(Some(sun));
+        for settings in [octree, ray_cast] {
+            let grid = grid();
+            let eye = DVec3::new(4.0, 12.0, -14.0);
+            let sun = |angle: f64| DVec3::new(angle.sin(), angle.cos(), 0.0);
+            let mut batching = VolumeBatching::default();
+            batching.build(Blocking, request(0.0, &grid, settings(sun(0.2))));
+            update(&mut batching, Blocking, eye).unwrap();
+            assert!(!batching.is_animated());
+            let mut keyframes = 0;
+            for frame in 1..=10 {
+                let now = 0.1 * f64::from(frame);
+                let landed =
+                    batching.build(Blocking, request(now, &grid, settings(sun(0.2 + now))));
+                keyframes += usize::from(landed.keyframes_ms.is_some());
+                let drawn = update(&mut batching, Blocking, eye).unwrap();
+                assert!(batching.draws_keyframes(), "frame {frame}");
+                assert!(drawn.cells.is_blended() && !drawn.cells.is_empty());
+                assert!(
+                    drawn
+                        .blend
+                        .is_some_and(|blend| (0.0..=1.0).contains(&blend))
+                );
+            }
+            assert!(keyframes >= 1);
+            // The sun rests at 1.2 from 1.0 s on: keyframes until 3 s.
+            let rest = settings(sun(1.2));
+            batching.build(Blocking, request(2.9, &grid, rest));
+            assert!(batching.is_animated());
+            batching.build(Blocking, request(3.1, &grid, rest));
+            assert!(!batching.is_animated());
             let drawn = update(&mut batching, Blocking, eye).unwrap();
-            assert!(batching.draws_keyframes(), "frame {frame}");
-            assert!(
-                drawn
-                    .blend
-                    .is_some_and(|blend| (0.0..=1.0).contains(&blend))
-            );
+            assert!(drawn.changed && drawn.blend.is_none());
+            assert_eq!(*drawn.cells, *fresh(&grid, rest, eye));
         }
-        assert!(keyframes >= 1);
-        // The sun rests at 1.2 from 1.0 s on: keyframes until 3 s.
-        let rest = settings(Some(sun(1.2)));
-        batching.build(Blocking, request(2.9, &grid, rest));
-        assert!(batching.is_animated());
-        batching.build(Blocking, request(3.1, &grid, rest));
-        assert!(!batching.is_animated());
-        let drawn = update(&mut batching, Blocking, eye).unwrap();
-        assert!(drawn.changed && drawn.blend.is_none());
-        assert_eq!(*drawn.cells, *fresh(&grid, rest, eye));
     }
 }

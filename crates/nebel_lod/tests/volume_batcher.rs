@@ -16,9 +16,10 @@ use nebel_lod::octree::{
     CellScalars, LodCriterion, RefinementError, RefinementSettings, lod_batch_with, refine, refresh,
 };
 use nebel_lod::{
-    BatchError, BatchLighting, BatchSettings, BrickTable, CellAdjacency, CellOrder, Cells,
-    FrameInputs, Frustum, GridDrawing, HierarchyError, OctreeSettings, View, VolumeBatchError,
-    VolumeBatcher, VolumeHierarchy, VolumeSource, full_resolution_batch, order_key, sorted_batch,
+    BatchError, BatchLighting, BatchSettings, BrickTable, CellAdjacency, CellGrid, CellOrder,
+    Cells, FrameInputs, Frustum, GridDrawing, HierarchyError, OctreeSettings, View,
+    VolumeBatchError, VolumeBatcher, VolumeHierarchy, VolumeSource, full_resolution_batch,
+    order_key, sorted_batch,
 };
 
 /// The render target of every view here, pixels.
@@ -189,6 +190,15 @@ fn lit(scalars: CellScalars) -> BatchSettings {
     }
 }
 
+/// A lit grid at full resolution, ray cast.
+fn lit_ray_cast(scalars: CellScalars) -> BatchSettings {
+    BatchSettings {
+        octree: None,
+        drawing: GridDrawing::RayCast,
+        ..lit(scalars)
+    }
+}
+
 /// Every kind of batcher, named: grids at full resolution and through the
 /// octree, cell meshes, back to front and unordered.
 fn every_kind() -> Vec<(&'static str, VolumeBatcher)> {
@@ -219,6 +229,13 @@ fn every_kind() -> Vec<(&'static str, VolumeBatcher)> {
         (
             "lit octree",
             new(grid_source(), lit(CellScalars::LightModulatedByDensity)),
+        ),
+        (
+            "lit ray-cast grid",
+            new(
+                grid_source(),
+                lit_ray_cast(CellScalars::LightModulatedByDensity),
+            ),
         ),
         (
             "sorted cells",
@@ -396,6 +413,76 @@ fn lit_clouds_carry_modulators_and_pick_the_opacity_field() {
 }
 
 #[test]
+fn a_lit_ray_cast_grid_carries_the_light_field_at_its_points() {
+    let v = view(eye_at(DVec3::new(4.2, 11.0, 3.1)));
+    // The test grid without density in its first brick along x (points
+    // x ≤ 4).
+    let density = {
+        let grid = grid();
+        let values = grid
+            .values()
+            .iter()
+            .enumerate()
+            .map(|(n, &value)| if n % 9 <= 4 { 0.0 } else { value })
+            .collect();
+        Arc::new(DensityGrid::new(grid.dims(), grid.spacing(), grid.origin(), values).unwrap())
+    };
+    for scalars in [
+        CellScalars::LightModulatedByDensity,
+        CellScalars::DensityModulatedByLight,
+    ] {
+        let settings = lit_ray_cast(scalars);
+        let mut batcher =
+            VolumeBatcher::new(VolumeSource::Grid(density.clone()), &settings).unwrap();
+        assert_eq!(batcher.scalars(), scalars);
+        assert!(!batcher.is_view_dependent());
+        assert!(batcher.update(&v, &inputs(&cloud())).unwrap());
+        let batch = batcher.batch();
+        assert!(batch.is_modulated() && batch.modulators.is_empty());
+        assert_eq!(batch.len(), batcher.full_resolution_cells());
+        let cell_grid = batch.grid.as_ref().expect("a ray-cast grid");
+        // The light field of the grid as given, unpadded.
+        let light = light_field(&density, &settings.lighting.unwrap().light).unwrap();
+        let (scalar, modulator) = match scalars {
+            CellScalars::LightModulatedByDensity => (&light, density.as_ref()),
+            _ => (density.as_ref(), &light),
+        };
+        assert_eq!(cell_grid.grid(), scalar);
+        assert_eq!(cell_grid.modulators(), Some(modulator));
+        // The bricks are tested on the density: over the modulator for
+        // §5.1, the transfer function's scalar for §5.2.
+        let light_over_density = scalars == CellScalars::LightModulatedByDensity;
+        assert_eq!(cell_grid.clears_modulators(), light_over_density);
+        let bricks = BrickTable::new(&density, BrickTable::DEFAULT_BRICK_SIZE);
+        let placed = CellGrid::new(Arc::new(scalar.clone()), world_from_local())
+            .unwrap()
+            .with_modulators(Arc::new(modulator.clone()))
+            .unwrap();
+        let expected = if light_over_density {
+            placed.with_modulator_occupancy(&bricks)
+        } else {
+            placed.with_occupancy(&bricks, &cloud())
+        }
+        .unwrap();
+        assert_eq!(cell_grid.as_ref(), &expected);
+        // Its first bricks along x are empty.
+        assert!(cell_grid.occupied().contains(&0) && cell_grid.occupied().contains(&1));
+        // The eye moving keeps the batch.
+        assert!(
+            !batcher
+                .update(&view(eye_at(DVec3::new(-7.0, 2.0, 1.0))), &inputs(&cloud()))
+                .unwrap()
+        );
+        // A transparent transfer function empties only the batch whose
+        // opacity it gives (§5.2).
+        let mut batcher =
+            VolumeBatcher::new(VolumeSource::Grid(density.clone()), &settings).unwrap();
+        batcher.update(&v, &inputs(&clear())).unwrap();
+        assert_eq!(!batcher.batch().is_empty(), light_over_density);
+    }
+}
+
+#[test]
 fn a_transparent_volume_gives_an_empty_batch() {
     let zeros = DensityGrid::new([5, 6, 7], DVec3::ONE, DVec3::ZERO, vec![0.0; 5 * 6 * 7]).unwrap();
     let v = view(eye_at(DVec3::splat(-3.0)));
@@ -404,6 +491,7 @@ fn a_transparent_volume_gives_an_empty_batch() {
         settings(CellOrder::Unordered, false),
         settings(CellOrder::BackToFront, true),
         lit(CellScalars::LightModulatedByDensity),
+        lit_ray_cast(CellScalars::LightModulatedByDensity),
     ] {
         let mut batcher =
             VolumeBatcher::new(VolumeSource::Grid(Arc::new(zeros.clone())), &settings).unwrap();
@@ -796,6 +884,7 @@ fn bad_settings_give_typed_errors() {
     }
     let lit_without_octree = BatchSettings {
         octree: None,
+        drawing: GridDrawing::ProjectedCells,
         ..lit(CellScalars::LightModulatedByDensity)
     };
     assert_eq!(
@@ -945,9 +1034,67 @@ fn a_batcher_blends_toward_the_next_keyframe() {
         let other = other.unwrap();
         assert_eq!(
             first.with_next_keyframe(&other).unwrap_err(),
-            VolumeBatchError::KeyframesWithoutOctree
+            VolumeBatchError::MismatchedKeyframes
         );
     }
+}
+
+/// Keyframes of a moving sun, ray cast: the pair's grid carries both
+/// keyframes' fields and serves the whole interval, and is not rebuilt
+/// for a new blend or eye; a ray-cast keyframe and an octree one are
+/// refused.
+#[test]
+fn a_ray_cast_pair_carries_both_keyframes() {
+    let transfer = cloud();
+    let (first_sun, octree_first, _) = sun_keyframes();
+    let mut later = lit_ray_cast(CellScalars::LightModulatedByDensity);
+    if let Some(lighting) = &mut later.lighting {
+        lighting.light.sun_direction = DVec3::new(-0.8, 0.3, 0.1);
+    }
+    let settings = BatchSettings {
+        octree: None,
+        drawing: GridDrawing::RayCast,
+        ..first_sun
+    };
+    let first = VolumeBatcher::new(grid_source(), &settings).unwrap();
+    let second = VolumeBatcher::new(grid_source(), &later).unwrap();
+    let mut pair = first.with_next_keyframe(&second).unwrap();
+    assert!(!pair.is_view_dependent());
+    let v = view(eye_at(DVec3::new(4.2, 11.0, 3.1)));
+    assert!(pair.update(&v, &inputs(&transfer)).unwrap());
+    let batch = pair.batch().clone();
+    assert!(batch.is_blended() && batch.is_modulated() && !batch.is_empty());
+    assert_eq!(batch.blends, [0.0, 1.0]);
+    assert_eq!(batch.mix_factor(0.3), 0.3);
+    let cell_grid = batch.grid.as_ref().expect("a ray-cast grid");
+    let light =
+        |settings: &BatchSettings| light_field(&grid(), &settings.lighting.unwrap().light).unwrap();
+    let (next_light, next_density) = cell_grid.next_keyframe().expect("blended");
+    assert_eq!(cell_grid.grid(), &light(&settings));
+    assert_eq!(next_light, &light(&later));
+    assert_eq!(next_density, cell_grid.modulators());
+    assert_ne!(next_light, cell_grid.grid(), "the sun moved");
+    let moved = FrameInputs {
+        blend: 0.6,
+        blend_span: 0.1,
+        ..inputs(&transfer)
+    };
+    assert!(
+        !pair
+            .update(&view(eye_at(DVec3::new(-6.0, 2.0, 1.0))), &moved)
+            .unwrap()
+    );
+    for (a, b) in [(&first, &octree_first), (&octree_first, &first)] {
+        assert_eq!(
+            a.with_next_keyframe(b).unwrap_err(),
+            VolumeBatchError::MismatchedKeyframes
+        );
+    }
+    // A pair is not a keyframe of another pair.
+    assert_eq!(
+        pair.with_next_keyframe(&second).unwrap_err(),
+        VolumeBatchError::MismatchedKeyframes
+    );
 }
 
 /// A refinement step can be built detached and adopted: the same batch
