@@ -68,7 +68,9 @@
 // ray through the voxels (Amanatides and Woo 1987), splitting each voxel's
 // stretch where the ray crosses the planes u_a = u_b between Kuhn's six
 // tetrahedra: the pieces are exactly the segments of the grid's tetrahedra,
-// front to back, each shaded as above and composited under the ones in
+// front to back, each shaded as above (MODULATED: with the modulator at the
+// grid's points, linear over the same tetrahedra; BLENDED: every point's
+// values mixed toward the next keyframe's) and composited under the ones in
 // front; the ray stops once its transmittance is below the early
 // termination's threshold; it jumps over bricks without opacity under the
 // transfer function (their segments add nothing).
@@ -124,8 +126,13 @@ fn opaque_depth(pixel: vec2<i32>) -> f32 {
 }
 
 #ifdef RAY_CAST
-// The grid's values, x fastest (nebel_core's DensityGrid).
+// The grid's scalars, x fastest (nebel_core's DensityGrid); BLENDED: each
+// beside the next keyframe's.
+#ifdef BLENDED
+@group(1) @binding(0) var<storage, read> grid_values: array<vec2<f32>>;
+#else
 @group(1) @binding(0) var<storage, read> grid_values: array<f32>;
+#endif
 #else
 @group(1) @binding(0) var<storage, read> cells: array<Cell>;
 #endif
@@ -143,9 +150,17 @@ struct CellGrid {
     voxels: vec4<u32>,
     // xyz: bricks per axis of `occupied`; w: voxels per brick edge.
     bricks: vec4<u32>,
-    // x: the scalar at or below which the transfer function has no opacity
-    // (negative for none).
+    // x: the value at or below which the grid has no opacity (negative for
+    // none); y: 1 when that value is the modulator's, 0 the scalar's.
     clear: vec4<f32>,
+#ifdef MODULATED
+    // The modulator at each point, as the scalars.
+#ifdef BLENDED
+    modulators: array<vec2<f32>>,
+#else
+    modulators: array<f32>,
+#endif
+#endif
 }
 @group(1) @binding(4) var<storage, read> grid: CellGrid;
 #else
@@ -327,7 +342,13 @@ fn segment_colour(
 ) -> vec4<f32> {
 #ifdef SORTED
 #ifdef MODULATED
-    // Piece by piece, front to back: premultiplied colour and transmittance.
+    // A modulator of 0 at both ends gives the segment no length: nothing to
+    // look up (the modulators are clamped to [0, 1]).
+    if max(m_front, m_back) <= 0.0 {
+        return vec4(0.0);
+    }
+    // Piece by piece, front to back: premultiplied colour and transmittance;
+    // a piece without optical depth adds nothing.
     var colour = vec3(0.0);
     var transmittance = 1.0;
     for (var piece = 0u; piece < #{MODULATOR_PIECES}u; piece++) {
@@ -337,9 +358,11 @@ fn segment_colour(
         let s_b = mix(s_front, s_back, b);
         let modulated = segment_length * (b - a) * 0.5 * (mix(m_front, m_back, a) + mix(m_front, m_back, b));
         let depth = modulated * pair_lookup(s_a, s_b).a;
-        let piece_alpha = 1.0 - exp(-depth);
-        colour += transmittance * piece_alpha * colour_lookup(s_a, s_b, depth);
-        transmittance *= 1.0 - piece_alpha;
+        if depth > 0.0 {
+            let piece_alpha = 1.0 - exp(-depth);
+            colour += transmittance * piece_alpha * colour_lookup(s_a, s_b, depth);
+            transmittance *= 1.0 - piece_alpha;
+        }
     }
     let alpha = 1.0 - transmittance;
 #else
@@ -407,17 +430,38 @@ struct MergedOutput {
 #endif
 
 #ifdef RAY_CAST
-// The grid's value at point p.
-fn grid_value(p: vec3<u32>) -> f32 {
+// The grid's scalar and modulator at point p (1 without modulators).
+fn grid_point(p: vec3<u32>) -> vec2<f32> {
     let points = grid.voxels.xyz + 1u;
-    return grid_values[p.x + points.x * (p.y + points.y * p.z)];
+    let index = p.x + points.x * (p.y + points.y * p.z);
+#ifdef BLENDED
+    let t = parameters.blend.x;
+    let scalars = grid_values[index];
+    var point = vec2(mix(scalars.x, scalars.y, t), 1.0);
+#ifdef MODULATED
+    let modulators = grid.modulators[index];
+    point.y = mix(modulators.x, modulators.y, t);
+#endif
+#else
+    var point = vec2(grid_values[index], 1.0);
+#ifdef MODULATED
+    point.y = grid.modulators[index];
+#endif
+#endif
+    return point;
 }
 
-// The field of Kuhn's tetrahedra in a voxel with corner values `values`
-// (corner x + 2y + 4z) at local coordinates u in [0, 1]³: with the axes
-// ordered u_a ≥ u_b ≥ u_c, the barycentric combination of corners 0, e_a,
-// e_a + e_b and 7.
-fn kuhn_value(values: ptr<function, array<f32, 8>>, u: vec3<f32>) -> f32 {
+// A point of a voxel as the barycentric combination of the corners of its
+// Kuhn tetrahedron (corner x + 2y + 4z): corners 0, e_a, e_a + e_b and 7.
+struct KuhnPoint {
+    side: u32,
+    diagonal: u32,
+    weights: vec4<f32>,
+}
+
+// The point at local coordinates u in [0, 1]³: with the axes ordered
+// u_a ≥ u_b ≥ u_c, the weights 1 − u_a, u_a − u_b, u_b − u_c and u_c.
+fn kuhn_point(u: vec3<f32>) -> KuhnPoint {
     var a = 0u;
     var b = 1u;
     var c = 2u;
@@ -437,9 +481,15 @@ fn kuhn_value(values: ptr<function, array<f32, 8>>, u: vec3<f32>) -> f32 {
         b = swap;
     }
     let side = 1u << a;
-    let diagonal = side | (1u << b);
-    return (*values)[0] * (1.0 - u[a]) + (*values)[side] * (u[a] - u[b])
-        + (*values)[diagonal] * (u[b] - u[c]) + (*values)[7] * u[c];
+    return KuhnPoint(side, side | (1u << b), vec4(1.0 - u[a], u[a] - u[b], u[b] - u[c], u[c]));
+}
+
+// The scalar and modulator of Kuhn's linear fields in a voxel with corner
+// values `corners` at `point`.
+fn kuhn_value(corners: ptr<function, array<vec2<f32>, 8>>, point: KuhnPoint) -> vec2<f32> {
+    let w = point.weights;
+    return (*corners)[0] * w.x + (*corners)[point.side] * w.y + (*corners)[point.diagonal] * w.z
+        + (*corners)[7] * w.w;
 }
 
 // The ray's accumulated colour and transmittance, front to back.
@@ -460,14 +510,14 @@ fn shade_voxel(
     accumulated: ptr<function, Accumulated>,
 ) {
     let low = vec3<u32>(voxel);
-    var values: array<f32, 8>;
-    var highest_value = -1.0;
+    var corners: array<vec2<f32>, 8>;
+    var peak = vec2(-1.0);
     for (var c = 0u; c < 8u; c++) {
-        values[c] = grid_value(low + vec3<u32>(c & 1u, (c >> 1u) & 1u, c >> 2u));
-        highest_value = max(highest_value, values[c]);
+        corners[c] = grid_point(low + vec3<u32>(c & 1u, (c >> 1u) & 1u, c >> 2u));
+        peak = max(peak, corners[c]);
     }
-    // No corner above the clear range: no scalar in the voxel is.
-    if highest_value <= grid.clear.x {
+    // No corner above the clear range: no value in the voxel is.
+    if select(peak.x, peak.y, grid.clear.y != 0.0) <= grid.clear.x {
         return;
     }
     let local = origin - vec3<f32>(voxel);
@@ -489,16 +539,16 @@ fn shade_voxel(
     let highest = max(max(breaks.x, breaks.y), breaks.z);
     var ends = array<f32, 4>(lowest, middle, highest, t1);
     var start = t0;
-    var s_start = kuhn_value(&values, clamp(local + start * step, vec3(0.0), vec3(1.0)));
+    var s_start = kuhn_value(&corners, kuhn_point(clamp(local + start * step, vec3(0.0), vec3(1.0))));
     for (var k = 0; k < 4; k++) {
         let end = ends[k];
         if end > start {
-            let s_end = kuhn_value(&values, clamp(local + end * step, vec3(0.0), vec3(1.0)));
+            let s_end = kuhn_value(&corners, kuhn_point(clamp(local + end * step, vec3(0.0), vec3(1.0))));
             let segment = segment_colour(
-                clamp(s_start, 0.0, 1.0),
-                clamp(s_end, 0.0, 1.0),
-                1.0,
-                1.0,
+                clamp(s_start.x, 0.0, 1.0),
+                clamp(s_end.x, 0.0, 1.0),
+                clamp(s_start.y, 0.0, 1.0),
+                clamp(s_end.y, 0.0, 1.0),
                 end - start,
                 direction,
                 0.5 * (start + end),

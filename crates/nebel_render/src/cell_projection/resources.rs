@@ -14,6 +14,7 @@ use bevy::render::render_resource::*;
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use bevy::render::texture::{CachedTexture, TextureCache};
 use bevy::render::view::{ExtractedView, Msaa};
+use nebel_core::field::DensityGrid;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::{CellGrid, Cells};
@@ -126,12 +127,14 @@ pub fn extract_cell_batches(
             |what: &str, count: usize| Some(format!("{count} {what} for {} cells", cells.len()));
         let limit = device.limits().max_storage_buffer_binding_size;
         let refusal = if let Some(grid) = &cells.grid
-            && size_of_val(grid.grid().values()) as u64 > limit
+            && grid_binding_bytes(grid) > limit
         {
             Some(format!(
-                "a grid of {} values, more than the device's storage-buffer binding holds ({limit} bytes; draw it through the octree)",
-                grid.grid().values().len()
+                "a grid binding of {} bytes, more than the device's storage-buffer binding holds ({limit} bytes; draw it through the octree)",
+                grid_binding_bytes(grid)
             ))
+        } else if cells.grid.is_some() {
+            None
         } else if cells.is_modulated() && cells.modulators.len() != cells.len() {
             mismatch("modulators", cells.modulators.len())
         } else if cells.is_blended() && cells.next_scalars.len() != cells.len() {
@@ -189,6 +192,106 @@ pub fn extract_cell_batches(
     }
 }
 
+/// The bytes of a ray-cast grid's largest binding: its scalars, or its
+/// placement and modulators, each value beside its next keyframe's when
+/// blended.
+fn grid_binding_bytes(grid: &CellGrid) -> u64 {
+    let field = (size_of_val(grid.grid().values()) * if grid.is_blended() { 2 } else { 1 }) as u64;
+    let placement = size_of::<GpuCellGrid>() as u64;
+    field.max(
+        placement
+            + if grid.modulators().is_some() {
+                field
+            } else {
+                0
+            },
+    )
+}
+
+/// A storage buffer of `header` followed by the values of `field`, each
+/// beside its value in `next` when given (the shader's `vec2` of a blended
+/// field), written in place a chunk at a time: a copy of a large grid's
+/// values would double its memory for the upload.
+fn field_buffer(
+    device: &RenderDevice,
+    label: &'static str,
+    header: &[u8],
+    field: &[f32],
+    next: Option<&[f32]>,
+) -> Buffer {
+    const CHUNK: usize = 1 << 16;
+    let stride = if next.is_some() { 2 } else { 1 };
+    let size = header.len() + stride * size_of_val(field);
+    let buffer = device.create_buffer(&BufferDescriptor {
+        label: Some(label),
+        size: size.max(4) as u64,
+        usage: BufferUsages::STORAGE,
+        mapped_at_creation: true,
+    });
+    {
+        let mut mapped = buffer.slice(..).get_mapped_range_mut();
+        if !header.is_empty() {
+            mapped.slice(..header.len()).copy_from_slice(header);
+        }
+        let mut offset = header.len();
+        let mut pairs = Vec::with_capacity(if next.is_some() { CHUNK } else { 0 });
+        for (index, chunk) in field.chunks(CHUNK).enumerate() {
+            let bytes: &[u8] = match next {
+                Some(next) => {
+                    pairs.clear();
+                    let next = &next[index * CHUNK..][..chunk.len()];
+                    pairs.extend(chunk.iter().zip(next).map(|(&a, &b)| [a, b]));
+                    bytemuck::cast_slice(&pairs)
+                }
+                None => bytemuck::cast_slice(chunk),
+            };
+            mapped
+                .slice(offset..offset + bytes.len())
+                .copy_from_slice(bytes);
+            offset += bytes.len();
+        }
+    }
+    buffer.unmap();
+    buffer
+}
+
+/// A ray-cast grid's buffers: its scalars (binding 0), its placement and
+/// modulators (binding 4), each value beside its next keyframe's when
+/// blended, and its brick occupancy (binding 6).
+fn grid_buffers(device: &RenderDevice, grid: &CellGrid) -> (Buffer, Buffer, Buffer) {
+    let next = grid.next_keyframe();
+    let scalars = field_buffer(
+        device,
+        "nebel_cell_grid_values",
+        &[],
+        grid.grid().values(),
+        next.map(|(scalars, _)| scalars.values()),
+    );
+    let placement = GpuCellGrid::new(grid);
+    let placement = bytemuck::bytes_of(&placement);
+    let modulators = match grid.modulators() {
+        Some(modulators) => field_buffer(
+            device,
+            "nebel_cell_grid",
+            placement,
+            modulators.values(),
+            next.and_then(|(_, modulators)| modulators)
+                .map(DensityGrid::values),
+        ),
+        None => device.create_buffer_with_data(&BufferInitDescriptor {
+            label: Some("nebel_cell_grid"),
+            contents: placement,
+            usage: BufferUsages::STORAGE,
+        }),
+    };
+    let occupancy = device.create_buffer_with_data(&BufferInitDescriptor {
+        label: Some("nebel_cell_grid_occupancy"),
+        contents: bytemuck::cast_slice(grid.occupied()),
+        usage: BufferUsages::STORAGE,
+    });
+    (scalars, modulators, occupancy)
+}
+
 /// The GPU copy of one batch.
 pub struct GpuCellBuffer {
     pub(super) buffer: Buffer,
@@ -207,8 +310,10 @@ pub struct GpuCellBuffer {
     /// factor.
     pub(super) parameters: UniformBuffer<CellBatchUniform>,
     pub(super) scattered: bool,
-    /// A whole grid, ray cast: `buffer` holds its values, `modulators` its
-    /// [`GpuCellGrid`] and `next_keyframe` its brick occupancy.
+    /// A whole grid, ray cast: `buffer` holds its scalars, `modulators` its
+    /// [`GpuCellGrid`] followed by its modulators, and `next_keyframe` its
+    /// brick occupancy (each value beside its next keyframe's when
+    /// blended).
     pub(super) ray_cast: bool,
     /// The cells: the tetrahedra, or the grid's.
     pub(super) count: u32,
@@ -225,8 +330,9 @@ struct GpuCellGrid {
     voxels: [u32; 4],
     /// Bricks per axis of the occupancy; voxels per brick edge in the last.
     bricks: [u32; 4],
-    /// The scalar at or below which the transfer function has no opacity
-    /// (negative for none); the rest unused.
+    /// The value at or below which the grid has no opacity (negative for
+    /// none), and 1 when it is the modulator's instead of the scalar's; the
+    /// rest unused.
     clear: [f32; 4],
 }
 
@@ -247,7 +353,12 @@ impl GpuCellGrid {
                 u32::from(world_from_index.matrix3.determinant() < 0.0),
             ],
             bricks: [bx, by, bz, grid.brick_size() as u32],
-            clear: [grid.clear_below(), 0.0, 0.0, 0.0],
+            clear: [
+                grid.clear_below(),
+                f32::from(u8::from(grid.clears_modulators())),
+                0.0,
+                0.0,
+            ],
         }
     }
 }
@@ -283,23 +394,7 @@ pub fn prepare_cell_buffers(
             continue;
         }
         let (buffer, modulators, next_keyframe) = if let Some(grid) = &batch.cells.grid {
-            (
-                device.create_buffer_with_data(&BufferInitDescriptor {
-                    label: Some("nebel_cell_grid_values"),
-                    contents: bytemuck::cast_slice(grid.grid().values()),
-                    usage: BufferUsages::STORAGE,
-                }),
-                device.create_buffer_with_data(&BufferInitDescriptor {
-                    label: Some("nebel_cell_grid"),
-                    contents: bytemuck::bytes_of(&GpuCellGrid::new(grid)),
-                    usage: BufferUsages::STORAGE,
-                }),
-                device.create_buffer_with_data(&BufferInitDescriptor {
-                    label: Some("nebel_cell_grid_occupancy"),
-                    contents: bytemuck::cast_slice(grid.occupied()),
-                    usage: BufferUsages::STORAGE,
-                }),
-            )
+            grid_buffers(&device, grid)
         } else {
             let unmodulated = [[0.0f32; 4]];
             (
