@@ -1197,6 +1197,7 @@ mod tests {
                     keyframe_interval: 2.0,
                 }),
                 projected_cells: false,
+                full_resolution: false,
             }],
             terrain: Some(TerrainDescription {
                 source: TerrainHeightSource::Procedural(ProceduralTerrainSource {

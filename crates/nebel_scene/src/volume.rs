@@ -30,8 +30,11 @@
 //! ```
 //!
 //! Grid sources sample the box `min..max` at `dims` points per axis (corners
-//! included), trilinear in between. A volume with `lighting` is drawn through
-//! the octree (with `lod`, or the default: the screen error at 0.1, `C = 4`); its light field
+//! included), trilinear in between. A volume with `lighting`, and a `Cloud`
+//! source, is drawn through the octree, with `lod` or the default (the screen
+//! error at 0.1, `C = 4`), unless `full_resolution` draws it ray cast at full
+//! resolution, a lit one with its light field at the grid's points (projected
+//! cells carry no light field: a lit volume may not have both); its light field
 //! uses the first directional light of the scene as the sun (straight up when
 //! there is none) and its transfer function defaults to `Preset(CloudLight)`
 //! for the `Isotropic` model (colour over light, opacity from the density)
@@ -43,10 +46,10 @@
 //! That includes the memory budget (`nebel_core::budget`): validation refuses,
 //! naming the field that sizes it, a volume any of whose structures would
 //! exceed it: the density grid of `dims`; for a volume drawn through the
-//! octree (with `lod` or `lighting`) the grid padded to `2^n + 1` points per
+//! octree the grid padded to `2^n + 1` points per
 //! axis (and its light field, of the same size) and the octree over it; for
-//! one drawn at full resolution its cell batch (Kuhn's six tetrahedra per
-//! voxel); a search light's cells; a
+//! one drawn at full resolution as projected cells its cell batch (Kuhn's six
+//! tetrahedra per voxel); a search light's cells; a
 //! `Cells` list.
 
 use std::path::Path;
@@ -96,7 +99,9 @@ pub struct VolumeDescription {
     #[serde(default)]
     pub mode: Option<OpticalMode>,
     /// Draw a grid source through the octree level of detail (Röttger and Ertl 2003)
-    /// instead of at full resolution. Default: none (full resolution).
+    /// instead of at full resolution. Default: none (full resolution, but
+    /// the octree's default for a lit volume or a `Cloud`, see the module
+    /// docs).
     #[serde(default)]
     pub lod: Option<LodDescription>,
     /// Light a grid volume as a cloud (Röttger and Ertl 2003 §5). Default: none (unlit).
@@ -104,9 +109,13 @@ pub struct VolumeDescription {
     pub lighting: Option<LightingDescription>,
     /// Draw a grid at full resolution as its tetrahedra projected in
     /// visibility order (Röttger 2004 §8) instead of ray casting them; both
-    /// are exact. Ignored with `lod` or `lighting`. Default false.
+    /// are exact. Ignored through the octree. Default false.
     #[serde(default)]
     pub projected_cells: bool,
+    /// Draw a lit volume or a `Cloud` at full resolution instead of through
+    /// the octree's default (module docs); not with `lod`. Default false.
+    #[serde(default)]
+    pub full_resolution: bool,
 }
 
 /// Which field of a lit cloud gives the colour and which the opacity (paper
@@ -502,8 +511,9 @@ pub struct BuiltVolume {
     pub transfer_function: TransferFunction,
     /// How segments combine.
     pub mode: OpticalMode,
-    /// Level-of-detail settings; `None` draws at full resolution (unless the
-    /// volume is lit, which always uses the octree).
+    /// Level-of-detail settings, the octree's default where the volume is
+    /// drawn through it without them (module docs); `None` draws at full
+    /// resolution.
     pub lod: Option<LodDescription>,
     /// Cloud lighting; `None` for an unlit volume.
     pub lighting: Option<LightingDescription>,
@@ -704,11 +714,20 @@ impl VolumeDescription {
             field,
             transfer_function: transfer,
             mode: self.mode.unwrap_or(default_mode),
-            lod: self.lod,
+            lod: self.drawn_lod(),
             lighting: self.lighting,
             projected_cells: self.projected_cells,
             ends_where_fog_layers_begin: false,
         })
+    }
+
+    /// The octree's settings the volume is drawn with: its `lod`, or the
+    /// default for a lit volume or a cloud without `full_resolution`.
+    fn drawn_lod(&self) -> Option<LodDescription> {
+        let octree_by_default =
+            self.lighting.is_some() || matches!(self.source, SourceDescription::Cloud(_));
+        self.lod
+            .or_else(|| (octree_by_default && !self.full_resolution).then(LodDescription::default))
     }
 
     fn spacing(&self, dims: [usize; 3]) -> DVec3 {
@@ -806,6 +825,18 @@ impl VolumeDescription {
                     "must exceed min on every axis, got min {:?} max {:?}",
                     self.min, self.max
                 ),
+            ));
+        }
+        if self.full_resolution && self.lod.is_some() {
+            return Err(InvalidField::new(
+                "full_resolution",
+                "draws the volume without the octree: give it or lod, not both",
+            ));
+        }
+        if self.full_resolution && self.lighting.is_some() && self.projected_cells {
+            return Err(InvalidField::new(
+                "projected_cells",
+                "projected cells at full resolution carry no light field: a lit volume with full_resolution is ray cast",
             ));
         }
         if let Some(lod) = &self.lod {
@@ -1038,7 +1069,7 @@ impl VolumeDescription {
             }
         };
         DensityGrid::check_budget(dims).map_err(over_budget(field))?;
-        if self.lod.is_some() || self.lighting.is_some() {
+        if self.drawn_lod().is_some() {
             // The octree's grid, its light field and the octree itself.
             let padded = dims.map(power_of_two_plus_one);
             let padded_error = |error: BudgetError| {
@@ -1050,7 +1081,8 @@ impl VolumeDescription {
             DensityGrid::check_budget(padded).map_err(padded_error)?;
             VolumeHierarchy::check_budget(padded, self.lighting.is_some()).map_err(padded_error)?;
         } else if self.projected_cells {
-            // A ray-cast grid needs only the grid itself.
+            // Projected cells; a ray-cast grid needs only the grid itself
+            // (and a lit one its light field, of the same size).
             let voxels = dims.map(|n| n - 1);
             check_allocation(
                 || {
@@ -1097,6 +1129,7 @@ mod tests {
             lod: None,
             lighting: None,
             projected_cells: false,
+            full_resolution: false,
         }
     }
 
@@ -1218,6 +1251,88 @@ mod tests {
             built.transfer_function.evaluate(1.0).rho,
             2.0 * cloud.evaluate(1.0).rho
         );
+    }
+
+    #[test]
+    fn a_lit_volume_or_a_cloud_takes_the_octree_unless_drawn_at_full_resolution() {
+        let procedural = SourceDescription::Procedural(ProceduralSource {
+            dims: [9; 3],
+            kind: NoiseKind::Fbm,
+            seed: 3,
+            octaves: 2,
+            frequency: 0.4,
+            coverage: 1.0,
+            ellipsoid: true,
+        });
+        let cloud = SourceDescription::Cloud(CloudSource {
+            dims: [9, 5, 9],
+            seed: 2,
+            coverage: Some(0.6),
+            octaves: Some(3),
+            wavelength: Some(4.0),
+            wind: [0.0; 3],
+            detail_wind: None,
+            base_fade: None,
+            top_fade: None,
+            keyframe_interval: None,
+        });
+        let lighting = Some(LightingDescription {
+            ambient: 0.3,
+            diffuse: 0.7,
+            shadow_extinction: 0.5,
+            model: LightModel::Isotropic,
+            keyframe_interval: 2.0,
+        });
+        let lod = Some(LodDescription {
+            accuracy: Some(8.0),
+            ..LodDescription::default()
+        });
+        let drawn = |description: &VolumeDescription| {
+            description.validate().unwrap();
+            description.build(Path::new(".")).unwrap().lod
+        };
+        let unlit = volume(procedural.clone());
+        let lit = VolumeDescription {
+            lighting,
+            ..volume(procedural)
+        };
+        let cloud = volume(cloud);
+        assert_eq!(drawn(&unlit), None);
+        for octree_by_default in [&lit, &cloud] {
+            assert_eq!(drawn(octree_by_default), Some(LodDescription::default()));
+            let full = VolumeDescription {
+                full_resolution: true,
+                ..octree_by_default.clone()
+            };
+            assert_eq!(drawn(&full), None);
+            let given = VolumeDescription {
+                lod,
+                ..octree_by_default.clone()
+            };
+            assert_eq!(drawn(&given), lod);
+            // Not both.
+            let both = VolumeDescription {
+                full_resolution: true,
+                ..given
+            };
+            assert_eq!(both.validate().unwrap_err().field, "full_resolution");
+        }
+        // Projected cells carry no light field.
+        let lit_projected = VolumeDescription {
+            full_resolution: true,
+            projected_cells: true,
+            ..lit
+        };
+        assert_eq!(
+            lit_projected.validate().unwrap_err().field,
+            "projected_cells"
+        );
+        let projected = VolumeDescription {
+            full_resolution: true,
+            projected_cells: true,
+            ..unlit
+        };
+        assert_eq!(drawn(&projected), None);
     }
 
     #[test]

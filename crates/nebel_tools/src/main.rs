@@ -213,6 +213,11 @@ struct SceneArgs {
     /// visibility order instead of ray casting them.
     #[arg(long)]
     projected_cells: bool,
+    /// Draw every grid volume at full resolution instead of through the
+    /// octree (the scene's `lod` removed, `full_resolution` set): ray cast,
+    /// lit or not.
+    #[arg(long)]
+    full_resolution: bool,
 }
 
 fn parse_tolerance(tolerance: &str) -> Result<f32, String> {
@@ -283,6 +288,12 @@ impl SceneArgs {
         if self.exact || self.projected_cells {
             for volume in &mut scene.volumes {
                 volume.projected_cells = true;
+            }
+        }
+        if self.full_resolution {
+            for volume in &mut scene.volumes {
+                volume.lod = None;
+                volume.full_resolution = true;
             }
         }
         if self.cell_resolution.is_some() || self.upsample_tolerance.is_some() {

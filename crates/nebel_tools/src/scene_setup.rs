@@ -423,11 +423,17 @@ fn spawn_volumes(commands: &mut Commands, grids: &mut Assets<VolumeGrid>, volume
         if volume.projected_cells {
             entity.insert(ProjectedCells);
         }
-        if let Some(lod) = volume.lod {
-            entity.insert(VolumeLod {
-                criterion: lod.criterion(),
-                min_accuracy: lod.min_accuracy,
-            });
+        match volume.lod {
+            Some(lod) => {
+                entity.insert(VolumeLod {
+                    criterion: lod.criterion(),
+                    min_accuracy: lod.min_accuracy,
+                });
+            }
+            // A cloud, too, is drawn at full resolution without it.
+            None => {
+                entity.remove::<VolumeLod>();
+            }
         }
         if let Some(lighting) = volume.lighting {
             entity.insert(VolumeLighting {

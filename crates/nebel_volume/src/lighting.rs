@@ -1,9 +1,14 @@
 //! Lit clouds: a light field γ per grid point and a segment length modulated
 //! by a second field (Röttger and Ertl 2003 §5).
 //!
-//! Add [`VolumeLighting`] to a grid [`Volume`](crate::Volume) (it requires
-//! [`VolumeLod`](crate::VolumeLod): lit volumes are always drawn through the
-//! octree, which carries both fields). The volume system then
+//! Add [`VolumeLighting`] to a grid [`Volume`](crate::Volume). Without
+//! [`VolumeLod`](crate::VolumeLod) the grid is ray cast whole at full
+//! resolution, with the light field at its points (`nebel_lod::CellGrid`);
+//! with it, drawn through the octree, which carries both fields. Projected
+//! cells at full resolution carry no light field:
+//! [`ProjectedCells`](crate::ProjectedCells) on a lit volume needs
+//! [`VolumeLod`](crate::VolumeLod) (the batch's error says so otherwise).
+//! The volume system then
 //!
 //! 1. computes γ at every grid point with `nebel_core::field::light_field`:
 //!    `γ = ambient + diffuse · T_sun · lambert`, the "standard ambient and
@@ -15,11 +20,11 @@
 //!    from keyframes of the light field blended on the GPU
 //!    (`nebel_lod::VolumeBatching`); the light's colour and illuminance scale the
 //!    colours drawn (`nebel_render::CellSunlight`);
-//! 2. builds the hierarchy over both fields (`VolumeHierarchy::with_light`), so
-//!    refinement follows the larger deviation of density and light (§5.1);
-//! 3. emits cells that carry one field as the transfer function's scalar
-//!    and the other as a segment-length modulator, per
-//!    [`CloudLightModel`].
+//! 2. with the octree, builds the hierarchy over both fields
+//!    (`VolumeHierarchy::with_light`), so refinement follows the larger
+//!    deviation of density and light (§5.1);
+//! 3. draws one field as the transfer function's scalar and the other as a
+//!    segment-length modulator, per [`CloudLightModel`].
 //!
 //! The render system draws the modulator exactly per pixel (the mean of the
 //! linear modulator over each segment), so the model costs one extra storage
@@ -76,7 +81,6 @@ impl CloudLightModel {
 /// (see the module docs).
 #[derive(Component, Clone, Copy, Debug, PartialEq, Reflect)]
 #[reflect(Component, Default, Clone)]
-#[require(crate::VolumeLod)]
 pub struct VolumeLighting {
     /// Light every point receives, as a fraction of full light, in [0, 1]
     /// (the sky's strength for [`CloudLightModel::Scattering`]). Default 0.3.

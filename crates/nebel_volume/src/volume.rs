@@ -268,7 +268,8 @@ mod tests {
     }
 
     /// Gives `volume` a 9³ noise grid lit by `lighting` with a shadow of
-    /// extinction 2.
+    /// extinction 2, drawn through the octree (its own `VolumeLod`, or the
+    /// default).
     fn give_lit_noise(app: &mut App, volume: Entity, lighting: VolumeLighting) {
         let noise = nebel_core::field::ProceduralNoise {
             octaves: 3,
@@ -278,10 +279,14 @@ mod tests {
             DensityGrid::procedural([9, 9, 9], DVec3::splat(0.25), DVec3::ZERO, &noise).unwrap();
         let field = grid_field(app, grid);
         app.world_mut().get_mut::<Volume>(volume).unwrap().field = field;
-        app.world_mut().entity_mut(volume).insert(VolumeLighting {
+        let mut entity = app.world_mut().entity_mut(volume);
+        entity.insert(VolumeLighting {
             shadow_extinction: 2.0,
             ..lighting
         });
+        if !entity.contains::<VolumeLod>() {
+            entity.insert(VolumeLod::default());
+        }
     }
 
     fn move_camera(app: &mut App, camera: Entity) {
@@ -539,6 +544,35 @@ mod tests {
                 .any(|v| v[3] < 0.3),
             "the transmittance has no ambient floor"
         );
+    }
+
+    #[test]
+    fn a_lit_grid_without_the_octree_is_ray_cast_with_its_light_field() {
+        let (mut app, _, volume) = app_with_volume(OpticalMode::Sorted);
+        give_lit_noise(&mut app, volume, VolumeLighting::default());
+        app.world_mut().entity_mut(volume).remove::<VolumeLod>();
+        app.update();
+        let batch = app.world().get::<CellBatch>(volume).unwrap();
+        let grid = batch.cells.grid.as_ref().expect("a ray-cast grid");
+        assert!(batch.cells.is_modulated() && batch.cells.modulators.is_empty());
+        // Isotropic model: the scalar is γ ≥ ambient, the modulator the
+        // density.
+        let modulators = grid.modulators().expect("the density as modulator");
+        assert_eq!(modulators.dims(), [9, 9, 9]);
+        assert!(
+            grid.grid()
+                .values()
+                .iter()
+                .all(|&light| light >= 0.3 - 1e-6)
+        );
+        assert!(grid.clears_modulators());
+        // It needs the octree to be drawn as projected cells.
+        app.world_mut().entity_mut(volume).insert(ProjectedCells);
+        app.update();
+        assert!(matches!(
+            app.world().get::<crate::VolumeStatus>(volume),
+            Some(crate::VolumeStatus::Failed(_))
+        ));
     }
 
     #[test]
