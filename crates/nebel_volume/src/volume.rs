@@ -570,8 +570,8 @@ mod tests {
         app.world_mut().entity_mut(volume).insert(ProjectedCells);
         app.update();
         assert!(matches!(
-            app.world().get::<crate::VolumeStatus>(volume),
-            Some(crate::VolumeStatus::Failed(_))
+            app.world().get::<VolumeStatus>(volume),
+            Some(VolumeStatus::Failed(_))
         ));
     }
 
