@@ -209,6 +209,10 @@ pub struct CloudSource {
     /// Height fraction over which the tops round off. Default 0.5.
     #[serde(default)]
     pub top_fade: Option<f32>,
+    /// Fraction of the width and depth over which the coverage falls to 0
+    /// toward the box's sides, in [0, 0.5]. Default 0.1.
+    #[serde(default)]
+    pub side_fade: Option<f32>,
     /// Seconds between the keyframes a windy cloud is blended from, > 0
     /// (see `nebel_volume::CloudVolume::keyframe_interval`). Default 2.
     #[serde(default)]
@@ -228,6 +232,7 @@ impl CloudSource {
             detail_wind: self.detail_wind.unwrap_or(defaults.detail_wind),
             base_fade: self.base_fade.unwrap_or(defaults.base_fade),
             top_fade: self.top_fade.unwrap_or(defaults.top_fade),
+            side_fade: self.side_fade.unwrap_or(defaults.side_fade),
             ..defaults
         }
     }
@@ -1145,6 +1150,7 @@ mod tests {
             detail_wind: None,
             base_fade: None,
             top_fade: None,
+            side_fade: None,
             keyframe_interval: Some(1.5),
         });
         let mut lit = VolumeDescription {
@@ -1274,6 +1280,7 @@ mod tests {
             detail_wind: None,
             base_fade: None,
             top_fade: None,
+            side_fade: None,
             keyframe_interval: None,
         });
         let lighting = Some(LightingDescription {

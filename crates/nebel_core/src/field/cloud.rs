@@ -20,10 +20,13 @@
 //!    `b(h) = smoothstep(0, base_fade, h)` fades every column in at one
 //!    altitude (flat bases) and the coverage shrinks toward the top
 //!    (`top_fade`: rounded tops).
+//! 5. **Side fade**: the coverage shrinks to 0 toward the box's four vertical
+//!    sides over `side_fade` of its width and depth, so no cloud is cut flat
+//!    by the box: clouds thin out and end inside it.
 //!
-//! So `f = b(h) · clamp((u − (1 − c(h))) / c(h), 0, 1)`, in [0, 1], a pure
-//! function of the settings, time and geometry: the same on every run, machine
-//! and thread count.
+//! So `f = b(h) · clamp((u − (1 − c)) / c, 0, 1)` with `c = c(h) · s(x) ·
+//! s(z)`, in [0, 1], a pure function of the settings, time and geometry: the
+//! same on every run, machine and thread count.
 //!
 //! Rows of grid points are evaluated octave by octave by `PerlinRow`, in the
 //! CPU's vector instructions, and finer octaves skip the points that can no
@@ -69,11 +72,14 @@ const MAX_OCTAVES: usize = 16;
 ///   `u = 1 / (1 + e^{−1.702 v})` (nearly uniform on (0, 1));
 /// - `c(h) = coverage · (1 − smoothstep(1 − top_fade, 1, h))`,
 ///   `b(h) = smoothstep(0, base_fade, h)` (a fade of 0 disables it);
-/// - density `f = b(h) · clamp((u − (1 − c(h))) / c(h), 0, 1)`, 0 where
-///   `c(h) = 0`.
+/// - `s(x) = smoothstep(0, side_fade, min(x, 1 − x))` of the width fraction
+///   `x = i / (nx − 1)`, and `s(z)` of the depth fraction alike (a fade of 0
+///   disables it);
+/// - density `f = b(h) · clamp((u − (1 − c)) / c, 0, 1)` with `c = c(h) ·
+///   s(x) · s(z)`, 0 where `c = 0`.
 ///
-/// About a fraction `coverage` of the points away from the base and top is
-/// cloud.
+/// About a fraction `coverage` of the points away from the base, the top and
+/// the sides is cloud.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "bevy_reflect", derive(bevy_reflect::Reflect))]
 pub struct CloudNoise {
@@ -107,6 +113,10 @@ pub struct CloudNoise {
     /// Height fraction of the box, in [0, 1], over which the coverage
     /// threshold rises to 1 at the top (rounded tops). Default 0.5.
     pub top_fade: f32,
+    /// Fraction of the box's width and depth, in [0, 0.5], over which the
+    /// coverage falls to 0 toward each of its vertical sides (no cloud cut
+    /// flat by the box). Default 0.1.
+    pub side_fade: f32,
 }
 
 impl Default for CloudNoise {
@@ -122,6 +132,7 @@ impl Default for CloudNoise {
             detail_wind: 1.5,
             base_fade: 0.15,
             top_fade: 0.5,
+            side_fade: 0.1,
         }
     }
 }
@@ -183,6 +194,14 @@ impl Layer {
         }
     }
 
+    /// The layer of one row, its coverage scaled by the row's side factor.
+    fn with_side(self, side: f64) -> Self {
+        Self {
+            coverage: self.coverage * side,
+            ..self
+        }
+    }
+
     /// Density from the equalised unit noise `u`.
     fn density(self, u: f64) -> f32 {
         if self.is_empty() {
@@ -191,6 +210,20 @@ impl Layer {
         let d = self.base * ((u - (1.0 - self.coverage)) / self.coverage).clamp(0.0, 1.0);
         if d.is_nan() { 0.0 } else { d as f32 }
     }
+}
+
+/// The side factor `s` at each of `n` points across the box (module docs).
+fn side_factors(side_fade: f32, n: usize) -> Vec<f64> {
+    let fade = f64::from(side_fade);
+    (0..n)
+        .map(|i| {
+            if fade <= 0.0 {
+                return 1.0;
+            }
+            let x = i as f64 / (n - 1) as f64;
+            smoothstep(0.0, fade, x.min(1.0 - x))
+        })
+        .collect()
 }
 
 fn smoothstep(edge0: f64, edge1: f64, x: f64) -> f64 {
@@ -212,6 +245,13 @@ impl CloudNoise {
             if !(0.0..=1.0).contains(&value) {
                 return Err(invalid(parameter, value.to_string(), "between 0 and 1"));
             }
+        }
+        if !(0.0..=0.5).contains(&self.side_fade) {
+            return Err(invalid(
+                "side_fade",
+                self.side_fade.to_string(),
+                "between 0 and 0.5",
+            ));
         }
         if !(1..=MAX_OCTAVES).contains(&self.octaves) {
             return Err(invalid(
@@ -324,11 +364,13 @@ impl<'a> RowFiller<'a> {
     }
 
     /// The densities of the row at height `y`, depth `z` (world units) into
-    /// `row`, through [`FillRow`].
-    fn fill(&mut self, layer: Layer, y: f64, z: f64, row: &mut [f32]) {
+    /// `row`, through [`FillRow`], each point's coverage scaled by its side
+    /// factor in `sides`.
+    fn fill(&mut self, layer: Layer, sides: &[f64], y: f64, z: f64, row: &mut [f32]) {
         pulp::Arch::new().dispatch(FillRow {
             filler: self,
             layer,
+            sides,
             y,
             z,
             row,
@@ -336,7 +378,8 @@ impl<'a> RowFiller<'a> {
     }
 
     #[inline(always)]
-    fn fill_row(&mut self, layer: Layer, y: f64, z: f64, row: &mut [f32]) {
+    fn fill_row(&mut self, layer: Layer, sides: &[f64], y: f64, z: f64, row: &mut [f32]) {
+        // The row's largest coverage: a point of less needs more noise.
         let zero_below = layer.zero_below();
         self.sums.fill(0.0);
         self.live.fill(true);
@@ -359,9 +402,11 @@ impl<'a> RowFiller<'a> {
                 *live &= sum + remaining >= zero_below;
             }
         }
-        for ((value, &sum), &live) in row.iter_mut().zip(&self.sums).zip(&self.live) {
+        for (((value, &sum), &live), &side) in
+            row.iter_mut().zip(&self.sums).zip(&self.live).zip(sides)
+        {
             *value = if live {
-                layer.density(unit_noise(sum))
+                layer.with_side(side).density(unit_noise(sum))
             } else {
                 0.0
             };
@@ -377,6 +422,7 @@ impl<'a> RowFiller<'a> {
 struct FillRow<'f, 'a, 'r> {
     filler: &'f mut RowFiller<'a>,
     layer: Layer,
+    sides: &'r [f64],
     y: f64,
     z: f64,
     row: &'r mut [f32],
@@ -387,7 +433,8 @@ impl pulp::WithSimd for FillRow<'_, '_, '_> {
 
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, _simd: S) {
-        self.filler.fill_row(self.layer, self.y, self.z, self.row);
+        self.filler
+            .fill_row(self.layer, self.sides, self.y, self.z, self.row);
     }
 }
 
@@ -439,17 +486,22 @@ impl DensityGrid {
             .map(|j| Layer::new(noise, j as f64 / (ny - 1) as f64))
             .collect();
         let xs: Vec<f64> = (0..nx).map(|i| origin.x + i as f64 * spacing.x).collect();
+        let (sides_x, sides_z) = (
+            side_factors(noise.side_fade, nx),
+            side_factors(noise.side_fade, nz),
+        );
         let mut values = vec![0.0f32; points];
         let fill = |first_slice: usize, chunk: &mut [f32]| {
             let mut filler = RowFiller::new(&octaves, &xs);
             for (dk, slice) in chunk.chunks_mut(nx * ny).enumerate() {
-                let z = origin.z + (first_slice + dk) as f64 * spacing.z;
+                let k = first_slice + dk;
+                let z = origin.z + k as f64 * spacing.z;
                 for (j, row) in slice.chunks_mut(nx).enumerate() {
-                    let layer = layers[j];
+                    let layer = layers[j].with_side(sides_z[k]);
                     if layer.is_empty() {
                         continue;
                     }
-                    filler.fill(layer, origin.y + j as f64 * spacing.y, z, row);
+                    filler.fill(layer, &sides_x, origin.y + j as f64 * spacing.y, z, row);
                 }
                 pace();
             }
@@ -520,7 +572,9 @@ mod tests {
 
     /// The density at one point as the formulas at [`CloudNoise`] state it,
     /// each octave by `noise::Perlin`'s pointwise `get`.
-    fn pointwise_density(noise: &CloudNoise, time: f64, p: DVec3, h: f64) -> f32 {
+    /// The density at `p`, height fraction `h` and side factor `side` (the
+    /// product of the two axes').
+    fn pointwise_density(noise: &CloudNoise, time: f64, p: DVec3, h: f64, side: f64) -> f32 {
         let octaves = noise.octaves("test", time).unwrap();
         let v: f64 = octaves
             .iter()
@@ -530,25 +584,38 @@ mod tests {
                 o.amplitude * perlin.get((p * o.frequency + o.offset).to_array())
             })
             .sum();
-        Layer::new(noise, h).density(unit_noise(v))
+        Layer::new(noise, h).with_side(side).density(unit_noise(v))
+    }
+
+    /// The side factor at index `i` of `n` points, written out.
+    fn side(side_fade: f32, i: usize, n: usize) -> f64 {
+        let x = i as f64 / (n - 1) as f64;
+        let distance = x.min(1.0 - x) / f64::from(side_fade);
+        if side_fade == 0.0 || distance >= 1.0 {
+            1.0
+        } else {
+            distance * distance * (3.0 - 2.0 * distance)
+        }
     }
 
     #[test]
     fn rows_and_skipped_octaves_equal_the_pointwise_formula() {
         // Coverages from sparse (most points skip the fine octaves) to full
-        // (none may), several octave counts, lacunarities and winds.
-        for (coverage, octaves, lacunarity, time) in [
-            (0.1, 5, 2.0, 0.0),
-            (0.42, 5, 2.0, 3.5),
-            (0.5, 8, 2.3, -7.0),
-            (0.9, 3, 1.7, 1.0),
-            (1.0, 5, 2.0, 2.0),
+        // (none may), several octave counts, lacunarities, winds and side
+        // fades.
+        for (coverage, octaves, lacunarity, time, side_fade) in [
+            (0.1, 5, 2.0, 0.0, 0.1),
+            (0.42, 5, 2.0, 3.5, 0.3),
+            (0.5, 8, 2.3, -7.0, 0.0),
+            (0.9, 3, 1.7, 1.0, 0.5),
+            (1.0, 5, 2.0, 2.0, 0.2),
         ] {
             let noise = CloudNoise {
                 coverage,
                 octaves,
                 lacunarity,
                 wind: DVec3::new(3.0, 0.5, -2.0),
+                side_fade,
                 ..small()
             };
             let grid = grid(&noise, time);
@@ -559,7 +626,8 @@ mod tests {
                     for i in 0..nx {
                         let p = ORIGIN + DVec3::new(i as f64, j as f64, k as f64) * SPACING;
                         let h = j as f64 / (ny - 1) as f64;
-                        let expected = pointwise_density(&noise, time, p, h);
+                        let sides = side(side_fade, k, nz) * side(side_fade, i, nx);
+                        let expected = pointwise_density(&noise, time, p, h, sides);
                         // The rows agree with `noise` to rounding: at most
                         // a unit in the last place of the f32 density.
                         assert!(
@@ -576,11 +644,56 @@ mod tests {
     }
 
     #[test]
+    fn the_sides_fade_to_no_cloud() {
+        // Full coverage: without a side fade every point is cloud.
+        let dims = [33, 9, 25];
+        let noise = |side_fade| CloudNoise {
+            coverage: 1.0,
+            base_fade: 0.0,
+            top_fade: 0.0,
+            side_fade,
+            ..small()
+        };
+        let field = |side_fade| {
+            DensityGrid::cloud(dims, DVec3::ONE, DVec3::ZERO, &noise(side_fade), 0.0).unwrap()
+        };
+        let (plain, faded) = (field(0.0), field(0.25));
+        let [nx, ny, nz] = dims;
+        let margin = |i: usize, n: usize| i.min(n - 1 - i) as f64 / (n - 1) as f64 >= 0.25;
+        let mut thinned = 0;
+        for k in 0..nz {
+            for j in 0..ny {
+                for i in 0..nx {
+                    let (p, f) = (plain.value(i, j, k), faded.value(i, j, k));
+                    // Less coverage never adds density.
+                    assert!(f <= p, "({i}, {j}, {k}): {f} above {p}");
+                    if i == 0 || i == nx - 1 || k == 0 || k == nz - 1 {
+                        assert_eq!(f, 0.0, "({i}, {j}, {k}) on a side");
+                    } else if margin(i, nx) && margin(k, nz) {
+                        assert_eq!(f, p, "({i}, {j}, {k}) inside the margin");
+                    } else {
+                        thinned += usize::from(f < p);
+                    }
+                }
+            }
+        }
+        assert!(thinned > 0);
+        assert!(plain.values().iter().all(|&v| v > 0.0));
+        // Outside [0, 0.5] it is refused.
+        for side_fade in [-0.1, 0.6, f32::NAN] {
+            let error = DensityGrid::cloud(dims, DVec3::ONE, DVec3::ZERO, &noise(side_fade), 0.0);
+            assert_mentions(&error_message(error), &["side_fade"]);
+        }
+    }
+
+    #[test]
     fn coverage_sets_the_covered_fraction() {
-        // No vertical profile, so every layer has the full coverage.
+        // No vertical profile or side fade, so every layer has the full
+        // coverage.
         let flat = CloudNoise {
             base_fade: 0.0,
             top_fade: 0.0,
+            side_fade: 0.0,
             wavelength: 12.0,
             ..small()
         };
@@ -681,8 +794,10 @@ mod tests {
 
     #[test]
     fn vertical_profile_fades_the_base_and_rounds_the_top() {
+        // The vertical profile alone: no side fade.
         let noise = CloudNoise {
             coverage: 1.0,
+            side_fade: 0.0,
             ..small()
         };
         let grid = grid(&noise, 0.0);
