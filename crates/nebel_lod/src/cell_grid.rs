@@ -194,31 +194,9 @@ impl CellGrid {
         bricks: &BrickTable,
         transfer: &TransferFunction,
     ) -> Result<Self, BatchError> {
-        let voxels = self.voxels();
-        if bricks.voxels() != voxels {
-            return Err(BatchError::BrickTableMismatch {
-                table: bricks.voxels(),
-                grid: voxels,
-            });
-        }
-        let counts = bricks.brick_counts();
-        let mut occupied = Vec::with_capacity(counts.iter().product());
-        for bz in 0..counts[2] {
-            for by in 0..counts[1] {
-                for bx in 0..counts[0] {
-                    let [low, high] = bricks.scalar_range([bx, by, bz]).unwrap_or([0.0, 1.0]);
-                    let empty = transfer.is_transparent(f64::from(low), f64::from(high));
-                    occupied.push(u32::from(!empty));
-                }
-            }
-        }
-        Ok(Self {
-            brick_size: bricks.brick_size(),
-            bricks: counts,
-            occupied,
-            clear_below: clear_below(transfer),
-            clears_modulators: false,
-            ..self
+        let clear = clear_below(transfer);
+        self.with_bricks(bricks, clear, false, |[low, high]| {
+            transfer.is_transparent(f64::from(low), f64::from(high))
         })
     }
 
@@ -231,13 +209,27 @@ impl CellGrid {
     /// ([`BatchError::ModulatorMismatch`]) or when the table is another
     /// grid's.
     pub fn with_modulator_occupancy(self, bricks: &BrickTable) -> Result<Self, BatchError> {
-        let voxels = self.voxels();
         if self.modulators.is_none() {
             return Err(BatchError::ModulatorMismatch {
                 scalars: self.grid.dims(),
                 modulators: [0; 3],
             });
         }
+        self.with_bricks(bricks, 0.0, true, |[_, high]| high <= 0.0)
+    }
+
+    /// The grid with the bricks of `bricks` whose `[low, high]` range is
+    /// `empty` marked so, nothing at or below `clear_below` (over the
+    /// modulators where `clears_modulators`); an error when the table is
+    /// another grid's.
+    fn with_bricks(
+        self,
+        bricks: &BrickTable,
+        clear_below: f32,
+        clears_modulators: bool,
+        empty: impl Fn([f32; 2]) -> bool,
+    ) -> Result<Self, BatchError> {
+        let voxels = self.voxels();
         if bricks.voxels() != voxels {
             return Err(BatchError::BrickTableMismatch {
                 table: bricks.voxels(),
@@ -249,8 +241,8 @@ impl CellGrid {
         for bz in 0..counts[2] {
             for by in 0..counts[1] {
                 for bx in 0..counts[0] {
-                    let [_, high] = bricks.scalar_range([bx, by, bz]).unwrap_or([0.0, 1.0]);
-                    occupied.push(u32::from(high > 0.0));
+                    let range = bricks.scalar_range([bx, by, bz]).unwrap_or([0.0, 1.0]);
+                    occupied.push(u32::from(!empty(range)));
                 }
             }
         }
@@ -258,8 +250,8 @@ impl CellGrid {
             brick_size: bricks.brick_size(),
             bricks: counts,
             occupied,
-            clear_below: 0.0,
-            clears_modulators: true,
+            clear_below,
+            clears_modulators,
             ..self
         })
     }

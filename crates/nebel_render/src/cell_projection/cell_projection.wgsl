@@ -430,25 +430,52 @@ struct MergedOutput {
 #endif
 
 #ifdef RAY_CAST
-// The grid's scalar and modulator at point p (1 without modulators).
-fn grid_point(p: vec3<u32>) -> vec2<f32> {
+#ifdef MODULATED
+// A grid point's scalar and modulator.
+alias GridPoint = vec2<f32>;
+#else
+// A grid point's scalar.
+alias GridPoint = f32;
+#endif
+
+// The scalar of a grid point.
+fn point_scalar(point: GridPoint) -> f32 {
+#ifdef MODULATED
+    return point.x;
+#else
+    return point;
+#endif
+}
+
+// The modulator of a grid point (1 without modulators).
+fn point_modulator(point: GridPoint) -> f32 {
+#ifdef MODULATED
+    return point.y;
+#else
+    return 1.0;
+#endif
+}
+
+// The grid's values at point p.
+fn grid_point(p: vec3<u32>) -> GridPoint {
     let points = grid.voxels.xyz + 1u;
     let index = p.x + points.x * (p.y + points.y * p.z);
 #ifdef BLENDED
     let t = parameters.blend.x;
     let scalars = grid_values[index];
-    var point = vec2(mix(scalars.x, scalars.y, t), 1.0);
 #ifdef MODULATED
     let modulators = grid.modulators[index];
-    point.y = mix(modulators.x, modulators.y, t);
+    return vec2(mix(scalars.x, scalars.y, t), mix(modulators.x, modulators.y, t));
+#else
+    return mix(scalars.x, scalars.y, t);
 #endif
 #else
-    var point = vec2(grid_values[index], 1.0);
 #ifdef MODULATED
-    point.y = grid.modulators[index];
+    return vec2(grid_values[index], grid.modulators[index]);
+#else
+    return grid_values[index];
 #endif
 #endif
-    return point;
 }
 
 // A point of a voxel as the barycentric combination of the corners of its
@@ -484,9 +511,9 @@ fn kuhn_point(u: vec3<f32>) -> KuhnPoint {
     return KuhnPoint(side, side | (1u << b), vec4(1.0 - u[a], u[a] - u[b], u[b] - u[c], u[c]));
 }
 
-// The scalar and modulator of Kuhn's linear fields in a voxel with corner
-// values `corners` at `point`.
-fn kuhn_value(corners: ptr<function, array<vec2<f32>, 8>>, point: KuhnPoint) -> vec2<f32> {
+// The values of Kuhn's linear fields in a voxel with corner values
+// `corners` at `point`.
+fn kuhn_value(corners: ptr<function, array<GridPoint, 8>>, point: KuhnPoint) -> GridPoint {
     let w = point.weights;
     return (*corners)[0] * w.x + (*corners)[point.side] * w.y + (*corners)[point.diagonal] * w.z
         + (*corners)[7] * w.w;
@@ -510,14 +537,14 @@ fn shade_voxel(
     accumulated: ptr<function, Accumulated>,
 ) {
     let low = vec3<u32>(voxel);
-    var corners: array<vec2<f32>, 8>;
-    var peak = vec2(-1.0);
+    var corners: array<GridPoint, 8>;
+    var peak = GridPoint(-1.0);
     for (var c = 0u; c < 8u; c++) {
         corners[c] = grid_point(low + vec3<u32>(c & 1u, (c >> 1u) & 1u, c >> 2u));
         peak = max(peak, corners[c]);
     }
     // No corner above the clear range: no value in the voxel is.
-    if select(peak.x, peak.y, grid.clear.y != 0.0) <= grid.clear.x {
+    if select(point_scalar(peak), point_modulator(peak), grid.clear.y != 0.0) <= grid.clear.x {
         return;
     }
     let local = origin - vec3<f32>(voxel);
@@ -545,10 +572,10 @@ fn shade_voxel(
         if end > start {
             let s_end = kuhn_value(&corners, kuhn_point(clamp(local + end * step, vec3(0.0), vec3(1.0))));
             let segment = segment_colour(
-                clamp(s_start.x, 0.0, 1.0),
-                clamp(s_end.x, 0.0, 1.0),
-                clamp(s_start.y, 0.0, 1.0),
-                clamp(s_end.y, 0.0, 1.0),
+                clamp(point_scalar(s_start), 0.0, 1.0),
+                clamp(point_scalar(s_end), 0.0, 1.0),
+                clamp(point_modulator(s_start), 0.0, 1.0),
+                clamp(point_modulator(s_end), 0.0, 1.0),
                 end - start,
                 direction,
                 0.5 * (start + end),
