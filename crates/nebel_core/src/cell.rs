@@ -22,8 +22,7 @@
 //! - A hexahedron also splits into six tetrahedra around its diagonal from
 //!   corner 0 to corner 7, one per ordering of the axes
 //!   ([`Hexahedron::kuhn_tetrahedra`], [`KUHN_TETRAHEDRA`], their field
-//!   [`kuhn_value`]; Kuhn, "Some combinatorial lemmas in topology", 1960;
-//!   Freudenthal 1942). Every cell
+//!   [`kuhn_value`]; Kuhn 1960; Freudenthal 1942). Every cell
 //!   uses the same one, whose face diagonals all run from a face's lowest
 //!   corner to its highest, so a grid conforms without alternating. Unlike
 //!   the five-tetrahedron one it is **nested**: halving a box's edges and

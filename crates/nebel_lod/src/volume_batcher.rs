@@ -10,9 +10,8 @@
 //!   [`Cells::from_grid`]): the renderer ray casts its tetrahedra, so only a
 //!   new placement or transfer function builds it again, with its bricks'
 //!   zero-opacity test ([`CellGrid::with_occupancy`]; none visible leaves
-//!   the batch empty). A lit grid carries its [`light_field`] as the
-//!   modulator or the scalar ([`CellGrid::with_modulators`]), with the
-//!   bricks tested on the density;
+//!   the batch empty); a lit grid carries its [`light_field`]
+//!   ([`CellGrid::with_modulators`]);
 //! - a grid at full resolution as projected cells
 //!   ([`GridDrawing::ProjectedCells`]): [`full_resolution_batch`] over a [`BrickTable`]
 //!   (Röttger 2004 §8.1); back to front it is rebuilt when its [`order_key`] or
@@ -22,16 +21,14 @@
 //!   [`light_field`] (Röttger and Ertl 2003 §5), then
 //!   [`refine`](fn@crate::octree::refine) and [`lod_batch_with`], back to
 //!   front, rebuilt when the criterion changes or the view left what the
-//!   batch serves (the eye moved half a voxel, the camera turned 3°, a new
-//!   projection: [`crate::octree::refresh`]). Lighting needs the octree or
+//!   batch serves ([`crate::octree::refresh`]). Lighting needs the octree or
 //!   ray casting ([`VolumeBatchError::LightingWithoutOctree`]);
 //! - a cell mesh: back to front by MPVO ([`CellAdjacency`], [`sorted_batch`],
 //!   Williams 1992), rebuilt when the eye moves, or unordered.
 //!
-//! Every kind is also rebuilt on the first update, when `world_from_local` or
-//! the transfer function ([`TransferFunction::content_hash`]) changes, or when
-//! the viewport becomes empty or non-empty. A failed update keeps the previous
-//! batch and compares the next with the last successful build.
+//! Every kind is also rebuilt on the first update, when `world_from_local`,
+//! the transfer function ([`TransferFunction::content_hash`]) or the
+//! viewport's emptiness changes. A failed update keeps the previous batch.
 //!
 //! # Example
 //!
@@ -46,18 +43,11 @@
 //!
 //! // 6 × 5 × 7 points: padded to 9 × 5 × 9 for the octree.
 //! let grid = DensityGrid::new([6, 5, 7], DVec3::ONE, DVec3::ZERO, vec![0.5; 6 * 5 * 7])?;
-//! let settings = BatchSettings {
-//!     octree: Some(OctreeSettings::default()),
-//!     ..BatchSettings::default()
-//! };
+//! let settings = BatchSettings { octree: Some(OctreeSettings::default()), ..Default::default() };
 //! let mut batcher = VolumeBatcher::new(VolumeSource::Grid(Arc::new(grid)), &settings)?;
 //! let transfer = TransferFunction::preset(TransferPreset::Cloud);
-//! let inputs = FrameInputs {
-//!     transfer: &transfer,
-//!     criterion: LodCriterion::distance(16.0),
-//!     blend: 0.0,
-//!     blend_span: 0.0,
-//! };
+//! let criterion = LodCriterion::distance(16.0);
+//! let inputs = FrameInputs { transfer: &transfer, criterion, blend: 0.0, blend_span: 0.0 };
 //! let view = View::new(DAffine3::IDENTITY, DVec3::new(3.0, 2.0, -20.0), UVec2::new(1280, 720));
 //! assert!(batcher.update(&view, &inputs)?); // the first frame builds
 //! assert!(!batcher.update(&view, &inputs)?); // the same view keeps it

@@ -16,14 +16,11 @@
 //!   uniforms and targets;
 //! - `tables`: the pre-integration tables (64×64×128 colour, 64×64 pair
 //!   table), cached by transfer function hash and built off the frame;
-//! - `pipeline`: bind group layouts, shaders and the pipeline variants
-//!   (optical mode, modulated segment lengths, single scattering, MSAA,
-//!   fog layers, stencil, low resolution, fragment counting, ray casting
-//!   a whole grid);
+//! - `pipeline`: bind group layouts, shaders and the pipeline variants;
 //! - `settings`: [`CellProjection`] and its extraction;
 //! - `low_resolution`: the downsampled depth and the upsample;
-//! - `merge`: batches whose bounds intersect, composited jointly per pixel;
-//! - `queries`: the GPU time and the fragment counter;
+//! - `merge`: overlapping batches, composited jointly per pixel; `queries`:
+//!   the GPU time and the fragment counter;
 //! - `node`: the draw system. Batches go front to back by the distance of
 //!   their bounds' centre (batches that overlap merged per pixel), inside a batch in reverse buffer order (the
 //!   batch's exact order is back to front), "under" the accumulation: a
@@ -49,11 +46,9 @@
 //! the composite exact for volumes inside and behind the fog up to the
 //! splitting of the fog inside each segment (see `cell_projection.wgsl`).
 //!
-//! A batch that is a whole grid (`nebel_lod::Cells::grid`) draws the back
-//! faces of its box instead, and each fragment walks its ray through the
-//! voxels' Kuhn tetrahedra front to back, compositing exactly the segments
-//! the grid's cells would give (Amanatides and Woo, "A Fast Voxel Traversal
-//! Algorithm for Ray Tracing", 1987; see `cell_projection.wgsl`).
+//! A whole grid (`nebel_lod::Cells::grid`) draws its box's back faces, each
+//! fragment walking its ray through the voxels' Kuhn tetrahedra front to
+//! back, the segments the grid's cells would give (Amanatides and Woo 1987).
 //!
 //! Each pixel of a cell is computed exactly under perspective: the fragment
 //! shader intersects the view ray with the cell's planes, clips the segment to
