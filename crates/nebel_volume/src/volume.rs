@@ -180,7 +180,7 @@ pub struct Volume {
 /// in exact visibility order (Röttger 2004 §8), as the paper does, instead
 /// of ray casting them. Both are exact for the grid's tetrahedra; ray
 /// casting needs no order rebuilt when the eye moves and stops each pixel
-/// once it is opaque. No effect with [`VolumeLod`](crate::VolumeLod) or on
+/// once it is opaque. No effect with [`VolumeLod`] or on
 /// a volume of cells.
 #[derive(Component, Clone, Copy, Debug, Default, PartialEq, Eq, Reflect)]
 #[reflect(Component, Default, Clone)]
