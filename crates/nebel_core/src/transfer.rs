@@ -212,11 +212,21 @@ pub enum TransferPreset {
     /// (the single-scattering model, Nes 2008): κ rises linearly from black
     /// (in full shadow) to white (in full sun), ρ is the constant 1.
     Transmittance,
+    /// A lit cloud at sunset (Röttger 2004 §11.7, Fig. 11.4), over its light
+    /// intensity γ as [`TransferPreset::CloudLight`]: κ rises from a dusky
+    /// violet-grey in the shade through pink to a warm orange of 1.6 in full
+    /// sun (above 1 for the same reason); ρ is the constant 1.
+    SunsetCloudLight,
+    /// Bad weather (Röttger 2004 §11.7, Fig. 11.4): overcast storm cloud over
+    /// the density, as [`TransferPreset::Cloud`] but dark slate grey, lighter
+    /// where thin; ρ is zero below s = 0.02 and reaches 0.6 by s = 0.2, so
+    /// thin cloud is already dense.
+    BadWeather,
 }
 
 impl TransferPreset {
     /// Every preset, in declaration order.
-    pub const ALL: [TransferPreset; 8] = [
+    pub const ALL: [TransferPreset; 10] = [
         TransferPreset::Cloud,
         TransferPreset::GroundFog,
         TransferPreset::Fire,
@@ -225,6 +235,8 @@ impl TransferPreset {
         TransferPreset::Smoke,
         TransferPreset::CloudLight,
         TransferPreset::Transmittance,
+        TransferPreset::SunsetCloudLight,
+        TransferPreset::BadWeather,
     ];
 
     /// The preset's control points (`s`, κ, ρ).
@@ -273,6 +285,17 @@ impl TransferPreset {
             TransferPreset::Transmittance => {
                 vec![p(0.0, [0.0, 0.0, 0.0], 1.0), p(1.0, [1.0, 1.0, 1.0], 1.0)]
             }
+            TransferPreset::SunsetCloudLight => vec![
+                p(0.0, [0.2, 0.16, 0.28], 1.0),
+                p(0.5, [0.85, 0.5, 0.52], 1.0),
+                p(1.0, [1.6, 0.9, 0.5], 1.0),
+            ],
+            TransferPreset::BadWeather => vec![
+                p(0.0, [0.52, 0.54, 0.58], 0.0),
+                p(0.02, [0.52, 0.54, 0.58], 0.0),
+                p(0.2, [0.34, 0.36, 0.4], 0.6),
+                p(1.0, [0.14, 0.15, 0.18], 1.0),
+            ],
         }
     }
 }
@@ -642,6 +665,20 @@ mod tests {
         assert!(thin.min_element() > dense.max_element());
         assert!(dense.z > dense.x);
         assert!(cloud.is_transparent(0.0, 0.04));
+        // The sunset is warm where the sun reaches and dusky in the shade;
+        // bad weather is darker than the cloud and denser where thin.
+        let (day, sunset) = (
+            TransferFunction::preset(TransferPreset::CloudLight),
+            TransferFunction::preset(TransferPreset::SunsetCloudLight),
+        );
+        let (lit, shade) = (sunset.evaluate(1.0).kappa, sunset.evaluate(0.0).kappa);
+        assert!(lit.x > 1.5 * lit.z && shade.max_element() < day.evaluate(0.0).kappa.min_element());
+        let storm = TransferFunction::preset(TransferPreset::BadWeather);
+        for s in [0.05, 0.2, 0.5, 1.0] {
+            let (grey, white) = (storm.evaluate(s), cloud.evaluate(s));
+            assert!(grey.kappa.max_element() < white.kappa.min_element(), "{s}");
+            assert!(grey.rho >= white.rho, "{s}");
+        }
     }
 
     #[test]
