@@ -261,8 +261,9 @@ pub(crate) fn update_fog_batches(
             terrain_updates: terrain_stats.updates,
             quadtree,
             settings: format!(
-                "{:?} {:?} {:?} {:?} {}",
+                "{:?} {} {:?} {:?} {:?} {}",
                 fog.mode,
+                fog.saturate,
                 fog.profile,
                 fog.density,
                 fog.debug,
@@ -389,7 +390,11 @@ pub(crate) fn update_fog_batches(
             commands.entity(entity).insert(CellBatch {
                 // A camera's fog layers take over from where they begin.
                 ends_where_fog_layers_begin: true,
-                ..CellBatch::new(Arc::new(Cells::with_bounds(cells)), transfer, fog.mode)
+                ..CellBatch::new(
+                    Arc::new(Cells::with_bounds(cells)),
+                    transfer,
+                    fog.drawn_mode(),
+                )
             });
         }
         *stats = GroundFogStats {

@@ -151,6 +151,14 @@ pub struct GroundFog {
     /// moves, since the order depends on it), or the unsorted
     /// [`OpticalMode::Emissive`] and [`OpticalMode::Mip`]. Default Sorted.
     pub mode: OpticalMode,
+    /// With [`OpticalMode::Emissive`], saturate each segment's emission
+    /// (Röttger and Ertl 2003 §6 Eq. 10): `ε = 1 − e^{−τ l}` and `I' = κ̄ ε +
+    /// (1 − ε) I`, still unsorted, so dense fog tends to its colour instead
+    /// of brightening without bound. That is the sorted model composited in
+    /// the cells' own order: exact where κ is constant along a ray,
+    /// otherwise off by the order of its colours. Ignored in the other modes.
+    /// Default false.
+    pub saturate: bool,
     /// The scalar over relative height inside the fog, `(height, scalar)`
     /// points from 0 (the ground) to 1 (the top), piecewise linear (see
     /// `nebel_lod::FogProfile`): each interval is a stack of prisms. Default
@@ -164,6 +172,19 @@ pub struct GroundFog {
     pub debug: GroundFogDebug,
 }
 
+impl GroundFog {
+    /// The mode the cells are drawn in: [`OpticalMode::Sorted`]'s segments
+    /// for a saturated emissive fog (in the unsorted order), else
+    /// [`GroundFog::mode`].
+    pub fn drawn_mode(&self) -> OpticalMode {
+        if self.saturate && self.mode == OpticalMode::Emissive {
+            OpticalMode::Sorted
+        } else {
+            self.mode
+        }
+    }
+}
+
 fn ground_fog_transfer_function() -> Arc<TransferFunction> {
     Arc::new(TransferFunction::preset(TransferPreset::GroundFog))
 }
@@ -175,6 +196,7 @@ impl Default for GroundFog {
             density: 0.03,
             transfer_function: ground_fog_transfer_function(),
             mode: OpticalMode::Sorted,
+            saturate: false,
             profile: vec![[0.0, 1.0], [1.0, 0.0]],
             roughness_weight: 1.0,
             debug: GroundFogDebug::default(),

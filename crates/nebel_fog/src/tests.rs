@@ -202,6 +202,17 @@ fn fog_on_a_terrain_becomes_sorted_prisms_that_follow_the_eye() {
     nudge(&mut app, camera, 4.0);
     app.update();
     assert_eq!(stats(&app, fog).updates, updates);
+    // Saturating emission: the sorted model's segments, still unsorted.
+    app.world_mut().get_mut::<GroundFog>(fog).unwrap().saturate = true;
+    settle(&mut app);
+    assert_eq!(batch(&app, fog).unwrap().mode, OpticalMode::Sorted);
+    assert_eq!(
+        app.world()
+            .get::<TerrainMapLod>(fog)
+            .unwrap()
+            .max_update_distance,
+        None
+    );
 }
 
 #[test]

@@ -12,6 +12,7 @@
 //!         density: 0.03,            // extinction at the ground, 1/m; default 0.03
 //!         transfer: Preset(GroundFog), // default GroundFog
 //!         mode: Sorted,             // or Emissive, Mip; default Sorted
+//!         saturate: false,          // Emissive: saturating emission (Eq. 10); default false
 //!         profile: [(0.0, 1.0), (1.0, 0.0)], // scalar over relative height; default this
 //!         roughness_weight: 1.0,    // the thickness's weight in the quadtree's d2; default 1
 //!         debug_wireframe: false,   // draw the cells' edges; default false
@@ -61,6 +62,12 @@ pub struct GroundFogDescription {
     /// How segments combine. Default `Sorted`.
     #[serde(default)]
     pub mode: OpticalMode,
+    /// With `Emissive`, saturate each segment's emission (Röttger and Ertl
+    /// 2003 §6 Eq. 10; `nebel_fog::GroundFog::saturate`); the reference
+    /// integrates the sorted model it equals for a constant colour. Only
+    /// with `Emissive`. Default false.
+    #[serde(default)]
+    pub saturate: bool,
     /// `(relative height, scalar)` points from 0 to 1, strictly increasing,
     /// scalars in [0, 1]. Default `[(0, 1), (1, 0)]`.
     #[serde(default = "default_profile")]
@@ -128,6 +135,15 @@ impl GroundFogDescription {
                     format!("must be finite and {requirement}, got {value}"),
                 ));
             }
+        }
+        if self.saturate && self.mode != OpticalMode::Emissive {
+            return Err(InvalidField::new(
+                "saturate",
+                format!(
+                    "saturates unsorted emissive fog: needs mode Emissive, got {:?}",
+                    self.mode
+                ),
+            ));
         }
         FogProfile::new(self.profile.clone())
             .map_err(|error| InvalidField::new("profile", error.to_string()))?;
@@ -343,7 +359,12 @@ impl TerrainDescription {
         let volume = (!cells.is_empty()).then(|| BuiltVolume {
             field: SceneField::Cells(cells.iter().map(GpuCell::to_tetrahedron).collect()),
             transfer_function: built.transfer_function.clone(),
-            mode: fog.mode,
+            // A saturated emissive fog is the sorted model, unsorted.
+            mode: if fog.saturate {
+                OpticalMode::Sorted
+            } else {
+                fog.mode
+            },
             lod: None,
             lighting: None,
             projected_cells: false,

@@ -489,6 +489,10 @@ mod tests {
                 "(source: Png((path: \" \")))",
                 "field terrain.source.Png.path: must name a PNG file",
             ),
+            (
+                "(source: Procedural((dims: 9)), fog: (thickness: Valley((altitude: 4.0)), saturate: true))",
+                "field terrain.fog.saturate: saturates unsorted emissive fog: needs mode Emissive, got Sorted",
+            ),
         ];
         for (terrain, expected) in cases {
             let message = parse(terrain).expect_err(terrain);

@@ -520,6 +520,7 @@ fn ground_fog(
         density: 1.0,
         transfer_function: Arc::new(built.transfer_function.clone()),
         mode: fog.mode,
+        saturate: fog.saturate,
         profile: fog.profile.clone(),
         roughness_weight: fog.roughness_weight,
         debug: GroundFogDebug {
