@@ -16,7 +16,7 @@
 //! volume's light field gives them.
 
 use glam::DVec2;
-use nebel_core::field::HeightField;
+use nebel_core::field::{HeightField, side_fade_factors};
 
 use crate::ground_fog::FogProfile;
 use crate::quadtree::TerrainError;
@@ -32,6 +32,11 @@ pub struct CloudLayerShape {
     pub base: f64,
     /// The part of each cloud's thickness below `base`, in [0, 1].
     pub sag: f64,
+    /// Fraction of the side, in [0, 0.5], over which the thickness of
+    /// [`CloudLayerShape::layer`] falls to 0 toward the square's four edges
+    /// (`nebel_core::field::side_fade_factors`), so no cloud is cut flat by
+    /// them; 0 keeps the thickness as given.
+    pub edge_fade: f64,
 }
 
 impl CloudLayerShape {
@@ -53,11 +58,15 @@ impl CloudLayerShape {
         if !(0.0..=1.0).contains(&self.sag) {
             return invalid("cloud layer sag", self.sag, "in [0, 1]");
         }
+        if !(0.0..=0.5).contains(&self.edge_fade) {
+            return invalid("cloud layer edge fade", self.edge_fade, "in [0, 0.5]");
+        }
         Ok(())
     }
 
     /// The layer of `thickness` (`side × side` values ≥ 0, `side = 2^k + 1`,
-    /// index `i + side · j` along x and z), its quadtree built for the
+    /// index `i + side · j` along x and z) faded toward the edges
+    /// ([`CloudLayerShape::edge_fade`]), its quadtree built for the
     /// minimum resolution `min_resolution` with both surfaces' roughness,
     /// the thickness's weighted by `roughness_weight`.
     pub fn layer(
@@ -82,8 +91,14 @@ impl CloudLayerShape {
             }
             .into());
         }
-        let below = |t: f32| (self.base - self.sag * f64::from(t.max(0.0))) as f32;
-        let above = |t: f32| (self.base + (1.0 - self.sag) * f64::from(t.max(0.0))) as f32;
+        let fade = side_fade_factors(self.edge_fade as f32, side);
+        let thickness: Vec<f64> = thickness
+            .iter()
+            .enumerate()
+            .map(|(n, t)| f64::from(t.max(0.0)) * fade[n % side] * fade[n / side])
+            .collect();
+        let below = |t: f64| (self.base - self.sag * t) as f32;
+        let above = |t: f64| (self.base + (1.0 - self.sag) * t) as f32;
         let bottom = self.field(side, thickness.iter().map(|t| below(*t)).collect())?;
         let top: Vec<f32> = thickness.iter().map(|t| above(*t)).collect();
         SurfaceLayer::new(

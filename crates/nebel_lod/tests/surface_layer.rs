@@ -480,6 +480,7 @@ fn a_cloud_layer_is_conforming_sorted_and_lit_through_the_cloud_above() {
         extent,
         base: 1500.0,
         sag: 0.2,
+        edge_fade: 0.0,
     };
     let layer = shape.layer(side, &thickness, 2.0, 1.0).unwrap();
     let profile = CloudLayerShape::profile();
@@ -586,6 +587,13 @@ fn a_cloud_layer_is_conforming_sorted_and_lit_through_the_cloud_above() {
         (CloudLayerShape { sag: 1.5, ..shape }, "sag"),
         (
             CloudLayerShape {
+                edge_fade: 0.6,
+                ..shape
+            },
+            "edge fade",
+        ),
+        (
+            CloudLayerShape {
                 extent: 0.0,
                 ..shape
             },
@@ -609,4 +617,48 @@ fn a_cloud_layer_is_conforming_sorted_and_lit_through_the_cloud_above() {
     nan[100] = f32::NAN;
     let message = shape.layer(side, &nan, 2.0, 1.0).unwrap_err().to_string();
     assert!(message.contains("NaN"), "{message}");
+}
+
+/// A cloud layer's edge fade thins its thickness to 0 at the square's edges
+/// over its share of the side, and keeps it inside.
+#[test]
+fn a_cloud_layers_edges_fade_to_no_cloud() {
+    let side = 33;
+    let thickness = vec![500.0f32; side * side];
+    let shape = CloudLayerShape {
+        extent: 8e3,
+        base: 1500.0,
+        sag: 0.2,
+        edge_fade: 0.25,
+    };
+    let faded = shape.layer(side, &thickness, 2.0, 1.0).unwrap();
+    let map = faded.thickness();
+    assert_eq!(map.side(), side);
+    let inside = |i: usize| i.min(side - 1 - i) >= 8;
+    for j in 0..side {
+        for i in 0..side {
+            let t = map.values()[i + side * j];
+            if i == 0 || j == 0 || i == side - 1 || j == side - 1 {
+                assert_eq!(t, 0.0, "({i}, {j}) on an edge");
+            } else if inside(i) && inside(j) {
+                assert!((t - 500.0).abs() < 1e-3, "({i}, {j}): {t}");
+            } else {
+                assert!(t > 0.0 && t < 500.0, "({i}, {j}): {t}");
+            }
+        }
+    }
+    // No fade: the thickness as given.
+    let plain = CloudLayerShape {
+        edge_fade: 0.0,
+        ..shape
+    }
+    .layer(side, &thickness, 2.0, 1.0)
+    .unwrap();
+    assert!(
+        plain
+            .thickness()
+            .values()
+            .iter()
+            .all(|t| (t - 500.0).abs() < 1e-3)
+    );
 }

@@ -13,6 +13,7 @@
 //!     extent: 40000.0,           // side of the square layer, m
 //!     base: 1500.0,              // the altitude the clouds grow from, m
 //!     sag: 0.2,                  // part of a cloud's thickness below the base, [0, 1]
+//!     edge_fade: 0.1,            // noise: thickness to 0 at the edges over this part of the side, [0, 0.5]
 //!     resolution: 257,           // points per side, 2^k + 1 from 9 to 2049
 //!     density: 0.01,             // extinction of the view rays, times ρ; ≥ 0
 //!     ambient: 0.3, diffuse: 0.7, // light without and of the unshadowed sun, [0, 1]
@@ -61,6 +62,9 @@ pub struct CloudLayerDescription {
     pub base: f32,
     /// The part of a procedural cloud's thickness below `base`, in [0, 1].
     pub sag: f32,
+    /// Part of the side, in [0, 0.5], over which the noise's thickness
+    /// falls to 0 toward the layer's edges (`nebel_lod::CloudLayerShape`).
+    pub edge_fade: f32,
     /// Points per side, `2^k + 1` from 9 to 2049.
     pub resolution: u32,
     /// Multiplies the transfer function's ρ, finite and ≥ 0.
@@ -106,6 +110,7 @@ impl Default for CloudLayerDescription {
             extent: 40e3,
             base: 1500.0,
             sag: 0.2,
+            edge_fade: 0.1,
             resolution: 257,
             density: 0.01,
             ambient: CloudLighting::DEFAULT_AMBIENT,
@@ -134,6 +139,7 @@ impl CloudLayerDescription {
             extent: f64::from(self.extent),
             base: f64::from(self.base),
             sag: f64::from(self.sag),
+            edge_fade: f64::from(self.edge_fade),
         }
     }
 

@@ -598,6 +598,7 @@ fn spawn_cloud_layer(
             extent: description.extent,
             base: description.base,
             sag: description.sag,
+            edge_fade: description.edge_fade,
             resolution: description.resolution,
             // The built transfer function has the density in it.
             density: 1.0,

@@ -212,8 +212,11 @@ impl Layer {
     }
 }
 
-/// The side factor `s` at each of `n` points across the box (module docs).
-fn side_factors(side_fade: f32, n: usize) -> Vec<f64> {
+/// The side fade `s` at each of `n` points across a box, corner to corner:
+/// `smoothstep(0, side_fade, min(x, 1 − x))` of the fraction `x = i / (n −
+/// 1)`, 1 everywhere for a fade of 0 (the cloud's [`CloudNoise::side_fade`],
+/// and a cloud layer's edges).
+pub fn side_fade_factors(side_fade: f32, n: usize) -> Vec<f64> {
     let fade = f64::from(side_fade);
     (0..n)
         .map(|i| {
@@ -487,8 +490,8 @@ impl DensityGrid {
             .collect();
         let xs: Vec<f64> = (0..nx).map(|i| origin.x + i as f64 * spacing.x).collect();
         let (sides_x, sides_z) = (
-            side_factors(noise.side_fade, nx),
-            side_factors(noise.side_fade, nz),
+            side_fade_factors(noise.side_fade, nx),
+            side_fade_factors(noise.side_fade, nz),
         );
         let mut values = vec![0.0f32; points];
         let fill = |first_slice: usize, chunk: &mut [f32]| {

@@ -45,7 +45,7 @@ mod terrain;
 mod value_noise;
 
 pub use aurora::AuroraCurtains;
-pub use cloud::CloudNoise;
+pub use cloud::{CloudNoise, side_fade_factors};
 pub use density_grid::DensityGrid;
 pub use effects::{campfire_density, search_light_cells};
 pub use fog::{FogNoise, ValleyFog};

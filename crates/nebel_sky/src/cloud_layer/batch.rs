@@ -71,6 +71,7 @@ impl SkyLayer for CloudLayer {
                 extent: f64::from(self.extent),
                 base: f64::from(self.base),
                 sag: f64::from(self.sag),
+                edge_fade: f64::from(self.edge_fade),
             },
             resolution: self.resolution,
             maps: match &self.source {

@@ -126,6 +126,11 @@ pub struct CloudLayer {
     /// The part of a procedural cloud's thickness below `base`, in [0, 1].
     /// Default 0.2.
     pub sag: f32,
+    /// Part of the side, in [0, 0.5], over which a procedural layer's
+    /// thickness falls to 0 toward its four edges, so no cloud is cut flat
+    /// by them ([`nebel_lod::CloudLayerShape::edge_fade`]); maps are drawn
+    /// as they are. Default 0.1.
+    pub edge_fade: f32,
     /// Points per side of the layer's grid, `2^k + 1` from 9 to 2049.
     /// Default 257.
     pub resolution: u32,
@@ -158,6 +163,7 @@ impl Default for CloudLayer {
             extent: 40e3,
             base: 1500.0,
             sag: 0.2,
+            edge_fade: 0.1,
             resolution: 257,
             density: 0.01,
             ambient: CloudLighting::DEFAULT_AMBIENT,
