@@ -123,6 +123,15 @@ fn assert_failed(app: &App, entity: Entity, needles: &[&str]) {
     assert!(batch(app, entity).is_none(), "no cells");
 }
 
+/// The farthest the terrain under `fog` may wait for the eye, in spacings,
+/// as the fog's map asks (`None`: the terrain's own).
+fn map_update_distance(app: &App, fog: Entity) -> Option<f32> {
+    app.world()
+        .get::<TerrainMapLod>(fog)
+        .unwrap()
+        .max_update_distance
+}
+
 #[test]
 fn fog_on_a_terrain_becomes_sorted_prisms_that_follow_the_eye() {
     let (mut app, camera) = app(&asset_dir("prisms"), Vec3::new(-400.0, 250.0, -300.0));
@@ -191,13 +200,7 @@ fn fog_on_a_terrain_becomes_sorted_prisms_that_follow_the_eye() {
     app.world_mut().get_mut::<GroundFog>(fog).unwrap().mode = OpticalMode::Emissive;
     settle(&mut app);
     assert_eq!(batch(&app, fog).unwrap().mode, OpticalMode::Emissive);
-    assert_eq!(
-        app.world()
-            .get::<TerrainMapLod>(fog)
-            .unwrap()
-            .max_update_distance,
-        None
-    );
+    assert_eq!(map_update_distance(&app, fog), None);
     let updates = stats(&app, fog).updates;
     nudge(&mut app, camera, 4.0);
     app.update();
@@ -206,13 +209,7 @@ fn fog_on_a_terrain_becomes_sorted_prisms_that_follow_the_eye() {
     app.world_mut().get_mut::<GroundFog>(fog).unwrap().saturate = true;
     settle(&mut app);
     assert_eq!(batch(&app, fog).unwrap().mode, OpticalMode::Sorted);
-    assert_eq!(
-        app.world()
-            .get::<TerrainMapLod>(fog)
-            .unwrap()
-            .max_update_distance,
-        None
-    );
+    assert_eq!(map_update_distance(&app, fog), None);
 }
 
 #[test]

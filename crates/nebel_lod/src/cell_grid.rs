@@ -624,6 +624,17 @@ mod tests {
         assert_eq!(grid.bounds(), (Vec3::ZERO, Vec3::splat(2.0)));
     }
 
+    /// `count` rays from in front of the 13 × 9 × 11 test grids toward
+    /// points spread through them.
+    fn rays_through_the_test_grid(count: usize) -> impl Iterator<Item = Ray> {
+        (0..count).map(|n| {
+            let f = n as f64;
+            let eye = DVec3::new(-3.0 + (f * 0.37) % 18.0, -2.0 + (f * 0.71) % 13.0, -4.0);
+            let target = DVec3::new((f * 0.53) % 12.0, (f * 0.29) % 8.0, (f * 0.61) % 10.0);
+            Ray::new(eye, target - eye).expect("a direction")
+        })
+    }
+
     /// A transfer function with no opacity below s = 0.4.
     fn opaque_above_0_4() -> TransferFunction {
         let point = |s: f32, rho: f32| nebel_core::transfer::ControlPoint {
@@ -687,11 +698,7 @@ mod tests {
             assert_eq!(occupied, u32::from(index % 3 != 0), "brick {index}");
         }
         let mut checked = 0;
-        for n in 0..200 {
-            let f = n as f64;
-            let eye = DVec3::new(-3.0 + (f * 0.37) % 18.0, -2.0 + (f * 0.71) % 13.0, -4.0);
-            let target = DVec3::new((f * 0.53) % 12.0, (f * 0.29) % 8.0, (f * 0.61) % 10.0);
-            let ray = Ray::new(eye, target - eye).expect("a direction");
+        for ray in rays_through_the_test_grid(200) {
             for segment in cells.segments(&ray, 0.0, 100.0) {
                 let middle = ray.at(0.5 * (segment.t_entry + segment.t_exit));
                 if cells.occupied()[brick_of(middle)] == 0 {
@@ -754,11 +761,7 @@ mod tests {
             x + 3 * (y.min(1) + 2 * z)
         };
         let mut checked = 0;
-        for n in 0..200 {
-            let f = n as f64;
-            let eye = DVec3::new(-3.0 + (f * 0.37) % 18.0, -2.0 + (f * 0.71) % 13.0, -4.0);
-            let target = DVec3::new((f * 0.53) % 12.0, (f * 0.29) % 8.0, (f * 0.61) % 10.0);
-            let ray = Ray::new(eye, target - eye).expect("a direction");
+        for ray in rays_through_the_test_grid(200) {
             let scalars = cells.segments(&ray, 0.0, 100.0);
             let modulators = cells.modulator_segments(&ray, 0.0, 100.0);
             assert_eq!(scalars.len(), modulators.len());
@@ -864,11 +867,7 @@ mod tests {
             );
             assert_eq!(drawn.occupied(), pair.occupied());
             let mut checked = 0;
-            for n in 0..100 {
-                let f = n as f64;
-                let eye = DVec3::new(-3.0 + (f * 0.37) % 18.0, -2.0 + (f * 0.71) % 13.0, -4.0);
-                let target = DVec3::new((f * 0.53) % 12.0, (f * 0.29) % 8.0, (f * 0.61) % 10.0);
-                let ray = Ray::new(eye, target - eye).expect("a direction");
+            for ray in rays_through_the_test_grid(100) {
                 for modulator in drawn.modulator_segments(&ray, 0.0, 100.0) {
                     let middle = ray.at(0.5 * (modulator.t_entry + modulator.t_exit));
                     if pair.occupied()[brick_of(middle)] == 0 {
