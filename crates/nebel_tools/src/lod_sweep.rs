@@ -6,9 +6,9 @@
 //!
 //! For each setting the scene's one grid volume is rendered with
 //! `lod: (accuracy: c)` or `lod: (image_error: t)` (the scene's
-//! `min_accuracy`, default 4) and once at full resolution (a lit volume,
-//! which is always drawn through the octree, with `c = ∞`, which draws
-//! exactly the full-resolution cells), with tonemapping and MSAA off; every
+//! `min_accuracy`, default 4) and once at full resolution (a lit volume
+//! through the octree with `c = ∞`, which draws exactly the
+//! full-resolution cells), with tonemapping and MSAA off; every
 //! image is scored against the full-resolution image and against the exact
 //! reference of the full trilinear field. The result is a CSV (`criterion,
 //! value, cells drawn, frame median ms, RMSE against full resolution, RMSE,
