@@ -143,17 +143,11 @@ impl CellGrid {
         let Some(next) = &self.next else {
             return self.clone();
         };
-        let t = if t.is_nan() { 0.0 } else { t.clamp(0.0, 1.0) };
         let mix = |current: &DensityGrid, next: &DensityGrid| {
-            let values = current
-                .values()
-                .iter()
-                .zip(next.values())
-                .map(|(&a, &b)| (1.0 - t) * a + t * b)
-                .collect();
             Arc::new(
-                DensityGrid::new(current.dims(), current.spacing(), current.origin(), values)
-                    .expect("the mix of two fields on the grid's points"),
+                current
+                    .mixed(next, t)
+                    .expect("with_next_keyframe checked that the keyframes share their points"),
             )
         };
         Self {

@@ -309,14 +309,7 @@ fn blend_grids(
     b: &DensityGrid,
     blend: f64,
 ) -> Result<DensityGrid, ReferenceError> {
-    let blend = blend as f32;
-    let values = a
-        .values()
-        .iter()
-        .zip(b.values())
-        .map(|(a, b)| (1.0 - blend) * a + blend * b)
-        .collect();
-    DensityGrid::new(a.dims(), a.spacing(), a.origin(), values).map_err(invalid)
+    a.mixed(b, blend as f32).map_err(invalid)
 }
 
 /// The scene's clear colour, linear.

@@ -159,6 +159,35 @@ impl DensityGrid {
         cells
     }
 
+    /// The grid `(1 − t) · self + t · other`, point by point on `self`'s
+    /// geometry (two keyframes of one field), `t` clamped to [0, 1] (NaN as
+    /// 0) and every value to [0, 1] (the sum of two rounded products may
+    /// pass 1 by a unit in the last place). An error
+    /// ([`FieldError::SizeMismatch`]) when `other` has other dimensions.
+    pub fn mixed(&self, other: &DensityGrid, t: f32) -> Result<Self, FieldError> {
+        if other.dims != self.dims {
+            return Err(FieldError::SizeMismatch {
+                name: String::from("DensityGrid::mixed"),
+                dims: self.dims.to_vec(),
+                expected: self.values.len(),
+                actual: other.values.len(),
+            });
+        }
+        let t = if t.is_nan() { 0.0 } else { t.clamp(0.0, 1.0) };
+        let values = self
+            .values
+            .iter()
+            .zip(&other.values)
+            .map(|(&a, &b)| ((1.0 - t) * a + t * b).clamp(0.0, 1.0))
+            .collect();
+        Ok(Self {
+            dims: self.dims,
+            spacing: self.spacing,
+            origin: self.origin,
+            values,
+        })
+    }
+
     /// Trilinear density at `world_position`. Positions outside the box are
     /// clamped onto it (the border values extend outwards); a NaN coordinate
     /// reads as the minimum corner's coordinate.
@@ -189,6 +218,46 @@ impl DensityGrid {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_mix_of_two_keyframes_stays_a_density_grid() {
+        let full = DensityGrid::new([3, 2, 2], DVec3::ONE, DVec3::ZERO, vec![1.0; 12]).unwrap();
+        let ramp = linear_grid();
+        let other = DensityGrid::new(
+            ramp.dims(),
+            ramp.spacing(),
+            ramp.origin(),
+            ramp.values().iter().map(|v| 1.0 - v).collect(),
+        )
+        .unwrap();
+        for step in 0..=1000 {
+            let t = step as f32 / 1000.0;
+            // Two full grids: no sum of rounded products passes 1.
+            assert!(
+                full.mixed(&full, t)
+                    .unwrap()
+                    .values()
+                    .iter()
+                    .all(|&v| v <= 1.0)
+            );
+            let mixed = ramp.mixed(&other, t).unwrap();
+            assert_eq!(mixed.dims(), ramp.dims());
+            for ((&m, &a), &b) in mixed.values().iter().zip(ramp.values()).zip(other.values()) {
+                assert!(
+                    (f64::from(m)
+                        - ((1.0 - f64::from(t)) * f64::from(a) + f64::from(t) * f64::from(b)))
+                    .abs()
+                        < 1e-6
+                );
+            }
+        }
+        assert_eq!(ramp.mixed(&other, f32::NAN).unwrap(), ramp);
+        assert_eq!(ramp.mixed(&other, 7.0).unwrap().values(), other.values());
+        assert!(matches!(
+            ramp.mixed(&full, 0.5),
+            Err(FieldError::SizeMismatch { .. })
+        ));
+    }
 
     fn linear_grid() -> DensityGrid {
         let dims = [4, 3, 5];
