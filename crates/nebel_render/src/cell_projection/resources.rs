@@ -126,12 +126,12 @@ pub fn extract_cell_batches(
         let mismatch =
             |what: &str, count: usize| Some(format!("{count} {what} for {} cells", cells.len()));
         let limit = device.limits().max_storage_buffer_binding_size;
-        let refusal = if let Some(grid) = &cells.grid
-            && grid_binding_bytes(grid) > limit
+        let grid_bytes = cells.grid.as_deref().map(grid_binding_bytes);
+        let refusal = if let Some(bytes) = grid_bytes
+            && bytes > limit
         {
             Some(format!(
-                "a grid binding of {} bytes, more than the device's storage-buffer binding holds ({limit} bytes; draw it through the octree)",
-                grid_binding_bytes(grid)
+                "a grid binding of {bytes} bytes, more than the device's storage-buffer binding holds ({limit} bytes; draw it through the octree)"
             ))
         } else if cells.grid.is_some() {
             None
