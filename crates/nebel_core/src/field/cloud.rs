@@ -23,10 +23,13 @@
 //! 5. **Side fade**: the coverage shrinks to 0 toward the box's four vertical
 //!    sides over `side_fade` of its width and depth, so no cloud is cut flat
 //!    by the box: clouds thin out and end inside it.
+//! 6. **Weather** ([`super::weather`]): a column's coverage `w` scales the
+//!    coverage and its cloud type sets its top `H`, so the profile is
+//!    evaluated at `h / H` (none above the top).
 //!
-//! So `f = b(h) · clamp((u − (1 − c)) / c, 0, 1)` with `c = c(h) · s(x) ·
-//! s(z)`, in [0, 1], a pure function of the settings, time and geometry: the
-//! same on every run, machine and thread count.
+//! So `f = b(h) · clamp((u − (1 − c)) / c, 0, 1)` with `c = c(h / H) · s(x) ·
+//! s(z) · w`, in [0, 1], a pure function of the settings, time and geometry:
+//! the same on every run, machine and thread count.
 //!
 //! Rows of grid points are evaluated octave by octave by `PerlinRow`, in the
 //! CPU's vector instructions, and finer octaves skip the points that can no
@@ -39,9 +42,10 @@
 //! Every formula, the skipping bound and the evaluation in full are in
 //! `docs/cloud-field.md` in the repository.
 
-use glam::DVec3;
+use glam::{DVec2, DVec3};
 
 use super::perlin_row::{PerlinRow, RowLattice};
+use super::weather::{CloudWeather, Column, Weather, WeatherMap, smoothstep};
 use super::{
     DENSITY_GRID, DensityGrid, FieldError, NOISE_OFFSET, SAMPLE_BYTES, budgeted_points,
     check_origin, check_spacing,
@@ -75,8 +79,10 @@ const MAX_OCTAVES: usize = 16;
 /// - `s(x) = smoothstep(0, side_fade, min(x, 1 − x))` of the width fraction
 ///   `x = i / (nx − 1)`, and `s(z)` of the depth fraction alike (a fade of 0
 ///   disables it);
-/// - density `f = b(h) · clamp((u − (1 − c)) / c, 0, 1)` with `c = c(h) ·
-///   s(x) · s(z)`, 0 where `c = 0`.
+/// - the column's weather coverage `w` and top `H` ([`CloudWeather`], or a
+///   [`WeatherMap`] through [`DensityGrid::cloud_under`]; 1 and 1 without);
+/// - density `f = b(h) · clamp((u − (1 − c)) / c, 0, 1)` with `c = c(h / H)
+///   · s(x) · s(z) · w` (`c(h / H) = 0` above the top), 0 where `c = 0`.
 ///
 /// About a fraction `coverage` of the points away from the base, the top and
 /// the sides is cloud.
@@ -117,6 +123,9 @@ pub struct CloudNoise {
     /// coverage falls to 0 toward each of its vertical sides (no cloud cut
     /// flat by the box). Default 0.1.
     pub side_fade: f32,
+    /// Procedural weather over the box: regions of clear sky and overcast,
+    /// of stratus and cumulus ([`CloudWeather`]). Default off.
+    pub weather: CloudWeather,
 }
 
 impl Default for CloudNoise {
@@ -133,6 +142,7 @@ impl Default for CloudNoise {
             base_fade: 0.15,
             top_fade: 0.5,
             side_fade: 0.1,
+            weather: CloudWeather::default(),
         }
     }
 }
@@ -148,68 +158,67 @@ struct Octave {
     amplitude: f64,
 }
 
-/// Coverage and base factor of one grid layer.
+/// The vertical profile of [`CloudNoise`]: the base factor `b(h)` and the
+/// coverage `c(h)` at a height fraction of the column.
 #[derive(Clone, Copy)]
-struct Layer {
-    /// Density factor `b(h)`.
-    base: f64,
-    /// Coverage `c(h)`.
+struct Profile {
     coverage: f64,
+    base_fade: f64,
+    top_fade: f64,
 }
 
-impl Layer {
-    fn new(noise: &CloudNoise, h: f64) -> Self {
-        let base_fade = f64::from(noise.base_fade);
-        let top_fade = f64::from(noise.top_fade);
-        let base = if base_fade > 0.0 {
-            smoothstep(0.0, base_fade, h)
+impl Profile {
+    fn new(noise: &CloudNoise) -> Self {
+        Self {
+            coverage: f64::from(noise.coverage),
+            base_fade: f64::from(noise.base_fade),
+            top_fade: f64::from(noise.top_fade),
+        }
+    }
+
+    /// `b(h)` at the height fraction `h` of the box.
+    fn base(self, h: f64) -> f64 {
+        if self.base_fade > 0.0 {
+            smoothstep(0.0, self.base_fade, h)
+        } else {
+            1.0
+        }
+    }
+
+    /// `c(h')` at the height fraction `h'` of the column's top: 0 above it.
+    fn coverage(self, h: f64) -> f64 {
+        let top = if h > 1.0 {
+            0.0
+        } else if self.top_fade > 0.0 {
+            1.0 - smoothstep(1.0 - self.top_fade, 1.0, h)
         } else {
             1.0
         };
-        let top = if top_fade > 0.0 {
-            1.0 - smoothstep(1.0 - top_fade, 1.0, h)
-        } else {
-            1.0
-        };
-        Self {
-            base,
-            coverage: f64::from(noise.coverage) * top,
-        }
+        self.coverage * top
     }
+}
 
-    /// No point of the layer can be non-zero.
-    fn is_empty(self) -> bool {
-        self.base <= 0.0 || self.coverage <= 0.0
+/// A bound below which the equalised noise `v` gives density 0 at every
+/// coverage up to `coverage`: `u = 1 / (1 + e^{−v})` stays below the
+/// threshold `1 − c` for every `v` under `ln((1 − c) / c)`, here less a
+/// margin far above the rounding of `u` (`du/dv ≤ 1/4`). −∞ when `c ≥ 1`
+/// (every point may be cloud).
+fn zero_below(coverage: f64) -> f64 {
+    if coverage >= 1.0 {
+        f64::NEG_INFINITY
+    } else {
+        ((1.0 - coverage) / coverage).ln() - 1e-9
     }
+}
 
-    /// A bound below which the equalised noise `v` gives density 0: `u = 1 /
-    /// (1 + e^{−v})` stays below the threshold `1 − c` for every `v` under
-    /// `ln((1 − c) / c)`, here less a margin far above the rounding of `u`
-    /// (`du/dv ≤ 1/4`). −∞ when `c ≥ 1` (every point may be cloud).
-    fn zero_below(self) -> f64 {
-        if self.coverage >= 1.0 {
-            f64::NEG_INFINITY
-        } else {
-            ((1.0 - self.coverage) / self.coverage).ln() - 1e-9
-        }
+/// Density from the equalised unit noise `u` at base factor `base` and
+/// coverage `coverage`.
+fn density(base: f64, coverage: f64, u: f64) -> f32 {
+    if base <= 0.0 || coverage <= 0.0 {
+        return 0.0;
     }
-
-    /// The layer of one row, its coverage scaled by the row's side factor.
-    fn with_side(self, side: f64) -> Self {
-        Self {
-            coverage: self.coverage * side,
-            ..self
-        }
-    }
-
-    /// Density from the equalised unit noise `u`.
-    fn density(self, u: f64) -> f32 {
-        if self.is_empty() {
-            return 0.0;
-        }
-        let d = self.base * ((u - (1.0 - self.coverage)) / self.coverage).clamp(0.0, 1.0);
-        if d.is_nan() { 0.0 } else { d as f32 }
-    }
+    let d = base * ((u - (1.0 - coverage)) / coverage).clamp(0.0, 1.0);
+    if d.is_nan() { 0.0 } else { d as f32 }
 }
 
 /// The side fade `s` at each of `n` points across a box, corner to corner:
@@ -227,11 +236,6 @@ pub fn side_fade_factors(side_fade: f32, n: usize) -> Vec<f64> {
             smoothstep(0.0, fade, x.min(1.0 - x))
         })
         .collect()
-}
-
-fn smoothstep(edge0: f64, edge1: f64, x: f64) -> f64 {
-    let s = ((x - edge0) / (edge1 - edge0)).clamp(0.0, 1.0);
-    s * s * (3.0 - 2.0 * s)
 }
 
 impl CloudNoise {
@@ -333,7 +337,7 @@ fn unit_noise(v: f64) -> f64 {
 /// into `row`, octave after octave along the row ([`PerlinRow`]).
 ///
 /// A point whose partial sum plus the largest the remaining octaves can add
-/// (`Σ a_j`, as `|P| ≤ 1`) stays below [`Layer::zero_below`] is density 0
+/// (`Σ a_j`, as `|P| ≤ 1`) stays below [`zero_below`] of the row's largest coverage is density 0
 /// whatever they add: the remaining octaves skip the lattice cells of the
 /// row where every point is so (exact: the density is the same as with
 /// every octave).
@@ -367,13 +371,13 @@ impl<'a> RowFiller<'a> {
     }
 
     /// The densities of the row at height `y`, depth `z` (world units) into
-    /// `row`, through [`FillRow`], each point's coverage scaled by its side
-    /// factor in `sides`.
-    fn fill(&mut self, layer: Layer, sides: &[f64], y: f64, z: f64, row: &mut [f32]) {
+    /// `row`, through [`FillRow`], at base factor `base` and each point's
+    /// coverage in `coverages`.
+    fn fill(&mut self, base: f64, coverages: &[f64], y: f64, z: f64, row: &mut [f32]) {
         pulp::Arch::new().dispatch(FillRow {
             filler: self,
-            layer,
-            sides,
+            base,
+            coverages,
             y,
             z,
             row,
@@ -381,9 +385,9 @@ impl<'a> RowFiller<'a> {
     }
 
     #[inline(always)]
-    fn fill_row(&mut self, layer: Layer, sides: &[f64], y: f64, z: f64, row: &mut [f32]) {
+    fn fill_row(&mut self, base: f64, coverages: &[f64], y: f64, z: f64, row: &mut [f32]) {
         // The row's largest coverage: a point of less needs more noise.
-        let zero_below = layer.zero_below();
+        let zero_below = zero_below(coverages.iter().copied().fold(0.0, f64::max));
         self.sums.fill(0.0);
         self.live.fill(true);
         for ((octave, lattice), remaining) in self
@@ -405,11 +409,14 @@ impl<'a> RowFiller<'a> {
                 *live &= sum + remaining >= zero_below;
             }
         }
-        for (((value, &sum), &live), &side) in
-            row.iter_mut().zip(&self.sums).zip(&self.live).zip(sides)
+        for (((value, &sum), &live), &coverage) in row
+            .iter_mut()
+            .zip(&self.sums)
+            .zip(&self.live)
+            .zip(coverages)
         {
             *value = if live {
-                layer.with_side(side).density(unit_noise(sum))
+                density(base, coverage, unit_noise(sum))
             } else {
                 0.0
             };
@@ -424,8 +431,8 @@ impl<'a> RowFiller<'a> {
 /// density is too.
 struct FillRow<'f, 'a, 'r> {
     filler: &'f mut RowFiller<'a>,
-    layer: Layer,
-    sides: &'r [f64],
+    base: f64,
+    coverages: &'r [f64],
     y: f64,
     z: f64,
     row: &'r mut [f32],
@@ -437,7 +444,7 @@ impl pulp::WithSimd for FillRow<'_, '_, '_> {
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, _simd: S) {
         self.filler
-            .fill_row(self.layer, self.sides, self.y, self.z, self.row);
+            .fill_row(self.base, self.coverages, self.y, self.z, self.row);
     }
 }
 
@@ -479,15 +486,53 @@ impl DensityGrid {
         time: f64,
         threads: usize,
     ) -> Result<Self, FieldError> {
+        Self::cloud_in_weather(dims, spacing, origin, noise, None, time, threads)
+    }
+
+    /// [`DensityGrid::cloud`] under the weather `map` over the box instead
+    /// of the procedural [`CloudNoise::weather`] (which must be off).
+    ///
+    /// # Errors
+    ///
+    /// As [`DensityGrid::cloud`], and [`FieldError::InvalidParameter`] naming
+    /// `weather.wavelength` when the procedural weather is on as well.
+    pub fn cloud_under(
+        dims: [usize; 3],
+        spacing: DVec3,
+        origin: DVec3,
+        noise: &CloudNoise,
+        map: &WeatherMap,
+        time: f64,
+    ) -> Result<Self, FieldError> {
+        Self::cloud_in_weather(
+            dims,
+            spacing,
+            origin,
+            noise,
+            Some(map),
+            time,
+            worker_threads(),
+        )
+    }
+
+    fn cloud_in_weather(
+        dims: [usize; 3],
+        spacing: DVec3,
+        origin: DVec3,
+        noise: &CloudNoise,
+        map: Option<&WeatherMap>,
+        time: f64,
+        threads: usize,
+    ) -> Result<Self, FieldError> {
         let name = "DensityGrid::cloud";
         let points = budgeted_points(name, DENSITY_GRID, &dims, SAMPLE_BYTES)?;
         check_spacing(name, &spacing.to_array())?;
         check_origin(name, &origin.to_array())?;
         let octaves = noise.octaves(name, time)?;
+        let weather = Weather::new(name, noise, map, time)?;
+        let profile = Profile::new(noise);
         let [nx, ny, nz] = dims;
-        let layers: Vec<Layer> = (0..ny)
-            .map(|j| Layer::new(noise, j as f64 / (ny - 1) as f64))
-            .collect();
+        let fraction = |n: usize, i: usize| i as f64 / (n - 1) as f64;
         let xs: Vec<f64> = (0..nx).map(|i| origin.x + i as f64 * spacing.x).collect();
         let (sides_x, sides_z) = (
             side_fade_factors(noise.side_fade, nx),
@@ -496,15 +541,31 @@ impl DensityGrid {
         let mut values = vec![0.0f32; points];
         let fill = |first_slice: usize, chunk: &mut [f32]| {
             let mut filler = RowFiller::new(&octaves, &xs);
+            let mut coverages = vec![0.0; nx];
             for (dk, slice) in chunk.chunks_mut(nx * ny).enumerate() {
                 let k = first_slice + dk;
                 let z = origin.z + k as f64 * spacing.z;
+                let columns: Vec<Column> = xs
+                    .iter()
+                    .enumerate()
+                    .map(|(i, &x)| {
+                        let at = DVec2::new(fraction(nx, i), fraction(nz, k));
+                        weather.column(DVec2::new(x, z), at)
+                    })
+                    .collect();
                 for (j, row) in slice.chunks_mut(nx).enumerate() {
-                    let layer = layers[j].with_side(sides_z[k]);
-                    if layer.is_empty() {
+                    let h = fraction(ny, j);
+                    let base = profile.base(h);
+                    for ((coverage, column), side) in
+                        coverages.iter_mut().zip(&columns).zip(&sides_x)
+                    {
+                        *coverage =
+                            profile.coverage(h / column.top) * sides_z[k] * side * column.coverage;
+                    }
+                    if base <= 0.0 || coverages.iter().all(|&c| c <= 0.0) {
                         continue;
                     }
-                    filler.fill(layer, &sides_x, origin.y + j as f64 * spacing.y, z, row);
+                    filler.fill(base, &coverages, origin.y + j as f64 * spacing.y, z, row);
                 }
                 pace();
             }
@@ -530,6 +591,7 @@ mod tests {
     use noise::{NoiseFn, Perlin};
 
     use super::*;
+    use crate::field::weather::tests::pointwise_column;
     use crate::test_support::{assert_mentions, error_message};
 
     /// Small clouds on a small grid: wavelength 24 world units over a 40-unit box.
@@ -574,10 +636,17 @@ mod tests {
     }
 
     /// The density at one point as the formulas at [`CloudNoise`] state it,
-    /// each octave by `noise::Perlin`'s pointwise `get`.
-    /// The density at `p`, height fraction `h` and side factor `side` (the
-    /// product of the two axes').
-    fn pointwise_density(noise: &CloudNoise, time: f64, p: DVec3, h: f64, side: f64) -> f32 {
+    /// each octave by `noise::Perlin`'s pointwise `get`: at `p`, height
+    /// fraction `h`, side factor `side` (the product of the two axes') and in
+    /// a column of weather coverage `w` and top `H` (`column = (w, H)`).
+    fn pointwise_in_weather(
+        noise: &CloudNoise,
+        time: f64,
+        p: DVec3,
+        h: f64,
+        side: f64,
+        (w, top): (f64, f64),
+    ) -> f32 {
         let octaves = noise.octaves("test", time).unwrap();
         let v: f64 = octaves
             .iter()
@@ -587,7 +656,12 @@ mod tests {
                 o.amplitude * perlin.get((p * o.frequency + o.offset).to_array())
             })
             .sum();
-        Layer::new(noise, h).with_side(side).density(unit_noise(v))
+        let profile = Profile::new(noise);
+        density(
+            profile.base(h),
+            profile.coverage(h / top) * side * w,
+            unit_noise(v),
+        )
     }
 
     /// The side factor at index `i` of `n` points, written out.
@@ -605,13 +679,15 @@ mod tests {
     fn rows_and_skipped_octaves_equal_the_pointwise_formula() {
         // Coverages from sparse (most points skip the fine octaves) to full
         // (none may), several octave counts, lacunarities, winds and side
-        // fades.
-        for (coverage, octaves, lacunarity, time, side_fade) in [
-            (0.1, 5, 2.0, 0.0, 0.1),
-            (0.42, 5, 2.0, 3.5, 0.3),
-            (0.5, 8, 2.3, -7.0, 0.0),
-            (0.9, 3, 1.7, 1.0, 0.5),
-            (1.0, 5, 2.0, 2.0, 0.2),
+        // fades, without and with procedural weather (region size 30).
+        for (coverage, octaves, lacunarity, time, side_fade, weather) in [
+            (0.1, 5, 2.0, 0.0, 0.1, 0.0),
+            (0.42, 5, 2.0, 3.5, 0.3, 0.0),
+            (0.5, 8, 2.3, -7.0, 0.0, 0.0),
+            (0.9, 3, 1.7, 1.0, 0.5, 0.0),
+            (1.0, 5, 2.0, 2.0, 0.2, 0.0),
+            (0.6, 5, 2.0, 2.0, 0.1, 30.0),
+            (1.0, 4, 2.0, -3.0, 0.0, 30.0),
         ] {
             let noise = CloudNoise {
                 coverage,
@@ -619,6 +695,11 @@ mod tests {
                 lacunarity,
                 wind: DVec3::new(3.0, 0.5, -2.0),
                 side_fade,
+                weather: CloudWeather {
+                    wavelength: weather,
+                    clear: 0.2,
+                    ..CloudWeather::default()
+                },
                 ..small()
             };
             let grid = grid(&noise, time);
@@ -630,7 +711,12 @@ mod tests {
                         let p = ORIGIN + DVec3::new(i as f64, j as f64, k as f64) * SPACING;
                         let h = j as f64 / (ny - 1) as f64;
                         let sides = side(side_fade, k, nz) * side(side_fade, i, nx);
-                        let expected = pointwise_density(&noise, time, p, h, sides);
+                        let column = if weather > 0.0 {
+                            pointwise_column(&noise, time, p.x, p.z)
+                        } else {
+                            (1.0, 1.0)
+                        };
+                        let expected = pointwise_in_weather(&noise, time, p, h, sides, column);
                         // The rows agree with `noise` to rounding: at most
                         // a unit in the last place of the f32 density.
                         assert!(

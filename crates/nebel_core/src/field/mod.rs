@@ -43,6 +43,7 @@ mod procedural;
 mod resample;
 mod terrain;
 mod value_noise;
+mod weather;
 
 pub use aurora::AuroraCurtains;
 pub use cloud::{CloudNoise, side_fade_factors};
@@ -56,6 +57,7 @@ pub use procedural::{NOISE_OFFSET, NoiseKind, ProceduralNoise};
 pub use resample::{PadFill, power_of_two_plus_one};
 pub use terrain::{DEFAULT_TERRAIN_SPACING, DEFAULT_TERRAIN_VERTICAL_SCALE, TerrainNoise};
 pub use value_noise::ValueNoise;
+pub use weather::{CloudWeather, WeatherMap};
 
 use std::path::PathBuf;
 
