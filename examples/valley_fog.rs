@@ -168,6 +168,7 @@ fn spawn_valley(mut commands: Commands) {
                 ..default()
             },
             keyframe_interval: 4.0,
+            ..default()
         },
         // Thin: the light preset's opacity at 3 % per metre of density.
         Volume {

@@ -53,8 +53,9 @@
 //! `Cells` list.
 
 use std::path::Path;
+use std::sync::Arc;
 
-use glam::{DQuat, DVec3};
+use glam::{DQuat, DVec2, DVec3};
 use serde::{Deserialize, Serialize};
 
 use super::InvalidField;
@@ -65,8 +66,8 @@ use nebel_core::field::effects::{
     check_search_light_budget, search_light_cells,
 };
 use nebel_core::field::{
-    CloudLighting, CloudNoise, DensityGrid, FieldError, NoiseKind, ProceduralNoise,
-    power_of_two_plus_one,
+    CloudLighting, CloudNoise, CloudWeather, DensityGrid, FieldError, HeightField, NoiseKind,
+    ProceduralNoise, WeatherMap, power_of_two_plus_one,
 };
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{ControlPoint, TransferError, TransferFunction, TransferPreset};
@@ -217,6 +218,57 @@ pub struct CloudSource {
     /// (see `nebel_volume::CloudVolume::keyframe_interval`). Default 2.
     #[serde(default)]
     pub keyframe_interval: Option<f32>,
+    /// Weather over the box: coverage and cloud type per column. Default
+    /// none.
+    #[serde(default)]
+    pub weather: Option<WeatherDescription>,
+}
+
+/// A cloud's weather (`nebel_core::field::CloudWeather` and `WeatherMap`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum WeatherDescription {
+    /// Procedural weather; unset fields take `CloudWeather`'s defaults.
+    Procedural(ProceduralWeatherDescription),
+    /// Grayscale PNGs over the box's footprint, relative to the scene file.
+    Map(WeatherMapDescription),
+}
+
+/// Procedural weather (`nebel_core::field::CloudWeather`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ProceduralWeatherDescription {
+    /// Size of the weather's regions, metres, > 0.
+    pub wavelength: f64,
+    /// Seed. Default 0.
+    #[serde(default)]
+    pub seed: u32,
+    /// Fraction of the sky without cloud. Default 0.3.
+    #[serde(default)]
+    pub clear: Option<f32>,
+    /// Fraction of the sky at the full coverage. Default 0.2.
+    #[serde(default)]
+    pub overcast: Option<f32>,
+    /// Fraction of the columns of stratus. Default 0.3.
+    #[serde(default)]
+    pub stratus: Option<f32>,
+    /// Top of a stratus column, a fraction of the box's height. Default 0.35.
+    #[serde(default)]
+    pub stratus_top: Option<f32>,
+}
+
+/// A weather map from grayscale PNGs stretched over the box's footprint
+/// (the image's left column at the minimum x, its top row at the minimum z).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WeatherMapDescription {
+    /// Coverage: black no cloud, white the cloud's full coverage.
+    pub coverage: String,
+    /// Cloud type: black stratus, white cumulus. Default cumulus everywhere.
+    #[serde(default)]
+    pub kind: Option<String>,
+    /// Top of a stratus column, a fraction of the box's height. Default 0.35.
+    #[serde(default)]
+    pub stratus_top: Option<f32>,
 }
 
 impl CloudSource {
@@ -233,8 +285,46 @@ impl CloudSource {
             base_fade: self.base_fade.unwrap_or(defaults.base_fade),
             top_fade: self.top_fade.unwrap_or(defaults.top_fade),
             side_fade: self.side_fade.unwrap_or(defaults.side_fade),
+            weather: match &self.weather {
+                Some(WeatherDescription::Procedural(weather)) => {
+                    let defaults = CloudWeather::default();
+                    CloudWeather {
+                        wavelength: weather.wavelength,
+                        seed: weather.seed,
+                        clear: weather.clear.unwrap_or(defaults.clear),
+                        overcast: weather.overcast.unwrap_or(defaults.overcast),
+                        stratus: weather.stratus.unwrap_or(defaults.stratus),
+                        stratus_top: weather.stratus_top.unwrap_or(defaults.stratus_top),
+                    }
+                }
+                _ => CloudWeather::default(),
+            },
             ..defaults
         }
+    }
+
+    /// Loads the weather map (if the weather is one), resolving its paths
+    /// against `scene_dir`. Errors name the field.
+    fn weather_map(&self, scene_dir: &Path) -> Result<Option<Arc<WeatherMap>>, InvalidField> {
+        let Some(WeatherDescription::Map(map)) = &self.weather else {
+            return Ok(None);
+        };
+        let load = |field: &str, path: &str| {
+            HeightField::load_png(scene_dir.join(path), DVec2::ONE, DVec2::ZERO, 1.0)
+                .map_err(|error| InvalidField::new(field, error.to_string()))
+        };
+        let coverage = load("source.Cloud.weather.coverage", &map.coverage)?;
+        let kind = map
+            .kind
+            .as_deref()
+            .map(|path| load("source.Cloud.weather.kind", path))
+            .transpose()?;
+        let stratus_top = map
+            .stratus_top
+            .unwrap_or(CloudWeather::default().stratus_top);
+        WeatherMap::new(coverage, kind, stratus_top)
+            .map(|map| Some(Arc::new(map)))
+            .map_err(|error| InvalidField::new("source.Cloud.weather", error.to_string()))
     }
 }
 
@@ -549,6 +639,8 @@ pub struct AnimatedCloud {
     pub noise: CloudNoise,
     /// Seconds between the keyframes a windy cloud is drawn from.
     pub keyframe_interval: f32,
+    /// The weather map over the box, if the weather is given as one.
+    pub weather_map: Option<Arc<WeatherMap>>,
     /// Grid points per axis.
     pub dims: [usize; 3],
     /// Minimum corner of the box, metres.
@@ -562,7 +654,12 @@ impl AnimatedCloud {
     /// generator setting that is out of range.
     pub fn grid_at(&self, time: f64) -> Result<DensityGrid, FieldError> {
         let spacing = (self.max - self.min) / (DVec3::from(self.dims.map(|n| n as f64)) - 1.0);
-        DensityGrid::cloud(self.dims, spacing, self.min, &self.noise, time)
+        match &self.weather_map {
+            Some(map) => {
+                DensityGrid::cloud_under(self.dims, spacing, self.min, &self.noise, map, time)
+            }
+            None => DensityGrid::cloud(self.dims, spacing, self.min, &self.noise, time),
+        }
     }
 
     /// The keyframes a windy cloud is drawn between at `time`: their times
@@ -685,6 +782,7 @@ impl VolumeDescription {
                 }
                 let animated = AnimatedCloud {
                     noise: cloud.noise(),
+                    weather_map: cloud.weather_map(scene_dir)?,
                     keyframe_interval: cloud.keyframe_interval.unwrap_or(2.0),
                     dims: cloud.dims,
                     min: self.min_corner(),
@@ -1139,6 +1237,66 @@ mod tests {
     }
 
     #[test]
+    fn a_cloud_takes_its_weather_from_noise_or_from_maps() {
+        let dir = std::env::temp_dir().join(format!("nebel-scene-weather-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        // Coverage: black (clear) on the left, white on the right.
+        image::ImageBuffer::<image::Luma<u8>, _>::from_fn(4, 4, |x, _| {
+            image::Luma([if x < 2 { 0 } else { 255 }])
+        })
+        .save(dir.join("coverage.png"))
+        .unwrap();
+        let source = |weather: &str| {
+            let ron = format!(
+                "(source: Cloud((dims: (13, 7, 13), coverage: 1.0, wavelength: 6.0, \
+                 side_fade: 0.0, weather: {weather})))"
+            );
+            ron::Options::default()
+                .with_default_extension(ron::extensions::Extensions::IMPLICIT_SOME)
+                .from_str::<VolumeDescription>(&ron)
+                .unwrap()
+        };
+        let built = source("Map((coverage: \"coverage.png\"))")
+            .build(&dir)
+            .unwrap();
+        let SceneField::Cloud(cloud) = built.field else {
+            panic!("a cloud source is an animated cloud");
+        };
+        let grid = cloud.grid_at(0.0).unwrap();
+        let [nx, ny, nz] = grid.dims();
+        let column = || (0..nz).flat_map(|k| (0..ny).map(move |j| (j, k)));
+        // The image's two left pixels span the box's first third: clear.
+        assert!(column().all(|(j, k)| grid.value(0, j, k) == 0.0));
+        assert!(column().any(|(j, k)| grid.value(nx - 1, j, k) > 0.0));
+
+        let procedural = source("Procedural((wavelength: 20.0, clear: 0.5, stratus_top: 0.5))");
+        let SceneField::Cloud(cloud) = procedural.build(&dir).unwrap().field else {
+            panic!("a cloud source is an animated cloud");
+        };
+        assert_eq!(cloud.noise.weather.clear, 0.5);
+        assert_eq!(
+            cloud.noise.weather.overcast,
+            CloudWeather::default().overcast
+        );
+        assert!(cloud.weather_map.is_none());
+
+        let error = source("Map((coverage: \"missing.png\"))")
+            .build(&dir)
+            .unwrap_err();
+        assert_eq!(error.field, "source.Cloud.weather.coverage");
+        assert!(error.reason.contains("missing.png"), "{}", error.reason);
+        let error = source("Map((coverage: \"coverage.png\", stratus_top: 0.0))")
+            .build(&dir)
+            .unwrap_err();
+        assert_eq!(error.field, "source.Cloud.weather");
+        let error = source("Procedural((wavelength: 20.0, clear: 2.0))")
+            .build(&dir)
+            .unwrap_err();
+        assert_eq!(error.field, "source");
+        assert!(error.reason.contains("weather.clear"), "{}", error.reason);
+    }
+
+    #[test]
     fn a_lit_cloud_defaults_to_the_light_preset_and_checks_its_settings() {
         let source = SourceDescription::Cloud(CloudSource {
             dims: [9, 5, 9],
@@ -1152,6 +1310,7 @@ mod tests {
             top_fade: None,
             side_fade: None,
             keyframe_interval: Some(1.5),
+            weather: None,
         });
         let mut lit = VolumeDescription {
             mode: None,
@@ -1282,6 +1441,7 @@ mod tests {
             top_fade: None,
             side_fade: None,
             keyframe_interval: None,
+            weather: None,
         });
         let lighting = Some(LightingDescription {
             ambient: 0.3,

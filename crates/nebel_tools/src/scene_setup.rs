@@ -402,6 +402,7 @@ fn spawn_volumes(commands: &mut Commands, grids: &mut Assets<VolumeGrid>, volume
                         max: cloud.max.as_vec3(),
                         noise: cloud.noise,
                         keyframe_interval: cloud.keyframe_interval,
+                        weather_map: cloud.weather_map.clone(),
                     },
                     Volume {
                         transfer_function,

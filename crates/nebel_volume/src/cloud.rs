@@ -26,7 +26,7 @@ use std::time::Instant;
 use bevy::diagnostic::Diagnostics;
 use bevy::math::DVec3;
 use bevy::prelude::*;
-use nebel_core::field::{CloudNoise, DensityGrid, FieldError};
+use nebel_core::field::{CloudNoise, DensityGrid, FieldError, WeatherMap};
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::AnimatedGrid;
 use nebel_render::{HeavyBuild, HeavyBuilds};
@@ -59,6 +59,12 @@ pub struct CloudVolume {
     /// cost (one keyframe per interval: about 4 s of one core for the
     /// 513 × 65 × 513 layer). Default 2.
     pub keyframe_interval: f32,
+    /// A weather map over the box (coverage and cloud type per column,
+    /// `nebel_core::field::WeatherMap`, for example from grayscale PNGs
+    /// through `HeightField::load_png`) instead of the procedural
+    /// [`CloudNoise::weather`], which must then be off. Default none.
+    #[reflect(ignore)]
+    pub weather_map: Option<Arc<WeatherMap>>,
 }
 
 impl Default for CloudVolume {
@@ -72,6 +78,7 @@ impl Default for CloudVolume {
                 ..CloudNoise::default()
             },
             keyframe_interval: 2.0,
+            weather_map: None,
         }
     }
 }
@@ -91,7 +98,10 @@ impl CloudVolume {
         let dims = self.dims.to_array().map(|n| n as usize);
         let (min, max) = (self.min.as_dvec3(), self.max.as_dvec3());
         let spacing = (max - min) / (DVec3::from(dims.map(|n| n as f64)) - 1.0);
-        DensityGrid::cloud(dims, spacing, min, &self.noise, time)
+        match &self.weather_map {
+            Some(map) => DensityGrid::cloud_under(dims, spacing, min, &self.noise, map, time),
+            None => DensityGrid::cloud(dims, spacing, min, &self.noise, time),
+        }
     }
 }
 

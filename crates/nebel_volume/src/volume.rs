@@ -595,6 +595,7 @@ mod tests {
                     max: Vec3::new(4.0, 2.0, 4.0),
                     noise,
                     keyframe_interval: 1.0,
+                    weather_map: None,
                 },
                 InheritedVisibility::VISIBLE,
             ))
