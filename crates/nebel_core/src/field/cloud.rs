@@ -372,12 +372,21 @@ impl<'a> RowFiller<'a> {
 
     /// The densities of the row at height `y`, depth `z` (world units) into
     /// `row`, through [`FillRow`], at base factor `base` and each point's
-    /// coverage in `coverages`.
-    fn fill(&mut self, base: f64, coverages: &[f64], y: f64, z: f64, row: &mut [f32]) {
+    /// coverage in `coverages`, the largest of which is `largest`.
+    fn fill(
+        &mut self,
+        base: f64,
+        coverages: &[f64],
+        largest: f64,
+        y: f64,
+        z: f64,
+        row: &mut [f32],
+    ) {
         pulp::Arch::new().dispatch(FillRow {
             filler: self,
             base,
             coverages,
+            largest,
             y,
             z,
             row,
@@ -385,9 +394,17 @@ impl<'a> RowFiller<'a> {
     }
 
     #[inline(always)]
-    fn fill_row(&mut self, base: f64, coverages: &[f64], y: f64, z: f64, row: &mut [f32]) {
+    fn fill_row(
+        &mut self,
+        base: f64,
+        coverages: &[f64],
+        largest: f64,
+        y: f64,
+        z: f64,
+        row: &mut [f32],
+    ) {
         // The row's largest coverage: a point of less needs more noise.
-        let zero_below = zero_below(coverages.iter().copied().fold(0.0, f64::max));
+        let zero_below = zero_below(largest);
         self.sums.fill(0.0);
         self.live.fill(true);
         for ((octave, lattice), remaining) in self
@@ -433,6 +450,7 @@ struct FillRow<'f, 'a, 'r> {
     filler: &'f mut RowFiller<'a>,
     base: f64,
     coverages: &'r [f64],
+    largest: f64,
     y: f64,
     z: f64,
     row: &'r mut [f32],
@@ -443,8 +461,14 @@ impl pulp::WithSimd for FillRow<'_, '_, '_> {
 
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, _simd: S) {
-        self.filler
-            .fill_row(self.base, self.coverages, self.y, self.z, self.row);
+        self.filler.fill_row(
+            self.base,
+            self.coverages,
+            self.largest,
+            self.y,
+            self.z,
+            self.row,
+        );
     }
 }
 
@@ -553,19 +577,37 @@ impl DensityGrid {
                         weather.column(DVec2::new(x, z), at)
                     })
                     .collect();
+                // Without cloud types every column has the row's profile.
+                let full_tops = columns.iter().all(|column| column.top == 1.0);
                 for (j, row) in slice.chunks_mut(nx).enumerate() {
                     let h = fraction(ny, j);
                     let base = profile.base(h);
+                    let row_coverage = profile.coverage(h);
+                    if base <= 0.0 || (full_tops && row_coverage <= 0.0) {
+                        continue;
+                    }
+                    let mut largest = 0.0f64;
                     for ((coverage, column), side) in
                         coverages.iter_mut().zip(&columns).zip(&sides_x)
                     {
-                        *coverage =
-                            profile.coverage(h / column.top) * sides_z[k] * side * column.coverage;
+                        let profiled = if full_tops {
+                            row_coverage
+                        } else {
+                            profile.coverage(h / column.top)
+                        };
+                        *coverage = profiled * sides_z[k] * side * column.coverage;
+                        largest = largest.max(*coverage);
                     }
-                    if base <= 0.0 || coverages.iter().all(|&c| c <= 0.0) {
-                        continue;
+                    if largest > 0.0 {
+                        filler.fill(
+                            base,
+                            &coverages,
+                            largest,
+                            origin.y + j as f64 * spacing.y,
+                            z,
+                            row,
+                        );
                     }
-                    filler.fill(base, &coverages, origin.y + j as f64 * spacing.y, z, row);
                 }
                 pace();
             }
