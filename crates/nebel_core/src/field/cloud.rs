@@ -26,18 +26,19 @@
 //! 6. **Weather** ([`super::weather`]): a column's coverage `w` scales the
 //!    coverage and its cloud type sets its top `H`, so the profile is
 //!    evaluated at `h / H` (none above the top).
+//! 7. **Shape** ([`super::primitives`], Schpok et al. 2003 §3.1): implicit
+//!    ellipsoids blended by Wyvill's field `P` scale the coverage, so the
+//!    noise subtracts detail at their surfaces.
 //!
 //! So `f = b(h) · clamp((u − (1 − c)) / c, 0, 1)` with `c = c(h / H) · s(x) ·
-//! s(z) · w`, in [0, 1], a pure function of the settings, time and geometry:
-//! the same on every run, machine and thread count.
+//! s(z) · w · P`, in [0, 1], a pure function of the settings, time and
+//! geometry: the same on every run, machine and thread count.
 //!
 //! Rows of grid points are evaluated octave by octave by `PerlinRow`, in the
 //! CPU's vector instructions, and finer octaves skip the points that can no
 //! longer reach the coverage threshold; the result equals the pointwise
 //! `noise::Perlin` sum to a unit in the last place of the f32 density (a test).
-//! Schpok et al. 2003's implicit ellipsoids and per-octave rotation are not
-//! implemented: the coverage threshold plays the ellipsoids' role for a whole
-//! cloudscape.
+//! Schpok et al. 2003's per-octave rotation is not implemented.
 //!
 //! Every formula, the skipping bound and the evaluation in full are in
 //! `docs/cloud-field.md` in the repository.
@@ -45,7 +46,8 @@
 use glam::{DVec2, DVec3};
 
 use super::perlin_row::{PerlinRow, RowLattice};
-use super::weather::{CloudWeather, Column, Weather, WeatherMap, smoothstep};
+use super::primitives::{CloudShape, Primitives};
+use super::weather::{CloudWeather, Column, Weather, smoothstep};
 use super::{
     DENSITY_GRID, DensityGrid, FieldError, NOISE_OFFSET, SAMPLE_BYTES, budgeted_points,
     check_origin, check_spacing,
@@ -80,9 +82,11 @@ const MAX_OCTAVES: usize = 16;
 ///   `x = i / (nx − 1)`, and `s(z)` of the depth fraction alike (a fade of 0
 ///   disables it);
 /// - the column's weather coverage `w` and top `H` ([`CloudWeather`], or a
-///   [`WeatherMap`] through [`DensityGrid::cloud_under`]; 1 and 1 without);
+///   [`WeatherMap`](super::WeatherMap) in a [`CloudShape`] through
+///   [`DensityGrid::cloud_shaped`]; 1 and 1 without);
+/// - the shape `P` of the [`CloudShape`]'s ellipsoids (1 without);
 /// - density `f = b(h) · clamp((u − (1 − c)) / c, 0, 1)` with `c = c(h / H)
-///   · s(x) · s(z) · w` (`c(h / H) = 0` above the top), 0 where `c = 0`.
+///   · s(x) · s(z) · w · P` (`c(h / H) = 0` above the top), 0 where `c = 0`.
 ///
 /// About a fraction `coverage` of the points away from the base, the top and
 /// the sides is cloud.
@@ -510,41 +514,44 @@ impl DensityGrid {
         time: f64,
         threads: usize,
     ) -> Result<Self, FieldError> {
-        Self::cloud_in_weather(dims, spacing, origin, noise, None, time, threads)
-    }
-
-    /// [`DensityGrid::cloud`] under the weather `map` over the box instead
-    /// of the procedural [`CloudNoise::weather`] (which must be off).
-    ///
-    /// # Errors
-    ///
-    /// As [`DensityGrid::cloud`], and [`FieldError::InvalidParameter`] naming
-    /// `weather.wavelength` when the procedural weather is on as well.
-    pub fn cloud_under(
-        dims: [usize; 3],
-        spacing: DVec3,
-        origin: DVec3,
-        noise: &CloudNoise,
-        map: &WeatherMap,
-        time: f64,
-    ) -> Result<Self, FieldError> {
-        Self::cloud_in_weather(
+        Self::cloud_in_shape(
             dims,
             spacing,
             origin,
             noise,
-            Some(map),
+            &CloudShape::default(),
             time,
-            worker_threads(),
+            threads,
         )
     }
 
-    fn cloud_in_weather(
+    /// [`DensityGrid::cloud`] shaped by `shape`: a weather map over the box
+    /// instead of the procedural [`CloudNoise::weather`] (which must then be
+    /// off), and implicit ellipsoids whose blended field scales the coverage
+    /// ([`CloudShape`]).
+    ///
+    /// # Errors
+    ///
+    /// As [`DensityGrid::cloud`]; [`FieldError::InvalidParameter`] naming
+    /// `weather.wavelength` when a weather map is given with the procedural
+    /// weather on, or an ellipsoid's bad setting.
+    pub fn cloud_shaped(
         dims: [usize; 3],
         spacing: DVec3,
         origin: DVec3,
         noise: &CloudNoise,
-        map: Option<&WeatherMap>,
+        shape: &CloudShape,
+        time: f64,
+    ) -> Result<Self, FieldError> {
+        Self::cloud_in_shape(dims, spacing, origin, noise, shape, time, worker_threads())
+    }
+
+    fn cloud_in_shape(
+        dims: [usize; 3],
+        spacing: DVec3,
+        origin: DVec3,
+        noise: &CloudNoise,
+        shape: &CloudShape,
         time: f64,
         threads: usize,
     ) -> Result<Self, FieldError> {
@@ -553,7 +560,8 @@ impl DensityGrid {
         check_spacing(name, &spacing.to_array())?;
         check_origin(name, &origin.to_array())?;
         let octaves = noise.octaves(name, time)?;
-        let weather = Weather::new(name, noise, map, time)?;
+        let weather = Weather::new(name, noise, shape.weather_map.as_deref(), time)?;
+        let primitives = Primitives::new(name, shape, time)?;
         let profile = Profile::new(noise);
         let [nx, ny, nz] = dims;
         let fraction = |n: usize, i: usize| i as f64 / (n - 1) as f64;
@@ -566,6 +574,7 @@ impl DensityGrid {
         let fill = |first_slice: usize, chunk: &mut [f32]| {
             let mut filler = RowFiller::new(&octaves, &xs);
             let mut coverages = vec![0.0; nx];
+            let mut shaped = vec![1.0; nx];
             for (dk, slice) in chunk.chunks_mut(nx * ny).enumerate() {
                 let k = first_slice + dk;
                 let z = origin.z + k as f64 * spacing.z;
@@ -586,27 +595,29 @@ impl DensityGrid {
                     if base <= 0.0 || (full_tops && row_coverage <= 0.0) {
                         continue;
                     }
+                    let y = origin.y + j as f64 * spacing.y;
+                    if let Some(primitives) = &primitives
+                        && !primitives.fill_row(&xs, y, z, &mut shaped)
+                    {
+                        continue;
+                    }
                     let mut largest = 0.0f64;
-                    for ((coverage, column), side) in
-                        coverages.iter_mut().zip(&columns).zip(&sides_x)
+                    for (((coverage, column), side), shaped) in coverages
+                        .iter_mut()
+                        .zip(&columns)
+                        .zip(&sides_x)
+                        .zip(&shaped)
                     {
                         let profiled = if full_tops {
                             row_coverage
                         } else {
                             profile.coverage(h / column.top)
                         };
-                        *coverage = profiled * sides_z[k] * side * column.coverage;
+                        *coverage = profiled * sides_z[k] * side * column.coverage * shaped;
                         largest = largest.max(*coverage);
                     }
                     if largest > 0.0 {
-                        filler.fill(
-                            base,
-                            &coverages,
-                            largest,
-                            origin.y + j as f64 * spacing.y,
-                            z,
-                            row,
-                        );
+                        filler.fill(base, &coverages, largest, y, z, row);
                     }
                 }
                 pace();
@@ -633,6 +644,8 @@ mod tests {
     use noise::{NoiseFn, Perlin};
 
     use super::*;
+    use crate::field::CloudEllipsoid;
+    use crate::field::primitives::tests::pointwise_shape;
     use crate::field::weather::tests::pointwise_column;
     use crate::test_support::{assert_mentions, error_message};
 
@@ -721,15 +734,37 @@ mod tests {
     fn rows_and_skipped_octaves_equal_the_pointwise_formula() {
         // Coverages from sparse (most points skip the fine octaves) to full
         // (none may), several octave counts, lacunarities, winds and side
-        // fades, without and with procedural weather (region size 30).
-        for (coverage, octaves, lacunarity, time, side_fade, weather) in [
-            (0.1, 5, 2.0, 0.0, 0.1, 0.0),
-            (0.42, 5, 2.0, 3.5, 0.3, 0.0),
-            (0.5, 8, 2.3, -7.0, 0.0, 0.0),
-            (0.9, 3, 1.7, 1.0, 0.5, 0.0),
-            (1.0, 5, 2.0, 2.0, 0.2, 0.0),
-            (0.6, 5, 2.0, 2.0, 0.1, 30.0),
-            (1.0, 4, 2.0, -3.0, 0.0, 30.0),
+        // fades, without and with procedural weather (region size 30) and
+        // ellipsoids.
+        let ellipsoids = CloudShape {
+            primitives: vec![
+                CloudEllipsoid {
+                    centre: DVec3::new(2.0, 307.0, 25.0),
+                    radii: DVec3::new(14.0, 6.0, 9.0),
+                    rotation: glam::DQuat::from_rotation_y(0.6),
+                    velocity: DVec3::new(1.0, 0.5, 0.0),
+                    growth: 0.05,
+                    ..CloudEllipsoid::default()
+                },
+                CloudEllipsoid {
+                    centre: DVec3::new(20.0, 310.0, 40.0),
+                    radii: DVec3::splat(8.0),
+                    density: 0.6,
+                    ..CloudEllipsoid::default()
+                },
+            ],
+            ..CloudShape::default()
+        };
+        for (coverage, octaves, lacunarity, time, side_fade, weather, shaped) in [
+            (0.1, 5, 2.0, 0.0, 0.1, 0.0, false),
+            (0.42, 5, 2.0, 3.5, 0.3, 0.0, false),
+            (0.5, 8, 2.3, -7.0, 0.0, 0.0, false),
+            (0.9, 3, 1.7, 1.0, 0.5, 0.0, false),
+            (1.0, 5, 2.0, 2.0, 0.2, 0.0, false),
+            (0.6, 5, 2.0, 2.0, 0.1, 30.0, false),
+            (1.0, 4, 2.0, -3.0, 0.0, 30.0, false),
+            (1.0, 5, 2.0, 2.0, 0.0, 0.0, true),
+            (0.7, 4, 2.0, 1.0, 0.1, 0.0, true),
         ] {
             let noise = CloudNoise {
                 coverage,
@@ -744,7 +779,13 @@ mod tests {
                 },
                 ..small()
             };
-            let grid = grid(&noise, time);
+            let shape = if shaped {
+                ellipsoids.clone()
+            } else {
+                CloudShape::default()
+            };
+            let grid =
+                DensityGrid::cloud_shaped(DIMS, SPACING, ORIGIN, &noise, &shape, time).unwrap();
             let [nx, ny, nz] = DIMS;
             let mut zeros = 0;
             for k in 0..nz {
@@ -752,7 +793,9 @@ mod tests {
                     for i in 0..nx {
                         let p = ORIGIN + DVec3::new(i as f64, j as f64, k as f64) * SPACING;
                         let h = j as f64 / (ny - 1) as f64;
-                        let sides = side(side_fade, k, nz) * side(side_fade, i, nx);
+                        let sides = side(side_fade, k, nz)
+                            * side(side_fade, i, nx)
+                            * pointwise_shape(&shape, time, p);
                         let column = if weather > 0.0 {
                             pointwise_column(&noise, time, p.x, p.z)
                         } else {

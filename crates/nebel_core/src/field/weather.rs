@@ -10,7 +10,7 @@
 //!
 //! The map is either procedural ([`CloudWeather`], two octaves of Perlin noise
 //! over the world's x and z drifting with the cloud's wind) or given as data
-//! ([`WeatherMap`], for example grayscale PNGs). It only lowers coverage and
+//! ([`WeatherMap`] in a [`CloudShape`](super::CloudShape), for example grayscale PNGs). It only lowers coverage and
 //! tops, so the octave skipping of the cloud's rows stays exact.
 
 use glam::{DVec2, DVec3};
@@ -332,7 +332,7 @@ pub(super) fn smoothstep(edge0: f64, edge1: f64, x: f64) -> f64 {
 #[cfg(test)]
 pub(super) mod tests {
     use super::*;
-    use crate::field::DensityGrid;
+    use crate::field::{CloudShape, DensityGrid};
     use crate::test_support::{assert_mentions, error_message};
 
     /// The procedural column `(w, H)` at world `(x, z)` and `time`, the
@@ -376,6 +376,13 @@ pub(super) mod tests {
                 ..CloudWeather::default()
             },
             ..CloudNoise::default()
+        }
+    }
+
+    fn shape(map: WeatherMap) -> CloudShape {
+        CloudShape {
+            weather_map: Some(std::sync::Arc::new(map)),
+            ..CloudShape::default()
         }
     }
 
@@ -451,7 +458,8 @@ pub(super) mod tests {
         let (dims, spacing, origin) = ([17, 9, 13], DVec3::splat(2.0), DVec3::ZERO);
         let ones = WeatherMap::new(map([5, 4], |_, _| 1.0), None, 0.35).unwrap();
         let plain = DensityGrid::cloud(dims, spacing, origin, &noise, 0.0).unwrap();
-        let under = DensityGrid::cloud_under(dims, spacing, origin, &noise, &ones, 0.0).unwrap();
+        let under =
+            DensityGrid::cloud_shaped(dims, spacing, origin, &noise, &shape(ones), 0.0).unwrap();
         assert_eq!(plain.values(), under.values());
         assert!(plain.values().iter().any(|&v| v > 0.0));
     }
@@ -470,7 +478,8 @@ pub(super) mod tests {
         let coverage = map([3, 2], |i, _| if i == 2 { 1.0 } else { 0.0 });
         let kind = map([2, 2], |_, j| j as f32);
         let under = WeatherMap::new(coverage, Some(kind), 0.4).unwrap();
-        let grid = DensityGrid::cloud_under(dims, spacing, origin, &noise, &under, 0.0).unwrap();
+        let grid =
+            DensityGrid::cloud_shaped(dims, spacing, origin, &noise, &shape(under), 0.0).unwrap();
         for k in 0..nz {
             for j in 0..ny {
                 for i in 0..nx {
@@ -534,12 +543,12 @@ pub(super) mod tests {
         let message = error_message(WeatherMap::new(half.clone(), None, 1.5));
         assert_mentions(&message, &["stratus_top"]);
         let both = WeatherMap::new(half, None, 0.3).unwrap();
-        let message = error_message(DensityGrid::cloud_under(
+        let message = error_message(DensityGrid::cloud_shaped(
             dims,
             DVec3::ONE,
             DVec3::ZERO,
             &weather(10.0),
-            &both,
+            &shape(both),
             0.0,
         ));
         assert_mentions(&message, &["weather.wavelength", "one weather"]);
