@@ -93,9 +93,9 @@ pub mod prelude {
     };
     #[cfg(feature = "volume")]
     pub use nebel_volume::{
-        Campfire, CloudLightModel, CloudVolume, FlickeringLight, FlickeringLightPlugin,
-        LodCriterion, ProjectedCells, Volume, VolumeError, VolumeField, VolumeGrid, VolumeLighting,
-        VolumeLod, VolumeStatus,
+        Campfire, CloudLightModel, CloudPrimitive, CloudVolume, FlickeringLight,
+        FlickeringLightPlugin, LodCriterion, ProjectedCells, Volume, VolumeError, VolumeField,
+        VolumeGrid, VolumeLighting, VolumeLod, VolumeStatus,
     };
 }
 

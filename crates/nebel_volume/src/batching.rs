@@ -41,7 +41,7 @@ use nebel_lod::{
 use nebel_render::camera::to_double_affine;
 use nebel_render::{CellBatch, CellBlend, CellSunlight, EffectiveQuality, HeavyBuilds, LodCameras};
 
-use crate::cloud::{CloudGeneration, CloudVolume, is_windy};
+use crate::cloud::{CloudGeneration, CloudVolume, animates};
 use crate::grid::VolumeGrid;
 use crate::lighting::sun_in_local_frame;
 use crate::status::{VolumeError, VolumeStatus};
@@ -155,7 +155,7 @@ pub(crate) fn build_batchers(
         batching.source_failure = source.as_ref().err().cloned();
         let animation = cloud
             .map(|(cloud, _)| cloud)
-            .filter(|cloud| is_windy(cloud))
+            .filter(|cloud| animates(cloud))
             .map(|cloud| {
                 let field: Arc<dyn AnimatedGrid> = Arc::new(cloud.clone());
                 (field, cloud.keyframe_interval)

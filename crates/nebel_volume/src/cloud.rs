@@ -15,7 +15,11 @@
 //! (a bad size, say) keeps the last good grid and sets
 //! [`VolumeStatus::Failed`](crate::VolumeStatus::Failed).
 //!
-//! In the wind the cloud is drawn from keyframes of its field every
+//! [`CloudPrimitive`](crate::CloudPrimitive) children shape the cloud with
+//! implicit ellipsoids, and [`CloudNoise::weather`] or
+//! [`CloudVolume::weather_map`] lay weather over it.
+//!
+//! In the wind (or with moving primitives) the cloud is drawn from keyframes of its field every
 //! [`CloudVolume::keyframe_interval`] seconds, blended on the GPU and built
 //! ahead in the background (`nebel_lod::VolumeBatching`); its grid asset is then not
 //! written.
@@ -26,11 +30,14 @@ use std::time::Instant;
 use bevy::diagnostic::Diagnostics;
 use bevy::math::DVec3;
 use bevy::prelude::*;
-use nebel_core::field::{CloudNoise, DensityGrid, FieldError, WeatherMap};
+use nebel_core::field::{
+    CloudEllipsoid, CloudNoise, CloudShape, DensityGrid, FieldError, WeatherMap,
+};
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::AnimatedGrid;
 use nebel_render::{HeavyBuild, HeavyBuilds};
 
+use crate::cloud_primitive::PrimitivesFromChildren;
 use crate::grid::VolumeGrid;
 use crate::status::VolumeError;
 use crate::{Volume, VolumeField, VolumeLighting, VolumeLod, VolumePlugin};
@@ -38,7 +45,13 @@ use crate::{Volume, VolumeField, VolumeLighting, VolumeLod, VolumePlugin};
 /// A procedural cumulus cloud layer over a box of the entity's local frame.
 #[derive(Component, Clone, Debug, PartialEq, Reflect)]
 #[reflect(Component, Default, Clone)]
-#[require(Volume = CloudVolume::lit_volume(), VolumeLod, VolumeLighting, CloudGeneration)]
+#[require(
+    Volume = CloudVolume::lit_volume(),
+    VolumeLod,
+    VolumeLighting,
+    CloudGeneration,
+    PrimitivesFromChildren
+)]
 pub struct CloudVolume {
     /// Grid points per axis, each ≥ 2; `2^n + 1` avoids padding for the
     /// octree. Default 65 × 17 × 65.
@@ -65,6 +78,12 @@ pub struct CloudVolume {
     /// [`CloudNoise::weather`], which must then be off. Default none.
     #[reflect(ignore)]
     pub weather_map: Option<Arc<WeatherMap>>,
+    /// Implicit ellipsoids that shape the cloud (Schpok et al. 2003; see
+    /// `nebel_core::field::CloudShape`), in the entity's local frame. While
+    /// the entity has [`CloudPrimitive`](crate::CloudPrimitive) children,
+    /// [`VolumePlugin`] keeps this equal to theirs; set it by hand on a cloud
+    /// without. Default none: the noise's coverage alone.
+    pub primitives: Vec<CloudEllipsoid>,
 }
 
 impl Default for CloudVolume {
@@ -79,6 +98,7 @@ impl Default for CloudVolume {
             },
             keyframe_interval: 2.0,
             weather_map: None,
+            primitives: Vec::new(),
         }
     }
 }
@@ -98,10 +118,11 @@ impl CloudVolume {
         let dims = self.dims.to_array().map(|n| n as usize);
         let (min, max) = (self.min.as_dvec3(), self.max.as_dvec3());
         let spacing = (max - min) / (DVec3::from(dims.map(|n| n as f64)) - 1.0);
-        match &self.weather_map {
-            Some(map) => DensityGrid::cloud_under(dims, spacing, min, &self.noise, map, time),
-            None => DensityGrid::cloud(dims, spacing, min, &self.noise, time),
-        }
+        let shape = CloudShape {
+            weather_map: self.weather_map.clone(),
+            primitives: self.primitives.clone(),
+        };
+        DensityGrid::cloud_shaped(dims, spacing, min, &self.noise, &shape, time)
     }
 }
 
@@ -112,9 +133,10 @@ impl AnimatedGrid for CloudVolume {
     }
 }
 
-/// Whether `cloud` animates: a wind on any axis.
-pub(crate) fn is_windy(cloud: &CloudVolume) -> bool {
-    cloud.noise.wind != DVec3::ZERO
+/// Whether `cloud` animates: a wind on any axis, or an ellipsoid that moves
+/// or grows.
+pub(crate) fn animates(cloud: &CloudVolume) -> bool {
+    cloud.noise.wind != DVec3::ZERO || cloud.primitives.iter().any(CloudEllipsoid::animates)
 }
 
 /// A cloud's generation in flight and its last failure (internal).
@@ -162,7 +184,7 @@ pub(crate) fn generate_clouds(
 ) {
     for (cloud, visibility, mut volume, mut generation) in &mut clouds {
         generation.stale |= cloud.is_changed();
-        if is_windy(&cloud) {
+        if animates(&cloud) {
             continue;
         }
         let wanted = generation.stale || !generation.started;

@@ -15,6 +15,7 @@
 pub mod batching;
 pub mod campfire;
 pub mod cloud;
+pub mod cloud_primitive;
 pub mod flickering_light;
 pub mod grid;
 pub mod grid_loader;
@@ -25,6 +26,7 @@ pub mod volume;
 
 pub use campfire::Campfire;
 pub use cloud::CloudVolume;
+pub use cloud_primitive::CloudPrimitive;
 pub use flickering_light::{FlickeringLight, FlickeringLightPlugin};
 pub use grid::VolumeGrid;
 pub use grid_loader::{VolumeGridLoadError, VolumeGridLoader, VolumeGridSettings};

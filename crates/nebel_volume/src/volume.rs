@@ -97,6 +97,7 @@ impl Plugin for VolumePlugin {
             .register_type::<VolumeStatus>()
             .register_type::<crate::Campfire>()
             .register_type::<crate::CloudVolume>()
+            .register_type::<crate::CloudPrimitive>()
             .register_type::<VolumeLod>()
             .register_type::<VolumeLighting>()
             .register_type::<LodCamera>()
@@ -106,7 +107,11 @@ impl Plugin for VolumePlugin {
                 Update,
                 (
                     cpu_timed(crate::campfire::animate_campfires),
-                    cpu_timed(crate::cloud::generate_clouds),
+                    (
+                        cpu_timed(crate::cloud_primitive::gather_cloud_primitives),
+                        cpu_timed(crate::cloud::generate_clouds),
+                    )
+                        .chain(),
                 )
                     .in_set(NebelSystems),
             )
@@ -595,7 +600,7 @@ mod tests {
                     max: Vec3::new(4.0, 2.0, 4.0),
                     noise,
                     keyframe_interval: 1.0,
-                    weather_map: None,
+                    ..default()
                 },
                 InheritedVisibility::VISIBLE,
             ))
