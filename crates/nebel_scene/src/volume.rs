@@ -66,8 +66,8 @@ use nebel_core::field::effects::{
     check_search_light_budget, search_light_cells,
 };
 use nebel_core::field::{
-    CloudLighting, CloudNoise, CloudWeather, DensityGrid, FieldError, HeightField, NoiseKind,
-    ProceduralNoise, WeatherMap, power_of_two_plus_one,
+    CloudEllipsoid, CloudLighting, CloudNoise, CloudShape, CloudWeather, DensityGrid, FieldError,
+    HeightField, NoiseKind, ProceduralNoise, WeatherMap, power_of_two_plus_one,
 };
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{ControlPoint, TransferError, TransferFunction, TransferPreset};
@@ -222,6 +222,33 @@ pub struct CloudSource {
     /// none.
     #[serde(default)]
     pub weather: Option<WeatherDescription>,
+    /// Implicit ellipsoids that shape the cloud (Schpok et al. 2003). Default
+    /// none.
+    #[serde(default)]
+    pub primitives: Vec<PrimitiveDescription>,
+}
+
+/// An implicit ellipsoid of a cloud (`nebel_core::field::CloudEllipsoid`),
+/// metres in the volume's frame.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PrimitiveDescription {
+    /// Centre at time 0.
+    pub centre: [f64; 3],
+    /// Radii along its axes at time 0, each > 0.
+    pub radii: [f64; 3],
+    /// Turn of its axes about y, degrees. Default 0.
+    #[serde(default)]
+    pub yaw_degrees: f64,
+    /// Weight of its field, ≥ 0. Default 1.
+    #[serde(default)]
+    pub density: Option<f32>,
+    /// Drift of its centre, metres per second. Default zero.
+    #[serde(default)]
+    pub velocity: [f64; 3],
+    /// Growth of its radii per second. Default 0.
+    #[serde(default)]
+    pub growth: f64,
 }
 
 /// A cloud's weather (`nebel_core::field::CloudWeather` and `WeatherMap`).
@@ -303,8 +330,27 @@ impl CloudSource {
         }
     }
 
-    /// Loads the weather map (if the weather is one), resolving its paths
-    /// against `scene_dir`. Errors name the field.
+    /// The cloud's shape: its weather map (loaded, if the weather is one,
+    /// its paths resolved against `scene_dir`) and its ellipsoids. Errors
+    /// name the field.
+    fn shape(&self, scene_dir: &Path) -> Result<CloudShape, InvalidField> {
+        Ok(CloudShape {
+            weather_map: self.weather_map(scene_dir)?,
+            primitives: self
+                .primitives
+                .iter()
+                .map(|p| CloudEllipsoid {
+                    centre: DVec3::from(p.centre),
+                    radii: DVec3::from(p.radii),
+                    rotation: DQuat::from_rotation_y(p.yaw_degrees.to_radians()),
+                    density: p.density.unwrap_or(1.0),
+                    velocity: DVec3::from(p.velocity),
+                    growth: p.growth,
+                })
+                .collect(),
+        })
+    }
+
     fn weather_map(&self, scene_dir: &Path) -> Result<Option<Arc<WeatherMap>>, InvalidField> {
         let Some(WeatherDescription::Map(map)) = &self.weather else {
             return Ok(None);
@@ -639,8 +685,8 @@ pub struct AnimatedCloud {
     pub noise: CloudNoise,
     /// Seconds between the keyframes a windy cloud is drawn from.
     pub keyframe_interval: f32,
-    /// The weather map over the box, if the weather is given as one.
-    pub weather_map: Option<Arc<WeatherMap>>,
+    /// The weather map over the box and the ellipsoids.
+    pub shape: CloudShape,
     /// Grid points per axis.
     pub dims: [usize; 3],
     /// Minimum corner of the box, metres.
@@ -654,20 +700,15 @@ impl AnimatedCloud {
     /// generator setting that is out of range.
     pub fn grid_at(&self, time: f64) -> Result<DensityGrid, FieldError> {
         let spacing = (self.max - self.min) / (DVec3::from(self.dims.map(|n| n as f64)) - 1.0);
-        match &self.weather_map {
-            Some(map) => {
-                DensityGrid::cloud_under(self.dims, spacing, self.min, &self.noise, map, time)
-            }
-            None => DensityGrid::cloud(self.dims, spacing, self.min, &self.noise, time),
-        }
+        DensityGrid::cloud_shaped(self.dims, spacing, self.min, &self.noise, &self.shape, time)
     }
 
     /// The keyframes a windy cloud is drawn between at `time`: their times
     /// `k·T` and `(k + 1)·T` and the blend factor toward the second
-    /// (`nebel_lod::octree::keyframe`); `None` without wind (the cloud is
-    /// its grid at `time`).
+    /// (`nebel_lod::octree::keyframe`); `None` without wind or moving
+    /// ellipsoids (the cloud is its grid at `time`).
     pub fn keyframes_at(&self, time: f64) -> Option<([f64; 2], f64)> {
-        if self.noise.wind == DVec3::ZERO {
+        if self.noise.wind == DVec3::ZERO && !self.shape.animates() {
             return None;
         }
         let interval = f64::from(self.keyframe_interval).max(1e-3);
@@ -782,7 +823,7 @@ impl VolumeDescription {
                 }
                 let animated = AnimatedCloud {
                     noise: cloud.noise(),
-                    weather_map: cloud.weather_map(scene_dir)?,
+                    shape: cloud.shape(scene_dir)?,
                     keyframe_interval: cloud.keyframe_interval.unwrap_or(2.0),
                     dims: cloud.dims,
                     min: self.min_corner(),
@@ -1278,7 +1319,7 @@ mod tests {
             cloud.noise.weather.overcast,
             CloudWeather::default().overcast
         );
-        assert!(cloud.weather_map.is_none());
+        assert!(cloud.shape.weather_map.is_none());
 
         let error = source("Map((coverage: \"missing.png\"))")
             .build(&dir)
@@ -1297,6 +1338,52 @@ mod tests {
     }
 
     #[test]
+    fn a_cloud_is_shaped_by_its_primitives_and_animates_when_they_move() {
+        let source = |velocity: &str| {
+            let ron = format!(
+                "(source: Cloud((dims: (13, 7, 13), coverage: 1.0, wavelength: 6.0, \
+                 side_fade: 0.0, primitives: [(centre: (0.0, 0.0, 0.0), radii: (0.6, 0.5, 0.4), \
+                 yaw_degrees: 90.0, density: 2.0, velocity: {velocity})])))"
+            );
+            ron::Options::default()
+                .with_default_extension(ron::extensions::Extensions::IMPLICIT_SOME)
+                .from_str::<VolumeDescription>(&ron)
+                .unwrap()
+        };
+        let SceneField::Cloud(still) = source("(0.0, 0.0, 0.0)")
+            .build(Path::new("."))
+            .unwrap()
+            .field
+        else {
+            panic!("a cloud source is an animated cloud");
+        };
+        let [e] = still.shape.primitives.as_slice() else {
+            panic!("one primitive");
+        };
+        assert_eq!((e.radii, e.density), (DVec3::new(0.6, 0.5, 0.4), 2.0));
+        // A quarter turn about y: the ellipsoid's x axis lies along −z.
+        assert!((e.rotation * DVec3::X - DVec3::NEG_Z).length() < 1e-12);
+        assert_eq!(still.keyframes_at(1.0), None);
+        // Nothing outside the ellipsoid (the box is ±1 on each axis).
+        let grid = still.grid_at(0.0).unwrap();
+        assert_eq!(grid.value(0, 3, 6), 0.0);
+        assert!(grid.values().iter().any(|&v| v > 0.0));
+
+        let SceneField::Cloud(rising) = source("(0.0, 0.5, 0.0)")
+            .build(Path::new("."))
+            .unwrap()
+            .field
+        else {
+            panic!("a cloud source is an animated cloud");
+        };
+        assert!(rising.keyframes_at(1.0).is_some());
+        assert_ne!(
+            rising.grid_at(0.0).unwrap().values(),
+            rising.grid_at(1.0).unwrap().values()
+        );
+    }
+
+    #[test]
     fn a_lit_cloud_defaults_to_the_light_preset_and_checks_its_settings() {
         let source = SourceDescription::Cloud(CloudSource {
             dims: [9, 5, 9],
@@ -1311,6 +1398,7 @@ mod tests {
             side_fade: None,
             keyframe_interval: Some(1.5),
             weather: None,
+            primitives: Vec::new(),
         });
         let mut lit = VolumeDescription {
             mode: None,
@@ -1442,6 +1530,7 @@ mod tests {
             side_fade: None,
             keyframe_interval: None,
             weather: None,
+            primitives: Vec::new(),
         });
         let lighting = Some(LightingDescription {
             ambient: 0.3,

@@ -402,7 +402,8 @@ fn spawn_volumes(commands: &mut Commands, grids: &mut Assets<VolumeGrid>, volume
                         max: cloud.max.as_vec3(),
                         noise: cloud.noise,
                         keyframe_interval: cloud.keyframe_interval,
-                        weather_map: cloud.weather_map.clone(),
+                        weather_map: cloud.shape.weather_map.clone(),
+                        primitives: cloud.shape.primitives.clone(),
                     },
                     Volume {
                         transfer_function,
