@@ -214,6 +214,10 @@ pub struct CloudSource {
     /// toward the box's sides, in [0, 0.5]. Default 0.1.
     #[serde(default)]
     pub side_fade: Option<f32>,
+    /// How sharply the density rises from a cloud's edge, in [0, 1).
+    /// Default 0.
+    #[serde(default)]
+    pub sharpness: f32,
     /// Seconds between the keyframes a windy cloud is blended from, > 0
     /// (see `nebel_volume::CloudVolume::keyframe_interval`). Default 2.
     #[serde(default)]
@@ -312,6 +316,7 @@ impl CloudSource {
             base_fade: self.base_fade.unwrap_or(defaults.base_fade),
             top_fade: self.top_fade.unwrap_or(defaults.top_fade),
             side_fade: self.side_fade.unwrap_or(defaults.side_fade),
+            sharpness: self.sharpness,
             weather: match &self.weather {
                 Some(WeatherDescription::Procedural(weather)) => {
                     let defaults = CloudWeather::default();
@@ -1396,6 +1401,7 @@ mod tests {
             base_fade: None,
             top_fade: None,
             side_fade: None,
+            sharpness: 0.0,
             keyframe_interval: Some(1.5),
             weather: None,
             primitives: Vec::new(),
@@ -1528,6 +1534,7 @@ mod tests {
             base_fade: None,
             top_fade: None,
             side_fade: None,
+            sharpness: 0.0,
             keyframe_interval: None,
             weather: None,
             primitives: Vec::new(),

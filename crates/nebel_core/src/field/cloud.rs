@@ -14,8 +14,9 @@
 //!    approximation of the normal distribution, `u = 1 / (1 + exp(−1.702 v))`,
 //!    makes `u` nearly uniform on (0, 1).
 //! 3. **Coverage remap** (Schpok et al. 2003 Table 2, noise as a density
-//!    cut-off): `d = clamp((u − (1 − c)) / c, 0, 1)`, so about a fraction `c`
-//!    of space is cloud, its density rising from 0 at the edge.
+//!    cut-off): `d = clamp((u − (1 − c)) / (c · (1 − sharpness)), 0, 1)`, so
+//!    about a fraction `c` of space is cloud, its density rising from 0 at
+//!    the edge (faster for a higher `sharpness`, the alpha cut-off).
 //! 4. **Vertical profile** (altitude tiers):
 //!    `b(h) = smoothstep(0, base_fade, h)` fades every column in at one
 //!    altitude (flat bases) and the coverage shrinks toward the top
@@ -30,8 +31,8 @@
 //!    ellipsoids blended by Wyvill's field `P` scale the coverage, so the
 //!    noise subtracts detail at their surfaces.
 //!
-//! So `f = b(h) · clamp((u − (1 − c)) / c, 0, 1)` with `c = c(h / H) · s(x) ·
-//! s(z) · w · P`, in [0, 1], a pure function of the settings, time and
+//! So `f = b(h) · clamp((u − (1 − c)) / (c · (1 − sharpness)), 0, 1)` with
+//! `c = c(h / H) · s(x) · s(z) · w · P`, in [0, 1], a pure function of the settings, time and
 //! geometry: the same on every run, machine and thread count.
 //!
 //! Rows of grid points are evaluated octave by octave by `PerlinRow`, in the
@@ -85,8 +86,9 @@ const MAX_OCTAVES: usize = 16;
 ///   [`WeatherMap`](super::WeatherMap) in a [`CloudShape`] through
 ///   [`DensityGrid::cloud_shaped`]; 1 and 1 without);
 /// - the shape `P` of the [`CloudShape`]'s ellipsoids (1 without);
-/// - density `f = b(h) · clamp((u − (1 − c)) / c, 0, 1)` with `c = c(h / H)
-///   · s(x) · s(z) · w · P` (`c(h / H) = 0` above the top), 0 where `c = 0`.
+/// - density `f = b(h) · clamp((u − (1 − c)) / (c · (1 − sharpness)), 0, 1)`
+///   with `c = c(h / H) · s(x) · s(z) · w · P` (`c(h / H) = 0` above the
+///   top), 0 where `c = 0`.
 ///
 /// About a fraction `coverage` of the points away from the base, the top and
 /// the sides is cloud.
@@ -130,6 +132,12 @@ pub struct CloudNoise {
     /// Procedural weather over the box: regions of clear sky and overcast,
     /// of stratus and cumulus ([`CloudWeather`]). Default off.
     pub weather: CloudWeather,
+    /// How sharply a cloud's density rises from its edge (Schpok et al.
+    /// 2003's alpha cut-off), in [0, 1): the remap divides by `c · (1 −
+    /// sharpness)`, so at 0 the density rises over the whole noise range
+    /// above the threshold and toward 1 it jumps to full at the edge. The
+    /// clouds' extent does not change. Default 0.
+    pub sharpness: f32,
 }
 
 impl Default for CloudNoise {
@@ -147,6 +155,7 @@ impl Default for CloudNoise {
             top_fade: 0.5,
             side_fade: 0.1,
             weather: CloudWeather::default(),
+            sharpness: 0.0,
         }
     }
 }
@@ -215,13 +224,13 @@ fn zero_below(coverage: f64) -> f64 {
     }
 }
 
-/// Density from the equalised unit noise `u` at base factor `base` and
-/// coverage `coverage`.
-fn density(base: f64, coverage: f64, u: f64) -> f32 {
+/// Density from the equalised unit noise `u` at base factor `base`,
+/// coverage `coverage` and softness `1 − sharpness`.
+fn density(base: f64, coverage: f64, softness: f64, u: f64) -> f32 {
     if base <= 0.0 || coverage <= 0.0 {
         return 0.0;
     }
-    let d = base * ((u - (1.0 - coverage)) / coverage).clamp(0.0, 1.0);
+    let d = base * ((u - (1.0 - coverage)) / (coverage * softness)).clamp(0.0, 1.0);
     if d.is_nan() { 0.0 } else { d as f32 }
 }
 
@@ -256,6 +265,13 @@ impl CloudNoise {
             if !(0.0..=1.0).contains(&value) {
                 return Err(invalid(parameter, value.to_string(), "between 0 and 1"));
             }
+        }
+        if !(0.0..1.0).contains(&self.sharpness) {
+            return Err(invalid(
+                "sharpness",
+                self.sharpness.to_string(),
+                "at least 0 and below 1",
+            ));
         }
         if !(0.0..=0.5).contains(&self.side_fade) {
             return Err(invalid(
@@ -354,10 +370,12 @@ struct RowFiller<'a> {
     remaining: Vec<f64>,
     sums: Vec<f64>,
     live: Vec<bool>,
+    /// `1 − sharpness`.
+    softness: f64,
 }
 
 impl<'a> RowFiller<'a> {
-    fn new(octaves: &'a [Octave], xs: &[f64]) -> Self {
+    fn new(octaves: &'a [Octave], xs: &[f64], softness: f64) -> Self {
         let lattices = octaves
             .iter()
             .map(|o| RowLattice::new(xs.iter().map(|&x| x * o.frequency + o.offset.x).collect()))
@@ -371,6 +389,7 @@ impl<'a> RowFiller<'a> {
             remaining,
             sums: vec![0.0; xs.len()],
             live: vec![true; xs.len()],
+            softness,
         }
     }
 
@@ -437,7 +456,7 @@ impl<'a> RowFiller<'a> {
             .zip(coverages)
         {
             *value = if live {
-                density(base, coverage, unit_noise(sum))
+                density(base, coverage, self.softness, unit_noise(sum))
             } else {
                 0.0
             };
@@ -572,7 +591,8 @@ impl DensityGrid {
         );
         let mut values = vec![0.0f32; points];
         let fill = |first_slice: usize, chunk: &mut [f32]| {
-            let mut filler = RowFiller::new(&octaves, &xs);
+            let softness = 1.0 - f64::from(noise.sharpness);
+            let mut filler = RowFiller::new(&octaves, &xs, softness);
             let mut coverages = vec![0.0; nx];
             let mut shaped = vec![1.0; nx];
             for (dk, slice) in chunk.chunks_mut(nx * ny).enumerate() {
@@ -715,6 +735,7 @@ mod tests {
         density(
             profile.base(h),
             profile.coverage(h / top) * side * w,
+            1.0 - f64::from(noise.sharpness),
             unit_noise(v),
         )
     }
@@ -815,6 +836,42 @@ mod tests {
             }
             assert!(zeros < nx * ny * nz, "coverage {coverage}: some cloud");
         }
+    }
+
+    #[test]
+    fn sharper_clouds_keep_their_extent_and_rise_to_full_density_sooner() {
+        let soft = CloudNoise {
+            coverage: 0.6,
+            ..small()
+        };
+        let sharp = CloudNoise {
+            sharpness: 0.75,
+            ..soft
+        };
+        let (soft_grid, sharp_grid) = (grid(&soft, 1.0), grid(&sharp, 1.0));
+        let mut cloud = 0;
+        for (&d, &d_sharp) in soft_grid.values().iter().zip(sharp_grid.values()) {
+            // The same points are cloud; where the soft density is d, the
+            // sharp one is min(4 d, b(h)) up to rounding.
+            assert_eq!(d > 0.0, d_sharp > 0.0);
+            assert!(
+                d_sharp >= d && d_sharp <= (4.0 * d).min(1.0) + 1e-6,
+                "{d} {d_sharp}"
+            );
+            cloud += usize::from(d > 0.0);
+        }
+        assert!(cloud > 100);
+        let message = error_message(DensityGrid::cloud(
+            DIMS,
+            SPACING,
+            ORIGIN,
+            &CloudNoise {
+                sharpness: 1.0,
+                ..soft
+            },
+            0.0,
+        ));
+        assert_mentions(&message, &["DensityGrid::cloud", "sharpness"]);
     }
 
     #[test]
