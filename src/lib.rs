@@ -88,8 +88,8 @@ pub mod prelude {
     };
     #[cfg(feature = "terrain")]
     pub use nebel_terrain::{
-        Terrain, TerrainBuildError, TerrainDebug, TerrainLodStats, TerrainNoise, TerrainPlugin,
-        TerrainSource, TerrainStatus,
+        Terrain, TerrainBuildError, TerrainDebug, TerrainLodStats, TerrainMaterial, TerrainNoise,
+        TerrainPlugin, TerrainSource, TerrainStatus,
     };
     #[cfg(feature = "volume")]
     pub use nebel_volume::{

@@ -199,8 +199,33 @@ pub struct TerrainLod {
     /// [`crate::update`]).
     pub(crate) latency: (f64, f64),
     pub(crate) mesh: Option<Handle<Mesh>>,
+    /// The terrain inserted a `StandardMaterial` on the entity (not one of
+    /// the user's own).
+    pub(crate) material_inserted: bool,
     /// The mapped quadtree the last refinement used, if any.
     pub(crate) mapped: Option<Arc<TerrainHierarchy>>,
+}
+
+impl TerrainLod {
+    /// Removes the terrain's mesh and the material it inserted from its
+    /// entity (a user's own material stays).
+    pub(crate) fn remove_mesh(&mut self, commands: &mut Commands, entity: Entity) {
+        if self.mesh.take().is_some() {
+            commands
+                .entity(entity)
+                .remove::<(Mesh3d, Aabb, NoAutoAabb)>();
+        }
+        self.remove_material(commands, entity);
+    }
+
+    /// Removes the material the terrain inserted, if any.
+    pub(crate) fn remove_material(&mut self, commands: &mut Commands, entity: Entity) {
+        if std::mem::take(&mut self.material_inserted) {
+            commands
+                .entity(entity)
+                .remove::<MeshMaterial3d<StandardMaterial>>();
+        }
+    }
 }
 
 impl TerrainLod {
@@ -257,11 +282,7 @@ fn fail(
     state.hierarchy = None;
     state.refiner = TerrainRefiner::new();
     state.refining = None;
-    if state.mesh.take().is_some() {
-        commands
-            .entity(entity)
-            .remove::<(Mesh3d, MeshMaterial3d<StandardMaterial>, Aabb, NoAutoAabb)>();
-    }
+    state.remove_mesh(commands, entity);
 }
 
 /// Takes finished quadtree builds and starts new ones for every terrain whose

@@ -19,9 +19,11 @@
 //!   ([`build`]);
 //! - the mesh is rebuilt only when the eye moved or turned enough or the
 //!   terrain changed, into the same buffers ([`update`]);
-//! - the default material shades by height and slope (grass, rock, snow) in
-//!   vertex colours; debug views colour the quadtree levels or darken the
-//!   triangle edges ([`TerrainDebug`], [`shading`]).
+//! - the mesh carries UVs over the terrain, fixed under geomorphing; the
+//!   default material shades by height and slope (grass, rock, snow) in
+//!   vertex colours, or a `StandardMaterial` or any `Material` of the
+//!   user's draws it ([`TerrainMaterial`]); debug views colour the quadtree
+//!   levels or darken the triangle edges ([`TerrainDebug`], [`shading`]).
 //!
 //! - an effect on the terrain's entity can give the level of detail a map
 //!   to carry ([`TerrainMapLod`], [`map`]): the ground fog's thickness,
@@ -62,8 +64,8 @@ pub use build::TerrainLod;
 pub use error::TerrainBuildError;
 pub use map::{MappedQuadtree, TerrainMapLod};
 pub use terrain::{
-    Terrain, TerrainDebug, TerrainLodStats, TerrainPlugin, TerrainSource, TerrainStatus,
-    TerrainSystems,
+    Terrain, TerrainDebug, TerrainLodStats, TerrainMaterial, TerrainPlugin, TerrainSource,
+    TerrainStatus, TerrainSystems,
 };
 
 pub use nebel_core::field::TerrainNoise;

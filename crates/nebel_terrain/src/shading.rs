@@ -1,6 +1,6 @@
 //! How the terrain looks: the default material, vertex colours by height
 //! and slope, the debug views, and the copy of a [`TerrainMesh`] into a Bevy
-//! [`Mesh`] that reuses the mesh's buffers.
+//! [`Mesh`] that reuses the mesh's buffers, with UVs over the terrain.
 //!
 //! # Default material
 //!
@@ -142,6 +142,7 @@ pub(crate) fn empty_mesh() -> Mesh {
     )
     .with_inserted_attribute(Mesh::ATTRIBUTE_POSITION, Vec::<[f32; 3]>::new())
     .with_inserted_attribute(Mesh::ATTRIBUTE_NORMAL, Vec::<[f32; 3]>::new())
+    .with_inserted_attribute(Mesh::ATTRIBUTE_UV_0, Vec::<[f32; 2]>::new())
     .with_inserted_indices(Indices::U32(Vec::new()))
 }
 
@@ -168,10 +169,25 @@ fn take4(mesh: &mut Mesh, attribute: bevy::mesh::MeshVertexAttribute) -> Vec<[f3
 }
 
 /// Writes `lod` (positions relative to the quadtree origin, which lies at
-/// `offset` in the entity's frame) into `mesh`, reusing its buffers.
-pub(crate) fn write_mesh(mesh: &mut Mesh, lod: &TerrainMesh, offset: Vec3, colouring: &Colouring) {
+/// `offset` in the entity's frame) into `mesh`, reusing its buffers, with
+/// UVs from 0 to 1 over the quadtree's `extent` (its sides along x and z in
+/// the entity's units).
+pub(crate) fn write_mesh(
+    mesh: &mut Mesh,
+    lod: &TerrainMesh,
+    offset: Vec3,
+    extent: Vec2,
+    colouring: &Colouring,
+) {
     let mut positions = take3(mesh, Mesh::ATTRIBUTE_POSITION);
     let mut normals = take3(mesh, Mesh::ATTRIBUTE_NORMAL);
+    let mut uvs = match mesh.try_remove_attribute(Mesh::ATTRIBUTE_UV_0) {
+        Ok(VertexAttributeValues::Float32x2(mut values)) => {
+            values.clear();
+            values
+        }
+        _ => Vec::new(),
+    };
     let mut colours = take4(mesh, Mesh::ATTRIBUTE_COLOR);
     let mut indices = match mesh.try_remove_indices() {
         Ok(Some(Indices::U32(mut indices))) => {
@@ -255,8 +271,15 @@ pub(crate) fn write_mesh(mesh: &mut Mesh, lod: &TerrainMesh, offset: Vec3, colou
         }
         indices.extend_from_slice(&lod.indices);
     }
+    // Geomorphing moves a vertex only along y, so its UV never changes.
+    uvs.extend(
+        positions
+            .iter()
+            .map(|p| [(p[0] - offset.x) / extent.x, (p[2] - offset.z) / extent.y]),
+    );
     mesh.insert_attribute(Mesh::ATTRIBUTE_POSITION, positions);
     mesh.insert_attribute(Mesh::ATTRIBUTE_NORMAL, normals);
+    mesh.insert_attribute(Mesh::ATTRIBUTE_UV_0, uvs);
     if colouring.has_colours() {
         mesh.insert_attribute(Mesh::ATTRIBUTE_COLOR, colours);
     }
@@ -312,7 +335,13 @@ mod tests {
             debug: TerrainDebug::default(),
             levels: 1,
         };
-        write_mesh(&mut mesh, &lod, Vec3::new(10.0, 0.0, -5.0), &colouring);
+        write_mesh(
+            &mut mesh,
+            &lod,
+            Vec3::new(10.0, 0.0, -5.0),
+            Vec2::new(2.0, 4.0),
+            &colouring,
+        );
         let Some(VertexAttributeValues::Float32x3(positions)) =
             mesh.attribute(Mesh::ATTRIBUTE_POSITION)
         else {
@@ -320,8 +349,14 @@ mod tests {
         };
         assert_eq!(positions[2], [10.0, 3.0, -4.0]);
         let capacity = positions.capacity();
+        // UVs over the extent, from the quadtree's origin.
+        let Some(VertexAttributeValues::Float32x2(uvs)) = mesh.attribute(Mesh::ATTRIBUTE_UV_0)
+        else {
+            panic!("uvs");
+        };
+        assert_eq!(uvs, &vec![[0.0, 0.0], [0.5, 0.0], [0.0, 0.25]]);
         assert!(mesh.attribute(Mesh::ATTRIBUTE_COLOR).is_some());
-        write_mesh(&mut mesh, &lod, Vec3::ZERO, &colouring);
+        write_mesh(&mut mesh, &lod, Vec3::ZERO, Vec2::ONE, &colouring);
         let Some(VertexAttributeValues::Float32x3(positions)) =
             mesh.attribute(Mesh::ATTRIBUTE_POSITION)
         else {
@@ -337,7 +372,7 @@ mod tests {
             },
             levels: 1,
         };
-        write_mesh(&mut mesh, &lod, Vec3::ZERO, &edges);
+        write_mesh(&mut mesh, &lod, Vec3::ZERO, Vec2::ONE, &edges);
         assert_eq!(mesh.count_vertices(), 6);
         assert_eq!(mesh.indices().unwrap().len(), 21);
         let Some(VertexAttributeValues::Float32x4(colours)) = mesh.attribute(Mesh::ATTRIBUTE_COLOR)
@@ -353,7 +388,7 @@ mod tests {
             debug: TerrainDebug::default(),
             levels: 1,
         };
-        write_mesh(&mut mesh, &lod, Vec3::ZERO, &plain);
+        write_mesh(&mut mesh, &lod, Vec3::ZERO, Vec2::ONE, &plain);
         assert!(mesh.attribute(Mesh::ATTRIBUTE_COLOR).is_none());
         assert_eq!(mesh.count_vertices(), 3);
     }

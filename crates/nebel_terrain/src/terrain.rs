@@ -197,11 +197,9 @@ pub struct Terrain {
     /// How far the camera may turn, degrees, before the mesh is rebuilt; the
     /// culling frustum is widened by this angle. Default 3.
     pub view_margin_degrees: f32,
-    /// The material; `None` gives the default terrain material (a rough,
-    /// white `StandardMaterial` under vertex colours by height and slope).
-    /// A material given here gets no height and slope colours. Default
-    /// `None`.
-    pub material: Option<Handle<StandardMaterial>>,
+    /// The material the terrain is drawn with; see [`TerrainMaterial`].
+    /// Default [`TerrainMaterial::HeightAndSlope`].
+    pub material: TerrainMaterial,
     /// Debug views. Default: none.
     pub debug: TerrainDebug,
 }
@@ -221,10 +219,30 @@ impl Default for Terrain {
             morph: true,
             update_distance: 0.25,
             view_margin_degrees: 3.0,
-            material: None,
+            material: TerrainMaterial::HeightAndSlope,
             debug: TerrainDebug::default(),
         }
     }
+}
+
+/// The material of a [`Terrain`]. Every terrain mesh carries UVs (`u` along
+/// x, `v` along z, 0 to 1 over the whole terrain, unchanged by geomorphing,
+/// which moves vertices only up and down), so textures map onto it (tile
+/// them with `StandardMaterial::uv_transform` and a repeating sampler).
+#[derive(Clone, Debug, Default, PartialEq, Reflect)]
+#[reflect(Default, Clone)]
+pub enum TerrainMaterial {
+    /// A rough, white `StandardMaterial` under vertex colours by the morphed
+    /// height and slope (grass, rock and snow).
+    #[default]
+    HeightAndSlope,
+    /// This `StandardMaterial` (with textures, say); no vertex colours.
+    Standard(Handle<StandardMaterial>),
+    /// The material the entity carries itself: a `MeshMaterial3d<M>` of any
+    /// Bevy `Material` `M`, inserted by the user (a texture-splatting
+    /// extension of `StandardMaterial`, say). The terrain inserts and removes
+    /// no material and writes no vertex colours.
+    Own,
 }
 
 /// What became of a [`Terrain`]: pending, ready, or failed and why.

@@ -55,7 +55,6 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use bevy::camera::primitives::Aabb;
 use bevy::camera::visibility::NoAutoAabb;
 use bevy::diagnostic::Diagnostics;
 use bevy::ecs::system::SystemParam;
@@ -73,7 +72,7 @@ use nebel_render::{
 use crate::build::{TerrainLod, bounds};
 use crate::map::TerrainMapLod;
 use crate::shading::{Colouring, Palette, default_material, empty_mesh, write_mesh};
-use crate::terrain::{Terrain, TerrainLodStats, TerrainPlugin, TerrainStatus};
+use crate::terrain::{Terrain, TerrainLodStats, TerrainMaterial, TerrainPlugin, TerrainStatus};
 
 /// The meshes and materials the terrain systems write.
 #[derive(SystemParam)]
@@ -84,12 +83,22 @@ pub(crate) struct TerrainAssets<'w, 's> {
 }
 
 impl TerrainAssets<'_, '_> {
-    /// The default terrain material, made on first use.
-    fn default_material(&mut self) -> Handle<StandardMaterial> {
-        let materials = &mut self.materials;
-        self.default_material
-            .get_or_insert_with(|| materials.add(default_material()))
-            .clone()
+    /// The `StandardMaterial` the terrain inserts for `material`: the
+    /// default one (made on first use) or the user's; `None` for the
+    /// entity's own.
+    fn material(&mut self, material: &TerrainMaterial) -> Option<Handle<StandardMaterial>> {
+        match material {
+            TerrainMaterial::HeightAndSlope => {
+                let materials = &mut self.materials;
+                Some(
+                    self.default_material
+                        .get_or_insert_with(|| materials.add(default_material()))
+                        .clone(),
+                )
+            }
+            TerrainMaterial::Standard(handle) => Some(handle.clone()),
+            TerrainMaterial::Own => None,
+        }
     }
 }
 
@@ -149,6 +158,12 @@ pub(crate) struct Refined {
     update_ms: f32,
 }
 
+/// The sides of the quadtree's square along x and z, world units.
+fn extent(hierarchy: &TerrainHierarchy) -> Vec2 {
+    let cells = (hierarchy.size() - 1) as f64;
+    (hierarchy.field().spacing() * cells).as_vec2()
+}
+
 /// What a refinement needs, moved to the worker that runs it.
 struct Refinement {
     refiner: TerrainRefiner,
@@ -190,6 +205,7 @@ impl Refinement {
                     &mut mesh,
                     lod,
                     self.hierarchy.origin().as_vec3(),
+                    extent(&self.hierarchy),
                     &colouring,
                 );
                 mesh
@@ -243,11 +259,13 @@ pub(crate) fn update_terrain_meshes(
             continue;
         };
         if terrain.is_changed() && state.mesh.is_some() {
-            let material = terrain
-                .material
-                .clone()
-                .unwrap_or_else(|| assets.default_material());
-            commands.entity(entity).insert(MeshMaterial3d(material));
+            match assets.material(&terrain.material) {
+                Some(material) => {
+                    commands.entity(entity).insert(MeshMaterial3d(material));
+                    state.material_inserted = true;
+                }
+                None => state.remove_material(&mut commands, entity),
+            }
         }
         // Hidden: nothing is refined, and a map that changed meanwhile is
         // still new when the terrain shows again.
@@ -298,7 +316,7 @@ pub(crate) fn update_terrain_meshes(
                 map: mapped.map(|mapped| mapped.map.clone()),
                 view,
                 settings,
-                palette: terrain.material.is_none(),
+                palette: terrain.material == TerrainMaterial::HeightAndSlope,
                 debug: terrain.debug,
             };
             state.refining = Some(HeavyBuild::spawn(move || refinement.run()));
@@ -329,24 +347,20 @@ pub(crate) fn update_terrain_meshes(
             // Nothing of the terrain in view: no mesh at all rather than an
             // empty one (Bevy's mesh allocator refuses empty meshes); a new
             // one is made when the terrain comes back into view.
-            (None, _) => remove_mesh(&mut commands, entity, state),
+            (None, _) => state.remove_mesh(&mut commands, entity),
             (Some(mesh), Some(handle)) => {
                 if let Some(mut drawn) = assets.meshes.get_mut(handle) {
                     free_in_background(std::mem::replace(&mut *drawn, mesh));
                 }
             }
             (Some(mesh), None) => {
-                let material = terrain
-                    .material
-                    .clone()
-                    .unwrap_or_else(|| assets.default_material());
                 let handle = assets.meshes.add(mesh);
-                commands.entity(entity).insert((
-                    Mesh3d(handle.clone()),
-                    MeshMaterial3d(material),
-                    bounds(&hierarchy),
-                    NoAutoAabb,
-                ));
+                let mut entity = commands.entity(entity);
+                entity.insert((Mesh3d(handle.clone()), bounds(&hierarchy), NoAutoAabb));
+                if let Some(material) = assets.material(&terrain.material) {
+                    entity.insert(MeshMaterial3d(material));
+                    state.material_inserted = true;
+                }
                 state.mesh = Some(handle);
             }
         }
@@ -371,15 +385,6 @@ pub(crate) fn update_terrain_meshes(
     }
 }
 
-/// The terrain's mesh removed from its entity, if it has one.
-fn remove_mesh(commands: &mut Commands, entity: Entity, state: &mut TerrainLod) {
-    if state.mesh.take().is_some() {
-        commands
-            .entity(entity)
-            .remove::<(Mesh3d, MeshMaterial3d<StandardMaterial>, Aabb, NoAutoAabb)>();
-    }
-}
-
 /// A refinement failed: the status with the reason, logged once, and no
 /// mesh. The quadtree stays; a new setting or view may fix it.
 fn failed(
@@ -393,7 +398,7 @@ fn failed(
     TerrainStatus::fail(&mut *status, "terrain", entity, error);
     // Refined again when the view or a setting changes.
     state.refiner = TerrainRefiner::new();
-    remove_mesh(commands, entity, state);
+    state.remove_mesh(commands, entity);
 }
 
 /// Measures the terrains' totals (see the module docs); nothing in a world
@@ -920,7 +925,7 @@ mod tests {
         let terrain = spawn(
             &mut app,
             Terrain {
-                material: Some(material.clone()),
+                material: TerrainMaterial::Standard(material.clone()),
                 accuracy: 5.0,
                 ..procedural(33)
             },
@@ -968,6 +973,78 @@ mod tests {
         let triangles = stats(&app, terrain).triangles as usize;
         assert_eq!(mesh_of(&app).count_vertices(), 6 * triangles);
         assert!(vertices < 6 * triangles);
+    }
+
+    #[test]
+    fn an_own_material_is_left_to_the_entity_and_the_mesh_has_uvs_over_the_terrain() {
+        let (mut app, _) = app(&asset_dir("own"), Vec3::new(0.0, 200.0, 300.0));
+        let terrain = spawn(
+            &mut app,
+            Terrain {
+                accuracy: 5.0,
+                ..procedural(33)
+            },
+            Transform::default(),
+        );
+        app.update();
+        let standard = |app: &App| {
+            app.world()
+                .get::<MeshMaterial3d<StandardMaterial>>(terrain)
+                .map(|material| material.0.clone())
+        };
+        assert!(standard(&app).is_some(), "the default material");
+
+        // Own: the terrain's material goes, the user's stays through
+        // refinements.
+        app.world_mut()
+            .get_mut::<Terrain>(terrain)
+            .unwrap()
+            .material = TerrainMaterial::Own;
+        app.update();
+        assert!(standard(&app).is_none());
+        let users = app
+            .world_mut()
+            .resource_mut::<Assets<StandardMaterial>>()
+            .add(StandardMaterial::default());
+        app.world_mut()
+            .entity_mut(terrain)
+            .insert(MeshMaterial3d(users.clone()));
+        app.world_mut()
+            .get_mut::<Terrain>(terrain)
+            .unwrap()
+            .accuracy = 8.0;
+        app.update();
+        assert_eq!(standard(&app), Some(users));
+
+        let handle = app.world().get::<Mesh3d>(terrain).unwrap().0.clone();
+        let mesh = app.world().resource::<Assets<Mesh>>().get(&handle).unwrap();
+        assert!(mesh.attribute(Mesh::ATTRIBUTE_COLOR).is_none());
+        let (
+            Some(VertexAttributeValues::Float32x3(positions)),
+            Some(VertexAttributeValues::Float32x2(uvs)),
+        ) = (
+            mesh.attribute(Mesh::ATTRIBUTE_POSITION),
+            mesh.attribute(Mesh::ATTRIBUTE_UV_0),
+        )
+        else {
+            panic!("positions and uvs");
+        };
+        // Each vertex's x and z over the terrain's side (32 spacings), from
+        // its first corner: 0 to 1 over the terrain.
+        let side = 32.0 * procedural(33).spacing;
+        let lod = app.world().get::<TerrainLod>(terrain).unwrap();
+        let corner = lod.hierarchy.as_ref().unwrap().origin().as_vec3();
+        for (p, uv) in positions.iter().zip(uvs) {
+            assert!(
+                (uv[0] - (p[0] - corner.x) / side).abs() < 1e-5,
+                "{p:?} {uv:?}"
+            );
+            assert!(
+                (uv[1] - (p[2] - corner.z) / side).abs() < 1e-5,
+                "{p:?} {uv:?}"
+            );
+            assert!(uv.iter().all(|c| (-1e-6..=1.0 + 1e-6).contains(c)));
+        }
     }
 
     #[test]
