@@ -66,8 +66,8 @@ use nebel_core::field::effects::{
     check_search_light_budget, search_light_cells,
 };
 use nebel_core::field::{
-    CloudEllipsoid, CloudLighting, CloudNoise, CloudShape, CloudWeather, DensityGrid, FieldError,
-    HeightField, NoiseKind, ProceduralNoise, WeatherMap, power_of_two_plus_one,
+    CloudEllipsoid, CloudKind, CloudLighting, CloudNoise, CloudShape, CloudWeather, DensityGrid,
+    FieldError, HeightField, NoiseKind, ProceduralNoise, WeatherMap, power_of_two_plus_one,
 };
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{ControlPoint, TransferError, TransferFunction, TransferPreset};
@@ -215,9 +215,18 @@ pub struct CloudSource {
     #[serde(default)]
     pub side_fade: Option<f32>,
     /// How sharply the density rises from a cloud's edge, in [0, 1).
-    /// Default 0.
+    /// Default 0 (0.4 for stratus).
     #[serde(default)]
-    pub sharpness: f32,
+    pub sharpness: Option<f32>,
+    /// The kind of cloud whose settings the unset fields take: `Cumulus`
+    /// (the defaults above), `Stratus` or `Cirrus`
+    /// (`nebel_core::field::CloudNoise::of_kind`). Default `Cumulus`.
+    #[serde(default)]
+    pub kind: CloudKind,
+    /// Elongation of the clouds' features along x, y and z, each > 0.
+    /// Default (1, 1, 1) (the kind's).
+    #[serde(default)]
+    pub stretch: Option<[f64; 3]>,
     /// Seconds between the keyframes a windy cloud is blended from, > 0
     /// (see `nebel_volume::CloudVolume::keyframe_interval`). Default 2.
     #[serde(default)]
@@ -305,7 +314,7 @@ pub struct WeatherMapDescription {
 impl CloudSource {
     /// The generator settings, defaults filled in.
     pub fn noise(&self) -> CloudNoise {
-        let defaults = CloudNoise::default();
+        let defaults = CloudNoise::of_kind(self.kind);
         CloudNoise {
             seed: self.seed,
             coverage: self.coverage.unwrap_or(defaults.coverage),
@@ -316,7 +325,8 @@ impl CloudSource {
             base_fade: self.base_fade.unwrap_or(defaults.base_fade),
             top_fade: self.top_fade.unwrap_or(defaults.top_fade),
             side_fade: self.side_fade.unwrap_or(defaults.side_fade),
-            sharpness: self.sharpness,
+            sharpness: self.sharpness.unwrap_or(defaults.sharpness),
+            stretch: self.stretch.map_or(defaults.stretch, DVec3::from),
             weather: match &self.weather {
                 Some(WeatherDescription::Procedural(weather)) => {
                     let defaults = CloudWeather::default();
@@ -472,7 +482,7 @@ pub enum SourceDescription {
     Campfire(CampfireSource),
     /// Procedural cumulus clouds after Schpok et al. 2003 (coverage, detail octaves,
     /// wind), sampled over the box.
-    Cloud(CloudSource),
+    Cloud(Box<CloudSource>),
     /// A search-light cone (Röttger 2004 §10.4), placed by its own position and
     /// direction (the box is not used). Emissive with the `SearchLight` preset
     /// unless the volume says otherwise.
@@ -1315,6 +1325,20 @@ mod tests {
         assert!(column().all(|(j, k)| grid.value(0, j, k) == 0.0));
         assert!(column().any(|(j, k)| grid.value(nx - 1, j, k) > 0.0));
 
+        let stratus = ron::Options::default()
+            .with_default_extension(ron::extensions::Extensions::IMPLICIT_SOME)
+            .from_str::<VolumeDescription>(
+                "(source: Cloud((dims: (5, 5, 5), kind: Stratus, coverage: 0.6, \
+                 stretch: (2.0, 1.0, 3.0))))",
+            )
+            .unwrap();
+        let SourceDescription::Cloud(stratus) = &stratus.source else {
+            panic!("a cloud source");
+        };
+        let noise = stratus.noise();
+        assert_eq!((noise.coverage, noise.sharpness), (0.6, 0.4));
+        assert_eq!(noise.stretch, DVec3::new(2.0, 1.0, 3.0));
+
         let procedural = source("Procedural((wavelength: 20.0, clear: 0.5, stratus_top: 0.5))");
         let SceneField::Cloud(cloud) = procedural.build(&dir).unwrap().field else {
             panic!("a cloud source is an animated cloud");
@@ -1390,7 +1414,7 @@ mod tests {
 
     #[test]
     fn a_lit_cloud_defaults_to_the_light_preset_and_checks_its_settings() {
-        let source = SourceDescription::Cloud(CloudSource {
+        let source = SourceDescription::Cloud(Box::new(CloudSource {
             dims: [9, 5, 9],
             seed: 2,
             coverage: Some(0.6),
@@ -1401,11 +1425,13 @@ mod tests {
             base_fade: None,
             top_fade: None,
             side_fade: None,
-            sharpness: 0.0,
+            sharpness: None,
+            kind: CloudKind::Cumulus,
+            stretch: None,
             keyframe_interval: Some(1.5),
             weather: None,
             primitives: Vec::new(),
-        });
+        }));
         let mut lit = VolumeDescription {
             mode: None,
             density_scale: 1.0,
@@ -1523,7 +1549,7 @@ mod tests {
             coverage: 1.0,
             ellipsoid: true,
         });
-        let cloud = SourceDescription::Cloud(CloudSource {
+        let cloud = SourceDescription::Cloud(Box::new(CloudSource {
             dims: [9, 5, 9],
             seed: 2,
             coverage: Some(0.6),
@@ -1534,11 +1560,13 @@ mod tests {
             base_fade: None,
             top_fade: None,
             side_fade: None,
-            sharpness: 0.0,
+            sharpness: None,
+            kind: CloudKind::Cumulus,
+            stretch: None,
             keyframe_interval: None,
             weather: None,
             primitives: Vec::new(),
-        });
+        }));
         let lighting = Some(LightingDescription {
             ambient: 0.3,
             diffuse: 0.7,

@@ -73,8 +73,9 @@ const MAX_OCTAVES: usize = 16;
 /// the grid box (grid axis y is up):
 ///
 /// - octave `i` (from 0): Perlin noise `P_i` with seed `seed + i`, frequency
-///   `φ_i = lacunarity^i / wavelength`, amplitude `a_i = persistence^i`,
-///   sampled at `φ_i · (p − wind · t · detail_wind^i)` (per-octave wind);
+///   `φ_i = lacunarity^i / (wavelength · stretch)` (per axis), amplitude
+///   `a_i = persistence^i`, sampled at `φ_i · (p − wind · t · detail_wind^i)`
+///   (per-octave wind);
 /// - `v = Σ a_i P_i / (0.312 √(Σ a_i²))` (unit variance) and
 ///   `u = 1 / (1 + e^{−1.702 v})` (nearly uniform on (0, 1));
 /// - `c(h) = coverage · (1 − smoothstep(1 − top_fade, 1, h))`,
@@ -129,6 +130,12 @@ pub struct CloudNoise {
     /// coverage falls to 0 toward each of its vertical sides (no cloud cut
     /// flat by the box). Default 0.1.
     pub side_fade: f32,
+    /// Elongation of the clouds' features along the box's x, y and z axes,
+    /// each finite and > 0 (the wavelength is multiplied by it per axis): 1
+    /// keeps them round (cumulus); wider than tall flattens them (stratus);
+    /// long along one axis draws streaks (cirrus; turn the volume to aim
+    /// them). Default 1 on every axis. See [`CloudKind`].
+    pub stretch: DVec3,
     /// Procedural weather over the box: regions of clear sky and overcast,
     /// of stratus and cumulus ([`CloudWeather`]). Default off.
     pub weather: CloudWeather,
@@ -156,6 +163,58 @@ impl Default for CloudNoise {
             side_fade: 0.1,
             weather: CloudWeather::default(),
             sharpness: 0.0,
+            stretch: DVec3::ONE,
+        }
+    }
+}
+
+/// A kind of cloud: the filter of Schpok et al. 2003's noise (Table 2) as
+/// starting settings for [`CloudNoise::of_kind`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "bevy_reflect", derive(bevy_reflect::Reflect))]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+pub enum CloudKind {
+    /// Heaped clouds with flat bases and rounded tops: round features, the
+    /// noise cut off at the coverage ([`CloudNoise::default`]).
+    #[default]
+    Cumulus,
+    /// A layer: features four times wider than tall, a dense, sharper deck
+    /// over most of the sky, a short fade at the base and top.
+    Stratus,
+    /// High streaks: features ten times longer along x than across, thin
+    /// and soft, little coverage, more fine detail.
+    Cirrus,
+}
+
+impl CloudNoise {
+    /// The starting settings of a kind of cloud (every other setting as
+    /// [`CloudNoise::default`]):
+    ///
+    /// | kind | `stretch` | `coverage` | `sharpness` | `base_fade`, `top_fade` | `persistence` |
+    /// |---|---|---|---|---|---|
+    /// | cumulus | (1, 1, 1) | 0.5 | 0 | 0.15, 0.5 | 0.5 |
+    /// | stratus | (4, 1, 4) | 0.8 | 0.4 | 0.3, 0.3 | 0.5 |
+    /// | cirrus | (10, 0.5, 1.5) | 0.3 | 0 | 0.3, 0.3 | 0.65 |
+    pub fn of_kind(kind: CloudKind) -> Self {
+        let cumulus = Self::default();
+        match kind {
+            CloudKind::Cumulus => cumulus,
+            CloudKind::Stratus => Self {
+                stretch: DVec3::new(4.0, 1.0, 4.0),
+                coverage: 0.8,
+                sharpness: 0.4,
+                base_fade: 0.3,
+                top_fade: 0.3,
+                ..cumulus
+            },
+            CloudKind::Cirrus => Self {
+                stretch: DVec3::new(10.0, 0.5, 1.5),
+                coverage: 0.3,
+                base_fade: 0.3,
+                top_fade: 0.3,
+                persistence: 0.65,
+                ..cumulus
+            },
         }
     }
 }
@@ -163,8 +222,8 @@ impl Default for CloudNoise {
 /// One Perlin octave, ready to sample: `amplitude · P(position · frequency + offset)`.
 struct Octave {
     perlin: PerlinRow,
-    /// Cycles per world unit.
-    frequency: f64,
+    /// Cycles per world unit along each axis.
+    frequency: DVec3,
     /// Noise-space shift: wind drift and [`NOISE_OFFSET`].
     offset: DVec3,
     /// `LOGISTIC_SLOPE · a_i / (σ_P √(Σ a²))`.
@@ -297,6 +356,13 @@ impl CloudNoise {
                 return Err(invalid(parameter, value.to_string(), "finite and positive"));
             }
         }
+        if !(self.stretch.is_finite() && self.stretch.min_element() > 0.0) {
+            return Err(invalid(
+                "stretch",
+                self.stretch.to_string(),
+                "finite and positive on every axis",
+            ));
+        }
         if !self.wind.is_finite() {
             return Err(invalid(
                 "wind",
@@ -320,12 +386,12 @@ impl CloudNoise {
         }
         let mut octaves = Vec::with_capacity(self.octaves);
         for (i, amplitude) in amplitudes.into_iter().enumerate() {
-            let frequency = self.lacunarity.powi(i as i32) / self.wavelength;
-            if !(frequency.is_finite() && frequency > 0.0) {
+            let frequency = self.lacunarity.powi(i as i32) / self.wavelength / self.stretch;
+            if !(frequency.is_finite() && frequency.min_element() > 0.0) {
                 return Err(invalid(
                     "lacunarity",
                     self.lacunarity.to_string(),
-                    "lacunarity^(octaves − 1) / wavelength must stay finite and positive",
+                    "lacunarity^(octaves − 1) / (wavelength · stretch) must stay finite and positive",
                 ));
             }
             let drift = self.wind * (time * self.detail_wind.powi(i as i32));
@@ -378,7 +444,7 @@ impl<'a> RowFiller<'a> {
     fn new(octaves: &'a [Octave], xs: &[f64], softness: f64) -> Self {
         let lattices = octaves
             .iter()
-            .map(|o| RowLattice::new(xs.iter().map(|&x| x * o.frequency + o.offset.x).collect()))
+            .map(|o| RowLattice::new(xs.iter().map(|&x| x * o.frequency.x + o.offset.x).collect()))
             .collect();
         let remaining = (0..octaves.len())
             .map(|i| octaves[i + 1..].iter().map(|o| o.amplitude).sum())
@@ -439,8 +505,8 @@ impl<'a> RowFiller<'a> {
             let live = &self.live;
             octave.perlin.add_row(
                 lattice,
-                y * octave.frequency + octave.offset.y,
-                z * octave.frequency + octave.offset.z,
+                y * octave.frequency.y + octave.offset.y,
+                z * octave.frequency.z + octave.offset.z,
                 octave.amplitude,
                 &mut self.sums,
                 |i| live[i],
@@ -872,6 +938,69 @@ mod tests {
             0.0,
         ));
         assert_mentions(&message, &["DensityGrid::cloud", "sharpness"]);
+    }
+
+    #[test]
+    fn a_stretched_cloud_is_the_round_one_scaled() {
+        // Stretched by (4, 1, 0.5), the field at p is the round field at
+        // p / stretch: a grid 4 times wider along x and half as deep along z
+        // holds the same values.
+        let stretch = DVec3::new(4.0, 1.0, 0.5);
+        let round = CloudNoise {
+            wind: DVec3::new(2.0, 0.0, 1.0),
+            ..small()
+        };
+        let stretched = CloudNoise { stretch, ..round };
+        let time = 1.5;
+        let a = DensityGrid::cloud(DIMS, SPACING * stretch, ORIGIN * stretch, &stretched, time)
+            .unwrap();
+        // The wind drifts the round field by wind · t; the stretched one by
+        // the same distance in stretched space, so it is the round field of
+        // the wind / stretch.
+        let round = CloudNoise {
+            wind: round.wind / stretch,
+            ..round
+        };
+        let b = DensityGrid::cloud(DIMS, SPACING, ORIGIN, &round, time).unwrap();
+        let cloud = a.values().iter().filter(|&&v| v > 0.0).count();
+        assert!(cloud > 100, "{cloud}");
+        for (x, y) in a.values().iter().zip(b.values()) {
+            assert!((x - y).abs() <= 1e-6, "{x} against {y}");
+        }
+    }
+
+    #[test]
+    fn cloud_kinds_start_from_their_filters() {
+        assert_eq!(
+            CloudNoise::of_kind(CloudKind::Cumulus),
+            CloudNoise::default()
+        );
+        let dims = [33, 9, 33];
+        let spacing = DVec3::new(4.0, 2.0, 4.0);
+        for kind in [CloudKind::Stratus, CloudKind::Cirrus] {
+            let noise = CloudNoise {
+                wavelength: 40.0,
+                ..CloudNoise::of_kind(kind)
+            };
+            let grid = DensityGrid::cloud(dims, spacing, DVec3::ZERO, &noise, 0.0).unwrap();
+            let covered = non_zero_fraction(grid.values());
+            assert!(covered > 0.02, "{kind:?}: {covered}");
+        }
+        let stratus = CloudNoise::of_kind(CloudKind::Stratus);
+        let cirrus = CloudNoise::of_kind(CloudKind::Cirrus);
+        assert!(stratus.stretch.x > stratus.stretch.y && cirrus.stretch.x > cirrus.stretch.z);
+        assert!(stratus.coverage > cirrus.coverage);
+        let message = error_message(DensityGrid::cloud(
+            DIMS,
+            SPACING,
+            ORIGIN,
+            &CloudNoise {
+                stretch: DVec3::new(1.0, 0.0, 1.0),
+                ..small()
+            },
+            0.0,
+        ));
+        assert_mentions(&message, &["DensityGrid::cloud", "stretch"]);
     }
 
     #[test]

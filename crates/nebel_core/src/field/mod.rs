@@ -47,7 +47,7 @@ mod value_noise;
 mod weather;
 
 pub use aurora::AuroraCurtains;
-pub use cloud::{CloudNoise, side_fade_factors};
+pub use cloud::{CloudKind, CloudNoise, side_fade_factors};
 pub use density_grid::DensityGrid;
 pub use effects::{campfire_density, search_light_cells};
 pub use fog::{FogNoise, ValleyFog};
