@@ -459,39 +459,24 @@ impl<'a> RowFiller<'a> {
         }
     }
 
-    /// The densities of the row at height `y`, depth `z` (world units) into
-    /// `row`, through [`FillRow`], at base factor `base` and each point's
-    /// coverage in `coverages`, the largest of which is `largest`.
-    fn fill(
-        &mut self,
-        base: f64,
-        coverages: &[f64],
-        largest: f64,
-        y: f64,
-        z: f64,
-        row: &mut [f32],
-    ) {
+    /// The densities of the row `at` into `row`, through [`FillRow`].
+    fn fill(&mut self, at: RowAt, row: &mut [f32]) {
         pulp::Arch::new().dispatch(FillRow {
             filler: self,
-            base,
-            coverages,
-            largest,
-            y,
-            z,
+            at,
             row,
         });
     }
 
     #[inline(always)]
-    fn fill_row(
-        &mut self,
-        base: f64,
-        coverages: &[f64],
-        largest: f64,
-        y: f64,
-        z: f64,
-        row: &mut [f32],
-    ) {
+    fn fill_row(&mut self, at: RowAt, row: &mut [f32]) {
+        let RowAt {
+            base,
+            coverages,
+            largest,
+            y,
+            z,
+        } = at;
         // The row's largest coverage: a point of less needs more noise.
         let zero_below = zero_below(largest);
         self.sums.fill(0.0);
@@ -537,12 +522,20 @@ impl<'a> RowFiller<'a> {
 /// density is too.
 struct FillRow<'f, 'a, 'r> {
     filler: &'f mut RowFiller<'a>,
+    at: RowAt<'r>,
+    row: &'r mut [f32],
+}
+
+/// Where a row lies and what scales its noise: its height `y` and depth `z`
+/// (world units), the base factor and each point's coverage, the largest of
+/// which is `largest`.
+#[derive(Clone, Copy)]
+struct RowAt<'r> {
     base: f64,
     coverages: &'r [f64],
     largest: f64,
     y: f64,
     z: f64,
-    row: &'r mut [f32],
 }
 
 impl pulp::WithSimd for FillRow<'_, '_, '_> {
@@ -550,14 +543,7 @@ impl pulp::WithSimd for FillRow<'_, '_, '_> {
 
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, _simd: S) {
-        self.filler.fill_row(
-            self.base,
-            self.coverages,
-            self.largest,
-            self.y,
-            self.z,
-            self.row,
-        );
+        self.filler.fill_row(self.at, self.row);
     }
 }
 
@@ -703,7 +689,14 @@ impl DensityGrid {
                         largest = largest.max(*coverage);
                     }
                     if largest > 0.0 {
-                        filler.fill(base, &coverages, largest, y, z, row);
+                        let at = RowAt {
+                            base,
+                            coverages: &coverages,
+                            largest,
+                            y,
+                            z,
+                        };
+                        filler.fill(at, row);
                     }
                 }
                 pace();
