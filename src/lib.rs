@@ -93,7 +93,7 @@ pub mod prelude {
     };
     #[cfg(feature = "volume")]
     pub use nebel_volume::{
-        Campfire, CloudLightModel, CloudPrimitive, CloudVolume, FlickeringLight,
+        Campfire, CloudLightModel, CloudPrimitive, CloudVolume, CloudWeatherMap, FlickeringLight,
         FlickeringLightPlugin, LodCriterion, ProjectedCells, Volume, VolumeError, VolumeField,
         VolumeGrid, VolumeLighting, VolumeLod, VolumeStatus,
     };

@@ -154,9 +154,8 @@ pub(crate) fn build_batchers(
         batching.loading = !awaiting_grid && matches!(source, Ok(None));
         batching.source_failure = source.as_ref().err().cloned();
         let animation = cloud
-            .map(|(cloud, _)| cloud)
-            .filter(|cloud| animates(cloud))
-            .map(|cloud| {
+            .filter(|(cloud, generation)| animates(cloud) && generation.weather_is_ready())
+            .map(|(cloud, _)| {
                 let field: Arc<dyn AnimatedGrid> = Arc::new(cloud.clone());
                 (field, cloud.keyframe_interval)
             });

@@ -16,8 +16,9 @@
 //! [`VolumeStatus::Failed`](crate::VolumeStatus::Failed).
 //!
 //! [`CloudPrimitive`](crate::CloudPrimitive) children shape the cloud with
-//! implicit ellipsoids, and [`CloudNoise::weather`] or
-//! [`CloudVolume::weather_map`] lay weather over it.
+//! implicit ellipsoids, and [`CloudNoise::weather`],
+//! [`CloudVolume::weather_map`] or a
+//! [`CloudWeatherMap`](crate::CloudWeatherMap) lay weather over it.
 //!
 //! In the wind (or with moving primitives) the cloud is drawn from keyframes of its field every
 //! [`CloudVolume::keyframe_interval`] seconds, blended on the GPU and built
@@ -73,9 +74,10 @@ pub struct CloudVolume {
     /// 513 × 65 × 513 layer). Default 2.
     pub keyframe_interval: f32,
     /// A weather map over the box (coverage and cloud type per column,
-    /// `nebel_core::field::WeatherMap`, for example from grayscale PNGs
-    /// through `HeightField::load_png`) instead of the procedural
-    /// [`CloudNoise::weather`], which must then be off. Default none.
+    /// `nebel_core::field::WeatherMap`) instead of the procedural
+    /// [`CloudNoise::weather`], which must then be off. A
+    /// [`CloudWeatherMap`](crate::CloudWeatherMap) on the entity sets it
+    /// from grayscale map assets. Default none.
     #[reflect(ignore)]
     pub weather_map: Option<Arc<WeatherMap>>,
     /// Implicit ellipsoids that shape the cloud (Schpok et al. 2003; see
@@ -152,12 +154,36 @@ pub(crate) struct CloudGeneration {
     /// Why the last generation failed; the wind does not retry it, a change
     /// of the settings does.
     failure: Option<VolumeError>,
+    /// Whether the cloud's weather map is ready
+    /// ([`crate::CloudWeatherMap`]).
+    pub(crate) weather: WeatherState,
+}
+
+/// Where a cloud's weather map stands (internal).
+#[derive(Default)]
+pub(crate) enum WeatherState {
+    /// Loaded, or no map to wait for.
+    #[default]
+    Ready,
+    /// A map is still loading: the cloud waits.
+    Loading,
+    /// A map failed: the cloud is not drawn.
+    Failed(VolumeError),
 }
 
 impl CloudGeneration {
-    /// Why the last generation failed.
+    /// Why the cloud is not drawn: its weather map's failure, or the last
+    /// generation's.
     pub(crate) fn failure(&self) -> Option<&VolumeError> {
-        self.failure.as_ref()
+        match &self.weather {
+            WeatherState::Failed(error) => Some(error),
+            _ => self.failure.as_ref(),
+        }
+    }
+
+    /// Whether the cloud's weather map is ready (or it has none).
+    pub(crate) fn weather_is_ready(&self) -> bool {
+        matches!(self.weather, WeatherState::Ready)
     }
 
     /// Whether the volume has a cloud grid yet.
@@ -184,7 +210,7 @@ pub(crate) fn generate_clouds(
 ) {
     for (cloud, visibility, mut volume, mut generation) in &mut clouds {
         generation.stale |= cloud.is_changed();
-        if animates(&cloud) {
+        if animates(&cloud) || !generation.weather_is_ready() {
             continue;
         }
         let wanted = generation.stale || !generation.started;

@@ -25,6 +25,14 @@ pub enum VolumeError {
         /// The asset server's error.
         error: Arc<AssetLoadError>,
     },
+    /// A cloud's weather map failed to load.
+    #[error("cannot load the weather map {path}: {error}")]
+    WeatherMapNotLoaded {
+        /// The asset path, or `(no path)` for an asset added in memory.
+        path: String,
+        /// The asset server's error.
+        error: Arc<AssetLoadError>,
+    },
     /// A generator (a cloud's noise) refused its settings.
     #[error("cannot generate the grid: {0}")]
     Generation(Arc<FieldError>),

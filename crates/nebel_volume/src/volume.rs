@@ -89,6 +89,8 @@ impl Plugin for VolumePlugin {
                 (Self::BUDGETED_BUILD_MS, " ms"),
             ],
         );
+        // Weather maps are grayscale map assets.
+        nebel_render::GrayscaleMapPlugin::add_once(app);
         app.init_asset::<VolumeGrid>()
             .register_asset_loader(crate::grid_loader::VolumeGridLoader)
             .init_resource::<HeavyBuilds>()
@@ -98,6 +100,7 @@ impl Plugin for VolumePlugin {
             .register_type::<crate::Campfire>()
             .register_type::<crate::CloudVolume>()
             .register_type::<crate::CloudPrimitive>()
+            .register_type::<crate::CloudWeatherMap>()
             .register_type::<VolumeLod>()
             .register_type::<VolumeLighting>()
             .register_type::<LodCamera>()
@@ -109,6 +112,7 @@ impl Plugin for VolumePlugin {
                     cpu_timed(crate::campfire::animate_campfires),
                     (
                         cpu_timed(crate::cloud_primitive::gather_cloud_primitives),
+                        cpu_timed(crate::cloud_weather_map::apply_weather_maps),
                         cpu_timed(crate::cloud::generate_clouds),
                     )
                         .chain(),
