@@ -227,6 +227,9 @@ pub struct CloudSource {
     /// Default (1, 1, 1) (the kind's).
     #[serde(default)]
     pub stretch: Option<[f64; 3]>,
+    /// Ridged octaves: thin, torn filaments. Default false (the kind's).
+    #[serde(default)]
+    pub wisps: Option<bool>,
     /// Seconds between the keyframes a windy cloud is blended from, > 0
     /// (see `nebel_volume::CloudVolume::keyframe_interval`). Default 2.
     #[serde(default)]
@@ -327,6 +330,7 @@ impl CloudSource {
             side_fade: self.side_fade.unwrap_or(defaults.side_fade),
             sharpness: self.sharpness.unwrap_or(defaults.sharpness),
             stretch: self.stretch.map_or(defaults.stretch, DVec3::from),
+            wisps: self.wisps.unwrap_or(defaults.wisps),
             weather: match &self.weather {
                 Some(WeatherDescription::Procedural(weather)) => {
                     let defaults = CloudWeather::default();
@@ -1428,6 +1432,7 @@ mod tests {
             sharpness: None,
             kind: CloudKind::Cumulus,
             stretch: None,
+            wisps: None,
             keyframe_interval: Some(1.5),
             weather: None,
             primitives: Vec::new(),
@@ -1563,6 +1568,7 @@ mod tests {
             sharpness: None,
             kind: CloudKind::Cumulus,
             stretch: None,
+            wisps: None,
             keyframe_interval: None,
             weather: None,
             primitives: Vec::new(),

@@ -5,10 +5,11 @@
 //! world position `p` and time `t`, with the settings of [`CloudNoise`]:
 //!
 //! 1. **Octaves** (Schpok et al. 2003 §3.2, §4.1 Eq. 3, §5.2): `octaves`
-//!    [`noise::Perlin`] fields of frequency `lacunarity^i / wavelength` and
-//!    amplitude `persistence^i`, each drifting with its own wind (§5.3):
-//!    sampled at `φ_i · (p − wind · t · detail_wind^i)` plus
-//!    [`NOISE_OFFSET`](super::NOISE_OFFSET).
+//!    [`noise::Perlin`] fields of frequency `lacunarity^i / (wavelength ·
+//!    stretch)` per axis and amplitude `persistence^i`, each drifting with
+//!    its own wind (§5.3): sampled at `φ_i · (p − wind · t · detail_wind^i)`
+//!    plus [`NOISE_OFFSET`](super::NOISE_OFFSET); with `wisps` each adds the
+//!    ridged `E|P| − |P|` instead (the wispy filter; [`CloudKind`]).
 //! 2. **Equalised fBm**: `v = Σ a_i P_i / (σ_P √(Σ a_i²))` (`σ_P` the standard
 //!    deviation of 3D Perlin noise) has about unit variance, and the logistic
 //!    approximation of the normal distribution, `u = 1 / (1 + exp(−1.702 v))`,
@@ -58,6 +59,12 @@ use crate::pacing::{pace, worker_threads};
 /// Standard deviation of 3D `noise::Perlin` output (measured over 2·10⁶
 /// random points for three seeds: 0.311–0.313).
 const PERLIN_STD: f64 = 0.312;
+
+/// Mean and standard deviation of `|P|` for 3D `noise::Perlin` (measured over
+/// 2·10⁶ random points for three seeds: 0.254–0.257 and 0.180–0.181), which
+/// equalise the octaves of [`CloudNoise::wisps`].
+const PERLIN_ABS_MEAN: f64 = 0.255;
+const PERLIN_ABS_STD: f64 = 0.180;
 
 /// Slope of the logistic approximation `1 / (1 + e^{−1.702 v})` of the normal
 /// distribution function.
@@ -130,6 +137,11 @@ pub struct CloudNoise {
     /// coverage falls to 0 toward each of its vertical sides (no cloud cut
     /// flat by the box). Default 0.1.
     pub side_fade: f32,
+    /// Wisps (Schpok et al. 2003's wispy filter): each octave adds `E|P| −
+    /// |P|` (ridged turbulence, equalised by `|P|`'s mean and deviation)
+    /// instead of `P`, so the cloud gathers along the noise's zero sheets in
+    /// thin, torn filaments. Default false.
+    pub wisps: bool,
     /// Elongation of the clouds' features along the box's x, y and z axes,
     /// each finite and > 0 (the wavelength is multiplied by it per axis): 1
     /// keeps them round (cumulus); wider than tall flattens them (stratus);
@@ -164,6 +176,7 @@ impl Default for CloudNoise {
             weather: CloudWeather::default(),
             sharpness: 0.0,
             stretch: DVec3::ONE,
+            wisps: false,
         }
     }
 }
@@ -184,6 +197,9 @@ pub enum CloudKind {
     /// High streaks: features ten times longer along x than across, thin
     /// and soft, little coverage, more fine detail.
     Cirrus,
+    /// Thin, torn filaments along the noise's zero sheets
+    /// ([`CloudNoise::wisps`]), wider than tall.
+    Wispy,
 }
 
 impl CloudNoise {
@@ -195,6 +211,7 @@ impl CloudNoise {
     /// | cumulus | (1, 1, 1) | 0.5 | 0 | 0.15, 0.5 | 0.5 |
     /// | stratus | (4, 1, 4) | 0.8 | 0.4 | 0.3, 0.3 | 0.5 |
     /// | cirrus | (10, 0.5, 1.5) | 0.3 | 0 | 0.3, 0.3 | 0.65 |
+    /// | wispy (with `wisps`) | (2, 1, 2) | 0.35 | 0 | 0.3, 0.3 | 0.55 |
     pub fn of_kind(kind: CloudKind) -> Self {
         let cumulus = Self::default();
         match kind {
@@ -215,6 +232,15 @@ impl CloudNoise {
                 persistence: 0.65,
                 ..cumulus
             },
+            CloudKind::Wispy => Self {
+                wisps: true,
+                stretch: DVec3::new(2.0, 1.0, 2.0),
+                coverage: 0.35,
+                base_fade: 0.3,
+                top_fade: 0.3,
+                persistence: 0.55,
+                ..cumulus
+            },
         }
     }
 }
@@ -226,8 +252,19 @@ struct Octave {
     frequency: DVec3,
     /// Noise-space shift: wind drift and [`NOISE_OFFSET`].
     offset: DVec3,
-    /// `LOGISTIC_SLOPE · a_i / (σ_P √(Σ a²))`.
+    /// `LOGISTIC_SLOPE · a_i / (σ √(Σ a²))`, `σ` the standard deviation of
+    /// `P` (or of `|P|` for wisps).
     amplitude: f64,
+    /// Wisps: the octave adds `shift − |amplitude · P|`, `shift` the mean of
+    /// `|amplitude · P|`; `None` adds `amplitude · P`.
+    ridge: Option<f64>,
+}
+
+impl Octave {
+    /// The most the octave can add to a point's sum.
+    fn most(&self) -> f64 {
+        self.ridge.unwrap_or(self.amplitude)
+    }
 }
 
 /// The vertical profile of [`CloudNoise`]: the base factor `b(h)` and the
@@ -403,11 +440,18 @@ impl CloudNoise {
                     "wind · time · detail_wind^(octaves − 1) / wavelength must stay finite",
                 ));
             }
+            let (std, ridge) = if self.wisps {
+                (PERLIN_ABS_STD, Some(PERLIN_ABS_MEAN))
+            } else {
+                (PERLIN_STD, None)
+            };
+            let amplitude = LOGISTIC_SLOPE * amplitude / (std * norm);
             octaves.push(Octave {
                 perlin: PerlinRow::new(self.seed.wrapping_add(i as u32)),
                 frequency,
                 offset,
-                amplitude: LOGISTIC_SLOPE * amplitude / (PERLIN_STD * norm),
+                amplitude,
+                ridge: ridge.map(|mean| amplitude * mean),
             });
         }
         Ok(octaves)
@@ -423,7 +467,7 @@ fn unit_noise(v: f64) -> f64 {
 /// into `row`, octave after octave along the row ([`PerlinRow`]).
 ///
 /// A point whose partial sum plus the largest the remaining octaves can add
-/// (`Σ a_j`, as `|P| ≤ 1`) stays below [`zero_below`] of the row's largest coverage is density 0
+/// (`Σ a_j` as `|P| ≤ 1`, the sum of the shifts for wisps) stays below [`zero_below`] of the row's largest coverage is density 0
 /// whatever they add: the remaining octaves skip the lattice cells of the
 /// row where every point is so (exact: the density is the same as with
 /// every octave).
@@ -432,7 +476,7 @@ struct RowFiller<'a> {
     /// Per octave, the row's x in noise space, `x · φ_i + offset_i.x`, in
     /// its lattice cells, with the cells' corner hashes.
     lattices: Vec<RowLattice>,
-    /// Per octave, `Σ a_j` over the octaves after it.
+    /// Per octave, the most the octaves after it can add.
     remaining: Vec<f64>,
     sums: Vec<f64>,
     live: Vec<bool>,
@@ -447,7 +491,7 @@ impl<'a> RowFiller<'a> {
             .map(|o| RowLattice::new(xs.iter().map(|&x| x * o.frequency.x + o.offset.x).collect()))
             .collect();
         let remaining = (0..octaves.len())
-            .map(|i| octaves[i + 1..].iter().map(|o| o.amplitude).sum())
+            .map(|i| octaves[i + 1..].iter().map(Octave::most).sum())
             .collect();
         Self {
             octaves,
@@ -488,14 +532,25 @@ impl<'a> RowFiller<'a> {
             .zip(&self.remaining)
         {
             let live = &self.live;
-            octave.perlin.add_row(
-                lattice,
+            let (y, z) = (
                 y * octave.frequency.y + octave.offset.y,
                 z * octave.frequency.z + octave.offset.z,
-                octave.amplitude,
-                &mut self.sums,
-                |i| live[i],
             );
+            let (sums, amplitude) = (&mut self.sums, octave.amplitude);
+            match octave.ridge {
+                None => octave
+                    .perlin
+                    .add_row(lattice, y, z, amplitude, sums, |i| live[i], |n| n),
+                Some(shift) => octave.perlin.add_row(
+                    lattice,
+                    y,
+                    z,
+                    amplitude,
+                    sums,
+                    |i| live[i],
+                    move |n: f64| shift - n.abs(),
+                ),
+            }
             for (live, sum) in self.live.iter_mut().zip(&self.sums) {
                 *live &= sum + remaining >= zero_below;
             }
@@ -787,7 +842,12 @@ mod tests {
             .enumerate()
             .map(|(i, o)| {
                 let perlin = Perlin::new(noise.seed.wrapping_add(i as u32));
-                o.amplitude * perlin.get((p * o.frequency + o.offset).to_array())
+                let n = o.amplitude * perlin.get((p * o.frequency + o.offset).to_array());
+                if noise.wisps {
+                    o.amplitude * 0.255 - n.abs()
+                } else {
+                    n
+                }
             })
             .sum();
         let profile = Profile::new(noise);
@@ -835,16 +895,18 @@ mod tests {
             ],
             ..CloudShape::default()
         };
-        for (coverage, octaves, lacunarity, time, side_fade, weather, shaped) in [
-            (0.1, 5, 2.0, 0.0, 0.1, 0.0, false),
-            (0.42, 5, 2.0, 3.5, 0.3, 0.0, false),
-            (0.5, 8, 2.3, -7.0, 0.0, 0.0, false),
-            (0.9, 3, 1.7, 1.0, 0.5, 0.0, false),
-            (1.0, 5, 2.0, 2.0, 0.2, 0.0, false),
-            (0.6, 5, 2.0, 2.0, 0.1, 30.0, false),
-            (1.0, 4, 2.0, -3.0, 0.0, 30.0, false),
-            (1.0, 5, 2.0, 2.0, 0.0, 0.0, true),
-            (0.7, 4, 2.0, 1.0, 0.1, 0.0, true),
+        for (coverage, octaves, lacunarity, time, side_fade, weather, shaped, wisps) in [
+            (0.1, 5, 2.0, 0.0, 0.1, 0.0, false, false),
+            (0.42, 5, 2.0, 3.5, 0.3, 0.0, false, false),
+            (0.5, 8, 2.3, -7.0, 0.0, 0.0, false, false),
+            (0.9, 3, 1.7, 1.0, 0.5, 0.0, false, false),
+            (1.0, 5, 2.0, 2.0, 0.2, 0.0, false, false),
+            (0.6, 5, 2.0, 2.0, 0.1, 30.0, false, false),
+            (1.0, 4, 2.0, -3.0, 0.0, 30.0, false, false),
+            (1.0, 5, 2.0, 2.0, 0.0, 0.0, true, false),
+            (0.7, 4, 2.0, 1.0, 0.1, 0.0, true, false),
+            (0.3, 5, 2.0, 1.0, 0.1, 0.0, false, true),
+            (0.8, 3, 2.0, -2.0, 0.0, 0.0, true, true),
         ] {
             let noise = CloudNoise {
                 coverage,
@@ -857,6 +919,7 @@ mod tests {
                     clear: 0.2,
                     ..CloudWeather::default()
                 },
+                wisps,
                 ..small()
             };
             let shape = if shaped {
@@ -970,7 +1033,7 @@ mod tests {
         );
         let dims = [33, 9, 33];
         let spacing = DVec3::new(4.0, 2.0, 4.0);
-        for kind in [CloudKind::Stratus, CloudKind::Cirrus] {
+        for kind in [CloudKind::Stratus, CloudKind::Cirrus, CloudKind::Wispy] {
             let noise = CloudNoise {
                 wavelength: 40.0,
                 ..CloudNoise::of_kind(kind)
@@ -1051,19 +1114,25 @@ mod tests {
             ..small()
         };
         let dims = [41, 17, 41];
-        let fraction = |coverage: f32| {
-            let noise = CloudNoise { coverage, ..flat };
-            let grid = DensityGrid::cloud(dims, DVec3::ONE, DVec3::ZERO, &noise, 0.0).unwrap();
-            non_zero_fraction(grid.values())
-        };
-        assert_eq!(fraction(0.0), 0.0);
-        assert!(fraction(1.0) > 0.999, "{}", fraction(1.0));
-        for coverage in [0.25, 0.5, 0.75] {
-            let covered = fraction(coverage);
-            assert!(
-                (covered - f64::from(coverage)).abs() < 0.12,
-                "coverage {coverage}: {covered} of the points are cloud"
-            );
+        for wisps in [false, true] {
+            let fraction = |coverage: f32| {
+                let noise = CloudNoise {
+                    coverage,
+                    wisps,
+                    ..flat
+                };
+                let grid = DensityGrid::cloud(dims, DVec3::ONE, DVec3::ZERO, &noise, 0.0).unwrap();
+                non_zero_fraction(grid.values())
+            };
+            assert_eq!(fraction(0.0), 0.0);
+            assert!(fraction(1.0) > 0.999, "{}", fraction(1.0));
+            for coverage in [0.25, 0.5, 0.75] {
+                let covered = fraction(coverage);
+                assert!(
+                    (covered - f64::from(coverage)).abs() < 0.12,
+                    "wisps {wisps}, coverage {coverage}: {covered} of the points are cloud"
+                );
+            }
         }
         // Empty with the default profile too.
         let empty = grid(

@@ -220,7 +220,7 @@ impl PerlinRow {
         }
     }
 
-    /// Adds `amplitude · P(x, y, z)` to `sums[i]` for the points of
+    /// Adds `shape(amplitude · P(x, y, z))` to `sums[i]` for the points of
     /// `lattice` with `live(i)` in a lattice cell (cells without such a point
     /// are skipped; every point of a cell with one is added). `sums` is as
     /// long as the lattice's points; `P` is `noise`'s `get` at the same
@@ -237,6 +237,7 @@ impl PerlinRow {
         amplitude: f64,
         sums: &mut [f64],
         live: impl Fn(usize) -> bool,
+        shape: impl Fn(f64) -> f64 + Copy,
     ) {
         debug_assert_eq!(lattice.points.near.len(), sums.len());
         let y = FixedAxis::new(y);
@@ -272,6 +273,7 @@ impl PerlinRow {
                 points,
                 range.clone(),
                 &mut sums[range.clone()],
+                shape,
             );
         }
     }
@@ -329,7 +331,7 @@ impl PlaneLine {
 /// [`PerlinRow::add_row`] for the points `range` of one lattice cell:
 /// `lower` and `upper` the lines of its x faces, scaled by `amplitude` times
 /// `noise`'s scale, whose fade-weighted mean `noise` clamps to ±1 before the
-/// amplitude.
+/// amplitude, then through `shape`.
 #[inline(always)]
 fn add_cell(
     [lower, upper]: [PlaneLine; 2],
@@ -337,13 +339,14 @@ fn add_cell(
     points: &RowPoints,
     range: Range<usize>,
     sums: &mut [f64],
+    shape: impl Fn(f64) -> f64,
 ) {
     let near = &points.near[range.clone()];
     let fade = &points.fade[range];
     for ((sum, &near), &fade) in sums.iter_mut().zip(near).zip(fade) {
         let lower = lower.slope * near + lower.constant;
         let upper = upper.slope * (near - 1.0) + upper.constant;
-        *sum += linear(lower, upper, fade, 1.0 - fade).clamp(-amplitude, amplitude);
+        *sum += shape(linear(lower, upper, fade, 1.0 - fade).clamp(-amplitude, amplitude));
     }
 }
 
@@ -384,7 +387,7 @@ mod tests {
                     let (y, z): (f64, f64) = (y + f64::from(j) * row_step, z + f64::from(slice) * row_step);
                     let initial: Vec<f64> = xs.iter().map(|&x| (x + y).sin()).collect();
                     let mut sums = initial.clone();
-                    row.add_row(&mut lattice, y, z, amplitude, &mut sums, |_| true);
+                    row.add_row(&mut lattice, y, z, amplitude, &mut sums, |_| true, |n| n);
                     for (i, (&x, &sum)) in xs.iter().zip(&sums).enumerate() {
                         let expected = initial[i] + amplitude * perlin.get([x, y, z]);
                         prop_assert!((sum - expected).abs() <= ROUNDING, "point {} at ({}, {}, {}): {} against {}", i, x, y, z, sum, expected);
@@ -402,7 +405,7 @@ mod tests {
         let xs: Vec<f64> = (0..12).map(|i| 0.125 + i as f64 * 0.25).collect();
         let mut sums = vec![0.0; xs.len()];
         let mut lattice = RowLattice::new(xs.clone());
-        row.add_row(&mut lattice, 0.3, 0.6, 1.0, &mut sums, |i| i == 5);
+        row.add_row(&mut lattice, 0.3, 0.6, 1.0, &mut sums, |i| i == 5, |n| n);
         for (i, (&x, &sum)) in xs.iter().zip(&sums).enumerate() {
             if (4..8).contains(&i) {
                 assert!(
