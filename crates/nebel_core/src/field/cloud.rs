@@ -516,7 +516,7 @@ impl<'a> RowFiller<'a> {
     fn fill_row(&mut self, at: RowAt, row: &mut [f32]) {
         let RowAt {
             base,
-            coverages,
+            coverage,
             largest,
             y,
             z,
@@ -555,14 +555,11 @@ impl<'a> RowFiller<'a> {
                 *live &= sum + remaining >= zero_below;
             }
         }
-        for (((value, &sum), &live), &coverage) in row
-            .iter_mut()
-            .zip(&self.sums)
-            .zip(&self.live)
-            .zip(coverages)
+        for (i, ((value, &sum), &live)) in
+            row.iter_mut().zip(&self.sums).zip(&self.live).enumerate()
         {
             *value = if live {
-                density(base, coverage, self.softness, unit_noise(sum))
+                density(base, coverage.at(i), self.softness, unit_noise(sum))
             } else {
                 0.0
             };
@@ -583,14 +580,32 @@ struct FillRow<'f, 'a, 'r> {
 
 /// Where a row lies and what scales its noise: its height `y` and depth `z`
 /// (world units), the base factor and each point's coverage, the largest of
-/// which is `largest`.
+/// which is at most `largest`.
 #[derive(Clone, Copy)]
 struct RowAt<'r> {
     base: f64,
-    coverages: &'r [f64],
+    coverage: Coverage<'r>,
     largest: f64,
     y: f64,
     z: f64,
+}
+
+/// The coverage of each point of a row.
+#[derive(Clone, Copy)]
+enum Coverage<'r> {
+    /// The row's coverage times each point's side factor.
+    Sides { scalar: f64, sides: &'r [f64] },
+    /// Each point's own.
+    Points(&'r [f64]),
+}
+
+impl Coverage<'_> {
+    fn at(self, i: usize) -> f64 {
+        match self {
+            Self::Sides { scalar, sides } => scalar * sides[i],
+            Self::Points(coverages) => coverages[i],
+        }
+    }
 }
 
 impl pulp::WithSimd for FillRow<'_, '_, '_> {
@@ -696,6 +711,7 @@ impl DensityGrid {
             side_fade_factors(noise.side_fade, nx),
             side_fade_factors(noise.side_fade, nz),
         );
+        let widest = sides_x.iter().copied().fold(0.0, f64::max);
         let mut values = vec![0.0f32; points];
         let fill = |first_slice: usize, chunk: &mut [f32]| {
             let softness = 1.0 - f64::from(noise.sharpness);
@@ -715,6 +731,7 @@ impl DensityGrid {
                     .collect();
                 // Without cloud types every column has the row's profile.
                 let full_tops = columns.iter().all(|column| column.top == 1.0);
+                let plain = primitives.is_none() && columns.iter().all(|c| *c == Column::CLEAR_SKY);
                 for (j, row) in slice.chunks_mut(nx).enumerate() {
                     let h = fraction(ny, j);
                     let base = profile.base(h);
@@ -728,25 +745,39 @@ impl DensityGrid {
                     {
                         continue;
                     }
-                    let mut largest = 0.0f64;
-                    for (((coverage, column), side), shaped) in coverages
-                        .iter_mut()
-                        .zip(&columns)
-                        .zip(&sides_x)
-                        .zip(&shaped)
-                    {
-                        let profiled = if full_tops {
-                            row_coverage
-                        } else {
-                            profile.coverage(h / column.top)
-                        };
-                        *coverage = profiled * sides_z[k] * side * column.coverage * shaped;
-                        largest = largest.max(*coverage);
-                    }
+                    // Without weather or shape a point's coverage is the
+                    // row's times its side factor, found for live points only.
+                    let (coverage, largest) = if plain {
+                        let scalar = row_coverage * sides_z[k];
+                        (
+                            Coverage::Sides {
+                                scalar,
+                                sides: &sides_x,
+                            },
+                            scalar * widest,
+                        )
+                    } else {
+                        let mut largest = 0.0f64;
+                        for (((coverage, column), side), shaped) in coverages
+                            .iter_mut()
+                            .zip(&columns)
+                            .zip(&sides_x)
+                            .zip(&shaped)
+                        {
+                            let profiled = if full_tops {
+                                row_coverage
+                            } else {
+                                profile.coverage(h / column.top)
+                            };
+                            *coverage = profiled * sides_z[k] * side * column.coverage * shaped;
+                            largest = largest.max(*coverage);
+                        }
+                        (Coverage::Points(&coverages), largest)
+                    };
                     if largest > 0.0 {
                         let at = RowAt {
                             base,
-                            coverages: &coverages,
+                            coverage,
                             largest,
                             y,
                             z,

@@ -196,7 +196,7 @@ pub(super) struct Column {
 }
 
 impl Column {
-    const CLEAR_SKY: Self = Self {
+    pub(super) const CLEAR_SKY: Self = Self {
         coverage: 1.0,
         top: 1.0,
     };
