@@ -1,5 +1,5 @@
 //! Textured terrain: the quadtree C-LOD terrain drawn with a material of the
-//! user's own. The terrain mesh carries UVs (0 to 1 over the terrain, fixed
+//! user's own. The terrain mesh carries UVs (0 to 1 over the height map, fixed
 //! under geomorphing), so textures map onto it; here an extension of
 //! `StandardMaterial` splats grass, rock and snow textures (made in code) by
 //! the morphed height and slope (`assets/shaders/terrain_splat.wgsl`), the

@@ -29,7 +29,7 @@ fn fragment(in: VertexOutput, @builtin(front_facing) is_front: bool) -> Fragment
     let uv = in.uv * splat.heights_and_tiling.z;
     let h = clamp((in.world_position.y - low) / max(high - low, 1e-3), 0.0, 1.0);
     let up = normalize(in.world_normal).y;
-    let rock = smoothstep(0.92, 0.72, up);
+    let rock = 1.0 - smoothstep(0.72, 0.92, up);
     let snow = smoothstep(0.72, 0.86, h) * smoothstep(0.70, 0.85, up);
     var colour = textureSample(grass_texture, grass_sampler, uv).rgb;
     colour = mix(colour, textureSample(rock_texture, rock_sampler, uv).rgb, rock);

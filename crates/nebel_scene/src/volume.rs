@@ -219,7 +219,7 @@ pub struct CloudSource {
     #[serde(default)]
     pub sharpness: Option<f32>,
     /// The kind of cloud whose settings the unset fields take: `Cumulus`
-    /// (the defaults above), `Stratus` or `Cirrus`
+    /// (the defaults above), `Stratus`, `Cirrus` or `Wispy`
     /// (`nebel_core::field::CloudNoise::of_kind`). Default `Cumulus`.
     #[serde(default)]
     pub kind: CloudKind,
@@ -280,7 +280,7 @@ pub enum WeatherDescription {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ProceduralWeatherDescription {
-    /// Size of the weather's regions, metres, > 0.
+    /// Size of the weather's regions, metres, ≥ 0 (0: no weather).
     pub wavelength: f64,
     /// Seed. Default 0.
     #[serde(default)]

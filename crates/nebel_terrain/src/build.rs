@@ -108,6 +108,9 @@ impl BuildInput {
 /// A finished build: the quadtree and how long it took.
 pub(crate) struct BuiltQuadtree {
     pub hierarchy: Arc<TerrainHierarchy>,
+    /// The sides of the heights' own rectangle along x and z (before the
+    /// padding to the quadtree's square), world units.
+    extent: Vec2,
     build_ms: f32,
 }
 
@@ -171,6 +174,7 @@ pub(crate) fn build_quadtree(input: BuildInput) -> Result<BuiltQuadtree, Terrain
     let hierarchy = TerrainHierarchy::new(padded, min_accuracy)?;
     Ok(BuiltQuadtree {
         hierarchy: Arc::new(hierarchy),
+        extent: (half * 2.0).as_vec2(),
         build_ms: started.elapsed().as_secs_f32() * 1e3,
     })
 }
@@ -199,9 +203,12 @@ pub struct TerrainLod {
     /// [`crate::update`]).
     pub(crate) latency: (f64, f64),
     pub(crate) mesh: Option<Handle<Mesh>>,
-    /// The terrain inserted a `StandardMaterial` on the entity (not one of
-    /// the user's own).
-    pub(crate) material_inserted: bool,
+    /// The sides of the heights' rectangle along x and z (the mesh's UVs
+    /// run from 0 to 1 over it).
+    pub(crate) extent: Vec2,
+    /// The `StandardMaterial` the terrain inserted on the entity, if any
+    /// (not one of the user's own).
+    pub(crate) material_inserted: Option<Handle<StandardMaterial>>,
     /// The mapped quadtree the last refinement used, if any.
     pub(crate) mapped: Option<Arc<TerrainHierarchy>>,
 }
@@ -218,12 +225,20 @@ impl TerrainLod {
         self.remove_material(commands, entity);
     }
 
-    /// Removes the material the terrain inserted, if any.
+    /// Removes the material the terrain inserted, if the entity still
+    /// carries it (one the user put in its place stays).
     pub(crate) fn remove_material(&mut self, commands: &mut Commands, entity: Entity) {
-        if std::mem::take(&mut self.material_inserted) {
+        if let Some(inserted) = self.material_inserted.take() {
             commands
                 .entity(entity)
-                .remove::<MeshMaterial3d<StandardMaterial>>();
+                .queue(move |mut entity: EntityWorldMut| {
+                    if entity
+                        .get::<MeshMaterial3d<StandardMaterial>>()
+                        .is_some_and(|material| material.0 == inserted)
+                    {
+                        entity.remove::<MeshMaterial3d<StandardMaterial>>();
+                    }
+                });
         }
     }
 }
@@ -374,6 +389,7 @@ fn put_in_place(
     match result {
         Ok(BuiltQuadtree {
             hierarchy,
+            extent,
             build_ms,
         }) => {
             *stats = TerrainLodStats {
@@ -388,6 +404,7 @@ fn put_in_place(
                 commands.entity(entity).insert(bounds(&hierarchy));
             }
             state.hierarchy = Some(hierarchy);
+            state.extent = extent;
             state.refiner = TerrainRefiner::new();
             state.refining = None;
             state.mapped = None;

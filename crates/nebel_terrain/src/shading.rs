@@ -170,8 +170,8 @@ fn take4(mesh: &mut Mesh, attribute: bevy::mesh::MeshVertexAttribute) -> Vec<[f3
 
 /// Writes `lod` (positions relative to the quadtree origin, which lies at
 /// `offset` in the entity's frame) into `mesh`, reusing its buffers, with
-/// UVs from 0 to 1 over the quadtree's `extent` (its sides along x and z in
-/// the entity's units).
+/// UVs from 0 to 1 over `extent` (the heights' sides along x and z in the
+/// entity's units) from the quadtree's origin.
 pub(crate) fn write_mesh(
     mesh: &mut Mesh,
     lod: &TerrainMesh,

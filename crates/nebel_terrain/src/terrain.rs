@@ -226,9 +226,10 @@ impl Default for Terrain {
 }
 
 /// The material of a [`Terrain`]. Every terrain mesh carries UVs (`u` along
-/// x, `v` along z, 0 to 1 over the whole terrain, unchanged by geomorphing,
-/// which moves vertices only up and down), so textures map onto it (tile
-/// them with `StandardMaterial::uv_transform` and a repeating sampler).
+/// x, `v` along z, 0 to 1 over the height map, beyond 1 where the quadtree's
+/// square pads it; unchanged by geomorphing, which moves vertices only up
+/// and down), so textures map onto it (tile them with
+/// `StandardMaterial::uv_transform` and a repeating sampler).
 #[derive(Clone, Debug, Default, PartialEq, Reflect)]
 #[reflect(Default, Clone)]
 pub enum TerrainMaterial {

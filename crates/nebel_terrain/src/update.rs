@@ -158,12 +158,6 @@ pub(crate) struct Refined {
     update_ms: f32,
 }
 
-/// The sides of the quadtree's square along x and z, world units.
-fn extent(hierarchy: &TerrainHierarchy) -> Vec2 {
-    let cells = (hierarchy.size() - 1) as f64;
-    (hierarchy.field().spacing() * cells).as_vec2()
-}
-
 /// What a refinement needs, moved to the worker that runs it.
 struct Refinement {
     refiner: TerrainRefiner,
@@ -171,6 +165,8 @@ struct Refinement {
     map: Option<Arc<TerrainMap>>,
     view: TerrainView,
     settings: RefinerSettings,
+    /// The heights' rectangle, for the UVs.
+    extent: Vec2,
     /// The default material's palette is used (no material of the user's).
     palette: bool,
     debug: crate::TerrainDebug,
@@ -205,7 +201,7 @@ impl Refinement {
                     &mut mesh,
                     lod,
                     self.hierarchy.origin().as_vec3(),
-                    extent(&self.hierarchy),
+                    self.extent,
                     &colouring,
                 );
                 mesh
@@ -261,8 +257,10 @@ pub(crate) fn update_terrain_meshes(
         if terrain.is_changed() && state.mesh.is_some() {
             match assets.material(&terrain.material) {
                 Some(material) => {
-                    commands.entity(entity).insert(MeshMaterial3d(material));
-                    state.material_inserted = true;
+                    commands
+                        .entity(entity)
+                        .insert(MeshMaterial3d(material.clone()));
+                    state.material_inserted = Some(material);
                 }
                 None => state.remove_material(&mut commands, entity),
             }
@@ -316,6 +314,7 @@ pub(crate) fn update_terrain_meshes(
                 map: mapped.map(|mapped| mapped.map.clone()),
                 view,
                 settings,
+                extent: state.extent,
                 palette: terrain.material == TerrainMaterial::HeightAndSlope,
                 debug: terrain.debug,
             };
@@ -358,8 +357,8 @@ pub(crate) fn update_terrain_meshes(
                 let mut entity = commands.entity(entity);
                 entity.insert((Mesh3d(handle.clone()), bounds(&hierarchy), NoAutoAabb));
                 if let Some(material) = assets.material(&terrain.material) {
-                    entity.insert(MeshMaterial3d(material));
-                    state.material_inserted = true;
+                    entity.insert(MeshMaterial3d(material.clone()));
+                    state.material_inserted = Some(material);
                 }
                 state.mesh = Some(handle);
             }
@@ -978,11 +977,12 @@ mod tests {
     #[test]
     fn an_own_material_is_left_to_the_entity_and_the_mesh_has_uvs_over_the_terrain() {
         let (mut app, _) = app(&asset_dir("own"), Vec3::new(0.0, 200.0, 300.0));
+        // 30 points a side, padded to the quadtree's 33.
         let terrain = spawn(
             &mut app,
             Terrain {
                 accuracy: 5.0,
-                ..procedural(33)
+                ..procedural(30)
             },
             Transform::default(),
         );
@@ -1014,6 +1014,24 @@ mod tests {
             .unwrap()
             .accuracy = 8.0;
         app.update();
+        assert_eq!(standard(&app), Some(users.clone()));
+
+        // Back to the default, then Own with the user's material put in the
+        // same frame: the terrain removes only the material it inserted.
+        app.world_mut()
+            .get_mut::<Terrain>(terrain)
+            .unwrap()
+            .material = TerrainMaterial::HeightAndSlope;
+        app.update();
+        assert_ne!(standard(&app), Some(users.clone()));
+        app.world_mut()
+            .get_mut::<Terrain>(terrain)
+            .unwrap()
+            .material = TerrainMaterial::Own;
+        app.world_mut()
+            .entity_mut(terrain)
+            .insert(MeshMaterial3d(users.clone()));
+        app.update();
         assert_eq!(standard(&app), Some(users));
 
         let handle = app.world().get::<Mesh3d>(terrain).unwrap().0.clone();
@@ -1029,10 +1047,12 @@ mod tests {
         else {
             panic!("positions and uvs");
         };
-        // Each vertex's x and z over the terrain's side (32 spacings), from
-        // its first corner: 0 to 1 over the terrain.
-        let side = 32.0 * procedural(33).spacing;
+        // Each vertex's x and z over the height map's side (29 spacings),
+        // from its first corner: 0 to 1 over the map, up to 32/29 over the
+        // padding.
+        let side = 29.0 * procedural(30).spacing;
         let lod = app.world().get::<TerrainLod>(terrain).unwrap();
+        assert_eq!(lod.hierarchy.as_ref().unwrap().size(), 33);
         let corner = lod.hierarchy.as_ref().unwrap().origin().as_vec3();
         for (p, uv) in positions.iter().zip(uvs) {
             assert!(
@@ -1043,7 +1063,7 @@ mod tests {
                 (uv[1] - (p[2] - corner.z) / side).abs() < 1e-5,
                 "{p:?} {uv:?}"
             );
-            assert!(uv.iter().all(|c| (-1e-6..=1.0 + 1e-6).contains(c)));
+            assert!(uv.iter().all(|c| (-1e-6..=32.0 / 29.0 + 1e-6).contains(c)));
         }
     }
 

@@ -167,7 +167,8 @@ pub(crate) enum WeatherState {
     Ready,
     /// A map is still loading: the cloud waits.
     Loading,
-    /// A map failed: the cloud is not drawn.
+    /// A map failed: the cloud is not generated again (its last grid, if
+    /// any, stays) and its status fails.
     Failed(VolumeError),
 }
 

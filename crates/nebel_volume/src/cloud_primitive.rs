@@ -4,7 +4,9 @@
 //! implicit ellipsoids of Schpok et al. 2003 §3.1 that shape the cloud: its
 //! [`Transform`] (relative to the cloud, as Bevy's hierarchy has it) places a
 //! unit sphere, so the translation is the centre, the rotation the axes and
-//! the scale the radii. Their fields blend by Wyvill's function and scale the
+//! the scale the radii, at time 0 of the app's clock: a primitive that moves
+//! or grows is where `velocity` and `growth` have taken it by the elapsed
+//! time. Their fields blend by Wyvill's function and scale the
 //! cloud's coverage (`nebel_core::field::CloudShape`): the noise fills their
 //! cores and frays their surfaces. Moving or growing ones animate the cloud
 //! through its keyframes like the wind.

@@ -23,7 +23,9 @@ use crate::cloud::{CloudGeneration, WeatherState};
 use crate::status::VolumeError;
 
 /// Grayscale maps of coverage and cloud type over a [`CloudVolume`]'s box
-/// (see the module docs); it replaces [`CloudVolume::weather_map`].
+/// (see the module docs); it replaces [`CloudVolume::weather_map`]. The
+/// cloud waits until `coverage` (the default handle never loads) and `kind`
+/// are loaded.
 #[derive(Component, Clone, Debug, Reflect)]
 #[reflect(Component, Default, Clone)]
 pub struct CloudWeatherMap {

@@ -194,8 +194,8 @@ pub enum CloudKind {
     /// A layer: features four times wider than tall, a dense, sharper deck
     /// over most of the sky, a short fade at the base and top.
     Stratus,
-    /// High streaks: features ten times longer along x than across, thin
-    /// and soft, little coverage, more fine detail.
+    /// High streaks: features ten times longer along x than tall (6.7 times
+    /// longer than wide), thin and soft, little coverage, more fine detail.
     Cirrus,
     /// Thin, torn filaments along the noise's zero sheets
     /// ([`CloudNoise::wisps`]), wider than tall.

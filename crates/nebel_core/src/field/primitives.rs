@@ -19,7 +19,7 @@ use super::FieldError;
 use super::weather::WeatherMap;
 
 /// One implicit ellipsoid of a cloud's shape, in the grid's frame (world
-/// units) at time 0.
+/// units) at time 0 of the cloud's clock (in Bevy, the app's elapsed time).
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "bevy_reflect", derive(bevy_reflect::Reflect))]
 pub struct CloudEllipsoid {
@@ -176,6 +176,13 @@ impl Primitives {
                 axes.iter().map(|a| a.y * a.y).sum::<f64>().sqrt(),
                 axes.iter().map(|a| a.z * a.z).sum::<f64>().sqrt(),
             );
+            if !extent.is_finite() {
+                return Err(invalid(
+                    "radii",
+                    e.radii.to_string(),
+                    "small enough that radii · (1 + growth · time) squared stays finite",
+                ));
+            }
             placed.push(Placed {
                 centre,
                 inverse: rotation.inverse(),
@@ -200,8 +207,10 @@ impl Primitives {
             }
             // The row's points inside the box's x range (and a point either
             // side, whose F is 0).
-            let from = ((e.centre.x - e.extent.x - first) / step).floor().max(0.0) as usize;
-            let to = (((e.centre.x + e.extent.x - first) / step).ceil() as usize + 1).min(xs.len());
+            let len = xs.len() as f64;
+            let index = |x: f64| x.clamp(0.0, len) as usize;
+            let from = index(((e.centre.x - e.extent.x - first) / step).floor());
+            let to = index(((e.centre.x + e.extent.x - first) / step).ceil() + 1.0);
             for (x, value) in xs[from.min(to)..to].iter().zip(&mut row[from.min(to)..to]) {
                 let f = wyvill(e.q(DVec3::new(*x, y, z)));
                 if f > 0.0 {
@@ -401,6 +410,13 @@ pub(super) mod tests {
                 ..ok
             },
             "density",
+        );
+        check(
+            CloudEllipsoid {
+                radii: DVec3::splat(1e200),
+                ..ok
+            },
+            "radii",
         );
         check(
             CloudEllipsoid {

@@ -131,11 +131,26 @@ fn check_stratus_top(name: &str, parameter: &'static str, value: f32) -> Result<
 /// stretched over the box (its first point at the box's minimum x and z,
 /// its last at the maximum; its spacing and origin are not read), bilinear
 /// in between. Without a type map every column is cumulus (`t = 1`).
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, PartialEq)]
 pub struct WeatherMap {
     coverage: HeightField,
     kind: Option<HeightField>,
     stratus_top: f32,
+    /// A hash of every value, so that `Debug` (which animated sources are
+    /// compared by) tells maps apart without printing them.
+    fingerprint: u64,
+}
+
+/// The maps' sizes and a hash of their values, not the values.
+impl std::fmt::Debug for WeatherMap {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("WeatherMap")
+            .field("coverage", &self.coverage.dims())
+            .field("kind", &self.kind.as_ref().map(HeightField::dims))
+            .field("stratus_top", &self.stratus_top)
+            .field("fingerprint", &format_args!("{:016x}", self.fingerprint))
+            .finish()
+    }
 }
 
 impl WeatherMap {
@@ -169,10 +184,18 @@ impl WeatherMap {
             }
         }
         check_stratus_top(name, "stratus_top", stratus_top)?;
+        let mut hasher = std::hash::DefaultHasher::new();
+        for map in [Some(&coverage), kind.as_ref()].into_iter().flatten() {
+            std::hash::Hash::hash(&map.dims(), &mut hasher);
+            for value in map.heights() {
+                std::hash::Hash::hash(&value.to_bits(), &mut hasher);
+            }
+        }
         Ok(Self {
             coverage,
             kind,
             stratus_top,
+            fingerprint: std::hash::Hasher::finish(&hasher),
         })
     }
 
@@ -450,6 +473,21 @@ pub(super) mod tests {
             let expected = pointwise_column(&noise, 11.0, moved.x, moved.y);
             assert!((b.coverage - expected.0).abs() < 1e-12 && (b.top - expected.1).abs() < 1e-12);
         }
+    }
+
+    #[test]
+    fn a_maps_debug_tells_maps_apart_without_printing_them() {
+        let ones = WeatherMap::new(map([64, 64], |_, _| 1.0), None, 0.35).unwrap();
+        let one_less = WeatherMap::new(
+            map([64, 64], |i, j| if (i, j) == (5, 7) { 0.5 } else { 1.0 }),
+            None,
+            0.35,
+        )
+        .unwrap();
+        let (a, b) = (format!("{ones:?}"), format!("{one_less:?}"));
+        assert_ne!(a, b);
+        assert_eq!(a, format!("{:?}", ones.clone()));
+        assert!(a.len() < 200, "{a}");
     }
 
     #[test]
