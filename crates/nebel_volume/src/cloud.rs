@@ -254,19 +254,11 @@ pub(crate) fn generate_clouds(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_support::volume_grid;
     use bevy::asset::AssetPlugin;
 
     fn grid(app: &App, entity: Entity) -> Arc<DensityGrid> {
-        match &app.world().get::<Volume>(entity).unwrap().field {
-            VolumeField::Grid(handle) => app
-                .world()
-                .resource::<Assets<VolumeGrid>>()
-                .get(handle)
-                .unwrap()
-                .0
-                .clone(),
-            VolumeField::Cells(_) => panic!("the cloud fills a grid"),
-        }
+        volume_grid(app, entity).expect("the cloud fills a grid")
     }
 
     #[test]

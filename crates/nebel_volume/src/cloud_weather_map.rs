@@ -129,7 +129,8 @@ pub(crate) fn apply_weather_maps(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::{Volume, VolumeField, VolumeGrid, VolumePlugin, VolumeStatus};
+    use crate::test_support::volume_grid;
+    use crate::{VolumePlugin, VolumeStatus};
     use nebel_render::headless::headless_app;
 
     fn map(app: &mut App, values: impl Fn(u32) -> f32) -> Handle<GrayscaleMap> {
@@ -140,19 +141,6 @@ mod tests {
                 dims: UVec2::splat(4),
                 values: Arc::new(values),
             })
-    }
-
-    fn grid(app: &App, cloud: Entity) -> Option<Arc<nebel_core::field::DensityGrid>> {
-        match &app.world().get::<Volume>(cloud)?.field {
-            VolumeField::Grid(handle) => Some(
-                app.world()
-                    .resource::<Assets<VolumeGrid>>()
-                    .get(handle)?
-                    .0
-                    .clone(),
-            ),
-            VolumeField::Cells(_) => None,
-        }
     }
 
     #[test]
@@ -181,15 +169,16 @@ mod tests {
                 InheritedVisibility::VISIBLE,
             ))
             .id();
-        app.update();
-        assert!(
+        let has_weather = |app: &App| {
             app.world()
                 .get::<CloudVolume>(cloud)
                 .unwrap()
                 .weather_map
                 .is_some()
-        );
-        let grid = grid(&app, cloud).expect("generated under its weather");
+        };
+        app.update();
+        assert!(has_weather(&app));
+        let grid = volume_grid(&app, cloud).expect("generated under its weather");
         let [nx, ny, nz] = grid.dims();
         for k in 0..nz {
             for j in 0..ny {
@@ -221,13 +210,7 @@ mod tests {
             .entity_mut(cloud)
             .remove::<CloudWeatherMap>();
         app.update();
-        assert!(
-            app.world()
-                .get::<CloudVolume>(cloud)
-                .unwrap()
-                .weather_map
-                .is_none()
-        );
+        assert!(!has_weather(&app));
         assert!(!matches!(
             app.world().get::<VolumeStatus>(cloud).unwrap(),
             VolumeStatus::Failed(_)

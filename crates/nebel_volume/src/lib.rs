@@ -23,6 +23,8 @@ pub mod grid_loader;
 pub mod lighting;
 pub mod lod;
 pub mod status;
+#[cfg(test)]
+mod test_support;
 pub mod volume;
 
 pub use campfire::Campfire;

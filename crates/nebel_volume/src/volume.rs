@@ -213,6 +213,7 @@ impl Default for Volume {
 mod tests {
     use super::*;
     use crate::LodCriterion;
+    use crate::test_support::volume_grid;
     use bevy::diagnostic::DiagnosticsStore;
     use bevy::math::DVec3;
     use nebel_core::field::DensityGrid;
@@ -792,20 +793,6 @@ mod tests {
         panic!("the fire never appeared: its builds were dropped");
     }
 
-    /// The campfire's grid asset, if it has one yet.
-    fn campfire_grid(app: &App, fire: Entity) -> Option<Arc<DensityGrid>> {
-        match &app.world().get::<Volume>(fire)?.field {
-            VolumeField::Grid(handle) => Some(
-                app.world()
-                    .resource::<Assets<VolumeGrid>>()
-                    .get(handle)?
-                    .0
-                    .clone(),
-            ),
-            VolumeField::Cells(_) => None,
-        }
-    }
-
     #[test]
     fn a_campfire_draws_its_frames_grid_when_blocking_and_the_last_frames_in_the_background() {
         let (mut app, _, volume) = app_with_volume(OpticalMode::Emissive);
@@ -822,7 +809,7 @@ mod tests {
         for _ in 0..3 {
             std::thread::sleep(std::time::Duration::from_millis(2));
             app.update();
-            let grid = campfire_grid(&app, fire).expect("a grid every frame");
+            let grid = volume_grid(&app, fire).expect("a grid every frame");
             assert_eq!(
                 *grid,
                 campfire_density(campfire.dims, now(&app), campfire.seed)
@@ -833,13 +820,13 @@ mod tests {
         // it), and they keep coming.
         app.insert_resource(HeavyBuilds::Background);
         let mut times = vec![now(&app)];
-        let mut last = campfire_grid(&app, fire);
+        let mut last = volume_grid(&app, fire);
         let mut new_grids = 0;
         for _ in 0..2000 {
             std::thread::sleep(std::time::Duration::from_millis(1));
             app.update();
             times.push(now(&app));
-            let grid = campfire_grid(&app, fire);
+            let grid = volume_grid(&app, fire);
             if grid != last {
                 let grid = grid.as_deref().unwrap();
                 assert!(
