@@ -32,8 +32,8 @@ use crate::volume_batching::settings_bits;
 use crate::{BatchSettings, VolumeBatchError, VolumeBatcher, VolumeSource};
 
 /// A density field that moves with time, sampled on a grid at any time (a
-/// cloud in the wind). Two are the same animation when their `Debug`
-/// texts agree.
+/// cloud in the wind). Two are the same animation when they are the same
+/// `Arc`: hand the track the one you made until the animation changes.
 pub trait AnimatedGrid: std::fmt::Debug + Send + Sync {
     /// The grid at `time` seconds.
     fn grid_at(&self, time: f64) -> Result<DensityGrid, FieldError>;
@@ -130,8 +130,7 @@ impl KeyframeRecipe {
 
     /// Equality of what the keyframes depend on but the sun, bit for bit (a
     /// NaN setting equals itself, so a track that failed on it is not
-    /// started again every frame; an animation by its printed values) and the
-    /// grid's identity.
+    /// started again every frame), and the animation's or grid's identity.
     fn same_as(&self, other: &Self) -> bool {
         let without_sun = |recipe: &Self| {
             let mut settings = recipe.settings;
@@ -141,9 +140,7 @@ impl KeyframeRecipe {
             (settings_bits(&settings), recipe.interval.to_bits())
         };
         let source = match (&self.source, &other.source) {
-            (KeyframeSource::Animated(a), KeyframeSource::Animated(b)) => {
-                format!("{a:?}") == format!("{b:?}")
-            }
+            (KeyframeSource::Animated(a), KeyframeSource::Animated(b)) => Arc::ptr_eq(a, b),
             (KeyframeSource::Grid(a), KeyframeSource::Grid(b)) => Arc::ptr_eq(a, b),
             _ => false,
         };

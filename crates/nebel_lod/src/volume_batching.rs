@@ -106,7 +106,9 @@ pub struct BuildRequest {
     /// `None` for an unlit one.
     pub sun_keyframe_interval: Option<f32>,
     /// A field in motion and its keyframe interval, seconds: drawn from
-    /// keyframes of it instead of `source`.
+    /// keyframes of it instead of `source`. A new `Arc` is a new animation
+    /// (its keyframes are made again): pass the same one while it is
+    /// unchanged.
     pub animation: Option<(Arc<dyn AnimatedGrid>, f32)>,
 }
 

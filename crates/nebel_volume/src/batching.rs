@@ -155,9 +155,9 @@ pub(crate) fn build_batchers(
         batching.source_failure = source.as_ref().err().cloned();
         let animation = cloud
             .filter(|(cloud, generation)| animates(cloud) && generation.weather_is_ready())
-            .map(|(cloud, _)| {
-                let field: Arc<dyn AnimatedGrid> = Arc::new(cloud.clone());
-                (field, cloud.keyframe_interval)
+            .and_then(|(cloud, generation)| {
+                let field: Arc<dyn AnimatedGrid> = generation.animation.clone()?;
+                Some((field, cloud.keyframe_interval))
             });
         let request = BuildRequest {
             now: time.elapsed_secs_f64(),

@@ -157,6 +157,9 @@ pub(crate) struct CloudGeneration {
     /// Whether the cloud's weather map is ready
     /// ([`crate::CloudWeatherMap`]).
     pub(crate) weather: WeatherState,
+    /// The cloud as its keyframes sample it, made again only when its
+    /// settings change (the same `Arc` is the same animation).
+    pub(crate) animation: Option<Arc<CloudVolume>>,
 }
 
 /// Where a cloud's weather map stands (internal).
@@ -211,6 +214,9 @@ pub(crate) fn generate_clouds(
 ) {
     for (cloud, visibility, mut volume, mut generation) in &mut clouds {
         generation.stale |= cloud.is_changed();
+        if cloud.is_changed() && generation.animation.as_deref() != Some(&*cloud) {
+            generation.animation = Some(Arc::new(CloudVolume::clone(&cloud)));
+        }
         if animates(&cloud) || !generation.weather_is_ready() {
             continue;
         }

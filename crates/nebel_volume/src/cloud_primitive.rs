@@ -69,22 +69,43 @@ impl CloudPrimitive {
 pub(crate) struct PrimitivesFromChildren(bool);
 
 /// Writes each cloud's [`CloudPrimitive`] children into
-/// [`CloudVolume::primitives`] when they differ (a change of a child's
-/// primitive or transform, a child added or removed), so the cloud is
+/// [`CloudVolume::primitives`] when one changed (a child's primitive or
+/// transform, a child added or removed) and the list differs, so the cloud is
 /// generated again; a cloud that never had such children is left as set.
 pub(crate) fn gather_cloud_primitives(
     mut clouds: Query<(
         &mut CloudVolume,
-        Option<&Children>,
+        Option<Ref<Children>>,
         &mut PrimitivesFromChildren,
     )>,
     primitives: Query<(&CloudPrimitive, &Transform)>,
+    changed: Query<
+        (),
+        (
+            With<CloudPrimitive>,
+            Or<(Changed<CloudPrimitive>, Changed<Transform>)>,
+        ),
+    >,
+    mut removed: RemovedComponents<CloudPrimitive>,
 ) {
+    let removed = removed.read().count() > 0;
     for (mut cloud, children, mut from_children) in &mut clouds {
+        let touched = match &children {
+            Some(children) => {
+                removed
+                    || children.is_changed()
+                    || children.iter().any(|child| changed.contains(child))
+            }
+            // The last child gone takes the children's primitives with it.
+            None => from_children.0,
+        };
+        if !touched {
+            continue;
+        }
         let gathered: Vec<CloudEllipsoid> = children
-            .into_iter()
-            .flatten()
-            .filter_map(|child| primitives.get(*child).ok())
+            .iter()
+            .flat_map(|children| children.iter())
+            .filter_map(|child| primitives.get(child).ok())
             .map(|(primitive, transform)| primitive.ellipsoid(transform))
             .collect();
         if gathered.is_empty() && !from_children.0 {

@@ -136,8 +136,8 @@ pub struct WeatherMap {
     coverage: HeightField,
     kind: Option<HeightField>,
     stratus_top: f32,
-    /// A hash of every value, so that `Debug` (which animated sources are
-    /// compared by) tells maps apart without printing them.
+    /// A hash of every value, so that `Debug` tells maps apart without
+    /// printing them.
     fingerprint: u64,
 }
 
