@@ -28,7 +28,7 @@
 //! the footprint never jumps between frames: its change over `Δt` is bounded
 //! by `Δt` times a constant of the settings (the tests measure it).
 
-use super::FieldError;
+use super::{FieldError, smoothstep};
 use crate::budget::check_allocation;
 
 /// Procedural aurora curtains (see the module docs). Lengths are fractions
@@ -275,12 +275,6 @@ const CUT_OFF: f64 = 3.0;
 
 /// The strength below which the curtains end.
 const FLOOR: f64 = 0.01;
-
-/// `0` below `a`, `1` above `b`, the cubic `3x² − 2x³` between.
-fn smoothstep(a: f64, b: f64, x: f64) -> f64 {
-    let x = ((x - a) / (b - a)).clamp(0.0, 1.0);
-    x * x * (3.0 - 2.0 * x)
-}
 
 #[cfg(test)]
 mod tests {

@@ -49,16 +49,16 @@ use glam::{DVec2, DVec3};
 
 use super::perlin_row::{PerlinRow, RowLattice};
 use super::primitives::{CloudShape, Primitives};
-use super::weather::{CloudWeather, Column, Weather, smoothstep};
+use super::weather::{CloudWeather, Column, Weather};
 use super::{
     DENSITY_GRID, DensityGrid, FieldError, NOISE_OFFSET, SAMPLE_BYTES, budgeted_points,
-    check_origin, check_spacing,
+    check_origin, check_spacing, smoothstep,
 };
 use crate::pacing::{pace, worker_threads};
 
 /// Standard deviation of 3D `noise::Perlin` output (measured over 2·10⁶
 /// random points for three seeds: 0.311–0.313).
-const PERLIN_STD: f64 = 0.312;
+pub(super) const PERLIN_STD: f64 = 0.312;
 
 /// Mean and standard deviation of `|P|` for 3D `noise::Perlin` (measured over
 /// 2·10⁶ random points for three seeds: 0.254–0.257 and 0.180–0.181), which
@@ -68,7 +68,7 @@ const PERLIN_ABS_STD: f64 = 0.180;
 
 /// Slope of the logistic approximation `1 / (1 + e^{−1.702 v})` of the normal
 /// distribution function.
-const LOGISTIC_SLOPE: f64 = 1.702;
+pub(super) const LOGISTIC_SLOPE: f64 = 1.702;
 
 /// Most octaves [`CloudNoise::octaves`] accepts.
 const MAX_OCTAVES: usize = 16;
@@ -458,8 +458,9 @@ impl CloudNoise {
     }
 }
 
-/// Equalised unit noise `u` in (0, 1) from the sum `v` of the octaves.
-fn unit_noise(v: f64) -> f64 {
+/// Equalised unit noise `u` in (0, 1) from the sum `v` of the octaves
+/// (each already times [`LOGISTIC_SLOPE`]).
+pub(super) fn equalised(v: f64) -> f64 {
     1.0 / (1.0 + (-v).exp())
 }
 
@@ -559,7 +560,7 @@ impl<'a> RowFiller<'a> {
             row.iter_mut().zip(&self.sums).zip(&self.live).enumerate()
         {
             *value = if live {
-                density(base, coverage.at(i), self.softness, unit_noise(sum))
+                density(base, coverage.at(i), self.softness, equalised(sum))
             } else {
                 0.0
             };
@@ -886,7 +887,7 @@ mod tests {
             profile.base(h),
             profile.coverage(h / top) * side * w,
             1.0 - f64::from(noise.sharpness),
-            unit_noise(v),
+            equalised(v),
         )
     }
 

@@ -61,6 +61,13 @@ pub use terrain::{DEFAULT_TERRAIN_SPACING, DEFAULT_TERRAIN_VERTICAL_SCALE, Terra
 pub use value_noise::ValueNoise;
 pub use weather::{CloudWeather, WeatherMap};
 
+/// `0` below `edge0`, `1` above `edge1`, the cubic `3s² − 2s³` of `s = (x −
+/// edge0) / (edge1 − edge0)` between.
+pub(crate) fn smoothstep(edge0: f64, edge1: f64, x: f64) -> f64 {
+    let s = ((x - edge0) / (edge1 - edge0)).clamp(0.0, 1.0);
+    s * s * (3.0 - 2.0 * s)
+}
+
 use std::path::PathBuf;
 
 use crate::budget::{BudgetError, Dims, check_allocation};

@@ -16,14 +16,9 @@
 use glam::{DVec2, DVec3};
 use noise::{NoiseFn, Perlin};
 
-use super::cloud::CloudNoise;
-use super::{FieldError, HeightField, NOISE_OFFSET};
+use super::cloud::{CloudNoise, LOGISTIC_SLOPE, PERLIN_STD, equalised};
+use super::{FieldError, HeightField, NOISE_OFFSET, smoothstep};
 
-/// Standard deviation of `noise::Perlin` on a plane, as for the cloud's
-/// octaves (see `PERLIN_STD` there); the weather's equalisation is nearly
-/// uniform, as stated.
-const PERLIN_STD: f64 = 0.312;
-const LOGISTIC_SLOPE: f64 = 1.702;
 /// Half the width of the band of the type noise over which stratus turns
 /// into cumulus.
 const TYPE_BLEND: f64 = 0.1;
@@ -344,12 +339,7 @@ fn unit_noise(perlins: &[Perlin; 2], p: DVec2) -> f64 {
             perlin.get([p.x * f + ox, oy, p.y * f + oz]) * (1.0 / f) / (PERLIN_STD * norm)
         })
         .sum();
-    1.0 / (1.0 + (-LOGISTIC_SLOPE * v).exp())
-}
-
-pub(super) fn smoothstep(edge0: f64, edge1: f64, x: f64) -> f64 {
-    let s = ((x - edge0) / (edge1 - edge0)).clamp(0.0, 1.0);
-    s * s * (3.0 - 2.0 * s)
+    equalised(LOGISTIC_SLOPE * v)
 }
 
 #[cfg(test)]
