@@ -713,6 +713,9 @@ impl DensityGrid {
             side_fade_factors(noise.side_fade, nz),
         );
         let widest = sides_x.iter().copied().fold(0.0, f64::max);
+        // Without weather or shape every point's coverage is its row's times
+        // its side factors.
+        let plain = matches!(weather, Weather::None) && primitives.is_none();
         let mut values = vec![0.0f32; points];
         let fill = |first_slice: usize, chunk: &mut [f32]| {
             let softness = 1.0 - f64::from(noise.sharpness);
@@ -722,17 +725,19 @@ impl DensityGrid {
             for (dk, slice) in chunk.chunks_mut(nx * ny).enumerate() {
                 let k = first_slice + dk;
                 let z = origin.z + k as f64 * spacing.z;
-                let columns: Vec<Column> = xs
-                    .iter()
-                    .enumerate()
-                    .map(|(i, &x)| {
-                        let at = DVec2::new(fraction(nx, i), fraction(nz, k));
-                        weather.column(DVec2::new(x, z), at)
-                    })
-                    .collect();
+                let columns: Vec<Column> = if plain {
+                    Vec::new()
+                } else {
+                    xs.iter()
+                        .enumerate()
+                        .map(|(i, &x)| {
+                            let at = DVec2::new(fraction(nx, i), fraction(nz, k));
+                            weather.column(DVec2::new(x, z), at)
+                        })
+                        .collect()
+                };
                 // Without cloud types every column has the row's profile.
                 let full_tops = columns.iter().all(|column| column.top == 1.0);
-                let plain = primitives.is_none() && columns.iter().all(|c| *c == Column::CLEAR_SKY);
                 for (j, row) in slice.chunks_mut(nx).enumerate() {
                     let h = fraction(ny, j);
                     let base = profile.base(h);

@@ -214,7 +214,7 @@ pub(super) struct Column {
 }
 
 impl Column {
-    pub(super) const CLEAR_SKY: Self = Self {
+    const CLEAR_SKY: Self = Self {
         coverage: 1.0,
         top: 1.0,
     };
