@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 use criterion::{Criterion, criterion_group};
 use glam::DVec3;
 use nebel_core::field::{
-    CloudLighting, CloudNoise, DensityGrid, NOISE_OFFSET, light_field_with_threads,
+    CloudLighting, CloudNoise, CloudShape, DensityGrid, NOISE_OFFSET, light_field_with_threads,
 };
 use noise::{NoiseFn, Perlin};
 
@@ -109,6 +109,7 @@ fn paper_field() {
                     SPACING,
                     DVec3::ZERO,
                     &noise(),
+                    &CloudShape::default(),
                     10.0,
                     threads,
                 )

@@ -39,7 +39,9 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use glam::DVec3;
-use nebel_core::field::{CloudLighting, CloudNoise, DensityGrid, light_field_with_threads};
+use nebel_core::field::{
+    CloudLighting, CloudNoise, CloudShape, DensityGrid, light_field_with_threads,
+};
 use nebel_core::pacing::with_pacer;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::octree::keyframe::{REFINEMENT_SPAN, REFINEMENT_STEPS};
@@ -98,8 +100,10 @@ fn keyframe(
     let spacing = DVec3::splat(5120.0 / (dims[0] - 1) as f64);
     let origin = DVec3::new(-2560.0, 600.0, -2560.0);
     let started = Instant::now();
-    let grid = DensityGrid::cloud_with_threads(dims, spacing, origin, &noise(octaves), time, 1)
-        .expect("valid cloud");
+    let shape = CloudShape::default();
+    let grid =
+        DensityGrid::cloud_with_threads(dims, spacing, origin, &noise(octaves), &shape, time, 1)
+            .expect("valid cloud");
     let grid_ms = elapsed_ms(started);
     let started = Instant::now();
     let light =

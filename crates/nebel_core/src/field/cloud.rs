@@ -639,32 +639,7 @@ impl DensityGrid {
         noise: &CloudNoise,
         time: f64,
     ) -> Result<Self, FieldError> {
-        Self::cloud_with_threads(dims, spacing, origin, noise, time, worker_threads())
-    }
-
-    /// [`DensityGrid::cloud`] on `threads` threads (0 or 1: on the calling
-    /// thread), each taking a contiguous run of z-slices.
-    ///
-    /// # Errors
-    ///
-    /// As [`DensityGrid::cloud`].
-    pub fn cloud_with_threads(
-        dims: [usize; 3],
-        spacing: DVec3,
-        origin: DVec3,
-        noise: &CloudNoise,
-        time: f64,
-        threads: usize,
-    ) -> Result<Self, FieldError> {
-        Self::cloud_in_shape(
-            dims,
-            spacing,
-            origin,
-            noise,
-            &CloudShape::default(),
-            time,
-            threads,
-        )
+        Self::cloud_shaped(dims, spacing, origin, noise, &CloudShape::default(), time)
     }
 
     /// [`DensityGrid::cloud`] shaped by `shape`: a weather map over the box
@@ -685,10 +660,16 @@ impl DensityGrid {
         shape: &CloudShape,
         time: f64,
     ) -> Result<Self, FieldError> {
-        Self::cloud_in_shape(dims, spacing, origin, noise, shape, time, worker_threads())
+        Self::cloud_with_threads(dims, spacing, origin, noise, shape, time, worker_threads())
     }
 
-    fn cloud_in_shape(
+    /// [`DensityGrid::cloud_shaped`] on `threads` threads (0 or 1: on the
+    /// calling thread), each taking a contiguous run of z-slices.
+    ///
+    /// # Errors
+    ///
+    /// As [`DensityGrid::cloud_shaped`].
+    pub fn cloud_with_threads(
         dims: [usize; 3],
         spacing: DVec3,
         origin: DVec3,
@@ -850,8 +831,16 @@ mod tests {
         let a = grid(&noise, 4.0);
         assert_eq!(a, grid(&noise, 4.0));
         for threads in [0, 1, 3, 40] {
-            let b = DensityGrid::cloud_with_threads(DIMS, SPACING, ORIGIN, &noise, 4.0, threads)
-                .unwrap();
+            let b = DensityGrid::cloud_with_threads(
+                DIMS,
+                SPACING,
+                ORIGIN,
+                &noise,
+                &CloudShape::default(),
+                4.0,
+                threads,
+            )
+            .unwrap();
             assert_eq!(a, b, "{threads} threads");
         }
         assert_ne!(a, grid(&CloudNoise { seed: 12, ..noise }, 4.0));
