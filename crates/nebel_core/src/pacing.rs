@@ -96,6 +96,30 @@ pub fn worker_threads() -> usize {
     }
 }
 
+/// Runs `fill(first_slice, chunk)` over `values`, `slices` slices of
+/// `slice_len` values each, split into runs of whole slices on up to
+/// `threads` scoped threads (on this thread alone for 1).
+pub fn fill_slices<T: Send>(
+    values: &mut [T],
+    slice_len: usize,
+    threads: usize,
+    fill: impl Fn(usize, &mut [T]) + Sync,
+) {
+    let slices = values.len() / slice_len.max(1);
+    let threads = threads.clamp(1, slices.max(1));
+    if threads == 1 {
+        fill(0, values);
+        return;
+    }
+    let slices_per_thread = slices.div_ceil(threads);
+    std::thread::scope(|scope| {
+        for (t, chunk) in values.chunks_mut(slice_len * slices_per_thread).enumerate() {
+            let fill = &fill;
+            scope.spawn(move || fill(t * slices_per_thread, chunk));
+        }
+    });
+}
+
 #[cfg(test)]
 mod tests {
     use std::cell::Cell;
@@ -161,5 +185,19 @@ mod tests {
         });
         assert_eq!((outer_calls.get(), inner_calls.get()), (2, 1));
         assert!(!is_paced());
+    }
+
+    #[test]
+    fn fill_slices_gives_each_slice_its_own_index_on_any_number_of_threads() {
+        for (slices, threads) in [(1, 1), (5, 1), (5, 2), (5, 3), (7, 16), (8, 4)] {
+            let mut values = vec![usize::MAX; slices * 3];
+            fill_slices(&mut values, 3, threads, |first, chunk: &mut [usize]| {
+                for (n, value) in chunk.iter_mut().enumerate() {
+                    *value = first + n / 3;
+                }
+            });
+            let expected: Vec<usize> = (0..slices * 3).map(|n| n / 3).collect();
+            assert_eq!(values, expected, "{slices} slices on {threads} threads");
+        }
     }
 }

@@ -28,7 +28,7 @@
 //! the footprint never jumps between frames: its change over `Δt` is bounded
 //! by `Δt` times a constant of the settings (the tests measure it).
 
-use super::{FieldError, smoothstep};
+use super::{FieldError, Settings, smoothstep};
 use crate::budget::check_allocation;
 
 /// Procedural aurora curtains (see the module docs). Lengths are fractions
@@ -90,36 +90,16 @@ const NAME: &str = "aurora curtains";
 impl AuroraCurtains {
     /// Checks every setting.
     pub fn validate(&self) -> Result<(), FieldError> {
-        let invalid = |parameter, value: f32, requirement| {
-            Err(FieldError::invalid_parameter(
-                NAME,
-                parameter,
-                value.to_string(),
-                requirement,
-            ))
-        };
-        if !(1..=16).contains(&self.count) {
-            return Err(FieldError::invalid_parameter(
-                NAME,
-                "count",
-                self.count.to_string(),
-                "from 1 to 16",
-            ));
-        }
-        if !(self.width > 0.0 && self.width <= 0.25) {
-            return invalid("width", self.width, "in (0, 0.25]");
-        }
-        if !(0.0..=0.25).contains(&self.fold) {
-            return invalid("fold", self.fold, "in [0, 0.25]");
-        }
-        for (parameter, value) in [("drift", self.drift), ("pulse", self.pulse)] {
-            if !(value.is_finite() && value >= 0.0) {
-                return invalid(parameter, value, "finite and ≥ 0");
-            }
-        }
-        if !(0.0..=1.0).contains(&self.rays) {
-            return invalid("rays", self.rays, "in [0, 1]");
-        }
+        let settings = Settings(NAME);
+        let count_ok = (1..=16).contains(&self.count);
+        settings.require(count_ok, "count", self.count, "from 1 to 16")?;
+        let width_ok = self.width > 0.0 && self.width <= 0.25;
+        settings.require(width_ok, "width", self.width, "in (0, 0.25]")?;
+        let fold_ok = (0.0..=0.25).contains(&self.fold);
+        settings.require(fold_ok, "fold", self.fold, "in [0, 0.25]")?;
+        settings.non_negative(&[("drift", self.drift), ("pulse", self.pulse)])?;
+        let rays_ok = (0.0..=1.0).contains(&self.rays);
+        settings.require(rays_ok, "rays", self.rays, "in [0, 1]")?;
         Ok(())
     }
 
@@ -221,14 +201,7 @@ impl AuroraCurtains {
     /// memory budget.
     pub fn map(&self, side: usize, t: f64) -> Result<Vec<f32>, FieldError> {
         self.validate()?;
-        if side < 2 {
-            return Err(FieldError::invalid_parameter(
-                NAME,
-                "side",
-                side.to_string(),
-                "at least 2 points",
-            ));
-        }
+        Settings(NAME).require(side >= 2, "side", side, "at least 2 points")?;
         check_allocation(
             || format!("aurora footprint of {side} × {side} points"),
             &[side, side],

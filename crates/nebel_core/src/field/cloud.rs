@@ -51,10 +51,10 @@ use super::perlin_row::{PerlinRow, RowLattice};
 use super::primitives::{CloudShape, Primitives};
 use super::weather::{CloudWeather, Column, Weather};
 use super::{
-    DENSITY_GRID, DensityGrid, FieldError, NOISE_OFFSET, SAMPLE_BYTES, budgeted_points,
+    DENSITY_GRID, DensityGrid, FieldError, NOISE_OFFSET, SAMPLE_BYTES, Settings, budgeted_points,
     check_origin, check_spacing, smoothstep,
 };
-use crate::pacing::{pace, worker_threads};
+use crate::pacing::{fill_slices, pace, worker_threads};
 
 /// Standard deviation of 3D `noise::Perlin` output (measured over 2·10⁶
 /// random points for three seeds: 0.311–0.313).
@@ -350,96 +350,59 @@ pub fn side_fade_factors(side_fade: f32, n: usize) -> Vec<f64> {
 impl CloudNoise {
     /// Validates every setting and `time`, and builds the octaves.
     fn octaves(&self, name: &str, time: f64) -> Result<Vec<Octave>, FieldError> {
-        let invalid = |parameter, value: String, requirement| {
-            FieldError::invalid_parameter(name, parameter, value, requirement)
-        };
-        for (parameter, value) in [
+        let settings = Settings(name);
+        settings.fractions(&[
             ("coverage", self.coverage),
             ("base_fade", self.base_fade),
             ("top_fade", self.top_fade),
-        ] {
-            if !(0.0..=1.0).contains(&value) {
-                return Err(invalid(parameter, value.to_string(), "between 0 and 1"));
-            }
-        }
-        if !(0.0..1.0).contains(&self.sharpness) {
-            return Err(invalid(
-                "sharpness",
-                self.sharpness.to_string(),
-                "at least 0 and below 1",
-            ));
-        }
-        if !(0.0..=0.5).contains(&self.side_fade) {
-            return Err(invalid(
-                "side_fade",
-                self.side_fade.to_string(),
-                "between 0 and 0.5",
-            ));
-        }
-        if !(1..=MAX_OCTAVES).contains(&self.octaves) {
-            return Err(invalid(
-                "octaves",
-                self.octaves.to_string(),
-                "between 1 and 16",
-            ));
-        }
-        for (parameter, value) in [
+        ])?;
+        let sharpness = self.sharpness;
+        let below_one = (0.0..1.0).contains(&sharpness);
+        settings.require(below_one, "sharpness", sharpness, "at least 0 and below 1")?;
+        let side_fade = self.side_fade;
+        let ok = (0.0..=0.5).contains(&side_fade);
+        settings.require(ok, "side_fade", side_fade, "between 0 and 0.5")?;
+        let ok = (1..=MAX_OCTAVES).contains(&self.octaves);
+        settings.require(ok, "octaves", self.octaves, "between 1 and 16")?;
+        settings.positive(&[
             ("wavelength", self.wavelength),
             ("lacunarity", self.lacunarity),
             ("persistence", self.persistence),
             ("detail_wind", self.detail_wind),
-        ] {
-            if !(value.is_finite() && value > 0.0) {
-                return Err(invalid(parameter, value.to_string(), "finite and positive"));
-            }
-        }
-        if !(self.stretch.is_finite() && self.stretch.min_element() > 0.0) {
-            return Err(invalid(
-                "stretch",
-                self.stretch.to_string(),
-                "finite and positive on every axis",
-            ));
-        }
-        if !self.wind.is_finite() {
-            return Err(invalid(
-                "wind",
-                self.wind.to_string(),
-                "finite on every axis",
-            ));
-        }
-        if !time.is_finite() {
-            return Err(invalid("time", time.to_string(), "finite"));
-        }
+        ])?;
+        let stretch = self.stretch;
+        let ok = stretch.is_finite() && stretch.min_element() > 0.0;
+        settings.require(ok, "stretch", stretch, "finite and positive on every axis")?;
+        let wind = self.wind;
+        settings.require(wind.is_finite(), "wind", wind, "finite on every axis")?;
+        settings.require(time.is_finite(), "time", time, "finite")?;
         let amplitudes: Vec<f64> = (0..self.octaves)
             .map(|i| self.persistence.powi(i as i32))
             .collect();
         let norm = amplitudes.iter().map(|a| a * a).sum::<f64>().sqrt();
-        if !(norm.is_finite() && amplitudes.iter().all(|a| a.is_finite())) {
-            return Err(invalid(
-                "persistence",
-                self.persistence.to_string(),
-                "persistence^(octaves − 1) squared must stay finite",
-            ));
-        }
+        settings.require(
+            norm.is_finite() && amplitudes.iter().all(|a| a.is_finite()),
+            "persistence",
+            self.persistence,
+            "persistence^(octaves − 1) squared must stay finite",
+        )?;
         let mut octaves = Vec::with_capacity(self.octaves);
         for (i, amplitude) in amplitudes.into_iter().enumerate() {
             let frequency = self.lacunarity.powi(i as i32) / self.wavelength / self.stretch;
-            if !(frequency.is_finite() && frequency.min_element() > 0.0) {
-                return Err(invalid(
-                    "lacunarity",
-                    self.lacunarity.to_string(),
-                    "lacunarity^(octaves − 1) / (wavelength · stretch) must stay finite and positive",
-                ));
-            }
+            settings.require(
+                frequency.is_finite() && frequency.min_element() > 0.0,
+                "lacunarity",
+                self.lacunarity,
+                "lacunarity^(octaves − 1) / (wavelength · stretch) must stay finite and positive",
+            )?;
             let drift = self.wind * (time * self.detail_wind.powi(i as i32));
             let offset = DVec3::from(NOISE_OFFSET) - drift * frequency;
-            if !offset.is_finite() {
-                return Err(invalid(
-                    "time",
-                    time.to_string(),
-                    "wind · time · detail_wind^(octaves − 1) / wavelength must stay finite",
-                ));
-            }
+            settings.require(
+                offset.is_finite(),
+                "time",
+                time,
+                "wind · time · detail_wind^(octaves − 1) / wavelength must stay finite",
+            )?;
             let (std, ridge) = if self.wisps {
                 (PERLIN_ABS_STD, Some(PERLIN_ABS_MEAN))
             } else {
@@ -775,18 +738,7 @@ impl DensityGrid {
                 pace();
             }
         };
-        let threads = threads.clamp(1, nz);
-        if threads == 1 {
-            fill(0, &mut values);
-        } else {
-            let slices_per_thread = nz.div_ceil(threads);
-            std::thread::scope(|scope| {
-                for (t, chunk) in values.chunks_mut(nx * ny * slices_per_thread).enumerate() {
-                    let fill = &fill;
-                    scope.spawn(move || fill(t * slices_per_thread, chunk));
-                }
-            });
-        }
+        fill_slices(&mut values, nx * ny, threads, fill);
         Self::validated(name, dims, spacing, origin, values)
     }
 }

@@ -33,9 +33,9 @@
 
 use glam::DVec3;
 
-use super::{DensityGrid, FieldError, SAMPLE_BYTES, check_points};
+use super::{DensityGrid, FieldError, SAMPLE_BYTES, Settings, check_points};
 use crate::optics::exp_neg;
-use crate::pacing::{filled_paced, pace, worker_threads};
+use crate::pacing::{fill_slices, filled_paced, pace, worker_threads};
 
 /// Density change per voxel at which the Lambert weight `w` is one half.
 const GRADIENT_SOFTNESS: f64 = 0.05;
@@ -114,34 +114,18 @@ impl CloudLighting {
 
     /// Validates the settings; returns the unit sun direction.
     fn unit_sun(&self, name: &str) -> Result<DVec3, FieldError> {
-        let invalid = |parameter, value: String, requirement| {
-            FieldError::invalid_parameter(name, parameter, value, requirement)
-        };
-        for (parameter, value) in [("ambient", self.ambient), ("diffuse", self.diffuse)] {
-            if !(0.0..=1.0).contains(&value) {
-                return Err(invalid(parameter, value.to_string(), "between 0 and 1"));
-            }
-        }
-        if !(self.shadow_extinction.is_finite() && self.shadow_extinction >= 0.0) {
-            return Err(invalid(
-                "shadow_extinction",
-                self.shadow_extinction.to_string(),
-                "finite and ≥ 0",
-            ));
-        }
+        let settings = Settings(name);
+        settings.fractions(&[("ambient", self.ambient), ("diffuse", self.diffuse)])?;
+        settings.non_negative(&[("shadow_extinction", self.shadow_extinction)])?;
         let sun = self.sun_direction;
         let largest = sun.abs().max_element();
-        match (sun.is_finite() && largest > 0.0)
+        (sun.is_finite() && largest > 0.0)
             .then(|| (sun / largest).try_normalize())
             .flatten()
-        {
-            Some(unit) => Ok(unit),
-            None => Err(invalid(
-                "sun_direction",
-                sun.to_string(),
-                "finite and non-zero",
-            )),
-        }
+            .ok_or_else(|| {
+                let requirement = "finite and non-zero";
+                FieldError::invalid_parameter(name, "sun_direction", sun.to_string(), requirement)
+            })
     }
 }
 
@@ -184,7 +168,7 @@ pub fn light_field_with_threads(
     let diffuse = f64::from(lighting.diffuse);
     let sigma = f64::from(lighting.shadow_extinction);
     let shadow = sigma > 0.0;
-    let [nx, ny, nz] = grid.dims();
+    let [nx, ny, _] = grid.dims();
     let spacing = grid.spacing();
     let values = grid.values();
     let g0 = GRADIENT_SOFTNESS / (spacing.x * spacing.y * spacing.z).cbrt();
@@ -205,18 +189,7 @@ pub fn light_field_with_threads(
             chunk,
         });
     };
-    let threads = threads.clamp(1, nz);
-    if threads == 1 {
-        fill(0, &mut out);
-    } else {
-        let slices_per_thread = nz.div_ceil(threads);
-        std::thread::scope(|scope| {
-            for (t, chunk) in out.chunks_mut(nx * ny * slices_per_thread).enumerate() {
-                let fill = &fill;
-                scope.spawn(move || fill(t * slices_per_thread, chunk));
-            }
-        });
-    }
+    fill_slices(&mut out, nx * ny, threads, fill);
 
     if shadow {
         let arch = pulp::Arch::new();

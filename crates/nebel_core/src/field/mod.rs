@@ -253,6 +253,72 @@ impl FieldError {
     }
 }
 
+/// The settings of the source or generator it names, each checked against
+/// its range: the first out of it is a [`FieldError::InvalidParameter`].
+#[derive(Clone, Copy)]
+pub(crate) struct Settings<'a>(pub(crate) &'a str);
+
+impl Settings<'_> {
+    /// `Err` naming `parameter` and its `value` unless `ok`.
+    pub(crate) fn require(
+        self,
+        ok: bool,
+        parameter: &'static str,
+        value: impl std::fmt::Display,
+        requirement: &'static str,
+    ) -> Result<(), FieldError> {
+        if ok {
+            return Ok(());
+        }
+        Err(FieldError::invalid_parameter(
+            self.0,
+            parameter,
+            value.to_string(),
+            requirement,
+        ))
+    }
+
+    /// Each value finite and above 0.
+    pub(crate) fn positive<T>(self, values: &[(&'static str, T)]) -> Result<(), FieldError>
+    where
+        T: Copy + Into<f64> + std::fmt::Display,
+    {
+        self.each(values, |v| v.is_finite() && v > 0.0, "finite and positive")
+    }
+
+    /// Each value finite and at least 0.
+    pub(crate) fn non_negative<T>(self, values: &[(&'static str, T)]) -> Result<(), FieldError>
+    where
+        T: Copy + Into<f64> + std::fmt::Display,
+    {
+        self.each(values, |v| v.is_finite() && v >= 0.0, "finite and ≥ 0")
+    }
+
+    /// Each value between 0 and 1.
+    pub(crate) fn fractions<T>(self, values: &[(&'static str, T)]) -> Result<(), FieldError>
+    where
+        T: Copy + Into<f64> + std::fmt::Display,
+    {
+        self.each(values, |v| (0.0..=1.0).contains(&v), "between 0 and 1")
+    }
+
+    /// Each value `ok`, or an error that it must be `requirement`.
+    fn each<T>(
+        self,
+        values: &[(&'static str, T)],
+        ok: impl Fn(f64) -> bool,
+        requirement: &'static str,
+    ) -> Result<(), FieldError>
+    where
+        T: Copy + Into<f64> + std::fmt::Display,
+    {
+        for &(parameter, value) in values {
+            self.require(ok(value.into()), parameter, value, requirement)?;
+        }
+        Ok(())
+    }
+}
+
 /// Bytes per f32 sample of a grid or field.
 const SAMPLE_BYTES: u64 = size_of::<f32>() as u64;
 
@@ -326,44 +392,21 @@ fn check_dims(name: &str, dims: &[usize], len: usize) -> Result<(), FieldError> 
 
 /// Checks that a spacing is finite and positive on every axis.
 fn check_spacing(name: &str, spacing: &[f64]) -> Result<(), FieldError> {
-    if spacing.iter().all(|s| s.is_finite() && *s > 0.0) {
-        Ok(())
-    } else {
-        Err(FieldError::InvalidParameter {
-            name: name.to_owned(),
-            parameter: "spacing",
-            value: format!("{spacing:?}"),
-            requirement: "finite and positive on every axis",
-        })
-    }
+    let ok = spacing.iter().all(|s| s.is_finite() && *s > 0.0);
+    let requirement = "finite and positive on every axis";
+    Settings(name).require(ok, "spacing", format!("{spacing:?}"), requirement)
 }
 
 /// Checks that an origin is finite.
 fn check_origin(name: &str, origin: &[f64]) -> Result<(), FieldError> {
-    if origin.iter().all(|o| o.is_finite()) {
-        Ok(())
-    } else {
-        Err(FieldError::InvalidParameter {
-            name: name.to_owned(),
-            parameter: "origin",
-            value: format!("{origin:?}"),
-            requirement: "finite",
-        })
-    }
+    let ok = origin.iter().all(|o| o.is_finite());
+    Settings(name).require(ok, "origin", format!("{origin:?}"), "finite")
 }
 
 /// Checks that a height field's vertical scale is finite.
 fn check_vertical_scale(name: &str, vertical_scale: f64) -> Result<(), FieldError> {
-    if vertical_scale.is_finite() {
-        Ok(())
-    } else {
-        Err(FieldError::InvalidParameter {
-            name: name.to_owned(),
-            parameter: "vertical_scale",
-            value: vertical_scale.to_string(),
-            requirement: "finite",
-        })
-    }
+    let ok = vertical_scale.is_finite();
+    Settings(name).require(ok, "vertical_scale", vertical_scale, "finite")
 }
 
 /// Linear interpolation weights of a coordinate `u` (grid units) along an axis

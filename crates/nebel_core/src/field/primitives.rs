@@ -15,8 +15,8 @@ use std::sync::Arc;
 
 use glam::{DQuat, DVec3};
 
-use super::FieldError;
 use super::weather::WeatherMap;
+use super::{FieldError, Settings};
 
 /// One implicit ellipsoid of a cloud's shape, in the grid's frame (world
 /// units) at time 0 of the cloud's clock (in Bevy, the app's elapsed time).
@@ -125,42 +125,25 @@ impl Primitives {
         }
         let mut placed = Vec::with_capacity(shape.primitives.len());
         for (i, e) in shape.primitives.iter().enumerate() {
-            let invalid = |setting, value: String, requirement| {
-                FieldError::invalid_parameter(
-                    &format!("{name}, primitives[{i}]"),
-                    setting,
-                    value,
-                    requirement,
-                )
-            };
-            if !(e.radii.is_finite() && e.radii.min_element() > 0.0) {
-                return Err(invalid("radii", e.radii.to_string(), "finite and positive"));
-            }
-            if !(e.density.is_finite() && e.density >= 0.0) {
-                return Err(invalid("density", e.density.to_string(), "finite and ≥ 0"));
-            }
-            for (setting, finite, value) in [
-                ("centre", e.centre.is_finite(), e.centre.to_string()),
-                ("velocity", e.velocity.is_finite(), e.velocity.to_string()),
-                ("growth", e.growth.is_finite(), e.growth.to_string()),
-                ("rotation", e.rotation.is_finite(), e.rotation.to_string()),
-            ] {
-                if !finite {
-                    return Err(invalid(setting, value, "finite"));
-                }
-            }
-            if e.rotation.length_squared() == 0.0 {
-                return Err(invalid("rotation", e.rotation.to_string(), "not zero"));
-            }
+            let name = format!("{name}, primitives[{i}]");
+            let settings = Settings(&name);
+            let radii_ok = e.radii.is_finite() && e.radii.min_element() > 0.0;
+            settings.require(radii_ok, "radii", e.radii, "finite and positive")?;
+            settings.non_negative(&[("density", e.density)])?;
+            settings.require(e.centre.is_finite(), "centre", e.centre, "finite")?;
+            settings.require(e.velocity.is_finite(), "velocity", e.velocity, "finite")?;
+            settings.require(e.growth.is_finite(), "growth", e.growth, "finite")?;
+            settings.require(e.rotation.is_finite(), "rotation", e.rotation, "finite")?;
+            let turned = e.rotation.length_squared() != 0.0;
+            settings.require(turned, "rotation", e.rotation, "not zero")?;
             let scale = 1.0 + e.growth * time;
             let centre = e.centre + e.velocity * time;
-            if !(scale.is_finite() && centre.is_finite()) {
-                return Err(invalid(
-                    "velocity",
-                    e.velocity.to_string(),
-                    "centre + velocity · time and 1 + growth · time finite",
-                ));
-            }
+            settings.require(
+                scale.is_finite() && centre.is_finite(),
+                "velocity",
+                e.velocity,
+                "centre + velocity · time and 1 + growth · time finite",
+            )?;
             if scale <= 0.0 || e.density == 0.0 {
                 continue;
             }
@@ -176,13 +159,12 @@ impl Primitives {
                 axes.iter().map(|a| a.y * a.y).sum::<f64>().sqrt(),
                 axes.iter().map(|a| a.z * a.z).sum::<f64>().sqrt(),
             );
-            if !extent.is_finite() {
-                return Err(invalid(
-                    "radii",
-                    e.radii.to_string(),
-                    "small enough that radii · (1 + growth · time) squared stays finite",
-                ));
-            }
+            settings.require(
+                extent.is_finite(),
+                "radii",
+                e.radii,
+                "small enough that radii · (1 + growth · time) squared stays finite",
+            )?;
             placed.push(Placed {
                 centre,
                 inverse: rotation.inverse(),

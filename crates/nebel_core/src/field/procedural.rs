@@ -16,7 +16,8 @@ use glam::{DVec2, DVec3};
 use noise::{Fbm, MultiFractal, NoiseFn, Perlin, RidgedMulti};
 
 use super::{
-    DENSITY_GRID, DensityGrid, FieldError, HEIGHT_FIELD, HeightField, SAMPLE_BYTES, budgeted_points,
+    DENSITY_GRID, DensityGrid, FieldError, HEIGHT_FIELD, HeightField, SAMPLE_BYTES, Settings,
+    budgeted_points,
 };
 
 /// Shift of every sample position in noise units (first-octave cycles): the
@@ -80,41 +81,27 @@ enum Generator {
 
 impl ProceduralNoise {
     fn generator(&self, name: &str) -> Result<Generator, FieldError> {
-        let invalid = |parameter, value: String, requirement| {
-            FieldError::invalid_parameter(name, parameter, value, requirement)
-        };
-        if !(1..=32).contains(&self.octaves) {
-            return Err(invalid(
-                "octaves",
-                self.octaves.to_string(),
-                "between 1 and 32",
-            ));
-        }
-        for (parameter, value) in [
+        let settings = Settings(name);
+        let ok = (1..=32).contains(&self.octaves);
+        settings.require(ok, "octaves", self.octaves, "between 1 and 32")?;
+        settings.positive(&[
             ("frequency", self.frequency),
             ("lacunarity", self.lacunarity),
             ("persistence", self.persistence),
-        ] {
-            if !(value.is_finite() && value > 0.0) {
-                return Err(invalid(parameter, value.to_string(), "finite and positive"));
-            }
-        }
+        ])?;
         Ok(match self.kind {
-            NoiseKind::Fbm => Generator::Fbm(
-                Fbm::<Perlin>::new(self.seed)
-                    .set_octaves(self.octaves)
-                    .set_frequency(self.frequency)
-                    .set_lacunarity(self.lacunarity)
-                    .set_persistence(self.persistence),
-            ),
-            NoiseKind::Ridged => Generator::Ridged(
-                RidgedMulti::<Perlin>::new(self.seed)
-                    .set_octaves(self.octaves)
-                    .set_frequency(self.frequency)
-                    .set_lacunarity(self.lacunarity)
-                    .set_persistence(self.persistence),
-            ),
+            NoiseKind::Fbm => Generator::Fbm(self.fractal(Fbm::new(self.seed))),
+            NoiseKind::Ridged => Generator::Ridged(self.fractal(RidgedMulti::new(self.seed))),
         })
+    }
+
+    /// `noise` with these octaves, frequency, lacunarity and persistence.
+    fn fractal<T: MultiFractal>(&self, noise: T) -> T {
+        noise
+            .set_octaves(self.octaves)
+            .set_frequency(self.frequency)
+            .set_lacunarity(self.lacunarity)
+            .set_persistence(self.persistence)
     }
 }
 

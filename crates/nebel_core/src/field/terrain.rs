@@ -15,7 +15,7 @@
 use glam::DVec2;
 
 use super::{
-    FieldError, HEIGHT_FIELD, HeightField, NoiseKind, ProceduralNoise, SAMPLE_BYTES,
+    FieldError, HEIGHT_FIELD, HeightField, NoiseKind, ProceduralNoise, SAMPLE_BYTES, Settings,
     budgeted_points,
 };
 
@@ -78,20 +78,10 @@ impl HeightField {
         noise: &TerrainNoise,
     ) -> Result<Self, FieldError> {
         let name = "HeightField::terrain";
-        let invalid = |parameter: &'static str, value: f64| FieldError::InvalidParameter {
-            name: name.to_owned(),
-            parameter,
-            value: value.to_string(),
-            requirement: "finite and positive",
-        };
-        for (parameter, value) in [
+        Settings(name).positive(&[
             ("wavelength", noise.wavelength),
             ("exponent", noise.exponent),
-        ] {
-            if !(value.is_finite() && value > 0.0) {
-                return Err(invalid(parameter, value));
-            }
-        }
+        ])?;
         let settings = ProceduralNoise {
             kind: noise.kind,
             seed: noise.seed,

@@ -11,7 +11,9 @@
 
 use glam::DVec2;
 
-use super::{FieldError, HeightField, SAMPLE_BYTES, budgeted_points, check_vertical_scale};
+use super::{
+    FieldError, HeightField, SAMPLE_BYTES, Settings, budgeted_points, check_vertical_scale,
+};
 
 /// Settings of [`HeightField::value_noise`].
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -78,21 +80,10 @@ impl HeightField {
         relief: f64,
     ) -> Result<Self, FieldError> {
         let name = "HeightField::value_noise";
-        let invalid = |parameter, value: String, requirement| {
-            FieldError::invalid_parameter(name, parameter, value, requirement)
-        };
-        if !(1..=32).contains(&noise.octaves) {
-            return Err(invalid(
-                "octaves",
-                noise.octaves.to_string(),
-                "between 1 and 32",
-            ));
-        }
-        for (parameter, value) in [("wavelength", noise.wavelength), ("gain", noise.gain)] {
-            if !(value.is_finite() && value > 0.0) {
-                return Err(invalid(parameter, value.to_string(), "finite and positive"));
-            }
-        }
+        let settings = Settings(name);
+        let ok = (1..=32).contains(&noise.octaves);
+        settings.require(ok, "octaves", noise.octaves, "between 1 and 32")?;
+        settings.positive(&[("wavelength", noise.wavelength), ("gain", noise.gain)])?;
         check_vertical_scale(name, relief)?;
         // The f64 sums and the f32 heights are held together.
         let len = budgeted_points(

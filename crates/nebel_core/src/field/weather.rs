@@ -17,7 +17,7 @@ use glam::{DVec2, DVec3};
 use noise::{NoiseFn, Perlin};
 
 use super::cloud::{CloudNoise, LOGISTIC_SLOPE, PERLIN_STD, equalised};
-use super::{FieldError, HeightField, NOISE_OFFSET, smoothstep};
+use super::{FieldError, HeightField, NOISE_OFFSET, Settings, smoothstep};
 
 /// Half the width of the band of the type noise over which stratus turns
 /// into cumulus.
@@ -78,47 +78,29 @@ impl CloudWeather {
 
     /// Checks every setting, naming the offending one in errors of `name`.
     pub(super) fn check(&self, name: &str) -> Result<(), FieldError> {
-        let invalid = |parameter, value: String, requirement| {
-            FieldError::invalid_parameter(name, parameter, value, requirement)
-        };
-        if !(self.wavelength.is_finite() && self.wavelength >= 0.0) {
-            return Err(invalid(
-                "weather.wavelength",
-                self.wavelength.to_string(),
-                "finite and at least 0",
-            ));
-        }
-        for (parameter, value) in [
+        let settings = Settings(name);
+        let wavelength = self.wavelength;
+        let ok = wavelength.is_finite() && wavelength >= 0.0;
+        settings.require(
+            ok,
+            "weather.wavelength",
+            wavelength,
+            "finite and at least 0",
+        )?;
+        settings.fractions(&[
             ("weather.clear", self.clear),
             ("weather.overcast", self.overcast),
             ("weather.stratus", self.stratus),
-        ] {
-            if !(0.0..=1.0).contains(&value) {
-                return Err(invalid(parameter, value.to_string(), "between 0 and 1"));
-            }
-        }
-        if self.clear + self.overcast > 1.0 {
-            return Err(invalid(
-                "weather.overcast",
-                self.overcast.to_string(),
-                "at most 1 − clear",
-            ));
-        }
+        ])?;
+        let ok = self.clear + self.overcast <= 1.0;
+        settings.require(ok, "weather.overcast", self.overcast, "at most 1 − clear")?;
         check_stratus_top(name, "weather.stratus_top", self.stratus_top)
     }
 }
 
 fn check_stratus_top(name: &str, parameter: &'static str, value: f32) -> Result<(), FieldError> {
-    if value > 0.0 && value <= 1.0 {
-        Ok(())
-    } else {
-        Err(FieldError::invalid_parameter(
-            name,
-            parameter,
-            value.to_string(),
-            "above 0 and at most 1",
-        ))
-    }
+    let ok = value > 0.0 && value <= 1.0;
+    Settings(name).require(ok, parameter, value, "above 0 and at most 1")
 }
 
 /// A weather map given as data: coverage and, optionally, cloud type over
@@ -164,18 +146,10 @@ impl WeatherMap {
     ) -> Result<Self, FieldError> {
         let name = "WeatherMap::new";
         for (parameter, map) in [("coverage", Some(&coverage)), ("kind", kind.as_ref())] {
-            if let Some(bad) = map.and_then(|m| {
-                m.heights()
-                    .iter()
-                    .find(|v| !(0.0..=1.0).contains(*v))
-                    .copied()
-            }) {
-                return Err(FieldError::invalid_parameter(
-                    name,
-                    parameter,
-                    bad.to_string(),
-                    "every value between 0 and 1",
-                ));
+            let heights = map.map_or(&[][..], HeightField::heights);
+            if let Some(&bad) = heights.iter().find(|v| !(0.0..=1.0).contains(*v)) {
+                let requirement = "every value between 0 and 1";
+                Settings(name).require(false, parameter, bad, requirement)?;
             }
         }
         check_stratus_top(name, "stratus_top", stratus_top)?;
