@@ -35,23 +35,22 @@ pub struct AuroraShape {
 impl AuroraShape {
     /// Checks the shape's ranges.
     pub fn validate(&self) -> Result<(), TerrainError> {
-        let invalid = |parameter, value, requirement| {
-            Err(TerrainError::InvalidParameter {
-                parameter,
-                value,
-                requirement,
-            })
-        };
-        if !(self.extent.is_finite() && self.extent > 0.0) {
-            return invalid("aurora extent", self.extent, "finite and > 0");
-        }
-        if !self.bottom.is_finite() {
-            return invalid("aurora bottom", self.bottom, "finite");
-        }
-        if !(self.top.is_finite() && self.top > self.bottom) {
-            return invalid("aurora top", self.top, "finite and above the bottom");
-        }
-        Ok(())
+        let (extent, bottom, top) = (self.extent, self.bottom, self.top);
+        let check = TerrainError::check;
+        check(
+            extent.is_finite() && extent > 0.0,
+            "aurora extent",
+            extent,
+            "finite and > 0",
+        )?;
+        check(bottom.is_finite(), "aurora bottom", bottom, "finite")?;
+        let requirement = "finite and above the bottom";
+        check(
+            top.is_finite() && top > bottom,
+            "aurora top",
+            top,
+            requirement,
+        )
     }
 
     /// The curtains' layer over `strength` (`side × side` values in [0, 1],
@@ -67,13 +66,7 @@ impl AuroraShape {
         roughness_weight: f32,
     ) -> Result<SurfaceLayer, SurfaceLayerError> {
         self.validate()?;
-        if strength.len() != side * side || side < 2 {
-            return Err(TerrainError::MapLength {
-                side,
-                len: strength.len(),
-            }
-            .into());
-        }
+        TerrainError::check_map_length(side, strength.len())?;
         let span = self.top - self.bottom;
         let thickness: Vec<f32> = strength
             .iter()

@@ -42,26 +42,19 @@ pub struct CloudLayerShape {
 impl CloudLayerShape {
     /// Checks the shape's ranges.
     pub fn validate(&self) -> Result<(), TerrainError> {
-        let invalid = |parameter, value, requirement| {
-            Err(TerrainError::InvalidParameter {
-                parameter,
-                value,
-                requirement,
-            })
-        };
-        if !(self.extent.is_finite() && self.extent > 0.0) {
-            return invalid("cloud layer extent", self.extent, "finite and > 0");
-        }
-        if !self.base.is_finite() {
-            return invalid("cloud layer base", self.base, "finite");
-        }
-        if !(0.0..=1.0).contains(&self.sag) {
-            return invalid("cloud layer sag", self.sag, "in [0, 1]");
-        }
-        if !(0.0..=0.5).contains(&self.edge_fade) {
-            return invalid("cloud layer edge fade", self.edge_fade, "in [0, 0.5]");
-        }
-        Ok(())
+        let (extent, base, sag, fade) = (self.extent, self.base, self.sag, self.edge_fade);
+        let check = TerrainError::check;
+        let extent_ok = extent.is_finite() && extent > 0.0;
+        check(extent_ok, "cloud layer extent", extent, "finite and > 0")?;
+        check(base.is_finite(), "cloud layer base", base, "finite")?;
+        check(
+            (0.0..=1.0).contains(&sag),
+            "cloud layer sag",
+            sag,
+            "in [0, 1]",
+        )?;
+        let fade_ok = (0.0..=0.5).contains(&fade);
+        check(fade_ok, "cloud layer edge fade", fade, "in [0, 0.5]")
     }
 
     /// The layer of `thickness` (`side × side` values ≥ 0, `side = 2^k + 1`,
@@ -77,13 +70,7 @@ impl CloudLayerShape {
         roughness_weight: f32,
     ) -> Result<SurfaceLayer, SurfaceLayerError> {
         self.validate()?;
-        if thickness.len() != side * side || side < 2 {
-            return Err(TerrainError::MapLength {
-                side,
-                len: thickness.len(),
-            }
-            .into());
-        }
+        TerrainError::check_map_length(side, thickness.len())?;
         if let Some(index) = thickness.iter().position(|t| !t.is_finite()) {
             return Err(TerrainError::NonFiniteMapValue {
                 index,

@@ -59,13 +59,12 @@ impl TerrainHierarchy {
     /// budget ([`TerrainHierarchy::check_budget`]), before anything is
     /// allocated.
     pub fn new(field: HeightField, min_resolution: f32) -> Result<Self, TerrainError> {
-        if !(min_resolution.is_finite() && min_resolution >= MIN_RESOLUTION_LOWER_BOUND) {
-            return Err(TerrainError::InvalidParameter {
-                parameter: "min_resolution C",
-                value: f64::from(min_resolution),
-                requirement: "finite and at least 1.6 (the one-level rule needs C > √10/2)",
-            });
-        }
+        TerrainError::check(
+            min_resolution.is_finite() && min_resolution >= MIN_RESOLUTION_LOWER_BOUND,
+            "min_resolution C",
+            min_resolution,
+            "finite and at least 1.6 (the one-level rule needs C > √10/2)",
+        )?;
         let [nx, nz] = field.dims();
         let levels = (nx.max(2) - 1).trailing_zeros();
         if nx != nz || nx < 3 || (nx - 1) != 1 << levels || levels > MAX_LEVELS {
@@ -189,13 +188,9 @@ impl TerrainHierarchy {
         values: &[f32],
         weight: f32,
     ) -> Result<(), TerrainError> {
-        if !(weight.is_finite() && weight >= 0.0) {
-            return Err(TerrainError::InvalidParameter {
-                parameter: "extra roughness weight",
-                value: f64::from(weight),
-                requirement: "finite and not negative",
-            });
-        }
+        let weight_ok = weight.is_finite() && weight >= 0.0;
+        let requirement = "finite and not negative";
+        TerrainError::check(weight_ok, "extra roughness weight", weight, requirement)?;
         if dims != self.field.dims() {
             return Err(TerrainError::DimsMismatch {
                 terrain: self.field.dims(),

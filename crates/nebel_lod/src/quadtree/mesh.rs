@@ -286,24 +286,23 @@ impl TerrainHierarchy {
                 });
             }
         }
-        if values.is_some() && map.is_none() {
-            return Err(TerrainError::InvalidParameter {
-                parameter: "values",
-                value: f64::NAN,
-                requirement: "given with a map (the values ride on the map's cells)",
-            });
-        }
+        let requirement = "given with a map (the values ride on the map's cells)";
+        TerrainError::check(
+            values.is_none() || map.is_some(),
+            "values",
+            f64::NAN,
+            requirement,
+        )?;
         if !eye.is_finite() {
             return Err(TerrainError::NonFiniteEye { eye });
         }
         let c = settings.accuracy;
-        if !(c.is_finite() && c > 0.0) {
-            return Err(TerrainError::InvalidParameter {
-                parameter: "accuracy c",
-                value: f64::from(c),
-                requirement: "finite and positive",
-            });
-        }
+        TerrainError::check(
+            c.is_finite() && c > 0.0,
+            "accuracy c",
+            c,
+            "finite and positive",
+        )?;
         mesh.clear();
         let origin = self.origin();
         let local_eye = eye - origin;

@@ -184,5 +184,33 @@ pub enum TerrainError {
     OverBudget(#[from] BudgetError),
 }
 
+impl TerrainError {
+    /// `Err` of [`TerrainError::MapLength`] unless `len` is `side²` and
+    /// `side` at least 2.
+    pub fn check_map_length(side: usize, len: usize) -> Result<(), Self> {
+        if side >= 2 && side.checked_mul(side) == Some(len) {
+            return Ok(());
+        }
+        Err(Self::MapLength { side, len })
+    }
+
+    /// `Err` of [`TerrainError::InvalidParameter`] unless `ok`.
+    pub fn check(
+        ok: bool,
+        parameter: &'static str,
+        value: impl Into<f64>,
+        requirement: &'static str,
+    ) -> Result<(), Self> {
+        if ok {
+            return Ok(());
+        }
+        Err(Self::InvalidParameter {
+            parameter,
+            value: value.into(),
+            requirement,
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests;

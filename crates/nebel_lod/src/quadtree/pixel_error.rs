@@ -70,22 +70,24 @@ pub fn accuracy_for_pixel_error(
     viewport: [u32; 2],
     min_resolution: f32,
 ) -> Result<f64, TerrainError> {
-    let invalid = |parameter, value: f64, requirement| TerrainError::InvalidParameter {
-        parameter,
-        value,
-        requirement,
-    };
-    if !(pixel_error.is_finite() && pixel_error > 0.0) {
-        return Err(invalid("pixel_error", pixel_error, "finite and > 0"));
-    }
-    if viewport.contains(&0) {
-        let value = f64::from(viewport[0].min(viewport[1]));
-        return Err(invalid("viewport", value, "at least one pixel each way"));
-    }
+    let check = TerrainError::check;
+    let pixel_error_ok = pixel_error.is_finite() && pixel_error > 0.0;
+    check(pixel_error_ok, "pixel_error", pixel_error, "finite and > 0")?;
+    let smaller_side = f64::from(viewport[0].min(viewport[1]));
+    check(
+        smaller_side > 0.0,
+        "viewport",
+        smaller_side,
+        "at least one pixel each way",
+    )?;
     let min_resolution = f64::from(min_resolution);
-    if !(min_resolution.is_finite() && min_resolution >= 1.0) {
-        return Err(invalid("min_resolution", min_resolution, "finite and >= 1"));
-    }
+    let resolution_ok = min_resolution.is_finite() && min_resolution >= 1.0;
+    check(
+        resolution_ok,
+        "min_resolution",
+        min_resolution,
+        "finite and >= 1",
+    )?;
     let spread = pixels_per_tangent(clip_from_view, viewport)?
         * (1.0 + largest_tangent_squared(clip_from_view)?);
     Ok(spread / (2.0 * pixel_error * (1.0 - 0.5 / min_resolution)))
