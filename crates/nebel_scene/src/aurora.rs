@@ -27,7 +27,7 @@
 
 use std::path::Path;
 
-use glam::{DVec2, DVec3};
+use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
 use nebel_core::field::{AuroraCurtains, HeightField};
@@ -194,24 +194,16 @@ impl AuroraDescription {
     /// Loads the map (if any) and builds the transfer function with ρ times
     /// `brightness`; `scene_dir` resolves their paths. Errors name the field.
     pub fn build(&self, scene_dir: &Path) -> Result<BuiltAurora, InvalidField> {
-        let map = self
-            .map
-            .as_ref()
-            .map(|path| {
-                HeightField::load_png(scene_dir.join(path), DVec2::ONE, DVec2::ZERO, 1.0)
-                    .map_err(|error| InvalidField::new("map", error.to_string()))
-            })
-            .transpose()?;
-        let transfer_function = self
-            .transfer
-            .clone()
-            .unwrap_or(TransferDescription::Preset(TransferPreset::Aurora))
-            .build(scene_dir)
-            .and_then(|tf| tf.scale_density(self.brightness))
-            .map_err(|error| InvalidField::new("transfer", error.to_string()))?;
+        let load = |path: &String| InvalidField::load_map(scene_dir, path, "map");
+        let transfer = self.transfer.as_ref();
         Ok(BuiltAurora {
-            map,
-            transfer_function,
+            map: self.map.as_ref().map(load).transpose()?,
+            transfer_function: TransferDescription::scaled(
+                transfer,
+                TransferPreset::Aurora,
+                scene_dir,
+                self.brightness,
+            )?,
         })
     }
 

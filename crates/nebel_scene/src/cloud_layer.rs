@@ -31,7 +31,7 @@
 
 use std::path::Path;
 
-use glam::{DVec2, DVec3};
+use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
 use nebel_core::field::{CloudLighting, FogNoise, HeightField, TerrainNoise};
@@ -170,10 +170,7 @@ impl CloudLayerDescription {
     /// Loads the maps (if any) and builds the transfer function with ρ times
     /// `density`; `scene_dir` resolves their paths.
     pub fn build(&self, scene_dir: &Path) -> Result<BuiltCloudLayer, InvalidField> {
-        let load = |path: &str, field: &str| {
-            HeightField::load_png(scene_dir.join(path), DVec2::ONE, DVec2::ZERO, 1.0)
-                .map_err(|error| InvalidField::new(field, error.to_string()))
-        };
+        let load = |path: &str, field: &str| InvalidField::load_map(scene_dir, path, field);
         let maps = self
             .maps
             .as_ref()
@@ -184,13 +181,12 @@ impl CloudLayerDescription {
                 ))
             })
             .transpose()?;
-        let transfer_function = self
-            .transfer
-            .clone()
-            .unwrap_or(TransferDescription::Preset(TransferPreset::CloudLight))
-            .build(scene_dir)
-            .and_then(|tf| tf.scale_density(self.density))
-            .map_err(|error| InvalidField::new("transfer", error.to_string()))?;
+        let transfer_function = TransferDescription::scaled(
+            self.transfer.as_ref(),
+            TransferPreset::CloudLight,
+            scene_dir,
+            self.density,
+        )?;
         Ok(BuiltCloudLayer {
             maps,
             transfer_function,

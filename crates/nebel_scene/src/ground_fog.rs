@@ -128,14 +128,7 @@ impl GroundFogDescription {
                 ">= 0",
             ),
         ];
-        for (field, value, ok, requirement) in checks {
-            if !(value.is_finite() && ok) {
-                return Err(InvalidField::new(
-                    field,
-                    format!("must be finite and {requirement}, got {value}"),
-                ));
-            }
-        }
+        InvalidField::check_finite(checks)?;
         if self.saturate && self.mode != OpticalMode::Emissive {
             return Err(InvalidField::new(
                 "saturate",
@@ -197,22 +190,23 @@ impl GroundFogDescription {
     /// Errors name the field (relative to the fog).
     pub fn build(&self, scene_dir: &Path) -> Result<BuiltGroundFog, InvalidField> {
         let map = match &self.thickness {
-            FogThicknessDescription::Png(map) => Some(
-                HeightField::load_png(scene_dir.join(&map.path), DVec2::ONE, DVec2::ZERO, 1.0)
-                    .map_err(|error| InvalidField::new("thickness.Png.path", error.to_string()))?,
-            ),
+            FogThicknessDescription::Png(map) => Some(InvalidField::load_map(
+                scene_dir,
+                &map.path,
+                "thickness.Png.path",
+            )?),
             _ => None,
         };
-        let transfer_function = self
-            .transfer
-            .clone()
-            .unwrap_or(TransferDescription::Preset(TransferPreset::GroundFog))
-            .build(scene_dir)
-            .and_then(|tf| tf.scale_density(self.density))
-            .map_err(|error| InvalidField::new("transfer", error.to_string()))?;
+        let transfer = self.transfer.as_ref();
+        let preset = TransferPreset::GroundFog;
         Ok(BuiltGroundFog {
+            transfer_function: TransferDescription::scaled(
+                transfer,
+                preset,
+                scene_dir,
+                self.density,
+            )?,
             map,
-            transfer_function,
         })
     }
 

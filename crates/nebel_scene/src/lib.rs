@@ -46,11 +46,12 @@ pub use volume::{
 
 use std::path::{Path, PathBuf};
 
-use glam::DVec3;
+use glam::{DVec2, DVec3};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use nebel_core::budget::{BudgetError, Dims, check_allocation, check_bytes};
+use nebel_core::field::HeightField;
 use nebel_reference::ReferenceCamera;
 use nebel_reference::image_metrics::LinearImage;
 
@@ -871,10 +872,7 @@ impl SceneDescription {
     /// ([`TerrainDescription::unit_heights`]); `None` without a terrain.
     /// `scene_path` is the scene file: it names the file in errors and
     /// resolves the PNG's relative path.
-    pub fn build_terrain(
-        &self,
-        scene_path: &Path,
-    ) -> Result<Option<nebel_core::field::HeightField>, SceneError> {
+    pub fn build_terrain(&self, scene_path: &Path) -> Result<Option<HeightField>, SceneError> {
         let Some(terrain) = &self.terrain else {
             return Ok(None);
         };
@@ -911,7 +909,7 @@ impl SceneDescription {
     pub fn build_fog_reference(
         &self,
         scene_path: &Path,
-        unit: &nebel_core::field::HeightField,
+        unit: &HeightField,
         built: &BuiltGroundFog,
     ) -> Result<Option<FogReference>, SceneError> {
         let Some(terrain) = &self.terrain else {
@@ -965,6 +963,27 @@ impl InvalidField {
             field: invalid.field,
             reason: invalid.reason,
         }
+    }
+
+    /// The first `(field, value, ok, requirement)` whose value is not finite
+    /// or not `ok`, as an error that it must be finite and `requirement`.
+    fn check_finite<const N: usize>(checks: [(&str, f32, bool, &str); N]) -> Result<(), Self> {
+        for (field, value, ok, requirement) in checks {
+            if !(value.is_finite() && ok) {
+                return Err(Self::new(
+                    field,
+                    format!("must be finite and {requirement}, got {value}"),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The grayscale map at `path`, relative to `scene_dir`, as a unit
+    /// height field; errors name the scene file's `field`.
+    fn load_map(scene_dir: &Path, path: &str, field: &str) -> Result<HeightField, Self> {
+        HeightField::load_png(scene_dir.join(path), DVec2::ONE, DVec2::ZERO, 1.0)
+            .map_err(|error| Self::new(field, error.to_string()))
     }
 
     fn new(field: impl Into<String>, reason: impl Into<String>) -> Self {

@@ -303,14 +303,7 @@ impl TerrainDescription {
                 ">= 1.6 (the one-level rule of the quadtree needs C > √10/2)",
             ),
         ];
-        for (field, value, ok, requirement) in checks {
-            if !(value.is_finite() && ok) {
-                return Err(InvalidField::new(
-                    field,
-                    format!("must be finite and {requirement}, got {value}"),
-                ));
-            }
-        }
+        InvalidField::check_finite(checks)?;
         match &self.source {
             TerrainHeightSource::Procedural(procedural) => {
                 let field = "source.Procedural";

@@ -55,7 +55,7 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use glam::{DQuat, DVec2, DVec3};
+use glam::{DQuat, DVec3};
 use serde::{Deserialize, Serialize};
 
 use super::InvalidField;
@@ -67,7 +67,7 @@ use nebel_core::field::effects::{
 };
 use nebel_core::field::{
     CloudEllipsoid, CloudKind, CloudLighting, CloudNoise, CloudShape, CloudWeather, DensityGrid,
-    FieldError, HeightField, NoiseKind, ProceduralNoise, WeatherMap, power_of_two_plus_one,
+    FieldError, NoiseKind, ProceduralNoise, WeatherMap, power_of_two_plus_one,
 };
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{ControlPoint, TransferError, TransferFunction, TransferPreset};
@@ -374,10 +374,7 @@ impl CloudSource {
         let Some(WeatherDescription::Map(map)) = &self.weather else {
             return Ok(None);
         };
-        let load = |field: &str, path: &str| {
-            HeightField::load_png(scene_dir.join(path), DVec2::ONE, DVec2::ZERO, 1.0)
-                .map_err(|error| InvalidField::new(field, error.to_string()))
-        };
+        let load = |field: &str, path: &str| InvalidField::load_map(scene_dir, path, field);
         let coverage = load("source.Cloud.weather.coverage", &map.coverage)?;
         let kind = map
             .kind
@@ -650,6 +647,23 @@ impl TransferDescription {
             }
         }
     }
+
+    /// The transfer function of `description`, or `preset` without one, its
+    /// density scaled by `scale`; errors name the field `transfer`.
+    pub(crate) fn scaled(
+        description: Option<&Self>,
+        preset: TransferPreset,
+        scene_dir: &Path,
+        scale: f32,
+    ) -> Result<TransferFunction, InvalidField> {
+        let built = match description {
+            Some(description) => description.build(scene_dir),
+            None => Ok(TransferFunction::preset(preset)),
+        };
+        built
+            .and_then(|tf| tf.scale_density(scale))
+            .map_err(|error| InvalidField::new("transfer", error.to_string()))
+    }
 }
 
 /// A transfer function from a PNG strip.
@@ -865,14 +879,12 @@ impl VolumeDescription {
             }
             _ => (TransferPreset::Cloud, OpticalMode::Sorted),
         };
-        let description = self
-            .transfer
-            .clone()
-            .unwrap_or(TransferDescription::Preset(default_preset));
-        let transfer = description
-            .build(scene_dir)
-            .and_then(|tf| tf.scale_density(self.density_scale))
-            .map_err(|error| InvalidField::new("transfer", error.to_string()))?;
+        let transfer = TransferDescription::scaled(
+            self.transfer.as_ref(),
+            default_preset,
+            scene_dir,
+            self.density_scale,
+        )?;
         Ok(BuiltVolume {
             field,
             transfer_function: transfer,
