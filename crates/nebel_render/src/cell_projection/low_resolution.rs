@@ -146,47 +146,40 @@ impl ResamplePipelines {
         if key.multisampled {
             shader_defs.push("MULTISAMPLED".into());
         }
-        let multisampled = usize::from(key.multisampled);
-        let descriptor = if key.upsample {
-            RenderPipelineDescriptor {
-                label: Some("nebel_cell_upsample_pipeline".into()),
-                layout: vec![self.upsample_layouts[multisampled].clone()],
-                vertex: self.fullscreen_vertex.clone(),
-                fragment: Some(FragmentState {
-                    shader: self.shader.clone(),
-                    shader_defs,
-                    entry_point: Some("upsample".into()),
-                    targets: vec![Some(ColorTargetState {
-                        format: key.format,
-                        blend: None,
-                        write_mask: ColorWrites::ALL,
-                    })],
-                }),
-                // The pixels it fills are marked resolved.
-                depth_stencil: Some(stencil_state(
-                    CompareFunction::Always,
-                    StencilOperation::Replace,
-                    RESOLVED,
-                )),
-                ..default()
-            }
+        let (name, layouts, format, depth_stencil) = if key.upsample {
+            // The pixels it fills are marked resolved.
+            let resolve =
+                stencil_state(CompareFunction::Always, StencilOperation::Replace, RESOLVED);
+            (
+                "upsample",
+                &self.upsample_layouts,
+                key.format,
+                Some(resolve),
+            )
         } else {
-            RenderPipelineDescriptor {
-                label: Some("nebel_cell_downsample_pipeline".into()),
-                layout: vec![self.downsample_layouts[multisampled].clone()],
-                vertex: self.fullscreen_vertex.clone(),
-                fragment: Some(FragmentState {
-                    shader: self.shader.clone(),
-                    shader_defs,
-                    entry_point: Some("downsample".into()),
-                    targets: vec![Some(ColorTargetState {
-                        format: LOW_DEPTH_FORMAT,
-                        blend: None,
-                        write_mask: ColorWrites::ALL,
-                    })],
-                }),
-                ..default()
-            }
+            (
+                "downsample",
+                &self.downsample_layouts,
+                LOW_DEPTH_FORMAT,
+                None,
+            )
+        };
+        let descriptor = RenderPipelineDescriptor {
+            label: Some(format!("nebel_cell_{name}_pipeline").into()),
+            layout: vec![layouts[usize::from(key.multisampled)].clone()],
+            vertex: self.fullscreen_vertex.clone(),
+            fragment: Some(FragmentState {
+                shader: self.shader.clone(),
+                shader_defs,
+                entry_point: Some(name.into()),
+                targets: vec![Some(ColorTargetState {
+                    format,
+                    blend: None,
+                    write_mask: ColorWrites::ALL,
+                })],
+            }),
+            depth_stencil,
+            ..default()
         };
         let id = pipeline_cache.queue_render_pipeline(descriptor);
         self.pipelines.insert(key, id);

@@ -25,6 +25,7 @@ use bevy::shader::ShaderDefVal;
 use nebel_core::optics::OpticalMode;
 
 use super::pipeline::{cell_stencil, under_blend};
+use super::resources::render_target;
 
 /// The most batches one merge pass composites.
 pub(super) const MAX_MERGED: usize = 8;
@@ -220,25 +221,8 @@ impl MergeTargets {
         (format, span_format): (TextureFormat, TextureFormat),
         pipeline: CachedRenderPipelineId,
     ) -> Self {
-        let mut target = |label, format| {
-            texture_cache.get(
-                device,
-                TextureDescriptor {
-                    label: Some(label),
-                    size: Extent3d {
-                        width: size.x,
-                        height: size.y,
-                        depth_or_array_layers: layers,
-                    },
-                    mip_level_count: 1,
-                    sample_count: 1,
-                    dimension: TextureDimension::D2,
-                    format,
-                    usage: TextureUsages::RENDER_ATTACHMENT | TextureUsages::TEXTURE_BINDING,
-                    view_formats: &[],
-                },
-            )
-        };
+        let mut target =
+            |label, format| render_target(texture_cache, device, label, size, layers, format);
         let colour = target("nebel_cell_merge_colour", format);
         let span = target("nebel_cell_merge_span", span_format);
         let layer = |texture: &CachedTexture, layer| {

@@ -575,24 +575,8 @@ pub fn prepare_cell_views(
         };
         let settings = settings.copied().unwrap_or_default();
         let divisor = settings.resolution.divisor();
-        let mut target = |label, size: UVec2, format| {
-            texture_cache.get(
-                &device,
-                TextureDescriptor {
-                    label: Some(label),
-                    size: Extent3d {
-                        width: size.x,
-                        height: size.y,
-                        depth_or_array_layers: 1,
-                    },
-                    mip_level_count: 1,
-                    sample_count: 1,
-                    dimension: TextureDimension::D2,
-                    format,
-                    usage: TextureUsages::RENDER_ATTACHMENT | TextureUsages::TEXTURE_BINDING,
-                    view_formats: &[],
-                },
-            )
+        let mut target = |label, size, format| {
+            render_target(&mut texture_cache, &device, label, size, 1, format)
         };
         let accumulation = target("nebel_cell_accumulation", size, format);
         let stencil = (settings.early_termination || divisor > 1)
@@ -726,4 +710,33 @@ pub fn prepare_cell_views(
     }
     uniforms.0.write_buffer(&device, &queue);
     upsample_uniforms.0.write_buffer(&device, &queue);
+}
+
+/// A 2D render target of `layers` layers from the texture cache, one that
+/// later passes also sample.
+pub(super) fn render_target(
+    texture_cache: &mut TextureCache,
+    device: &RenderDevice,
+    label: &'static str,
+    size: UVec2,
+    layers: u32,
+    format: TextureFormat,
+) -> CachedTexture {
+    texture_cache.get(
+        device,
+        TextureDescriptor {
+            label: Some(label),
+            size: Extent3d {
+                width: size.x,
+                height: size.y,
+                depth_or_array_layers: layers,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: TextureDimension::D2,
+            format,
+            usage: TextureUsages::RENDER_ATTACHMENT | TextureUsages::TEXTURE_BINDING,
+            view_formats: &[],
+        },
+    )
 }
