@@ -51,3 +51,4 @@ pub use cloud_layer::{
 };
 pub use error::SkyLayerError;
 pub use nebel_core::field::{AuroraCurtains, FogNoise};
+pub use sky_layer::SkyLayerStats;

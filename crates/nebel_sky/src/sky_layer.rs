@@ -28,7 +28,6 @@ use std::time::Instant;
 use bevy::camera::CameraUpdateSystems;
 use bevy::camera::visibility::VisibilitySystems;
 use bevy::diagnostic::{DiagnosticPath, Diagnostics};
-use bevy::ecs::component::Mutable;
 use bevy::math::DVec3;
 use bevy::prelude::*;
 use nebel_core::optics::OpticalMode;
@@ -99,8 +98,6 @@ pub trait SkyLayer: Component + Sized {
     /// What a build of its layer reads besides the key: the values of its
     /// maps, taken from the assets on the frame's thread.
     type LayerInput: Send + 'static;
-    /// Its statistics component.
-    type Stats: Component<Mutability = Mutable> + Default;
     /// Its name in the log.
     const NAME: &'static str;
     /// Its diagnostics: layers drawn, their tetrahedra, and the time of a
@@ -140,10 +137,44 @@ pub trait SkyLayer: Component + Sized {
     /// Its prisms' levels, scalar and order, with `sun` the direction toward
     /// the sun in the layer's frame.
     fn drawing(&self, key: &Self::LayerKey, sun: DVec3) -> (FogProfile, PrismScalar, CellOrder);
-    /// Records an update in its statistics.
-    fn record(stats: &mut Self::Stats, counts: LayerStats, build_ms: Option<f32>, update_ms: f32);
-    /// The tetrahedra its statistics count.
-    fn tetrahedra(stats: &Self::Stats) -> u32;
+}
+
+/// Statistics of a sky layer ([`Aurora`](crate::Aurora) or
+/// [`CloudLayer`](crate::CloudLayer)), updated by its plugin. An entity holds
+/// one sky layer, as it holds one status.
+#[derive(Component, Clone, Copy, Debug, Default, PartialEq, Reflect)]
+#[reflect(Component, Default, Clone)]
+pub struct SkyLayerStats {
+    /// Triangles of the layer's refined quadtree in the last update.
+    pub triangles: u32,
+    /// Of them, those under the medium (curtains or clouds), each a column
+    /// of prisms.
+    pub prisms: u32,
+    /// Tetrahedra drawn.
+    pub tetrahedra: u32,
+    /// Updates of the cells so far.
+    pub updates: u64,
+    /// Time of the last layer and quadtree build, ms (an animated aurora's
+    /// footprint builds them again every time).
+    pub build_ms: f32,
+    /// Time of the last build on a worker (layer and quadtree when built,
+    /// refinement and prisms), ms.
+    pub update_ms: f32,
+}
+
+impl SkyLayerStats {
+    /// Records an update: its counts, the layer's build time if it was
+    /// built, and the whole build's time.
+    fn record(&mut self, counts: LayerStats, build_ms: Option<f32>, update_ms: f32) {
+        *self = Self {
+            triangles: counts.triangles as u32,
+            prisms: counts.prisms as u32,
+            tetrahedra: counts.tetrahedra as u32,
+            updates: self.updates + 1,
+            build_ms: build_ms.unwrap_or(self.build_ms),
+            update_ms,
+        };
+    }
 }
 
 /// Adds the systems of the layer `T` (in [`PostUpdate`], after the camera's
@@ -264,7 +295,7 @@ fn remove_sky_layers<T: SkyLayer>(mut commands: Commands, mut removed: RemovedCo
                 CellBatch,
                 SkyLayerState<T>,
                 EffectStatus<SkyLayerError>,
-                T::Stats,
+                SkyLayerStats,
             )>();
         }
     }
@@ -287,7 +318,7 @@ fn update_sky_layers<T: SkyLayer>(
         Has<CellBatch>,
         &mut SkyLayerState<T>,
         &mut EffectStatus<SkyLayerError>,
-        &mut T::Stats,
+        &mut SkyLayerStats,
     )>,
     maps: Res<Assets<GrayscaleMap>>,
     asset_server: Res<AssetServer>,
@@ -483,7 +514,7 @@ fn update_sky_layers<T: SkyLayer>(
                 T::MODE,
             ));
         }
-        T::record(&mut stats, built.counts, built.build_ms, built.update_ms);
+        stats.record(built.counts, built.build_ms, built.update_ms);
         *frame_ms.get_or_insert(0.0) += f64::from(built.update_ms);
     }
     if let Some(ms) = frame_ms {
@@ -493,18 +524,18 @@ fn update_sky_layers<T: SkyLayer>(
 
 /// Measures the layers' totals; nothing in a world without one.
 fn measure_sky_layers<T: SkyLayer>(
-    layers: Query<(&T::Stats, Has<CellBatch>), With<T>>,
+    layers: Query<(&SkyLayerStats, Has<CellBatch>), With<T>>,
     mut diagnostics: Diagnostics,
 ) {
     if layers.is_empty() {
         return;
     }
-    let (drawn, tetrahedra) = layers.iter().filter(|(_, has_batch)| *has_batch).fold(
-        (0.0, 0.0),
-        |(drawn, tetrahedra), (stats, _)| {
-            (drawn + 1.0, tetrahedra + f64::from(T::tetrahedra(stats)))
-        },
-    );
+    let (drawn, tetrahedra) = layers
+        .iter()
+        .filter(|(_, has_batch)| *has_batch)
+        .fold((0.0, 0.0), |(drawn, tetrahedra), (stats, _)| {
+            (drawn + 1.0, tetrahedra + f64::from(stats.tetrahedra))
+        });
     diagnostics.add_measurement(&T::DRAWN, || drawn);
     diagnostics.add_measurement(&T::TETRAHEDRA, || tetrahedra);
 }

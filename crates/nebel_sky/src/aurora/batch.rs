@@ -15,10 +15,10 @@ use nebel_core::field::AuroraCurtains;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
-use nebel_lod::{AuroraShape, CellOrder, FogProfile, LayerStats, PrismScalar, SurfaceLayer};
+use nebel_lod::{AuroraShape, CellOrder, FogProfile, PrismScalar, SurfaceLayer};
 use nebel_render::GrayscaleMap;
 
-use super::{Aurora, AuroraFootprint, AuroraPlugin, AuroraStats};
+use super::{Aurora, AuroraFootprint, AuroraPlugin};
 use crate::SkyLayerError;
 use crate::sky_layer::{SkyLayer, SkyLayerState, map_values};
 
@@ -47,7 +47,6 @@ pub enum FootprintInput {
 impl SkyLayer for Aurora {
     type LayerKey = AuroraLayerKey;
     type LayerInput = FootprintInput;
-    type Stats = AuroraStats;
     const NAME: &'static str = "aurora";
     const DRAWN: DiagnosticPath = AuroraPlugin::AURORAS;
     const TETRAHEDRA: DiagnosticPath = AuroraPlugin::TETRAHEDRA;
@@ -129,20 +128,5 @@ impl SkyLayer for Aurora {
             key.shape.scalar(),
             CellOrder::Unordered,
         )
-    }
-
-    fn record(stats: &mut AuroraStats, counts: LayerStats, build_ms: Option<f32>, update_ms: f32) {
-        *stats = AuroraStats {
-            triangles: counts.triangles as u32,
-            prisms: counts.prisms as u32,
-            tetrahedra: counts.tetrahedra as u32,
-            updates: stats.updates + 1,
-            build_ms: build_ms.unwrap_or(stats.build_ms),
-            update_ms,
-        };
-    }
-
-    fn tetrahedra(stats: &AuroraStats) -> u32 {
-        stats.tetrahedra
     }
 }

@@ -46,7 +46,7 @@ use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_render::{EffectStatus, GrayscaleMap};
 
 use crate::SkyLayerError;
-use crate::sky_layer::add_sky_layer;
+use crate::sky_layer::{SkyLayerStats, add_sky_layer};
 use batch::AuroraState;
 
 /// Adds [`Aurora`] and its systems (in [`PostUpdate`], after the camera's
@@ -157,24 +157,7 @@ impl Default for Aurora {
 pub type AuroraStatus = EffectStatus<SkyLayerError>;
 
 /// Statistics of an [`Aurora`], updated by the plugin.
-#[derive(Component, Clone, Copy, Debug, Default, PartialEq, Reflect)]
-#[reflect(Component, Default, Clone)]
-pub struct AuroraStats {
-    /// Triangles of the footprint's refined quadtree in the last update.
-    pub triangles: u32,
-    /// Of them, those under a curtain (each a prism of three tetrahedra).
-    pub prisms: u32,
-    /// Tetrahedra drawn.
-    pub tetrahedra: u32,
-    /// Updates of the cells so far.
-    pub updates: u64,
-    /// Time of the last footprint and quadtree build, ms (every build while
-    /// animated).
-    pub build_ms: f32,
-    /// Time of the last build on a worker: footprint and quadtree (if
-    /// any), refinement and prisms, ms.
-    pub update_ms: f32,
-}
+pub type AuroraStats = SkyLayerStats;
 
 impl Aurora {
     /// Checks the settings the footprint and layer do not check themselves.

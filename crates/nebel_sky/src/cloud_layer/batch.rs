@@ -12,12 +12,11 @@ use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
 use nebel_lod::{
-    CellOrder, CloudLayerShape, FogProfile, LayerStats, LayerTop, PrismScalar, SurfaceLayer,
-    SurfaceLayerError,
+    CellOrder, CloudLayerShape, FogProfile, LayerTop, PrismScalar, SurfaceLayer, SurfaceLayerError,
 };
 use nebel_render::GrayscaleMap;
 
-use super::{CloudLayer, CloudLayerPlugin, CloudLayerSource, CloudLayerStats};
+use super::{CloudLayer, CloudLayerPlugin, CloudLayerSource};
 use crate::SkyLayerError;
 use crate::sky_layer::{SkyLayer, SkyLayerState, map_values};
 
@@ -48,7 +47,6 @@ pub enum SurfacesInput {
 impl SkyLayer for CloudLayer {
     type LayerKey = CloudLayerKey;
     type LayerInput = SurfacesInput;
-    type Stats = CloudLayerStats;
     const NAME: &'static str = "cloud layer";
     const DRAWN: DiagnosticPath = CloudLayerPlugin::LAYERS;
     const TETRAHEDRA: DiagnosticPath = CloudLayerPlugin::TETRAHEDRA;
@@ -154,25 +152,5 @@ impl SkyLayer for CloudLayer {
             },
             CellOrder::BackToFront,
         )
-    }
-
-    fn record(
-        stats: &mut CloudLayerStats,
-        counts: LayerStats,
-        build_ms: Option<f32>,
-        update_ms: f32,
-    ) {
-        *stats = CloudLayerStats {
-            triangles: counts.triangles as u32,
-            prisms: counts.prisms as u32,
-            tetrahedra: counts.tetrahedra as u32,
-            updates: stats.updates + 1,
-            build_ms: build_ms.unwrap_or(stats.build_ms),
-            update_ms,
-        };
-    }
-
-    fn tetrahedra(stats: &CloudLayerStats) -> u32 {
-        stats.tetrahedra
     }
 }

@@ -38,7 +38,7 @@ use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_render::{EffectStatus, GrayscaleMap};
 
 use crate::SkyLayerError;
-use crate::sky_layer::add_sky_layer;
+use crate::sky_layer::{SkyLayerStats, add_sky_layer};
 use batch::CloudLayerState;
 
 /// Adds [`CloudLayer`] and its systems (in [`PostUpdate`], after the
@@ -179,23 +179,7 @@ impl Default for CloudLayer {
 pub type CloudLayerStatus = EffectStatus<SkyLayerError>;
 
 /// Statistics of a [`CloudLayer`], updated by the plugin.
-#[derive(Component, Clone, Copy, Debug, Default, PartialEq, Reflect)]
-#[reflect(Component, Default, Clone)]
-pub struct CloudLayerStats {
-    /// Triangles of the layer's refined quadtree in the last update.
-    pub triangles: u32,
-    /// Of them, those under a cloud (each a column of stacked prisms).
-    pub prisms: u32,
-    /// Tetrahedra drawn.
-    pub tetrahedra: u32,
-    /// Updates of the cells so far.
-    pub updates: u64,
-    /// Time of the last quadtree build, ms.
-    pub build_ms: f32,
-    /// Time of the last build on a worker (quadtree when built, refinement
-    /// and sorted prisms), ms.
-    pub update_ms: f32,
-}
+pub type CloudLayerStats = SkyLayerStats;
 
 impl CloudLayer {
     /// Checks the settings the layer's builders do not check themselves.
