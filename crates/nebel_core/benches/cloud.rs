@@ -92,6 +92,21 @@ fn pointwise_octave_sums(noise: &CloudNoise, time: f64) -> f64 {
     total
 }
 
+/// The paper-size field of `noise` at 10 s on `threads` threads.
+fn generate(noise: &CloudNoise, threads: usize) -> DensityGrid {
+    let shape = CloudShape::default();
+    DensityGrid::cloud_with_threads(
+        PAPER_DIMS,
+        SPACING,
+        DVec3::ZERO,
+        noise,
+        &shape,
+        10.0,
+        threads,
+    )
+    .expect("valid cloud")
+}
+
 fn paper_field() {
     let all = std::thread::available_parallelism().map_or(1, NonZeroUsize::get);
     let [nx, ny, nz] = PAPER_DIMS;
@@ -100,33 +115,25 @@ fn paper_field() {
         nx * ny * nz,
         noise().octaves
     );
-    let mut grid = None;
-    for threads in [1, all] {
-        let time = fastest(2, || {
-            grid = Some(
-                DensityGrid::cloud_with_threads(
-                    PAPER_DIMS,
-                    SPACING,
-                    DVec3::ZERO,
-                    &noise(),
-                    &CloudShape::default(),
-                    10.0,
-                    threads,
-                )
-                .expect("valid cloud"),
+    let turned = CloudNoise {
+        torque: DVec3::new(0.0, 0.01, 0.0),
+        ..noise()
+    };
+    for (label, noise) in [("", noise()), (" under torque", turned)] {
+        for threads in [1, all] {
+            let time = fastest(2, || generate(&noise, threads));
+            eprintln!(
+                "cloud generation{label}, {threads} thread(s): {:.2} s",
+                time.as_secs_f64()
             );
-        });
-        eprintln!(
-            "cloud generation, {threads} thread(s): {:.2} s",
-            time.as_secs_f64()
-        );
+        }
     }
     let time = fastest(1, || pointwise_octave_sums(&noise(), 10.0));
     eprintln!(
         "for scale: the octaves point by point through noise::Perlin, 1 thread: {:.2} s",
         time.as_secs_f64()
     );
-    let grid = grid.expect("generated");
+    let grid = generate(&noise(), all);
     let covered = grid.values().iter().filter(|&&v| v > 0.0).count() as f64;
     eprintln!(
         "non-zero fraction {:.3}",
@@ -136,6 +143,28 @@ fn paper_field() {
         ("no shadow", CloudLighting::default()),
         ("shadow sweep", shadowed()),
         ("shadow sweep along x", shadowed_along_x()),
+        (
+            "shadow sweep, 3 scattering octaves",
+            CloudLighting {
+                scattering_octaves: 3,
+                ..shadowed()
+            },
+        ),
+        (
+            "shadow sweep, sky occlusion",
+            CloudLighting {
+                sky_occlusion: true,
+                ..shadowed()
+            },
+        ),
+        (
+            "shadow sweep, 3 scattering octaves, sky occlusion",
+            CloudLighting {
+                scattering_octaves: 3,
+                sky_occlusion: true,
+                ..shadowed()
+            },
+        ),
     ] {
         for threads in [1, all] {
             let time = fastest(3, || {

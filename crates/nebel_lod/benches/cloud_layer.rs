@@ -58,6 +58,7 @@ fn main() {
         sun_direction: DVec3::new(0.45, 0.6, 0.3),
         shadow_extinction: 0.02,
         lambert: true,
+        ..CloudLighting::default()
     };
     let started = Instant::now();
     let light = light_field(&grid, &lighting).expect("valid lighting");

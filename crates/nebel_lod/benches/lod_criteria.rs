@@ -146,6 +146,7 @@ fn main() {
             sun_direction: DVec3::new(0.45, 0.6, 0.3),
             shadow_extinction: 0.008,
             lambert: true,
+            ..CloudLighting::default()
         },
     );
     sweep(
@@ -166,6 +167,7 @@ fn main() {
             sun_direction: DVec3::new(0.45, 0.6, 0.3),
             shadow_extinction: 0.02,
             lambert: true,
+            ..CloudLighting::default()
         },
     );
     for t in [0.25, 0.5, 0.75, 1.0] {

@@ -76,6 +76,7 @@ fn lighting(shadow_extinction: f32) -> CloudLighting {
         sun_direction: DVec3::new(0.45, 0.6, 0.3),
         shadow_extinction,
         lambert: true,
+        ..CloudLighting::default()
     }
 }
 

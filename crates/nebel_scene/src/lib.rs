@@ -1214,6 +1214,8 @@ mod tests {
                     shadow_extinction: 0.5,
                     model: LightModel::NonPhysical,
                     keyframe_interval: 2.0,
+                    scattering_octaves: 1,
+                    sky_occlusion: false,
                 }),
                 projected_cells: false,
                 full_resolution: false,

@@ -281,17 +281,16 @@ fn lit_fields(
     let padded = grid
         .padded_to_power_of_two_plus_one(PadFill::Value(0.0))
         .map_err(invalid)?;
-    let settings = match lighting.model {
-        LightModel::Scattering { .. } => {
-            CloudLighting::transmittance(sun, lighting.shadow_extinction)
+    let extinction = lighting.shadow_extinction;
+    let settings = CloudLighting {
+        scattering_octaves: lighting.scattering_octaves,
+        sky_occlusion: lighting.sky_occlusion,
+        ..match lighting.model {
+            LightModel::Scattering { .. } => CloudLighting::transmittance(sun, extinction),
+            LightModel::Isotropic | LightModel::NonPhysical => {
+                CloudLighting::shaded(lighting.ambient, lighting.diffuse, sun, extinction)
+            }
         }
-        LightModel::Isotropic | LightModel::NonPhysical => CloudLighting {
-            ambient: lighting.ambient,
-            diffuse: lighting.diffuse,
-            sun_direction: sun,
-            shadow_extinction: lighting.shadow_extinction,
-            lambert: true,
-        },
     };
     let light = light_field(&padded, &settings).map_err(invalid)?;
     Ok(match lighting.model {

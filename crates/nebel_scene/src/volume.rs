@@ -163,6 +163,18 @@ pub struct LightingDescription {
     /// > 0 (`nebel_volume::VolumeLighting::keyframe_interval`). Default 2.
     #[serde(default = "default_keyframe_interval")]
     pub keyframe_interval: f32,
+    /// Octaves of multiple scattering of the sunlight, 1 to 8
+    /// (`nebel_volume::VolumeLighting::scattering_octaves`). Default 1.
+    #[serde(default = "default_scattering_octaves")]
+    pub scattering_octaves: u32,
+    /// The cloud above a point dims its sky light
+    /// (`nebel_volume::VolumeLighting::sky_occlusion`). Default false.
+    #[serde(default)]
+    pub sky_occlusion: bool,
+}
+
+fn default_scattering_octaves() -> u32 {
+    1
 }
 
 fn default_keyframe_interval() -> f32 {
@@ -200,10 +212,14 @@ pub struct CloudSource {
     /// Drift of the first octave, metres per second. Default zero (static).
     #[serde(default)]
     pub wind: [f64; 3],
-    /// Each finer octave drifts this much faster than the previous. Default
-    /// 1.5.
+    /// Each finer octave drifts (and turns) this much faster than the
+    /// previous. Default 1.5.
     #[serde(default)]
     pub detail_wind: Option<f64>,
+    /// Axis times the first octave's turn, radians per second, about the
+    /// box's centre (Schpok et al. 2003's torque). Default zero.
+    #[serde(default)]
+    pub torque: [f64; 3],
     /// Height fraction over which the base fades in. Default 0.15.
     #[serde(default)]
     pub base_fade: Option<f32>,
@@ -325,6 +341,7 @@ impl CloudSource {
             wavelength: self.wavelength.unwrap_or(defaults.wavelength),
             wind: DVec3::from(self.wind),
             detail_wind: self.detail_wind.unwrap_or(defaults.detail_wind),
+            torque: DVec3::from(self.torque),
             base_fade: self.base_fade.unwrap_or(defaults.base_fade),
             top_fade: self.top_fade.unwrap_or(defaults.top_fade),
             side_fade: self.side_fade.unwrap_or(defaults.side_fade),
@@ -738,10 +755,10 @@ impl AnimatedCloud {
 
     /// The keyframes a windy cloud is drawn between at `time`: their times
     /// `k·T` and `(k + 1)·T` and the blend factor toward the second
-    /// (`nebel_lod::octree::keyframe`); `None` without wind or moving
-    /// ellipsoids (the cloud is its grid at `time`).
+    /// (`nebel_lod::octree::keyframe`); `None` without wind, torque or
+    /// moving ellipsoids (the cloud is its grid at `time`).
     pub fn keyframes_at(&self, time: f64) -> Option<([f64; 2], f64)> {
-        if self.noise.wind == DVec3::ZERO && !self.shape.animates() {
+        if !self.noise.animates() && !self.shape.animates() {
             return None;
         }
         let interval = f64::from(self.keyframe_interval).max(1e-3);
@@ -1077,6 +1094,13 @@ impl VolumeDescription {
                 return Err(InvalidField::new(
                     "lighting.keyframe_interval",
                     format!("must be finite and > 0, got {interval}"),
+                ));
+            }
+            let octaves = lighting.scattering_octaves;
+            if !(1..=CloudLighting::MAX_SCATTERING_OCTAVES).contains(&octaves) {
+                return Err(InvalidField::new(
+                    "lighting.scattering_octaves",
+                    format!("must be from 1 to 8, got {octaves}"),
                 ));
             }
             if matches!(
@@ -1429,6 +1453,39 @@ mod tests {
     }
 
     #[test]
+    fn a_cloud_under_torque_animates_and_turns_its_detail() {
+        let cloud = |torque: &str| {
+            let ron = format!(
+                "(source: Cloud((dims: (13, 7, 13), coverage: 0.6, wavelength: 6.0, \
+                 torque: {torque})))"
+            );
+            let volume = ron::Options::default()
+                .with_default_extension(ron::extensions::Extensions::IMPLICIT_SOME)
+                .from_str::<VolumeDescription>(&ron)
+                .unwrap();
+            match volume.build(Path::new(".")).unwrap().field {
+                SceneField::Cloud(cloud) => cloud,
+                _ => panic!("a cloud source is an animated cloud"),
+            }
+        };
+        let still = cloud("(0.0, 0.0, 0.0)");
+        let turning = cloud("(0.0, 0.8, 0.0)");
+        assert_eq!(still.noise.torque, DVec3::ZERO);
+        assert_eq!(turning.noise.torque, DVec3::new(0.0, 0.8, 0.0));
+        assert_eq!(still.keyframes_at(1.0), None);
+        assert!(turning.keyframes_at(1.0).is_some());
+        // At time 0 nothing has turned yet; a second later the detail has.
+        let grid = |cloud: &AnimatedCloud, time| cloud.grid_at(time).unwrap();
+        let (before, after) = (grid(&turning, 0.0), grid(&turning, 1.0));
+        let most = |a: &DensityGrid, b: &DensityGrid| {
+            let pairs = a.values().iter().zip(b.values());
+            pairs.map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max)
+        };
+        assert!(most(&grid(&still, 0.0), &before) <= 1e-6);
+        assert!(most(&before, &after) > 0.1);
+    }
+
+    #[test]
     fn a_lit_cloud_defaults_to_the_light_preset_and_checks_its_settings() {
         let source = SourceDescription::Cloud(Box::new(CloudSource {
             dims: [9, 5, 9],
@@ -1438,6 +1495,7 @@ mod tests {
             wavelength: Some(4.0),
             wind: [1.0, 0.0, 0.5],
             detail_wind: None,
+            torque: [0.0; 3],
             base_fade: None,
             top_fade: None,
             side_fade: None,
@@ -1458,6 +1516,8 @@ mod tests {
                 shadow_extinction: 0.0,
                 model: LightModel::Isotropic,
                 keyframe_interval: 2.0,
+                scattering_octaves: 1,
+                sky_occlusion: false,
             }),
             ..volume(source)
         };
@@ -1509,6 +1569,8 @@ mod tests {
                 shadow_extinction: 0.0,
                 model: LightModel::Isotropic,
                 keyframe_interval: 2.0,
+                scattering_octaves: 1,
+                sky_occlusion: false,
             }),
             ..volume(SourceDescription::Cells(Vec::new()))
         };
@@ -1574,6 +1636,7 @@ mod tests {
             wavelength: Some(4.0),
             wind: [0.0; 3],
             detail_wind: None,
+            torque: [0.0; 3],
             base_fade: None,
             top_fade: None,
             side_fade: None,
@@ -1591,6 +1654,8 @@ mod tests {
             shadow_extinction: 0.5,
             model: LightModel::Isotropic,
             keyframe_interval: 2.0,
+            scattering_octaves: 1,
+            sky_occlusion: false,
         });
         let lod = Some(LodDescription {
             accuracy: Some(8.0),

@@ -450,6 +450,8 @@ fn spawn_volumes(commands: &mut Commands, grids: &mut Assets<VolumeGrid>, volume
                     }
                 },
                 keyframe_interval: lighting.keyframe_interval,
+                scattering_octaves: lighting.scattering_octaves,
+                sky_occlusion: lighting.sky_occlusion,
             });
         }
     }

@@ -103,6 +103,16 @@ pub struct VolumeLighting {
     /// finite (below 1 ms, and NaN, count as 1 ms). Shorter follows the sun
     /// more closely at a proportional CPU cost. Default 2.
     pub keyframe_interval: f32,
+    /// Octaves of multiple scattering of the sunlight (Wrenninge et al.
+    /// 2013; `nebel_core::field::CloudLighting::scattering_octaves`), 1 to
+    /// 8: more light reaches a cloud's interior. Default 1 (single
+    /// scattering).
+    pub scattering_octaves: u32,
+    /// Whether the cloud above a point dims its ambient sky light, so the
+    /// bases of thick clouds darken (`nebel_core::field::CloudLighting::sky_occlusion`);
+    /// needs a shadow. Not for [`CloudLightModel::Scattering`], whose sky
+    /// light the renderer adds per pixel. Default false.
+    pub sky_occlusion: bool,
 }
 
 impl Default for VolumeLighting {
@@ -113,6 +123,8 @@ impl Default for VolumeLighting {
             shadow_extinction: 0.0,
             model: CloudLightModel::Isotropic,
             keyframe_interval: 2.0,
+            scattering_octaves: 1,
+            sky_occlusion: false,
         }
     }
 }
@@ -122,18 +134,17 @@ impl VolumeLighting {
     /// sun, in the volume's local frame): ambient and Lambert-shaded diffuse
     /// light, or for [`CloudLightModel::Scattering`] the transmittance alone.
     pub fn light_field_settings(&self, sun_local: Vec3) -> CloudLighting {
-        let sun = sun_local.as_dvec3();
-        match self.model {
-            CloudLightModel::Scattering { .. } => {
-                CloudLighting::transmittance(sun, self.shadow_extinction)
+        let (sun, extinction) = (sun_local.as_dvec3(), self.shadow_extinction);
+        let light = match self.model {
+            CloudLightModel::Scattering { .. } => CloudLighting::transmittance(sun, extinction),
+            CloudLightModel::Isotropic | CloudLightModel::NonPhysical => {
+                CloudLighting::shaded(self.ambient, self.diffuse, sun, extinction)
             }
-            CloudLightModel::Isotropic | CloudLightModel::NonPhysical => CloudLighting {
-                ambient: self.ambient,
-                diffuse: self.diffuse,
-                sun_direction: sun,
-                shadow_extinction: self.shadow_extinction,
-                lambert: true,
-            },
+        };
+        CloudLighting {
+            scattering_octaves: self.scattering_octaves,
+            sky_occlusion: self.sky_occlusion,
+            ..light
         }
     }
 

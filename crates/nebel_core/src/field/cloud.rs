@@ -45,7 +45,7 @@
 //! Every formula, the skipping bound and the evaluation in full are in
 //! `docs/cloud-field.md` in the repository.
 
-use glam::{DVec2, DVec3};
+use glam::{DMat3, DVec2, DVec3};
 
 use super::perlin_row::{PerlinRow, RowLattice};
 use super::primitives::{CloudShape, Primitives};
@@ -81,8 +81,10 @@ const MAX_OCTAVES: usize = 16;
 ///
 /// - octave `i` (from 0): Perlin noise `P_i` with seed `seed + i`, frequency
 ///   `φ_i = lacunarity^i / (wavelength · stretch)` (per axis), amplitude
-///   `a_i = persistence^i`, sampled at `φ_i · (p − wind · t · detail_wind^i)`
-///   (per-octave wind);
+///   `a_i = persistence^i`, sampled at `φ_i · (c + R_i (p − c) − wind · t ·
+///   detail_wind^i)` (per-octave wind), `R_i` the turn about the axis of
+///   `torque` through the box's centre `c` by `|torque| · t · detail_wind^i`
+///   (per-octave torque; the identity without);
 /// - `v = Σ a_i P_i / (0.312 √(Σ a_i²))` (unit variance) and
 ///   `u = 1 / (1 + e^{−1.702 v})` (nearly uniform on (0, 1));
 /// - `c(h) = coverage · (1 − smoothstep(1 − top_fade, 1, h))`,
@@ -127,6 +129,14 @@ pub struct CloudNoise {
     /// §5.3). Above 1 the fine detail streams past the cloud; below 1 it lags
     /// behind. Default 1.5.
     pub detail_wind: f64,
+    /// Fractal rotation of the noise (Schpok et al. 2003 §5.3 "torque"):
+    /// axis times the angular speed of the first octave, radians per second
+    /// (in the grid's frame), finite. Octave `i` turns `detail_wind^i` times
+    /// as fast about the axis through the box's centre, so the detail swirls
+    /// against the cloud's large shapes. Default zero (no turn; a turned
+    /// octave is sampled point by point, several times slower than along
+    /// the noise's rows).
+    pub torque: DVec3,
     /// Height fraction of the box, in [0, 1], over which the density fades in
     /// from the bottom (flat cloud bases). Default 0.15.
     pub base_fade: f32,
@@ -170,6 +180,7 @@ impl Default for CloudNoise {
             persistence: 0.5,
             wind: DVec3::ZERO,
             detail_wind: 1.5,
+            torque: DVec3::ZERO,
             base_fade: 0.15,
             top_fade: 0.5,
             side_fade: 0.1,
@@ -203,6 +214,11 @@ pub enum CloudKind {
 }
 
 impl CloudNoise {
+    /// Whether the noise changes with time: a wind or a torque.
+    pub fn animates(&self) -> bool {
+        self.wind != DVec3::ZERO || self.torque != DVec3::ZERO
+    }
+
     /// The starting settings of a kind of cloud (every other setting as
     /// [`CloudNoise::default`]):
     ///
@@ -258,9 +274,23 @@ struct Octave {
     /// Wisps: the octave adds `shift − |amplitude · P|`, `shift` the mean of
     /// `|amplitude · P|`; `None` adds `amplitude · P`.
     ridge: Option<f64>,
+    /// Under torque, the turn `R` and the centre `c` it turns about: the
+    /// octave samples `frequency · (c + R (p − c)) + offset`.
+    turn: Option<(DMat3, DVec3)>,
 }
 
 impl Octave {
+    /// The noise-space line of the row at height `y` and depth `z` of a
+    /// turned octave: the point at `x` along the row is `base + x ·
+    /// direction`.
+    fn line(&self, (rotation, centre): (DMat3, DVec3), y: f64, z: f64) -> (DVec3, DVec3) {
+        let start = centre + rotation * (DVec3::new(0.0, y, z) - centre);
+        (
+            self.frequency * start + self.offset,
+            self.frequency * rotation.x_axis,
+        )
+    }
+
     /// The most the octave can add to a point's sum.
     fn most(&self) -> f64 {
         self.ridge.unwrap_or(self.amplitude)
@@ -349,7 +379,8 @@ pub fn side_fade_factors(side_fade: f32, n: usize) -> Vec<f64> {
 
 impl CloudNoise {
     /// Validates every setting and `time`, and builds the octaves.
-    fn octaves(&self, name: &str, time: f64) -> Result<Vec<Octave>, FieldError> {
+    /// `centre` is the box's, the pivot of the torque.
+    fn octaves(&self, name: &str, time: f64, centre: DVec3) -> Result<Vec<Octave>, FieldError> {
         let settings = Settings(name);
         settings.fractions(&[
             ("coverage", self.coverage),
@@ -375,6 +406,8 @@ impl CloudNoise {
         settings.require(ok, "stretch", stretch, "finite and positive on every axis")?;
         let wind = self.wind;
         settings.require(wind.is_finite(), "wind", wind, "finite on every axis")?;
+        let torque = self.torque;
+        settings.require(torque.is_finite(), "torque", torque, "finite on every axis")?;
         settings.require(time.is_finite(), "time", time, "finite")?;
         let amplitudes: Vec<f64> = (0..self.octaves)
             .map(|i| self.persistence.powi(i as i32))
@@ -403,6 +436,15 @@ impl CloudNoise {
                 time,
                 "wind · time · detail_wind^(octaves − 1) / wavelength must stay finite",
             )?;
+            let angle = torque.length() * time * self.detail_wind.powi(i as i32);
+            settings.require(
+                angle.is_finite(),
+                "torque",
+                torque,
+                "|torque| · time · detail_wind^(octaves − 1) must stay finite",
+            )?;
+            let turn = (torque != DVec3::ZERO)
+                .then(|| (DMat3::from_axis_angle(torque.normalize(), angle), centre));
             let (std, ridge) = if self.wisps {
                 (PERLIN_ABS_STD, Some(PERLIN_ABS_MEAN))
             } else {
@@ -415,6 +457,7 @@ impl CloudNoise {
                 offset,
                 amplitude,
                 ridge: ridge.map(|mean| amplitude * mean),
+                turn,
             });
         }
         Ok(octaves)
@@ -437,9 +480,10 @@ pub(super) fn equalised(v: f64) -> f64 {
 /// every octave).
 struct RowFiller<'a> {
     octaves: &'a [Octave],
-    /// Per octave, the row's x in noise space, `x · φ_i + offset_i.x`, in
-    /// its lattice cells, with the cells' corner hashes.
-    lattices: Vec<RowLattice>,
+    /// The row's x, world units.
+    xs: &'a [f64],
+    /// Per octave, how its rows are sampled.
+    rows: Vec<OctaveRows>,
     /// Per octave, the most the octaves after it can add.
     remaining: Vec<f64>,
     sums: Vec<f64>,
@@ -449,17 +493,23 @@ struct RowFiller<'a> {
 }
 
 impl<'a> RowFiller<'a> {
-    fn new(octaves: &'a [Octave], xs: &[f64], softness: f64) -> Self {
-        let lattices = octaves
+    fn new(octaves: &'a [Octave], xs: &'a [f64], softness: f64) -> Self {
+        let rows = octaves
             .iter()
-            .map(|o| RowLattice::new(xs.iter().map(|&x| x * o.frequency.x + o.offset.x).collect()))
+            .map(|o| match o.turn {
+                None => OctaveRows::Lattice(RowLattice::new(
+                    xs.iter().map(|&x| x * o.frequency.x + o.offset.x).collect(),
+                )),
+                Some(turn) => OctaveRows::Turned(turn),
+            })
             .collect();
         let remaining = (0..octaves.len())
             .map(|i| octaves[i + 1..].iter().map(Octave::most).sum())
             .collect();
         Self {
             octaves,
-            lattices,
+            xs,
+            rows,
             remaining,
             sums: vec![0.0; xs.len()],
             live: vec![true; xs.len()],
@@ -489,31 +539,46 @@ impl<'a> RowFiller<'a> {
         let zero_below = zero_below(largest);
         self.sums.fill(0.0);
         self.live.fill(true);
-        for ((octave, lattice), remaining) in self
-            .octaves
-            .iter()
-            .zip(&mut self.lattices)
-            .zip(&self.remaining)
+        for ((octave, rows), remaining) in
+            self.octaves.iter().zip(&mut self.rows).zip(&self.remaining)
         {
             let live = &self.live;
-            let (y, z) = (
-                y * octave.frequency.y + octave.offset.y,
-                z * octave.frequency.z + octave.offset.z,
-            );
             let (sums, amplitude) = (&mut self.sums, octave.amplitude);
-            match octave.ridge {
-                None => octave
-                    .perlin
-                    .add_row(lattice, y, z, amplitude, sums, |i| live[i], |n| n),
-                Some(shift) => octave.perlin.add_row(
-                    lattice,
-                    y,
-                    z,
-                    amplitude,
-                    sums,
-                    |i| live[i],
-                    move |n: f64| shift - n.abs(),
-                ),
+            let perlin = &octave.perlin;
+            match (rows, octave.ridge) {
+                (OctaveRows::Lattice(lattice), ridge) => {
+                    let (y, z) = (
+                        y * octave.frequency.y + octave.offset.y,
+                        z * octave.frequency.z + octave.offset.z,
+                    );
+                    match ridge {
+                        None => perlin.add_row(lattice, y, z, amplitude, sums, |i| live[i], |n| n),
+                        Some(shift) => perlin.add_row(
+                            lattice,
+                            y,
+                            z,
+                            amplitude,
+                            sums,
+                            |i| live[i],
+                            move |n: f64| shift - n.abs(),
+                        ),
+                    }
+                }
+                (OctaveRows::Turned(turn), ridge) => {
+                    let line = octave.line(*turn, y, z);
+                    let xs = self.xs;
+                    match ridge {
+                        None => perlin.add_line(line, xs, amplitude, sums, |i| live[i], |n| n),
+                        Some(shift) => perlin.add_line(
+                            line,
+                            xs,
+                            amplitude,
+                            sums,
+                            |i| live[i],
+                            move |n: f64| shift - n.abs(),
+                        ),
+                    }
+                }
             }
             for (live, sum) in self.live.iter_mut().zip(&self.sums) {
                 *live &= sum + remaining >= zero_below;
@@ -529,6 +594,15 @@ impl<'a> RowFiller<'a> {
             };
         }
     }
+}
+
+/// How a [`RowFiller`] samples an octave's rows.
+enum OctaveRows {
+    /// Along the noise's x axis: the row's x in noise space, `x · φ_i +
+    /// offset_i.x`, in its lattice cells, with the cells' corner hashes.
+    Lattice(RowLattice),
+    /// Along a turned line ([`Octave::turn`]).
+    Turned((DMat3, DVec3)),
 }
 
 /// [`RowFiller::fill`] of one row, compiled for the vector instructions the
@@ -645,7 +719,8 @@ impl DensityGrid {
         let points = budgeted_points(name, DENSITY_GRID, &dims, SAMPLE_BYTES)?;
         check_spacing(name, &spacing.to_array())?;
         check_origin(name, &origin.to_array())?;
-        let octaves = noise.octaves(name, time)?;
+        let centre = origin + spacing * (DVec3::from(dims.map(|n| n as f64)) - 1.0) / 2.0;
+        let octaves = noise.octaves(name, time, centre)?;
         let weather = Weather::new(name, noise, shape.weather_map.as_deref(), time)?;
         let primitives = Primitives::new(name, shape, time)?;
         let profile = Profile::new(noise);
@@ -814,13 +889,23 @@ mod tests {
         side: f64,
         (w, top): (f64, f64),
     ) -> f32 {
-        let octaves = noise.octaves("test", time).unwrap();
+        let centre = ORIGIN + SPACING * (DVec3::from(DIMS.map(|n| n as f64)) - 1.0) / 2.0;
+        let octaves = noise.octaves("test", time, centre).unwrap();
         let v: f64 = octaves
             .iter()
             .enumerate()
             .map(|(i, o)| {
                 let perlin = Perlin::new(noise.seed.wrapping_add(i as u32));
-                let n = o.amplitude * perlin.get((p * o.frequency + o.offset).to_array());
+                // The turn written out from the settings: about the axis of
+                // `torque` through the box's centre, by |torque| t detail_wind^i.
+                let angle = noise.torque.length() * time * noise.detail_wind.powi(i as i32);
+                let turned = if noise.torque == DVec3::ZERO {
+                    p
+                } else {
+                    let turn = glam::DQuat::from_axis_angle(noise.torque.normalize(), angle);
+                    centre + turn * (p - centre)
+                };
+                let n = o.amplitude * perlin.get((turned * o.frequency + o.offset).to_array());
                 if noise.wisps {
                     o.amplitude * 0.255 - n.abs()
                 } else {
@@ -873,18 +958,25 @@ mod tests {
             ],
             ..CloudShape::default()
         };
-        for (coverage, octaves, lacunarity, time, side_fade, weather, shaped, wisps) in [
-            (0.1, 5, 2.0, 0.0, 0.1, 0.0, false, false),
-            (0.42, 5, 2.0, 3.5, 0.3, 0.0, false, false),
-            (0.5, 8, 2.3, -7.0, 0.0, 0.0, false, false),
-            (0.9, 3, 1.7, 1.0, 0.5, 0.0, false, false),
-            (1.0, 5, 2.0, 2.0, 0.2, 0.0, false, false),
-            (0.6, 5, 2.0, 2.0, 0.1, 30.0, false, false),
-            (1.0, 4, 2.0, -3.0, 0.0, 30.0, false, false),
-            (1.0, 5, 2.0, 2.0, 0.0, 0.0, true, false),
-            (0.7, 4, 2.0, 1.0, 0.1, 0.0, true, false),
-            (0.3, 5, 2.0, 1.0, 0.1, 0.0, false, true),
-            (0.8, 3, 2.0, -2.0, 0.0, 0.0, true, true),
+        let no_turn = DVec3::ZERO;
+        let turn = DVec3::new(0.05, 0.4, -0.2);
+        for (coverage, octaves, lacunarity, time, side_fade, weather, shaped, wisps, torque) in [
+            (0.1, 5, 2.0, 0.0, 0.1, 0.0, false, false, no_turn),
+            (0.42, 5, 2.0, 3.5, 0.3, 0.0, false, false, no_turn),
+            (0.5, 8, 2.3, -7.0, 0.0, 0.0, false, false, no_turn),
+            (0.9, 3, 1.7, 1.0, 0.5, 0.0, false, false, no_turn),
+            (1.0, 5, 2.0, 2.0, 0.2, 0.0, false, false, no_turn),
+            (0.6, 5, 2.0, 2.0, 0.1, 30.0, false, false, no_turn),
+            (1.0, 4, 2.0, -3.0, 0.0, 30.0, false, false, no_turn),
+            (1.0, 5, 2.0, 2.0, 0.0, 0.0, true, false, no_turn),
+            (0.7, 4, 2.0, 1.0, 0.1, 0.0, true, false, no_turn),
+            (0.3, 5, 2.0, 1.0, 0.1, 0.0, false, true, no_turn),
+            (0.8, 3, 2.0, -2.0, 0.0, 0.0, true, true, no_turn),
+            (0.42, 5, 2.0, 0.0, 0.1, 0.0, false, false, turn),
+            (0.5, 6, 2.0, 2.5, 0.1, 0.0, false, false, turn),
+            (0.3, 5, 2.0, -4.0, 0.1, 0.0, false, true, turn),
+            (1.0, 4, 2.0, 1.0, 0.1, 0.0, true, false, turn),
+            (0.6, 5, 2.0, 2.0, 0.1, 30.0, false, false, turn),
         ] {
             let noise = CloudNoise {
                 coverage,
@@ -898,6 +990,7 @@ mod tests {
                     ..CloudWeather::default()
                 },
                 wisps,
+                torque,
                 ..small()
             };
             let shape = if shaped {
@@ -1263,6 +1356,9 @@ mod tests {
             "coverage",
         );
         check(CloudNoise { octaves: 0, ..ok }, 0.0, "octaves");
+        let torque = |torque| CloudNoise { torque, ..ok };
+        check(torque(DVec3::new(0.0, f64::NAN, 0.0)), 0.0, "torque");
+        check(torque(DVec3::new(0.0, 1e300, 0.0)), 1e300, "torque");
         check(CloudNoise { octaves: 17, ..ok }, 0.0, "octaves");
         check(
             CloudNoise {

@@ -8,7 +8,7 @@
 //! self-shadowing through an attenuation volume swept from the light, §3.4). At
 //! every grid point p, with L the unit vector toward the sun,
 //!
-//! `γ(p) = clamp(ambient + diffuse · T_sun(p) · lambert(p), 0, 1)`.
+//! `γ(p) = clamp(ambient · T_sky(p) + diffuse · T_sun(p) · lambert(p), 0, 1)`.
 //!
 //! **Lambert term.** With ∇f by central differences in world units and the
 //! outward normal `n̂ = −∇f / |∇f|`, `lambert = (1 − w) + w · max(0, n̂ · L)`,
@@ -24,6 +24,20 @@
 //! bilinear there, or a partial step to a side face. Interpolating τ rather
 //! than T keeps a uniform slab exact; next to a side face under grazing light
 //! the resampling smooths a kink in τ.
+//!
+//! **Multiple scattering** (optional): Wrenninge, Kulla and Lundqvist 2013's
+//! octaves replace `e^{−τ}` by `Σ_k b^k e^{−a^k τ} / Σ_k b^k` over
+//! `scattering_octaves` octaves, `a = b = 1/2`: light scattered more than once
+//! reaches deeper, so the interiors are not flat (1 at τ = 0; the phase of
+//! every octave is the first's).
+//!
+//! **Sky occlusion** (optional): the ambient sky light is dimmed by the cloud
+//! above, `T_sky = e^{−1.66 τ_up}` with `τ_up = σ ∫ f dy` up the grid column
+//! to the box's top (trapezoid rule, exact along the column): a
+//! plane-parallel layer's diffuse transmittance with Elsasser's diffusivity
+//! factor 1.66 for light from the whole sky, so the bases of thick clouds
+//! darken. It takes the cloud straight above only, not the sky beside it.
+//! 1 without either option or without a shadow.
 //!
 //! Both passes run along grid rows in the CPU's vector instructions, equal bit
 //! for bit to the pointwise formulas (tests); the Lambert pass shares z-slices
@@ -76,6 +90,13 @@ pub struct CloudLighting {
     /// light of single scattering (Nes 2008), where the phase function at
     /// the eye, not the gradient, orients the light. Default `true`.
     pub lambert: bool,
+    /// Octaves of the multiple-scattering approximation of the sun's light
+    /// (module docs), 1 to [`CloudLighting::MAX_SCATTERING_OCTAVES`]; 1 (the
+    /// default) is single scattering.
+    pub scattering_octaves: u32,
+    /// Whether the cloud above a point dims its ambient (sky) light (module
+    /// docs). Needs a shadow (`shadow_extinction > 0`). Default `false`.
+    pub sky_occlusion: bool,
 }
 
 impl Default for CloudLighting {
@@ -86,6 +107,8 @@ impl Default for CloudLighting {
             sun_direction: DVec3::new(0.4, 1.0, 0.3).normalize(),
             shadow_extinction: 0.0,
             lambert: true,
+            scattering_octaves: 1,
+            sky_occlusion: false,
         }
     }
 }
@@ -97,6 +120,26 @@ impl CloudLighting {
     /// The default weight of the sun's diffuse light, 0.7 (with the ambient
     /// part, a sunlit point reaches full light).
     pub const DEFAULT_DIFFUSE: f32 = 0.7;
+    /// The most octaves of [`CloudLighting::scattering_octaves`].
+    pub const MAX_SCATTERING_OCTAVES: u32 = 8;
+
+    /// Ambient and Lambert-shaded diffuse light, shadowed toward
+    /// `sun_direction` by `shadow_extinction` (Röttger and Ertl 2003 §5.2;
+    /// every other setting as [`CloudLighting::default`]).
+    pub fn shaded(
+        ambient: f32,
+        diffuse: f32,
+        sun_direction: DVec3,
+        shadow_extinction: f32,
+    ) -> Self {
+        Self {
+            ambient,
+            diffuse,
+            sun_direction,
+            shadow_extinction,
+            ..Self::default()
+        }
+    }
 
     /// The light field of single scattering (Nes 2008): the plain
     /// transmittance toward the sun in the direction `sun_direction`, with no
@@ -109,6 +152,7 @@ impl CloudLighting {
             sun_direction,
             shadow_extinction,
             lambert: false,
+            ..Self::default()
         }
     }
 
@@ -117,6 +161,9 @@ impl CloudLighting {
         let settings = Settings(name);
         settings.fractions(&[("ambient", self.ambient), ("diffuse", self.diffuse)])?;
         settings.non_negative(&[("shadow_extinction", self.shadow_extinction)])?;
+        let octaves = self.scattering_octaves;
+        let ok = (1..=Self::MAX_SCATTERING_OCTAVES).contains(&octaves);
+        settings.require(ok, "scattering_octaves", octaves, "between 1 and 8")?;
         let sun = self.sun_direction;
         let largest = sun.abs().max_element();
         (sun.is_finite() && largest > 0.0)
@@ -168,6 +215,8 @@ pub fn light_field_with_threads(
     let diffuse = f64::from(lighting.diffuse);
     let sigma = f64::from(lighting.shadow_extinction);
     let shadow = sigma > 0.0;
+    // The sky's share is added after the sun's when the cloud above dims it.
+    let occlude_sky = shadow && lighting.sky_occlusion && ambient > 0.0;
     let [nx, ny, _] = grid.dims();
     let spacing = grid.spacing();
     let values = grid.values();
@@ -193,17 +242,117 @@ pub fn light_field_with_threads(
 
     if shadow {
         let arch = pulp::Arch::new();
+        let transmittance = SunTransmittance::new(lighting.scattering_octaves);
+        let sky = if occlude_sky { 0.0 } else { ambient };
         sweep_optical_depth(grid, sun, sigma, |axes, slices, taus| {
             arch.dispatch(ShadeSlices {
                 out: &mut out,
                 axes,
                 slices,
                 taus,
-                gamma_weights: [ambient, diffuse],
+                gamma_weights: [sky, diffuse],
+                transmittance,
             });
         });
     }
+    if occlude_sky {
+        let occlude = |first_slice: usize, chunk: &mut [f32]| {
+            add_occluded_sky(grid, sigma * spacing.y, ambient, first_slice, chunk);
+        };
+        fill_slices(&mut out, nx * ny, threads, occlude);
+    }
     DensityGrid::validated(name, grid.dims(), spacing, grid.origin(), out)
+}
+
+/// Elsasser's diffusivity factor: a plane-parallel layer of optical depth τ
+/// passes about `e^{−1.66 τ}` of the light from a whole sky.
+const DIFFUSIVITY: f64 = 1.66;
+
+/// Attenuation `a` and contribution `b` from one octave of multiple
+/// scattering to the next (Wrenninge et al. 2013).
+const OCTAVE_ATTENUATION: f64 = 0.5;
+/// See [`OCTAVE_ATTENUATION`].
+const OCTAVE_CONTRIBUTION: f64 = 0.5;
+
+/// The sun's transmittance at an optical depth τ: `e^{−τ}`, or over several
+/// octaves `Σ_k b^k e^{−a^k τ} / Σ_k b^k` (module docs).
+#[derive(Clone, Copy)]
+struct SunTransmittance {
+    octaves: u32,
+    /// `a^{n−1}`, the last octave's share of τ.
+    last_scale: f64,
+    /// `b^{n−1} / Σ_k b^k`, the last octave's normalised weight.
+    last_weight: f64,
+}
+
+impl SunTransmittance {
+    fn new(octaves: u32) -> Self {
+        let last = octaves as i32 - 1;
+        let norm: f64 = (0..octaves)
+            .map(|k| OCTAVE_CONTRIBUTION.powi(k as i32))
+            .sum();
+        Self {
+            octaves,
+            last_scale: OCTAVE_ATTENUATION.powi(last),
+            last_weight: OCTAVE_CONTRIBUTION.powi(last) / norm,
+        }
+    }
+
+    /// With `a = b = 1/2`, each octave's transmittance is the square of the
+    /// next one's and its weight twice: one exponential, from the last
+    /// octave back.
+    #[inline(always)]
+    fn at(self, tau: f64) -> f64 {
+        if self.octaves == 1 {
+            return exp_neg(tau);
+        }
+        let mut transmittance = exp_neg(self.last_scale * tau);
+        let mut weight = self.last_weight;
+        let mut sum = 0.0;
+        for _ in 0..self.octaves {
+            sum += weight * transmittance;
+            transmittance *= transmittance;
+            weight *= 1.0 / OCTAVE_CONTRIBUTION;
+        }
+        sum
+    }
+}
+
+/// Adds the sky's light dimmed by the cloud above, `ambient · e^{−1.66
+/// τ_up}`, to the sun's light in `chunk` (the z-slices from `first_slice`)
+/// and clamps to [0, 1]: `τ_up` summed down each column from the box's top
+/// by the trapezoid rule, `half_step = σ Δy` the optical depth of a unit
+/// density over one spacing.
+fn add_occluded_sky(
+    grid: &DensityGrid,
+    half_step: f64,
+    ambient: f64,
+    first_slice: usize,
+    chunk: &mut [f32],
+) {
+    let [nx, ny, _] = grid.dims();
+    let half_step = 0.5 * half_step;
+    // Row after row down the slice, each point's τ_up carried in `taus`.
+    let mut taus = vec![0.0f64; nx];
+    for (dk, slice) in chunk.chunks_mut(nx * ny).enumerate() {
+        let densities = &grid.values()[(first_slice + dk) * nx * ny..][..nx * ny];
+        taus.fill(0.0);
+        for j in (0..ny).rev() {
+            let row = j * nx..(j + 1) * nx;
+            if j + 1 < ny {
+                let above = &densities[row.end..row.end + nx];
+                for ((tau, &f), &f_above) in taus.iter_mut().zip(&densities[row.clone()]).zip(above)
+                {
+                    *tau += half_step * (f64::from(f) + f64::from(f_above));
+                }
+            }
+            for (value, &tau) in slice[row].iter_mut().zip(&taus) {
+                let sky = ambient * exp_neg(DIFFUSIVITY * tau);
+                *value = (sky + f64::from(*value)).clamp(0.0, 1.0) as f32;
+            }
+        }
+        pace();
+    }
 }
 
 /// `γ = clamp(ambient + diffuse · lit, 0, 1)` for the product `lit` of the
@@ -219,7 +368,7 @@ fn gamma(ambient: f64, diffuse: f64, lit: f64) -> f32 {
 /// CPU has: along the rows of a slice where they are contiguous in the
 /// grid, else (sweeping along x, where a block's slices are consecutive
 /// points of every grid row) along each grid row's run of the block's
-/// slices. The transmittance is [`exp_neg`].
+/// slices. The transmittance is [`SunTransmittance`]'s.
 struct ShadeSlices<'a> {
     out: &'a mut [f32],
     axes: &'a SweepAxes,
@@ -227,6 +376,7 @@ struct ShadeSlices<'a> {
     taus: &'a [f64],
     /// `[ambient, diffuse]`.
     gamma_weights: [f64; 2],
+    transmittance: SunTransmittance,
 }
 
 impl pulp::WithSimd for ShadeSlices<'_> {
@@ -240,9 +390,10 @@ impl pulp::WithSimd for ShadeSlices<'_> {
             slices,
             taus,
             gamma_weights: [ambient, diffuse],
+            transmittance,
         } = self;
         let shade = |value: &mut f32, tau: f64| {
-            *value = gamma(ambient, diffuse, exp_neg(tau) * f64::from(*value));
+            *value = gamma(ambient, diffuse, transmittance.at(tau) * f64::from(*value));
         };
         let [nb, nc] = [axes.dims[axes.b], axes.dims[axes.c]];
         let points = nb * nc;
@@ -757,6 +908,7 @@ mod tests {
             sun_direction: sun,
             shadow_extinction: sigma,
             lambert: true,
+            ..CloudLighting::default()
         };
         let light = light_field(&grid, &lighting).unwrap();
         let sun = sun.normalize();
@@ -970,6 +1122,7 @@ mod tests {
             sun_direction: DVec3::new(0.0, 3.0, 0.0),
             shadow_extinction: 0.4,
             lambert: true,
+            ..CloudLighting::default()
         };
         let light = light_field(&grid, &lighting).unwrap();
         let top = grid.max_corner().y;
@@ -1008,6 +1161,96 @@ mod tests {
     }
 
     #[test]
+    fn octaves_and_sky_occlusion_match_their_closed_forms_in_a_slab() {
+        // Sun straight up: τ = σ (top − y) toward the sun and up the column.
+        let dims = [6, 21, 5];
+        let grid = uniform(dims, DVec3::new(0.7, 0.5, 1.3), 1.0);
+        let top = grid.max_corner().y;
+        for (octaves, sky_occlusion) in [(1, true), (3, false), (4, true), (8, true)] {
+            let lighting = CloudLighting {
+                ambient: 0.3,
+                diffuse: 0.7,
+                sun_direction: DVec3::Y,
+                shadow_extinction: 0.4,
+                scattering_octaves: octaves,
+                sky_occlusion,
+                ..CloudLighting::default()
+            };
+            let light = light_field_with_threads(&grid, &lighting, 2).unwrap();
+            for j in 0..dims[1] {
+                let tau = 0.4 * (top - (grid.origin().y + j as f64 * 0.5));
+                // Σ_k 2^−k e^{−2^−k τ} / Σ_k 2^−k, written out.
+                let (sum, norm) = (0..octaves).fold((0.0, 0.0), |(sum, norm), k| {
+                    let b = 0.5f64.powi(k as i32);
+                    (sum + b * (-b * tau).exp(), norm + b)
+                });
+                let sky = if sky_occlusion {
+                    (-1.66 * tau).exp()
+                } else {
+                    1.0
+                };
+                let expected = 0.3 * sky + 0.7 * sum / norm;
+                for (i, k) in [(0, 0), (3, 2), (5, 4)] {
+                    let got = f64::from(light.value(i, j, k));
+                    assert!(
+                        (got - expected).abs() < 1e-3,
+                        "{octaves} octaves, sky {sky_occlusion}, j {j}: {got} vs {expected}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn more_octaves_light_deeper_and_the_cloud_above_darkens_the_sky() {
+        let grid = cloud();
+        let lighting = CloudLighting {
+            shadow_extinction: 0.3,
+            ..Default::default()
+        };
+        let light = |lighting: CloudLighting| light_field(&grid, &lighting).unwrap();
+        let single = light(lighting);
+        let multiple = light(CloudLighting {
+            scattering_octaves: 4,
+            ..lighting
+        });
+        let occluded = light(CloudLighting {
+            sky_occlusion: true,
+            ..lighting
+        });
+        let [nx, ny, nz] = grid.dims();
+        let mut darker = 0;
+        for k in 0..nz {
+            for j in 0..ny {
+                for i in 0..nx {
+                    let [s, m, o] = [&single, &multiple, &occluded].map(|l| l.value(i, j, k));
+                    assert!(m >= s, "octaves only add light: ({i}, {j}, {k})");
+                    // The sun's share is rounded to f32 before the sky's is
+                    // added: a unit in the last place.
+                    let ulp = 1e-6;
+                    assert!(
+                        o <= s + ulp,
+                        "the cloud above only dims the sky: ({i}, {j}, {k})"
+                    );
+                    if j == ny - 1 {
+                        assert!((o - s).abs() <= ulp, "nothing above the top layer");
+                    }
+                    darker += usize::from(o < s - 0.05);
+                }
+            }
+        }
+        assert!(darker > 0, "some points lie under the cloud");
+        // Threads do not change either.
+        let both = CloudLighting {
+            scattering_octaves: 3,
+            sky_occlusion: true,
+            ..lighting
+        };
+        let one = light_field_with_threads(&grid, &both, 1).unwrap();
+        assert_eq!(one, light_field_with_threads(&grid, &both, 3).unwrap());
+    }
+
+    #[test]
     fn sun_from_below_reverses_the_shadow() {
         let dims = [5, 17, 5];
         let grid = uniform(dims, DVec3::ONE, 1.0);
@@ -1017,6 +1260,7 @@ mod tests {
             sun_direction: DVec3::NEG_Y,
             shadow_extinction: 0.25,
             lambert: true,
+            ..CloudLighting::default()
         };
         let light = light_field(&grid, &lighting).unwrap();
         for j in 0..dims[1] {
@@ -1073,6 +1317,7 @@ mod tests {
                 sun_direction: sun,
                 shadow_extinction: 0.0,
                 lambert: true,
+                ..CloudLighting::default()
             };
             let unshaded = light_field(
                 &grid,
@@ -1180,6 +1425,13 @@ mod tests {
             );
         }
         check(CloudLighting { ambient: 1.5, ..ok }, "ambient");
+        for scattering_octaves in [0, 9] {
+            let octaves = CloudLighting {
+                scattering_octaves,
+                ..ok
+            };
+            check(octaves, "scattering_octaves");
+        }
         check(
             CloudLighting {
                 ambient: f32::NAN,
