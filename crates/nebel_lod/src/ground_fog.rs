@@ -37,6 +37,8 @@
 use glam::{DAffine3, DVec3};
 use thiserror::Error;
 
+use nebel_core::field::{SKY_DIFFUSIVITY, ScatteringOctaves};
+
 use crate::batch::GpuCell;
 use crate::full_resolution::CellOrder;
 use crate::quadtree::{TerrainMesh, TriangleOrder};
@@ -169,13 +171,17 @@ pub enum PrismScalar {
     },
     /// The sunlight that reaches each level through the layer above it, as
     /// a light intensity for a transfer function over light (the
-    /// `CloudLight` preset): `ambient + diffuse · e^{−extinction · d /
-    /// sun_height}` clamped to [0, 1], `d` the thickness above the level in
-    /// its column (`(1 − r) · t`), `sun_height` the sine of the sun's
-    /// elevation (clamped to at least 0.05): Beer-Lambert along the slant
-    /// path to the top of a plane-parallel layer of the column's local
-    /// thickness. The profile's levels sample it; it is linear between
-    /// them. All four finite, `extinction ≥ 0`.
+    /// `CloudLight` preset): `ambient · T_sky + diffuse · T_sun(τ)` clamped
+    /// to [0, 1], with `τ = extinction · d / sun_height`, `d` the thickness
+    /// above the level in its column (`(1 − r) · t`), `sun_height` the sine
+    /// of the sun's elevation (clamped to at least 0.05): Beer-Lambert along
+    /// the slant path to the top of a plane-parallel layer of the column's
+    /// local thickness. `T_sun` is `e^{−τ}`, or with several `octaves` the
+    /// multiple-scattering sum of `nebel_core::field::ScatteringOctaves`;
+    /// `T_sky` is 1, or with `sky_occlusion` the layer's diffuse
+    /// transmittance `e^{−1.66 · extinction · d}` of the sky's light. The
+    /// profile's levels sample it; it is linear between them. All four
+    /// floats finite, `extinction ≥ 0`.
     Sunlit {
         /// Extinction inside the layer, 1 / world unit.
         extinction: f32,
@@ -185,6 +191,11 @@ pub enum PrismScalar {
         ambient: f32,
         /// Light of the unshadowed sun.
         diffuse: f32,
+        /// Octaves of multiple scattering, 1 to 8 (others clamped); 1 is
+        /// single scattering.
+        octaves: u32,
+        /// Whether the layer above a level dims its sky light.
+        sky_occlusion: bool,
     },
 }
 
@@ -251,6 +262,7 @@ pub fn fog_prisms(
             sun_height,
             ambient,
             diffuse,
+            ..
         } if !([extinction, sun_height, ambient, diffuse]
             .iter()
             .all(|v| v.is_finite())
@@ -394,12 +406,18 @@ impl Column {
                         sun_height,
                         ambient,
                         diffuse,
+                        octaves,
+                        sky_occlusion,
                     } => {
-                        let depth = t.max(0.0) - above;
+                        let tau = f64::from(extinction) * (t.max(0.0) - above);
                         let slant = f64::from(sun_height.max(0.05));
-                        let transmittance = (-f64::from(extinction) * depth / slant).exp();
-                        (f64::from(ambient) + f64::from(diffuse) * transmittance).clamp(0.0, 1.0)
-                            as f32
+                        let sun = ScatteringOctaves::new(octaves).transmittance(tau / slant);
+                        let sky = if sky_occlusion {
+                            (-SKY_DIFFUSIVITY * tau).exp()
+                        } else {
+                            1.0
+                        };
+                        (f64::from(ambient) * sky + f64::from(diffuse) * sun).clamp(0.0, 1.0) as f32
                     }
                 });
             }

@@ -487,10 +487,12 @@ fn a_cloud_layer_is_conforming_sorted_and_lit_through_the_cloud_above() {
     let (extinction, sun_height, ambient, diffuse) = (0.004_f32, 0.7_f32, 0.3_f32, 0.7_f32);
     let origin = layer.hierarchy().origin();
     let mut random = uniform(0xc10d_u64);
-    for (name, eye) in [
-        ("below", DVec3::new(300.0, 200.0, -700.0)),
-        ("inside", DVec3::new(-2100.0, 1550.0, 3300.0)),
-        ("above", DVec3::new(4000.0, 5000.0, 1000.0)),
+    // Single scattering below; multiple scattering and the sky dimmed by
+    // the cloud above inside and above.
+    for (name, eye, octaves, sky_occlusion) in [
+        ("below", DVec3::new(300.0, 200.0, -700.0), 1, false),
+        ("inside", DVec3::new(-2100.0, 1550.0, 3300.0), 3, true),
+        ("above", DVec3::new(4000.0, 5000.0, 1000.0), 8, true),
     ] {
         let view = LayerView {
             world_from_field: DAffine3::IDENTITY,
@@ -507,6 +509,8 @@ fn a_cloud_layer_is_conforming_sorted_and_lit_through_the_cloud_above() {
                 sun_height,
                 ambient,
                 diffuse,
+                octaves,
+                sky_occlusion,
             },
         };
         let mut mesh = TerrainMesh::new();
@@ -519,7 +523,8 @@ fn a_cloud_layer_is_conforming_sorted_and_lit_through_the_cloud_above() {
         assert_conforming(&cells, &mesh, origin, extent, name);
         assert_fills_the_prisms(&cells, &mesh, name);
         // The light at every vertex: the sun through the cloud above it in
-        // its column.
+        // its column, Σ_k 2^−k e^{−2^−k τ} / Σ_k 2^−k over the octaves, and
+        // the sky through it, e^{−1.66 σ d}.
         let columns: HashMap<[u32; 2], (f64, f64)> = mesh
             .positions
             .iter()
@@ -536,9 +541,18 @@ fn a_cloud_layer_is_conforming_sorted_and_lit_through_the_cloud_above() {
             for [x, y, z, s] in cell.vertices {
                 let (_, top) = columns[&[x.to_bits(), z.to_bits()]];
                 let depth = (top - f64::from(y)).max(0.0);
-                let transmittance = (-f64::from(extinction) * depth / f64::from(sun_height)).exp();
+                let tau = f64::from(extinction) * depth;
+                let (sum, norm) = (0..octaves).fold((0.0, 0.0), |(sum, norm), k| {
+                    let b = 0.5f64.powi(k as i32);
+                    (sum + b * (-b * tau / f64::from(sun_height)).exp(), norm + b)
+                });
+                let sky = if sky_occlusion {
+                    (-1.66 * tau).exp()
+                } else {
+                    1.0
+                };
                 let expected =
-                    (f64::from(ambient) + f64::from(diffuse) * transmittance).clamp(0.0, 1.0);
+                    (f64::from(ambient) * sky + f64::from(diffuse) * sum / norm).clamp(0.0, 1.0);
                 assert!(
                     (f64::from(s) - expected).abs() < 1e-4,
                     "{name}: {s} vs {expected}"
@@ -571,6 +585,8 @@ fn a_cloud_layer_is_conforming_sorted_and_lit_through_the_cloud_above() {
             sun_height,
             ambient,
             diffuse,
+            octaves: 1,
+            sky_occlusion: false,
         },
     };
     let error = layer

@@ -18,6 +18,8 @@
 //!     density: 0.01,             // extinction of the view rays, times ρ; ≥ 0
 //!     ambient: 0.3, diffuse: 0.7, // light without and of the unshadowed sun, [0, 1]
 //!     shadow_extinction: 0.004,  // extinction toward the sun, 1/m
+//!     scattering_octaves: 1,     // multiple scattering of the sunlight, 1 to 8
+//!     sky_occlusion: false,      // the cloud above dims the sky's light
 //!     transfer: Preset(CloudLight), // κ and ρ over the light; default this
 //!     accuracy: 40.0,            // the quadtree's c
 //! ),
@@ -75,6 +77,10 @@ pub struct CloudLayerDescription {
     pub diffuse: f32,
     /// Extinction toward the sun, 1/m, finite and ≥ 0.
     pub shadow_extinction: f32,
+    /// Octaves of multiple scattering of the sunlight, 1 to 8.
+    pub scattering_octaves: u32,
+    /// Whether the cloud above a point dims its sky light.
+    pub sky_occlusion: bool,
     /// κ and ρ over the light. Default `Preset(CloudLight)`.
     pub transfer: Option<TransferDescription>,
     /// Accuracy `c` of the quadtree's criterion, finite and > 0.
@@ -116,6 +122,8 @@ impl Default for CloudLayerDescription {
             ambient: CloudLighting::DEFAULT_AMBIENT,
             diffuse: CloudLighting::DEFAULT_DIFFUSE,
             shadow_extinction: 0.004,
+            scattering_octaves: 1,
+            sky_occlusion: false,
             transfer: None,
             accuracy: 40.0,
         }
@@ -155,6 +163,13 @@ impl CloudLayerDescription {
         positive("accuracy", self.accuracy)?;
         in_range("ambient", self.ambient, 0.0, 1.0)?;
         in_range("diffuse", self.diffuse, 0.0, 1.0)?;
+        let octaves = self.scattering_octaves;
+        if !(1..=CloudLighting::MAX_SCATTERING_OCTAVES).contains(&octaves) {
+            return Err(InvalidField::new(
+                "scattering_octaves",
+                format!("must be from 1 to 8, got {octaves}"),
+            ));
+        }
         if let Some(maps) = &self.maps {
             if maps.bottom.trim().is_empty() || maps.top.trim().is_empty() {
                 return Err(InvalidField::new(
@@ -258,6 +273,8 @@ impl CloudLayerDescription {
                 sun_height: toward_sun.normalize_or(DVec3::Y).y as f32,
                 ambient: self.ambient,
                 diffuse: self.diffuse,
+                octaves: self.scattering_octaves,
+                sky_occlusion: self.sky_occlusion,
             },
             order: CellOrder::BackToFront,
             transfer_function: &built.transfer_function,

@@ -609,6 +609,8 @@ fn spawn_cloud_layer(
             ambient: description.ambient,
             diffuse: description.diffuse,
             shadow_extinction: description.shadow_extinction,
+            scattering_octaves: description.scattering_octaves,
+            sky_occlusion: description.sky_occlusion,
             transfer_function: Arc::new(built.transfer_function.clone()),
             accuracy: description.accuracy,
         },

@@ -242,7 +242,7 @@ pub fn light_field_with_threads(
 
     if shadow {
         let arch = pulp::Arch::new();
-        let transmittance = SunTransmittance::new(lighting.scattering_octaves);
+        let octaves = ScatteringOctaves::new(lighting.scattering_octaves);
         let sky = if occlude_sky { 0.0 } else { ambient };
         sweep_optical_depth(grid, sun, sigma, |axes, slices, taus| {
             arch.dispatch(ShadeSlices {
@@ -251,7 +251,7 @@ pub fn light_field_with_threads(
                 slices,
                 taus,
                 gamma_weights: [sky, diffuse],
-                transmittance,
+                octaves,
             });
         });
     }
@@ -266,7 +266,7 @@ pub fn light_field_with_threads(
 
 /// Elsasser's diffusivity factor: a plane-parallel layer of optical depth τ
 /// passes about `e^{−1.66 τ}` of the light from a whole sky.
-const DIFFUSIVITY: f64 = 1.66;
+pub const SKY_DIFFUSIVITY: f64 = 1.66;
 
 /// Attenuation `a` and contribution `b` from one octave of multiple
 /// scattering to the next (Wrenninge et al. 2013).
@@ -274,10 +274,11 @@ const OCTAVE_ATTENUATION: f64 = 0.5;
 /// See [`OCTAVE_ATTENUATION`].
 const OCTAVE_CONTRIBUTION: f64 = 0.5;
 
-/// The sun's transmittance at an optical depth τ: `e^{−τ}`, or over several
-/// octaves `Σ_k b^k e^{−a^k τ} / Σ_k b^k` (module docs).
-#[derive(Clone, Copy)]
-struct SunTransmittance {
+/// The sun's transmittance at an optical depth τ with multiple scattering
+/// (Wrenninge et al. 2013): `e^{−τ}` for one octave, over `n` octaves
+/// `Σ_{k<n} b^k e^{−a^k τ} / Σ_{k<n} b^k` with `a = b = 1/2` (module docs).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ScatteringOctaves {
     octaves: u32,
     /// `a^{n−1}`, the last octave's share of τ.
     last_scale: f64,
@@ -285,8 +286,11 @@ struct SunTransmittance {
     last_weight: f64,
 }
 
-impl SunTransmittance {
-    fn new(octaves: u32) -> Self {
+impl ScatteringOctaves {
+    /// `octaves` octaves, clamped to 1 to
+    /// [`CloudLighting::MAX_SCATTERING_OCTAVES`].
+    pub fn new(octaves: u32) -> Self {
+        let octaves = octaves.clamp(1, CloudLighting::MAX_SCATTERING_OCTAVES);
         let last = octaves as i32 - 1;
         let norm: f64 = (0..octaves)
             .map(|k| OCTAVE_CONTRIBUTION.powi(k as i32))
@@ -302,7 +306,7 @@ impl SunTransmittance {
     /// next one's and its weight twice: one exponential, from the last
     /// octave back.
     #[inline(always)]
-    fn at(self, tau: f64) -> f64 {
+    pub fn transmittance(self, tau: f64) -> f64 {
         if self.octaves == 1 {
             return exp_neg(tau);
         }
@@ -347,7 +351,7 @@ fn add_occluded_sky(
                 }
             }
             for (value, &tau) in slice[row].iter_mut().zip(&taus) {
-                let sky = ambient * exp_neg(DIFFUSIVITY * tau);
+                let sky = ambient * exp_neg(SKY_DIFFUSIVITY * tau);
                 *value = (sky + f64::from(*value)).clamp(0.0, 1.0) as f32;
             }
         }
@@ -368,7 +372,7 @@ fn gamma(ambient: f64, diffuse: f64, lit: f64) -> f32 {
 /// CPU has: along the rows of a slice where they are contiguous in the
 /// grid, else (sweeping along x, where a block's slices are consecutive
 /// points of every grid row) along each grid row's run of the block's
-/// slices. The transmittance is [`SunTransmittance`]'s.
+/// slices. The transmittance is [`ScatteringOctaves`]'.
 struct ShadeSlices<'a> {
     out: &'a mut [f32],
     axes: &'a SweepAxes,
@@ -376,7 +380,7 @@ struct ShadeSlices<'a> {
     taus: &'a [f64],
     /// `[ambient, diffuse]`.
     gamma_weights: [f64; 2],
-    transmittance: SunTransmittance,
+    octaves: ScatteringOctaves,
 }
 
 impl pulp::WithSimd for ShadeSlices<'_> {
@@ -390,10 +394,14 @@ impl pulp::WithSimd for ShadeSlices<'_> {
             slices,
             taus,
             gamma_weights: [ambient, diffuse],
-            transmittance,
+            octaves,
         } = self;
         let shade = |value: &mut f32, tau: f64| {
-            *value = gamma(ambient, diffuse, transmittance.at(tau) * f64::from(*value));
+            *value = gamma(
+                ambient,
+                diffuse,
+                octaves.transmittance(tau) * f64::from(*value),
+            );
         };
         let [nb, nc] = [axes.dims[axes.b], axes.dims[axes.c]];
         let points = nb * nc;

@@ -52,7 +52,9 @@ pub use density_grid::DensityGrid;
 pub use effects::{campfire_density, search_light_cells};
 pub use fog::{FogNoise, ValleyFog};
 pub use height_field::HeightField;
-pub use light::{CloudLighting, light_field, light_field_with_threads};
+pub use light::{
+    CloudLighting, SKY_DIFFUSIVITY, ScatteringOctaves, light_field, light_field_with_threads,
+};
 pub use load::{Normalization, RawSampleType, TileLayout, read_png};
 pub use primitives::{CloudEllipsoid, CloudShape, wyvill};
 pub use procedural::{NOISE_OFFSET, NoiseKind, ProceduralNoise};

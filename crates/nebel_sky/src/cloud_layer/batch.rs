@@ -149,6 +149,8 @@ impl SkyLayer for CloudLayer {
                 sun_height: sun.y as f32,
                 ambient: self.ambient,
                 diffuse: self.diffuse,
+                octaves: self.scattering_octaves,
+                sky_occlusion: self.sky_occlusion,
             },
             CellOrder::BackToFront,
         )

@@ -145,6 +145,15 @@ pub struct CloudLayer {
     /// Extinction toward the sun, 1/m, finite and ≥ 0; 0 casts no shadow.
     /// Default 0.004.
     pub shadow_extinction: f32,
+    /// Octaves of multiple scattering of the sunlight through the cloud
+    /// above (Wrenninge et al. 2013; `nebel_core::field::ScatteringOctaves`),
+    /// 1 to 8: more light reaches a thick cloud's lower levels. Default 1
+    /// (single scattering).
+    pub scattering_octaves: u32,
+    /// Whether the cloud above a point dims its ambient sky light, so thick
+    /// clouds get dark bases (`nebel_lod::PrismScalar::Sunlit`). Default
+    /// false.
+    pub sky_occlusion: bool,
     /// κ and ρ over the light. Default: the `CloudLight` preset.
     #[reflect(ignore, default = "cloud_layer_transfer_function")]
     pub transfer_function: Arc<TransferFunction>,
@@ -169,6 +178,8 @@ impl Default for CloudLayer {
             ambient: CloudLighting::DEFAULT_AMBIENT,
             diffuse: CloudLighting::DEFAULT_DIFFUSE,
             shadow_extinction: 0.004,
+            scattering_octaves: 1,
+            sky_occlusion: false,
             transfer_function: cloud_layer_transfer_function(),
             accuracy: 40.0,
         }
@@ -224,6 +235,14 @@ impl CloudLayer {
         ] {
             check(value.is_finite() && ok, setting, value, requirement)?;
         }
+        let octaves = self.scattering_octaves;
+        let octaves_ok = (1..=CloudLighting::MAX_SCATTERING_OCTAVES).contains(&octaves);
+        check(
+            octaves_ok,
+            "scattering_octaves",
+            octaves as f32,
+            "from 1 to 8",
+        )?;
         if let CloudLayerSource::Maps { scale, .. } = self.source {
             check(
                 scale.is_finite() && scale >= 0.0,

@@ -226,6 +226,13 @@ fn dark_hidden_and_invalid_cloud_layers_draw_nothing() {
             },
             "sag",
         ),
+        (
+            CloudLayer {
+                scattering_octaves: 0,
+                ..default()
+            },
+            "scattering_octaves",
+        ),
     ]
     .map(|(layer, needle)| {
         let resolution = if layer.resolution == 64 { 64 } else { 65 };
