@@ -31,6 +31,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use glam::DVec3;
+use nebel_core::field::CloudLighting;
 use nebel_core::transfer::TransferFunction;
 
 use crate::builds::{BuildKind, BuildPool};
@@ -69,22 +70,34 @@ impl BuildKey {
 }
 
 /// The bits of every value of `settings` (0 for the parts it lacks, with a
-/// flag for each part).
-pub(crate) fn settings_bits(settings: &BatchSettings) -> [u64; 13] {
+/// flag for each part). The lighting is taken apart field by field, so a new
+/// setting cannot be left out.
+pub(crate) fn settings_bits(settings: &BatchSettings) -> [u64; 15] {
     let octree = settings.octree.map(|octree| octree.min_accuracy.to_bits());
-    let mut bits = [0; 13];
+    let mut bits = [0; 15];
     bits[0] = u64::from(settings.order == CellOrder::BackToFront);
     bits[12] = u64::from(settings.drawing == GridDrawing::ProjectedCells);
     bits[1] = u64::from(octree.is_some());
     bits[2] = octree.unwrap_or(0);
     if let Some(BatchLighting { light, scalars }) = settings.lighting {
+        let CloudLighting {
+            ambient,
+            diffuse,
+            sun_direction,
+            shadow_extinction,
+            lambert,
+            scattering_octaves,
+            sky_occlusion,
+        } = light;
         bits[3] = 1;
-        bits[4] = u64::from(light.ambient.to_bits());
-        bits[5] = u64::from(light.diffuse.to_bits());
-        bits[6] = u64::from(light.shadow_extinction.to_bits());
-        bits[7] = u64::from(light.lambert);
+        bits[4] = u64::from(ambient.to_bits());
+        bits[5] = u64::from(diffuse.to_bits());
+        bits[6] = u64::from(shadow_extinction.to_bits());
+        bits[7] = u64::from(lambert);
         bits[8] = scalars as u64;
-        bits[9..12].copy_from_slice(&light.sun_direction.to_array().map(f64::to_bits));
+        bits[9..12].copy_from_slice(&sun_direction.to_array().map(f64::to_bits));
+        bits[13] = u64::from(scattering_octaves);
+        bits[14] = u64::from(sky_occlusion);
     }
     bits
 }
@@ -741,6 +754,30 @@ mod tests {
         let landed = batching.build(Blocking, request(0.3, &grid, settings(None)));
         assert!(landed.batcher_ms.is_some());
         assert!(batching.failure().is_none());
+    }
+
+    #[test]
+    fn every_light_setting_builds_again_and_the_same_ones_do_not() {
+        let grid = grid();
+        let mut batching = VolumeBatching::default();
+        let changes: [fn(&mut CloudLighting); 4] = [
+            |light| light.ambient = 0.1,
+            |light| light.lambert = false,
+            |light| light.scattering_octaves = 3,
+            |light| light.sky_occlusion = true,
+        ];
+        let mut lit = settings(Some(DVec3::Y));
+        batching.build(Blocking, request(0.0, &grid, lit));
+        for (n, change) in changes.into_iter().enumerate() {
+            if let Some(lighting) = &mut lit.lighting {
+                change(&mut lighting.light);
+            }
+            let now = n as f64 + 1.0;
+            let landed = batching.build(Blocking, request(now, &grid, lit));
+            assert_ne!(landed, LandedBuilds::default(), "change {n} builds");
+            let again = batching.build(Blocking, request(now + 0.5, &grid, lit));
+            assert_eq!(again, LandedBuilds::default(), "change {n} again");
+        }
     }
 
     /// An octree's refinement is made beside the frames that draw the last

@@ -167,7 +167,7 @@ impl CloudLayerDescription {
         if !(1..=CloudLighting::MAX_SCATTERING_OCTAVES).contains(&octaves) {
             return Err(InvalidField::new(
                 "scattering_octaves",
-                format!("must be from 1 to 8, got {octaves}"),
+                format!("must be between 1 and 8, got {octaves}"),
             ));
         }
         if let Some(maps) = &self.maps {

@@ -141,8 +141,8 @@ pub enum LightModel {
     },
 }
 
-/// Lighting of a grid volume: `γ = ambient + diffuse · T_sun · lambert` per
-/// grid point (`nebel_core::field::light_field`).
+/// Lighting of a grid volume: `γ = ambient · T_sky + diffuse · T_sun ·
+/// lambert` per grid point (`nebel_core::field::light_field`).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LightingDescription {
@@ -1100,7 +1100,7 @@ impl VolumeDescription {
             if !(1..=CloudLighting::MAX_SCATTERING_OCTAVES).contains(&octaves) {
                 return Err(InvalidField::new(
                     "lighting.scattering_octaves",
-                    format!("must be from 1 to 8, got {octaves}"),
+                    format!("must be between 1 and 8, got {octaves}"),
                 ));
             }
             if matches!(

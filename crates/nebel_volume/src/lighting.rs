@@ -11,9 +11,11 @@
 //! The volume system then
 //!
 //! 1. computes γ at every grid point with `nebel_core::field::light_field`:
-//!    `γ = ambient + diffuse · T_sun · lambert`, the "standard ambient and
-//!    diffuse lighting" of §5.2 on the density gradient, optionally shadowed
-//!    by the transmittance toward the sun (Nes 2008), with the sun taken
+//!    `γ = ambient · T_sky + diffuse · T_sun · lambert`, the "standard
+//!    ambient and diffuse lighting" of §5.2 on the density gradient,
+//!    optionally shadowed by the transmittance toward the sun (Nes 2008;
+//!    with [`VolumeLighting::scattering_octaves`], multiple scattering) and
+//!    the sky dimmed by the cloud above ([`VolumeLighting::sky_occlusion`]), with the sun taken
 //!    from the first [`DirectionalLight`] (straight up in the volume's frame
 //!    when there is none), and again whenever the volume or its rotation
 //!    changes or the sun comes to rest somewhere new; while the sun moves,

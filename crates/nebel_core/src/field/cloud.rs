@@ -8,8 +8,10 @@
 //!    [`noise::Perlin`] fields of frequency `lacunarity^i / (wavelength ·
 //!    stretch)` per axis and amplitude `persistence^i`, each drifting with
 //!    its own wind (§5.3): sampled at `φ_i · (p − wind · t · detail_wind^i)`
-//!    plus [`NOISE_OFFSET`](super::NOISE_OFFSET); with `wisps` each adds the
-//!    ridged `E|P| − |P|` instead (the wispy filter; [`CloudKind`]).
+//!    plus [`NOISE_OFFSET`](super::NOISE_OFFSET), and under `torque` turned
+//!    at its own speed about the box's centre drifting with it; with `wisps`
+//!    each adds the ridged `E|P| − |P|` instead (the wispy filter;
+//!    [`CloudKind`]).
 //! 2. **Equalised fBm**: `v = Σ a_i P_i / (σ_P √(Σ a_i²))` (`σ_P` the standard
 //!    deviation of 3D Perlin noise) has about unit variance, and the logistic
 //!    approximation of the normal distribution, `u = 1 / (1 + exp(−1.702 v))`,
@@ -39,8 +41,8 @@
 //! Rows of grid points are evaluated octave by octave by `PerlinRow`, in the
 //! CPU's vector instructions, and finer octaves skip the points that can no
 //! longer reach the coverage threshold; the result equals the pointwise
-//! `noise::Perlin` sum to a unit in the last place of the f32 density (a test).
-//! Schpok et al. 2003's per-octave rotation is not implemented.
+//! `noise::Perlin` sum to a unit in the last place of the f32 density (a test);
+//! a turned octave's rows are lines in any direction, evaluated point by point.
 //!
 //! Every formula, the skipping bound and the evaluation in full are in
 //! `docs/cloud-field.md` in the repository.
@@ -81,10 +83,12 @@ const MAX_OCTAVES: usize = 16;
 ///
 /// - octave `i` (from 0): Perlin noise `P_i` with seed `seed + i`, frequency
 ///   `φ_i = lacunarity^i / (wavelength · stretch)` (per axis), amplitude
-///   `a_i = persistence^i`, sampled at `φ_i · (c + R_i (p − c) − wind · t ·
-///   detail_wind^i)` (per-octave wind), `R_i` the turn about the axis of
-///   `torque` through the box's centre `c` by `|torque| · t · detail_wind^i`
-///   (per-octave torque; the identity without);
+///   `a_i = persistence^i`, sampled at `φ_i · (c_i + R_i^{−1} (p − c_i) −
+///   d_i)` with the drift `d_i = wind · t · detail_wind^i` (per-octave wind),
+///   `c_i = c + d_i` the box's centre `c` drifted with it and `R_i` the turn
+///   about the axis of `torque` by `|torque| · t · detail_wind^i`
+///   (right-handed; per-octave torque, the identity without): the octave's
+///   pattern drifts with its wind and turns about its drifting centre;
 /// - `v = Σ a_i P_i / (0.312 √(Σ a_i²))` (unit variance) and
 ///   `u = 1 / (1 + e^{−1.702 v})` (nearly uniform on (0, 1));
 /// - `c(h) = coverage · (1 − smoothstep(1 − top_fade, 1, h))`,
@@ -274,8 +278,9 @@ struct Octave {
     /// Wisps: the octave adds `shift − |amplitude · P|`, `shift` the mean of
     /// `|amplitude · P|`; `None` adds `amplitude · P`.
     ridge: Option<f64>,
-    /// Under torque, the turn `R` and the centre `c` it turns about: the
-    /// octave samples `frequency · (c + R (p − c)) + offset`.
+    /// Under torque, the inverse turn `R⁻¹` and the centre `c` it turns
+    /// about (drifted with the octave): the octave samples `frequency · (c +
+    /// R⁻¹ (p − c)) + offset`.
     turn: Option<(DMat3, DVec3)>,
 }
 
@@ -443,8 +448,12 @@ impl CloudNoise {
                 torque,
                 "|torque| · time · detail_wind^(octaves − 1) must stay finite",
             )?;
-            let turn = (torque != DVec3::ZERO)
-                .then(|| (DMat3::from_axis_angle(torque.normalize(), angle), centre));
+            // The pattern turns by the angle, so its points are sampled
+            // turned back, about the centre drifted with the octave.
+            let turn = torque
+                .try_normalize()
+                .filter(|_| angle != 0.0)
+                .map(|axis| (DMat3::from_axis_angle(axis, -angle), centre + drift));
             let (std, ridge) = if self.wisps {
                 (PERLIN_ABS_STD, Some(PERLIN_ABS_MEAN))
             } else {
@@ -896,14 +905,18 @@ mod tests {
             .enumerate()
             .map(|(i, o)| {
                 let perlin = Perlin::new(noise.seed.wrapping_add(i as u32));
-                // The turn written out from the settings: about the axis of
-                // `torque` through the box's centre, by |torque| t detail_wind^i.
-                let angle = noise.torque.length() * time * noise.detail_wind.powi(i as i32);
+                // The turn written out from the settings: the pattern turns
+                // by |torque| t detail_wind^i about the axis of `torque`
+                // through the box's centre drifted with the octave, so the
+                // point is sampled turned back.
+                let speed = time * noise.detail_wind.powi(i as i32);
+                let angle = noise.torque.length() * speed;
                 let turned = if noise.torque == DVec3::ZERO {
                     p
                 } else {
-                    let turn = glam::DQuat::from_axis_angle(noise.torque.normalize(), angle);
-                    centre + turn * (p - centre)
+                    let back = glam::DQuat::from_axis_angle(noise.torque.normalize(), -angle);
+                    let pivot = centre + noise.wind * speed;
+                    pivot + back * (p - pivot)
                 };
                 let n = o.amplitude * perlin.get((turned * o.frequency + o.offset).to_array());
                 if noise.wisps {
@@ -1029,6 +1042,38 @@ mod tests {
             }
             assert!(zeros < nx * ny * nz, "coverage {coverage}: some cloud");
         }
+    }
+
+    #[test]
+    fn a_torque_turns_the_cloud_about_its_centre() {
+        // Every octave turns as fast (detail_wind 1): at 2 s a quarter turn
+        // about +y, right-handed, so the point of index (i, k) at time 0 lies
+        // at (c + (k − c), c − (i − c)) = (k, 2c − i) (x̂ turns to −ẑ) on a
+        // square grid.
+        let noise = CloudNoise {
+            octaves: 3,
+            detail_wind: 1.0,
+            torque: DVec3::new(0.0, std::f64::consts::FRAC_PI_4, 0.0),
+            coverage: 0.6,
+            ..small()
+        };
+        let (dims, spacing) = ([17, 5, 17], DVec3::new(2.0, 1.5, 2.0));
+        let at = |time| DensityGrid::cloud(dims, spacing, ORIGIN, &noise, time).unwrap();
+        let (before, after) = (at(0.0), at(2.0));
+        let c = 8;
+        let mut cloud = 0;
+        for k in 0..17 {
+            for j in 0..5 {
+                for i in 0..17 {
+                    let (turned_i, turned_k) = (k, 2 * c - i);
+                    let (was, is) = (before.value(i, j, k), after.value(turned_i, j, turned_k));
+                    assert!((was - is).abs() <= 1e-5, "({i}, {j}, {k}): {was} {is}");
+                    cloud += usize::from(was > 0.0);
+                }
+            }
+        }
+        assert!(cloud > 100, "{cloud} points of cloud");
+        assert_ne!(before, after, "the cloud turned");
     }
 
     #[test]

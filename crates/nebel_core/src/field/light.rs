@@ -36,10 +36,11 @@
 //! to the box's top (trapezoid rule, exact along the column): a
 //! plane-parallel layer's diffuse transmittance with Elsasser's diffusivity
 //! factor 1.66 for light from the whole sky, so the bases of thick clouds
-//! darken. It takes the cloud straight above only, not the sky beside it.
-//! 1 without either option or without a shadow.
+//! darken. It takes the cloud straight above only, not the sky beside it,
+//! and "above" is the grid's own +y (a turned volume's local up). 1 without
+//! the option or without a shadow.
 //!
-//! Both passes run along grid rows in the CPU's vector instructions, equal bit
+//! The passes run along grid rows in the CPU's vector instructions, equal bit
 //! for bit to the pointwise formulas (tests); the Lambert pass shares z-slices
 //! among threads, the sweep runs on the calling thread. The derivation of the
 //! sweep, its exactness and its limits are in `docs/cloud-field.md` in the
@@ -72,8 +73,9 @@ const SWEEP_BLOCK_BYTES: usize = 32 << 20;
 /// self-shadow toward the sun.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CloudLighting {
-    /// Light everywhere, whatever the orientation and shadow, in [0, 1].
-    /// Default 0.3.
+    /// Light everywhere, whatever the orientation and the sun's shadow (dimmed
+    /// only by the cloud above with [`CloudLighting::sky_occlusion`]), in [0,
+    /// 1]. Default 0.3.
     pub ambient: f32,
     /// Weight of the sun's diffuse (Lambert) light, in [0, 1]. Default 0.7.
     pub diffuse: f32,
@@ -179,14 +181,15 @@ impl CloudLighting {
 /// The light intensity γ of Röttger and Ertl 2003 §5 at every point of `grid` (same
 /// dimensions, spacing and origin), in [0, 1]; formulas in the module
 /// documentation of `field::light`, in short
-/// `γ = clamp(ambient + diffuse · T_sun · lambert, 0, 1)`. Uses every
+/// `γ = clamp(ambient · T_sky + diffuse · T_sun · lambert, 0, 1)`. Uses every
 /// available core, or only the calling thread when it is paced
 /// ([`crate::pacing`]: a yield point after every slice of each pass).
 ///
 /// # Errors
 ///
 /// [`FieldError::InvalidParameter`] naming `ambient`, `diffuse`,
-/// `sun_direction` or `shadow_extinction`; [`FieldError::OverBudget`] when
+/// `sun_direction`, `shadow_extinction` or `scattering_octaves`;
+/// [`FieldError::OverBudget`] when
 /// the light field (4 bytes per point, like the grid) exceeds the memory
 /// budget, before it is allocated.
 pub fn light_field(
@@ -292,9 +295,9 @@ impl ScatteringOctaves {
     pub fn new(octaves: u32) -> Self {
         let octaves = octaves.clamp(1, CloudLighting::MAX_SCATTERING_OCTAVES);
         let last = octaves as i32 - 1;
-        let norm: f64 = (0..octaves)
-            .map(|k| OCTAVE_CONTRIBUTION.powi(k as i32))
-            .sum();
+        // Σ_{k<n} b^k, a geometric series.
+        let b = OCTAVE_CONTRIBUTION;
+        let norm = (1.0 - b.powi(octaves as i32)) / (1.0 - b);
         Self {
             octaves,
             last_scale: OCTAVE_ATTENUATION.powi(last),
@@ -325,17 +328,17 @@ impl ScatteringOctaves {
 /// Adds the sky's light dimmed by the cloud above, `ambient · e^{−1.66
 /// τ_up}`, to the sun's light in `chunk` (the z-slices from `first_slice`)
 /// and clamps to [0, 1]: `τ_up` summed down each column from the box's top
-/// by the trapezoid rule, `half_step = σ Δy` the optical depth of a unit
+/// by the trapezoid rule, `step = σ Δy` the optical depth of a unit
 /// density over one spacing.
 fn add_occluded_sky(
     grid: &DensityGrid,
-    half_step: f64,
+    step: f64,
     ambient: f64,
     first_slice: usize,
     chunk: &mut [f32],
 ) {
     let [nx, ny, _] = grid.dims();
-    let half_step = 0.5 * half_step;
+    let half_step = 0.5 * step;
     // Row after row down the slice, each point's τ_up carried in `taus`.
     let mut taus = vec![0.0f64; nx];
     for (dk, slice) in chunk.chunks_mut(nx * ny).enumerate() {
@@ -865,6 +868,14 @@ mod tests {
         DensityGrid::new(dims, spacing, DVec3::new(3.0, -2.0, 1.0), vec![density; n]).unwrap()
     }
 
+    /// The default lighting with a shadow toward the sun.
+    fn shadowed() -> CloudLighting {
+        CloudLighting {
+            shadow_extinction: 0.3,
+            ..Default::default()
+        }
+    }
+
     fn cloud() -> DensityGrid {
         let noise = CloudNoise {
             seed: 5,
@@ -1207,15 +1218,36 @@ mod tests {
                 }
             }
         }
+        // An oblique sun through the top: the sun's path is longer by
+        // 1 / cos θ, the sky's is still straight up. Column (0, ·, 24) sees
+        // no side face toward the sun (as in the slab shadow test).
+        let dims = [25, 21, 25];
+        let grid = uniform(dims, DVec3::splat(0.5), 1.0);
+        let top = grid.max_corner().y;
+        let sun = DVec3::new(0.3, 1.0, -0.2).normalize();
+        let lighting = CloudLighting {
+            ambient: 0.3,
+            diffuse: 0.7,
+            sun_direction: sun,
+            shadow_extinction: 0.4,
+            scattering_octaves: 2,
+            sky_occlusion: true,
+            ..CloudLighting::default()
+        };
+        let light = light_field(&grid, &lighting).unwrap();
+        for j in 0..dims[1] {
+            let up = 0.4 * (top - (grid.origin().y + j as f64 * 0.5));
+            let toward_sun = up / sun.y;
+            let sun_light = ((-toward_sun).exp() + 0.5 * (-0.5 * toward_sun).exp()) / 1.5;
+            let expected = 0.3 * (-1.66 * up).exp() + 0.7 * sun_light;
+            let got = f64::from(light.value(0, j, 24));
+            assert!((got - expected).abs() < 1e-3, "j {j}: {got} vs {expected}");
+        }
     }
 
     #[test]
     fn more_octaves_light_deeper_and_the_cloud_above_darkens_the_sky() {
-        let grid = cloud();
-        let lighting = CloudLighting {
-            shadow_extinction: 0.3,
-            ..Default::default()
-        };
+        let (grid, lighting) = (cloud(), shadowed());
         let light = |lighting: CloudLighting| light_field(&grid, &lighting).unwrap();
         let single = light(lighting);
         let multiple = light(CloudLighting {
@@ -1389,11 +1421,7 @@ mod tests {
 
     #[test]
     fn threads_do_not_change_the_result() {
-        let grid = cloud();
-        let lighting = CloudLighting {
-            shadow_extinction: 0.3,
-            ..Default::default()
-        };
+        let (grid, lighting) = (cloud(), shadowed());
         let one = light_field_with_threads(&grid, &lighting, 1).unwrap();
         for threads in [0, 2, 3, 50] {
             assert_eq!(

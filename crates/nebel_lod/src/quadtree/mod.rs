@@ -187,7 +187,7 @@ pub enum TerrainError {
 impl TerrainError {
     /// `Err` of [`TerrainError::MapLength`] unless `len` is `side²` and
     /// `side` at least 2.
-    pub fn check_map_length(side: usize, len: usize) -> Result<(), Self> {
+    pub(crate) fn check_map_length(side: usize, len: usize) -> Result<(), Self> {
         if side >= 2 && side.checked_mul(side) == Some(len) {
             return Ok(());
         }
@@ -195,7 +195,7 @@ impl TerrainError {
     }
 
     /// `Err` of [`TerrainError::InvalidParameter`] unless `ok`.
-    pub fn check(
+    pub(crate) fn check(
         ok: bool,
         parameter: &'static str,
         value: impl Into<f64>,

@@ -19,7 +19,10 @@
 //! e}`, with `d` the cloud above it in its column, `e` the sun's elevation
 //! (the first `DirectionalLight`; straight up without one) and `σ`
 //! [`CloudLayer::shadow_extinction`] (Beer-Lambert through a plane-parallel
-//! layer of the column's local thickness), read by a transfer function over
+//! layer of the column's local thickness; optionally with multiple
+//! scattering and the sky dimmed by the cloud above,
+//! [`CloudLayer::scattering_octaves`], [`CloudLayer::sky_occlusion`]), read
+//! by a transfer function over
 //! light (default the `CloudLight` preset); the view rays see the extinction
 //! [`CloudLayer::density`].
 //!
@@ -241,7 +244,7 @@ impl CloudLayer {
             octaves_ok,
             "scattering_octaves",
             octaves as f32,
-            "from 1 to 8",
+            "between 1 and 8",
         )?;
         if let CloudLayerSource::Maps { scale, .. } = self.source {
             check(
