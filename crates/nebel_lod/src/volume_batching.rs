@@ -72,9 +72,9 @@ impl BuildKey {
 /// The bits of every value of `settings` (0 for the parts it lacks, with a
 /// flag for each part). The lighting is taken apart field by field, so a new
 /// setting cannot be left out.
-pub(crate) fn settings_bits(settings: &BatchSettings) -> [u64; 15] {
+pub(crate) fn settings_bits(settings: &BatchSettings) -> [u64; 18] {
     let octree = settings.octree.map(|octree| octree.min_accuracy.to_bits());
-    let mut bits = [0; 15];
+    let mut bits = [0; 18];
     bits[0] = u64::from(settings.order == CellOrder::BackToFront);
     bits[12] = u64::from(settings.drawing == GridDrawing::ProjectedCells);
     bits[1] = u64::from(octree.is_some());
@@ -88,6 +88,7 @@ pub(crate) fn settings_bits(settings: &BatchSettings) -> [u64; 15] {
             lambert,
             scattering_octaves,
             sky_occlusion,
+            sky_direction,
         } = light;
         bits[3] = 1;
         bits[4] = u64::from(ambient.to_bits());
@@ -98,6 +99,7 @@ pub(crate) fn settings_bits(settings: &BatchSettings) -> [u64; 15] {
         bits[9..12].copy_from_slice(&sun_direction.to_array().map(f64::to_bits));
         bits[13] = u64::from(scattering_octaves);
         bits[14] = u64::from(sky_occlusion);
+        bits[15..18].copy_from_slice(&sky_direction.to_array().map(f64::to_bits));
     }
     bits
 }
@@ -760,11 +762,12 @@ mod tests {
     fn every_light_setting_builds_again_and_the_same_ones_do_not() {
         let grid = grid();
         let mut batching = VolumeBatching::default();
-        let changes: [fn(&mut CloudLighting); 4] = [
+        let changes: [fn(&mut CloudLighting); 5] = [
             |light| light.ambient = 0.1,
             |light| light.lambert = false,
             |light| light.scattering_octaves = 3,
             |light| light.sky_occlusion = true,
+            |light| light.sky_direction = DVec3::X,
         ];
         let mut lit = settings(Some(DVec3::Y));
         batching.build(Blocking, request(0.0, &grid, lit));

@@ -43,7 +43,7 @@ use nebel_render::{CellBatch, CellBlend, CellSunlight, EffectiveQuality, HeavyBu
 
 use crate::cloud::{CloudGeneration, CloudVolume, animates};
 use crate::grid::VolumeGrid;
-use crate::lighting::sun_in_local_frame;
+use crate::lighting::in_local_frame;
 use crate::status::{VolumeError, VolumeStatus};
 use crate::volume::{ProjectedCells, Volume, VolumeField, VolumePlugin};
 use crate::{LodCriterion, VolumeLighting, VolumeLod};
@@ -107,8 +107,10 @@ fn batch_settings(
             min_accuracy: lod.min_accuracy,
         }),
         lighting: lighting.map(|lighting| BatchLighting {
-            light: lighting
-                .light_field_settings(sun_in_local_frame(sun_world, &transform.affine())),
+            light: lighting.light_field_settings(
+                in_local_frame(sun_world, &transform.affine()),
+                in_local_frame(Some(Vec3::Y), &transform.affine()),
+            ),
             scalars: lighting.model.cell_scalars(),
         }),
         drawing: if projected {

@@ -135,7 +135,7 @@ impl VolumeLighting {
     /// The light-field settings for a sun in direction `sun_local` (toward the
     /// sun, in the volume's local frame): ambient and Lambert-shaded diffuse
     /// light, or for [`CloudLightModel::Scattering`] the transmittance alone.
-    pub fn light_field_settings(&self, sun_local: Vec3) -> CloudLighting {
+    pub fn light_field_settings(&self, sun_local: Vec3, zenith_local: Vec3) -> CloudLighting {
         let (sun, extinction) = (sun_local.as_dvec3(), self.shadow_extinction);
         let light = match self.model {
             CloudLightModel::Scattering { .. } => CloudLighting::transmittance(sun, extinction),
@@ -146,6 +146,7 @@ impl VolumeLighting {
         CloudLighting {
             scattering_octaves: self.scattering_octaves,
             sky_occlusion: self.sky_occlusion,
+            sky_direction: zenith_local.as_dvec3(),
             ..light
         }
     }
@@ -166,12 +167,12 @@ impl VolumeLighting {
     }
 }
 
-/// The direction toward the sun in a volume's local frame: the first
-/// directional light's `+Z` (it shines along `−Z`), mapped by the inverse of
-/// the volume's linear part; `+Y` when there is no directional light or the
-/// map is singular.
-pub(crate) fn sun_in_local_frame(sun_world: Option<Vec3>, world_from_local: &Affine3A) -> Vec3 {
-    let Some(sun) = sun_world else {
+/// A world direction (toward the sun: the first directional light's `+Z`,
+/// as it shines along `−Z`; or toward the zenith) in a volume's local frame,
+/// mapped by the inverse of the volume's linear part; `+Y` without one or
+/// when the map is singular.
+pub(crate) fn in_local_frame(world: Option<Vec3>, world_from_local: &Affine3A) -> Vec3 {
+    let Some(sun) = world else {
         return Vec3::Y;
     };
     let linear = Mat3::from(world_from_local.matrix3);
@@ -188,14 +189,14 @@ mod tests {
     #[test]
     fn the_sun_is_mapped_into_the_volume_frame() {
         let turned = Affine3A::from_rotation_y(std::f32::consts::FRAC_PI_2);
-        let sun = sun_in_local_frame(Some(Vec3::X), &turned);
+        let sun = in_local_frame(Some(Vec3::X), &turned);
         assert!(sun.distance(Vec3::Z) < 1e-6, "{sun}");
         let stretched = Affine3A::from_scale(Vec3::new(4.0, 1.0, 1.0));
-        let sun = sun_in_local_frame(Some(Vec3::new(1.0, 1.0, 0.0).normalize()), &stretched);
+        let sun = in_local_frame(Some(Vec3::new(1.0, 1.0, 0.0).normalize()), &stretched);
         assert!(sun.distance(Vec3::new(0.25, 1.0, 0.0).normalize()) < 1e-6);
-        assert_eq!(sun_in_local_frame(None, &turned), Vec3::Y);
+        assert_eq!(in_local_frame(None, &turned), Vec3::Y);
         assert_eq!(
-            sun_in_local_frame(Some(Vec3::X), &Affine3A::from_scale(Vec3::ZERO)),
+            in_local_frame(Some(Vec3::X), &Affine3A::from_scale(Vec3::ZERO)),
             Vec3::Y
         );
     }

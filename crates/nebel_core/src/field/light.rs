@@ -32,17 +32,17 @@
 //! every octave is the first's).
 //!
 //! **Sky occlusion** (optional): the ambient sky light is dimmed by the cloud
-//! above, `T_sky = e^{−1.66 τ_up}` with `τ_up = σ ∫ f dy` up the grid column
-//! to the box's top (trapezoid rule, exact along the column): a
+//! above, `T_sky = e^{−1.66 τ_up}` with `τ_up = σ ∫ f ds` toward the zenith
+//! (`sky_direction`, the grid's +y unless the grid is turned) to the box's
+//! boundary, swept as the sun's τ is (exact along a grid axis): a
 //! plane-parallel layer's diffuse transmittance with Elsasser's diffusivity
 //! factor 1.66 for light from the whole sky, so the bases of thick clouds
-//! darken. It takes the cloud straight above only, not the sky beside it,
-//! and "above" is the grid's own +y (a turned volume's local up). 1 without
-//! the option or without a shadow.
+//! darken. It takes the cloud straight above only, not the sky beside it. 1
+//! without the option or without a shadow.
 //!
 //! The passes run along grid rows in the CPU's vector instructions, equal bit
 //! for bit to the pointwise formulas (tests); the Lambert pass shares z-slices
-//! among threads, the sweep runs on the calling thread. The derivation of the
+//! among threads, the sweeps run on the calling thread. The derivation of the
 //! sweep, its exactness and its limits are in `docs/cloud-field.md` in the
 //! repository.
 
@@ -99,6 +99,10 @@ pub struct CloudLighting {
     /// Whether the cloud above a point dims its ambient (sky) light (module
     /// docs). Needs a shadow (`shadow_extinction > 0`). Default `false`.
     pub sky_occlusion: bool,
+    /// Direction toward the zenith in the grid's frame, finite and non-zero
+    /// (normalised), for [`CloudLighting::sky_occlusion`]: the grid's +y
+    /// unless the grid is turned in the world. Default `+Y`.
+    pub sky_direction: DVec3,
 }
 
 impl Default for CloudLighting {
@@ -111,6 +115,7 @@ impl Default for CloudLighting {
             lambert: true,
             scattering_octaves: 1,
             sky_occlusion: false,
+            sky_direction: DVec3::Y,
         }
     }
 }
@@ -158,23 +163,29 @@ impl CloudLighting {
         }
     }
 
-    /// Validates the settings; returns the unit sun direction.
-    fn unit_sun(&self, name: &str) -> Result<DVec3, FieldError> {
+    /// Validates the settings; returns the unit directions toward the sun
+    /// and the zenith.
+    fn unit_directions(&self, name: &str) -> Result<[DVec3; 2], FieldError> {
         let settings = Settings(name);
         settings.fractions(&[("ambient", self.ambient), ("diffuse", self.diffuse)])?;
         settings.non_negative(&[("shadow_extinction", self.shadow_extinction)])?;
         let octaves = self.scattering_octaves;
         let ok = (1..=Self::MAX_SCATTERING_OCTAVES).contains(&octaves);
         settings.require(ok, "scattering_octaves", octaves, "between 1 and 8")?;
-        let sun = self.sun_direction;
-        let largest = sun.abs().max_element();
-        (sun.is_finite() && largest > 0.0)
-            .then(|| (sun / largest).try_normalize())
-            .flatten()
-            .ok_or_else(|| {
-                let requirement = "finite and non-zero";
-                FieldError::invalid_parameter(name, "sun_direction", sun.to_string(), requirement)
-            })
+        let unit = |parameter, direction: DVec3| {
+            let largest = direction.abs().max_element();
+            (direction.is_finite() && largest > 0.0)
+                .then(|| (direction / largest).try_normalize())
+                .flatten()
+                .ok_or_else(|| {
+                    let (value, requirement) = (direction.to_string(), "finite and non-zero");
+                    FieldError::invalid_parameter(name, parameter, value, requirement)
+                })
+        };
+        Ok([
+            unit("sun_direction", self.sun_direction)?,
+            unit("sky_direction", self.sky_direction)?,
+        ])
     }
 }
 
@@ -211,7 +222,7 @@ pub fn light_field_with_threads(
     threads: usize,
 ) -> Result<DensityGrid, FieldError> {
     let name = "light_field";
-    let sun = lighting.unit_sun(name)?;
+    let [sun, zenith] = lighting.unit_directions(name)?;
     check_points("light field", &grid.dims(), SAMPLE_BYTES)
         .map_err(FieldError::over_budget(name))?;
     let ambient = f64::from(lighting.ambient);
@@ -244,25 +255,20 @@ pub fn light_field_with_threads(
     fill_slices(&mut out, nx * ny, threads, fill);
 
     if shadow {
-        let arch = pulp::Arch::new();
+        // The sun's light from the Lambert term: γ = clamp(ambient + diffuse ·
+        // T_sun(τ) · lambert), without the sky's share when it is dimmed.
         let octaves = ScatteringOctaves::new(lighting.scattering_octaves);
         let sky = if occlude_sky { 0.0 } else { ambient };
-        sweep_optical_depth(grid, sun, sigma, |axes, slices, taus| {
-            arch.dispatch(ShadeSlices {
-                out: &mut out,
-                axes,
-                slices,
-                taus,
-                gamma_weights: [sky, diffuse],
-                octaves,
-            });
+        shade_along(grid, sun, sigma, &mut out, move |lambert, tau| {
+            gamma(sky, diffuse, octaves.transmittance(tau) * lambert)
         });
     }
     if occlude_sky {
-        let occlude = |first_slice: usize, chunk: &mut [f32]| {
-            add_occluded_sky(grid, sigma * spacing.y, ambient, first_slice, chunk);
-        };
-        fill_slices(&mut out, nx * ny, threads, occlude);
+        // The sky's light through the cloud toward the zenith added to the
+        // sun's: clamp(ambient · e^{−1.66 τ} + sun).
+        shade_along(grid, zenith, sigma, &mut out, move |sun, tau| {
+            gamma(ambient * exp_neg(SKY_DIFFUSIVITY * tau), 1.0, sun)
+        });
     }
     DensityGrid::validated(name, grid.dims(), spacing, grid.origin(), out)
 }
@@ -325,43 +331,6 @@ impl ScatteringOctaves {
     }
 }
 
-/// Adds the sky's light dimmed by the cloud above, `ambient · e^{−1.66
-/// τ_up}`, to the sun's light in `chunk` (the z-slices from `first_slice`)
-/// and clamps to [0, 1]: `τ_up` summed down each column from the box's top
-/// by the trapezoid rule, `step = σ Δy` the optical depth of a unit
-/// density over one spacing.
-fn add_occluded_sky(
-    grid: &DensityGrid,
-    step: f64,
-    ambient: f64,
-    first_slice: usize,
-    chunk: &mut [f32],
-) {
-    let [nx, ny, _] = grid.dims();
-    let half_step = 0.5 * step;
-    // Row after row down the slice, each point's τ_up carried in `taus`.
-    let mut taus = vec![0.0f64; nx];
-    for (dk, slice) in chunk.chunks_mut(nx * ny).enumerate() {
-        let densities = &grid.values()[(first_slice + dk) * nx * ny..][..nx * ny];
-        taus.fill(0.0);
-        for j in (0..ny).rev() {
-            let row = j * nx..(j + 1) * nx;
-            if j + 1 < ny {
-                let above = &densities[row.end..row.end + nx];
-                for ((tau, &f), &f_above) in taus.iter_mut().zip(&densities[row.clone()]).zip(above)
-                {
-                    *tau += half_step * (f64::from(f) + f64::from(f_above));
-                }
-            }
-            for (value, &tau) in slice[row].iter_mut().zip(&taus) {
-                let sky = ambient * exp_neg(SKY_DIFFUSIVITY * tau);
-                *value = (sky + f64::from(*value)).clamp(0.0, 1.0) as f32;
-            }
-        }
-        pace();
-    }
-}
-
 /// `γ = clamp(ambient + diffuse · lit, 0, 1)` for the product `lit` of the
 /// sun's transmittance and the Lambert term.
 #[inline(always)]
@@ -369,24 +338,44 @@ fn gamma(ambient: f64, diffuse: f64, lit: f64) -> f32 {
     (ambient + diffuse * lit).clamp(0.0, 1.0) as f32
 }
 
-/// γ from the Lambert terms in `out` and the optical depths toward the sun
-/// of a block of slices of the sweep ([`sweep_optical_depth`]: the slices'
-/// τ one after another), in place, compiled for the vector instructions the
-/// CPU has: along the rows of a slice where they are contiguous in the
-/// grid, else (sweeping along x, where a block's slices are consecutive
-/// points of every grid row) along each grid row's run of the block's
-/// slices. The transmittance is [`ScatteringOctaves`]'.
-struct ShadeSlices<'a> {
+/// The light in `out` shaded by the optical depths toward the sun or the
+/// zenith of a block of slices of a sweep ([`sweep_optical_depth`]: the
+/// slices' τ one after another), in place, compiled for the
+/// vector instructions the CPU has: along the rows of a slice where they
+/// are contiguous in the grid, else (sweeping along x, where a block's
+/// slices are consecutive points of every grid row) along each grid row's
+/// run of the block's slices.
+struct ShadeSlices<'a, F> {
     out: &'a mut [f32],
     axes: &'a SweepAxes,
     slices: &'a [usize],
     taus: &'a [f64],
-    /// `[ambient, diffuse]`.
-    gamma_weights: [f64; 2],
-    octaves: ScatteringOctaves,
+    /// The new value from the one in `out` and τ.
+    shade: F,
 }
 
-impl pulp::WithSimd for ShadeSlices<'_> {
+/// Shades `out` in place with `shade(value, τ)`, τ the optical depth toward
+/// `toward` swept through `grid` ([`ShadeSlices`]).
+fn shade_along(
+    grid: &DensityGrid,
+    toward: DVec3,
+    sigma: f64,
+    out: &mut [f32],
+    shade: impl Fn(f64, f64) -> f32 + Copy,
+) {
+    let arch = pulp::Arch::new();
+    sweep_optical_depth(grid, toward, sigma, |axes, slices, taus| {
+        arch.dispatch(ShadeSlices {
+            out: &mut *out,
+            axes,
+            slices,
+            taus,
+            shade,
+        });
+    });
+}
+
+impl<F: Fn(f64, f64) -> f32> pulp::WithSimd for ShadeSlices<'_, F> {
     type Output = ();
 
     #[inline(always)]
@@ -396,16 +385,9 @@ impl pulp::WithSimd for ShadeSlices<'_> {
             axes,
             slices,
             taus,
-            gamma_weights: [ambient, diffuse],
-            octaves,
+            shade: new_value,
         } = self;
-        let shade = |value: &mut f32, tau: f64| {
-            *value = gamma(
-                ambient,
-                diffuse,
-                octaves.transmittance(tau) * f64::from(*value),
-            );
-        };
+        let shade = |value: &mut f32, tau: f64| *value = new_value(f64::from(*value), tau);
         let [nb, nc] = [axes.dims[axes.b], axes.dims[axes.c]];
         let points = nb * nc;
         if let ([s], 1) = (slices, axes.strides[axes.b]) {
@@ -1243,6 +1225,27 @@ mod tests {
             let got = f64::from(light.value(0, j, 24));
             assert!((got - expected).abs() < 1e-3, "j {j}: {got} vs {expected}");
         }
+        // A grid turned in the world: its zenith is its +x, the sun its +y.
+        let dims = [9, 11, 5];
+        let grid = uniform(dims, DVec3::splat(0.5), 1.0);
+        let lighting = CloudLighting {
+            sun_direction: DVec3::Y,
+            sky_direction: DVec3::new(2.0, 0.0, 0.0),
+            ..lighting
+        };
+        let light = light_field(&grid, &lighting).unwrap();
+        let max = grid.max_corner();
+        for (i, j, k) in [(0, 0, 0), (4, 7, 2), (8, 3, 4), (2, 10, 1)] {
+            let p = grid.origin() + DVec3::new(i as f64, j as f64, k as f64) * 0.5;
+            let (up, toward_sun) = (0.4 * (max.x - p.x), 0.4 * (max.y - p.y));
+            let sun_light = ((-toward_sun).exp() + 0.5 * (-0.5 * toward_sun).exp()) / 1.5;
+            let expected = 0.3 * (-1.66 * up).exp() + 0.7 * sun_light;
+            let got = f64::from(light.value(i, j, k));
+            assert!(
+                (got - expected).abs() < 1e-3,
+                "({i}, {j}, {k}): {got} vs {expected}"
+            );
+        }
     }
 
     #[test]
@@ -1461,6 +1464,11 @@ mod tests {
             );
         }
         check(CloudLighting { ambient: 1.5, ..ok }, "ambient");
+        let zenith = CloudLighting {
+            sky_direction: DVec3::ZERO,
+            ..ok
+        };
+        check(zenith, "sky_direction");
         for scattering_octaves in [0, 9] {
             let octaves = CloudLighting {
                 scattering_octaves,
