@@ -86,3 +86,20 @@ pub(crate) fn write_png_header(path: &Path, width: u32, height: u32) {
     let mut writer = encoder.write_header().unwrap();
     writer.write_chunk(png::chunk::IDAT, &[]).unwrap();
 }
+
+/// A deterministic generator of uniform numbers (SplitMix64) for tests that
+/// draw many random cases without proptest's shrinking.
+pub(crate) struct SplitMix(pub(crate) u64);
+
+impl SplitMix {
+    /// A uniform number in `[range.start, range.end)`.
+    pub(crate) fn random_range(&mut self, range: std::ops::Range<f64>) -> f64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        let unit = (z >> 11) as f64 / (1_u64 << 53) as f64;
+        range.start + (range.end - range.start) * unit
+    }
+}
