@@ -52,6 +52,83 @@ pub const GAUSS_LEGENDRE_3: [(f64, f64); 3] = [
     (0.774_596_669_241_483_4, 5.0 / 9.0),
 ];
 
+/// How a medium scatters local lights: the Henyey-Greenstein asymmetry of
+/// its phase function and a factor on its colour κ. κ is the medium's look
+/// under a light as bright as the reference sun, so a medium authored dark
+/// for a night scene takes a `strength` above 1 to show a lamp's light.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "serde", serde(deny_unknown_fields, default))]
+#[cfg_attr(feature = "bevy_reflect", derive(bevy_reflect::Reflect))]
+pub struct LightResponse {
+    /// The asymmetry `g`, in (−1, 1): > 0 scatters forward. Default 0
+    /// (isotropic).
+    pub asymmetry: f32,
+    /// The factor on κ for the light it scatters, finite and ≥ 0. Default 1.
+    pub strength: f32,
+}
+
+impl Default for LightResponse {
+    fn default() -> Self {
+        Self {
+            asymmetry: 0.0,
+            strength: 1.0,
+        }
+    }
+}
+
+impl LightResponse {
+    /// What renderers use: the asymmetry clamped to ±0.99 (NaN as 0), the
+    /// strength as 0 where it is negative or not finite.
+    pub fn checked(&self) -> Self {
+        Self {
+            asymmetry: if self.asymmetry.is_nan() {
+                0.0
+            } else {
+                self.asymmetry.clamp(-0.99, 0.99)
+            },
+            strength: if self.strength.is_finite() {
+                self.strength.max(0.0)
+            } else {
+                0.0
+            },
+        }
+    }
+
+    /// Why it is out of range, naming the field, if it is.
+    pub fn invalid(&self) -> Option<(&'static str, String)> {
+        if !(self.asymmetry.abs() < 1.0) {
+            return Some((
+                "asymmetry",
+                format!("must be in (−1, 1), got {}", self.asymmetry),
+            ));
+        }
+        if !(self.strength.is_finite() && self.strength >= 0.0) {
+            return Some((
+                "strength",
+                format!("must be finite and ≥ 0, got {}", self.strength),
+            ));
+        }
+        None
+    }
+}
+
+/// The factor on a firelight's intensity at `time` seconds for a flicker of
+/// relative `amplitude` (clamped to [0, 1]): three incommensurate sines,
+/// between `1 − amplitude` and `1 + amplitude`.
+pub fn flicker(amplitude: f64, time: f64) -> f64 {
+    use std::f64::consts::TAU;
+    let wave = 0.5 * (TAU * 7.3 * time).sin()
+        + 0.3 * (TAU * 13.1 * time + 1.3).sin()
+        + 0.2 * (TAU * 2.9 * time + 0.7).sin();
+    let amplitude = if amplitude.is_nan() {
+        0.0
+    } else {
+        amplitude.clamp(0.0, 1.0)
+    };
+    1.0 + amplitude * wave
+}
+
 /// A spot light's cone: the factor `clamp(cos ψ · scale + offset, 0, 1)²` on
 /// its light, ψ the angle between `direction` and the way to the point; 1
 /// inside the inner angle, 0 outside the outer one (Bevy's `SpotLight`).
@@ -92,6 +169,62 @@ impl SpotCone {
     pub fn factor(&self, toward: DVec3) -> f64 {
         let f = (self.direction.dot(toward) * self.scale + self.offset).clamp(0.0, 1.0);
         f * f
+    }
+
+    /// The stretch `[t_0, t_1]` of the line `offset + t · direction` (`offset`
+    /// from the apex, `direction` a unit vector) inside the outer cone, where
+    /// the factor may be above 0; a convex cone meets a line in one stretch,
+    /// possibly unbounded or empty (`t_0 > t_1`). The whole line where that
+    /// cannot be told apart (the line parallel to the cone's side, an outer
+    /// angle of 90°).
+    pub fn chord(&self, offset: DVec3, direction: DVec3) -> (f64, f64) {
+        self.chord_at(-self.offset / self.scale, offset, direction)
+    }
+
+    /// The same for the inner cone, where the factor is 1.
+    pub fn inner_chord(&self, offset: DVec3, direction: DVec3) -> (f64, f64) {
+        self.chord_at((1.0 - self.offset) / self.scale, offset, direction)
+    }
+
+    /// The stretch inside the cone of cosine `c` about the axis.
+    fn chord_at(&self, c: f64, offset: DVec3, direction: DVec3) -> (f64, f64) {
+        const WHOLE: (f64, f64) = (f64::NEG_INFINITY, f64::INFINITY);
+        const EMPTY: (f64, f64) = (f64::INFINITY, f64::NEG_INFINITY);
+        let (aw, ad) = (self.direction.dot(offset), self.direction.dot(direction));
+        // Inside: a · v ≥ c |v| for v = offset + t direction, that is a · v ≥ 0
+        // and q(t) = (a · v)² − c² |v|² = A t² + 2 B t + C ≥ 0.
+        let a = ad * ad - c * c;
+        let b = aw * ad - c * c * offset.dot(direction);
+        let k = aw * aw - c * c * offset.length_squared();
+        let discriminant = b * b - a * k;
+        if c <= 1e-6 || a.abs() < 1e-9 || !discriminant.is_finite() {
+            return WHOLE;
+        }
+        if discriminant < 0.0 {
+            return if a < 0.0 { EMPTY } else { WHOLE };
+        }
+        let root = discriminant.sqrt();
+        let (r0, r1) = ((-b - root) / a, (-b + root) / a);
+        let (lo, hi) = (r0.min(r1), r0.max(r1));
+        let forward = |t: f64| aw + t * ad >= 0.0;
+        if a < 0.0 {
+            // Between the roots, in one nappe.
+            if forward(0.5 * (lo + hi)) {
+                (lo, hi)
+            } else {
+                EMPTY
+            }
+        } else if ad > 0.0 {
+            if forward(hi) {
+                (hi, f64::INFINITY)
+            } else {
+                EMPTY
+            }
+        } else if forward(lo) {
+            (f64::NEG_INFINITY, lo)
+        } else {
+            EMPTY
+        }
     }
 }
 
@@ -174,17 +307,31 @@ impl LocalLight {
     /// `∫ f(t) E(x(t)) 4π p_HG(θ(t)) dt` over `[t_a, t_b]` along the unit ray
     /// `origin + t · direction` (see the module docs), with `f` the medium's
     /// weight at `t`, as the GPU takes it for one piece of a segment: over the
-    /// part of the span inside the light's range, one interval of
-    /// [`GAUSS_LEGENDRE_3`] in the angle γ.
+    /// part of the span inside the light's range and outer cone
+    /// ([`SpotCone::chord`]), one interval of [`GAUSS_LEGENDRE_3`] in the
+    /// angle γ, or for a spot light one on each side of where the ray crosses
+    /// the inner cone ([`SpotCone::inner_chord`]), whose factor has a kink
+    /// there.
     pub fn piece_scattering(
         &self,
         origin: DVec3,
         direction: DVec3,
-        span: (f64, f64),
+        (t_a, t_b): (f64, f64),
         asymmetry: f64,
-        f: impl FnMut(f64) -> DVec3,
+        mut f: impl FnMut(f64) -> DVec3,
     ) -> DVec3 {
-        self.integrate(origin, direction, span, asymmetry, 1, f)
+        let Some(cone) = self.cone else {
+            return self.integrate(origin, direction, (t_a, t_b), asymmetry, 1, f);
+        };
+        let (inner_0, inner_1) = cone.inner_chord(origin - self.position, direction);
+        let (c_0, c_1) = (
+            inner_0.clamp(t_a, t_b),
+            inner_1.clamp(t_a, t_b).max(inner_0.clamp(t_a, t_b)),
+        );
+        [(t_a, c_0), (c_0, c_1), (c_1, t_b)]
+            .into_iter()
+            .map(|part| self.integrate(origin, direction, part, asymmetry, 1, &mut f))
+            .fold(DVec3::ZERO, |sum, part| sum + part)
     }
 
     /// The same integral to the reference's accuracy: the span is also cut
@@ -260,9 +407,14 @@ impl LocalLight {
         let to_light = self.position - origin;
         let foot = to_light.dot(direction);
         let miss2 = (to_light - foot * direction).length_squared();
-        // Only the chord inside the light's range: the window is smooth there.
+        // Only the chord inside the light's range (the window is smooth there)
+        // and inside a spot light's outer cone.
         let half_chord = (self.range * self.range - miss2).max(0.0).sqrt();
-        let (t_a, t_b) = (t_a.max(foot - half_chord), t_b.min(foot + half_chord));
+        let (mut t_a, mut t_b) = (t_a.max(foot - half_chord), t_b.min(foot + half_chord));
+        if let Some(cone) = self.cone {
+            let (t_0, t_1) = cone.chord(-to_light, direction);
+            (t_a, t_b) = (t_a.max(t_0), t_b.min(t_1));
+        }
         if !(t_b > t_a) {
             return DVec3::ZERO;
         }
@@ -411,6 +563,45 @@ mod tests {
     }
 
     #[test]
+    fn the_cone_chord_holds_every_lit_point_of_a_line() {
+        // Random cones and lines: every point with a factor above 0 lies in
+        // the chord, and the chord's finite ends lie on the outer cone.
+        let mut rng = SplitMix(3);
+        let mut bounded = 0;
+        for _ in 0..2000 {
+            let mut random = || {
+                DVec3::new(
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                )
+            };
+            let (axis, offset, direction) = (random(), 3.0 * random(), random().normalize());
+            let outer = 0.05 + 1.4 * (axis.x * 0.5 + 0.5);
+            let cone = SpotCone::new(axis, 0.5 * outer, outer);
+            let (t_0, t_1) = cone.chord(offset, direction);
+            for i in 0..400 {
+                let t = -10.0 + 0.05 * f64::from(i);
+                let v = offset + t * direction;
+                if cone.factor(v.normalize()) > 1e-9 {
+                    assert!(
+                        t >= t_0 - 1e-9 && t <= t_1 + 1e-9,
+                        "{t} outside {t_0}..{t_1}"
+                    );
+                }
+            }
+            for end in [t_0, t_1] {
+                if end.is_finite() {
+                    bounded += 1;
+                    let v = (offset + end * direction).normalize();
+                    assert!((cone.direction.dot(v) - outer.cos()).abs() < 1e-9);
+                }
+            }
+        }
+        assert!(bounded > 1000, "only {bounded} finite ends");
+    }
+
+    #[test]
     fn the_cone_window_and_box_test() {
         let cone = SpotCone::new(DVec3::new(0.0, -2.0, 0.0), 0.2, 0.4);
         assert_eq!(cone.factor(DVec3::NEG_Y), 1.0);
@@ -429,6 +620,19 @@ mod tests {
         assert_eq!(light.illuminance(DVec3::new(1.0, 0.0, 0.0)), DVec3::ZERO);
         assert!(light.reaches_box(DVec3::new(1.0, -1.0, -1.0), DVec3::new(3.0, 1.0, 1.0)));
         assert!(!light.reaches_box(DVec3::new(1.5, 1.5, -1.0), DVec3::new(3.0, 3.0, 1.0)));
+    }
+
+    #[test]
+    fn responses_are_checked_and_named() {
+        let response = |asymmetry, strength| LightResponse {
+            asymmetry,
+            strength,
+        };
+        assert_eq!(response(f32::NAN, -1.0).checked(), response(0.0, 0.0));
+        assert_eq!(response(2.0, f32::INFINITY).checked(), response(0.99, 0.0));
+        assert_eq!(LightResponse::default().invalid(), None);
+        assert_eq!(response(1.0, 1.0).invalid().unwrap().0, "asymmetry");
+        assert_eq!(response(0.5, -1.0).invalid().unwrap().0, "strength");
     }
 
     #[test]

@@ -49,7 +49,7 @@ use nebel_core::budget::BudgetError;
 use nebel_core::cell::{CellSegment, PreparedTetrahedron, Ray, Tetrahedron};
 use nebel_core::field::DensityGrid;
 use nebel_core::joint_segment::{JointMedium, exact_joint_segment};
-use nebel_core::local_light::LocalLight;
+use nebel_core::local_light::{LightResponse, LocalLight};
 use nebel_core::optics::{MODULATOR_PIECES, OpticalMode, PremultipliedRgba, henyey_greenstein};
 use nebel_core::segment::{exact_segment, rho_hat};
 use nebel_core::transfer::TransferFunction;
@@ -261,14 +261,14 @@ pub struct ReferenceScene {
     /// composited as it is. Default `None`.
     pub fog: Option<ReferenceFog>,
     /// Sorted volumes only: point and spot lights whose light the medium
-    /// scatters toward the eye, `∫ ρ κ T E 4π p_HG dt` along every segment
+    /// scatters toward the eye, `∫ ρ s κ T E 4π p_HG dt` along every segment
     /// ([`nebel_core::local_light`]; κ read as white for a volume with
     /// [`ReferenceScene::scattering`], whose colour is its light toward the
     /// sun), converged by [`LocalLight::scattered`]. Default none.
     pub local_lights: Vec<LocalLight>,
-    /// The Henyey-Greenstein asymmetry of the medium's scattering of local
-    /// lights, clamped to ±0.99. Default 0 (isotropic).
-    pub local_light_asymmetry: f64,
+    /// How the medium scatters them: the phase's asymmetry and the factor
+    /// `s` on κ ([`LightResponse::checked`]). Default: isotropic, 1.
+    pub light_response: LightResponse,
 }
 
 /// Single scattering of the sun (Nes 2008) for a volume integrated over the
@@ -309,7 +309,7 @@ impl ReferenceScene {
             scattering: None,
             fog: None,
             local_lights: Vec::new(),
-            local_light_asymmetry: 0.0,
+            light_response: LightResponse::default(),
         }
     }
 
@@ -394,15 +394,6 @@ impl ReferenceScene {
         {
             return Err(ReferenceError::InvalidLight { index, reason });
         }
-        if !self.local_light_asymmetry.is_finite() {
-            return Err(ReferenceError::InvalidLight {
-                index: 0,
-                reason: format!(
-                    "the asymmetry {} is not finite",
-                    self.local_light_asymmetry
-                ),
-            });
-        }
         if !(self.scalar_tolerance.is_finite() && self.scalar_tolerance > 0.0) {
             return Err(ReferenceError::InvalidTolerance {
                 value: self.scalar_tolerance,
@@ -484,7 +475,7 @@ pub enum ReferenceError {
         /// What is wrong.
         reason: String,
     },
-    /// A local light (or their asymmetry) is out of range.
+    /// A local light is out of range.
     #[error("reference local light {index}: {reason}")]
     InvalidLight {
         /// Index in [`ReferenceScene::local_lights`].
@@ -791,10 +782,7 @@ fn render_pixel_together(
         }
     }
     pieces.sort_by(|a, b| a.t_front.total_cmp(&b.t_front));
-    let media: Vec<Medium<'_>> = scenes
-        .iter()
-        .map(|scene| Medium::of(scene, &ray))
-        .collect();
+    let media: Vec<Medium<'_>> = scenes.iter().map(|scene| Medium::of(scene, &ray)).collect();
     let mut march = JointMarch {
         colour: DVec4::ZERO,
         ray,
@@ -836,9 +824,9 @@ struct Medium<'a> {
     mode: OpticalMode,
     /// The ray's ambient and sunlight weights of single scattering.
     light: Option<(f64, f64)>,
-    /// The local lights it scatters, and their asymmetry.
+    /// The local lights it scatters, and how.
     local_lights: &'a [LocalLight],
-    asymmetry: f64,
+    response: LightResponse,
 }
 
 impl<'a> Medium<'a> {
@@ -850,18 +838,20 @@ impl<'a> Medium<'a> {
             mode: scene.mode,
             light: ray_light(scene, ray),
             local_lights: if sorted { &scene.local_lights } else { &[] },
-            asymmetry: scene.local_light_asymmetry,
+            response: scene.light_response.checked(),
         }
     }
 
     /// The local lights' colour where it scatters them, per unit of its
-    /// emission weight: κ, or white where its colour is the sun's light.
+    /// emission weight: κ, or white where its colour is the sun's light,
+    /// times the response's strength.
     fn albedo(&self, s: f64) -> DVec3 {
-        if self.light.is_some() {
+        let colour = if self.light.is_some() {
             DVec3::ONE
         } else {
             self.transfer_function.evaluate(s).kappa
-        }
+        };
+        colour * f64::from(self.response.strength)
     }
 
     /// The exact segment `s_front → s_back` of (modulated) `length`, lit.
@@ -892,13 +882,7 @@ impl<'a> Medium<'a> {
 /// `active` of `media` (each covering the stretch): `Σ ∫ ρ κ T E 4π p_HG dt`
 /// over each medium's lights, `T` the joint transmittance of the absorbing
 /// media from `t0`.
-fn in_scattered(
-    media: &[Medium<'_>],
-    active: &[RayPiece],
-    ray: &Ray,
-    t0: f64,
-    t1: f64,
-) -> DVec3 {
+fn in_scattered(media: &[Medium<'_>], active: &[RayPiece], ray: &Ray, t0: f64, t1: f64) -> DVec3 {
     let mut sum = DVec3::ZERO;
     if !(t1 > t0) {
         return sum;
@@ -919,7 +903,9 @@ fn in_scattered(
         let depth: f64 = parts
             .iter()
             .filter(|(medium, ..)| medium.mode == OpticalMode::Sorted)
-            .map(|part| part.3 * (t - t0) * rho_hat(part.0.transfer_function, part.1, scalar(part, t)))
+            .map(|part| {
+                part.3 * (t - t0) * rho_hat(part.0.transfer_function, part.1, scalar(part, t))
+            })
             .sum();
         (-depth).exp()
     };
@@ -930,7 +916,7 @@ fn in_scattered(
                 ray.origin,
                 ray.direction,
                 (t0, t1),
-                medium.asymmetry,
+                f64::from(medium.response.asymmetry),
                 LIGHT_INTERVALS,
                 |t| {
                     let s = scalar(part, t);
@@ -1573,10 +1559,10 @@ mod tests {
 
     #[test]
     fn a_box_lit_by_a_point_light_matches_the_integral_in_distance() {
-        use nebel_core::local_light::LocalLight;
+        use nebel_core::local_light::{LightResponse, LocalLight};
         // The uniform box (κ = (1, 0.5, 0.25), ρ = 2) with a point light
         // above it, scattering forward: its own colour κ α plus
-        // ∫ ρ κ e^{−ρ (t − t_in)} E(x) 4π p_HG dt, here by the midpoint rule
+        // 1.5 ∫ ρ κ e^{−ρ (t − t_in)} E(x) 4π p_HG dt, here by the midpoint rule
         // in t (the reference integrates in the angle).
         let light = LocalLight::from_lumens(
             DVec3::new(0.2, 1.4, 0.3),
@@ -1587,7 +1573,10 @@ mod tests {
         let volume = ReferenceVolume::Grid(grid(5, |_| 0.5));
         let mut scene = ReferenceScene::new(camera(), volume, constant_tf(), OpticalMode::Sorted);
         scene.local_lights = vec![light];
-        scene.local_light_asymmetry = 0.4;
+        scene.light_response = LightResponse {
+            asymmetry: 0.4,
+            strength: 1.5,
+        };
         let image = render(&scene, None).unwrap();
         let kappa = DVec3::new(1.0, 0.5, 0.25);
         let pixels = box_pixels(&scene.camera, None);
@@ -1609,7 +1598,7 @@ mod tests {
                         * step
                 })
                 .sum();
-            let expected = kappa * (1.0 - (-2.0 * chord).exp()) + scattered;
+            let expected = kappa * (1.0 - (-2.0 * chord).exp()) + 1.5 * scattered;
             brightest = brightest.max(scattered.max_element());
             let pixel = image.pixels[(y * 40 + x) as usize];
             for c in 0..3 {
@@ -1625,9 +1614,18 @@ mod tests {
         let emissive = render(&scene, None).unwrap();
         scene.local_lights.clear();
         assert_eq!(emissive.pixels, render(&scene, None).unwrap().pixels);
-        scene.local_lights = vec![light, LocalLight { range: -1.0, ..light }];
+        scene.local_lights = vec![
+            light,
+            LocalLight {
+                range: -1.0,
+                ..light
+            },
+        ];
         let error = render(&scene, None).unwrap_err().to_string();
-        assert!(error.contains("local light 1") && error.contains("range"), "{error}");
+        assert!(
+            error.contains("local light 1") && error.contains("range"),
+            "{error}"
+        );
     }
 
     #[test]

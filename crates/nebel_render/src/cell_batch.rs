@@ -10,9 +10,12 @@ use std::sync::Arc;
 
 use bevy::prelude::*;
 use bevy::render::render_resource::ShaderType;
+use nebel_core::local_light::LightResponse;
 use nebel_core::optics::{OpticalMode, henyey_greenstein};
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::Cells;
+
+use crate::local_lights::{BatchLights, LocalLightUniform};
 
 /// The sun and sky of a scattering batch ([`CellBatch::scattering`]).
 #[derive(Clone, Copy, Debug, PartialEq, Reflect)]
@@ -73,13 +76,27 @@ pub(crate) struct CellBatchUniform {
     pub blend: Vec4,
     /// The [`CellSunlight`] factor; w unused.
     pub sunlight: Vec4,
+    /// x: how many of `lights` light the batch; y: their Henyey-Greenstein
+    /// asymmetry, clamped to ±0.99; z: the square of the falloff's core
+    /// radius ([`nebel_core::local_light::CORE_RADIUS`]); w: the factor on
+    /// the colour ([`LightResponse::strength`]).
+    pub local: Vec4,
+    /// The local lights that reach the batch ([`crate::local_lights`]).
+    pub lights: [LocalLightUniform; nebel_core::local_light::MAX_LOCAL_LIGHTS],
 }
 
 impl CellBatchUniform {
     /// The uniform of a batch with `scattering` blended by `blend` (already
     /// clamped, [`CellBlend::clamped`]) under `sunlight` (already checked,
-    /// [`CellSunlight::checked`]).
-    pub(crate) fn new(scattering: Option<&CellScattering>, blend: f32, sunlight: Vec3) -> Self {
+    /// [`CellSunlight::checked`]), lit by `lights` scattered with
+    /// `response` (checked here).
+    pub(crate) fn new(
+        scattering: Option<&CellScattering>,
+        blend: f32,
+        sunlight: Vec3,
+        lights: &BatchLights,
+        response: LightResponse,
+    ) -> Self {
         let mut uniform = scattering.map_or_else(Self::default, |scattering| Self {
             sun: scattering
                 .sun_direction
@@ -91,6 +108,15 @@ impl CellBatchUniform {
         });
         uniform.blend.x = blend;
         uniform.sunlight = sunlight.extend(0.0);
+        let response = response.checked();
+        let core = nebel_core::local_light::CORE_RADIUS as f32;
+        uniform.local = Vec4::new(
+            lights.count as f32,
+            response.asymmetry,
+            core * core,
+            response.strength,
+        );
+        uniform.lights = lights.lights;
         uniform
     }
 }
@@ -198,6 +224,11 @@ pub struct CellBatch {
     /// their segments end at that distance from the eye, so the two never
     /// count the same fog twice. Ground fog sets it. Default false.
     pub ends_where_fog_layers_begin: bool,
+    /// How a sorted batch scatters the point and spot lights that reach it
+    /// ([`crate::local_lights`]): their phase's asymmetry and a factor on
+    /// its colour; checked by the render system
+    /// ([`LightResponse::checked`]). Default: isotropic, factor 1.
+    pub light_response: LightResponse,
 }
 
 impl CellBatch {
@@ -213,6 +244,7 @@ impl CellBatch {
             mode,
             scattering: None,
             ends_where_fog_layers_begin: false,
+            light_response: LightResponse::default(),
         }
     }
 
@@ -238,11 +270,31 @@ mod tests {
             ..default()
         };
         assert!(scattering.phase(Vec3::Z) > 100.0 * scattering.phase(Vec3::NEG_Z));
-        let uniform = CellBatchUniform::new(Some(&scattering), 0.25, Vec3::ONE);
+        let none = BatchLights::default();
+        let uniform = CellBatchUniform::new(Some(&scattering), 0.25, Vec3::ONE, &none, default());
         assert_eq!(uniform.sun, Vec4::new(0.0, 0.0, 1.0, 0.99));
         assert_eq!(uniform.blend.x, 0.25);
         assert_eq!(uniform.sunlight, Vec4::new(1.0, 1.0, 1.0, 0.0));
-        assert_eq!(CellBatchUniform::new(None, 0.5, Vec3::ONE).sun, Vec4::ZERO);
+        assert_eq!(uniform.local.truncate().truncate(), Vec2::ZERO);
+        let nan = LightResponse {
+            asymmetry: f32::NAN,
+            strength: f32::NAN,
+        };
+        let unlit = CellBatchUniform::new(None, 0.5, Vec3::ONE, &none, nan);
+        assert_eq!(
+            (unlit.sun, unlit.local.x, unlit.local.y, unlit.local.w),
+            (Vec4::ZERO, 0.0, 0.0, 0.0)
+        );
+        let lights = BatchLights {
+            count: 2,
+            ..default()
+        };
+        let response = LightResponse {
+            asymmetry: -3.0,
+            strength: 4.0,
+        };
+        let lit = CellBatchUniform::new(None, 0.5, Vec3::ONE, &lights, response);
+        assert_eq!(lit.local, Vec4::new(2.0, -0.99, 1e-4, 4.0));
         let sunlight = CellSunlight {
             colour: Vec3::new(f32::NAN, -1.0, 2.5),
         };

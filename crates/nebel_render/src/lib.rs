@@ -14,6 +14,8 @@
 //! - [`camera`]: the camera that drives the level of detail ([`LodCamera`]).
 //! - [`grayscale_map`]: [`GrayscaleMap`], a grayscale PNG as unit values on a
 //!   grid: terrain heights, fog thickness, a sky layer's surfaces.
+//! - [`local_lights`]: point and spot lights (opted in with `VolumetricLight`)
+//!   scattered by sorted batches.
 //! - [`effect`]: what every effect plugin shares ([`EffectStatus`]).
 //! - [`diagnostics`]: the [`NebelSystems`] set that every per-frame nebel system
 //!   joins and the CPU time that set takes each frame.
@@ -30,6 +32,7 @@ pub mod fog_layers;
 mod frame_budget;
 pub mod grayscale_map;
 pub mod headless;
+pub mod local_lights;
 pub mod quality;
 
 pub use builds::{HeavyBuild, HeavyBuilds, free_in_background};

@@ -363,6 +363,7 @@ impl TerrainDescription {
             lighting: None,
             projected_cells: false,
             ends_where_fog_layers_begin: true,
+            light_response: Default::default(),
         });
         Ok(Some(FogReference { volume, ground }))
     }

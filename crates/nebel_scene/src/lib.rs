@@ -52,8 +52,9 @@ use thiserror::Error;
 
 use nebel_core::budget::{BudgetError, Dims, check_allocation, check_bytes};
 use nebel_core::field::HeightField;
+use nebel_core::local_light::{LocalLight, SpotCone, flicker};
 use nebel_reference::ReferenceCamera;
-use nebel_reference::image_metrics::LinearImage;
+use nebel_reference::image_metrics::{LinearImage, srgb_to_linear};
 
 /// The schema version this build reads and writes.
 pub const SCENE_VERSION: u32 = 1;
@@ -295,6 +296,8 @@ pub enum LightDescription {
     Directional(DirectionalLightDescription),
     /// A point light with a range.
     Point(PointLightDescription),
+    /// A spot light: a point light in a cone.
+    Spot(SpotLightDescription),
     /// Light from everywhere, applied to every surface.
     Ambient(AmbientLightDescription),
 }
@@ -372,6 +375,48 @@ pub struct PointLightDescription {
     /// Whether it casts shadows. Default: false.
     #[serde(default)]
     pub shadows: bool,
+    /// Whether sorted volumes scatter its light (Bevy's `VolumetricLight`).
+    /// Default: false.
+    #[serde(default)]
+    pub volumetric: bool,
+}
+
+/// A spot light.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SpotLightDescription {
+    /// Position, metres.
+    pub position: [f32; 3],
+    /// Point it shines at, metres; must differ from `position`.
+    pub look_at: [f32; 3],
+    /// sRGB colour. Default: white.
+    #[serde(default = "white")]
+    pub color: [f32; 3],
+    /// Luminous power in lumens, as Bevy's `SpotLight::intensity`. Default:
+    /// 100 000.
+    #[serde(default = "default_point_intensity")]
+    pub intensity: f32,
+    /// Distance beyond which it lights nothing, metres, > 0. Default: 20.
+    #[serde(default = "default_point_range")]
+    pub range: f32,
+    /// Half-angle of the fully lit cone, degrees, in [0, outer]. Default: 0.
+    #[serde(default)]
+    pub inner_angle_degrees: f32,
+    /// Half-angle beyond which it lights nothing, degrees, in (0, 90).
+    /// Default: 45.
+    #[serde(default = "default_outer_angle")]
+    pub outer_angle_degrees: f32,
+    /// Whether it casts shadows. Default: false.
+    #[serde(default)]
+    pub shadows: bool,
+    /// Whether sorted volumes scatter its light (Bevy's `VolumetricLight`).
+    /// Default: false.
+    #[serde(default)]
+    pub volumetric: bool,
+}
+
+fn default_outer_angle() -> f32 {
+    45.0
 }
 
 fn default_point_intensity() -> f32 {
@@ -614,6 +659,44 @@ impl SceneDescription {
         })
     }
 
+    /// The point and spot lights marked `volumetric`, as the volumes scatter
+    /// them at `time` seconds (a flickering light's intensity then), in
+    /// linear colour.
+    pub fn volumetric_lights(&self, time: f64) -> Vec<LocalLight> {
+        let linear = |color: [f32; 3]| DVec3::from(color.map(|c| srgb_to_linear(f64::from(c))));
+        self.lights
+            .iter()
+            .filter_map(|light| match light {
+                LightDescription::Point(point) if point.volumetric => {
+                    Some(LocalLight::from_lumens(
+                        DVec3::from(point.position.map(f64::from)),
+                        linear(point.color),
+                        f64::from(point.intensity) * flicker(f64::from(point.flicker), time),
+                        f64::from(point.range),
+                    ))
+                }
+                LightDescription::Spot(spot) if spot.volumetric => {
+                    let position = DVec3::from(spot.position.map(f64::from));
+                    let target = DVec3::from(spot.look_at.map(f64::from));
+                    Some(LocalLight {
+                        cone: Some(SpotCone::new(
+                            target - position,
+                            f64::from(spot.inner_angle_degrees).to_radians(),
+                            f64::from(spot.outer_angle_degrees).to_radians(),
+                        )),
+                        ..LocalLight::from_lumens(
+                            position,
+                            linear(spot.color),
+                            f64::from(spot.intensity),
+                            f64::from(spot.range),
+                        )
+                    })
+                }
+                _ => None,
+            })
+            .collect()
+    }
+
     /// The simulated time of frame `index` in seconds.
     pub fn frame_time(&self, index: u32) -> f32 {
         index as f32 / self.output.frame_rate
@@ -732,6 +815,35 @@ impl SceneDescription {
                         return Err(InvalidField::new(
                             format!("{field}.flicker"),
                             format!("must be in [0, 1], got {}", point.flicker),
+                        ));
+                    }
+                }
+                LightDescription::Spot(spot) => {
+                    let field = format!("lights[{index}].Spot");
+                    finite(&format!("{field}.position"), &spot.position)?;
+                    finite(&format!("{field}.look_at"), &spot.look_at)?;
+                    if spot.look_at == spot.position {
+                        return Err(InvalidField::new(
+                            format!("{field}.look_at"),
+                            "must differ from position",
+                        ));
+                    }
+                    colour(&format!("{field}.color"), spot.color)?;
+                    non_negative(&format!("{field}.intensity"), spot.intensity)?;
+                    positive(&format!("{field}.range"), spot.range)?;
+                    if !(spot.outer_angle_degrees > 0.0 && spot.outer_angle_degrees < 90.0) {
+                        return Err(InvalidField::new(
+                            format!("{field}.outer_angle_degrees"),
+                            format!("must be in (0, 90), got {}", spot.outer_angle_degrees),
+                        ));
+                    }
+                    if !(0.0..=spot.outer_angle_degrees).contains(&spot.inner_angle_degrees) {
+                        return Err(InvalidField::new(
+                            format!("{field}.inner_angle_degrees"),
+                            format!(
+                                "must be in [0, outer_angle_degrees], got {}",
+                                spot.inner_angle_degrees
+                            ),
                         ));
                     }
                 }
@@ -1159,6 +1271,18 @@ mod tests {
                     range: 10.0,
                     flicker: 0.25,
                     shadows: false,
+                    volumetric: true,
+                }),
+                LightDescription::Spot(SpotLightDescription {
+                    position: [0.0, 3.0, 0.0],
+                    look_at: [1.0, 0.0, 0.0],
+                    color: [0.9, 0.9, 1.0],
+                    intensity: 5000.0,
+                    range: 12.0,
+                    inner_angle_degrees: 10.0,
+                    outer_angle_degrees: 20.0,
+                    shadows: true,
+                    volumetric: true,
                 }),
                 LightDescription::Ambient(AmbientLightDescription {
                     color: [0.5, 0.5, 1.0],
@@ -1219,6 +1343,10 @@ mod tests {
                 }),
                 projected_cells: false,
                 full_resolution: false,
+                light_response: nebel_core::local_light::LightResponse {
+                    asymmetry: 0.3,
+                    strength: 2.0,
+                },
             }],
             terrain: Some(TerrainDescription {
                 source: TerrainHeightSource::Procedural(ProceduralTerrainSource {
@@ -1443,6 +1571,21 @@ mod tests {
             ),
             (
                 "version: 1,",
+                "version: 1, lights: [Spot((position: (0.0, 1.0, 0.0), look_at: (0.0, 0.0, 0.0), outer_angle_degrees: 90.0))],",
+                "field lights[0].Spot.outer_angle_degrees: must be in (0, 90), got 90",
+            ),
+            (
+                "version: 1,",
+                "version: 1, lights: [Spot((position: (0.0, 1.0, 0.0), look_at: (0.0, 0.0, 0.0), inner_angle_degrees: 50.0))],",
+                "field lights[0].Spot.inner_angle_degrees: must be in [0, outer_angle_degrees], got 50",
+            ),
+            (
+                "version: 1,",
+                "version: 1, lights: [Spot((position: (0.0, 1.0, 0.0), look_at: (0.0, 1.0, 0.0)))],",
+                "field lights[0].Spot.look_at: must differ from position",
+            ),
+            (
+                "version: 1,",
                 "version: 1, lights: [Ambient((brightness: -2.0))],",
                 "field lights[0].Ambient.brightness: must be finite and >= 0, got -2",
             ),
@@ -1611,6 +1754,43 @@ mod tests {
             .to_string();
         assert!(
             error.starts_with("scenes/test.ron: field volumes[0].transfer: "),
+            "{error}"
+        );
+    }
+
+    #[test]
+    fn volumetric_lights_are_the_marked_ones_in_linear_colour() {
+        let scene = parse(&MINIMAL.replace(
+            "version: 1,",
+            "version: 1, lights: [
+                Point((position: (1.0, 2.0, 3.0), color: (1.0, 0.5, 0.0), intensity: 4000.0, range: 5.0, volumetric: true, flicker: 0.5)),
+                Point((position: (0.0, 0.0, 0.0), volumetric: false)),
+                Spot((position: (0.0, 4.0, 0.0), look_at: (0.0, 0.0, 0.0), inner_angle_degrees: 10.0, outer_angle_degrees: 30.0, volumetric: true)),
+            ], volumes: [(source: Uniform((value: 1.0)), light_response: (asymmetry: 0.5, strength: 3.0))],",
+        ))
+        .unwrap();
+        let lights = scene.volumetric_lights(0.3);
+        assert_eq!(lights.len(), 2);
+        let point = lights[0];
+        assert_eq!(point.position, DVec3::new(1.0, 2.0, 3.0));
+        let factor = 4000.0 * flicker(0.5, 0.3) / (4.0 * std::f64::consts::PI * 10_000.0);
+        let linear_half = srgb_to_linear(0.5);
+        assert!((point.colour - DVec3::new(1.0, linear_half, 0.0) * factor).length() < 1e-12);
+        assert!(point.cone.is_none() && point.range == 5.0);
+        let cone = lights[1].cone.expect("a spot light's cone");
+        assert!((cone.direction - DVec3::NEG_Y).length() < 1e-12);
+        assert!((cone.factor(DVec3::NEG_Y) - 1.0).abs() < 1e-12);
+        assert_eq!(cone.factor(DVec3::X), 0.0);
+        let response = scene.volumes[0].light_response;
+        assert_eq!((response.asymmetry, response.strength), (0.5, 3.0));
+        let error = parse(&MINIMAL.replace(
+            "version: 1,",
+            "version: 1, volumes: [(source: Uniform((value: 1.0)), light_response: (asymmetry: 1.0))],",
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            error.contains("light_response.asymmetry: must be in (−1, 1), got 1"),
             "{error}"
         );
     }

@@ -7,7 +7,9 @@
 //! bilinear surface, `nebel_core::scene` `opaque` module). The reference
 //! shades no surface: a pixel whose ray ends on a mesh or the terrain
 //! composites over black, the others over the clear colour, so accuracy
-//! scenes use black meshes and no lights.
+//! scenes use black meshes and no lights on them. Sorted volumes scatter the
+//! scene's volumetric point and spot lights
+//! ([`SceneDescription::volumetric_lights`]).
 
 use std::path::Path;
 
@@ -92,6 +94,7 @@ pub fn reference_image_with_terrain(
     let mut joint = Vec::with_capacity(volumes.len());
     let mut mips = Vec::new();
     let last_frame = f64::from(scene.frame_time(scene.output.frames.saturating_sub(1)));
+    let local_lights = scene.volumetric_lights(last_frame);
     for volume in volumes {
         let sun = sun.unwrap_or(DVec3::Y);
         // A lit grid's fields as the GPU draws them: the light field as one
@@ -169,6 +172,8 @@ pub fn reference_image_with_terrain(
         });
         reference_scene.opaque_depth = opaque_depth.clone();
         reference_scene.fog = fog.clone();
+        reference_scene.local_lights = local_lights.clone();
+        reference_scene.light_response = volume.light_response;
         if let Some(start) = fog
             .as_ref()
             .map(|fog| fog.start_distance)

@@ -61,5 +61,6 @@ pub(crate) fn layer_reference(
         lighting: None,
         projected_cells: false,
         ends_where_fog_layers_begin: false,
+        light_response: Default::default(),
     }))
 }

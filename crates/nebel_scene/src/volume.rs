@@ -69,6 +69,7 @@ use nebel_core::field::{
     CloudEllipsoid, CloudKind, CloudLighting, CloudNoise, CloudShape, CloudWeather, DensityGrid,
     FieldError, NoiseKind, ProceduralNoise, WeatherMap, power_of_two_plus_one,
 };
+use nebel_core::local_light::LightResponse;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{ControlPoint, TransferError, TransferFunction, TransferPreset};
 use nebel_lod::octree::LodCriterion;
@@ -117,6 +118,12 @@ pub struct VolumeDescription {
     /// the octree's default (module docs); not with `lod`. Default false.
     #[serde(default)]
     pub full_resolution: bool,
+    /// How a sorted volume scatters the scene's volumetric point and spot
+    /// lights: `(asymmetry: g, strength: s)`, the Henyey-Greenstein
+    /// asymmetry in (−1, 1) and a factor ≥ 0 on its colour. Default
+    /// `(asymmetry: 0.0, strength: 1.0)`.
+    #[serde(default)]
+    pub light_response: LightResponse,
 }
 
 /// Which field of a lit cloud gives the colour and which the opacity (paper
@@ -713,6 +720,8 @@ pub struct BuiltVolume {
     /// Ground fog: the scene's fog layers take it over from their start
     /// distance, where its rays end (as the GPU's cell batch of ground fog).
     pub ends_where_fog_layers_begin: bool,
+    /// How it scatters volumetric point and spot lights.
+    pub light_response: LightResponse,
 }
 
 /// A volume's scalar field.
@@ -910,6 +919,7 @@ impl VolumeDescription {
             lighting: self.lighting,
             projected_cells: self.projected_cells,
             ends_where_fog_layers_begin: false,
+            light_response: self.light_response,
         })
     }
 
@@ -1018,6 +1028,9 @@ impl VolumeDescription {
                     self.min, self.max
                 ),
             ));
+        }
+        if let Some((field, reason)) = self.light_response.invalid() {
+            return Err(InvalidField::new(format!("light_response.{field}"), reason));
         }
         if self.full_resolution && self.lod.is_some() {
             return Err(InvalidField::new(
@@ -1329,6 +1342,7 @@ mod tests {
             lighting: None,
             projected_cells: false,
             full_resolution: false,
+            light_response: LightResponse::default(),
         }
     }
 

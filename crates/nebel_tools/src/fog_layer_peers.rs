@@ -349,6 +349,7 @@ fn fog_volume_peer(
         lighting: None,
         projected_cells: false,
         ends_where_fog_layers_begin: false,
+        light_response: Default::default(),
     };
     Some((lit, bevy_fog, volume))
 }

@@ -523,6 +523,7 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
         lighting: None,
         projected_cells: false,
         ends_where_fog_layers_begin: false,
+        light_response: Default::default(),
     };
     // Two references: through the trilinear grid (the total error) and
     // through nebel's six tetrahedra per voxel (the error of projection and

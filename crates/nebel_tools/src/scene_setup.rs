@@ -18,6 +18,7 @@
 
 use bevy::camera::Hdr;
 use bevy::core_pipeline::tonemapping::{DebandDither, Tonemapping};
+use bevy::light::VolumetricLight;
 use bevy::prelude::*;
 use std::path::Path;
 use std::sync::Arc;
@@ -295,6 +296,27 @@ fn spawn_scene(
                         amplitude: point.flicker,
                     });
                 }
+                if point.volumetric {
+                    light.insert(VolumetricLight);
+                }
+            }
+            LightDescription::Spot(spot) => {
+                let mut light = commands.spawn((
+                    SpotLight {
+                        color: srgb(spot.color),
+                        intensity: spot.intensity,
+                        range: spot.range,
+                        inner_angle: spot.inner_angle_degrees.to_radians(),
+                        outer_angle: spot.outer_angle_degrees.to_radians(),
+                        shadow_maps_enabled: spot.shadows,
+                        ..default()
+                    },
+                    Transform::from_translation(Vec3::from(spot.position))
+                        .looking_at(Vec3::from(spot.look_at), Vec3::Y),
+                ));
+                if spot.volumetric {
+                    light.insert(VolumetricLight);
+                }
             }
             LightDescription::Ambient(light) => {
                 ambient.color = srgb(light.color);
@@ -384,6 +406,7 @@ fn spawn_volumes(commands: &mut Commands, grids: &mut Assets<VolumeGrid>, volume
                     Volume {
                         transfer_function,
                         mode: volume.mode,
+                        light_response: volume.light_response,
                         ..default()
                     },
                     Transform::from_translation(offset.as_vec3()).with_scale(scale.as_vec3()),
@@ -408,6 +431,7 @@ fn spawn_volumes(commands: &mut Commands, grids: &mut Assets<VolumeGrid>, volume
                     Volume {
                         transfer_function,
                         mode: volume.mode,
+                        light_response: volume.light_response,
                         ..default()
                     },
                 ));
@@ -420,6 +444,7 @@ fn spawn_volumes(commands: &mut Commands, grids: &mut Assets<VolumeGrid>, volume
                 field,
                 transfer_function,
                 mode: volume.mode,
+                light_response: volume.light_response,
             }),
         };
         if volume.projected_cells {

@@ -253,6 +253,7 @@ pub(crate) fn update_batches(
         let current = drawn.is_some_and(|batch| {
             batch.mode == volume.mode
                 && batch.scattering == scattering
+                && batch.light_response == volume.light_response
                 && batch
                     .transfer_function
                     .as_ref()
@@ -263,6 +264,7 @@ pub(crate) fn update_batches(
             let mut batch =
                 CellBatch::new(frame.cells, volume.transfer_function.clone(), volume.mode);
             batch.scattering = scattering;
+            batch.light_response = volume.light_response;
             commands.entity(entity).insert(batch);
         }
     }

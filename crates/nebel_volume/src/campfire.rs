@@ -54,6 +54,7 @@ fn campfire_volume() -> Volume {
         field: VolumeField::default(),
         transfer_function: Arc::new(TransferFunction::preset(TransferPreset::Fire)),
         mode: OpticalMode::Emissive,
+        ..default()
     }
 }
 

@@ -6,8 +6,6 @@
 //! [−1, 1]: deterministic, so headless renders are repeatable, and never
 //! periodic to the eye. The campfire scene uses it for the fire's light.
 
-use std::f32::consts::TAU;
-
 use bevy::prelude::*;
 
 /// Makes a [`PointLight`] flicker around `base_intensity`.
@@ -33,10 +31,8 @@ impl Default for FlickeringLight {
 impl FlickeringLight {
     /// The intensity at `time` seconds.
     pub fn intensity_at(&self, time: f32) -> f32 {
-        let flicker = 0.5 * (TAU * 7.3 * time).sin()
-            + 0.3 * (TAU * 13.1 * time + 1.3).sin()
-            + 0.2 * (TAU * 2.9 * time + 0.7).sin();
-        self.base_intensity * (1.0 + self.amplitude.clamp(0.0, 1.0) * flicker)
+        let factor = nebel_core::local_light::flicker(f64::from(self.amplitude), f64::from(time));
+        self.base_intensity * factor as f32
     }
 }
 

@@ -31,6 +31,7 @@ use bevy::diagnostic::{DiagnosticPath, Diagnostics};
 use bevy::prelude::*;
 use bevy::transform::TransformSystems;
 use nebel_core::cell::Tetrahedron;
+use nebel_core::local_light::LightResponse;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_render::{HeavyBuilds, LodCamera, NebelSystems, cpu_timed, register_diagnostics};
@@ -183,6 +184,10 @@ pub struct Volume {
     pub transfer_function: Arc<TransferFunction>,
     /// How segments combine. Default [`OpticalMode::Sorted`].
     pub mode: OpticalMode,
+    /// How a sorted volume scatters the point and spot lights opted in with
+    /// Bevy's `VolumetricLight` (`nebel_render::local_lights`): the phase's
+    /// asymmetry and a factor on its colour. Default: isotropic, factor 1.
+    pub light_response: LightResponse,
 }
 
 /// Draws a grid [`Volume`] at full resolution as its tetrahedra projected
@@ -205,6 +210,7 @@ impl Default for Volume {
             field: VolumeField::default(),
             transfer_function: cloud_transfer_function(),
             mode: OpticalMode::Sorted,
+            light_response: LightResponse::default(),
         }
     }
 }
@@ -235,6 +241,7 @@ mod tests {
                     field,
                     transfer_function: cloud_transfer_function(),
                     mode,
+                    ..default()
                 },
                 // What Bevy's visibility propagation computes for a shown entity.
                 InheritedVisibility::VISIBLE,

@@ -36,6 +36,16 @@
 // segment's colour is ambient · α + sun · 4π p_HG(θ) · C, θ between the view
 // ray and the sunlight, constant along the ray.
 //
+// LOCAL_LIGHTS (point and spot lights reach a sorted batch,
+// nebel_render::local_lights): each light's single scattering is added to
+// the segment's colour, s ∫ σ κ T E 4π p_HG dt (s the batch's factor on its
+// colour), in LIGHT_PIECES equal pieces,
+// each with its own optical depth rate σ and mean chromaticity κ (white
+// under SCATTERING, whose colour is the sun's light), its transmittance
+// e^{−σ (t − t_a)} inside, and one interval of three Gauss-Legendre nodes in
+// the angle at which the light sees the ray, which takes the inverse square
+// out exactly (nebel_core::local_light::LocalLight::piece_scattering).
+//
 // FOG_LAYERS (the view has fog layers, Röttger 2004 §5.3): the segment is
 // seen through the fog in front of it. As maps of the radiance behind, a
 // segment x ↦ C + (1 − α) x among fog pieces x ↦ F + T x equals the segment
@@ -169,6 +179,16 @@ struct CellGrid {
 @group(1) @binding(4) var<storage, read> modulators: array<vec4<f32>>;
 #endif
 
+// A point or spot light (nebel_render::local_lights).
+struct LocalLight {
+    // xyz: world position; w: range.
+    position: vec4<f32>,
+    // rgb: the colour factor at unit distance; w: the cone's offset.
+    colour: vec4<f32>,
+    // xyz: the spot's unit direction; w: the cone's scale (0: a point light).
+    cone: vec4<f32>,
+}
+
 // Per batch: the sun and sky of single scattering (read only by the
 // SCATTERING variant) and the keyframe mix factor (BLENDED).
 struct CellBatchParameters {
@@ -181,6 +201,12 @@ struct CellBatchParameters {
     blend: vec4<f32>,
     // rgb: the sunlight's colour and strength as a factor on lit colours.
     sunlight: vec4<f32>,
+    // x: how many of `lights` reach the batch; y: their Henyey-Greenstein
+    // asymmetry g; z: the falloff's core radius squared r₀²; w: the factor
+    // on the colour they are scattered with (read only by the LOCAL_LIGHTS
+    // variant).
+    local: vec4<f32>,
+    lights: array<LocalLight, #{MAX_LOCAL_LIGHTS}u>,
 }
 @group(1) @binding(5) var<uniform> parameters: CellBatchParameters;
 #ifdef RAY_CAST
@@ -327,19 +353,175 @@ fn colour_lookup(s_front: f32, s_back: f32, depth: f32) -> vec3<f32> {
     return mix(layers[0], layers[1], z.y).rgb;
 }
 
+#ifdef LOCAL_LIGHTS
+// Gauss-Legendre on [−1, 1], three nodes and their weights.
+const GAUSS_NODES = array<f32, 3>(-0.7745966692414834, 0.0, 0.7745966692414834);
+const GAUSS_WEIGHTS = array<f32, 3>(0.5555555555555556, 0.8888888888888888, 0.5555555555555556);
+
+// The stretch of the line offset + t direction (offset from the apex) inside
+// the cone of cosine c about a spot light's axis: one stretch of a convex
+// cone, possibly unbounded or empty (x > y); the whole line where that
+// cannot be told (nebel_core::local_light::SpotCone::chord).
+fn cone_chord(light: LocalLight, c: f32, offset: vec3<f32>, direction: vec3<f32>) -> vec2<f32> {
+    let whole = vec2(-3.0e38, 3.0e38);
+    let empty = vec2(3.0e38, -3.0e38);
+    let aw = dot(light.cone.xyz, offset);
+    let ad = dot(light.cone.xyz, direction);
+    let a = ad * ad - c * c;
+    let b = aw * ad - c * c * dot(offset, direction);
+    let k = aw * aw - c * c * dot(offset, offset);
+    let discriminant = b * b - a * k;
+    if c <= 1.0e-6 || abs(a) < 1.0e-9 {
+        return whole;
+    }
+    if discriminant < 0.0 {
+        return select(whole, empty, a < 0.0);
+    }
+    let root = sqrt(discriminant);
+    let r0 = (-b - root) / a;
+    let r1 = (-b + root) / a;
+    let lo = min(r0, r1);
+    let hi = max(r0, r1);
+    if a < 0.0 {
+        return select(empty, vec2(lo, hi), aw + 0.5 * (lo + hi) * ad >= 0.0);
+    }
+    if ad > 0.0 {
+        return select(empty, vec2(hi, 3.0e38), aw + hi * ad >= 0.0);
+    }
+    return select(empty, vec2(-3.0e38, lo), aw + lo * ad >= 0.0);
+}
+
+// ∫ σ e^{−σ (t − t_a)} E(x(t)) 4π p_HG(θ(t)) dt over [a, b] ⊆ [t_a, t_b]
+// along the unit ray `direction` from the eye for `light`, one interval of
+// three nodes in γ = atan((t − t₀) / h), t₀ the foot of the perpendicular
+// from the light and h² its distance squared plus r₀², in which
+// dt / (r² + r₀²) = dγ / h.
+fn light_part(
+    light: LocalLight,
+    direction: vec3<f32>,
+    to_light: vec3<f32>,
+    foot: f32,
+    miss2: f32,
+    a: f32,
+    b: f32,
+    t_a: f32,
+    sigma: f32,
+) -> f32 {
+    if b <= a {
+        return 0.0;
+    }
+    let range = light.position.w;
+    let h = sqrt(miss2 + parameters.local.z);
+    let gamma_a = atan((a - foot) / h);
+    let gamma_b = atan((b - foot) / h);
+    let centre = 0.5 * (gamma_a + gamma_b);
+    let half_width = 0.5 * (gamma_b - gamma_a);
+    let g = parameters.local.y;
+    var sum = 0.0;
+    for (var k = 0; k < 3; k++) {
+        let along = h * tan(centre + half_width * GAUSS_NODES[k]);
+        let t = foot + along;
+        let r2 = miss2 + along * along;
+        let r = sqrt(r2);
+        let u = r2 / (range * range);
+        let window = clamp(1.0 - u * u, 0.0, 1.0);
+        let toward = select(vec3(0.0), (t * direction - to_light) / r, r > 0.0);
+        let cone = clamp(dot(light.cone.xyz, toward) * light.cone.w + light.colour.w, 0.0, 1.0);
+        let cos_theta = select(0.0, along / r, r > 0.0);
+        let phase = (1.0 - g * g) / pow(1.0 + g * g - 2.0 * g * cos_theta, 1.5);
+        sum += GAUSS_WEIGHTS[k] * window * window * cone * cone * phase * sigma * exp(-sigma * (t - t_a));
+    }
+    return sum * half_width / h;
+}
+
+// ∫ σ e^{−σ (t − t_a)} E(x(t)) 4π p_HG(θ(t)) dt over [t_a, t_b] along the unit
+// ray `direction` from the eye for `light`: over the part inside its range
+// and a spot light's outer cone, one interval of three nodes (light_part),
+// a spot light's cut where the ray crosses its inner cone, where the cone's
+// factor has a kink (nebel_core::local_light::LocalLight::piece_scattering).
+fn light_piece(light: LocalLight, direction: vec3<f32>, t_a: f32, t_b: f32, sigma: f32) -> vec3<f32> {
+    let to_light = light.position.xyz - view.camera_position.xyz;
+    let foot = dot(to_light, direction);
+    let perpendicular = to_light - foot * direction;
+    let miss2 = dot(perpendicular, perpendicular);
+    let range = light.position.w;
+    let half_chord = sqrt(max(range * range - miss2, 0.0));
+    var a = max(t_a, foot - half_chord);
+    var b = min(t_b, foot + half_chord);
+    if light.cone.w == 0.0 {
+        return light.colour.rgb * light_part(light, direction, to_light, foot, miss2, a, b, t_a, sigma);
+    }
+    let outer = cone_chord(light, -light.colour.w / light.cone.w, -to_light, direction);
+    a = max(a, outer.x);
+    b = min(b, outer.y);
+    if b <= a {
+        return vec3(0.0);
+    }
+    let inner = cone_chord(light, (1.0 - light.colour.w) / light.cone.w, -to_light, direction);
+    let c0 = clamp(inner.x, a, b);
+    let c1 = max(clamp(inner.y, a, b), c0);
+    return light.colour.rgb * (light_part(light, direction, to_light, foot, miss2, a, c0, t_a, sigma)
+        + light_part(light, direction, to_light, foot, miss2, c0, c1, t_a, sigma)
+        + light_part(light, direction, to_light, foot, miss2, c1, b, t_a, sigma));
+}
+
+// The local lights scattered toward the eye by the segment from t_front to
+// t_back (see the header), premultiplied as its colour.
+fn local_light_colour(
+    s_front: f32,
+    s_back: f32,
+    m_front: f32,
+    m_back: f32,
+    t_front: f32,
+    t_back: f32,
+    direction: vec3<f32>,
+) -> vec3<f32> {
+    let count = min(u32(parameters.local.x), #{MAX_LOCAL_LIGHTS}u);
+    let span = t_back - t_front;
+    var colour = vec3(0.0);
+    var transmittance = 1.0;
+    for (var piece = 0u; piece < #{LIGHT_PIECES}u; piece++) {
+        let a = f32(piece) / f32(#{LIGHT_PIECES}u);
+        let b = f32(piece + 1u) / f32(#{LIGHT_PIECES}u);
+        let s_a = mix(s_front, s_back, a);
+        let s_b = mix(s_front, s_back, b);
+        let piece_length = span * (b - a);
+        let depth = piece_length * 0.5 * (mix(m_front, m_back, a) + mix(m_front, m_back, b))
+            * pair_lookup(s_a, s_b).a;
+        if depth > 0.0 && piece_length > 0.0 {
+            let t_a = t_front + span * a;
+#ifdef SCATTERING
+            let albedo = vec3(1.0);
+#else
+            let albedo = colour_lookup(s_a, s_b, depth);
+#endif
+            var light = vec3(0.0);
+            for (var i = 0u; i < count; i++) {
+                light += light_piece(parameters.lights[i], direction, t_a, t_a + piece_length, depth / piece_length);
+            }
+            colour += transmittance * albedo * light;
+            transmittance *= exp(-depth);
+        }
+    }
+    return parameters.local.w * colour;
+}
+#endif
+
 // The premultiplied colour and opacity of a segment from s_front to s_back
-// (with modulator m_front to m_back under MODULATED) of length
-// segment_length along the unit ray `direction`, seen through the fog layers
-// in front of it from its middle distance `middle` (see the header).
+// (with modulator m_front to m_back under MODULATED) from distance t_front
+// to t_back along the unit ray `direction` from the eye, seen through the
+// fog layers in front of it from its middle (see the header).
 fn segment_colour(
     s_front: f32,
     s_back: f32,
     m_front: f32,
     m_back: f32,
-    segment_length: f32,
+    t_front: f32,
+    t_back: f32,
     direction: vec3<f32>,
-    middle: f32,
 ) -> vec4<f32> {
+    let segment_length = t_back - t_front;
+    let middle = 0.5 * (t_front + t_back);
 #ifdef SORTED
 #ifdef MODULATED
     // A modulator of 0 at both ends gives the segment no length: nothing to
@@ -380,6 +562,12 @@ fn segment_colour(
     var segment = vec4(parameters.ambient_colour.rgb * alpha + parameters.sunlight.rgb * parameters.sun_colour.rgb * phase * colour, alpha);
 #else
     var segment = vec4(parameters.sunlight.rgb * colour, alpha);
+#endif
+#ifdef LOCAL_LIGHTS
+    segment = vec4(
+        segment.rgb + local_light_colour(s_front, s_back, m_front, m_back, t_front, t_back, direction),
+        segment.a,
+    );
 #endif
 #endif
 #ifdef EMISSIVE
@@ -576,9 +764,9 @@ fn shade_voxel(
                 clamp(point_scalar(s_end), 0.0, 1.0),
                 clamp(point_modulator(s_start), 0.0, 1.0),
                 clamp(point_modulator(s_end), 0.0, 1.0),
-                end - start,
+                start,
+                end,
                 direction,
-                0.5 * (start + end),
             );
 #ifdef MIP
             (*accumulated).colour = max((*accumulated).colour, segment.rgb);
@@ -796,7 +984,6 @@ fn project_cell(in: VertexOutput) -> Shaded {
         + (scalars.w - s0) * cross(e1, e2)) / determinant;
     let s_front = clamp(s0 + dot(gradient, t_entry * direction - v0), 0.0, 1.0);
     let s_back = clamp(s0 + dot(gradient, t_exit * direction - v0), 0.0, 1.0);
-    let length = t_exit - t_entry;
 #ifdef MODULATED
     var m = modulators[in.cell_index];
 #ifdef BLENDED
@@ -812,7 +999,7 @@ fn project_cell(in: VertexOutput) -> Shaded {
     let m_front = 1.0;
     let m_back = 1.0;
 #endif
-    let segment = segment_colour(s_front, s_back, m_front, m_back, length, direction, 0.5 * (t_entry + t_exit));
+    let segment = segment_colour(s_front, s_back, m_front, m_back, t_entry, t_exit, direction);
     return Shaded(segment, vec2(t_entry, -t_exit));
 }
 #endif

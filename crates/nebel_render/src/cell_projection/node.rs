@@ -444,6 +444,7 @@ pub fn draw_cell_batches(
                 buffer.blended,
                 batch.group.is_some(),
                 buffer.ray_cast,
+                batch.is_lit_locally(),
             ),
             bind_group,
             shape: if buffer.ray_cast {

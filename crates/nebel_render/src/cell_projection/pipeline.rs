@@ -21,11 +21,11 @@ use super::tables::CellTablesUniform;
 use crate::cell_batch::CellBatchUniform;
 
 /// The pipeline variants per optical mode ([`variant_index`]).
-pub(super) const VARIANTS: usize = 64;
+pub(super) const VARIANTS: usize = 128;
 
 /// The index of a pipeline variant: modulated segment lengths, single
 /// scattering, the handoff to fog layers, keyframe blending, drawing into a
-/// merged layer and ray casting a whole grid, each on or off.
+/// merged layer, ray casting a whole grid and local lights, each on or off.
 pub(super) fn variant_index(
     modulated: bool,
     scattering: bool,
@@ -33,6 +33,7 @@ pub(super) fn variant_index(
     blended: bool,
     merged: bool,
     ray_cast: bool,
+    local_lights: bool,
 ) -> usize {
     usize::from(modulated)
         | usize::from(scattering) << 1
@@ -40,6 +41,7 @@ pub(super) fn variant_index(
         | usize::from(blended) << 3
         | usize::from(merged) << 4
         | usize::from(ray_cast) << 5
+        | usize::from(local_lights) << 6
 }
 
 pub(super) fn mode_index(mode: OpticalMode) -> usize {
@@ -174,6 +176,8 @@ pub struct CellProjectionPipelineKey {
     /// A whole grid, ray cast through its tetrahedra (`nebel_lod`'s
     /// `cell_grid`): its box is drawn instead of cells.
     pub ray_cast: bool,
+    /// Point and spot lights reach the batch (`crate::local_lights`).
+    pub local_lights: bool,
 }
 
 /// Creates the bind group layouts and loads the shaders.
@@ -340,7 +344,13 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
                 },
             ),
         };
-        let mut shader_defs: Vec<ShaderDefVal> = vec![mode_def.into()];
+        let mut shader_defs: Vec<ShaderDefVal> = vec![
+            mode_def.into(),
+            ShaderDefVal::UInt(
+                "MAX_LOCAL_LIGHTS".into(),
+                nebel_core::local_light::MAX_LOCAL_LIGHTS as u32,
+            ),
+        ];
         if key.stencil && self.early_depth_test {
             shader_defs.push("EARLY_DEPTH_TEST".into());
         }
@@ -370,6 +380,13 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
         }
         if key.blended {
             shader_defs.push("BLENDED".into());
+        }
+        if key.local_lights {
+            shader_defs.push("LOCAL_LIGHTS".into());
+            shader_defs.push(ShaderDefVal::UInt(
+                "LIGHT_PIECES".into(),
+                nebel_core::optics::MODULATOR_PIECES,
+            ));
         }
         if key.ray_cast {
             shader_defs.push("RAY_CAST".into());

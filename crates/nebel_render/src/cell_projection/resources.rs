@@ -15,6 +15,7 @@ use bevy::render::renderer::{RenderDevice, RenderQueue};
 use bevy::render::texture::{CachedTexture, TextureCache};
 use bevy::render::view::{ExtractedView, Msaa};
 use nebel_core::field::DensityGrid;
+use nebel_core::local_light::LightResponse;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::{CellGrid, Cells};
@@ -33,6 +34,9 @@ use super::queries::CountCellFragments;
 use super::settings::CellProjection;
 use crate::cell_batch::{CellBatch, CellBatchUniform, CellBlend, CellScattering, CellSunlight};
 use crate::fog_layers::{FogLayersUniform, ViewFogLayers};
+use crate::local_lights::{
+    BatchLights, VolumetricPointLights, VolumetricSpotLights, volumetric_lights,
+};
 
 /// A batch as the render world sees it.
 #[derive(Clone)]
@@ -56,6 +60,10 @@ pub struct ExtractedCellBatch {
     blend: f32,
     /// The sunlight factor ([`CellSunlight`], checked).
     sunlight: Vec3,
+    /// The point and spot lights that reach a sorted batch.
+    lights: BatchLights,
+    /// How it scatters them ([`CellBatch::light_response`]).
+    light_response: LightResponse,
 }
 
 impl ExtractedCellBatch {
@@ -69,6 +77,11 @@ impl ExtractedCellBatch {
         self.cells.is_blended()
     }
 
+    /// Whether point or spot lights reach the batch.
+    pub(super) fn is_lit_locally(&self) -> bool {
+        self.lights.count > 0
+    }
+
     /// Whether the batch is a whole grid, ray cast.
     pub(super) fn is_ray_cast(&self) -> bool {
         self.cells.grid.is_some()
@@ -76,7 +89,13 @@ impl ExtractedCellBatch {
 
     /// The batch's per-batch uniform.
     fn uniform(&self) -> CellBatchUniform {
-        CellBatchUniform::new(self.scattering.as_ref(), self.blend, self.sunlight)
+        CellBatchUniform::new(
+            self.scattering.as_ref(),
+            self.blend,
+            self.sunlight,
+            &self.lights,
+            self.light_response,
+        )
     }
 }
 
@@ -91,7 +110,8 @@ pub struct TableKey {
     pub(super) transfer_hash: u64,
 }
 
-/// Copies the drawable batches into the render world. A batch whose
+/// Copies the drawable batches into the render world, each sorted one with
+/// the opted-in point and spot lights that reach it. A batch whose
 /// modulators or next keyframe do not match its cells, or whose grid does
 /// not fit the device's storage-buffer binding, is not drawn; the error is
 /// logged once per entity.
@@ -105,6 +125,10 @@ pub fn extract_cell_batches(
             Option<&CellSunlight>,
         )>,
     >,
+    (points, spots): (
+        Extract<VolumetricPointLights>,
+        Extract<VolumetricSpotLights>,
+    ),
     unsupported: Option<Res<CellProjectionUnsupported>>,
     device: Res<RenderDevice>,
     mut refused: Local<HashSet<Entity>>,
@@ -113,6 +137,16 @@ pub fn extract_cell_batches(
     if unsupported.is_some() {
         return;
     }
+    let lights = volumetric_lights(
+        points
+            .iter()
+            .filter(|(_, _, visible)| visible.get())
+            .map(|(light, transform, _)| (light.clone(), *transform)),
+        spots
+            .iter()
+            .filter(|(_, _, visible)| visible.get())
+            .map(|(light, transform, _)| (light.clone(), *transform)),
+    );
     // Forget entities that are gone, so the set stays as small as the world.
     refused.retain(|entity| batches.contains(*entity));
     for (entity, batch, blend, sunlight) in &batches {
@@ -176,6 +210,12 @@ pub fn extract_cell_batches(
                     0.0
                 },
                 sunlight: sunlight.map_or(Vec3::ONE, CellSunlight::checked),
+                lights: if batch.mode == OpticalMode::Sorted {
+                    BatchLights::reaching(&lights, cells.bounds_min, cells.bounds_max)
+                } else {
+                    BatchLights::default()
+                },
+                light_response: batch.light_response,
             },
         ));
     }
@@ -616,27 +656,29 @@ pub fn prepare_cell_views(
                 let blended = batch.is_blended();
                 let merged = batch.group.is_some();
                 let ray_cast = batch.is_ray_cast();
-                variants[mode_index(batch.mode)]
-                    [variant_index(modulated, scattering, handoff, blended, merged, ray_cast)] =
-                    Some(pipelines.specialize(
-                        &pipeline_cache,
-                        &pipeline,
-                        CellProjectionPipelineKey {
-                            mode: batch.mode,
-                            modulated,
-                            scattering,
-                            multisampled,
-                            fog_layers: fog.is_some(),
-                            handoff,
-                            blended,
-                            target_format: format,
-                            stencil,
-                            low_resolution,
-                            count_fragments,
-                            merged,
-                            ray_cast,
-                        },
-                    ));
+                let lit = batch.is_lit_locally();
+                variants[mode_index(batch.mode)][variant_index(
+                    modulated, scattering, handoff, blended, merged, ray_cast, lit,
+                )] = Some(pipelines.specialize(
+                    &pipeline_cache,
+                    &pipeline,
+                    CellProjectionPipelineKey {
+                        mode: batch.mode,
+                        modulated,
+                        scattering,
+                        multisampled,
+                        fog_layers: fog.is_some(),
+                        handoff,
+                        blended,
+                        target_format: format,
+                        stencil,
+                        low_resolution,
+                        count_fragments,
+                        merged,
+                        ray_cast,
+                        local_lights: lit,
+                    },
+                ));
             }
             variants
         };

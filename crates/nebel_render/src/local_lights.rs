@@ -1,0 +1,211 @@
+//! Point and spot lights that scatter in sorted cell batches: Bevy's
+//! `PointLight` and `SpotLight` opted in with `VolumetricLight`, as Bevy's
+//! own volumetric fog takes them.
+//!
+//! Each frame the render world takes the opted-in lights (visible, with a
+//! positive intensity and range) as [`nebel_core::local_light::LocalLight`]s:
+//! colour times intensity over the reference sun's illuminance, Bevy's range
+//! window and cone. A sorted batch is lit by the lights whose range reaches
+//! its bounds, at most [`MAX_LOCAL_LIGHTS`], the brightest at the batch's
+//! centre first; a batch no light reaches draws as before, without the
+//! lighting's pipeline variant. The shader integrates each light over the
+//! segment's pieces in the angle seen from the light
+//! ([`LocalLight::piece_scattering`]), with the batch's Henyey-Greenstein
+//! asymmetry and a factor on its colour
+//! ([`CellBatch::light_response`](crate::CellBatch::light_response)).
+//! The medium does not attenuate the light on its way to a point, and
+//! shadow maps are not read.
+
+use bevy::light::VolumetricLight;
+use bevy::prelude::*;
+use bevy::render::render_resource::ShaderType;
+use nebel_core::local_light::{LocalLight, MAX_LOCAL_LIGHTS, SpotCone};
+
+/// One light in a batch's uniform, as the shader's `LocalLight`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, ShaderType)]
+pub(crate) struct LocalLightUniform {
+    /// xyz: world position; w: range.
+    pub position: Vec4,
+    /// rgb: the colour factor at unit distance; w: the cone's offset (1 for
+    /// a point light).
+    pub colour: Vec4,
+    /// xyz: the spot's unit direction; w: the cone's scale (0 for a point
+    /// light, so its factor is 1 everywhere).
+    pub cone: Vec4,
+}
+
+impl LocalLightUniform {
+    fn new(light: &LocalLight) -> Self {
+        let (direction, scale, offset) = light.cone.map_or((Vec3::ZERO, 0.0, 1.0), |cone| {
+            (
+                cone.direction.as_vec3(),
+                cone.scale as f32,
+                cone.offset as f32,
+            )
+        });
+        Self {
+            position: light.position.as_vec3().extend(light.range as f32),
+            colour: light.colour.as_vec3().extend(offset),
+            cone: direction.extend(scale),
+        }
+    }
+}
+
+/// The lights of one batch: up to [`MAX_LOCAL_LIGHTS`], the first `count`
+/// used.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub(crate) struct BatchLights {
+    pub lights: [LocalLightUniform; MAX_LOCAL_LIGHTS],
+    pub count: u32,
+}
+
+impl BatchLights {
+    /// The lights of `lights` that reach the box `[min, max]`, the brightest
+    /// at its centre first.
+    pub(crate) fn reaching(lights: &[LocalLight], min: Vec3, max: Vec3) -> Self {
+        let (min, max) = (min.as_dvec3(), max.as_dvec3());
+        let centre = (min + max) / 2.0;
+        let mut reaching: Vec<(f64, &LocalLight)> = lights
+            .iter()
+            .filter(|light| light.reaches_box(min, max))
+            .map(|light| {
+                let at_centre =
+                    light.colour.max_element() / (light.position.distance_squared(centre) + 1.0);
+                (at_centre, light)
+            })
+            .collect();
+        reaching.sort_by(|a, b| b.0.total_cmp(&a.0));
+        let mut batch = Self::default();
+        for (slot, (_, light)) in batch.lights.iter_mut().zip(&reaching) {
+            *slot = LocalLightUniform::new(light);
+            batch.count += 1;
+        }
+        batch
+    }
+}
+
+/// Every opted-in point and spot light of the main world that lights
+/// anything: visible, its colour, intensity and range finite and positive.
+pub(crate) fn volumetric_lights(
+    points: impl Iterator<Item = (PointLight, GlobalTransform)>,
+    spots: impl Iterator<Item = (SpotLight, GlobalTransform)>,
+) -> Vec<LocalLight> {
+    let light = |color: Color, intensity: f32, range: f32, transform: &GlobalTransform| {
+        let linear = color.to_linear();
+        let light = LocalLight::from_lumens(
+            transform.translation().as_dvec3(),
+            Vec3::new(linear.red, linear.green, linear.blue).as_dvec3(),
+            f64::from(intensity),
+            f64::from(range),
+        );
+        (light.invalid().is_none() && light.colour.max_element() > 0.0).then_some(light)
+    };
+    points
+        .filter_map(|(point, transform)| {
+            light(point.color, point.intensity, point.range, &transform)
+        })
+        .chain(spots.filter_map(|(spot, transform)| {
+            let mut light = light(spot.color, spot.intensity, spot.range, &transform)?;
+            light.cone = Some(SpotCone::new(
+                transform.forward().as_vec3().as_dvec3(),
+                f64::from(spot.inner_angle),
+                f64::from(spot.outer_angle),
+            ));
+            Some(light)
+        }))
+        .collect()
+}
+
+/// The main world's query of opted-in point lights.
+pub(crate) type VolumetricPointLights<'w, 's> = Query<
+    'w,
+    's,
+    (
+        &'static PointLight,
+        &'static GlobalTransform,
+        &'static ViewVisibility,
+    ),
+    With<VolumetricLight>,
+>;
+
+/// The main world's query of opted-in spot lights.
+pub(crate) type VolumetricSpotLights<'w, 's> = Query<
+    'w,
+    's,
+    (
+        &'static SpotLight,
+        &'static GlobalTransform,
+        &'static ViewVisibility,
+    ),
+    With<VolumetricLight>,
+>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn batches_take_the_lights_that_reach_them_brightest_first() {
+        let at = |x: f32, lumens: f32, range: f32| {
+            (
+                PointLight {
+                    intensity: lumens,
+                    range,
+                    ..default()
+                },
+                GlobalTransform::from_translation(Vec3::new(x, 0.0, 0.0)),
+            )
+        };
+        let spot = (
+            SpotLight {
+                intensity: 1e5,
+                range: 10.0,
+                inner_angle: 0.2,
+                outer_angle: 0.4,
+                ..default()
+            },
+            GlobalTransform::from(
+                Transform::from_xyz(0.0, 5.0, 0.0).looking_to(Vec3::NEG_Y, Vec3::X),
+            ),
+        );
+        let lights = volumetric_lights(
+            [
+                at(0.0, 1e5, 5.0),
+                at(3.0, 3e6, 5.0),
+                at(50.0, 1e6, 5.0),
+                at(1.0, 0.0, 5.0),
+                at(1.0, 1e5, f32::NAN),
+            ]
+            .into_iter(),
+            [spot].into_iter(),
+        );
+        // The dark and the broken lights are dropped.
+        assert_eq!(lights.len(), 4);
+        let cone = lights[3].cone.expect("a spot light has a cone");
+        assert!((cone.direction - bevy::math::DVec3::NEG_Y).length() < 1e-6);
+        let batch = BatchLights::reaching(&lights, Vec3::splat(-1.0), Vec3::splat(1.0));
+        assert_eq!(batch.count, 3);
+        // The light at x = 3 is thirty times as strong, three times brighter at the centre: first.
+        assert_eq!(batch.lights[0].position.x, 3.0);
+        assert_eq!(batch.lights[0].cone.w, 0.0);
+        assert_eq!(batch.lights[0].colour.w, 1.0);
+        assert!(batch.lights[..3].iter().any(|light| light.cone.w > 0.0));
+        assert_eq!(batch.lights[3], LocalLightUniform::default());
+        let none = BatchLights::reaching(&lights, Vec3::splat(20.0), Vec3::splat(21.0));
+        assert_eq!(none, BatchLights::default());
+        // More lights than a batch takes: the brightest.
+        let many: Vec<_> = (0..12)
+            .map(|i| {
+                LocalLight::from_lumens(
+                    bevy::math::DVec3::ZERO,
+                    bevy::math::DVec3::ONE,
+                    f64::from(i + 1),
+                    5.0,
+                )
+            })
+            .collect();
+        let batch = BatchLights::reaching(&many, Vec3::ZERO, Vec3::ONE);
+        assert_eq!(batch.count as usize, MAX_LOCAL_LIGHTS);
+        assert!(batch.lights[0].colour.x > batch.lights[MAX_LOCAL_LIGHTS - 1].colour.x);
+    }
+}
