@@ -5,7 +5,8 @@
 //!   emissive (no sorting needed);
 //! - the smoke is a [`Volume`] with a [`VolumeGrid`] asset built from values
 //!   (fractal noise faded to an ellipsoid), sorted back to front;
-//! - [`FlickeringLight`] makes the point light flicker like firelight.
+//! - [`FlickeringLight`] makes the point light flicker like firelight, and
+//!   Bevy's [`VolumetricLight`] lets the smoke scatter it.
 //!
 //! `cargo run --release --example campfire` opens a window with a fly camera
 //! (WASD, Q/E, Shift, right mouse button to look); with no display, or with
@@ -15,11 +16,13 @@ use std::process::ExitCode;
 use std::sync::Arc;
 
 use bevy::camera::Hdr;
+use bevy::light::VolumetricLight;
 use bevy::math::DVec3;
 use bevy::prelude::*;
 use nebel::nebel_core::field::{DensityGrid, ProceduralNoise};
+use nebel::nebel_core::local_light::LightResponse;
 use nebel::nebel_core::optics::OpticalMode;
-use nebel::nebel_core::transfer::{TransferFunction, TransferPreset};
+use nebel::nebel_core::transfer::{ControlPoint, TransferFunction, TransferPreset};
 use nebel::prelude::*;
 use nebel_tools::example_runner::Example;
 use nebel_tools::nebel_scene::OutputSettings;
@@ -124,7 +127,7 @@ fn spawn_fire(mut commands: Commands) {
         },
         Transform::from_xyz(0.0, 0.05, 0.0),
     ));
-    // Firelight: 60 000 lm, flickering by ±30 %.
+    // Firelight: 60 000 lm, flickering by ±30 %, scattered by the smoke.
     commands.spawn((
         PointLight {
             color: Color::srgb(1.0, 0.55, 0.2),
@@ -136,6 +139,7 @@ fn spawn_fire(mut commands: Commands) {
             base_intensity: 60_000.0,
             amplitude: 0.3,
         },
+        VolumetricLight,
         Transform::from_xyz(0.0, 0.5, 0.0),
     ));
 }
@@ -168,14 +172,29 @@ fn spawn_smoke(mut commands: Commands, mut grids: ResMut<Assets<VolumeGrid>>) {
         })
         .collect();
     let smoke = DensityGrid::new(dims, spacing, DVec3::ZERO, values).expect("valid grid");
-    let thin_smoke = TransferFunction::preset(TransferPreset::Smoke)
-        .scale_density(2.5)
-        .expect("a finite factor");
+    // The smoke preset's colours at a fifth (its look at night), scattering
+    // the fire's light fifteen times as strongly.
+    let night_smoke = TransferFunction::new(
+        TransferFunction::preset(TransferPreset::Smoke)
+            .points()
+            .iter()
+            .map(|point| ControlPoint {
+                kappa: point.kappa.map(|k| k / 5.0),
+                rho: point.rho * 2.5,
+                ..*point
+            })
+            .collect::<Vec<_>>(),
+    )
+    .expect("valid control points");
     commands.spawn((
         Volume {
             field: VolumeField::Grid(grids.add(VolumeGrid::from(smoke))),
-            transfer_function: Arc::new(thin_smoke),
+            transfer_function: Arc::new(night_smoke),
             mode: OpticalMode::Sorted,
+            light_response: LightResponse {
+                asymmetry: 0.3,
+                strength: 15.0,
+            },
         },
         Transform::from_xyz(-0.7, 1.2, -0.7),
     ));

@@ -87,13 +87,13 @@ pub(crate) fn write_png_header(path: &Path, width: u32, height: u32) {
     writer.write_chunk(png::chunk::IDAT, &[]).unwrap();
 }
 
-/// A deterministic generator of uniform numbers (SplitMix64) for tests that
+/// A deterministic generator of uniform numbers (`SplitMix64`) for tests that
 /// draw many random cases without proptest's shrinking.
 pub(crate) struct SplitMix(pub(crate) u64);
 
 impl SplitMix {
     /// A uniform number in `[range.start, range.end)`.
-    pub(crate) fn random_range(&mut self, range: std::ops::Range<f64>) -> f64 {
+    pub(crate) fn random_range(&mut self, range: Range<f64>) -> f64 {
         self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
         let mut z = self.0;
         z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);

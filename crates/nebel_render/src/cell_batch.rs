@@ -81,6 +81,9 @@ pub(crate) struct CellBatchUniform {
     /// radius ([`nebel_core::local_light::CORE_RADIUS`]); w: the factor on
     /// the colour ([`LightResponse::strength`]).
     pub local: Vec4,
+    /// x: the widest interval of the lights' quadrature in the angle
+    /// ([`nebel_core::local_light::interval_angle`]); yzw unused.
+    pub quadrature: Vec4,
     /// The local lights that reach the batch ([`crate::local_lights`]).
     pub lights: [LocalLightUniform; nebel_core::local_light::MAX_LOCAL_LIGHTS],
 }
@@ -116,6 +119,8 @@ impl CellBatchUniform {
             core * core,
             response.strength,
         );
+        uniform.quadrature.x =
+            nebel_core::local_light::interval_angle(f64::from(response.asymmetry)) as f32;
         uniform.lights = lights.lights;
         uniform
     }

@@ -206,6 +206,8 @@ struct CellBatchParameters {
     // on the colour they are scattered with (read only by the LOCAL_LIGHTS
     // variant).
     local: vec4<f32>,
+    // x: the widest interval of the lights' quadrature in the angle.
+    quadrature: vec4<f32>,
     lights: array<LocalLight, #{MAX_LOCAL_LIGHTS}u>,
 }
 @group(1) @binding(5) var<uniform> parameters: CellBatchParameters;
@@ -392,10 +394,10 @@ fn cone_chord(light: LocalLight, c: f32, offset: vec3<f32>, direction: vec3<f32>
 }
 
 // ∫ σ e^{−σ (t − t_a)} E(x(t)) 4π p_HG(θ(t)) dt over [a, b] ⊆ [t_a, t_b]
-// along the unit ray `direction` from the eye for `light`, one interval of
-// three nodes in γ = atan((t − t₀) / h), t₀ the foot of the perpendicular
-// from the light and h² its distance squared plus r₀², in which
-// dt / (r² + r₀²) = dγ / h.
+// along the unit ray `direction` from the eye for `light`, in equal
+// intervals of three nodes, none wider than the batch's interval angle, in
+// γ = atan((t − t₀) / h), t₀ the foot of the perpendicular from the light
+// and h² its distance squared plus r₀², in which dt / (r² + r₀²) = dγ / h.
 fn light_part(
     light: LocalLight,
     direction: vec3<f32>,
@@ -414,10 +416,12 @@ fn light_part(
     let h = sqrt(miss2 + parameters.local.z);
     let gamma_a = atan((a - foot) / h);
     let gamma_b = atan((b - foot) / h);
-    let centre = 0.5 * (gamma_a + gamma_b);
-    let half_width = 0.5 * (gamma_b - gamma_a);
+    let intervals = u32(max(ceil((gamma_b - gamma_a) / parameters.quadrature.x), 1.0));
+    let half_width = 0.5 * (gamma_b - gamma_a) / f32(intervals);
     let g = parameters.local.y;
     var sum = 0.0;
+    for (var i = 0u; i < intervals; i++) {
+    let centre = gamma_a + half_width * (2.0 * f32(i) + 1.0);
     for (var k = 0; k < 3; k++) {
         let along = h * tan(centre + half_width * GAUSS_NODES[k]);
         let t = foot + along;
@@ -425,11 +429,16 @@ fn light_part(
         let r = sqrt(r2);
         let u = r2 / (range * range);
         let window = clamp(1.0 - u * u, 0.0, 1.0);
-        let toward = select(vec3(0.0), (t * direction - to_light) / r, r > 0.0);
-        let cone = clamp(dot(light.cone.xyz, toward) * light.cone.w + light.colour.w, 0.0, 1.0);
+        var cone = 1.0;
+        if light.cone.w > 0.0 {
+            let toward = select(vec3(0.0), (t * direction - to_light) / r, r > 0.0);
+            cone = clamp(dot(light.cone.xyz, toward) * light.cone.w + light.colour.w, 0.0, 1.0);
+        }
         let cos_theta = select(0.0, along / r, r > 0.0);
-        let phase = (1.0 - g * g) / pow(1.0 + g * g - 2.0 * g * cos_theta, 1.5);
+        let denominator = 1.0 + g * g - 2.0 * g * cos_theta;
+        let phase = (1.0 - g * g) / (denominator * sqrt(denominator));
         sum += GAUSS_WEIGHTS[k] * window * window * cone * cone * phase * sigma * exp(-sigma * (t - t_a));
+    }
     }
     return sum * half_width / h;
 }

@@ -382,10 +382,16 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
             shader_defs.push("BLENDED".into());
         }
         if key.local_lights {
+            // A ray cast grid's segments are already pieces of a voxel; a
+            // cell's may cross a whole coarse octree leaf.
             shader_defs.push("LOCAL_LIGHTS".into());
             shader_defs.push(ShaderDefVal::UInt(
                 "LIGHT_PIECES".into(),
-                nebel_core::optics::MODULATOR_PIECES,
+                if key.ray_cast {
+                    1
+                } else {
+                    nebel_core::optics::MODULATOR_PIECES
+                },
             ));
         }
         if key.ray_cast {

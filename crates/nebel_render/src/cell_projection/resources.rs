@@ -141,11 +141,11 @@ pub fn extract_cell_batches(
         points
             .iter()
             .filter(|(_, _, visible)| visible.get())
-            .map(|(light, transform, _)| (light.clone(), *transform)),
+            .map(|(light, transform, _)| (*light, *transform)),
         spots
             .iter()
             .filter(|(_, _, visible)| visible.get())
-            .map(|(light, transform, _)| (light.clone(), *transform)),
+            .map(|(light, transform, _)| (*light, *transform)),
     );
     // Forget entities that are gone, so the set stays as small as the world.
     refused.retain(|entity| batches.contains(*entity));
