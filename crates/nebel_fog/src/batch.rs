@@ -390,6 +390,7 @@ pub(crate) fn update_fog_batches(
             commands.entity(entity).insert(CellBatch {
                 // A camera's fog layers take over from where they begin.
                 ends_where_fog_layers_begin: true,
+                light_response: fog.light_response,
                 ..CellBatch::new(
                     Arc::new(Cells::with_bounds(cells)),
                     transfer,

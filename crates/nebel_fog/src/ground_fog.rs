@@ -23,6 +23,7 @@ use std::sync::Arc;
 use bevy::diagnostic::DiagnosticPath;
 use bevy::prelude::*;
 use nebel_core::field::{FogNoise, ValleyFog};
+use nebel_core::local_light::LightResponse;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_render::{EffectStatus, GrayscaleMap, NebelSystems, cpu_timed, register_diagnostics};
@@ -168,6 +169,10 @@ pub struct GroundFog {
     /// finite and ≥ 0: larger refines more where the fog's top varies.
     /// Changing it rebuilds the map. Default 1.
     pub roughness_weight: f32,
+    /// How a sorted fog scatters the point and spot lights with Bevy's
+    /// `VolumetricLight` that reach it (`nebel_render::local_lights`): the
+    /// phase's asymmetry and a factor on its colour. Default: isotropic, 1.
+    pub light_response: LightResponse,
     /// Debug views. Default: none.
     pub debug: GroundFogDebug,
 }
@@ -199,6 +204,7 @@ impl Default for GroundFog {
             saturate: false,
             profile: vec![[0.0, 1.0], [1.0, 0.0]],
             roughness_weight: 1.0,
+            light_response: LightResponse::default(),
             debug: GroundFogDebug::default(),
         }
     }

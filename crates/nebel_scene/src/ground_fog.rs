@@ -32,6 +32,7 @@ use glam::{DAffine3, DVec2, DVec3};
 use serde::{Deserialize, Serialize};
 
 use nebel_core::field::{FogNoise, HeightField, ValleyFog};
+use nebel_core::local_light::LightResponse;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::quadtree::{TerrainMap, pad_to_power_of_two_plus_one};
@@ -76,6 +77,10 @@ pub struct GroundFogDescription {
     /// ≥ 0. Default 1.
     #[serde(default = "default_roughness_weight")]
     pub roughness_weight: f32,
+    /// How a sorted fog scatters the scene's volumetric point and spot
+    /// lights. Default `(asymmetry: 0.0, strength: 1.0)`.
+    #[serde(default)]
+    pub light_response: LightResponse,
     /// Debug view: draw every cell's edges. Default false.
     #[serde(default)]
     pub debug_wireframe: bool,
@@ -129,6 +134,9 @@ impl GroundFogDescription {
             ),
         ];
         InvalidField::check_finite(checks)?;
+        if let Some((field, reason)) = self.light_response.invalid() {
+            return Err(InvalidField::new(format!("light_response.{field}"), reason));
+        }
         if self.saturate && self.mode != OpticalMode::Emissive {
             return Err(InvalidField::new(
                 "saturate",
@@ -363,7 +371,7 @@ impl TerrainDescription {
             lighting: None,
             projected_cells: false,
             ends_where_fog_layers_begin: true,
-            light_response: Default::default(),
+            light_response: fog.light_response,
         });
         Ok(Some(FogReference { volume, ground }))
     }

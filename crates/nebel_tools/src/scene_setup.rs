@@ -552,6 +552,7 @@ fn ground_fog(
         saturate: fog.saturate,
         profile: fog.profile.clone(),
         roughness_weight: fog.roughness_weight,
+        light_response: fog.light_response,
         debug: GroundFogDebug {
             wireframe: fog.debug_wireframe,
         },

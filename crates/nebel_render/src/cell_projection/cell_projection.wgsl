@@ -401,9 +401,7 @@ fn cone_chord(light: LocalLight, c: f32, offset: vec3<f32>, direction: vec3<f32>
 fn light_part(
     light: LocalLight,
     direction: vec3<f32>,
-    to_light: vec3<f32>,
-    foot: f32,
-    miss2: f32,
+    on_ray: LightOnRay,
     a: f32,
     b: f32,
     t_a: f32,
@@ -412,6 +410,9 @@ fn light_part(
     if b <= a {
         return 0.0;
     }
+    let to_light = on_ray.to_light;
+    let foot = on_ray.foot;
+    let miss2 = on_ray.miss2;
     let range = light.position.w;
     let h = sqrt(miss2 + parameters.local.z);
     let gamma_a = atan((a - foot) / h);
@@ -443,39 +444,67 @@ fn light_part(
     return sum * half_width / h;
 }
 
-// ∫ σ e^{−σ (t − t_a)} E(x(t)) 4π p_HG(θ(t)) dt over [t_a, t_b] along the unit
-// ray `direction` from the eye for `light`: over the part inside its range
-// and a spot light's outer cone, one interval of three nodes (light_part),
-// a spot light's cut where the ray crosses its inner cone, where the cone's
-// factor has a kink (nebel_core::local_light::LocalLight::piece_scattering).
-fn light_piece(light: LocalLight, direction: vec3<f32>, t_a: f32, t_b: f32, sigma: f32) -> vec3<f32> {
+// A light as one ray sees it: the stretch [a, b] of the ray inside its
+// range and a spot light's outer cone, where it lights anything, and
+// [c0, c1] ⊆ [a, b] inside the inner cone (the whole stretch for a point
+// light), where the cone's factor has a kink.
+struct LightOnRay {
+    to_light: vec3<f32>,
+    foot: f32,
+    miss2: f32,
+    a: f32,
+    b: f32,
+    c0: f32,
+    c1: f32,
+}
+
+fn light_on_ray(light: LocalLight, direction: vec3<f32>) -> LightOnRay {
     let to_light = light.position.xyz - view.camera_position.xyz;
     let foot = dot(to_light, direction);
     let perpendicular = to_light - foot * direction;
     let miss2 = dot(perpendicular, perpendicular);
     let range = light.position.w;
     let half_chord = sqrt(max(range * range - miss2, 0.0));
-    var a = max(t_a, foot - half_chord);
-    var b = min(t_b, foot + half_chord);
-    if light.cone.w == 0.0 {
-        return light.colour.rgb * light_part(light, direction, to_light, foot, miss2, a, b, t_a, sigma);
+    var on_ray = LightOnRay(to_light, foot, miss2, foot - half_chord, foot + half_chord, 0.0, 0.0);
+    if range * range <= miss2 {
+        on_ray.b = on_ray.a;
     }
-    let outer = cone_chord(light, -light.colour.w / light.cone.w, -to_light, direction);
-    a = max(a, outer.x);
-    b = min(b, outer.y);
+    if light.cone.w > 0.0 {
+        let outer = cone_chord(light, -light.colour.w / light.cone.w, -to_light, direction);
+        on_ray.a = max(on_ray.a, outer.x);
+        on_ray.b = min(on_ray.b, outer.y);
+        let inner = cone_chord(light, (1.0 - light.colour.w) / light.cone.w, -to_light, direction);
+        on_ray.c0 = clamp(inner.x, on_ray.a, max(on_ray.b, on_ray.a));
+        on_ray.c1 = max(clamp(inner.y, on_ray.a, max(on_ray.b, on_ray.a)), on_ray.c0);
+    } else {
+        on_ray.c0 = on_ray.a;
+        on_ray.c1 = on_ray.b;
+    }
+    return on_ray;
+}
+
+// ∫ σ e^{−σ (t − t_a)} E(x(t)) 4π p_HG(θ(t)) dt over the piece [t_a, t_b]
+// along the unit ray `direction` from the eye for `light`: over the part
+// inside its stretch on the ray, cut at the inner cone (light_part), as
+// nebel_core::local_light::LocalLight::piece_scattering.
+fn light_piece(light: LocalLight, on_ray: LightOnRay, direction: vec3<f32>, t_a: f32, t_b: f32, sigma: f32) -> vec3<f32> {
+    let a = max(t_a, on_ray.a);
+    let b = min(t_b, on_ray.b);
     if b <= a {
         return vec3(0.0);
     }
-    let inner = cone_chord(light, (1.0 - light.colour.w) / light.cone.w, -to_light, direction);
-    let c0 = clamp(inner.x, a, b);
-    let c1 = max(clamp(inner.y, a, b), c0);
-    return light.colour.rgb * (light_part(light, direction, to_light, foot, miss2, a, c0, t_a, sigma)
-        + light_part(light, direction, to_light, foot, miss2, c0, c1, t_a, sigma)
-        + light_part(light, direction, to_light, foot, miss2, c1, b, t_a, sigma));
+    let c0 = clamp(on_ray.c0, a, b);
+    let c1 = max(clamp(on_ray.c1, a, b), c0);
+    let sum = light_part(light, direction, on_ray, a, c0, t_a, sigma)
+        + light_part(light, direction, on_ray, c0, c1, t_a, sigma)
+        + light_part(light, direction, on_ray, c1, b, t_a, sigma);
+    return light.colour.rgb * sum;
 }
 
 // The local lights scattered toward the eye by the segment from t_front to
-// t_back (see the header), premultiplied as its colour.
+// t_back (see the header), premultiplied as its colour: nothing is looked up
+// for a segment no light's stretch on the ray reaches, and a piece's colour
+// only where one does.
 fn local_light_colour(
     s_front: f32,
     s_back: f32,
@@ -486,31 +515,47 @@ fn local_light_colour(
     direction: vec3<f32>,
 ) -> vec3<f32> {
     let count = min(u32(parameters.local.x), #{MAX_LOCAL_LIGHTS}u);
+    // (Taken again per piece: an array of them costs CPU drivers more.)
+    var reach = vec2(3.0e38, -3.0e38);
+    for (var i = 0u; i < count; i++) {
+        let on_ray = light_on_ray(parameters.lights[i], direction);
+        if on_ray.b > on_ray.a {
+            reach = vec2(min(reach.x, on_ray.a), max(reach.y, on_ray.b));
+        }
+    }
+    if reach.x >= t_back || reach.y <= t_front {
+        return vec3(0.0);
+    }
     let span = t_back - t_front;
     var colour = vec3(0.0);
     var transmittance = 1.0;
     for (var piece = 0u; piece < #{LIGHT_PIECES}u; piece++) {
         let a = f32(piece) / f32(#{LIGHT_PIECES}u);
         let b = f32(piece + 1u) / f32(#{LIGHT_PIECES}u);
+        let t_a = t_front + span * a;
+        let piece_length = span * (b - a);
+        if t_a >= reach.y {
+            break;
+        }
         let s_a = mix(s_front, s_back, a);
         let s_b = mix(s_front, s_back, b);
-        let piece_length = span * (b - a);
         let depth = piece_length * 0.5 * (mix(m_front, m_back, a) + mix(m_front, m_back, b))
             * pair_lookup(s_a, s_b).a;
-        if depth > 0.0 && piece_length > 0.0 {
-            let t_a = t_front + span * a;
-#ifdef SCATTERING
-            let albedo = vec3(1.0);
-#else
-            let albedo = colour_lookup(s_a, s_b, depth);
-#endif
+        if depth > 0.0 && piece_length > 0.0 && t_a + piece_length > reach.x {
             var light = vec3(0.0);
             for (var i = 0u; i < count; i++) {
-                light += light_piece(parameters.lights[i], direction, t_a, t_a + piece_length, depth / piece_length);
+                let light_i = parameters.lights[i];
+                light += light_piece(light_i, light_on_ray(light_i, direction), direction, t_a, t_a + piece_length, depth / piece_length);
             }
-            colour += transmittance * albedo * light;
-            transmittance *= exp(-depth);
+#ifdef SCATTERING
+            colour += transmittance * light;
+#else
+            if any(light > vec3(0.0)) {
+                colour += transmittance * colour_lookup(s_a, s_b, depth) * light;
+            }
+#endif
         }
+        transmittance *= exp(-depth);
     }
     return parameters.local.w * colour;
 }
