@@ -354,9 +354,10 @@ impl LocalLight {
     }
 
     /// The same integral to the reference's accuracy: the span is also cut
-    /// where the ray crosses a spot light's inner and outer cone (where the
-    /// cone's factor has a kink), and each part takes `intervals` equal
-    /// intervals (at least one).
+    /// where the ray crosses a spot light's inner and outer cone
+    /// ([`SpotCone::chord`], [`SpotCone::inner_chord`]; the cone's factor
+    /// has a kink there), and each part takes `intervals` equal intervals
+    /// (at least one).
     pub fn scattered(
         &self,
         origin: DVec3,
@@ -371,26 +372,12 @@ impl LocalLight {
         }
         let mut cuts = vec![t_a, t_b];
         if let Some(cone) = self.cone {
-            // Where `(a · v)² = c² |v|²` for v = x(t) − p and c the cosine of
-            // either edge (the roots on the cone's side too: a kink only
-            // where the factor is not flat, which the split does not mind).
-            let w = origin - self.position;
-            let (aw, ad, wd) = (
-                cone.direction.dot(w),
-                cone.direction.dot(direction),
-                w.dot(direction),
-            );
-            for c in [-cone.offset / cone.scale, (1.0 - cone.offset) / cone.scale] {
-                let c2 = c * c;
-                let a = ad * ad - c2;
-                let b = 2.0 * (aw * ad - c2 * wd);
-                let k = aw * aw - c2 * w.length_squared();
-                let discriminant = b * b - 4.0 * a * k;
-                if a.abs() > 1e-12 && discriminant >= 0.0 {
-                    let root = discriminant.sqrt();
-                    cuts.push((-b - root) / (2.0 * a));
-                    cuts.push((-b + root) / (2.0 * a));
-                }
+            let offset = origin - self.position;
+            for (t_0, t_1) in [
+                cone.chord(offset, direction),
+                cone.inner_chord(offset, direction),
+            ] {
+                cuts.extend([t_0, t_1]);
             }
         }
         cuts.retain(|t| *t >= t_a && *t <= t_b);

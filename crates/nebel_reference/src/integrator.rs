@@ -2023,6 +2023,60 @@ mod tests {
     }
 
     #[test]
+    fn a_lit_medium_in_two_overlapping_halves_is_the_whole() {
+        // The same box twice at half the density, rendered together, scatters
+        // a point and a spot light as the box alone: the joint path sums each
+        // medium's in-scattering under their joint transmittance.
+        let lights = vec![
+            LocalLight::from_lumens(
+                DVec3::new(0.3, 0.2, 0.4),
+                DVec3::new(1.0, 0.7, 0.4),
+                1e5,
+                5.0,
+            ),
+            LocalLight {
+                cone: Some(nebel_core::local_light::SpotCone::new(
+                    DVec3::NEG_Y,
+                    0.2,
+                    0.5,
+                )),
+                ..LocalLight::from_lumens(DVec3::new(-0.2, 2.0, 0.0), DVec3::ONE, 4e5, 8.0)
+            },
+        ];
+        let camera = axis_camera();
+        let lit = |tf| {
+            let mut scene = ReferenceScene::new(
+                camera,
+                box_grid(DVec3::splat(-1.0), DVec3::splat(1.0), 0.5),
+                tf,
+                OpticalMode::Sorted,
+            );
+            scene.local_lights = lights.clone();
+            scene.light_response = LightResponse {
+                asymmetry: 0.5,
+                strength: 2.0,
+            };
+            scene
+        };
+        let whole = render(&lit(uniform_tf([0.5, 0.4, 0.3], 1.5)), None).unwrap();
+        let half = || lit(uniform_tf([0.5, 0.4, 0.3], 0.75));
+        let together = render_together(&[half(), half()], None).unwrap();
+        let unlit = render(
+            &ReferenceScene {
+                local_lights: Vec::new(),
+                ..lit(uniform_tf([0.5, 0.4, 0.3], 1.5))
+            },
+            None,
+        )
+        .unwrap();
+        assert!(max_difference(&whole, &together, 4) < 1e-5);
+        assert!(
+            max_difference(&whole, &unlit, 3) > 0.1,
+            "the lights add little"
+        );
+    }
+
+    #[test]
     fn volumes_apart_together_are_each_alone_in_ray_order() {
         // A sorted ramp in front of an emissive ramp and a sorted box: each
         // ray meets them one after the other, so rendering them together is
