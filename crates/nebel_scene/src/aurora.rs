@@ -242,6 +242,7 @@ impl AuroraDescription {
             profile: &AuroraShape::profile(),
             scalar: shape.scalar(),
             order: CellOrder::Unordered,
+            light_response: Default::default(),
             transfer_function: &built.transfer_function,
             mode: OpticalMode::Emissive,
         };

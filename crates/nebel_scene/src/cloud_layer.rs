@@ -20,6 +20,7 @@
 //!     shadow_extinction: 0.004,  // extinction toward the sun, 1/m
 //!     scattering_octaves: 1,     // multiple scattering of the sunlight, 1 to 8
 //!     sky_occlusion: false,      // the cloud above dims the sky's light
+//!     light_response: (asymmetry: 0.0, strength: 1.0), // scattering of volumetric lights
 //!     transfer: Preset(CloudLight), // κ and ρ over the light; default this
 //!     accuracy: 40.0,            // the quadtree's c
 //! ),
@@ -37,6 +38,7 @@ use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
 use nebel_core::field::{CloudLighting, FogNoise, HeightField, TerrainNoise};
+use nebel_core::local_light::LightResponse;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
@@ -81,6 +83,9 @@ pub struct CloudLayerDescription {
     pub scattering_octaves: u32,
     /// Whether the cloud above a point dims its sky light.
     pub sky_occlusion: bool,
+    /// How it scatters the scene's volumetric point and spot lights.
+    /// Default `(asymmetry: 0.0, strength: 1.0)`.
+    pub light_response: LightResponse,
     /// κ and ρ over the light. Default `Preset(CloudLight)`.
     pub transfer: Option<TransferDescription>,
     /// Accuracy `c` of the quadtree's criterion, finite and > 0.
@@ -124,6 +129,7 @@ impl Default for CloudLayerDescription {
             shadow_extinction: 0.004,
             scattering_octaves: 1,
             sky_occlusion: false,
+            light_response: LightResponse::default(),
             transfer: None,
             accuracy: 40.0,
         }
@@ -159,6 +165,9 @@ impl CloudLayerDescription {
         finite("center", &self.center)?;
         layer_side("resolution", self.resolution)?;
         non_negative("density", self.density)?;
+        if let Some((field, reason)) = self.light_response.invalid() {
+            return Err(InvalidField::new(format!("light_response.{field}"), reason));
+        }
         non_negative("shadow_extinction", self.shadow_extinction)?;
         positive("accuracy", self.accuracy)?;
         in_range("ambient", self.ambient, 0.0, 1.0)?;
@@ -277,6 +286,7 @@ impl CloudLayerDescription {
                 sky_occlusion: self.sky_occlusion,
             },
             order: CellOrder::BackToFront,
+            light_response: self.light_response,
             transfer_function: &built.transfer_function,
             mode: OpticalMode::Sorted,
         };

@@ -3,6 +3,7 @@
 //! cells for the reference, the way the sky plugins draw it.
 
 use glam::{DAffine3, DVec3};
+use nebel_core::local_light::LightResponse;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::{
@@ -26,6 +27,8 @@ pub(crate) struct LayerDrawing<'a> {
     pub order: CellOrder,
     /// κ and ρ, the layer's factor applied.
     pub transfer_function: &'a TransferFunction,
+    /// How it scatters volumetric point and spot lights.
+    pub light_response: LightResponse,
     /// How the segments combine.
     pub mode: OpticalMode,
 }
@@ -61,6 +64,6 @@ pub(crate) fn layer_reference(
         lighting: None,
         projected_cells: false,
         ends_where_fog_layers_begin: false,
-        light_response: Default::default(),
+        light_response: drawing.light_response,
     }))
 }

@@ -30,6 +30,7 @@ use bevy::camera::visibility::VisibilitySystems;
 use bevy::diagnostic::{DiagnosticPath, Diagnostics};
 use bevy::math::DVec3;
 use bevy::prelude::*;
+use nebel_core::local_light::LightResponse;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferError, TransferFunction};
 use nebel_lod::quadtree::TerrainView;
@@ -134,6 +135,10 @@ pub trait SkyLayer: Component + Sized {
     fn transfer(&self) -> (&TransferFunction, f32);
     /// The quadtree's accuracy `c` before the quality's scale.
     fn accuracy(&self) -> f32;
+    /// How a sorted layer scatters the point and spot lights that reach it.
+    fn light_response(&self) -> LightResponse {
+        LightResponse::default()
+    }
     /// Its prisms' levels, scalar and order, with `sun` the direction toward
     /// the sun in the layer's frame.
     fn drawing(&self, key: &Self::LayerKey, sun: DVec3) -> (FogProfile, PrismScalar, CellOrder);
@@ -508,11 +513,14 @@ fn update_sky_layers<T: SkyLayer>(
                 commands.entity(entity).remove::<CellBatch>();
             }
         } else {
-            commands.entity(entity).insert(CellBatch::new(
-                Arc::new(Cells::with_bounds(built.cells)),
-                built.transfer,
-                T::MODE,
-            ));
+            commands.entity(entity).insert(CellBatch {
+                light_response: layer.light_response(),
+                ..CellBatch::new(
+                    Arc::new(Cells::with_bounds(built.cells)),
+                    built.transfer,
+                    T::MODE,
+                )
+            });
         }
         stats.record(built.counts, built.build_ms, built.update_ms);
         *frame_ms.get_or_insert(0.0) += f64::from(built.update_ms);

@@ -637,6 +637,7 @@ fn spawn_cloud_layer(
             shadow_extinction: description.shadow_extinction,
             scattering_octaves: description.scattering_octaves,
             sky_occlusion: description.sky_occlusion,
+            light_response: description.light_response,
             transfer_function: Arc::new(built.transfer_function.clone()),
             accuracy: description.accuracy,
         },

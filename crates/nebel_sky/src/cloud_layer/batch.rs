@@ -8,6 +8,7 @@ use bevy::diagnostic::DiagnosticPath;
 use bevy::math::DVec3;
 use bevy::prelude::*;
 use nebel_core::field::FogNoise;
+use nebel_core::local_light::LightResponse;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::quadtree::DEFAULT_MIN_RESOLUTION;
@@ -139,6 +140,10 @@ impl SkyLayer for CloudLayer {
 
     fn accuracy(&self) -> f32 {
         self.accuracy
+    }
+
+    fn light_response(&self) -> LightResponse {
+        self.light_response
     }
 
     fn drawing(&self, _key: &CloudLayerKey, sun: DVec3) -> (FogProfile, PrismScalar, CellOrder) {

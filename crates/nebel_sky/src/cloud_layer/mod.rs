@@ -37,6 +37,7 @@ use std::sync::Arc;
 use bevy::diagnostic::DiagnosticPath;
 use bevy::prelude::*;
 use nebel_core::field::{CloudLighting, FogNoise, TerrainNoise};
+use nebel_core::local_light::LightResponse;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
 use nebel_render::{EffectStatus, GrayscaleMap};
 
@@ -157,6 +158,11 @@ pub struct CloudLayer {
     /// clouds get dark bases (`nebel_lod::PrismScalar::Sunlit`). Default
     /// false.
     pub sky_occlusion: bool,
+    /// How it scatters the point and spot lights with Bevy's
+    /// `VolumetricLight` that reach it (`nebel_render::local_lights`), taken
+    /// when its cells are built: the phase's asymmetry and a factor on its
+    /// colour. Default: isotropic, 1.
+    pub light_response: LightResponse,
     /// κ and ρ over the light. Default: the `CloudLight` preset.
     #[reflect(ignore, default = "cloud_layer_transfer_function")]
     pub transfer_function: Arc<TransferFunction>,
@@ -183,6 +189,7 @@ impl Default for CloudLayer {
             shadow_extinction: 0.004,
             scattering_octaves: 1,
             sky_occlusion: false,
+            light_response: LightResponse::default(),
             transfer_function: cloud_layer_transfer_function(),
             accuracy: 40.0,
         }
