@@ -253,7 +253,7 @@ pub(crate) fn update_batches(
         let current = drawn.is_some_and(|batch| {
             batch.mode == volume.mode
                 && batch.scattering == scattering
-                && batch.light_response == volume.light_response
+                && batch.light_response.checked() == volume.light_response.checked()
                 && batch
                     .transfer_function
                     .as_ref()

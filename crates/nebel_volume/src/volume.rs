@@ -343,6 +343,38 @@ mod tests {
     }
 
     #[test]
+    fn a_light_response_reaches_the_batch_once_even_when_bad() {
+        let (mut app, _, volume) = app_with_volume(OpticalMode::Sorted);
+        let response = LightResponse {
+            asymmetry: 0.4,
+            strength: 3.0,
+        };
+        app.world_mut()
+            .get_mut::<Volume>(volume)
+            .unwrap()
+            .light_response = response;
+        app.update();
+        let batch = app.world().get::<CellBatch>(volume).expect("a batch");
+        assert_eq!(batch.light_response, response);
+        // NaN draws as 0 (`LightResponse::checked`) and, compared as drawn,
+        // does not rebuild the batch every frame.
+        app.world_mut()
+            .get_mut::<Volume>(volume)
+            .unwrap()
+            .light_response
+            .strength = f32::NAN;
+        app.update();
+        let first = last_changed(&app, volume);
+        app.update();
+        app.update();
+        assert_eq!(
+            last_changed(&app, volume),
+            first,
+            "a NaN rebuilds every frame"
+        );
+    }
+
+    #[test]
     fn a_grid_becomes_six_cells_per_voxel_and_is_rebuilt_only_on_change() {
         let (mut app, camera, volume) = app_with_volume(OpticalMode::Sorted);
         assert_eq!(status(&app, volume), VolumeStatus::Ready);
