@@ -23,8 +23,8 @@
 //! quadrature in γ converges fast even where the ray passes by the light:
 //! three nodes per interval no wider than [`interval_angle`] in γ (one for a
 //! piece a tenth of its distance from the light long; the GPU's,
-//! [`LocalLight::piece_scattering`]) are within 2·10⁻³ (relative) of the
-//! converged integral ([`LocalLight::scattered`], the reference's) for
+//! [`LocalLight::scattered`] with one interval) are within 2·10⁻³
+//! (relative) of the converged integral (the reference's, with many) for
 //! pieces of optical depth up to 2 as long as their distance from the light,
 //! within 2·10⁻² for pieces reaching past its range.
 //!
@@ -325,39 +325,13 @@ impl LocalLight {
 
     /// `∫ f(t) E(x(t)) 4π p_HG(θ(t)) dt` over `[t_a, t_b]` along the unit ray
     /// `origin + t · direction` (see the module docs), with `f` the medium's
-    /// weight at `t`, as the GPU takes it for one piece of a segment: over the
-    /// part of the span inside the light's range and outer cone
-    /// ([`SpotCone::chord`]), intervals of [`GAUSS_LEGENDRE_3`] in the angle
-    /// γ no wider than [`MAX_INTERVAL_ANGLE`], for a spot light on each side
-    /// of where the ray crosses the inner cone ([`SpotCone::inner_chord`]),
-    /// whose factor has a kink there.
-    pub fn piece_scattering(
-        &self,
-        origin: DVec3,
-        direction: DVec3,
-        (t_a, t_b): (f64, f64),
-        asymmetry: f64,
-        mut f: impl FnMut(f64) -> DVec3,
-    ) -> DVec3 {
-        let Some(cone) = self.cone else {
-            return self.integrate(origin, direction, (t_a, t_b), asymmetry, 1, f);
-        };
-        let (inner_0, inner_1) = cone.inner_chord(origin - self.position, direction);
-        let (c_0, c_1) = (
-            inner_0.clamp(t_a, t_b),
-            inner_1.clamp(t_a, t_b).max(inner_0.clamp(t_a, t_b)),
-        );
-        [(t_a, c_0), (c_0, c_1), (c_1, t_b)]
-            .into_iter()
-            .map(|part| self.integrate(origin, direction, part, asymmetry, 1, &mut f))
-            .fold(DVec3::ZERO, |sum, part| sum + part)
-    }
-
-    /// The same integral to the reference's accuracy: the span is also cut
-    /// where the ray crosses a spot light's inner and outer cone
-    /// ([`SpotCone::chord`], [`SpotCone::inner_chord`]; the cone's factor
-    /// has a kink there), and each part takes `intervals` equal intervals
-    /// (at least one).
+    /// weight at `t`: over the part of the span inside the light's range and
+    /// outer cone ([`SpotCone::chord`]), cut where the ray crosses the inner
+    /// cone ([`SpotCone::inner_chord`]; the cone's factor has a kink there),
+    /// each part in at least `intervals` equal intervals of
+    /// [`GAUSS_LEGENDRE_3`] in the angle γ, none wider than
+    /// [`interval_angle`]. One interval is what the GPU takes per piece of a
+    /// segment; the reference takes many.
     pub fn scattered(
         &self,
         origin: DVec3,
@@ -370,15 +344,11 @@ impl LocalLight {
         if t_b.partial_cmp(&t_a) != Some(std::cmp::Ordering::Greater) {
             return DVec3::ZERO;
         }
+        // The outer cone clips each part (`integrate`); the inner one cuts.
         let mut cuts = vec![t_a, t_b];
         if let Some(cone) = self.cone {
-            let offset = origin - self.position;
-            for (t_0, t_1) in [
-                cone.chord(offset, direction),
-                cone.inner_chord(offset, direction),
-            ] {
-                cuts.extend([t_0, t_1]);
-            }
+            let (t_0, t_1) = cone.inner_chord(origin - self.position, direction);
+            cuts.extend([t_0, t_1]);
         }
         cuts.retain(|t| *t >= t_a && *t <= t_b);
         cuts.sort_by(f64::total_cmp);
@@ -397,8 +367,8 @@ impl LocalLight {
     }
 
     /// Composite Gauss-Legendre in γ over the part of `[t_a, t_b]` inside the
-    /// range, `intervals` equal intervals, or more where they would be wider
-    /// than [`MAX_INTERVAL_ANGLE`].
+    /// range and the outer cone, `intervals` equal intervals, or more where
+    /// they would be wider than [`interval_angle`].
     fn integrate(
         &self,
         origin: DVec3,
@@ -487,7 +457,7 @@ mod tests {
         let (t_a, t_b) = (0.5, 7.0);
         let h = (0.25 + CORE_RADIUS * CORE_RADIUS).sqrt();
         let exact = (((t_b - 2.0) / h).atan() - ((t_a - 2.0) / h).atan()) / h;
-        let got = light.piece_scattering(origin, direction, (t_a, t_b), 0.0, |_| DVec3::ONE);
+        let got = light.scattered(origin, direction, (t_a, t_b), 0.0, 1, |_| DVec3::ONE);
         let expected = light.colour * exact;
         assert!((got - expected).abs().max_element() < 1e-12 * expected.max_element());
     }
@@ -570,7 +540,7 @@ mod tests {
                 let asymmetry = rng.random_range(-0.8..0.8);
                 let f = |t: f64| DVec3::splat(sigma * (-sigma * (t - t_a)).exp());
                 let span = (t_a, t_a + length);
-                let coarse = light.piece_scattering(origin, direction, span, asymmetry, f);
+                let coarse = light.scattered(origin, direction, span, asymmetry, 1, f);
                 let fine = light.scattered(origin, direction, span, asymmetry, 256, f);
                 worst = worst.max((coarse - fine).abs().max_element() / fine.max_element());
             }

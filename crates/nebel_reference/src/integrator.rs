@@ -884,7 +884,10 @@ impl<'a> Medium<'a> {
 /// media from `t0`.
 fn in_scattered(media: &[Medium<'_>], active: &[RayPiece], ray: &Ray, t0: f64, t1: f64) -> DVec3 {
     let mut sum = DVec3::ZERO;
-    if t1.partial_cmp(&t0) != Some(std::cmp::Ordering::Greater) {
+    let lit = active
+        .iter()
+        .any(|piece| !media[piece.medium].local_lights.is_empty());
+    if !lit || t1.partial_cmp(&t0) != Some(std::cmp::Ordering::Greater) {
         return sum;
     }
     // Per piece: its scalar over the stretch, linear from `s0` to `s1`, and

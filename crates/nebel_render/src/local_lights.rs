@@ -10,7 +10,7 @@
 //! centre first; a batch no light reaches draws as before, without the
 //! lighting's pipeline variant. The shader integrates each light over the
 //! segment's pieces in the angle seen from the light
-//! ([`LocalLight::piece_scattering`]), with the batch's Henyey-Greenstein
+//! ([`LocalLight::scattered`] with one interval), with the batch's Henyey-Greenstein
 //! asymmetry and a factor on its colour
 //! ([`CellBatch::light_response`](crate::CellBatch::light_response)).
 //! The medium does not attenuate the light on its way to a point, and
@@ -84,8 +84,8 @@ impl BatchLights {
     }
 }
 
-/// Every opted-in point and spot light of the main world that lights
-/// anything: visible, its colour, intensity and range finite and positive.
+/// The lights of `points` and `spots` (the opted-in, visible ones) that
+/// light anything: their colour, intensity and range finite and positive.
 pub(crate) fn volumetric_lights(
     points: impl Iterator<Item = (PointLight, GlobalTransform)>,
     spots: impl Iterator<Item = (SpotLight, GlobalTransform)>,

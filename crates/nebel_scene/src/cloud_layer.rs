@@ -165,9 +165,7 @@ impl CloudLayerDescription {
         finite("center", &self.center)?;
         layer_side("resolution", self.resolution)?;
         non_negative("density", self.density)?;
-        if let Some((field, reason)) = self.light_response.invalid() {
-            return Err(InvalidField::new(format!("light_response.{field}"), reason));
-        }
+        InvalidField::check_light_response(&self.light_response)?;
         non_negative("shadow_extinction", self.shadow_extinction)?;
         positive("accuracy", self.accuracy)?;
         in_range("ambient", self.ambient, 0.0, 1.0)?;

@@ -134,9 +134,7 @@ impl GroundFogDescription {
             ),
         ];
         InvalidField::check_finite(checks)?;
-        if let Some((field, reason)) = self.light_response.invalid() {
-            return Err(InvalidField::new(format!("light_response.{field}"), reason));
-        }
+        InvalidField::check_light_response(&self.light_response)?;
         if self.saturate && self.mode != OpticalMode::Emissive {
             return Err(InvalidField::new(
                 "saturate",

@@ -52,7 +52,7 @@ use thiserror::Error;
 
 use nebel_core::budget::{BudgetError, Dims, check_allocation, check_bytes};
 use nebel_core::field::HeightField;
-use nebel_core::local_light::{LocalLight, SpotCone, flicker};
+use nebel_core::local_light::{LightResponse, LocalLight, SpotCone, flicker};
 use nebel_reference::ReferenceCamera;
 use nebel_reference::image_metrics::{LinearImage, srgb_to_linear};
 
@@ -1093,6 +1093,13 @@ impl InvalidField {
 
     /// The grayscale map at `path`, relative to `scene_dir`, as a unit
     /// height field; errors name the scene file's `field`.
+    /// Checks a `light_response` setting (`LightResponse::invalid`).
+    fn check_light_response(response: &LightResponse) -> Result<(), Self> {
+        response.invalid().map_or(Ok(()), |(field, reason)| {
+            Err(Self::new(format!("light_response.{field}"), reason))
+        })
+    }
+
     fn load_map(scene_dir: &Path, path: &str, field: &str) -> Result<HeightField, Self> {
         HeightField::load_png(scene_dir.join(path), DVec2::ONE, DVec2::ZERO, 1.0)
             .map_err(|error| Self::new(field, error.to_string()))
@@ -1343,7 +1350,7 @@ mod tests {
                 }),
                 projected_cells: false,
                 full_resolution: false,
-                light_response: nebel_core::local_light::LightResponse {
+                light_response: LightResponse {
                     asymmetry: 0.3,
                     strength: 2.0,
                 },

@@ -1029,9 +1029,7 @@ impl VolumeDescription {
                 ),
             ));
         }
-        if let Some((field, reason)) = self.light_response.invalid() {
-            return Err(InvalidField::new(format!("light_response.{field}"), reason));
-        }
+        InvalidField::check_light_response(&self.light_response)?;
         if self.full_resolution && self.lod.is_some() {
             return Err(InvalidField::new(
                 "full_resolution",

@@ -44,7 +44,7 @@
 // under SCATTERING, whose colour is the sun's light), its transmittance
 // e^{−σ (t − t_a)} inside, and one interval of three Gauss-Legendre nodes in
 // the angle at which the light sees the ray, which takes the inverse square
-// out exactly (nebel_core::local_light::LocalLight::piece_scattering).
+// out exactly (nebel_core::local_light::LocalLight::scattered with one interval).
 //
 // FOG_LAYERS (the view has fog layers, Röttger 2004 §5.3): the segment is
 // seen through the fog in front of it. As maps of the radiance behind, a
@@ -422,24 +422,24 @@ fn light_part(
     let g = parameters.local.y;
     var sum = 0.0;
     for (var i = 0u; i < intervals; i++) {
-    let centre = gamma_a + half_width * (2.0 * f32(i) + 1.0);
-    for (var k = 0; k < 3; k++) {
-        let along = h * tan(centre + half_width * GAUSS_NODES[k]);
-        let t = foot + along;
-        let r2 = miss2 + along * along;
-        let r = sqrt(r2);
-        let u = r2 / (range * range);
-        let window = clamp(1.0 - u * u, 0.0, 1.0);
-        var cone = 1.0;
-        if light.cone.w > 0.0 {
-            let toward = select(vec3(0.0), (t * direction - to_light) / r, r > 0.0);
-            cone = clamp(dot(light.cone.xyz, toward) * light.cone.w + light.colour.w, 0.0, 1.0);
+        let centre = gamma_a + half_width * (2.0 * f32(i) + 1.0);
+        for (var k = 0; k < 3; k++) {
+            let along = h * tan(centre + half_width * GAUSS_NODES[k]);
+            let t = foot + along;
+            let r2 = miss2 + along * along;
+            let r = sqrt(r2);
+            let u = r2 / (range * range);
+            let window = clamp(1.0 - u * u, 0.0, 1.0);
+            var cone = 1.0;
+            if light.cone.w > 0.0 {
+                let toward = select(vec3(0.0), (t * direction - to_light) / r, r > 0.0);
+                cone = clamp(dot(light.cone.xyz, toward) * light.cone.w + light.colour.w, 0.0, 1.0);
+            }
+            let cos_theta = select(0.0, along / r, r > 0.0);
+            let denominator = 1.0 + g * g - 2.0 * g * cos_theta;
+            let phase = (1.0 - g * g) / (denominator * sqrt(denominator));
+            sum += GAUSS_WEIGHTS[k] * window * window * cone * cone * phase * sigma * exp(-sigma * (t - t_a));
         }
-        let cos_theta = select(0.0, along / r, r > 0.0);
-        let denominator = 1.0 + g * g - 2.0 * g * cos_theta;
-        let phase = (1.0 - g * g) / (denominator * sqrt(denominator));
-        sum += GAUSS_WEIGHTS[k] * window * window * cone * cone * phase * sigma * exp(-sigma * (t - t_a));
-    }
     }
     return sum * half_width / h;
 }
@@ -458,6 +458,7 @@ struct LightOnRay {
     c1: f32,
 }
 
+// `light` on the ray from the eye along the unit `direction`.
 fn light_on_ray(light: LocalLight, direction: vec3<f32>) -> LightOnRay {
     let to_light = light.position.xyz - view.camera_position.xyz;
     let foot = dot(to_light, direction);
@@ -486,7 +487,7 @@ fn light_on_ray(light: LocalLight, direction: vec3<f32>) -> LightOnRay {
 // ∫ σ e^{−σ (t − t_a)} E(x(t)) 4π p_HG(θ(t)) dt over the piece [t_a, t_b]
 // along the unit ray `direction` from the eye for `light`: over the part
 // inside its stretch on the ray, cut at the inner cone (light_part), as
-// nebel_core::local_light::LocalLight::piece_scattering.
+// nebel_core::local_light::LocalLight::scattered with one interval.
 fn light_piece(light: LocalLight, on_ray: LightOnRay, direction: vec3<f32>, t_a: f32, t_b: f32, sigma: f32) -> vec3<f32> {
     let a = max(t_a, on_ray.a);
     let b = min(t_b, on_ray.b);
