@@ -145,6 +145,25 @@ impl HeightFog {
         })
     }
 
+    /// The altitudes where the density is not smooth, ascending: a constant
+    /// layer's bottom and top, a linear layer's points. Between two of them
+    /// the density is smooth (exponential or linear), so a quadrature along
+    /// a ray converges fast only when it cuts the ray there.
+    pub fn kinks(&self) -> Vec<f64> {
+        let mut kinks: Vec<f64> = self
+            .layers
+            .iter()
+            .flat_map(|layer| match layer {
+                HeightFogLayer::Exponential { .. } => Vec::new(),
+                HeightFogLayer::Constant { bottom, top, .. } => vec![*bottom, *top],
+                HeightFogLayer::Linear(points) => points.iter().map(|[h, _]| *h).collect(),
+            })
+            .collect();
+        kinks.sort_by(f64::total_cmp);
+        kinks.dedup();
+        kinks
+    }
+
     /// The density at altitude `h`, 1/m (0 for a non-finite `h`).
     pub fn density(&self, h: f64) -> f64 {
         if !h.is_finite() {
@@ -253,10 +272,8 @@ mod tests {
     use super::*;
 
     /// The optical depth by composite Gauss–Legendre quadrature along the
-    /// segment, split where it crosses the altitudes in `BREAKS` (where a
-    /// layer of [`fog`] has a jump or a kink).
+    /// segment, split where it crosses the fog's kinks.
     fn quadrature(fog: &HeightFog, h0: f64, h1: f64, length: f64) -> f64 {
-        const BREAKS: [f64; 6] = [0.0, 30.0, 50.0, 90.0, 120.0, 140.0];
         let nodes = [
             (0.069_431_844_202_973_71, 0.173_927_422_568_726_93),
             (0.330_009_478_207_571_87, 0.326_072_577_431_273_07),
@@ -266,7 +283,7 @@ mod tests {
         let mut cuts = vec![0.0, 1.0];
         if h1 != h0 {
             cuts.extend(
-                BREAKS
+                fog.kinks()
                     .iter()
                     .map(|b| (b - h0) / (h1 - h0))
                     .filter(|s| *s > 0.0 && *s < 1.0),
@@ -370,6 +387,15 @@ mod tests {
     #[test]
     fn layers_add_and_bad_input_is_an_error_or_zero() {
         let fog = fog();
+        // The jumps of the constant layer and the linear layer's kinks, once
+        // each, ascending; the exponential layer has none.
+        assert_eq!(fog.kinks(), [0.0, 30.0, 50.0, 90.0, 120.0, 140.0]);
+        assert!(
+            HeightFog::new(vec![fog.layers()[0].clone()])
+                .unwrap()
+                .kinks()
+                .is_empty()
+        );
         let parts: f64 = fog
             .layers()
             .iter()

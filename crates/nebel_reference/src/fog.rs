@@ -9,6 +9,14 @@
 //! ray). So the fog over `[t₀, t₁]` is the premultiplied layer
 //! `(c · α, α)`, `α = 1 − e^{−τ}`, and layers compose with "over".
 //!
+//! Point and spot lights ([`ReferenceFog::lights`]) add
+//! `s c ∫ ρ(h(t)) e^{−τ(t₀, t)} E(t) 4π p_HG dt` over the piece
+//! ([`nebel_core::local_light`]; the fog's colour `c` is its look under a
+//! light as bright as the reference sun, as a ground fog's κ), converged by
+//! [`LocalLight::scattered`] on the stretches between the altitudes where
+//! the density has a jump or a kink ([`HeightFog::kinks`]). The piece is
+//! still an emission-absorption layer, so pieces still compose with "over".
+//!
 //! # Volumes inside the fog
 //!
 //! A volume and the fog share the ray. Written as maps of the radiance
@@ -29,8 +37,11 @@
 
 use glam::DVec3;
 use nebel_core::cell::Ray;
-use nebel_core::height_fog::HeightFog;
+use nebel_core::height_fog::{HeightFog, HeightFogLayer};
+use nebel_core::local_light::{LightResponse, LocalLight};
 use nebel_core::optics::{PremultipliedRgba, henyey_greenstein};
+
+use crate::integrator::LIGHT_INTERVALS;
 
 /// Sunlight the fog scatters toward the eye.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -60,7 +71,20 @@ pub struct ReferenceFog {
     /// Where the fog ends along each ray, world units (> 0): a ray that
     /// meets nothing opaque integrates to here.
     pub max_distance: f64,
+    /// Point and spot lights the fog scatters toward the eye (see the module
+    /// docs).
+    pub lights: Vec<LocalLight>,
+    /// How the fog scatters them: the phase's asymmetry and the factor `s`
+    /// on its colour ([`LightResponse::checked`]).
+    pub light_response: LightResponse,
 }
+
+/// The most optical depth, plus exponential falloff times the altitude
+/// crossed, in one part of a lit stretch ([`ReferenceFog::lit`]).
+const MAX_PART_CHANGE: f64 = 0.05;
+
+/// The most parts a lit stretch between two kinks is cut into.
+const MAX_PARTS: f64 = 4096.0;
 
 /// Largest number of pieces a volume piece is cut into for the fog.
 const MAX_CONJUGATION_PIECES: f64 = 20_000.0;
@@ -79,6 +103,12 @@ impl ReferenceFog {
                 && sun.asymmetry.is_finite())
         {
             return Some(format!("sunlight {sun:?} must be finite, with a direction"));
+        }
+        if let Some(reason) = self.lights.iter().find_map(LocalLight::invalid) {
+            return Some(reason);
+        }
+        if let Some((field, reason)) = self.light_response.invalid() {
+            return Some(format!("light_response.{field} {reason}"));
         }
         if !(self.start_distance.is_finite() && self.start_distance >= 0.0) {
             return Some(format!(
@@ -115,10 +145,72 @@ impl ReferenceFog {
         self.fog.optical_depth(altitude(t0), altitude(t1), t1 - t0)
     }
 
-    /// The fog over `[t0, t1]` along `ray` as a premultiplied layer.
+    /// The fog over `[t0, t1]` along `ray` as a premultiplied layer, its
+    /// lights' part included.
     pub fn segment(&self, ray: &Ray, t0: f64, t1: f64) -> PremultipliedRgba {
         let alpha = -(-self.optical_depth(ray, t0, t1)).exp_m1();
-        (self.colour_along(ray.direction) * alpha).extend(alpha)
+        (self.colour_along(ray.direction) * alpha + self.lit(ray, t0, t1)).extend(alpha)
+    }
+
+    /// The lights scattered toward the eye over `[t0, t1]` along `ray`, seen
+    /// from `t0` (see the module docs).
+    pub fn lit(&self, ray: &Ray, t0: f64, t1: f64) -> DVec3 {
+        let (a, b) = (t0.max(self.start_distance), t1.min(self.max_distance));
+        if self.lights.is_empty() || b.partial_cmp(&a) != Some(std::cmp::Ordering::Greater) {
+            return DVec3::ZERO;
+        }
+        let altitude = |t: f64| ray.origin.y + t * ray.direction.y;
+        let mut cuts = vec![a, b];
+        if ray.direction.y != 0.0 {
+            cuts.extend(
+                self.fog
+                    .kinks()
+                    .iter()
+                    .map(|h| (h - ray.origin.y) / ray.direction.y)
+                    .filter(|t| *t > a && *t < b),
+            );
+        }
+        cuts.sort_by(f64::total_cmp);
+        let response = self.light_response.checked();
+        let weight = |t: f64| {
+            DVec3::splat(self.fog.density(altitude(t)) * (-self.optical_depth(ray, t0, t)).exp())
+        };
+        // Each stretch in parts short enough that the density and the
+        // transmittance change little in each (the quadrature's intervals
+        // are set by the angle the light sees, which says nothing of them).
+        let falloff: f64 = self
+            .fog
+            .layers()
+            .iter()
+            .map(|layer| match layer {
+                HeightFogLayer::Exponential { falloff, .. } => *falloff,
+                _ => 0.0,
+            })
+            .sum();
+        let mut parts = Vec::new();
+        for stretch in cuts.windows(2) {
+            let (a, b) = (stretch[0], stretch[1]);
+            let change = self.optical_depth(ray, a, b) + falloff * (b - a) * ray.direction.y.abs();
+            let count = (change / MAX_PART_CHANGE).ceil().clamp(1.0, MAX_PARTS);
+            parts.extend((0..count as usize).map(|k| {
+                let part = |k: f64| a + (b - a) * k / count;
+                (part(k as f64), part(k as f64 + 1.0))
+            }));
+        }
+        let mut sum = DVec3::ZERO;
+        for light in &self.lights {
+            for &part in &parts {
+                sum += light.scattered(
+                    ray.origin,
+                    ray.direction,
+                    part,
+                    f64::from(response.asymmetry),
+                    LIGHT_INTERVALS,
+                    &weight,
+                );
+            }
+        }
+        self.colour * f64::from(response.strength) * sum
     }
 
     /// `background` seen through the fog from the eye to `t_far` (+∞: a ray
@@ -158,8 +250,9 @@ impl ReferenceFog {
             let middle = t0 + (k as f64 + 0.5) / count as f64 * (t1 - t0);
             let part = if count == 1 { whole } else { piece(k, count) };
             let transmittance = (-self.optical_depth(ray, 0.0, middle)).exp();
-            let fogged =
-                transmittance * part.truncate() + coverage(part) * (1.0 - transmittance) * colour;
+            // The fog in front, `F` of the map `x ↦ F + T x`.
+            let front = (1.0 - transmittance) * colour + self.lit(ray, 0.0, middle);
+            let fogged = transmittance * part.truncate() + coverage(part) * front;
             if emit(fogged.extend(part.w)) {
                 return;
             }
@@ -188,7 +281,6 @@ fn conjugation_pieces(fog_depth: f64, volume_depth: f64) -> usize {
 mod tests {
     use super::*;
     use glam::DVec4;
-    use nebel_core::height_fog::HeightFogLayer;
 
     fn fog(layers: Vec<HeightFogLayer>) -> ReferenceFog {
         ReferenceFog {
@@ -197,6 +289,8 @@ mod tests {
             sun: None,
             start_distance: 0.0,
             max_distance: 1e5,
+            lights: Vec::new(),
+            light_response: LightResponse::default(),
         }
     }
 
@@ -341,6 +435,110 @@ mod tests {
         );
     }
 
+    /// A fog with a jump (a constant layer) and a smooth falloff, lit by a
+    /// point light inside it and a spot light slanting down through it.
+    fn lit_fog() -> ReferenceFog {
+        let mut fog = fog(vec![
+            HeightFogLayer::Constant {
+                bottom: 0.0,
+                top: 6.0,
+                density: 0.08,
+            },
+            HeightFogLayer::Exponential {
+                base: 0.0,
+                density: 0.05,
+                falloff: 0.2,
+            },
+        ]);
+        let mut spot = LocalLight::from_lumens(
+            DVec3::new(8.0, 12.0, -3.0),
+            DVec3::new(1.0, 0.8, 0.5),
+            4e5,
+            30.0,
+        );
+        spot.cone = Some(nebel_core::local_light::SpotCone::new(
+            DVec3::new(0.2, -1.0, 0.3).normalize(),
+            0.15,
+            0.35,
+        ));
+        fog.lights = vec![
+            LocalLight::from_lumens(DVec3::new(5.0, 3.0, 1.0), DVec3::ONE, 2e5, 12.0),
+            spot,
+        ];
+        fog.light_response = LightResponse {
+            asymmetry: 0.5,
+            strength: 3.0,
+        };
+        fog
+    }
+
+    #[test]
+    fn lights_in_the_fog_match_a_fine_midpoint_integral() {
+        let fog = lit_fog();
+        for (origin, direction) in [
+            (DVec3::new(-5.0, 2.0, 0.5), DVec3::new(1.0, 0.05, 0.0)),
+            (DVec3::new(-4.0, 9.0, -2.0), DVec3::new(1.0, -0.6, 0.2)),
+            (DVec3::new(5.0, 14.0, 1.2), DVec3::new(0.02, -1.0, 0.0)),
+        ] {
+            let ray = Ray::new(origin, direction.normalize()).unwrap();
+            let (t0, t1) = (0.5, 40.0);
+            // ∫ s c ρ e^{−τ(t₀, t)} E 4π p_HG dt by the midpoint rule, straight
+            // from the definitions.
+            let steps = 400_000;
+            let dt = (t1 - t0) / f64::from(steps);
+            let mut expected = DVec3::ZERO;
+            for i in 0..steps {
+                let t = t0 + (f64::from(i) + 0.5) * dt;
+                let x = ray.origin + t * ray.direction;
+                let rho = fog.fog.density(x.y);
+                let transmittance = (-fog.optical_depth(&ray, t0, t)).exp();
+                for light in &fog.lights {
+                    let cos_theta = (x - light.position).normalize().dot(ray.direction);
+                    expected += light.illuminance(x)
+                        * henyey_greenstein(0.5, cos_theta)
+                        * (rho * transmittance * dt);
+                }
+            }
+            expected *= fog.colour * 3.0;
+            let lit = fog.lit(&ray, t0, t1);
+            assert!(expected.max_element() > 1e-3, "{expected}");
+            assert!(
+                (lit - expected).abs().max_element() <= 1e-5 * expected.max_element(),
+                "{lit} against {expected}"
+            );
+        }
+    }
+
+    #[test]
+    fn lit_fog_pieces_compose_with_over() {
+        let fog = lit_fog();
+        let ray = Ray::new(
+            DVec3::new(-6.0, 7.0, 0.0),
+            DVec3::new(1.0, -0.3, 0.1).normalize(),
+        )
+        .unwrap();
+        let whole = fog.segment(&ray, 0.0, 50.0);
+        let mut composed = DVec4::ZERO;
+        for [a, b] in [[0.0, 3.7], [3.7, 11.0], [11.0, 19.5], [19.5, 50.0]] {
+            composed += (1.0 - composed.w) * fog.segment(&ray, a, b);
+        }
+        assert!(whole.truncate().max_element() > 1e-2);
+        assert!(
+            (whole - composed).abs().max_element() < 1e-9,
+            "{whole} {composed}"
+        );
+        // Without lights the fog is its colour alone.
+        let mut unlit = fog.clone();
+        unlit.lights.clear();
+        let plain = unlit.segment(&ray, 0.0, 50.0);
+        assert!(
+            (plain.truncate() - fog.colour * plain.w)
+                .abs()
+                .max_element()
+                < 1e-12
+        );
+    }
+
     #[test]
     fn bad_fog_settings_are_named() {
         let mut bad = slab();
@@ -359,5 +557,11 @@ mod tests {
             asymmetry: 0.0,
         });
         assert!(bad.invalid().unwrap().contains("sunlight"));
+        let mut bad = lit_fog();
+        bad.lights[1].range = f64::NAN;
+        assert!(bad.invalid().unwrap().contains("range"));
+        let mut bad = lit_fog();
+        bad.light_response.strength = -1.0;
+        assert!(bad.invalid().unwrap().contains("light_response.strength"));
     }
 }

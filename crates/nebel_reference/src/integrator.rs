@@ -67,7 +67,7 @@ const MIN_TRANSMITTANCE: f64 = 1e-12;
 
 /// Intervals of Gauss-Legendre quadrature in the angle per stretch of a ray
 /// lit by a local light ([`LocalLight::scattered`]).
-const LIGHT_INTERVALS: u32 = 32;
+pub(crate) const LIGHT_INTERVALS: u32 = 32;
 
 /// Side of the square pixel tiles that cells are binned into.
 const TILE_SIZE: u32 = 8;
@@ -1650,6 +1650,8 @@ mod tests {
             sun: None,
             start_distance: 0.0,
             max_distance: 40.0,
+            lights: Vec::new(),
+            light_response: LightResponse::default(),
         };
         let kappa = DVec3::new(1.0, 0.5, 0.25);
         let background = DVec4::new(0.05, 0.1, 0.0, 1.0);

@@ -15,7 +15,7 @@ use nebel_core::optics::{OpticalMode, henyey_greenstein};
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::Cells;
 
-use crate::local_lights::{BatchLights, LocalLightUniform};
+use crate::local_lights::{BatchLights, LocalLightsUniform};
 
 /// The sun and sky of a scattering batch ([`CellBatch::scattering`]).
 #[derive(Clone, Copy, Debug, PartialEq, Reflect)]
@@ -76,16 +76,8 @@ pub(crate) struct CellBatchUniform {
     pub blend: Vec4,
     /// The [`CellSunlight`] factor; w unused.
     pub sunlight: Vec4,
-    /// x: how many of `lights` light the batch; y: their Henyey-Greenstein
-    /// asymmetry, clamped to ±0.99; z: the square of the falloff's core
-    /// radius ([`nebel_core::local_light::CORE_RADIUS`]); w: the factor on
-    /// the colour ([`LightResponse::strength`]).
-    pub local: Vec4,
-    /// x: the widest interval of the lights' quadrature in the angle
-    /// ([`nebel_core::local_light::interval_angle`]); yzw unused.
-    pub quadrature: Vec4,
     /// The local lights that reach the batch ([`crate::local_lights`]).
-    pub lights: [LocalLightUniform; nebel_core::local_light::MAX_LOCAL_LIGHTS],
+    pub lights: LocalLightsUniform,
 }
 
 impl CellBatchUniform {
@@ -111,17 +103,7 @@ impl CellBatchUniform {
         });
         uniform.blend.x = blend;
         uniform.sunlight = sunlight.extend(0.0);
-        let response = response.checked();
-        let core = nebel_core::local_light::CORE_RADIUS as f32;
-        uniform.local = Vec4::new(
-            lights.count as f32,
-            response.asymmetry,
-            core * core,
-            response.strength,
-        );
-        uniform.quadrature.x =
-            nebel_core::local_light::interval_angle(f64::from(response.asymmetry)) as f32;
-        uniform.lights = lights.lights;
+        uniform.lights = LocalLightsUniform::new(lights, response);
         uniform
     }
 }
@@ -280,14 +262,19 @@ mod tests {
         assert_eq!(uniform.sun, Vec4::new(0.0, 0.0, 1.0, 0.99));
         assert_eq!(uniform.blend.x, 0.25);
         assert_eq!(uniform.sunlight, Vec4::new(1.0, 1.0, 1.0, 0.0));
-        assert_eq!(uniform.local.truncate().truncate(), Vec2::ZERO);
+        assert_eq!(uniform.lights.response.truncate().truncate(), Vec2::ZERO);
         let nan = LightResponse {
             asymmetry: f32::NAN,
             strength: f32::NAN,
         };
         let unlit = CellBatchUniform::new(None, 0.5, Vec3::ONE, &none, nan);
         assert_eq!(
-            (unlit.sun, unlit.local.x, unlit.local.y, unlit.local.w),
+            (
+                unlit.sun,
+                unlit.lights.response.x,
+                unlit.lights.response.y,
+                unlit.lights.response.w
+            ),
             (Vec4::ZERO, 0.0, 0.0, 0.0)
         );
         let lights = BatchLights {
@@ -299,7 +286,7 @@ mod tests {
             strength: 4.0,
         };
         let lit = CellBatchUniform::new(None, 0.5, Vec3::ONE, &lights, response);
-        assert_eq!(lit.local, Vec4::new(2.0, -0.99, 1e-4, 4.0));
+        assert_eq!(lit.lights.response, Vec4::new(2.0, -0.99, 1e-4, 4.0));
         let sunlight = CellSunlight {
             colour: Vec3::new(f32::NAN, -1.0, 2.5),
         };

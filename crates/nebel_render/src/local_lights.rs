@@ -13,17 +13,26 @@
 //! ([`LocalLight::scattered`] with one interval), with the batch's Henyey-Greenstein
 //! asymmetry and a factor on its colour
 //! ([`CellBatch::light_response`](crate::CellBatch::light_response)).
-//! The medium does not attenuate the light on its way to a point, and
-//! shadow maps are not read.
+//! The fog layers take the same lights, the brightest at the camera
+//! first. The medium does not attenuate the light on its way to a point,
+//! and shadow maps are not read.
+//!
+//! The WGSL library `nebel_render::local_lights` holds the lights' uniform
+//! ([`LocalLightsUniform`]), each light's stretch on a ray and the nodes of
+//! the quadrature; a shader that imports it needs the shader definition
+//! `MAX_LOCAL_LIGHTS`.
 
 use bevy::light::VolumetricLight;
 use bevy::prelude::*;
 use bevy::render::render_resource::ShaderType;
-use nebel_core::local_light::{LocalLight, MAX_LOCAL_LIGHTS, SpotCone};
+use bevy::shader::load_shader_library;
+use nebel_core::local_light::{
+    CORE_RADIUS, LightResponse, LocalLight, MAX_LOCAL_LIGHTS, SpotCone, interval_angle,
+};
 
-/// One light in a batch's uniform, as the shader's `LocalLight`.
+/// One light in a uniform, as the shader's `LocalLight`.
 #[derive(Clone, Copy, Debug, Default, PartialEq, ShaderType)]
-pub(crate) struct LocalLightUniform {
+pub struct LocalLightUniform {
     /// xyz: world position; w: range.
     pub position: Vec4,
     /// rgb: the colour factor at unit distance; w: the cone's offset (1 for
@@ -51,18 +60,64 @@ impl LocalLightUniform {
     }
 }
 
-/// The lights of one batch: up to [`MAX_LOCAL_LIGHTS`], the first `count`
+/// The lights of one medium: up to [`MAX_LOCAL_LIGHTS`], the first `count`
 /// used.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub(crate) struct BatchLights {
+pub struct BatchLights {
+    /// The lights, the first `count` used.
     pub lights: [LocalLightUniform; MAX_LOCAL_LIGHTS],
+    /// How many are used.
     pub count: u32,
+}
+
+/// The lights that reach a medium and how it scatters them, as the shader's
+/// `LocalLights`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, ShaderType)]
+pub struct LocalLightsUniform {
+    /// x: how many of `lights` are used; y: the Henyey-Greenstein
+    /// asymmetry, clamped to ±0.99; z: the square of the falloff's core
+    /// radius ([`CORE_RADIUS`]); w: the factor on the colour
+    /// ([`LightResponse::strength`]).
+    pub response: Vec4,
+    /// x: the widest interval of the quadrature in the angle
+    /// ([`interval_angle`]); yzw unused.
+    pub quadrature: Vec4,
+    /// The lights.
+    pub lights: [LocalLightUniform; MAX_LOCAL_LIGHTS],
+}
+
+impl LocalLightsUniform {
+    /// `lights` scattered with `response` (checked here).
+    pub fn new(lights: &BatchLights, response: LightResponse) -> Self {
+        let response = response.checked();
+        let core = CORE_RADIUS as f32;
+        Self {
+            response: Vec4::new(
+                lights.count as f32,
+                response.asymmetry,
+                core * core,
+                response.strength,
+            ),
+            quadrature: Vec4::new(
+                interval_angle(f64::from(response.asymmetry)) as f32,
+                0.0,
+                0.0,
+                0.0,
+            ),
+            lights: lights.lights,
+        }
+    }
+}
+
+/// Loads the WGSL library `nebel_render::local_lights`.
+pub(crate) fn load_local_lights_library(app: &mut App) {
+    load_shader_library!(app, "local_lights.wgsl");
 }
 
 impl BatchLights {
     /// The lights of `lights` that reach the box `[min, max]`, the brightest
     /// at its centre first.
-    pub(crate) fn reaching(lights: &[LocalLight], min: Vec3, max: Vec3) -> Self {
+    pub fn reaching(lights: &[LocalLight], min: Vec3, max: Vec3) -> Self {
         let (min, max) = (min.as_dvec3(), max.as_dvec3());
         let centre = (min + max) / 2.0;
         let mut reaching: Vec<(f64, &LocalLight)> = lights
@@ -86,7 +141,7 @@ impl BatchLights {
 
 /// The lights of `points` and `spots` (the opted-in, visible ones) that
 /// light anything: their colour, intensity and range finite and positive.
-pub(crate) fn volumetric_lights(
+pub fn volumetric_lights(
     points: impl Iterator<Item = (PointLight, GlobalTransform)>,
     spots: impl Iterator<Item = (SpotLight, GlobalTransform)>,
 ) -> Vec<LocalLight> {
@@ -116,8 +171,26 @@ pub(crate) fn volumetric_lights(
         .collect()
 }
 
+/// The opted-in lights of the main world's queries that are visible and
+/// light anything ([`volumetric_lights`]).
+pub fn visible_volumetric_lights(
+    points: &VolumetricPointLights,
+    spots: &VolumetricSpotLights,
+) -> Vec<LocalLight> {
+    volumetric_lights(
+        points
+            .iter()
+            .filter(|(_, _, visible)| visible.get())
+            .map(|(light, transform, _)| (*light, *transform)),
+        spots
+            .iter()
+            .filter(|(_, _, visible)| visible.get())
+            .map(|(light, transform, _)| (*light, *transform)),
+    )
+}
+
 /// The main world's query of opted-in point lights.
-pub(crate) type VolumetricPointLights<'w, 's> = Query<
+pub type VolumetricPointLights<'w, 's> = Query<
     'w,
     's,
     (
@@ -129,7 +202,7 @@ pub(crate) type VolumetricPointLights<'w, 's> = Query<
 >;
 
 /// The main world's query of opted-in spot lights.
-pub(crate) type VolumetricSpotLights<'w, 's> = Query<
+pub type VolumetricSpotLights<'w, 's> = Query<
     'w,
     's,
     (

@@ -4,6 +4,7 @@
 
 use glam::DVec3;
 use nebel_core::height_fog::{HeightFog, HeightFogLayer};
+use nebel_core::local_light::{LightResponse, LocalLight};
 use nebel_reference::{FogSunlight, ReferenceFog};
 use serde::{Deserialize, Serialize};
 
@@ -38,6 +39,11 @@ pub struct FogLayersDescription {
     /// here). Default 100000.
     #[serde(default = "default_max_distance")]
     pub max_distance: f32,
+    /// How the fog scatters the scene's volumetric point and spot lights,
+    /// its colour being its look under a light as bright as the reference
+    /// sun. Default `(asymmetry: 0.0, strength: 1.0)`.
+    #[serde(default)]
+    pub light_response: LightResponse,
 }
 
 fn default_color() -> [f32; 3] {
@@ -65,6 +71,7 @@ impl FogLayersDescription {
                 format!("must be in (−1, 1), got {}", self.sun_asymmetry),
             ));
         }
+        InvalidField::check_light_response(&self.light_response)?;
         non_negative("start_distance", self.start_distance)?;
         finite("max_distance", &[self.max_distance])?;
         if self.max_distance <= self.start_distance {
@@ -86,8 +93,13 @@ impl FogLayersDescription {
     }
 
     /// The fog for the reference integrator; `sun` is the unit direction
-    /// toward the scene's directional light, if it has one.
-    pub fn reference(&self, sun: Option<DVec3>) -> Result<ReferenceFog, InvalidField> {
+    /// toward the scene's directional light, if it has one, `lights` the
+    /// scene's volumetric point and spot lights.
+    pub fn reference(
+        &self,
+        sun: Option<DVec3>,
+        lights: Vec<LocalLight>,
+    ) -> Result<ReferenceFog, InvalidField> {
         let linear = |c: [f32; 3]| DVec3::from(c.map(f64::from));
         Ok(ReferenceFog {
             fog: self.height_fog()?,
@@ -99,6 +111,8 @@ impl FogLayersDescription {
             }),
             start_distance: f64::from(self.start_distance),
             max_distance: f64::from(self.max_distance),
+            lights,
+            light_response: self.light_response,
         })
     }
 }

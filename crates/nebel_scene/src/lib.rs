@@ -1395,6 +1395,10 @@ mod tests {
                 sun_asymmetry: 0.3,
                 start_distance: 25.0,
                 max_distance: 5000.0,
+                light_response: LightResponse {
+                    asymmetry: 0.2,
+                    strength: 2.0,
+                },
             }),
             aurora: Some(AuroraDescription {
                 curtains: nebel_core::field::AuroraCurtains {

@@ -83,18 +83,18 @@ pub fn reference_image_with_terrain(
     LinearImage::check_budget(camera.width, camera.height)?;
     let opaque_depth = scene.opaque_depth_with_terrain(&camera, terrain)?;
     let sun = scene.sun_direction();
+    let last_frame = f64::from(scene.frame_time(scene.output.frames.saturating_sub(1)));
+    let local_lights = scene.volumetric_lights(last_frame);
     let fog = scene
         .fog_layers
         .as_ref()
-        .map(|fog| fog.reference(sun))
+        .map(|fog| fog.reference(sun, local_lights.clone()))
         .transpose()
         .map_err(|invalid| ReferenceError::InvalidFog {
             reason: format!("fog_layers.{}: {}", invalid.field, invalid.reason),
         })?;
     let mut joint = Vec::with_capacity(volumes.len());
     let mut mips = Vec::new();
-    let last_frame = f64::from(scene.frame_time(scene.output.frames.saturating_sub(1)));
-    let local_lights = scene.volumetric_lights(last_frame);
     for volume in volumes {
         let sun = sun.unwrap_or(DVec3::Y);
         // A lit grid's fields as the GPU draws them: the light field as one

@@ -93,9 +93,11 @@ pub fn run_fog_layer_peers(
     bar.finish_and_clear();
     save_reference(&reference, &out_dir.join("reference.png"))?;
 
-    let fog = layers.reference(scene.sun_direction()).map_err(|invalid| {
-        unsuitable(&format!("fog_layers.{}: {}", invalid.field, invalid.reason))
-    })?;
+    let fog = layers
+        .reference(scene.sun_direction(), Vec::new())
+        .map_err(|invalid| {
+            unsuitable(&format!("fog_layers.{}: {}", invalid.field, invalid.reason))
+        })?;
     let density = fitted_distance_density(&scene, &fog)?;
     let colour = Color::linear_rgb(layers.color[0], layers.color[1], layers.color[2]);
     let distance_fog = |falloff| DistanceFog {
@@ -392,7 +394,12 @@ mod tests {
     #[test]
     fn a_fog_of_one_density_everywhere_fits_that_density() {
         let scene = scene("Constant(bottom: -1000.0, top: 1000.0, density: 0.02)");
-        let fog = scene.fog_layers.as_ref().unwrap().reference(None).unwrap();
+        let fog = scene
+            .fog_layers
+            .as_ref()
+            .unwrap()
+            .reference(None, Vec::new())
+            .unwrap();
         let k = fitted_distance_density(&scene, &fog).unwrap();
         assert!((k - 0.02).abs() < 1e-6, "{k}");
     }

@@ -180,6 +180,7 @@ fn fog_layers(fog: &nebel_scene::FogLayersDescription) -> nebel_fog::FogLayers {
         sun_asymmetry: fog.sun_asymmetry,
         start_distance: fog.start_distance,
         max_distance: fog.max_distance,
+        light_response: fog.light_response,
     }
 }
 

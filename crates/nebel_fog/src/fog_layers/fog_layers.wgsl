@@ -4,9 +4,18 @@
 // over the scene (src One, dst OneMinusSrcAlpha). The ray comes from the
 // inverse projection and the camera's rotation, so large world coordinates
 // cost no precision; only the camera's altitude is absolute.
+//
+// LOCAL_LIGHTS (point and spot lights reach the fog): each adds
+// s c ∫ ρ(h(t)) e^{−τ(0, t)} E(t) 4π p_HG dt over its stretch of the ray
+// (nebel_render::local_lights), cut where the density has a jump or a kink
+// and at the inner cone, each part in Gauss-Legendre intervals in the angle
+// the light sees, of optical depth (plus exponential falloff times the
+// altitude crossed) at most MAX_PART_CHANGE, as the reference's
+// ReferenceFog::lit.
 
 #import bevy_core_pipeline::fullscreen_vertex_shader::FullscreenVertexOutput
-#import nebel_render::fog_layers::{FogLayers, fog_colour, fog_opacity, fog_optical_depth}
+#import nebel_render::fog_layers::{FogLayers, fog_colour, fog_opacity, fog_optical_depth, fog_point, layer_mean}
+#import nebel_render::local_lights::{LightOnRay, LocalLights, light_node, light_on_ray, light_quadrature}
 
 struct FogPass {
     view_from_clip: mat4x4<f32>,
@@ -14,6 +23,9 @@ struct FogPass {
     camera_position: vec4<f32>,
     viewport: vec4<f32>,
     fog: FogLayers,
+    // The point and spot lights that reach the fog (read only by the
+    // LOCAL_LIGHTS variant).
+    lights: LocalLights,
 }
 
 @group(0) @binding(0) var<uniform> fog_pass: FogPass;
@@ -26,15 +38,120 @@ struct FogPass {
 @group(0) @binding(1) var depth_texture: texture_2d<f32>;
 #endif
 
-// The fog's opacity along the ray `direction` through `ndc` to `depth` (0:
-// nothing opaque, to the largest distance).
-fn fog_alpha(ndc: vec2<f32>, direction: vec3<f32>, depth: f32) -> f32 {
+#ifdef LOCAL_LIGHTS
+// The most optical depth, plus exponential falloff times the altitude
+// crossed, in one interval of a light's quadrature.
+const MAX_PART_CHANGE: f32 = 0.5;
+// The most intervals one part of a ray takes for that.
+const MAX_PART_INTERVALS: f32 = 64.0;
+// The most parts a light's stretch is cut into: every layer bound and
+// profile point, and the inner cone's two.
+const MAX_LIGHT_PARTS: u32 = 52u;
+
+// The fog's density at `altitude` (a layer's mean over no range is its
+// density there).
+fn fog_density(altitude: f32) -> f32 {
+    var density = 0.0;
+    for (var i = 0u; i < u32(fog_pass.fog.ranges.z); i++) {
+        density += layer_mean(fog_pass.fog, fog_pass.fog.layers[i], altitude, 0.0);
+    }
+    return density;
+}
+
+// The sum of the exponential layers' falloffs.
+fn fog_falloff() -> f32 {
+    var falloff = 0.0;
+    for (var i = 0u; i < u32(fog_pass.fog.ranges.z); i++) {
+        let layer = fog_pass.fog.layers[i];
+        falloff += select(0.0, layer.w, layer.x < 0.5);
+    }
+    return falloff;
+}
+
+// `next`, or the distance at which the ray from `altitude` with vertical
+// direction `d_y` crosses `kink` if that lies between `after` and `next`.
+fn kink_before(kink: f32, altitude: f32, d_y: f32, after: f32, next: f32) -> f32 {
+    let t = (kink - altitude) / d_y;
+    return select(next, t, t > after && t < next);
+}
+
+// The first distance after `after` and before `limit` at which the ray
+// crosses an altitude where the density has a jump or a kink (a constant
+// layer's bounds, a linear layer's points; nebel_core::height_fog's kinks).
+fn next_kink(altitude: f32, d_y: f32, after: f32, limit: f32) -> f32 {
+    var next = limit;
+    if d_y == 0.0 {
+        return next;
+    }
+    for (var i = 0u; i < u32(fog_pass.fog.ranges.z); i++) {
+        let layer = fog_pass.fog.layers[i];
+        if layer.x > 0.5 && layer.x < 1.5 {
+            next = kink_before(layer.y, altitude, d_y, after, next);
+            next = kink_before(layer.z, altitude, d_y, after, next);
+        } else if layer.x > 1.5 {
+            for (var j = u32(layer.y); j < u32(layer.y) + u32(layer.z); j++) {
+                next = kink_before(fog_point(fog_pass.fog, j).x, altitude, d_y, after, next);
+            }
+        }
+    }
+    return next;
+}
+
+// ∫ ρ(h(t)) e^{−τ(0, t)} E(t) 4π p_HG dt over [t0, t1] along the unit ray
+// `direction` from the eye for light i (see the header).
+fn fog_light(i: u32, direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
+    let light = fog_pass.lights.lights[i];
+    let altitude = fog_pass.camera_position.y;
+    let d_y = direction.y;
+    let on_ray = light_on_ray(light, fog_pass.camera_position.xyz, direction);
+    let b = min(t1, on_ray.b);
+    var start = max(t0, on_ray.a);
+    if b <= start {
+        return vec3(0.0);
+    }
+    let falloff = fog_falloff();
+    var sum = 0.0;
+    for (var part = 0u; part < MAX_LIGHT_PARTS && start < b; part++) {
+        var end = next_kink(altitude, d_y, start, b);
+        end = select(end, on_ray.inner_start, on_ray.inner_start > start && on_ray.inner_start < end);
+        end = select(end, on_ray.inner_end, on_ray.inner_end > start && on_ray.inner_end < end);
+        let change = fog_optical_depth(fog_pass.fog, altitude, d_y, start, end) + falloff * (end - start) * abs(d_y);
+        let at_least = u32(clamp(ceil(change / MAX_PART_CHANGE), 1.0, MAX_PART_INTERVALS));
+        let quadrature = light_quadrature(fog_pass.lights, on_ray, start, end, at_least);
+        let before = fog_optical_depth(fog_pass.fog, altitude, d_y, 0.0, start);
+        for (var interval = 0u; interval < quadrature.intervals; interval++) {
+            for (var k = 0u; k < 3u; k++) {
+                let node = light_node(light, on_ray, direction, quadrature, interval, k, fog_pass.lights.response.y);
+                let depth = before + fog_optical_depth(fog_pass.fog, altitude, d_y, start, node.t);
+                sum += node.weight * fog_density(altitude + d_y * node.t) * exp(-depth);
+            }
+        }
+        start = end;
+    }
+    return light.colour.rgb * sum;
+}
+#endif
+
+// The fog along the ray `direction` through `ndc` to `depth` (0: nothing
+// opaque, to the largest distance), premultiplied.
+fn fog_sample(ndc: vec2<f32>, direction: vec3<f32>, depth: f32) -> vec4<f32> {
     var distance = fog_pass.fog.ranges.y;
     if depth > 0.0 {
         let surface = fog_pass.view_from_clip * vec4(ndc, depth, 1.0);
         distance = length(surface.xyz / surface.w);
     }
-    return fog_opacity(fog_optical_depth(fog_pass.fog, fog_pass.camera_position.y, direction.y, 0.0, distance));
+    let alpha = fog_opacity(fog_optical_depth(fog_pass.fog, fog_pass.camera_position.y, direction.y, 0.0, distance));
+    var colour = fog_colour(fog_pass.fog, direction) * alpha;
+#ifdef LOCAL_LIGHTS
+    let t0 = fog_pass.fog.ranges.x;
+    let t1 = min(distance, fog_pass.fog.ranges.y);
+    var lit = vec3(0.0);
+    for (var i = 0u; i < min(u32(fog_pass.lights.response.x), #{MAX_LOCAL_LIGHTS}u); i++) {
+        lit += fog_light(i, direction, t0, t1);
+    }
+    colour += fog_pass.lights.response.w * fog_pass.fog.colour.rgb * lit;
+#endif
+    return vec4(colour, alpha);
 }
 
 @fragment
@@ -49,19 +166,18 @@ fn fragment(in: FullscreenVertexOutput) -> @location(0) vec4<f32> {
     let direction = normalize((fog_pass.world_from_view * vec4(near.xyz / near.w, 0.0)).xyz);
     let pixel = vec2<i32>(floor(in.position.xy));
 #ifdef MULTISAMPLED
-    // The resolved pixel averages its samples, each fogged to its own depth:
-    // the fog's colour is the same for all, so their opacities average.
+    // The resolved pixel averages its samples, each fogged to its own depth.
     let samples = textureNumSamples(depth_texture);
-    var alpha = 0.0;
+    var fog = vec4(0.0);
     for (var i = 0u; i < samples; i++) {
-        alpha += fog_alpha(ndc, direction, textureLoad(depth_texture, pixel, i32(i)).r);
+        fog += fog_sample(ndc, direction, textureLoad(depth_texture, pixel, i32(i)).r);
     }
-    alpha /= f32(samples);
+    fog /= f32(samples);
 #else
-    let alpha = fog_alpha(ndc, direction, textureLoad(depth_texture, pixel, 0).r);
+    let fog = fog_sample(ndc, direction, textureLoad(depth_texture, pixel, 0).r);
 #endif
-    if alpha <= 0.0 {
+    if fog.a <= 0.0 {
         discard;
     }
-    return vec4(fog_colour(fog_pass.fog, direction) * alpha, alpha);
+    return fog;
 }

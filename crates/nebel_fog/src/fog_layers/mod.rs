@@ -20,6 +20,18 @@
 //! would need the thesis's table over eye altitude, fragment altitude and
 //! distance; it is not built.
 //!
+//! # Point and spot lights
+//!
+//! Lights with Bevy's `VolumetricLight` add their single scattering,
+//! `s c ∫ ρ(h(t)) e^{−τ(0, t)} E(t) 4π p_HG dt` over each light's stretch of
+//! the ray (`nebel_core::local_light`; [`FogLayers::light_response`] gives
+//! `s` and the phase), by Gauss-Legendre quadrature in the angle the light
+//! sees, cut where the density has a jump or a kink, in intervals of
+//! optical depth at most 0.5 (at most 64 per part). A volume inside the fog
+//! is conjugated by the fog's colour alone: the lights' part of the fog in
+//! front of a cell is not in its conjugation. The lights take a variant of
+//! the pass; without them it runs as before.
+//!
 //! # Volumes inside the fog
 //!
 //! The cell projection draws after this pass and sees every cell segment
@@ -51,6 +63,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use bevy::diagnostic::{Diagnostic, DiagnosticPath, Diagnostics, RegisterDiagnostic};
 use bevy::prelude::*;
 use nebel_core::height_fog::{HeightFog, HeightFogError, HeightFogLayer};
+use nebel_core::local_light::LightResponse;
 use nebel_render::EffectStatus;
 use nebel_render::fog_layers::{FogLayersLimitError, FogLayersLook, FogLayersUniform};
 use thiserror::Error;
@@ -91,6 +104,12 @@ pub struct FogLayers {
     /// integrated to here. Set it to the extent of a finite world to keep
     /// the fog off the horizon beyond it. Default 100 km.
     pub max_distance: f32,
+    /// How the fog scatters the point and spot lights with Bevy's
+    /// `VolumetricLight` (`nebel_render::local_lights`; the brightest eight
+    /// at the camera): the phase's asymmetry and a factor on
+    /// [`Self::color`], which is the fog's look under a light as bright as
+    /// the reference sun. Default: isotropic, 1.
+    pub light_response: LightResponse,
 }
 
 impl Default for FogLayers {
@@ -106,6 +125,7 @@ impl Default for FogLayers {
             sun_asymmetry: 0.6,
             start_distance: 0.0,
             max_distance: 100_000.0,
+            light_response: LightResponse::default(),
         }
     }
 }

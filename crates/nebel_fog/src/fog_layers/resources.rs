@@ -19,11 +19,16 @@ use bevy::render::{
     Extract, ExtractSchedule, GpuResourceAppExt, Render, RenderApp, RenderStartup, RenderSystems,
 };
 use bevy::shader::ShaderDefVal;
+use nebel_core::local_light::MAX_LOCAL_LIGHTS;
 use nebel_render::EffectiveQuality;
 use nebel_render::cell_projection::CellProjectionSystems;
 use nebel_render::fog_layers::{FogLayersUniform, ViewFogLayers};
+use nebel_render::local_lights::{
+    BatchLights, LocalLightsUniform, VolumetricPointLights, VolumetricSpotLights,
+    visible_volumetric_lights,
+};
 
-use super::{FogLayersPasses, PreparedFogLayers};
+use super::{FogLayers, FogLayersPasses, PreparedFogLayers};
 
 /// The render side of [`super::FogLayersPlugin`].
 pub struct FogLayersRenderPlugin {
@@ -62,16 +67,38 @@ impl Plugin for FogLayersRenderPlugin {
     }
 }
 
+/// The point and spot lights that reach a view's fog layers, scattered
+/// with its response (render world, on the view entity).
+#[derive(Component, Clone, Copy, Debug, PartialEq)]
+pub struct FogLayerLights(pub LocalLightsUniform);
+
 /// Gives every camera with fog to draw its [`ViewFogLayers`], the sun's
 /// direction taken from the first `DirectionalLight` (a light shines along
-/// its forward axis, so the sun lies behind it); removes it, and what was
-/// prepared from it, from the others.
+/// its forward axis, so the sun lies behind it), and its
+/// [`FogLayerLights`] where a volumetric light reaches within the fog's
+/// largest distance (the brightest at the camera first); removes them, and
+/// what was prepared from them, from the others.
 pub fn extract_fog_layers(
     mut commands: Commands,
-    cameras: Extract<Query<(RenderEntity, Option<&PreparedFogLayers>), With<Camera3d>>>,
+    cameras: Extract<
+        Query<
+            (
+                RenderEntity,
+                Option<&PreparedFogLayers>,
+                Option<&FogLayers>,
+                &GlobalTransform,
+            ),
+            With<Camera3d>,
+        >,
+    >,
     lights: Extract<Query<&GlobalTransform, With<DirectionalLight>>>,
+    (points, spots): (
+        Extract<VolumetricPointLights>,
+        Extract<VolumetricSpotLights>,
+    ),
     quality: Extract<Option<Res<EffectiveQuality>>>,
 ) {
+    let local_lights = visible_volumetric_lights(&points, &spots);
     // A quality without ground fog prisms leaves the whole ray to the layers.
     let from_the_eye = quality
         .as_ref()
@@ -80,22 +107,36 @@ pub fn extract_fog_layers(
         .iter()
         .next()
         .map_or(Vec3::Y, |light| light.back().as_vec3());
-    for (entity, prepared) in &cameras {
+    for (entity, prepared, fog, camera) in &cameras {
         match prepared.and_then(|prepared| prepared.0) {
             Some(mut uniform) => {
                 uniform.sun_direction = sun.extend(0.0);
                 if from_the_eye {
                     uniform.ranges.x = 0.0;
                 }
-                commands.entity(entity).insert(ViewFogLayers(uniform));
+                let mut view = commands.entity(entity);
+                view.insert(ViewFogLayers(uniform));
+                let reach = Vec3::splat(uniform.ranges.y);
+                let eye = camera.translation();
+                let reaching = BatchLights::reaching(&local_lights, eye - reach, eye + reach);
+                match fog.filter(|_| reaching.count > 0) {
+                    Some(fog) => view.insert(FogLayerLights(LocalLightsUniform::new(
+                        &reaching,
+                        fog.light_response,
+                    ))),
+                    None => view.remove::<FogLayerLights>(),
+                };
             }
             None => {
                 // What was prepared for it too: the view entity is kept
                 // from frame to frame, and the draw runs for every view
                 // that has a pipeline and bind group.
-                commands
-                    .entity(entity)
-                    .remove::<(ViewFogLayers, FogLayersView, FogLayersBindGroup)>();
+                commands.entity(entity).remove::<(
+                    ViewFogLayers,
+                    FogLayerLights,
+                    FogLayersView,
+                    FogLayersBindGroup,
+                )>();
             }
         }
     }
@@ -119,6 +160,8 @@ pub struct FogPassUniform {
     /// x, y, width, height of the viewport in pixels.
     viewport: Vec4,
     fog: FogLayersUniform,
+    /// Zeros where no light reaches the fog.
+    lights: LocalLightsUniform,
 }
 
 /// Every fogged view's [`FogPassUniform`] of this frame.
@@ -146,6 +189,7 @@ pub struct FogLayersPipeline {
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
 pub struct FogLayersPipelineKey {
     multisampled: bool,
+    local_lights: bool,
     target_format: TextureFormat,
 }
 
@@ -182,11 +226,16 @@ impl SpecializedRenderPipeline for FogLayersPipeline {
     type Key = FogLayersPipelineKey;
 
     fn specialize(&self, key: Self::Key) -> RenderPipelineDescriptor {
-        let shader_defs: Vec<ShaderDefVal> = if key.multisampled {
-            vec!["MULTISAMPLED".into()]
-        } else {
-            Vec::new()
-        };
+        let mut shader_defs: Vec<ShaderDefVal> = vec![ShaderDefVal::UInt(
+            "MAX_LOCAL_LIGHTS".into(),
+            MAX_LOCAL_LIGHTS as u32,
+        )];
+        if key.multisampled {
+            shader_defs.push("MULTISAMPLED".into());
+        }
+        if key.local_lights {
+            shader_defs.push("LOCAL_LIGHTS".into());
+        }
         RenderPipelineDescriptor {
             label: Some("nebel_fog_layers_pipeline".into()),
             layout: vec![self.layouts[usize::from(key.multisampled)].clone()],
@@ -209,7 +258,13 @@ impl SpecializedRenderPipeline for FogLayersPipeline {
 /// Writes each fogged view's uniform and specialises its pipeline.
 pub fn prepare_fog_layer_views(
     mut commands: Commands,
-    views: Query<(Entity, &ExtractedView, &Msaa, &ViewFogLayers)>,
+    views: Query<(
+        Entity,
+        &ExtractedView,
+        &Msaa,
+        &ViewFogLayers,
+        Option<&FogLayerLights>,
+    )>,
     mut uniforms: ResMut<FogPassUniforms>,
     pipeline: Res<FogLayersPipeline>,
     mut pipelines: ResMut<SpecializedRenderPipelines<FogLayersPipeline>>,
@@ -221,7 +276,7 @@ pub fn prepare_fog_layer_views(
         return;
     }
     uniforms.0.clear();
-    for (entity, view, msaa, fog) in &views {
+    for (entity, view, msaa, fog, lights) in &views {
         let rotation = Mat4::from_quat(view.world_from_view.rotation());
         let uniform_offset = uniforms.0.push(&FogPassUniform {
             view_from_clip: view.clip_from_view.inverse(),
@@ -229,6 +284,7 @@ pub fn prepare_fog_layer_views(
             camera_position: view.world_from_view.translation().extend(1.0),
             viewport: view.viewport.as_vec4(),
             fog: fog.0,
+            lights: lights.map_or_else(LocalLightsUniform::default, |lights| lights.0),
         });
         let multisampled = *msaa != Msaa::Off;
         let pipeline = pipelines.specialize(
@@ -236,6 +292,7 @@ pub fn prepare_fog_layer_views(
             &pipeline,
             FogLayersPipelineKey {
                 multisampled,
+                local_lights: lights.is_some(),
                 target_format: view.target_format,
             },
         );

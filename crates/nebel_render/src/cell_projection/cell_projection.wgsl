@@ -89,6 +89,7 @@
 // keep their precision.
 
 #import nebel_render::fog_layers::{FogLayers, fog_colour, fog_optical_depth}
+#import nebel_render::local_lights::{LightOnRay, LocalLights, light_node, light_on_ray, light_quadrature}
 
 struct CellView {
     clip_from_world: mat4x4<f32>,
@@ -179,16 +180,6 @@ struct CellGrid {
 @group(1) @binding(4) var<storage, read> modulators: array<vec4<f32>>;
 #endif
 
-// A point or spot light (nebel_render::local_lights).
-struct LocalLight {
-    // xyz: world position; w: range.
-    position: vec4<f32>,
-    // rgb: the colour factor at unit distance; w: the cone's offset.
-    colour: vec4<f32>,
-    // xyz: the spot's unit direction; w: the cone's scale (0: a point light).
-    cone: vec4<f32>,
-}
-
 // Per batch: the sun and sky of single scattering (read only by the
 // SCATTERING variant) and the keyframe mix factor (BLENDED).
 struct CellBatchParameters {
@@ -201,14 +192,9 @@ struct CellBatchParameters {
     blend: vec4<f32>,
     // rgb: the sunlight's colour and strength as a factor on lit colours.
     sunlight: vec4<f32>,
-    // x: how many of `lights` reach the batch; y: their Henyey-Greenstein
-    // asymmetry g; z: the falloff's core radius squared r₀²; w: the factor
-    // on the colour they are scattered with (read only by the LOCAL_LIGHTS
+    // The local lights that reach the batch (read only by the LOCAL_LIGHTS
     // variant).
-    local: vec4<f32>,
-    // x: the widest interval of the lights' quadrature in the angle.
-    quadrature: vec4<f32>,
-    lights: array<LocalLight, #{MAX_LOCAL_LIGHTS}u>,
+    lights: LocalLights,
 }
 @group(1) @binding(5) var<uniform> parameters: CellBatchParameters;
 #ifdef RAY_CAST
@@ -356,149 +342,34 @@ fn colour_lookup(s_front: f32, s_back: f32, depth: f32) -> vec3<f32> {
 }
 
 #ifdef LOCAL_LIGHTS
-// Gauss-Legendre on [−1, 1], three nodes and their weights.
-const GAUSS_NODES = array<f32, 3>(-0.7745966692414834, 0.0, 0.7745966692414834);
-const GAUSS_WEIGHTS = array<f32, 3>(0.5555555555555556, 0.8888888888888888, 0.5555555555555556);
-
-// The stretch of the line offset + t direction (offset from the apex) inside
-// the cone of cosine c about a spot light's axis: one stretch of a convex
-// cone, possibly unbounded or empty (x > y); the whole line where that
-// cannot be told (nebel_core::local_light::SpotCone::chord).
-fn cone_chord(light: LocalLight, c: f32, offset: vec3<f32>, direction: vec3<f32>) -> vec2<f32> {
-    let whole = vec2(-3.0e38, 3.0e38);
-    let empty = vec2(3.0e38, -3.0e38);
-    let aw = dot(light.cone.xyz, offset);
-    let ad = dot(light.cone.xyz, direction);
-    let a = ad * ad - c * c;
-    let b = aw * ad - c * c * dot(offset, direction);
-    let k = aw * aw - c * c * dot(offset, offset);
-    let discriminant = b * b - a * k;
-    if c <= 1.0e-6 || abs(a) < 1.0e-9 {
-        return whole;
-    }
-    if discriminant < 0.0 {
-        return select(whole, empty, a < 0.0);
-    }
-    let root = sqrt(discriminant);
-    let r0 = (-b - root) / a;
-    let r1 = (-b + root) / a;
-    let lo = min(r0, r1);
-    let hi = max(r0, r1);
-    if a < 0.0 {
-        return select(empty, vec2(lo, hi), aw + 0.5 * (lo + hi) * ad >= 0.0);
-    }
-    if ad > 0.0 {
-        return select(empty, vec2(hi, 3.0e38), aw + hi * ad >= 0.0);
-    }
-    return select(empty, vec2(-3.0e38, lo), aw + lo * ad >= 0.0);
-}
-
-// ∫ σ e^{−σ (t − t_a)} E(x(t)) 4π p_HG(θ(t)) dt over [a, b] ⊆ [t_a, t_b]
-// along the unit ray `direction` from the eye for `light`, in equal
-// intervals of three nodes, none wider than the batch's interval angle, in
-// γ = atan((t − t₀) / h), t₀ the foot of the perpendicular from the light
-// and h² its distance squared plus r₀², in which dt / (r² + r₀²) = dγ / h.
-fn light_part(
-    light: LocalLight,
-    direction: vec3<f32>,
-    on_ray: LightOnRay,
-    a: f32,
-    b: f32,
-    t_a: f32,
-    sigma: f32,
-) -> f32 {
-    if b <= a {
-        return 0.0;
-    }
-    let to_light = on_ray.to_light;
-    let foot = on_ray.foot;
-    let miss2 = on_ray.miss2;
-    let range = light.position.w;
-    let h = sqrt(miss2 + parameters.local.z);
-    let gamma_a = atan((a - foot) / h);
-    let gamma_b = atan((b - foot) / h);
-    let intervals = u32(max(ceil((gamma_b - gamma_a) / parameters.quadrature.x), 1.0));
-    let half_width = 0.5 * (gamma_b - gamma_a) / f32(intervals);
-    let g = parameters.local.y;
-    var sum = 0.0;
-    for (var i = 0u; i < intervals; i++) {
-        let centre = gamma_a + half_width * (2.0 * f32(i) + 1.0);
-        for (var k = 0; k < 3; k++) {
-            let along = h * tan(centre + half_width * GAUSS_NODES[k]);
-            let t = foot + along;
-            let r2 = miss2 + along * along;
-            let r = sqrt(r2);
-            let u = r2 / (range * range);
-            let window = clamp(1.0 - u * u, 0.0, 1.0);
-            var cone = 1.0;
-            if light.cone.w > 0.0 {
-                let toward = select(vec3(0.0), (t * direction - to_light) / r, r > 0.0);
-                cone = clamp(dot(light.cone.xyz, toward) * light.cone.w + light.colour.w, 0.0, 1.0);
-            }
-            let cos_theta = select(0.0, along / r, r > 0.0);
-            let denominator = 1.0 + g * g - 2.0 * g * cos_theta;
-            let phase = (1.0 - g * g) / (denominator * sqrt(denominator));
-            sum += GAUSS_WEIGHTS[k] * window * window * cone * cone * phase * sigma * exp(-sigma * (t - t_a));
-        }
-    }
-    return sum * half_width / h;
-}
-
-// A light as one ray sees it: the stretch [a, b] of the ray inside its
-// range and a spot light's outer cone, where it lights anything, and
-// [c0, c1] ⊆ [a, b] inside the inner cone (the whole stretch for a point
-// light), where the cone's factor has a kink.
-struct LightOnRay {
-    to_light: vec3<f32>,
-    foot: f32,
-    miss2: f32,
-    a: f32,
-    b: f32,
-    c0: f32,
-    c1: f32,
-}
-
-// `light` on the ray from the eye along the unit `direction`.
-fn light_on_ray(light: LocalLight, direction: vec3<f32>) -> LightOnRay {
-    let to_light = light.position.xyz - view.camera_position.xyz;
-    let foot = dot(to_light, direction);
-    let perpendicular = to_light - foot * direction;
-    let miss2 = dot(perpendicular, perpendicular);
-    let range = light.position.w;
-    let half_chord = sqrt(max(range * range - miss2, 0.0));
-    var on_ray = LightOnRay(to_light, foot, miss2, foot - half_chord, foot + half_chord, 0.0, 0.0);
-    if range * range <= miss2 {
-        on_ray.b = on_ray.a;
-    }
-    if light.cone.w > 0.0 {
-        let outer = cone_chord(light, -light.colour.w / light.cone.w, -to_light, direction);
-        on_ray.a = max(on_ray.a, outer.x);
-        on_ray.b = min(on_ray.b, outer.y);
-        let inner = cone_chord(light, (1.0 - light.colour.w) / light.cone.w, -to_light, direction);
-        on_ray.c0 = clamp(inner.x, on_ray.a, max(on_ray.b, on_ray.a));
-        on_ray.c1 = max(clamp(inner.y, on_ray.a, max(on_ray.b, on_ray.a)), on_ray.c0);
-    } else {
-        on_ray.c0 = on_ray.a;
-        on_ray.c1 = on_ray.b;
-    }
-    return on_ray;
-}
-
 // ∫ σ e^{−σ (t − t_a)} E(x(t)) 4π p_HG(θ(t)) dt over the piece [t_a, t_b]
-// along the unit ray `direction` from the eye for `light`: over the part
-// inside its stretch on the ray, cut at the inner cone (light_part), as
-// nebel_core::local_light::LocalLight::scattered with one interval.
-fn light_piece(light: LocalLight, on_ray: LightOnRay, direction: vec3<f32>, t_a: f32, t_b: f32, sigma: f32) -> vec3<f32> {
+// along the unit ray `direction` from the eye for light i: over the part
+// inside its stretch on the ray, cut at the inner cone (whose factor has a
+// kink there), each part in intervals in the angle no wider than the
+// batch's, as nebel_core::local_light::LocalLight::scattered with one
+// interval.
+fn light_piece(i: u32, direction: vec3<f32>, t_a: f32, t_b: f32, sigma: f32) -> vec3<f32> {
+    let light = parameters.lights.lights[i];
+    let on_ray = light_on_ray(light, view.camera_position.xyz, direction);
     let a = max(t_a, on_ray.a);
     let b = min(t_b, on_ray.b);
     if b <= a {
         return vec3(0.0);
     }
-    let c0 = clamp(on_ray.c0, a, b);
-    let c1 = max(clamp(on_ray.c1, a, b), c0);
-    let sum = light_part(light, direction, on_ray, a, c0, t_a, sigma)
-        + light_part(light, direction, on_ray, c0, c1, t_a, sigma)
-        + light_part(light, direction, on_ray, c1, b, t_a, sigma);
+    var cuts = array<f32, 4>(a, clamp(on_ray.inner_start, a, b), max(clamp(on_ray.inner_end, a, b), clamp(on_ray.inner_start, a, b)), b);
+    var sum = 0.0;
+    for (var part = 0u; part < 3u; part++) {
+        if cuts[part + 1u] <= cuts[part] {
+            continue;
+        }
+        let quadrature = light_quadrature(parameters.lights, on_ray, cuts[part], cuts[part + 1u], 1u);
+        for (var interval = 0u; interval < quadrature.intervals; interval++) {
+            for (var k = 0u; k < 3u; k++) {
+                let node = light_node(light, on_ray, direction, quadrature, interval, k, parameters.lights.response.y);
+                sum += node.weight * sigma * exp(-sigma * (node.t - t_a));
+            }
+        }
+    }
     return light.colour.rgb * sum;
 }
 
@@ -515,11 +386,11 @@ fn local_light_colour(
     t_back: f32,
     direction: vec3<f32>,
 ) -> vec3<f32> {
-    let count = min(u32(parameters.local.x), #{MAX_LOCAL_LIGHTS}u);
+    let count = min(u32(parameters.lights.response.x), #{MAX_LOCAL_LIGHTS}u);
     // (Taken again per piece: an array of them costs CPU drivers more.)
     var reach = vec2(3.0e38, -3.0e38);
     for (var i = 0u; i < count; i++) {
-        let on_ray = light_on_ray(parameters.lights[i], direction);
+        let on_ray = light_on_ray(parameters.lights.lights[i], view.camera_position.xyz, direction);
         if on_ray.b > on_ray.a {
             reach = vec2(min(reach.x, on_ray.a), max(reach.y, on_ray.b));
         }
@@ -545,8 +416,7 @@ fn local_light_colour(
         if depth > 0.0 && piece_length > 0.0 && t_a + piece_length > reach.x {
             var light = vec3(0.0);
             for (var i = 0u; i < count; i++) {
-                let light_i = parameters.lights[i];
-                light += light_piece(light_i, light_on_ray(light_i, direction), direction, t_a, t_a + piece_length, depth / piece_length);
+                light += light_piece(i, direction, t_a, t_a + piece_length, depth / piece_length);
             }
 #ifdef SCATTERING
             colour += transmittance * light;
@@ -558,7 +428,7 @@ fn local_light_colour(
         }
         transmittance *= exp(-depth);
     }
-    return parameters.local.w * colour;
+    return parameters.lights.response.w * colour;
 }
 #endif
 

@@ -35,7 +35,7 @@ use super::settings::CellProjection;
 use crate::cell_batch::{CellBatch, CellBatchUniform, CellBlend, CellScattering, CellSunlight};
 use crate::fog_layers::{FogLayersUniform, ViewFogLayers};
 use crate::local_lights::{
-    BatchLights, VolumetricPointLights, VolumetricSpotLights, volumetric_lights,
+    BatchLights, VolumetricPointLights, VolumetricSpotLights, visible_volumetric_lights,
 };
 
 /// A batch as the render world sees it.
@@ -137,16 +137,7 @@ pub fn extract_cell_batches(
     if unsupported.is_some() {
         return;
     }
-    let lights = volumetric_lights(
-        points
-            .iter()
-            .filter(|(_, _, visible)| visible.get())
-            .map(|(light, transform, _)| (*light, *transform)),
-        spots
-            .iter()
-            .filter(|(_, _, visible)| visible.get())
-            .map(|(light, transform, _)| (*light, *transform)),
-    );
+    let lights = visible_volumetric_lights(&points, &spots);
     // Forget entities that are gone, so the set stays as small as the world.
     refused.retain(|entity| batches.contains(*entity));
     for (entity, batch, blend, sunlight) in &batches {
