@@ -166,11 +166,19 @@ fn fragment(in: FullscreenVertexOutput) -> @location(0) vec4<f32> {
     let direction = normalize((fog_pass.world_from_view * vec4(near.xyz / near.w, 0.0)).xyz);
     let pixel = vec2<i32>(floor(in.position.xy));
 #ifdef MULTISAMPLED
-    // The resolved pixel averages its samples, each fogged to its own depth.
+    // The resolved pixel averages its samples, each fogged to its own depth
+    // (a sample at the depth of the one before it takes its fog).
     let samples = textureNumSamples(depth_texture);
-    var fog = vec4(0.0);
-    for (var i = 0u; i < samples; i++) {
-        fog += fog_sample(ndc, direction, textureLoad(depth_texture, pixel, i32(i)).r);
+    var depth = textureLoad(depth_texture, pixel, 0).r;
+    var sample = fog_sample(ndc, direction, depth);
+    var fog = sample;
+    for (var i = 1u; i < samples; i++) {
+        let next = textureLoad(depth_texture, pixel, i32(i)).r;
+        if next != depth {
+            depth = next;
+            sample = fog_sample(ndc, direction, depth);
+        }
+        fog += sample;
     }
     fog /= f32(samples);
 #else
