@@ -28,8 +28,10 @@
 //! pieces of optical depth up to 2 as long as their distance from the light,
 //! within 2·10⁻² for pieces reaching past its range.
 //!
-//! Not modelled: the medium's attenuation between the light and the point
-//! (the light reaches every point as through clear air), and occluders.
+//! The medium's attenuation between the light and the point is the
+//! caller's to put in `f` (fog layers do, in closed form; volumes leave it
+//! out, so the light reaches them as through clear air). Occluders are not
+//! modelled.
 
 use glam::DVec3;
 

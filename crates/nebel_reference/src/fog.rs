@@ -10,12 +10,14 @@
 //! `(c · α, α)`, `α = 1 − e^{−τ}`, and layers compose with "over".
 //!
 //! Point and spot lights ([`ReferenceFog::lights`]) add
-//! `s c ∫ ρ(h(t)) e^{−τ(t₀, t)} E(t) 4π p_HG dt` over the piece
+//! `s c ∫ ρ(h(t)) e^{−τ(t₀, t) − τ(x(t), p)} E(t) 4π p_HG dt` over the piece
 //! ([`nebel_core::local_light`]; the fog's colour `c` is its look under a
-//! light as bright as the reference sun, as a ground fog's κ), converged by
-//! [`LocalLight::scattered`] on the stretches between the altitudes where
-//! the density has a jump or a kink ([`HeightFog::kinks`]). The piece is
-//! still an emission-absorption layer, so pieces still compose with "over".
+//! light as bright as the reference sun, as a ground fog's κ; `τ(x, p)` the
+//! fog's optical depth from the point to the light at `p`, in closed form
+//! like any straight segment's), converged by [`LocalLight::scattered`] on
+//! the stretches between the altitudes where the density has a jump or a
+//! kink ([`HeightFog::kinks`]). The piece is still an emission-absorption
+//! layer, so pieces still compose with "over".
 //!
 //! # Volumes inside the fog
 //!
@@ -172,8 +174,14 @@ impl ReferenceFog {
         }
         cuts.sort_by(f64::total_cmp);
         let response = self.light_response.checked();
-        let weight = |t: f64| {
-            DVec3::splat(self.fog.density(altitude(t)) * (-self.optical_depth(ray, t0, t)).exp())
+        // The density, and the transmittance to the eye and to the light.
+        let weight = |light: &LocalLight, t: f64| {
+            let x = ray.origin + t * ray.direction;
+            let to_light =
+                self.fog
+                    .optical_depth(x.y, light.position.y, x.distance(light.position));
+            let depth = self.optical_depth(ray, t0, t) + to_light;
+            DVec3::splat(self.fog.density(altitude(t)) * (-depth).exp())
         };
         // Each stretch in parts short enough that the density and the
         // transmittance change little in each (the quadrature's intervals
@@ -206,7 +214,7 @@ impl ReferenceFog {
                     part,
                     f64::from(response.asymmetry),
                     LIGHT_INTERVALS,
-                    &weight,
+                    |t| weight(light, t),
                 );
             }
         }
@@ -494,9 +502,12 @@ mod tests {
                 let transmittance = (-fog.optical_depth(&ray, t0, t)).exp();
                 for light in &fog.lights {
                     let cos_theta = (x - light.position).normalize().dot(ray.direction);
+                    let toward = Ray::new(x, (light.position - x).normalize()).unwrap();
+                    let attenuation =
+                        (-fog.optical_depth(&toward, 0.0, x.distance(light.position))).exp();
                     expected += light.illuminance(x)
                         * henyey_greenstein(0.5, cos_theta)
-                        * (rho * transmittance * dt);
+                        * (rho * transmittance * attenuation * dt);
                 }
             }
             expected *= fog.colour * 3.0;

@@ -14,8 +14,8 @@
 //! asymmetry and a factor on its colour
 //! ([`CellBatch::light_response`](crate::CellBatch::light_response)).
 //! The fog layers take the same lights, the brightest at the camera
-//! first. The medium does not attenuate the light on its way to a point,
-//! and shadow maps are not read.
+//! first. A batch's medium does not attenuate the light on its way to a
+//! point (the fog layers' does), and shadow maps are not read.
 //!
 //! The WGSL library `nebel_render::local_lights` holds the lights' uniform
 //! ([`LocalLightsUniform`]), each light's stretch on a ray and the nodes of

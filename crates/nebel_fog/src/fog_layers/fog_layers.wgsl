@@ -6,7 +6,9 @@
 // cost no precision; only the camera's altitude is absolute.
 //
 // LOCAL_LIGHTS (point and spot lights reach the fog): each adds
-// s c ∫ ρ(h(t)) e^{−τ(0, t)} E(t) 4π p_HG dt over its stretch of the ray
+// s c ∫ ρ(h(t)) e^{−τ(0, t) − τ(x(t), p)} E(t) 4π p_HG dt over its stretch
+// of the ray, τ(x, p) the fog's optical depth from the point to the light
+// (in closed form like any straight segment's)
 // (nebel_render::local_lights), cut where the density has a jump or a kink
 // and at the inner cone, each part in Gauss-Legendre intervals in the angle
 // the light sees, of optical depth (plus exponential falloff times the
@@ -58,6 +60,16 @@ fn fog_density(altitude: f32) -> f32 {
     return density;
 }
 
+// The fog's optical depth along a straight segment of `length` from
+// altitude h0 to h1, whatever its distance from the eye.
+fn segment_depth(h0: f32, h1: f32, length: f32) -> f32 {
+    var mean = 0.0;
+    for (var i = 0u; i < u32(fog_pass.fog.ranges.z); i++) {
+        mean += layer_mean(fog_pass.fog, fog_pass.fog.layers[i], min(h0, h1), abs(h1 - h0));
+    }
+    return length * mean;
+}
+
 // The sum of the exponential layers' falloffs.
 fn fog_falloff() -> f32 {
     var falloff = 0.0;
@@ -97,7 +109,7 @@ fn next_kink(altitude: f32, d_y: f32, after: f32, limit: f32) -> f32 {
     return next;
 }
 
-// ∫ ρ(h(t)) e^{−τ(0, t)} E(t) 4π p_HG dt over [t0, t1] along the unit ray
+// ∫ ρ(h(t)) e^{−τ(0, t) − τ(x(t), p)} E(t) 4π p_HG dt over [t0, t1] along the unit ray
 // `direction` from the eye for light i (see the header).
 fn fog_light(i: u32, direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
     let light = fog_pass.lights.lights[i];
@@ -122,8 +134,10 @@ fn fog_light(i: u32, direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
         for (var interval = 0u; interval < quadrature.intervals; interval++) {
             for (var k = 0u; k < 3u; k++) {
                 let node = light_node(light, on_ray, direction, quadrature, interval, k, fog_pass.lights.response.y);
-                let depth = before + fog_optical_depth(fog_pass.fog, altitude, d_y, start, node.t);
-                sum += node.weight * fog_density(altitude + d_y * node.t) * exp(-depth);
+                let height = altitude + d_y * node.t;
+                let to_light = segment_depth(height, light.position.y, length(on_ray.to_light - node.t * direction));
+                let depth = before + fog_optical_depth(fog_pass.fog, altitude, d_y, start, node.t) + to_light;
+                sum += node.weight * fog_density(height) * exp(-depth);
             }
         }
         start = end;
