@@ -19,7 +19,7 @@ use bevy::render::{
     Extract, ExtractSchedule, GpuResourceAppExt, Render, RenderApp, RenderStartup, RenderSystems,
 };
 use bevy::shader::ShaderDefVal;
-use nebel_core::local_light::MAX_LOCAL_LIGHTS;
+use nebel_core::local_light::{LightResponse, LocalLight, MAX_LOCAL_LIGHTS};
 use nebel_render::EffectiveQuality;
 use nebel_render::cell_projection::CellProjectionSystems;
 use nebel_render::fog_layers::{FogLayersUniform, ViewFogLayers};
@@ -72,6 +72,22 @@ impl Plugin for FogLayersRenderPlugin {
 #[derive(Component, Clone, Copy, Debug, PartialEq)]
 pub struct FogLayerLights(pub LocalLightsUniform);
 
+impl FogLayerLights {
+    /// The lights of `lights` that reach within `max_distance` of the eye,
+    /// the brightest at the eye first, scattered with `response`; `None`
+    /// where none does (the pass then runs without lights).
+    pub fn reaching(
+        lights: &[LocalLight],
+        eye: Vec3,
+        max_distance: f32,
+        response: LightResponse,
+    ) -> Option<Self> {
+        let reach = Vec3::splat(max_distance);
+        let reaching = BatchLights::reaching(lights, eye - reach, eye + reach);
+        (reaching.count > 0).then(|| Self(LocalLightsUniform::new(&reaching, response)))
+    }
+}
+
 /// Gives every camera with fog to draw its [`ViewFogLayers`], the sun's
 /// direction taken from the first `DirectionalLight` (a light shines along
 /// its forward axis, so the sun lies behind it), and its
@@ -116,14 +132,15 @@ pub fn extract_fog_layers(
                 }
                 let mut view = commands.entity(entity);
                 view.insert(ViewFogLayers(uniform));
-                let reach = Vec3::splat(uniform.ranges.y);
-                let eye = camera.translation();
-                let reaching = BatchLights::reaching(&local_lights, eye - reach, eye + reach);
-                match fog.filter(|_| reaching.count > 0) {
-                    Some(fog) => view.insert(FogLayerLights(LocalLightsUniform::new(
-                        &reaching,
+                match fog.and_then(|fog| {
+                    FogLayerLights::reaching(
+                        &local_lights,
+                        camera.translation(),
+                        uniform.ranges.y,
                         fog.light_response,
-                    ))),
+                    )
+                }) {
+                    Some(lights) => view.insert(lights),
                     None => view.remove::<FogLayerLights>(),
                 };
             }
@@ -346,5 +363,45 @@ pub fn prepare_fog_layer_bind_groups(
         commands
             .entity(entity)
             .insert(FogLayersBindGroup { bind_group, key });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use bevy::math::DVec3;
+
+    #[test]
+    fn the_fog_takes_the_lights_within_its_distance_or_none() {
+        let at = |x: f64, lumens: f64| {
+            LocalLight::from_lumens(DVec3::new(x, 0.0, 0.0), DVec3::ONE, lumens, 10.0)
+        };
+        let lights = [at(50.0, 1e5), at(5.0, 1e4), at(200.0, 1e9)];
+        let response = LightResponse {
+            asymmetry: 0.3,
+            strength: 2.0,
+        };
+        // The far light's range ends beyond the fog's 100 m.
+        let near = FogLayerLights::reaching(&lights, Vec3::ZERO, 100.0, response)
+            .expect("two lights reach");
+        assert_eq!(near.0.response.x, 2.0);
+        assert_eq!((near.0.response.y, near.0.response.w), (0.3, 2.0));
+        // The brighter light at the eye first: 1e4 lm at 5 m over 1e5 at 50 m.
+        assert_eq!(near.0.lights[0].position.x, 5.0);
+        assert_eq!(
+            FogLayerLights::reaching(&lights, Vec3::new(0.0, 500.0, 0.0), 100.0, response),
+            None
+        );
+        assert_eq!(
+            FogLayerLights::reaching(&[], Vec3::ZERO, 1e5, response),
+            None
+        );
+        // A bad response is clamped, not passed on.
+        let bad = LightResponse {
+            asymmetry: f32::NAN,
+            strength: -1.0,
+        };
+        let clamped = FogLayerLights::reaching(&lights, Vec3::ZERO, 100.0, bad).unwrap();
+        assert_eq!((clamped.0.response.y, clamped.0.response.w), (0.0, 0.0));
     }
 }
