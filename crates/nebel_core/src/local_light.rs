@@ -1,6 +1,7 @@
-//! Point and spot lights scattered by a volume: the illuminance a light gives
+//! Point and spot lights scattered by a medium: the illuminance a light gives
 //! a point and its single scattering toward the eye along a ray (the airlight
-//! of Sun et al. 2005, without the medium's attenuation toward the light).
+//! of Sun et al. 2005; the medium's attenuation toward the light is the
+//! caller's).
 //!
 //! A [`LocalLight`] at `p` gives a point `x` at distance `r = |x − p|` the
 //! illuminance `E(x) = c · W(r) · S(x) / (r² + r₀²)`: `c` its colour times its

@@ -254,12 +254,20 @@ impl ReferenceFog {
         let coverage = |part: PremultipliedRgba| if absorbs { part.w } else { 0.0 };
         let count = conjugation_pieces(fog_depth, volume_depth);
         let colour = self.colour_along(ray.direction);
+        // The lights' part of the fog in front, carried from middle to
+        // middle: `lit(0, m) = lit(0, m′) + T(0, m′) lit(m′, m)`.
+        let (mut lit, mut lit_to) = (DVec3::ZERO, 0.0);
         for k in 0..count {
             let middle = t0 + (k as f64 + 0.5) / count as f64 * (t1 - t0);
             let part = if count == 1 { whole } else { piece(k, count) };
+            if !self.lights.is_empty() {
+                lit +=
+                    (-self.optical_depth(ray, 0.0, lit_to)).exp() * self.lit(ray, lit_to, middle);
+                lit_to = middle;
+            }
             let transmittance = (-self.optical_depth(ray, 0.0, middle)).exp();
             // The fog in front, `F` of the map `x ↦ F + T x`.
-            let front = (1.0 - transmittance) * colour + self.lit(ray, 0.0, middle);
+            let front = (1.0 - transmittance) * colour + lit;
             let fogged = transmittance * part.truncate() + coverage(part) * front;
             if emit(fogged.extend(part.w)) {
                 return;
@@ -548,6 +556,47 @@ mod tests {
                 .max_element()
                 < 1e-12
         );
+    }
+
+    #[test]
+    fn a_piece_in_lit_fog_is_conjugated_by_the_fog_in_front_lights_included() {
+        let fog = lit_fog();
+        let ray = Ray::new(
+            DVec3::new(-6.0, 7.0, 0.0),
+            DVec3::new(1.0, -0.3, 0.1).normalize(),
+        )
+        .unwrap();
+        let (t0, t1) = (2.0, 12.0);
+        let whole = DVec4::new(0.2, 0.1, 0.05, 0.5);
+        // Equal parts of a uniform piece.
+        let part = |n: usize| {
+            let alpha = 1.0 - (1.0 - whole.w).powf(1.0 / n as f64);
+            (whole.truncate() / whole.w * alpha).extend(alpha)
+        };
+        let mut emitted = Vec::new();
+        fog.conjugated_pieces(
+            &ray,
+            t0,
+            t1,
+            whole,
+            true,
+            |_, n| part(n),
+            |fogged| {
+                emitted.push(fogged);
+                false
+            },
+        );
+        let n = emitted.len();
+        assert!(n > 10, "{n} parts");
+        for (k, fogged) in emitted.iter().enumerate() {
+            let middle = t0 + (k as f64 + 0.5) / n as f64 * (t1 - t0);
+            let front = fog.segment(&ray, 0.0, middle);
+            let expected = (1.0 - front.w) * part(n).truncate() + part(n).w * front.truncate();
+            assert!(
+                (fogged.truncate() - expected).abs().max_element() <= 1e-9,
+                "part {k}: {fogged} against {expected}"
+            );
+        }
     }
 
     #[test]

@@ -15,7 +15,7 @@ use nebel_core::optics::{OpticalMode, henyey_greenstein};
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::Cells;
 
-use crate::local_lights::{BatchLights, LocalLightsUniform};
+use crate::local_lights::{LocalLightsUniform, ReachingLights};
 
 /// The sun and sky of a scattering batch ([`CellBatch::scattering`]).
 #[derive(Clone, Copy, Debug, PartialEq, Reflect)]
@@ -89,7 +89,7 @@ impl CellBatchUniform {
         scattering: Option<&CellScattering>,
         blend: f32,
         sunlight: Vec3,
-        lights: &BatchLights,
+        lights: &ReachingLights,
         response: LightResponse,
     ) -> Self {
         let mut uniform = scattering.map_or_else(Self::default, |scattering| Self {
@@ -257,7 +257,7 @@ mod tests {
             ..default()
         };
         assert!(scattering.phase(Vec3::Z) > 100.0 * scattering.phase(Vec3::NEG_Z));
-        let none = BatchLights::default();
+        let none = ReachingLights::default();
         let uniform = CellBatchUniform::new(Some(&scattering), 0.25, Vec3::ONE, &none, default());
         assert_eq!(uniform.sun, Vec4::new(0.0, 0.0, 1.0, 0.99));
         assert_eq!(uniform.blend.x, 0.25);
@@ -277,7 +277,7 @@ mod tests {
             ),
             (Vec4::ZERO, 0.0, 0.0, 0.0)
         );
-        let lights = BatchLights {
+        let lights = ReachingLights {
             count: 2,
             ..default()
         };

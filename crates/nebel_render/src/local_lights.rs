@@ -1,6 +1,6 @@
-//! Point and spot lights that scatter in sorted cell batches: Bevy's
-//! `PointLight` and `SpotLight` opted in with `VolumetricLight`, as Bevy's
-//! own volumetric fog takes them.
+//! Point and spot lights that scatter in sorted cell batches and fog layers:
+//! Bevy's `PointLight` and `SpotLight` opted in with `VolumetricLight`, as
+//! Bevy's own volumetric fog takes them.
 //!
 //! Each frame the render world takes the opted-in lights (visible, with a
 //! positive intensity and range) as [`nebel_core::local_light::LocalLight`]s:
@@ -63,7 +63,7 @@ impl LocalLightUniform {
 /// The lights of one medium: up to [`MAX_LOCAL_LIGHTS`], the first `count`
 /// used.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct BatchLights {
+pub struct ReachingLights {
     /// The lights, the first `count` used.
     pub lights: [LocalLightUniform; MAX_LOCAL_LIGHTS],
     /// How many are used.
@@ -88,7 +88,7 @@ pub struct LocalLightsUniform {
 
 impl LocalLightsUniform {
     /// `lights` scattered with `response` (checked here).
-    pub fn new(lights: &BatchLights, response: LightResponse) -> Self {
+    pub fn new(lights: &ReachingLights, response: LightResponse) -> Self {
         let response = response.checked();
         let core = CORE_RADIUS as f32;
         Self {
@@ -114,7 +114,7 @@ pub(crate) fn load_local_lights_library(app: &mut App) {
     load_shader_library!(app, "local_lights.wgsl");
 }
 
-impl BatchLights {
+impl ReachingLights {
     /// The lights of `lights` that reach the box `[min, max]`, the brightest
     /// at its centre first.
     pub fn reaching(lights: &[LocalLight], min: Vec3, max: Vec3) -> Self {
@@ -141,7 +141,7 @@ impl BatchLights {
 
 /// The lights of `points` and `spots` (the opted-in, visible ones) that
 /// light anything: their colour, intensity and range finite and positive.
-pub fn volumetric_lights(
+pub(crate) fn volumetric_lights(
     points: impl Iterator<Item = (PointLight, GlobalTransform)>,
     spots: impl Iterator<Item = (SpotLight, GlobalTransform)>,
 ) -> Vec<LocalLight> {
@@ -256,7 +256,7 @@ mod tests {
         assert_eq!(lights.len(), 4);
         let cone = lights[3].cone.expect("a spot light has a cone");
         assert!((cone.direction - bevy::math::DVec3::NEG_Y).length() < 1e-6);
-        let batch = BatchLights::reaching(&lights, Vec3::splat(-1.0), Vec3::splat(1.0));
+        let batch = ReachingLights::reaching(&lights, Vec3::splat(-1.0), Vec3::splat(1.0));
         assert_eq!(batch.count, 3);
         // The light at x = 3 is thirty times as strong, three times brighter at the centre: first.
         assert_eq!(batch.lights[0].position.x, 3.0);
@@ -264,8 +264,8 @@ mod tests {
         assert_eq!(batch.lights[0].colour.w, 1.0);
         assert!(batch.lights[..3].iter().any(|light| light.cone.w > 0.0));
         assert_eq!(batch.lights[3], LocalLightUniform::default());
-        let none = BatchLights::reaching(&lights, Vec3::splat(20.0), Vec3::splat(21.0));
-        assert_eq!(none, BatchLights::default());
+        let none = ReachingLights::reaching(&lights, Vec3::splat(20.0), Vec3::splat(21.0));
+        assert_eq!(none, ReachingLights::default());
         // More lights than a batch takes: the brightest.
         let many: Vec<_> = (0..12)
             .map(|i| {
@@ -277,7 +277,7 @@ mod tests {
                 )
             })
             .collect();
-        let batch = BatchLights::reaching(&many, Vec3::ZERO, Vec3::ONE);
+        let batch = ReachingLights::reaching(&many, Vec3::ZERO, Vec3::ONE);
         assert_eq!(batch.count as usize, MAX_LOCAL_LIGHTS);
         assert!(batch.lights[0].colour.x > batch.lights[MAX_LOCAL_LIGHTS - 1].colour.x);
     }

@@ -65,8 +65,8 @@ fn cone_chord(light: LocalLight, c: f32, offset: vec3<f32>, direction: vec3<f32>
 
 // A light as one ray sees it: the stretch [a, b] of the ray inside its
 // range and a spot light's outer cone, where it lights anything, and
-// [inner_start, inner_end] ⊆ [a, b] inside the inner cone (the whole stretch for a point
-// light), where the cone's factor has a kink.
+// [inner_start, inner_end] ⊆ [a, b] inside the inner cone (the whole
+// stretch for a point light), where the cone's factor has a kink.
 struct LightOnRay {
     to_light: vec3<f32>,
     foot: f32,
@@ -114,13 +114,13 @@ struct LightQuadrature {
     intervals: u32,
 }
 
-// The intervals for [a, b]: at least `at_least`, none wider than the
-// lights' widest interval.
-fn light_quadrature(lights: LocalLights, on_ray: LightOnRay, a: f32, b: f32, at_least: u32) -> LightQuadrature {
-    let h = sqrt(on_ray.miss2 + lights.response.z);
+// The intervals for [a, b], none wider than `widest` (the lights'
+// `quadrature.x`), with r₀² = `core2` (their `response.z`).
+fn light_quadrature(on_ray: LightOnRay, a: f32, b: f32, core2: f32, widest: f32) -> LightQuadrature {
+    let h = sqrt(on_ray.miss2 + core2);
     let gamma_a = atan((a - on_ray.foot) / h);
     let gamma_b = atan((b - on_ray.foot) / h);
-    let intervals = max(u32(max(ceil((gamma_b - gamma_a) / lights.quadrature.x), 1.0)), at_least);
+    let intervals = u32(max(ceil((gamma_b - gamma_a) / widest), 1.0));
     return LightQuadrature(gamma_a, 0.5 * (gamma_b - gamma_a) / f32(intervals), h, intervals);
 }
 

@@ -3,21 +3,23 @@
 // is opaque, as the premultiplied layer (c α, α), α = 1 − e^{−τ}, blended
 // over the scene (src One, dst OneMinusSrcAlpha). The ray comes from the
 // inverse projection and the camera's rotation, so large world coordinates
-// cost no precision; only the camera's altitude is absolute.
+// cost no precision; only the camera's altitude is absolute (the lights'
+// offsets from the camera are differences of world positions).
 //
-// LOCAL_LIGHTS (point and spot lights reach the fog): each adds
+// LOCAL_LIGHTS (point and spot lights reach the fog,
+// nebel_render::local_lights): each adds
 // s c ∫ ρ(h(t)) e^{−τ(0, t) − τ(x(t), p)} E(t) 4π p_HG dt over its stretch
-// of the ray, τ(x, p) the fog's optical depth from the point to the light
-// (in closed form like any straight segment's)
-// (nebel_render::local_lights), cut where the density has a jump or a kink
-// and at the inner cone, each part in Gauss-Legendre intervals in the angle
-// the light sees, of optical depth (plus exponential falloff times the
-// altitude crossed) at most MAX_PART_CHANGE, as the reference's
-// ReferenceFog::lit.
+// of the ray, where τ(x, p) is the fog's optical depth from the point to the
+// light, in closed form like that of any straight segment. The stretch is
+// cut where the density has a jump or a kink and at the inner cone; each
+// part into equal pieces, one per MAX_PART_CHANGE of its optical depth plus
+// exponential falloff times the altitude crossed (at most MAX_PART_PIECES);
+// each piece in Gauss-Legendre intervals in the angle the light sees. The
+// reference's ReferenceFog::lit cuts the same way, finer.
 
 #import bevy_core_pipeline::fullscreen_vertex_shader::FullscreenVertexOutput
 #import nebel_render::fog_layers::{FogLayers, fog_colour, fog_opacity, fog_optical_depth, fog_point, layer_mean}
-#import nebel_render::local_lights::{LightOnRay, LocalLights, light_node, light_on_ray, light_quadrature}
+#import nebel_render::local_lights::{LocalLights, light_node, light_on_ray, light_quadrature}
 
 struct FogPass {
     view_from_clip: mat4x4<f32>,
@@ -41,11 +43,11 @@ struct FogPass {
 #endif
 
 #ifdef LOCAL_LIGHTS
-// The most optical depth, plus exponential falloff times the altitude
-// crossed, in one interval of a light's quadrature.
+// The optical depth, plus exponential falloff times the altitude crossed,
+// per piece of a part of a light's stretch.
 const MAX_PART_CHANGE: f32 = 0.5;
-// The most intervals one part of a ray takes for that.
-const MAX_PART_INTERVALS: f32 = 64.0;
+// The most pieces one part is cut into for that.
+const MAX_PART_PIECES: f32 = 64.0;
 // The most parts a light's stretch is cut into: every layer bound and
 // profile point, and the inner cone's two.
 const MAX_LIGHT_PARTS: u32 = 52u;
@@ -109,8 +111,8 @@ fn next_kink(altitude: f32, d_y: f32, after: f32, limit: f32) -> f32 {
     return next;
 }
 
-// ∫ ρ(h(t)) e^{−τ(0, t) − τ(x(t), p)} E(t) 4π p_HG dt over [t0, t1] along the unit ray
-// `direction` from the eye for light i (see the header).
+// ∫ ρ(h(t)) e^{−τ(0, t) − τ(x(t), p)} E(t) 4π p_HG dt over [t0, t1] along
+// the unit ray `direction` from the eye for light i (see the header).
 fn fog_light(i: u32, direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
     let light = fog_pass.lights.lights[i];
     let altitude = fog_pass.camera_position.y;
@@ -128,16 +130,20 @@ fn fog_light(i: u32, direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
         end = select(end, on_ray.inner_start, on_ray.inner_start > start && on_ray.inner_start < end);
         end = select(end, on_ray.inner_end, on_ray.inner_end > start && on_ray.inner_end < end);
         let change = fog_optical_depth(fog_pass.fog, altitude, d_y, start, end) + falloff * (end - start) * abs(d_y);
-        let at_least = u32(clamp(ceil(change / MAX_PART_CHANGE), 1.0, MAX_PART_INTERVALS));
-        let quadrature = light_quadrature(fog_pass.lights, on_ray, start, end, at_least);
-        let before = fog_optical_depth(fog_pass.fog, altitude, d_y, 0.0, start);
-        for (var interval = 0u; interval < quadrature.intervals; interval++) {
-            for (var k = 0u; k < 3u; k++) {
-                let node = light_node(light, on_ray, direction, quadrature, interval, k, fog_pass.lights.response.y);
-                let height = altitude + d_y * node.t;
-                let to_light = segment_depth(height, light.position.y, length(on_ray.to_light - node.t * direction));
-                let depth = before + fog_optical_depth(fog_pass.fog, altitude, d_y, start, node.t) + to_light;
-                sum += node.weight * fog_density(height) * exp(-depth);
+        let pieces = clamp(ceil(change / MAX_PART_CHANGE), 1.0, MAX_PART_PIECES);
+        for (var piece = 0.0; piece < pieces; piece += 1.0) {
+            let piece_a = mix(start, end, piece / pieces);
+            let piece_b = mix(start, end, (piece + 1.0) / pieces);
+            let quadrature = light_quadrature(on_ray, piece_a, piece_b, fog_pass.lights.response.z, fog_pass.lights.quadrature.x);
+            let before = fog_optical_depth(fog_pass.fog, altitude, d_y, 0.0, piece_a);
+            for (var interval = 0u; interval < quadrature.intervals; interval++) {
+                for (var k = 0u; k < 3u; k++) {
+                    let node = light_node(light, on_ray, direction, quadrature, interval, k, fog_pass.lights.response.y);
+                    let height = altitude + d_y * node.t;
+                    let to_light = segment_depth(height, light.position.y, length(on_ray.to_light - node.t * direction));
+                    let depth = before + fog_optical_depth(fog_pass.fog, altitude, d_y, piece_a, node.t) + to_light;
+                    sum += node.weight * fog_density(height) * exp(-depth);
+                }
             }
         }
         start = end;

@@ -27,9 +27,11 @@
 //! light's stretch of the ray (`nebel_core::local_light`;
 //! [`FogLayers::light_response`] gives `s` and the phase), with the fog's
 //! attenuation both to the eye and from the light at `p`, each in closed
-//! form, by Gauss-Legendre quadrature in the angle the light sees, cut
-//! where the density has a jump or a kink, in intervals of optical depth at
-//! most 0.5 (at most 64 per part). Opaque objects cast no shadow in it. A volume inside the fog
+//! form. The stretch is cut where the density has a jump or a kink, each
+//! part into equal pieces, one per 0.5 of its optical depth plus
+//! exponential falloff times the altitude crossed (at most 64), each piece
+//! by Gauss-Legendre quadrature in the angle the light sees. Opaque objects
+//! cast no shadow in it. A volume inside the fog
 //! is conjugated by the fog's colour alone: the lights' part of the fog in
 //! front of a cell is not in its conjugation. The lights take a variant of
 //! the pass; without them it runs as before.

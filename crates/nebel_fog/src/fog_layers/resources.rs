@@ -24,7 +24,7 @@ use nebel_render::EffectiveQuality;
 use nebel_render::cell_projection::CellProjectionSystems;
 use nebel_render::fog_layers::{FogLayersUniform, ViewFogLayers};
 use nebel_render::local_lights::{
-    BatchLights, LocalLightsUniform, VolumetricPointLights, VolumetricSpotLights,
+    LocalLightsUniform, ReachingLights, VolumetricPointLights, VolumetricSpotLights,
     visible_volumetric_lights,
 };
 
@@ -75,7 +75,8 @@ pub struct FogLayerLights(pub LocalLightsUniform);
 impl FogLayerLights {
     /// The lights of `lights` that reach within `max_distance` of the eye,
     /// the brightest at the eye first, scattered with `response`; `None`
-    /// where none does (the pass then runs without lights).
+    /// where none does or the response's strength is 0 (the pass then runs
+    /// without lights).
     pub fn reaching(
         lights: &[LocalLight],
         eye: Vec3,
@@ -83,8 +84,9 @@ impl FogLayerLights {
         response: LightResponse,
     ) -> Option<Self> {
         let reach = Vec3::splat(max_distance);
-        let reaching = BatchLights::reaching(lights, eye - reach, eye + reach);
-        (reaching.count > 0).then(|| Self(LocalLightsUniform::new(&reaching, response)))
+        let reaching = ReachingLights::reaching(lights, eye - reach, eye + reach);
+        let uniform = LocalLightsUniform::new(&reaching, response);
+        (reaching.count > 0 && uniform.response.w > 0.0).then_some(Self(uniform))
     }
 }
 
@@ -396,12 +398,21 @@ mod tests {
             FogLayerLights::reaching(&[], Vec3::ZERO, 1e5, response),
             None
         );
-        // A bad response is clamped, not passed on.
+        // A bad response is clamped, not passed on; one of no strength
+        // takes no lights.
         let bad = LightResponse {
             asymmetry: f32::NAN,
-            strength: -1.0,
+            strength: 2.0,
         };
         let clamped = FogLayerLights::reaching(&lights, Vec3::ZERO, 100.0, bad).unwrap();
-        assert_eq!((clamped.0.response.y, clamped.0.response.w), (0.0, 0.0));
+        assert_eq!((clamped.0.response.y, clamped.0.response.w), (0.0, 2.0));
+        let dark = LightResponse {
+            strength: f32::NAN,
+            ..response
+        };
+        assert_eq!(
+            FogLayerLights::reaching(&lights, Vec3::ZERO, 100.0, dark),
+            None
+        );
     }
 }

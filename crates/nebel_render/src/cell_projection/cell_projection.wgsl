@@ -89,7 +89,7 @@
 // keep their precision.
 
 #import nebel_render::fog_layers::{FogLayers, fog_colour, fog_optical_depth}
-#import nebel_render::local_lights::{LightOnRay, LocalLights, light_node, light_on_ray, light_quadrature}
+#import nebel_render::local_lights::{LocalLights, light_node, light_on_ray, light_quadrature}
 
 struct CellView {
     clip_from_world: mat4x4<f32>,
@@ -362,7 +362,7 @@ fn light_piece(i: u32, direction: vec3<f32>, t_a: f32, t_b: f32, sigma: f32) -> 
         if cuts[part + 1u] <= cuts[part] {
             continue;
         }
-        let quadrature = light_quadrature(parameters.lights, on_ray, cuts[part], cuts[part + 1u], 1u);
+        let quadrature = light_quadrature(on_ray, cuts[part], cuts[part + 1u], parameters.lights.response.z, parameters.lights.quadrature.x);
         for (var interval = 0u; interval < quadrature.intervals; interval++) {
             for (var k = 0u; k < 3u; k++) {
                 let node = light_node(light, on_ray, direction, quadrature, interval, k, parameters.lights.response.y);

@@ -35,7 +35,7 @@ use super::settings::CellProjection;
 use crate::cell_batch::{CellBatch, CellBatchUniform, CellBlend, CellScattering, CellSunlight};
 use crate::fog_layers::{FogLayersUniform, ViewFogLayers};
 use crate::local_lights::{
-    BatchLights, VolumetricPointLights, VolumetricSpotLights, visible_volumetric_lights,
+    ReachingLights, VolumetricPointLights, VolumetricSpotLights, visible_volumetric_lights,
 };
 
 /// A batch as the render world sees it.
@@ -61,7 +61,7 @@ pub struct ExtractedCellBatch {
     /// The sunlight factor ([`CellSunlight`], checked).
     sunlight: Vec3,
     /// The point and spot lights that reach a sorted batch.
-    lights: BatchLights,
+    lights: ReachingLights,
     /// How it scatters them ([`CellBatch::light_response`]).
     light_response: LightResponse,
 }
@@ -202,9 +202,9 @@ pub fn extract_cell_batches(
                 },
                 sunlight: sunlight.map_or(Vec3::ONE, CellSunlight::checked),
                 lights: if batch.mode == OpticalMode::Sorted {
-                    BatchLights::reaching(&lights, cells.bounds_min, cells.bounds_max)
+                    ReachingLights::reaching(&lights, cells.bounds_min, cells.bounds_max)
                 } else {
-                    BatchLights::default()
+                    ReachingLights::default()
                 },
                 light_response: batch.light_response,
             },
