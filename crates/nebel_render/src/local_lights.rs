@@ -172,7 +172,7 @@ pub(crate) fn volumetric_lights(
 }
 
 /// The opted-in lights of the main world's queries that are visible and
-/// light anything ([`volumetric_lights`]).
+/// light anything: their colour, intensity and range finite and positive.
 pub fn visible_volumetric_lights(
     points: &VolumetricPointLights,
     spots: &VolumetricSpotLights,
