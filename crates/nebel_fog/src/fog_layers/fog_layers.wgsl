@@ -52,24 +52,25 @@ const MAX_PART_PIECES: f32 = 64.0;
 // profile point, and the inner cone's two.
 const MAX_LIGHT_PARTS: u32 = 52u;
 
-// The fog's density at `altitude` (a layer's mean over no range is its
-// density there).
-fn fog_density(altitude: f32) -> f32 {
-    var density = 0.0;
+// The fog at a node `along` metres past the start of a piece (at altitude
+// `start_height`) on a ray of vertical direction d_y, at altitude `height`: x its
+// density there (a layer's mean over no range), y the optical depth back to
+// the piece's start (its altitude range from the rise itself, as
+// fog_optical_depth), z that on to the light at altitude `light_height`,
+// `to_light` metres away, whatever its distance from the eye.
+fn node_fog(start_height: f32, d_y: f32, along: f32, height: f32, light_height: f32, to_light: f32) -> vec3<f32> {
+    let rise = d_y * along;
+    let low = start_height + min(rise, 0.0);
+    var sums = vec3(0.0);
     for (var i = 0u; i < u32(fog_pass.fog.ranges.z); i++) {
-        density += layer_mean(fog_pass.fog, fog_pass.fog.layers[i], altitude, 0.0);
+        let layer = fog_pass.fog.layers[i];
+        sums += vec3(
+            layer_mean(fog_pass.fog, layer, height, 0.0),
+            layer_mean(fog_pass.fog, layer, low, abs(rise)),
+            layer_mean(fog_pass.fog, layer, min(height, light_height), abs(light_height - height)),
+        );
     }
-    return density;
-}
-
-// The fog's optical depth along a straight segment of `length` from
-// altitude h0 to h1, whatever its distance from the eye.
-fn segment_depth(h0: f32, h1: f32, length: f32) -> f32 {
-    var mean = 0.0;
-    for (var i = 0u; i < u32(fog_pass.fog.ranges.z); i++) {
-        mean += layer_mean(fog_pass.fog, fog_pass.fog.layers[i], min(h0, h1), abs(h1 - h0));
-    }
-    return length * mean;
+    return vec3(sums.x, along * sums.y, to_light * sums.z);
 }
 
 // The sum of the exponential layers' falloffs.
@@ -136,13 +137,14 @@ fn fog_light(i: u32, direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
             let piece_b = mix(start, end, (piece + 1.0) / pieces);
             let quadrature = light_quadrature(on_ray, piece_a, piece_b, fog_pass.lights.response.z, fog_pass.lights.quadrature.x);
             let before = fog_optical_depth(fog_pass.fog, altitude, d_y, 0.0, piece_a);
+            let start_height = altitude + d_y * piece_a;
             for (var interval = 0u; interval < quadrature.intervals; interval++) {
                 for (var k = 0u; k < 3u; k++) {
                     let node = light_node(light, on_ray, direction, quadrature, interval, k, fog_pass.lights.response.y);
                     let height = altitude + d_y * node.t;
-                    let to_light = segment_depth(height, light.position.y, length(on_ray.to_light - node.t * direction));
-                    let depth = before + fog_optical_depth(fog_pass.fog, altitude, d_y, piece_a, node.t) + to_light;
-                    sum += node.weight * fog_density(height) * exp(-depth);
+                    let to_light = length(on_ray.to_light - node.t * direction);
+                    let fog = node_fog(start_height, d_y, node.t - piece_a, height, light.position.y, to_light);
+                    sum += node.weight * fog.x * exp(-(before + fog.y + fog.z));
                 }
             }
         }
