@@ -488,6 +488,15 @@ mod tests {
         fog
     }
 
+    /// A ray slanting down through both layers and the spot light's beam.
+    fn down_through_the_beam() -> Ray {
+        Ray::new(
+            DVec3::new(-6.0, 7.0, 0.0),
+            DVec3::new(1.0, -0.3, 0.1).normalize(),
+        )
+        .unwrap()
+    }
+
     #[test]
     fn lights_in_the_fog_match_a_fine_midpoint_integral() {
         let fog = lit_fog();
@@ -530,12 +539,7 @@ mod tests {
 
     #[test]
     fn lit_fog_pieces_compose_with_over() {
-        let fog = lit_fog();
-        let ray = Ray::new(
-            DVec3::new(-6.0, 7.0, 0.0),
-            DVec3::new(1.0, -0.3, 0.1).normalize(),
-        )
-        .unwrap();
+        let (fog, ray) = (lit_fog(), down_through_the_beam());
         let whole = fog.segment(&ray, 0.0, 50.0);
         let mut composed = DVec4::ZERO;
         for [a, b] in [[0.0, 3.7], [3.7, 11.0], [11.0, 19.5], [19.5, 50.0]] {
@@ -560,12 +564,7 @@ mod tests {
 
     #[test]
     fn a_piece_in_lit_fog_is_conjugated_by_the_fog_in_front_lights_included() {
-        let fog = lit_fog();
-        let ray = Ray::new(
-            DVec3::new(-6.0, 7.0, 0.0),
-            DVec3::new(1.0, -0.3, 0.1).normalize(),
-        )
-        .unwrap();
+        let (fog, ray) = (lit_fog(), down_through_the_beam());
         let (t0, t1) = (2.0, 12.0);
         let whole = DVec4::new(0.2, 0.1, 0.05, 0.5);
         // Equal parts of a uniform piece.
