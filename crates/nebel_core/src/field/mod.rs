@@ -17,6 +17,8 @@
 //!   filled up to an altitude with a noisy edge ([`ValleyFog`]).
 //! - Aurora curtain footprints: arcs with folds and rays that drift, fold and
 //!   pulse smoothly over time ([`AuroraCurtains`]).
+//! - Cloud shadows on the ground: the transmittance toward the sun below
+//!   cloud volumes on a map over a plane ([`GroundShadow`]).
 //! - [`effects`]: the emissive effects of Röttger 2004 §10.4, an animated campfire
 //!   density and a search-light cone of tetrahedra.
 //! - The C-LOD hierarchies need (2^n+1) points per axis; other sizes are padded
@@ -35,6 +37,7 @@ mod cloud;
 mod density_grid;
 pub mod effects;
 mod fog;
+mod ground_shadow;
 mod height_field;
 mod light;
 mod load;
@@ -51,6 +54,7 @@ pub use cloud::{CloudKind, CloudNoise, side_fade_factors};
 pub use density_grid::DensityGrid;
 pub use effects::{campfire_density, search_light_cells};
 pub use fog::{FogNoise, ValleyFog};
+pub use ground_shadow::{GroundShadow, ShadowCaster, optical_depth_toward};
 pub use height_field::HeightField;
 pub use light::{
     CloudLighting, SKY_DIFFUSIVITY, ScatteringOctaves, light_field, light_field_with_threads,
