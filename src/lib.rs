@@ -52,6 +52,7 @@ impl PluginGroup for NebelPlugins {
         #[cfg(feature = "volume")]
         let group = group
             .add(nebel_volume::VolumePlugin)
+            .add(nebel_volume::CloudShadowPlugin)
             .add(nebel_volume::FlickeringLightPlugin);
         #[cfg(feature = "terrain")]
         let group = group.add(nebel_terrain::TerrainPlugin);
@@ -93,7 +94,8 @@ pub mod prelude {
     };
     #[cfg(feature = "volume")]
     pub use nebel_volume::{
-        Campfire, CloudLightModel, CloudPrimitive, CloudVolume, CloudWeatherMap, FlickeringLight,
+        Campfire, CloudLightModel, CloudPrimitive, CloudShadowCaster, CloudShadowPlugin,
+        CloudShadowReceiver, CloudShadowSettings, CloudVolume, CloudWeatherMap, FlickeringLight,
         FlickeringLightPlugin, LodCriterion, ProjectedCells, Volume, VolumeError, VolumeField,
         VolumeGrid, VolumeLighting, VolumeLod, VolumeStatus,
     };

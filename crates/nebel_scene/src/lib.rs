@@ -659,6 +659,17 @@ impl SceneDescription {
         })
     }
 
+    /// Whether a volume's cloud shadow falls on the meshes and terrain
+    /// (`lighting: (ground_shadow: true)`): then they all receive it.
+    pub fn casts_ground_shadow(&self) -> bool {
+        self.volumes.iter().any(|volume| {
+            volume
+                .lighting
+                .as_ref()
+                .is_some_and(|lighting| lighting.ground_shadow)
+        })
+    }
+
     /// The point and spot lights marked `volumetric`, as the volumes scatter
     /// them at `time` seconds (a flickering light's intensity then), in
     /// linear colour.
@@ -1347,6 +1358,7 @@ mod tests {
                     keyframe_interval: 2.0,
                     scattering_octaves: 1,
                     sky_occlusion: false,
+                    ground_shadow: false,
                 }),
                 projected_cells: false,
                 full_resolution: false,

@@ -178,6 +178,11 @@ pub struct LightingDescription {
     /// (`nebel_volume::VolumeLighting::sky_occlusion`). Default false.
     #[serde(default)]
     pub sky_occlusion: bool,
+    /// The cloud's shadow falls on the scene's meshes and terrain below it
+    /// (`nebel_volume::CloudShadowCaster`; a grid volume with a shadow
+    /// extinction). Default false.
+    #[serde(default)]
+    pub ground_shadow: bool,
 }
 
 fn default_scattering_octaves() -> u32 {
@@ -1530,6 +1535,7 @@ mod tests {
                 keyframe_interval: 2.0,
                 scattering_octaves: 1,
                 sky_occlusion: false,
+                ground_shadow: false,
             }),
             ..volume(source)
         };
@@ -1583,6 +1589,7 @@ mod tests {
                 keyframe_interval: 2.0,
                 scattering_octaves: 1,
                 sky_occlusion: false,
+                ground_shadow: false,
             }),
             ..volume(SourceDescription::Cells(Vec::new()))
         };

@@ -357,7 +357,7 @@ fn spawn_scene(
                 sphere.color,
             ),
         };
-        commands.spawn((
+        let mut mesh = commands.spawn((
             Mesh3d(meshes.add(shape)),
             MeshMaterial3d(materials.add(StandardMaterial {
                 base_color: srgb(color),
@@ -366,6 +366,9 @@ fn spawn_scene(
             })),
             Transform::from_translation(Vec3::from(center)),
         ));
+        if scene.casts_ground_shadow() {
+            mesh.insert(nebel_volume::CloudShadowReceiver);
+        }
     }
     match bevy_fog {
         Some(fog) => {
@@ -479,6 +482,9 @@ fn spawn_volumes(commands: &mut Commands, grids: &mut Assets<VolumeGrid>, volume
                 scattering_octaves: lighting.scattering_octaves,
                 sky_occlusion: lighting.sky_occlusion,
             });
+            if lighting.ground_shadow {
+                entity.insert(nebel_volume::CloudShadowCaster);
+            }
         }
     }
 }
@@ -517,6 +523,9 @@ fn spawn_terrain(
         },
         Transform::from_translation(Vec3::from(description.center)),
     ));
+    if scene.casts_ground_shadow() {
+        entity.insert(nebel_volume::CloudShadowReceiver);
+    }
     if let (Some(fog), Some(built)) = (&description.fog, &terrain.1)
         && let Some(fog) = ground_fog(fog, built, &mut heights)
     {

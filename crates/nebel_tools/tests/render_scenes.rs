@@ -997,3 +997,86 @@ fn render_stats(scene: &str, options: &[&str]) -> serde_json::Value {
     );
     serde_json::from_str(&std::fs::read_to_string(&stats_path).unwrap()).unwrap()
 }
+
+/// A uniform slab's shadow on the ground, as Bevy lights it: rendered with
+/// the shadow, fully sunlit (no receiver) and by the ambient light alone,
+/// every pixel's sunlit part is dimmed by the closed form `e^{−σ c d}`, `d`
+/// the chord through the slab toward the sun from the ground point the
+/// pixel sees, within the 8-bit images' rounding; the ambient part stays.
+#[test]
+fn a_cloud_shadow_dims_the_sunlight_on_the_ground_by_its_transmittance() {
+    use nebel_core::cell::Ray;
+    let scene_path = workspace().join("tests/scenes/cloud_shadow.ron");
+    let scene = nebel_scene::SceneDescription::load(&scene_path).unwrap();
+    let text = std::fs::read_to_string(&scene_path).unwrap();
+    let out_dir = output_dir();
+    let render = |name: &str, text: &str| {
+        let path = out_dir.join(format!("cloud_shadow_{name}.ron"));
+        std::fs::write(&path, text).unwrap();
+        let image = out_dir.join(format!("cloud_shadow_{name}.png"));
+        let output = nebel(&[
+            "render",
+            path.to_str().unwrap(),
+            "--out",
+            image.to_str().unwrap(),
+            "--frames",
+            "3",
+        ]);
+        assert!(
+            output.status.success(),
+            "{}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        image::open(&image).unwrap().to_rgb8()
+    };
+    let unshaded = text.replace("ground_shadow: true", "ground_shadow: false");
+    assert_ne!(unshaded, text);
+    let shaded = render("shaded", &text);
+    let lit = render("lit", &unshaded);
+    let ambient = render(
+        "ambient",
+        &unshaded.replace("illuminance: 3000.0", "illuminance: 0.0"),
+    );
+
+    // The slab, the sun and σ c of the scene file.
+    let (low, high) = (
+        glam::DVec3::new(-10.0, 50.0, -10.0),
+        glam::DVec3::new(10.0, 60.0, 10.0),
+    );
+    let sun = glam::DVec3::new(0.3, 1.0, 0.2).normalize();
+    let sigma = 0.05;
+    let chord = |p: glam::DVec3| {
+        let (a, b) = ((low - p) / sun, (high - p) / sun);
+        let (near, far) = (a.min(b).max_element().max(0.0), a.max(b).min_element());
+        (far - near).max(0.0)
+    };
+    let linear = |v: u8| nebel_reference::image_metrics::srgb_to_linear(f64::from(v) / 255.0);
+    let camera = scene.reference_camera();
+    let (mut umbra, mut sunlit, mut worst) = (0, 0, 0.0f64);
+    for y in 0..camera.height {
+        for x in 0..camera.width {
+            let (Ray { origin, direction }, _) = camera.pixel_ray(x, y);
+            let ground = origin + direction * (-origin.y / direction.y);
+            let expected = (-sigma * chord(ground)).exp();
+            let [s, l, a] = [&shaded, &lit, &ambient].map(|image| linear(image.get_pixel(x, y)[1]));
+            // Two 8-bit steps (about 0.0045 linear here), relative to the
+            // sun's part.
+            let tolerance = 2.0 * 0.0045 / (l - a);
+            let ratio = (s - a) / (l - a);
+            assert!(
+                (ratio - expected).abs() <= tolerance,
+                "pixel ({x}, {y}), ground {ground}: sunlit part {ratio:.4}, expected {expected:.4} ± {tolerance:.4}"
+            );
+            worst = worst.max((ratio - expected).abs());
+            umbra += usize::from(expected < 0.6);
+            sunlit += usize::from(expected == 1.0);
+        }
+    }
+    eprintln!(
+        "cloud shadow: {umbra} pixels in the slab's full shadow, {sunlit} sunlit, largest deviation {worst:.4}"
+    );
+    assert!(
+        umbra > 300 && sunlit > 1000,
+        "{umbra} shaded and {sunlit} sunlit pixels"
+    );
+}

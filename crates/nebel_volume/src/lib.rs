@@ -8,7 +8,8 @@
 //! entity: the full-resolution grid (Kuhn's six tetrahedra per voxel), ray
 //! cast whole, or as projected cells with [`ProjectedCells`]; or with
 //! [`VolumeLod`] the octree C-LOD of Röttger and Ertl 2003, lit as a cloud with
-//! [`VolumeLighting`]. The render system is the same for all of them.
+//! [`VolumeLighting`]. The render system is the same for all of them. With
+//! [`CloudShadowPlugin`], lit clouds shade the meshes below them.
 //!
 //! Papers are cited by author and year; `docs/references.md` in the repository lists them.
 
@@ -16,6 +17,7 @@ pub mod batching;
 pub mod campfire;
 pub mod cloud;
 pub mod cloud_primitive;
+pub mod cloud_shadow;
 pub mod cloud_weather_map;
 pub mod flickering_light;
 pub mod grid;
@@ -30,6 +32,10 @@ pub mod volume;
 pub use campfire::Campfire;
 pub use cloud::CloudVolume;
 pub use cloud_primitive::CloudPrimitive;
+pub use cloud_shadow::{
+    CloudShadowCaster, CloudShadowExtension, CloudShadowMaterial, CloudShadowPlugin,
+    CloudShadowReceiver, CloudShadowSettings,
+};
 pub use cloud_weather_map::CloudWeatherMap;
 pub use flickering_light::{FlickeringLight, FlickeringLightPlugin};
 pub use grid::VolumeGrid;

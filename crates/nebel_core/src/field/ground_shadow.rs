@@ -63,8 +63,9 @@ impl GroundShadow {
     pub const MAX_RESOLUTION: usize = 4096;
 
     /// The shadow of `casters` for the sun in world direction `sun` (toward
-    /// the sun), `resolution` texels along the longer side of the map
-    /// (clamped to 2 ..= [`GroundShadow::MAX_RESOLUTION`]), filled on up to
+    /// the sun), `resolution` texels along the longer side of the map (at
+    /// most `resolution` along either side)
+    /// (clamped to 3 ..= [`GroundShadow::MAX_RESOLUTION`]), filled on up to
     /// `threads` threads. `None` where nothing casts: no caster with a
     /// shadow and an invertible frame, or the sun lower than
     /// [`GroundShadow::MIN_SUN_SINE`] or not finite.
@@ -87,13 +88,16 @@ impl GroundShadow {
         };
         let lo = corners().map(along).reduce(DVec2::min)?;
         let hi = corners().map(along).reduce(DVec2::max)?;
-        let resolution = resolution.clamp(2, Self::MAX_RESOLUTION);
+        let resolution = resolution.clamp(3, Self::MAX_RESOLUTION);
         let texel = (hi - lo).max_element() / (resolution - 2) as f64;
         if !(texel.is_finite() && texel > 0.0) {
             return None;
         }
         // One texel of margin on each side, where no ray meets a box.
-        let size = ((hi - lo) / texel).ceil().as_uvec2() + 2;
+        let inner = ((hi - lo) / texel)
+            .ceil()
+            .min(DVec2::splat((resolution - 2) as f64));
+        let size = inner.as_uvec2() + 2;
         let size = [size.x as usize, size.y as usize];
         let min = lo - texel;
         let mut transmittance = vec![1.0f32; size[0] * size[1]];
@@ -344,6 +348,11 @@ mod tests {
         let sun = DVec3::new(0.3, 1.0, -0.2).normalize();
         let map = GroundShadow::compute(&[caster], sun, 128, 2).unwrap();
         assert_eq!(map.height, 40.0);
+        assert!(
+            map.size.iter().all(|&n| n <= 128) && map.size.contains(&128),
+            "{:?}",
+            map.size
+        );
         let sun_local = world_from_local
             .inverse()
             .transform_vector3(sun)

@@ -1,0 +1,506 @@
+//! Cloud shadows on the ground: lit clouds dim the sun's light on the meshes
+//! below them (Nes 2008 §6.1).
+//!
+//! A lit grid [`Volume`] with [`CloudShadowCaster`] casts the transmittance
+//! toward the sun of its light field's model, `e^{−σ ∫ f ds}` with `σ` its
+//! [`VolumeLighting::shadow_extinction`], exact for the trilinear density
+//! (`nebel_core::field::GroundShadow`): a map over the horizontal plane
+//! under the casters' lowest corner, one for all casters, for the first
+//! `DirectionalLight`. A mesh with [`CloudShadowReceiver`] and a
+//! `StandardMaterial` is drawn with [`CloudShadowMaterial`] instead: the same
+//! material, whose sun light (as Bevy's PBR adds it, with its shadow map) is
+//! scaled by the map's transmittance where the line toward the sun crosses
+//! the plane. The ambient and every other light stay as they are.
+//!
+//! Maps are made on the task pool when the sun turns by more than
+//! [`CloudShadowSettings::sun_step`] or a caster changes, and
+//! every keyframe interval while a windy cloud moves (its grid at that
+//! time). A new map fades in over the time since the one before was started,
+//! so the shadow moves smoothly, a map's build behind the sun and the wind
+//! (under [`HeavyBuilds::Blocking`] at once, with no fade). A volume of
+//! cells casts no shadow.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use bevy::asset::{AssetEvent, RenderAssetUsages, embedded_asset};
+use bevy::image::ImageSampler;
+use bevy::math::DAffine3;
+use bevy::pbr::{ExtendedMaterial, MaterialExtension, MaterialPlugin};
+use bevy::prelude::*;
+use bevy::render::render_resource::{
+    AsBindGroup, Extent3d, ShaderType, TextureDimension, TextureFormat,
+};
+use bevy::render::storage::ShaderBuffer;
+use bevy::shader::ShaderRef;
+use bevy::transform::TransformSystems;
+use nebel_core::field::{DensityGrid, GroundShadow, ShadowCaster};
+use nebel_core::pacing::worker_threads;
+use nebel_lod::AnimatedGrid;
+use nebel_render::{HeavyBuild, HeavyBuilds, NebelSystems, cpu_timed};
+
+use crate::cloud::{CloudGeneration, animates};
+use crate::{CloudVolume, Volume, VolumeField, VolumeGrid, VolumeLighting};
+
+/// Adds cloud shadows on the ground: [`CloudShadowCaster`],
+/// [`CloudShadowReceiver`], [`CloudShadowMaterial`] and their systems (see
+/// the module docs). A world without casters makes no map.
+#[derive(Default)]
+pub struct CloudShadowPlugin;
+
+impl Plugin for CloudShadowPlugin {
+    fn build(&self, app: &mut App) {
+        embedded_asset!(app, "cloud_shadow.wgsl");
+        app.add_plugins(MaterialPlugin::<CloudShadowMaterial>::default())
+            .init_resource::<CloudShadowSettings>()
+            .init_resource::<HeavyBuilds>()
+            .register_type::<CloudShadowCaster>()
+            .register_type::<CloudShadowReceiver>()
+            .register_type::<CloudShadowSettings>()
+            .add_systems(
+                PostUpdate,
+                (
+                    cpu_timed(update_cloud_shadows),
+                    cpu_timed(receive_cloud_shadows),
+                )
+                    .chain()
+                    .in_set(NebelSystems)
+                    .after(TransformSystems::Propagate),
+            );
+    }
+}
+
+/// Makes a lit grid [`Volume`] cast its shadow on the ground (see the module
+/// docs); its [`VolumeLighting::shadow_extinction`] sets how dark.
+#[derive(Component, Clone, Copy, Debug, Default, PartialEq, Eq, Reflect)]
+#[reflect(Component, Default, Clone)]
+#[require(VolumeLighting)]
+pub struct CloudShadowCaster;
+
+/// Draws this mesh's `StandardMaterial` as a [`CloudShadowMaterial`], so
+/// the clouds' shadow dims its sunlight (see the module docs). Changes to
+/// the `StandardMaterial` asset carry over.
+#[derive(Component, Clone, Copy, Debug, Default, PartialEq, Eq, Reflect)]
+#[reflect(Component, Default, Clone)]
+pub struct CloudShadowReceiver;
+
+/// How the cloud shadow map is made.
+#[derive(Resource, Clone, Copy, Debug, PartialEq, Reflect)]
+#[reflect(Resource, Default, Clone)]
+pub struct CloudShadowSettings {
+    /// Texels along the longer side of the map, 3 to
+    /// [`GroundShadow::MAX_RESOLUTION`] (clamped). Default 512.
+    pub resolution: u32,
+    /// The angle the sun turns before a new map is made, radians (at least
+    /// 10⁻⁴). Default 0.002 (about a ninth of a degree).
+    pub sun_step: f32,
+}
+
+impl Default for CloudShadowSettings {
+    fn default() -> Self {
+        Self {
+            resolution: 512,
+            sun_step: 0.002,
+        }
+    }
+}
+
+/// A `StandardMaterial` whose sunlight the clouds' shadow dims.
+pub type CloudShadowMaterial = ExtendedMaterial<StandardMaterial, CloudShadowExtension>;
+
+/// The cloud shadow maps a [`CloudShadowMaterial`] reads: two maps, the
+/// newest fading in over the one before, and where they lie.
+#[derive(Asset, AsBindGroup, Reflect, Debug, Clone)]
+pub struct CloudShadowExtension {
+    #[texture(100)]
+    #[sampler(101)]
+    first: Handle<Image>,
+    #[texture(102)]
+    second: Handle<Image>,
+    #[storage(103, read_only)]
+    maps: Handle<ShaderBuffer>,
+}
+
+impl MaterialExtension for CloudShadowExtension {
+    fn fragment_shader() -> ShaderRef {
+        "embedded://nebel_volume/cloud_shadow.wgsl".into()
+    }
+}
+
+/// One map as the shader reads it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, ShaderType)]
+struct MapUniform {
+    /// The plane's height, the texel's side, the map's lower corner (x, z).
+    plane: Vec4,
+    /// Toward the sun (xyz), and the map's weight.
+    sun_and_weight: Vec4,
+    /// The map's texels along x and z, and the texture's side.
+    size: Vec4,
+}
+
+/// Both maps as the shader reads them.
+#[derive(Clone, Copy, Debug, Default, PartialEq, ShaderType)]
+struct MapsUniform {
+    maps: [MapUniform; 2],
+}
+
+impl MapUniform {
+    fn new(map: &GroundShadow, side: u32, weight: f32) -> Self {
+        Self {
+            plane: Vec4::new(
+                map.height as f32,
+                map.texel as f32,
+                map.min.x as f32,
+                map.min.y as f32,
+            ),
+            sun_and_weight: map.sun.as_vec3().extend(weight),
+            size: Vec4::new(map.size[0] as f32, map.size[1] as f32, side as f32, 0.0),
+        }
+    }
+}
+
+/// A caster's density as a map's build reads it.
+#[derive(Clone, Debug)]
+enum CasterGrid {
+    Still(Arc<DensityGrid>),
+    /// A windy cloud, sampled at the build's time.
+    Windy(Arc<dyn AnimatedGrid>),
+}
+
+impl CasterGrid {
+    fn same(&self, other: &Self) -> bool {
+        match (self, other) {
+            (Self::Still(a), Self::Still(b)) => Arc::ptr_eq(a, b),
+            (Self::Windy(a), Self::Windy(b)) => std::ptr::addr_eq(Arc::as_ptr(a), Arc::as_ptr(b)),
+            _ => false,
+        }
+    }
+}
+
+/// What a map is made of.
+#[derive(Clone, Debug)]
+struct Inputs {
+    casters: Vec<(CasterGrid, DAffine3, f64)>,
+    sun: Vec3,
+    resolution: u32,
+}
+
+impl Inputs {
+    /// Whether a map of `self` differs from one of `old` (the sun within
+    /// `sun_step`).
+    fn differs(&self, old: &Self, sun_step: f32) -> bool {
+        self.resolution != old.resolution
+            || self.sun.angle_between(old.sun) > sun_step.max(1e-4)
+            || self.casters.len() != old.casters.len()
+            || self
+                .casters
+                .iter()
+                .zip(&old.casters)
+                .any(|(a, b)| !a.0.same(&b.0) || a.1 != b.1 || a.2 != b.2)
+    }
+
+    fn build(self, time: f64) -> Option<GroundShadow> {
+        let mut grids = Vec::with_capacity(self.casters.len());
+        for (grid, ..) in &self.casters {
+            grids.push(match grid {
+                CasterGrid::Still(grid) => grid.clone(),
+                CasterGrid::Windy(animation) => Arc::new(animation.grid_at(time).ok()?),
+            });
+        }
+        let casters: Vec<ShadowCaster> = grids
+            .iter()
+            .zip(&self.casters)
+            .map(|(grid, (_, world_from_local, extinction))| ShadowCaster {
+                grid,
+                world_from_local: *world_from_local,
+                extinction: *extinction,
+            })
+            .collect();
+        GroundShadow::compute(
+            &casters,
+            self.sun.as_dvec3(),
+            self.resolution as usize,
+            worker_threads(),
+        )
+    }
+}
+
+/// The maps, their textures and the build in flight (internal).
+#[derive(Resource)]
+struct CloudShadowState {
+    textures: [Handle<Image>; 2],
+    maps: Handle<ShaderBuffer>,
+    side: u32,
+    /// The texture the next map goes to.
+    next: usize,
+    /// Each texture's map and the time its build started.
+    shown: [Option<(GroundShadow, f64)>; 2],
+    /// When the newest map landed and how long it fades in.
+    fade: (f64, f64),
+    uniform: MapsUniform,
+    build: Option<(HeavyBuild<Option<GroundShadow>>, f64)>,
+    /// The inputs of the last build started, and its time.
+    started: Option<(Inputs, f64)>,
+    /// The shadow material made for each receiver's `StandardMaterial`.
+    materials: HashMap<AssetId<StandardMaterial>, Handle<CloudShadowMaterial>>,
+}
+
+impl CloudShadowState {
+    fn new(side: u32, images: &mut Assets<Image>, buffers: &mut Assets<ShaderBuffer>) -> Self {
+        let mut maps = ShaderBuffer::default();
+        maps.set_data(MapsUniform::default());
+        Self {
+            textures: [0, 1].map(|_| images.add(Self::texture(side))),
+            maps: buffers.add(maps),
+            side,
+            next: 0,
+            shown: [None, None],
+            fade: (0.0, 0.0),
+            uniform: MapsUniform::default(),
+            build: None,
+            started: None,
+            materials: HashMap::new(),
+        }
+    }
+
+    /// New textures of `side` texels a side for every shadow material; the
+    /// maps are made again.
+    fn resize(
+        &mut self,
+        side: u32,
+        images: &mut Assets<Image>,
+        materials: &mut Assets<CloudShadowMaterial>,
+    ) {
+        self.textures = [0, 1].map(|_| images.add(Self::texture(side)));
+        self.side = side;
+        self.shown = [None, None];
+        for handle in self.materials.values() {
+            if let Some(mut material) = materials.get_mut(handle) {
+                material.extension.first = self.textures[0].clone();
+                material.extension.second = self.textures[1].clone();
+            }
+        }
+    }
+
+    /// A texture of `side` texels a side, lit everywhere.
+    fn texture(side: u32) -> Image {
+        let mut image = Image::new_fill(
+            Extent3d {
+                width: side,
+                height: side,
+                depth_or_array_layers: 1,
+            },
+            TextureDimension::D2,
+            &[u8::MAX],
+            TextureFormat::R8Unorm,
+            RenderAssetUsages::default(),
+        );
+        image.sampler = ImageSampler::linear();
+        image
+    }
+
+    /// Puts `map`, started at `started`, into the next texture, landing at
+    /// `now`.
+    fn land(
+        &mut self,
+        map: Option<GroundShadow>,
+        started: f64,
+        now: f64,
+        images: &mut Assets<Image>,
+    ) {
+        let slot = self.next;
+        self.next = 1 - slot;
+        let previous_start = self.shown[1 - slot].as_ref().map(|(_, t)| *t);
+        self.fade = (now, previous_start.map_or(0.0, |t| (started - t).max(0.0)));
+        self.shown[slot] = map.map(|map| (map, started));
+        if let (Some((map, _)), Some(mut image)) =
+            (&self.shown[slot], images.get_mut(&self.textures[slot]))
+        {
+            let side = self.side as usize;
+            let data = image.data.get_or_insert_with(Vec::new);
+            data.clear();
+            data.resize(side * side, u8::MAX);
+            for (v, row) in map.transmittance.chunks(map.size[0]).enumerate() {
+                for (u, t) in row.iter().enumerate() {
+                    data[u + v * side] = (t.clamp(0.0, 1.0) * 255.0).round() as u8;
+                }
+            }
+        }
+    }
+
+    /// The maps' weights at `now`: the newest fading in over the one before.
+    fn uniform(&self, now: f64) -> MapsUniform {
+        let newest = 1 - self.next;
+        let (landed, duration) = self.fade;
+        let w = if duration > 0.0 {
+            ((now - landed) / duration).clamp(0.0, 1.0) as f32
+        } else {
+            1.0
+        };
+        let mut uniform = MapsUniform::default();
+        for (slot, weight) in [(newest, w), (1 - newest, 1.0 - w)] {
+            if let Some((map, _)) = &self.shown[slot] {
+                uniform.maps[slot] = MapUniform::new(map, self.side, weight);
+            }
+        }
+        uniform
+    }
+}
+
+/// What each caster shades with, this frame.
+type Casters<'w, 's> = Query<
+    'w,
+    's,
+    (
+        &'static Volume,
+        &'static GlobalTransform,
+        &'static VolumeLighting,
+        &'static InheritedVisibility,
+        Option<(&'static CloudVolume, &'static CloudGeneration)>,
+    ),
+    With<CloudShadowCaster>,
+>;
+
+/// Starts a map when its inputs changed, lands finished ones and fades them
+/// in (see the module docs).
+#[allow(clippy::too_many_arguments)]
+fn update_cloud_shadows(
+    mut commands: Commands,
+    casters: Casters,
+    suns: Query<&GlobalTransform, With<DirectionalLight>>,
+    grids: Res<Assets<VolumeGrid>>,
+    settings: Res<CloudShadowSettings>,
+    mode: Res<HeavyBuilds>,
+    time: Res<Time>,
+    state: Option<ResMut<CloudShadowState>>,
+    mut images: ResMut<Assets<Image>>,
+    mut buffers: ResMut<Assets<ShaderBuffer>>,
+    mut materials: ResMut<Assets<CloudShadowMaterial>>,
+) {
+    let now = time.elapsed_secs_f64();
+    let sun = suns
+        .iter()
+        .next()
+        .map_or(Vec3::Y, |sun| sun.back().as_vec3());
+    let mut windy_interval = f64::INFINITY;
+    let mut inputs = Inputs {
+        casters: Vec::new(),
+        sun,
+        resolution: settings
+            .resolution
+            .clamp(3, GroundShadow::MAX_RESOLUTION as u32),
+    };
+    for (volume, transform, lighting, visibility, cloud) in &casters {
+        let animation = cloud
+            .filter(|(cloud, _)| animates(cloud))
+            .and_then(|(cloud, generation)| Some((cloud, generation.animation.clone()?)));
+        let grid = match (&volume.field, animation) {
+            (_, Some((cloud, animation))) => {
+                windy_interval = windy_interval.min(f64::from(cloud.keyframe_interval.max(1e-3)));
+                CasterGrid::Windy(animation)
+            }
+            (VolumeField::Grid(handle), None) => match grids.get(handle) {
+                Some(grid) => CasterGrid::Still(grid.0.clone()),
+                None => continue,
+            },
+            (VolumeField::Cells(_), None) => continue,
+        };
+        if visibility.get() {
+            let world_from_local = transform.affine();
+            inputs.casters.push((
+                grid,
+                DAffine3::from_mat4(Mat4::from(world_from_local).as_dmat4()),
+                f64::from(lighting.shadow_extinction),
+            ));
+        }
+    }
+    let Some(mut state) = state else {
+        if !inputs.casters.is_empty() {
+            let side = inputs.resolution;
+            commands.insert_resource(CloudShadowState::new(side, &mut images, &mut buffers));
+        }
+        return;
+    };
+    let state = &mut *state;
+    if inputs.resolution != state.side {
+        state.resize(inputs.resolution, &mut images, &mut materials);
+        state.started = None;
+    }
+    if state.build.is_none() {
+        let due = state.started.as_ref().is_none_or(|(old, at)| {
+            inputs.differs(old, settings.sun_step)
+                || (windy_interval.is_finite() && now - at >= windy_interval)
+        });
+        if due {
+            let work = inputs.clone();
+            state.build = Some((HeavyBuild::spawn(move || work.build(now)), now));
+            state.started = Some((inputs, now));
+        }
+    }
+    // Under `Blocking` the frame waits for the map it asked for and shows it
+    // at once.
+    if let Some((build, started)) = &mut state.build
+        && let Some(map) = build.poll(*mode)
+    {
+        let started = *started;
+        state.build = None;
+        state.land(map, started, now, &mut images);
+        if *mode == HeavyBuilds::Blocking {
+            state.fade.1 = 0.0;
+        }
+    }
+    let uniform = state.uniform(now);
+    if uniform != state.uniform
+        && let Some(mut buffer) = buffers.get_mut(&state.maps)
+    {
+        buffer.set_data(uniform);
+        state.uniform = uniform;
+    }
+}
+
+/// Draws each receiver's `StandardMaterial` as a [`CloudShadowMaterial`],
+/// and carries changes of the `StandardMaterial` over.
+fn receive_cloud_shadows(
+    mut commands: Commands,
+    receivers: Query<(Entity, &MeshMaterial3d<StandardMaterial>), With<CloudShadowReceiver>>,
+    state: Option<ResMut<CloudShadowState>>,
+    standard: Res<Assets<StandardMaterial>>,
+    mut events: MessageReader<AssetEvent<StandardMaterial>>,
+    mut materials: ResMut<Assets<CloudShadowMaterial>>,
+) {
+    let Some(mut state) = state else {
+        return;
+    };
+    let state = &mut *state;
+    for event in events.read() {
+        if let AssetEvent::Modified { id } = event
+            && let Some(handle) = state.materials.get(id)
+            && let (Some(base), Some(mut material)) = (standard.get(*id), materials.get_mut(handle))
+        {
+            material.base = base.clone();
+        }
+    }
+    for (entity, material) in &receivers {
+        let Some(base) = standard.get(&material.0) else {
+            continue;
+        };
+        let handle = state
+            .materials
+            .entry(material.id())
+            .or_insert_with(|| {
+                materials.add(CloudShadowMaterial {
+                    base: base.clone(),
+                    extension: CloudShadowExtension {
+                        first: state.textures[0].clone(),
+                        second: state.textures[1].clone(),
+                        maps: state.maps.clone(),
+                    },
+                })
+            })
+            .clone();
+        commands
+            .entity(entity)
+            .remove::<MeshMaterial3d<StandardMaterial>>()
+            .insert(MeshMaterial3d(handle));
+    }
+}
