@@ -13,9 +13,9 @@
 //! the plane. The ambient and every other light stay as they are.
 //!
 //! Maps are made on the task pool when the sun turns by more than
-//! [`CloudShadowSettings::sun_step`] or a caster changes, and
-//! every keyframe interval while a windy cloud moves (its grid at that
-//! time). A new map fades in over the time since the one before was started,
+//! [`CloudShadowSettings::sun_step`] or a caster changes (at most every
+//! [`CloudShadowSettings::interval`]), and every keyframe interval while a
+//! windy cloud moves (its grid at that time). A new map fades in over the time since the one before was started,
 //! so the shadow moves smoothly, a map's build behind the sun and the wind
 //! (under [`HeavyBuilds::Blocking`] at once, with no fade). A volume of
 //! cells casts no shadow.
@@ -24,6 +24,7 @@ use std::collections::HashMap;
 use std::sync::Arc;
 
 use bevy::asset::{AssetEvent, RenderAssetUsages, embedded_asset};
+use bevy::diagnostic::{DiagnosticPath, Diagnostics};
 use bevy::image::ImageSampler;
 use bevy::math::DAffine3;
 use bevy::pbr::{ExtendedMaterial, MaterialExtension, MaterialPlugin};
@@ -37,7 +38,7 @@ use bevy::transform::TransformSystems;
 use nebel_core::field::{DensityGrid, GroundShadow, ShadowCaster};
 use nebel_core::pacing::worker_threads;
 use nebel_lod::AnimatedGrid;
-use nebel_render::{HeavyBuild, HeavyBuilds, NebelSystems, cpu_timed};
+use nebel_render::{HeavyBuild, HeavyBuilds, NebelSystems, cpu_timed, register_diagnostics};
 
 use crate::cloud::{CloudGeneration, animates};
 use crate::{CloudVolume, Volume, VolumeField, VolumeGrid, VolumeLighting};
@@ -48,8 +49,14 @@ use crate::{CloudVolume, Volume, VolumeField, VolumeGrid, VolumeLighting};
 #[derive(Default)]
 pub struct CloudShadowPlugin;
 
+impl CloudShadowPlugin {
+    /// Time of each map's build (on the task pool), ms.
+    pub const BUILD_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/volume/cloud_shadow_ms");
+}
+
 impl Plugin for CloudShadowPlugin {
     fn build(&self, app: &mut App) {
+        register_diagnostics(app, &[(Self::BUILD_MS, " ms")]);
         embedded_asset!(app, "cloud_shadow.wgsl");
         app.add_plugins(MaterialPlugin::<CloudShadowMaterial>::default())
             .init_resource::<CloudShadowSettings>()
@@ -89,18 +96,23 @@ pub struct CloudShadowReceiver;
 #[reflect(Resource, Default, Clone)]
 pub struct CloudShadowSettings {
     /// Texels along the longer side of the map, 3 to
-    /// [`GroundShadow::MAX_RESOLUTION`] (clamped). Default 512.
+    /// [`GroundShadow::MAX_RESOLUTION`] (clamped). Default 256.
     pub resolution: u32,
     /// The angle the sun turns before a new map is made, radians (at least
     /// 10⁻⁴). Default 0.002 (about a ninth of a degree).
     pub sun_step: f32,
+    /// The least time between the starts of two maps' builds, seconds
+    /// (not under [`HeavyBuilds::Blocking`]); a windy cloud's keyframe
+    /// interval if that is longer. Default 0.5.
+    pub interval: f32,
 }
 
 impl Default for CloudShadowSettings {
     fn default() -> Self {
         Self {
-            resolution: 512,
+            resolution: 256,
             sun_step: 0.002,
+            interval: 0.5,
         }
     }
 }
@@ -238,7 +250,8 @@ struct CloudShadowState {
     /// When the newest map landed and how long it fades in.
     fade: (f64, f64),
     uniform: MapsUniform,
-    build: Option<(HeavyBuild<Option<GroundShadow>>, f64)>,
+    /// The build in flight (its map and its time, ms) and its start.
+    build: Option<(HeavyBuild<(Option<GroundShadow>, f64)>, f64)>,
     /// The inputs of the last build started, and its time.
     started: Option<(Inputs, f64)>,
     /// The shadow material made for each receiver's `StandardMaterial`.
@@ -376,6 +389,7 @@ fn update_cloud_shadows(
     mut images: ResMut<Assets<Image>>,
     mut buffers: ResMut<Assets<ShaderBuffer>>,
     mut materials: ResMut<Assets<CloudShadowMaterial>>,
+    mut diagnostics: Diagnostics,
 ) {
     let now = time.elapsed_secs_f64();
     let sun = suns
@@ -428,20 +442,29 @@ fn update_cloud_shadows(
     }
     if state.build.is_none() {
         let due = state.started.as_ref().is_none_or(|(old, at)| {
-            inputs.differs(old, settings.sun_step)
-                || (windy_interval.is_finite() && now - at >= windy_interval)
+            let waited = now - at;
+            let rested = *mode == HeavyBuilds::Blocking
+                || waited >= f64::from(settings.interval).max(0.0);
+            rested && inputs.differs(old, settings.sun_step)
+                || (windy_interval.is_finite() && waited >= windy_interval)
         });
         if due {
             let work = inputs.clone();
-            state.build = Some((HeavyBuild::spawn(move || work.build(now)), now));
+            let build = HeavyBuild::spawn(move || {
+                let started = std::time::Instant::now();
+                let map = work.build(now);
+                (map, started.elapsed().as_secs_f64() * 1e3)
+            });
+            state.build = Some((build, now));
             state.started = Some((inputs, now));
         }
     }
     // Under `Blocking` the frame waits for the map it asked for and shows it
     // at once.
     if let Some((build, started)) = &mut state.build
-        && let Some(map) = build.poll(*mode)
+        && let Some((map, ms)) = build.poll(*mode)
     {
+        diagnostics.add_measurement(&CloudShadowPlugin::BUILD_MS, || ms);
         let started = *started;
         state.build = None;
         state.land(map, started, now, &mut images);

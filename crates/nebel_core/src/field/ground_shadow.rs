@@ -232,15 +232,17 @@ pub fn optical_depth_toward(grid: &DensityGrid, from: DVec3, direction: DVec3) -
     let density = |t: f64| grid.sample_grid(start + step * t);
     let mut depth = 0.0;
     let mut t = t0;
+    // Pieces share their ends: two samples per piece.
+    let mut at_t = density(t0);
     while t < t1 {
         let mut end = (0..3).map(|axis| next_plane(axis, t)).fold(t1, f64::min);
         // A plane met again by rounding: step past it.
         if end <= t {
             end = t1.min(t + (t1 - t0) * 1e-12);
         }
-        let mid = 0.5 * (t + end);
-        depth += (end - t) / 6.0 * (density(t) + 4.0 * density(mid) + density(end));
-        t = end;
+        let at_end = density(end);
+        depth += (end - t) / 6.0 * (at_t + 4.0 * density(0.5 * (t + end)) + at_end);
+        (t, at_t) = (end, at_end);
     }
     depth
 }
