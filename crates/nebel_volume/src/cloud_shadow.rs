@@ -443,8 +443,8 @@ fn update_cloud_shadows(
     if state.build.is_none() {
         let due = state.started.as_ref().is_none_or(|(old, at)| {
             let waited = now - at;
-            let rested = *mode == HeavyBuilds::Blocking
-                || waited >= f64::from(settings.interval).max(0.0);
+            let rested =
+                *mode == HeavyBuilds::Blocking || waited >= f64::from(settings.interval).max(0.0);
             rested && inputs.differs(old, settings.sun_step)
                 || (windy_interval.is_finite() && waited >= windy_interval)
         });
@@ -525,5 +525,157 @@ fn receive_cloud_shadows(
             .entity(entity)
             .remove::<MeshMaterial3d<StandardMaterial>>()
             .insert(MeshMaterial3d(handle));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use bevy::math::DVec3;
+    use nebel_render::headless::headless_app;
+
+    use super::*;
+
+    /// A world with the plugin, a sun and a receiver, without a renderer.
+    fn app() -> (App, Entity, Handle<StandardMaterial>) {
+        let mut app = headless_app(None);
+        app.init_asset::<Image>()
+            .init_asset::<ShaderBuffer>()
+            .init_asset::<StandardMaterial>()
+            .add_plugins((crate::VolumePlugin, CloudShadowPlugin));
+        app.world_mut().spawn((
+            DirectionalLight::default(),
+            Transform::default().looking_to(Vec3::new(-0.3, -1.0, -0.2), Vec3::Y),
+        ));
+        let material = app
+            .world_mut()
+            .resource_mut::<Assets<StandardMaterial>>()
+            .add(StandardMaterial::default());
+        let receiver = app
+            .world_mut()
+            .spawn((MeshMaterial3d(material.clone()), CloudShadowReceiver))
+            .id();
+        (app, receiver, material)
+    }
+
+    /// A uniform slab 10 units thick at height 50 casting with `σ = 0.05`.
+    fn spawn_slab(app: &mut App) -> Entity {
+        let grid = DensityGrid::new(
+            [3, 3, 3],
+            DVec3::new(10.0, 5.0, 10.0),
+            DVec3::new(-10.0, 50.0, -10.0),
+            vec![1.0; 27],
+        )
+        .unwrap();
+        let handle = app
+            .world_mut()
+            .resource_mut::<Assets<VolumeGrid>>()
+            .add(VolumeGrid::from(grid));
+        app.world_mut()
+            .spawn((
+                Volume {
+                    field: VolumeField::Grid(handle),
+                    ..default()
+                },
+                VolumeLighting {
+                    shadow_extinction: 0.05,
+                    ..default()
+                },
+                CloudShadowCaster,
+                InheritedVisibility::VISIBLE,
+            ))
+            .id()
+    }
+
+    #[test]
+    fn without_a_caster_nothing_is_made_or_swapped() {
+        let (mut app, receiver, _) = app();
+        for _ in 0..3 {
+            app.update();
+        }
+        assert!(app.world().get_resource::<CloudShadowState>().is_none());
+        assert!(
+            app.world()
+                .get::<MeshMaterial3d<StandardMaterial>>(receiver)
+                .is_some()
+        );
+        assert!(app.world().resource::<Assets<Image>>().is_empty());
+    }
+
+    /// The caster's map is the slab's closed form, the receiver draws the
+    /// shadow material, and a change of its `StandardMaterial` carries over.
+    #[test]
+    fn a_caster_shades_its_receivers() {
+        let (mut app, receiver, standard) = app();
+        spawn_slab(&mut app);
+        for _ in 0..3 {
+            app.update();
+        }
+        let state = app.world().resource::<CloudShadowState>();
+        let (map, _) = state.shown[1 - state.next].as_ref().expect("a map");
+        let sun = DVec3::new(0.3, 1.0, 0.2).normalize();
+        let below_centre = DVec3::new(0.0, 50.0, 0.0) - sun * (50.0 / sun.y);
+        let closed = (-0.05 * 10.0 / sun.y).exp();
+        assert!((map.transmittance(below_centre) - closed).abs() < 1e-4);
+        assert_eq!(
+            state.uniform.maps[1 - state.next].sun_and_weight.w,
+            1.0,
+            "no fade under Blocking"
+        );
+        assert!(
+            app.world()
+                .get::<MeshMaterial3d<StandardMaterial>>(receiver)
+                .is_none()
+        );
+        let shaded = app
+            .world()
+            .get::<MeshMaterial3d<CloudShadowMaterial>>(receiver)
+            .expect("the shadow material")
+            .0
+            .clone();
+        let red = Color::srgb(1.0, 0.0, 0.0);
+        app.world_mut()
+            .resource_mut::<Assets<StandardMaterial>>()
+            .get_mut(&standard)
+            .unwrap()
+            .base_color = red;
+        app.update();
+        let materials = app.world().resource::<Assets<CloudShadowMaterial>>();
+        assert_eq!(materials.get(&shaded).unwrap().base.base_color, red);
+    }
+
+    /// A new map fades in over the time since the one before was started;
+    /// the weights always sum to one.
+    #[test]
+    fn a_new_map_fades_in_over_the_interval_between_builds() {
+        let (mut images, mut buffers) = (Assets::default(), Assets::default());
+        let mut state = CloudShadowState::new(16, &mut images, &mut buffers);
+        let g = DensityGrid::new([2, 2, 2], DVec3::ONE, DVec3::Y * 5.0, vec![1.0; 8]).unwrap();
+        let caster = ShadowCaster {
+            grid: &g,
+            world_from_local: DAffine3::IDENTITY,
+            extinction: 1.0,
+        };
+        let map = || GroundShadow::compute(&[caster], DVec3::Y, 16, 1);
+        state.land(map(), 0.0, 0.5, &mut images);
+        assert_eq!(
+            state.uniform(0.5).maps[0].sun_and_weight.w,
+            1.0,
+            "the first map shows at once"
+        );
+        state.land(map(), 2.0, 2.5, &mut images);
+        for (now, weight) in [(2.5, 0.0), (3.5, 0.5), (4.5, 1.0), (9.0, 1.0)] {
+            let uniform = state.uniform(now);
+            let [old, new] = [
+                uniform.maps[0].sun_and_weight.w,
+                uniform.maps[1].sun_and_weight.w,
+            ];
+            assert_eq!(new, weight, "at {now}");
+            assert_eq!(old + new, 1.0);
+        }
+        // The sun set: the last map fades out to full light.
+        state.land(None, 3.0, 4.5, &mut images);
+        let uniform = state.uniform(5.0);
+        assert_eq!(uniform.maps[0].sun_and_weight.w, 0.0);
+        assert_eq!(uniform.maps[1].sun_and_weight.w, 0.5);
     }
 }
