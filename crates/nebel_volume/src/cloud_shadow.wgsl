@@ -34,30 +34,30 @@ struct ShadowMaps {
 @group(#{MATERIAL_BIND_GROUP}) @binding(102) var second_map: texture_2d<f32>;
 @group(#{MATERIAL_BIND_GROUP}) @binding(103) var<storage, read> shadow_maps: ShadowMaps;
 
-// The map's transmittance where the line from `p` toward its sun crosses its plane: bilinear between
-// texel centres, clamped to the border texels.
-fn map_texel_coordinates(map: ShadowMap, p: vec3<f32>) -> vec2<f32> {
+// Where the line from `p` toward the map's sun crosses its plane, in texels from the map's corner.
+fn map_texels(map: ShadowMap, p: vec3<f32>) -> vec2<f32> {
     let sun = map.sun_and_weight.xyz;
     let q = p + sun * ((map.plane.x - p.y) / sun.y);
-    let texels = (q.xz - map.plane.zw) / map.plane.y;
-    let inside = clamp(texels, vec2(0.5), map.size.xy - 0.5);
-    return inside / map.size.z;
+    return (q.xz - map.plane.zw) / map.plane.y;
 }
 
-// The clouds' transmittance toward the sun at `p`: the maps weighed, the rest of the weight lit.
+// The map's transmittance at `p`: bilinear between texel centres; outside the map (whose border texels
+// are lit) 1, with no texture read.
+fn map_transmittance(map: ShadowMap, map_texture: texture_2d<f32>, p: vec3<f32>) -> f32 {
+    let texels = map_texels(map, p);
+    if map.sun_and_weight.w <= 0.0 || any(texels < vec2(0.5)) || any(texels > map.size.xy - 0.5) {
+        return 1.0;
+    }
+    return textureSampleLevel(map_texture, map_sampler, texels / map.size.z, 0.0).r;
+}
+
+// The clouds' transmittance toward the sun at `p`: the two maps weighed, the rest of the weight lit.
 fn cloud_transmittance(p: vec3<f32>) -> f32 {
     let first = shadow_maps.maps[0];
     let second = shadow_maps.maps[1];
-    var t = 1.0 - first.sun_and_weight.w - second.sun_and_weight.w;
-    if first.sun_and_weight.w > 0.0 {
-        t += first.sun_and_weight.w
-            * textureSampleLevel(first_map, map_sampler, map_texel_coordinates(first, p), 0.0).r;
-    }
-    if second.sun_and_weight.w > 0.0 {
-        t += second.sun_and_weight.w
-            * textureSampleLevel(second_map, map_sampler, map_texel_coordinates(second, p), 0.0).r;
-    }
-    return t;
+    return 1.0 - first.sun_and_weight.w - second.sun_and_weight.w
+        + first.sun_and_weight.w * map_transmittance(first, first_map, p)
+        + second.sun_and_weight.w * map_transmittance(second, second_map, p);
 }
 
 // The directional light nearest the maps' sun, if one is within about 8 degrees of it.
