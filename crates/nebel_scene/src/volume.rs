@@ -1105,6 +1105,12 @@ impl VolumeDescription {
                     ),
                 ));
             }
+            if lighting.ground_shadow && lighting.shadow_extinction == 0.0 {
+                return Err(InvalidField::new(
+                    "lighting.ground_shadow",
+                    "casts no shadow without a shadow_extinction above 0",
+                ));
+            }
             let interval = lighting.keyframe_interval;
             if !(interval.is_finite() && interval > 0.0) {
                 return Err(InvalidField::new(
@@ -1580,6 +1586,12 @@ mod tests {
             lighting.ambient = 1.5;
         }
         assert_eq!(lit.validate().unwrap_err().field, "lighting.ambient");
+        if let Some(lighting) = &mut lit.lighting {
+            lighting.ambient = 0.3;
+            lighting.shadow_extinction = 0.0;
+            lighting.ground_shadow = true;
+        }
+        assert_eq!(lit.validate().unwrap_err().field, "lighting.ground_shadow");
         let cells = VolumeDescription {
             lighting: Some(LightingDescription {
                 ambient: 0.3,
@@ -1675,6 +1687,7 @@ mod tests {
             keyframe_interval: 2.0,
             scattering_octaves: 1,
             sky_occlusion: false,
+            ground_shadow: false,
         });
         let lod = Some(LodDescription {
             accuracy: Some(8.0),

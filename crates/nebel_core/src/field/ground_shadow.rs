@@ -155,7 +155,8 @@ struct Local<'a> {
 impl<'a> Local<'a> {
     fn new(caster: &ShadowCaster<'a>, sun_world: DVec3) -> Option<Self> {
         let frame = caster.world_from_local;
-        if !(caster.extinction.is_finite() && caster.extinction > 0.0)
+        if !caster.extinction.is_finite()
+            || caster.extinction <= 0.0
             || !frame.is_finite()
             || frame.matrix3.determinant().abs() <= f64::EPSILON
         {
@@ -212,7 +213,7 @@ pub fn optical_depth_toward(grid: &DensityGrid, from: DVec3, direction: DVec3) -
         t0 = t0.max(a.min(b));
         t1 = t1.min(a.max(b));
     }
-    if !(t0 < t1) {
+    if t0.is_nan() || t1.is_nan() || t0 >= t1 {
         return 0.0;
     }
     // The next grid plane each axis crosses after t.
