@@ -17,6 +17,20 @@
 //! pixel is a segment to the largest distance the caller integrates (the
 //! bounded layers end by themselves).
 //!
+//! **Sunlight** ([`HeightFog::sunlit`]) is closed form too. With `C(h) =
+//! ∫_h^∞ ρ` the fog above `h` ([`HeightFog::column_above`]) and `μ` the sine
+//! of the sun's elevation, a point at altitude `h` sees the sun through
+//! `C(h)/μ`, and along the segment `ρ dt = −dC / d_y`, so the single
+//! scattering `∫ ρ e^{−τ(0, t) − C(h(t))/μ} dt` is the integral of an
+//! exponential in `C`:
+//!
+//! `I = τ e^{−τ − s₁} (e^{x} − 1) / x`, `x = τ − (s₀ − s₁)`,
+//!
+//! with `τ` the segment's optical depth and `s₀`, `s₁` the sun's optical
+//! depths at its ends: `(e^{−s₀} − e^{−τ − s₁}) / (1 − d_y/μ)`, for any
+//! profile. (`x = 0` where the segment climbs at the sun's elevation: `I = τ
+//! e^{−s₀}`; a level segment: `I = e^{−s₀} (1 − e^{−τ})`.)
+//!
 //! Layers ([`HeightFogLayer`]) add up:
 //!
 //! - `Exponential`: `ρ(h) = density · e^{−falloff (h − base)}` at every
@@ -183,9 +197,67 @@ impl HeightFog {
         let mean: f64 = self.layers.iter().map(|layer| layer.mean(h0, h1)).sum();
         if mean == 0.0 { 0.0 } else { length * mean }
     }
+
+    /// The fog above altitude `h`, `C(h) = ∫_h^∞ ρ`: the optical depth
+    /// straight up to the sky (0 for a non-finite `h`).
+    pub fn column_above(&self, h: f64) -> f64 {
+        if !h.is_finite() {
+            return 0.0;
+        }
+        self.layers.iter().map(|layer| layer.column_above(h)).sum()
+    }
+
+    /// The sunlight scattered once toward the start of a straight segment of
+    /// `length` metres from altitude `h0` to `h1`, per unit of sunlight and
+    /// of phase: `∫ ρ(h(t)) e^{−τ(0, t) − C(h(t))/μ} dt`, with `μ` the sine
+    /// of the sun's elevation (see the module docs: closed form). 0 for the
+    /// sun at or below the horizon (`μ ≤ 0`, the ground in its way) and for
+    /// non-finite or negative input.
+    pub fn sunlit(&self, h0: f64, h1: f64, length: f64, mu: f64) -> f64 {
+        let view = self.optical_depth(h0, h1, length);
+        if view == 0.0 || mu.is_nan() || mu <= 0.0 {
+            return 0.0;
+        }
+        let (sun_start, sun_end) = (self.column_above(h0) / mu, self.column_above(h1) / mu);
+        if view.is_infinite() {
+            return (-sun_start).exp();
+        }
+        let x = view - (sun_start - sun_end);
+        if x > 1.0 {
+            view * ((-sun_start).exp() - (-view - sun_end).exp()) / x
+        } else {
+            let growth = if x == 0.0 { 1.0 } else { x.exp_m1() / x };
+            view * (-view - sun_end).exp() * growth
+        }
+    }
 }
 
 impl HeightFogLayer {
+    /// `∫_h^∞` of the layer's density (its exponent capped as
+    /// [`HeightFogLayer::density`]'s).
+    fn column_above(&self, h: f64) -> f64 {
+        match self {
+            Self::Exponential {
+                base,
+                density,
+                falloff,
+            } => density / falloff * (-falloff * (h - base)).min(MAX_EXPONENT).exp(),
+            Self::Constant {
+                bottom,
+                top,
+                density,
+            } => density * (top - h.max(*bottom)).max(0.0),
+            Self::Linear(points) => {
+                let last = points[points.len() - 1][0];
+                if h < last {
+                    linear_integral(points, h, last)
+                } else {
+                    0.0
+                }
+            }
+        }
+    }
+
     fn density(&self, h: f64) -> f64 {
         match self {
             Self::Exponential {
@@ -453,5 +525,77 @@ mod tests {
             let error = HeightFog::new(vec![layer]).unwrap_err().to_string();
             assert!(error.contains(needle), "{error}");
         }
+    }
+
+    /// The fog above an altitude is the integral of the density up to where
+    /// every layer has ended or fallen off.
+    #[test]
+    fn the_column_above_integrates_the_density_to_the_sky() {
+        let fog = fog();
+        for h in [-40.0, 0.0, 25.0, 50.0, 77.7, 120.0, 139.0, 400.0] {
+            let top = 6000.0;
+            let expected = quadrature(&fog, h, top, top - h);
+            let column = fog.column_above(h);
+            assert!(
+                (column - expected).abs() <= 1e-9 * (1.0 + expected),
+                "{h}: {column} against {expected}"
+            );
+        }
+        assert_eq!(fog.column_above(f64::NAN), 0.0);
+    }
+
+    /// The closed form of the sunlight scattered once along a segment agrees
+    /// with a midpoint integral of its definition (the transmittances to the
+    /// eye and to the sun from the exact optical depths) on level, climbing,
+    /// falling and steep segments, one climbing at the sun's elevation.
+    #[test]
+    fn sunlight_scattered_once_is_the_integral_of_its_definition() {
+        let fog = fog();
+        let steps = 200_000;
+        for (h0, d_y, length, mu) in [
+            (50.0, 0.0, 300.0, 0.5),
+            (10.0, 0.3, 500.0, 0.6),
+            (200.0, -0.5, 380.0, 0.4),
+            (5.0, 0.6, 300.0, 0.6),
+            (150.0, -0.9, 160.0, 0.2),
+            (300.0, -0.2, 1400.0, 0.7),
+            (-30.0, 0.05, 4000.0, 0.1),
+        ] {
+            let altitude = |t: f64| h0 + d_y * t;
+            let dt = length / steps as f64;
+            let sampled: f64 = (0..steps)
+                .map(|k| {
+                    let t = (k as f64 + 0.5) * dt;
+                    let to_eye = fog.optical_depth(h0, altitude(t), t);
+                    let to_sun = fog.column_above(altitude(t)) / mu;
+                    fog.density(altitude(t)) * (-to_eye - to_sun).exp() * dt
+                })
+                .sum();
+            let exact = fog.sunlit(h0, altitude(length), length, mu);
+            assert!(
+                (exact - sampled).abs() <= 2e-6 * sampled + 1e-12,
+                "({h0}, {d_y}, {length}, {mu}): {exact} against {sampled}"
+            );
+        }
+    }
+
+    /// Sunlit pieces compose as emission and absorption do, `I(0, t₂) = I(0,
+    /// t₁) + e^{−τ(0, t₁)} I(t₁, t₂)`; no sun at or below the horizon.
+    #[test]
+    fn sunlit_pieces_compose_and_a_set_sun_lights_nothing() {
+        let fog = fog();
+        let (h0, d_y, mu) = (130.0, -0.4, 0.35);
+        let altitude = |t: f64| h0 + d_y * t;
+        for (t1, t2) in [(10.0, 90.0), (120.0, 300.0), (200.0, 201.0)] {
+            let whole = fog.sunlit(h0, altitude(t2), t2, mu);
+            let near = fog.sunlit(h0, altitude(t1), t1, mu);
+            let far = fog.sunlit(altitude(t1), altitude(t2), t2 - t1, mu);
+            let through = (-fog.optical_depth(h0, altitude(t1), t1)).exp();
+            assert!((whole - (near + through * far)).abs() <= 1e-12 * (1.0 + whole));
+        }
+        for mu in [0.0, -0.3, f64::NAN] {
+            assert_eq!(fog.sunlit(h0, altitude(100.0), 100.0, mu), 0.0);
+        }
+        assert_eq!(fog.sunlit(h0, h0, 0.0, 0.5), 0.0);
     }
 }

@@ -2,12 +2,14 @@
 //! volume seen through it (Röttger 2004 §5.3, layered fog).
 //!
 //! The fog's density depends on the altitude only ([`HeightFog`]), so the
-//! optical depth of any piece of a ray is exact in closed form. Its colour is
-//! constant along a ray: an ambient colour plus, optionally, sunlight
-//! scattered toward the eye with the Henyey-Greenstein phase function (the
-//! angle between the ray and the sun is the same at every point of a straight
-//! ray). So the fog over `[t₀, t₁]` is the premultiplied layer
-//! `(c · α, α)`, `α = 1 − e^{−τ}`, and layers compose with "over".
+//! optical depth of any piece of a ray is exact in closed form. It glows
+//! with an ambient colour `c`, so the fog over `[t₀, t₁]` is the
+//! premultiplied layer `(c · α, α)`, `α = 1 − e^{−τ}`, plus, optionally,
+//! sunlight scattered once toward the eye with the Henyey-Greenstein phase
+//! function (the same at every point of a straight ray), dimmed by the fog
+//! on its way from the sun and to the eye: closed form too
+//! ([`HeightFog::sunlit`], [`ReferenceFog::sunlit`]). Such layers compose
+//! with "over".
 //!
 //! Point and spot lights ([`ReferenceFog::lights`]) add
 //! `s c ∫ ρ(h(t)) e^{−τ(t₀, t) − τ(x(t), p)} E(t) 4π p_HG dt` over the piece
@@ -127,13 +129,24 @@ impl ReferenceFog {
         None
     }
 
-    /// The fog's colour along a ray of unit `direction`.
-    pub fn colour_along(&self, direction: DVec3) -> DVec3 {
-        self.colour
-            + self.sun.map_or(DVec3::ZERO, |sun| {
-                let cos_theta = direction.dot(sun.direction.normalize());
-                sun.colour * henyey_greenstein(sun.asymmetry, cos_theta)
-            })
+    /// The sunlight the fog over `[t0, t1]` along `ray` (clipped to
+    /// `[start_distance, max_distance]`) scatters once toward `t0`,
+    /// attenuated on its way from the sun and to `t0` (closed form,
+    /// [`HeightFog::sunlit`]); none for the sun at or below the horizon.
+    pub fn sunlit(&self, ray: &Ray, t0: f64, t1: f64) -> DVec3 {
+        let Some(sun) = self.sun else {
+            return DVec3::ZERO;
+        };
+        let (a, b) = (t0.max(self.start_distance), t1.min(self.max_distance));
+        if b.partial_cmp(&a) != Some(std::cmp::Ordering::Greater) {
+            return DVec3::ZERO;
+        }
+        let direction = sun.direction.normalize();
+        let altitude = |t: f64| ray.origin.y + t * ray.direction.y;
+        let scattered = self
+            .fog
+            .sunlit(altitude(a), altitude(b), b - a, direction.y);
+        sun.colour * henyey_greenstein(sun.asymmetry, ray.direction.dot(direction)) * scattered
     }
 
     /// The optical depth of the fog over `[t0, t1]` along `ray` (clipped to
@@ -151,7 +164,7 @@ impl ReferenceFog {
     /// lights' part included.
     pub fn segment(&self, ray: &Ray, t0: f64, t1: f64) -> PremultipliedRgba {
         let alpha = -(-self.optical_depth(ray, t0, t1)).exp_m1();
-        (self.colour_along(ray.direction) * alpha + self.lit(ray, t0, t1)).extend(alpha)
+        (self.colour * alpha + self.sunlit(ray, t0, t1) + self.lit(ray, t0, t1)).extend(alpha)
     }
 
     /// The lights scattered toward the eye over `[t0, t1]` along `ray`, seen
@@ -253,7 +266,6 @@ impl ReferenceFog {
         };
         let coverage = |part: PremultipliedRgba| if absorbs { part.w } else { 0.0 };
         let count = conjugation_pieces(fog_depth, volume_depth);
-        let colour = self.colour_along(ray.direction);
         // The lights' part of the fog in front, carried from middle to
         // middle: `lit(0, m) = lit(0, m′) + T(0, m′) lit(m′, m)`.
         let (mut lit, mut lit_to) = (DVec3::ZERO, 0.0);
@@ -267,7 +279,7 @@ impl ReferenceFog {
             }
             let transmittance = (-self.optical_depth(ray, 0.0, middle)).exp();
             // The fog in front, `F` of the map `x ↦ F + T x`.
-            let front = (1.0 - transmittance) * colour + lit;
+            let front = (1.0 - transmittance) * self.colour + self.sunlit(ray, 0.0, middle) + lit;
             let fogged = transmittance * part.truncate() + coverage(part) * front;
             if emit(fogged.extend(part.w)) {
                 return;
@@ -435,19 +447,40 @@ mod tests {
         let expected = slab.colour * (1.0 - t) + t * background.truncate();
         assert!((over.truncate() - expected).abs().max_element() < 1e-12);
         assert!(close(over.w, 1.0));
-        // Sunlight: 4π p_HG, 1 on average; (1 + g) / (1 − g)² toward the sun.
+        // Sunlight: 4π p_HG, 1 on average; (1 + g) / (1 − g)² toward the sun,
+        // which sees the ray through the 5 m of the slab above it.
+        let sun = DVec3::new(1.0, 1.0, 0.0).normalize();
         slab.sun = Some(FogSunlight {
-            direction: DVec3::X,
+            direction: sun,
             colour: DVec3::splat(0.5),
             asymmetry: 0.5,
         });
         assert!(slab.invalid().is_none());
-        let toward = slab.colour_along(DVec3::X);
+        slab.start_distance = 0.0;
+        let toward = ray(DVec3::Y * 5.0, 45.0);
+        let (tau, to_sun) = (0.05 * 5.0 * 2f64.sqrt(), 0.05 * 5.0 / sun.y);
+        // Climbing at the sun's elevation: I = τ e^{−s₀}.
+        let expected = 0.5 * 1.5 / 0.25 * tau * (-to_sun).exp();
+        let sunlit = slab.sunlit(&toward, 0.0, 100.0);
         assert!(
-            ((toward - slab.colour) / 0.5 - DVec3::splat(1.5 / 0.25))
-                .abs()
-                .max_element()
-                < 1e-12
+            (sunlit - DVec3::splat(expected)).abs().max_element() < 1e-12,
+            "{sunlit}"
+        );
+        let level = slab.sunlit(&level, 0.0, 100.0);
+        let expected =
+            (-to_sun).exp() * -(-0.05f64 * 100.0).exp_m1() * henyey_greenstein(0.5, sun.x) * 0.5;
+        assert!(
+            (level - DVec3::splat(expected)).abs().max_element() < 1e-12,
+            "{level}"
+        );
+        slab.sun = Some(FogSunlight {
+            direction: DVec3::new(1.0, -0.2, 0.0),
+            ..slab.sun.unwrap()
+        });
+        assert_eq!(
+            slab.sunlit(&toward, 0.0, 100.0),
+            DVec3::ZERO,
+            "a set sun lights nothing"
         );
     }
 
@@ -563,8 +596,14 @@ mod tests {
     }
 
     #[test]
-    fn a_piece_in_lit_fog_is_conjugated_by_the_fog_in_front_lights_included() {
-        let (fog, ray) = (lit_fog(), down_through_the_beam());
+    fn a_piece_in_lit_fog_is_conjugated_by_the_fog_in_front_sun_and_lights_included() {
+        let (mut fog, ray) = (lit_fog(), down_through_the_beam());
+        fog.sun = Some(FogSunlight {
+            direction: DVec3::new(0.3, 0.8, -0.2),
+            colour: DVec3::new(0.9, 0.8, 0.6),
+            asymmetry: 0.6,
+        });
+        assert!(fog.sunlit(&ray, 0.0, 12.0).min_element() > 0.01);
         let (t0, t1) = (2.0, 12.0);
         let whole = DVec4::new(0.2, 0.1, 0.05, 0.5);
         // Equal parts of a uniform piece.

@@ -25,7 +25,8 @@ pub struct FogLayersDescription {
     #[serde(default = "default_color")]
     pub color: [f32; 3],
     /// Sunlight scattered toward the eye, linear RGB, from the scene's
-    /// directional light (none: ignored). Default `(0, 0, 0)`.
+    /// directional light (none: ignored), dimmed by the fog toward the sun.
+    /// Default `(0, 0, 0)`.
     #[serde(default)]
     pub sun_color: [f32; 3],
     /// Henyey-Greenstein asymmetry of the sunlight, in (−1, 1). Default 0.6.

@@ -18,7 +18,7 @@
 // reference's ReferenceFog::lit cuts the same way, finer.
 
 #import bevy_core_pipeline::fullscreen_vertex_shader::FullscreenVertexOutput
-#import nebel_render::fog_layers::{FogLayers, fog_colour, fog_opacity, fog_optical_depth, fog_point, layer_mean}
+#import nebel_render::fog_layers::{FogLayers, fog_opacity, fog_optical_depth, fog_point, fog_stretch, layer_mean}
 #import nebel_render::local_lights::{LocalLights, light_node, light_on_ray, light_quadrature}
 
 struct FogPass {
@@ -162,8 +162,9 @@ fn fog_sample(ndc: vec2<f32>, direction: vec3<f32>, depth: f32) -> vec4<f32> {
         let surface = fog_pass.view_from_clip * vec4(ndc, depth, 1.0);
         distance = length(surface.xyz / surface.w);
     }
-    let alpha = fog_opacity(fog_optical_depth(fog_pass.fog, fog_pass.camera_position.y, direction.y, 0.0, distance));
-    var colour = fog_colour(fog_pass.fog, direction) * alpha;
+    let stretch = fog_stretch(fog_pass.fog, fog_pass.camera_position.y, direction, 0.0, distance);
+    let alpha = fog_opacity(stretch.w);
+    var colour = stretch.rgb;
 #ifdef LOCAL_LIGHTS
     let t0 = fog_pass.fog.ranges.x;
     let t1 = min(distance, fog_pass.fog.ranges.y);

@@ -13,12 +13,17 @@
 //! (the sky) integrate to [`FogLayers::max_distance`], where bounded layers
 //! have long ended.
 //!
-//! The fog's colour is constant along a ray: [`FogLayers::color`] plus the
-//! sunlight [`FogLayers::sun_color`] of the first `DirectionalLight`,
-//! scaled by the Henyey-Greenstein phase function (`4π p_HG`, 1 on average) at
-//! the ray's angle to the sun. Colour that changes with altitude along a ray
-//! would need the thesis's table over eye altitude, fragment altitude and
-//! distance; it is not built.
+//! The fog glows with [`FogLayers::color`] and scatters the sunlight
+//! [`FogLayers::sun_color`] of the first `DirectionalLight` once, with the
+//! Henyey-Greenstein phase function (`4π p_HG`, 1 on average) at the ray's
+//! angle to the sun, dimmed by the fog between the sun and each point: a
+//! point at altitude `h` sees the sun through `C(h)/μ`, `C(h) = ∫_h^∞ ρ` the
+//! fog above it and `μ` the sine of the sun's elevation. Along the ray `ρ dt
+//! = −dC/d_y`, so the scattered light is closed form for any profile
+//! (`nebel_core::height_fog`): `τ e^{−τ − s₁} (e^x − 1)/x`, `x = τ − (s₀ −
+//! s₁)`, with `s₀`, `s₁` the sun's optical depths at the stretch's ends.
+//! Deep fog is darker than its top, and the sun at or below the horizon
+//! lights none of it. The terrain's and the clouds' shadows are not in it.
 //!
 //! # Point and spot lights
 //!
@@ -92,9 +97,10 @@ pub struct FogLayers {
     /// linear (0.5, 0.56, 0.64).
     pub color: Color,
     /// Sunlight the fog scatters toward the eye, linear HDR, added to
-    /// [`Self::color`] on average over all directions and scaled by the
-    /// Henyey-Greenstein phase at each ray's angle to the first
-    /// `DirectionalLight` (none: no sunlight). Default black (none).
+    /// [`Self::color`] on average over all directions where the sun reaches
+    /// undimmed, scaled by the Henyey-Greenstein phase at each ray's angle to
+    /// the first `DirectionalLight` (none: no sunlight) and dimmed by the
+    /// fog toward the sun (see the module docs). Default black (none).
     pub sun_color: Color,
     /// The Henyey-Greenstein asymmetry of the sunlight's scattering, in
     /// (−1, 1) (clamped to ±0.99): 0 isotropic, toward 1 a bright halo

@@ -209,6 +209,8 @@ pub struct FogLayersPipeline {
 pub struct FogLayersPipelineKey {
     multisampled: bool,
     local_lights: bool,
+    /// The fog scatters sunlight (`FOG_SUN`).
+    sun: bool,
     target_format: TextureFormat,
 }
 
@@ -254,6 +256,9 @@ impl SpecializedRenderPipeline for FogLayersPipeline {
         }
         if key.local_lights {
             shader_defs.push("LOCAL_LIGHTS".into());
+        }
+        if key.sun {
+            shader_defs.push("FOG_SUN".into());
         }
         RenderPipelineDescriptor {
             label: Some("nebel_fog_layers_pipeline".into()),
@@ -312,6 +317,7 @@ pub fn prepare_fog_layer_views(
             FogLayersPipelineKey {
                 multisampled,
                 local_lights: lights.is_some(),
+                sun: fog.0.has_sun(),
                 target_format: view.target_format,
             },
         );

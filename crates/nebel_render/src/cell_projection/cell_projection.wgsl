@@ -88,7 +88,7 @@
 // All positions are taken relative to the camera so large world coordinates
 // keep their precision.
 
-#import nebel_render::fog_layers::{FogLayers, fog_colour, fog_optical_depth}
+#import nebel_render::fog_layers::{FogLayers, fog_stretch}
 #import nebel_render::local_lights::{LocalLights, light_node, light_on_ray, light_quadrature}
 
 struct CellView {
@@ -515,12 +515,8 @@ fn segment_colour(
 #ifdef FOG_HANDOFF
     // The segment ends before the fog layers begin: none of them is in front.
 #else ifdef FOG_LAYERS
-    let fog_depth = fog_optical_depth(view.fog, view.camera_position.y, direction.y, 0.0, middle);
-    let fog_transmittance = exp(-fog_depth);
-    segment = vec4(
-        fog_transmittance * segment.rgb + segment.a * (1.0 - fog_transmittance) * fog_colour(view.fog, direction),
-        segment.a,
-    );
+    let fog_in_front = fog_stretch(view.fog, view.camera_position.y, direction, 0.0, middle);
+    segment = vec4(exp(-fog_in_front.w) * segment.rgb + segment.a * fog_in_front.rgb, segment.a);
 #endif
     return segment;
 }

@@ -155,6 +155,8 @@ pub struct CellProjectionPipelineKey {
     pub multisampled: bool,
     /// The view has fog layers: segments are seen through them.
     pub fog_layers: bool,
+    /// The view's fog layers scatter sunlight (`FOG_SUN`).
+    pub fog_sun: bool,
     /// The batch's segments end where the view's fog layers begin.
     pub handoff: bool,
     /// Every vertex mixes its scalar and modulator with the next ones (the
@@ -374,6 +376,9 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
         }
         if key.fog_layers {
             shader_defs.push("FOG_LAYERS".into());
+        }
+        if key.fog_sun {
+            shader_defs.push("FOG_SUN".into());
         }
         if key.handoff {
             shader_defs.push("FOG_HANDOFF".into());

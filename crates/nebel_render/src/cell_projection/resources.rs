@@ -659,6 +659,7 @@ pub fn prepare_cell_views(
                         scattering,
                         multisampled,
                         fog_layers: fog.is_some(),
+                        fog_sun: fog.is_some_and(|fog| fog.0.has_sun()),
                         handoff,
                         blended,
                         target_format: format,

@@ -94,12 +94,109 @@ fn fog_optical_depth(fog: FogLayers, altitude: f32, d_y: f32, t0_in: f32, t1_in:
     return length * mean;
 }
 
-// The fog's colour along a ray of unit `direction`.
-fn fog_colour(fog: FogLayers, direction: vec3<f32>) -> vec3<f32> {
+// Layer `layer` over the altitudes [low, low + range]: its mean density there (as layer_mean) and the
+// fog above each end, (mean, ∫_low^∞, ∫_{low + range}^∞), in one evaluation.
+fn layer_mean_and_columns(fog: FogLayers, layer: vec4<f32>, low: f32, range: f32) -> vec3<f32> {
+    let high = low + range;
+    if layer.x < 0.5 {
+        let at_low = layer.z * exp(min(-layer.w * (low - layer.y), MAX_FOG_EXPONENT));
+        let x = layer.w * range;
+        let column_low = at_low / layer.w;
+        return vec3(at_low * one_minus_exp_over(x), column_low, column_low * exp(-x));
+    }
+    if layer.x < 1.5 {
+        var mean = select(0.0, layer.w, low >= layer.y && low <= layer.z);
+        if range > 0.0 {
+            mean = layer.w * overlap(low, range, layer.y, layer.z) / range;
+        }
+        let above = vec2(layer.z - max(low, layer.y), layer.z - max(high, layer.y));
+        return vec3(mean, layer.w * max(above, vec2(0.0)));
+    }
+    let first = u32(layer.y);
+    let count = u32(layer.z);
+    var integral = 0.0;
+    var at_low = 0.0;
+    var found = false;
+    var column_low = 0.0;
+    var column_high = 0.0;
+    for (var i = first; i + 1u < first + count; i++) {
+        let a = fog_point(fog, i);
+        let b = fog_point(fog, i + 1u);
+        let inside = overlap(low, range, a.x, b.x);
+        if inside > 0.0 {
+            integral += inside * mix(a.y, b.y, (max(a.x, low) + 0.5 * inside - a.x) / (b.x - a.x));
+        }
+        if !found && low >= a.x && low <= b.x {
+            at_low = mix(a.y, b.y, (low - a.x) / (b.x - a.x));
+            found = true;
+        }
+        let above_low = b.x - max(a.x, low);
+        if above_low > 0.0 {
+            column_low += above_low * mix(a.y, b.y, (max(a.x, low) + 0.5 * above_low - a.x) / (b.x - a.x));
+        }
+        let above_high = b.x - max(a.x, high);
+        if above_high > 0.0 {
+            column_high += above_high * mix(a.y, b.y, (max(a.x, high) + 0.5 * above_high - a.x) / (b.x - a.x));
+        }
+    }
+    return vec3(select(integral / range, at_low, range <= 0.0), column_low, column_high);
+}
+
+// The optical depth of the fog over [t0, t1] (clipped to the fog's start and largest distance) along a
+// ray from `altitude` with vertical direction `d_y`, and the fog above the clipped ends:
+// (τ, C(h₀), C(h₁)), C(h) = ∫_h^∞ ρ.
+fn fog_depth_and_columns(fog: FogLayers, altitude: f32, d_y: f32, t0_in: f32, t1_in: f32) -> vec3<f32> {
+    let t0 = max(t0_in, fog.ranges.x);
+    let t1 = min(t1_in, fog.ranges.y);
+    if !(t1 > t0) {
+        return vec3(0.0);
+    }
+    let length = t1 - t0;
+    let rise = d_y * length;
+    let low = altitude + d_y * t0 + min(rise, 0.0);
+    let range = abs(rise);
+    var sum = vec3(0.0);
+    for (var i = 0u; i < u32(fog.ranges.z); i++) {
+        sum += layer_mean_and_columns(fog, fog.layers[i], low, range);
+    }
+    let columns = select(sum.yz, sum.zy, rise < 0.0);
+    return vec3(length * sum.x, columns);
+}
+
+// The sunlight a stretch of fog along a ray of unit `direction` scatters once toward its start, dimmed
+// on its way from the sun and to the start: `τ e^{−τ − s₁} (e^x − 1) / x`, x = τ − (s₀ − s₁), with
+// `depths` the stretch's (τ, C(h₀), C(h₁)) (fog_depth_and_columns) and s = C/μ the sun's optical depths
+// at its ends (nebel_core's `HeightFog::sunlit`). For a sun above the horizon (`FogLayersUniform::has_sun`).
+fn fog_sunlit(fog: FogLayers, direction: vec3<f32>, depths: vec3<f32>) -> vec3<f32> {
+    let view_depth = depths.x;
+    if view_depth <= 0.0 {
+        return vec3(0.0);
+    }
+    let mu = fog.sun_direction.y;
+    let s0 = depths.y / mu;
+    let s1 = depths.z / mu;
+    let x = view_depth - (s0 - s1);
+    // e^{−τ − s₁} (e^x − 1) = e^{−s₀} − e^{−τ − s₁}; its series near x = 0 (f32 loses 10⁻⁴ of it at
+    // |x| = 10⁻³).
+    let end = exp(-view_depth - s1);
+    let series = view_depth * end * (1.0 + x * (0.5 + x / 6.0));
+    let scattered = select(series, view_depth * (exp(-s0) - end) / x, abs(x) >= 1.0e-3);
     let g = fog.sun_colour.w;
     let cos_theta = dot(direction, fog.sun_direction.xyz);
     let phase = (1.0 - g * g) / pow(1.0 + g * g - 2.0 * g * cos_theta, 1.5);
-    return fog.colour.rgb + fog.sun_colour.rgb * phase;
+    return fog.sun_colour.rgb * phase * scattered;
+}
+
+// The fog over [t0, t1] along a ray from `altitude` of unit `direction`, seen from t0: its optical depth
+// and the premultiplied colour it adds (its glow, and with FOG_SUN the sunlight it scatters).
+fn fog_stretch(fog: FogLayers, altitude: f32, direction: vec3<f32>, t0: f32, t1: f32) -> vec4<f32> {
+#ifdef FOG_SUN
+    let depths = fog_depth_and_columns(fog, altitude, direction.y, t0, t1);
+    return vec4(fog.colour.rgb * fog_opacity(depths.x) + fog_sunlit(fog, direction, depths), depths.x);
+#else
+    let depth = fog_optical_depth(fog, altitude, direction.y, t0, t1);
+    return vec4(fog.colour.rgb * fog_opacity(depth), depth);
+#endif
 }
 
 // 1 − e^{−τ}, accurate for small τ.

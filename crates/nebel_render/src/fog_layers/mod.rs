@@ -9,9 +9,11 @@
 //! crosses, evaluated per layer in a form that stays exact for level rays
 //! (`nebel_core::height_fog` gives the formulas; the shader computes the
 //! altitude range as `d_y (t₁ − t₀)`, never as a difference of altitudes).
-//! The fog's colour is constant along a ray: an ambient colour plus sunlight
-//! scaled by the Henyey-Greenstein phase function at the ray's angle to the
-//! sun.
+//! The fog glows with an ambient colour and scatters sunlight once, with the
+//! Henyey-Greenstein phase function at the ray's angle to the sun, dimmed
+//! by the fog on its way from the sun and to the eye: closed form too, with
+//! the fog above a point, `C(h) = ∫_h^∞ ρ` (`nebel_core::height_fog`'s
+//! `HeightFog::sunlit`; the shader's `fog_sunlit`).
 //!
 //! Two render features read it: the fog-layer pass of `nebel_fog` (the fog
 //! from the eye to the opaque depth, over the scene) and the cell projection,
@@ -98,6 +100,12 @@ pub struct FogLayersLook {
 }
 
 impl FogLayersUniform {
+    /// Whether the fog scatters sunlight: a sun above the horizon, of some
+    /// colour. The shaders take the sunlit variant (`FOG_SUN`) only then.
+    pub fn has_sun(&self) -> bool {
+        self.sun_direction.y > 0.0 && self.sun_colour.truncate() != Vec3::ZERO
+    }
+
     /// Packs `fog` and its look. Errors when it has more layers or points
     /// than the uniform holds.
     pub fn new(fog: &HeightFog, look: &FogLayersLook) -> Result<Self, FogLayersLimitError> {
@@ -212,5 +220,19 @@ mod tests {
         assert_eq!(uniform.points[0], Vec4::new(0.0, 0.1, 10.0, 0.2));
         assert_eq!(uniform.points[1], Vec4::new(20.0, 0.0, 30.0, 0.0));
         assert_eq!(uniform.points[2], Vec4::new(40.0, 0.3, 0.0, 0.0));
+        assert!(uniform.has_sun());
+        // No sunlight: black, or the sun at or below the horizon.
+        for (sun_colour, sun_direction) in [
+            (Vec3::ZERO, Vec3::Y),
+            (Vec3::ONE, Vec3::X),
+            (Vec3::ONE, Vec3::new(0.3, -0.2, 0.0)),
+        ] {
+            let look = FogLayersLook {
+                sun_colour,
+                sun_direction,
+                ..look
+            };
+            assert!(!FogLayersUniform::new(&fog, &look).unwrap().has_sun());
+        }
     }
 }
