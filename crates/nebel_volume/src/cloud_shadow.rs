@@ -15,10 +15,13 @@
 //! Maps are made on the task pool when the sun turns by more than
 //! [`CloudShadowSettings::sun_step`] or a caster changes (at most every
 //! [`CloudShadowSettings::interval`]), and every keyframe interval while a
-//! windy cloud moves (its grid at that time). A new map fades in over the time since the one before was started,
-//! so the shadow moves smoothly, a map's build behind the sun and the wind
-//! (under [`HeavyBuilds::Blocking`] at once, with no fade). A volume of
-//! cells casts no shadow.
+//! windy cloud moves. A new map fades in over the time since the one before
+//! was started, so the shadow moves smoothly; each is made for the time it
+//! is fully in (the sun extrapolated from its last frame's motion, a windy
+//! cloud's grid at that time), so the shadow keeps up with the sun and the
+//! wind to within a build's time. Under [`HeavyBuilds::Blocking`] each
+//! frame's map is for that frame and shows at once. A volume of cells casts
+//! no shadow.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -254,6 +257,8 @@ struct CloudShadowState {
     build: Option<(HeavyBuild<(Option<GroundShadow>, f64)>, f64)>,
     /// The inputs of the last build started, and its time.
     started: Option<(Inputs, f64)>,
+    /// The sun in the frame before and its time, for the sun's motion.
+    sun_seen: Option<(Vec3, f64)>,
     /// The shadow material made for each receiver's `StandardMaterial`.
     materials: HashMap<AssetId<StandardMaterial>, Handle<CloudShadowMaterial>>,
 }
@@ -272,6 +277,7 @@ impl CloudShadowState {
             uniform: MapsUniform::default(),
             build: None,
             started: None,
+            sun_seen: None,
             materials: HashMap::new(),
         }
     }
@@ -449,10 +455,26 @@ fn update_cloud_shadows(
                 || (windy_interval.is_finite() && waited >= windy_interval)
         });
         if due {
-            let work = inputs.clone();
+            // The map fades in over the next interval: made for the end of
+            // it, the sun extrapolated and a windy cloud's grid at that time,
+            // it shows the scene as it is when fully in (see the module docs).
+            let ahead = match (&state.started, *mode) {
+                (None, _) | (_, HeavyBuilds::Blocking) => 0.0,
+                (Some(_), _) if windy_interval.is_finite() => windy_interval,
+                (Some(_), _) => f64::from(settings.interval).max(0.0),
+            };
+            let mut work = inputs.clone();
+            // The sun turning on at the rate it turned since the last frame.
+            if let Some((seen, at)) = state.sun_seen
+                && now > at
+                && let Some(axis) = seen.cross(sun).try_normalize()
+            {
+                let rate = f64::from(seen.angle_between(sun)) / (now - at);
+                work.sun = Quat::from_axis_angle(axis, (rate * ahead) as f32) * sun;
+            }
             let build = HeavyBuild::spawn(move || {
                 let started = std::time::Instant::now();
-                let map = work.build(now);
+                let map = work.build(now + ahead);
                 (map, started.elapsed().as_secs_f64() * 1e3)
             });
             state.build = Some((build, now));
@@ -472,6 +494,7 @@ fn update_cloud_shadows(
             state.fade.1 = 0.0;
         }
     }
+    state.sun_seen = Some((sun, now));
     let uniform = state.uniform(now);
     if uniform != state.uniform
         && let Some(mut buffer) = buffers.get_mut(&state.maps)
@@ -677,5 +700,56 @@ mod tests {
         let uniform = state.uniform(5.0);
         assert_eq!(uniform.maps[0].sun_and_weight.w, 0.0);
         assert_eq!(uniform.maps[1].sun_and_weight.w, 0.5);
+    }
+
+    /// In the background, a map after the first is made for the time it is
+    /// fully faded in: the sun turning at a steady rate is extrapolated to
+    /// the end of the interval.
+    #[test]
+    fn a_map_is_made_for_the_sun_at_the_end_of_its_fade() {
+        use bevy::time::TimeUpdateStrategy;
+        use std::time::Duration;
+        let (mut app, _, _) = app();
+        app.insert_resource(HeavyBuilds::Background)
+            .insert_resource(TimeUpdateStrategy::ManualDuration(Duration::from_millis(
+                100,
+            )))
+            .insert_resource(CloudShadowSettings {
+                interval: 1.0,
+                ..default()
+            });
+        spawn_slab(&mut app);
+        // The sun turns about x by 0.02 rad every frame of 0.1 s.
+        let turn = |frame: u32| {
+            let toward =
+                Quat::from_rotation_x(0.02 * frame as f32) * Vec3::new(0.0, 1.0, 0.3).normalize();
+            Transform::default().looking_to(-toward, Vec3::Y)
+        };
+        let mut suns = Vec::new();
+        for frame in 0..60 {
+            let mut lights = app
+                .world_mut()
+                .query_filtered::<&mut Transform, With<DirectionalLight>>();
+            *lights.single_mut(app.world_mut()).unwrap() = turn(frame);
+            app.update();
+            std::thread::sleep(Duration::from_millis(5));
+            if let Some(state) = app.world().get_resource::<CloudShadowState>()
+                && let Some((map, started)) = &state.shown[1 - state.next]
+                && suns.last().is_none_or(|(_, s)| s != started)
+            {
+                suns.push((map.sun, *started));
+            }
+        }
+        assert!(suns.len() >= 3, "{} maps", suns.len());
+        for (sun, started) in &suns[1..] {
+            // Started at `started`, the time of frame `10 started`, made for
+            // 1 s later: ten frames on.
+            let frame = (started * 10.0).round() as u32;
+            let expected = turn(frame + 10).back().as_dvec3();
+            assert!(
+                sun.angle_between(expected) < 2e-3,
+                "map of {started} s: {sun} against {expected}"
+            );
+        }
     }
 }
