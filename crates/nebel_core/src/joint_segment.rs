@@ -49,8 +49,9 @@ pub struct JointMedium<'a> {
     pub absorbs: bool,
     /// `w`, the weight of the coloured emission `κρ`. Default 1.
     pub emission_weight: f64,
-    /// `a`, the weight of the grey emission `ρ`. Default 0.
-    pub ambient: f64,
+    /// `a`, the weight per channel of the emission `ρ` (the sky's light,
+    /// not coloured by κ). Default 0.
+    pub ambient: DVec3,
 }
 
 impl<'a> JointMedium<'a> {
@@ -63,7 +64,7 @@ impl<'a> JointMedium<'a> {
             density_scale: 1.0,
             absorbs: true,
             emission_weight: 1.0,
-            ambient: 0.0,
+            ambient: DVec3::ZERO,
         }
     }
 }
@@ -261,9 +262,10 @@ mod tests {
             s_f in 0.0_f64..=1.0,
             s_b in 0.0_f64..=1.0,
             l in 0.0_f64..20.0,
-            ambient in 0.0_f64..1.0,
+            ambient in prop::array::uniform3(0.0_f64..1.0),
             weight in 0.0_f64..2.0,
         ) {
+            let ambient = DVec3::from_array(ambient);
             let medium = JointMedium { ambient, emission_weight: weight, ..JointMedium::new(&tf, s_f, s_b) };
             let joint = exact_joint_segment(&[medium], l);
             let alone = exact_segment(&tf, OpticalMode::Sorted, s_f, s_b, l);

@@ -273,13 +273,15 @@ pub struct ReferenceScene {
 
 /// Single scattering of the sun (Nes 2008) for a volume integrated over the
 /// transmittance toward the sun: each segment's premultiplied colour `C` and
-/// opacity `α` become `ambient · α + sunlight · 4π p_HG(θ) · C`, θ between the
+/// opacity `α` become `ambient · α + sunlight · 4π p_HG(θ) · C` (`ambient` the
+/// sky's light per channel), θ between the
 /// ray and the direction toward the sun, as the GPU's `SCATTERING` variant
 /// computes.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SegmentScattering {
-    /// The ambient light's weight.
-    pub ambient: f64,
+    /// The ambient (sky) light's weight per channel: its strength times the
+    /// sky's colour.
+    pub ambient: DVec3,
     /// The sunlight's weight.
     pub sunlight: f64,
     /// Unit direction toward the sun.
@@ -689,7 +691,7 @@ impl<'a> Integrator<'a> {
 
 /// The ray's ambient and sunlight weights of single scattering, for a sorted
 /// volume with scattering.
-fn ray_light(scene: &ReferenceScene, ray: &Ray) -> Option<(f64, f64)> {
+fn ray_light(scene: &ReferenceScene, ray: &Ray) -> Option<(DVec3, f64)> {
     scene
         .scattering
         .filter(|_| scene.mode == OpticalMode::Sorted)
@@ -823,7 +825,7 @@ struct Medium<'a> {
     transfer_function: &'a TransferFunction,
     mode: OpticalMode,
     /// The ray's ambient and sunlight weights of single scattering.
-    light: Option<(f64, f64)>,
+    light: Option<(DVec3, f64)>,
     /// The local lights it scatters, and how.
     local_lights: &'a [LocalLight],
     response: LightResponse,
@@ -865,7 +867,7 @@ impl<'a> Medium<'a> {
     /// Its share of a joint segment over `piece`'s stretch `[t0, t1]`.
     fn joint(&self, piece: &RayPiece, t0: f64, t1: f64) -> JointMedium<'_> {
         let (s_front, s_back, length) = piece.part(t0, t1);
-        let (ambient, emission_weight) = self.light.unwrap_or((0.0, 1.0));
+        let (ambient, emission_weight) = self.light.unwrap_or((DVec3::ZERO, 1.0));
         JointMedium {
             transfer_function: self.transfer_function,
             s_front,

@@ -659,6 +659,22 @@ impl SceneDescription {
         })
     }
 
+    /// The sky's colour, linear: the colour of the scene's ambient light
+    /// (Bevy's `GlobalAmbientLight`), white without one. It tints the
+    /// ambient light of clouds lit by single scattering.
+    pub fn sky_colour(&self) -> DVec3 {
+        self.lights
+            .iter()
+            .rev()
+            .find_map(|light| match light {
+                LightDescription::Ambient(ambient) => Some(DVec3::from(
+                    ambient.color.map(|c| srgb_to_linear(f64::from(c))),
+                )),
+                _ => None,
+            })
+            .unwrap_or(DVec3::ONE)
+    }
+
     /// Whether a volume's cloud shadow falls on the meshes and terrain
     /// (`lighting: (ground_shadow: true)`): then they all receive it.
     pub fn casts_ground_shadow(&self) -> bool {
@@ -1456,6 +1472,18 @@ mod tests {
             quality: QualityDescription::Medium,
             auto_quality_ms: Some(33.3),
         }
+    }
+
+    #[test]
+    fn the_sky_colour_is_the_ambient_light_s_linear_colour_or_white() {
+        assert_eq!(parse(MINIMAL).unwrap().sky_colour(), DVec3::ONE);
+        let blue = MINIMAL.replace(
+            "version: 1,",
+            "version: 1, lights: [Ambient((color: (0.5, 0.6, 1.0), brightness: 300.0))],",
+        );
+        let sky = parse(&blue).unwrap().sky_colour();
+        let expected = DVec3::new(srgb_to_linear(0.5), srgb_to_linear(0.6), 1.0);
+        assert!((sky - expected).abs().max_element() < 1e-6, "{sky}");
     }
 
     fn parse(text: &str) -> Result<SceneDescription, SceneError> {

@@ -83,6 +83,7 @@ pub fn reference_image_with_terrain(
     LinearImage::check_budget(camera.width, camera.height)?;
     let opaque_depth = scene.opaque_depth_with_terrain(&camera, terrain)?;
     let sun = scene.sun_direction();
+    let sky = scene.sky_colour();
     let last_frame = f64::from(scene.frame_time(scene.output.frames.saturating_sub(1)));
     let local_lights = scene.volumetric_lights(last_frame);
     let fog = scene
@@ -164,7 +165,7 @@ pub fn reference_image_with_terrain(
                 return None;
             };
             Some(SegmentScattering {
-                ambient: f64::from(lighting.ambient),
+                ambient: f64::from(lighting.ambient) * sky,
                 sunlight: f64::from(lighting.diffuse),
                 sun_direction: sun,
                 asymmetry: f64::from(asymmetry),

@@ -196,6 +196,7 @@ pub(crate) fn update_batches(
         &mut VolumeBatching,
     )>,
     suns: Query<(&GlobalTransform, &DirectionalLight)>,
+    ambient: Option<Res<GlobalAmbientLight>>,
     quality: Option<Res<EffectiveQuality>>,
     mode: Res<HeavyBuilds>,
     mut diagnostics: Diagnostics,
@@ -207,6 +208,8 @@ pub(crate) fn update_batches(
         camera.and_then(|camera| Frustum::from_view_projection(camera.clip_from_world).ok());
     let sun = suns.iter().next();
     let sun_world = sun.map(|(transform, _)| transform.back().as_vec3());
+    // The sky's colour tints the ambient light of single scattering.
+    let sky = ambient.map_or(Vec3::ONE, |ambient| ambient.color.to_linear().to_vec3());
     let sunlight = CellSunlight {
         colour: sun.map_or(Vec3::ONE, |(_, light)| sunlight(light)),
     };
@@ -248,8 +251,8 @@ pub(crate) fn update_batches(
         );
         let blend = frame.blend.map(|factor| CellBlend { factor });
         write_if_changed(&mut commands, entity, blend, drawn_blend);
-        let scattering =
-            lighting.and_then(|lighting| lighting.cell_scattering(sun_world.unwrap_or(Vec3::Y)));
+        let scattering = lighting
+            .and_then(|lighting| lighting.cell_scattering(sun_world.unwrap_or(Vec3::Y), sky));
         let current = drawn.is_some_and(|batch| {
             batch.mode == volume.mode
                 && batch.scattering == scattering

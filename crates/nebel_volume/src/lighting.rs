@@ -85,7 +85,8 @@ impl CloudLightModel {
 #[reflect(Component, Default, Clone)]
 pub struct VolumeLighting {
     /// Light every point receives, as a fraction of full light, in [0, 1]
-    /// (the sky's strength for [`CloudLightModel::Scattering`]). Default 0.3.
+    /// (the sky's strength for [`CloudLightModel::Scattering`], tinted by
+    /// the colour of Bevy's `GlobalAmbientLight`). Default 0.3.
     pub ambient: f32,
     /// Strength of the sunlight (Lambert on the density gradient, times the
     /// shadow transmittance), as a fraction of full light, in [0, 1]; `γ` is
@@ -152,14 +153,17 @@ impl VolumeLighting {
     }
 
     /// The render system's sun and sky for [`CloudLightModel::Scattering`]
-    /// (`sun_world`: toward the sun, world space); `None` for the other
-    /// models. Sun and sky are white of strength `diffuse` and `ambient`.
-    pub fn cell_scattering(&self, sun_world: Vec3) -> Option<CellScattering> {
+    /// (`sun_world`: toward the sun, world space; `sky`: the sky's linear
+    /// colour, Bevy's `GlobalAmbientLight` colour); `None` for the other
+    /// models. The sun is white of strength `diffuse` (its own colour comes
+    /// with `nebel_render::CellSunlight`), the sky `ambient` times its
+    /// colour.
+    pub fn cell_scattering(&self, sun_world: Vec3, sky: Vec3) -> Option<CellScattering> {
         match self.model {
             CloudLightModel::Scattering { asymmetry } => Some(CellScattering {
                 sun_direction: sun_world.normalize_or(Vec3::Y),
                 sun_colour: Vec3::splat(self.diffuse),
-                ambient_colour: Vec3::splat(self.ambient),
+                ambient_colour: self.ambient * sky,
                 asymmetry,
             }),
             _ => None,
