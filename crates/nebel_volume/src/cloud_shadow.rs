@@ -89,7 +89,8 @@ pub struct CloudShadowCaster;
 
 /// Draws this mesh's `StandardMaterial` as a [`CloudShadowMaterial`], so
 /// the clouds' shadow dims its sunlight (see the module docs). Changes to
-/// the `StandardMaterial` asset carry over.
+/// the `StandardMaterial` asset carry over; removed, the mesh gets its
+/// `StandardMaterial` back.
 #[derive(Component, Clone, Copy, Debug, Default, PartialEq, Eq, Reflect)]
 #[reflect(Component, Default, Clone)]
 pub struct CloudShadowReceiver;
@@ -505,10 +506,12 @@ fn update_cloud_shadows(
 }
 
 /// Draws each receiver's `StandardMaterial` as a [`CloudShadowMaterial`],
-/// and carries changes of the `StandardMaterial` over.
+/// carries changes of the `StandardMaterial` over, and gives a former
+/// receiver its `StandardMaterial` back.
 fn receive_cloud_shadows(
     mut commands: Commands,
     receivers: Query<(Entity, &MeshMaterial3d<StandardMaterial>), With<CloudShadowReceiver>>,
+    former: Query<(Entity, &ShadowedMaterial), Without<CloudShadowReceiver>>,
     state: Option<ResMut<CloudShadowState>>,
     standard: Res<Assets<StandardMaterial>>,
     mut events: MessageReader<AssetEvent<StandardMaterial>>,
@@ -547,9 +550,21 @@ fn receive_cloud_shadows(
         commands
             .entity(entity)
             .remove::<MeshMaterial3d<StandardMaterial>>()
-            .insert(MeshMaterial3d(handle));
+            .insert((MeshMaterial3d(handle), ShadowedMaterial(material.0.clone())));
+    }
+    // A receiver no more: its own material back.
+    for (entity, ShadowedMaterial(base)) in &former {
+        commands
+            .entity(entity)
+            .remove::<(MeshMaterial3d<CloudShadowMaterial>, ShadowedMaterial)>()
+            .insert(MeshMaterial3d(base.clone()));
     }
 }
+
+/// The `StandardMaterial` a receiver is drawn with as a
+/// [`CloudShadowMaterial`], given back when it stops receiving.
+#[derive(Component)]
+struct ShadowedMaterial(Handle<StandardMaterial>);
 
 #[cfg(test)]
 mod tests {
@@ -664,6 +679,19 @@ mod tests {
         app.update();
         let materials = app.world().resource::<Assets<CloudShadowMaterial>>();
         assert_eq!(materials.get(&shaded).unwrap().base.base_color, red);
+        app.world_mut()
+            .entity_mut(receiver)
+            .remove::<CloudShadowReceiver>();
+        app.update();
+        let restored = app
+            .world()
+            .get::<MeshMaterial3d<StandardMaterial>>(receiver);
+        assert_eq!(restored.map(|m| m.id()), Some(standard.id()));
+        assert!(
+            app.world()
+                .get::<MeshMaterial3d<CloudShadowMaterial>>(receiver)
+                .is_none()
+        );
     }
 
     /// A new map fades in over the time since the one before was started;
