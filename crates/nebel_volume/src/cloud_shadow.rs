@@ -284,7 +284,7 @@ impl CloudShadowState {
     }
 
     /// New textures of `side` texels a side for every shadow material; the
-    /// maps are made again.
+    /// maps are made again (a build in flight, of the old size, is dropped).
     fn resize(
         &mut self,
         side: u32,
@@ -294,6 +294,8 @@ impl CloudShadowState {
         self.textures = [0, 1].map(|_| images.add(Self::texture(side)));
         self.side = side;
         self.shown = [None, None];
+        self.build = None;
+        self.started = None;
         for handle in self.materials.values() {
             if let Some(mut material) = materials.get_mut(handle) {
                 material.extension.first = self.textures[0].clone();
@@ -445,7 +447,6 @@ fn update_cloud_shadows(
     let state = &mut *state;
     if inputs.resolution != state.side {
         state.resize(inputs.resolution, &mut images, &mut materials);
-        state.started = None;
     }
     if state.build.is_none() {
         let due = state.started.as_ref().is_none_or(|(old, at)| {
@@ -779,5 +780,49 @@ mod tests {
                 "map of {started} s: {sun} against {expected}"
             );
         }
+    }
+
+    /// A new resolution drops the build in flight, gives every shadow
+    /// material new textures, and the next map has the new size.
+    #[test]
+    fn a_new_resolution_makes_maps_of_its_size() {
+        let (mut app, receiver, _) = app();
+        app.insert_resource(HeavyBuilds::Background);
+        spawn_slab(&mut app);
+        app.update();
+        app.update();
+        assert!(app.world().resource::<CloudShadowState>().build.is_some());
+        app.insert_resource(CloudShadowSettings {
+            resolution: 16,
+            ..default()
+        });
+        let mut landed = None;
+        for _ in 0..200 {
+            app.update();
+            let state = app.world().resource::<CloudShadowState>();
+            if let Some((map, _)) = &state.shown[1 - state.next] {
+                landed = Some(map.size);
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        let size = landed.expect("a map");
+        assert!(
+            size.iter().all(|&n| n <= 16) && size.contains(&16),
+            "{size:?}"
+        );
+        let state = app.world().resource::<CloudShadowState>();
+        let handle = &app
+            .world()
+            .get::<MeshMaterial3d<CloudShadowMaterial>>(receiver)
+            .unwrap()
+            .0;
+        let material = app
+            .world()
+            .resource::<Assets<CloudShadowMaterial>>()
+            .get(handle)
+            .unwrap();
+        assert_eq!(material.extension.first, state.textures[0]);
+        assert_eq!(material.extension.second, state.textures[1]);
     }
 }
