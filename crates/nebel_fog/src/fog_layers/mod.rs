@@ -37,7 +37,7 @@
 //! exponential falloff times the altitude crossed (at most 64), each piece
 //! by Gauss-Legendre quadrature in the angle the light sees. Opaque objects
 //! cast no shadow in it. A volume inside the fog
-//! is conjugated by the fog's colour alone: the lights' part of the fog in
+//! is conjugated by the fog's glow and sunlight alone: the lights' part of the fog in
 //! front of a cell is not in its conjugation. The lights take a variant of
 //! the pass; without them it runs as before.
 //!
