@@ -42,60 +42,30 @@ fn fog_point(fog: FogLayers, index: u32) -> vec2<f32> {
     return select(pair.xy, pair.zw, index % 2u == 1u);
 }
 
-// The mean density of layer `layer` over [low, low + range].
+// The mean density of layer `layer` over [low, low + range] (its density at
+// `low` for no range).
 fn layer_mean(fog: FogLayers, layer: vec4<f32>, low: f32, range: f32) -> f32 {
-    if layer.x < 0.5 {
-        let at_low = layer.z * exp(min(-layer.w * (low - layer.y), MAX_FOG_EXPONENT));
-        return at_low * one_minus_exp_over(layer.w * range);
-    }
-    if layer.x < 1.5 {
-        if range <= 0.0 {
-            return select(0.0, layer.w, low >= layer.y && low <= layer.z);
-        }
-        return layer.w * overlap(low, range, layer.y, layer.z) / range;
-    }
-    let first = u32(layer.y);
-    let count = u32(layer.z);
-    var integral = 0.0;
-    for (var i = first; i + 1u < first + count; i++) {
-        let a = fog_point(fog, i);
-        let b = fog_point(fog, i + 1u);
-        if range <= 0.0 {
-            if low >= a.x && low <= b.x {
-                return mix(a.y, b.y, (low - a.x) / (b.x - a.x));
-            }
-            continue;
-        }
-        let inside = overlap(low, range, a.x, b.x);
-        if inside > 0.0 {
-            let middle = max(a.x, low) + 0.5 * inside;
-            integral += inside * mix(a.y, b.y, (middle - a.x) / (b.x - a.x));
-        }
-    }
-    return select(integral / range, 0.0, range <= 0.0);
+    return layer_mean_and_columns(fog, layer, low, range).x;
 }
 
 // The optical depth of the fog over [t0, t1] (clipped to the fog's start and
 // largest distance) along a ray from `altitude` with vertical direction `d_y`.
-fn fog_optical_depth(fog: FogLayers, altitude: f32, d_y: f32, t0_in: f32, t1_in: f32) -> f32 {
-    let t0 = max(t0_in, fog.ranges.x);
-    let t1 = min(t1_in, fog.ranges.y);
-    if !(t1 > t0) {
-        return 0.0;
-    }
-    let length = t1 - t0;
-    let rise = d_y * length;
-    let low = altitude + d_y * t0 + min(rise, 0.0);
-    let range = abs(rise);
-    var mean = 0.0;
-    for (var i = 0u; i < u32(fog.ranges.z); i++) {
-        mean += layer_mean(fog, fog.layers[i], low, range);
-    }
-    return length * mean;
+fn fog_optical_depth(fog: FogLayers, altitude: f32, d_y: f32, t0: f32, t1: f32) -> f32 {
+    return fog_depth_and_columns(fog, altitude, d_y, t0, t1).x;
 }
 
-// Layer `layer` over the altitudes [low, low + range]: its mean density there (as layer_mean) and the
-// fog above each end, (mean, ∫_low^∞, ∫_{low + range}^∞), in one evaluation.
+// ∫ of the linear piece from point `a` to point `b` over `span` metres from
+// altitude `start` (0 for no span).
+fn linear_piece(a: vec2<f32>, b: vec2<f32>, start: f32, span: f32) -> f32 {
+    if span <= 0.0 {
+        return 0.0;
+    }
+    return span * mix(a.y, b.y, (start + 0.5 * span - a.x) / (b.x - a.x));
+}
+
+// Layer `layer` over the altitudes [low, low + range]: its mean density there (its density at `low`
+// for no range) and the fog above each end, (mean, ∫_low^∞, ∫_{low + range}^∞). Callers that read
+// only the mean leave the columns to the compiler to drop.
 fn layer_mean_and_columns(fog: FogLayers, layer: vec4<f32>, low: f32, range: f32) -> vec3<f32> {
     let high = low + range;
     if layer.x < 0.5 {
@@ -122,22 +92,13 @@ fn layer_mean_and_columns(fog: FogLayers, layer: vec4<f32>, low: f32, range: f32
     for (var i = first; i + 1u < first + count; i++) {
         let a = fog_point(fog, i);
         let b = fog_point(fog, i + 1u);
-        let inside = overlap(low, range, a.x, b.x);
-        if inside > 0.0 {
-            integral += inside * mix(a.y, b.y, (max(a.x, low) + 0.5 * inside - a.x) / (b.x - a.x));
-        }
+        integral += linear_piece(a, b, max(a.x, low), overlap(low, range, a.x, b.x));
         if !found && low >= a.x && low <= b.x {
             at_low = mix(a.y, b.y, (low - a.x) / (b.x - a.x));
             found = true;
         }
-        let above_low = b.x - max(a.x, low);
-        if above_low > 0.0 {
-            column_low += above_low * mix(a.y, b.y, (max(a.x, low) + 0.5 * above_low - a.x) / (b.x - a.x));
-        }
-        let above_high = b.x - max(a.x, high);
-        if above_high > 0.0 {
-            column_high += above_high * mix(a.y, b.y, (max(a.x, high) + 0.5 * above_high - a.x) / (b.x - a.x));
-        }
+        column_low += linear_piece(a, b, max(a.x, low), b.x - max(a.x, low));
+        column_high += linear_piece(a, b, max(a.x, high), b.x - max(a.x, high));
     }
     return vec3(select(integral / range, at_low, range <= 0.0), column_low, column_high);
 }
