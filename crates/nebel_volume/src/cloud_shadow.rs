@@ -175,6 +175,21 @@ impl MapUniform {
     }
 }
 
+/// `map`'s transmittance as the texels of a texture of `side` texels a side
+/// (R8, lit beyond the map), made with the map off the frame.
+fn texels(map: &GroundShadow, side: usize) -> Vec<u8> {
+    let mut texels = vec![u8::MAX; side * side];
+    for (row, values) in texels
+        .chunks_mut(side)
+        .zip(map.transmittance.chunks(map.size[0]))
+    {
+        for (texel, t) in row.iter_mut().zip(values) {
+            *texel = (t.clamp(0.0, 1.0) * 255.0).round() as u8;
+        }
+    }
+    texels
+}
+
 /// A caster's density as a map's build reads it.
 #[derive(Clone, Debug)]
 enum CasterGrid {
@@ -254,8 +269,9 @@ struct CloudShadowState {
     /// When the newest map landed and how long it fades in.
     fade: (f64, f64),
     uniform: MapsUniform,
-    /// The build in flight (its map and its time, ms) and its start.
-    build: Option<(HeavyBuild<(Option<GroundShadow>, f64)>, f64)>,
+    /// The build in flight (its map and texels, and its time, ms) and its
+    /// start.
+    build: Option<(HeavyBuild<(Option<(GroundShadow, Vec<u8>)>, f64)>, f64)>,
     /// The inputs of the last build started, and its time.
     started: Option<(Inputs, f64)>,
     /// The sun in the frame before and its time, for the sun's motion.
@@ -321,33 +337,30 @@ impl CloudShadowState {
         image
     }
 
-    /// Puts `map`, started at `started`, into the next texture, landing at
-    /// `now`.
+    /// Puts `map` and its texels, started at `started`, into the next
+    /// texture, landing at `now`; it fades in over the time since the one
+    /// before was started if `fades`, at once otherwise.
     fn land(
         &mut self,
-        map: Option<GroundShadow>,
+        map: Option<(GroundShadow, Vec<u8>)>,
         started: f64,
         now: f64,
+        fades: bool,
         images: &mut Assets<Image>,
     ) {
         let slot = self.next;
         self.next = 1 - slot;
         let previous_start = self.shown[1 - slot].as_ref().map(|(_, t)| *t);
-        self.fade = (now, previous_start.map_or(0.0, |t| (started - t).max(0.0)));
-        self.shown[slot] = map.map(|map| (map, started));
-        if let (Some((map, _)), Some(mut image)) =
-            (&self.shown[slot], images.get_mut(&self.textures[slot]))
-        {
-            let side = self.side as usize;
-            let data = image.data.get_or_insert_with(Vec::new);
-            data.clear();
-            data.resize(side * side, u8::MAX);
-            for (v, row) in map.transmittance.chunks(map.size[0]).enumerate() {
-                for (u, t) in row.iter().enumerate() {
-                    data[u + v * side] = (t.clamp(0.0, 1.0) * 255.0).round() as u8;
-                }
+        let duration = previous_start
+            .filter(|_| fades)
+            .map_or(0.0, |t| (started - t).max(0.0));
+        self.fade = (now, duration);
+        self.shown[slot] = map.map(|(map, texels)| {
+            if let Some(mut image) = images.get_mut(&self.textures[slot]) {
+                image.data = Some(texels);
             }
-        }
+            (map, started)
+        });
     }
 
     /// The maps' weights at `now`: the newest fading in over the one before.
@@ -474,9 +487,13 @@ fn update_cloud_shadows(
                 let rate = f64::from(seen.angle_between(sun)) / (now - at);
                 work.sun = Quat::from_axis_angle(axis, (rate * ahead) as f32) * sun;
             }
+            let side = state.side as usize;
             let build = HeavyBuild::spawn(move || {
                 let started = std::time::Instant::now();
-                let map = work.build(now + ahead);
+                let map = work.build(now + ahead).map(|map| {
+                    let texels = texels(&map, side);
+                    (map, texels)
+                });
                 (map, started.elapsed().as_secs_f64() * 1e3)
             });
             state.build = Some((build, now));
@@ -491,10 +508,13 @@ fn update_cloud_shadows(
         diagnostics.add_measurement(&CloudShadowPlugin::BUILD_MS, || ms);
         let started = *started;
         state.build = None;
-        state.land(map, started, now, &mut images);
-        if *mode == HeavyBuilds::Blocking {
-            state.fade.1 = 0.0;
-        }
+        state.land(
+            map,
+            started,
+            now,
+            *mode != HeavyBuilds::Blocking,
+            &mut images,
+        );
     }
     state.sun_seen = Some((sun, now));
     let uniform = state.uniform(now);
@@ -707,14 +727,25 @@ mod tests {
             world_from_local: DAffine3::IDENTITY,
             extinction: 1.0,
         };
-        let map = || GroundShadow::compute(&[caster], DVec3::Y, 16, 1);
-        state.land(map(), 0.0, 0.5, &mut images);
+        let map = || {
+            GroundShadow::compute(&[caster], DVec3::Y, 16, 1).map(|map| {
+                let texels = texels(&map, 16);
+                (map, texels)
+            })
+        };
+        state.land(map(), 0.0, 0.5, true, &mut images);
+        let first = images.get(&state.textures[0]).unwrap().data.clone();
+        assert_eq!(
+            first,
+            map().map(|(_, texels)| texels),
+            "the texels land in the texture"
+        );
         assert_eq!(
             state.uniform(0.5).maps[0].sun_and_weight.w,
             1.0,
             "the first map shows at once"
         );
-        state.land(map(), 2.0, 2.5, &mut images);
+        state.land(map(), 2.0, 2.5, true, &mut images);
         for (now, weight) in [(2.5, 0.0), (3.5, 0.5), (4.5, 1.0), (9.0, 1.0)] {
             let uniform = state.uniform(now);
             let [old, new] = [
@@ -725,7 +756,7 @@ mod tests {
             assert_eq!(old + new, 1.0);
         }
         // The sun set: the last map fades out to full light.
-        state.land(None, 3.0, 4.5, &mut images);
+        state.land(None, 3.0, 4.5, true, &mut images);
         let uniform = state.uniform(5.0);
         assert_eq!(uniform.maps[0].sun_and_weight.w, 0.0);
         assert_eq!(uniform.maps[1].sun_and_weight.w, 0.5);
