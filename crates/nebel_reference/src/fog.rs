@@ -129,6 +129,13 @@ impl ReferenceFog {
         None
     }
 
+    /// `[t0, t1]` clipped to `[start_distance, max_distance]`; `None` where
+    /// nothing is left (or an end is NaN).
+    fn within(&self, t0: f64, t1: f64) -> Option<(f64, f64)> {
+        let (a, b) = (t0.max(self.start_distance), t1.min(self.max_distance));
+        (b.partial_cmp(&a) == Some(std::cmp::Ordering::Greater)).then_some((a, b))
+    }
+
     /// The sunlight the fog over `[t0, t1]` along `ray` (clipped to
     /// `[start_distance, max_distance]`) scatters once toward `t0`,
     /// attenuated on its way from the sun and to `t0` (closed form,
@@ -137,10 +144,9 @@ impl ReferenceFog {
         let Some(sun) = self.sun else {
             return DVec3::ZERO;
         };
-        let (a, b) = (t0.max(self.start_distance), t1.min(self.max_distance));
-        if b.partial_cmp(&a) != Some(std::cmp::Ordering::Greater) {
+        let Some((a, b)) = self.within(t0, t1) else {
             return DVec3::ZERO;
-        }
+        };
         let direction = sun.direction.normalize();
         let altitude = |t: f64| ray.origin.y + t * ray.direction.y;
         let scattered = self
@@ -152,10 +158,9 @@ impl ReferenceFog {
     /// The optical depth of the fog over `[t0, t1]` along `ray` (clipped to
     /// `[start_distance, max_distance]`).
     pub fn optical_depth(&self, ray: &Ray, t0: f64, t1: f64) -> f64 {
-        let (t0, t1) = (t0.max(self.start_distance), t1.min(self.max_distance));
-        if t1.partial_cmp(&t0) != Some(std::cmp::Ordering::Greater) {
+        let Some((t0, t1)) = self.within(t0, t1) else {
             return 0.0;
-        }
+        };
         let altitude = |t: f64| ray.origin.y + t * ray.direction.y;
         self.fog.optical_depth(altitude(t0), altitude(t1), t1 - t0)
     }
@@ -170,10 +175,9 @@ impl ReferenceFog {
     /// The lights scattered toward the eye over `[t0, t1]` along `ray`, seen
     /// from `t0` (see the module docs).
     pub fn lit(&self, ray: &Ray, t0: f64, t1: f64) -> DVec3 {
-        let (a, b) = (t0.max(self.start_distance), t1.min(self.max_distance));
-        if self.lights.is_empty() || b.partial_cmp(&a) != Some(std::cmp::Ordering::Greater) {
+        let Some((a, b)) = self.within(t0, t1).filter(|_| !self.lights.is_empty()) else {
             return DVec3::ZERO;
-        }
+        };
         let altitude = |t: f64| ray.origin.y + t * ray.direction.y;
         let mut cuts = vec![a, b];
         if ray.direction.y != 0.0 {
