@@ -154,11 +154,19 @@ struct MapUniform {
     size: Vec4,
 }
 
-/// Both maps as the shader reads them.
+/// Both maps as the shader reads them, and the sun they dim.
 #[derive(Clone, Copy, Debug, Default, PartialEq, ShaderType)]
 struct MapsUniform {
     maps: [MapUniform; 2],
+    /// Toward the sun now (xyz), to find its light among Bevy's: a map's own
+    /// sun may lie ahead of it. Written again when it has turned by
+    /// [`SUN_MATCH_STEP`].
+    sun: Vec4,
 }
+
+/// The angle the sun turns before the shader is told where it is, radians
+/// (the shader finds the light within about 8° of it).
+const SUN_MATCH_STEP: f32 = 0.02;
 
 impl MapUniform {
     fn new(map: &GroundShadow, side: u32, weight: f32) -> Self {
@@ -363,8 +371,10 @@ impl CloudShadowState {
         });
     }
 
-    /// The maps' weights at `now`: the newest fading in over the one before.
-    fn uniform(&self, now: f64) -> MapsUniform {
+    /// The maps' weights at `now`, the newest fading in over the one before,
+    /// and the sun `sun` (the one last told while within
+    /// [`SUN_MATCH_STEP`]).
+    fn uniform(&self, now: f64, sun: Vec3) -> MapsUniform {
         let newest = 1 - self.next;
         let (landed, duration) = self.fade;
         let w = if duration > 0.0 {
@@ -372,7 +382,16 @@ impl CloudShadowState {
         } else {
             1.0
         };
-        let mut uniform = MapsUniform::default();
+        let told = self.uniform.sun.truncate();
+        let mut uniform = MapsUniform {
+            sun: if told.angle_between(sun) <= SUN_MATCH_STEP {
+                told
+            } else {
+                sun
+            }
+            .extend(0.0),
+            ..default()
+        };
         for (slot, weight) in [(newest, w), (1 - newest, 1.0 - w)] {
             if let Some((map, _)) = &self.shown[slot] {
                 uniform.maps[slot] = MapUniform::new(map, self.side, weight);
@@ -470,21 +489,32 @@ fn update_cloud_shadows(
                 || (windy_interval.is_finite() && waited >= windy_interval)
         });
         if due {
-            // The map fades in over the next interval: made for the end of
-            // it, the sun extrapolated and a windy cloud's grid at that time,
-            // it shows the scene as it is when fully in (see the module docs).
-            let ahead = match (&state.started, *mode) {
-                (None, _) | (_, HeavyBuilds::Blocking) => 0.0,
-                (Some(_), _) if windy_interval.is_finite() => windy_interval,
-                (Some(_), _) => f64::from(settings.interval).max(0.0),
+            // The map fades in until the next one starts: made for then (the
+            // sun turned on at its rate, a windy cloud's grid at that time),
+            // it shows the scene as it is when fully in (module docs). The
+            // next start: a windy cloud's next keyframe, or when the sun has
+            // turned by a step (not before the interval); none where nothing
+            // moves.
+            let turn = state
+                .sun_seen
+                .filter(|(_, at)| now > *at)
+                .and_then(|(seen, at)| {
+                    let axis = seen.cross(sun).try_normalize()?;
+                    Some((axis, f64::from(seen.angle_between(sun)) / (now - at)))
+                });
+            let sun_period = turn.map_or(f64::INFINITY, |(_, rate)| {
+                (f64::from(settings.sun_step.max(1e-4)) / rate)
+                    .max(f64::from(settings.interval).max(0.0))
+            });
+            let next = sun_period.min(windy_interval);
+            let first = state.started.is_none();
+            let ahead = if first || *mode == HeavyBuilds::Blocking || next.is_infinite() {
+                0.0
+            } else {
+                next
             };
             let mut work = inputs.clone();
-            // The sun turning on at the rate it turned since the last frame.
-            if let Some((seen, at)) = state.sun_seen
-                && now > at
-                && let Some(axis) = seen.cross(sun).try_normalize()
-            {
-                let rate = f64::from(seen.angle_between(sun)) / (now - at);
+            if let Some((axis, rate)) = turn {
                 work.sun = Quat::from_axis_angle(axis, (rate * ahead) as f32) * sun;
             }
             let side = state.side as usize;
@@ -517,7 +547,7 @@ fn update_cloud_shadows(
         );
     }
     state.sun_seen = Some((sun, now));
-    let uniform = state.uniform(now);
+    let uniform = state.uniform(now, sun);
     if uniform != state.uniform
         && let Some(mut buffer) = buffers.get_mut(&state.maps)
     {
@@ -741,13 +771,13 @@ mod tests {
             "the texels land in the texture"
         );
         assert_eq!(
-            state.uniform(0.5).maps[0].sun_and_weight.w,
+            state.uniform(0.5, Vec3::Y).maps[0].sun_and_weight.w,
             1.0,
             "the first map shows at once"
         );
         state.land(map(), 2.0, 2.5, true, &mut images);
         for (now, weight) in [(2.5, 0.0), (3.5, 0.5), (4.5, 1.0), (9.0, 1.0)] {
-            let uniform = state.uniform(now);
+            let uniform = state.uniform(now, Vec3::Y);
             let [old, new] = [
                 uniform.maps[0].sun_and_weight.w,
                 uniform.maps[1].sun_and_weight.w,
@@ -757,7 +787,7 @@ mod tests {
         }
         // The sun set: the last map fades out to full light.
         state.land(None, 3.0, 4.5, true, &mut images);
-        let uniform = state.uniform(5.0);
+        let uniform = state.uniform(5.0, Vec3::Y);
         assert_eq!(uniform.maps[0].sun_and_weight.w, 0.0);
         assert_eq!(uniform.maps[1].sun_and_weight.w, 0.5);
     }
@@ -793,15 +823,32 @@ mod tests {
             *lights.single_mut(app.world_mut()).unwrap() = turn(frame);
             app.update();
             std::thread::sleep(Duration::from_millis(5));
+            // The shader finds the sun's light by where the sun is now, not
+            // by the maps' suns ahead of it (from the frame after the one
+            // that made the state).
+            if let Some(state) = app.world().get_resource::<CloudShadowState>()
+                && frame > 0
+            {
+                let (told, now) = (state.uniform.sun.truncate(), turn(frame).back().as_vec3());
+                assert!(
+                    told.angle_between(now) <= SUN_MATCH_STEP + 1e-4,
+                    "frame {frame}: {told} against {now}"
+                );
+            }
             if let Some(state) = app.world().get_resource::<CloudShadowState>()
                 && let Some((map, started)) = &state.shown[1 - state.next]
-                && suns.last().is_none_or(|(_, s)| s != started)
+                && suns.last().is_none_or(|(_, s, _)| s != started)
             {
-                suns.push((map.sun, *started));
+                suns.push((map.sun, *started, state.fade.1));
             }
         }
         assert!(suns.len() >= 3, "{} maps", suns.len());
-        for (sun, started) in &suns[1..] {
+        for (sun, started, fade) in &suns[1..] {
+            // It fades in until the next start, the interval on.
+            assert!(
+                (fade - 1.0).abs() < 0.15,
+                "map of {started} s fades over {fade} s"
+            );
             // Started at `started`, the time of frame `10 started`, made for
             // 1 s later: ten frames on.
             let frame = (started * 10.0).round() as u32;

@@ -27,6 +27,8 @@ struct ShadowMap {
 
 struct ShadowMaps {
     maps: array<ShadowMap, 2>,
+    // Toward the sun now (xyz), to find its light: the maps' suns may lie ahead of it.
+    sun: vec4<f32>,
 }
 
 @group(#{MATERIAL_BIND_GROUP}) @binding(100) var first_map: texture_2d<f32>;
@@ -60,11 +62,9 @@ fn cloud_transmittance(p: vec3<f32>) -> f32 {
         + second.sun_and_weight.w * map_transmittance(second, second_map, p);
 }
 
-// The directional light nearest the maps' sun, if one is within about 8 degrees of it.
+// The directional light nearest the sun, if one is within about 8 degrees of it.
 fn sun_light_index() -> i32 {
-    let first = shadow_maps.maps[0].sun_and_weight;
-    let second = shadow_maps.maps[1].sun_and_weight;
-    let sun = select(second.xyz, first.xyz, first.w >= second.w);
+    let sun = shadow_maps.sun.xyz;
     var best = -1;
     var closest = 0.99;
     for (var i = 0u; i < view_bindings::lights.n_directional_lights; i += 1u) {
