@@ -21,6 +21,7 @@
 pub mod budget;
 pub mod cell;
 pub mod field;
+pub mod fog_sunlight;
 pub mod height_fog;
 pub mod joint_segment;
 pub mod local_light;
