@@ -121,6 +121,10 @@ pub struct FogSunMap {
 }
 
 impl FogSunMap {
+    /// The most points along either side of a map a ground fog builds (a
+    /// larger terrain is sampled bilinearly at fewer).
+    pub const MAX_POINTS: usize = 513;
+
     /// The map of a fog of `thickness` over `ground` (each sampled
     /// bilinearly) for the sun in direction `sun` (toward it, the terrain's
     /// frame), at `points` grid points along x and z over the ground's

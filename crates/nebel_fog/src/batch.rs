@@ -41,13 +41,16 @@ use nebel_lod::{
     fog_prisms,
 };
 use nebel_render::camera::to_double_affine;
-use nebel_render::{CellBatch, EffectiveQuality, HeavyBuild, HeavyBuilds, LodCameras};
+use nebel_render::{
+    CellBatch, CellFogSunlight, EffectiveQuality, HeavyBuild, HeavyBuilds, LodCameras,
+};
 use nebel_terrain::{Terrain, TerrainLod, TerrainLodStats, TerrainMapLod, TerrainStatus};
 
 use crate::error::GroundFogError;
 use crate::fog_layers::PreparedFogLayers;
 use crate::ground_fog::{GroundFog, GroundFogPlugin, GroundFogStats, GroundFogStatus};
 use crate::map::GroundFogMap;
+use crate::sunlight::GroundFogSun;
 
 /// What the fog's batch was built from.
 #[derive(Clone, Debug, PartialEq)]
@@ -150,6 +153,8 @@ pub(crate) fn remove_fogs(
             GroundFogMap,
             GroundFogStatus,
             GroundFogStats,
+            GroundFogSun,
+            CellFogSunlight,
         )>();
     }
 }

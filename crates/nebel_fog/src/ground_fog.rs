@@ -32,6 +32,7 @@ use nebel_terrain::TerrainSystems;
 use crate::batch::{GroundFogBatch, measure_fogs, remove_fogs, update_fog_batches};
 use crate::error::GroundFogError;
 use crate::map::{GroundFogMap, build_ground_fog_maps};
+use crate::sunlight::{GroundFogSun, update_fog_sunlight};
 
 /// Adds [`GroundFog`] and its systems (in [`PostUpdate`], around the
 /// terrain's: the fog's map is built after the terrain's quadtree, its
@@ -57,6 +58,9 @@ impl GroundFogPlugin {
     /// Time of the last fog layer build (thickness and roughness, on the
     /// task pool), ms.
     pub const BUILD_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/fog/build_ms");
+    /// Time of the last sun map build (the terrain's shadow, on the task
+    /// pool; [`crate::sunlight`]), ms.
+    pub const SUN_MAP_MS: DiagnosticPath = DiagnosticPath::const_new("nebel/fog/sun_map_ms");
 }
 
 impl Plugin for GroundFogPlugin {
@@ -73,6 +77,7 @@ impl Plugin for GroundFogPlugin {
                     (
                         cpu_timed(remove_fogs),
                         cpu_timed(update_fog_batches),
+                        cpu_timed(update_fog_sunlight),
                         cpu_timed(measure_fogs),
                     )
                         .chain()
@@ -88,6 +93,7 @@ impl Plugin for GroundFogPlugin {
                 (Self::TETRAHEDRA, ""),
                 (Self::UPDATE_MS, " ms"),
                 (Self::BUILD_MS, " ms"),
+                (Self::SUN_MAP_MS, " ms"),
             ],
         );
     }
@@ -132,7 +138,13 @@ pub struct GroundFogDebug {
 /// same entity (see the module docs).
 #[derive(Component, Clone, Debug, PartialEq, Reflect)]
 #[reflect(Component, Default, Clone)]
-#[require(GroundFogStatus, GroundFogStats, GroundFogMap, GroundFogBatch)]
+#[require(
+    GroundFogStatus,
+    GroundFogStats,
+    GroundFogMap,
+    GroundFogBatch,
+    GroundFogSun
+)]
 pub struct GroundFog {
     /// The thickness above the ground. Default: [`ValleyFog::default()`]
     /// (filled up to 60 m in the terrain's frame, ±8 m edge).
@@ -173,6 +185,18 @@ pub struct GroundFog {
     /// `VolumetricLight` that reach it (`nebel_render::local_lights`): the
     /// phase's asymmetry and a factor on its colour. Default: isotropic, 1.
     pub light_response: LightResponse,
+    /// Sunlight a sorted fog scatters toward the eye, linear RGB, relative
+    /// to the light the transfer function's colour stands for (which is the
+    /// fog's glow in the shade): the fog adds `sun_color ⊙ κ` times the
+    /// Henyey-Greenstein phase at each ray's angle to the first
+    /// `DirectionalLight` (none: no sunlight), dimmed by the fog above each
+    /// point and cut by the terrain's shadow ([`crate::sunlight`]). Default
+    /// black: no sunlight, the fog is its colour in sun and shade alike.
+    pub sun_color: Color,
+    /// The Henyey-Greenstein asymmetry of the sunlight's scattering, in
+    /// (−1, 1) (clamped to ±0.99): 0 isotropic, toward 1 a bright halo
+    /// around the sun. Default 0.6.
+    pub sun_asymmetry: f32,
     /// Debug views. Default: none.
     pub debug: GroundFogDebug,
 }
@@ -205,6 +229,8 @@ impl Default for GroundFog {
             profile: vec![[0.0, 1.0], [1.0, 0.0]],
             roughness_weight: 1.0,
             light_response: LightResponse::default(),
+            sun_color: Color::BLACK,
+            sun_asymmetry: 0.6,
             debug: GroundFogDebug::default(),
         }
     }

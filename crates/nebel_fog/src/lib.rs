@@ -18,6 +18,8 @@
 //!   in exact back-to-front order for the eye ([`nebel_lod::ground_fog`]),
 //!   and hands them to the cell projection as the entity's `CellBatch`
 //!   ([`batch`]);
+//! - with a sun colour, lights a sorted fog by the first `DirectionalLight`,
+//!   dimmed by the fog above and cut by the terrain's shadow ([`sunlight`]);
 //! - reports [`GroundFogStatus`], [`GroundFogStats`] and the `nebel/fog/*`
 //!   diagnostics, and draws the cells' edges as lines in the debug view.
 //!
@@ -55,6 +57,7 @@ pub mod error;
 pub mod fog_layers;
 pub mod ground_fog;
 pub mod map;
+pub mod sunlight;
 
 pub use error::GroundFogError;
 pub use fog_layers::{FogLayers, FogLayersError, FogLayersPlugin, FogLayersStatus};

@@ -48,6 +48,7 @@ use crate::image_metrics::LinearImage;
 use nebel_core::budget::BudgetError;
 use nebel_core::cell::{CellSegment, PreparedTetrahedron, Ray, Tetrahedron};
 use nebel_core::field::DensityGrid;
+use nebel_core::fog_sunlight::FogSunlight;
 use nebel_core::joint_segment::{JointMedium, exact_joint_segment};
 use nebel_core::local_light::{LightResponse, LocalLight};
 use nebel_core::optics::{MODULATOR_PIECES, OpticalMode, PremultipliedRgba, henyey_greenstein};
@@ -269,6 +270,10 @@ pub struct ReferenceScene {
     /// How the medium scatters them: the phase's asymmetry and the factor
     /// `s` on κ ([`LightResponse::checked`]). Default: isotropic, 1.
     pub light_response: LightResponse,
+    /// Sorted volumes only: the sun lighting a ground fog, `c ⊙ 4π p_HG ∫ ρ
+    /// κ T V T_sun dt` along every segment, cut where the rays cross the
+    /// terrain's shadow ([`FogSunlight::scattered`]). Default `None`.
+    pub sunlight: Option<FogSunlight>,
 }
 
 /// Single scattering of the sun (Nes 2008) for a volume integrated over the
@@ -312,6 +317,7 @@ impl ReferenceScene {
             fog: None,
             local_lights: Vec::new(),
             light_response: LightResponse::default(),
+            sunlight: None,
         }
     }
 
@@ -829,6 +835,7 @@ struct Medium<'a> {
     /// The local lights it scatters, and how.
     local_lights: &'a [LocalLight],
     response: LightResponse,
+    sunlight: Option<&'a FogSunlight>,
 }
 
 impl<'a> Medium<'a> {
@@ -841,6 +848,7 @@ impl<'a> Medium<'a> {
             light: ray_light(scene, ray),
             local_lights: if sorted { &scene.local_lights } else { &[] },
             response: scene.light_response.checked(),
+            sunlight: scene.sunlight.as_ref().filter(|_| sorted),
         }
     }
 
@@ -886,9 +894,10 @@ impl<'a> Medium<'a> {
 /// media from `t0`.
 fn in_scattered(media: &[Medium<'_>], active: &[RayPiece], ray: &Ray, t0: f64, t1: f64) -> DVec3 {
     let mut sum = DVec3::ZERO;
-    let lit = active
-        .iter()
-        .any(|piece| !media[piece.medium].local_lights.is_empty());
+    let lit = active.iter().any(|piece| {
+        let medium = &media[piece.medium];
+        !medium.local_lights.is_empty() || medium.sunlight.is_some()
+    });
     if !lit || t1.partial_cmp(&t0) != Some(std::cmp::Ordering::Greater) {
         return sum;
     }
@@ -929,6 +938,12 @@ fn in_scattered(media: &[Medium<'_>], active: &[RayPiece], ray: &Ray, t0: f64, t
                     medium.albedo(s) * (part.3 * rho * transmittance(t))
                 },
             );
+        }
+        if let Some(sunlight) = medium.sunlight {
+            sum += sunlight.scattered(ray.origin, ray.direction, (t0, t1), |t| {
+                let sample = medium.transfer_function.evaluate(scalar(part, t));
+                sample.kappa * (part.3 * sample.rho * transmittance(t))
+            });
         }
     }
     sum

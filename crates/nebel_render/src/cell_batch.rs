@@ -15,6 +15,7 @@ use nebel_core::optics::{OpticalMode, henyey_greenstein};
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::Cells;
 
+use crate::fog_sunlight::{CellFogSunlight, FogSunUniform};
 use crate::local_lights::{LocalLightsUniform, ReachingLights};
 
 /// The sun and sky of a scattering batch ([`CellBatch::scattering`]).
@@ -78,19 +79,21 @@ pub(crate) struct CellBatchUniform {
     pub sunlight: Vec4,
     /// The local lights that reach the batch ([`crate::local_lights`]).
     pub lights: LocalLightsUniform,
+    /// The sun in ground fog ([`crate::fog_sunlight`]).
+    pub fog_sun: FogSunUniform,
 }
 
 impl CellBatchUniform {
     /// The uniform of a batch with `scattering` blended by `blend` (already
     /// clamped, [`CellBlend::clamped`]) under `sunlight` (already checked,
     /// [`CellSunlight::checked`]), lit by `lights` scattered with
-    /// `response` (checked here).
+    /// `response` (checked here) and by the sun in ground fog `fog_sun`.
     pub(crate) fn new(
         scattering: Option<&CellScattering>,
         blend: f32,
         sunlight: Vec3,
-        lights: &ReachingLights,
-        response: LightResponse,
+        (lights, response): (&ReachingLights, LightResponse),
+        fog_sun: Option<&CellFogSunlight>,
     ) -> Self {
         let mut uniform = scattering.map_or_else(Self::default, |scattering| Self {
             sun: scattering
@@ -104,6 +107,7 @@ impl CellBatchUniform {
         uniform.blend.x = blend;
         uniform.sunlight = sunlight.extend(0.0);
         uniform.lights = LocalLightsUniform::new(lights, response);
+        uniform.fog_sun = fog_sun.map(FogSunUniform::new).unwrap_or_default();
         uniform
     }
 }
@@ -258,7 +262,8 @@ mod tests {
         };
         assert!(scattering.phase(Vec3::Z) > 100.0 * scattering.phase(Vec3::NEG_Z));
         let none = ReachingLights::default();
-        let uniform = CellBatchUniform::new(Some(&scattering), 0.25, Vec3::ONE, &none, default());
+        let uniform =
+            CellBatchUniform::new(Some(&scattering), 0.25, Vec3::ONE, (&none, default()), None);
         assert_eq!(uniform.sun, Vec4::new(0.0, 0.0, 1.0, 0.99));
         assert_eq!(uniform.blend.x, 0.25);
         assert_eq!(uniform.sunlight, Vec4::new(1.0, 1.0, 1.0, 0.0));
@@ -267,7 +272,7 @@ mod tests {
             asymmetry: f32::NAN,
             strength: f32::NAN,
         };
-        let unlit = CellBatchUniform::new(None, 0.5, Vec3::ONE, &none, nan);
+        let unlit = CellBatchUniform::new(None, 0.5, Vec3::ONE, (&none, nan), None);
         assert_eq!(
             (
                 unlit.sun,
@@ -285,7 +290,7 @@ mod tests {
             asymmetry: -3.0,
             strength: 4.0,
         };
-        let lit = CellBatchUniform::new(None, 0.5, Vec3::ONE, &lights, response);
+        let lit = CellBatchUniform::new(None, 0.5, Vec3::ONE, (&lights, response), None);
         assert_eq!(lit.lights.response, Vec4::new(2.0, -0.99, 1e-4, 4.0));
         let sunlight = CellSunlight {
             colour: Vec3::new(f32::NAN, -1.0, 2.5),

@@ -14,6 +14,8 @@
 //! - [`camera`]: the camera that drives the level of detail ([`LodCamera`]).
 //! - [`grayscale_map`]: [`GrayscaleMap`], a grayscale PNG as unit values on a
 //!   grid: terrain heights, fog thickness, a sky layer's surfaces.
+//! - [`fog_sunlight`]: the sun in ground fog, dimmed by the fog above and cut
+//!   by the terrain's shadow ([`CellFogSunlight`]).
 //! - [`local_lights`]: point and spot lights (opted in with `VolumetricLight`)
 //!   scattered by sorted batches.
 //! - [`effect`]: what every effect plugin shares ([`EffectStatus`]).
@@ -29,6 +31,7 @@ pub mod cell_projection;
 pub mod diagnostics;
 pub mod effect;
 pub mod fog_layers;
+pub mod fog_sunlight;
 mod frame_budget;
 pub mod grayscale_map;
 pub mod headless;
@@ -45,5 +48,6 @@ pub use cell_projection::{
 pub use diagnostics::{NebelDiagnosticsPlugin, NebelSystems, cpu_timed};
 pub use effect::{EffectStatus, InvalidSetting, register_diagnostics};
 pub use fog_layers::{FogLayersUniform, ViewFogLayers};
+pub use fog_sunlight::CellFogSunlight;
 pub use grayscale_map::{GrayscaleMap, GrayscaleMapError, GrayscaleMapLoader, GrayscaleMapPlugin};
 pub use quality::{AutoQuality, EffectiveQuality, NebelQuality, NebelQualityPlugin, QualityPreset};

@@ -27,11 +27,13 @@
 //! refinement and prisms (`nebel_lod::fog_prisms`), without culling.
 
 use std::path::Path;
+use std::sync::Arc;
 
 use glam::{DAffine3, DVec2, DVec3};
 use serde::{Deserialize, Serialize};
 
 use nebel_core::field::{FogNoise, HeightField, ValleyFog};
+use nebel_core::fog_sunlight::{FogColumn, FogSunMap, FogSunlight};
 use nebel_core::local_light::LightResponse;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
@@ -44,7 +46,7 @@ use nebel_reference::ReferenceCamera;
 
 use super::{
     BuiltVolume, InvalidField, SceneField, TerrainDescription, TerrainTriangles,
-    TransferDescription,
+    TransferDescription, colour,
 };
 
 /// A terrain's ground fog.
@@ -81,9 +83,22 @@ pub struct GroundFogDescription {
     /// lights. Default `(asymmetry: 0.0, strength: 1.0)`.
     #[serde(default)]
     pub light_response: LightResponse,
+    /// Sunlight a sorted fog scatters from the scene's directional light,
+    /// linear RGB, relative to the light its colour stands for (its glow in
+    /// the shade), dimmed by the fog above and cut by the terrain's shadow
+    /// (`nebel_fog::GroundFog::sun_color`). Default `(0, 0, 0)`: none.
+    #[serde(default)]
+    pub sun_color: [f32; 3],
+    /// Henyey-Greenstein asymmetry of the sunlight, in (−1, 1). Default 0.6.
+    #[serde(default = "default_sun_asymmetry")]
+    pub sun_asymmetry: f32,
     /// Debug view: draw every cell's edges. Default false.
     #[serde(default)]
     pub debug_wireframe: bool,
+}
+
+fn default_sun_asymmetry() -> f32 {
+    0.6
 }
 
 fn default_density() -> f32 {
@@ -135,6 +150,13 @@ impl GroundFogDescription {
         ];
         InvalidField::check_finite(checks)?;
         InvalidField::check_light_response(&self.light_response)?;
+        colour("sun_color", self.sun_color)?;
+        if !(self.sun_asymmetry > -1.0 && self.sun_asymmetry < 1.0) {
+            return Err(InvalidField::new(
+                "sun_asymmetry",
+                format!("must be in (−1, 1), got {}", self.sun_asymmetry),
+            ));
+        }
         if self.saturate && self.mode != OpticalMode::Emissive {
             return Err(InvalidField::new(
                 "saturate",
@@ -287,13 +309,16 @@ impl TerrainDescription {
     /// [`TerrainDescription::accuracy_for`] the camera; without culling), and the ground they lie on (the refinement's
     /// triangles, which the GPU draws), ready for the reference; `None`
     /// without a fog. `unit` are the terrain's unit heights, `built` the
-    /// fog's files ([`GroundFogDescription::build`]). Errors name the field
-    /// (relative to `terrain`).
+    /// fog's files ([`GroundFogDescription::build`]), `sun` the unit
+    /// direction toward the scene's sun, if it has one (a sorted fog with a
+    /// sun colour is lit by it, on the map the plugin builds). Errors name
+    /// the field (relative to `terrain`).
     pub fn fog_reference(
         &self,
         unit: &HeightField,
         built: &BuiltGroundFog,
         camera: &ReferenceCamera,
+        sun: Option<DVec3>,
     ) -> Result<Option<FogReference>, InvalidField> {
         let Some(fog) = &self.fog else {
             return Ok(None);
@@ -356,6 +381,29 @@ impl TerrainDescription {
         let mut cells = Vec::new();
         fog_prisms(&mesh, &input, &mut cells)
             .map_err(|error| InvalidField::new("fog", error.to_string()))?;
+        let fog_sunlight = sun
+            .filter(|_| fog.mode == OpticalMode::Sorted && fog.sun_color.iter().any(|c| *c > 0.0))
+            .and_then(|sun| {
+                let field = hierarchy.field();
+                let thickness = HeightField::new(
+                    field.dims(),
+                    field.spacing(),
+                    field.origin(),
+                    layer.values().to_vec(),
+                )
+                .ok()?;
+                let column = FogColumn::new(&fog.profile, &built.transfer_function);
+                let points = field.dims().map(|n| n.min(FogSunMap::MAX_POINTS));
+                let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+                let map = FogSunMap::compute(field, &thickness, column, sun, points, threads)?;
+                Some(FogSunlight {
+                    map: Arc::new(map),
+                    map_from_world: DAffine3::from_translation(-center),
+                    direction: sun,
+                    colour: DVec3::from(fog.sun_color.map(f64::from)),
+                    asymmetry: f64::from(fog.sun_asymmetry),
+                })
+            });
         let volume = (!cells.is_empty()).then(|| BuiltVolume {
             field: SceneField::Cells(cells.iter().map(GpuCell::to_tetrahedron).collect()),
             transfer_function: built.transfer_function.clone(),
@@ -370,6 +418,7 @@ impl TerrainDescription {
             projected_cells: false,
             ends_where_fog_layers_begin: true,
             light_response: fog.light_response,
+            fog_sunlight,
         });
         Ok(Some(FogReference { volume, ground }))
     }

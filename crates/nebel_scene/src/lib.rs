@@ -1055,7 +1055,7 @@ impl SceneDescription {
             return Ok(None);
         };
         terrain
-            .fog_reference(unit, built, &self.reference_camera())
+            .fog_reference(unit, built, &self.reference_camera(), self.sun_direction())
             .map_err(|invalid| invalid.in_scene(scene_path, "terrain"))
     }
 

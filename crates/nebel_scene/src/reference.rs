@@ -175,6 +175,7 @@ pub fn reference_image_with_terrain(
         reference_scene.fog = fog.clone();
         reference_scene.local_lights = local_lights.clone();
         reference_scene.light_response = volume.light_response;
+        reference_scene.sunlight = volume.fog_sunlight;
         if let Some(start) = fog
             .as_ref()
             .map(|fog| fog.start_distance)

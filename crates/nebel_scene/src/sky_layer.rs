@@ -64,6 +64,7 @@ pub(crate) fn layer_reference(
         lighting: None,
         projected_cells: false,
         ends_where_fog_layers_begin: false,
+        fog_sunlight: None,
         light_response: drawing.light_response,
     }))
 }

@@ -69,6 +69,7 @@ use nebel_core::field::{
     CloudEllipsoid, CloudKind, CloudLighting, CloudNoise, CloudShape, CloudWeather, DensityGrid,
     FieldError, NoiseKind, ProceduralNoise, WeatherMap, power_of_two_plus_one,
 };
+use nebel_core::fog_sunlight::FogSunlight;
 use nebel_core::local_light::LightResponse;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{ControlPoint, TransferError, TransferFunction, TransferPreset};
@@ -727,6 +728,9 @@ pub struct BuiltVolume {
     pub ends_where_fog_layers_begin: bool,
     /// How it scatters volumetric point and spot lights.
     pub light_response: LightResponse,
+    /// Ground fog lit by the sun: the terrain's shadow, the fog's column and
+    /// the sun (`nebel_core::fog_sunlight`); `None` for anything else.
+    pub fog_sunlight: Option<FogSunlight>,
 }
 
 /// A volume's scalar field.
@@ -925,6 +929,7 @@ impl VolumeDescription {
             projected_cells: self.projected_cells,
             ends_where_fog_layers_begin: false,
             light_response: self.light_response,
+            fog_sunlight: None,
         })
     }
 

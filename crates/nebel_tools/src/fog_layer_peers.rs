@@ -351,6 +351,7 @@ fn fog_volume_peer(
         lighting: None,
         projected_cells: false,
         ends_where_fog_layers_begin: false,
+        fog_sunlight: None,
         light_response: Default::default(),
     };
     Some((lit, bevy_fog, volume))

@@ -523,6 +523,7 @@ fn bench_fog(args: &SceneArgs, out_dir: &Path, step_count: u32) -> Result<(), Co
         lighting: None,
         projected_cells: false,
         ends_where_fog_layers_begin: false,
+        fog_sunlight: None,
         light_response: Default::default(),
     };
     // Two references: through the trilinear grid (the total error) and

@@ -563,6 +563,8 @@ fn ground_fog(
         profile: fog.profile.clone(),
         roughness_weight: fog.roughness_weight,
         light_response: fog.light_response,
+        sun_color: Color::linear_rgb(fog.sun_color[0], fog.sun_color[1], fog.sun_color[2]),
+        sun_asymmetry: fog.sun_asymmetry,
         debug: GroundFogDebug {
             wireframe: fog.debug_wireframe,
         },

@@ -46,6 +46,13 @@
 // the angle at which the light sees the ray, which takes the inverse square
 // out exactly (nebel_core::local_light::LocalLight::scattered with one interval).
 //
+// GROUND_SUN (the sun lights a ground fog, nebel_render::fog_sunlight): the
+// sun's single scattering is added like a local light's, c ⊙ 4π p_HG(θ) ∫ σ κ
+// T V T_sun dt over the same pieces, three Gauss-Legendre nodes in t each: V
+// is 0 below the terrain's shadow height, T_sun = e^{−H F(u)/μ} the fog
+// above the point (ground, thickness and shadow height bilinear from the sun
+// map, F linear from its table).
+//
 // FOG_LAYERS (the view has fog layers, Röttger 2004 §5.3): the segment is
 // seen through the fog in front of it. As maps of the radiance behind, a
 // segment x ↦ C + (1 − α) x among fog pieces x ↦ F + T x equals the segment
@@ -106,6 +113,18 @@ struct Cell {
     vertices: array<vec4<f32>, 4>,
 }
 
+struct FogSun {
+    // World position to the sun map's grid: x and z in grid points, y the
+    // height in the terrain's frame.
+    grid_from_world: mat4x4<f32>,
+    // xyz: unit direction toward the sun; w: Henyey-Greenstein asymmetry g.
+    sun: vec4<f32>,
+    // rgb: the sunlight's colour; w: 1/μ, its slant through a level layer.
+    colour: vec4<f32>,
+    // The fog's column F(u) at 65 equal steps of u, four to an element.
+    column: array<vec4<f32>, 17>,
+}
+
 struct CellTables {
     // Samples along s_f and s_b.
     scalar_size: u32,
@@ -126,6 +145,11 @@ struct CellTables {
 #ifdef COUNT_FRAGMENTS
 // Fragments run, for the fragments-per-pixel diagnostic (a debug setting).
 @group(0) @binding(2) var<storage, read_write> fragment_count: atomic<u32>;
+#endif
+
+#ifdef GROUND_SUN
+// Per grid point of the sun map: (shadow height, ground, thickness, 0).
+@group(1) @binding(7) var sun_map: texture_2d<f32>;
 #endif
 
 fn opaque_depth(pixel: vec2<i32>) -> f32 {
@@ -195,6 +219,8 @@ struct CellBatchParameters {
     // The local lights that reach the batch (read only by the LOCAL_LIGHTS
     // variant).
     lights: LocalLights,
+    // The sun in ground fog (read only by the GROUND_SUN variant).
+    fog_sun: FogSun,
 }
 @group(1) @binding(5) var<uniform> parameters: CellBatchParameters;
 #ifdef RAY_CAST
@@ -372,12 +398,58 @@ fn light_piece(i: u32, direction: vec3<f32>, t_a: f32, t_b: f32, sigma: f32) -> 
     }
     return light.colour.rgb * sum;
 }
+#endif
 
-// The local lights scattered toward the eye by the segment from t_front to
-// t_back (see the header), premultiplied as its colour: nothing is looked up
-// for a segment no light's stretch on the ray reaches, and a piece's colour
-// only where one does.
-fn local_light_colour(
+#ifdef GROUND_SUN
+// The sun's transmittance at the world point `p`: 0 below the terrain's
+// shadow height, else e^{−H F(u)/μ} (nebel_core::fog_sunlight::FogSunMap).
+fn ground_sun_transmittance(p: vec3<f32>) -> f32 {
+    let q = (parameters.fog_sun.grid_from_world * vec4(p, 1.0)).xyz;
+    let size = vec2<i32>(textureDimensions(sun_map));
+    let g = clamp(q.xz, vec2(0.0), vec2<f32>(size - 1));
+    let corner = min(vec2<i32>(floor(g)), size - 2);
+    let f = g - vec2<f32>(corner);
+    let row0 = mix(textureLoad(sun_map, corner, 0), textureLoad(sun_map, corner + vec2(1, 0), 0), f.x);
+    let row1 = mix(textureLoad(sun_map, corner + vec2(0, 1), 0), textureLoad(sun_map, corner + vec2(1, 1), 0), f.x);
+    let texel = mix(row0, row1, f.y);
+    if q.y < texel.x {
+        return 0.0;
+    }
+    if texel.z <= 0.0 {
+        return 1.0;
+    }
+    let x = clamp((q.y - texel.y) / texel.z, 0.0, 1.0) * 64.0;
+    let k = min(u32(x), 63u);
+    let column = mix(
+        parameters.fog_sun.column[k / 4u][k % 4u],
+        parameters.fog_sun.column[(k + 1u) / 4u][(k + 1u) % 4u],
+        x - f32(k),
+    );
+    return exp(-texel.z * column * parameters.fog_sun.colour.w);
+}
+
+// ∫ σ e^{−σ (t − t_a)} V T_sun dt over the piece [t_a, t_b] along the unit
+// ray `direction` from the eye: three Gauss-Legendre nodes.
+fn sun_piece(direction: vec3<f32>, t_a: f32, t_b: f32, sigma: f32) -> f32 {
+    let half = 0.5 * (t_b - t_a);
+    let middle = t_a + half;
+    let nodes = array<vec2<f32>, 3>(vec2(-0.7745967, 5.0 / 9.0), vec2(0.0, 8.0 / 9.0), vec2(0.7745967, 5.0 / 9.0));
+    var sum = 0.0;
+    for (var k = 0u; k < 3u; k++) {
+        let t = middle + half * nodes[k].x;
+        let p = view.camera_position.xyz + t * direction;
+        sum += nodes[k].y * half * sigma * exp(-sigma * (t - t_a)) * ground_sun_transmittance(p);
+    }
+    return sum;
+}
+#endif
+
+#ifdef SCATTERED_LIGHT
+// The local lights and the sun in ground fog scattered toward the eye by
+// the segment from t_front to t_back (see the header), premultiplied as its
+// colour: without the sun nothing is looked up for a segment no light's
+// stretch on the ray reaches, and a piece's colour only where one does.
+fn scattered_colour(
     s_front: f32,
     s_back: f32,
     m_front: f32,
@@ -386,15 +458,24 @@ fn local_light_colour(
     t_back: f32,
     direction: vec3<f32>,
 ) -> vec3<f32> {
+    var reach = vec2(3.0e38, -3.0e38);
+#ifdef LOCAL_LIGHTS
     let count = min(u32(parameters.lights.response.x), #{MAX_LOCAL_LIGHTS}u);
     // (Taken again per piece: an array of them costs CPU drivers more.)
-    var reach = vec2(3.0e38, -3.0e38);
     for (var i = 0u; i < count; i++) {
         let on_ray = light_on_ray(parameters.lights.lights[i], view.camera_position.xyz, direction);
         if on_ray.b > on_ray.a {
             reach = vec2(min(reach.x, on_ray.a), max(reach.y, on_ray.b));
         }
     }
+#endif
+#ifdef GROUND_SUN
+    reach = vec2(t_front, t_back);
+    let sun = parameters.fog_sun.sun;
+    let cos_theta = dot(direction, sun.xyz);
+    let sun_colour = parameters.fog_sun.colour.rgb * (1.0 - sun.w * sun.w)
+        / pow(1.0 + sun.w * sun.w - 2.0 * sun.w * cos_theta, 1.5);
+#endif
     if reach.x >= t_back || reach.y <= t_front {
         return vec3(0.0);
     }
@@ -415,9 +496,15 @@ fn local_light_colour(
             * pair_lookup(s_a, s_b).a;
         if depth > 0.0 && piece_length > 0.0 && t_a + piece_length > reach.x {
             var light = vec3(0.0);
+#ifdef LOCAL_LIGHTS
             for (var i = 0u; i < count; i++) {
                 light += light_piece(i, direction, t_a, t_a + piece_length, depth / piece_length);
             }
+            light *= parameters.lights.response.w;
+#endif
+#ifdef GROUND_SUN
+            light += sun_colour * sun_piece(direction, t_a, t_a + piece_length, depth / piece_length);
+#endif
 #ifdef SCATTERING
             colour += transmittance * light;
 #else
@@ -428,7 +515,7 @@ fn local_light_colour(
         }
         transmittance *= exp(-depth);
     }
-    return parameters.lights.response.w * colour;
+    return colour;
 }
 #endif
 
@@ -488,9 +575,9 @@ fn segment_colour(
 #else
     var segment = vec4(parameters.sunlight.rgb * colour, alpha);
 #endif
-#ifdef LOCAL_LIGHTS
+#ifdef SCATTERED_LIGHT
     segment = vec4(
-        segment.rgb + local_light_colour(s_front, s_back, m_front, m_back, t_front, t_back, direction),
+        segment.rgb + scattered_colour(s_front, s_back, m_front, m_back, t_front, t_back, direction),
         segment.a,
     );
 #endif

@@ -433,6 +433,7 @@ pub fn draw_cell_batches(
                 buffer.modulators.as_entire_binding(),
                 buffer.parameters.binding().expect("written when uploaded"),
                 buffer.next_keyframe.as_entire_binding(),
+                &buffer.sun_map,
             )),
         );
         draws.push(Draw {
@@ -445,6 +446,7 @@ pub fn draw_cell_batches(
                 batch.group.is_some(),
                 buffer.ray_cast,
                 batch.is_lit_locally(),
+                batch.is_sunlit(),
             ),
             bind_group,
             shape: if buffer.ray_cast {

@@ -21,11 +21,12 @@ use super::tables::CellTablesUniform;
 use crate::cell_batch::CellBatchUniform;
 
 /// The pipeline variants per optical mode ([`variant_index`]).
-pub(super) const VARIANTS: usize = 128;
+pub(super) const VARIANTS: usize = 256;
 
 /// The index of a pipeline variant: modulated segment lengths, single
 /// scattering, the handoff to fog layers, keyframe blending, drawing into a
-/// merged layer, ray casting a whole grid and local lights, each on or off.
+/// merged layer, ray casting a whole grid, local lights and the sun in
+/// ground fog, each on or off.
 pub(super) fn variant_index(
     modulated: bool,
     scattering: bool,
@@ -34,6 +35,7 @@ pub(super) fn variant_index(
     merged: bool,
     ray_cast: bool,
     local_lights: bool,
+    ground_sun: bool,
 ) -> usize {
     usize::from(modulated)
         | usize::from(scattering) << 1
@@ -42,6 +44,7 @@ pub(super) fn variant_index(
         | usize::from(merged) << 4
         | usize::from(ray_cast) << 5
         | usize::from(local_lights) << 6
+        | usize::from(ground_sun) << 7
 }
 
 pub(super) fn mode_index(mode: OpticalMode) -> usize {
@@ -180,6 +183,8 @@ pub struct CellProjectionPipelineKey {
     pub ray_cast: bool,
     /// Point and spot lights reach the batch (`crate::local_lights`).
     pub local_lights: bool,
+    /// The sun lights the batch as ground fog (`crate::fog_sunlight`).
+    pub ground_sun: bool,
 }
 
 /// Creates the bind group layouts and loads the shaders.
@@ -267,6 +272,8 @@ pub fn init_cell_projection_pipeline(
                     storage_buffer_read_only_sized(false, None),
                     uniform_buffer::<CellBatchUniform>(false),
                     storage_buffer_read_only_sized(false, None),
+                    // The sun map of ground fog (`crate::fog_sunlight`).
+                    texture_2d(unfilterable),
                 ),
             ),
         ),
@@ -387,9 +394,15 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
             shader_defs.push("BLENDED".into());
         }
         if key.local_lights {
+            shader_defs.push("LOCAL_LIGHTS".into());
+        }
+        if key.ground_sun {
+            shader_defs.push("GROUND_SUN".into());
+        }
+        if key.local_lights || key.ground_sun {
             // A ray cast grid's segments are already pieces of a voxel; a
             // cell's may cross a whole coarse octree leaf.
-            shader_defs.push("LOCAL_LIGHTS".into());
+            shader_defs.push("SCATTERED_LIGHT".into());
             shader_defs.push(ShaderDefVal::UInt(
                 "LIGHT_PIECES".into(),
                 if key.ray_cast {

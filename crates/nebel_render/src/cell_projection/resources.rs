@@ -34,6 +34,7 @@ use super::queries::CountCellFragments;
 use super::settings::CellProjection;
 use crate::cell_batch::{CellBatch, CellBatchUniform, CellBlend, CellScattering, CellSunlight};
 use crate::fog_layers::{FogLayersUniform, ViewFogLayers};
+use crate::fog_sunlight::{CellFogSunlight, sun_map_texture};
 use crate::local_lights::{
     ReachingLights, VolumetricPointLights, VolumetricSpotLights, visible_volumetric_lights,
 };
@@ -64,6 +65,8 @@ pub struct ExtractedCellBatch {
     lights: ReachingLights,
     /// How it scatters them ([`CellBatch::light_response`]).
     light_response: LightResponse,
+    /// The sun lighting a sorted batch of ground fog.
+    fog_sunlight: Option<CellFogSunlight>,
 }
 
 impl ExtractedCellBatch {
@@ -82,6 +85,18 @@ impl ExtractedCellBatch {
         self.lights.count > 0
     }
 
+    /// Whether the sun lights the batch as ground fog.
+    pub(super) fn is_sunlit(&self) -> bool {
+        self.fog_sunlight.is_some()
+    }
+
+    /// The identity of the batch's sun map, 0 without one.
+    fn sun_map_key(&self) -> usize {
+        self.fog_sunlight
+            .as_ref()
+            .map_or(0, |sunlight| Arc::as_ptr(&sunlight.map) as usize)
+    }
+
     /// Whether the batch is a whole grid, ray cast.
     pub(super) fn is_ray_cast(&self) -> bool {
         self.cells.grid.is_some()
@@ -93,8 +108,8 @@ impl ExtractedCellBatch {
             self.scattering.as_ref(),
             self.blend,
             self.sunlight,
-            &self.lights,
-            self.light_response,
+            (&self.lights, self.light_response),
+            self.fog_sunlight.as_ref(),
         )
     }
 }
@@ -123,6 +138,7 @@ pub fn extract_cell_batches(
             Ref<CellBatch>,
             Option<&CellBlend>,
             Option<&CellSunlight>,
+            Option<&CellFogSunlight>,
         )>,
     >,
     (points, spots): (
@@ -140,7 +156,7 @@ pub fn extract_cell_batches(
     let lights = visible_volumetric_lights(&points, &spots);
     // Forget entities that are gone, so the set stays as small as the world.
     refused.retain(|entity| batches.contains(*entity));
-    for (entity, batch, blend, sunlight) in &batches {
+    for (entity, batch, blend, sunlight, fog_sunlight) in &batches {
         if !batch.is_drawable() {
             continue;
         }
@@ -207,6 +223,9 @@ pub fn extract_cell_batches(
                     ReachingLights::default()
                 },
                 light_response: batch.light_response,
+                fog_sunlight: fog_sunlight
+                    .filter(|_| batch.mode == OpticalMode::Sorted)
+                    .cloned(),
             },
         ));
     }
@@ -348,6 +367,12 @@ pub struct GpuCellBuffer {
     pub(super) ray_cast: bool,
     /// The cells: the tetrahedra, or the grid's.
     pub(super) count: u32,
+    /// The sun map of a sunlit ground fog, or a texel for a batch without
+    /// (the binding must exist; the pipeline without the sun never reads
+    /// it).
+    pub(super) sun_map: TextureView,
+    /// The identity of the map it holds, 0 for none.
+    sun_map_key: usize,
 }
 
 /// Where a ray-cast grid lies, as the shader's `CellGrid`.
@@ -418,6 +443,14 @@ pub fn prepare_cell_buffers(
         if !batch.changed
             && let Some(buffer) = buffers.0.get_mut(entity)
         {
+            if buffer.sun_map_key != batch.sun_map_key() {
+                buffer.sun_map = sun_map_texture(
+                    &device,
+                    &queue,
+                    batch.fog_sunlight.as_ref().map(|sunlight| &*sunlight.map),
+                );
+                buffer.sun_map_key = batch.sun_map_key();
+            }
             if *buffer.parameters.get() != batch.uniform() {
                 buffer.parameters.set(batch.uniform());
                 buffer.parameters.write_buffer(&device, &queue);
@@ -446,6 +479,14 @@ pub fn prepare_cell_buffers(
                 next_keyframe_buffer(&device, &batch.cells),
             )
         };
+        let sun_map = match buffers.0.get(entity) {
+            Some(old) if old.sun_map_key == batch.sun_map_key() => old.sun_map.clone(),
+            _ => sun_map_texture(
+                &device,
+                &queue,
+                batch.fog_sunlight.as_ref().map(|sunlight| &*sunlight.map),
+            ),
+        };
         let mut parameters = UniformBuffer::from(batch.uniform());
         parameters.set_label(Some("nebel_cell_batch_parameters"));
         parameters.write_buffer(&device, &queue);
@@ -462,6 +503,8 @@ pub fn prepare_cell_buffers(
                 scattered: batch.scattering.is_some(),
                 ray_cast: batch.is_ray_cast(),
                 count: batch.cells.len() as u32,
+                sun_map,
+                sun_map_key: batch.sun_map_key(),
             },
         );
     }
@@ -648,8 +691,9 @@ pub fn prepare_cell_views(
                 let merged = batch.group.is_some();
                 let ray_cast = batch.is_ray_cast();
                 let lit = batch.is_lit_locally();
+                let sunlit = batch.is_sunlit();
                 variants[mode_index(batch.mode)][variant_index(
-                    modulated, scattering, handoff, blended, merged, ray_cast, lit,
+                    modulated, scattering, handoff, blended, merged, ray_cast, lit, sunlit,
                 )] = Some(pipelines.specialize(
                     &pipeline_cache,
                     &pipeline,
@@ -669,6 +713,7 @@ pub fn prepare_cell_views(
                         merged,
                         ray_cast,
                         local_lights: lit,
+                        ground_sun: sunlit,
                     },
                 ));
             }

@@ -1,0 +1,166 @@
+//! The sun in ground fog: a sorted fog with a [`GroundFog::sun_color`] gets
+//! the terrain's shadow and its own column above each point as a
+//! [`CellFogSunlight`] beside its `CellBatch` (`nebel_core::fog_sunlight`
+//! has the model, `nebel_render::fog_sunlight` draws it).
+//!
+//! The sun is the first `DirectionalLight` (none: the fog is unlit by it).
+//! The map (ground, thickness and shadow height at up to
+//! `FogSunMap::MAX_POINTS` points a side over the terrain) is built on the task
+//! pool from the fog's map, transfer function, density and profile, again
+//! when any of them changes, the terrain moves, or the sun turns (in the
+//! terrain's frame) by more than [`SUN_STEP`]; the fog keeps the last map
+//! until the new one lands (the same frame under
+//! `HeavyBuilds::Blocking`). The phase and the colour follow the sun every
+//! frame. A fog without a sun colour, unsorted, or without cells has no
+//! map, no build and no `CellFogSunlight`: its shader variant is the unlit
+//! one.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use bevy::diagnostic::Diagnostics;
+use bevy::math::DVec3;
+use bevy::prelude::*;
+use nebel_core::field::HeightField;
+use nebel_core::fog_sunlight::{FogColumn, FogSunMap};
+use nebel_core::optics::OpticalMode;
+use nebel_render::camera::to_double_affine;
+use nebel_render::{CellBatch, CellFogSunlight, HeavyBuild, HeavyBuilds};
+use nebel_terrain::{TerrainLod, TerrainMapLod};
+
+use crate::ground_fog::{GroundFog, GroundFogPlugin};
+
+/// The angle, radians, by which the sun turns before the map is built again
+/// (about 0.3°; a shadow edge 1 km from its ridge moves by 5 m).
+pub const SUN_STEP: f64 = 0.005;
+
+/// What a fog's sun map was built from.
+#[derive(Clone, Debug, PartialEq)]
+struct SunKey {
+    /// The mapped quadtree (by identity).
+    quadtree: usize,
+    /// The transfer function, density and profile as written.
+    settings: String,
+    transform: GlobalTransform,
+}
+
+/// A fog's sun map, the build in flight and what each was built for.
+#[derive(Component, Default)]
+pub struct GroundFogSun {
+    built: Option<(SunKey, DVec3, Option<Arc<FogSunMap>>)>,
+    building: Option<(SunKey, DVec3, HeavyBuild<(Option<FogSunMap>, f32)>)>,
+}
+
+/// Builds and hands over every sunlit fog's map (see the module docs).
+pub(crate) fn update_fog_sunlight(
+    mut commands: Commands,
+    mut fogs: Query<(
+        Entity,
+        &GroundFog,
+        &TerrainLod,
+        Option<&TerrainMapLod>,
+        &GlobalTransform,
+        Has<CellBatch>,
+        Option<&CellFogSunlight>,
+        &mut GroundFogSun,
+    )>,
+    suns: Query<&GlobalTransform, With<DirectionalLight>>,
+    mode: Res<HeavyBuilds>,
+    mut diagnostics: Diagnostics,
+) {
+    let sun = suns.iter().next().map(|sun| sun.back().as_vec3());
+    for (entity, fog, lod, map, transform, has_batch, current, mut state) in &mut fogs {
+        let colour = fog.sun_color.to_linear().to_vec3();
+        let mapped = map.and_then(|map| map.quadtree.as_ref()).filter(|mapped| {
+            lod.quadtree()
+                .is_some_and(|own| Arc::ptr_eq(own, &mapped.base))
+        });
+        let wanted =
+            has_batch && fog.drawn_mode() == OpticalMode::Sorted && colour.max_element() > 0.0;
+        let (Some(sun), Some(mapped), true) = (sun, mapped, wanted) else {
+            if state.built.is_some() || state.building.is_some() {
+                *state = GroundFogSun::default();
+            }
+            if current.is_some() {
+                commands.entity(entity).remove::<CellFogSunlight>();
+            }
+            continue;
+        };
+        let world_from_terrain = to_double_affine(transform);
+        let terrain_from_world = world_from_terrain.inverse();
+        let local_sun = terrain_from_world
+            .transform_vector3(sun.as_dvec3())
+            .normalize_or(DVec3::Y);
+        let key = SunKey {
+            quadtree: Arc::as_ptr(&mapped.hierarchy) as usize,
+            settings: format!(
+                "{} {:?} {:?}",
+                fog.transfer_function.content_hash(),
+                fog.density,
+                fog.profile
+            ),
+            transform: *transform,
+        };
+        let fresh = |(built_key, built_sun): (&SunKey, DVec3)| {
+            *built_key == key && built_sun.angle_between(local_sun) <= SUN_STEP
+        };
+        let up_to_date = state.built.as_ref().is_some_and(|(k, s, _)| fresh((k, *s)));
+        let in_flight = state
+            .building
+            .as_ref()
+            .is_some_and(|(k, s, _)| fresh((k, *s)));
+        if !up_to_date && !in_flight {
+            let ground = mapped.base.clone();
+            let thickness = mapped.map.clone();
+            let (profile, density) = (fog.profile.clone(), fog.density);
+            let transfer = fog.transfer_function.clone();
+            let build = HeavyBuild::spawn(move || {
+                let started = Instant::now();
+                let map = transfer.scale_density(density).ok().and_then(|scaled| {
+                    let field = ground.field();
+                    let thickness = HeightField::new(
+                        field.dims(),
+                        field.spacing(),
+                        field.origin(),
+                        thickness.values().to_vec(),
+                    )
+                    .ok()?;
+                    let points = field.dims().map(|n| n.min(FogSunMap::MAX_POINTS));
+                    let column = FogColumn::new(&profile, &scaled);
+                    FogSunMap::compute(field, &thickness, column, local_sun, points, 2)
+                });
+                (map, started.elapsed().as_secs_f32() * 1e3)
+            });
+            state.building = Some((key, local_sun, build));
+        }
+        if let Some((key, built_sun, build)) = state.building.as_mut()
+            && let Some((map, ms)) = build.poll(*mode)
+        {
+            state.built = Some((key.clone(), *built_sun, map.map(Arc::new)));
+            state.building = None;
+            diagnostics.add_measurement(&GroundFogPlugin::SUN_MAP_MS, || f64::from(ms));
+        }
+        let Some(map) = state.built.as_ref().and_then(|(_, _, map)| map.clone()) else {
+            if current.is_some() {
+                commands.entity(entity).remove::<CellFogSunlight>();
+            }
+            continue;
+        };
+        let sunlight = CellFogSunlight {
+            map,
+            map_from_world: terrain_from_world,
+            direction: sun,
+            colour,
+            asymmetry: fog.sun_asymmetry,
+        };
+        let same = current.is_some_and(|current| {
+            Arc::ptr_eq(&current.map, &sunlight.map)
+                && current.map_from_world == sunlight.map_from_world
+                && (current.direction, current.colour, current.asymmetry)
+                    == (sunlight.direction, sunlight.colour, sunlight.asymmetry)
+        });
+        if !same {
+            commands.entity(entity).insert(sunlight);
+        }
+    }
+}

@@ -1,0 +1,188 @@
+//! The sun in ground fog on the GPU: [`CellFogSunlight`] on a sorted batch
+//! adds the sun's single scattering, dimmed by the fog above each point and
+//! cut by the terrain's shadow (`nebel_core::fog_sunlight`).
+//!
+//! The batch's shader (`GROUND_SUN`) reads the map's ground, thickness and
+//! shadow height from an `Rgba32Float` texture at the map's grid points,
+//! bilinear in between as `nebel_core`'s `HeightField` samples them, and the
+//! fog's column `F(u)` from a table of [`COLUMN_TABLE_SIZE`] values, linear
+//! in between. Each of the segment's pieces (the local lights' pieces) takes
+//! three Gauss-Legendre nodes of `σ e^{−σ (t − t_a)} V T_sun`, its mean
+//! colour from the pre-integration tables, and the phase at the ray's angle
+//! to the sun. The texture is uploaded when the map changes (by identity),
+//! the uniform when anything else does; neither touches the cells.
+
+use std::sync::Arc;
+
+use bevy::math::{DAffine3, DMat3, DMat4, DVec3};
+use bevy::prelude::*;
+use bevy::render::render_resource::{
+    Extent3d, ShaderType, TextureDataOrder, TextureDescriptor, TextureDimension, TextureFormat,
+    TextureUsages, TextureView, TextureViewDescriptor,
+};
+use bevy::render::renderer::{RenderDevice, RenderQueue};
+use nebel_core::fog_sunlight::FogSunMap;
+
+/// Values of the fog's column table `F(u)`, at equal steps of `u` from 0 to 1.
+pub const COLUMN_TABLE_SIZE: usize = 65;
+
+/// The sun lighting a sorted [`CellBatch`](crate::CellBatch) of ground fog
+/// (see the module docs). A ground fog with a sun colour sets it; changing
+/// it costs a uniform write, and a texture upload when the map is a new one.
+#[derive(Component, Clone, Debug)]
+pub struct CellFogSunlight {
+    /// The ground, the fog's thickness, the terrain's shadow height and the
+    /// fog's column, in the terrain's frame. Shared with whatever built it.
+    pub map: Arc<FogSunMap>,
+    /// World space to the map's (terrain's) frame, a rigid motion.
+    pub map_from_world: DAffine3,
+    /// Unit direction toward the sun, world space.
+    pub direction: Vec3,
+    /// The sunlight relative to the light the transfer function's colour
+    /// stands for, linear RGB, each channel finite and ≥ 0 (others draw as
+    /// 0).
+    pub colour: Vec3,
+    /// The Henyey-Greenstein asymmetry, clamped to ±0.99.
+    pub asymmetry: f32,
+}
+
+/// The shader's `FogSun` uniform (zeros for a batch without the sun).
+#[derive(Clone, Copy, Debug, Default, PartialEq, ShaderType)]
+pub(crate) struct FogSunUniform {
+    /// World position to the map's grid: x and z in grid points, y the
+    /// height in the terrain's frame.
+    pub grid_from_world: Mat4,
+    /// xyz: unit direction toward the sun; w: the asymmetry.
+    pub sun: Vec4,
+    /// rgb: the colour; w: `1/μ`, the sun's slant through a level layer.
+    pub colour: Vec4,
+    /// `F(u)` at [`COLUMN_TABLE_SIZE`] steps, four to an element.
+    pub column: [Vec4; COLUMN_TABLE_SIZE.div_ceil(4)],
+}
+
+impl FogSunUniform {
+    pub(crate) fn new(sunlight: &CellFogSunlight) -> Self {
+        let grid = &sunlight.map.shadow.heights;
+        let (origin, spacing) = (grid.origin(), grid.spacing());
+        let grid_from_map = DAffine3::from_mat3_translation(
+            DMat3::from_diagonal(DVec3::new(1.0 / spacing.x, 1.0, 1.0 / spacing.y)),
+            DVec3::new(-origin.x / spacing.x, 0.0, -origin.y / spacing.y),
+        );
+        let mut column = [Vec4::ZERO; COLUMN_TABLE_SIZE.div_ceil(4)];
+        for (k, value) in sunlight
+            .map
+            .column
+            .table(COLUMN_TABLE_SIZE)
+            .into_iter()
+            .enumerate()
+        {
+            column[k / 4][k % 4] = value;
+        }
+        let colour = Vec3::from_array(
+            sunlight
+                .colour
+                .to_array()
+                .map(|c| if c.is_finite() { c.max(0.0) } else { 0.0 }),
+        );
+        let asymmetry = if sunlight.asymmetry.is_nan() {
+            0.0
+        } else {
+            sunlight.asymmetry.clamp(-0.99, 0.99)
+        };
+        Self {
+            grid_from_world: DMat4::from(grid_from_map * sunlight.map_from_world).as_mat4(),
+            sun: sunlight.direction.normalize_or(Vec3::Y).extend(asymmetry),
+            colour: colour.extend((1.0 / sunlight.map.shadow.sun.y) as f32),
+            column,
+        }
+    }
+}
+
+/// The map's texels as a texture: `(shadow height, ground, thickness, 0)`
+/// per grid point.
+pub(crate) fn sun_map_texture(
+    device: &RenderDevice,
+    queue: &RenderQueue,
+    map: Option<&FogSunMap>,
+) -> TextureView {
+    let (size, texels) = map.map_or(([1, 1], vec![[0.0f32; 4]]), |map| {
+        (map.shadow.heights.dims(), map.texels())
+    });
+    device
+        .create_texture_with_data(
+            queue,
+            &TextureDescriptor {
+                label: Some("nebel_fog_sun_map"),
+                size: Extent3d {
+                    width: size[0] as u32,
+                    height: size[1] as u32,
+                    depth_or_array_layers: 1,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: TextureDimension::D2,
+                format: TextureFormat::Rgba32Float,
+                usage: TextureUsages::TEXTURE_BINDING,
+                view_formats: &[],
+            },
+            TextureDataOrder::LayerMajor,
+            bytemuck::cast_slice(&texels),
+        )
+        .create_view(&TextureViewDescriptor::default())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use bevy::math::{DQuat, DVec2};
+    use nebel_core::field::HeightField;
+    use nebel_core::fog_sunlight::FogColumn;
+    use nebel_core::transfer::{ControlPoint, TransferFunction};
+
+    #[test]
+    fn the_uniform_maps_world_points_onto_the_grid_and_packs_the_column() {
+        let field = |value: f32| {
+            HeightField::new(
+                [5, 3],
+                DVec2::new(2.0, 4.0),
+                DVec2::new(-4.0, 10.0),
+                vec![value; 15],
+            )
+            .unwrap()
+        };
+        let tf = TransferFunction::new([ControlPoint {
+            s: 0.0,
+            kappa: [1.0; 3],
+            rho: 0.5,
+        }])
+        .unwrap();
+        let column = FogColumn::new(&[[0.0, 1.0], [1.0, 0.0]], &tf);
+        let sun = DVec3::new(0.0, 0.5, 3f64.sqrt() / 2.0);
+        let map = FogSunMap::compute(&field(1.0), &field(8.0), column, sun, [5, 3], 1).unwrap();
+        let world_from_map = DAffine3::from_rotation_translation(
+            DQuat::from_rotation_y(0.7),
+            DVec3::new(100.0, -3.0, 50.0),
+        );
+        let sunlight = CellFogSunlight {
+            map: Arc::new(map),
+            map_from_world: world_from_map.inverse(),
+            direction: Vec3::new(0.0, 2.0, 0.0),
+            colour: Vec3::new(f32::NAN, -1.0, 2.0),
+            asymmetry: 3.0,
+        };
+        let uniform = FogSunUniform::new(&sunlight);
+        // Grid point (3, 2) at map (2, 6, 18), put into the world.
+        let world = world_from_map.transform_point3(DVec3::new(2.0, 6.0, 18.0));
+        let grid = uniform.grid_from_world.transform_point3(world.as_vec3());
+        assert!(
+            (grid - Vec3::new(3.0, 6.0, 2.0)).abs().max_element() < 1e-4,
+            "{grid}"
+        );
+        assert_eq!(uniform.sun, Vec4::new(0.0, 1.0, 0.0, 0.99));
+        assert_eq!(uniform.colour, Vec4::new(0.0, 0.0, 2.0, 2.0));
+        // F(u) = 0.5 (1 − u): the first, the middle and the last value.
+        assert_eq!(uniform.column[0].x, 0.5);
+        assert_eq!(uniform.column[8].x, 0.25);
+        assert_eq!(uniform.column[16].x, 0.0);
+    }
+}
