@@ -10,7 +10,7 @@ use bevy::prelude::*;
 use nebel_core::field::{FogNoise, TerrainNoise, ValleyFog};
 use nebel_core::optics::OpticalMode;
 use nebel_render::headless::{headless_app, spawn_computed_camera};
-use nebel_render::{CellBatch, GrayscaleMap};
+use nebel_render::{CellBatch, CellFogSunlight, GrayscaleMap};
 use nebel_terrain::{
     Terrain, TerrainLod, TerrainLodStats, TerrainMapLod, TerrainPlugin, TerrainSource,
 };
@@ -589,4 +589,88 @@ fn the_quality_preset_sets_the_fog_method_and_the_terrain_accuracy() {
         (triangles(&app), batch(&app, fog).map(|b| b.cells.len())),
         high
     );
+}
+
+#[test]
+fn a_sun_colour_and_a_sun_light_the_fog_on_a_map_that_follows_the_sun() {
+    let (mut app, _) = app(&asset_dir("sunlight"), Vec3::new(-400.0, 250.0, -300.0));
+    let sunlight = |app: &App, fog: Entity| app.world().get::<CellFogSunlight>(fog).cloned();
+    // A sun colour without a sun, and a sun without a sun colour: no map.
+    let fog = spawn_fog(
+        &mut app,
+        GroundFog {
+            sun_color: Color::linear_rgb(1.0, 0.8, 0.6),
+            ..valley(40.0)
+        },
+    );
+    settle(&mut app);
+    assert!(batch(&app, fog).is_some());
+    assert!(sunlight(&app, fog).is_none());
+    let sun = app
+        .world_mut()
+        .spawn((
+            DirectionalLight::default(),
+            Transform::from_xyz(0.0, 0.0, 0.0).looking_to(Vec3::new(0.6, -0.3, 0.74), Vec3::Y),
+        ))
+        .id();
+    settle(&mut app);
+    let lit = sunlight(&app, fog).expect("lit by the sun");
+    let toward = -Vec3::new(0.6, -0.3, 0.74).normalize();
+    assert!(lit.direction.distance(toward) < 1e-5);
+    assert_eq!(lit.colour, Vec3::new(1.0, 0.8, 0.6));
+    // The map is the terrain's: its shadow heights lie on or above its
+    // ground, above it somewhere (100 m of relief under a sun 17° up).
+    let (shadow, ground) = (lit.map.shadow.heights.heights(), lit.map.ground.heights());
+    assert!(shadow.iter().zip(ground).all(|(s, g)| s >= g));
+    assert!(shadow.iter().zip(ground).any(|(s, g)| s > &(g + 1.0)));
+    assert!(lit.map.thickness.heights().iter().any(|h| *h > 0.0));
+    assert!(measured(&app, &GroundFogPlugin::SUN_MAP_MS).is_some());
+    // A turn below the step keeps the map (and the component, but for its
+    // direction); one beyond it makes a new map.
+    let turn = |app: &mut App, angle: f32| {
+        let mut transform = app.world_mut().get_mut::<Transform>(sun).unwrap();
+        transform.rotate_y(angle);
+    };
+    turn(&mut app, 0.002);
+    settle(&mut app);
+    let nudged = sunlight(&app, fog).unwrap();
+    assert!(Arc::ptr_eq(&nudged.map, &lit.map));
+    assert!(nudged.direction != lit.direction);
+    turn(&mut app, 0.05);
+    settle(&mut app);
+    let turned = sunlight(&app, fog).unwrap();
+    assert!(!Arc::ptr_eq(&turned.map, &lit.map));
+    assert!(turned.map.shadow.sun.distance(turned.direction.as_dvec3()) < 1e-6);
+    // An unsorted fog, a black sun colour, a sun below the horizon: unlit.
+    for change in [
+        GroundFog {
+            mode: OpticalMode::Emissive,
+            sun_color: Color::WHITE,
+            ..valley(40.0)
+        },
+        GroundFog {
+            sun_color: Color::BLACK,
+            ..valley(40.0)
+        },
+    ] {
+        *app.world_mut().get_mut::<GroundFog>(fog).unwrap() = change;
+        settle(&mut app);
+        assert!(batch(&app, fog).is_some());
+        assert!(sunlight(&app, fog).is_none());
+    }
+    app.world_mut().get_mut::<GroundFog>(fog).unwrap().sun_color = Color::WHITE;
+    settle(&mut app);
+    assert!(sunlight(&app, fog).is_some());
+    *app.world_mut().get_mut::<Transform>(sun).unwrap() =
+        Transform::default().looking_to(Vec3::new(0.3, 0.5, 0.2), Vec3::Y);
+    settle(&mut app);
+    assert!(sunlight(&app, fog).is_none(), "the sun is below the horizon");
+    // Removing the fog takes the sunlight with its batch.
+    *app.world_mut().get_mut::<Transform>(sun).unwrap() =
+        Transform::default().looking_to(Vec3::new(0.3, -0.5, 0.2), Vec3::Y);
+    settle(&mut app);
+    assert!(sunlight(&app, fog).is_some());
+    app.world_mut().entity_mut(fog).remove::<GroundFog>();
+    settle(&mut app);
+    assert!(sunlight(&app, fog).is_none());
 }
