@@ -13,7 +13,7 @@
 //! Woo 1987) and takes each quadratic's maximum in closed form: exact for
 //! the bilinear field, stopping where the field ends (no terrain beyond it)
 //! or where its highest point, lowered by `t tan α`, cannot beat the best,
-//! and crossing a block of [`BLOCK`]² cells at once where the block's
+//! and crossing a block of 64² or 8² cells at once where the block's
 //! highest point cannot.
 //!
 //! [`TerrainShadow`] stores `h_s` at the points of a regular grid over the
@@ -87,45 +87,49 @@ pub fn shadow_height(field: &HeightField, p: DVec2, sun: DVec3) -> f64 {
     march(field, &Blocks::new(field), p, sun)
 }
 
-/// Cells per side of a block the march may cross at once.
-const BLOCK: usize = 8;
+/// Cells per side of the blocks the march may cross at once, coarse to
+/// fine.
+const BLOCKS: [usize; 2] = [64, 8];
 
-/// The highest point of each block of [`BLOCK`]² cells, and of the field.
+/// The highest point of each block of cells, per size in [`BLOCKS`], and of
+/// the field.
 struct Blocks {
-    /// Blocks along x.
-    across: usize,
-    highest: Vec<f64>,
+    /// Per size: blocks along x, and the highest point of each.
+    levels: [(usize, Vec<f64>); 2],
     top: f64,
 }
 
 impl Blocks {
     fn new(field: &HeightField) -> Self {
         let [nx, nz] = field.dims();
-        let (across, down) = ((nx - 1).div_ceil(BLOCK), (nz - 1).div_ceil(BLOCK));
-        let mut highest = vec![f64::MIN; across * down];
-        for j in 0..nz {
-            for i in 0..nx {
-                let h = f64::from(field.height(i, j));
-                // A point bounds the cells on either side of it.
-                for bj in [j.saturating_sub(1) / BLOCK, j.min(nz - 2) / BLOCK] {
-                    for bi in [i.saturating_sub(1) / BLOCK, i.min(nx - 2) / BLOCK] {
-                        let block = &mut highest[bi + across * bj];
-                        *block = block.max(h);
+        let levels = BLOCKS.map(|size| {
+            let (across, down) = ((nx - 1).div_ceil(size), (nz - 1).div_ceil(size));
+            let mut highest = vec![f64::MIN; across * down];
+            for j in 0..nz {
+                for i in 0..nx {
+                    let h = f64::from(field.height(i, j));
+                    // A point bounds the cells on either side of it.
+                    for bj in [j.saturating_sub(1) / size, j.min(nz - 2) / size] {
+                        for bi in [i.saturating_sub(1) / size, i.min(nx - 2) / size] {
+                            let block = &mut highest[bi + across * bj];
+                            *block = block.max(h);
+                        }
                     }
                 }
             }
-        }
-        let top = highest.iter().copied().fold(f64::MIN, f64::max);
-        Self {
-            across,
-            highest,
-            top,
-        }
+            (across, highest)
+        });
+        let top = levels[0].1.iter().copied().fold(f64::MIN, f64::max);
+        Self { levels, top }
     }
 
-    fn of(&self, cell: DVec2) -> (usize, f64) {
-        let index = cell.x as usize / BLOCK + self.across * (cell.y as usize / BLOCK);
-        (index, self.highest[index])
+    /// The block of size `BLOCKS[level]` that holds `cell`, and its highest
+    /// point.
+    fn of(&self, level: usize, cell: DVec2) -> (usize, f64) {
+        let (across, highest) = &self.levels[level];
+        let size = BLOCKS[level];
+        let index = cell.x as usize / size + across * (cell.y as usize / size);
+        (index, highest[index])
     }
 }
 
@@ -177,19 +181,26 @@ fn march(field: &HeightField, blocks: &Blocks, p: DVec2, sun: DVec3) -> f64 {
         if blocks.top - t * slope <= best {
             return best;
         }
-        let (block, highest) = blocks.of(cell);
-        if highest - t * slope <= best {
-            // Nothing in this block beats the best from here on.
-            let lo = (cell / BLOCK as f64).floor() * BLOCK as f64;
-            let hi = (lo + BLOCK as f64).min(last);
+        // The coarsest block that nothing from here on in it beats the
+        // best, crossed whole.
+        let skip = (0..BLOCKS.len()).find_map(|level| {
+            let (block, highest) = blocks.of(level, cell);
+            if highest - t * slope > best {
+                return None;
+            }
+            let size = BLOCKS[level] as f64;
+            let lo = (cell / size).floor() * size;
+            let hi = (lo + size).min(last);
             let t_exit = exit(lo, hi, 0).min(exit(lo, hi, 1)).max(t);
-            let Some(next) = cell_at(start + t_exit * e, e, last) else {
-                return best;
-            };
-            if blocks.of(next).0 != block {
+            Some((level, block, t_exit, cell_at(start + t_exit * e, e, last)))
+        });
+        match skip {
+            Some((_, _, _, None)) => return best,
+            Some((level, block, t_exit, Some(next))) if blocks.of(level, next).0 != block => {
                 (cell, t) = (next, t_exit);
                 continue;
             }
+            _ => {}
         }
         let (tx, tz) = (exit(cell, cell + 1.0, 0), exit(cell, cell + 1.0, 1));
         let t_end = tx.min(tz).max(t);
@@ -352,6 +363,32 @@ mod tests {
             let exact = shadow_height(&bumps, p, sun);
             let fine = brute_force(&bumps, p, sun);
             prop_assert!(exact >= fine - 1e-9 && exact - fine < 0.05, "{exact} against {fine}");
+        }
+    }
+
+    /// A field of several 64² blocks with ridges of every height: crossing
+    /// whole blocks changes nothing against the fine march.
+    #[test]
+    fn crossing_blocks_whole_keeps_the_exact_maximum_on_a_large_field() {
+        let hills = field([150, 140], 5.0, |x, z| {
+            60.0 * (0.013 * x).sin() * (0.021 * z + 1.0).cos() + 9.0 * (0.11 * x + 0.07 * z).sin()
+        });
+        for k in 0..24 {
+            let k = f64::from(k);
+            let azimuth = 0.7 + 2.39 * k;
+            let elevation = 0.04 + 0.05 * (k % 6.0);
+            let sun = DVec3::new(
+                elevation.cos() * azimuth.cos(),
+                elevation.sin(),
+                elevation.cos() * azimuth.sin(),
+            );
+            let p = DVec2::new((37.0 * k) % 745.0, (53.0 * k + 11.0) % 695.0);
+            let exact = shadow_height(&hills, p, sun);
+            let fine = brute_force(&hills, p, sun);
+            assert!(
+                exact >= fine - 1e-9 && exact - fine < 0.05,
+                "{k}: {exact} against {fine}"
+            );
         }
     }
 
