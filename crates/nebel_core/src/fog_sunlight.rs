@@ -204,12 +204,21 @@ pub struct FogSunlight {
 /// [`GAUSS_LEGENDRE_3`] on either side of a crossing of the shadow.
 const INTERVALS: usize = 32;
 
+/// The world length of a unit of height in the frame `map_from_world`
+/// maps into: a scaled terrain's fog column is that much longer, in the
+/// density's world units.
+pub fn vertical_scale(map_from_world: &DAffine3) -> f64 {
+    map_from_world.matrix3.inverse().y_axis.length()
+}
+
 impl FogSunlight {
-    /// `e^{−H F(u)/μ}` at the world point `p`, 0 in the terrain's shadow.
+    /// `e^{−H F(u)/μ}` at the world point `p` (`H` in world units), 0 in
+    /// the terrain's shadow.
     pub fn transmittance(&self, p: DVec3) -> f64 {
+        let scale = vertical_scale(&self.map_from_world);
         self.map
             .sun_depth(self.map_from_world.transform_point3(p))
-            .map_or(0.0, |depth| (-depth).exp())
+            .map_or(0.0, |depth| (-depth * scale).exp())
     }
 
     /// `c ⊙ 4π p_HG(θ) ∫ f(t) V T_sun dt` over `[t_a, t_b]` along the unit
@@ -403,6 +412,18 @@ mod tests {
             .max_element();
         // (The control point's ρ is an f32.)
         assert!(error < 1e-7 * expected, "{got} against {expected}");
+        // The same terrain scaled by 2: the point at twice the height in
+        // a column twice as tall (in world units) sees the sun through twice
+        // the fog.
+        let scaled = FogSunlight {
+            map_from_world: DAffine3::from_scale(DVec3::splat(0.5)),
+            ..sunlight.clone()
+        };
+        let depth: f64 = 0.1 * 6.0 / 0.8;
+        assert!(
+            (scaled.transmittance(DVec3::new(20.0, 8.0, 2.0)) - (-2.0 * depth).exp()).abs() < 1e-7
+        );
+        assert!((sunlight.transmittance(DVec3::new(10.0, 4.0, 1.0)) - (-depth).exp()).abs() < 1e-7);
         // A 12 m wall at x = 38..40 (toward the sun, which climbs 4/3 per
         // metre): it shades the ray at 4 m from x = 38 − 6 = 32 on.
         let mut heights = vec![0.0f32; 41 * 3];

@@ -664,7 +664,10 @@ fn a_sun_colour_and_a_sun_light_the_fog_on_a_map_that_follows_the_sun() {
     *app.world_mut().get_mut::<Transform>(sun).unwrap() =
         Transform::default().looking_to(Vec3::new(0.3, 0.5, 0.2), Vec3::Y);
     settle(&mut app);
-    assert!(sunlight(&app, fog).is_none(), "the sun is below the horizon");
+    assert!(
+        sunlight(&app, fog).is_none(),
+        "the sun is below the horizon"
+    );
     // Removing the fog takes the sunlight with its batch.
     *app.world_mut().get_mut::<Transform>(sun).unwrap() =
         Transform::default().looking_to(Vec3::new(0.3, -0.5, 0.2), Vec3::Y);

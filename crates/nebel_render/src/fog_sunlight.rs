@@ -21,7 +21,7 @@ use bevy::render::render_resource::{
     TextureUsages, TextureView, TextureViewDescriptor,
 };
 use bevy::render::renderer::{RenderDevice, RenderQueue};
-use nebel_core::fog_sunlight::FogSunMap;
+use nebel_core::fog_sunlight::{FogSunMap, vertical_scale};
 
 /// Values of the fog's column table `F(u)`, at equal steps of `u` from 0 to 1.
 pub const COLUMN_TABLE_SIZE: usize = 65;
@@ -54,7 +54,8 @@ pub(crate) struct FogSunUniform {
     pub grid_from_world: Mat4,
     /// xyz: unit direction toward the sun; w: the asymmetry.
     pub sun: Vec4,
-    /// rgb: the colour; w: `1/μ`, the sun's slant through a level layer.
+    /// rgb: the colour; w: `s/μ`, the sun's slant through a level layer
+    /// (`s` the world length of the map's unit of height).
     pub colour: Vec4,
     /// `F(u)` at [`COLUMN_TABLE_SIZE`] steps, four to an element.
     pub column: [Vec4; COLUMN_TABLE_SIZE.div_ceil(4)],
@@ -92,7 +93,9 @@ impl FogSunUniform {
         Self {
             grid_from_world: DMat4::from(grid_from_map * sunlight.map_from_world).as_mat4(),
             sun: sunlight.direction.normalize_or(Vec3::Y).extend(asymmetry),
-            colour: colour.extend((1.0 / sunlight.map.shadow.sun.y) as f32),
+            colour: colour.extend(
+                (vertical_scale(&sunlight.map_from_world) / sunlight.map.shadow.sun.y) as f32,
+            ),
             column,
         }
     }
@@ -159,7 +162,9 @@ mod tests {
         let column = FogColumn::new(&[[0.0, 1.0], [1.0, 0.0]], &tf);
         let sun = DVec3::new(0.0, 0.5, 3f64.sqrt() / 2.0);
         let map = FogSunMap::compute(&field(1.0), &field(8.0), column, sun, [5, 3], 1).unwrap();
-        let world_from_map = DAffine3::from_rotation_translation(
+        // A terrain rotated and scaled by 2: its columns are twice as long.
+        let world_from_map = DAffine3::from_scale_rotation_translation(
+            DVec3::splat(2.0),
             DQuat::from_rotation_y(0.7),
             DVec3::new(100.0, -3.0, 50.0),
         );
@@ -179,7 +184,12 @@ mod tests {
             "{grid}"
         );
         assert_eq!(uniform.sun, Vec4::new(0.0, 1.0, 0.0, 0.99));
-        assert_eq!(uniform.colour, Vec4::new(0.0, 0.0, 2.0, 2.0));
+        assert!(
+            (uniform.colour - Vec4::new(0.0, 0.0, 2.0, 4.0))
+                .abs()
+                .max_element()
+                < 1e-5
+        );
         // F(u) = 0.5 (1 − u): the first, the middle and the last value.
         assert_eq!(uniform.column[0].x, 0.5);
         assert_eq!(uniform.column[8].x, 0.25);

@@ -119,7 +119,8 @@ struct FogSun {
     grid_from_world: mat4x4<f32>,
     // xyz: unit direction toward the sun; w: Henyey-Greenstein asymmetry g.
     sun: vec4<f32>,
-    // rgb: the sunlight's colour; w: 1/μ, its slant through a level layer.
+    // rgb: the sunlight's colour; w: s/μ, its slant through a level layer (s
+    // the world length of the map's unit of height).
     colour: vec4<f32>,
     // The fog's column F(u) at 65 equal steps of u, four to an element.
     column: array<vec4<f32>, 17>,
