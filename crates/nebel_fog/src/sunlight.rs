@@ -24,6 +24,7 @@ use bevy::prelude::*;
 use nebel_core::field::HeightField;
 use nebel_core::fog_sunlight::{FogColumn, FogSunMap};
 use nebel_core::optics::OpticalMode;
+use nebel_core::pacing::worker_threads;
 use nebel_render::camera::to_double_affine;
 use nebel_render::{CellBatch, CellFogSunlight, HeavyBuild, HeavyBuilds};
 use nebel_terrain::{TerrainLod, TerrainMapLod};
@@ -127,7 +128,14 @@ pub(crate) fn update_fog_sunlight(
                     .ok()?;
                     let points = field.dims().map(|n| n.min(FogSunMap::MAX_POINTS));
                     let column = FogColumn::new(&profile, &scaled);
-                    FogSunMap::compute(field, &thickness, column, local_sun, points, 2)
+                    FogSunMap::compute(
+                        field,
+                        &thickness,
+                        column,
+                        local_sun,
+                        points,
+                        worker_threads(),
+                    )
                 });
                 (map, started.elapsed().as_secs_f32() * 1e3)
             });

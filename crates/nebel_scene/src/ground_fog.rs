@@ -394,7 +394,7 @@ impl TerrainDescription {
                 .ok()?;
                 let column = FogColumn::new(&fog.profile, &built.transfer_function);
                 let points = field.dims().map(|n| n.min(FogSunMap::MAX_POINTS));
-                let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+                let threads = nebel_core::pacing::worker_threads();
                 let map = FogSunMap::compute(field, &thickness, column, sun, points, threads)?;
                 Some(FogSunlight {
                     map: Arc::new(map),
