@@ -6,10 +6,10 @@
 //! shadow height from an `Rgba32Float` texture at the map's grid points,
 //! bilinear in between as `nebel_core`'s `HeightField` samples them, and the
 //! fog's column `F(u)` from a table of [`COLUMN_TABLE_SIZE`] values, linear
-//! in between. Each of the segment's pieces (the local lights' pieces) takes
-//! three Gauss-Legendre nodes of `σ e^{−σ (t − t_a)} V T_sun`, its mean
-//! colour from the pre-integration tables, and the phase at the ray's angle
-//! to the sun. The texture is uploaded when the map changes (by identity),
+//! in between. Each of the segment's four pieces takes its optical depth
+//! from the pair table and three Gauss-Legendre nodes of `σ e^{−σ (t −
+//! t_a)} V T_sun`; the colour is the segment's mean (exact for a fog of one
+//! colour), the phase the one at the ray's angle to the sun. The texture is uploaded when the map changes (by identity),
 //! the uniform when anything else does; neither touches the cells.
 
 use std::sync::Arc;

@@ -47,11 +47,12 @@
 // out exactly (nebel_core::local_light::LocalLight::scattered with one interval).
 //
 // GROUND_SUN (the sun lights a ground fog, nebel_render::fog_sunlight): the
-// sun's single scattering is added like a local light's, c ⊙ 4π p_HG(θ) ∫ σ κ
-// T V T_sun dt over the same pieces, three Gauss-Legendre nodes in t each: V
-// is 0 below the terrain's shadow height, T_sun = e^{−H F(u)/μ} the fog
-// above the point (ground, thickness and shadow height bilinear from the sun
-// map, F linear from its table).
+// sun's single scattering c ⊙ 4π p_HG(θ) ∫ σ κ T V T_sun dt is added with the
+// segment's mean colour κ̄, in LIGHT_PIECES equal pieces, each with its
+// optical depth rate σ from the pair table and three Gauss-Legendre nodes of
+// σ e^{−σ (t − t_a)} V T_sun behind the pieces in front: V is 0 below the terrain's shadow height,
+// T_sun = e^{−s H F(u)/μ} the fog above the point (ground, thickness and
+// shadow height bilinear from the sun map, F linear from its table).
 //
 // FOG_LAYERS (the view has fog layers, Röttger 2004 §5.3): the segment is
 // seen through the fog in front of it. As maps of the radiance behind, a
@@ -429,28 +430,14 @@ fn ground_sun_transmittance(p: vec3<f32>) -> f32 {
     return exp(-texel.z * column * parameters.fog_sun.colour.w);
 }
 
-// ∫ σ e^{−σ (t − t_a)} V T_sun dt over the piece [t_a, t_b] along the unit
-// ray `direction` from the eye: three Gauss-Legendre nodes.
-fn sun_piece(direction: vec3<f32>, t_a: f32, t_b: f32, sigma: f32) -> f32 {
-    let half = 0.5 * (t_b - t_a);
-    let middle = t_a + half;
-    let nodes = array<vec2<f32>, 3>(vec2(-0.7745967, 5.0 / 9.0), vec2(0.0, 8.0 / 9.0), vec2(0.7745967, 5.0 / 9.0));
-    var sum = 0.0;
-    for (var k = 0u; k < 3u; k++) {
-        let t = middle + half * nodes[k].x;
-        let p = view.camera_position.xyz + t * direction;
-        sum += nodes[k].y * half * sigma * exp(-sigma * (t - t_a)) * ground_sun_transmittance(p);
-    }
-    return sum;
-}
-#endif
-
-#ifdef SCATTERED_LIGHT
-// The local lights and the sun in ground fog scattered toward the eye by
-// the segment from t_front to t_back (see the header), premultiplied as its
-// colour: without the sun nothing is looked up for a segment no light's
-// stretch on the ray reaches, and a piece's colour only where one does.
-fn scattered_colour(
+// The sun's single scattering by the segment from s_front to s_back (with
+// modulator m_front to m_back) of mean colour `kappa` from t_front to t_back
+// along the unit ray `direction` (see the header): in LIGHT_PIECES equal
+// pieces, each with its own optical depth rate σ from the pair table and
+// three Gauss-Legendre nodes of σ e^{−σ (t − t_a)} V T_sun behind the
+// pieces in front.
+fn ground_sun_colour(
+    kappa: vec3<f32>,
     s_front: f32,
     s_back: f32,
     m_front: f32,
@@ -459,24 +446,54 @@ fn scattered_colour(
     t_back: f32,
     direction: vec3<f32>,
 ) -> vec3<f32> {
-    var reach = vec2(3.0e38, -3.0e38);
+    let sun = parameters.fog_sun.sun;
+    let phase = (1.0 - sun.w * sun.w) / pow(1.0 + sun.w * sun.w - 2.0 * sun.w * dot(direction, sun.xyz), 1.5);
+    let nodes = array<vec2<f32>, 3>(vec2(-0.7745967, 5.0 / 9.0), vec2(0.0, 8.0 / 9.0), vec2(0.7745967, 5.0 / 9.0));
+    let pieces = f32(#{LIGHT_PIECES}u);
+    let half = 0.5 * (t_back - t_front) / pieces;
+    var sum = 0.0;
+    var transmittance = 1.0;
+    for (var piece = 0u; piece < #{LIGHT_PIECES}u; piece++) {
+        let a = f32(piece) / pieces;
+        let b = f32(piece + 1u) / pieces;
+        let depth = 2.0 * half * 0.5 * (mix(m_front, m_back, a) + mix(m_front, m_back, b))
+            * pair_lookup(mix(s_front, s_back, a), mix(s_front, s_back, b)).a;
+        let sigma = depth / (2.0 * half);
+        let middle = mix(t_front, t_back, a) + half;
+        for (var k = 0u; k < 3u; k++) {
+            let offset = half * (1.0 + nodes[k].x);
+            let p = view.camera_position.xyz + (middle + half * nodes[k].x) * direction;
+            sum += transmittance * nodes[k].y * half * sigma * exp(-sigma * offset) * ground_sun_transmittance(p);
+        }
+        transmittance *= exp(-depth);
+    }
+    return parameters.fog_sun.colour.rgb * phase * sum * kappa;
+}
+#endif
+
 #ifdef LOCAL_LIGHTS
+// The local lights scattered toward the eye by the segment from t_front to
+// t_back (see the header), premultiplied as its colour: nothing is looked up
+// for a segment no light's stretch on the ray reaches, and a piece's colour
+// only where one does.
+fn local_light_colour(
+    s_front: f32,
+    s_back: f32,
+    m_front: f32,
+    m_back: f32,
+    t_front: f32,
+    t_back: f32,
+    direction: vec3<f32>,
+) -> vec3<f32> {
     let count = min(u32(parameters.lights.response.x), #{MAX_LOCAL_LIGHTS}u);
     // (Taken again per piece: an array of them costs CPU drivers more.)
+    var reach = vec2(3.0e38, -3.0e38);
     for (var i = 0u; i < count; i++) {
         let on_ray = light_on_ray(parameters.lights.lights[i], view.camera_position.xyz, direction);
         if on_ray.b > on_ray.a {
             reach = vec2(min(reach.x, on_ray.a), max(reach.y, on_ray.b));
         }
     }
-#endif
-#ifdef GROUND_SUN
-    reach = vec2(t_front, t_back);
-    let sun = parameters.fog_sun.sun;
-    let cos_theta = dot(direction, sun.xyz);
-    let sun_colour = parameters.fog_sun.colour.rgb * (1.0 - sun.w * sun.w)
-        / pow(1.0 + sun.w * sun.w - 2.0 * sun.w * cos_theta, 1.5);
-#endif
     if reach.x >= t_back || reach.y <= t_front {
         return vec3(0.0);
     }
@@ -497,15 +514,9 @@ fn scattered_colour(
             * pair_lookup(s_a, s_b).a;
         if depth > 0.0 && piece_length > 0.0 && t_a + piece_length > reach.x {
             var light = vec3(0.0);
-#ifdef LOCAL_LIGHTS
             for (var i = 0u; i < count; i++) {
                 light += light_piece(i, direction, t_a, t_a + piece_length, depth / piece_length);
             }
-            light *= parameters.lights.response.w;
-#endif
-#ifdef GROUND_SUN
-            light += sun_colour * sun_piece(direction, t_a, t_a + piece_length, depth / piece_length);
-#endif
 #ifdef SCATTERING
             colour += transmittance * light;
 #else
@@ -516,7 +527,7 @@ fn scattered_colour(
         }
         transmittance *= exp(-depth);
     }
-    return colour;
+    return parameters.lights.response.w * colour;
 }
 #endif
 
@@ -576,11 +587,20 @@ fn segment_colour(
 #else
     var segment = vec4(parameters.sunlight.rgb * colour, alpha);
 #endif
-#ifdef SCATTERED_LIGHT
+#ifdef LOCAL_LIGHTS
     segment = vec4(
-        segment.rgb + scattered_colour(s_front, s_back, m_front, m_back, t_front, t_back, direction),
+        segment.rgb + local_light_colour(s_front, s_back, m_front, m_back, t_front, t_back, direction),
         segment.a,
     );
+#endif
+#ifdef GROUND_SUN
+    if alpha > 0.0 {
+        let kappa = colour / alpha;
+        segment = vec4(
+            segment.rgb + ground_sun_colour(kappa, s_front, s_back, m_front, m_back, t_front, t_back, direction),
+            segment.a,
+        );
+    }
 #endif
 #endif
 #ifdef EMISSIVE

@@ -393,16 +393,15 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
         if key.blended {
             shader_defs.push("BLENDED".into());
         }
-        if key.local_lights {
-            shader_defs.push("LOCAL_LIGHTS".into());
-        }
         if key.ground_sun {
             shader_defs.push("GROUND_SUN".into());
+        }
+        if key.local_lights {
+            shader_defs.push("LOCAL_LIGHTS".into());
         }
         if key.local_lights || key.ground_sun {
             // A ray cast grid's segments are already pieces of a voxel; a
             // cell's may cross a whole coarse octree leaf.
-            shader_defs.push("SCATTERED_LIGHT".into());
             shader_defs.push(ShaderDefVal::UInt(
                 "LIGHT_PIECES".into(),
                 if key.ray_cast {
