@@ -97,7 +97,7 @@
 // keep their precision.
 
 #import nebel_render::fog_layers::{FogLayers, fog_stretch}
-#import nebel_render::local_lights::{LocalLights, light_node, light_on_ray, light_quadrature}
+#import nebel_render::local_lights::{GAUSS_NODES, GAUSS_WEIGHTS, LocalLights, light_node, light_on_ray, light_quadrature}
 
 struct CellView {
     clip_from_world: mat4x4<f32>,
@@ -448,7 +448,6 @@ fn ground_sun_colour(
 ) -> vec3<f32> {
     let sun = parameters.fog_sun.sun;
     let phase = (1.0 - sun.w * sun.w) / pow(1.0 + sun.w * sun.w - 2.0 * sun.w * dot(direction, sun.xyz), 1.5);
-    let nodes = array<vec2<f32>, 3>(vec2(-0.7745967, 5.0 / 9.0), vec2(0.0, 8.0 / 9.0), vec2(0.7745967, 5.0 / 9.0));
     let pieces = f32(#{LIGHT_PIECES}u);
     let half = 0.5 * (t_back - t_front) / pieces;
     var sum = 0.0;
@@ -461,9 +460,9 @@ fn ground_sun_colour(
         let sigma = depth / (2.0 * half);
         let middle = mix(t_front, t_back, a) + half;
         for (var k = 0u; k < 3u; k++) {
-            let offset = half * (1.0 + nodes[k].x);
-            let p = view.camera_position.xyz + (middle + half * nodes[k].x) * direction;
-            sum += transmittance * nodes[k].y * half * sigma * exp(-sigma * offset) * ground_sun_transmittance(p);
+            let offset = half * (1.0 + GAUSS_NODES[k]);
+            let p = view.camera_position.xyz + (middle + half * GAUSS_NODES[k]) * direction;
+            sum += transmittance * GAUSS_WEIGHTS[k] * half * sigma * exp(-sigma * offset) * ground_sun_transmittance(p);
         }
         transmittance *= exp(-depth);
     }
