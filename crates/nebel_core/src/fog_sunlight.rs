@@ -33,6 +33,7 @@ use glam::{DAffine3, DVec2, DVec3};
 use crate::field::{HeightField, TerrainShadow};
 use crate::local_light::GAUSS_LEGENDRE_3;
 use crate::optics::henyey_greenstein;
+use crate::pacing::worker_threads;
 use crate::transfer::TransferFunction;
 
 /// The fog above a relative height, `F(u) = ∫_u^1 ρ(s(u')) du'` (module
@@ -157,6 +158,32 @@ impl FogSunMap {
             column,
             shadow,
         })
+    }
+
+    /// The map a ground fog draws with: `thickness` one value per point of
+    /// `ground`, the fog's `profile` `(u, s)` and its (scaled) transfer
+    /// function, at the ground's points up to [`FogSunMap::MAX_POINTS`] a
+    /// side, on every core a build may use
+    /// ([`worker_threads`](crate::pacing::worker_threads)). `None` as
+    /// [`FogSunMap::compute`], or where `thickness` does not number the
+    /// ground's points.
+    pub fn of_fog(
+        ground: &HeightField,
+        thickness: &[f32],
+        profile: &[[f32; 2]],
+        transfer_function: &TransferFunction,
+        sun: DVec3,
+    ) -> Option<Self> {
+        let thickness = HeightField::new(
+            ground.dims(),
+            ground.spacing(),
+            ground.origin(),
+            thickness.to_vec(),
+        )
+        .ok()?;
+        let points = ground.dims().map(|n| n.min(Self::MAX_POINTS));
+        let column = FogColumn::new(profile, transfer_function);
+        Self::compute(ground, &thickness, column, sun, points, worker_threads())
     }
 
     /// The fog's optical depth toward the sun at `p` (the terrain's frame),

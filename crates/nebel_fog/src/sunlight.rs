@@ -21,10 +21,8 @@ use std::time::Instant;
 use bevy::diagnostic::Diagnostics;
 use bevy::math::DVec3;
 use bevy::prelude::*;
-use nebel_core::field::HeightField;
-use nebel_core::fog_sunlight::{FogColumn, FogSunMap};
+use nebel_core::fog_sunlight::FogSunMap;
 use nebel_core::optics::OpticalMode;
-use nebel_core::pacing::worker_threads;
 use nebel_render::camera::to_double_affine;
 use nebel_render::{CellBatch, CellFogSunlight, HeavyBuild, HeavyBuilds};
 use nebel_terrain::{TerrainLod, TerrainMapLod};
@@ -118,23 +116,12 @@ pub(crate) fn update_fog_sunlight(
             let build = HeavyBuild::spawn(move || {
                 let started = Instant::now();
                 let map = transfer.scale_density(density).ok().and_then(|scaled| {
-                    let field = ground.field();
-                    let thickness = HeightField::new(
-                        field.dims(),
-                        field.spacing(),
-                        field.origin(),
-                        thickness.values().to_vec(),
-                    )
-                    .ok()?;
-                    let points = field.dims().map(|n| n.min(FogSunMap::MAX_POINTS));
-                    let column = FogColumn::new(&profile, &scaled);
-                    FogSunMap::compute(
-                        field,
-                        &thickness,
-                        column,
+                    FogSunMap::of_fog(
+                        ground.field(),
+                        thickness.values(),
+                        &profile,
+                        &scaled,
                         local_sun,
-                        points,
-                        worker_threads(),
                     )
                 });
                 (map, started.elapsed().as_secs_f32() * 1e3)

@@ -33,7 +33,7 @@ use glam::{DAffine3, DVec2, DVec3};
 use serde::{Deserialize, Serialize};
 
 use nebel_core::field::{FogNoise, HeightField, ValleyFog};
-use nebel_core::fog_sunlight::{FogColumn, FogSunMap, FogSunlight};
+use nebel_core::fog_sunlight::{FogSunMap, FogSunlight};
 use nebel_core::local_light::LightResponse;
 use nebel_core::optics::OpticalMode;
 use nebel_core::transfer::{TransferFunction, TransferPreset};
@@ -384,18 +384,13 @@ impl TerrainDescription {
         let fog_sunlight = sun
             .filter(|_| fog.mode == OpticalMode::Sorted && fog.sun_color.iter().any(|c| *c > 0.0))
             .and_then(|sun| {
-                let field = hierarchy.field();
-                let thickness = HeightField::new(
-                    field.dims(),
-                    field.spacing(),
-                    field.origin(),
-                    layer.values().to_vec(),
-                )
-                .ok()?;
-                let column = FogColumn::new(&fog.profile, &built.transfer_function);
-                let points = field.dims().map(|n| n.min(FogSunMap::MAX_POINTS));
-                let threads = nebel_core::pacing::worker_threads();
-                let map = FogSunMap::compute(field, &thickness, column, sun, points, threads)?;
+                let map = FogSunMap::of_fog(
+                    hierarchy.field(),
+                    layer.values(),
+                    &fog.profile,
+                    &built.transfer_function,
+                    sun,
+                )?;
                 Some(FogSunlight {
                     map: Arc::new(map),
                     map_from_world: DAffine3::from_translation(-center),

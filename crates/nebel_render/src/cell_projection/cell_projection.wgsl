@@ -402,6 +402,17 @@ fn light_piece(i: u32, direction: vec3<f32>, t_a: f32, t_b: f32, sigma: f32) -> 
 }
 #endif
 
+#ifdef SCATTERED_LIGHT
+// The optical depth of the piece from a to b (fractions of the segment from
+// s_front to s_back, with modulator m_front to m_back) of length
+// `piece_length`: its mean modulator times its mean density from the pair
+// table.
+fn piece_depth(s_front: f32, s_back: f32, m_front: f32, m_back: f32, piece_length: f32, a: f32, b: f32) -> f32 {
+    return piece_length * 0.5 * (mix(m_front, m_back, a) + mix(m_front, m_back, b))
+        * pair_lookup(mix(s_front, s_back, a), mix(s_front, s_back, b)).a;
+}
+#endif
+
 #ifdef GROUND_SUN
 // The sun's transmittance at the world point `p`: 0 below the terrain's
 // shadow height, else e^{−H F(u)/μ} (nebel_core::fog_sunlight::FogSunMap).
@@ -455,8 +466,7 @@ fn ground_sun_colour(
     for (var piece = 0u; piece < #{LIGHT_PIECES}u; piece++) {
         let a = f32(piece) / pieces;
         let b = f32(piece + 1u) / pieces;
-        let depth = 2.0 * half * 0.5 * (mix(m_front, m_back, a) + mix(m_front, m_back, b))
-            * pair_lookup(mix(s_front, s_back, a), mix(s_front, s_back, b)).a;
+        let depth = piece_depth(s_front, s_back, m_front, m_back, 2.0 * half, a, b);
         let sigma = depth / (2.0 * half);
         let middle = mix(t_front, t_back, a) + half;
         for (var k = 0u; k < 3u; k++) {
@@ -509,8 +519,7 @@ fn local_light_colour(
         }
         let s_a = mix(s_front, s_back, a);
         let s_b = mix(s_front, s_back, b);
-        let depth = piece_length * 0.5 * (mix(m_front, m_back, a) + mix(m_front, m_back, b))
-            * pair_lookup(s_a, s_b).a;
+        let depth = piece_depth(s_front, s_back, m_front, m_back, piece_length, a, b);
         if depth > 0.0 && piece_length > 0.0 && t_a + piece_length > reach.x {
             var light = vec3(0.0);
             for (var i = 0u; i < count; i++) {

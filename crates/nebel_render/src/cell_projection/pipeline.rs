@@ -402,6 +402,7 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
         if key.local_lights || key.ground_sun {
             // A ray cast grid's segments are already pieces of a voxel; a
             // cell's may cross a whole coarse octree leaf.
+            shader_defs.push("SCATTERED_LIGHT".into());
             shader_defs.push(ShaderDefVal::UInt(
                 "LIGHT_PIECES".into(),
                 if key.ray_cast {
