@@ -2275,3 +2275,95 @@ mod tests {
         );
     }
 }
+
+#[cfg(test)]
+mod sunlight_tests {
+    use std::sync::Arc;
+
+    use glam::{DAffine3, DVec2};
+    use nebel_core::field::HeightField;
+    use nebel_core::fog_sunlight::{FogColumn, FogSunMap, FogSunlight};
+    use nebel_core::transfer::ControlPoint;
+
+    use super::*;
+
+    /// A uniform fog box over |x|, |y|, |z| ≤ 1, lit by a sun through the fog
+    /// above each point (the box as a layer from the ground at y = −1 to its
+    /// top at 1): each pixel is the box's own segment plus the closed form
+    /// of `c ⊙ 4π p_HG ∫ ρ κ e^{−ρ (t − t_in)} e^{−ρ (1 − y(t))/μ} dt`.
+    #[test]
+    fn a_sunlit_fog_box_matches_the_closed_form() {
+        let (kappa, rho) = (DVec3::new(0.5, 0.4, 0.3), 0.5);
+        let tf = TransferFunction::new(vec![ControlPoint {
+            s: 0.5,
+            kappa: [0.5, 0.4, 0.3],
+            rho: 0.5,
+        }])
+        .unwrap();
+        let flat = |height: f32| {
+            HeightField::new(
+                [9, 9],
+                DVec2::splat(1.0),
+                DVec2::splat(-4.0),
+                vec![height; 81],
+            )
+            .unwrap()
+        };
+        let sun = DVec3::new(0.6, 0.8, 0.0);
+        let column = FogColumn::new(&[[0.0, 1.0], [1.0, 0.0]], &tf);
+        let map = FogSunMap::compute(&flat(-1.0), &flat(2.0), column, sun, [9, 9], 1).unwrap();
+        let (colour, asymmetry) = (DVec3::new(2.0, 1.5, 1.0), 0.3);
+        let camera = ReferenceCamera {
+            position: DVec3::new(0.0, 0.0, 6.0),
+            width: 24,
+            height: 18,
+            vertical_fov: 0.3,
+            ..Default::default()
+        };
+        let grid = DensityGrid::new(
+            [2, 2, 2],
+            DVec3::splat(2.0),
+            DVec3::splat(-1.0),
+            vec![0.5; 8],
+        )
+        .unwrap();
+        let mut scene =
+            ReferenceScene::new(camera, ReferenceVolume::Grid(grid), tf, OpticalMode::Sorted);
+        scene.sunlight = Some(FogSunlight {
+            map: Arc::new(map),
+            map_from_world: DAffine3::IDENTITY,
+            direction: sun,
+            colour,
+            asymmetry,
+        });
+        let image = render(&scene, None).unwrap();
+        let mut checked = 0;
+        for (x, y) in (0..camera.height).flat_map(|y| (0..camera.width).map(move |x| (x, y))) {
+            let (ray, _) = camera.pixel_ray(x, y);
+            let (t_in, t_out) = (
+                (1.0 - 6.0) / ray.direction.z,
+                (-1.0 - 6.0) / ray.direction.z,
+            );
+            let inside = |t: f64| ray.at(t).x.abs() < 0.99 && ray.at(t).y.abs() < 0.99;
+            if !(inside(t_in) && inside(t_out)) {
+                continue;
+            }
+            // e^{C + k t}: the transmittance to the eye and toward the sun.
+            let (y0, dy) = (ray.origin.y, ray.direction.y);
+            let k = -rho + rho * dy / 0.8;
+            let c = rho * t_in - rho * (1.0 - y0) / 0.8;
+            let integral = ((c + k * t_out).exp() - (c + k * t_in).exp()) / k;
+            let phase = henyey_greenstein(asymmetry, ray.direction.dot(sun));
+            let alpha = -(-rho * (t_out - t_in)).exp_m1();
+            let expected = kappa * alpha + colour * phase * kappa * rho * integral;
+            let pixel = DVec4::from(image.pixels[(y * camera.width + x) as usize].map(f64::from));
+            assert!(
+                (pixel.truncate() - expected).abs().max_element() < 1e-5,
+                "({x}, {y}): {pixel} vs {expected}"
+            );
+            assert!((pixel.w - alpha).abs() < 1e-6);
+            checked += 1;
+        }
+        assert!(checked > 50, "{checked} pixels through the box");
+    }
+}
