@@ -363,6 +363,7 @@ impl TerrainDescription {
 mod tests {
     use super::*;
     use crate::SceneDescription;
+    use glam::DVec3;
 
     const SCENE: &str = "(version: 1, camera: (view: Pose((position: (0.0, 500.0, 900.0), look_at: (0.0, 0.0, 0.0)))), terrain: TERRAIN)";
 
@@ -486,6 +487,14 @@ mod tests {
                 "(source: Procedural((dims: 9)), fog: (thickness: Valley((altitude: 4.0)), saturate: true))",
                 "field terrain.fog.saturate: saturates unsorted emissive fog: needs mode Emissive, got Sorted",
             ),
+            (
+                "(source: Procedural((dims: 9)), fog: (thickness: Valley((altitude: 4.0)), sun_color: (1.0, NaN, 0.0)))",
+                "field terrain.fog.sun_color: colour components must be finite and >= 0, got NaN",
+            ),
+            (
+                "(source: Procedural((dims: 9)), fog: (thickness: Valley((altitude: 4.0)), sun_asymmetry: 1.0))",
+                "field terrain.fog.sun_asymmetry: must be in (−1, 1), got 1",
+            ),
         ];
         for (terrain, expected) in cases {
             let message = parse(terrain).expect_err(terrain);
@@ -496,6 +505,63 @@ mod tests {
         }
         let message = parse("(source: Procedural((dims: 9, colour: 1)))").unwrap_err();
         assert!(message.contains("colour"), "{message}");
+    }
+
+    /// A sorted fog with a sun colour under a directional light is lit in
+    /// the reference by the map the plugin builds, in the terrain's frame;
+    /// without the light, the colour or the sorted mode it is not.
+    #[test]
+    fn a_sunlit_fog_s_reference_carries_its_sun_map() {
+        let terrain = "(source: Procedural((dims: 17)), vertical_scale: 40.0, center: (30.0, 0.0, -20.0), fog: (thickness: Valley((altitude: 10.0)), sun_color: (1.0, 0.5, 0.25), sun_asymmetry: 0.4MODE))";
+        let sunlit = |terrain: &str, sun: bool| {
+            let mut text = SCENE.replace("TERRAIN", terrain);
+            if sun {
+                text = text.replace(
+                    "(version: 1,",
+                    "(version: 1, lights: [Directional((direction: (-0.6, -0.64, -0.48)))],",
+                );
+            }
+            let scene = SceneDescription::from_ron(&text, Path::new("scenes/t.ron")).unwrap();
+            let unit = scene
+                .terrain
+                .as_ref()
+                .unwrap()
+                .unit_heights(Path::new("."))
+                .unwrap();
+            let built = scene
+                .build_ground_fog(Path::new("scenes/t.ron"))
+                .unwrap()
+                .unwrap();
+            let reference = scene
+                .build_fog_reference(Path::new("scenes/t.ron"), &unit, &built)
+                .unwrap()
+                .unwrap();
+            reference.volume.and_then(|volume| volume.fog_sunlight)
+        };
+        let lit = sunlit(&terrain.replace("MODE", ""), true).expect("lit by the sun");
+        let toward = DVec3::new(0.6, 0.64, 0.48).normalize();
+        assert!(lit.direction.distance(toward) < 1e-6);
+        assert_eq!(
+            (lit.colour, lit.asymmetry),
+            (DVec3::new(1.0, 0.5, 0.25), 0.4_f32 as f64)
+        );
+        // The map's frame is the terrain's, centred on its `center`.
+        let origin = lit
+            .map_from_world
+            .transform_point3(DVec3::new(30.0, 0.0, -20.0));
+        assert!(origin.length() < 1e-12);
+        assert!(lit.map.thickness.heights().iter().any(|h| *h > 0.0));
+        assert!(sunlit(&terrain.replace("MODE", ""), false).is_none());
+        assert!(sunlit(&terrain.replace("MODE", ", mode: Emissive"), true).is_none());
+        assert!(
+            sunlit(
+                &terrain
+                    .replace("sun_color: (1.0, 0.5, 0.25), ", "")
+                    .replace("MODE", ""),
+                true
+            )
+            .is_none()
+        );
     }
 
     #[test]
