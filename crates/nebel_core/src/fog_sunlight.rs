@@ -5,7 +5,7 @@
 //! the horizontal position `p` the ground `G(p)` and the thickness `H(p)`,
 //! at relative height `u = (y − G)/H` the profile's scalar `s(u)` and the
 //! density `ρ(s(u))`. A point sees the sun when it lies above the terrain's
-//! shadow height ([`TerrainShadow`](crate::field::TerrainShadow)), through
+//! shadow height ([`TerrainShadow`]), through
 //! the fog between it and the sun, taken as the fog *above* it (the layer
 //! locally level): the column `C = H F(u)`, `F(u) = ∫_u^1 ρ(s(u')) du'`
 //! ([`FogColumn`], exact), along the slant `1/μ` (`μ` the sine of the sun's
@@ -164,7 +164,7 @@ impl FogSunMap {
     /// `ground`, the fog's `profile` `(u, s)` and its (scaled) transfer
     /// function, at the ground's points up to [`FogSunMap::MAX_POINTS`] a
     /// side, on every core a build may use
-    /// ([`worker_threads`](crate::pacing::worker_threads)). `None` as
+    /// ([`worker_threads`]). `None` as
     /// [`FogSunMap::compute`], or where `thickness` does not number the
     /// ground's points.
     pub fn of_fog(
