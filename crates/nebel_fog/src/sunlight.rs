@@ -8,8 +8,8 @@
 //! `FogSunMap::MAX_POINTS` points a side over the terrain) is built on the task
 //! pool from the fog's map, transfer function, density and profile, again
 //! when any of them changes, the terrain moves, or the sun turns (in the
-//! terrain's frame) by more than [`SUN_STEP`]; the fog keeps the last map
-//! until the new one lands (the same frame under
+//! terrain's frame) by more than [`SUN_STEP`], one build at a time; the fog
+//! keeps the last map until the new one lands (the same frame under
 //! `HeavyBuilds::Blocking`). The phase and the colour follow the sun every
 //! frame. A fog without a sun colour, unsorted, or without cells has no
 //! map, no build and no `CellFogSunlight`: its shader variant is the unlit
@@ -104,11 +104,9 @@ pub(crate) fn update_fog_sunlight(
             *built_key == key && built_sun.angle_between(local_sun) <= SUN_STEP
         };
         let up_to_date = state.built.as_ref().is_some_and(|(k, s, _)| fresh((k, *s)));
-        let in_flight = state
-            .building
-            .as_ref()
-            .is_some_and(|(k, s, _)| fresh((k, *s)));
-        if !up_to_date && !in_flight {
+        // A build in flight lands before the next starts, so a sun that
+        // turns faster than a build takes still gets a map per build.
+        if !up_to_date && state.building.is_none() {
             let ground = mapped.base.clone();
             let thickness = mapped.map.clone();
             let (profile, density) = (fog.profile.clone(), fog.density);

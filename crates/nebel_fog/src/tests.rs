@@ -677,3 +677,48 @@ fn a_sun_colour_and_a_sun_light_the_fog_on_a_map_that_follows_the_sun() {
     settle(&mut app);
     assert!(sunlight(&app, fog).is_none());
 }
+
+#[test]
+fn a_sun_that_turns_every_frame_still_gets_new_maps_in_the_background() {
+    use nebel_render::HeavyBuilds;
+    use std::time::Duration;
+    let (mut app, _) = app(&asset_dir("sun-turning"), Vec3::new(-400.0, 250.0, -300.0));
+    let fog = spawn_fog(
+        &mut app,
+        GroundFog {
+            sun_color: Color::WHITE,
+            ..valley(40.0)
+        },
+    );
+    let sun = app
+        .world_mut()
+        .spawn((DirectionalLight::default(), Transform::default()))
+        .id();
+    let toward = |frame: u32| {
+        Quat::from_rotation_y(0.02 * frame as f32) * Vec3::new(0.8, 0.4, 0.0).normalize()
+    };
+    settle(&mut app);
+    app.insert_resource(HeavyBuilds::Background);
+    // The sun turns by 0.02 rad, four steps, every frame: each build is
+    // stale when it lands, and the next starts then.
+    let mut suns = Vec::new();
+    for frame in 0..80 {
+        *app.world_mut().get_mut::<Transform>(sun).unwrap() =
+            Transform::default().looking_to(-toward(frame), Vec3::Y);
+        app.update();
+        std::thread::sleep(Duration::from_millis(5));
+        if let Some(lit) = app.world().get::<CellFogSunlight>(fog) {
+            let map_sun = lit.map.shadow.sun.as_vec3();
+            if suns.last() != Some(&map_sun) {
+                suns.push(map_sun);
+            }
+        }
+    }
+    assert!(suns.len() >= 4, "maps for {} suns", suns.len());
+    // The newest map is for a sun of the last few frames.
+    let newest = *suns.last().unwrap();
+    assert!(
+        (60..80).any(|frame| newest.angle_between(toward(frame)) < 1e-4),
+        "{newest}"
+    );
+}
