@@ -201,13 +201,15 @@ impl FogSunMap {
         Some(thickness * self.column.above(u) / self.shadow.sun.y)
     }
 
-    /// Per grid point, `(shadow height, G, H, 0)`, x fastest: the GPU's
-    /// texels.
+    /// Per grid point, `(shadow height, G, H, t*)` (`t*` the distance of
+    /// the shadow's caster, [`TerrainShadow::distances`]), x fastest: the
+    /// GPU's texels.
     pub fn texels(&self) -> Vec<[f32; 4]> {
         let shadow = self.shadow.heights.heights();
         let (ground, thickness) = (self.ground.heights(), self.thickness.heights());
+        let distances = self.shadow.distances.heights();
         (0..shadow.len())
-            .map(|n| [shadow[n], ground[n], thickness[n], 0.0])
+            .map(|n| [shadow[n], ground[n], thickness[n], distances[n]])
             .collect()
     }
 }

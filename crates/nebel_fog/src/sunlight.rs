@@ -31,8 +31,8 @@ use crate::ground_fog::{GroundFog, GroundFogPlugin};
 
 /// The angle, radians, by which the sun turns before the map is built again
 /// (about 0.3°): a shadow edge 1 km from its ridge then steps by 5 m as the
-/// sun turns about the vertical, by `5 m / (sin α cos α)` as it climbs at
-/// the elevation α (10 m at 45°, 41 m at 7°).
+/// sun turns about the vertical (between maps the shadow follows the sun's
+/// elevation, `nebel_render::fog_sunlight`).
 pub const SUN_STEP: f64 = 0.005;
 
 /// What a fog's sun map was built from.

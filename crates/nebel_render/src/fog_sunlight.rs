@@ -6,7 +6,11 @@
 //! shadow height from an `Rgba32Float` texture at the map's grid points,
 //! bilinear in between as `nebel_core`'s `HeightField` samples them, and the
 //! fog's column `F(u)` from a table of [`COLUMN_TABLE_SIZE`] values, linear
-//! in between. Each of the segment's four pieces takes its optical depth
+//! in between. Between maps (built when the sun turns by a step) the shadow
+//! heights follow the sun's elevation: each moves by `−t* (tan α − tan α₀)`,
+//! `t*` the distance of the terrain that casts it (the texel's fourth
+//! channel), exact while that terrain stays the caster; a turn about the
+//! vertical waits for the next map. `μ` is the sun's sine now. Each of the segment's four pieces takes its optical depth
 //! from the pair table and three Gauss-Legendre nodes of `σ e^{−σ (t −
 //! t_a)} V T_sun`; the colour is the segment's mean (exact for a fog of one
 //! colour), the phase the one at the ray's angle to the sun. The texture is uploaded when the map changes (by identity),
@@ -14,13 +18,14 @@
 
 use std::sync::Arc;
 
-use bevy::math::{DAffine3, DMat3, DMat4, DVec3};
+use bevy::math::{DAffine3, DMat3, DMat4, DVec2, DVec3};
 use bevy::prelude::*;
 use bevy::render::render_resource::{
     Extent3d, ShaderType, TextureDataOrder, TextureDescriptor, TextureDimension, TextureFormat,
     TextureUsages, TextureView, TextureViewDescriptor,
 };
 use bevy::render::renderer::{RenderDevice, RenderQueue};
+use nebel_core::field::TerrainShadow;
 use nebel_core::fog_sunlight::{FogSunMap, vertical_scale};
 
 /// Values of the fog's column table `F(u)`, at equal steps of `u` from 0 to 1.
@@ -55,8 +60,13 @@ pub(crate) struct FogSunUniform {
     /// xyz: unit direction toward the sun; w: the asymmetry.
     pub sun: Vec4,
     /// rgb: the colour; w: `s/μ`, the sun's slant through a level layer
-    /// (`s` the world length of the map's unit of height).
+    /// (`s` the world length of the map's unit of height, `μ` the sine of
+    /// the sun's elevation now, in the map's frame).
     pub colour: Vec4,
+    /// x: `tan α − tan α₀`, the tangent of the sun's elevation now less the
+    /// map's: the shadow heights move by `−t*` times it (see the module
+    /// docs); yzw unused.
+    pub elevation: Vec4,
     /// `F(u)` at [`COLUMN_TABLE_SIZE`] steps, four to an element.
     pub column: [Vec4; COLUMN_TABLE_SIZE.div_ceil(4)],
 }
@@ -79,12 +89,23 @@ impl FogSunUniform {
         {
             column[k / 4][k % 4] = value;
         }
-        let colour = Vec3::from_array(
-            sunlight
-                .colour
-                .to_array()
-                .map(|c| if c.is_finite() { c.max(0.0) } else { 0.0 }),
-        );
+        // The sun now, in the map's frame; below the map's lowest sun it
+        // lights nothing.
+        let map_sun = sunlight.map.shadow.sun;
+        let now = sunlight
+            .map_from_world
+            .transform_vector3(sunlight.direction.as_dvec3())
+            .try_normalize()
+            .unwrap_or(map_sun);
+        let tan = |sun: DVec3| (sun.y / DVec2::new(sun.x, sun.z).length().max(1e-6)).min(1e6);
+        let lit = now.y >= TerrainShadow::MIN_SUN_SINE;
+        let colour = Vec3::from_array(sunlight.colour.to_array().map(|c| {
+            if c.is_finite() && lit {
+                c.max(0.0)
+            } else {
+                0.0
+            }
+        }));
         let asymmetry = if sunlight.asymmetry.is_nan() {
             0.0
         } else {
@@ -94,8 +115,10 @@ impl FogSunUniform {
             grid_from_world: DMat4::from(grid_from_map * sunlight.map_from_world).as_mat4(),
             sun: sunlight.direction.normalize_or(Vec3::Y).extend(asymmetry),
             colour: colour.extend(
-                (vertical_scale(&sunlight.map_from_world) / sunlight.map.shadow.sun.y) as f32,
+                (vertical_scale(&sunlight.map_from_world) / now.y.max(TerrainShadow::MIN_SUN_SINE))
+                    as f32,
             ),
+            elevation: Vec4::new((tan(now) - tan(map_sun)) as f32, 0.0, 0.0, 0.0),
             column,
         }
     }
@@ -168,10 +191,15 @@ mod tests {
             DQuat::from_rotation_y(0.7),
             DVec3::new(100.0, -3.0, 50.0),
         );
+        // The sun now a little higher than the map's (in the map's frame
+        // (0, 0.6, 0.8) against (0, 0.5, 0.87)).
+        let now = world_from_map
+            .transform_vector3(DVec3::new(0.0, 0.6, 0.8))
+            .as_vec3();
         let sunlight = CellFogSunlight {
             map: Arc::new(map),
             map_from_world: world_from_map.inverse(),
-            direction: Vec3::new(0.0, 2.0, 0.0),
+            direction: now,
             colour: Vec3::new(f32::NAN, -1.0, 2.0),
             asymmetry: 3.0,
         };
@@ -183,13 +211,29 @@ mod tests {
             (grid - Vec3::new(3.0, 6.0, 2.0)).abs().max_element() < 1e-4,
             "{grid}"
         );
-        assert_eq!(uniform.sun, Vec4::new(0.0, 1.0, 0.0, 0.99));
         assert!(
-            (uniform.colour - Vec4::new(0.0, 0.0, 2.0, 4.0))
+            (uniform.sun.truncate() - now.normalize())
                 .abs()
                 .max_element()
-                < 1e-5
+                < 1e-6
         );
+        assert_eq!(uniform.sun.w, 0.99);
+        // The slant s/μ for the sun now: 2 / 0.6; the elevation's tangent
+        // 0.75 against the map's 1/√3.
+        let expected = Vec4::new(0.0, 0.0, 2.0, 2.0 / 0.6);
+        assert!(
+            (uniform.colour - expected).abs().max_element() < 1e-5,
+            "{}",
+            uniform.colour
+        );
+        assert!((uniform.elevation.x - (0.75 - 1.0 / 3f32.sqrt())).abs() < 1e-5);
+        // A sun below the horizon lights nothing.
+        let set = FogSunUniform::new(&CellFogSunlight {
+            direction: Vec3::new(0.0, -0.2, 1.0),
+            colour: Vec3::ONE,
+            ..sunlight.clone()
+        });
+        assert_eq!(set.colour.truncate(), Vec3::ZERO);
         // F(u) = 0.5 (1 − u): the first, the middle and the last value.
         assert_eq!(uniform.column[0].x, 0.5);
         assert_eq!(uniform.column[8].x, 0.25);

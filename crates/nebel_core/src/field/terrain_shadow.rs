@@ -31,6 +31,13 @@ use crate::pacing::fill_slices;
 pub struct TerrainShadow {
     /// `h_s` over the field's extent.
     pub heights: HeightField,
+    /// At the same points, the horizontal distance `t*` toward the sun of
+    /// the terrain that casts the shadow (0 where none does): the sun a
+    /// little higher or lower, at `tan α'`, moves `h_s` by `−t* (tan α' −
+    /// tan α)` while that point stays the one that casts it (and the
+    /// shadow height is never below that), so a map can follow a rising
+    /// or setting sun between builds.
+    pub distances: HeightField,
     /// Unit direction toward the sun in the field's frame.
     pub sun: DVec3,
 }
@@ -61,16 +68,22 @@ impl TerrainShadow {
         let extent = field.spacing() * DVec2::new((dims[0] - 1) as f64, (dims[1] - 1) as f64);
         let spacing = extent / DVec2::new((points[0] - 1) as f64, (points[1] - 1) as f64);
         let blocks = Blocks::new(field);
-        let mut heights = vec![0.0f32; points[0] * points[1]];
-        fill_slices(&mut heights, points[0], threads, |first_row, rows| {
+        let mut marched = vec![(0.0f32, 0.0f32); points[0] * points[1]];
+        fill_slices(&mut marched, points[0], threads, |first_row, rows| {
             for (n, h) in rows.iter_mut().enumerate() {
                 let (i, j) = (n % points[0], first_row + n / points[0]);
                 let p = field.origin() + DVec2::new(i as f64, j as f64) * spacing;
-                *h = march(field, &blocks, p, sun) as f32;
+                let (height, distance) = march(field, &blocks, p, sun);
+                *h = (height as f32, distance as f32);
             }
         });
-        let heights = HeightField::new(points, spacing, field.origin(), heights).ok()?;
-        Some(Self { heights, sun })
+        let grid =
+            |values: Vec<f32>| HeightField::new(points, spacing, field.origin(), values).ok();
+        Some(Self {
+            heights: grid(marched.iter().map(|m| m.0).collect())?,
+            distances: grid(marched.iter().map(|m| m.1).collect())?,
+            sun,
+        })
     }
 
     /// Whether the point `p` (the field's frame) sees the sun past the
@@ -84,7 +97,7 @@ impl TerrainShadow {
 /// `field` (module docs) for the unit direction `sun` toward the sun
 /// (`sun.y` > 0); positions outside the field are clamped onto it.
 pub fn shadow_height(field: &HeightField, p: DVec2, sun: DVec3) -> f64 {
-    march(field, &Blocks::new(field), p, sun)
+    march(field, &Blocks::new(field), p, sun).0
 }
 
 /// Cells per side of the blocks the march may cross at once, coarse to
@@ -146,12 +159,13 @@ fn cell_at(g: DVec2, e: DVec2, last: DVec2) -> Option<DVec2> {
     (inside(0) && inside(1)).then_some(cell)
 }
 
-/// `max_t H(p + t d) − t tan α` cell by cell along the line (module docs).
-fn march(field: &HeightField, blocks: &Blocks, p: DVec2, sun: DVec3) -> f64 {
+/// `max_t H(p + t d) − t tan α` cell by cell along the line (module docs),
+/// and the `t` where it is reached (the first such).
+fn march(field: &HeightField, blocks: &Blocks, p: DVec2, sun: DVec3) -> (f64, f64) {
     let dims = field.dims();
     let last = DVec2::new((dims[0] - 1) as f64, (dims[1] - 1) as f64);
     let start = ((p - field.origin()) / field.spacing()).clamp(DVec2::ZERO, last);
-    let mut best = field.sample_grid(start);
+    let mut best = (field.sample_grid(start), 0.0);
     let horizontal = DVec2::new(sun.x, sun.z);
     let run = horizontal.length();
     if run <= 1e-12 * sun.y {
@@ -178,14 +192,14 @@ fn march(field: &HeightField, blocks: &Blocks, p: DVec2, sun: DVec3) -> f64 {
         }
     };
     loop {
-        if blocks.top - t * slope <= best {
+        if blocks.top - t * slope <= best.0 {
             return best;
         }
         // The coarsest block that nothing from here on in it beats the
         // best, crossed whole.
         let skip = (0..BLOCKS.len()).find_map(|level| {
             let (block, highest) = blocks.of(level, cell);
-            if highest - t * slope > best {
+            if highest - t * slope > best.0 {
                 return None;
             }
             let size = BLOCKS[level] as f64;
@@ -204,7 +218,10 @@ fn march(field: &HeightField, blocks: &Blocks, p: DVec2, sun: DVec3) -> f64 {
         }
         let (tx, tz) = (exit(cell, cell + 1.0, 0), exit(cell, cell + 1.0, 1));
         let t_end = tx.min(tz).max(t);
-        best = best.max(cell_maximum(field, cell, start, e, slope, t, t_end));
+        let candidate = cell_maximum(field, cell, start, e, slope, t, t_end);
+        if candidate.0 > best.0 {
+            best = candidate;
+        }
         let mut next = cell;
         if tx <= t_end {
             next.x += e.x.signum();
@@ -221,7 +238,7 @@ fn march(field: &HeightField, blocks: &Blocks, p: DVec2, sun: DVec3) -> f64 {
 }
 
 /// The maximum of `H(g(t)) − t · slope` over `[t0, t1]` inside `cell`,
-/// where the bilinear `H` along the line is a quadratic.
+/// where the bilinear `H` along the line is a quadratic, and its `t`.
 fn cell_maximum(
     field: &HeightField,
     cell: DVec2,
@@ -230,7 +247,7 @@ fn cell_maximum(
     slope: f64,
     t0: f64,
     t1: f64,
-) -> f64 {
+) -> (f64, f64) {
     let (i, j) = (cell.x as usize, cell.y as usize);
     let h = |di: usize, dj: usize| f64::from(field.height(i + di, j + dj));
     let (a, b, c, k) = (
@@ -245,14 +262,18 @@ fn cell_maximum(
         let (fx, fz) = (x0 + t * e.x, z0 + t * e.y);
         a + b * fx + c * fz + k * fx * fz - t * slope
     };
-    let mut best = f(t0).max(f(t1));
+    let mut best = if f(t1) > f(t0) {
+        (f(t1), t1)
+    } else {
+        (f(t0), t0)
+    };
     // f(t) = A t² + B t + const.
     let quadratic = k * e.x * e.y;
     let linear = b * e.x + c * e.y + k * (x0 * e.y + z0 * e.x) - slope;
     if quadratic < 0.0 {
         let vertex = -linear / (2.0 * quadratic);
-        if vertex > t0 && vertex < t1 {
-            best = best.max(f(vertex));
+        if vertex > t0 && vertex < t1 && f(vertex) > best.0 {
+            best = (f(vertex), vertex);
         }
     }
     best
@@ -324,6 +345,17 @@ mod tests {
                 );
             }
         }
+        // The top edge casts it: t* = 40 − x, and a sun a little higher
+        // (tan α' = 0.3) moves every height by −t* (0.3 − 0.25), exactly.
+        let higher = DVec3::new(1.0, 0.3, 0.0).normalize();
+        for i in 0..11 {
+            let x = 4.0 * i as f64;
+            let distance = f64::from(shadow.distances.height(i, 2));
+            assert!((distance - (40.0 - x)).abs() < 1e-4, "{i}: {distance}");
+            let moved = f64::from(shadow.heights.height(i, 2)) - distance * (0.3 - 0.25);
+            let exact = shadow_height(&slope, DVec2::new(x, 8.0), higher);
+            assert!((moved - exact).abs() < 1e-4, "{i}: {moved} against {exact}");
+        }
         // Facing the sun, a gentler slope shades nothing but the ground.
         let gentle = field([11, 5], 4.0, |x, _| 0.1 * x);
         let shadow = TerrainShadow::compute(&gentle, sun, [11, 5], 1).unwrap();
@@ -363,6 +395,14 @@ mod tests {
             let exact = shadow_height(&bumps, p, sun);
             let fine = brute_force(&bumps, p, sun);
             prop_assert!(exact >= fine - 1e-9 && exact - fine < 0.05, "{exact} against {fine}");
+            // The height moved by its caster's distance for a sun 0.02 rad
+            // higher is never above that sun's own.
+            let (height, distance) = march(&bumps, &Blocks::new(&bumps), p, sun);
+            let tan = |s: DVec3| s.y / DVec2::new(s.x, s.z).length();
+            let higher = DVec3::new(sun.x, 0.0, sun.z).normalize() * (elevation + 0.02).cos()
+                + DVec3::Y * (elevation + 0.02).sin();
+            let moved = height - distance * (tan(higher) - tan(sun));
+            prop_assert!(moved <= shadow_height(&bumps, p, higher) + 1e-9);
         }
     }
 

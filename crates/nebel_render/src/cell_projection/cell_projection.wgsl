@@ -121,8 +121,11 @@ struct FogSun {
     // xyz: unit direction toward the sun; w: Henyey-Greenstein asymmetry g.
     sun: vec4<f32>,
     // rgb: the sunlight's colour; w: s/μ, its slant through a level layer (s
-    // the world length of the map's unit of height).
+    // the world length of the map's unit of height, μ the sun's sine now).
     colour: vec4<f32>,
+    // x: tan α − tan α₀, the sun's elevation now against the map's: the
+    // shadow heights move by −t* times it.
+    elevation: vec4<f32>,
     // The fog's column F(u) at 65 equal steps of u, four to an element.
     column: array<vec4<f32>, 17>,
 }
@@ -150,7 +153,8 @@ struct CellTables {
 #endif
 
 #ifdef GROUND_SUN
-// Per grid point of the sun map: (shadow height, ground, thickness, 0).
+// Per grid point of the sun map: (shadow height, ground, thickness, the
+// distance t* of the shadow's caster).
 @group(1) @binding(7) var sun_map: texture_2d<f32>;
 #endif
 
@@ -425,7 +429,7 @@ fn ground_sun_transmittance(p: vec3<f32>) -> f32 {
     let row0 = mix(textureLoad(sun_map, corner, 0), textureLoad(sun_map, corner + vec2(1, 0), 0), f.x);
     let row1 = mix(textureLoad(sun_map, corner + vec2(0, 1), 0), textureLoad(sun_map, corner + vec2(1, 1), 0), f.x);
     let texel = mix(row0, row1, f.y);
-    if q.y < texel.x {
+    if q.y < texel.x - texel.w * parameters.fog_sun.elevation.x {
         return 0.0;
     }
     if texel.z <= 0.0 {
