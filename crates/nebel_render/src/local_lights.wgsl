@@ -26,6 +26,13 @@ struct LocalLights {
     lights: array<LocalLight, #{MAX_LOCAL_LIGHTS}u>,
 }
 
+// The normalised Henyey-Greenstein phase 4π p_HG(θ) of asymmetry g at cos θ
+// (nebel_core::optics::henyey_greenstein): 1 on average over the sphere.
+fn henyey_greenstein(g: f32, cos_theta: f32) -> f32 {
+    let denominator = 1.0 + g * g - 2.0 * g * cos_theta;
+    return (1.0 - g * g) / (denominator * sqrt(denominator));
+}
+
 // Gauss-Legendre on [−1, 1], three nodes and their weights.
 const GAUSS_NODES = array<f32, 3>(-0.7745966692414834, 0.0, 0.7745966692414834);
 const GAUSS_WEIGHTS = array<f32, 3>(0.5555555555555556, 0.8888888888888888, 0.5555555555555556);
@@ -157,8 +164,7 @@ fn light_node(
         cone = clamp(dot(light.cone.xyz, toward) * light.cone.w + light.colour.w, 0.0, 1.0);
     }
     let cos_theta = select(0.0, along / r, r > 0.0);
-    let denominator = 1.0 + g * g - 2.0 * g * cos_theta;
-    let phase = (1.0 - g * g) / (denominator * sqrt(denominator));
+    let phase = henyey_greenstein(g, cos_theta);
     let weight = GAUSS_WEIGHTS[k] * window * window * cone * cone * phase * quadrature.half_width / quadrature.h;
     return LightNode(t, weight);
 }

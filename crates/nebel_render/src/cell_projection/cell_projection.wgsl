@@ -97,7 +97,7 @@
 // keep their precision.
 
 #import nebel_render::fog_layers::{FogLayers, fog_stretch}
-#import nebel_render::local_lights::{GAUSS_NODES, GAUSS_WEIGHTS, LocalLights, light_node, light_on_ray, light_quadrature}
+#import nebel_render::local_lights::{GAUSS_NODES, GAUSS_WEIGHTS, LocalLights, henyey_greenstein, light_node, light_on_ray, light_quadrature}
 
 struct CellView {
     clip_from_world: mat4x4<f32>,
@@ -462,7 +462,7 @@ fn ground_sun_colour(
     direction: vec3<f32>,
 ) -> vec3<f32> {
     let sun = parameters.fog_sun.sun;
-    let phase = (1.0 - sun.w * sun.w) / pow(1.0 + sun.w * sun.w - 2.0 * sun.w * dot(direction, sun.xyz), 1.5);
+    let phase = henyey_greenstein(sun.w, dot(direction, sun.xyz));
     let pieces = f32(#{LIGHT_PIECES}u);
     let half = 0.5 * (t_back - t_front) / pieces;
     var sum = 0.0;
@@ -592,9 +592,7 @@ fn segment_colour(
     }
 #endif
 #ifdef SCATTERING
-    let g = parameters.sun.w;
-    let cos_theta = dot(direction, parameters.sun.xyz);
-    let phase = (1.0 - g * g) / pow(1.0 + g * g - 2.0 * g * cos_theta, 1.5);
+    let phase = henyey_greenstein(parameters.sun.w, dot(direction, parameters.sun.xyz));
     var segment = vec4(parameters.ambient_colour.rgb * alpha + parameters.sunlight.rgb * parameters.sun_colour.rgb * phase * colour, alpha);
 #else
     var segment = vec4(parameters.sunlight.rgb * colour, alpha);

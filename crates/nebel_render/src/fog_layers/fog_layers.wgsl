@@ -8,6 +8,8 @@
 
 #define_import_path nebel_render::fog_layers
 
+#import nebel_render::local_lights::henyey_greenstein
+
 struct FogLayers {
     colour: vec4<f32>,
     // w: Henyey-Greenstein asymmetry.
@@ -142,9 +144,7 @@ fn fog_sunlit(fog: FogLayers, direction: vec3<f32>, depths: vec3<f32>) -> vec3<f
     let end = exp(-view_depth - s1);
     let series = view_depth * end * (1.0 + x * (0.5 + x / 6.0));
     let scattered = select(series, view_depth * (exp(-s0) - end) / x, abs(x) >= 1.0e-3);
-    let g = fog.sun_colour.w;
-    let cos_theta = dot(direction, fog.sun_direction.xyz);
-    let phase = (1.0 - g * g) / pow(1.0 + g * g - 2.0 * g * cos_theta, 1.5);
+    let phase = henyey_greenstein(fog.sun_colour.w, dot(direction, fog.sun_direction.xyz));
     return fog.sun_colour.rgb * phase * scattered;
 }
 
