@@ -36,7 +36,7 @@
 
 use glam::DVec3;
 
-use crate::optics::henyey_greenstein;
+use crate::optics::{checked_asymmetry, henyey_greenstein};
 
 /// The illuminance, in lux, of a colour factor of 1: Bevy's default
 /// `DirectionalLight` (the sun a volume's colours are authored under).
@@ -104,11 +104,7 @@ impl LightResponse {
     /// strength as 0 where it is negative or not finite.
     pub fn checked(&self) -> Self {
         Self {
-            asymmetry: if self.asymmetry.is_nan() {
-                0.0
-            } else {
-                self.asymmetry.clamp(-0.99, 0.99)
-            },
+            asymmetry: checked_asymmetry(self.asymmetry),
             strength: if self.strength.is_finite() {
                 self.strength.max(0.0)
             } else {

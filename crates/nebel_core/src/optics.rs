@@ -58,6 +58,15 @@ impl OpticalMode {
     }
 }
 
+/// The asymmetry renderers use: `g` clamped to ±0.99, NaN as 0 (isotropic).
+pub fn checked_asymmetry(asymmetry: f32) -> f32 {
+    if asymmetry.is_nan() {
+        0.0
+    } else {
+        asymmetry.clamp(-0.99, 0.99)
+    }
+}
+
 /// The Henyey-Greenstein phase function times 4π (Nes 2008): `(1 − g²) /
 /// (1 + g² − 2g cos θ)^{3/2}` for the asymmetry `g` (clamped to ±0.99) and
 /// the cosine `cos θ` between the light's travel direction and the scattered

@@ -139,12 +139,18 @@ impl CellSunlight {
     /// The factor the render system draws with: each channel finite and
     /// ≥ 0, others as 0.
     pub fn checked(&self) -> Vec3 {
-        Vec3::from_array(
-            self.colour
-                .to_array()
-                .map(|c| if c.is_finite() { c.max(0.0) } else { 0.0 }),
-        )
+        finite_non_negative(self.colour)
     }
+}
+
+/// `colour` with each channel finite and ≥ 0, others as 0: a light's colour
+/// as the render system draws it.
+pub(crate) fn finite_non_negative(colour: Vec3) -> Vec3 {
+    Vec3::from_array(
+        colour
+            .to_array()
+            .map(|c| if c.is_finite() { c.max(0.0) } else { 0.0 }),
+    )
 }
 
 /// How far a keyframe-blended [`CellBatch`] is drawn from the field at the

@@ -27,6 +27,9 @@ use bevy::render::render_resource::{
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use nebel_core::field::TerrainShadow;
 use nebel_core::fog_sunlight::{FogSunMap, vertical_scale};
+use nebel_core::optics::checked_asymmetry;
+
+use crate::cell_batch::finite_non_negative;
 
 /// Values of the fog's column table `F(u)`, at equal steps of `u` from 0 to 1.
 pub const COLUMN_TABLE_SIZE: usize = 65;
@@ -99,18 +102,12 @@ impl FogSunUniform {
             .unwrap_or(map_sun);
         let tan = |sun: DVec3| (sun.y / DVec2::new(sun.x, sun.z).length().max(1e-6)).min(1e6);
         let lit = now.y >= TerrainShadow::MIN_SUN_SINE;
-        let colour = Vec3::from_array(sunlight.colour.to_array().map(|c| {
-            if c.is_finite() && lit {
-                c.max(0.0)
-            } else {
-                0.0
-            }
-        }));
-        let asymmetry = if sunlight.asymmetry.is_nan() {
-            0.0
+        let colour = if lit {
+            finite_non_negative(sunlight.colour)
         } else {
-            sunlight.asymmetry.clamp(-0.99, 0.99)
+            Vec3::ZERO
         };
+        let asymmetry = checked_asymmetry(sunlight.asymmetry);
         Self {
             grid_from_world: DMat4::from(grid_from_map * sunlight.map_from_world).as_mat4(),
             sun: sunlight.direction.normalize_or(Vec3::Y).extend(asymmetry),
