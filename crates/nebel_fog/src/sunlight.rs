@@ -40,14 +40,26 @@ pub const SUN_STEP: f64 = 0.005;
 struct SunKey {
     /// The mapped quadtree (by identity).
     quadtree: usize,
-    /// The transfer function, density and profile as written.
-    settings: String,
+    /// The generation of the fog's [`SunSettings`].
+    settings: u64,
     transform: GlobalTransform,
+}
+
+/// The fog's settings a sun map depends on: its transfer function (by
+/// content), density and profile.
+#[derive(Debug, PartialEq)]
+struct SunSettings {
+    transfer: u64,
+    density: u32,
+    profile: Vec<[f32; 2]>,
 }
 
 /// A fog's sun map, the build in flight and what each was built for.
 #[derive(Component, Default)]
 pub struct GroundFogSun {
+    /// The fog's settings as last seen, and their generation (counted up
+    /// when they change; looked at only when the `GroundFog` changed).
+    settings: Option<(SunSettings, u64)>,
     built: Option<(SunKey, DVec3, Option<Arc<FogSunMap>>)>,
     building: Option<(SunKey, DVec3, HeavyBuild<(Option<FogSunMap>, f32)>)>,
 }
@@ -57,7 +69,7 @@ pub(crate) fn update_fog_sunlight(
     mut commands: Commands,
     mut fogs: Query<(
         Entity,
-        &GroundFog,
+        Ref<GroundFog>,
         &TerrainLod,
         Option<&TerrainMapLod>,
         &GlobalTransform,
@@ -92,14 +104,23 @@ pub(crate) fn update_fog_sunlight(
         let local_sun = terrain_from_world
             .transform_vector3(sun.as_dvec3())
             .normalize_or(DVec3::Y);
+        if fog.is_changed() || state.settings.is_none() {
+            let settings = SunSettings {
+                transfer: fog.transfer_function.content_hash(),
+                density: fog.density.to_bits(),
+                profile: fog.profile.clone(),
+            };
+            if state.settings.as_ref().map(|(seen, _)| seen) != Some(&settings) {
+                let generation = state.settings.as_ref().map_or(0, |(_, g)| g + 1);
+                state.settings = Some((settings, generation));
+            }
+        }
         let key = SunKey {
             quadtree: Arc::as_ptr(&mapped.hierarchy) as usize,
-            settings: format!(
-                "{} {:?} {:?}",
-                fog.transfer_function.content_hash(),
-                fog.density,
-                fog.profile
-            ),
+            settings: state
+                .settings
+                .as_ref()
+                .map_or(0, |(_, generation)| *generation),
             transform: *transform,
         };
         let fresh = |(built_key, built_sun): (&SunKey, DVec3)| {

@@ -660,7 +660,14 @@ fn a_sun_colour_and_a_sun_light_the_fog_on_a_map_that_follows_the_sun() {
     }
     app.world_mut().get_mut::<GroundFog>(fog).unwrap().sun_color = Color::WHITE;
     settle(&mut app);
-    assert!(sunlight(&app, fog).is_some());
+    let white = sunlight(&app, fog).expect("lit again");
+    // Another colour keeps the map; another density makes a new one.
+    app.world_mut().get_mut::<GroundFog>(fog).unwrap().sun_color = Color::linear_rgb(0.5, 0.5, 0.5);
+    settle(&mut app);
+    assert!(Arc::ptr_eq(&sunlight(&app, fog).unwrap().map, &white.map));
+    app.world_mut().get_mut::<GroundFog>(fog).unwrap().density = 0.05;
+    settle(&mut app);
+    assert!(!Arc::ptr_eq(&sunlight(&app, fog).unwrap().map, &white.map));
     *app.world_mut().get_mut::<Transform>(sun).unwrap() =
         Transform::default().looking_to(Vec3::new(0.3, 0.5, 0.2), Vec3::Y);
     settle(&mut app);
