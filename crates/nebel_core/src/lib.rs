@@ -8,7 +8,8 @@
 //! - [`cell`]: tetrahedra, prisms, hexahedra, their decompositions and exact ray-cell intersection.
 //! - [`segment`]: the exact f64 ray integral of one linear segment, the reference for the tables.
 //! - [`joint_segment`]: the same for several media sharing a segment (volumes that interpenetrate).
-//! - [`local_light`]: point and spot lights scattered along a ray (single scattering, no shadow).
+//! - [`local_light`]: point and spot lights scattered along a ray (single scattering, shadows of occluders).
+//! - [`occluder`]: opaque boxes, spheres and rectangles, and the stretches of a ray they hide from a light.
 //! - [`overlap`]: the joint composite of overlapping volumes known per ray by colour, transmittance and span.
 //! - [`preintegration`]: pre-integration tables (3D colour, ρ̂, emission, MIP) and the zero-opacity test.
 //! - [`height_fog`]: density over altitude as layers and its exact optical depth along any ray.
@@ -25,6 +26,7 @@ pub mod fog_sunlight;
 pub mod height_fog;
 pub mod joint_segment;
 pub mod local_light;
+pub mod occluder;
 pub mod optics;
 pub mod overlap;
 pub mod pacing;

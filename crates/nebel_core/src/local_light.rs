@@ -31,11 +31,14 @@
 //!
 //! The medium's attenuation between the light and the point is the
 //! caller's to put in `f` (fog layers do, in closed form; volumes leave it
-//! out, so the light reaches them as through clear air). Occluders are not
-//! modelled.
+//! out, so the light reaches them as through clear air). A light that casts
+//! shadows is seen only from the stretches of a ray that opaque occluders
+//! leave lit ([`LocalLight::scattered_past`], [`crate::occluder`]).
 
 use glam::DVec3;
 
+use crate::cell::Ray;
+use crate::occluder::{Occluder, lit_spans};
 use crate::optics::{checked_asymmetry, henyey_greenstein};
 
 /// The illuminance, in lux, of a colour factor of 1: Bevy's default
@@ -258,6 +261,8 @@ pub struct LocalLight {
     pub range: f64,
     /// A spot light's cone; `None` lights every direction.
     pub cone: Option<SpotCone>,
+    /// Whether opaque geometry casts its shadow into the medium.
+    pub shadows: bool,
 }
 
 impl LocalLight {
@@ -271,6 +276,7 @@ impl LocalLight {
             colour: colour * lumens / (4.0 * std::f64::consts::PI * REFERENCE_ILLUMINANCE),
             range,
             cone: None,
+            shadows: false,
         }
     }
 
@@ -365,6 +371,34 @@ impl LocalLight {
             .fold(DVec3::ZERO, |sum, part| sum + part)
     }
 
+    /// [`LocalLight::scattered`] along `ray` over the stretches of `[t_a,
+    /// t_b]` inside the light's range that see it past `occluders`
+    /// ([`lit_spans`]) when it casts shadows; over the whole span when it
+    /// does not.
+    pub fn scattered_past(
+        &self,
+        occluders: &[Occluder],
+        ray: &Ray,
+        (t_a, t_b): (f64, f64),
+        asymmetry: f64,
+        intervals: u32,
+        mut f: impl FnMut(f64) -> DVec3,
+    ) -> DVec3 {
+        let (origin, direction) = (ray.origin, ray.direction);
+        if !self.shadows || occluders.is_empty() {
+            return self.scattered(origin, direction, (t_a, t_b), asymmetry, intervals, f);
+        }
+        // Only the chord inside the range is sampled for shadows.
+        let foot = (self.position - origin).dot(direction);
+        let miss2 = (self.position - origin - foot * direction).length_squared();
+        let half_chord = (self.range * self.range - miss2).max(0.0).sqrt();
+        let span = (t_a.max(foot - half_chord), t_b.min(foot + half_chord));
+        lit_spans(occluders, self.position, ray, span)
+            .into_iter()
+            .map(|span| self.scattered(origin, direction, span, asymmetry, intervals, &mut f))
+            .fold(DVec3::ZERO, |sum, part| sum + part)
+    }
+
     /// Composite Gauss-Legendre in γ over the part of `[t_a, t_b]` inside the
     /// range and the outer cone, `intervals` equal intervals, or more where
     /// they would be wider than [`interval_angle`].
@@ -432,6 +466,7 @@ mod tests {
             colour: DVec3::new(1.0, 0.5, 0.25),
             range: 1e9,
             cone: None,
+            shadows: false,
         }
     }
 
@@ -510,6 +545,101 @@ mod tests {
                 "case {case}: {got} against {expected}"
             );
         }
+    }
+
+    #[test]
+    fn occluders_shade_a_light_that_casts_shadows() {
+        // Random boxes and spheres between random lights and rays through an
+        // absorbing medium: the integral over the lit stretches against a
+        // fine midpoint rule in t of the integrand times the visibility.
+        let mut rng = SplitMix(5);
+        let mut shaded = 0;
+        for case in 0..20 {
+            let mut light = LocalLight::from_lumens(
+                DVec3::new(
+                    rng.random_range(-1.0..1.0),
+                    0.0,
+                    rng.random_range(-1.0..1.0),
+                ),
+                DVec3::new(1.0, 0.7, 0.4),
+                rng.random_range(1e4..1e6),
+                rng.random_range(6.0..12.0),
+            );
+            if case % 2 == 1 {
+                light.cone = Some(SpotCone::new(DVec3::Y, 0.4, 0.9));
+            }
+            light.shadows = true;
+            let sphere = Occluder::Sphere {
+                centre: DVec3::new(rng.random_range(-2.0..2.0), 1.5, 0.0),
+                radius: 0.4,
+            };
+            let occluders: Vec<Occluder> = (0..3)
+                .map(|_| {
+                    let centre = DVec3::new(
+                        rng.random_range(-2.0..2.0),
+                        rng.random_range(0.8..2.0),
+                        rng.random_range(-2.0..2.0),
+                    );
+                    let half = DVec3::new(
+                        rng.random_range(0.1..0.8),
+                        rng.random_range(0.05..0.3),
+                        rng.random_range(0.1..0.8),
+                    );
+                    Occluder::Box {
+                        min: centre - half,
+                        max: centre + half,
+                    }
+                })
+                .chain([sphere])
+                .collect();
+            let ray = Ray::new(
+                DVec3::new(
+                    -6.0,
+                    rng.random_range(2.5..4.0),
+                    rng.random_range(-1.0..1.0),
+                ),
+                DVec3::new(
+                    1.0,
+                    rng.random_range(-0.1..0.1),
+                    rng.random_range(-0.2..0.2),
+                ),
+            )
+            .expect("a valid ray");
+            let asymmetry = rng.random_range(-0.5..0.5);
+            let sigma = rng.random_range(0.0..0.5);
+            let (t_a, t_b) = (rng.random_range(0.0..2.0), rng.random_range(10.0..12.0));
+            let f = |t: f64| DVec3::splat(sigma * (-sigma * (t - t_a)).exp());
+            let got = light.scattered_past(&occluders, &ray, (t_a, t_b), asymmetry, 64, f);
+            let integrand = |t: f64, visibility: bool| {
+                let x = ray.origin + t * ray.direction;
+                let seen = !visibility || !crate::occluder::hides(&occluders, x, light.position);
+                let cos_theta = ray.direction.dot((x - light.position).normalize_or_zero());
+                if seen {
+                    f(t) * light.illuminance(x) * henyey_greenstein(asymmetry, cos_theta)
+                } else {
+                    DVec3::ZERO
+                }
+            };
+            let expected = midpoint(t_a, t_b, 400_000, |t| integrand(t, true));
+            let unshaded = midpoint(t_a, t_b, 4_000, |t| integrand(t, false));
+            let scale = unshaded.max_element().max(1e-12);
+            assert!(
+                (got - expected).abs().max_element() <= 1e-5 * scale,
+                "case {case}: {got} against {expected} (unshaded {unshaded})"
+            );
+            if (unshaded - expected).max_element() > 0.05 * scale {
+                shaded += 1;
+            }
+            // Without shadows, the occluders change nothing.
+            light.shadows = false;
+            let clear = light.scattered_past(&occluders, &ray, (t_a, t_b), asymmetry, 64, f);
+            assert_eq!(
+                clear,
+                light.scattered(ray.origin, ray.direction, (t_a, t_b), asymmetry, 64, f)
+            );
+        }
+        // The cases are shaded, not merely lit.
+        assert!(shaded >= 10, "{shaded} of 20 cases shaded");
     }
 
     #[test]

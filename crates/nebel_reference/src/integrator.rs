@@ -51,6 +51,7 @@ use nebel_core::field::DensityGrid;
 use nebel_core::fog_sunlight::FogSunlight;
 use nebel_core::joint_segment::{JointMedium, exact_joint_segment};
 use nebel_core::local_light::{LightResponse, LocalLight};
+use nebel_core::occluder::Occluder;
 use nebel_core::optics::{MODULATOR_PIECES, OpticalMode, PremultipliedRgba, henyey_greenstein};
 use nebel_core::segment::{exact_segment, rho_hat};
 use nebel_core::transfer::TransferFunction;
@@ -270,6 +271,9 @@ pub struct ReferenceScene {
     /// How the medium scatters them: the phase's asymmetry and the factor
     /// `s` on κ ([`LightResponse::checked`]). Default: isotropic, 1.
     pub light_response: LightResponse,
+    /// Opaque shapes that shade the local lights that cast shadows
+    /// ([`LocalLight::scattered_past`]). Default none.
+    pub occluders: Vec<Occluder>,
     /// Sorted volumes only: the sun lighting a ground fog, `c ⊙ 4π p_HG ∫ ρ
     /// κ T V T_sun dt` along every segment, cut where the rays cross the
     /// terrain's shadow ([`FogSunlight::scattered`]). Default `None`.
@@ -317,6 +321,7 @@ impl ReferenceScene {
             fog: None,
             local_lights: Vec::new(),
             light_response: LightResponse::default(),
+            occluders: Vec::new(),
             sunlight: None,
         }
     }
@@ -835,6 +840,8 @@ struct Medium<'a> {
     /// The local lights it scatters, and how.
     local_lights: &'a [LocalLight],
     response: LightResponse,
+    /// What shades the lights that cast shadows.
+    occluders: &'a [Occluder],
     sunlight: Option<&'a FogSunlight>,
 }
 
@@ -848,6 +855,7 @@ impl<'a> Medium<'a> {
             light: ray_light(scene, ray),
             local_lights: if sorted { &scene.local_lights } else { &[] },
             response: scene.light_response.checked(),
+            occluders: &scene.occluders,
             sunlight: scene.sunlight.as_ref().filter(|_| sorted),
         }
     }
@@ -926,9 +934,9 @@ fn in_scattered(media: &[Medium<'_>], active: &[RayPiece], ray: &Ray, t0: f64, t
     for part in &parts {
         let medium = part.0;
         for light in medium.local_lights {
-            sum += light.scattered(
-                ray.origin,
-                ray.direction,
+            sum += light.scattered_past(
+                medium.occluders,
+                ray,
                 (t0, t1),
                 f64::from(medium.response.asymmetry),
                 LIGHT_INTERVALS,
@@ -1629,6 +1637,19 @@ mod tests {
             }
         }
         assert!(brightest > 0.2, "the light adds only {brightest}");
+        // A box around the light hides it from the whole medium once it casts
+        // shadows: the medium's own colour alone, as without the light.
+        scene.occluders = vec![Occluder::Box {
+            min: light.position - 0.05,
+            max: light.position + 0.05,
+        }];
+        assert_eq!(image.pixels, render(&scene, None).unwrap().pixels);
+        scene.local_lights[0].shadows = true;
+        let shaded = render(&scene, None).unwrap();
+        scene.local_lights.clear();
+        assert_eq!(shaded.pixels, render(&scene, None).unwrap().pixels);
+        scene.local_lights = vec![light];
+        scene.occluders.clear();
         // An emissive medium scatters nothing; a bad light is refused by index.
         scene.mode = OpticalMode::Emissive;
         let emissive = render(&scene, None).unwrap();

@@ -694,14 +694,15 @@ impl SceneDescription {
         self.lights
             .iter()
             .filter_map(|light| match light {
-                LightDescription::Point(point) if point.volumetric => {
-                    Some(LocalLight::from_lumens(
+                LightDescription::Point(point) if point.volumetric => Some(LocalLight {
+                    shadows: point.shadows,
+                    ..LocalLight::from_lumens(
                         DVec3::from(point.position.map(f64::from)),
                         linear(point.color),
                         f64::from(point.intensity) * flicker(f64::from(point.flicker), time),
                         f64::from(point.range),
-                    ))
-                }
+                    )
+                }),
                 LightDescription::Spot(spot) if spot.volumetric => {
                     let position = DVec3::from(spot.position.map(f64::from));
                     let target = DVec3::from(spot.look_at.map(f64::from));
@@ -711,6 +712,7 @@ impl SceneDescription {
                             f64::from(spot.inner_angle_degrees).to_radians(),
                             f64::from(spot.outer_angle_degrees).to_radians(),
                         )),
+                        shadows: spot.shadows,
                         ..LocalLight::from_lumens(
                             position,
                             linear(spot.color),
@@ -1816,7 +1818,7 @@ mod tests {
             "version: 1, lights: [
                 Point((position: (1.0, 2.0, 3.0), color: (1.0, 0.5, 0.0), intensity: 4000.0, range: 5.0, volumetric: true, flicker: 0.5)),
                 Point((position: (0.0, 0.0, 0.0), volumetric: false)),
-                Spot((position: (0.0, 4.0, 0.0), look_at: (0.0, 0.0, 0.0), inner_angle_degrees: 10.0, outer_angle_degrees: 30.0, volumetric: true)),
+                Spot((position: (0.0, 4.0, 0.0), look_at: (0.0, 0.0, 0.0), inner_angle_degrees: 10.0, outer_angle_degrees: 30.0, volumetric: true, shadows: true)),
             ], volumes: [(source: Uniform((value: 1.0)), light_response: (asymmetry: 0.5, strength: 3.0))],",
         ))
         .unwrap();
@@ -1827,7 +1829,8 @@ mod tests {
         let factor = 4000.0 * flicker(0.5, 0.3) / (4.0 * std::f64::consts::PI * 10_000.0);
         let linear_half = srgb_to_linear(0.5);
         assert!((point.colour - DVec3::new(1.0, linear_half, 0.0) * factor).length() < 1e-12);
-        assert!(point.cone.is_none() && point.range == 5.0);
+        assert!(point.cone.is_none() && point.range == 5.0 && !point.shadows);
+        assert!(lights[1].shadows);
         let cone = lights[1].cone.expect("a spot light's cone");
         assert!((cone.direction - DVec3::NEG_Y).length() < 1e-12);
         assert!((cone.factor(DVec3::NEG_Y) - 1.0).abs() < 1e-12);

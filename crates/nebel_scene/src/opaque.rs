@@ -31,6 +31,7 @@ use super::{MeshDescription, SceneDescription, check_opaque_depth_budget};
 use nebel_core::budget::BudgetError;
 use nebel_core::cell::Ray;
 use nebel_core::field::HeightField;
+use nebel_core::occluder::Occluder;
 use nebel_reference::ReferenceCamera;
 
 impl SceneDescription {
@@ -318,41 +319,28 @@ fn vector(v: [f32; 3]) -> DVec3 {
 
 /// Distance along `ray` to the first hit in front of its origin.
 fn mesh_hit(mesh: &MeshDescription, ray: &Ray) -> Option<f64> {
-    match mesh {
-        MeshDescription::Plane(plane) => {
-            let center = vector(plane.center);
-            let half = DVec3::new(
-                f64::from(plane.size[0]) / 2.0,
-                0.0,
-                f64::from(plane.size[1]) / 2.0,
-            );
-            let t = (center.y - ray.origin.y) / ray.direction.y;
-            let point = ray.origin + t * ray.direction;
-            let inside =
-                (point.x - center.x).abs() <= half.x && (point.z - center.z).abs() <= half.z;
-            (t.is_finite() && t > 0.0 && inside).then_some(t)
-        }
-        MeshDescription::Box(cuboid) => {
-            let center = vector(cuboid.center);
-            let half = vector(cuboid.size) / 2.0;
-            let inverse = ray.direction.recip();
-            let a = (center - half - ray.origin) * inverse;
-            let b = (center + half - ray.origin) * inverse;
-            let entry = a.min(b).max_element();
-            let exit = a.max(b).min_element();
-            let t = if entry > 0.0 { entry } else { exit };
-            (entry <= exit && t > 0.0).then_some(t)
-        }
-        MeshDescription::Sphere(sphere) => {
-            let offset = ray.origin - vector(sphere.center);
-            let radius = f64::from(sphere.radius);
-            let b = offset.dot(ray.direction);
-            let discriminant = b * b - (offset.length_squared() - radius * radius);
-            if discriminant < 0.0 {
-                return None;
+    mesh.occluder().hit(ray)
+}
+
+impl MeshDescription {
+    /// The mesh as an opaque shape in f64.
+    pub fn occluder(&self) -> Occluder {
+        match self {
+            MeshDescription::Plane(plane) => Occluder::Rectangle {
+                centre: vector(plane.center),
+                half_size: DVec2::new(f64::from(plane.size[0]), f64::from(plane.size[1])) / 2.0,
+            },
+            MeshDescription::Box(cuboid) => {
+                let (centre, half) = (vector(cuboid.center), vector(cuboid.size) / 2.0);
+                Occluder::Box {
+                    min: centre - half,
+                    max: centre + half,
+                }
             }
-            let root = discriminant.sqrt();
-            [-b - root, -b + root].into_iter().find(|t| *t > 0.0)
+            MeshDescription::Sphere(sphere) => Occluder::Sphere {
+                centre: vector(sphere.center),
+                radius: f64::from(sphere.radius),
+            },
         }
     }
 }

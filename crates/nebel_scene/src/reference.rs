@@ -9,7 +9,8 @@
 //! composites over black, the others over the clear colour, so accuracy
 //! scenes use black meshes and no lights on them. Sorted volumes scatter the
 //! scene's volumetric point and spot lights
-//! ([`SceneDescription::volumetric_lights`]).
+//! ([`SceneDescription::volumetric_lights`]), those that cast shadows shaded
+//! by the meshes (not by the terrain).
 
 use std::path::Path;
 
@@ -174,6 +175,7 @@ pub fn reference_image_with_terrain(
         reference_scene.opaque_depth = opaque_depth.clone();
         reference_scene.fog = fog.clone();
         reference_scene.local_lights = local_lights.clone();
+        reference_scene.occluders = scene.meshes.iter().map(|mesh| mesh.occluder()).collect();
         reference_scene.light_response = volume.light_response;
         reference_scene.sunlight = volume.fog_sunlight;
         if let Some(start) = fog
