@@ -15,7 +15,13 @@
 //! ([`CellBatch::light_response`](crate::CellBatch::light_response)).
 //! The fog layers take the same lights, the brightest at the camera
 //! first. A batch's medium does not attenuate the light on its way to a
-//! point (the fog layers' does), and shadow maps are not read.
+//! point (the fog layers' does).
+//!
+//! A light with shadows (`shadows_enabled`) is shaded in sorted batches by
+//! Bevy's own shadow map of it, read at each node of the quadrature with
+//! the light's depth bias and Bevy's 2×2 hardware comparison (see
+//! [`ReachingLights::with_shadow_indices`]); the fog layers do not read
+//! shadow maps.
 //!
 //! The WGSL library `nebel_render::local_lights` holds the lights' uniform
 //! ([`LocalLightsUniform`]), each light's stretch on a ray and the nodes of
@@ -25,6 +31,7 @@
 use bevy::light::VolumetricLight;
 use bevy::prelude::*;
 use bevy::render::render_resource::ShaderType;
+use bevy::render::sync_world::RenderEntity;
 use bevy::shader::load_shader_library;
 use nebel_core::local_light::{
     CORE_RADIUS, LightResponse, LocalLight, MAX_LOCAL_LIGHTS, SpotCone, interval_angle,
@@ -41,6 +48,9 @@ pub struct LocalLightUniform {
     /// xyz: the spot's unit direction; w: the cone's scale (0 for a point
     /// light, so its factor is 1 everywhere).
     pub cone: Vec4,
+    /// x: the light's index among Bevy's clustered lights, whose shadow map
+    /// shades it; −1 for none. yzw unused.
+    pub shadow: IVec4,
 }
 
 impl LocalLightUniform {
@@ -56,8 +66,20 @@ impl LocalLightUniform {
             position: light.position.as_vec3().extend(light.range as f32),
             colour: light.colour.as_vec3().extend(offset),
             cone: direction.extend(scale),
+            shadow: IVec4::new(-1, 0, 0, 0),
         }
     }
+}
+
+/// An opted-in light of the scene: its optics, and the render-world entity
+/// of a light that casts shadows (where Bevy keeps its shadow map).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SceneLight {
+    /// The light's optics.
+    pub light: LocalLight,
+    /// The render-world entity of a light with shadows; `None` for one
+    /// without.
+    pub shadow_source: Option<Entity>,
 }
 
 /// The lights of one medium: up to [`MAX_LOCAL_LIGHTS`], the first `count`
@@ -68,6 +90,8 @@ pub struct ReachingLights {
     pub lights: [LocalLightUniform; MAX_LOCAL_LIGHTS],
     /// How many are used.
     pub count: u32,
+    /// Per light, the render-world entity of one that casts shadows.
+    pub shadow_sources: [Option<Entity>; MAX_LOCAL_LIGHTS],
 }
 
 /// The lights that reach a medium and how it scatters them, as the shader's
@@ -117,34 +141,59 @@ pub(crate) fn load_local_lights_library(app: &mut App) {
 impl ReachingLights {
     /// The lights of `lights` that reach the box `[min, max]`, the brightest
     /// at its centre first.
-    pub fn reaching(lights: &[LocalLight], min: Vec3, max: Vec3) -> Self {
+    pub fn reaching(lights: &[SceneLight], min: Vec3, max: Vec3) -> Self {
         let (min, max) = (min.as_dvec3(), max.as_dvec3());
         let centre = (min + max) / 2.0;
-        let mut reaching: Vec<(f64, &LocalLight)> = lights
+        let mut reaching: Vec<(f64, &SceneLight)> = lights
             .iter()
-            .filter(|light| light.reaches_box(min, max))
-            .map(|light| {
+            .filter(|scene| scene.light.reaches_box(min, max))
+            .map(|scene| {
+                let light = &scene.light;
                 let at_centre =
                     light.colour.max_element() / (light.position.distance_squared(centre) + 1.0);
-                (at_centre, light)
+                (at_centre, scene)
             })
             .collect();
         reaching.sort_by(|a, b| b.0.total_cmp(&a.0));
         let mut batch = Self::default();
-        for (slot, (_, light)) in batch.lights.iter_mut().zip(&reaching) {
-            *slot = LocalLightUniform::new(light);
+        for (slot, (_, scene)) in reaching.iter().take(MAX_LOCAL_LIGHTS).enumerate() {
+            batch.lights[slot] = LocalLightUniform::new(&scene.light);
+            batch.shadow_sources[slot] = scene.shadow_source;
             batch.count += 1;
         }
         batch
     }
+
+    /// The lights with the index among Bevy's clustered lights of each that
+    /// casts shadows (`index` of its render-world entity; Bevy's
+    /// `GlobalClusterableObjectMeta`), so the shader reads its shadow map
+    /// there; −1 for the others and for a light Bevy does not list.
+    pub fn with_shadow_indices(&self, index: impl Fn(Entity) -> Option<usize>) -> Self {
+        let mut lights = *self;
+        for (light, source) in lights.lights.iter_mut().zip(self.shadow_sources) {
+            light.shadow.x = source
+                .and_then(&index)
+                .and_then(|index| i32::try_from(index).ok())
+                .unwrap_or(-1);
+        }
+        lights
+    }
+
+    /// Whether a light reads a shadow map ([`Self::with_shadow_indices`]).
+    pub fn is_shadowed(&self) -> bool {
+        self.lights[..self.count as usize]
+            .iter()
+            .any(|light| light.shadow.x >= 0)
+    }
 }
 
-/// The lights of `points` and `spots` (the opted-in, visible ones) that
-/// light anything: their colour, intensity and range finite and positive.
+/// The lights of `points` and `spots` (the opted-in, visible ones, with
+/// their render-world entities) that light anything: their colour,
+/// intensity and range finite and positive.
 pub(crate) fn volumetric_lights(
-    points: impl Iterator<Item = (PointLight, GlobalTransform)>,
-    spots: impl Iterator<Item = (SpotLight, GlobalTransform)>,
-) -> Vec<LocalLight> {
+    points: impl Iterator<Item = (PointLight, GlobalTransform, Option<Entity>)>,
+    spots: impl Iterator<Item = (SpotLight, GlobalTransform, Option<Entity>)>,
+) -> Vec<SceneLight> {
     let light = |color: Color, intensity: f32, range: f32, transform: &GlobalTransform| {
         let linear = color.to_linear();
         let light = LocalLight::from_lumens(
@@ -155,18 +204,26 @@ pub(crate) fn volumetric_lights(
         );
         (light.invalid().is_none() && light.colour.max_element() > 0.0).then_some(light)
     };
+    let scene = |mut light: LocalLight, shadows: bool, entity: Option<Entity>| {
+        light.shadows = shadows;
+        SceneLight {
+            light,
+            shadow_source: entity.filter(|_| shadows),
+        }
+    };
     points
-        .filter_map(|(point, transform)| {
-            light(point.color, point.intensity, point.range, &transform)
+        .filter_map(|(point, transform, entity)| {
+            let light = light(point.color, point.intensity, point.range, &transform)?;
+            Some(scene(light, point.shadow_maps_enabled, entity))
         })
-        .chain(spots.filter_map(|(spot, transform)| {
+        .chain(spots.filter_map(|(spot, transform, entity)| {
             let mut light = light(spot.color, spot.intensity, spot.range, &transform)?;
             light.cone = Some(SpotCone::new(
                 transform.forward().as_vec3().as_dvec3(),
                 f64::from(spot.inner_angle),
                 f64::from(spot.outer_angle),
             ));
-            Some(light)
+            Some(scene(light, spot.shadow_maps_enabled, entity))
         }))
         .collect()
 }
@@ -176,16 +233,16 @@ pub(crate) fn volumetric_lights(
 pub fn visible_volumetric_lights(
     points: &VolumetricPointLights,
     spots: &VolumetricSpotLights,
-) -> Vec<LocalLight> {
+) -> Vec<SceneLight> {
     volumetric_lights(
         points
             .iter()
-            .filter(|(_, _, visible)| visible.get())
-            .map(|(light, transform, _)| (*light, *transform)),
+            .filter(|(_, _, visible, _)| visible.get())
+            .map(|(light, transform, _, entity)| (*light, *transform, entity.map(|e| e.id()))),
         spots
             .iter()
-            .filter(|(_, _, visible)| visible.get())
-            .map(|(light, transform, _)| (*light, *transform)),
+            .filter(|(_, _, visible, _)| visible.get())
+            .map(|(light, transform, _, entity)| (*light, *transform, entity.map(|e| e.id()))),
     )
 }
 
@@ -197,6 +254,7 @@ pub type VolumetricPointLights<'w, 's> = Query<
         &'static PointLight,
         &'static GlobalTransform,
         &'static ViewVisibility,
+        Option<&'static RenderEntity>,
     ),
     With<VolumetricLight>,
 >;
@@ -209,6 +267,7 @@ pub type VolumetricSpotLights<'w, 's> = Query<
         &'static SpotLight,
         &'static GlobalTransform,
         &'static ViewVisibility,
+        Option<&'static RenderEntity>,
     ),
     With<VolumetricLight>,
 >;
@@ -227,6 +286,7 @@ mod tests {
                     ..default()
                 },
                 GlobalTransform::from_translation(Vec3::new(x, 0.0, 0.0)),
+                None,
             )
         };
         let spot = (
@@ -235,11 +295,13 @@ mod tests {
                 range: 10.0,
                 inner_angle: 0.2,
                 outer_angle: 0.4,
+                shadow_maps_enabled: true,
                 ..default()
             },
             GlobalTransform::from(
                 Transform::from_xyz(0.0, 5.0, 0.0).looking_to(Vec3::NEG_Y, Vec3::X),
             ),
+            Some(Entity::from_raw_u32(7).expect("a valid index")),
         );
         let lights = volumetric_lights(
             [
@@ -254,7 +316,7 @@ mod tests {
         );
         // The dark and the broken lights are dropped.
         assert_eq!(lights.len(), 4);
-        let cone = lights[3].cone.expect("a spot light has a cone");
+        let cone = lights[3].light.cone.expect("a spot light has a cone");
         assert!((cone.direction - bevy::math::DVec3::NEG_Y).length() < 1e-6);
         let batch = ReachingLights::reaching(&lights, Vec3::splat(-1.0), Vec3::splat(1.0));
         assert_eq!(batch.count, 3);
@@ -264,17 +326,30 @@ mod tests {
         assert_eq!(batch.lights[0].colour.w, 1.0);
         assert!(batch.lights[..3].iter().any(|light| light.cone.w > 0.0));
         assert_eq!(batch.lights[3], LocalLightUniform::default());
+        // Only the spot light casts shadows: its entity's index in Bevy's
+        // list of lights, none for the others or a light Bevy does not list.
+        assert!(!batch.is_shadowed());
+        let spot_slot = (0..3).find(|&i| batch.lights[i].cone.w > 0.0).unwrap();
+        let spot_entity = Entity::from_raw_u32(7).unwrap();
+        assert_eq!(batch.shadow_sources[spot_slot], Some(spot_entity));
+        let indexed = batch.with_shadow_indices(|entity| (entity == spot_entity).then_some(5));
+        assert!(indexed.is_shadowed());
+        for (slot, light) in indexed.lights.iter().enumerate() {
+            assert_eq!(light.shadow.x, if slot == spot_slot { 5 } else { -1 });
+        }
+        assert!(!batch.with_shadow_indices(|_| None).is_shadowed());
         let none = ReachingLights::reaching(&lights, Vec3::splat(20.0), Vec3::splat(21.0));
         assert_eq!(none, ReachingLights::default());
         // More lights than a batch takes: the brightest.
         let many: Vec<_> = (0..12)
-            .map(|i| {
-                LocalLight::from_lumens(
+            .map(|i| SceneLight {
+                light: LocalLight::from_lumens(
                     bevy::math::DVec3::ZERO,
                     bevy::math::DVec3::ONE,
                     f64::from(i + 1),
                     5.0,
-                )
+                ),
+                shadow_source: None,
             })
             .collect();
         let batch = ReachingLights::reaching(&many, Vec3::ZERO, Vec3::ONE);

@@ -13,6 +13,9 @@ struct LocalLight {
     colour: vec4<f32>,
     // xyz: the spot's unit direction; w: the cone's scale (0: a point light).
     cone: vec4<f32>,
+    // x: the light's index among Bevy's clustered lights, whose shadow map
+    // shades it; −1 for none.
+    shadow: vec4<i32>,
 }
 
 // The lights that reach a medium and how it scatters them.
@@ -167,4 +170,26 @@ fn light_node(
     let phase = henyey_greenstein(g, cos_theta);
     let weight = GAUSS_WEIGHTS[k] * window * window * cone * cone * phase * quadrature.half_width / quadrature.h;
     return LightNode(t, weight);
+}
+
+// ∫ σ e^{−σ (t − t_a)} E 4π p_HG dt over the stretch of the ray `light`
+// sees in the angles [gammas.x, gammas.y], in one interval of three nodes
+// (`h` the light's quadrature's, g the asymmetry).
+fn light_interval(
+    light: LocalLight,
+    on_ray: LightOnRay,
+    direction: vec3<f32>,
+    h: f32,
+    gammas: vec2<f32>,
+    t_a: f32,
+    sigma: f32,
+    g: f32,
+) -> f32 {
+    let quadrature = LightQuadrature(gammas.x, 0.5 * (gammas.y - gammas.x), h, 1u);
+    var sum = 0.0;
+    for (var k = 0u; k < 3u; k++) {
+        let node = light_node(light, on_ray, direction, quadrature, 0u, k, g);
+        sum += node.weight * sigma * exp(-sigma * (node.t - t_a));
+    }
+    return sum;
 }

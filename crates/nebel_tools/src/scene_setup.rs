@@ -16,7 +16,7 @@
 //! The camera renders in HDR (nebel's volumes accumulate in float targets)
 //! to the window, or headless to an image ([`crate::headless`]).
 
-use bevy::camera::Hdr;
+use bevy::camera::{Hdr, ShadowLodOrigin};
 use bevy::core_pipeline::tonemapping::{DebandDither, Tonemapping};
 use bevy::light::VolumetricLight;
 use bevy::prelude::*;
@@ -212,6 +212,9 @@ fn spawn_scene(
             ..default()
         },
         Hdr,
+        // The camera renders to an image: point and spot lights' shadow
+        // maps take their detail from it.
+        ShadowLodOrigin,
         Projection::Perspective(PerspectiveProjection {
             fov: camera.fov_degrees.to_radians(),
             near: camera.near,

@@ -560,6 +560,14 @@ const ACCURACY_BOUNDS: &[(&str, f64)] = &[
     // lavapipe measured RMSE 6.7e-4, two 8-bit steps at most (the slab drawn
     // without the light against this reference: 1.0e-2).
     ("fog_slab_spot_light", 0.002),
+    // A spot light's beam half shaded by an opaque slab, from Bevy's shadow
+    // map: lavapipe measured RMSE 6.6e-4, two 8-bit steps at most (the
+    // light drawn without its shadow against this reference: 6.3e-2).
+    ("spot_light_shaft", 0.002),
+    // The same box under a point light, part of it shaded by a slab, from
+    // Bevy's cube shadow map: lavapipe measured RMSE 4.5e-4, two steps at
+    // most (without its shadow against this reference: 2.0e-2).
+    ("point_light_shaft", 0.002),
     // Fog layers lit by a spot light's beam and a point light: lavapipe
     // measured RMSE 1.1e-3, three 8-bit steps at most, as without the
     // lights against their own reference (1.1e-3, three steps); the fog
@@ -597,6 +605,8 @@ const MAX_ERROR_BOUNDS: &[(&str, f64)] = &[
     ("point_light_box", 0.012),
     ("spot_light_box", 0.012),
     ("fog_slab_spot_light", 0.012),
+    ("spot_light_shaft", 0.012),
+    ("point_light_shaft", 0.012),
     ("slab_cell_above", 0.012),
     ("slab_cell_inside", 0.012),
     ("slab_slivers_above", 0.012),

@@ -19,12 +19,12 @@ use bevy::render::{
     Extract, ExtractSchedule, GpuResourceAppExt, Render, RenderApp, RenderStartup, RenderSystems,
 };
 use bevy::shader::ShaderDefVal;
-use nebel_core::local_light::{LightResponse, LocalLight, MAX_LOCAL_LIGHTS};
+use nebel_core::local_light::{LightResponse, MAX_LOCAL_LIGHTS};
 use nebel_render::EffectiveQuality;
 use nebel_render::cell_projection::CellProjectionSystems;
 use nebel_render::fog_layers::{FogLayersUniform, ViewFogLayers};
 use nebel_render::local_lights::{
-    LocalLightsUniform, ReachingLights, VolumetricPointLights, VolumetricSpotLights,
+    LocalLightsUniform, ReachingLights, SceneLight, VolumetricPointLights, VolumetricSpotLights,
     visible_volumetric_lights,
 };
 
@@ -78,7 +78,7 @@ impl FogLayerLights {
     /// where none does or the response's strength is 0 (the pass then runs
     /// without lights).
     pub fn reaching(
-        lights: &[LocalLight],
+        lights: &[SceneLight],
         eye: Vec3,
         max_distance: f32,
         response: LightResponse,
@@ -378,11 +378,13 @@ pub fn prepare_fog_layer_bind_groups(
 mod tests {
     use super::*;
     use bevy::math::DVec3;
+    use nebel_core::local_light::LocalLight;
 
     #[test]
     fn the_fog_takes_the_lights_within_its_distance_or_none() {
-        let at = |x: f64, lumens: f64| {
-            LocalLight::from_lumens(DVec3::new(x, 0.0, 0.0), DVec3::ONE, lumens, 10.0)
+        let at = |x: f64, lumens: f64| SceneLight {
+            light: LocalLight::from_lumens(DVec3::new(x, 0.0, 0.0), DVec3::ONE, lumens, 10.0),
+            shadow_source: None,
         };
         let lights = [at(50.0, 1e5), at(5.0, 1e4), at(200.0, 1e9)];
         let response = LightResponse {

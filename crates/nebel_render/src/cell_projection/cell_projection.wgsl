@@ -46,6 +46,15 @@
 // the angle at which the light sees the ray, which takes the inverse square
 // out exactly (nebel_core::local_light::LocalLight::scattered with one interval).
 //
+// LIGHT_SHADOWS (a light that reaches the batch casts shadows): the light
+// is weighted by its visibility V, Bevy's shadow map of the light at the
+// point, compared in 2×2 by the hardware, the point moved toward the light
+// by the light's depth bias (a medium has no surface normal): light shafts
+// behind opaque geometry. V is read at the ends and the middle of each
+// interval in the angle; where it changes, the crossing is bisected and
+// each side integrated with its own V, so a shadow's edge is placed to
+// 1/128 of an interval (a shadow within half an interval may be missed).
+//
 // GROUND_SUN (the sun lights a ground fog, nebel_render::fog_sunlight): the
 // sun's single scattering c ⊙ 4π p_HG(θ) ∫ σ κ T V T_sun dt is added with the
 // segment's mean colour κ̄, in LIGHT_PIECES equal pieces, each with its
@@ -97,7 +106,11 @@
 // keep their precision.
 
 #import nebel_render::fog_layers::{FogLayers, fog_stretch}
-#import nebel_render::local_lights::{GAUSS_NODES, GAUSS_WEIGHTS, LocalLights, henyey_greenstein, light_node, light_on_ray, light_quadrature}
+#import nebel_render::local_lights::{GAUSS_NODES, GAUSS_WEIGHTS, LocalLight, LocalLights, henyey_greenstein, light_interval, light_node, light_on_ray, light_quadrature}
+#ifdef LIGHT_SHADOWS
+#import bevy_pbr::mesh_view_types::{ClusteredLights, Lights, POINT_LIGHT_FLAGS_SHADOWS_ENABLED_BIT, POINT_LIGHT_FLAGS_SPOT_LIGHT_BIT, POINT_LIGHT_FLAGS_SPOT_LIGHT_Y_NEGATIVE}
+#import bevy_render::maths::orthonormalize
+#endif
 
 struct CellView {
     clip_from_world: mat4x4<f32>,
@@ -156,6 +169,56 @@ struct CellTables {
 // Per grid point of the sun map: (shadow height, ground, thickness, the
 // distance t* of the shadow's caster).
 @group(1) @binding(7) var sun_map: texture_2d<f32>;
+#endif
+
+#ifdef LIGHT_SHADOWS
+// Bevy's lights and their shadow maps.
+@group(2) @binding(0) var<uniform> bevy_lights: Lights;
+#if AVAILABLE_STORAGE_BUFFER_BINDINGS >= 3
+@group(2) @binding(1) var<storage> clustered_lights: ClusteredLights;
+#else
+@group(2) @binding(1) var<uniform> clustered_lights: ClusteredLights;
+#endif
+@group(2) @binding(2) var point_shadow_maps: texture_depth_cube_array;
+@group(2) @binding(3) var point_shadow_sampler: sampler_comparison;
+@group(2) @binding(4) var spot_shadow_maps: texture_depth_2d_array;
+@group(2) @binding(5) var spot_shadow_sampler: sampler_comparison;
+
+// The part of `light` that reaches the world point `p` past opaque
+// geometry (see the header): 1 for a light without a shadow map.
+fn light_visibility(light: LocalLight, p: vec3<f32>) -> f32 {
+    if light.shadow.x < 0 {
+        return 1.0;
+    }
+    let index = u32(light.shadow.x);
+    let source = clustered_lights.data[index];
+    if (source.flags & POINT_LIGHT_FLAGS_SHADOWS_ENABLED_BIT) == 0u {
+        return 1.0;
+    }
+    let to_light = source.position_radius.xyz - p;
+    // The point relative to the light, moved toward it by the depth bias.
+    let biased = -to_light + source.shadow_depth_bias * to_light * inverseSqrt(max(dot(to_light, to_light), 1.0e-12));
+    if (source.flags & POINT_LIGHT_FLAGS_SPOT_LIGHT_BIT) == 0u {
+        // The cube face's depth from its largest axis; cube maps are
+        // left-handed.
+        let major = max(abs(biased.x), max(abs(biased.y), abs(biased.z)));
+        let zw = -major * source.light_custom_data.xy + source.light_custom_data.zw;
+        return textureSampleCompareLevel(point_shadow_maps, point_shadow_sampler, biased * vec3(1.0, 1.0, -1.0), i32(index), zw.x / zw.y);
+    }
+    var axis = vec3(source.light_custom_data.x, 0.0, source.light_custom_data.y);
+    axis.y = sqrt(max(0.0, 1.0 - axis.x * axis.x - axis.z * axis.z));
+    if (source.flags & POINT_LIGHT_FLAGS_SPOT_LIGHT_Y_NEGATIVE) != 0u {
+        axis.y = -axis.y;
+    }
+    let projected = biased * orthonormalize(-axis);
+    if projected.z >= 0.0 {
+        // Behind the spot light, which lights nothing there.
+        return 1.0;
+    }
+    let uv = projected.xy / (source.spot_light_tan_angle * -projected.z) * vec2(0.5, -0.5) + vec2(0.5);
+    let layer = i32(index) + bevy_lights.spot_light_shadowmap_offset;
+    return textureSampleCompareLevel(spot_shadow_maps, spot_shadow_sampler, uv, layer, source.shadow_map_near_z / -projected.z);
+}
 #endif
 
 fn opaque_depth(pixel: vec2<i32>) -> f32 {
@@ -379,7 +442,7 @@ fn colour_lookup(s_front: f32, s_back: f32, depth: f32) -> vec3<f32> {
 // inside its stretch on the ray, cut at the inner cone (whose factor has a
 // kink there), each part in intervals in the angle no wider than the
 // batch's, as nebel_core::local_light::LocalLight::scattered with one
-// interval.
+// interval; under LIGHT_SHADOWS each node weighted by its shadow map.
 fn light_piece(i: u32, direction: vec3<f32>, t_a: f32, t_b: f32, sigma: f32) -> vec3<f32> {
     let light = parameters.lights.lights[i];
     let on_ray = light_on_ray(light, view.camera_position.xyz, direction);
@@ -395,15 +458,77 @@ fn light_piece(i: u32, direction: vec3<f32>, t_a: f32, t_b: f32, sigma: f32) -> 
             continue;
         }
         let quadrature = light_quadrature(on_ray, cuts[part], cuts[part + 1u], parameters.lights.response.z, parameters.lights.quadrature.x);
+#ifdef LIGHT_SHADOWS
+        let width = 2.0 * quadrature.half_width;
+        let g = parameters.lights.response.y;
+        var visible = light_visibility_at(light, on_ray.foot, quadrature.h, direction, quadrature.gamma_a);
+        for (var interval = 0u; interval < quadrature.intervals; interval++) {
+            let start = quadrature.gamma_a + width * f32(interval);
+            let middle = start + 0.5 * width;
+            let visible_middle = light_visibility_at(light, on_ray.foot, quadrature.h, direction, middle);
+            let visible_end = light_visibility_at(light, on_ray.foot, quadrature.h, direction, start + width);
+            if abs(visible - visible_middle) + abs(visible_middle - visible_end) < SHADOW_EPSILON {
+                sum += visible * light_interval(light, on_ray, direction, quadrature.h, vec2(start, start + width), t_a, sigma, g);
+                visible = visible_end;
+                continue;
+            }
+            // Each half, cut where its visibility changes.
+            for (var half = 0u; half < 2u; half++) {
+                let gammas = select(vec2(start, middle), vec2(middle, start + width), half == 1u);
+                let ends = select(vec2(visible, visible_middle), vec2(visible_middle, visible_end), half == 1u);
+                if abs(ends.x - ends.y) < SHADOW_EPSILON {
+                    sum += ends.x * light_interval(light, on_ray, direction, quadrature.h, gammas, t_a, sigma, g);
+                } else {
+                    let crossing = shadow_crossing(light, on_ray.foot, quadrature.h, direction, gammas, ends);
+                    sum += ends.x * light_interval(light, on_ray, direction, quadrature.h, vec2(gammas.x, crossing), t_a, sigma, g)
+                        + ends.y * light_interval(light, on_ray, direction, quadrature.h, vec2(crossing, gammas.y), t_a, sigma, g);
+                }
+            }
+            visible = visible_end;
+        }
+#else
         for (var interval = 0u; interval < quadrature.intervals; interval++) {
             for (var k = 0u; k < 3u; k++) {
                 let node = light_node(light, on_ray, direction, quadrature, interval, k, parameters.lights.response.y);
                 sum += node.weight * sigma * exp(-sigma * (node.t - t_a));
             }
         }
+#endif
     }
     return light.colour.rgb * sum;
 }
+
+#ifdef LIGHT_SHADOWS
+// Visibilities closer than this are taken as equal.
+const SHADOW_EPSILON: f32 = 1.0e-3;
+// Bisections of a change of visibility inside half an interval: the
+// crossing to 1/64 of it.
+const SHADOW_BISECTIONS: u32 = 6u;
+
+// The visibility of `light` (light_visibility) at the point of the ray
+// (of unit `direction`, `foot` and `h` its quadrature's) the light sees at
+// the angle `gamma`.
+fn light_visibility_at(light: LocalLight, foot: f32, h: f32, direction: vec3<f32>, gamma: f32) -> f32 {
+    let t = foot + h * tan(gamma);
+    return light_visibility(light, view.camera_position.xyz + t * direction);
+}
+
+// The angle in [gammas.x, gammas.y], whose ends see the light `visible`,
+// where the visibility crosses their mean (bisected).
+fn shadow_crossing(light: LocalLight, foot: f32, h: f32, direction: vec3<f32>, gammas: vec2<f32>, visible: vec2<f32>) -> f32 {
+    let level = 0.5 * (visible.x + visible.y);
+    var bracket = gammas;
+    for (var i = 0u; i < SHADOW_BISECTIONS; i++) {
+        let middle = 0.5 * (bracket.x + bracket.y);
+        if (light_visibility_at(light, foot, h, direction, middle) - level) * (visible.x - level) > 0.0 {
+            bracket.x = middle;
+        } else {
+            bracket.y = middle;
+        }
+    }
+    return 0.5 * (bracket.x + bracket.y);
+}
+#endif
 #endif
 
 #ifdef SCATTERED_LIGHT

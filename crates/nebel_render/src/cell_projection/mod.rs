@@ -98,7 +98,7 @@ use pipeline::{CellCompositePipelines, CellProjectionPipeline, init_cell_project
 use queries::{CellQueries, collect_cell_queries, map_cell_queries, resolve_cell_queries};
 use resources::{
     CellViewUniforms, ExtractedCellBatches, GpuCellBuffers, extract_cell_batches,
-    make_depth_readable, prepare_cell_buffers, prepare_cell_views,
+    make_depth_readable, prepare_cell_buffers, prepare_cell_views, resolve_light_shadows,
 };
 use tables::{GpuCellTables, extract_heavy_builds, prepare_cell_tables};
 
@@ -291,10 +291,10 @@ impl Plugin for CellProjectionPlugin {
                         .in_set(RenderSystems::Prepare)
                         .before(prepare_core_3d_depth_textures),
                     (
-                        prepare_cell_buffers,
-                        prepare_cell_tables,
-                        prepare_cell_views,
+                        resolve_light_shadows,
+                        (prepare_cell_buffers, prepare_cell_tables, prepare_cell_views),
                     )
+                        .chain()
                         .in_set(RenderSystems::PrepareResources),
                 ),
             )

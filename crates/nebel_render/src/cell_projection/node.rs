@@ -7,6 +7,10 @@
 use std::ops::Range;
 use std::sync::atomic::Ordering;
 
+use bevy::pbr::{
+    GlobalClusterableObjectMeta, LightMeta, ShadowSamplers, ViewLightsUniformOffset,
+    ViewShadowBindings,
+};
 use bevy::prelude::*;
 use bevy::render::render_resource::*;
 use bevy::render::renderer::{RenderContext, ViewQuery};
@@ -36,6 +40,9 @@ struct Draw {
     mode: OpticalMode,
     variant: usize,
     bind_group: BindGroup,
+    /// Its lights read their shadow maps through the view's shadow bind
+    /// group (group 2).
+    shadowed: bool,
     shape: DrawShape,
     /// Instances: one per cell, one for a grid.
     count: u32,
@@ -52,13 +59,19 @@ enum DrawShape {
 }
 
 impl Draw {
-    /// Draws `instances` into `pass` and counts their cells.
+    /// Draws `instances` into `pass` (with the view's shadow bind group
+    /// `shadows` at its offset, if the draw reads shadow maps) and counts
+    /// their cells.
     fn record(
         &self,
         pass: &mut wgpu::RenderPass<'_>,
         instances: Range<u32>,
+        shadows: Option<&(BindGroup, u32)>,
         stats: &CellProjectionStats,
     ) {
+        if let (true, Some((group, offset))) = (self.shadowed, shadows) {
+            pass.set_bind_group(2, group, &[*offset]);
+        }
         let (vertices, cells) = match self.shape {
             DrawShape::Cells => (6, instances.len() as u64),
             DrawShape::Grid { cells } => (36, u64::from(cells)),
@@ -132,6 +145,9 @@ struct Passes<'a> {
     /// Whether to mark terminated pixels: the view asks for early
     /// termination and a segment has opacity to mark.
     terminates: bool,
+    /// The view's lights and shadow maps, and its lights' offset, where a
+    /// draw reads them.
+    shadows: Option<&'a (BindGroup, u32)>,
 }
 
 /// Begins a pass of the round into `colour`, with the round's stencil and
@@ -317,7 +333,7 @@ impl Passes<'_> {
                     pass.set_bind_group(0, &round.view_bind_group, &[round.uniform_offset]);
                     pass.set_pipeline(pipelines[draw]);
                     pass.set_bind_group(1, &self.draws[draw].bind_group, &[]);
-                    self.draws[draw].record(&mut pass, 0..count, self.stats);
+                    self.draws[draw].record(&mut pass, 0..count, self.shadows, self.stats);
                     self.stats.0.merged_batches.fetch_add(1, Ordering::Relaxed);
                 }
                 let bind_group =
@@ -370,7 +386,7 @@ impl Passes<'_> {
         for (draw, instances) in run {
             pass.set_pipeline(pipelines[*draw]);
             pass.set_bind_group(1, &self.draws[*draw].bind_group, &[]);
-            self.draws[*draw].record(&mut pass, instances.clone(), self.stats);
+            self.draws[*draw].record(&mut pass, instances.clone(), self.shadows, self.stats);
         }
     }
 }
@@ -383,6 +399,8 @@ pub fn draw_cell_batches(
         &ViewDepthTexture,
         &ExtractedView,
         &CellProjectionView,
+        Option<&ViewShadowBindings>,
+        Option<&ViewLightsUniformOffset>,
     )>,
     extracted: Res<ExtractedCellBatches>,
     buffers: Res<GpuCellBuffers>,
@@ -395,12 +413,18 @@ pub fn draw_cell_batches(
     pipeline_cache: Res<PipelineCache>,
     stats: Res<CellProjectionStats>,
     mut queries: ResMut<CellQueries>,
+    (light_meta, clustered, samplers): (
+        Option<Res<LightMeta>>,
+        Option<Res<GlobalClusterableObjectMeta>>,
+        Option<Res<ShadowSamplers>>,
+    ),
     mut ctx: RenderContext,
 ) {
     if extracted.0.is_empty() {
         return;
     }
-    let (view_target, depth, extracted_view, cell_view) = view.into_inner();
+    let (view_target, depth, extracted_view, cell_view, shadow_maps, lights_offset) =
+        view.into_inner();
     let Some(view_binding) = uniforms.0.binding() else {
         return;
     };
@@ -412,6 +436,32 @@ pub fn draw_cell_batches(
             .total_cmp(&b.centre.distance_squared(eye))
     });
 
+    // Bevy's lights and shadow maps of the view, for lights that cast
+    // shadows (prepare_cell_views specialised their variants for a view
+    // with shadow maps).
+    let shadows = order
+        .iter()
+        .any(|(_, batch)| batch.is_shadowed())
+        .then_some(())
+        .and(shadow_maps.zip(lights_offset))
+        .and_then(|(maps, offset)| {
+            let lights = light_meta.as_ref()?.view_gpu_lights.binding()?;
+            let clustered = clustered.as_ref()?.gpu_clustered_lights.binding()?;
+            let samplers = samplers.as_ref()?;
+            let group = ctx.render_device().create_bind_group(
+                "nebel_cell_shadow_bind_group",
+                &pipeline_cache.get_bind_group_layout(&pipeline.shadow_layout),
+                &BindGroupEntries::sequential((
+                    lights,
+                    clustered,
+                    &maps.point_light_depth_texture_view,
+                    &samplers.point_light_comparison_sampler,
+                    &maps.directional_light_depth_texture_view,
+                    &samplers.directional_light_comparison_sampler,
+                )),
+            );
+            Some((group, offset.offset))
+        });
     let mut draws = Vec::with_capacity(order.len());
     let mut draw_groups = Vec::with_capacity(order.len());
     for (entity, batch) in order {
@@ -447,8 +497,10 @@ pub fn draw_cell_batches(
                 buffer.ray_cast,
                 batch.is_lit_locally(),
                 batch.is_sunlit(),
+                shadows.is_some() && batch.is_shadowed(),
             ),
             bind_group,
+            shadowed: shadows.is_some() && batch.is_shadowed(),
             shape: if buffer.ray_cast {
                 DrawShape::Grid {
                     cells: buffer.count,
@@ -476,6 +528,7 @@ pub fn draw_cell_batches(
         stats: &stats,
         terminates: cell_view.early_termination
             && draws.iter().any(|draw| draw.mode == OpticalMode::Sorted),
+        shadows: shadows.as_ref(),
     };
     let viewport = extracted_view.viewport;
     let mut counters = queries.view(

@@ -5,9 +5,11 @@ use std::collections::HashMap;
 use bevy::asset::load_embedded_asset;
 use bevy::core_pipeline::FullscreenShader;
 use bevy::prelude::*;
+use bevy::pbr::{CLUSTERED_FORWARD_STORAGE_BUFFER_COUNT, GpuClusteredLights, GpuLights};
 use bevy::render::render_resource::binding_types::{
-    storage_buffer_read_only_sized, storage_buffer_sized, texture_2d, texture_3d, texture_depth_2d,
-    texture_depth_2d_multisampled, uniform_buffer,
+    sampler, storage_buffer_read_only_sized, storage_buffer_sized, texture_2d, texture_2d_array,
+    texture_3d, texture_cube_array, texture_depth_2d, texture_depth_2d_multisampled,
+    uniform_buffer,
 };
 use bevy::render::render_resource::*;
 use bevy::render::renderer::RenderDevice;
@@ -21,12 +23,12 @@ use super::tables::CellTablesUniform;
 use crate::cell_batch::CellBatchUniform;
 
 /// The pipeline variants per optical mode ([`variant_index`]).
-pub(super) const VARIANTS: usize = 256;
+pub(super) const VARIANTS: usize = 512;
 
 /// The index of a pipeline variant: modulated segment lengths, single
 /// scattering, the handoff to fog layers, keyframe blending, drawing into a
-/// merged layer, ray casting a whole grid, local lights and the sun in
-/// ground fog, each on or off.
+/// merged layer, ray casting a whole grid, local lights, the sun in ground
+/// fog and the local lights' shadow maps, each on or off.
 pub(super) fn variant_index(
     modulated: bool,
     scattering: bool,
@@ -36,6 +38,7 @@ pub(super) fn variant_index(
     ray_cast: bool,
     local_lights: bool,
     ground_sun: bool,
+    light_shadows: bool,
 ) -> usize {
     usize::from(modulated)
         | usize::from(scattering) << 1
@@ -45,6 +48,7 @@ pub(super) fn variant_index(
         | usize::from(ray_cast) << 5
         | usize::from(local_lights) << 6
         | usize::from(ground_sun) << 7
+        | usize::from(light_shadows) << 8
 }
 
 pub(super) fn mode_index(mode: OpticalMode) -> usize {
@@ -68,6 +72,11 @@ pub struct CellProjectionPipeline {
     /// ([`view_layout_index`]).
     view_layouts: [[BindGroupLayoutDescriptor; 3]; 2],
     pub(super) batch_layout: BindGroupLayoutDescriptor,
+    /// Bevy's lights and shadow maps, read by the variants whose lights cast
+    /// shadows (`LIGHT_SHADOWS`): the view's lights, the clustered lights,
+    /// the point lights' cube maps and the spot lights' maps, each with its
+    /// comparison sampler.
+    pub(super) shadow_layout: BindGroupLayoutDescriptor,
     shader: Handle<Shader>,
     pub(super) composite_layout: BindGroupLayoutDescriptor,
     composite_shader: Handle<Shader>,
@@ -185,6 +194,8 @@ pub struct CellProjectionPipelineKey {
     pub local_lights: bool,
     /// The sun lights the batch as ground fog (`crate::fog_sunlight`).
     pub ground_sun: bool,
+    /// A light that reaches the batch reads Bevy's shadow map of it.
+    pub light_shadows: bool,
 }
 
 /// Creates the bind group layouts and loads the shaders.
@@ -207,6 +218,9 @@ pub fn init_cell_projection_pipeline(
         commands.insert_resource(CellProjectionUnsupported);
     }
     let unfilterable = TextureSampleType::Float { filterable: false };
+    // As Bevy binds its clustered lights on this device.
+    let clustered_lights =
+        device.get_supported_read_only_binding_type(CLUSTERED_FORWARD_STORAGE_BUFFER_COUNT);
     let view_layout = |depth: BindGroupLayoutEntryBuilder, counter: bool| {
         let (uniform, depth) = (uniform_buffer::<CellViewUniform>(true), depth);
         let entries = if counter {
@@ -274,6 +288,24 @@ pub fn init_cell_projection_pipeline(
                     storage_buffer_read_only_sized(false, None),
                     // The sun map of ground fog (`crate::fog_sunlight`).
                     texture_2d(unfilterable),
+                ),
+            ),
+        ),
+        shadow_layout: BindGroupLayoutDescriptor::new(
+            "nebel_cell_shadow_layout",
+            &BindGroupLayoutEntries::sequential(
+                ShaderStages::FRAGMENT,
+                (
+                    uniform_buffer::<GpuLights>(true),
+                    BindingType::Buffer {
+                        ty: clustered_lights,
+                        has_dynamic_offset: false,
+                        min_binding_size: Some(GpuClusteredLights::min_size(clustered_lights)),
+                    },
+                    texture_cube_array(TextureSampleType::Depth),
+                    sampler(SamplerBindingType::Comparison),
+                    texture_2d_array(TextureSampleType::Depth),
+                    sampler(SamplerBindingType::Comparison),
                 ),
             ),
         ),
@@ -399,6 +431,15 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
         if key.local_lights {
             shader_defs.push("LOCAL_LIGHTS".into());
         }
+        let mut layout = vec![
+            self.view_layout(key.multisampled, key.low_resolution, key.count_fragments)
+                .clone(),
+            self.batch_layout.clone(),
+        ];
+        if key.local_lights && key.light_shadows {
+            shader_defs.push("LIGHT_SHADOWS".into());
+            layout.push(self.shadow_layout.clone());
+        }
         if key.local_lights || key.ground_sun {
             // A ray cast grid's segments are already pieces of a voxel; a
             // cell's may cross a whole coarse octree leaf.
@@ -434,11 +475,7 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
         }
         RenderPipelineDescriptor {
             label: Some("nebel_cell_projection_pipeline".into()),
-            layout: vec![
-                self.view_layout(key.multisampled, key.low_resolution, key.count_fragments)
-                    .clone(),
-                self.batch_layout.clone(),
-            ],
+            layout,
             vertex: VertexState {
                 shader: self.shader.clone(),
                 shader_defs: shader_defs.clone(),

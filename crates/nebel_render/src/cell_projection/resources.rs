@@ -7,6 +7,7 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering;
 
 use bevy::math::DMat4;
+use bevy::pbr::{GlobalClusterableObjectMeta, ViewShadowBindings};
 use bevy::prelude::*;
 use bevy::render::Extract;
 use bevy::render::camera::ExtractedCamera;
@@ -83,6 +84,12 @@ impl ExtractedCellBatch {
     /// Whether point or spot lights reach the batch.
     pub(super) fn is_lit_locally(&self) -> bool {
         self.lights.count > 0
+    }
+
+    /// Whether a light that reaches the batch reads its shadow map
+    /// ([`resolve_light_shadows`]).
+    pub(super) fn is_shadowed(&self) -> bool {
+        self.lights.is_shadowed()
     }
 
     /// Whether the sun lights the batch as ground fog.
@@ -239,6 +246,22 @@ pub fn extract_cell_batches(
         .collect();
     for ((_, batch), group) in extracted.0.iter_mut().zip(overlap_groups(&bounds)) {
         batch.group = group;
+    }
+}
+
+/// Gives each light that reaches a batch and casts shadows its index among
+/// Bevy's clustered lights of this frame, where the shader finds its shadow
+/// map; none without Bevy's lights (no `PbrPlugin`).
+pub fn resolve_light_shadows(
+    mut extracted: ResMut<ExtractedCellBatches>,
+    clustered: Option<Res<GlobalClusterableObjectMeta>>,
+) {
+    for (_, batch) in &mut extracted.0 {
+        batch.lights = batch.lights.with_shadow_indices(|entity| {
+            clustered
+                .as_ref()
+                .and_then(|meta| meta.entity_to_index.get(&entity).copied())
+        });
     }
 }
 
@@ -606,6 +629,7 @@ pub fn prepare_cell_views(
         &Msaa,
         Option<&ViewFogLayers>,
         Option<&CellProjection>,
+        Has<ViewShadowBindings>,
     )>,
     mut texture_cache: ResMut<TextureCache>,
     mut composites: ResMut<CellCompositePipelines>,
@@ -643,7 +667,7 @@ pub fn prepare_cell_views(
         .into_values()
         .max()
         .map(|n| n.min(MAX_MERGED as u32));
-    for (entity, view, camera, msaa, fog, settings) in &views {
+    for (entity, view, camera, msaa, fog, settings, has_shadow_maps) in &views {
         let Some(size) = camera.physical_target_size else {
             continue;
         };
@@ -692,8 +716,10 @@ pub fn prepare_cell_views(
                 let ray_cast = batch.is_ray_cast();
                 let lit = batch.is_lit_locally();
                 let sunlit = batch.is_sunlit();
+                let shadowed = has_shadow_maps && batch.is_shadowed();
                 variants[mode_index(batch.mode)][variant_index(
                     modulated, scattering, handoff, blended, merged, ray_cast, lit, sunlit,
+                    shadowed,
                 )] = Some(pipelines.specialize(
                     &pipeline_cache,
                     &pipeline,
@@ -714,6 +740,7 @@ pub fn prepare_cell_views(
                         ray_cast,
                         local_lights: lit,
                         ground_sun: sunlit,
+                        light_shadows: shadowed,
                     },
                 ));
             }
