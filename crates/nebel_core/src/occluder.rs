@@ -106,7 +106,7 @@ pub fn lit_spans(
     if occluders.is_empty() {
         return vec![(t_a, t_b)];
     }
-    if !(t_b > t_a) {
+    if t_b.partial_cmp(&t_a) != Some(std::cmp::Ordering::Greater) {
         return Vec::new();
     }
     let lit = |t: f64| !hides(occluders, ray.origin + t * ray.direction, light);

@@ -238,11 +238,12 @@ pub fn visible_volumetric_lights(
         points
             .iter()
             .filter(|(_, _, visible, _)| visible.get())
-            .map(|(light, transform, _, entity)| (*light, *transform, entity.map(|e| e.id()))),
-        spots
-            .iter()
-            .filter(|(_, _, visible, _)| visible.get())
-            .map(|(light, transform, _, entity)| (*light, *transform, entity.map(|e| e.id()))),
+            .map(|(light, transform, _, entity)| {
+                (*light, *transform, entity.map(RenderEntity::id))
+            }),
+        spots.iter().filter(|(_, _, visible, _)| visible.get()).map(
+            |(light, transform, _, entity)| (*light, *transform, entity.map(RenderEntity::id)),
+        ),
     )
 }
 

@@ -15,7 +15,8 @@
 use std::path::Path;
 
 use crate::{
-    BuiltVolume, LightModel, LightingDescription, ReferenceTerrain, SceneDescription, SceneField,
+    BuiltVolume, LightModel, LightingDescription, MeshDescription, ReferenceTerrain,
+    SceneDescription, SceneField,
 };
 use glam::{DVec3, DVec4};
 use nebel_core::field::{CloudLighting, DensityGrid, PadFill, light_field};
@@ -175,7 +176,7 @@ pub fn reference_image_with_terrain(
         reference_scene.opaque_depth = opaque_depth.clone();
         reference_scene.fog = fog.clone();
         reference_scene.local_lights = local_lights.clone();
-        reference_scene.occluders = scene.meshes.iter().map(|mesh| mesh.occluder()).collect();
+        reference_scene.occluders = scene.meshes.iter().map(MeshDescription::occluder).collect();
         reference_scene.light_response = volume.light_response;
         reference_scene.sunlight = volume.fog_sunlight;
         if let Some(start) = fog

@@ -292,7 +292,11 @@ impl Plugin for CellProjectionPlugin {
                         .before(prepare_core_3d_depth_textures),
                     (
                         resolve_light_shadows,
-                        (prepare_cell_buffers, prepare_cell_tables, prepare_cell_views),
+                        (
+                            prepare_cell_buffers,
+                            prepare_cell_tables,
+                            prepare_cell_views,
+                        ),
                     )
                         .chain()
                         .in_set(RenderSystems::PrepareResources),

@@ -4,8 +4,8 @@ use std::collections::HashMap;
 
 use bevy::asset::load_embedded_asset;
 use bevy::core_pipeline::FullscreenShader;
-use bevy::prelude::*;
 use bevy::pbr::{CLUSTERED_FORWARD_STORAGE_BUFFER_COUNT, GpuClusteredLights, GpuLights};
+use bevy::prelude::*;
 use bevy::render::render_resource::binding_types::{
     sampler, storage_buffer_read_only_sized, storage_buffer_sized, texture_2d, texture_2d_array,
     texture_3d, texture_cube_array, texture_depth_2d, texture_depth_2d_multisampled,
