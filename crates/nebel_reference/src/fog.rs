@@ -43,6 +43,7 @@ use glam::DVec3;
 use nebel_core::cell::Ray;
 use nebel_core::height_fog::{HeightFog, HeightFogLayer};
 use nebel_core::local_light::{LightResponse, LocalLight};
+use nebel_core::occluder::Occluder;
 use nebel_core::optics::{PremultipliedRgba, henyey_greenstein};
 
 use crate::integrator::LIGHT_INTERVALS;
@@ -81,6 +82,9 @@ pub struct ReferenceFog {
     /// How the fog scatters them: the phase's asymmetry and the factor `s`
     /// on its colour ([`LightResponse::checked`]).
     pub light_response: LightResponse,
+    /// Opaque shapes that shade the lights that cast shadows
+    /// ([`LocalLight::scattered_past`]).
+    pub occluders: Vec<Occluder>,
 }
 
 /// The most optical depth, plus exponential falloff times the altitude
@@ -225,9 +229,9 @@ impl ReferenceFog {
         let mut sum = DVec3::ZERO;
         for light in &self.lights {
             for &part in &parts {
-                sum += light.scattered(
-                    ray.origin,
-                    ray.direction,
+                sum += light.scattered_past(
+                    &self.occluders,
+                    ray,
                     part,
                     f64::from(response.asymmetry),
                     LIGHT_INTERVALS,
@@ -323,6 +327,7 @@ mod tests {
             max_distance: 1e5,
             lights: Vec::new(),
             light_response: LightResponse::default(),
+            occluders: Vec::new(),
         }
     }
 

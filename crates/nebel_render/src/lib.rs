@@ -18,6 +18,7 @@
 //!   by the terrain's shadow ([`CellFogSunlight`]).
 //! - [`local_lights`]: point and spot lights (opted in with `VolumetricLight`)
 //!   scattered by sorted batches.
+//! - [`light_shadows`]: their Bevy shadow maps in nebel's passes (light shafts).
 //! - [`effect`]: what every effect plugin shares ([`EffectStatus`]).
 //! - [`diagnostics`]: the [`NebelSystems`] set that every per-frame nebel system
 //!   joins and the CPU time that set takes each frame.
@@ -35,6 +36,7 @@ pub mod fog_sunlight;
 mod frame_budget;
 pub mod grayscale_map;
 pub mod headless;
+pub mod light_shadows;
 pub mod local_lights;
 pub mod quality;
 

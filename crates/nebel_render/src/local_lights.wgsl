@@ -185,11 +185,17 @@ fn light_interval(
     sigma: f32,
     g: f32,
 ) -> f32 {
-    let quadrature = LightQuadrature(gammas.x, 0.5 * (gammas.y - gammas.x), h, 1u);
+    let quadrature = light_span(h, gammas);
     var sum = 0.0;
     for (var k = 0u; k < 3u; k++) {
         let node = light_node(light, on_ray, direction, quadrature, 0u, k, g);
         sum += node.weight * sigma * exp(-sigma * (node.t - t_a));
     }
     return sum;
+}
+
+// One interval of quadrature over the angles [gammas.x, gammas.y] (`h` the
+// light's quadrature's).
+fn light_span(h: f32, gammas: vec2<f32>) -> LightQuadrature {
+    return LightQuadrature(gammas.x, 0.5 * (gammas.y - gammas.x), h, 1u);
 }

@@ -5,6 +5,7 @@
 use glam::DVec3;
 use nebel_core::height_fog::{HeightFog, HeightFogLayer};
 use nebel_core::local_light::{LightResponse, LocalLight};
+use nebel_core::occluder::Occluder;
 use nebel_reference::{FogSunlight, ReferenceFog};
 use serde::{Deserialize, Serialize};
 
@@ -95,11 +96,13 @@ impl FogLayersDescription {
 
     /// The fog for the reference integrator; `sun` is the unit direction
     /// toward the scene's directional light, if it has one, `lights` the
-    /// scene's volumetric point and spot lights.
+    /// scene's volumetric point and spot lights, `occluders` what shades
+    /// those that cast shadows.
     pub fn reference(
         &self,
         sun: Option<DVec3>,
         lights: Vec<LocalLight>,
+        occluders: Vec<Occluder>,
     ) -> Result<ReferenceFog, InvalidField> {
         let linear = |c: [f32; 3]| DVec3::from(c.map(f64::from));
         Ok(ReferenceFog {
@@ -114,6 +117,7 @@ impl FogLayersDescription {
             max_distance: f64::from(self.max_distance),
             lights,
             light_response: self.light_response,
+            occluders,
         })
     }
 }

@@ -88,10 +88,11 @@ pub fn reference_image_with_terrain(
     let sky = scene.sky_colour();
     let last_frame = f64::from(scene.frame_time(scene.output.frames.saturating_sub(1)));
     let local_lights = scene.volumetric_lights(last_frame);
+    let occluders: Vec<_> = scene.meshes.iter().map(MeshDescription::occluder).collect();
     let fog = scene
         .fog_layers
         .as_ref()
-        .map(|fog| fog.reference(sun, local_lights.clone()))
+        .map(|fog| fog.reference(sun, local_lights.clone(), occluders.clone()))
         .transpose()
         .map_err(|invalid| ReferenceError::InvalidFog {
             reason: format!("fog_layers.{}: {}", invalid.field, invalid.reason),
@@ -176,7 +177,7 @@ pub fn reference_image_with_terrain(
         reference_scene.opaque_depth = opaque_depth.clone();
         reference_scene.fog = fog.clone();
         reference_scene.local_lights = local_lights.clone();
-        reference_scene.occluders = scene.meshes.iter().map(MeshDescription::occluder).collect();
+        reference_scene.occluders = occluders.clone();
         reference_scene.light_response = volume.light_response;
         reference_scene.sunlight = volume.fog_sunlight;
         if let Some(start) = fog

@@ -94,7 +94,7 @@ pub fn run_fog_layer_peers(
     save_reference(&reference, &out_dir.join("reference.png"))?;
 
     let fog = layers
-        .reference(scene.sun_direction(), Vec::new())
+        .reference(scene.sun_direction(), Vec::new(), Vec::new())
         .map_err(|invalid| {
             unsuitable(&format!("fog_layers.{}: {}", invalid.field, invalid.reason))
         })?;
@@ -399,7 +399,7 @@ mod tests {
             .fog_layers
             .as_ref()
             .unwrap()
-            .reference(None, Vec::new())
+            .reference(None, Vec::new(), Vec::new())
             .unwrap();
         let k = fitted_distance_density(&scene, &fog).unwrap();
         assert!((k - 0.02).abs() < 1e-6, "{k}");

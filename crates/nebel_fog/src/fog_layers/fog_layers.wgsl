@@ -16,10 +16,17 @@
 // exponential falloff times the altitude crossed (at most MAX_PART_PIECES);
 // each piece in Gauss-Legendre intervals in the angle the light sees. The
 // reference's ReferenceFog::lit cuts the same way, finer.
+//
+// LIGHT_SHADOWS (a light that reaches the fog casts shadows): each interval
+// is cut where Bevy's shadow map of the light changes its visibility
+// (nebel_render::light_shadows), each stretch weighted by its visibility.
 
 #import bevy_core_pipeline::fullscreen_vertex_shader::FullscreenVertexOutput
 #import nebel_render::fog_layers::{FogLayers, fog_opacity, fog_optical_depth, fog_point, fog_stretch, layer_mean}
-#import nebel_render::local_lights::{LocalLights, light_node, light_on_ray, light_quadrature}
+#import nebel_render::local_lights::{LocalLights, light_node, light_on_ray, light_quadrature, light_span}
+#ifdef LIGHT_SHADOWS
+#import nebel_render::light_shadows::{light_visibility_at, visibility_spans}
+#endif
 
 struct FogPass {
     view_from_clip: mat4x4<f32>,
@@ -116,9 +123,10 @@ fn next_kink(altitude: f32, d_y: f32, after: f32, limit: f32) -> f32 {
 // the unit ray `direction` from the eye for light i (see the header).
 fn fog_light(i: u32, direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
     let light = fog_pass.lights.lights[i];
+    let eye = fog_pass.camera_position.xyz;
     let altitude = fog_pass.camera_position.y;
     let d_y = direction.y;
-    let on_ray = light_on_ray(light, fog_pass.camera_position.xyz, direction);
+    let on_ray = light_on_ray(light, eye, direction);
     let b = min(t1, on_ray.b);
     var start = max(t0, on_ray.a);
     if b <= start {
@@ -138,13 +146,36 @@ fn fog_light(i: u32, direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
             let quadrature = light_quadrature(on_ray, piece_a, piece_b, fog_pass.lights.response.z, fog_pass.lights.quadrature.x);
             let before = fog_optical_depth(fog_pass.fog, altitude, d_y, 0.0, piece_a);
             let start_height = altitude + d_y * piece_a;
+            let width = 2.0 * quadrature.half_width;
+#ifdef LIGHT_SHADOWS
+            var visible = light_visibility_at(light, eye, direction, on_ray.foot, quadrature.h, quadrature.gamma_a);
+#endif
             for (var interval = 0u; interval < quadrature.intervals; interval++) {
-                for (var k = 0u; k < 3u; k++) {
-                    let node = light_node(light, on_ray, direction, quadrature, interval, k, fog_pass.lights.response.y);
-                    let height = altitude + d_y * node.t;
-                    let to_light = length(on_ray.to_light - node.t * direction);
-                    let fog = node_fog(start_height, d_y, node.t - piece_a, height, light.position.y, to_light);
-                    sum += node.weight * fog.x * exp(-(before + fog.y + fog.z));
+                let start = quadrature.gamma_a + width * f32(interval);
+#ifdef LIGHT_SHADOWS
+                // Stretches of the interval with their visibility.
+                let cut = visibility_spans(light, eye, direction, on_ray.foot, quadrature.h, start, width, visible);
+                visible = cut.end;
+                let count = cut.count;
+#else
+                let count = 1u;
+#endif
+                for (var span = 0u; span < count; span++) {
+#ifdef LIGHT_SHADOWS
+                    let gammas = cut.spans[span].xy;
+                    let seen = cut.spans[span].z;
+#else
+                    let gammas = vec2(start, start + width);
+                    let seen = 1.0;
+#endif
+                    let stretch = light_span(quadrature.h, gammas);
+                    for (var k = 0u; k < 3u; k++) {
+                        let node = light_node(light, on_ray, direction, stretch, 0u, k, fog_pass.lights.response.y);
+                        let height = altitude + d_y * node.t;
+                        let to_light = length(on_ray.to_light - node.t * direction);
+                        let fog = node_fog(start_height, d_y, node.t - piece_a, height, light.position.y, to_light);
+                        sum += seen * node.weight * fog.x * exp(-(before + fog.y + fog.z));
+                    }
                 }
             }
         }

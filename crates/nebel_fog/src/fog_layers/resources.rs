@@ -7,6 +7,7 @@
 use bevy::core_pipeline::FullscreenShader;
 use bevy::core_pipeline::core_3d::prepare_core_3d_depth_textures;
 use bevy::core_pipeline::schedule::{Core3d, Core3dSystems};
+use bevy::pbr::ViewShadowBindings;
 use bevy::prelude::*;
 use bevy::render::render_resource::binding_types::{
     texture_2d, texture_2d_multisampled, uniform_buffer,
@@ -23,6 +24,7 @@ use nebel_core::local_light::{LightResponse, MAX_LOCAL_LIGHTS};
 use nebel_render::EffectiveQuality;
 use nebel_render::cell_projection::CellProjectionSystems;
 use nebel_render::fog_layers::{FogLayersUniform, ViewFogLayers};
+use nebel_render::light_shadows::{LightShadows, light_shadow_layout};
 use nebel_render::local_lights::{
     LocalLightsUniform, ReachingLights, SceneLight, VolumetricPointLights, VolumetricSpotLights,
     visible_volumetric_lights,
@@ -70,7 +72,12 @@ impl Plugin for FogLayersRenderPlugin {
 /// The point and spot lights that reach a view's fog layers, scattered
 /// with its response (render world, on the view entity).
 #[derive(Component, Clone, Copy, Debug, PartialEq)]
-pub struct FogLayerLights(pub LocalLightsUniform);
+pub struct FogLayerLights {
+    /// The lights, the brightest at the eye first.
+    pub lights: ReachingLights,
+    /// How the fog scatters them.
+    pub response: LightResponse,
+}
 
 impl FogLayerLights {
     /// The lights of `lights` that reach within `max_distance` of the eye,
@@ -84,9 +91,16 @@ impl FogLayerLights {
         response: LightResponse,
     ) -> Option<Self> {
         let reach = Vec3::splat(max_distance);
-        let reaching = ReachingLights::reaching(lights, eye - reach, eye + reach);
-        let uniform = LocalLightsUniform::new(&reaching, response);
-        (reaching.count > 0 && uniform.response.w > 0.0).then_some(Self(uniform))
+        let lights = Self {
+            lights: ReachingLights::reaching(lights, eye - reach, eye + reach),
+            response,
+        };
+        (lights.lights.count > 0 && lights.uniform().response.w > 0.0).then_some(lights)
+    }
+
+    /// The lights as the shader's `LocalLights`.
+    pub fn uniform(&self) -> LocalLightsUniform {
+        LocalLightsUniform::new(&self.lights, self.response)
     }
 }
 
@@ -193,6 +207,9 @@ pub struct FogLayersView {
     pub(super) uniform_offset: u32,
     pub(super) multisampled: bool,
     pub(super) pipeline: CachedRenderPipelineId,
+    /// A light reads its shadow map (bind group 1,
+    /// `nebel_render::light_shadows`).
+    pub(super) shadowed: bool,
 }
 
 /// The fog pass's bind group layouts (single-sampled and multisampled
@@ -200,6 +217,9 @@ pub struct FogLayersView {
 #[derive(Resource)]
 pub struct FogLayersPipeline {
     pub(super) layouts: [BindGroupLayoutDescriptor; 2],
+    /// Bevy's lights and shadow maps, group 1 of the variant whose lights
+    /// cast shadows.
+    pub(super) shadow_layout: BindGroupLayoutDescriptor,
     shader: Handle<Shader>,
     fullscreen_vertex: VertexState,
 }
@@ -209,6 +229,8 @@ pub struct FogLayersPipeline {
 pub struct FogLayersPipelineKey {
     multisampled: bool,
     local_lights: bool,
+    /// A light reads its shadow map (`LIGHT_SHADOWS`).
+    light_shadows: bool,
     /// The fog scatters sunlight (`FOG_SUN`).
     sun: bool,
     target_format: TextureFormat,
@@ -218,6 +240,7 @@ fn init_fog_layers_pipeline(
     mut commands: Commands,
     asset_server: Res<AssetServer>,
     fullscreen_shader: Res<FullscreenShader>,
+    device: Res<RenderDevice>,
 ) {
     let layout = |multisampled: bool| {
         BindGroupLayoutDescriptor::new(
@@ -238,6 +261,7 @@ fn init_fog_layers_pipeline(
     };
     commands.insert_resource(FogLayersPipeline {
         layouts: [layout(false), layout(true)],
+        shadow_layout: light_shadow_layout(&device),
         shader: bevy::asset::load_embedded_asset!(asset_server.as_ref(), "fog_layers.wgsl"),
         fullscreen_vertex: fullscreen_shader.to_vertex_state(),
     });
@@ -260,9 +284,15 @@ impl SpecializedRenderPipeline for FogLayersPipeline {
         if key.sun {
             shader_defs.push("FOG_SUN".into());
         }
+        let mut layout = vec![self.layouts[usize::from(key.multisampled)].clone()];
+        if key.local_lights && key.light_shadows {
+            shader_defs.push("LIGHT_SHADOWS".into());
+            shader_defs.push(ShaderDefVal::UInt("LIGHT_SHADOW_GROUP".into(), 1));
+            layout.push(self.shadow_layout.clone());
+        }
         RenderPipelineDescriptor {
             label: Some("nebel_fog_layers_pipeline".into()),
-            layout: vec![self.layouts[usize::from(key.multisampled)].clone()],
+            layout,
             vertex: self.fullscreen_vertex.clone(),
             fragment: Some(FragmentState {
                 shader: self.shader.clone(),
@@ -288,7 +318,9 @@ pub fn prepare_fog_layer_views(
         &Msaa,
         &ViewFogLayers,
         Option<&FogLayerLights>,
+        Has<ViewShadowBindings>,
     )>,
+    light_shadows: LightShadows,
     mut uniforms: ResMut<FogPassUniforms>,
     pipeline: Res<FogLayersPipeline>,
     mut pipelines: ResMut<SpecializedRenderPipelines<FogLayersPipeline>>,
@@ -300,7 +332,15 @@ pub fn prepare_fog_layer_views(
         return;
     }
     uniforms.0.clear();
-    for (entity, view, msaa, fog, lights) in &views {
+    for (entity, view, msaa, fog, lights, has_shadow_maps) in &views {
+        // Each light that casts shadows reads Bevy's map of this frame.
+        let lights = lights.map(|lights| FogLayerLights {
+            lights: lights
+                .lights
+                .with_shadow_indices(|entity| light_shadows.light_index(entity)),
+            ..*lights
+        });
+        let shadowed = has_shadow_maps && lights.is_some_and(|lights| lights.lights.is_shadowed());
         let rotation = Mat4::from_quat(view.world_from_view.rotation());
         let uniform_offset = uniforms.0.push(&FogPassUniform {
             view_from_clip: view.clip_from_view.inverse(),
@@ -308,7 +348,7 @@ pub fn prepare_fog_layer_views(
             camera_position: view.world_from_view.translation().extend(1.0),
             viewport: view.viewport.as_vec4(),
             fog: fog.0,
-            lights: lights.map_or_else(LocalLightsUniform::default, |lights| lights.0),
+            lights: lights.map_or_else(LocalLightsUniform::default, |lights| lights.uniform()),
         });
         let multisampled = *msaa != Msaa::Off;
         let pipeline = pipelines.specialize(
@@ -317,6 +357,7 @@ pub fn prepare_fog_layer_views(
             FogLayersPipelineKey {
                 multisampled,
                 local_lights: lights.is_some(),
+                light_shadows: shadowed,
                 sun: fog.0.has_sun(),
                 target_format: view.target_format,
             },
@@ -325,6 +366,7 @@ pub fn prepare_fog_layer_views(
             uniform_offset,
             multisampled,
             pipeline,
+            shadowed,
         });
     }
     uniforms.0.write_buffer(&device, &queue);
@@ -394,10 +436,13 @@ mod tests {
         // The far light's range ends beyond the fog's 100 m.
         let near = FogLayerLights::reaching(&lights, Vec3::ZERO, 100.0, response)
             .expect("two lights reach");
-        assert_eq!(near.0.response.x, 2.0);
-        assert_eq!((near.0.response.y, near.0.response.w), (0.3, 2.0));
+        assert_eq!(near.uniform().response.x, 2.0);
+        assert_eq!(
+            (near.uniform().response.y, near.uniform().response.w),
+            (0.3, 2.0)
+        );
         // The brighter light at the eye first: 1e4 lm at 5 m over 1e5 at 50 m.
-        assert_eq!(near.0.lights[0].position.x, 5.0);
+        assert_eq!(near.uniform().lights[0].position.x, 5.0);
         assert_eq!(
             FogLayerLights::reaching(&lights, Vec3::new(0.0, 500.0, 0.0), 100.0, response),
             None

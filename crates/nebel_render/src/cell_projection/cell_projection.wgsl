@@ -108,8 +108,7 @@
 #import nebel_render::fog_layers::{FogLayers, fog_stretch}
 #import nebel_render::local_lights::{GAUSS_NODES, GAUSS_WEIGHTS, LocalLight, LocalLights, henyey_greenstein, light_interval, light_node, light_on_ray, light_quadrature}
 #ifdef LIGHT_SHADOWS
-#import bevy_pbr::mesh_view_types::{ClusteredLights, Lights, POINT_LIGHT_FLAGS_SHADOWS_ENABLED_BIT, POINT_LIGHT_FLAGS_SPOT_LIGHT_BIT, POINT_LIGHT_FLAGS_SPOT_LIGHT_Y_NEGATIVE}
-#import bevy_render::maths::orthonormalize
+#import nebel_render::light_shadows::{light_visibility_at, visibility_spans}
 #endif
 
 struct CellView {
@@ -169,56 +168,6 @@ struct CellTables {
 // Per grid point of the sun map: (shadow height, ground, thickness, the
 // distance t* of the shadow's caster).
 @group(1) @binding(7) var sun_map: texture_2d<f32>;
-#endif
-
-#ifdef LIGHT_SHADOWS
-// Bevy's lights and their shadow maps.
-@group(2) @binding(0) var<uniform> bevy_lights: Lights;
-#if AVAILABLE_STORAGE_BUFFER_BINDINGS >= 3
-@group(2) @binding(1) var<storage> clustered_lights: ClusteredLights;
-#else
-@group(2) @binding(1) var<uniform> clustered_lights: ClusteredLights;
-#endif
-@group(2) @binding(2) var point_shadow_maps: texture_depth_cube_array;
-@group(2) @binding(3) var point_shadow_sampler: sampler_comparison;
-@group(2) @binding(4) var spot_shadow_maps: texture_depth_2d_array;
-@group(2) @binding(5) var spot_shadow_sampler: sampler_comparison;
-
-// The part of `light` that reaches the world point `p` past opaque
-// geometry (see the header): 1 for a light without a shadow map.
-fn light_visibility(light: LocalLight, p: vec3<f32>) -> f32 {
-    if light.shadow.x < 0 {
-        return 1.0;
-    }
-    let index = u32(light.shadow.x);
-    let source = clustered_lights.data[index];
-    if (source.flags & POINT_LIGHT_FLAGS_SHADOWS_ENABLED_BIT) == 0u {
-        return 1.0;
-    }
-    let to_light = source.position_radius.xyz - p;
-    // The point relative to the light, moved toward it by the depth bias.
-    let biased = -to_light + source.shadow_depth_bias * to_light * inverseSqrt(max(dot(to_light, to_light), 1.0e-12));
-    if (source.flags & POINT_LIGHT_FLAGS_SPOT_LIGHT_BIT) == 0u {
-        // The cube face's depth from its largest axis; cube maps are
-        // left-handed.
-        let major = max(abs(biased.x), max(abs(biased.y), abs(biased.z)));
-        let zw = -major * source.light_custom_data.xy + source.light_custom_data.zw;
-        return textureSampleCompareLevel(point_shadow_maps, point_shadow_sampler, biased * vec3(1.0, 1.0, -1.0), i32(index), zw.x / zw.y);
-    }
-    var axis = vec3(source.light_custom_data.x, 0.0, source.light_custom_data.y);
-    axis.y = sqrt(max(0.0, 1.0 - axis.x * axis.x - axis.z * axis.z));
-    if (source.flags & POINT_LIGHT_FLAGS_SPOT_LIGHT_Y_NEGATIVE) != 0u {
-        axis.y = -axis.y;
-    }
-    let projected = biased * orthonormalize(-axis);
-    if projected.z >= 0.0 {
-        // Behind the spot light, which lights nothing there.
-        return 1.0;
-    }
-    let uv = projected.xy / (source.spot_light_tan_angle * -projected.z) * vec2(0.5, -0.5) + vec2(0.5);
-    let layer = i32(index) + bevy_lights.spot_light_shadowmap_offset;
-    return textureSampleCompareLevel(spot_shadow_maps, spot_shadow_sampler, uv, layer, source.shadow_map_near_z / -projected.z);
-}
 #endif
 
 fn opaque_depth(pixel: vec2<i32>) -> f32 {
@@ -460,31 +409,15 @@ fn light_piece(i: u32, direction: vec3<f32>, t_a: f32, t_b: f32, sigma: f32) -> 
         let quadrature = light_quadrature(on_ray, cuts[part], cuts[part + 1u], parameters.lights.response.z, parameters.lights.quadrature.x);
 #ifdef LIGHT_SHADOWS
         let width = 2.0 * quadrature.half_width;
-        let g = parameters.lights.response.y;
-        var visible = light_visibility_at(light, on_ray.foot, quadrature.h, direction, quadrature.gamma_a);
+        let eye = view.camera_position.xyz;
+        var visible = light_visibility_at(light, eye, direction, on_ray.foot, quadrature.h, quadrature.gamma_a);
         for (var interval = 0u; interval < quadrature.intervals; interval++) {
             let start = quadrature.gamma_a + width * f32(interval);
-            let middle = start + 0.5 * width;
-            let visible_middle = light_visibility_at(light, on_ray.foot, quadrature.h, direction, middle);
-            let visible_end = light_visibility_at(light, on_ray.foot, quadrature.h, direction, start + width);
-            if abs(visible - visible_middle) + abs(visible_middle - visible_end) < SHADOW_EPSILON {
-                sum += visible * light_interval(light, on_ray, direction, quadrature.h, vec2(start, start + width), t_a, sigma, g);
-                visible = visible_end;
-                continue;
+            let cut = visibility_spans(light, eye, direction, on_ray.foot, quadrature.h, start, width, visible);
+            for (var span = 0u; span < cut.count; span++) {
+                sum += cut.spans[span].z * light_interval(light, on_ray, direction, quadrature.h, cut.spans[span].xy, t_a, sigma, parameters.lights.response.y);
             }
-            // Each half, cut where its visibility changes.
-            for (var half = 0u; half < 2u; half++) {
-                let gammas = select(vec2(start, middle), vec2(middle, start + width), half == 1u);
-                let ends = select(vec2(visible, visible_middle), vec2(visible_middle, visible_end), half == 1u);
-                if abs(ends.x - ends.y) < SHADOW_EPSILON {
-                    sum += ends.x * light_interval(light, on_ray, direction, quadrature.h, gammas, t_a, sigma, g);
-                } else {
-                    let crossing = shadow_crossing(light, on_ray.foot, quadrature.h, direction, gammas, ends);
-                    sum += ends.x * light_interval(light, on_ray, direction, quadrature.h, vec2(gammas.x, crossing), t_a, sigma, g)
-                        + ends.y * light_interval(light, on_ray, direction, quadrature.h, vec2(crossing, gammas.y), t_a, sigma, g);
-                }
-            }
-            visible = visible_end;
+            visible = cut.end;
         }
 #else
         for (var interval = 0u; interval < quadrature.intervals; interval++) {
@@ -498,37 +431,6 @@ fn light_piece(i: u32, direction: vec3<f32>, t_a: f32, t_b: f32, sigma: f32) -> 
     return light.colour.rgb * sum;
 }
 
-#ifdef LIGHT_SHADOWS
-// Visibilities closer than this are taken as equal.
-const SHADOW_EPSILON: f32 = 1.0e-3;
-// Bisections of a change of visibility inside half an interval: the
-// crossing to 1/64 of it.
-const SHADOW_BISECTIONS: u32 = 6u;
-
-// The visibility of `light` (light_visibility) at the point of the ray
-// (of unit `direction`, `foot` and `h` its quadrature's) the light sees at
-// the angle `gamma`.
-fn light_visibility_at(light: LocalLight, foot: f32, h: f32, direction: vec3<f32>, gamma: f32) -> f32 {
-    let t = foot + h * tan(gamma);
-    return light_visibility(light, view.camera_position.xyz + t * direction);
-}
-
-// The angle in [gammas.x, gammas.y], whose ends see the light `visible`,
-// where the visibility crosses their mean (bisected).
-fn shadow_crossing(light: LocalLight, foot: f32, h: f32, direction: vec3<f32>, gammas: vec2<f32>, visible: vec2<f32>) -> f32 {
-    let level = 0.5 * (visible.x + visible.y);
-    var bracket = gammas;
-    for (var i = 0u; i < SHADOW_BISECTIONS; i++) {
-        let middle = 0.5 * (bracket.x + bracket.y);
-        if (light_visibility_at(light, foot, h, direction, middle) - level) * (visible.x - level) > 0.0 {
-            bracket.x = middle;
-        } else {
-            bracket.y = middle;
-        }
-    }
-    return 0.5 * (bracket.x + bracket.y);
-}
-#endif
 #endif
 
 #ifdef SCATTERED_LIGHT

@@ -222,6 +222,7 @@ impl Plugin for CellProjectionPlugin {
     fn build(&self, app: &mut App) {
         crate::fog_layers::load_fog_layers_library(app);
         crate::local_lights::load_local_lights_library(app);
+        crate::light_shadows::load_light_shadows_library(app);
         embedded_asset!(app, "cell_projection.wgsl");
         embedded_asset!(app, "cell_composite.wgsl");
         embedded_asset!(app, "cell_termination.wgsl");

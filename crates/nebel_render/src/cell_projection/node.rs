@@ -7,10 +7,7 @@
 use std::ops::Range;
 use std::sync::atomic::Ordering;
 
-use bevy::pbr::{
-    GlobalClusterableObjectMeta, LightMeta, ShadowSamplers, ViewLightsUniformOffset,
-    ViewShadowBindings,
-};
+use bevy::pbr::{ViewLightsUniformOffset, ViewShadowBindings};
 use bevy::prelude::*;
 use bevy::render::render_resource::*;
 use bevy::render::renderer::{RenderContext, ViewQuery};
@@ -27,6 +24,7 @@ use super::resources::{
     CellProjectionView, CellViewUniforms, ExtractedCellBatch, ExtractedCellBatches, GpuCellBuffers,
 };
 use super::tables::GpuCellTables;
+use crate::light_shadows::LightShadows;
 
 /// Early termination marks the terminated pixels after groups of at least
 /// this many cells...
@@ -413,11 +411,7 @@ pub fn draw_cell_batches(
     pipeline_cache: Res<PipelineCache>,
     stats: Res<CellProjectionStats>,
     mut queries: ResMut<CellQueries>,
-    (light_meta, clustered, samplers): (
-        Option<Res<LightMeta>>,
-        Option<Res<GlobalClusterableObjectMeta>>,
-        Option<Res<ShadowSamplers>>,
-    ),
+    light_shadows: LightShadows,
     mut ctx: RenderContext,
 ) {
     if extracted.0.is_empty() {
@@ -445,21 +439,8 @@ pub fn draw_cell_batches(
         .then_some(())
         .and(shadow_maps.zip(lights_offset))
         .and_then(|(maps, offset)| {
-            let lights = light_meta.as_ref()?.view_gpu_lights.binding()?;
-            let clustered = clustered.as_ref()?.gpu_clustered_lights.binding()?;
-            let samplers = samplers.as_ref()?;
-            let group = ctx.render_device().create_bind_group(
-                "nebel_cell_shadow_bind_group",
-                &pipeline_cache.get_bind_group_layout(&pipeline.shadow_layout),
-                &BindGroupEntries::sequential((
-                    lights,
-                    clustered,
-                    &maps.point_light_depth_texture_view,
-                    &samplers.point_light_comparison_sampler,
-                    &maps.directional_light_depth_texture_view,
-                    &samplers.directional_light_comparison_sampler,
-                )),
-            );
+            let layout = pipeline_cache.get_bind_group_layout(&pipeline.shadow_layout);
+            let group = light_shadows.bind_group(ctx.render_device(), &layout, maps)?;
             Some((group, offset.offset))
         });
     let mut draws = Vec::with_capacity(order.len());
@@ -630,23 +611,21 @@ pub fn draw_cell_batches(
         "nebel_cell_composite_pass",
         view_target,
         composite_pipeline,
-        &composite_bind_group,
-        &[],
+        &[(&composite_bind_group, &[])],
         counters.timestamp(true),
     );
     counters.timed();
 }
 
-/// One full-screen triangle of `pipeline` (bind group 0: `bind_group` at
-/// `offsets`) blended over the view's HDR image, in a pass of its own (with
-/// `timestamp_writes`, if any).
+/// One full-screen triangle of `pipeline` (bind groups 0, 1, …:
+/// `bind_groups`, each at its offsets) blended over the view's HDR image,
+/// in a pass of its own (with `timestamp_writes`, if any).
 pub fn draw_over_view(
     ctx: &mut RenderContext,
     label: &str,
     view_target: &ViewTarget,
     pipeline: &RenderPipeline,
-    bind_group: &BindGroup,
-    offsets: &[u32],
+    bind_groups: &[(&BindGroup, &[u32])],
     timestamp_writes: Option<wgpu::RenderPassTimestampWrites>,
 ) {
     let mut pass = ctx
@@ -668,7 +647,9 @@ pub fn draw_over_view(
             multiview_mask: None,
         });
     pass.set_pipeline(pipeline);
-    pass.set_bind_group(0, bind_group, offsets);
+    for (index, (bind_group, offsets)) in bind_groups.iter().enumerate() {
+        pass.set_bind_group(index as u32, *bind_group, offsets);
+    }
     pass.draw(0..3, 0..1);
 }
 

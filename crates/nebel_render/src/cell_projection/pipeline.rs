@@ -4,12 +4,10 @@ use std::collections::HashMap;
 
 use bevy::asset::load_embedded_asset;
 use bevy::core_pipeline::FullscreenShader;
-use bevy::pbr::{CLUSTERED_FORWARD_STORAGE_BUFFER_COUNT, GpuClusteredLights, GpuLights};
 use bevy::prelude::*;
 use bevy::render::render_resource::binding_types::{
-    sampler, storage_buffer_read_only_sized, storage_buffer_sized, texture_2d, texture_2d_array,
-    texture_3d, texture_cube_array, texture_depth_2d, texture_depth_2d_multisampled,
-    uniform_buffer,
+    storage_buffer_read_only_sized, storage_buffer_sized, texture_2d, texture_3d, texture_depth_2d,
+    texture_depth_2d_multisampled, uniform_buffer,
 };
 use bevy::render::render_resource::*;
 use bevy::render::renderer::RenderDevice;
@@ -21,6 +19,7 @@ use super::merge::{SPAN_BLEND, span_format};
 use super::resources::CellViewUniform;
 use super::tables::CellTablesUniform;
 use crate::cell_batch::CellBatchUniform;
+use crate::light_shadows::light_shadow_layout;
 
 /// The pipeline variants per optical mode ([`variant_index`]).
 pub(super) const VARIANTS: usize = 512;
@@ -72,10 +71,8 @@ pub struct CellProjectionPipeline {
     /// ([`view_layout_index`]).
     view_layouts: [[BindGroupLayoutDescriptor; 3]; 2],
     pub(super) batch_layout: BindGroupLayoutDescriptor,
-    /// Bevy's lights and shadow maps, read by the variants whose lights cast
-    /// shadows (`LIGHT_SHADOWS`): the view's lights, the clustered lights,
-    /// the point lights' cube maps and the spot lights' maps, each with its
-    /// comparison sampler.
+    /// Bevy's lights and shadow maps, group 2 of the variants whose lights
+    /// cast shadows (`LIGHT_SHADOWS`, [`crate::light_shadows`]).
     pub(super) shadow_layout: BindGroupLayoutDescriptor,
     shader: Handle<Shader>,
     pub(super) composite_layout: BindGroupLayoutDescriptor,
@@ -218,9 +215,6 @@ pub fn init_cell_projection_pipeline(
         commands.insert_resource(CellProjectionUnsupported);
     }
     let unfilterable = TextureSampleType::Float { filterable: false };
-    // As Bevy binds its clustered lights on this device.
-    let clustered_lights =
-        device.get_supported_read_only_binding_type(CLUSTERED_FORWARD_STORAGE_BUFFER_COUNT);
     let view_layout = |depth: BindGroupLayoutEntryBuilder, counter: bool| {
         let (uniform, depth) = (uniform_buffer::<CellViewUniform>(true), depth);
         let entries = if counter {
@@ -291,24 +285,7 @@ pub fn init_cell_projection_pipeline(
                 ),
             ),
         ),
-        shadow_layout: BindGroupLayoutDescriptor::new(
-            "nebel_cell_shadow_layout",
-            &BindGroupLayoutEntries::sequential(
-                ShaderStages::FRAGMENT,
-                (
-                    uniform_buffer::<GpuLights>(true),
-                    BindingType::Buffer {
-                        ty: clustered_lights,
-                        has_dynamic_offset: false,
-                        min_binding_size: Some(GpuClusteredLights::min_size(clustered_lights)),
-                    },
-                    texture_cube_array(TextureSampleType::Depth),
-                    sampler(SamplerBindingType::Comparison),
-                    texture_2d_array(TextureSampleType::Depth),
-                    sampler(SamplerBindingType::Comparison),
-                ),
-            ),
-        ),
+        shadow_layout: light_shadow_layout(&device),
         shader: load_embedded_asset!(asset_server.as_ref(), "cell_projection.wgsl"),
         composite_layout,
         composite_shader: load_embedded_asset!(asset_server.as_ref(), "cell_composite.wgsl"),
@@ -438,6 +415,7 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
         ];
         if key.local_lights && key.light_shadows {
             shader_defs.push("LIGHT_SHADOWS".into());
+            shader_defs.push(ShaderDefVal::UInt("LIGHT_SHADOW_GROUP".into(), 2));
             layout.push(self.shadow_layout.clone());
         }
         if key.local_lights || key.ground_sun {

@@ -7,7 +7,7 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering;
 
 use bevy::math::DMat4;
-use bevy::pbr::{GlobalClusterableObjectMeta, ViewShadowBindings};
+use bevy::pbr::ViewShadowBindings;
 use bevy::prelude::*;
 use bevy::render::Extract;
 use bevy::render::camera::ExtractedCamera;
@@ -36,6 +36,7 @@ use super::settings::CellProjection;
 use crate::cell_batch::{CellBatch, CellBatchUniform, CellBlend, CellScattering, CellSunlight};
 use crate::fog_layers::{FogLayersUniform, ViewFogLayers};
 use crate::fog_sunlight::{CellFogSunlight, sun_map_texture};
+use crate::light_shadows::LightShadows;
 use crate::local_lights::{
     ReachingLights, VolumetricPointLights, VolumetricSpotLights, visible_volumetric_lights,
 };
@@ -254,14 +255,12 @@ pub fn extract_cell_batches(
 /// map; none without Bevy's lights (no `PbrPlugin`).
 pub fn resolve_light_shadows(
     mut extracted: ResMut<ExtractedCellBatches>,
-    clustered: Option<Res<GlobalClusterableObjectMeta>>,
+    light_shadows: LightShadows,
 ) {
     for (_, batch) in &mut extracted.0 {
-        batch.lights = batch.lights.with_shadow_indices(|entity| {
-            clustered
-                .as_ref()
-                .and_then(|meta| meta.entity_to_index.get(&entity).copied())
-        });
+        batch.lights = batch
+            .lights
+            .with_shadow_indices(|entity| light_shadows.light_index(entity));
     }
 }
 
