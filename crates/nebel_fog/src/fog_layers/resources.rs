@@ -458,7 +458,10 @@ mod tests {
             strength: 2.0,
         };
         let clamped = FogLayerLights::reaching(&lights, Vec3::ZERO, 100.0, bad).unwrap();
-        assert_eq!((clamped.0.response.y, clamped.0.response.w), (0.0, 2.0));
+        assert_eq!(
+            (clamped.uniform().response.y, clamped.uniform().response.w),
+            (0.0, 2.0)
+        );
         let dark = LightResponse {
             strength: f32::NAN,
             ..response
