@@ -7,7 +7,7 @@
 use bevy::core_pipeline::FullscreenShader;
 use bevy::core_pipeline::core_3d::prepare_core_3d_depth_textures;
 use bevy::core_pipeline::schedule::{Core3d, Core3dSystems};
-use bevy::pbr::ViewShadowBindings;
+use bevy::pbr::{ViewLightsUniformOffset, ViewShadowBindings};
 use bevy::prelude::*;
 use bevy::render::render_resource::binding_types::{
     texture_2d, texture_2d_multisampled, uniform_buffer,
@@ -318,7 +318,7 @@ pub fn prepare_fog_layer_views(
         &Msaa,
         &ViewFogLayers,
         Option<&FogLayerLights>,
-        Has<ViewShadowBindings>,
+        (Has<ViewShadowBindings>, Has<ViewLightsUniformOffset>),
     )>,
     light_shadows: LightShadows,
     mut uniforms: ResMut<FogPassUniforms>,
@@ -332,7 +332,7 @@ pub fn prepare_fog_layer_views(
         return;
     }
     uniforms.0.clear();
-    for (entity, view, msaa, fog, lights, has_shadow_maps) in &views {
+    for (entity, view, msaa, fog, lights, (shadow_maps, lights_offset)) in &views {
         // Each light that casts shadows reads Bevy's map of this frame.
         let lights = lights.map(|lights| FogLayerLights {
             lights: lights
@@ -340,7 +340,9 @@ pub fn prepare_fog_layer_views(
                 .with_shadow_indices(|entity| light_shadows.light_index(entity)),
             ..*lights
         });
-        let shadowed = has_shadow_maps && lights.is_some_and(|lights| lights.lights.is_shadowed());
+        let shadowed = shadow_maps
+            && lights_offset
+            && lights.is_some_and(|lights| lights.lights.is_shadowed());
         let rotation = Mat4::from_quat(view.world_from_view.rotation());
         let uniform_offset = uniforms.0.push(&FogPassUniform {
             view_from_clip: view.clip_from_view.inverse(),

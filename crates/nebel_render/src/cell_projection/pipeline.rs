@@ -512,3 +512,30 @@ pub(super) fn accumulation_format(device: &RenderDevice) -> TextureFormat {
         TextureFormat::Rgba16Float
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_combination_of_features_has_its_own_variant() {
+        let mut seen = [false; VARIANTS];
+        for bits in 0..VARIANTS {
+            let on = |bit: usize| bits & (1 << bit) != 0;
+            let index = variant_index(
+                on(0),
+                on(1),
+                on(2),
+                on(3),
+                on(4),
+                on(5),
+                on(6),
+                on(7),
+                on(8),
+            );
+            assert!(index < VARIANTS, "{index}");
+            assert!(!seen[index], "{bits:b} shares variant {index}");
+            seen[index] = true;
+        }
+    }
+}

@@ -7,7 +7,7 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering;
 
 use bevy::math::DMat4;
-use bevy::pbr::ViewShadowBindings;
+use bevy::pbr::{ViewLightsUniformOffset, ViewShadowBindings};
 use bevy::prelude::*;
 use bevy::render::Extract;
 use bevy::render::camera::ExtractedCamera;
@@ -628,7 +628,7 @@ pub fn prepare_cell_views(
         &Msaa,
         Option<&ViewFogLayers>,
         Option<&CellProjection>,
-        Has<ViewShadowBindings>,
+        (Has<ViewShadowBindings>, Has<ViewLightsUniformOffset>),
     )>,
     mut texture_cache: ResMut<TextureCache>,
     mut composites: ResMut<CellCompositePipelines>,
@@ -666,7 +666,9 @@ pub fn prepare_cell_views(
         .into_values()
         .max()
         .map(|n| n.min(MAX_MERGED as u32));
-    for (entity, view, camera, msaa, fog, settings, has_shadow_maps) in &views {
+    for (entity, view, camera, msaa, fog, settings, (shadow_maps, lights_offset)) in &views {
+        // As the draw binds them.
+        let has_shadow_maps = shadow_maps && lights_offset;
         let Some(size) = camera.physical_target_size else {
             continue;
         };
