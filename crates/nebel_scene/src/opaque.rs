@@ -35,6 +35,12 @@ use nebel_core::occluder::Occluder;
 use nebel_reference::ReferenceCamera;
 
 impl SceneDescription {
+    /// The scene's meshes as opaque shapes in f64 (what its rays end on and
+    /// what shades the lights that cast shadows).
+    pub fn occluders(&self) -> Vec<Occluder> {
+        self.meshes.iter().map(MeshDescription::occluder).collect()
+    }
+
     /// View-space depth of the nearest mesh per pixel of `camera`, row-major,
     /// top row first; `+∞` where no mesh is hit. `None` without meshes. A
     /// [`BudgetError`] when the depths (4 bytes per pixel) exceed the memory
@@ -56,14 +62,14 @@ impl SceneDescription {
         }
         check_opaque_depth_budget(camera.width, camera.height)?;
         let terrain = terrain.map(TerrainSurface::new);
+        let occluders = self.occluders();
         let mut depth = Vec::with_capacity(camera.width as usize * camera.height as usize);
         for y in 0..camera.height {
             for x in 0..camera.width {
                 let (ray, depth_to_distance) = camera.pixel_ray(x, y);
-                let nearest = self
-                    .meshes
+                let nearest = occluders
                     .iter()
-                    .filter_map(|mesh| mesh_hit(mesh, &ray))
+                    .filter_map(|occluder| occluder.hit(&ray))
                     .chain(terrain.as_ref().and_then(|surface| surface.hit(&ray)))
                     .fold(f64::INFINITY, f64::min);
                 depth.push((nearest * depth_to_distance) as f32);
@@ -317,11 +323,6 @@ fn vector(v: [f32; 3]) -> DVec3 {
     DVec3::from(v.map(f64::from))
 }
 
-/// Distance along `ray` to the first hit in front of its origin.
-fn mesh_hit(mesh: &MeshDescription, ray: &Ray) -> Option<f64> {
-    mesh.occluder().hit(ray)
-}
-
 impl MeshDescription {
     /// The mesh as an opaque shape in f64.
     pub fn occluder(&self) -> Occluder {
@@ -469,25 +470,29 @@ mod tests {
             color: [1.0; 3],
         });
         assert_eq!(
-            mesh_hit(&sphere, &ray([0.0; 3], [0.0, 0.0, -1.0])),
+            sphere.occluder().hit(&ray([0.0; 3], [0.0, 0.0, -1.0])),
             Some(4.0)
         );
         assert_eq!(
-            mesh_hit(&sphere, &ray([0.0, 0.0, -5.0], [0.0, 0.0, -1.0])),
+            sphere
+                .occluder()
+                .hit(&ray([0.0, 0.0, -5.0], [0.0, 0.0, -1.0])),
             Some(1.0)
         );
-        assert_eq!(mesh_hit(&sphere, &ray([0.0; 3], [0.0, 0.0, 1.0])), None);
+        assert_eq!(sphere.occluder().hit(&ray([0.0; 3], [0.0, 0.0, 1.0])), None);
         let cuboid = MeshDescription::Box(BoxDescription {
             center: [0.0, 0.0, -5.0],
             size: [2.0, 2.0, 2.0],
             color: [1.0; 3],
         });
         assert_eq!(
-            mesh_hit(&cuboid, &ray([0.0; 3], [0.0, 0.0, -1.0])),
+            cuboid.occluder().hit(&ray([0.0; 3], [0.0, 0.0, -1.0])),
             Some(4.0)
         );
         assert_eq!(
-            mesh_hit(&cuboid, &ray([0.0, 3.0, 0.0], [0.0, 0.0, -1.0])),
+            cuboid
+                .occluder()
+                .hit(&ray([0.0, 3.0, 0.0], [0.0, 0.0, -1.0])),
             None
         );
         let plane = MeshDescription::Plane(PlaneDescription {
@@ -496,13 +501,15 @@ mod tests {
             color: [1.0; 3],
         });
         let down = ray([0.0, 1.0, 0.0], [0.0, -1.0, 0.0]);
-        assert_eq!(mesh_hit(&plane, &down), Some(2.0));
+        assert_eq!(plane.occluder().hit(&down), Some(2.0));
         assert_eq!(
-            mesh_hit(&plane, &ray([3.0, 1.0, 0.0], [0.0, -1.0, 0.0])),
+            plane
+                .occluder()
+                .hit(&ray([3.0, 1.0, 0.0], [0.0, -1.0, 0.0])),
             None
         );
         assert_eq!(
-            mesh_hit(&plane, &ray([0.0, 1.0, 0.0], [1.0, 0.0, 0.0])),
+            plane.occluder().hit(&ray([0.0, 1.0, 0.0], [1.0, 0.0, 0.0])),
             None
         );
     }

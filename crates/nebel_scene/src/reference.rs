@@ -15,8 +15,7 @@
 use std::path::Path;
 
 use crate::{
-    BuiltVolume, LightModel, LightingDescription, MeshDescription, ReferenceTerrain,
-    SceneDescription, SceneField,
+    BuiltVolume, LightModel, LightingDescription, ReferenceTerrain, SceneDescription, SceneField,
 };
 use glam::{DVec3, DVec4};
 use nebel_core::field::{CloudLighting, DensityGrid, PadFill, light_field};
@@ -88,7 +87,7 @@ pub fn reference_image_with_terrain(
     let sky = scene.sky_colour();
     let last_frame = f64::from(scene.frame_time(scene.output.frames.saturating_sub(1)));
     let local_lights = scene.volumetric_lights(last_frame);
-    let occluders: Vec<_> = scene.meshes.iter().map(MeshDescription::occluder).collect();
+    let occluders = scene.occluders();
     let fog = scene
         .fog_layers
         .as_ref()

@@ -106,7 +106,7 @@
 // keep their precision.
 
 #import nebel_render::fog_layers::{FogLayers, fog_stretch}
-#import nebel_render::local_lights::{GAUSS_NODES, GAUSS_WEIGHTS, LocalLight, LocalLights, henyey_greenstein, light_interval, light_node, light_on_ray, light_quadrature}
+#import nebel_render::local_lights::{GAUSS_NODES, GAUSS_WEIGHTS, LocalLights, henyey_greenstein, light_interval, light_on_ray, light_quadrature}
 #ifdef LIGHT_SHADOWS
 #import nebel_render::light_shadows::{light_visibility_at, visibility_spans}
 #endif
@@ -407,26 +407,24 @@ fn light_piece(i: u32, direction: vec3<f32>, t_a: f32, t_b: f32, sigma: f32) -> 
             continue;
         }
         let quadrature = light_quadrature(on_ray, cuts[part], cuts[part + 1u], parameters.lights.response.z, parameters.lights.quadrature.x);
-#ifdef LIGHT_SHADOWS
         let width = 2.0 * quadrature.half_width;
+#ifdef LIGHT_SHADOWS
         let eye = view.camera_position.xyz;
         var visible = light_visibility_at(light, eye, direction, on_ray.foot, quadrature.h, quadrature.gamma_a);
+#endif
         for (var interval = 0u; interval < quadrature.intervals; interval++) {
             let start = quadrature.gamma_a + width * f32(interval);
+#ifdef LIGHT_SHADOWS
+            // Stretches of the interval with their visibility.
             let cut = visibility_spans(light, eye, direction, on_ray.foot, quadrature.h, start, width, visible);
+            visible = cut.end;
             for (var span = 0u; span < cut.count; span++) {
                 sum += cut.spans[span].z * light_interval(light, on_ray, direction, quadrature.h, cut.spans[span].xy, t_a, sigma, parameters.lights.response.y);
             }
-            visible = cut.end;
-        }
 #else
-        for (var interval = 0u; interval < quadrature.intervals; interval++) {
-            for (var k = 0u; k < 3u; k++) {
-                let node = light_node(light, on_ray, direction, quadrature, interval, k, parameters.lights.response.y);
-                sum += node.weight * sigma * exp(-sigma * (node.t - t_a));
-            }
-        }
+            sum += light_interval(light, on_ray, direction, quadrature.h, vec2(start, start + width), t_a, sigma, parameters.lights.response.y);
 #endif
+        }
     }
     return light.colour.rgb * sum;
 }

@@ -433,11 +433,9 @@ pub fn draw_cell_batches(
     // Bevy's lights and shadow maps of the view, for lights that cast
     // shadows (prepare_cell_views specialised their variants for a view
     // with shadow maps).
-    let shadows = order
-        .iter()
-        .any(|(_, batch)| batch.is_shadowed())
-        .then_some(())
-        .and(shadow_maps.zip(lights_offset))
+    let shadows = shadow_maps
+        .zip(lights_offset)
+        .filter(|_| order.iter().any(|(_, batch)| batch.is_shadowed()))
         .and_then(|(maps, offset)| {
             let layout = pipeline_cache.get_bind_group_layout(&pipeline.shadow_layout);
             let group = light_shadows.bind_group(ctx.render_device(), &layout, maps)?;
