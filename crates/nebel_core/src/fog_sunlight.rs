@@ -12,7 +12,10 @@
 //! elevation), so `T_sun = e^{−H F(u)/μ}`. That is exact for a level fog of
 //! constant thickness; where the ground or the thickness changes along the
 //! sun's path through the fog (at its shore, under a low sun) it is the fog
-//! above the point instead of the fog along that path.
+//! above the point instead of the fog along that path. Cloud volumes above
+//! that cast shadows ([`FogSunlight::clouds`]) dim it further by their
+//! transmittance toward the sun, exact for their trilinear density
+//! ([`sun_transmittance`], Nes 2008 §6.1).
 //!
 //! Along a view ray the fog then adds
 //!
@@ -30,7 +33,7 @@ use std::sync::Arc;
 
 use glam::{DAffine3, DVec2, DVec3};
 
-use crate::field::{HeightField, TerrainShadow};
+use crate::field::{HeightField, ShadowCaster, TerrainShadow, sun_transmittance};
 use crate::local_light::GAUSS_LEGENDRE_3;
 use crate::optics::henyey_greenstein;
 use crate::pacing::worker_threads;
@@ -227,6 +230,9 @@ pub struct FogSunlight {
     pub colour: DVec3,
     /// The Henyey-Greenstein asymmetry `g`, in (−1, 1).
     pub asymmetry: f64,
+    /// The cloud volumes whose shadow dims the sun in the fog (none: no
+    /// clouds).
+    pub clouds: Vec<ShadowCaster>,
 }
 
 /// Sub-intervals of a stretch in [`FogSunlight::scattered`]: each takes
@@ -241,13 +247,18 @@ pub fn vertical_scale(map_from_world: &DAffine3) -> f64 {
 }
 
 impl FogSunlight {
-    /// `e^{−H F(u)/μ}` at the world point `p` (`H` in world units), 0 in
-    /// the terrain's shadow.
+    /// `e^{−H F(u)/μ}` at the world point `p` (`H` in world units), times
+    /// the clouds' transmittance toward the sun; 0 in the terrain's shadow.
     pub fn transmittance(&self, p: DVec3) -> f64 {
         let scale = vertical_scale(&self.map_from_world);
-        self.map
+        let fog = self
+            .map
             .sun_depth(self.map_from_world.transform_point3(p))
-            .map_or(0.0, |depth| (-depth * scale).exp())
+            .map_or(0.0, |depth| (-depth * scale).exp());
+        if fog == 0.0 || self.clouds.is_empty() {
+            return fog;
+        }
+        fog * sun_transmittance(&self.clouds, self.direction, p)
     }
 
     /// `c ⊙ 4π p_HG(θ) ∫ f(t) V T_sun dt` over `[t_a, t_b]` along the unit
@@ -308,6 +319,7 @@ impl FogSunlight {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::field::DensityGrid;
     use crate::transfer::{ControlPoint, TransferFunction};
     use proptest::prelude::*;
 
@@ -407,7 +419,8 @@ mod tests {
     }
 
     #[test]
-    fn a_level_ray_through_uniform_fog_scatters_the_closed_form_and_a_wall_shades_part() {
+    fn a_level_ray_through_uniform_fog_scatters_the_closed_form_and_a_wall_or_a_cloud_shades_part()
+    {
         // A uniform fog (F(u) = 1 − u times ρ = 0.1) of 10 m on flat ground,
         // a level ray at 4 m: T_sun = e^{−0.1 · 6 / μ}, constant along it.
         let tf = ramp(&[(0.0, 0.1), (1.0, 0.1)]);
@@ -429,6 +442,7 @@ mod tests {
             direction: sun,
             colour: DVec3::new(1.0, 0.5, 0.25),
             asymmetry: 0.0,
+            clouds: Vec::new(),
         };
         let (origin, direction) = (DVec3::new(0.0, 4.0, 1.0), DVec3::X);
         let sigma = 0.1;
@@ -466,7 +480,7 @@ mod tests {
             .unwrap();
         let shaded = FogSunlight {
             map: Arc::new(map),
-            ..sunlight
+            ..sunlight.clone()
         };
         // The wall's foot rises from 0 at x = 37 to 12 at 38: the shadow
         // line from there, h = 12 − (38 − x) · 4/3, passes 4 m at x = 32.
@@ -477,5 +491,44 @@ mod tests {
             "{} against {expected}",
             got.x
         );
+        // A uniform cloud slab of density 1 from 20 to 25 m, σ = 0.2, over
+        // the whole ray: the sun reaches the fog through 5/μ of it.
+        let slab = |min_x: f64| ShadowCaster {
+            grid: Arc::new(
+                DensityGrid::new(
+                    [2, 2, 2],
+                    DVec3::new(200.0, 5.0, 200.0),
+                    DVec3::new(min_x, 20.0, -100.0),
+                    vec![1.0; 8],
+                )
+                .unwrap(),
+            ),
+            world_from_local: DAffine3::IDENTITY,
+            extinction: 0.2,
+        };
+        let clouded = FogSunlight {
+            clouds: vec![slab(-100.0)],
+            ..sunlight.clone()
+        };
+        let cloud = (-0.2 * 5.0 / 0.8f64).exp();
+        let got = clouded.scattered(origin, direction, (2.0, 30.0), f);
+        let expected = ((-sigma * 2.0f64).exp() - (-sigma * 30.0f64).exp()) * t_sun * cloud;
+        assert!(
+            (got.x - expected).abs() < 1e-7 * expected,
+            "{} against {expected}",
+            got.x
+        );
+        // A slab from x = 20 on: the sun's line from (x, 4 m) runs through
+        // it from x + 12 to x + 15.75, so it dims the fog from x = 4.25 on,
+        // fully from x = 8.
+        let edge = FogSunlight {
+            clouds: vec![slab(20.0)],
+            ..sunlight
+        };
+        for (x, inside) in [(3.0, 0.0), (6.0, 1.75 / 3.75), (9.0, 1.0)] {
+            let p = DVec3::new(x, 4.0, 1.0);
+            let expected = (-depth - 0.2 * 5.0 / 0.8 * inside).exp();
+            assert!((edge.transmittance(p) - expected).abs() < 1e-7, "{x}");
+        }
     }
 }

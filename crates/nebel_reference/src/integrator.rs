@@ -2357,6 +2357,7 @@ mod sunlight_tests {
             direction: sun,
             colour,
             asymmetry,
+            clouds: Vec::new(),
         });
         let image = render(&scene, None).unwrap();
         let mut checked = 0;

@@ -397,6 +397,7 @@ impl TerrainDescription {
                     direction: sun,
                     colour: DVec3::from(fog.sun_color.map(f64::from)),
                     asymmetry: f64::from(fog.sun_asymmetry),
+                    clouds: Vec::new(),
                 })
             });
         let volume = (!cells.is_empty()).then(|| BuiltVolume {

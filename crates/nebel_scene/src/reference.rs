@@ -10,15 +10,17 @@
 //! scenes use black meshes and no lights on them. Sorted volumes scatter the
 //! scene's volumetric point and spot lights
 //! ([`SceneDescription::volumetric_lights`]), those that cast shadows shaded
-//! by the meshes (not by the terrain).
+//! by the meshes (not by the terrain). A sunlit ground fog's sun is dimmed by
+//! the volumes that cast cloud shadows, exactly at every point.
 
 use std::path::Path;
+use std::sync::Arc;
 
 use crate::{
     BuiltVolume, LightModel, LightingDescription, ReferenceTerrain, SceneDescription, SceneField,
 };
-use glam::{DVec3, DVec4};
-use nebel_core::field::{CloudLighting, DensityGrid, PadFill, light_field};
+use glam::{DAffine3, DVec3, DVec4};
+use nebel_core::field::{CloudLighting, DensityGrid, PadFill, ShadowCaster, light_field};
 use nebel_core::optics::OpticalMode;
 use nebel_reference::image_metrics::{ImageMetricsError, LinearImage, save_png, srgb_to_linear};
 use nebel_reference::{
@@ -96,6 +98,7 @@ pub fn reference_image_with_terrain(
         .map_err(|invalid| ReferenceError::InvalidFog {
             reason: format!("fog_layers.{}: {}", invalid.field, invalid.reason),
         })?;
+    let clouds = cloud_casters(&volumes, last_frame)?;
     let mut joint = Vec::with_capacity(volumes.len());
     let mut mips = Vec::new();
     for volume in volumes {
@@ -178,7 +181,10 @@ pub fn reference_image_with_terrain(
         reference_scene.local_lights = local_lights.clone();
         reference_scene.occluders = occluders.clone();
         reference_scene.light_response = volume.light_response;
-        reference_scene.sunlight = volume.fog_sunlight;
+        reference_scene.sunlight = volume.fog_sunlight.map(|mut sunlight| {
+            sunlight.clouds = clouds.clone();
+            sunlight
+        });
         if let Some(start) = fog
             .as_ref()
             .map(|fog| fog.start_distance)
@@ -280,6 +286,30 @@ fn invalid(error: impl ToString) -> ReferenceError {
     ReferenceError::InvalidVolume {
         reason: error.to_string(),
     }
+}
+
+/// The volumes that cast cloud shadows (`lighting: (ground_shadow: true)`)
+/// at `time` seconds, as the sun in ground fog meets them: their density
+/// with the shadow's extinction, in the world.
+fn cloud_casters(volumes: &[BuiltVolume], time: f64) -> Result<Vec<ShadowCaster>, ReferenceError> {
+    let mut casters = Vec::new();
+    for volume in volumes {
+        let Some(lighting) = volume.lighting.as_ref().filter(|l| l.ground_shadow) else {
+            continue;
+        };
+        let grid = match &volume.field {
+            SceneField::Grid(grid) => grid.clone(),
+            SceneField::Campfire(campfire) => campfire.grid_at(time),
+            SceneField::Cloud(cloud) => cloud.grid_at(time).map_err(invalid)?,
+            SceneField::Cells(_) => continue,
+        };
+        casters.push(ShadowCaster {
+            grid: Arc::new(grid),
+            world_from_local: DAffine3::IDENTITY,
+            extinction: f64::from(lighting.shadow_extinction),
+        });
+    }
+    Ok(casters)
 }
 
 /// The scalar volume and modulator of a lit grid (see [`reference_image`]).

@@ -239,22 +239,17 @@ impl Inputs {
     }
 
     fn build(self, time: f64) -> Option<GroundShadow> {
-        let mut grids = Vec::with_capacity(self.casters.len());
-        for (grid, ..) in &self.casters {
-            grids.push(match grid {
-                CasterGrid::Still(grid) => grid.clone(),
-                CasterGrid::Windy(animation) => Arc::new(animation.grid_at(time).ok()?),
-            });
-        }
-        let casters: Vec<ShadowCaster> = grids
-            .iter()
-            .zip(&self.casters)
-            .map(|(grid, (_, world_from_local, extinction))| ShadowCaster {
-                grid,
+        let mut casters = Vec::with_capacity(self.casters.len());
+        for (grid, world_from_local, extinction) in &self.casters {
+            casters.push(ShadowCaster {
+                grid: match grid {
+                    CasterGrid::Still(grid) => grid.clone(),
+                    CasterGrid::Windy(animation) => Arc::new(animation.grid_at(time).ok()?),
+                },
                 world_from_local: *world_from_local,
                 extinction: *extinction,
-            })
-            .collect();
+            });
+        }
         GroundShadow::compute(
             &casters,
             self.sun.as_dvec3(),
@@ -753,12 +748,12 @@ mod tests {
         let mut state = CloudShadowState::new(16, &mut images, &mut buffers);
         let g = DensityGrid::new([2, 2, 2], DVec3::ONE, DVec3::Y * 5.0, vec![1.0; 8]).unwrap();
         let caster = ShadowCaster {
-            grid: &g,
+            grid: Arc::new(g),
             world_from_local: DAffine3::IDENTITY,
             extinction: 1.0,
         };
         let map = || {
-            GroundShadow::compute(&[caster], DVec3::Y, 16, 1).map(|map| {
+            GroundShadow::compute(std::slice::from_ref(&caster), DVec3::Y, 16, 1).map(|map| {
                 let texels = texels(&map, 16);
                 (map, texels)
             })

@@ -17,9 +17,12 @@
 //! the sun crosses the plane ([`GroundShadow::transmittance`], bilinear
 //! between texel centres, clamped to the border: what the GPU samples). A
 //! point above `h` takes the value at its own projection back onto the plane,
-//! which includes cloud between the plane and it. The sun lower than
+//! which includes cloud between the plane and it; [`sun_transmittance`] is
+//! the exact value at any point (what the reference takes). The sun lower than
 //! [`GroundShadow::MIN_SUN_SINE`] above the horizon casts no map (its shadow
 //! would stretch without bound; the ground is nearly unlit then).
+
+use std::sync::Arc;
 
 use glam::{DAffine3, DVec2, DVec3};
 
@@ -27,10 +30,10 @@ use super::DensityGrid;
 use crate::pacing::fill_slices;
 
 /// One cloud volume that shades the ground.
-#[derive(Clone, Copy, Debug)]
-pub struct ShadowCaster<'a> {
+#[derive(Clone, Debug, PartialEq)]
+pub struct ShadowCaster {
     /// The density, in the volume's local frame.
-    pub grid: &'a DensityGrid,
+    pub grid: Arc<DensityGrid>,
     /// The volume's local frame in the world.
     pub world_from_local: DAffine3,
     /// Optical depth per unit length of the local frame at density 1; a
@@ -142,6 +145,22 @@ impl GroundShadow {
     }
 }
 
+/// The transmittance toward the sun (unit `sun`, world space) at the world
+/// point `p` through `casters`, exact at any height: `e^{−Σ σ ∫ f ds}` from
+/// `p` to each box's far side. 1 for a sun too low to cast a map
+/// ([`GroundShadow::MIN_SUN_SINE`]), as there is none then.
+pub fn sun_transmittance(casters: &[ShadowCaster], sun: DVec3, p: DVec3) -> f64 {
+    if !(sun.y >= GroundShadow::MIN_SUN_SINE) {
+        return 1.0;
+    }
+    let depth: f64 = casters
+        .iter()
+        .filter_map(|caster| Local::new(caster, sun))
+        .map(|caster| caster.optical_depth(p))
+        .sum();
+    (-depth).exp()
+}
+
 /// A caster in its local frame: the sun there, its box's world corners.
 struct Local<'a> {
     grid: &'a DensityGrid,
@@ -153,7 +172,7 @@ struct Local<'a> {
 }
 
 impl<'a> Local<'a> {
-    fn new(caster: &ShadowCaster<'a>, sun_world: DVec3) -> Option<Self> {
+    fn new(caster: &'a ShadowCaster, sun_world: DVec3) -> Option<Self> {
         let frame = caster.world_from_local;
         if !caster.extinction.is_finite()
             || caster.extinction <= 0.0
@@ -176,7 +195,7 @@ impl<'a> Local<'a> {
             ))
         });
         Some(Self {
-            grid: caster.grid,
+            grid: &caster.grid,
             local_from_world,
             sun,
             extinction: caster.extinction,
@@ -344,12 +363,12 @@ mod tests {
             DVec3::new(-5.0, 40.0, 2.0),
         );
         let caster = ShadowCaster {
-            grid: &g,
+            grid: Arc::new(g),
             world_from_local,
             extinction: 0.8,
         };
         let sun = DVec3::new(0.3, 1.0, -0.2).normalize();
-        let map = GroundShadow::compute(&[caster], sun, 128, 2).unwrap();
+        let map = GroundShadow::compute(std::slice::from_ref(&caster), sun, 128, 2).unwrap();
         assert_eq!(map.height, 40.0);
         assert!(
             map.size.iter().all(|&n| n <= 128) && map.size.contains(&128),
@@ -380,14 +399,64 @@ mod tests {
         }
     }
 
+    /// At any height the exact transmittance is the slab's closed form over
+    /// the part of it above the point: all of it below (where it is the
+    /// map's value too), part of it inside, none above; a sun lower than
+    /// the maps' lowest casts nothing.
+    #[test]
+    fn the_transmittance_at_any_height_is_the_cloud_above() {
+        let g = grid([9, 3, 9], DVec3::new(1.0, 0.5, 1.0), DVec3::ZERO, &[0.5]);
+        let world_from_local = DAffine3::from_scale_rotation_translation(
+            DVec3::new(3.0, 2.0, 3.0),
+            DQuat::from_rotation_y(0.4),
+            DVec3::new(-5.0, 40.0, 2.0),
+        );
+        let casters = [ShadowCaster {
+            grid: Arc::new(g),
+            world_from_local,
+            extinction: 0.8,
+        }];
+        let sun = DVec3::new(0.3, 1.0, -0.2).normalize();
+        let map = GroundShadow::compute(&casters, sun, 128, 2).unwrap();
+        let sun_local = world_from_local
+            .inverse()
+            .transform_vector3(sun)
+            .normalize();
+        for (height, above) in [
+            (-3.0, 1.0),
+            (0.0, 1.0),
+            (0.25, 0.75),
+            (0.7, 0.3),
+            (1.5, 0.0),
+        ] {
+            let p = world_from_local.transform_point3(DVec3::new(4.0, height, 4.0));
+            let closed = (-0.8 * 0.5 * above / sun_local.y).exp();
+            let t = sun_transmittance(&casters, sun, p);
+            assert!(
+                (t - closed).abs() < 1e-9,
+                "height {height}: {t} against {closed}"
+            );
+            if height <= 0.0 {
+                assert!((map.transmittance(p) - t).abs() < 1e-6);
+            }
+        }
+        let centre = world_from_local.transform_point3(DVec3::new(4.0, -1.0, 4.0));
+        assert_eq!(
+            sun_transmittance(&casters, DVec3::new(1.0, 0.04, 0.0).normalize(), centre),
+            1.0
+        );
+        assert_eq!(sun_transmittance(&[], sun, centre), 1.0);
+    }
+
     /// Two volumes' depths add: each texel of the map of both is
     /// `e^{−σ₁τ₁ − σ₂τ₂}`, each `τ` taken in its volume's own frame.
     #[test]
     fn two_casters_multiply() {
         let values: Vec<f32> = (0..27).map(|n| (n * 7 % 11) as f32 / 10.0).collect();
         let g = grid([3, 3, 3], DVec3::splat(2.0), DVec3::ZERO, &values);
+        let g = Arc::new(g);
         let first = ShadowCaster {
-            grid: &g,
+            grid: g.clone(),
             world_from_local: DAffine3::from_translation(DVec3::new(0.0, 10.0, 0.0)),
             extinction: 0.3,
         };
@@ -398,10 +467,10 @@ mod tests {
                 DVec3::new(1.0, 14.0, 0.5),
             ),
             extinction: 0.7,
-            ..first
+            ..first.clone()
         };
         let sun = DVec3::new(-0.2, 1.0, 0.1).normalize();
-        let both = GroundShadow::compute(&[first, second], sun, 64, 2).unwrap();
+        let both = GroundShadow::compute(&[first.clone(), second.clone()], sun, 64, 2).unwrap();
         let depth = |c: &ShadowCaster, p: DVec3| {
             let local = c.world_from_local.inverse();
             let direction = local.transform_vector3(sun).normalize();
@@ -431,11 +500,11 @@ mod tests {
     fn nothing_casts_no_map() {
         let g = grid([2, 2, 2], DVec3::ONE, DVec3::ZERO, &[1.0]);
         let caster = ShadowCaster {
-            grid: &g,
+            grid: Arc::new(g),
             world_from_local: DAffine3::IDENTITY,
             extinction: 1.0,
         };
-        assert!(GroundShadow::compute(&[caster], DVec3::Y, 16, 1).is_some());
+        assert!(GroundShadow::compute(std::slice::from_ref(&caster), DVec3::Y, 16, 1).is_some());
         for sun in [
             DVec3::X,
             DVec3::new(1.0, 0.01, 0.0),
@@ -444,14 +513,14 @@ mod tests {
             DVec3::ZERO,
         ] {
             assert!(
-                GroundShadow::compute(&[caster], sun, 16, 1).is_none(),
+                GroundShadow::compute(std::slice::from_ref(&caster), sun, 16, 1).is_none(),
                 "{sun}"
             );
         }
         for extinction in [0.0, -1.0, f64::NAN, f64::INFINITY] {
             let c = ShadowCaster {
                 extinction,
-                ..caster
+                ..caster.clone()
             };
             assert!(
                 GroundShadow::compute(&[c], DVec3::Y, 16, 1).is_none(),
@@ -460,7 +529,7 @@ mod tests {
         }
         let flat = ShadowCaster {
             world_from_local: DAffine3::from_scale(DVec3::new(1.0, 0.0, 1.0)),
-            ..caster
+            ..caster.clone()
         };
         assert!(GroundShadow::compute(&[flat], DVec3::Y, 16, 1).is_none());
         assert!(GroundShadow::compute(&[], DVec3::Y, 16, 1).is_none());
