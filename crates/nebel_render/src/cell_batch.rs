@@ -15,6 +15,7 @@ use nebel_core::optics::{OpticalMode, henyey_greenstein};
 use nebel_core::transfer::TransferFunction;
 use nebel_lod::Cells;
 
+use crate::cloud_shadow_maps::CloudShadowMapUniform;
 use crate::fog_sunlight::{CellFogSunlight, FogSunUniform};
 use crate::local_lights::{LocalLightsUniform, ReachingLights};
 
@@ -87,13 +88,14 @@ impl CellBatchUniform {
     /// The uniform of a batch with `scattering` blended by `blend` (already
     /// clamped, [`CellBlend::clamped`]) under `sunlight` (already checked,
     /// [`CellSunlight::checked`]), lit by `lights` scattered with
-    /// `response` (checked here) and by the sun in ground fog `fog_sun`.
+    /// `response` (checked here) and by the sun in ground fog `fog_sun`
+    /// under the clouds' shadow maps.
     pub(crate) fn new(
         scattering: Option<&CellScattering>,
         blend: f32,
         sunlight: Vec3,
         (lights, response): (&ReachingLights, LightResponse),
-        fog_sun: Option<&CellFogSunlight>,
+        fog_sun: Option<(&CellFogSunlight, [CloudShadowMapUniform; 2])>,
     ) -> Self {
         let mut uniform = scattering.map_or_else(Self::default, |scattering| Self {
             sun: scattering
@@ -107,7 +109,9 @@ impl CellBatchUniform {
         uniform.blend.x = blend;
         uniform.sunlight = sunlight.extend(0.0);
         uniform.lights = LocalLightsUniform::new(lights, response);
-        uniform.fog_sun = fog_sun.map(FogSunUniform::new).unwrap_or_default();
+        uniform.fog_sun = fog_sun
+            .map(|(sunlight, clouds)| FogSunUniform::new(sunlight, clouds))
+            .unwrap_or_default();
         uniform
     }
 }

@@ -10,7 +10,10 @@
 //! heights follow the sun's elevation: each moves by `−t* (tan α − tan α₀)`,
 //! `t*` the distance of the terrain that casts it (the texel's fourth
 //! channel), exact while that terrain stays the caster; a turn about the
-//! vertical waits for the next map. `μ` is the sun's sine now. Each of the segment's four pieces takes its optical depth
+//! vertical waits for the next map. `μ` is the sun's sine now. The clouds'
+//! shadow maps ([`crate::cloud_shadow_maps`]) dim `T_sun` where the line
+//! toward the sun crosses their plane (exact below it; a point above the
+//! plane takes the whole cloud's shadow over it). Each of the segment's four pieces takes its optical depth
 //! from the pair table and three Gauss-Legendre nodes of `σ e^{−σ (t −
 //! t_a)} V T_sun`; the colour is the segment's mean (exact for a fog of one
 //! colour), the phase the one at the ray's angle to the sun. The texture is uploaded when the map changes (by identity),
@@ -30,6 +33,7 @@ use nebel_core::fog_sunlight::{FogSunMap, vertical_scale};
 use nebel_core::optics::checked_asymmetry;
 
 use crate::cell_batch::finite_non_negative;
+use crate::cloud_shadow_maps::CloudShadowMapUniform;
 
 /// Values of the fog's column table `F(u)`, at equal steps of `u` from 0 to 1.
 pub const COLUMN_TABLE_SIZE: usize = 65;
@@ -72,10 +76,12 @@ pub(crate) struct FogSunUniform {
     pub elevation: Vec4,
     /// `F(u)` at [`COLUMN_TABLE_SIZE`] steps, four to an element.
     pub column: [Vec4; COLUMN_TABLE_SIZE.div_ceil(4)],
+    /// The clouds' shadow maps (no weight without clouds).
+    pub clouds: [CloudShadowMapUniform; 2],
 }
 
 impl FogSunUniform {
-    pub(crate) fn new(sunlight: &CellFogSunlight) -> Self {
+    pub(crate) fn new(sunlight: &CellFogSunlight, clouds: [CloudShadowMapUniform; 2]) -> Self {
         let grid = &sunlight.map.shadow.heights;
         let (origin, spacing) = (grid.origin(), grid.spacing());
         let grid_from_map = DAffine3::from_mat3_translation(
@@ -117,6 +123,7 @@ impl FogSunUniform {
             ),
             elevation: Vec4::new((tan(now) - tan(map_sun)) as f32, 0.0, 0.0, 0.0),
             column,
+            clouds,
         }
     }
 }
@@ -200,7 +207,7 @@ mod tests {
             colour: Vec3::new(f32::NAN, -1.0, 2.0),
             asymmetry: 3.0,
         };
-        let uniform = FogSunUniform::new(&sunlight);
+        let uniform = FogSunUniform::new(&sunlight, Default::default());
         // Grid point (3, 2) at map (2, 6, 18), put into the world.
         let world = world_from_map.transform_point3(DVec3::new(2.0, 6.0, 18.0));
         let grid = uniform.grid_from_world.transform_point3(world.as_vec3());
@@ -225,11 +232,14 @@ mod tests {
         );
         assert!((uniform.elevation.x - (0.75 - 1.0 / 3f32.sqrt())).abs() < 1e-5);
         // A sun below the horizon lights nothing.
-        let set = FogSunUniform::new(&CellFogSunlight {
-            direction: Vec3::new(0.0, -0.2, 1.0),
-            colour: Vec3::ONE,
-            ..sunlight.clone()
-        });
+        let set = FogSunUniform::new(
+            &CellFogSunlight {
+                direction: Vec3::new(0.0, -0.2, 1.0),
+                colour: Vec3::ONE,
+                ..sunlight.clone()
+            },
+            Default::default(),
+        );
         assert_eq!(set.colour.truncate(), Vec3::ZERO);
         // F(u) = 0.5 (1 − u): the first, the middle and the last value.
         assert_eq!(uniform.column[0].x, 0.5);

@@ -29,6 +29,7 @@ pub mod builds;
 pub mod camera;
 pub mod cell_batch;
 pub mod cell_projection;
+pub mod cloud_shadow_maps;
 pub mod diagnostics;
 pub mod effect;
 pub mod fog_layers;
@@ -47,6 +48,7 @@ pub use cell_projection::{
     CellProjection, CellProjectionPlugin, CellProjectionStats, CellProjectionSystems,
     CellResolution, CountCellFragments,
 };
+pub use cloud_shadow_maps::{CloudShadowMapUniform, CloudShadowMaps};
 pub use diagnostics::{NebelDiagnosticsPlugin, NebelSystems, cpu_timed};
 pub use effect::{EffectStatus, InvalidSetting, register_diagnostics};
 pub use fog_layers::{FogLayersUniform, ViewFogLayers};

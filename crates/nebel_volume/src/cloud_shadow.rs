@@ -10,7 +10,9 @@
 //! `StandardMaterial` is drawn with [`CloudShadowMaterial`] instead: the same
 //! material, whose sun light (as Bevy's PBR adds it, with its shadow map) is
 //! scaled by the map's transmittance where the line toward the sun crosses
-//! the plane. The ambient and every other light stay as they are.
+//! the plane. The ambient and every other light stay as they are. The maps
+//! are shared as `nebel_render`'s [`CloudShadowMaps`], so the sun in a
+//! sunlit ground fog is dimmed by them too.
 //!
 //! Maps are made on the task pool when the sun turns by more than
 //! [`CloudShadowSettings::sun_step`] or a caster changes (at most every
@@ -41,7 +43,11 @@ use bevy::transform::TransformSystems;
 use nebel_core::field::{DensityGrid, GroundShadow, ShadowCaster};
 use nebel_core::pacing::worker_threads;
 use nebel_lod::AnimatedGrid;
-use nebel_render::{HeavyBuild, HeavyBuilds, NebelSystems, cpu_timed, register_diagnostics};
+use nebel_render::cloud_shadow_maps::load_cloud_shadow_maps_library;
+use nebel_render::{
+    CloudShadowMapUniform, CloudShadowMaps, HeavyBuild, HeavyBuilds, NebelSystems, cpu_timed,
+    register_diagnostics,
+};
 
 use crate::cloud::{CloudGeneration, animates};
 use crate::{CloudVolume, Volume, VolumeField, VolumeGrid, VolumeLighting};
@@ -61,9 +67,11 @@ impl Plugin for CloudShadowPlugin {
     fn build(&self, app: &mut App) {
         register_diagnostics(app, &[(Self::BUILD_MS, " ms")]);
         embedded_asset!(app, "cloud_shadow.wgsl");
+        load_cloud_shadow_maps_library(app);
         app.add_plugins(MaterialPlugin::<CloudShadowMaterial>::default())
             .init_resource::<CloudShadowSettings>()
             .init_resource::<HeavyBuilds>()
+            .init_resource::<CloudShadowMaps>()
             .register_type::<CloudShadowCaster>()
             .register_type::<CloudShadowReceiver>()
             .register_type::<CloudShadowSettings>()
@@ -143,21 +151,10 @@ impl MaterialExtension for CloudShadowExtension {
     }
 }
 
-/// One map as the shader reads it.
-#[derive(Clone, Copy, Debug, Default, PartialEq, ShaderType)]
-struct MapUniform {
-    /// The plane's height, the texel's side, the map's lower corner (x, z).
-    plane: Vec4,
-    /// Toward the sun (xyz), and the map's weight.
-    sun_and_weight: Vec4,
-    /// The map's texels along x and z, and the texture's side.
-    size: Vec4,
-}
-
 /// Both maps as the shader reads them, and the sun they dim.
 #[derive(Clone, Copy, Debug, Default, PartialEq, ShaderType)]
 struct MapsUniform {
-    maps: [MapUniform; 2],
+    maps: [CloudShadowMapUniform; 2],
     /// Toward the sun now (xyz), to find its light among Bevy's: a map's own
     /// sun may lie ahead of it. Written again when it has turned by
     /// [`SUN_MATCH_STEP`].
@@ -167,21 +164,6 @@ struct MapsUniform {
 /// The angle the sun turns before the shader is told where it is, radians
 /// (the shader finds the light within about 8° of it).
 const SUN_MATCH_STEP: f32 = 0.02;
-
-impl MapUniform {
-    fn new(map: &GroundShadow, side: u32, weight: f32) -> Self {
-        Self {
-            plane: Vec4::new(
-                map.height as f32,
-                map.texel as f32,
-                map.min.x as f32,
-                map.min.y as f32,
-            ),
-            sun_and_weight: map.sun.as_vec3().extend(weight),
-            size: Vec4::new(map.size[0] as f32, map.size[1] as f32, side as f32, 0.0),
-        }
-    }
-}
 
 /// `map`'s transmittance as the texels of a texture of `side` texels a side
 /// (R8, lit beyond the map), made with the map off the frame.
@@ -389,7 +371,7 @@ impl CloudShadowState {
         };
         for (slot, weight) in [(newest, w), (1 - newest, 1.0 - w)] {
             if let Some((map, _)) = &self.shown[slot] {
-                uniform.maps[slot] = MapUniform::new(map, self.side, weight);
+                uniform.maps[slot] = CloudShadowMapUniform::new(map, self.side, weight);
             }
         }
         uniform
@@ -425,6 +407,7 @@ fn update_cloud_shadows(
     mut images: ResMut<Assets<Image>>,
     mut buffers: ResMut<Assets<ShaderBuffer>>,
     mut materials: ResMut<Assets<CloudShadowMaterial>>,
+    mut shared: ResMut<CloudShadowMaps>,
     mut diagnostics: Diagnostics,
 ) {
     let now = time.elapsed_secs_f64();
@@ -549,6 +532,10 @@ fn update_cloud_shadows(
         buffer.set_data(uniform);
         state.uniform = uniform;
     }
+    shared.set_if_neq(CloudShadowMaps {
+        textures: state.textures.clone(),
+        maps: uniform.maps,
+    });
 }
 
 /// Draws each receiver's `StandardMaterial` as a [`CloudShadowMaterial`],

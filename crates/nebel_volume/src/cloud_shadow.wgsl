@@ -15,18 +15,10 @@
     pbr_types,
     shadows,
 }
-
-struct ShadowMap {
-    // The plane's height, the texel's side, the map's lower corner (x, z).
-    plane: vec4<f32>,
-    // Toward the sun (xyz) and the map's weight.
-    sun_and_weight: vec4<f32>,
-    // The map's texels along x and z, and the texture's side.
-    size: vec4<f32>,
-}
+#import nebel_render::cloud_shadow_maps::{CloudShadowMapPair, held_back}
 
 struct ShadowMaps {
-    maps: array<ShadowMap, 2>,
+    maps: CloudShadowMapPair,
     // Toward the sun now (xyz), to find its light: the maps' suns may lie ahead of it.
     sun: vec4<f32>,
 }
@@ -36,30 +28,13 @@ struct ShadowMaps {
 @group(#{MATERIAL_BIND_GROUP}) @binding(102) var second_map: texture_2d<f32>;
 @group(#{MATERIAL_BIND_GROUP}) @binding(103) var<storage, read> shadow_maps: ShadowMaps;
 
-// Where the line from `p` toward the map's sun crosses its plane, in texels from the map's corner.
-fn map_texels(map: ShadowMap, p: vec3<f32>) -> vec2<f32> {
-    let sun = map.sun_and_weight.xyz;
-    let q = p + sun * ((map.plane.x - p.y) / sun.y);
-    return (q.xz - map.plane.zw) / map.plane.y;
-}
-
-// The map's transmittance at `p`: bilinear between texel centres; outside the map (whose border texels
-// are lit) 1, with no texture read.
-fn map_transmittance(map: ShadowMap, map_texture: texture_2d<f32>, p: vec3<f32>) -> f32 {
-    let texels = map_texels(map, p);
-    if map.sun_and_weight.w <= 0.0 || any(texels < vec2(0.5)) || any(texels > map.size.xy - 0.5) {
-        return 1.0;
-    }
-    return textureSampleLevel(map_texture, map_sampler, texels / map.size.z, 0.0).r;
-}
-
 // The clouds' transmittance toward the sun at `p`: the two maps weighed, the rest of the weight lit.
 fn cloud_transmittance(p: vec3<f32>) -> f32 {
-    let first = shadow_maps.maps[0];
-    let second = shadow_maps.maps[1];
-    return 1.0 - first.sun_and_weight.w - second.sun_and_weight.w
-        + first.sun_and_weight.w * map_transmittance(first, first_map, p)
-        + second.sun_and_weight.w * map_transmittance(second, second_map, p);
+    let first = shadow_maps.maps.first;
+    let second = shadow_maps.maps.second;
+    return 1.0
+        - held_back(first.plane, first.sun_and_weight, first.size, first_map, map_sampler, p)
+        - held_back(second.plane, second.sun_and_weight, second.size, second_map, map_sampler, p);
 }
 
 // The directional light nearest the sun, if one is within about 8 degrees of it.

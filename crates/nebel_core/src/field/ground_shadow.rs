@@ -235,6 +235,10 @@ pub fn optical_depth_toward(grid: &DensityGrid, from: DVec3, direction: DVec3) -
     if t0.is_nan() || t1.is_nan() || t0 >= t1 {
         return 0.0;
     }
+    // The ray from where it enters the box, so the grid planes are found
+    // to the precision of the box's own coordinates however far `from` is.
+    let start = start + step * t0;
+    let length = t1 - t0;
     // The next grid plane each axis crosses after t.
     let next_plane = |axis: usize, t: f64| -> f64 {
         let d = step[axis];
@@ -251,18 +255,29 @@ pub fn optical_depth_toward(grid: &DensityGrid, from: DVec3, direction: DVec3) -
     };
     let density = |t: f64| grid.sample_grid(start + step * t);
     let mut depth = 0.0;
-    let mut t = t0;
+    let mut t = 0.0;
     // Pieces share their ends: two samples per piece.
-    let mut at_t = density(t0);
-    while t < t1 {
-        let mut end = (0..3).map(|axis| next_plane(axis, t)).fold(t1, f64::min);
+    let mut at_t = density(0.0);
+    // A ray crosses each plane once: at most that many pieces, the last
+    // one to the far side.
+    let pieces = grid.dims().iter().sum::<usize>() + 3;
+    for piece in 0..pieces {
+        let mut end = (0..3)
+            .map(|axis| next_plane(axis, t))
+            .fold(length, f64::min);
         // A plane met again by rounding: step past it.
         if end <= t {
-            end = t1.min(t + (t1 - t0) * 1e-12);
+            end = length.min(t + length * 1e-12);
+        }
+        if piece + 1 == pieces {
+            end = length;
         }
         let at_end = density(end);
         depth += (end - t) / 6.0 * (at_t + 4.0 * density(0.5 * (t + end)) + at_end);
         (t, at_t) = (end, at_end);
+        if t >= length {
+            break;
+        }
     }
     depth
 }
@@ -348,6 +363,35 @@ mod tests {
                 (depth - 0.4 * chord).abs() < 1e-6,
                 "{from} {direction}: {depth}, chord {chord}"
             );
+        }
+    }
+
+    /// From far away a ray still meets every grid plane once: the depth
+    /// through a uniform box is its chord to the precision of the box's
+    /// coordinates, and from absurdly far it ends, finite.
+    #[test]
+    fn a_ray_from_far_away_gives_the_chord() {
+        let g = grid(
+            [5, 3, 5],
+            DVec3::new(50.0, 10.0, 50.0),
+            DVec3::new(212.0, 600.0, -389.0),
+            &[1.0],
+        );
+        let direction = DVec3::new(0.5, 0.8, -0.33).normalize();
+        // The box's centre, on a level through its middle: the chord is the
+        // height 20 over the direction's y.
+        let centre = DVec3::new(312.0, 610.0, -289.0);
+        let chord = 20.0 / direction.y;
+        for distance in [1e3, 1e6, 1e9] {
+            let depth = optical_depth_toward(&g, centre - direction * distance, direction);
+            assert!(
+                (depth - chord).abs() < 1e-9 * distance.max(chord),
+                "{distance}: {depth}"
+            );
+        }
+        for distance in [1e17, 1e300] {
+            let depth = optical_depth_toward(&g, centre - direction * distance, direction);
+            assert!(depth.is_finite() && depth >= 0.0, "{distance}: {depth}");
         }
     }
 

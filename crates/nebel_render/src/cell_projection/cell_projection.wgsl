@@ -61,7 +61,8 @@
 // optical depth rate σ from the pair table and three Gauss-Legendre nodes of
 // σ e^{−σ (t − t_a)} V T_sun behind the pieces in front: V is 0 below the terrain's shadow height,
 // T_sun = e^{−s H F(u)/μ} the fog above the point (ground, thickness and
-// shadow height bilinear from the sun map, F linear from its table).
+// shadow height bilinear from the sun map, F linear from its table) times the
+// clouds' shadow maps where the line toward the sun crosses their plane.
 //
 // FOG_LAYERS (the view has fog layers, Röttger 2004 §5.3): the segment is
 // seen through the fog in front of it. As maps of the radiance behind, a
@@ -110,6 +111,7 @@
 #ifdef LIGHT_SHADOWS
 #import nebel_render::light_shadows::{light_visibility_at, visibility_spans}
 #endif
+#import nebel_render::cloud_shadow_maps::{CloudShadowMapPair, held_back}
 
 struct CellView {
     clip_from_world: mat4x4<f32>,
@@ -140,6 +142,8 @@ struct FogSun {
     elevation: vec4<f32>,
     // The fog's column F(u) at 65 equal steps of u, four to an element.
     column: array<vec4<f32>, 17>,
+    // The clouds' shadow maps (no weight without clouds).
+    clouds: CloudShadowMapPair,
 }
 
 struct CellTables {
@@ -168,6 +172,10 @@ struct CellTables {
 // Per grid point of the sun map: (shadow height, ground, thickness, the
 // distance t* of the shadow's caster).
 @group(1) @binding(7) var sun_map: texture_2d<f32>;
+// The clouds' shadow maps (nebel_render::cloud_shadow_maps).
+@group(1) @binding(8) var first_cloud_map: texture_2d<f32>;
+@group(1) @binding(9) var second_cloud_map: texture_2d<f32>;
+@group(1) @binding(10) var cloud_map_sampler: sampler;
 #endif
 
 fn opaque_depth(pixel: vec2<i32>) -> f32 {
@@ -443,8 +451,19 @@ fn piece_depth(s_front: f32, s_back: f32, m_front: f32, m_back: f32, piece_lengt
 #endif
 
 #ifdef GROUND_SUN
+// The clouds' transmittance toward the sun at the world point `p`: the two
+// maps weighed, the rest of the weight lit.
+fn cloud_sun_transmittance(p: vec3<f32>) -> f32 {
+    let first = parameters.fog_sun.clouds.first;
+    let second = parameters.fog_sun.clouds.second;
+    return 1.0
+        - held_back(first.plane, first.sun_and_weight, first.size, first_cloud_map, cloud_map_sampler, p)
+        - held_back(second.plane, second.sun_and_weight, second.size, second_cloud_map, cloud_map_sampler, p);
+}
+
 // The sun's transmittance at the world point `p`: 0 below the terrain's
-// shadow height, else e^{−H F(u)/μ} (nebel_core::fog_sunlight::FogSunMap).
+// shadow height, else e^{−H F(u)/μ} (nebel_core::fog_sunlight::FogSunMap)
+// times the clouds'.
 fn ground_sun_transmittance(p: vec3<f32>) -> f32 {
     let q = (parameters.fog_sun.grid_from_world * vec4(p, 1.0)).xyz;
     let size = vec2<i32>(textureDimensions(sun_map));
@@ -458,7 +477,7 @@ fn ground_sun_transmittance(p: vec3<f32>) -> f32 {
         return 0.0;
     }
     if texel.z <= 0.0 {
-        return 1.0;
+        return cloud_sun_transmittance(p);
     }
     let x = clamp((q.y - texel.y) / texel.z, 0.0, 1.0) * 64.0;
     let k = min(u32(x), 63u);
@@ -467,7 +486,7 @@ fn ground_sun_transmittance(p: vec3<f32>) -> f32 {
         parameters.fog_sun.column[(k + 1u) / 4u][(k + 1u) % 4u],
         x - f32(k),
     );
-    return exp(-texel.z * column * parameters.fog_sun.colour.w);
+    return exp(-texel.z * column * parameters.fog_sun.colour.w) * cloud_sun_transmittance(p);
 }
 
 // The sun's single scattering by the segment from s_front to s_back (with

@@ -223,6 +223,7 @@ impl Plugin for CellProjectionPlugin {
         crate::fog_layers::load_fog_layers_library(app);
         crate::local_lights::load_local_lights_library(app);
         crate::light_shadows::load_light_shadows_library(app);
+        crate::cloud_shadow_maps::load_cloud_shadow_maps_library(app);
         embedded_asset!(app, "cell_projection.wgsl");
         embedded_asset!(app, "cell_composite.wgsl");
         embedded_asset!(app, "cell_termination.wgsl");
@@ -235,6 +236,7 @@ impl Plugin for CellProjectionPlugin {
             .register_type::<CountCellFragments>()
             .init_resource::<CountCellFragments>()
             .add_plugins(ExtractResourcePlugin::<CountCellFragments>::default())
+            .add_plugins(ExtractResourcePlugin::<crate::CloudShadowMaps>::default())
             .register_type::<CellResolution>()
             .register_type::<crate::CellBlend>()
             .register_type::<crate::CellSunlight>()

@@ -24,6 +24,7 @@ use super::resources::{
     CellProjectionView, CellViewUniforms, ExtractedCellBatch, ExtractedCellBatches, GpuCellBuffers,
 };
 use super::tables::GpuCellTables;
+use crate::cloud_shadow_maps::CloudShadowTextures;
 use crate::light_shadows::LightShadows;
 
 /// Early termination marks the terminated pixels after groups of at least
@@ -412,11 +413,13 @@ pub fn draw_cell_batches(
     stats: Res<CellProjectionStats>,
     mut queries: ResMut<CellQueries>,
     light_shadows: LightShadows,
+    cloud_shadows: CloudShadowTextures,
     mut ctx: RenderContext,
 ) {
     if extracted.0.is_empty() {
         return;
     }
+    let (cloud_maps, cloud_sampler) = cloud_shadows.bindings();
     let (view_target, depth, extracted_view, cell_view, shadow_maps, lights_offset) =
         view.into_inner();
     let Some(view_binding) = uniforms.0.binding() else {
@@ -463,6 +466,9 @@ pub fn draw_cell_batches(
                 buffer.parameters.binding().expect("written when uploaded"),
                 buffer.next_keyframe.as_entire_binding(),
                 &buffer.sun_map,
+                cloud_maps[0],
+                cloud_maps[1],
+                cloud_sampler,
             )),
         );
         draws.push(Draw {

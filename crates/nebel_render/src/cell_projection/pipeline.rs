@@ -6,8 +6,8 @@ use bevy::asset::load_embedded_asset;
 use bevy::core_pipeline::FullscreenShader;
 use bevy::prelude::*;
 use bevy::render::render_resource::binding_types::{
-    storage_buffer_read_only_sized, storage_buffer_sized, texture_2d, texture_3d, texture_depth_2d,
-    texture_depth_2d_multisampled, uniform_buffer,
+    sampler, storage_buffer_read_only_sized, storage_buffer_sized, texture_2d, texture_3d,
+    texture_depth_2d, texture_depth_2d_multisampled, uniform_buffer,
 };
 use bevy::render::render_resource::*;
 use bevy::render::renderer::RenderDevice;
@@ -282,6 +282,11 @@ pub fn init_cell_projection_pipeline(
                     storage_buffer_read_only_sized(false, None),
                     // The sun map of ground fog (`crate::fog_sunlight`).
                     texture_2d(unfilterable),
+                    // The clouds' shadow maps over it and their sampler
+                    // (`crate::cloud_shadow_maps`).
+                    texture_2d(TextureSampleType::Float { filterable: true }),
+                    texture_2d(TextureSampleType::Float { filterable: true }),
+                    sampler(SamplerBindingType::Filtering),
                 ),
             ),
         ),

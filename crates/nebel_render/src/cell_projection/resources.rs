@@ -34,6 +34,7 @@ use super::pipeline::{
 use super::queries::CountCellFragments;
 use super::settings::CellProjection;
 use crate::cell_batch::{CellBatch, CellBatchUniform, CellBlend, CellScattering, CellSunlight};
+use crate::cloud_shadow_maps::{CloudShadowMapUniform, CloudShadowMaps};
 use crate::fog_layers::{FogLayersUniform, ViewFogLayers};
 use crate::fog_sunlight::{CellFogSunlight, sun_map_texture};
 use crate::light_shadows::LightShadows;
@@ -69,6 +70,8 @@ pub struct ExtractedCellBatch {
     light_response: LightResponse,
     /// The sun lighting a sorted batch of ground fog.
     fog_sunlight: Option<CellFogSunlight>,
+    /// The clouds' shadow maps over that fog.
+    clouds: [CloudShadowMapUniform; 2],
 }
 
 impl ExtractedCellBatch {
@@ -117,7 +120,9 @@ impl ExtractedCellBatch {
             self.blend,
             self.sunlight,
             (&self.lights, self.light_response),
-            self.fog_sunlight.as_ref(),
+            self.fog_sunlight
+                .as_ref()
+                .map(|sunlight| (sunlight, self.clouds)),
         )
     }
 }
@@ -154,10 +159,12 @@ pub fn extract_cell_batches(
         Extract<VolumetricSpotLights>,
     ),
     unsupported: Option<Res<CellProjectionUnsupported>>,
+    clouds: Extract<Option<Res<CloudShadowMaps>>>,
     device: Res<RenderDevice>,
     mut refused: Local<HashSet<Entity>>,
 ) {
     extracted.0.clear();
+    let clouds = CloudShadowMaps::of(clouds.as_deref());
     if unsupported.is_some() {
         return;
     }
@@ -234,6 +241,7 @@ pub fn extract_cell_batches(
                 fog_sunlight: fog_sunlight
                     .filter(|_| batch.mode == OpticalMode::Sorted)
                     .cloned(),
+                clouds,
             },
         ));
     }
