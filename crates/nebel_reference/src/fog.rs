@@ -8,8 +8,13 @@
 //! sunlight scattered once toward the eye with the Henyey-Greenstein phase
 //! function (the same at every point of a straight ray), dimmed by the fog
 //! on its way from the sun and to the eye: closed form too
-//! ([`HeightFog::sunlit`], [`ReferenceFog::sunlit`]). Such layers compose
-//! with "over".
+//! ([`HeightFog::sunlit`], [`ReferenceFog::sunlit`]). Cloud volumes that
+//! cast shadows ([`ReferenceFog::clouds`]) hold back
+//! `c 4π p_HG ∫ ρ e^{−τ(t₀, t) − C(h)/μ} (1 − T_c) dt` of it, `T_c` their
+//! exact transmittance toward the sun
+//! (`nebel_core::field::sun_transmittance`), by composite Gauss-Legendre
+//! over [`CLOUD_INTERVALS`] equal intervals. Such layers compose with
+//! "over".
 //!
 //! Point and spot lights ([`ReferenceFog::lights`]) add
 //! `s c ∫ ρ(h(t)) e^{−τ(t₀, t) − τ(x(t), p)} E(t) 4π p_HG dt` over the piece
@@ -41,8 +46,9 @@
 
 use glam::DVec3;
 use nebel_core::cell::Ray;
+use nebel_core::field::{ShadowCaster, sun_transmittance};
 use nebel_core::height_fog::{HeightFog, HeightFogLayer};
-use nebel_core::local_light::{LightResponse, LocalLight};
+use nebel_core::local_light::{GAUSS_LEGENDRE_3, LightResponse, LocalLight};
 use nebel_core::occluder::Occluder;
 use nebel_core::optics::{PremultipliedRgba, henyey_greenstein};
 
@@ -85,7 +91,14 @@ pub struct ReferenceFog {
     /// Opaque shapes that shade the lights that cast shadows
     /// ([`LocalLight::scattered_past`]).
     pub occluders: Vec<Occluder>,
+    /// Cloud volumes whose shadow dims the sunlight in the fog (module
+    /// docs).
+    pub clouds: Vec<ShadowCaster>,
 }
+
+/// Intervals of the clouds' held-back sunlight over a stretch
+/// ([`ReferenceFog::sunlit`]), three Gauss-Legendre nodes each.
+pub const CLOUD_INTERVALS: usize = 512;
 
 /// The most optical depth, plus exponential falloff times the altitude
 /// crossed, in one part of a lit stretch ([`ReferenceFog::lit`]).
@@ -153,10 +166,34 @@ impl ReferenceFog {
         };
         let direction = sun.direction.normalize();
         let altitude = |t: f64| ray.origin.y + t * ray.direction.y;
-        let scattered = self
+        let mut scattered = self
             .fog
             .sunlit(altitude(a), altitude(b), b - a, direction.y);
-        sun.colour * henyey_greenstein(sun.asymmetry, ray.direction.dot(direction)) * scattered
+        if !self.clouds.is_empty() && direction.y > 0.0 {
+            let step = (b - a) / CLOUD_INTERVALS as f64;
+            for k in 0..CLOUD_INTERVALS {
+                let middle = a + step * (k as f64 + 0.5);
+                for (node, weight) in GAUSS_LEGENDRE_3 {
+                    let t = middle + 0.5 * step * node;
+                    let h = altitude(t);
+                    let held = 1.0
+                        - sun_transmittance(
+                            &self.clouds,
+                            direction,
+                            ray.origin + t * ray.direction,
+                        );
+                    if held > 0.0 {
+                        let depth =
+                            self.optical_depth(ray, a, t) + self.fog.column_above(h) / direction.y;
+                        scattered -=
+                            0.5 * step * weight * self.fog.density(h) * (-depth).exp() * held;
+                    }
+                }
+            }
+        }
+        sun.colour
+            * henyey_greenstein(sun.asymmetry, ray.direction.dot(direction))
+            * scattered.max(0.0)
     }
 
     /// The optical depth of the fog over `[t0, t1]` along `ray` (clipped to
@@ -328,6 +365,7 @@ mod tests {
             lights: Vec::new(),
             light_response: LightResponse::default(),
             occluders: Vec::new(),
+            clouds: Vec::new(),
         }
     }
 
@@ -491,6 +529,80 @@ mod tests {
             DVec3::ZERO,
             "a set sun lights nothing"
         );
+    }
+
+    /// A uniform cloud slab over the whole fog dims its sunlight by its
+    /// transmittance `e^{−σ d/μ}` (the closed form), one over half of it
+    /// (from x = 0 on, whose shadow the sun's slant moves by the slab's
+    /// height over its tangent) dims the stretch it shades only.
+    #[test]
+    fn a_cloud_slab_holds_back_the_sunlight_it_shades() {
+        use nebel_core::field::DensityGrid;
+        use std::sync::Arc;
+        let mut slab = slab();
+        let sun = DVec3::new(0.6, 0.8, 0.0);
+        slab.sun = Some(FogSunlight {
+            direction: sun,
+            colour: DVec3::ONE,
+            asymmetry: 0.3,
+        });
+        let cloud = |min_x: f64| ShadowCaster {
+            grid: Arc::new(
+                DensityGrid::new(
+                    [2, 2, 2],
+                    DVec3::new(1e4, 5.0, 1e4),
+                    DVec3::new(min_x, 50.0, -5e3),
+                    vec![1.0; 8],
+                )
+                .unwrap(),
+            ),
+            world_from_local: glam::DAffine3::IDENTITY,
+            extinction: 0.1,
+        };
+        let level = ray(DVec3::new(-100.0, 4.0, 0.0), 0.0);
+        let clear = slab.sunlit(&level, 0.0, 200.0);
+        let transmittance = (-0.1 * 5.0 / 0.8f64).exp();
+        let covered = ReferenceFog {
+            clouds: vec![cloud(-5e3)],
+            ..slab.clone()
+        };
+        let dimmed = covered.sunlit(&level, 0.0, 200.0);
+        assert!(
+            (dimmed - clear * transmittance).abs().max_element() < 1e-9 * clear.x,
+            "{dimmed} against {}",
+            clear * transmittance
+        );
+        // The slab from x = 0 on: the sun's line from (x, 4 m) meets its
+        // side at the height 4 − 4x/3, so it runs through (55 − 4 + 4x/3)/μ
+        // of it for x from −38.25 to −34.5 and through all of it, 5/μ, on.
+        // The held-back light by a fine midpoint rule of the closed forms.
+        let half = ReferenceFog {
+            clouds: vec![cloud(0.0)],
+            ..slab.clone()
+        };
+        let got = half.sunlit(&level, 0.0, 200.0);
+        let chord = |x: f64| ((55.0 - 4.0 + 4.0 * x / 3.0) / 0.8).clamp(0.0, 5.0 / 0.8);
+        let steps = 400_000;
+        let dt = 200.0 / steps as f64;
+        let held: f64 = (0..steps)
+            .map(|n| {
+                let t = (n as f64 + 0.5) * dt;
+                let x = t - 100.0;
+                let shaded = if x < -38.25 {
+                    0.0
+                } else {
+                    1.0 - (-0.1 * chord(x)).exp()
+                };
+                0.05 * (-0.05 * t - 0.05 * 6.0 / 0.8).exp() * shaded * dt
+            })
+            .sum();
+        let expected = clear.x - henyey_greenstein(0.3, 0.6) * held;
+        assert!(
+            (got.x - expected).abs() < 1e-6 * clear.x,
+            "{} against {expected}",
+            got.x
+        );
+        assert!(got.x > dimmed.x && got.x < 0.99 * clear.x, "{got} {dimmed} {clear}");
     }
 
     /// A fog with a jump (a constant layer) and a smooth falloff, lit by a

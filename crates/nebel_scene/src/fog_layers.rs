@@ -118,6 +118,7 @@ impl FogLayersDescription {
             lights,
             light_response: self.light_response,
             occluders,
+            clouds: Vec::new(),
         })
     }
 }

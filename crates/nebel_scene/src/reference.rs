@@ -10,8 +10,9 @@
 //! scenes use black meshes and no lights on them. Sorted volumes scatter the
 //! scene's volumetric point and spot lights
 //! ([`SceneDescription::volumetric_lights`]), those that cast shadows shaded
-//! by the meshes (not by the terrain). A sunlit ground fog's sun is dimmed by
-//! the volumes that cast cloud shadows, exactly at every point.
+//! by the meshes (not by the terrain). The sun in a sunlit ground fog and in
+//! fog layers is dimmed by the volumes that cast cloud shadows, exactly at
+//! every point.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -24,8 +25,8 @@ use nebel_core::field::{CloudLighting, DensityGrid, PadFill, ShadowCaster, light
 use nebel_core::optics::OpticalMode;
 use nebel_reference::image_metrics::{ImageMetricsError, LinearImage, save_png, srgb_to_linear};
 use nebel_reference::{
-    Modulation, ReferenceCamera, ReferenceError, ReferenceScene, ReferenceVolume, RenderProgress,
-    SegmentScattering,
+    Modulation, ReferenceCamera, ReferenceError, ReferenceFog, ReferenceScene, ReferenceVolume,
+    RenderProgress, SegmentScattering,
 };
 
 /// How far a reference image is: which pass, and its rows.
@@ -90,6 +91,7 @@ pub fn reference_image_with_terrain(
     let last_frame = f64::from(scene.frame_time(scene.output.frames.saturating_sub(1)));
     let local_lights = scene.volumetric_lights(last_frame);
     let occluders = scene.occluders();
+    let clouds = cloud_casters(&volumes, last_frame)?;
     let fog = scene
         .fog_layers
         .as_ref()
@@ -97,8 +99,11 @@ pub fn reference_image_with_terrain(
         .transpose()
         .map_err(|invalid| ReferenceError::InvalidFog {
             reason: format!("fog_layers.{}: {}", invalid.field, invalid.reason),
-        })?;
-    let clouds = cloud_casters(&volumes, last_frame)?;
+        })?
+        .map(|fog| ReferenceFog {
+            clouds: clouds.clone(),
+            ..fog
+        });
     let mut joint = Vec::with_capacity(volumes.len());
     let mut mips = Vec::new();
     for volume in volumes {
