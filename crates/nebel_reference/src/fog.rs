@@ -13,8 +13,8 @@
 //! `c 4π p_HG ∫ ρ e^{−τ(t₀, t) − C(h)/μ} (1 − T_c) dt` of it, `T_c` their
 //! exact transmittance toward the sun
 //! (`nebel_core::field::sun_transmittance`), by composite Gauss-Legendre
-//! over [`CLOUD_INTERVALS`] equal intervals. Such layers compose with
-//! "over".
+//! over [`CLOUD_INTERVALS`] equal intervals of the stretch they can shade
+//! (`nebel_core::field::shaded_stretch`). Such layers compose with "over".
 //!
 //! Point and spot lights ([`ReferenceFog::lights`]) add
 //! `s c ∫ ρ(h(t)) e^{−τ(t₀, t) − τ(x(t), p)} E(t) 4π p_HG dt` over the piece
@@ -46,7 +46,7 @@
 
 use glam::DVec3;
 use nebel_core::cell::Ray;
-use nebel_core::field::{ShadowCaster, sun_transmittance};
+use nebel_core::field::{ShadowCaster, shaded_stretch, sun_transmittance};
 use nebel_core::height_fog::{HeightFog, HeightFogLayer};
 use nebel_core::local_light::{GAUSS_LEGENDRE_3, LightResponse, LocalLight};
 use nebel_core::occluder::Occluder;
@@ -169,19 +169,17 @@ impl ReferenceFog {
         let mut scattered = self
             .fog
             .sunlit(altitude(a), altitude(b), b - a, direction.y);
-        if !self.clouds.is_empty() && direction.y > 0.0 {
-            let step = (b - a) / CLOUD_INTERVALS as f64;
+        if let Some((c, d)) =
+            shaded_stretch(&self.clouds, direction, ray.origin, ray.direction, (a, b))
+        {
+            let step = (d - c) / CLOUD_INTERVALS as f64;
             for k in 0..CLOUD_INTERVALS {
-                let middle = a + step * (k as f64 + 0.5);
+                let middle = c + step * (k as f64 + 0.5);
                 for (node, weight) in GAUSS_LEGENDRE_3 {
                     let t = middle + 0.5 * step * node;
                     let h = altitude(t);
-                    let held = 1.0
-                        - sun_transmittance(
-                            &self.clouds,
-                            direction,
-                            ray.origin + t * ray.direction,
-                        );
+                    let x = ray.origin + t * ray.direction;
+                    let held = 1.0 - sun_transmittance(&self.clouds, direction, x);
                     if held > 0.0 {
                         let depth =
                             self.optical_depth(ray, a, t) + self.fog.column_above(h) / direction.y;
@@ -602,7 +600,10 @@ mod tests {
             "{} against {expected}",
             got.x
         );
-        assert!(got.x > dimmed.x && got.x < 0.99 * clear.x, "{got} {dimmed} {clear}");
+        assert!(
+            got.x > dimmed.x && got.x < 0.99 * clear.x,
+            "{got} {dimmed} {clear}"
+        );
     }
 
     /// A fog with a jump (a constant layer) and a smooth falloff, lit by a

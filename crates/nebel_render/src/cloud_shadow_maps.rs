@@ -4,9 +4,10 @@
 //! fading in over the one before.
 //!
 //! `nebel_volume`'s cloud shadows keep [`CloudShadowMaps`] up to date; the
-//! ground fog's sunlit cells (`GROUND_SUN`) read it as the ground's meshes
-//! do, through the WGSL library `nebel_render::cloud_shadow_maps`. A world
-//! without the resource, or a map without weight, reads no texture.
+//! ground fog's sunlit cells (`GROUND_SUN`) and the sunlit fog layers read
+//! it as the ground's meshes do, through the WGSL library
+//! `nebel_render::cloud_shadow_maps`. A world without the resource, or a map
+//! without weight, reads no texture.
 
 use bevy::ecs::system::SystemParam;
 use bevy::prelude::*;
@@ -24,7 +25,8 @@ pub struct CloudShadowMapUniform {
     pub plane: Vec4,
     /// Toward the map's sun (xyz), and the map's weight.
     pub sun_and_weight: Vec4,
-    /// The map's texels along x and z, and the texture's side.
+    /// The map's texels along x and z, the texture's side, and the height
+    /// of the casters' top (above it nothing is shaded).
     pub size: Vec4,
 }
 
@@ -39,7 +41,12 @@ impl CloudShadowMapUniform {
                 map.min.y as f32,
             ),
             sun_and_weight: map.sun.as_vec3().extend(weight),
-            size: Vec4::new(map.size[0] as f32, map.size[1] as f32, side as f32, 0.0),
+            size: Vec4::new(
+                map.size[0] as f32,
+                map.size[1] as f32,
+                side as f32,
+                map.top as f32,
+            ),
         }
     }
 }
@@ -57,14 +64,14 @@ pub struct CloudShadowMaps {
 
 impl CloudShadowMaps {
     /// The maps of the extracted resource, or none.
-    pub(crate) fn of(maps: Option<&Self>) -> [CloudShadowMapUniform; 2] {
+    pub fn of(maps: Option<&Self>) -> [CloudShadowMapUniform; 2] {
         maps.map_or_else(Default::default, |maps| maps.maps)
     }
 }
 
 /// The maps' textures in the render world.
 #[derive(SystemParam)]
-pub(crate) struct CloudShadowTextures<'w> {
+pub struct CloudShadowTextures<'w> {
     maps: Option<Res<'w, CloudShadowMaps>>,
     images: Res<'w, RenderAssets<GpuImage>>,
     fallback: Res<'w, FallbackImage>,
@@ -74,7 +81,7 @@ impl CloudShadowTextures<'_> {
     /// The textures and their sampler as a bind group takes them: the
     /// fallback image where a map has no texture (yet); its weight is then
     /// 0 or it reads as lit.
-    pub(crate) fn bindings(&self) -> ([&TextureView; 2], &Sampler) {
+    pub fn bindings(&self) -> ([&TextureView; 2], &Sampler) {
         let image = |n: usize| {
             self.maps
                 .as_ref()

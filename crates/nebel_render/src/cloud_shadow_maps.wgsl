@@ -10,7 +10,8 @@ struct CloudShadowMap {
     plane: vec4<f32>,
     // Toward the map's sun (xyz) and the map's weight.
     sun_and_weight: vec4<f32>,
-    // The map's texels along x and z, and the texture's side.
+    // The map's texels along x and z, the texture's side, and the height of
+    // the casters' top (above it nothing is shaded).
     size: vec4<f32>,
 }
 
@@ -22,7 +23,8 @@ struct CloudShadowMapPair {
 
 // The light the map holds back at the world point `p`, times its weight:
 // w (1 − T), T bilinear between texel centres; 0 outside the map (whose
-// border texels are lit) or without weight, with no texture read.
+// border texels are lit), above the casters' top or without weight, with no
+// texture read.
 fn held_back(
     plane: vec4<f32>,
     sun_and_weight: vec4<f32>,
@@ -34,7 +36,7 @@ fn held_back(
     let sun = sun_and_weight.xyz;
     let q = p + sun * ((plane.x - p.y) / sun.y);
     let texels = (q.xz - plane.zw) / plane.y;
-    if sun_and_weight.w <= 0.0 || any(texels < vec2(0.5)) || any(texels > size.xy - 0.5) {
+    if sun_and_weight.w <= 0.0 || p.y > size.w || any(texels < vec2(0.5)) || any(texels > size.xy - 0.5) {
         return 0.0;
     }
     let t = textureSampleLevel(map_texture, map_sampler, texels / size.z, 0.0).r;

@@ -17,7 +17,8 @@
 //! the sun crosses the plane ([`GroundShadow::transmittance`], bilinear
 //! between texel centres, clamped to the border: what the GPU samples). A
 //! point above `h` takes the value at its own projection back onto the plane,
-//! which includes cloud between the plane and it; [`sun_transmittance`] is
+//! which includes cloud between the plane and it, up to the casters' highest
+//! corner, above which nothing shades it; [`sun_transmittance`] is
 //! the exact value at any point (what the reference takes). The sun lower than
 //! [`GroundShadow::MIN_SUN_SINE`] above the horizon casts no map (its shadow
 //! would stretch without bound; the ground is nearly unlit then).
@@ -47,6 +48,9 @@ pub struct ShadowCaster {
 pub struct GroundShadow {
     /// World height `h` of the plane.
     pub height: f64,
+    /// World height of the casting volumes' highest corner: above it the
+    /// sun is not shaded.
+    pub top: f64,
     /// World `(x, z)` of the map's lower corner (not a texel centre).
     pub min: DVec2,
     /// World length of a texel's side.
@@ -85,6 +89,7 @@ impl GroundShadow {
         let casting: Vec<Local> = casters.iter().filter_map(|c| Local::new(c, sun)).collect();
         let corners = || casting.iter().flat_map(|c| c.corners);
         let height = corners().map(|p| p.y).reduce(f64::min)?;
+        let top = corners().map(|p| p.y).reduce(f64::max)?;
         let along = |p: DVec3| {
             let q = p - sun * ((p.y - height) / sun.y);
             DVec2::new(q.x, q.z)
@@ -115,6 +120,7 @@ impl GroundShadow {
         });
         Some(Self {
             height,
+            top,
             min,
             texel,
             size,
@@ -124,8 +130,11 @@ impl GroundShadow {
     }
 
     /// The transmittance toward the sun at world point `p`, as the GPU
-    /// samples it (module docs); 1 outside the map.
+    /// samples it (module docs); 1 outside the map and above [`Self::top`].
     pub fn transmittance(&self, p: DVec3) -> f64 {
+        if p.y > self.top {
+            return 1.0;
+        }
         let q = p + self.sun * ((self.height - p.y) / self.sun.y);
         let uv = (DVec2::new(q.x, q.z) - self.min) / self.texel - 0.5;
         let last = |n: usize| (n - 1) as f64;
@@ -159,6 +168,75 @@ pub fn sun_transmittance(casters: &[ShadowCaster], sun: DVec3, p: DVec3) -> f64 
         .map(|caster| caster.optical_depth(p))
         .sum();
     (-depth).exp()
+}
+
+/// The part of `[t_a, t_b]` of the ray from `origin` along `direction`
+/// (world space) where a point can lie in the shadow of `casters` toward the
+/// unit `sun`, or `None`: a superset, the points below the casters' highest
+/// corner whose line toward the sun, followed back to the plane of a caster's
+/// lowest corner, lands within the bounds of what its box casts on that
+/// plane. A point whose line meets the box passes both tests.
+pub fn shaded_stretch(
+    casters: &[ShadowCaster],
+    sun: DVec3,
+    origin: DVec3,
+    direction: DVec3,
+    (t_a, t_b): (f64, f64),
+) -> Option<(f64, f64)> {
+    if !(sun.y >= GroundShadow::MIN_SUN_SINE) {
+        return None;
+    }
+    let mut hull: Option<(f64, f64)> = None;
+    for caster in casters.iter().filter_map(|caster| Local::new(caster, sun)) {
+        let bottom = caster
+            .corners
+            .iter()
+            .map(|c| c.y)
+            .fold(f64::INFINITY, f64::min);
+        let top = caster
+            .corners
+            .iter()
+            .map(|c| c.y)
+            .fold(f64::NEG_INFINITY, f64::max);
+        // Followed back along the sun to the plane y = bottom.
+        let onto_plane =
+            |p: DVec3| DVec2::new(p.x, p.z) - DVec2::new(sun.x, sun.z) * ((p.y - bottom) / sun.y);
+        let (low, high) = caster
+            .corners
+            .iter()
+            .fold((DVec2::INFINITY, DVec2::NEG_INFINITY), |(low, high), &c| {
+                (low.min(onto_plane(c)), high.max(onto_plane(c)))
+            });
+        let (mut a, mut b) = (t_a, t_b);
+        // Below the top.
+        if direction.y > 0.0 {
+            b = b.min((top - origin.y) / direction.y);
+        } else if direction.y < 0.0 {
+            a = a.max((top - origin.y) / direction.y);
+        } else if origin.y > top {
+            continue;
+        }
+        // The crossing moves linearly with t.
+        let start = onto_plane(origin);
+        let rate = onto_plane(origin + direction) - start;
+        let mut misses = false;
+        for axis in 0..2 {
+            if rate[axis] == 0.0 {
+                misses |= start[axis] < low[axis] || start[axis] > high[axis];
+                continue;
+            }
+            let (u, v) = (
+                (low[axis] - start[axis]) / rate[axis],
+                (high[axis] - start[axis]) / rate[axis],
+            );
+            a = a.max(u.min(v));
+            b = b.min(u.max(v));
+        }
+        if !misses && a < b {
+            hull = Some(hull.map_or((a, b), |(lo, hi)| (lo.min(a), hi.max(b))));
+        }
+    }
+    hull
 }
 
 /// A caster in its local frame: the sun there, its box's world corners.
@@ -395,6 +473,86 @@ mod tests {
         }
     }
 
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+
+        /// Every point of a ray that a turned, scaled cloud shades lies in
+        /// the shaded stretch, and the stretch is not the whole ray when the
+        /// ray passes far from the cloud's shadow.
+        #[test]
+        fn the_shaded_stretch_holds_every_shaded_point(
+            turn in -3.0f64..3.0,
+            scale in prop::array::uniform3(0.5f64..3.0),
+            centre in prop::array::uniform3(-20.0f64..20.0),
+            origin in prop::array::uniform3(-40.0f64..40.0),
+            direction in prop::array::uniform3(-1.0f64..1.0),
+            sun in prop::array::uniform3(-1.0f64..1.0),
+        ) {
+            let g = grid([3, 3, 3], DVec3::splat(2.0), DVec3::ZERO, &[1.0, 0.0, 0.5]);
+            let casters = [ShadowCaster {
+                grid: Arc::new(g),
+                world_from_local: DAffine3::from_scale_rotation_translation(
+                    DVec3::from_array(scale),
+                    DQuat::from_rotation_y(turn) * DQuat::from_rotation_x(0.3 * turn),
+                    DVec3::from_array(centre) + DVec3::Y * 30.0,
+                ),
+                extinction: 1.0,
+            }];
+            let sun = DVec3::new(sun[0], sun[1].abs() + 0.1, sun[2]).normalize();
+            let (origin, direction) = (DVec3::from_array(origin), unit(direction));
+            let stretch = shaded_stretch(&casters, sun, origin, direction, (0.0, 200.0));
+            for n in 0..4000 {
+                let t = 200.0 * (n as f64 + 0.5) / 4000.0;
+                if sun_transmittance(&casters, sun, origin + t * direction) < 1.0 {
+                    let (a, b) = stretch.unwrap_or((f64::NAN, f64::NAN));
+                    prop_assert!(t >= a - 1e-9 && t <= b + 1e-9, "{t} outside {stretch:?}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_ray_beside_the_shadow_has_no_shaded_stretch() {
+        let g = grid(
+            [2, 2, 2],
+            DVec3::splat(10.0),
+            DVec3::new(0.0, 50.0, 0.0),
+            &[1.0],
+        );
+        let casters = [ShadowCaster {
+            grid: Arc::new(g),
+            world_from_local: DAffine3::IDENTITY,
+            extinction: 1.0,
+        }];
+        // Straight up: a level ray at 4 m sees the box's shadow over x in
+        // [0, 10] only, and a ray along z at x = 100 never.
+        let level = shaded_stretch(
+            &casters,
+            DVec3::Y,
+            DVec3::new(-50.0, 4.0, 5.0),
+            DVec3::X,
+            (0.0, 100.0),
+        );
+        assert_eq!(level, Some((50.0, 60.0)));
+        let beside = shaded_stretch(
+            &casters,
+            DVec3::Y,
+            DVec3::new(100.0, 4.0, -50.0),
+            DVec3::Z,
+            (0.0, 100.0),
+        );
+        assert_eq!(beside, None);
+        // Above the box's top nothing is shaded.
+        let above = shaded_stretch(
+            &casters,
+            DVec3::Y,
+            DVec3::new(-50.0, 70.0, 5.0),
+            DVec3::X,
+            (0.0, 100.0),
+        );
+        assert_eq!(above, None);
+    }
+
     /// Under a uniform slab, turned and scaled in the world, the map is the
     /// closed form `e^{−σ c h / cos θ}` (local units) inside the shadow, 1
     /// outside it, and sampled between texel centres from any height below.
@@ -414,6 +572,7 @@ mod tests {
         let sun = DVec3::new(0.3, 1.0, -0.2).normalize();
         let map = GroundShadow::compute(std::slice::from_ref(&caster), sun, 128, 2).unwrap();
         assert_eq!(map.height, 40.0);
+        assert!((map.top - 42.0).abs() < 1e-12);
         assert!(
             map.size.iter().all(|&n| n <= 128) && map.size.contains(&128),
             "{:?}",
@@ -480,7 +639,7 @@ mod tests {
                 (t - closed).abs() < 1e-9,
                 "height {height}: {t} against {closed}"
             );
-            if height <= 0.0 {
+            if height <= 0.0 || height > 1.0 {
                 assert!((map.transmittance(p) - t).abs() < 1e-6);
             }
         }

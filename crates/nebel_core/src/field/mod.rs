@@ -55,7 +55,9 @@ pub use cloud::{CloudKind, CloudNoise, side_fade_factors};
 pub use density_grid::DensityGrid;
 pub use effects::{campfire_density, search_light_cells};
 pub use fog::{FogNoise, ValleyFog};
-pub use ground_shadow::{GroundShadow, ShadowCaster, optical_depth_toward, sun_transmittance};
+pub use ground_shadow::{
+    GroundShadow, ShadowCaster, optical_depth_toward, shaded_stretch, sun_transmittance,
+};
 pub use height_field::HeightField;
 pub use light::{
     CloudLighting, SKY_DIFFUSIVITY, ScatteringOctaves, light_field, light_field_with_threads,

@@ -20,10 +20,20 @@
 // LIGHT_SHADOWS (a light that reaches the fog casts shadows): each interval
 // is cut where Bevy's shadow map of the light changes its visibility
 // (nebel_render::light_shadows), each stretch weighted by its visibility.
+//
+// FOG_SUN with the clouds' shadow maps (nebel_render::cloud_shadow_maps):
+// each map with weight w holds back c 4π p_HG ∫ ρ e^{−τ(0, t) − C(h)/μ}
+// w (1 − T_map) dt of the closed-form sunlight, over the stretch of the ray
+// whose line toward the map's sun crosses the map, below the casters' top
+// (equal pieces of three Gauss-Legendre nodes, one per CLOUD_PIECE_TEXELS
+// texels the crossing moves over, at most MAX_CLOUD_PIECES; T_map bilinear,
+// read where that line crosses the map's plane; a point between the plane
+// and the top takes the whole column's shadow).
 
 #import bevy_core_pipeline::fullscreen_vertex_shader::FullscreenVertexOutput
-#import nebel_render::fog_layers::{FogLayers, fog_opacity, fog_optical_depth, fog_point, fog_stretch, layer_mean}
-#import nebel_render::local_lights::{LocalLights, light_node, light_on_ray, light_quadrature, light_span}
+#import nebel_render::fog_layers::{FogLayers, fog_opacity, fog_optical_depth, fog_point, fog_stretch, layer_mean, layer_mean_and_columns}
+#import nebel_render::local_lights::{GAUSS_NODES, GAUSS_WEIGHTS, LocalLights, henyey_greenstein, light_node, light_on_ray, light_quadrature, light_span}
+#import nebel_render::cloud_shadow_maps::{CloudShadowMapPair, held_back}
 #ifdef LIGHT_SHADOWS
 #import nebel_render::light_shadows::{light_visibility_at, visibility_spans}
 #endif
@@ -37,6 +47,8 @@ struct FogPass {
     // The point and spot lights that reach the fog (read only by the
     // LOCAL_LIGHTS variant).
     lights: LocalLights,
+    // The clouds' shadow maps over sunlit fog (no weight otherwise).
+    clouds: CloudShadowMapPair,
 }
 
 @group(0) @binding(0) var<uniform> fog_pass: FogPass;
@@ -47,6 +59,105 @@ struct FogPass {
 @group(0) @binding(1) var depth_texture: texture_multisampled_2d<f32>;
 #else
 @group(0) @binding(1) var depth_texture: texture_2d<f32>;
+#endif
+
+#ifdef FOG_SUN
+@group(0) @binding(2) var first_cloud_map: texture_2d<f32>;
+@group(0) @binding(3) var second_cloud_map: texture_2d<f32>;
+@group(0) @binding(4) var cloud_map_sampler: sampler;
+
+// Map texels the crossing moves over per piece of a map's stretch of the
+// ray, and the most pieces.
+const CLOUD_PIECE_TEXELS: f32 = 2.0;
+const MAX_CLOUD_PIECES: f32 = 128.0;
+
+// The part of [t0, t1] along the unit ray `direction` from the eye below
+// the casters' top whose line toward the map's sun crosses the map between
+// its texel centres (the crossing moves linearly with t).
+fn map_stretch(plane: vec4<f32>, sun: vec3<f32>, size: vec4<f32>, direction: vec3<f32>, t0: f32, t1: f32) -> vec2<f32> {
+    let eye = fog_pass.camera_position.xyz;
+    let start = eye.xz + sun.xz * ((plane.x - eye.y) / sun.y);
+    let rate = direction.xz - sun.xz * (direction.y / sun.y);
+    let low = plane.zw + 0.5 * plane.y;
+    let high = plane.zw + (size.xy - 0.5) * plane.y;
+    var stretch = vec2(t0, t1);
+    let top = (size.w - eye.y) / direction.y;
+    if direction.y > 0.0 {
+        stretch.y = min(stretch.y, top);
+    } else if direction.y < 0.0 {
+        stretch.x = max(stretch.x, top);
+    } else if eye.y > size.w {
+        return vec2(0.0);
+    }
+    for (var axis = 0; axis < 2; axis++) {
+        if rate[axis] == 0.0 {
+            if start[axis] < low[axis] || start[axis] > high[axis] {
+                return vec2(0.0);
+            }
+            continue;
+        }
+        let a = (low[axis] - start[axis]) / rate[axis];
+        let b = (high[axis] - start[axis]) / rate[axis];
+        stretch = vec2(max(stretch.x, min(a, b)), min(stretch.y, max(a, b)));
+    }
+    return stretch;
+}
+
+// ∫ ρ e^{−τ(0, t) − C(h)/μ} w (1 − T_map) dt over [t0, t1] for one map (see
+// the header).
+fn map_held_back(
+    plane: vec4<f32>,
+    sun_and_weight: vec4<f32>,
+    size: vec4<f32>,
+    map_texture: texture_2d<f32>,
+    direction: vec3<f32>,
+    t0: f32,
+    t1: f32,
+) -> f32 {
+    if sun_and_weight.w <= 0.0 {
+        return 0.0;
+    }
+    let sun = sun_and_weight.xyz;
+    let stretch = map_stretch(plane, sun, size, direction, t0, t1);
+    if stretch.y <= stretch.x {
+        return 0.0;
+    }
+    let eye = fog_pass.camera_position.xyz;
+    let mu = fog_pass.fog.sun_direction.y;
+    let texels = length(direction.xz - sun.xz * (direction.y / sun.y)) * (stretch.y - stretch.x) / plane.y;
+    let pieces = u32(clamp(ceil(texels / CLOUD_PIECE_TEXELS), 1.0, MAX_CLOUD_PIECES));
+    let half = 0.5 * (stretch.y - stretch.x) / f32(pieces);
+    var sum = 0.0;
+    for (var piece = 0u; piece < pieces; piece++) {
+        let middle = stretch.x + (2.0 * f32(piece) + 1.0) * half;
+        for (var k = 0u; k < 3u; k++) {
+            let t = middle + half * GAUSS_NODES[k];
+            let p = eye + t * direction;
+            let held = held_back(plane, sun_and_weight, size, map_texture, cloud_map_sampler, p);
+            if held > 0.0 {
+                var fog = vec2(0.0);
+                for (var i = 0u; i < u32(fog_pass.fog.ranges.z); i++) {
+                    fog += layer_mean_and_columns(fog_pass.fog, fog_pass.fog.layers[i], p.y, 0.0).xy;
+                }
+                let seen = fog_optical_depth(fog_pass.fog, eye.y, direction.y, 0.0, t);
+                sum += GAUSS_WEIGHTS[k] * half * fog.x * exp(-seen - fog.y / mu) * held;
+            }
+        }
+    }
+    return sum;
+}
+
+// The sunlight the clouds' shadow maps hold back from the fog over
+// [t0, t1] (see the header).
+fn clouds_held_back(direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
+    let first = fog_pass.clouds.first;
+    let second = fog_pass.clouds.second;
+    let held = map_held_back(first.plane, first.sun_and_weight, first.size, first_cloud_map, direction, t0, t1)
+        + map_held_back(second.plane, second.sun_and_weight, second.size, second_cloud_map, direction, t0, t1);
+    let sun = fog_pass.fog.sun_direction.xyz;
+    let phase = henyey_greenstein(fog_pass.fog.sun_colour.w, dot(direction, sun));
+    return fog_pass.fog.sun_colour.rgb * phase * held;
+}
 #endif
 
 #ifdef LOCAL_LIGHTS
@@ -196,6 +307,9 @@ fn fog_sample(ndc: vec2<f32>, direction: vec3<f32>, depth: f32) -> vec4<f32> {
     let stretch = fog_stretch(fog_pass.fog, fog_pass.camera_position.y, direction, 0.0, distance);
     let alpha = fog_opacity(stretch.w);
     var colour = stretch.rgb;
+#ifdef FOG_SUN
+    colour = max(colour - clouds_held_back(direction, fog_pass.fog.ranges.x, min(distance, fog_pass.fog.ranges.y)), vec3(0.0));
+#endif
 #ifdef LOCAL_LIGHTS
     let t0 = fog_pass.fog.ranges.x;
     let t1 = min(distance, fog_pass.fog.ranges.y);

@@ -10,7 +10,7 @@ use bevy::core_pipeline::schedule::{Core3d, Core3dSystems};
 use bevy::pbr::{ViewLightsUniformOffset, ViewShadowBindings};
 use bevy::prelude::*;
 use bevy::render::render_resource::binding_types::{
-    texture_2d, texture_2d_multisampled, uniform_buffer,
+    sampler, texture_2d, texture_2d_multisampled, uniform_buffer,
 };
 use bevy::render::render_resource::*;
 use bevy::render::renderer::{RenderDevice, RenderQueue};
@@ -21,14 +21,15 @@ use bevy::render::{
 };
 use bevy::shader::ShaderDefVal;
 use nebel_core::local_light::{LightResponse, MAX_LOCAL_LIGHTS};
-use nebel_render::EffectiveQuality;
 use nebel_render::cell_projection::CellProjectionSystems;
+use nebel_render::cloud_shadow_maps::CloudShadowTextures;
 use nebel_render::fog_layers::{FogLayersUniform, ViewFogLayers};
 use nebel_render::light_shadows::{LightShadows, light_shadow_layout};
 use nebel_render::local_lights::{
     LocalLightsUniform, ReachingLights, SceneLight, VolumetricPointLights, VolumetricSpotLights,
     visible_volumetric_lights,
 };
+use nebel_render::{CloudShadowMapUniform, CloudShadowMaps, EffectiveQuality};
 
 use super::{FogLayers, FogLayersPasses, PreparedFogLayers};
 
@@ -40,6 +41,7 @@ pub struct FogLayersRenderPlugin {
 impl Plugin for FogLayersRenderPlugin {
     fn build(&self, app: &mut App) {
         bevy::asset::embedded_asset!(app, "fog_layers.wgsl");
+        nebel_render::cloud_shadow_maps::load_cloud_shadow_maps_library(app);
         let Some(render_app) = app.get_sub_app_mut(RenderApp) else {
             return;
         };
@@ -195,6 +197,8 @@ pub struct FogPassUniform {
     fog: FogLayersUniform,
     /// Zeros where no light reaches the fog.
     lights: LocalLightsUniform,
+    /// The clouds' shadow maps over sunlit fog (no weight otherwise).
+    clouds: [CloudShadowMapUniform; 2],
 }
 
 /// Every fogged view's [`FogPassUniform`] of this frame.
@@ -255,6 +259,11 @@ fn init_fog_layers_pipeline(
                     } else {
                         texture_2d(TextureSampleType::Float { filterable: false })
                     },
+                    // The clouds' shadow maps and their sampler
+                    // (`nebel_render::cloud_shadow_maps`).
+                    texture_2d(TextureSampleType::Float { filterable: true }),
+                    texture_2d(TextureSampleType::Float { filterable: true }),
+                    sampler(SamplerBindingType::Filtering),
                 ),
             ),
         )
@@ -321,6 +330,7 @@ pub fn prepare_fog_layer_views(
         (Has<ViewShadowBindings>, Has<ViewLightsUniformOffset>),
     )>,
     light_shadows: LightShadows,
+    clouds: Option<Res<CloudShadowMaps>>,
     mut uniforms: ResMut<FogPassUniforms>,
     pipeline: Res<FogLayersPipeline>,
     mut pipelines: ResMut<SpecializedRenderPipelines<FogLayersPipeline>>,
@@ -351,6 +361,11 @@ pub fn prepare_fog_layer_views(
             viewport: view.viewport.as_vec4(),
             fog: fog.0,
             lights: lights.map_or_else(LocalLightsUniform::default, |lights| lights.uniform()),
+            clouds: if fog.0.has_sun() {
+                CloudShadowMaps::of(clouds.as_deref())
+            } else {
+                Default::default()
+            },
         });
         let multisampled = *msaa != Msaa::Off;
         let pipeline = pipelines.specialize(
@@ -378,13 +393,14 @@ pub fn prepare_fog_layer_views(
 #[derive(Component)]
 pub struct FogLayersBindGroup {
     pub(super) bind_group: BindGroup,
-    /// The depth texture view, the uniform buffer and whether the depth is
-    /// multisampled.
-    key: (TextureViewId, BufferId, bool),
+    /// The depth texture view, the uniform buffer, whether the depth is
+    /// multisampled and the clouds' shadow maps.
+    key: (TextureViewId, BufferId, bool, [TextureViewId; 2]),
 }
 
 /// Gives each fogged view its bind group, made again only when the depth
-/// texture, the uniform buffer or the sample count changed.
+/// texture, the uniform buffer, the sample count or the clouds' shadow
+/// maps changed.
 pub fn prepare_fog_layer_bind_groups(
     mut commands: Commands,
     views: Query<(
@@ -396,13 +412,20 @@ pub fn prepare_fog_layer_bind_groups(
     uniforms: Res<FogPassUniforms>,
     pipeline: Res<FogLayersPipeline>,
     pipeline_cache: Res<PipelineCache>,
+    clouds: CloudShadowTextures,
     device: Res<RenderDevice>,
 ) {
     let (Some(buffer), Some(binding)) = (uniforms.0.buffer(), uniforms.0.binding()) else {
         return;
     };
+    let (cloud_maps, cloud_sampler) = clouds.bindings();
     for (entity, depth, fog_view, made) in &views {
-        let key = (depth.view().id(), buffer.id(), fog_view.multisampled);
+        let key = (
+            depth.view().id(),
+            buffer.id(),
+            fog_view.multisampled,
+            cloud_maps.map(|map| map.id()),
+        );
         if made.is_some_and(|made| made.key == key) {
             continue;
         }
@@ -410,7 +433,13 @@ pub fn prepare_fog_layer_bind_groups(
             "nebel_fog_layers_bind_group",
             &pipeline_cache
                 .get_bind_group_layout(&pipeline.layouts[usize::from(fog_view.multisampled)]),
-            &BindGroupEntries::sequential((binding.clone(), depth.view())),
+            &BindGroupEntries::sequential((
+                binding.clone(),
+                depth.view(),
+                cloud_maps[0],
+                cloud_maps[1],
+                cloud_sampler,
+            )),
         );
         commands
             .entity(entity)
