@@ -68,8 +68,8 @@ struct FogPass {
 
 // Map texels the crossing moves over per piece of a map's stretch of the
 // ray, and the most pieces.
-const CLOUD_PIECE_TEXELS: f32 = 2.0;
-const MAX_CLOUD_PIECES: f32 = 128.0;
+const CLOUD_PIECE_TEXELS: f32 = 4.0;
+const MAX_CLOUD_PIECES: f32 = 64.0;
 
 // The part of [t0, t1] along the unit ray `direction` from the eye below
 // the casters' top whose line toward the map's sun crosses the map between
