@@ -97,3 +97,34 @@ impl CloudShadowTextures<'_> {
 pub fn load_cloud_shadow_maps_library(app: &mut App) {
     load_shader_library!(app, "cloud_shadow_maps.wgsl");
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use bevy::math::{DVec2, DVec3};
+
+    /// A map's plane, corner, texel, sun, weight, size and top reach the
+    /// shaders where `cloud_shadow_maps.wgsl` reads them; without the
+    /// resource no map has weight.
+    #[test]
+    fn a_map_is_packed_as_the_shaders_read_it() {
+        let map = GroundShadow {
+            height: 300.0,
+            top: 320.0,
+            min: DVec2::new(-12.5, 40.0),
+            texel: 0.75,
+            size: [200, 120],
+            sun: DVec3::new(0.6, 0.8, 0.0),
+            transmittance: vec![1.0; 200 * 120],
+        };
+        let uniform = CloudShadowMapUniform::new(&map, 256, 0.25);
+        assert_eq!(uniform.plane, Vec4::new(300.0, 0.75, -12.5, 40.0));
+        assert_eq!(uniform.sun_and_weight, Vec4::new(0.6, 0.8, 0.0, 0.25));
+        assert_eq!(uniform.size, Vec4::new(200.0, 120.0, 256.0, 320.0));
+        assert!(
+            CloudShadowMaps::of(None)
+                .iter()
+                .all(|map| map.sun_and_weight.w == 0.0)
+        );
+    }
+}
