@@ -23,7 +23,12 @@
 //! (`nebel_core::height_fog`): `τ e^{−τ − s₁} (e^x − 1)/x`, `x = τ − (s₀ −
 //! s₁)`, with `s₀`, `s₁` the sun's optical depths at the stretch's ends.
 //! Deep fog is darker than its top, and the sun at or below the horizon
-//! lights none of it. The terrain's and the clouds' shadows are not in it.
+//! lights none of it. Clouds that cast shadows (`nebel_render`'s
+//! `CloudShadowMaps`) hold back `c 4π p_HG ∫ ρ e^{−τ(0, t) − C(h)/μ} w (1 −
+//! T_map) dt` of it over the stretch of each ray whose line toward the sun
+//! crosses a map below the clouds' top: a piece of three Gauss-Legendre
+//! nodes per four texels the crossing moves over, at most 64. The terrain's
+//! shadow is not in it.
 //!
 //! # Point and spot lights
 //!
@@ -35,10 +40,11 @@
 //! form. The stretch is cut where the density has a jump or a kink, each
 //! part into equal pieces, one per 0.5 of its optical depth plus
 //! exponential falloff times the altitude crossed (at most 64), each piece
-//! by Gauss-Legendre quadrature in the angle the light sees. Opaque objects
-//! cast no shadow in it. A volume inside the fog
-//! is conjugated by the fog's glow and sunlight alone: the lights' part of the fog in
-//! front of a cell is not in its conjugation. The lights take a variant of
+//! by Gauss-Legendre quadrature in the angle the light sees; a light with a
+//! shadow map is cut where its visibility changes. A volume inside the fog
+//! is conjugated by the fog's glow and sunlight alone: the lights' part of
+//! the fog in front of a cell, and the clouds' shadow on it, are not in its
+//! conjugation. The lights take a variant of
 //! the pass; without them it runs as before.
 //!
 //! # Volumes inside the fog
