@@ -159,7 +159,7 @@ impl GroundShadow {
 /// `p` to each box's far side. 1 for a sun too low to cast a map
 /// ([`GroundShadow::MIN_SUN_SINE`]), as there is none then.
 pub fn sun_transmittance(casters: &[ShadowCaster], sun: DVec3, p: DVec3) -> f64 {
-    if !(sun.y >= GroundShadow::MIN_SUN_SINE) {
+    if sun.y.is_nan() || sun.y < GroundShadow::MIN_SUN_SINE {
         return 1.0;
     }
     let depth: f64 = casters
@@ -183,7 +183,7 @@ pub fn shaded_stretch(
     direction: DVec3,
     (t_a, t_b): (f64, f64),
 ) -> Option<(f64, f64)> {
-    if !(sun.y >= GroundShadow::MIN_SUN_SINE) {
+    if sun.y.is_nan() || sun.y < GroundShadow::MIN_SUN_SINE {
         return None;
     }
     let mut hull: Option<(f64, f64)> = None;

@@ -424,7 +424,7 @@ pub fn prepare_fog_layer_bind_groups(
             depth.view().id(),
             buffer.id(),
             fog_view.multisampled,
-            cloud_maps.map(|map| map.id()),
+            cloud_maps.map(TextureView::id),
         );
         if made.is_some_and(|made| made.key == key) {
             continue;
