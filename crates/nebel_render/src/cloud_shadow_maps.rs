@@ -11,6 +11,7 @@
 
 use bevy::ecs::system::SystemParam;
 use bevy::prelude::*;
+use bevy::render::RenderApp;
 use bevy::render::extract_resource::ExtractResource;
 use bevy::render::render_asset::RenderAssets;
 use bevy::render::render_resource::{Sampler, ShaderType, TextureView};
@@ -93,9 +94,12 @@ impl CloudShadowTextures<'_> {
     }
 }
 
-/// Loads the WGSL library `nebel_render::cloud_shadow_maps`.
+/// Loads the WGSL library `nebel_render::cloud_shadow_maps` (nothing in an
+/// app without a renderer, which has no shaders).
 pub fn load_cloud_shadow_maps_library(app: &mut App) {
-    load_shader_library!(app, "cloud_shadow_maps.wgsl");
+    if app.get_sub_app(RenderApp).is_some() {
+        load_shader_library!(app, "cloud_shadow_maps.wgsl");
+    }
 }
 
 #[cfg(test)]
