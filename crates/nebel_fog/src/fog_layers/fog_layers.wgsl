@@ -28,7 +28,9 @@
 // (equal pieces of three Gauss-Legendre nodes, one per CLOUD_PIECE_TEXELS
 // texels the crossing moves over, at most MAX_CLOUD_PIECES; T_map bilinear,
 // read where that line crosses the map's plane; a point between the plane
-// and the top takes the whole column's shadow).
+// and the top takes the whole column's shadow). The optical depth to a node
+// is that to the stretch's start plus the difference of the fog's columns
+// over d_y (a ray within LEVEL_RAY of level: the prefix integral).
 
 #import bevy_core_pipeline::fullscreen_vertex_shader::FullscreenVertexOutput
 #import nebel_render::fog_layers::{FogLayers, fog_opacity, fog_optical_depth, fog_point, fog_stretch, layer_mean, layer_mean_and_columns}
@@ -70,6 +72,17 @@ struct FogPass {
 // ray, and the most pieces.
 const CLOUD_PIECE_TEXELS: f32 = 4.0;
 const MAX_CLOUD_PIECES: f32 = 64.0;
+// The vertical direction below which a ray counts as level.
+const LEVEL_RAY: f32 = 1.0e-3;
+
+// The fog's density at altitude `h` and the fog above it, C(h) = ∫_h^∞ ρ.
+fn fog_density_and_column(h: f32) -> vec2<f32> {
+    var fog = vec2(0.0);
+    for (var i = 0u; i < u32(fog_pass.fog.ranges.z); i++) {
+        fog += layer_mean_and_columns(fog_pass.fog, fog_pass.fog.layers[i], h, 0.0).xy;
+    }
+    return fog;
+}
 
 // The part of [t0, t1] along the unit ray `direction` from the eye below
 // the casters' top whose line toward the map's sun crosses the map between
@@ -124,9 +137,17 @@ fn map_held_back(
     }
     let eye = fog_pass.camera_position.xyz;
     let mu = fog_pass.fog.sun_direction.y;
-    let texels = length(direction.xz - sun.xz * (direction.y / sun.y)) * (stretch.y - stretch.x) / plane.y;
+    let d_y = direction.y;
+    let texels = length(direction.xz - sun.xz * (d_y / sun.y)) * (stretch.y - stretch.x) / plane.y;
     let pieces = u32(clamp(ceil(texels / CLOUD_PIECE_TEXELS), 1.0, MAX_CLOUD_PIECES));
     let half = 0.5 * (stretch.y - stretch.x) / f32(pieces);
+    // The optical depth from the eye to a node: to the stretch's start, then
+    // the difference of the columns over d_y (ρ dt = −dC/d_y); a ray within
+    // LEVEL_RAY of level, where that difference loses its precision, takes
+    // the prefix integral itself.
+    let level = abs(d_y) < LEVEL_RAY;
+    let start_depth = fog_optical_depth(fog_pass.fog, eye.y, d_y, 0.0, stretch.x);
+    let start_column = fog_density_and_column(eye.y + d_y * stretch.x).y;
     var sum = 0.0;
     for (var piece = 0u; piece < pieces; piece++) {
         let middle = stretch.x + (2.0 * f32(piece) + 1.0) * half;
@@ -135,11 +156,11 @@ fn map_held_back(
             let p = eye + t * direction;
             let held = held_back(plane, sun_and_weight, size, map_texture, cloud_map_sampler, p);
             if held > 0.0 {
-                var fog = vec2(0.0);
-                for (var i = 0u; i < u32(fog_pass.fog.ranges.z); i++) {
-                    fog += layer_mean_and_columns(fog_pass.fog, fog_pass.fog.layers[i], p.y, 0.0).xy;
+                let fog = fog_density_and_column(p.y);
+                var seen = start_depth + (start_column - fog.y) / d_y;
+                if level {
+                    seen = fog_optical_depth(fog_pass.fog, eye.y, d_y, 0.0, t);
                 }
-                let seen = fog_optical_depth(fog_pass.fog, eye.y, direction.y, 0.0, t);
                 sum += GAUSS_WEIGHTS[k] * half * fog.x * exp(-seen - fog.y / mu) * held;
             }
         }
