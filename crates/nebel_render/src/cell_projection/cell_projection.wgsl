@@ -73,7 +73,8 @@
 // as before. T and F are taken at the segment's middle: inside the segment
 // the two media overlap, and the middle is Strang splitting, exact to
 // second order in their optical depths. F = c (1 − T), c the fog's colour
-// along the ray. Emissive and MIP segments (α = 0) are scaled by T.
+// along the ray (its glow and sunlight, without the clouds' shadow on it).
+// Emissive and MIP segments (α = 0) are scaled by T.
 //
 // FOG_HANDOFF (a batch of fog the view's fog layers take over from their
 // start distance): segments end at that distance.
