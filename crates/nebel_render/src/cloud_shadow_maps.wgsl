@@ -42,3 +42,17 @@ fn held_back(
     let t = textureSampleLevel(map_texture, map_sampler, texels / size.z, 0.0).r;
     return sun_and_weight.w * (1.0 - t);
 }
+
+// The clouds' transmittance toward the sun at the world point `p`: both maps
+// weighed, the rest of the weight lit.
+fn cloud_transmittance(
+    maps: CloudShadowMapPair,
+    first_map: texture_2d<f32>,
+    second_map: texture_2d<f32>,
+    map_sampler: sampler,
+    p: vec3<f32>,
+) -> f32 {
+    return 1.0
+        - held_back(maps.first.plane, maps.first.sun_and_weight, maps.first.size, first_map, map_sampler, p)
+        - held_back(maps.second.plane, maps.second.sun_and_weight, maps.second.size, second_map, map_sampler, p);
+}

@@ -15,7 +15,7 @@
     pbr_types,
     shadows,
 }
-#import nebel_render::cloud_shadow_maps::{CloudShadowMapPair, held_back}
+#import nebel_render::cloud_shadow_maps::{CloudShadowMapPair, cloud_transmittance}
 
 struct ShadowMaps {
     maps: CloudShadowMapPair,
@@ -27,15 +27,6 @@ struct ShadowMaps {
 @group(#{MATERIAL_BIND_GROUP}) @binding(101) var map_sampler: sampler;
 @group(#{MATERIAL_BIND_GROUP}) @binding(102) var second_map: texture_2d<f32>;
 @group(#{MATERIAL_BIND_GROUP}) @binding(103) var<storage, read> shadow_maps: ShadowMaps;
-
-// The clouds' transmittance toward the sun at `p`: the two maps weighed, the rest of the weight lit.
-fn cloud_transmittance(p: vec3<f32>) -> f32 {
-    let first = shadow_maps.maps.first;
-    let second = shadow_maps.maps.second;
-    return 1.0
-        - held_back(first.plane, first.sun_and_weight, first.size, first_map, map_sampler, p)
-        - held_back(second.plane, second.sun_and_weight, second.size, second_map, map_sampler, p);
-}
 
 // The directional light nearest the sun, if one is within about 8 degrees of it.
 fn sun_light_index() -> i32 {
@@ -99,7 +90,7 @@ fn fragment(in: VertexOutput, @builtin(front_facing) is_front: bool) -> Fragment
     out.color = pbr_input.material.base_color;
     if (pbr_input.material.flags & pbr_types::STANDARD_MATERIAL_FLAGS_UNLIT_BIT) == 0u {
         out.color = apply_pbr_lighting(pbr_input);
-        let t = cloud_transmittance(pbr_input.world_position.xyz);
+        let t = cloud_transmittance(shadow_maps.maps, first_map, second_map, map_sampler, pbr_input.world_position.xyz);
         let light = sun_light_index();
         if t < 1.0 && light >= 0 {
             let held_back = (1.0 - t) * view_bindings::view.exposure * sun_light(pbr_input, u32(light));

@@ -112,7 +112,7 @@
 #ifdef LIGHT_SHADOWS
 #import nebel_render::light_shadows::{light_visibility_at, visibility_spans}
 #endif
-#import nebel_render::cloud_shadow_maps::{CloudShadowMapPair, held_back}
+#import nebel_render::cloud_shadow_maps::{CloudShadowMapPair, cloud_transmittance}
 
 struct CellView {
     clip_from_world: mat4x4<f32>,
@@ -452,14 +452,9 @@ fn piece_depth(s_front: f32, s_back: f32, m_front: f32, m_back: f32, piece_lengt
 #endif
 
 #ifdef GROUND_SUN
-// The clouds' transmittance toward the sun at the world point `p`: the two
-// maps weighed, the rest of the weight lit.
+// The clouds' transmittance toward the sun at the world point `p`.
 fn cloud_sun_transmittance(p: vec3<f32>) -> f32 {
-    let first = parameters.fog_sun.clouds.first;
-    let second = parameters.fog_sun.clouds.second;
-    return 1.0
-        - held_back(first.plane, first.sun_and_weight, first.size, first_cloud_map, cloud_map_sampler, p)
-        - held_back(second.plane, second.sun_and_weight, second.size, second_cloud_map, cloud_map_sampler, p);
+    return cloud_transmittance(parameters.fog_sun.clouds, first_cloud_map, second_cloud_map, cloud_map_sampler, p);
 }
 
 // The sun's transmittance at the world point `p`: 0 below the terrain's

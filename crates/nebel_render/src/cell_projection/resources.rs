@@ -70,8 +70,6 @@ pub struct ExtractedCellBatch {
     light_response: LightResponse,
     /// The sun lighting a sorted batch of ground fog.
     fog_sunlight: Option<CellFogSunlight>,
-    /// The clouds' shadow maps over that fog.
-    clouds: [CloudShadowMapUniform; 2],
 }
 
 impl ExtractedCellBatch {
@@ -113,8 +111,9 @@ impl ExtractedCellBatch {
         self.cells.grid.is_some()
     }
 
-    /// The batch's per-batch uniform.
-    fn uniform(&self) -> CellBatchUniform {
+    /// The batch's per-batch uniform, a sunlit fog's under the clouds'
+    /// shadow maps `clouds`.
+    fn uniform(&self, clouds: [CloudShadowMapUniform; 2]) -> CellBatchUniform {
         CellBatchUniform::new(
             self.scattering.as_ref(),
             self.blend,
@@ -122,7 +121,7 @@ impl ExtractedCellBatch {
             (&self.lights, self.light_response),
             self.fog_sunlight
                 .as_ref()
-                .map(|sunlight| (sunlight, self.clouds)),
+                .map(|sunlight| (sunlight, clouds)),
         )
     }
 }
@@ -159,12 +158,10 @@ pub fn extract_cell_batches(
         Extract<VolumetricSpotLights>,
     ),
     unsupported: Option<Res<CellProjectionUnsupported>>,
-    clouds: Extract<Option<Res<CloudShadowMaps>>>,
     device: Res<RenderDevice>,
     mut refused: Local<HashSet<Entity>>,
 ) {
     extracted.0.clear();
-    let clouds = CloudShadowMaps::of(clouds.as_deref());
     if unsupported.is_some() {
         return;
     }
@@ -241,7 +238,6 @@ pub fn extract_cell_batches(
                 fog_sunlight: fog_sunlight
                     .filter(|_| batch.mode == OpticalMode::Sorted)
                     .cloned(),
-                clouds,
             },
         ));
     }
@@ -454,7 +450,8 @@ impl GpuCellGrid {
 pub struct GpuCellBuffers(pub(super) HashMap<Entity, GpuCellBuffer>);
 
 /// Uploads batches that are new or changed, writes the per-batch uniform
-/// (blend factor, sunlight) of those where only it changed, and drops those
+/// (blend factor, sunlight, the clouds' shadow maps over a sunlit fog) of
+/// those where only it changed, and drops those
 /// that are gone.
 pub fn prepare_cell_buffers(
     extracted: Res<ExtractedCellBatches>,
@@ -462,10 +459,12 @@ pub fn prepare_cell_buffers(
     device: Res<RenderDevice>,
     queue: Res<RenderQueue>,
     stats: Res<CellProjectionStats>,
+    clouds: Option<Res<CloudShadowMaps>>,
 ) {
     if extracted.0.is_empty() && buffers.0.is_empty() {
         return;
     }
+    let clouds = CloudShadowMaps::of(clouds.as_deref());
     buffers
         .0
         .retain(|entity, _| extracted.0.iter().any(|(e, _)| e == entity));
@@ -481,8 +480,9 @@ pub fn prepare_cell_buffers(
                 );
                 buffer.sun_map_key = batch.sun_map_key();
             }
-            if *buffer.parameters.get() != batch.uniform() {
-                buffer.parameters.set(batch.uniform());
+            let uniform = batch.uniform(clouds);
+            if *buffer.parameters.get() != uniform {
+                buffer.parameters.set(uniform);
                 buffer.parameters.write_buffer(&device, &queue);
             }
             continue;
@@ -517,7 +517,7 @@ pub fn prepare_cell_buffers(
                 batch.fog_sunlight.as_ref().map(|sunlight| &*sunlight.map),
             ),
         };
-        let mut parameters = UniformBuffer::from(batch.uniform());
+        let mut parameters = UniformBuffer::from(batch.uniform(clouds));
         parameters.set_label(Some("nebel_cell_batch_parameters"));
         parameters.write_buffer(&device, &queue);
         stats.0.uploads.fetch_add(1, Ordering::Relaxed);
