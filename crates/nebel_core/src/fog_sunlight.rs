@@ -127,7 +127,7 @@ pub struct FogSunMap {
 impl FogSunMap {
     /// The most points along either side of a map a ground fog builds (a
     /// larger terrain is sampled bilinearly at fewer).
-    pub const MAX_POINTS: usize = 513;
+    pub const MAX_POINTS: usize = TerrainShadow::MAX_POINTS;
 
     /// The map of a fog of `thickness` over `ground` (each sampled
     /// bilinearly) for the sun in direction `sun` (toward it, the terrain's

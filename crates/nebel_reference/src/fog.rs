@@ -46,7 +46,7 @@
 
 use glam::DVec3;
 use nebel_core::cell::Ray;
-use nebel_core::field::{ShadowCaster, shaded_stretch, sun_transmittance};
+use nebel_core::field::{PlacedTerrainShadow, ShadowCaster, shaded_stretch, sun_transmittance};
 use nebel_core::height_fog::{HeightFog, HeightFogLayer};
 use nebel_core::local_light::{GAUSS_LEGENDRE_3, LightResponse, LocalLight};
 use nebel_core::occluder::Occluder;
@@ -94,10 +94,14 @@ pub struct ReferenceFog {
     /// Cloud volumes whose shadow dims the sunlight in the fog (module
     /// docs).
     pub clouds: Vec<ShadowCaster>,
+    /// The terrain's shadow heights: the fog below them is not sunlit
+    /// (module docs).
+    pub terrain: Option<PlacedTerrainShadow>,
 }
 
 /// Intervals of the clouds' held-back sunlight over a stretch
-/// ([`ReferenceFog::sunlit`]), three Gauss-Legendre nodes each.
+/// ([`ReferenceFog::sunlit`]), three Gauss-Legendre nodes each (shared out
+/// among the parts the terrain leaves sunlit).
 pub const CLOUD_INTERVALS: usize = 512;
 
 /// The most optical depth, plus exponential falloff times the altitude
@@ -169,22 +173,45 @@ impl ReferenceFog {
         let mut scattered = self
             .fog
             .sunlit(altitude(a), altitude(b), b - a, direction.y);
+        // The terrain's shadow: each shaded stretch's sunlight, closed form
+        // seen from its start, then dimmed to `a`.
+        let shaded = self.terrain.as_ref().map_or_else(Vec::new, |terrain| {
+            terrain.shaded(ray.origin, ray.direction, (a, b))
+        });
+        for &(c, d) in &shaded {
+            scattered -= (-self.optical_depth(ray, a, c)).exp()
+                * self
+                    .fog
+                    .sunlit(altitude(c), altitude(d), d - c, direction.y);
+        }
+        // The clouds' shadow over the sunlit rest of the stretch they can
+        // shade, in intervals proportional to each lit part's length.
         if let Some((c, d)) =
             shaded_stretch(&self.clouds, direction, ray.origin, ray.direction, (a, b))
         {
-            let step = (d - c) / CLOUD_INTERVALS as f64;
-            for k in 0..CLOUD_INTERVALS {
-                let middle = c + step * (k as f64 + 0.5);
-                for (node, weight) in GAUSS_LEGENDRE_3 {
-                    let t = middle + 0.5 * step * node;
-                    let h = altitude(t);
-                    let x = ray.origin + t * ray.direction;
-                    let held = 1.0 - sun_transmittance(&self.clouds, direction, x);
-                    if held > 0.0 {
-                        let depth =
-                            self.optical_depth(ray, a, t) + self.fog.column_above(h) / direction.y;
-                        scattered -=
-                            0.5 * step * weight * self.fog.density(h) * (-depth).exp() * held;
+            let mut lit = Vec::new();
+            let mut from = c;
+            for &(e, f) in shaded.iter().filter(|&&(e, f)| f > c && e < d) {
+                lit.push((from, e.max(c)));
+                from = f.min(d);
+            }
+            lit.push((from, d));
+            for (u, v) in lit.into_iter().filter(|(u, v)| v > u) {
+                let intervals = (CLOUD_INTERVALS as f64 * (v - u) / (d - c)).ceil().max(1.0);
+                let step = (v - u) / intervals;
+                for k in 0..intervals as usize {
+                    let middle = u + step * (k as f64 + 0.5);
+                    for (node, weight) in GAUSS_LEGENDRE_3 {
+                        let t = middle + 0.5 * step * node;
+                        let h = altitude(t);
+                        let x = ray.origin + t * ray.direction;
+                        let held = 1.0 - sun_transmittance(&self.clouds, direction, x);
+                        if held > 0.0 {
+                            let depth = self.optical_depth(ray, a, t)
+                                + self.fog.column_above(h) / direction.y;
+                            scattered -=
+                                0.5 * step * weight * self.fog.density(h) * (-depth).exp() * held;
+                        }
                     }
                 }
             }
@@ -364,6 +391,7 @@ mod tests {
             light_response: LightResponse::default(),
             occluders: Vec::new(),
             clouds: Vec::new(),
+            terrain: None,
         }
     }
 
@@ -603,6 +631,84 @@ mod tests {
         assert!(
             got.x > dimmed.x && got.x < 0.99 * clear.x,
             "{got} {dimmed} {clear}"
+        );
+    }
+
+    /// Shadow heights level at 6 m over a map that ends at x = −100 shade
+    /// the slab below 6 m on that part of a falling ray: what is left is the
+    /// closed-form sunlight of the rest, seen through the fog before it;
+    /// under a cloud slab over everything, that rest is dimmed by its
+    /// transmittance and the shaded part is not held back twice (to the
+    /// quadrature's 1e-8, which does not cut at the slab's floor).
+    #[test]
+    fn the_terrain_shadow_leaves_the_sunlight_of_the_stretches_above_it() {
+        use nebel_core::field::{DensityGrid, HeightField, TerrainShadow};
+        use std::sync::Arc;
+        let mut slab = slab();
+        let sun = DVec3::new(0.6, 0.8, 0.0);
+        slab.sun = Some(FogSunlight {
+            direction: sun,
+            colour: DVec3::ONE,
+            asymmetry: 0.3,
+        });
+        let heights = HeightField::new(
+            [2, 2],
+            glam::DVec2::new(200.0, 400.0),
+            glam::DVec2::new(-200.0, -200.0),
+            vec![6.0, 6.0, 6.0, 6.0],
+        )
+        .unwrap();
+        let terrain = PlacedTerrainShadow {
+            shadow: Arc::new(TerrainShadow {
+                distances: heights.clone(),
+                heights,
+                sun,
+            }),
+            // The map's frame: x from −200 to 0 is world x from −300 to −100.
+            map_from_world: glam::DAffine3::from_translation(DVec3::new(100.0, 0.0, 0.0)),
+        };
+        let shaded = ReferenceFog {
+            terrain: Some(terrain),
+            ..slab.clone()
+        };
+        // Falling from (−190, 6.5) at 1.5° down: it crosses 6 m at
+        // x = −190 + 0.5/tan 1.5° ≈ −171, then leaves the map at x = −100.
+        let falling = ray(DVec3::new(-190.0, 6.5, 0.0), -1.5);
+        let dy = falling.direction.y;
+        let (cross, leave) = (-0.5 / dy, 90.0 / falling.direction.x);
+        let got = shaded.sunlit(&falling, 0.0, 300.0);
+        let before = slab.sunlit(&falling, 0.0, cross);
+        let after =
+            (-slab.optical_depth(&falling, 0.0, leave)).exp() * slab.sunlit(&falling, leave, 300.0);
+        let expected = before + after;
+        assert!(
+            (got - expected).abs().max_element() < 1e-12 * expected.x,
+            "{got} against {expected}"
+        );
+        assert!(got.x < 0.8 * slab.sunlit(&falling, 0.0, 300.0).x);
+        let cloud = ShadowCaster {
+            grid: Arc::new(
+                DensityGrid::new(
+                    [2, 2, 2],
+                    DVec3::new(1e4, 5.0, 1e4),
+                    DVec3::new(-5e3, 50.0, -5e3),
+                    vec![1.0; 8],
+                )
+                .unwrap(),
+            ),
+            world_from_local: glam::DAffine3::IDENTITY,
+            extinction: 0.1,
+        };
+        let both = ReferenceFog {
+            clouds: vec![cloud],
+            ..shaded
+        };
+        let dimmed = both.sunlit(&falling, 0.0, 300.0);
+        let transmittance = (-0.1 * 5.0 / 0.8f64).exp();
+        assert!(
+            (dimmed - expected * transmittance).abs().max_element() < 1e-7 * expected.x,
+            "{dimmed} against {}",
+            expected * transmittance
         );
     }
 

@@ -1692,6 +1692,7 @@ mod tests {
             light_response: LightResponse::default(),
             occluders: Vec::new(),
             clouds: Vec::new(),
+            terrain: None,
         };
         let kappa = DVec3::new(1.0, 0.5, 0.25);
         let background = DVec4::new(0.05, 0.1, 0.0, 1.0);

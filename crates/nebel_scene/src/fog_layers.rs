@@ -119,6 +119,7 @@ impl FogLayersDescription {
             light_response: self.light_response,
             occluders,
             clouds: Vec::new(),
+            terrain: None,
         })
     }
 }

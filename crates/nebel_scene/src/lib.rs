@@ -45,13 +45,14 @@ pub use volume::{
 };
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
-use glam::{DVec2, DVec3};
+use glam::{DAffine3, DVec2, DVec3};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use nebel_core::budget::{BudgetError, Dims, check_allocation, check_bytes};
-use nebel_core::field::HeightField;
+use nebel_core::field::{HeightField, PlacedTerrainShadow, TerrainShadow};
 use nebel_core::local_light::{LightResponse, LocalLight, SpotCone, flicker};
 use nebel_reference::ReferenceCamera;
 use nebel_reference::image_metrics::{LinearImage, srgb_to_linear};
@@ -1059,6 +1060,36 @@ impl SceneDescription {
         terrain
             .fog_reference(unit, built, &self.reference_camera(), self.sun_direction())
             .map_err(|invalid| invalid.in_scene(scene_path, "terrain"))
+    }
+
+    /// The terrain's shadow heights over sunlit fog layers, as the fog
+    /// layers' plugin builds them (`TerrainShadow::of_field` of the
+    /// terrain's heights in its own frame); `None` without a terrain, fog
+    /// layers with a sun colour, or a sun that casts a map.
+    pub fn build_terrain_shadow(
+        &self,
+        scene_path: &Path,
+        unit: &HeightField,
+    ) -> Result<Option<PlacedTerrainShadow>, SceneError> {
+        let (Some(terrain), Some(fog), Some(sun)) =
+            (&self.terrain, &self.fog_layers, self.sun_direction())
+        else {
+            return Ok(None);
+        };
+        if fog.sun_color.iter().all(|c| *c <= 0.0) {
+            return Ok(None);
+        }
+        let local = terrain
+            .local_heights(unit)
+            .map_err(|invalid| invalid.in_scene(scene_path, "terrain"))?;
+        Ok(
+            TerrainShadow::of_field(&local, sun).map(|shadow| PlacedTerrainShadow {
+                shadow: Arc::new(shadow),
+                map_from_world: DAffine3::from_translation(-DVec3::from(
+                    terrain.center.map(f64::from),
+                )),
+            }),
+        )
     }
 
     /// Generates or loads every volume's field and transfer function.

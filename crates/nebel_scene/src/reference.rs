@@ -21,7 +21,9 @@ use crate::{
     BuiltVolume, LightModel, LightingDescription, ReferenceTerrain, SceneDescription, SceneField,
 };
 use glam::{DAffine3, DVec3, DVec4};
-use nebel_core::field::{CloudLighting, DensityGrid, PadFill, ShadowCaster, light_field};
+use nebel_core::field::{
+    CloudLighting, DensityGrid, PadFill, PlacedTerrainShadow, ShadowCaster, light_field,
+};
 use nebel_core::optics::OpticalMode;
 use nebel_reference::image_metrics::{ImageMetricsError, LinearImage, save_png, srgb_to_linear};
 use nebel_reference::{
@@ -70,17 +72,20 @@ pub fn reference_image(
     volumes: Vec<BuiltVolume>,
     progress: Option<&(dyn Fn(ReferenceProgress) + Sync)>,
 ) -> Result<LinearImage, ReferenceError> {
-    reference_image_with_terrain(scene, volumes, None, progress)
+    reference_image_with_terrain(scene, volumes, None, None, progress)
 }
 
 /// [`reference_image`] cut at `terrain` too: the scene terrain's heights in
 /// world space (`TerrainDescription::world_heights`) or the triangles the GPU
 /// draws (a terrain with fog, [`crate::FogReference::ground`]), drawn black
-/// like the meshes. `None` ignores the terrain.
+/// like the meshes, and `terrain_shadow` keeping the sun from the fog layers
+/// below it ([`SceneDescription::build_terrain_shadow`]). `None` ignores the
+/// terrain.
 pub fn reference_image_with_terrain(
     scene: &SceneDescription,
     volumes: Vec<BuiltVolume>,
     terrain: Option<&ReferenceTerrain>,
+    terrain_shadow: Option<PlacedTerrainShadow>,
     progress: Option<&(dyn Fn(ReferenceProgress) + Sync)>,
 ) -> Result<LinearImage, ReferenceError> {
     let camera = scene.reference_camera();
@@ -102,6 +107,7 @@ pub fn reference_image_with_terrain(
         })?
         .map(|fog| ReferenceFog {
             clouds: clouds.clone(),
+            terrain: terrain_shadow,
             ..fog
         });
     let mut joint = Vec::with_capacity(volumes.len());

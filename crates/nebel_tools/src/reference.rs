@@ -48,8 +48,18 @@ pub fn scene_reference(
     if let Some(layer) = scene.build_cloud_layer(scene_path)? {
         volumes.extend(scene.build_cloud_layer_reference(scene_path, &layer)?);
     }
+    let terrain_shadow = match &unit_heights {
+        Some(unit) => scene.build_terrain_shadow(scene_path, unit)?,
+        None => None,
+    };
     let (bar, report) = reference_bar(progress);
-    let image = reference_image_with_terrain(scene, volumes, terrain.as_ref(), Some(&report))?;
+    let image = reference_image_with_terrain(
+        scene,
+        volumes,
+        terrain.as_ref(),
+        terrain_shadow,
+        Some(&report),
+    )?;
     bar.finish_and_clear();
     Ok(image)
 }

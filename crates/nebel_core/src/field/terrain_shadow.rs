@@ -24,7 +24,7 @@
 use glam::{DVec2, DVec3};
 
 use super::HeightField;
-use crate::pacing::fill_slices;
+use crate::pacing::{fill_slices, worker_threads};
 
 /// The shadow heights of a terrain for one sun (module docs).
 #[derive(Clone, Debug, PartialEq)]
@@ -46,6 +46,19 @@ impl TerrainShadow {
     /// The lowest sine of the sun's elevation that casts a map (about 0.6°,
     /// where the sunlight is nearly gone).
     pub const MIN_SUN_SINE: f64 = 0.01;
+
+    /// The most points along either side of the map a terrain's sunlit fog
+    /// builds ([`TerrainShadow::of_field`]; a larger terrain is sampled
+    /// bilinearly at fewer).
+    pub const MAX_POINTS: usize = 513;
+
+    /// The map a sunlit fog draws with: [`TerrainShadow::compute`] at the
+    /// field's points up to [`TerrainShadow::MAX_POINTS`] a side, on every
+    /// core a build may use ([`worker_threads`]).
+    pub fn of_field(field: &HeightField, sun: DVec3) -> Option<Self> {
+        let points = field.dims().map(|n| n.min(Self::MAX_POINTS));
+        Self::compute(field, sun, points, worker_threads())
+    }
 
     /// The shadow heights of `field` for the sun in direction `sun` (toward
     /// it, in the field's frame) at `points` grid points along x and z

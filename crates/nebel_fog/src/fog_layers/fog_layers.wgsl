@@ -30,10 +30,18 @@
 // read where that line crosses the map's plane; a point between the plane
 // and the top takes the whole column's shadow). The optical depth to a node
 // is that to the stretch's start plus the difference of the fog's columns
-// over d_y (a ray within LEVEL_RAY of level: the prefix integral).
+// over d_y (a ray within LEVEL_RAY of level: the prefix integral). Nodes in
+// the terrain's shadow hold back nothing more.
+//
+// FOG_SUN with the terrain's shadow heights (the fog layers' terrain_shadow
+// module): the ray's stretches below them hold back their closed-form
+// sunlight, each seen through the fog before it. The walk crosses the map's
+// cells along the ray (Amanatides and Woo), below its highest shadow height;
+// in each cell the bilinear height along the ray is a quadratic, whose
+// roots cut the shaded pieces (nebel_core's PlacedTerrainShadow::shaded).
 
 #import bevy_core_pipeline::fullscreen_vertex_shader::FullscreenVertexOutput
-#import nebel_render::fog_layers::{FogLayers, fog_opacity, fog_optical_depth, fog_point, fog_stretch, layer_mean, layer_mean_and_columns}
+#import nebel_render::fog_layers::{FogLayers, fog_depth_and_columns, fog_opacity, fog_optical_depth, fog_point, fog_stretch, fog_sunlit, layer_mean, layer_mean_and_columns}
 #import nebel_render::local_lights::{GAUSS_NODES, GAUSS_WEIGHTS, LocalLights, henyey_greenstein, light_node, light_on_ray, light_quadrature, light_span}
 #import nebel_render::cloud_shadow_maps::{CloudShadowMapPair, held_back}
 #ifdef LIGHT_SHADOWS
@@ -51,6 +59,17 @@ struct FogPass {
     lights: LocalLights,
     // The clouds' shadow maps over sunlit fog (no weight otherwise).
     clouds: CloudShadowMapPair,
+    // The terrain's shadow heights over sunlit fog (no weight otherwise).
+    terrain: TerrainShadowMap,
+}
+
+struct TerrainShadowMap {
+    // World space to the map's grid: x and z in grid units, y the height in
+    // the terrain's frame.
+    grid_from_world: mat4x4<f32>,
+    // Points along x and z, the highest shadow height, and the weight (0:
+    // no map).
+    size: vec4<f32>,
 }
 
 @group(0) @binding(0) var<uniform> fog_pass: FogPass;
@@ -67,6 +86,7 @@ struct FogPass {
 @group(0) @binding(2) var first_cloud_map: texture_2d<f32>;
 @group(0) @binding(3) var second_cloud_map: texture_2d<f32>;
 @group(0) @binding(4) var cloud_map_sampler: sampler;
+@group(0) @binding(5) var terrain_shadow_map: texture_2d<f32>;
 
 // Map texels the crossing moves over per piece of a map's stretch of the
 // ray, and the most pieces.
@@ -155,7 +175,7 @@ fn map_held_back(
             let t = middle + half * GAUSS_NODES[k];
             let p = eye + t * direction;
             let held = held_back(plane, sun_and_weight, size, map_texture, cloud_map_sampler, p);
-            if held > 0.0 {
+            if held > 0.0 && !in_terrain_shadow(p) {
                 let fog = fog_density_and_column(p.y);
                 var seen = start_depth + (start_column - fog.y) / d_y;
                 if level {
@@ -178,6 +198,163 @@ fn clouds_held_back(direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
     let sun = fog_pass.fog.sun_direction.xyz;
     let phase = henyey_greenstein(fog_pass.fog.sun_colour.w, dot(direction, sun));
     return fog_pass.fog.sun_colour.rgb * phase * held;
+}
+#endif
+
+#ifdef FOG_SUN
+// The most cells the walk over the terrain's shadow heights crosses: two
+// sides of the largest map.
+const MAX_TERRAIN_CELLS: u32 = 1024u;
+
+// The shadow heights at the corners of the map's cell `cell`: (i, j),
+// (i + 1, j), (i, j + 1), (i + 1, j + 1).
+fn shadow_corners(cell: vec2<f32>) -> vec4<f32> {
+    let c = vec2<i32>(cell);
+    return vec4(
+        textureLoad(terrain_shadow_map, c, 0).r,
+        textureLoad(terrain_shadow_map, c + vec2(1, 0), 0).r,
+        textureLoad(terrain_shadow_map, c + vec2(0, 1), 0).r,
+        textureLoad(terrain_shadow_map, c + vec2(1, 1), 0).r,
+    );
+}
+
+// Whether the world point `p` lies below the terrain's shadow heights,
+// inside the map.
+fn in_terrain_shadow(p: vec3<f32>) -> bool {
+    let map = fog_pass.terrain;
+    if map.size.w <= 0.0 {
+        return false;
+    }
+    let g = (map.grid_from_world * vec4(p, 1.0)).xyz;
+    let last = map.size.xy - 1.0;
+    if any(g.xz < vec2(0.0)) || any(g.xz > last) {
+        return false;
+    }
+    let cell = min(floor(g.xz), last - 1.0);
+    let f = g.xz - cell;
+    let h = shadow_corners(cell);
+    return g.y < mix(mix(h.x, h.y, f.x), mix(h.z, h.w, f.x), f.y);
+}
+
+// The sunlight of the fog over [t0, t1] along the ray `direction`, seen
+// from the eye.
+fn sunlight_between(direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
+    let altitude = fog_pass.camera_position.y;
+    let depths = fog_depth_and_columns(fog_pass.fog, altitude, direction.y, t0, t1);
+    let before = fog_optical_depth(fog_pass.fog, altitude, direction.y, 0.0, t0);
+    return exp(-before) * fog_sunlit(fog_pass.fog, direction, depths);
+}
+
+// The sunlight the terrain's shadow holds back from the fog over [t0, t1]
+// along the ray `direction` (see the header).
+fn terrain_held_back(direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
+    let map = fog_pass.terrain;
+    if map.size.w <= 0.0 {
+        return vec3(0.0);
+    }
+    // The ray in the map's grid: g(t) = start + t e.
+    let start = (map.grid_from_world * vec4(fog_pass.camera_position.xyz, 1.0)).xyz;
+    let e = (map.grid_from_world * vec4(direction, 0.0)).xyz;
+    let last = map.size.xy - 1.0;
+    var a = t0;
+    var b = t1;
+    if e.y > 0.0 {
+        b = min(b, (map.size.z - start.y) / e.y);
+    } else if e.y < 0.0 {
+        a = max(a, (map.size.z - start.y) / e.y);
+    } else if start.y > map.size.z {
+        return vec3(0.0);
+    }
+    for (var axis = 0; axis < 2; axis++) {
+        let s = start.xz[axis];
+        let r = e.xz[axis];
+        if r == 0.0 {
+            if s < 0.0 || s > last[axis] {
+                return vec3(0.0);
+            }
+            continue;
+        }
+        let enter = -s / r;
+        let leave = (last[axis] - s) / r;
+        a = max(a, min(enter, leave));
+        b = min(b, max(enter, leave));
+    }
+    if !(b > a) {
+        return vec3(0.0);
+    }
+    let g0 = start.xz + a * e.xz;
+    var cell = floor(g0);
+    for (var axis = 0; axis < 2; axis++) {
+        if e.xz[axis] < 0.0 && cell[axis] == g0[axis] {
+            cell[axis] -= 1.0;
+        }
+    }
+    cell = clamp(cell, vec2(0.0), last - 1.0);
+    let step = sign(e.xz);
+    var held = vec3(0.0);
+    var open = false;
+    var shade_start = 0.0;
+    var t = a;
+    for (var n = 0u; n < MAX_TERRAIN_CELLS; n++) {
+        // Where the ray leaves the cell across each axis.
+        let bound = cell + max(step, vec2(0.0));
+        let next = select(vec2(1.0e30), (bound - start.xz) / e.xz, e.xz != vec2(0.0));
+        let end = max(min(min(next.x, next.y), b), t);
+        // d(s) = y − h_s along the cell, s = t' − t: a quadratic.
+        let h = shadow_corners(cell);
+        let bx = h.y - h.x;
+        let cz = h.z - h.x;
+        let k = h.w - h.y - h.z + h.x;
+        let p = start.xz + t * e.xz - cell;
+        let constant = start.y + t * e.y - (h.x + bx * p.x + cz * p.y + k * p.x * p.y);
+        let linear = e.y - (bx * e.x + cz * e.z + k * (p.x * e.z + p.y * e.x));
+        let quadratic = -k * e.x * e.z;
+        let length = end - t;
+        var cuts = vec2(length);
+        if quadratic == 0.0 {
+            if linear != 0.0 {
+                cuts.x = -constant / linear;
+            }
+        } else {
+            let discriminant = linear * linear - 4.0 * quadratic * constant;
+            if discriminant >= 0.0 {
+                let big = -0.5 * (linear + select(-1.0, 1.0, linear >= 0.0) * sqrt(discriminant));
+                if big != 0.0 {
+                    cuts = vec2(big / quadratic, constant / big);
+                }
+            }
+        }
+        cuts = select(vec2(length), cuts, cuts > vec2(0.0) & cuts < vec2(length));
+        cuts = vec2(min(cuts.x, cuts.y), max(cuts.x, cuts.y));
+        var pieces = array(vec2(0.0, cuts.x), vec2(cuts.x, cuts.y), vec2(cuts.y, length));
+        for (var m = 0; m < 3; m++) {
+            let piece = pieces[m];
+            if piece.y > piece.x {
+                let s = 0.5 * (piece.x + piece.y);
+                let dark = constant + s * (linear + s * quadratic) < 0.0;
+                if dark && !open {
+                    open = true;
+                    shade_start = t + piece.x;
+                } else if !dark && open {
+                    open = false;
+                    held += sunlight_between(direction, shade_start, t + piece.x);
+                }
+            }
+        }
+        t = end;
+        if end >= b {
+            break;
+        }
+        let axis = select(0, 1, next.y < next.x);
+        cell[axis] += step[axis];
+        if cell[axis] < 0.0 || cell[axis] > last[axis] - 1.0 {
+            break;
+        }
+    }
+    if open {
+        held += sunlight_between(direction, shade_start, t);
+    }
+    return held;
 }
 #endif
 
@@ -329,7 +506,10 @@ fn fog_sample(ndc: vec2<f32>, direction: vec3<f32>, depth: f32) -> vec4<f32> {
     let alpha = fog_opacity(stretch.w);
     var colour = stretch.rgb;
 #ifdef FOG_SUN
-    colour = max(colour - clouds_held_back(direction, fog_pass.fog.ranges.x, min(distance, fog_pass.fog.ranges.y)), vec3(0.0));
+    let lit_from = fog_pass.fog.ranges.x;
+    let lit_to = min(distance, fog_pass.fog.ranges.y);
+    let held = clouds_held_back(direction, lit_from, lit_to) + terrain_held_back(direction, lit_from, lit_to);
+    colour = max(colour - held, vec3(0.0));
 #endif
 #ifdef LOCAL_LIGHTS
     let t0 = fog_pass.fog.ranges.x;

@@ -71,12 +71,14 @@
 
 mod node;
 mod resources;
+mod terrain_shadow;
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use bevy::diagnostic::{Diagnostic, DiagnosticPath, Diagnostics, RegisterDiagnostic};
 use bevy::prelude::*;
+use bevy::render::extract_resource::ExtractResourcePlugin;
 use nebel_core::height_fog::{HeightFog, HeightFogError, HeightFogLayer};
 use nebel_core::local_light::LightResponse;
 use nebel_render::EffectStatus;
@@ -84,6 +86,7 @@ use nebel_render::fog_layers::{FogLayersLimitError, FogLayersLook, FogLayersUnif
 use thiserror::Error;
 
 pub use resources::FogLayersRenderPlugin;
+pub use terrain_shadow::{FogLayersTerrainShadow, TerrainShadowUniform};
 
 /// Height fog seen by a 3D camera (see the module docs). Put it on the
 /// camera entity; [`FogLayersStatus`] says whether it draws.
@@ -188,6 +191,10 @@ pub struct FogLayersPlugin;
 impl FogLayersPlugin {
     /// Fog-layer passes run so far (one per camera with fog, per frame).
     pub const PASSES: DiagnosticPath = DiagnosticPath::const_new("nebel/fog_layers/passes");
+    /// Milliseconds the last build of the terrain's shadow heights took
+    /// ([`FogLayersTerrainShadow`]).
+    pub const TERRAIN_SHADOW_MS: DiagnosticPath =
+        DiagnosticPath::const_new("nebel/fog_layers/terrain_shadow_ms");
 }
 
 /// The number of fog-layer passes run, shared by the main and the render
@@ -209,7 +216,17 @@ impl Plugin for FogLayersPlugin {
             .register_type::<FogLayersStatus>()
             .insert_resource(passes.clone())
             .register_diagnostic(Diagnostic::new(Self::PASSES))
-            .add_systems(PostUpdate, prepare_fog_layers)
+            .register_diagnostic(Diagnostic::new(Self::TERRAIN_SHADOW_MS).with_suffix(" ms"))
+            .init_resource::<FogLayersTerrainShadow>()
+            .init_resource::<terrain_shadow::TerrainShadowBuild>()
+            .add_plugins(ExtractResourcePlugin::<FogLayersTerrainShadow>::default())
+            .add_systems(
+                PostUpdate,
+                (
+                    prepare_fog_layers,
+                    terrain_shadow::update_terrain_shadow.after(prepare_fog_layers),
+                ),
+            )
             .add_systems(Last, publish_passes)
             .add_plugins(FogLayersRenderPlugin { passes });
     }

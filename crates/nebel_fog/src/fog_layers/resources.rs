@@ -1,8 +1,9 @@
 //! The render world of the fog layers, a row of small systems: extraction of
 //! each camera's fog (with the sun's direction of this frame), a readable
-//! depth texture, the per-view uniform and pipeline, and the per-view bind
-//! group, made again only when the depth texture or the uniform buffer is a
-//! new one.
+//! depth texture, the terrain's shadow heights
+//! ([`super::terrain_shadow`]), the per-view uniform and pipeline, and the
+//! per-view bind group, made again only when a texture or the uniform
+//! buffer is a new one.
 
 use bevy::core_pipeline::FullscreenShader;
 use bevy::core_pipeline::core_3d::prepare_core_3d_depth_textures;
@@ -31,6 +32,9 @@ use nebel_render::local_lights::{
 };
 use nebel_render::{CloudShadowMapUniform, CloudShadowMaps, EffectiveQuality};
 
+use super::terrain_shadow::{
+    TerrainShadowTexture, TerrainShadowUniform, prepare_terrain_shadow_texture,
+};
 use super::{FogLayers, FogLayersPasses, PreparedFogLayers};
 
 /// The render side of [`super::FogLayersPlugin`].
@@ -57,7 +61,10 @@ impl Plugin for FogLayersRenderPlugin {
                     make_depth_readable
                         .in_set(RenderSystems::Prepare)
                         .before(prepare_core_3d_depth_textures),
-                    prepare_fog_layer_views.in_set(RenderSystems::PrepareResources),
+                    prepare_terrain_shadow_texture.in_set(RenderSystems::PrepareResources),
+                    prepare_fog_layer_views
+                        .in_set(RenderSystems::PrepareResources)
+                        .after(prepare_terrain_shadow_texture),
                     prepare_fog_layer_bind_groups.in_set(RenderSystems::PrepareBindGroups),
                 ),
             )
@@ -199,6 +206,8 @@ pub struct FogPassUniform {
     lights: LocalLightsUniform,
     /// The clouds' shadow maps over sunlit fog (no weight otherwise).
     clouds: [CloudShadowMapUniform; 2],
+    /// The terrain's shadow heights over sunlit fog (no weight otherwise).
+    terrain: TerrainShadowUniform,
 }
 
 /// Every fogged view's [`FogPassUniform`] of this frame.
@@ -264,6 +273,8 @@ fn init_fog_layers_pipeline(
                     texture_2d(TextureSampleType::Float { filterable: true }),
                     texture_2d(TextureSampleType::Float { filterable: true }),
                     sampler(SamplerBindingType::Filtering),
+                    // The terrain's shadow heights, loaded texel by texel.
+                    texture_2d(TextureSampleType::Float { filterable: false }),
                 ),
             ),
         )
@@ -331,6 +342,7 @@ pub fn prepare_fog_layer_views(
     )>,
     light_shadows: LightShadows,
     clouds: Option<Res<CloudShadowMaps>>,
+    terrain: Option<Res<TerrainShadowTexture>>,
     mut uniforms: ResMut<FogPassUniforms>,
     pipeline: Res<FogLayersPipeline>,
     mut pipelines: ResMut<SpecializedRenderPipelines<FogLayersPipeline>>,
@@ -366,6 +378,10 @@ pub fn prepare_fog_layer_views(
             } else {
                 Default::default()
             },
+            terrain: terrain
+                .as_ref()
+                .filter(|_| fog.0.has_sun())
+                .map_or_else(TerrainShadowUniform::default, |terrain| terrain.uniform),
         });
         let multisampled = *msaa != Msaa::Off;
         let pipeline = pipelines.specialize(
@@ -394,8 +410,14 @@ pub fn prepare_fog_layer_views(
 pub struct FogLayersBindGroup {
     pub(super) bind_group: BindGroup,
     /// The depth texture view, the uniform buffer, whether the depth is
-    /// multisampled and the clouds' shadow maps.
-    key: (TextureViewId, BufferId, bool, [TextureViewId; 2]),
+    /// multisampled, the clouds' shadow maps and the terrain's.
+    key: (
+        TextureViewId,
+        BufferId,
+        bool,
+        [TextureViewId; 2],
+        TextureViewId,
+    ),
 }
 
 /// Gives each fogged view its bind group, made again only when the depth
@@ -413,9 +435,12 @@ pub fn prepare_fog_layer_bind_groups(
     pipeline: Res<FogLayersPipeline>,
     pipeline_cache: Res<PipelineCache>,
     clouds: CloudShadowTextures,
+    terrain: Option<Res<TerrainShadowTexture>>,
     device: Res<RenderDevice>,
 ) {
-    let (Some(buffer), Some(binding)) = (uniforms.0.buffer(), uniforms.0.binding()) else {
+    let (Some(buffer), Some(binding), Some(terrain)) =
+        (uniforms.0.buffer(), uniforms.0.binding(), terrain)
+    else {
         return;
     };
     let (cloud_maps, cloud_sampler) = clouds.bindings();
@@ -425,6 +450,7 @@ pub fn prepare_fog_layer_bind_groups(
             buffer.id(),
             fog_view.multisampled,
             cloud_maps.map(TextureView::id),
+            terrain.view.id(),
         );
         if made.is_some_and(|made| made.key == key) {
             continue;
@@ -439,6 +465,7 @@ pub fn prepare_fog_layer_bind_groups(
                 cloud_maps[0],
                 cloud_maps[1],
                 cloud_sampler,
+                &terrain.view,
             )),
         );
         commands

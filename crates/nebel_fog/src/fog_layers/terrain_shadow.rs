@@ -1,0 +1,195 @@
+//! The terrain's shadow in the fog layers' sunlight: the shadow heights of
+//! the first terrain (`nebel_core::field::TerrainShadow`) keep the sun from
+//! the fog below them.
+//!
+//! While a camera's [`FogLayers`](super::FogLayers) scatter sunlight, the
+//! first `TerrainLod` with a quadtree gets a map of its shadow heights for
+//! the first `DirectionalLight`, at up to `TerrainShadow::MAX_POINTS` points
+//! a side, built on the task pool again when the terrain or its transform
+//! changes or the sun turns (in the terrain's frame) by more than
+//! [`SUN_STEP`], one build at a time; the fog keeps the last map until the
+//! new one lands. The render world uploads it as an `R32Float` texture when
+//! it is a new map. The pass walks the map's cells along each ray and holds
+//! back the closed-form sunlight of every stretch below the shadow heights
+//! (`nebel_core::field::PlacedTerrainShadow`, exact for the map's bilinear
+//! heights). Without sunlit fog layers, a sun or a terrain there is no map,
+//! no build and no upload; the pass reads a 1 × 1 texture with no weight.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use bevy::diagnostic::Diagnostics;
+use bevy::math::{DAffine3, DMat4, DVec3};
+use bevy::prelude::*;
+use bevy::render::extract_resource::ExtractResource;
+use bevy::render::render_resource::{
+    Extent3d, ShaderType, TextureDataOrder, TextureDescriptor, TextureDimension, TextureFormat,
+    TextureUsages, TextureView, TextureViewDescriptor,
+};
+use bevy::render::renderer::{RenderDevice, RenderQueue};
+use nebel_core::field::{PlacedTerrainShadow, TerrainShadow};
+use nebel_render::camera::to_double_affine;
+use nebel_render::{HeavyBuild, HeavyBuilds};
+use nebel_terrain::TerrainLod;
+
+use super::{FogLayersPlugin, PreparedFogLayers};
+use crate::sunlight::SUN_STEP;
+
+/// The terrain's shadow heights over sunlit fog layers (module docs), placed
+/// in the world; `None` without one.
+#[derive(Resource, Clone, Debug, Default, PartialEq, ExtractResource)]
+pub struct FogLayersTerrainShadow(pub Option<PlacedTerrainShadow>);
+
+/// What a map was built from: the quadtree (by identity) and the terrain's
+/// transform.
+type ShadowKey = (usize, GlobalTransform);
+
+/// The map's build in flight and what the last one was built for.
+#[derive(Resource, Default)]
+pub(super) struct TerrainShadowBuild {
+    built: Option<(ShadowKey, DVec3)>,
+    building: Option<(
+        ShadowKey,
+        DVec3,
+        DAffine3,
+        HeavyBuild<(Option<TerrainShadow>, f32)>,
+    )>,
+}
+
+/// Builds and hands over the terrain's shadow heights (module docs).
+pub(super) fn update_terrain_shadow(
+    fogs: Query<&PreparedFogLayers>,
+    terrains: Query<(&TerrainLod, &GlobalTransform)>,
+    suns: Query<&GlobalTransform, With<DirectionalLight>>,
+    mode: Res<HeavyBuilds>,
+    mut state: ResMut<TerrainShadowBuild>,
+    mut shadow: ResMut<FogLayersTerrainShadow>,
+    mut diagnostics: Diagnostics,
+) {
+    let sunlit = fogs
+        .iter()
+        .any(|fog| fog.0.is_some_and(|uniform| uniform.has_sun()));
+    let sun = suns.iter().next().map(|sun| sun.back().as_dvec3());
+    let terrain = terrains
+        .iter()
+        .find_map(|(lod, transform)| Some((lod.quadtree()?.clone(), *transform)));
+    let (true, Some(sun), Some((quadtree, transform))) = (sunlit, sun, terrain) else {
+        if state.built.is_some() || state.building.is_some() {
+            *state = TerrainShadowBuild::default();
+        }
+        shadow.set_if_neq(FogLayersTerrainShadow(None));
+        return;
+    };
+    let map_from_world = to_double_affine(&transform).inverse();
+    let local_sun = map_from_world.transform_vector3(sun).normalize_or(DVec3::Y);
+    let key = (Arc::as_ptr(&quadtree) as usize, transform);
+    let fresh = state.built.as_ref().is_some_and(|(built, built_sun)| {
+        *built == key && built_sun.angle_between(local_sun) <= SUN_STEP
+    });
+    if !fresh && state.building.is_none() {
+        let build = HeavyBuild::spawn(move || {
+            let started = Instant::now();
+            let map = TerrainShadow::of_field(quadtree.field(), local_sun);
+            (map, started.elapsed().as_secs_f32() * 1e3)
+        });
+        state.building = Some((key, local_sun, map_from_world, build));
+    }
+    if let Some((_, _, _, build)) = state.building.as_mut()
+        && let Some((map, ms)) = build.poll(*mode)
+        && let Some((key, built_sun, map_from_world, _)) = state.building.take()
+    {
+        state.built = Some((key, built_sun));
+        diagnostics.add_measurement(&FogLayersPlugin::TERRAIN_SHADOW_MS, || f64::from(ms));
+        shadow.set_if_neq(FogLayersTerrainShadow(map.map(|map| PlacedTerrainShadow {
+            shadow: Arc::new(map),
+            map_from_world,
+        })));
+    }
+}
+
+/// The map as the pass reads it (`TerrainShadowMap` in `fog_layers.wgsl`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, ShaderType)]
+pub struct TerrainShadowUniform {
+    /// World space to the map's grid: x and z in grid units (point `(i,
+    /// j)` at `(i, j)`), y the height in the terrain's frame.
+    pub grid_from_world: Mat4,
+    /// Points along x and z, the highest shadow height, and the weight: 1
+    /// with a map, 0 without.
+    pub size: Vec4,
+}
+
+impl TerrainShadowUniform {
+    /// The uniform of `placed`.
+    pub fn new(placed: &PlacedTerrainShadow) -> Self {
+        let grid = &placed.shadow.heights;
+        let spacing = grid.spacing();
+        let grid_from_map = DMat4::from_scale(DVec3::new(1.0 / spacing.x, 1.0, 1.0 / spacing.y))
+            * DMat4::from_translation(DVec3::new(-grid.origin().x, 0.0, -grid.origin().y));
+        let top = grid.heights().iter().copied().fold(f32::MIN, f32::max);
+        let [nx, nz] = grid.dims();
+        Self {
+            grid_from_world: (grid_from_map * DMat4::from(placed.map_from_world)).as_mat4(),
+            size: Vec4::new(nx as f32, nz as f32, top, 1.0),
+        }
+    }
+}
+
+/// The map's texture and uniform in the render world, and the map they are
+/// of (by identity).
+#[derive(Resource)]
+pub struct TerrainShadowTexture {
+    source: Option<usize>,
+    /// The shadow heights, one texel per point (1 × 1 without a map).
+    pub view: TextureView,
+    /// What the pass reads of the map (no weight without one).
+    pub uniform: TerrainShadowUniform,
+}
+
+/// Uploads the extracted map when it is a new one (render world).
+pub(super) fn prepare_terrain_shadow_texture(
+    mut commands: Commands,
+    placed: Option<Res<FogLayersTerrainShadow>>,
+    current: Option<Res<TerrainShadowTexture>>,
+    device: Res<RenderDevice>,
+    queue: Res<RenderQueue>,
+) {
+    let placed = placed.as_ref().and_then(|placed| placed.0.as_ref());
+    let source = placed.map(|placed| Arc::as_ptr(&placed.shadow) as usize);
+    // A map and its placement come together: the same map, the same
+    // uniform.
+    if current.is_some_and(|current| current.source == source) {
+        return;
+    }
+    let (size, heights) = placed.map_or(([1, 1], &[0.0f32][..]), |placed| {
+        (
+            placed.shadow.heights.dims(),
+            placed.shadow.heights.heights(),
+        )
+    });
+    let view = device
+        .create_texture_with_data(
+            &queue,
+            &TextureDescriptor {
+                label: Some("nebel_fog_layers_terrain_shadow"),
+                size: Extent3d {
+                    width: size[0] as u32,
+                    height: size[1] as u32,
+                    depth_or_array_layers: 1,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: TextureDimension::D2,
+                format: TextureFormat::R32Float,
+                usage: TextureUsages::TEXTURE_BINDING,
+                view_formats: &[],
+            },
+            TextureDataOrder::LayerMajor,
+            bytemuck::cast_slice(heights),
+        )
+        .create_view(&TextureViewDescriptor::default());
+    commands.insert_resource(TerrainShadowTexture {
+        source,
+        view,
+        uniform: placed.map_or_else(TerrainShadowUniform::default, TerrainShadowUniform::new),
+    });
+}
