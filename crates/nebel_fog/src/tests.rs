@@ -729,3 +729,83 @@ fn a_sun_that_turns_every_frame_still_gets_new_maps_in_the_background() {
         "{newest}"
     );
 }
+
+/// The terrain's shadow heights over sunlit fog layers: none without a sun
+/// colour, a sun or a terrain; the terrain's own map for the sun in its
+/// frame, kept while the sun turns less than a step and built again when it
+/// turns more.
+#[test]
+fn sunlit_fog_layers_get_the_terrains_shadow_heights() {
+    use crate::fog_layers::FogLayersTerrainShadow;
+    use crate::{FogLayers, FogLayersPlugin};
+    use nebel_core::field::TerrainShadow;
+    let (mut app, camera) = app(
+        &asset_dir("layers-shadow"),
+        Vec3::new(-400.0, 250.0, -300.0),
+    );
+    app.add_plugins(FogLayersPlugin);
+    let shadow = |app: &App| app.world().resource::<FogLayersTerrainShadow>().0.clone();
+    let terrain = app
+        .world_mut()
+        .spawn((
+            terrain(),
+            Transform::from_xyz(30.0, -5.0, 12.0),
+            InheritedVisibility::VISIBLE,
+        ))
+        .id();
+    app.world_mut().entity_mut(camera).insert(FogLayers {
+        sun_color: Color::linear_rgb(1.0, 0.8, 0.6),
+        ..default()
+    });
+    settle(&mut app);
+    assert!(shadow(&app).is_none(), "no sun, no map");
+    let toward = Vec3::new(0.6, -0.3, 0.74);
+    let sun = app
+        .world_mut()
+        .spawn((
+            DirectionalLight::default(),
+            Transform::default().looking_to(toward, Vec3::Y),
+        ))
+        .id();
+    settle(&mut app);
+    let placed = shadow(&app).expect("a map for the sunlit fog");
+    let quadtree = app
+        .world()
+        .get::<TerrainLod>(terrain)
+        .unwrap()
+        .quadtree()
+        .unwrap()
+        .clone();
+    let sun_direction = app
+        .world()
+        .get::<GlobalTransform>(sun)
+        .unwrap()
+        .back()
+        .as_dvec3();
+    let expected = TerrainShadow::of_field(quadtree.field(), sun_direction).unwrap();
+    assert_eq!(*placed.shadow, expected);
+    assert_eq!(
+        placed.map_from_world.translation,
+        -bevy::math::DVec3::new(30.0, -5.0, 12.0)
+    );
+    assert!(measured(&app, &FogLayersPlugin::TERRAIN_SHADOW_MS).is_some());
+    // Less than a step keeps the map, more builds a new one.
+    let turn = |app: &mut App, angle: f32| {
+        let mut transform = app.world_mut().get_mut::<Transform>(sun).unwrap();
+        transform.rotate_y(angle);
+    };
+    turn(&mut app, 0.002);
+    settle(&mut app);
+    assert!(Arc::ptr_eq(&shadow(&app).unwrap().shadow, &placed.shadow));
+    turn(&mut app, 0.05);
+    settle(&mut app);
+    let turned = shadow(&app).unwrap();
+    assert!(!Arc::ptr_eq(&turned.shadow, &placed.shadow));
+    assert!(turned.shadow.sun.angle_between(placed.shadow.sun) > 0.04);
+    // Fog without sunlight needs no map.
+    app.world_mut()
+        .entity_mut(camera)
+        .insert(FogLayers::default());
+    settle(&mut app);
+    assert!(shadow(&app).is_none());
+}

@@ -61,7 +61,7 @@ pub(super) fn update_terrain_shadow(
     fogs: Query<&PreparedFogLayers>,
     terrains: Query<(&TerrainLod, &GlobalTransform)>,
     suns: Query<&GlobalTransform, With<DirectionalLight>>,
-    mode: Res<HeavyBuilds>,
+    mode: Option<Res<HeavyBuilds>>,
     mut state: ResMut<TerrainShadowBuild>,
     mut shadow: ResMut<FogLayersTerrainShadow>,
     mut diagnostics: Diagnostics,
@@ -95,7 +95,7 @@ pub(super) fn update_terrain_shadow(
         state.building = Some((key, local_sun, map_from_world, build));
     }
     if let Some((_, _, _, build)) = state.building.as_mut()
-        && let Some((map, ms)) = build.poll(*mode)
+        && let Some((map, ms)) = build.poll(mode.map_or_else(HeavyBuilds::default, |mode| *mode))
         && let Some((key, built_sun, map_from_world, _)) = state.building.take()
     {
         state.built = Some((key, built_sun));
@@ -192,4 +192,48 @@ pub(super) fn prepare_terrain_shadow_texture(
         view,
         uniform: placed.map_or_else(TerrainShadowUniform::default, TerrainShadowUniform::new),
     });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use bevy::math::{DQuat, DVec2};
+    use nebel_core::field::HeightField;
+
+    /// The uniform takes a world point over the map's point `(i, j)` at
+    /// height `h` in the terrain's frame to `(i, h, j)`, under a turned,
+    /// moved terrain, and carries the map's points, top and weight.
+    #[test]
+    fn the_map_is_packed_as_the_pass_reads_it() {
+        let heights = HeightField::new(
+            [4, 3],
+            DVec2::new(7.0, 5.0),
+            DVec2::new(-40.0, 15.0),
+            vec![
+                1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.5,
+            ],
+        )
+        .unwrap();
+        let world_from_map = DAffine3::from_rotation_translation(
+            DQuat::from_rotation_y(0.7),
+            DVec3::new(300.0, -20.0, 45.0),
+        );
+        let placed = PlacedTerrainShadow {
+            shadow: Arc::new(TerrainShadow {
+                distances: heights.clone(),
+                heights,
+                sun: DVec3::Y,
+            }),
+            map_from_world: world_from_map.inverse(),
+        };
+        let uniform = TerrainShadowUniform::new(&placed);
+        assert_eq!(uniform.size, Vec4::new(4.0, 3.0, 12.5, 1.0));
+        let world = world_from_map.transform_point3(DVec3::new(-40.0 + 2.0 * 7.0, 6.5, 15.0 + 5.0));
+        let grid = uniform.grid_from_world * world.as_vec3().extend(1.0);
+        assert!(
+            grid.truncate().distance(Vec3::new(2.0, 6.5, 1.0)) < 1e-4,
+            "{grid}"
+        );
+        assert_eq!(TerrainShadowUniform::default().size.w, 0.0);
+    }
 }
