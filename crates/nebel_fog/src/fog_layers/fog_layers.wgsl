@@ -36,12 +36,15 @@
 // FOG_SUN with the terrain's shadow heights (the fog layers' terrain_shadow
 // module): the ray's stretches below them hold back their closed-form
 // sunlight, each seen through the fog before it. The walk crosses the map's
-// cells along the ray (Amanatides and Woo), below its highest shadow height;
-// in each cell the bilinear height along the ray is a quadratic, whose
-// roots cut the shaded pieces (nebel_core's PlacedTerrainShadow::shaded).
+// blocks along the ray (Amanatides and Woo), below its highest shadow
+// height: a block the ray passes wholly above its highest shadow height is
+// lit, wholly below its lowest shaded, and the others are walked cell by
+// cell; in each cell the bilinear height along the ray is a quadratic,
+// whose roots cut the shaded pieces (nebel_core's
+// PlacedTerrainShadow::shaded, which walks every cell).
 
 #import bevy_core_pipeline::fullscreen_vertex_shader::FullscreenVertexOutput
-#import nebel_render::fog_layers::{FogLayers, fog_depth_and_columns, fog_opacity, fog_optical_depth, fog_point, fog_stretch, fog_sunlit, layer_mean, layer_mean_and_columns}
+#import nebel_render::fog_layers::{FogLayers, fog_depth_and_columns, fog_opacity, fog_optical_depth, fog_point, fog_stretch, fog_sunlit_scalar, layer_mean, layer_mean_and_columns}
 #import nebel_render::local_lights::{GAUSS_NODES, GAUSS_WEIGHTS, LocalLights, henyey_greenstein, light_node, light_on_ray, light_quadrature, light_span}
 #import nebel_render::cloud_shadow_maps::{CloudShadowMapPair, held_back}
 #ifdef LIGHT_SHADOWS
@@ -87,6 +90,9 @@ struct TerrainShadowMap {
 @group(0) @binding(3) var second_cloud_map: texture_2d<f32>;
 @group(0) @binding(4) var cloud_map_sampler: sampler;
 @group(0) @binding(5) var terrain_shadow_map: texture_2d<f32>;
+// Per block of TERRAIN_SHADOW_BLOCK cells a side, its lowest and highest
+// shadow height.
+@group(0) @binding(6) var terrain_shadow_blocks: texture_2d<f32>;
 
 // Map texels the crossing moves over per piece of a map's stretch of the
 // ray, and the most pieces.
@@ -202,10 +208,6 @@ fn clouds_held_back(direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
 #endif
 
 #ifdef FOG_SUN
-// The most cells the walk over the terrain's shadow heights crosses: two
-// sides of the largest map.
-const MAX_TERRAIN_CELLS: u32 = 1024u;
-
 // The shadow heights at the corners of the map's cell `cell`: (i, j),
 // (i + 1, j), (i, j + 1), (i + 1, j + 1).
 fn shadow_corners(cell: vec2<f32>) -> vec4<f32> {
@@ -236,72 +238,77 @@ fn in_terrain_shadow(p: vec3<f32>) -> bool {
     return g.y < mix(mix(h.x, h.y, f.x), mix(h.z, h.w, f.x), f.y);
 }
 
-// The sunlight of the fog over [t0, t1] along the ray `direction`, seen
-// from the eye.
-fn sunlight_between(direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
-    let altitude = fog_pass.camera_position.y;
-    let depths = fog_depth_and_columns(fog_pass.fog, altitude, direction.y, t0, t1);
-    let before = fog_optical_depth(fog_pass.fog, altitude, direction.y, 0.0, t0);
-    return exp(-before) * fog_sunlit(fog_pass.fog, direction, depths);
+// The sunlight of the fog over [0, t] along a ray of vertical direction
+// `d_y`, seen from the eye, before the sun's colour and phase: a shaded
+// stretch [t0, t1] holds back F(t1) − F(t0).
+fn sunlight_to(d_y: f32, t: f32) -> f32 {
+    let depths = fog_depth_and_columns(fog_pass.fog, fog_pass.camera_position.y, d_y, 0.0, t);
+    return fog_sunlit_scalar(fog_pass.fog, depths);
 }
 
-// The sunlight the terrain's shadow holds back from the fog over [t0, t1]
-// along the ray `direction` (see the header).
-fn terrain_held_back(direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
-    let map = fog_pass.terrain;
-    if map.size.w <= 0.0 {
-        return vec3(0.0);
+// The edges of the shaded stretches a walk keeps before it sums their
+// sunlight.
+const SHADE_EDGES: u32 = 16u;
+
+// The shaded stretches found so far along a ray: the edges not yet summed
+// (a stretch's start at an even index, its end at the odd one after it),
+// whether the ray is in one, and the sunlight the summed ones hold back
+// (before the sun's colour and phase).
+struct ShadeWalk {
+    edges: array<f32, SHADE_EDGES>,
+    count: u32,
+    open: bool,
+    held: f32,
+}
+
+// Sums the kept edges' sunlight, F(end) − F(start) per stretch.
+fn shade_flush(walk: ptr<function, ShadeWalk>, d_y: f32) {
+    for (var k = 0u; k < (*walk).count; k++) {
+        let f = sunlight_to(d_y, (*walk).edges[k]);
+        (*walk).held += select(-f, f, k % 2u == 1u);
     }
-    // The ray in the map's grid: g(t) = start + t e.
-    let start = (map.grid_from_world * vec4(fog_pass.camera_position.xyz, 1.0)).xyz;
-    let e = (map.grid_from_world * vec4(direction, 0.0)).xyz;
-    let last = map.size.xy - 1.0;
-    var a = t0;
-    var b = t1;
-    if e.y > 0.0 {
-        b = min(b, (map.size.z - start.y) / e.y);
-    } else if e.y < 0.0 {
-        a = max(a, (map.size.z - start.y) / e.y);
-    } else if start.y > map.size.z {
-        return vec3(0.0);
-    }
-    for (var axis = 0; axis < 2; axis++) {
-        let s = start.xz[axis];
-        let r = e.xz[axis];
-        if r == 0.0 {
-            if s < 0.0 || s > last[axis] {
-                return vec3(0.0);
-            }
-            continue;
+    (*walk).count = 0u;
+}
+
+// The ray enters a lit (`dark` false) or shaded stretch at `t`. The edges'
+// sunlight is summed after the walk (or when SHADE_EDGES are kept), out of
+// the walk's divergent loop.
+fn shade_edge(walk: ptr<function, ShadeWalk>, direction: vec3<f32>, t: f32, dark: bool) {
+    if dark != (*walk).open {
+        if (*walk).count == SHADE_EDGES {
+            shade_flush(walk, direction.y);
         }
-        let enter = -s / r;
-        let leave = (last[axis] - s) / r;
-        a = max(a, min(enter, leave));
-        b = min(b, max(enter, leave));
+        (*walk).open = dark;
+        (*walk).edges[(*walk).count] = t;
+        (*walk).count += 1u;
     }
-    if !(b > a) {
-        return vec3(0.0);
-    }
-    let g0 = start.xz + a * e.xz;
-    var cell = floor(g0);
-    for (var axis = 0; axis < 2; axis++) {
-        if e.xz[axis] < 0.0 && cell[axis] == g0[axis] {
-            cell[axis] -= 1.0;
-        }
-    }
-    cell = clamp(cell, vec2(0.0), last - 1.0);
-    let step = sign(e.xz);
-    var held = vec3(0.0);
-    var open = false;
-    var shade_start = 0.0;
-    var t = a;
-    for (var n = 0u; n < MAX_TERRAIN_CELLS; n++) {
-        // Where the ray leaves the cell across each axis.
-        let bound = cell + max(step, vec2(0.0));
-        let next = select(vec2(1.0e30), (bound - start.xz) / e.xz, e.xz != vec2(0.0));
-        let end = max(min(min(next.x, next.y), b), t);
+}
+
+// The cell of the grid's box [lo, hi) that the ray g(t) = start + t e is in
+// at `t` (on a cell's edge moving backward, the cell below).
+fn cell_at(start: vec2<f32>, e: vec2<f32>, t: f32, lo: vec2<f32>, hi: vec2<f32>) -> vec2<f32> {
+    let g = start + t * e;
+    let cell = floor(g);
+    return clamp(select(cell, cell - 1.0, e < vec2(0.0) & cell == g), lo, hi - 1.0);
+}
+
+// Where the ray g(t) = start + t e leaves the box [lo, hi] across each axis
+// (1e30 along an axis it does not move on).
+fn box_exit(start: vec2<f32>, e: vec2<f32>, lo: vec2<f32>, hi: vec2<f32>) -> vec2<f32> {
+    let bound = select(lo, hi, e > vec2(0.0));
+    return select(vec2(1.0e30), (bound - start) / e, e != vec2(0.0));
+}
+
+// Walks the cells of the box [lo, hi) over [t_from, t_to] along the ray
+// `start + t e` (the map's grid), each cell's quadratic cut at its roots.
+fn walk_cells(walk: ptr<function, ShadeWalk>, direction: vec3<f32>, start: vec3<f32>, e: vec3<f32>, t_from: f32, t_to: f32, lo: vec2<f32>, hi: vec2<f32>) {
+    var cell = cell_at(start.xz, e.xz, t_from, lo, hi);
+    var h = shadow_corners(cell);
+    var t = t_from;
+    for (var n = 0u; n < 2u * #{TERRAIN_SHADOW_BLOCK}u + 1u; n++) {
+        let next = box_exit(start.xz, e.xz, cell, cell + 1.0);
+        let end = max(min(min(next.x, next.y), t_to), t);
         // d(s) = y − h_s along the cell, s = t' − t: a quadratic.
-        let h = shadow_corners(cell);
         let bx = h.y - h.x;
         let cz = h.z - h.x;
         let k = h.w - h.y - h.z + h.x;
@@ -331,30 +338,103 @@ fn terrain_held_back(direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
             let piece = pieces[m];
             if piece.y > piece.x {
                 let s = 0.5 * (piece.x + piece.y);
-                let dark = constant + s * (linear + s * quadratic) < 0.0;
-                if dark && !open {
-                    open = true;
-                    shade_start = t + piece.x;
-                } else if !dark && open {
-                    open = false;
-                    held += sunlight_between(direction, shade_start, t + piece.x);
-                }
+                shade_edge(walk, direction, t + piece.x, constant + s * (linear + s * quadratic) < 0.0);
             }
+        }
+        t = end;
+        if end >= t_to {
+            break;
+        }
+        let along_z = next.y < next.x;
+        let axis = select(0, 1, along_z);
+        let forward = e.xz[axis] > 0.0;
+        cell[axis] += sign(e.xz)[axis];
+        if cell[axis] < lo[axis] || cell[axis] > hi[axis] - 1.0 {
+            break;
+        }
+        // The next cell shares two corners with this one: load the other two.
+        let c = vec2<i32>(cell);
+        let far = select(vec2(0), select(vec2(1, 0), vec2(0, 1), along_z), forward);
+        let side = select(vec2(0, 1), vec2(1, 0), along_z);
+        let a = textureLoad(terrain_shadow_map, c + far, 0).r;
+        let b = textureLoad(terrain_shadow_map, c + far + side, 0).r;
+        let across_x = select(vec4(a, h.x, b, h.z), vec4(h.y, a, h.w, b), forward);
+        let across_z = select(vec4(a, b, h.x, h.y), vec4(h.z, h.w, a, b), forward);
+        h = select(across_x, across_z, along_z);
+    }
+}
+
+// The sunlight the terrain's shadow holds back from the fog over [t0, t1]
+// along the ray `direction` (see the header).
+fn terrain_held_back(direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
+    let map = fog_pass.terrain;
+    if map.size.w <= 0.0 {
+        return vec3(0.0);
+    }
+    // The ray in the map's grid: g(t) = start + t e.
+    let start = (map.grid_from_world * vec4(fog_pass.camera_position.xyz, 1.0)).xyz;
+    let e = (map.grid_from_world * vec4(direction, 0.0)).xyz;
+    let last = map.size.xy - 1.0;
+    var a = t0;
+    var b = t1;
+    if e.y > 0.0 {
+        b = min(b, (map.size.z - start.y) / e.y);
+    } else if e.y < 0.0 {
+        a = max(a, (map.size.z - start.y) / e.y);
+    } else if start.y > map.size.z {
+        return vec3(0.0);
+    }
+    let enter = box_exit(start.xz, e.xz, last, vec2(0.0));
+    let leave = box_exit(start.xz, e.xz, vec2(0.0), last);
+    for (var axis = 0; axis < 2; axis++) {
+        if e.xz[axis] == 0.0 {
+            if start.xz[axis] < 0.0 || start.xz[axis] > last[axis] {
+                return vec3(0.0);
+            }
+        } else {
+            a = max(a, enter[axis]);
+            b = min(b, leave[axis]);
+        }
+    }
+    if !(b > a) {
+        return vec3(0.0);
+    }
+    // Blocks of TERRAIN_SHADOW_BLOCK cells a side whose lowest and highest
+    // shadow heights the ray passes wholly above (lit) or below (shaded)
+    // are crossed whole; the others cell by cell.
+    let size = f32(#{TERRAIN_SHADOW_BLOCK});
+    let blocks = ceil(last / size);
+    var block = floor(cell_at(start.xz, e.xz, a, vec2(0.0), last) / size);
+    var walk: ShadeWalk;
+    var t = a;
+    for (var n = 0u; n < u32(blocks.x + blocks.y); n++) {
+        let lo = block * size;
+        let hi = min(lo + size, last);
+        let next = box_exit(start.xz, e.xz, lo, hi);
+        let end = max(min(min(next.x, next.y), b), t);
+        let heights = start.y + vec2(t, end) * e.y;
+        let bounds = textureLoad(terrain_shadow_blocks, vec2<i32>(block), 0).rg;
+        if min(heights.x, heights.y) >= bounds.y {
+            shade_edge(&walk, direction, t, false);
+        } else if max(heights.x, heights.y) < bounds.x {
+            shade_edge(&walk, direction, t, true);
+        } else {
+            walk_cells(&walk, direction, start, e, t, end, lo, hi);
         }
         t = end;
         if end >= b {
             break;
         }
         let axis = select(0, 1, next.y < next.x);
-        cell[axis] += step[axis];
-        if cell[axis] < 0.0 || cell[axis] > last[axis] - 1.0 {
+        block[axis] += sign(e.xz)[axis];
+        if block[axis] < 0.0 || block[axis] > blocks[axis] - 1.0 {
             break;
         }
     }
-    if open {
-        held += sunlight_between(direction, shade_start, t);
-    }
-    return held;
+    shade_edge(&walk, direction, t, false);
+    shade_flush(&walk, direction.y);
+    let phase = henyey_greenstein(fog_pass.fog.sun_colour.w, dot(direction, fog_pass.fog.sun_direction.xyz));
+    return fog_pass.fog.sun_colour.rgb * phase * walk.held;
 }
 #endif
 

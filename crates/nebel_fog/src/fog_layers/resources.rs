@@ -33,7 +33,8 @@ use nebel_render::local_lights::{
 use nebel_render::{CloudShadowMapUniform, CloudShadowMaps, EffectiveQuality};
 
 use super::terrain_shadow::{
-    TerrainShadowTexture, TerrainShadowUniform, prepare_terrain_shadow_texture,
+    TERRAIN_SHADOW_BLOCK, TerrainShadowTexture, TerrainShadowUniform,
+    prepare_terrain_shadow_texture,
 };
 use super::{FogLayers, FogLayersPasses, PreparedFogLayers};
 
@@ -273,7 +274,9 @@ fn init_fog_layers_pipeline(
                     texture_2d(TextureSampleType::Float { filterable: true }),
                     texture_2d(TextureSampleType::Float { filterable: true }),
                     sampler(SamplerBindingType::Filtering),
-                    // The terrain's shadow heights, loaded texel by texel.
+                    // The terrain's shadow heights and their blocks' bounds,
+                    // loaded texel by texel.
+                    texture_2d(TextureSampleType::Float { filterable: false }),
                     texture_2d(TextureSampleType::Float { filterable: false }),
                 ),
             ),
@@ -291,10 +294,10 @@ impl SpecializedRenderPipeline for FogLayersPipeline {
     type Key = FogLayersPipelineKey;
 
     fn specialize(&self, key: Self::Key) -> RenderPipelineDescriptor {
-        let mut shader_defs: Vec<ShaderDefVal> = vec![ShaderDefVal::UInt(
-            "MAX_LOCAL_LIGHTS".into(),
-            MAX_LOCAL_LIGHTS as u32,
-        )];
+        let mut shader_defs: Vec<ShaderDefVal> = vec![
+            ShaderDefVal::UInt("MAX_LOCAL_LIGHTS".into(), MAX_LOCAL_LIGHTS as u32),
+            ShaderDefVal::UInt("TERRAIN_SHADOW_BLOCK".into(), TERRAIN_SHADOW_BLOCK as u32),
+        ];
         if key.multisampled {
             shader_defs.push("MULTISAMPLED".into());
         }
@@ -466,6 +469,7 @@ pub fn prepare_fog_layer_bind_groups(
                 cloud_maps[1],
                 cloud_sampler,
                 &terrain.view,
+                &terrain.blocks,
             )),
         );
         commands

@@ -19,7 +19,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bevy::diagnostic::Diagnostics;
-use bevy::math::{DAffine3, DMat4, DVec3};
+use bevy::math::{DAffine3, DMat4, DVec2, DVec3};
 use bevy::prelude::*;
 use bevy::render::extract_resource::ExtractResource;
 use bevy::render::render_resource::{
@@ -27,13 +27,17 @@ use bevy::render::render_resource::{
     TextureUsages, TextureView, TextureViewDescriptor,
 };
 use bevy::render::renderer::{RenderDevice, RenderQueue};
-use nebel_core::field::{PlacedTerrainShadow, TerrainShadow};
+use nebel_core::field::{HeightField, PlacedTerrainShadow, TerrainShadow};
 use nebel_render::camera::to_double_affine;
 use nebel_render::{HeavyBuild, HeavyBuilds};
 use nebel_terrain::TerrainLod;
 
 use super::{FogLayersPlugin, PreparedFogLayers};
 use crate::sunlight::SUN_STEP;
+
+/// Cells per side of the blocks whose lowest and highest shadow heights let
+/// the pass cross them whole where the ray passes wholly above or below.
+pub const TERRAIN_SHADOW_BLOCK: usize = 4;
 
 /// The terrain's shadow heights over sunlit fog layers (module docs), placed
 /// in the world; `None` without one.
@@ -134,6 +138,61 @@ impl TerrainShadowUniform {
     }
 }
 
+/// The lowest and highest shadow height of each block of
+/// [`TERRAIN_SHADOW_BLOCK`] cells a side (the blocks along the map's last
+/// rows and columns cut short), and the blocks along x and z.
+fn block_bounds(heights: &HeightField) -> ([usize; 2], Vec<[f32; 2]>) {
+    let [nx, nz] = heights.dims();
+    let blocks = [nx, nz].map(|n| (n - 1).div_ceil(TERRAIN_SHADOW_BLOCK).max(1));
+    let mut bounds = vec![[f32::MAX, f32::MIN]; blocks[0] * blocks[1]];
+    for j in 0..nz {
+        for i in 0..nx {
+            let h = heights.height(i, j);
+            // A point on a block's edge bounds the blocks on both sides.
+            for bj in [j.saturating_sub(1), j.min(nz - 2)].map(|c| c / TERRAIN_SHADOW_BLOCK) {
+                for bi in [i.saturating_sub(1), i.min(nx - 2)].map(|c| c / TERRAIN_SHADOW_BLOCK) {
+                    let block = &mut bounds[bi + blocks[0] * bj];
+                    *block = [block[0].min(h), block[1].max(h)];
+                }
+            }
+        }
+    }
+    (blocks, bounds)
+}
+
+/// A texture of `size` texels of `format` holding `data`, as the pass loads
+/// it.
+fn texture(
+    device: &RenderDevice,
+    queue: &RenderQueue,
+    label: &'static str,
+    size: [usize; 2],
+    format: TextureFormat,
+    data: &[u8],
+) -> TextureView {
+    device
+        .create_texture_with_data(
+            queue,
+            &TextureDescriptor {
+                label: Some(label),
+                size: Extent3d {
+                    width: size[0] as u32,
+                    height: size[1] as u32,
+                    depth_or_array_layers: 1,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: TextureDimension::D2,
+                format,
+                usage: TextureUsages::TEXTURE_BINDING,
+                view_formats: &[],
+            },
+            TextureDataOrder::LayerMajor,
+            data,
+        )
+        .create_view(&TextureViewDescriptor::default())
+}
+
 /// The map's texture and uniform in the render world, and the map they are
 /// of (by identity).
 #[derive(Resource)]
@@ -141,6 +200,8 @@ pub struct TerrainShadowTexture {
     source: Option<usize>,
     /// The shadow heights, one texel per point (1 × 1 without a map).
     pub view: TextureView,
+    /// The blocks' lowest and highest shadow heights, one texel per block.
+    pub blocks: TextureView,
     /// What the pass reads of the map (no weight without one).
     pub uniform: TerrainShadowUniform,
 }
@@ -160,36 +221,34 @@ pub(super) fn prepare_terrain_shadow_texture(
     if current.is_some_and(|current| current.source == source) {
         return;
     }
-    let (size, heights) = placed.map_or(([1, 1], &[0.0f32][..]), |placed| {
-        (
-            placed.shadow.heights.dims(),
-            placed.shadow.heights.heights(),
-        )
-    });
-    let view = device
-        .create_texture_with_data(
-            &queue,
-            &TextureDescriptor {
-                label: Some("nebel_fog_layers_terrain_shadow"),
-                size: Extent3d {
-                    width: size[0] as u32,
-                    height: size[1] as u32,
-                    depth_or_array_layers: 1,
-                },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: TextureDimension::D2,
-                format: TextureFormat::R32Float,
-                usage: TextureUsages::TEXTURE_BINDING,
-                view_formats: &[],
-            },
-            TextureDataOrder::LayerMajor,
-            bytemuck::cast_slice(heights),
-        )
-        .create_view(&TextureViewDescriptor::default());
+    let none = HeightField::new([2, 2], DVec2::ONE, DVec2::ZERO, vec![0.0; 4]).ok();
+    let Some(heights) = placed
+        .map(|placed| &placed.shadow.heights)
+        .or(none.as_ref())
+    else {
+        return;
+    };
+    let view = texture(
+        &device,
+        &queue,
+        "nebel_fog_layers_terrain_shadow",
+        heights.dims(),
+        TextureFormat::R32Float,
+        bytemuck::cast_slice(heights.heights()),
+    );
+    let (size, bounds) = block_bounds(heights);
+    let blocks = texture(
+        &device,
+        &queue,
+        "nebel_fog_layers_terrain_shadow_blocks",
+        size,
+        TextureFormat::Rg32Float,
+        bytemuck::cast_slice(&bounds),
+    );
     commands.insert_resource(TerrainShadowTexture {
         source,
         view,
+        blocks,
         uniform: placed.map_or_else(TerrainShadowUniform::default, TerrainShadowUniform::new),
     });
 }
@@ -197,8 +256,7 @@ pub(super) fn prepare_terrain_shadow_texture(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use bevy::math::{DQuat, DVec2};
-    use nebel_core::field::HeightField;
+    use bevy::math::DQuat;
 
     /// The uniform takes a world point over the map's point `(i, j)` at
     /// height `h` in the terrain's frame to `(i, h, j)`, under a turned,
@@ -235,5 +293,37 @@ mod tests {
             "{grid}"
         );
         assert_eq!(TerrainShadowUniform::default().size.w, 0.0);
+    }
+
+    /// Every block's bounds are the lowest and highest of the points of its
+    /// cells, on maps of whole and cut-short blocks.
+    #[test]
+    fn each_block_holds_the_lowest_and_highest_of_its_points() {
+        for dims in [[2, 2], [9, 9], [17, 12], [20, 3]] {
+            let values = (0..dims[0] * dims[1])
+                .map(|n| ((n * 7919) % 101) as f32 - 50.0)
+                .collect();
+            let heights = HeightField::new(dims, DVec2::ONE, DVec2::ZERO, values).unwrap();
+            let (blocks, bounds) = block_bounds(&heights);
+            assert_eq!(blocks, dims.map(|n| (n - 1).div_ceil(TERRAIN_SHADOW_BLOCK)));
+            for bj in 0..blocks[1] {
+                for bi in 0..blocks[0] {
+                    let points = |b: usize, n: usize| {
+                        b * TERRAIN_SHADOW_BLOCK..=((b + 1) * TERRAIN_SHADOW_BLOCK).min(n - 1)
+                    };
+                    let inside: Vec<f32> = points(bj, dims[1])
+                        .flat_map(|j| points(bi, dims[0]).map(move |i| (i, j)))
+                        .map(|(i, j)| heights.height(i, j))
+                        .collect();
+                    let low = inside.iter().copied().fold(f32::MAX, f32::min);
+                    let high = inside.iter().copied().fold(f32::MIN, f32::max);
+                    assert_eq!(
+                        bounds[bi + blocks[0] * bj],
+                        [low, high],
+                        "{dims:?} {bi} {bj}"
+                    );
+                }
+            }
+        }
     }
 }

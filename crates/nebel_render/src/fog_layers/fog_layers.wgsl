@@ -126,14 +126,14 @@ fn fog_depth_and_columns(fog: FogLayers, altitude: f32, d_y: f32, t0_in: f32, t1
     return vec3(length * sum.x, columns);
 }
 
-// The sunlight a stretch of fog along a ray of unit `direction` scatters once toward its start, dimmed
-// on its way from the sun and to the start: `τ e^{−τ − s₁} (e^x − 1) / x`, x = τ − (s₀ − s₁), with
+// The sunlight a stretch of fog scatters once toward its start, dimmed on its way from the sun and to
+// the start, before the sun's colour and phase: `τ e^{−τ − s₁} (e^x − 1) / x`, x = τ − (s₀ − s₁), with
 // `depths` the stretch's (τ, C(h₀), C(h₁)) (fog_depth_and_columns) and s = C/μ the sun's optical depths
 // at its ends (nebel_core's `HeightFog::sunlit`). For a sun above the horizon (`FogLayersUniform::has_sun`).
-fn fog_sunlit(fog: FogLayers, direction: vec3<f32>, depths: vec3<f32>) -> vec3<f32> {
+fn fog_sunlit_scalar(fog: FogLayers, depths: vec3<f32>) -> f32 {
     let view_depth = depths.x;
     if view_depth <= 0.0 {
-        return vec3(0.0);
+        return 0.0;
     }
     let mu = fog.sun_direction.y;
     let s0 = depths.y / mu;
@@ -143,9 +143,14 @@ fn fog_sunlit(fog: FogLayers, direction: vec3<f32>, depths: vec3<f32>) -> vec3<f
     // |x| = 10⁻³).
     let end = exp(-view_depth - s1);
     let series = view_depth * end * (1.0 + x * (0.5 + x / 6.0));
-    let scattered = select(series, view_depth * (exp(-s0) - end) / x, abs(x) >= 1.0e-3);
+    return select(series, view_depth * (exp(-s0) - end) / x, abs(x) >= 1.0e-3);
+}
+
+// The sunlight a stretch of fog along a ray of unit `direction` scatters toward its start
+// (fog_sunlit_scalar), in the sun's colour and at the ray's phase.
+fn fog_sunlit(fog: FogLayers, direction: vec3<f32>, depths: vec3<f32>) -> vec3<f32> {
     let phase = henyey_greenstein(fog.sun_colour.w, dot(direction, fog.sun_direction.xyz));
-    return fog.sun_colour.rgb * phase * scattered;
+    return fog.sun_colour.rgb * phase * fog_sunlit_scalar(fog, depths);
 }
 
 // The fog over [t0, t1] along a ray from `altitude` of unit `direction`, seen from t0: its optical depth
