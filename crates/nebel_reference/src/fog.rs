@@ -14,7 +14,12 @@
 //! exact transmittance toward the sun
 //! (`nebel_core::field::sun_transmittance`), by composite Gauss-Legendre
 //! over [`CLOUD_INTERVALS`] equal intervals of the stretch they can shade
-//! (`nebel_core::field::shaded_stretch`). Such layers compose with "over".
+//! (`nebel_core::field::shaded_stretch`). The terrain's shadow heights
+//! ([`ReferenceFog::terrain`]) take the sunlight of every stretch of the ray
+//! below them (`nebel_core::field::PlacedTerrainShadow::shaded`, exact for
+//! the map's bilinear heights): each stretch's closed form, seen through the
+//! fog before it; the clouds then hold back light only where the terrain
+//! lets the sun through. Such layers compose with "over".
 //!
 //! Point and spot lights ([`ReferenceFog::lights`]) add
 //! `s c ∫ ρ(h(t)) e^{−τ(t₀, t) − τ(x(t), p)} E(t) 4π p_HG dt` over the piece

@@ -27,8 +27,13 @@
 //! `CloudShadowMaps`) hold back `c 4π p_HG ∫ ρ e^{−τ(0, t) − C(h)/μ} w (1 −
 //! T_map) dt` of it over the stretch of each ray whose line toward the sun
 //! crosses a map below the clouds' top: a piece of three Gauss-Legendre
-//! nodes per four texels the crossing moves over, at most 64. The terrain's
-//! shadow is not in it.
+//! nodes per four texels the crossing moves over, at most 64. The first
+//! terrain's shadow heights for that sun ([`FogLayersTerrainShadow`], built
+//! in the background) take the sunlight of every stretch of the ray below
+//! them, exactly for the map's bilinear heights: the pass walks the map
+//! along the ray, crossing blocks whole where the ray passes above or below
+//! all their heights, and holds back each shaded stretch's closed form.
+//! Beyond the map's extent the terrain casts nothing.
 //!
 //! # Point and spot lights
 //!
@@ -43,8 +48,8 @@
 //! by Gauss-Legendre quadrature in the angle the light sees; a light with a
 //! shadow map is cut where its visibility changes. A volume inside the fog
 //! is conjugated by the fog's glow and sunlight alone: the lights' part of
-//! the fog in front of a cell, and the clouds' shadow on it, are not in its
-//! conjugation. The lights take a variant of
+//! the fog in front of a cell, and the clouds' and the terrain's shadow on
+//! it, are not in its conjugation. The lights take a variant of
 //! the pass; without them it runs as before.
 //!
 //! # Volumes inside the fog
