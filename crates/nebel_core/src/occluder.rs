@@ -1,10 +1,11 @@
 //! Opaque boxes, spheres and horizontal rectangles: where a ray first meets
 //! them, and which stretches of a ray they hide from a light (the shadow a
-//! point or spot light casts into a volume, for the CPU reference).
+//! point or spot light, or the sun, casts into a medium, for the CPU
+//! reference).
 //!
 //! A point `x` sees a light at `p` when no occluder meets the segment from
-//! `x` to `p`; a point inside a box or sphere sees nothing, as a shadow map
-//! has it. Along a ray the visibility is piecewise constant:
+//! `x` to `p`, and the sun when none meets the ray from `x` toward it; a
+//! point inside a box or sphere sees nothing, as a shadow map has it. Along a ray the visibility is piecewise constant:
 //! [`lit_spans`] finds where it changes by sampling [`SHADOW_SAMPLES`]
 //! equal steps and bisecting each change to the precision of f64, so a
 //! shadow (or a gap in one) shorter than a step may be missed.
@@ -101,15 +102,53 @@ pub fn lit_spans(
     occluders: &[Occluder],
     light: DVec3,
     ray: &Ray,
-    (t_a, t_b): (f64, f64),
+    range: (f64, f64),
 ) -> Vec<(f64, f64)> {
     if occluders.is_empty() {
-        return vec![(t_a, t_b)];
+        return whole(range);
     }
+    spans_where(range, |t| {
+        !hides(occluders, ray.origin + t * ray.direction, light)
+    })
+}
+
+/// Whether one of `occluders` hides the sun, in the unit direction `sun`
+/// (toward it), from `point`.
+pub fn hides_sun(occluders: &[Occluder], point: DVec3, sun: DVec3) -> bool {
+    Ray::new(point, sun).is_some_and(|ray| occluders.iter().any(|o| o.hit(&ray).is_some()))
+}
+
+/// The stretches of `[t_a, t_b]` along `ray` from which the sun, in the
+/// direction `sun`, is seen past `occluders` (as [`lit_spans`]).
+pub fn sun_lit_spans(
+    occluders: &[Occluder],
+    sun: DVec3,
+    ray: &Ray,
+    range: (f64, f64),
+) -> Vec<(f64, f64)> {
+    if occluders.is_empty() {
+        return whole(range);
+    }
+    spans_where(range, |t| {
+        !hides_sun(occluders, ray.origin + t * ray.direction, sun)
+    })
+}
+
+/// `[t_a, t_b]` as the one span, or none where it is empty.
+fn whole((t_a, t_b): (f64, f64)) -> Vec<(f64, f64)> {
+    if t_b.partial_cmp(&t_a) == Some(std::cmp::Ordering::Greater) {
+        vec![(t_a, t_b)]
+    } else {
+        Vec::new()
+    }
+}
+
+/// The stretches of `[t_a, t_b]` where `lit` holds: [`SHADOW_SAMPLES`]
+/// equal steps, each change bisected (module docs).
+fn spans_where((t_a, t_b): (f64, f64), lit: impl Fn(f64) -> bool) -> Vec<(f64, f64)> {
     if t_b.partial_cmp(&t_a) != Some(std::cmp::Ordering::Greater) {
         return Vec::new();
     }
-    let lit = |t: f64| !hides(occluders, ray.origin + t * ray.direction, light);
     let step = (t_b - t_a) / f64::from(SHADOW_SAMPLES);
     let mut spans = Vec::new();
     let mut start = lit(t_a).then_some(t_a);
@@ -224,6 +263,30 @@ mod tests {
             lit_spans(&[], DVec3::ZERO, &level, (1.0, 2.0)),
             vec![(1.0, 2.0)]
         );
+    }
+
+    /// A strip 10 m above a level ray hides the sun (53° up along +x) from
+    /// the stretch whose sun line crosses it: x + 7.5 in [−5, 5].
+    #[test]
+    fn a_strip_above_shades_the_sun_from_a_level_ray_in_closed_form() {
+        let strip = [Occluder::Rectangle {
+            centre: DVec3::new(0.0, 10.0, 0.0),
+            half_size: DVec2::new(5.0, 100.0),
+        }];
+        let sun = DVec3::new(0.6, 0.8, 0.0);
+        let level = ray([-50.0, 0.0, 0.0], [1.0, 0.0, 0.0]);
+        let spans = sun_lit_spans(&strip, sun, &level, (0.0, 100.0));
+        assert_eq!(spans.len(), 2, "{spans:?}");
+        assert_eq!(spans[0].0, 0.0);
+        assert!((spans[0].1 - 37.5).abs() < 1e-9, "{spans:?}");
+        assert!((spans[1].0 - 47.5).abs() < 1e-9 && spans[1].1 == 100.0);
+        assert!(hides_sun(&strip, DVec3::new(-10.0, 0.0, 0.0), sun));
+        assert!(!hides_sun(&strip, DVec3::new(-10.0, 11.0, 0.0), sun));
+        assert_eq!(
+            sun_lit_spans(&[], sun, &level, (3.0, 4.0)),
+            vec![(3.0, 4.0)]
+        );
+        assert!(sun_lit_spans(&strip, sun, &level, (4.0, 3.0)).is_empty());
     }
 
     #[test]

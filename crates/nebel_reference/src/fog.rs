@@ -19,7 +19,10 @@
 //! below them (`nebel_core::field::PlacedTerrainShadow::shaded`, exact for
 //! the map's bilinear heights): each stretch's closed form, seen through the
 //! fog before it; the clouds then hold back light only where the terrain
-//! lets the sun through. Such layers compose with "over".
+//! lets the sun through. A sun that casts shadows ([`FogSunlight::shadows`])
+//! is hidden by [`ReferenceFog::occluders`] too: the stretches from which
+//! they hide it (`nebel_core::occluder::sun_lit_spans`, sampled and
+//! bisected) join the terrain's. Such layers compose with "over".
 //!
 //! Point and spot lights ([`ReferenceFog::lights`]) add
 //! `s c ∫ ρ(h(t)) e^{−τ(t₀, t) − τ(x(t), p)} E(t) 4π p_HG dt` over the piece
@@ -54,7 +57,7 @@ use nebel_core::cell::Ray;
 use nebel_core::field::{PlacedTerrainShadow, ShadowCaster, shaded_stretch, sun_transmittance};
 use nebel_core::height_fog::{HeightFog, HeightFogLayer};
 use nebel_core::local_light::{GAUSS_LEGENDRE_3, LightResponse, LocalLight};
-use nebel_core::occluder::Occluder;
+use nebel_core::occluder::{Occluder, sun_lit_spans};
 use nebel_core::optics::{PremultipliedRgba, henyey_greenstein};
 
 use crate::integrator::LIGHT_INTERVALS;
@@ -70,6 +73,9 @@ pub struct FogSunlight {
     pub colour: DVec3,
     /// The Henyey-Greenstein asymmetry `g` (0 isotropic, toward 1 forward).
     pub asymmetry: f64,
+    /// Whether [`ReferenceFog::occluders`] shade the sun (its light casts
+    /// shadows; module docs).
+    pub shadows: bool,
 }
 
 /// Fog layers seen along every ray (see the module docs).
@@ -94,7 +100,7 @@ pub struct ReferenceFog {
     /// on its colour ([`LightResponse::checked`]).
     pub light_response: LightResponse,
     /// Opaque shapes that shade the lights that cast shadows
-    /// ([`LocalLight::scattered_past`]).
+    /// ([`LocalLight::scattered_past`]), and the sun where it does.
     pub occluders: Vec<Occluder>,
     /// Cloud volumes whose shadow dims the sunlight in the fog (module
     /// docs).
@@ -108,6 +114,21 @@ pub struct ReferenceFog {
 /// ([`ReferenceFog::sunlit`]), three Gauss-Legendre nodes each (shared out
 /// among the parts the terrain leaves sunlit).
 pub const CLOUD_INTERVALS: usize = 512;
+
+/// `spans` sorted and joined where they meet or overlap, empty ones
+/// dropped.
+fn union(mut spans: Vec<(f64, f64)>) -> Vec<(f64, f64)> {
+    spans.retain(|(a, b)| b > a);
+    spans.sort_by(|x, y| x.0.total_cmp(&y.0));
+    let mut joined: Vec<(f64, f64)> = Vec::with_capacity(spans.len());
+    for (a, b) in spans {
+        match joined.last_mut() {
+            Some(last) if a <= last.1 => last.1 = last.1.max(b),
+            _ => joined.push((a, b)),
+        }
+    }
+    joined
+}
 
 /// The most optical depth, plus exponential falloff times the altitude
 /// crossed, in one part of a lit stretch ([`ReferenceFog::lit`]).
@@ -178,11 +199,21 @@ impl ReferenceFog {
         let mut scattered = self
             .fog
             .sunlit(altitude(a), altitude(b), b - a, direction.y);
-        // The terrain's shadow: each shaded stretch's sunlight, closed form
-        // seen from its start, then dimmed to `a`.
-        let shaded = self.terrain.as_ref().map_or_else(Vec::new, |terrain| {
+        // The terrain's shadow and the occluders' (where the sun casts
+        // shadows): each shaded stretch's sunlight, closed form seen from its
+        // start, then dimmed to `a`.
+        let mut shaded = self.terrain.as_ref().map_or_else(Vec::new, |terrain| {
             terrain.shaded(ray.origin, ray.direction, (a, b))
         });
+        if sun.shadows && !self.occluders.is_empty() {
+            let mut from = a;
+            for (lit_from, lit_to) in sun_lit_spans(&self.occluders, direction, ray, (a, b)) {
+                shaded.push((from, lit_from));
+                from = lit_to;
+            }
+            shaded.push((from, b));
+            shaded = union(shaded);
+        }
         for &(c, d) in &shaded {
             scattered -= (-self.optical_depth(ray, a, c)).exp()
                 * self
@@ -532,6 +563,7 @@ mod tests {
             direction: sun,
             colour: DVec3::splat(0.5),
             asymmetry: 0.5,
+            shadows: false,
         });
         assert!(slab.invalid().is_none());
         slab.start_distance = 0.0;
@@ -576,6 +608,7 @@ mod tests {
             direction: sun,
             colour: DVec3::ONE,
             asymmetry: 0.3,
+            shadows: false,
         });
         let cloud = |min_x: f64| ShadowCaster {
             grid: Arc::new(
@@ -655,6 +688,7 @@ mod tests {
             direction: sun,
             colour: DVec3::ONE,
             asymmetry: 0.3,
+            shadows: false,
         });
         let heights = HeightField::new(
             [2, 2],
@@ -714,6 +748,50 @@ mod tests {
             (dimmed - expected * transmittance).abs().max_element() < 1e-7 * expected.x,
             "{dimmed} against {}",
             expected * transmittance
+        );
+    }
+
+    /// A strip 20 m up hides the sun (53° up along +x) from the stretch of a
+    /// level ray at 4 m whose sun line crosses it, x + 12 in [−5, 5]: that
+    /// stretch's closed form is held back where the sun casts shadows, and
+    /// nothing where it does not.
+    #[test]
+    fn an_occluder_hides_the_sun_from_the_stretch_in_its_shadow() {
+        let mut slab = slab();
+        let sunlight = FogSunlight {
+            direction: DVec3::new(0.6, 0.8, 0.0),
+            colour: DVec3::ONE,
+            asymmetry: 0.3,
+            shadows: true,
+        };
+        slab.sun = Some(sunlight);
+        slab.occluders = vec![Occluder::Rectangle {
+            centre: DVec3::new(0.0, 20.0, 0.0),
+            half_size: glam::DVec2::new(5.0, 100.0),
+        }];
+        let level = ray(DVec3::new(-30.0, 4.0, 0.0), 0.0);
+        let clear = ReferenceFog {
+            occluders: Vec::new(),
+            ..slab.clone()
+        };
+        let expected = clear.sunlit(&level, 0.0, 200.0)
+            - (-clear.optical_depth(&level, 0.0, 13.0)).exp() * clear.sunlit(&level, 13.0, 23.0);
+        let got = slab.sunlit(&level, 0.0, 200.0);
+        assert!(
+            (got - expected).abs().max_element() < 1e-9 * expected.x,
+            "{got} against {expected}"
+        );
+        assert!(got.x < 0.95 * clear.sunlit(&level, 0.0, 200.0).x);
+        let unshadowed = ReferenceFog {
+            sun: Some(FogSunlight {
+                shadows: false,
+                ..sunlight
+            }),
+            ..slab
+        };
+        assert_eq!(
+            unshadowed.sunlit(&level, 0.0, 200.0),
+            clear.sunlit(&level, 0.0, 200.0)
         );
     }
 
@@ -835,6 +913,7 @@ mod tests {
             direction: DVec3::new(0.3, 0.8, -0.2),
             colour: DVec3::new(0.9, 0.8, 0.6),
             asymmetry: 0.6,
+            shadows: false,
         });
         assert!(fog.sunlit(&ray, 0.0, 12.0).min_element() > 0.01);
         let (t0, t1) = (2.0, 12.0);
@@ -886,6 +965,7 @@ mod tests {
             direction: DVec3::ZERO,
             colour: DVec3::ONE,
             asymmetry: 0.0,
+            shadows: false,
         });
         assert!(bad.invalid().unwrap().contains("sunlight"));
         let mut bad = lit_fog();

@@ -1,5 +1,5 @@
-//! Bevy's shadow maps of point and spot lights in nebel's passes: light
-//! shafts behind opaque geometry.
+//! Bevy's shadow maps of point and spot lights, and of the sun, in nebel's
+//! passes: light shafts behind opaque geometry.
 //!
 //! A light that casts shadows (`shadow_maps_enabled`) and reaches a medium
 //! carries its index among Bevy's clustered lights of the frame
@@ -10,7 +10,10 @@
 //! `LIGHT_SHADOW_GROUP` names, and the WGSL library
 //! `nebel_render::light_shadows` reads a light's visibility at a point as
 //! Bevy's PBR shader reads it for a surface (with the light's depth bias,
-//! without a normal bias), and bisects where it changes along a ray.
+//! without a normal bias), and bisects where it changes along a ray. The
+//! sun's visibility comes from the cascade of Bevy's directional light
+//! toward it that reaches the point's view depth (the cascades share the
+//! spot lights' texture array).
 
 use bevy::ecs::system::SystemParam;
 use bevy::pbr::{

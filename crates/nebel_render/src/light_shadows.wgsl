@@ -1,13 +1,14 @@
-// The visibility of point and spot lights through Bevy's shadow maps
-// (nebel_render's `light_shadows` module): Bevy's lights, clustered lights,
-// point-light cube maps and spot-light maps with their comparison samplers
-// in bind group LIGHT_SHADOW_GROUP, read as Bevy's PBR shader reads them for
-// a surface, and the crossing of a shadow's edge along a ray, bisected in
-// the angle at which the light sees the ray.
+// The visibility of point and spot lights, and of the sun, through Bevy's
+// shadow maps (nebel_render's `light_shadows` module): Bevy's lights,
+// clustered lights, point-light cube maps and the spot lights' and
+// directional lights' maps with their comparison samplers in bind group
+// LIGHT_SHADOW_GROUP, read as Bevy's PBR shader reads them for a surface,
+// and the crossing of a shadow's edge along a ray, bisected in the angle at
+// which the light sees the ray.
 
 #define_import_path nebel_render::light_shadows
 
-#import bevy_pbr::mesh_view_types::{ClusteredLights, Lights, POINT_LIGHT_FLAGS_SHADOWS_ENABLED_BIT, POINT_LIGHT_FLAGS_SPOT_LIGHT_BIT, POINT_LIGHT_FLAGS_SPOT_LIGHT_Y_NEGATIVE}
+#import bevy_pbr::mesh_view_types::{ClusteredLights, DIRECTIONAL_LIGHT_FLAGS_SHADOWS_ENABLED_BIT, Lights, POINT_LIGHT_FLAGS_SHADOWS_ENABLED_BIT, POINT_LIGHT_FLAGS_SPOT_LIGHT_BIT, POINT_LIGHT_FLAGS_SPOT_LIGHT_Y_NEGATIVE}
 #import bevy_render::maths::orthonormalize
 #import nebel_render::local_lights::LocalLight
 
@@ -19,6 +20,7 @@
 #endif
 @group(#{LIGHT_SHADOW_GROUP}) @binding(2) var point_shadow_maps: texture_depth_cube_array;
 @group(#{LIGHT_SHADOW_GROUP}) @binding(3) var point_shadow_sampler: sampler_comparison;
+// The spot lights' maps follow the directional lights' cascades in one array.
 @group(#{LIGHT_SHADOW_GROUP}) @binding(4) var spot_shadow_maps: texture_depth_2d_array;
 @group(#{LIGHT_SHADOW_GROUP}) @binding(5) var spot_shadow_sampler: sampler_comparison;
 
@@ -64,6 +66,55 @@ fn light_visibility(light: LocalLight, p: vec3<f32>) -> f32 {
     let uv = projected.xy / (source.spot_light_tan_angle * -projected.z) * vec2(0.5, -0.5) + vec2(0.5);
     let layer = i32(index) + bevy_lights.spot_light_shadowmap_offset;
     return textureSampleCompareLevel(spot_shadow_maps, spot_shadow_sampler, uv, layer, source.shadow_map_near_z / -projected.z);
+}
+
+// The index of Bevy's directional light toward the unit `sun` that casts
+// shadows, or none (n_directional_lights).
+fn shadowed_sun(sun: vec3<f32>) -> u32 {
+    for (var i = 0u; i < bevy_lights.n_directional_lights; i++) {
+        let light = &bevy_lights.directional_lights[i];
+        if dot((*light).direction_to_light, sun) > 0.99999 && ((*light).flags & DIRECTIONAL_LIGHT_FLAGS_SHADOWS_ENABLED_BIT) != 0u {
+            return i;
+        }
+    }
+    return bevy_lights.n_directional_lights;
+}
+
+// How far from the eye, in view depth, Bevy's cascades of the directional
+// light `index` (shadowed_sun) reach.
+fn sun_shadow_reach(index: u32) -> f32 {
+    if index >= bevy_lights.n_directional_lights {
+        return 0.0;
+    }
+    let light = &bevy_lights.directional_lights[index];
+    return (*light).cascades[max((*light).num_cascades, 1u) - 1u].far_bound;
+}
+
+// The part of the directional light `index` (shadowed_sun) that reaches the
+// world point `p` at view depth `depth` past opaque geometry: Bevy's first
+// cascade that reaches that depth, one 2×2 hardware comparison, the point
+// moved toward the light by its depth bias (no normal bias); 1 beyond the
+// cascades and outside the map.
+fn sun_visibility(index: u32, p: vec3<f32>, depth: f32) -> f32 {
+    if index >= bevy_lights.n_directional_lights {
+        return 1.0;
+    }
+    let light = &bevy_lights.directional_lights[index];
+    var cascade = 0u;
+    while cascade < (*light).num_cascades && depth >= (*light).cascades[cascade].far_bound {
+        cascade++;
+    }
+    if cascade >= (*light).num_cascades {
+        return 1.0;
+    }
+    let biased = p + (*light).shadow_depth_bias * (*light).direction_to_light;
+    let clip = (*light).cascades[cascade].clip_from_world * vec4(biased, 1.0);
+    let ndc = clip.xyz / clip.w;
+    if clip.w <= 0.0 || any(ndc.xy < vec2(-1.0)) || ndc.z < 0.0 || any(ndc > vec3(1.0)) {
+        return 1.0;
+    }
+    let uv = ndc.xy * vec2(0.5, -0.5) + vec2(0.5);
+    return textureSampleCompareLevel(spot_shadow_maps, spot_shadow_sampler, uv, i32((*light).depth_texture_base_index + cascade), ndc.z);
 }
 
 // The visibility of `light` at the point of the ray from `eye` along the

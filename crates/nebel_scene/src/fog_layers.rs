@@ -95,12 +95,12 @@ impl FogLayersDescription {
     }
 
     /// The fog for the reference integrator; `sun` is the unit direction
-    /// toward the scene's directional light, if it has one, `lights` the
-    /// scene's volumetric point and spot lights, `occluders` what shades
-    /// those that cast shadows.
+    /// toward the scene's directional light, if it has one, and whether it
+    /// casts shadows, `lights` the scene's volumetric point and spot lights,
+    /// `occluders` what shades those, and the sun, that cast shadows.
     pub fn reference(
         &self,
-        sun: Option<DVec3>,
+        sun: Option<(DVec3, bool)>,
         lights: Vec<LocalLight>,
         occluders: Vec<Occluder>,
     ) -> Result<ReferenceFog, InvalidField> {
@@ -108,10 +108,11 @@ impl FogLayersDescription {
         Ok(ReferenceFog {
             fog: self.height_fog()?,
             colour: linear(self.color),
-            sun: sun.map(|direction| FogSunlight {
+            sun: sun.map(|(direction, shadows)| FogSunlight {
                 direction,
                 colour: linear(self.sun_color),
                 asymmetry: f64::from(self.sun_asymmetry),
+                shadows,
             }),
             start_distance: f64::from(self.start_distance),
             max_distance: f64::from(self.max_distance),

@@ -660,6 +660,17 @@ impl SceneDescription {
         })
     }
 
+    /// Whether the scene's directional light casts shadows (none: false).
+    pub fn sun_casts_shadows(&self) -> bool {
+        self.lights
+            .iter()
+            .find_map(|light| match light {
+                LightDescription::Directional(sun) => Some(sun.shadows),
+                _ => None,
+            })
+            .unwrap_or(false)
+    }
+
     /// The sky's colour, linear: the colour of the scene's ambient light
     /// (Bevy's `GlobalAmbientLight`), white without one. It tints the
     /// ambient light of clouds lit by single scattering.

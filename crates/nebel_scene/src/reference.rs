@@ -100,7 +100,10 @@ pub fn reference_image_with_terrain(
     let fog = scene
         .fog_layers
         .as_ref()
-        .map(|fog| fog.reference(sun, local_lights.clone(), occluders.clone()))
+        .map(|fog| {
+            let sun = sun.map(|direction| (direction, scene.sun_casts_shadows()));
+            fog.reference(sun, local_lights.clone(), occluders.clone())
+        })
         .transpose()
         .map_err(|invalid| ReferenceError::InvalidFog {
             reason: format!("fog_layers.{}: {}", invalid.field, invalid.reason),

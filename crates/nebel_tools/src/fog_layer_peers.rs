@@ -94,7 +94,13 @@ pub fn run_fog_layer_peers(
     save_reference(&reference, &out_dir.join("reference.png"))?;
 
     let fog = layers
-        .reference(scene.sun_direction(), Vec::new(), Vec::new())
+        .reference(
+            scene
+                .sun_direction()
+                .map(|sun| (sun, scene.sun_casts_shadows())),
+            Vec::new(),
+            Vec::new(),
+        )
         .map_err(|invalid| {
             unsuitable(&format!("fog_layers.{}: {}", invalid.field, invalid.reason))
         })?;

@@ -31,7 +31,16 @@
 // and the top takes the whole column's shadow). The optical depth to a node
 // is that to the stretch's start plus the difference of the fog's columns
 // over d_y (a ray within LEVEL_RAY of level: the prefix integral). Nodes in
-// the terrain's shadow hold back nothing more.
+// the terrain's shadow hold back nothing more, and with SUN_SHADOWS nodes
+// hold back their part by the visibility through Bevy's map of the sun.
+//
+// SUN_SHADOWS (FOG_SUN, and the sun casts shadows; LIGHT_SHADOWS binds
+// Bevy's maps): where Bevy's cascades reach, the sun's visibility V through
+// them is read at SUN_SHADOW_STEPS equal steps of the ray and the first
+// SUN_SHADOW_CHANGES changes bisected to the mean of their ends
+// (SUN_SHADOW_BISECTIONS); every stretch of one weight w = 1 − V (0 in the
+// terrain's shadow, held back there already) holds back w (F(end) −
+// F(start)), F the closed-form sunlight from the eye.
 //
 // FOG_SUN with the terrain's shadow heights (the fog layers' terrain_shadow
 // module): the ray's stretches below them hold back their closed-form
@@ -48,7 +57,7 @@
 #import nebel_render::local_lights::{GAUSS_NODES, GAUSS_WEIGHTS, LocalLights, henyey_greenstein, light_node, light_on_ray, light_quadrature, light_span}
 #import nebel_render::cloud_shadow_maps::{CloudShadowMapPair, held_back}
 #ifdef LIGHT_SHADOWS
-#import nebel_render::light_shadows::{light_visibility_at, visibility_spans}
+#import nebel_render::light_shadows::{light_visibility_at, shadowed_sun, sun_shadow_reach, sun_visibility, visibility_spans}
 #endif
 
 struct FogPass {
@@ -180,7 +189,12 @@ fn map_held_back(
         for (var k = 0u; k < 3u; k++) {
             let t = middle + half * GAUSS_NODES[k];
             let p = eye + t * direction;
-            let held = held_back(plane, sun_and_weight, size, map_texture, cloud_map_sampler, p);
+            var held = held_back(plane, sun_and_weight, size, map_texture, cloud_map_sampler, p);
+#ifdef SUN_SHADOWS
+            // Where Bevy's map of the sun shades the node, the clouds hold
+            // back only the part it lets through.
+            held *= sun_visibility(shadowed_sun(fog_pass.fog.sun_direction.xyz), p, t * -dot(direction, fog_pass.world_from_view[2].xyz));
+#endif
             if held > 0.0 && !in_terrain_shadow(p) {
                 let fog = fog_density_and_column(p.y);
                 var seen = start_depth + (start_column - fog.y) / d_y;
@@ -438,6 +452,112 @@ fn terrain_held_back(direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
 }
 #endif
 
+#ifdef SUN_SHADOWS
+// Equal steps over the stretch of a ray Bevy's cascades reach, the changes
+// of the sun's visibility between two of them that are bisected (after the
+// march, out of its divergent loop; later ones are taken at their steps'
+// middles), and the bisections of each.
+const SUN_SHADOW_STEPS: u32 = 32u;
+const SUN_SHADOW_CHANGES: u32 = 8u;
+const SUN_SHADOW_BISECTIONS: u32 = 6u;
+// Weights closer than this are taken as equal.
+const SUN_SHADOW_EPSILON: f32 = 1.0e-3;
+
+// The share of the sunlight Bevy's map of the sun (light `sun`) holds back
+// at `t` along the ray `direction` (`forward` its view depth per metre):
+// 1 − V, and none in the terrain's shadow.
+fn sun_shadow_weight(sun: u32, direction: vec3<f32>, forward: f32, t: f32) -> f32 {
+    let p = fog_pass.camera_position.xyz + t * direction;
+    return select(1.0 - sun_visibility(sun, p, t * forward), 0.0, in_terrain_shadow(p));
+}
+
+// The sunlight Bevy's map of the sun holds back from the fog over [t0, t1]
+// along the ray `direction` (see the header).
+fn sun_shadow_held_back(direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
+    let sun = shadowed_sun(fog_pass.fog.sun_direction.xyz);
+    // View depth per metre along the ray (the view looks down its −z).
+    let forward = -dot(direction, fog_pass.world_from_view[2].xyz);
+    var b = t1;
+    if forward > 0.0 {
+        b = min(b, sun_shadow_reach(sun) / forward);
+    }
+    if !(b > t0) {
+        return vec3(0.0);
+    }
+    // The march: where the weight changes, (step's start, end, weight
+    // before, weight after).
+    let step = (b - t0) / f32(SUN_SHADOW_STEPS);
+    let first = sun_shadow_weight(sun, direction, forward, t0);
+    var changes: array<vec4<f32>, SUN_SHADOW_CHANGES>;
+    var count = 0u;
+    var weight = first;
+    var before = t0;
+    var held = 0.0;
+    var start = t0;
+    var start_weight = first;
+    for (var k = 1u; k <= SUN_SHADOW_STEPS; k++) {
+        let t = select(t0 + step * f32(k), b, k == SUN_SHADOW_STEPS);
+        let next = sun_shadow_weight(sun, direction, forward, t);
+        if abs(next - weight) > SUN_SHADOW_EPSILON {
+            if count < SUN_SHADOW_CHANGES {
+                changes[count] = vec4(before, t, weight, next);
+                count++;
+            }
+        }
+        weight = next;
+        before = t;
+    }
+    let d_y = direction.y;
+    for (var i = 0u; i < count; i++) {
+        let change = changes[i];
+        var low = change.x;
+        var high = change.y;
+        let middle = 0.5 * (change.z + change.w);
+        for (var n = 0u; n < SUN_SHADOW_BISECTIONS; n++) {
+            let m = 0.5 * (low + high);
+            if (sun_shadow_weight(sun, direction, forward, m) > middle) == (change.z > middle) {
+                low = m;
+            } else {
+                high = m;
+            }
+        }
+        let crossing = 0.5 * (low + high);
+        if start_weight > 0.0 {
+            held += start_weight * (sunlight_to(d_y, crossing) - sunlight_to(d_y, start));
+        }
+        start = crossing;
+        start_weight = change.w;
+    }
+    if count == SUN_SHADOW_CHANGES {
+        // More changes than are bisected: the rest of the ray by the
+        // steps' weights, each change at its step's middle.
+        weight = start_weight;
+        before = changes[SUN_SHADOW_CHANGES - 1u].y;
+        for (var k = 1u; k <= SUN_SHADOW_STEPS; k++) {
+            let t = select(t0 + step * f32(k), b, k == SUN_SHADOW_STEPS);
+            if t <= before {
+                continue;
+            }
+            let next = sun_shadow_weight(sun, direction, forward, t);
+            if abs(next - weight) > SUN_SHADOW_EPSILON {
+                let crossing = t - 0.5 * step;
+                if weight > 0.0 {
+                    held += weight * (sunlight_to(d_y, crossing) - sunlight_to(d_y, start));
+                }
+                start = crossing;
+                weight = next;
+            }
+        }
+        start_weight = weight;
+    }
+    if start_weight > 0.0 {
+        held += start_weight * (sunlight_to(d_y, b) - sunlight_to(d_y, start));
+    }
+    let phase = henyey_greenstein(fog_pass.fog.sun_colour.w, dot(direction, fog_pass.fog.sun_direction.xyz));
+    return fog_pass.fog.sun_colour.rgb * phase * held;
+}
+#endif
+
 #ifdef LOCAL_LIGHTS
 // The optical depth, plus exponential falloff times the altitude crossed,
 // per piece of a part of a light's stretch.
@@ -588,7 +708,10 @@ fn fog_sample(ndc: vec2<f32>, direction: vec3<f32>, depth: f32) -> vec4<f32> {
 #ifdef FOG_SUN
     let lit_from = fog_pass.fog.ranges.x;
     let lit_to = min(distance, fog_pass.fog.ranges.y);
-    let held = clouds_held_back(direction, lit_from, lit_to) + terrain_held_back(direction, lit_from, lit_to);
+    var held = clouds_held_back(direction, lit_from, lit_to) + terrain_held_back(direction, lit_from, lit_to);
+#ifdef SUN_SHADOWS
+    held += sun_shadow_held_back(direction, lit_from, lit_to);
+#endif
     colour = max(colour - held, vec3(0.0));
 #endif
 #ifdef LOCAL_LIGHTS

@@ -33,7 +33,13 @@
 //! them, exactly for the map's bilinear heights: the pass walks the map
 //! along the ray, crossing blocks whole where the ray passes above or below
 //! all their heights, and holds back each shaded stretch's closed form.
-//! Beyond the map's extent the terrain casts nothing.
+//! Beyond the map's extent the terrain casts nothing. A sun that casts
+//! shadows (`shadow_maps_enabled`) is hidden by opaque meshes too, through
+//! Bevy's cascaded shadow map of it (`nebel_render::light_shadows`, with
+//! the light's depth bias): its visibility is read at 32 equal steps of the
+//! stretch the cascades reach, each change bisected, and each stretch of one
+//! visibility `V` holds back `1 − V` of its closed form (where the terrain
+//! has not). Beyond the cascades' reach no mesh shades the fog.
 //!
 //! # Point and spot lights
 //!

@@ -114,9 +114,16 @@ impl FogLayerLights {
     }
 }
 
+/// On a view whose sunlit fog layers the sun shades through Bevy's shadow
+/// map of it (the first `DirectionalLight` has `shadow_maps_enabled`;
+/// render world).
+#[derive(Component, Clone, Copy, Debug)]
+pub struct FogLayersSunShadows;
+
 /// Gives every camera with fog to draw its [`ViewFogLayers`], the sun's
 /// direction taken from the first `DirectionalLight` (a light shines along
-/// its forward axis, so the sun lies behind it), and its
+/// its forward axis, so the sun lies behind it), [`FogLayersSunShadows`]
+/// where that light casts shadows on sunlit fog, and its
 /// [`FogLayerLights`] where a volumetric light reaches within the fog's
 /// largest distance (the brightest at the camera first); removes them, and
 /// what was prepared from them, from the others.
@@ -133,7 +140,7 @@ pub fn extract_fog_layers(
             With<Camera3d>,
         >,
     >,
-    lights: Extract<Query<&GlobalTransform, With<DirectionalLight>>>,
+    lights: Extract<Query<(&GlobalTransform, &DirectionalLight)>>,
     (points, spots): (
         Extract<VolumetricPointLights>,
         Extract<VolumetricSpotLights>,
@@ -145,10 +152,12 @@ pub fn extract_fog_layers(
     let from_the_eye = quality
         .as_ref()
         .is_some_and(|quality| !quality.ground_fog_prisms());
-    let sun = lights
+    let (sun, sun_shadows) = lights
         .iter()
         .next()
-        .map_or(Vec3::Y, |light| light.back().as_vec3());
+        .map_or((Vec3::Y, false), |(at, light)| {
+            (at.back().as_vec3(), light.shadow_maps_enabled)
+        });
     for (entity, prepared, fog, camera) in &cameras {
         match prepared.and_then(|prepared| prepared.0) {
             Some(mut uniform) => {
@@ -158,6 +167,11 @@ pub fn extract_fog_layers(
                 }
                 let mut view = commands.entity(entity);
                 view.insert(ViewFogLayers(uniform));
+                if sun_shadows && uniform.has_sun() {
+                    view.insert(FogLayersSunShadows);
+                } else {
+                    view.remove::<FogLayersSunShadows>();
+                }
                 match fog.and_then(|fog| {
                     FogLayerLights::reaching(
                         &local_lights,
@@ -177,6 +191,7 @@ pub fn extract_fog_layers(
                 commands.entity(entity).remove::<(
                     ViewFogLayers,
                     FogLayerLights,
+                    FogLayersSunShadows,
                     FogLayersView,
                     FogLayersBindGroup,
                 )>();
@@ -221,7 +236,7 @@ pub struct FogLayersView {
     pub(super) uniform_offset: u32,
     pub(super) multisampled: bool,
     pub(super) pipeline: CachedRenderPipelineId,
-    /// A light reads its shadow map (bind group 1,
+    /// A light, or the sun, reads its shadow map (bind group 1,
     /// `nebel_render::light_shadows`).
     pub(super) shadowed: bool,
 }
@@ -247,6 +262,8 @@ pub struct FogLayersPipelineKey {
     light_shadows: bool,
     /// The fog scatters sunlight (`FOG_SUN`).
     sun: bool,
+    /// Bevy's shadow map of the sun shades it (`SUN_SHADOWS`).
+    sun_shadows: bool,
     target_format: TextureFormat,
 }
 
@@ -308,7 +325,10 @@ impl SpecializedRenderPipeline for FogLayersPipeline {
             shader_defs.push("FOG_SUN".into());
         }
         let mut layout = vec![self.layouts[usize::from(key.multisampled)].clone()];
-        if key.local_lights && key.light_shadows {
+        if key.sun_shadows {
+            shader_defs.push("SUN_SHADOWS".into());
+        }
+        if (key.local_lights && key.light_shadows) || key.sun_shadows {
             shader_defs.push("LIGHT_SHADOWS".into());
             shader_defs.push(ShaderDefVal::UInt("LIGHT_SHADOW_GROUP".into(), 1));
             layout.push(self.shadow_layout.clone());
@@ -341,7 +361,11 @@ pub fn prepare_fog_layer_views(
         &Msaa,
         &ViewFogLayers,
         Option<&FogLayerLights>,
-        (Has<ViewShadowBindings>, Has<ViewLightsUniformOffset>),
+        (
+            Has<ViewShadowBindings>,
+            Has<ViewLightsUniformOffset>,
+            Has<FogLayersSunShadows>,
+        ),
     )>,
     light_shadows: LightShadows,
     clouds: Option<Res<CloudShadowMaps>>,
@@ -357,7 +381,7 @@ pub fn prepare_fog_layer_views(
         return;
     }
     uniforms.0.clear();
-    for (entity, view, msaa, fog, lights, (shadow_maps, lights_offset)) in &views {
+    for (entity, view, msaa, fog, lights, (shadow_maps, lights_offset, sun_shadows)) in &views {
         // Each light that casts shadows reads Bevy's map of this frame.
         let lights = lights.map(|lights| FogLayerLights {
             lights: lights
@@ -365,9 +389,10 @@ pub fn prepare_fog_layer_views(
                 .with_shadow_indices(|entity| light_shadows.light_index(entity)),
             ..*lights
         });
-        let shadowed = shadow_maps
+        let light_shadows = shadow_maps
             && lights_offset
             && lights.is_some_and(|lights| lights.lights.is_shadowed());
+        let sun_shadows = shadow_maps && lights_offset && sun_shadows && fog.0.has_sun();
         let rotation = Mat4::from_quat(view.world_from_view.rotation());
         let uniform_offset = uniforms.0.push(&FogPassUniform {
             view_from_clip: view.clip_from_view.inverse(),
@@ -393,8 +418,9 @@ pub fn prepare_fog_layer_views(
             FogLayersPipelineKey {
                 multisampled,
                 local_lights: lights.is_some(),
-                light_shadows: shadowed,
+                light_shadows,
                 sun: fog.0.has_sun(),
+                sun_shadows,
                 target_format: view.target_format,
             },
         );
@@ -402,7 +428,7 @@ pub fn prepare_fog_layer_views(
             uniform_offset,
             multisampled,
             pipeline,
-            shadowed,
+            shadowed: light_shadows || sun_shadows,
         });
     }
     uniforms.0.write_buffer(&device, &queue);
