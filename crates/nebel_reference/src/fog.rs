@@ -439,6 +439,19 @@ mod tests {
         }])
     }
 
+    /// The slab lit by a sun 53° up along +x, which casts no shadows.
+    fn sunlit_slab() -> ReferenceFog {
+        ReferenceFog {
+            sun: Some(FogSunlight {
+                direction: DVec3::new(0.6, 0.8, 0.0),
+                colour: DVec3::ONE,
+                asymmetry: 0.3,
+                shadows: false,
+            }),
+            ..slab()
+        }
+    }
+
     /// A ray from `origin` at `elevation` degrees above the horizontal.
     fn ray(origin: DVec3, elevation: f64) -> Ray {
         let e = elevation.to_radians();
@@ -602,14 +615,7 @@ mod tests {
     fn a_cloud_slab_holds_back_the_sunlight_it_shades() {
         use nebel_core::field::DensityGrid;
         use std::sync::Arc;
-        let mut slab = slab();
-        let sun = DVec3::new(0.6, 0.8, 0.0);
-        slab.sun = Some(FogSunlight {
-            direction: sun,
-            colour: DVec3::ONE,
-            asymmetry: 0.3,
-            shadows: false,
-        });
+        let slab = sunlit_slab();
         let cloud = |min_x: f64| ShadowCaster {
             grid: Arc::new(
                 DensityGrid::new(
@@ -682,14 +688,7 @@ mod tests {
     fn the_terrain_shadow_leaves_the_sunlight_of_the_stretches_above_it() {
         use nebel_core::field::{DensityGrid, HeightField, TerrainShadow};
         use std::sync::Arc;
-        let mut slab = slab();
-        let sun = DVec3::new(0.6, 0.8, 0.0);
-        slab.sun = Some(FogSunlight {
-            direction: sun,
-            colour: DVec3::ONE,
-            asymmetry: 0.3,
-            shadows: false,
-        });
+        let (slab, sun) = (sunlit_slab(), DVec3::new(0.6, 0.8, 0.0));
         let heights = HeightField::new(
             [2, 2],
             glam::DVec2::new(200.0, 400.0),
@@ -757,12 +756,10 @@ mod tests {
     /// nothing where it does not.
     #[test]
     fn an_occluder_hides_the_sun_from_the_stretch_in_its_shadow() {
-        let mut slab = slab();
+        let mut slab = sunlit_slab();
         let sunlight = FogSunlight {
-            direction: DVec3::new(0.6, 0.8, 0.0),
-            colour: DVec3::ONE,
-            asymmetry: 0.3,
             shadows: true,
+            ..slab.sun.unwrap()
         };
         slab.sun = Some(sunlight);
         slab.occluders = vec![Occluder::Rectangle {

@@ -97,7 +97,7 @@ use nebel_render::fog_layers::{FogLayersLimitError, FogLayersLook, FogLayersUnif
 use thiserror::Error;
 
 pub use resources::FogLayersRenderPlugin;
-pub use terrain_shadow::{FogLayersTerrainShadow, TerrainShadowUniform};
+pub use terrain_shadow::FogLayersTerrainShadow;
 
 /// Height fog seen by a 3D camera (see the module docs). Put it on the
 /// camera entity; [`FogLayersStatus`] says whether it draws.

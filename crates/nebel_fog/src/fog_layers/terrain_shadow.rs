@@ -8,12 +8,15 @@
 //! a side, built on the task pool again when the terrain or its transform
 //! changes or the sun turns (in the terrain's frame) by more than
 //! [`SUN_STEP`], one build at a time; the fog keeps the last map until the
-//! new one lands. The render world uploads it as an `R32Float` texture when
-//! it is a new map. The pass walks the map's cells along each ray and holds
-//! back the closed-form sunlight of every stretch below the shadow heights
+//! new one lands. The render world uploads it when it is a new map, as an
+//! `R32Float` texture and the lowest and highest height of each block of
+//! [`TERRAIN_SHADOW_BLOCK`] cells a side (`Rg32Float`). The pass walks the
+//! map along each ray, crossing blocks whole where the ray passes above or
+//! below all their heights, and holds back the closed-form sunlight of
+//! every stretch below the shadow heights
 //! (`nebel_core::field::PlacedTerrainShadow`, exact for the map's bilinear
 //! heights). Without sunlit fog layers, a sun or a terrain there is no map,
-//! no build and no upload; the pass reads a 1 × 1 texture with no weight.
+//! no build and no upload; the pass reads a 2 × 2 map with no weight.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -193,12 +196,12 @@ fn texture(
         .create_view(&TextureViewDescriptor::default())
 }
 
-/// The map's texture and uniform in the render world, and the map they are
-/// of (by identity).
+/// The map's textures and uniform in the render world, and the map they
+/// are of (held, so that its identity stays its own).
 #[derive(Resource)]
 pub struct TerrainShadowTexture {
-    source: Option<usize>,
-    /// The shadow heights, one texel per point (1 × 1 without a map).
+    source: Option<Arc<TerrainShadow>>,
+    /// The shadow heights, one texel per point (2 × 2 without a map).
     pub view: TextureView,
     /// The blocks' lowest and highest shadow heights, one texel per block.
     pub blocks: TextureView,
@@ -215,12 +218,17 @@ pub(super) fn prepare_terrain_shadow_texture(
     queue: Res<RenderQueue>,
 ) {
     let placed = placed.as_ref().and_then(|placed| placed.0.as_ref());
-    let source = placed.map(|placed| Arc::as_ptr(&placed.shadow) as usize);
+    let source = placed.map(|placed| placed.shadow.clone());
     // A map and its placement come together: the same map, the same
     // uniform.
-    if current.is_some_and(|current| current.source == source) {
+    let same = |current: &TerrainShadowTexture| match (&current.source, &source) {
+        (Some(a), Some(b)) => Arc::ptr_eq(a, b),
+        (a, b) => a.is_none() && b.is_none(),
+    };
+    if current.is_some_and(|current| same(&current)) {
         return;
     }
+    // A flat 2 × 2 map, without weight, stands in for none.
     let none = HeightField::new([2, 2], DVec2::ONE, DVec2::ZERO, vec![0.0; 4]).ok();
     let Some(heights) = placed
         .map(|placed| &placed.shadow.heights)
