@@ -104,12 +104,7 @@ pub fn lit_spans(
     ray: &Ray,
     range: (f64, f64),
 ) -> Vec<(f64, f64)> {
-    if occluders.is_empty() {
-        return whole(range);
-    }
-    spans_where(range, |t| {
-        !hides(occluders, ray.origin + t * ray.direction, light)
-    })
+    seen_spans(occluders, ray, range, |x| hides(occluders, x, light))
 }
 
 /// Whether one of `occluders` hides the sun, in the unit direction `sun`
@@ -126,12 +121,21 @@ pub fn sun_lit_spans(
     ray: &Ray,
     range: (f64, f64),
 ) -> Vec<(f64, f64)> {
+    seen_spans(occluders, ray, range, |x| hides_sun(occluders, x, sun))
+}
+
+/// The stretches of `range` along `ray` whose points `hidden` does not
+/// hold for: the whole range without occluders, else [`spans_where`].
+fn seen_spans(
+    occluders: &[Occluder],
+    ray: &Ray,
+    range: (f64, f64),
+    hidden: impl Fn(DVec3) -> bool,
+) -> Vec<(f64, f64)> {
     if occluders.is_empty() {
         return whole(range);
     }
-    spans_where(range, |t| {
-        !hides_sun(occluders, ray.origin + t * ray.direction, sun)
-    })
+    spans_where(range, |t| !hidden(ray.origin + t * ray.direction))
 }
 
 /// `[t_a, t_b]` as the one span, or none where it is empty.

@@ -696,15 +696,15 @@ mod tests {
             vec![6.0, 6.0, 6.0, 6.0],
         )
         .unwrap();
-        let terrain = PlacedTerrainShadow {
-            shadow: Arc::new(TerrainShadow {
+        // The map's frame: x from −200 to 0 is world x from −300 to −100.
+        let terrain = PlacedTerrainShadow::new(
+            Arc::new(TerrainShadow {
                 distances: heights.clone(),
                 heights,
                 sun,
             }),
-            // The map's frame: x from −200 to 0 is world x from −300 to −100.
-            map_from_world: glam::DAffine3::from_translation(DVec3::new(100.0, 0.0, 0.0)),
-        };
+            glam::DAffine3::from_translation(DVec3::new(100.0, 0.0, 0.0)),
+        );
         let shaded = ReferenceFog {
             terrain: Some(terrain),
             ..slab.clone()

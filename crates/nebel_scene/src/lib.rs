@@ -1093,14 +1093,10 @@ impl SceneDescription {
         let local = terrain
             .local_heights(unit)
             .map_err(|invalid| invalid.in_scene(scene_path, "terrain"))?;
-        Ok(
-            TerrainShadow::of_field(&local, sun).map(|shadow| PlacedTerrainShadow {
-                shadow: Arc::new(shadow),
-                map_from_world: DAffine3::from_translation(-DVec3::from(
-                    terrain.center.map(f64::from),
-                )),
-            }),
-        )
+        let map_from_world =
+            DAffine3::from_translation(-DVec3::from(terrain.center.map(f64::from)));
+        Ok(TerrainShadow::of_field(&local, sun)
+            .map(|shadow| PlacedTerrainShadow::new(Arc::new(shadow), map_from_world)))
     }
 
     /// Generates or loads every volume's field and transfer function.

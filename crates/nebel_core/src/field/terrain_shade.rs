@@ -27,9 +27,31 @@ pub struct PlacedTerrainShadow {
     /// World space to the terrain's frame, affine (a rigid motion keeps the
     /// heights' meaning).
     pub map_from_world: DAffine3,
+    /// The highest shadow height: above it nothing is shaded.
+    top: f64,
 }
 
 impl PlacedTerrainShadow {
+    /// `shadow` placed by `map_from_world`.
+    pub fn new(shadow: Arc<TerrainShadow>, map_from_world: DAffine3) -> Self {
+        let top = shadow
+            .heights
+            .heights()
+            .iter()
+            .copied()
+            .fold(f32::MIN, f32::max);
+        Self {
+            shadow,
+            map_from_world,
+            top: f64::from(top),
+        }
+    }
+
+    /// The highest shadow height, in the terrain's frame.
+    pub fn top(&self) -> f64 {
+        self.top
+    }
+
     /// The stretches of `[t0, t1]` along the ray `origin + t direction`
     /// (world space) whose points lie below the shadow heights, in order,
     /// disjoint and each of positive length (module docs). An affine map
@@ -44,16 +66,8 @@ impl PlacedTerrainShadow {
         // The ray in grid units: g(t) = start + t e.
         let start = (DVec2::new(origin.x, origin.z) - grid.origin()) / grid.spacing();
         let e = DVec2::new(direction.x, direction.z) / grid.spacing();
-        let top = grid.heights().iter().copied().fold(f32::MIN, f32::max);
-        let Some((t0, t1)) = within_map(
-            start,
-            e,
-            last,
-            origin.y,
-            direction.y,
-            f64::from(top),
-            (t0, t1),
-        ) else {
+        let Some((t0, t1)) = within_map(start, e, last, origin.y, direction.y, self.top, (t0, t1))
+        else {
             return Vec::new();
         };
         let mut shaded = Vec::new();
@@ -106,17 +120,6 @@ impl PlacedTerrainShadow {
         }
         edge(t1, false, &mut shaded);
         shaded
-    }
-
-    /// Whether the point `p` (world space) lies below the shadow heights,
-    /// inside the map's extent.
-    pub fn in_shadow(&self, p: DVec3) -> bool {
-        let p = self.map_from_world.transform_point3(p);
-        let grid = &self.shadow.heights;
-        let [nx, nz] = grid.dims();
-        let g = (DVec2::new(p.x, p.z) - grid.origin()) / grid.spacing();
-        let inside = g.x >= 0.0 && g.y >= 0.0 && g.x <= (nx - 1) as f64 && g.y <= (nz - 1) as f64;
-        inside && p.y < grid.sample_grid(g)
     }
 }
 
@@ -230,14 +233,26 @@ mod tests {
             heights,
         )
         .unwrap();
-        PlacedTerrainShadow {
-            shadow: Arc::new(TerrainShadow {
+        PlacedTerrainShadow::new(
+            Arc::new(TerrainShadow {
                 distances: heights.clone(),
                 heights,
                 sun: DVec3::Y,
             }),
-            map_from_world: DAffine3::from_translation(-at),
-        }
+            DAffine3::from_translation(-at),
+        )
+    }
+
+    /// Whether the point `p` (world space) lies below the shadow heights,
+    /// inside the map's extent: the point test the stretches must agree
+    /// with.
+    fn in_shadow(map: &PlacedTerrainShadow, p: DVec3) -> bool {
+        let p = map.map_from_world.transform_point3(p);
+        let grid = &map.shadow.heights;
+        let [nx, nz] = grid.dims();
+        let g = (DVec2::new(p.x, p.z) - grid.origin()) / grid.spacing();
+        let inside = g.x >= 0.0 && g.y >= 0.0 && g.x <= (nx - 1) as f64 && g.y <= (nz - 1) as f64;
+        inside && p.y < grid.sample_grid(g)
     }
 
     #[test]
@@ -311,7 +326,7 @@ mod tests {
                     continue;
                 }
                 let inside = shaded.iter().any(|&(a, b)| t > a && t < b);
-                prop_assert_eq!(inside, map.in_shadow(origin + t * direction), "t = {}", t);
+                prop_assert_eq!(inside, in_shadow(&map, origin + t * direction), "t = {}", t);
             }
         }
     }

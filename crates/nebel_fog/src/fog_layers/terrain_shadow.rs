@@ -107,10 +107,9 @@ pub(super) fn update_terrain_shadow(
     {
         state.built = Some((key, built_sun));
         diagnostics.add_measurement(&FogLayersPlugin::TERRAIN_SHADOW_MS, || f64::from(ms));
-        shadow.set_if_neq(FogLayersTerrainShadow(map.map(|map| PlacedTerrainShadow {
-            shadow: Arc::new(map),
-            map_from_world,
-        })));
+        shadow.set_if_neq(FogLayersTerrainShadow(
+            map.map(|map| PlacedTerrainShadow::new(Arc::new(map), map_from_world)),
+        ));
     }
 }
 
@@ -132,11 +131,10 @@ impl TerrainShadowUniform {
         let spacing = grid.spacing();
         let grid_from_map = DMat4::from_scale(DVec3::new(1.0 / spacing.x, 1.0, 1.0 / spacing.y))
             * DMat4::from_translation(DVec3::new(-grid.origin().x, 0.0, -grid.origin().y));
-        let top = grid.heights().iter().copied().fold(f32::MIN, f32::max);
         let [nx, nz] = grid.dims();
         Self {
             grid_from_world: (grid_from_map * DMat4::from(placed.map_from_world)).as_mat4(),
-            size: Vec4::new(nx as f32, nz as f32, top, 1.0),
+            size: Vec4::new(nx as f32, nz as f32, placed.top() as f32, 1.0),
         }
     }
 }
@@ -284,14 +282,14 @@ mod tests {
             DQuat::from_rotation_y(0.7),
             DVec3::new(300.0, -20.0, 45.0),
         );
-        let placed = PlacedTerrainShadow {
-            shadow: Arc::new(TerrainShadow {
+        let placed = PlacedTerrainShadow::new(
+            Arc::new(TerrainShadow {
                 distances: heights.clone(),
                 heights,
                 sun: DVec3::Y,
             }),
-            map_from_world: world_from_map.inverse(),
-        };
+            world_from_map.inverse(),
+        );
         let uniform = TerrainShadowUniform::new(&placed);
         assert_eq!(uniform.size, Vec4::new(4.0, 3.0, 12.5, 1.0));
         let world = world_from_map.transform_point3(DVec3::new(-40.0 + 2.0 * 7.0, 6.5, 15.0 + 5.0));
