@@ -23,10 +23,7 @@ use std::sync::Arc;
 
 use bevy::math::{DAffine3, DMat3, DMat4, DVec2, DVec3};
 use bevy::prelude::*;
-use bevy::render::render_resource::{
-    Extent3d, ShaderType, TextureDataOrder, TextureDescriptor, TextureDimension, TextureFormat,
-    TextureUsages, TextureView, TextureViewDescriptor,
-};
+use bevy::render::render_resource::{ShaderType, TextureFormat, TextureView};
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use nebel_core::field::TerrainShadow;
 use nebel_core::fog_sunlight::{FogSunMap, vertical_scale};
@@ -34,6 +31,7 @@ use nebel_core::optics::checked_asymmetry;
 
 use crate::cell_batch::finite_non_negative;
 use crate::cloud_shadow_maps::CloudShadowMapUniform;
+use crate::data_texture::data_texture;
 
 /// Values of the fog's column table `F(u)`, at equal steps of `u` from 0 to 1.
 pub const COLUMN_TABLE_SIZE: usize = 65;
@@ -138,27 +136,14 @@ pub(crate) fn sun_map_texture(
     let (size, texels) = map.map_or(([1, 1], vec![[0.0f32; 4]]), |map| {
         (map.shadow.heights.dims(), map.texels())
     });
-    device
-        .create_texture_with_data(
-            queue,
-            &TextureDescriptor {
-                label: Some("nebel_fog_sun_map"),
-                size: Extent3d {
-                    width: size[0] as u32,
-                    height: size[1] as u32,
-                    depth_or_array_layers: 1,
-                },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: TextureDimension::D2,
-                format: TextureFormat::Rgba32Float,
-                usage: TextureUsages::TEXTURE_BINDING,
-                view_formats: &[],
-            },
-            TextureDataOrder::LayerMajor,
-            bytemuck::cast_slice(&texels),
-        )
-        .create_view(&TextureViewDescriptor::default())
+    data_texture(
+        device,
+        queue,
+        "nebel_fog_sun_map",
+        size,
+        TextureFormat::Rgba32Float,
+        bytemuck::cast_slice(&texels),
+    )
 }
 
 #[cfg(test)]

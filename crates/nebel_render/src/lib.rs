@@ -30,6 +30,7 @@ pub mod camera;
 pub mod cell_batch;
 pub mod cell_projection;
 pub mod cloud_shadow_maps;
+pub mod data_texture;
 pub mod diagnostics;
 pub mod effect;
 pub mod fog_layers;

@@ -284,13 +284,14 @@ fn shade_flush(walk: ptr<function, ShadeWalk>, d_y: f32) {
     (*walk).count = 0u;
 }
 
-// The ray enters a lit (`dark` false) or shaded stretch at `t`. The edges'
+// The ray of vertical direction `d_y` enters a lit (`dark` false) or
+// shaded stretch at `t`. The edges'
 // sunlight is summed after the walk (or when SHADE_EDGES are kept), out of
 // the walk's divergent loop.
-fn shade_edge(walk: ptr<function, ShadeWalk>, direction: vec3<f32>, t: f32, dark: bool) {
+fn shade_edge(walk: ptr<function, ShadeWalk>, d_y: f32, t: f32, dark: bool) {
     if dark != (*walk).open {
         if (*walk).count == SHADE_EDGES {
-            shade_flush(walk, direction.y);
+            shade_flush(walk, d_y);
         }
         (*walk).open = dark;
         (*walk).edges[(*walk).count] = t;
@@ -314,8 +315,9 @@ fn box_exit(start: vec2<f32>, e: vec2<f32>, lo: vec2<f32>, hi: vec2<f32>) -> vec
 }
 
 // Walks the cells of the box [lo, hi) over [t_from, t_to] along the ray
-// `start + t e` (the map's grid), each cell's quadratic cut at its roots.
-fn walk_cells(walk: ptr<function, ShadeWalk>, direction: vec3<f32>, start: vec3<f32>, e: vec3<f32>, t_from: f32, t_to: f32, lo: vec2<f32>, hi: vec2<f32>) {
+// `start + t e` (the map's grid; `d_y` its world vertical direction), each
+// cell's quadratic cut at its roots.
+fn walk_cells(walk: ptr<function, ShadeWalk>, d_y: f32, start: vec3<f32>, e: vec3<f32>, t_from: f32, t_to: f32, lo: vec2<f32>, hi: vec2<f32>) {
     var cell = cell_at(start.xz, e.xz, t_from, lo, hi);
     var h = shadow_corners(cell);
     var t = t_from;
@@ -352,7 +354,7 @@ fn walk_cells(walk: ptr<function, ShadeWalk>, direction: vec3<f32>, start: vec3<
             let piece = pieces[m];
             if piece.y > piece.x {
                 let s = 0.5 * (piece.x + piece.y);
-                shade_edge(walk, direction, t + piece.x, constant + s * (linear + s * quadratic) < 0.0);
+                shade_edge(walk, d_y, t + piece.x, constant + s * (linear + s * quadratic) < 0.0);
             }
         }
         t = end;
@@ -429,11 +431,11 @@ fn terrain_held_back(direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
         let heights = start.y + vec2(t, end) * e.y;
         let bounds = textureLoad(terrain_shadow_blocks, vec2<i32>(block), 0).rg;
         if min(heights.x, heights.y) >= bounds.y {
-            shade_edge(&walk, direction, t, false);
+            shade_edge(&walk, direction.y, t, false);
         } else if max(heights.x, heights.y) < bounds.x {
-            shade_edge(&walk, direction, t, true);
+            shade_edge(&walk, direction.y, t, true);
         } else {
-            walk_cells(&walk, direction, start, e, t, end, lo, hi);
+            walk_cells(&walk, direction.y, start, e, t, end, lo, hi);
         }
         t = end;
         if end >= b {
@@ -445,7 +447,7 @@ fn terrain_held_back(direction: vec3<f32>, t0: f32, t1: f32) -> vec3<f32> {
             break;
         }
     }
-    shade_edge(&walk, direction, t, false);
+    shade_edge(&walk, direction.y, t, false);
     shade_flush(&walk, direction.y);
     let phase = henyey_greenstein(fog_pass.fog.sun_colour.w, dot(direction, fog_pass.fog.sun_direction.xyz));
     return fog_pass.fog.sun_colour.rgb * phase * walk.held;

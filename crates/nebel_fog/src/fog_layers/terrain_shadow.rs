@@ -25,13 +25,11 @@ use bevy::diagnostic::Diagnostics;
 use bevy::math::{DAffine3, DMat4, DVec2, DVec3};
 use bevy::prelude::*;
 use bevy::render::extract_resource::ExtractResource;
-use bevy::render::render_resource::{
-    Extent3d, ShaderType, TextureDataOrder, TextureDescriptor, TextureDimension, TextureFormat,
-    TextureUsages, TextureView, TextureViewDescriptor,
-};
+use bevy::render::render_resource::{ShaderType, TextureFormat, TextureView};
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use nebel_core::field::{HeightField, PlacedTerrainShadow, TerrainShadow};
 use nebel_render::camera::to_double_affine;
+use nebel_render::data_texture::data_texture;
 use nebel_render::{HeavyBuild, HeavyBuilds};
 use nebel_terrain::TerrainLod;
 
@@ -161,39 +159,6 @@ fn block_bounds(heights: &HeightField) -> ([usize; 2], Vec<[f32; 2]>) {
     (blocks, bounds)
 }
 
-/// A texture of `size` texels of `format` holding `data`, as the pass loads
-/// it.
-fn texture(
-    device: &RenderDevice,
-    queue: &RenderQueue,
-    label: &'static str,
-    size: [usize; 2],
-    format: TextureFormat,
-    data: &[u8],
-) -> TextureView {
-    device
-        .create_texture_with_data(
-            queue,
-            &TextureDescriptor {
-                label: Some(label),
-                size: Extent3d {
-                    width: size[0] as u32,
-                    height: size[1] as u32,
-                    depth_or_array_layers: 1,
-                },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: TextureDimension::D2,
-                format,
-                usage: TextureUsages::TEXTURE_BINDING,
-                view_formats: &[],
-            },
-            TextureDataOrder::LayerMajor,
-            data,
-        )
-        .create_view(&TextureViewDescriptor::default())
-}
-
 /// The map's textures and uniform in the render world, and the map they
 /// are of (held, so that its identity stays its own).
 #[derive(Resource)]
@@ -234,7 +199,7 @@ pub(super) fn prepare_terrain_shadow_texture(
     else {
         return;
     };
-    let view = texture(
+    let view = data_texture(
         &device,
         &queue,
         "nebel_fog_layers_terrain_shadow",
@@ -243,7 +208,7 @@ pub(super) fn prepare_terrain_shadow_texture(
         bytemuck::cast_slice(heights.heights()),
     );
     let (size, bounds) = block_bounds(heights);
-    let blocks = texture(
+    let blocks = data_texture(
         &device,
         &queue,
         "nebel_fog_layers_terrain_shadow_blocks",
