@@ -23,7 +23,8 @@
 //!
 //! (`c` the sunlight relative to the light the transfer function's colour κ
 //! stands for, `T` the transmittance to the eye, `V` 1 where the terrain
-//! lets the sun through, 0 below its shadow height, θ between the view ray
+//! lets the sun through, 0 below its shadow height or where an opaque shape
+//! hides the sun ([`FogSunlight::occluders`]), θ between the view ray
 //! and the sunlight, constant along the ray). [`FogSunMap`] holds `G`, `H`
 //! and the shadow height at the points of one grid, bilinear in between
 //! (what the GPU samples); [`FogSunlight::scattered`] integrates `L` over a
@@ -33,8 +34,10 @@ use std::sync::Arc;
 
 use glam::{DAffine3, DVec2, DVec3};
 
+use crate::cell::Ray;
 use crate::field::{HeightField, ShadowCaster, TerrainShadow, sun_transmittance};
 use crate::local_light::GAUSS_LEGENDRE_3;
+use crate::occluder::{Occluder, sun_lit_spans};
 use crate::optics::henyey_greenstein;
 use crate::pacing::worker_threads;
 use crate::transfer::TransferFunction;
@@ -233,6 +236,9 @@ pub struct FogSunlight {
     /// The cloud volumes whose shadow dims the sun in the fog (none: no
     /// clouds).
     pub clouds: Vec<ShadowCaster>,
+    /// Opaque shapes that hide the sun from the fog, a sun that casts
+    /// shadows (Bevy's shadow map of it; none: only the terrain shades it).
+    pub occluders: Vec<Occluder>,
 }
 
 /// Sub-intervals of a stretch in [`FogSunlight::scattered`]: each takes
@@ -266,7 +272,8 @@ impl FogSunlight {
     /// (density times colour times the transmittance to the eye): composite
     /// Gauss-Legendre over equal sub-intervals, each cut where the ray
     /// crosses the terrain's shadow (found by bisection), so the integral
-    /// converges as `f` and `T_sun` are smooth.
+    /// converges as `f` and `T_sun` are smooth; only over the stretches
+    /// the [`FogSunlight::occluders`] leave lit ([`sun_lit_spans`]).
     pub fn scattered(
         &self,
         origin: DVec3,
@@ -277,6 +284,25 @@ impl FogSunlight {
         if t_b.partial_cmp(&t_a) != Some(std::cmp::Ordering::Greater) {
             return DVec3::ZERO;
         }
+        let Some(ray) = Ray::new(origin, direction) else {
+            return DVec3::ZERO;
+        };
+        let sum = sun_lit_spans(&self.occluders, self.direction, &ray, (t_a, t_b))
+            .into_iter()
+            .map(|span| self.scattered_past_terrain(origin, direction, span, &mut f))
+            .sum::<DVec3>();
+        let phase = henyey_greenstein(self.asymmetry, direction.dot(self.direction));
+        self.colour * phase * sum
+    }
+
+    /// `∫ f(t) V T_sun dt` over `[t_a, t_b]` (see [`FogSunlight::scattered`]).
+    fn scattered_past_terrain(
+        &self,
+        origin: DVec3,
+        direction: DVec3,
+        (t_a, t_b): (f64, f64),
+        mut f: impl FnMut(f64) -> DVec3,
+    ) -> DVec3 {
         let lit = |t: f64| {
             self.map
                 .sun_depth(self.map_from_world.transform_point3(origin + t * direction))
@@ -311,8 +337,7 @@ impl FogSunlight {
             }
             sum += gauss(a, lo) + gauss(hi, b);
         }
-        let phase = henyey_greenstein(self.asymmetry, direction.dot(self.direction));
-        self.colour * phase * sum
+        sum
     }
 }
 
@@ -443,6 +468,7 @@ mod tests {
             colour: DVec3::new(1.0, 0.5, 0.25),
             asymmetry: 0.0,
             clouds: Vec::new(),
+            occluders: Vec::new(),
         };
         let (origin, direction) = (DVec3::new(0.0, 4.0, 1.0), DVec3::X);
         let sigma = 0.1;
@@ -486,6 +512,24 @@ mod tests {
         // line from there, h = 12 − (38 − x) · 4/3, passes 4 m at x = 32.
         let got = shaded.scattered(origin, direction, (2.0, 36.0), f);
         let expected = ((-sigma * 2.0f64).exp() - (-sigma * 32.0f64).exp()) * t_sun;
+        assert!(
+            (got.x - expected).abs() < 1e-7 * expected,
+            "{} against {expected}",
+            got.x
+        );
+        // A box 12 to 14 m up over x in [20, 23]: the sun's line from (x,
+        // 4 m) is 12 to 14 m up from x + 6 to x + 7.5, so the box hides
+        // the sun from x = 20 − 7.5 = 12.5 to 23 − 6 = 17.
+        let boxed = FogSunlight {
+            occluders: vec![Occluder::Box {
+                min: DVec3::new(20.0, 12.0, -5.0),
+                max: DVec3::new(23.0, 14.0, 5.0),
+            }],
+            ..sunlight.clone()
+        };
+        let got = boxed.scattered(origin, direction, (2.0, 30.0), f);
+        let lit = |a: f64, b: f64| ((-sigma * a).exp() - (-sigma * b).exp()) * t_sun;
+        let expected = lit(2.0, 12.5) + lit(17.0, 30.0);
         assert!(
             (got.x - expected).abs() < 1e-7 * expected,
             "{} against {expected}",

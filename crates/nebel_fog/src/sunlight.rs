@@ -11,7 +11,8 @@
 //! terrain's frame) by more than [`SUN_STEP`], one build at a time; the fog
 //! keeps the last map until the new one lands (the same frame under
 //! `HeavyBuilds::Blocking`). The phase and the colour follow the sun every
-//! frame. A fog without a sun colour, unsorted, or without cells has no
+//! frame; a sun with `shadow_maps_enabled` is also hidden by opaque meshes,
+//! through Bevy's shadow map of it. A fog without a sun colour, unsorted, or without cells has no
 //! map, no build and no `CellFogSunlight`: its shader variant is the unlit
 //! one.
 
@@ -77,11 +78,13 @@ pub(crate) fn update_fog_sunlight(
         Option<&CellFogSunlight>,
         &mut GroundFogSun,
     )>,
-    suns: Query<&GlobalTransform, With<DirectionalLight>>,
+    suns: Query<(&GlobalTransform, &DirectionalLight)>,
     mode: Res<HeavyBuilds>,
     mut diagnostics: Diagnostics,
 ) {
-    let sun = suns.iter().next().map(|sun| sun.back().as_vec3());
+    let sun = suns.iter().next();
+    let shadows = sun.is_some_and(|(_, light)| light.shadow_maps_enabled);
+    let sun = sun.map(|(transform, _)| transform.back().as_vec3());
     for (entity, fog, lod, map, transform, has_batch, current, mut state) in &mut fogs {
         let colour = fog.sun_color.to_linear().to_vec3();
         let mapped = map.and_then(|map| map.quadtree.as_ref()).filter(|mapped| {
@@ -168,12 +171,22 @@ pub(crate) fn update_fog_sunlight(
             direction: sun,
             colour,
             asymmetry: fog.sun_asymmetry,
+            shadows,
         };
         let same = current.is_some_and(|current| {
             Arc::ptr_eq(&current.map, &sunlight.map)
                 && current.map_from_world == sunlight.map_from_world
-                && (current.direction, current.colour, current.asymmetry)
-                    == (sunlight.direction, sunlight.colour, sunlight.asymmetry)
+                && (
+                    current.direction,
+                    current.colour,
+                    current.asymmetry,
+                    current.shadows,
+                ) == (
+                    sunlight.direction,
+                    sunlight.colour,
+                    sunlight.asymmetry,
+                    sunlight.shadows,
+                )
         });
         if !same {
             commands.entity(entity).insert(sunlight);

@@ -2360,6 +2360,7 @@ mod sunlight_tests {
             colour,
             asymmetry,
             clouds: Vec::new(),
+            occluders: Vec::new(),
         });
         let image = render(&scene, None).unwrap();
         let mut checked = 0;

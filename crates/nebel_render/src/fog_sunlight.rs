@@ -13,11 +13,16 @@
 //! vertical waits for the next map. `μ` is the sun's sine now. The clouds'
 //! shadow maps ([`crate::cloud_shadow_maps`]) dim `T_sun` where the line
 //! toward the sun crosses their plane (exact below it; a point above the
-//! plane takes the whole cloud's shadow over it). Each of the segment's four pieces takes its optical depth
-//! from the pair table and three Gauss-Legendre nodes of `σ e^{−σ (t −
-//! t_a)} V T_sun`; the colour is the segment's mean (exact for a fog of one
-//! colour), the phase the one at the ray's angle to the sun. The texture is uploaded when the map changes (by identity),
-//! the uniform when anything else does; neither touches the cells.
+//! plane takes the whole cloud's shadow over it). A sun that casts shadows
+//! ([`CellFogSunlight::shadows`]) is hidden by opaque meshes as well
+//! (`SUN_SHADOWS`): `V` is also Bevy's cascaded shadow map of it
+//! ([`crate::light_shadows`]), read at the ends of each piece and at its
+//! nodes where the two differ. Each of the segment's four pieces takes its
+//! optical depth from the pair table and three Gauss-Legendre nodes of `σ
+//! e^{−σ (t − t_a)} V T_sun`; the colour is the segment's mean (exact for a
+//! fog of one colour), the phase the one at the ray's angle to the sun. The
+//! texture is uploaded when the map changes (by identity), the uniform when
+//! anything else does; neither touches the cells.
 
 use std::sync::Arc;
 
@@ -54,6 +59,9 @@ pub struct CellFogSunlight {
     pub colour: Vec3,
     /// The Henyey-Greenstein asymmetry, clamped to ±0.99.
     pub asymmetry: f32,
+    /// Bevy's shadow map of the sun hides it from the fog behind opaque
+    /// meshes (the sun casts shadows, and the view has Bevy's lights).
+    pub shadows: bool,
 }
 
 /// The shader's `FogSun` uniform (zeros for a batch without the sun).
@@ -191,6 +199,7 @@ mod tests {
             direction: now,
             colour: Vec3::new(f32::NAN, -1.0, 2.0),
             asymmetry: 3.0,
+            shadows: false,
         };
         let uniform = FogSunUniform::new(&sunlight, Default::default());
         // Grid point (3, 2) at map (2, 6, 18), put into the world.

@@ -13,7 +13,10 @@
 //! without a normal bias), and bisects where it changes along a ray. The
 //! sun's visibility comes from the cascade of Bevy's directional light
 //! toward it that reaches the point's view depth (the cascades share the
-//! spot lights' texture array).
+//! spot lights' texture array); the point is moved toward the sun by the
+//! light's depth bias plus its normal bias in texels of that cascade, as far
+//! as Bevy moves a surface along its normal, so a lit surface's own depth in
+//! the map does not shade the medium just above it (shadow acne).
 
 use bevy::ecs::system::SystemParam;
 use bevy::pbr::{

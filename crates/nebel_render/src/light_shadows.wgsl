@@ -93,8 +93,9 @@ fn sun_shadow_reach(index: u32) -> f32 {
 // The part of the directional light `index` (shadowed_sun) that reaches the
 // world point `p` at view depth `depth` past opaque geometry: Bevy's first
 // cascade that reaches that depth, one 2×2 hardware comparison, the point
-// moved toward the light by its depth bias (no normal bias); 1 beyond the
-// cascades and outside the map.
+// moved toward the light by its depth bias plus its normal bias in the
+// cascade's texels (a medium has no normal; a surface just below the point
+// then does not shade it); 1 beyond the cascades and outside the map.
 fn sun_visibility(index: u32, p: vec3<f32>, depth: f32) -> f32 {
     if index >= bevy_lights.n_directional_lights {
         return 1.0;
@@ -107,7 +108,8 @@ fn sun_visibility(index: u32, p: vec3<f32>, depth: f32) -> f32 {
     if cascade >= (*light).num_cascades {
         return 1.0;
     }
-    let biased = p + (*light).shadow_depth_bias * (*light).direction_to_light;
+    let bias = (*light).shadow_depth_bias + (*light).shadow_normal_bias * (*light).cascades[cascade].texel_size;
+    let biased = p + bias * (*light).direction_to_light;
     let clip = (*light).cascades[cascade].clip_from_world * vec4(biased, 1.0);
     let ndc = clip.xyz / clip.w;
     if clip.w <= 0.0 || any(ndc.xy < vec2(-1.0)) || ndc.z < 0.0 || any(ndc > vec3(1.0)) {

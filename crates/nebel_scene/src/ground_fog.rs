@@ -398,6 +398,7 @@ impl TerrainDescription {
                     colour: DVec3::from(fog.sun_color.map(f64::from)),
                     asymmetry: f64::from(fog.sun_asymmetry),
                     clouds: Vec::new(),
+                    occluders: Vec::new(),
                 })
             });
         let volume = (!cells.is_empty()).then(|| BuiltVolume {

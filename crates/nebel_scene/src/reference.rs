@@ -197,6 +197,9 @@ pub fn reference_image_with_terrain(
         reference_scene.light_response = volume.light_response;
         reference_scene.sunlight = volume.fog_sunlight.map(|mut sunlight| {
             sunlight.clouds = clouds.clone();
+            if scene.sun_casts_shadows() {
+                sunlight.occluders = occluders.clone();
+            }
             sunlight
         });
         if let Some(start) = fog

@@ -63,6 +63,10 @@
 // T_sun = e^{−s H F(u)/μ} the fog above the point (ground, thickness and
 // shadow height bilinear from the sun map, F linear from its table) times the
 // clouds' shadow maps where the line toward the sun crosses their plane.
+// SUN_SHADOWS (the sun casts shadows): V is also Bevy's cascaded shadow map
+// of the sun (nebel_render::light_shadows), read at the ends of each piece
+// and, where they differ, at its nodes: opaque meshes shade the fog too (a
+// shadow within a piece whose ends are lit may be missed).
 //
 // FOG_LAYERS (the view has fog layers, Röttger 2004 §5.3): the segment is
 // seen through the fog in front of it. As maps of the radiance behind, a
@@ -109,8 +113,8 @@
 
 #import nebel_render::fog_layers::{FogLayers, fog_stretch}
 #import nebel_render::local_lights::{GAUSS_NODES, GAUSS_WEIGHTS, LocalLights, henyey_greenstein, light_interval, light_on_ray, light_quadrature}
-#ifdef LIGHT_SHADOWS
-#import nebel_render::light_shadows::{light_visibility_at, visibility_spans}
+#ifdef SHADOW_MAPS
+#import nebel_render::light_shadows::{SHADOW_EPSILON, light_visibility_at, shadowed_sun, sun_visibility, visibility_spans}
 #endif
 #import nebel_render::cloud_shadow_maps::{CloudShadowMapPair, cloud_transmittance}
 
@@ -118,6 +122,8 @@ struct CellView {
     clip_from_world: mat4x4<f32>,
     world_from_clip: mat4x4<f32>,
     camera_position: vec4<f32>,
+    // xyz: the view's forward axis (view depth per unit along it).
+    forward: vec4<f32>,
     // x, y, width, height of the viewport in pixels.
     viewport: vec4<f32>,
     // The view's fog layers (read only by the FOG_LAYERS variant).
@@ -503,6 +509,12 @@ fn ground_sun_colour(
 ) -> vec3<f32> {
     let sun = parameters.fog_sun.sun;
     let phase = henyey_greenstein(sun.w, dot(direction, sun.xyz));
+#ifdef SUN_SHADOWS
+    let shadowing = shadowed_sun(sun.xyz);
+    let forward = dot(direction, view.forward.xyz);
+    let eye = view.camera_position.xyz;
+    var visible = sun_visibility(shadowing, eye + t_front * direction, t_front * forward);
+#endif
     let pieces = f32(#{LIGHT_PIECES}u);
     let half = 0.5 * (t_back - t_front) / pieces;
     var sum = 0.0;
@@ -513,11 +525,28 @@ fn ground_sun_colour(
         let depth = piece_depth(s_front, s_back, m_front, m_back, 2.0 * half, a, b);
         let sigma = depth / (2.0 * half);
         let middle = mix(t_front, t_back, a) + half;
+#ifdef SUN_SHADOWS
+        let t_end = middle + half;
+        let visible_end = sun_visibility(shadowing, eye + t_end * direction, t_end * forward);
+        let changes = abs(visible_end - visible) >= SHADOW_EPSILON;
+#endif
         for (var k = 0u; k < 3u; k++) {
             let offset = half * (1.0 + GAUSS_NODES[k]);
-            let p = view.camera_position.xyz + (middle + half * GAUSS_NODES[k]) * direction;
-            sum += transmittance * GAUSS_WEIGHTS[k] * half * sigma * exp(-sigma * offset) * ground_sun_transmittance(p);
+            let t = middle + half * GAUSS_NODES[k];
+            let p = view.camera_position.xyz + t * direction;
+            var lit = ground_sun_transmittance(p);
+#ifdef SUN_SHADOWS
+            if changes {
+                lit *= sun_visibility(shadowing, p, t * forward);
+            } else {
+                lit *= visible;
+            }
+#endif
+            sum += transmittance * GAUSS_WEIGHTS[k] * half * sigma * exp(-sigma * offset) * lit;
         }
+#ifdef SUN_SHADOWS
+        visible = visible_end;
+#endif
         transmittance *= exp(-depth);
     }
     return parameters.fog_sun.colour.rgb * phase * sum * kappa;

@@ -191,7 +191,8 @@ pub struct CellProjectionPipelineKey {
     pub local_lights: bool,
     /// The sun lights the batch as ground fog (`crate::fog_sunlight`).
     pub ground_sun: bool,
-    /// A light that reaches the batch reads Bevy's shadow map of it.
+    /// A light that reaches the batch (a point or spot light, or a ground
+    /// fog's sun) reads Bevy's shadow map of it.
     pub light_shadows: bool,
 }
 
@@ -418,10 +419,16 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
                 .clone(),
             self.batch_layout.clone(),
         ];
-        if key.local_lights && key.light_shadows {
-            shader_defs.push("LIGHT_SHADOWS".into());
+        if key.light_shadows && (key.local_lights || key.ground_sun) {
+            shader_defs.push("SHADOW_MAPS".into());
             shader_defs.push(ShaderDefVal::UInt("LIGHT_SHADOW_GROUP".into(), 2));
             layout.push(self.shadow_layout.clone());
+            if key.local_lights {
+                shader_defs.push("LIGHT_SHADOWS".into());
+            }
+            if key.ground_sun {
+                shader_defs.push("SUN_SHADOWS".into());
+            }
         }
         if key.local_lights || key.ground_sun {
             // A ray cast grid's segments are already pieces of a voxel; a

@@ -88,10 +88,15 @@ impl ExtractedCellBatch {
         self.lights.count > 0
     }
 
-    /// Whether a light that reaches the batch reads its shadow map
-    /// ([`resolve_light_shadows`]).
+    /// Whether a light that reaches the batch reads Bevy's shadow map of
+    /// it: a point or spot light ([`resolve_light_shadows`]), or the sun of
+    /// a ground fog.
     pub(super) fn is_shadowed(&self) -> bool {
         self.lights.is_shadowed()
+            || self
+                .fog_sunlight
+                .as_ref()
+                .is_some_and(|sunlight| sunlight.shadows)
     }
 
     /// Whether the sun lights the batch as ground fog.
@@ -567,6 +572,9 @@ pub struct CellViewUniform {
     clip_from_world: Mat4,
     world_from_clip: Mat4,
     camera_position: Vec4,
+    /// xyz: the view's forward axis in the world (view depth per unit
+    /// along it).
+    forward: Vec4,
     viewport: Vec4,
     fog: FogLayersUniform,
 }
@@ -709,6 +717,7 @@ pub fn prepare_cell_views(
             clip_from_world,
             world_from_clip: clip_from_world.inverse(),
             camera_position: view.world_from_view.translation().extend(1.0),
+            forward: view.world_from_view.forward().extend(0.0),
             viewport: view.viewport.as_vec4(),
             fog: fog.map(|fog| fog.0).unwrap_or_default(),
         };
