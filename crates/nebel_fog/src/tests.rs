@@ -641,6 +641,16 @@ fn a_sun_colour_and_a_sun_light_the_fog_on_a_map_that_follows_the_sun() {
     let turned = sunlight(&app, fog).unwrap();
     assert!(!Arc::ptr_eq(&turned.map, &lit.map));
     assert!(turned.map.shadow.sun.distance(turned.direction.as_dvec3()) < 1e-6);
+    // The sun's shadow maps on: the meshes hide it too, on the same map.
+    assert!(!turned.shadows);
+    app.world_mut()
+        .get_mut::<DirectionalLight>(sun)
+        .unwrap()
+        .shadow_maps_enabled = true;
+    settle(&mut app);
+    let shadowed = sunlight(&app, fog).unwrap();
+    assert!(shadowed.shadows);
+    assert!(Arc::ptr_eq(&shadowed.map, &turned.map));
     // An unsorted fog, a black sun colour, a sun below the horizon: unlit.
     for change in [
         GroundFog {
