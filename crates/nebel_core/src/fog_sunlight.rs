@@ -289,7 +289,7 @@ impl FogSunlight {
         };
         let sum = sun_lit_spans(&self.occluders, self.direction, &ray, (t_a, t_b))
             .into_iter()
-            .map(|span| self.scattered_past_terrain(origin, direction, span, &mut f))
+            .map(|span| self.scattered_past_terrain(&ray, span, &mut f))
             .sum::<DVec3>();
         let phase = henyey_greenstein(self.asymmetry, direction.dot(self.direction));
         self.colour * phase * sum
@@ -298,11 +298,11 @@ impl FogSunlight {
     /// `∫ f(t) V T_sun dt` over `[t_a, t_b]` (see [`FogSunlight::scattered`]).
     fn scattered_past_terrain(
         &self,
-        origin: DVec3,
-        direction: DVec3,
+        ray: &Ray,
         (t_a, t_b): (f64, f64),
         mut f: impl FnMut(f64) -> DVec3,
     ) -> DVec3 {
+        let (origin, direction) = (ray.origin, ray.direction);
         let lit = |t: f64| {
             self.map
                 .sun_depth(self.map_from_world.transform_point3(origin + t * direction))

@@ -1,11 +1,13 @@
-//! Opaque boxes, spheres and horizontal rectangles: where a ray first meets
-//! them, and which stretches of a ray they hide from a light (the shadow a
-//! point or spot light, or the sun, casts into a medium, for the CPU
-//! reference).
+//! Opaque boxes, spheres, horizontal rectangles and terrains: where a ray
+//! first meets them, and which stretches of a ray they hide from a light
+//! (the shadow a point or spot light, or the sun, casts into a medium, for
+//! the CPU reference).
 //!
 //! A point `x` sees a light at `p` when no occluder meets the segment from
 //! `x` to `p`, and the sun when none meets the ray from `x` toward it; a
-//! point inside a box or sphere sees nothing, as a shadow map has it. Along a ray the visibility is piecewise constant:
+//! point inside a box or sphere, or below a terrain, sees nothing, as a
+//! shadow map has it. A terrain is its bilinear heights, met exactly
+//! ([`PlacedHeights::below`]). Along a ray the visibility is piecewise constant:
 //! [`lit_spans`] finds where it changes by sampling [`SHADOW_SAMPLES`]
 //! equal steps and bisecting each change to the precision of f64, so a
 //! shadow (or a gap in one) shorter than a step may be missed.
@@ -13,6 +15,7 @@
 use glam::{DVec2, DVec3};
 
 use crate::cell::Ray;
+use crate::field::PlacedHeights;
 
 /// The equal steps in which [`lit_spans`] samples a stretch of a ray.
 pub const SHADOW_SAMPLES: u32 = 256;
@@ -22,7 +25,7 @@ pub const SHADOW_SAMPLES: u32 = 256;
 const BISECTIONS: u32 = 60;
 
 /// An opaque shape.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub enum Occluder {
     /// A horizontal rectangle at `centre.y`, `half_size` its half extents
     /// along x and z.
@@ -46,6 +49,8 @@ pub enum Occluder {
         /// Its radius, > 0.
         radius: f64,
     },
+    /// A terrain's surface, seen from above: a ray below it is inside.
+    Terrain(PlacedHeights),
 }
 
 impl Occluder {
@@ -53,6 +58,15 @@ impl Occluder {
     /// (the exit for an origin inside a box or sphere).
     pub fn hit(&self, ray: &Ray) -> Option<f64> {
         match *self {
+            Occluder::Terrain(ref terrain) => {
+                // Where the first stretch below begins, or ends for an
+                // origin below the surface (bounded: a finite range keeps
+                // a vertical ray's walk finite).
+                let (from, to) = *terrain
+                    .below(ray.origin, ray.direction, (0.0, f64::MAX / 4.0))
+                    .first()?;
+                Some(if from > 0.0 { from } else { to })
+            }
             Occluder::Rectangle { centre, half_size } => {
                 let t = (centre.y - ray.origin.y) / ray.direction.y;
                 let point = ray.origin + t * ray.direction;
@@ -90,9 +104,12 @@ pub fn hides(occluders: &[Occluder], point: DVec3, light: DVec3) -> bool {
     let Some(ray) = Ray::new(point, light - point) else {
         return false;
     };
-    occluders
-        .iter()
-        .any(|occluder| occluder.hit(&ray).is_some_and(|t| t < distance))
+    occluders.iter().any(|occluder| match occluder {
+        Occluder::Terrain(terrain) => !terrain
+            .below(ray.origin, ray.direction, (0.0, distance))
+            .is_empty(),
+        _ => occluder.hit(&ray).is_some_and(|t| t < distance),
+    })
 }
 
 /// The stretches of `[t_a, t_b]` along `ray` from which `light` is seen past
@@ -190,7 +207,12 @@ fn spans_where((t_a, t_b): (f64, f64), lit: impl Fn(f64) -> bool) -> Vec<(f64, f
 
 #[cfg(test)]
 mod tests {
+    use std::sync::Arc;
+
+    use glam::DAffine3;
+
     use super::*;
+    use crate::field::HeightField;
     use crate::test_support::SplitMix;
 
     fn ray(origin: [f64; 3], direction: [f64; 3]) -> Ray {
@@ -291,6 +313,45 @@ mod tests {
             vec![(3.0, 4.0)]
         );
         assert!(sun_lit_spans(&strip, sun, &level, (4.0, 3.0)).is_empty());
+    }
+
+    /// A wall 12 m high over x in [38, 40] (its face rising from x = 37),
+    /// a light at (45, 20): the segment from (x, 4) clears the wall's
+    /// corner (38, 12) for x ≤ 31; a point inside the wall sees nothing,
+    /// and the terrain moved by its placement moves the shadow with it.
+    #[test]
+    fn a_terrain_wall_hides_a_light_from_the_ray_behind_it_in_closed_form() {
+        let mut heights = vec![0.0f32; 41 * 3];
+        for row in heights.chunks_mut(41) {
+            row[38..].fill(12.0);
+        }
+        let field = HeightField::new([41, 3], DVec2::ONE, DVec2::ZERO, heights).unwrap();
+        let placed = |offset: DVec3| {
+            Occluder::Terrain(PlacedHeights::new(
+                Arc::new(field.clone()),
+                DAffine3::from_translation(-offset),
+            ))
+        };
+        let wall = [placed(DVec3::ZERO)];
+        let light = DVec3::new(45.0, 20.0, 1.0);
+        let level = ray([0.0, 4.0, 1.0], [1.0, 0.0, 0.0]);
+        let spans = lit_spans(&wall, light, &level, (2.0, 36.0));
+        assert_eq!(spans.len(), 1, "{spans:?}");
+        assert!(
+            spans[0].0 == 2.0 && (spans[0].1 - 31.0).abs() < 1e-9,
+            "{spans:?}"
+        );
+        assert!(hides(&wall, DVec3::new(39.0, 5.0, 1.0), light));
+        assert!(!hides(&wall, DVec3::new(39.0, 13.0, 1.0), light));
+        // Straight down onto the wall's top, and from inside it.
+        let down = ray([39.0, 30.0, 1.0], [0.0, -1.0, 0.0]);
+        assert!((wall[0].hit(&down).unwrap() - 18.0).abs() < 1e-9);
+        let inside = ray([39.0, 5.0, 1.0], [1.0, 1.0, 0.0]);
+        assert!(wall[0].hit(&inside).is_some_and(|t| t > 0.0));
+        // Moved 10 m up, the same points lie 10 m lower relative to it.
+        let raised = [placed(DVec3::new(0.0, 10.0, 0.0))];
+        assert!(hides(&raised, DVec3::new(39.0, 13.0, 1.0), light));
+        assert!(!hides(&raised, DVec3::new(39.0, 23.0, 1.0), light));
     }
 
     #[test]

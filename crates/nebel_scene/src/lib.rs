@@ -52,7 +52,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use nebel_core::budget::{BudgetError, Dims, check_allocation, check_bytes};
-use nebel_core::field::{HeightField, PlacedTerrainShadow, TerrainShadow};
+use nebel_core::field::{HeightField, PlacedHeights, PlacedTerrainShadow, TerrainShadow};
 use nebel_core::local_light::{LightResponse, LocalLight, SpotCone, flicker};
 use nebel_reference::ReferenceCamera;
 use nebel_reference::image_metrics::{LinearImage, srgb_to_linear};
@@ -1099,6 +1099,18 @@ impl SceneDescription {
             .map(|shadow| PlacedTerrainShadow::new(Arc::new(shadow), map_from_world)))
     }
 
+    /// The terrain's bilinear heights in world space as an opaque shape
+    /// (`unit` its heights from [`SceneDescription::build_terrain`]): the
+    /// reference's occluder of the point and spot lights that cast shadows,
+    /// as Bevy's shadow maps hold the terrain. `None` without a terrain.
+    pub fn terrain_occluder(&self, unit: &HeightField) -> Option<PlacedHeights> {
+        let terrain = self.terrain.as_ref()?;
+        Some(PlacedHeights::new(
+            Arc::new(terrain.world_heights(unit)),
+            DAffine3::IDENTITY,
+        ))
+    }
+
     /// Generates or loads every volume's field and transfer function.
     /// `scene_path` is the scene file: it names the file in errors and
     /// resolves paths relative to it.
@@ -1442,6 +1454,7 @@ mod tests {
                 morph: false,
                 debug_lod_colours: true,
                 debug_edges: true,
+                color: Some([0.2, 0.3, 0.1]),
                 fog: None,
             }),
             fog_layers: Some(FogLayersDescription {

@@ -10,7 +10,8 @@
 //! scenes use black meshes and no lights on them. Sorted volumes scatter the
 //! scene's volumetric point and spot lights
 //! ([`SceneDescription::volumetric_lights`]), those that cast shadows shaded
-//! by the meshes (not by the terrain). The sun in a sunlit ground fog and in
+//! by the meshes and the terrain's bilinear heights (Bevy's shadow maps hold
+//! both; the sun's shadow of the terrain is its shadow heights). The sun in a sunlit ground fog and in
 //! fog layers is dimmed by the volumes that cast cloud shadows, exactly at
 //! every point.
 
@@ -22,8 +23,10 @@ use crate::{
 };
 use glam::{DAffine3, DVec3, DVec4};
 use nebel_core::field::{
-    CloudLighting, DensityGrid, PadFill, PlacedTerrainShadow, ShadowCaster, light_field,
+    CloudLighting, DensityGrid, PadFill, PlacedHeights, PlacedTerrainShadow, ShadowCaster,
+    light_field,
 };
+use nebel_core::occluder::Occluder;
 use nebel_core::optics::OpticalMode;
 use nebel_reference::image_metrics::{ImageMetricsError, LinearImage, save_png, srgb_to_linear};
 use nebel_reference::{
@@ -72,20 +75,22 @@ pub fn reference_image(
     volumes: Vec<BuiltVolume>,
     progress: Option<&(dyn Fn(ReferenceProgress) + Sync)>,
 ) -> Result<LinearImage, ReferenceError> {
-    reference_image_with_terrain(scene, volumes, None, None, progress)
+    reference_image_with_terrain(scene, volumes, None, None, None, progress)
 }
 
 /// [`reference_image`] cut at `terrain` too: the scene terrain's heights in
 /// world space (`TerrainDescription::world_heights`) or the triangles the GPU
 /// draws (a terrain with fog, [`crate::FogReference::ground`]), drawn black
-/// like the meshes, and `terrain_shadow` keeping the sun from the fog layers
-/// below it ([`SceneDescription::build_terrain_shadow`]). `None` ignores the
-/// terrain.
+/// like the meshes, `terrain_shadow` keeping the sun from the fog layers
+/// below it ([`SceneDescription::build_terrain_shadow`]), and
+/// `terrain_heights` (the bilinear heights, [`SceneDescription::terrain_occluder`])
+/// hiding the point and spot lights that cast shadows. `None` ignores each.
 pub fn reference_image_with_terrain(
     scene: &SceneDescription,
     volumes: Vec<BuiltVolume>,
     terrain: Option<&ReferenceTerrain>,
     terrain_shadow: Option<PlacedTerrainShadow>,
+    terrain_heights: Option<PlacedHeights>,
     progress: Option<&(dyn Fn(ReferenceProgress) + Sync)>,
 ) -> Result<LinearImage, ReferenceError> {
     let camera = scene.reference_camera();
@@ -96,13 +101,18 @@ pub fn reference_image_with_terrain(
     let last_frame = f64::from(scene.frame_time(scene.output.frames.saturating_sub(1)));
     let local_lights = scene.volumetric_lights(last_frame);
     let occluders = scene.occluders();
+    let light_occluders: Vec<Occluder> = occluders
+        .iter()
+        .cloned()
+        .chain(terrain_heights.map(Occluder::Terrain))
+        .collect();
     let clouds = cloud_casters(&volumes, last_frame)?;
     let fog = scene
         .fog_layers
         .as_ref()
         .map(|fog| {
             let sun = sun.map(|direction| (direction, scene.sun_casts_shadows()));
-            fog.reference(sun, local_lights.clone(), occluders.clone())
+            fog.reference(sun, local_lights.clone(), light_occluders.clone())
         })
         .transpose()
         .map_err(|invalid| ReferenceError::InvalidFog {
@@ -193,7 +203,7 @@ pub fn reference_image_with_terrain(
         reference_scene.opaque_depth = opaque_depth.clone();
         reference_scene.fog = fog.clone();
         reference_scene.local_lights = local_lights.clone();
-        reference_scene.occluders = occluders.clone();
+        reference_scene.occluders = light_occluders.clone();
         reference_scene.light_response = volume.light_response;
         reference_scene.sunlight = volume.fog_sunlight.map(|mut sunlight| {
             sunlight.clouds = clouds.clone();

@@ -20,6 +20,7 @@
 //!     morph: true,               // geomorphing; default true
 //!     debug_lod_colours: false,  // colour each quadtree level; default false
 //!     debug_edges: false,        // darken triangle edges; default false
+//!     color: Some((0.0, 0.0, 0.0)), // unlit in one colour; default none (lit, by height and slope)
 //!     fog: (thickness: Valley((altitude: 60.0))), // ground fog; default none (see GroundFogDescription)
 //! )
 //! ```
@@ -95,6 +96,11 @@ pub struct TerrainDescription {
     /// false.
     #[serde(default)]
     pub debug_edges: bool,
+    /// Drawn unlit in this sRGB colour instead of lit in colours by height
+    /// and slope (black: as the reference draws the terrain, whatever the
+    /// lights). Default: none.
+    #[serde(default)]
+    pub color: Option<[f32; 3]>,
     /// Ground fog lying on the terrain, see [`GroundFogDescription`].
     /// Default: none.
     #[serde(default)]
@@ -304,6 +310,9 @@ impl TerrainDescription {
             ),
         ];
         InvalidField::check_finite(checks)?;
+        if let Some(color) = self.color {
+            crate::colour("color", color)?;
+        }
         match &self.source {
             TerrainHeightSource::Procedural(procedural) => {
                 let field = "source.Procedural";

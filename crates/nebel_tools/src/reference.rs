@@ -52,12 +52,16 @@ pub fn scene_reference(
         Some(unit) => scene.build_terrain_shadow(scene_path, unit)?,
         None => None,
     };
+    let terrain_heights = unit_heights
+        .as_ref()
+        .and_then(|unit| scene.terrain_occluder(unit));
     let (bar, report) = reference_bar(progress);
     let image = reference_image_with_terrain(
         scene,
         volumes,
         terrain.as_ref(),
         terrain_shadow,
+        terrain_heights,
         Some(&report),
     )?;
     bar.finish_and_clear();

@@ -499,9 +499,10 @@ fn spawn_terrain(
     scene: Res<LoadedScene>,
     terrain: Res<SceneTerrain>,
     heights: Option<ResMut<Assets<nebel_render::GrayscaleMap>>>,
+    mut materials: ResMut<Assets<StandardMaterial>>,
 ) {
     use nebel_render::GrayscaleMap;
-    use nebel_terrain::{Terrain, TerrainDebug, TerrainSource};
+    use nebel_terrain::{Terrain, TerrainDebug, TerrainMaterial, TerrainSource};
     let (Some(description), Some(unit)) = (&scene.terrain, &terrain.0) else {
         return;
     };
@@ -522,6 +523,15 @@ fn spawn_terrain(
                 lod_colours: description.debug_lod_colours,
                 edges: description.debug_edges,
             },
+            material: description
+                .color
+                .map_or(TerrainMaterial::HeightAndSlope, |color| {
+                    TerrainMaterial::Standard(materials.add(StandardMaterial {
+                        base_color: srgb(color),
+                        unlit: true,
+                        ..default()
+                    }))
+                }),
             ..default()
         },
         Transform::from_translation(Vec3::from(description.center)),

@@ -28,6 +28,11 @@
 //! 3. draws one field as the transfer function's scalar and the other as a
 //!    segment-length modulator, per [`CloudLightModel`].
 //!
+//! The sky's colour (`GlobalAmbientLight`'s) tints the ambient term of the
+//! scattering model only, whose colour is `ambient · α + sun · C`; in the
+//! paper's two models γ is one scalar of sky and sun together, and the
+//! transfer function's colour over it is the palette, sky tint included.
+//!
 //! The render system draws the modulator exactly per pixel (the mean of the
 //! linear modulator over each segment), so the model costs one extra storage
 //! read per fragment and one byte per grid point.

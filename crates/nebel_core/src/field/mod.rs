@@ -68,7 +68,7 @@ pub use primitives::{CloudEllipsoid, CloudShape, wyvill};
 pub use procedural::{NOISE_OFFSET, NoiseKind, ProceduralNoise};
 pub use resample::{PadFill, power_of_two_plus_one};
 pub use terrain::{DEFAULT_TERRAIN_SPACING, DEFAULT_TERRAIN_VERTICAL_SCALE, TerrainNoise};
-pub use terrain_shade::PlacedTerrainShadow;
+pub use terrain_shade::{PlacedHeights, PlacedTerrainShadow};
 pub use terrain_shadow::{TerrainShadow, shadow_height};
 pub use value_noise::ValueNoise;
 pub use weather::{CloudWeather, WeatherMap};

@@ -1,23 +1,25 @@
-//! The stretches of a ray in a terrain's shadow: where the ray runs below the
-//! shadow heights of a [`TerrainShadow`], exact for the map's bilinear
-//! heights.
+//! The stretches of a ray below a terrain or below its shadow: where the ray
+//! runs below a bilinear height field (the terrain's heights, or the shadow
+//! heights of a [`TerrainShadow`]), exact for the bilinear heights.
 //!
-//! Inside one cell of the map the bilinear shadow height along a straight
-//! line is a quadratic in the ray's parameter, and the ray's own height is
-//! linear, so the difference `d(t) = y(t) − h_s(x(t), z(t))` is a quadratic
-//! whose roots are the shadow's edges in that cell. [`PlacedTerrainShadow::shaded`]
-//! walks the cells the ray's horizontal projection crosses (Amanatides and
-//! Woo 1987) between the map's edges and below its highest shadow height,
-//! solves each cell's quadratic and joins the shaded pieces of neighbouring
-//! cells. Outside the map's extent the terrain casts nothing (its shadow
-//! beyond its edge, under a low sun, is not in the map). The fog layers'
-//! pass walks the same cells on the GPU.
+//! Inside one cell of the field the bilinear height along a straight line
+//! is a quadratic in the ray's parameter, and the ray's own height is
+//! linear, so the difference `d(t) = y(t) − h(x(t), z(t))` is a quadratic
+//! whose roots are the crossings in that cell. [`PlacedTerrainShadow::shaded`]
+//! and [`PlacedHeights::below`] walk the cells the ray's horizontal
+//! projection crosses (Amanatides and Woo 1987) between the field's edges
+//! and below its highest height, solve each cell's quadratic and join the
+//! pieces of neighbouring cells. Outside the field's extent nothing is
+//! below it (a terrain's shadow beyond its edge, under a low sun, is not in
+//! the map). The fog layers' pass walks the same cells on the GPU; the
+//! reference takes a terrain ([`PlacedHeights`]) as an opaque shape that
+//! hides the lights (`crate::occluder::Occluder::Terrain`).
 
 use std::sync::Arc;
 
 use glam::{DAffine3, DVec2, DVec3};
 
-use super::TerrainShadow;
+use super::{HeightField, TerrainShadow};
 
 /// A terrain's shadow heights placed in the world.
 #[derive(Clone, Debug, PartialEq)]
@@ -58,69 +60,122 @@ impl PlacedTerrainShadow {
     /// keeps the ray's parameter, so the stretches are in the world ray's
     /// `t`. Empty where the range is empty or not finite.
     pub fn shaded(&self, origin: DVec3, direction: DVec3, (t0, t1): (f64, f64)) -> Vec<(f64, f64)> {
-        let origin = self.map_from_world.transform_point3(origin);
-        let direction = self.map_from_world.transform_vector3(direction);
-        let grid = &self.shadow.heights;
-        let [nx, nz] = grid.dims();
-        let last = DVec2::new((nx - 1) as f64, (nz - 1) as f64);
-        // The ray in grid units: g(t) = start + t e.
-        let start = (DVec2::new(origin.x, origin.z) - grid.origin()) / grid.spacing();
-        let e = DVec2::new(direction.x, direction.z) / grid.spacing();
-        let Some((t0, t1)) = within_map(start, e, last, origin.y, direction.y, self.top, (t0, t1))
-        else {
-            return Vec::new();
-        };
-        let mut shaded = Vec::new();
-        let mut open: Option<f64> = None;
-        let mut edge = |t: f64, dark: bool, shaded: &mut Vec<(f64, f64)>| match (open, dark) {
-            (None, true) => open = Some(t),
-            (Some(from), false) => {
-                if t > from {
-                    shaded.push((from, t));
-                }
-                open = None;
-            }
-            _ => {}
-        };
-        let g0 = start + t0 * e;
-        // Where the ray leaves the cell across each axis.
-        let exit = |cell: DVec2, axis: usize| {
-            if e[axis] > 0.0 {
-                (cell[axis] + 1.0 - start[axis]) / e[axis]
-            } else if e[axis] < 0.0 {
-                (cell[axis] - start[axis]) / e[axis]
-            } else {
-                f64::INFINITY
-            }
-        };
-        let mut cell = DVec2::ZERO;
-        for axis in 0..2 {
-            let mut c = g0[axis].floor();
-            if e[axis] < 0.0 && c == g0[axis] {
-                c -= 1.0;
-            }
-            cell[axis] = c.clamp(0.0, last[axis] - 1.0);
-        }
-        let mut t = t0;
-        loop {
-            let next = DVec2::new(exit(cell, 0), exit(cell, 1));
-            let end = next.x.min(next.y).min(t1).max(t);
-            for (a, dark) in cell_pieces(grid, cell, start, e, origin.y, direction.y, t, end) {
-                edge(a, dark, &mut shaded);
-            }
-            if end >= t1 {
-                break;
-            }
-            let axis = usize::from(next.y < next.x);
-            cell[axis] += e[axis].signum();
-            if cell[axis] < 0.0 || cell[axis] > last[axis] - 1.0 {
-                break;
-            }
-            t = end;
-        }
-        edge(t1, false, &mut shaded);
-        shaded
+        below(
+            &self.shadow.heights,
+            self.top,
+            &self.map_from_world,
+            (origin, direction),
+            (t0, t1),
+        )
     }
+}
+
+/// A terrain's heights placed in the world: an opaque surface seen from
+/// above (a ray below it is inside the ground).
+#[derive(Clone, Debug, PartialEq)]
+pub struct PlacedHeights {
+    /// The heights, in the terrain's frame.
+    pub heights: Arc<HeightField>,
+    /// World space to the terrain's frame, affine.
+    pub map_from_world: DAffine3,
+    /// The highest height.
+    top: f64,
+}
+
+impl PlacedHeights {
+    /// `heights` placed by `map_from_world`.
+    pub fn new(heights: Arc<HeightField>, map_from_world: DAffine3) -> Self {
+        let top = heights.heights().iter().copied().fold(f32::MIN, f32::max);
+        Self {
+            heights,
+            map_from_world,
+            top: f64::from(top),
+        }
+    }
+
+    /// The stretches of `[t0, t1]` along the ray `origin + t direction`
+    /// (world space) below the heights, as [`PlacedTerrainShadow::shaded`].
+    pub fn below(&self, origin: DVec3, direction: DVec3, range: (f64, f64)) -> Vec<(f64, f64)> {
+        below(
+            &self.heights,
+            self.top,
+            &self.map_from_world,
+            (origin, direction),
+            range,
+        )
+    }
+}
+
+/// The stretches of `[t0, t1]` along the world ray `(origin, direction)`
+/// below `grid`'s bilinear heights (highest `top`), placed by
+/// `map_from_world` (module docs).
+fn below(
+    grid: &HeightField,
+    top: f64,
+    map_from_world: &DAffine3,
+    (origin, direction): (DVec3, DVec3),
+    (t0, t1): (f64, f64),
+) -> Vec<(f64, f64)> {
+    let origin = map_from_world.transform_point3(origin);
+    let direction = map_from_world.transform_vector3(direction);
+    let [nx, nz] = grid.dims();
+    let last = DVec2::new((nx - 1) as f64, (nz - 1) as f64);
+    // The ray in grid units: g(t) = start + t e.
+    let start = (DVec2::new(origin.x, origin.z) - grid.origin()) / grid.spacing();
+    let e = DVec2::new(direction.x, direction.z) / grid.spacing();
+    let Some((t0, t1)) = within_map(start, e, last, origin.y, direction.y, top, (t0, t1)) else {
+        return Vec::new();
+    };
+    let mut shaded = Vec::new();
+    let mut open: Option<f64> = None;
+    let mut edge = |t: f64, dark: bool, shaded: &mut Vec<(f64, f64)>| match (open, dark) {
+        (None, true) => open = Some(t),
+        (Some(from), false) => {
+            if t > from {
+                shaded.push((from, t));
+            }
+            open = None;
+        }
+        _ => {}
+    };
+    let g0 = start + t0 * e;
+    // Where the ray leaves the cell across each axis.
+    let exit = |cell: DVec2, axis: usize| {
+        if e[axis] > 0.0 {
+            (cell[axis] + 1.0 - start[axis]) / e[axis]
+        } else if e[axis] < 0.0 {
+            (cell[axis] - start[axis]) / e[axis]
+        } else {
+            f64::INFINITY
+        }
+    };
+    let mut cell = DVec2::ZERO;
+    for axis in 0..2 {
+        let mut c = g0[axis].floor();
+        if e[axis] < 0.0 && c == g0[axis] {
+            c -= 1.0;
+        }
+        cell[axis] = c.clamp(0.0, last[axis] - 1.0);
+    }
+    let mut t = t0;
+    loop {
+        let next = DVec2::new(exit(cell, 0), exit(cell, 1));
+        let end = next.x.min(next.y).min(t1).max(t);
+        for (a, dark) in cell_pieces(grid, cell, start, e, origin.y, direction.y, t, end) {
+            edge(a, dark, &mut shaded);
+        }
+        if end >= t1 {
+            break;
+        }
+        let axis = usize::from(next.y < next.x);
+        cell[axis] += e[axis].signum();
+        if cell[axis] < 0.0 || cell[axis] > last[axis] - 1.0 {
+            break;
+        }
+        t = end;
+    }
+    edge(t1, false, &mut shaded);
+    shaded
 }
 
 /// `[t0, t1]` clipped to the map's extent (`g(t)` in `[0, last]` on both
@@ -160,7 +215,7 @@ fn within_map(
 /// the cell's quadratic `d(s)`, `s = t − ta` (module docs).
 #[allow(clippy::too_many_arguments)]
 fn cell_pieces(
-    grid: &super::HeightField,
+    grid: &HeightField,
     cell: DVec2,
     start: DVec2,
     e: DVec2,
