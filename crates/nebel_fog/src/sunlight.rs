@@ -12,9 +12,9 @@
 //! keeps the last map until the new one lands (the same frame under
 //! `HeavyBuilds::Blocking`). The phase and the colour follow the sun every
 //! frame; a sun with `shadow_maps_enabled` is also hidden by opaque meshes,
-//! through Bevy's shadow map of it. A fog without a sun colour, unsorted, or without cells has no
-//! map, no build and no `CellFogSunlight`: its shader variant is the unlit
-//! one.
+//! through Bevy's shadow map of it. A fog without a sun colour, unsorted,
+//! or without cells has no map, no build and no `CellFogSunlight`: its
+//! shader variant is the unlit one.
 
 use std::sync::Arc;
 use std::time::Instant;

@@ -59,8 +59,8 @@ pub struct CellFogSunlight {
     pub colour: Vec3,
     /// The Henyey-Greenstein asymmetry, clamped to ±0.99.
     pub asymmetry: f32,
-    /// Bevy's shadow map of the sun hides it from the fog behind opaque
-    /// meshes (the sun casts shadows, and the view has Bevy's lights).
+    /// The sun casts shadows (`shadow_maps_enabled`): in a view with Bevy's
+    /// lights, its shadow map hides it from the fog behind opaque meshes.
     pub shadows: bool,
 }
 

@@ -36,10 +36,11 @@
 //! Beyond the map's extent the terrain casts nothing. A sun that casts
 //! shadows (`shadow_maps_enabled`) is hidden by opaque meshes too, through
 //! Bevy's cascaded shadow map of it (`nebel_render::light_shadows`, with
-//! the light's depth and normal biases): its visibility is read at 32 equal steps of the
-//! stretch the cascades reach, each change bisected, and each stretch of one
-//! visibility `V` holds back `1 − V` of its closed form (where the terrain
-//! has not). Beyond the cascades' reach no mesh shades the fog.
+//! the light's depth and normal biases): its visibility is read at 32 equal
+//! steps of the stretch the cascades reach, each change bisected, and each
+//! stretch of one visibility `V` holds back `1 − V` of its closed form
+//! (where the terrain has not). Beyond the cascades' reach no mesh shades
+//! the fog.
 //!
 //! # Point and spot lights
 //!
