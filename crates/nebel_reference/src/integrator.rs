@@ -51,7 +51,7 @@ use nebel_core::field::DensityGrid;
 use nebel_core::fog_sunlight::FogSunlight;
 use nebel_core::joint_segment::{JointMedium, exact_joint_segment};
 use nebel_core::local_light::{LightResponse, LocalLight};
-use nebel_core::occluder::Occluder;
+use nebel_core::occluder::{Occluder, hides_sun, sun_lit_spans};
 use nebel_core::optics::{MODULATOR_PIECES, OpticalMode, PremultipliedRgba, henyey_greenstein};
 use nebel_core::segment::{exact_segment, rho_hat};
 use nebel_core::transfer::TransferFunction;
@@ -297,6 +297,10 @@ pub struct SegmentScattering {
     pub sun_direction: DVec3,
     /// The Henyey-Greenstein asymmetry `g`.
     pub asymmetry: f64,
+    /// The sun casts shadows: [`ReferenceScene::occluders`] hide it from the
+    /// medium behind them (Bevy's shadow map of it), which there scatters
+    /// the sky's light only.
+    pub shadows: bool,
 }
 
 impl ReferenceScene {
@@ -843,6 +847,9 @@ struct Medium<'a> {
     /// What shades the lights that cast shadows.
     occluders: &'a [Occluder],
     sunlight: Option<&'a FogSunlight>,
+    /// Toward the sun, where its light scattered by the medium is hidden by
+    /// the occluders (a sun that casts shadows).
+    shaded_sun: Option<DVec3>,
 }
 
 impl<'a> Medium<'a> {
@@ -857,7 +864,18 @@ impl<'a> Medium<'a> {
             response: scene.light_response.checked(),
             occluders: &scene.occluders,
             sunlight: scene.sunlight.as_ref().filter(|_| sorted),
+            shaded_sun: scene
+                .scattering
+                .filter(|scattering| sorted && scattering.shadows && !scene.occluders.is_empty())
+                .map(|scattering| scattering.sun_direction),
         }
+    }
+
+    /// Whether the occluders hide the sun from the point `p` (none hide it
+    /// from a medium whose sun casts no shadows).
+    fn sun_hidden(&self, p: DVec3) -> bool {
+        self.shaded_sun
+            .is_some_and(|sun| hides_sun(self.occluders, p, sun))
     }
 
     /// The local lights' colour where it scatters them, per unit of its
@@ -872,18 +890,24 @@ impl<'a> Medium<'a> {
         colour * f64::from(self.response.strength)
     }
 
-    /// The exact segment `s_front → s_back` of (modulated) `length`, lit.
-    fn segment(&self, s_front: f64, s_back: f64, length: f64) -> PremultipliedRgba {
+    /// The exact segment `s_front → s_back` of (modulated) `length`, lit
+    /// (its sunlight held back where `hidden`).
+    fn segment(&self, s_front: f64, s_back: f64, length: f64, hidden: bool) -> PremultipliedRgba {
         let segment = exact_segment(self.transfer_function, self.mode, s_front, s_back, length);
         self.light.map_or(segment, |(ambient, sunlight)| {
+            let sunlight = if hidden { 0.0 } else { sunlight };
             (ambient * segment.w + sunlight * segment.truncate()).extend(segment.w)
         })
     }
 
-    /// Its share of a joint segment over `piece`'s stretch `[t0, t1]`.
-    fn joint(&self, piece: &RayPiece, t0: f64, t1: f64) -> JointMedium<'_> {
+    /// Its share of a joint segment over `piece`'s stretch `[t0, t1]` (its
+    /// sunlight held back where `hidden`).
+    fn joint(&self, piece: &RayPiece, t0: f64, t1: f64, hidden: bool) -> JointMedium<'_> {
         let (s_front, s_back, length) = piece.part(t0, t1);
-        let (ambient, emission_weight) = self.light.unwrap_or((DVec3::ZERO, 1.0));
+        let (ambient, emission_weight) = match self.light {
+            Some((ambient, _)) if hidden => (ambient, 0.0),
+            light => light.unwrap_or((DVec3::ZERO, 1.0)),
+        };
         JointMedium {
             transfer_function: self.transfer_function,
             s_front,
@@ -957,6 +981,52 @@ fn in_scattered(media: &[Medium<'_>], active: &[RayPiece], ray: &Ray, t0: f64, t
     sum
 }
 
+/// The exact segment of the pieces `active` of `media` (each covering the
+/// stretch) over `[t0, t1]` along `ray`: one alone as its own exact segment,
+/// several as their joint segment; cut where the occluders hide the sun from
+/// a medium whose sun casts shadows, each part with its sunlight or without,
+/// the parts composited front to back.
+fn stretch_segment(
+    media: &[Medium<'_>],
+    active: &[RayPiece],
+    ray: &Ray,
+    t0: f64,
+    t1: f64,
+) -> PremultipliedRgba {
+    let mut cuts = vec![t0, t1];
+    for piece in active {
+        let medium = &media[piece.medium];
+        if let Some(sun) = medium.shaded_sun {
+            for (a, b) in sun_lit_spans(medium.occluders, sun, ray, (t0, t1)) {
+                cuts.extend([a, b]);
+            }
+        }
+    }
+    cuts.sort_by(f64::total_cmp);
+    cuts.dedup();
+    cuts.windows(2)
+        .filter(|pair| pair[1] > pair[0])
+        .fold(DVec4::ZERO, |colour, pair| {
+            let (a, b) = (pair[0], pair[1]);
+            let middle = ray.at(0.5 * (a + b));
+            let part = if let [piece] = active {
+                let medium = &media[piece.medium];
+                let (s_front, s_back, length) = piece.part(a, b);
+                medium.segment(s_front, s_back, length, medium.sun_hidden(middle))
+            } else {
+                let joint: Vec<JointMedium<'_>> = active
+                    .iter()
+                    .map(|piece| {
+                        let medium = &media[piece.medium];
+                        medium.joint(piece, a, b, medium.sun_hidden(middle))
+                    })
+                    .collect();
+                exact_joint_segment(&joint, b - a)
+            };
+            OpticalMode::Sorted.composite(colour, part)
+        })
+}
+
 /// Where a march puts the linear pieces of a volume along a ray.
 trait PieceSink {
     /// Takes the linear segment `s_front → s_back` of (modulated) `length`,
@@ -989,7 +1059,11 @@ impl PieceSink for March<'_> {
         let lit = |segment: PremultipliedRgba, t0: f64, t1: f64| {
             segment + in_scattered(&[medium], &[piece], &ray, t0, t1).extend(0.0)
         };
-        let whole = lit(medium.segment(s_front, s_back, length), t_front, t_back);
+        let whole = lit(
+            stretch_segment(&[medium], &[piece], &ray, t_front, t_back),
+            t_front,
+            t_back,
+        );
         let Some(fog) = self.fog else {
             self.colour = mode.composite(self.colour, whole);
             return;
@@ -1002,10 +1076,9 @@ impl PieceSink for March<'_> {
             whole,
             mode == OpticalMode::Sorted,
             |k, count| {
-                let at = |k: usize| s_front + (s_back - s_front) * k as f64 / count as f64;
                 let t_at = |k: usize| t_front + (t_back - t_front) * k as f64 / count as f64;
                 lit(
-                    medium.segment(at(k), at(k + 1), length / count as f64),
+                    stretch_segment(&[medium], &[piece], &ray, t_at(k), t_at(k + 1)),
                     t_at(k),
                     t_at(k + 1),
                 )
@@ -1112,17 +1185,8 @@ impl JointMarch<'_> {
             } else {
                 (t0 + (t1 - t0) * a, t0 + (t1 - t0) * b)
             };
-            let segment = if let [piece] = active {
-                let (s_front, s_back, length) = piece.part(ta, tb);
-                media[piece.medium].segment(s_front, s_back, length)
-            } else {
-                let joint: Vec<JointMedium<'_>> = active
-                    .iter()
-                    .map(|piece| media[piece.medium].joint(piece, ta, tb))
-                    .collect();
-                exact_joint_segment(&joint, tb - ta)
-            };
-            segment + in_scattered(media, active, &ray, ta, tb).extend(0.0)
+            stretch_segment(media, active, &ray, ta, tb)
+                + in_scattered(media, active, &ray, ta, tb).extend(0.0)
         };
         let coverage = |part: PremultipliedRgba| {
             if absorbs {
@@ -1453,6 +1517,7 @@ fn march_grid(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use glam::DVec2;
     use nebel_core::transfer::ControlPoint;
 
     /// κ = (1, 0.5, 0.25) everywhere; ρ = 2 everywhere.
@@ -1583,6 +1648,59 @@ mod tests {
             }
         }
         assert!(pixels.len() > 600, "only {} pixels checked", pixels.len());
+    }
+
+    /// The uniform box (κ = (1, 0.5, 0.25), ρ = 2) scattering a sun
+    /// straight up that casts shadows, a rectangle above hiding it from the
+    /// box's front half (z > 0): along each ray through the front and back
+    /// faces the first half of the chord scatters the sky's light only.
+    #[test]
+    fn an_occluder_hides_the_sun_from_the_part_of_a_scattering_box_below_it() {
+        let volume = ReferenceVolume::Grid(grid(5, |_| 0.5));
+        let mut scene = ReferenceScene::new(camera(), volume, constant_tf(), OpticalMode::Sorted);
+        let (ambient, sunlight) = (DVec3::new(0.1, 0.2, 0.3), 2.0);
+        scene.scattering = Some(SegmentScattering {
+            ambient,
+            sunlight,
+            sun_direction: DVec3::Y,
+            asymmetry: 0.0,
+            shadows: true,
+        });
+        scene.occluders = vec![Occluder::Rectangle {
+            centre: DVec3::new(0.0, 5.0, 5.0),
+            half_size: DVec2::new(10.0, 5.0),
+        }];
+        let image = render(&scene, None).unwrap();
+        let kappa = DVec3::new(1.0, 0.5, 0.25);
+        let pixels = box_pixels(&scene.camera, None);
+        for &(x, y, chord) in &pixels {
+            let alpha = 1.0 - (-chord).exp();
+            let (front, back) = (ambient * alpha, (ambient + sunlight * kappa) * alpha);
+            let colour = front + (1.0 - alpha) * back;
+            let expected = colour.extend(1.0 - (1.0 - alpha) * (1.0 - alpha));
+            let pixel = image.pixels[(y * 40 + x) as usize];
+            for c in 0..4 {
+                assert!(
+                    (f64::from(pixel[c]) - expected[c]).abs() < 1e-6,
+                    "({x}, {y}) {pixel:?} vs {expected}"
+                );
+            }
+        }
+        assert!(pixels.len() > 600, "only {} pixels checked", pixels.len());
+        // A sun without shadows lights the whole chord.
+        scene.scattering = scene.scattering.map(|scattering| SegmentScattering {
+            shadows: false,
+            ..scattering
+        });
+        let unshaded = render(&scene, None).unwrap();
+        let (x, y, chord) = pixels[pixels.len() / 2];
+        let alpha = 1.0 - (-2.0 * chord).exp();
+        let pixel = unshaded.pixels[(y * 40 + x) as usize];
+        let expected = (ambient + sunlight * kappa) * alpha;
+        assert!(
+            (f64::from(pixel[1]) - expected.y).abs() < 1e-6,
+            "{pixel:?} vs {expected}"
+        );
     }
 
     #[test]

@@ -36,6 +36,10 @@ pub struct CellScattering {
     /// a cloud between the eye and the sun gets a bright rim. Clamped to
     /// ±0.99 by the render system. Default 0.6.
     pub asymmetry: f32,
+    /// The sun casts shadows (`shadow_maps_enabled`): in a view with Bevy's
+    /// lights, its shadow map hides it from the volume behind opaque meshes
+    /// (the sky's light stays). Default false.
+    pub shadows: bool,
 }
 
 impl Default for CellScattering {
@@ -45,6 +49,7 @@ impl Default for CellScattering {
             sun_colour: Vec3::ONE,
             ambient_colour: Vec3::new(0.3, 0.33, 0.4),
             asymmetry: 0.6,
+            shadows: false,
         }
     }
 }

@@ -198,6 +198,7 @@ pub fn reference_image_with_terrain(
                 sunlight: f64::from(lighting.diffuse),
                 sun_direction: sun,
                 asymmetry: f64::from(asymmetry),
+                shadows: scene.sun_casts_shadows(),
             })
         });
         reference_scene.opaque_depth = opaque_depth.clone();

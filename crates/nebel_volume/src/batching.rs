@@ -208,6 +208,7 @@ pub(crate) fn update_batches(
         camera.and_then(|camera| Frustum::from_view_projection(camera.clip_from_world).ok());
     let sun = suns.iter().next();
     let sun_world = sun.map(|(transform, _)| transform.back().as_vec3());
+    let sun_shadows = sun.is_some_and(|(_, light)| light.shadow_maps_enabled);
     // The sky's colour tints the ambient light of single scattering.
     let sky = ambient.map_or(Vec3::ONE, |ambient| ambient.color.to_linear().to_vec3());
     let sunlight = CellSunlight {
@@ -251,8 +252,9 @@ pub(crate) fn update_batches(
         );
         let blend = frame.blend.map(|factor| CellBlend { factor });
         write_if_changed(&mut commands, entity, blend, drawn_blend);
-        let scattering = lighting
-            .and_then(|lighting| lighting.cell_scattering(sun_world.unwrap_or(Vec3::Y), sky));
+        let scattering = lighting.and_then(|lighting| {
+            lighting.cell_scattering(sun_world.unwrap_or(Vec3::Y), sky, sun_shadows)
+        });
         let current = drawn.is_some_and(|batch| {
             batch.mode == volume.mode
                 && batch.scattering == scattering

@@ -66,7 +66,9 @@ pub enum CloudLightModel {
     /// κ by an albedo colour), the density scales the segment length as in
     /// `Isotropic`, and every pixel weighs the sunlit part by the
     /// Henyey-Greenstein phase of its view ray: a cloud between the eye and
-    /// the sun gets a bright rim (`nebel_render::CellScattering`).
+    /// the sun gets a bright rim (`nebel_render::CellScattering`). A sun
+    /// that casts shadows is hidden from the cloud by opaque meshes too,
+    /// through Bevy's shadow map of it (the sky's light stays).
     Scattering {
         /// Henyey-Greenstein asymmetry `g` in (−1, 1); > 0 scatters forward.
         /// Clouds: about 0.6 to 0.85.
@@ -162,14 +164,21 @@ impl VolumeLighting {
     /// colour, Bevy's `GlobalAmbientLight` colour); `None` for the other
     /// models. The sun is white of strength `diffuse` (its own colour comes
     /// with `nebel_render::CellSunlight`), the sky `ambient` times its
-    /// colour.
-    pub fn cell_scattering(&self, sun_world: Vec3, sky: Vec3) -> Option<CellScattering> {
+    /// colour; a sun that casts shadows (`shadows`) is hidden by opaque
+    /// meshes through Bevy's shadow map of it.
+    pub fn cell_scattering(
+        &self,
+        sun_world: Vec3,
+        sky: Vec3,
+        shadows: bool,
+    ) -> Option<CellScattering> {
         match self.model {
             CloudLightModel::Scattering { asymmetry } => Some(CellScattering {
                 sun_direction: sun_world.normalize_or(Vec3::Y),
                 sun_colour: Vec3::splat(self.diffuse),
                 ambient_colour: self.ambient * sky,
                 asymmetry,
+                shadows,
             }),
             _ => None,
         }

@@ -66,7 +66,9 @@
 // SUN_SHADOWS (the sun casts shadows): V is also Bevy's cascaded shadow map
 // of the sun (nebel_render::light_shadows), read at the ends of each piece
 // and, where they differ, at its nodes: opaque meshes shade the fog too (a
-// shadow within a piece whose ends are lit may be missed).
+// shadow within a piece whose ends are lit may be missed). Under SCATTERING
+// (SCATTERED_SUN_SHADOWS) each modulator piece's sunlight, or an unmodulated
+// segment's, is weighted by V at its middle; the sky's light stays.
 //
 // FOG_LAYERS (the view has fog layers, Röttger 2004 §5.3): the segment is
 // seen through the fog in front of it. As maps of the radiance behind, a
@@ -457,6 +459,15 @@ fn piece_depth(s_front: f32, s_back: f32, m_front: f32, m_back: f32, piece_lengt
 }
 #endif
 
+#ifdef SCATTERED_SUN_SHADOWS
+// Bevy's shadow map of a scattering volume's sun at distance `t` along the
+// unit ray `direction` from the eye.
+fn sun_visible_at(direction: vec3<f32>, t: f32) -> f32 {
+    let p = view.camera_position.xyz + t * direction;
+    return sun_visibility(shadowed_sun(parameters.sun.xyz), p, t * dot(direction, view.forward.xyz));
+}
+#endif
+
 #ifdef GROUND_SUN
 // The clouds' transmittance toward the sun at the world point `p`.
 fn cloud_sun_transmittance(p: vec3<f32>) -> f32 {
@@ -647,7 +658,11 @@ fn segment_colour(
         let depth = modulated * pair_lookup(s_a, s_b).a;
         if depth > 0.0 {
             let piece_alpha = 1.0 - exp(-depth);
-            colour += transmittance * piece_alpha * colour_lookup(s_a, s_b, depth);
+            var piece_colour = colour_lookup(s_a, s_b, depth);
+#ifdef SCATTERED_SUN_SHADOWS
+            piece_colour *= sun_visible_at(direction, mix(t_front, t_back, 0.5 * (a + b)));
+#endif
+            colour += transmittance * piece_alpha * piece_colour;
             transmittance *= 1.0 - piece_alpha;
         }
     }
@@ -658,6 +673,9 @@ fn segment_colour(
     var colour = vec3(0.0);
     if optical_depth > 0.0 {
         colour = alpha * colour_lookup(s_front, s_back, optical_depth);
+#ifdef SCATTERED_SUN_SHADOWS
+        colour *= sun_visible_at(direction, middle);
+#endif
     }
 #endif
 #ifdef SCATTERING

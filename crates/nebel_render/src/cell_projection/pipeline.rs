@@ -191,8 +191,9 @@ pub struct CellProjectionPipelineKey {
     pub local_lights: bool,
     /// The sun lights the batch as ground fog (`crate::fog_sunlight`).
     pub ground_sun: bool,
-    /// A light that reaches the batch (a point or spot light, or a ground
-    /// fog's sun) reads Bevy's shadow map of it.
+    /// A light that reaches the batch (a point or spot light, or the sun
+    /// of a ground fog or a scattering volume) reads Bevy's shadow map of
+    /// it.
     pub light_shadows: bool,
 }
 
@@ -419,7 +420,8 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
                 .clone(),
             self.batch_layout.clone(),
         ];
-        if key.light_shadows && (key.local_lights || key.ground_sun) {
+        let sunlit = key.ground_sun || key.scattering;
+        if key.light_shadows && (key.local_lights || sunlit) {
             shader_defs.push("SHADOW_MAPS".into());
             shader_defs.push(ShaderDefVal::UInt("LIGHT_SHADOW_GROUP".into(), 2));
             layout.push(self.shadow_layout.clone());
@@ -428,6 +430,9 @@ impl SpecializedRenderPipeline for CellProjectionPipeline {
             }
             if key.ground_sun {
                 shader_defs.push("SUN_SHADOWS".into());
+            }
+            if key.scattering {
+                shader_defs.push("SCATTERED_SUN_SHADOWS".into());
             }
         }
         if key.local_lights || key.ground_sun {

@@ -90,13 +90,17 @@ impl ExtractedCellBatch {
 
     /// Whether a light that reaches the batch reads Bevy's shadow map of
     /// it: a point or spot light ([`resolve_light_shadows`]), or the sun of
-    /// a ground fog.
+    /// a ground fog or of a scattering volume.
     pub(super) fn is_shadowed(&self) -> bool {
         self.lights.is_shadowed()
             || self
                 .fog_sunlight
                 .as_ref()
                 .is_some_and(|sunlight| sunlight.shadows)
+            || self
+                .scattering
+                .as_ref()
+                .is_some_and(|scattering| scattering.shadows)
     }
 
     /// Whether the sun lights the batch as ground fog.
