@@ -584,6 +584,7 @@ mod tests {
             .back()
             .as_vec3();
         assert!(scattering.sun_direction.distance(sun) < 1e-6);
+        assert!(!scattering.shadows);
         assert!(
             scattered
                 .cells
@@ -593,6 +594,14 @@ mod tests {
                 .any(|v| v[3] < 0.3),
             "the transmittance has no ambient floor"
         );
+        // The sun's shadow maps on: the batch reads Bevy's map of it.
+        let mut suns = app.world_mut().query::<&mut DirectionalLight>();
+        suns.single_mut(app.world_mut())
+            .unwrap()
+            .shadow_maps_enabled = true;
+        app.update();
+        let shadowed = app.world().get::<CellBatch>(volume).unwrap();
+        assert!(shadowed.scattering.is_some_and(|s| s.shadows));
     }
 
     #[test]
