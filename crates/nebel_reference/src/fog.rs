@@ -100,7 +100,8 @@ pub struct ReferenceFog {
     /// on its colour ([`LightResponse::checked`]).
     pub light_response: LightResponse,
     /// Opaque shapes that shade the lights that cast shadows
-    /// ([`LocalLight::scattered_past`]), and the sun where it does.
+    /// ([`LocalLight::scattered_past`]), and the sun where it does (but for
+    /// a terrain, whose shadow of the sun is [`ReferenceFog::terrain`]).
     pub occluders: Vec<Occluder>,
     /// Cloud volumes whose shadow dims the sunlight in the fog (module
     /// docs).
@@ -205,9 +206,18 @@ impl ReferenceFog {
         let mut shaded = self.terrain.as_ref().map_or_else(Vec::new, |terrain| {
             terrain.shaded(ray.origin, ray.direction, (a, b))
         });
-        if sun.shadows && !self.occluders.is_empty() {
+        let meshes: Vec<Occluder> = if sun.shadows {
+            self.occluders
+                .iter()
+                .filter(|occluder| !matches!(occluder, Occluder::Terrain(_)))
+                .cloned()
+                .collect()
+        } else {
+            Vec::new()
+        };
+        if !meshes.is_empty() {
             let mut from = a;
-            for (lit_from, lit_to) in sun_lit_spans(&self.occluders, direction, ray, (a, b)) {
+            for (lit_from, lit_to) in sun_lit_spans(&meshes, direction, ray, (a, b)) {
                 shaded.push((from, lit_from));
                 from = lit_to;
             }
