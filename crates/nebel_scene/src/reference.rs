@@ -11,9 +11,11 @@
 //! scene's volumetric point and spot lights
 //! ([`SceneDescription::volumetric_lights`]), those that cast shadows shaded
 //! by the meshes and the terrain's bilinear heights (Bevy's shadow maps hold
-//! both; the sun's shadow of the terrain is its shadow heights). The sun in a sunlit ground fog and in
-//! fog layers is dimmed by the volumes that cast cloud shadows, exactly at
-//! every point.
+//! both). The sun in a sunlit ground fog and in fog layers is dimmed by the
+//! volumes that cast cloud shadows, exactly at every point, and cut by the
+//! terrain's shadow heights; a sun that casts shadows is hidden from them by
+//! the meshes too, and from scattering volumes by the meshes and the
+//! terrain.
 
 use std::path::Path;
 use std::sync::Arc;
