@@ -20,6 +20,10 @@ use crate::field::PlacedHeights;
 /// The equal steps in which [`lit_spans`] samples a stretch of a ray.
 pub const SHADOW_SAMPLES: u32 = 256;
 
+/// The farthest a terrain is walked along a ray: finite, so that a
+/// vertical ray's one cell ends.
+const TERRAIN_REACH: f64 = f64::MAX / 4.0;
+
 /// Bisections of a change of visibility between two samples: the crossing
 /// to 2⁻⁶⁰ of the step.
 const BISECTIONS: u32 = 60;
@@ -54,16 +58,30 @@ pub enum Occluder {
 }
 
 impl Occluder {
+    /// Whether it meets `ray` nearer than `distance` (at once for an origin
+    /// inside a box or sphere, or below a terrain).
+    pub fn meets(&self, ray: &Ray, distance: f64) -> bool {
+        match self {
+            Occluder::Terrain(terrain) => !terrain
+                .below(
+                    ray.origin,
+                    ray.direction,
+                    (0.0, distance.min(TERRAIN_REACH)),
+                )
+                .is_empty(),
+            _ => self.hit(ray).is_some_and(|t| t < distance),
+        }
+    }
+
     /// Distance along `ray` to its first surface in front of the origin
     /// (the exit for an origin inside a box or sphere).
     pub fn hit(&self, ray: &Ray) -> Option<f64> {
         match *self {
             Occluder::Terrain(ref terrain) => {
                 // Where the first stretch below begins, or ends for an
-                // origin below the surface (bounded: a finite range keeps
-                // a vertical ray's walk finite).
+                // origin below the surface.
                 let (from, to) = *terrain
-                    .below(ray.origin, ray.direction, (0.0, f64::MAX / 4.0))
+                    .below(ray.origin, ray.direction, (0.0, TERRAIN_REACH))
                     .first()?;
                 Some(if from > 0.0 { from } else { to })
             }
@@ -104,12 +122,9 @@ pub fn hides(occluders: &[Occluder], point: DVec3, light: DVec3) -> bool {
     let Some(ray) = Ray::new(point, light - point) else {
         return false;
     };
-    occluders.iter().any(|occluder| match occluder {
-        Occluder::Terrain(terrain) => !terrain
-            .below(ray.origin, ray.direction, (0.0, distance))
-            .is_empty(),
-        _ => occluder.hit(&ray).is_some_and(|t| t < distance),
-    })
+    occluders
+        .iter()
+        .any(|occluder| occluder.meets(&ray, distance))
 }
 
 /// The stretches of `[t_a, t_b]` along `ray` from which `light` is seen past
@@ -127,7 +142,7 @@ pub fn lit_spans(
 /// Whether one of `occluders` hides the sun, in the unit direction `sun`
 /// (toward it), from `point`.
 pub fn hides_sun(occluders: &[Occluder], point: DVec3, sun: DVec3) -> bool {
-    Ray::new(point, sun).is_some_and(|ray| occluders.iter().any(|o| o.hit(&ray).is_some()))
+    Ray::new(point, sun).is_some_and(|ray| occluders.iter().any(|o| o.meets(&ray, f64::MAX)))
 }
 
 /// The stretches of `[t_a, t_b]` along `ray` from which the sun, in the
