@@ -993,7 +993,26 @@ fn stretch_segment(
     t0: f64,
     t1: f64,
 ) -> PremultipliedRgba {
-    let mut cuts = vec![t0, t1];
+    // The exact segment over [a, b], each medium's sunlight held back
+    // where the occluders hide its sun from the middle.
+    let part = |a: f64, b: f64| {
+        let middle = ray.at(0.5 * (a + b));
+        if let [piece] = active {
+            let medium = &media[piece.medium];
+            let (s_front, s_back, length) = piece.part(a, b);
+            medium.segment(s_front, s_back, length, medium.sun_hidden(middle))
+        } else {
+            let joint: Vec<JointMedium<'_>> = active
+                .iter()
+                .map(|piece| {
+                    let medium = &media[piece.medium];
+                    medium.joint(piece, a, b, medium.sun_hidden(middle))
+                })
+                .collect();
+            exact_joint_segment(&joint, b - a)
+        }
+    };
+    let mut cuts = Vec::new();
     for piece in active {
         let medium = &media[piece.medium];
         if let Some(sun) = medium.shaded_sun {
@@ -1002,28 +1021,16 @@ fn stretch_segment(
             }
         }
     }
+    if cuts.is_empty() {
+        return part(t0, t1);
+    }
+    cuts.extend([t0, t1]);
     cuts.sort_by(f64::total_cmp);
     cuts.dedup();
     cuts.windows(2)
         .filter(|pair| pair[1] > pair[0])
         .fold(DVec4::ZERO, |colour, pair| {
-            let (a, b) = (pair[0], pair[1]);
-            let middle = ray.at(0.5 * (a + b));
-            let part = if let [piece] = active {
-                let medium = &media[piece.medium];
-                let (s_front, s_back, length) = piece.part(a, b);
-                medium.segment(s_front, s_back, length, medium.sun_hidden(middle))
-            } else {
-                let joint: Vec<JointMedium<'_>> = active
-                    .iter()
-                    .map(|piece| {
-                        let medium = &media[piece.medium];
-                        medium.joint(piece, a, b, medium.sun_hidden(middle))
-                    })
-                    .collect();
-                exact_joint_segment(&joint, b - a)
-            };
-            OpticalMode::Sorted.composite(colour, part)
+            OpticalMode::Sorted.composite(colour, part(pair[0], pair[1]))
         })
 }
 
