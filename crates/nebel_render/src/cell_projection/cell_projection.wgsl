@@ -459,12 +459,12 @@ fn piece_depth(s_front: f32, s_back: f32, m_front: f32, m_back: f32, piece_lengt
 }
 #endif
 
-#ifdef SCATTERED_SUN_SHADOWS
-// Bevy's shadow map of a scattering volume's sun at distance `t` along the
-// unit ray `direction` from the eye.
-fn sun_visible_at(direction: vec3<f32>, t: f32) -> f32 {
-    let p = view.camera_position.xyz + t * direction;
-    return sun_visibility(shadowed_sun(parameters.sun.xyz), p, t * dot(direction, view.forward.xyz));
+#ifdef SHADOW_MAPS
+// Bevy's shadow map of the directional light `sun` (shadowed_sun) at
+// distance `t` along the unit ray `direction` from the eye, its cascade the
+// one for that point's view depth.
+fn sun_visible_at(sun: u32, direction: vec3<f32>, t: f32) -> f32 {
+    return sun_visibility(sun, view.camera_position.xyz + t * direction, t * dot(direction, view.forward.xyz));
 }
 #endif
 
@@ -522,9 +522,7 @@ fn ground_sun_colour(
     let phase = henyey_greenstein(sun.w, dot(direction, sun.xyz));
 #ifdef SUN_SHADOWS
     let shadowing = shadowed_sun(sun.xyz);
-    let forward = dot(direction, view.forward.xyz);
-    let eye = view.camera_position.xyz;
-    var visible = sun_visibility(shadowing, eye + t_front * direction, t_front * forward);
+    var visible = sun_visible_at(shadowing, direction, t_front);
 #endif
     let pieces = f32(#{LIGHT_PIECES}u);
     let half = 0.5 * (t_back - t_front) / pieces;
@@ -537,8 +535,7 @@ fn ground_sun_colour(
         let sigma = depth / (2.0 * half);
         let middle = mix(t_front, t_back, a) + half;
 #ifdef SUN_SHADOWS
-        let t_end = middle + half;
-        let visible_end = sun_visibility(shadowing, eye + t_end * direction, t_end * forward);
+        let visible_end = sun_visible_at(shadowing, direction, middle + half);
         let changes = abs(visible_end - visible) >= SHADOW_EPSILON;
 #endif
         for (var k = 0u; k < 3u; k++) {
@@ -548,7 +545,7 @@ fn ground_sun_colour(
             var lit = ground_sun_transmittance(p);
 #ifdef SUN_SHADOWS
             if changes {
-                lit *= sun_visibility(shadowing, p, t * forward);
+                lit *= sun_visible_at(shadowing, direction, t);
             } else {
                 lit *= visible;
             }
@@ -639,6 +636,9 @@ fn segment_colour(
     let segment_length = t_back - t_front;
     let middle = 0.5 * (t_front + t_back);
 #ifdef SORTED
+#ifdef SCATTERED_SUN_SHADOWS
+    let sun_shadowing = shadowed_sun(parameters.sun.xyz);
+#endif
 #ifdef MODULATED
     // A modulator of 0 at both ends gives the segment no length: nothing to
     // look up (the modulators are clamped to [0, 1]).
@@ -660,7 +660,7 @@ fn segment_colour(
             let piece_alpha = 1.0 - exp(-depth);
             var piece_colour = colour_lookup(s_a, s_b, depth);
 #ifdef SCATTERED_SUN_SHADOWS
-            piece_colour *= sun_visible_at(direction, mix(t_front, t_back, 0.5 * (a + b)));
+            piece_colour *= sun_visible_at(sun_shadowing, direction, mix(t_front, t_back, 0.5 * (a + b)));
 #endif
             colour += transmittance * piece_alpha * piece_colour;
             transmittance *= 1.0 - piece_alpha;
@@ -674,7 +674,7 @@ fn segment_colour(
     if optical_depth > 0.0 {
         colour = alpha * colour_lookup(s_front, s_back, optical_depth);
 #ifdef SCATTERED_SUN_SHADOWS
-        colour *= sun_visible_at(direction, middle);
+        colour *= sun_visible_at(sun_shadowing, direction, middle);
 #endif
     }
 #endif
